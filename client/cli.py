@@ -1,0 +1,71 @@
+"""The ``facecast`` command line: one argparse tree, one module per command.
+
+Each module in ``facecast.client.commands`` registers its own sub-parser and imports
+its heavy dependencies only when run, so ``facecast --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from facecast import __version__
+
+# Order is the order shown by --help.
+COMMAND_MODULES = (
+    "demo",
+    "fit",
+    "clone",
+    "eval",
+    "bench",
+    "serve",
+    "rigs",
+    "stream",
+    "loadtest",
+)
+
+
+class CommandError(Exception):
+    """A user-facing failure of a command: printed as ``facecast: error: ...``, exit 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="facecast",
+        description="Real-time example-based facial expression cloning.",
+    )
+    parser.add_argument("--version", action="version", version=f"facecast {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in COMMAND_MODULES:
+        module = importlib.import_module(f"facecast.client.commands.{name}")
+        module.register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from facecast.rig.errors import RigError
+
+    handled: tuple[type[BaseException], ...] = (CommandError, RigError, OSError)
+    try:
+        from facecast.protocol.errors import ProtocolError
+
+        handled += (ProtocolError,)
+    except ImportError:  # pragma: no cover - protocol is part of the same distribution
+        pass
+    try:
+        result = args.func(args)
+    except KeyboardInterrupt:
+        print("facecast: interrupted", file=sys.stderr)
+        return 130
+    except handled as exc:
+        print(f"facecast {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    return int(result or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,4 @@
+"""One module per ``facecast`` sub-command; each defines ``register(subparsers)``.
+
+Modules import nothing heavy at import time: the work is imported inside ``run``.
+"""

@@ -1,0 +1,43 @@
+"""Exceptions of the numeric engine; every one carries a stable code.
+
+The tree::
+
+    RigError(code, message)            any failure of the engine
+    ├── ExampleSetError(RigError, ValueError)   bad example data (files, shapes, NaN, pairing)
+    ├── FitError(RigError, ValueError)          examples that cannot be fitted (collapsed, singular)
+    ├── RigFileError(RigError, ValueError)      unreadable, truncated, tampered or unknown-version rig file
+    └── InputError(RigError, ValueError)        bad runtime input to a fitted rig (shape, NaN/Inf)
+"""
+
+from __future__ import annotations
+
+
+class RigError(Exception):
+    """Base of the engine's errors; ``code`` is a stable machine-readable string."""
+
+    code = "rig_error"
+
+    def __init__(self, message: str, *, code: str | None = None) -> None:
+        super().__init__(message)
+        if code is not None:
+            self.code = code
+
+    @property
+    def message(self) -> str:
+        return str(self.args[0]) if self.args else ""
+
+
+class ExampleSetError(RigError, ValueError):
+    code = "bad_example_set"
+
+
+class FitError(RigError, ValueError):
+    code = "fit_failed"
+
+
+class RigFileError(RigError, ValueError):
+    code = "bad_rig_file"
+
+
+class InputError(RigError, ValueError):
+    code = "bad_input"

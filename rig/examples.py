@@ -1,0 +1,242 @@
+"""The example set: M paired key-expressions, source feature points and target meshes.
+
+Validates and normalises every array once, up front (shapes, dtypes, finiteness), so
+the fitting code can assume clean input. It does no file I/O; see ``loaders``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import ExampleSetError
+
+__all__ = ["ExampleSet"]
+
+
+def _finite_array(name: str, value, dtype, ndim: int, where: str = "") -> np.ndarray:
+    try:
+        array = np.asarray(value, dtype=dtype)
+    except (TypeError, ValueError) as exc:
+        raise ExampleSetError(f"{name}{where}: not a numeric array ({exc})") from None
+    if array.ndim != ndim:
+        raise ExampleSetError(
+            f"{name}{where}: expected {ndim} dimensions, got shape {array.shape}"
+        )
+    return array
+
+
+def _check_finite(name: str, array: np.ndarray, names: Sequence[str] | None = None) -> None:
+    """Raise naming the first example (or the array) holding a NaN or Inf."""
+    if np.isfinite(array).all():
+        return
+    if names is not None and array.ndim >= 2:
+        flat = np.isfinite(array.reshape(array.shape[0], -1)).all(axis=1)
+        bad = int(np.flatnonzero(~flat)[0])
+        raise ExampleSetError(
+            f"{name}: example {names[bad]!r} has NaN or Inf coordinates", code="non_finite"
+        )
+    raise ExampleSetError(f"{name}: NaN or Inf coordinates", code="non_finite")
+
+
+@dataclass(frozen=True, eq=False)
+class ExampleSet:
+    """M paired key-expressions; example 0 is always the neutral pair.
+
+    Parameters
+    ----------
+    names : sequence of M str
+        Key-expression names, unique; ``names[0]`` is the neutral.
+    source_points : (M, K, 3) float
+        Feature points of each source example; ``source_points[0]`` is the source
+        neutral S_B (thesis eq. 3.1).
+    target_vertices : (M, V, 3) float
+        Each target example's vertices; ``target_vertices[0]`` is the target base T_B.
+    target_faces : (F, 3) int
+        Triangles of the target mesh, 0-based.
+    source_vertices : (M, Vs, 3) float, optional
+        Full source meshes, when known (used for pictures and to select feature
+        points from source animations given as meshes).
+    source_faces : (Fs, 3) int, optional
+    feature_indices : (K,) int, optional
+        Vertex indices of the feature points in ``source_vertices``.
+    """
+
+    names: tuple[str, ...]
+    source_points: np.ndarray
+    target_vertices: np.ndarray
+    target_faces: np.ndarray
+    source_vertices: np.ndarray | None = None
+    source_faces: np.ndarray | None = None
+    feature_indices: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        names = tuple(str(n) for n in self.names)
+        if len(names) < 2:
+            raise ExampleSetError(
+                f"need at least 2 examples (the neutral and one key-expression), got {len(names)}",
+                code="too_few_examples",
+            )
+        seen: set[str] = set()
+        for name in names:
+            if not name:
+                raise ExampleSetError("example names must not be empty")
+            if name in seen:
+                raise ExampleSetError(f"example name {name!r} appears twice")
+            seen.add(name)
+        m = len(names)
+
+        src = _finite_array("source_points", self.source_points, np.float64, 3)
+        if src.shape[0] != m or src.shape[2] != 3:
+            raise ExampleSetError(
+                f"source_points: expected shape ({m}, K, 3) for {m} examples, got {src.shape}"
+            )
+        if src.shape[1] < 1:
+            raise ExampleSetError("source_points: need at least one feature point")
+        _check_finite("source_points", src, names)
+
+        tgt = _finite_array("target_vertices", self.target_vertices, np.float64, 3)
+        if tgt.shape[0] != m or tgt.shape[2] != 3:
+            raise ExampleSetError(
+                f"target_vertices: expected shape ({m}, V, 3) for {m} examples, got {tgt.shape}"
+            )
+        _check_finite("target_vertices", tgt, names)
+
+        faces = _finite_array("target_faces", self.target_faces, np.int64, 2)
+        if faces.size and (faces.shape[1] != 3):
+            raise ExampleSetError(f"target_faces: expected shape (F, 3), got {faces.shape}")
+        if faces.size and (faces.min() < 0 or faces.max() >= tgt.shape[1]):
+            raise ExampleSetError(
+                f"target_faces: indices must lie in [0, {tgt.shape[1]}), "
+                f"got [{faces.min()}, {faces.max()}]"
+            )
+
+        src_vertices = self.source_vertices
+        src_faces = self.source_faces
+        indices = self.feature_indices
+        if src_vertices is not None:
+            src_vertices = _finite_array("source_vertices", src_vertices, np.float64, 3)
+            if src_vertices.shape[0] != m or src_vertices.shape[2] != 3:
+                raise ExampleSetError(
+                    f"source_vertices: expected shape ({m}, Vs, 3), got {src_vertices.shape}"
+                )
+            _check_finite("source_vertices", src_vertices, names)
+        if src_faces is not None:
+            src_faces = _finite_array("source_faces", src_faces, np.int64, 2)
+            if src_vertices is None:
+                raise ExampleSetError("source_faces given without source_vertices")
+            if src_faces.size and (src_faces.min() < 0 or src_faces.max() >= src_vertices.shape[1]):
+                raise ExampleSetError("source_faces: indices out of range of source_vertices")
+        if indices is not None:
+            indices = _finite_array("feature_indices", indices, np.int64, 1)
+            if indices.shape[0] != src.shape[1]:
+                raise ExampleSetError(
+                    f"feature_indices: {indices.shape[0]} indices for {src.shape[1]} feature points"
+                )
+            if src_vertices is not None and (
+                indices.min() < 0 or indices.max() >= src_vertices.shape[1]
+            ):
+                raise ExampleSetError(
+                    f"feature_indices: indices must lie in [0, {src_vertices.shape[1]}), "
+                    f"got [{indices.min()}, {indices.max()}]",
+                    code="index_out_of_range",
+                )
+
+        object.__setattr__(self, "names", names)
+        object.__setattr__(self, "source_points", src)
+        object.__setattr__(self, "target_vertices", tgt)
+        object.__setattr__(self, "target_faces", faces.reshape(-1, 3))
+        object.__setattr__(self, "source_vertices", src_vertices)
+        object.__setattr__(self, "source_faces", src_faces)
+        object.__setattr__(self, "feature_indices", indices)
+
+    @classmethod
+    def from_source_meshes(
+        cls,
+        names: Sequence[str],
+        source_vertices,
+        feature_indices,
+        target_vertices,
+        target_faces,
+        *,
+        source_faces=None,
+    ) -> ExampleSet:
+        """Build from full source meshes (M, Vs, 3) and 0-based feature vertex indices (K,)."""
+        src = _finite_array("source_vertices", source_vertices, np.float64, 3)
+        idx = _finite_array("feature_indices", feature_indices, np.int64, 1)
+        if idx.size == 0:
+            raise ExampleSetError("feature_indices: need at least one index")
+        if idx.min() < 0 or idx.max() >= src.shape[1]:
+            raise ExampleSetError(
+                f"feature_indices: indices must lie in [0, {src.shape[1]}) for a source mesh "
+                f"of {src.shape[1]} vertices, got [{idx.min()}, {idx.max()}]",
+                code="index_out_of_range",
+            )
+        return cls(
+            names=tuple(names),
+            source_points=src[:, idx, :],
+            target_vertices=target_vertices,
+            target_faces=target_faces,
+            source_vertices=src,
+            source_faces=source_faces,
+            feature_indices=idx,
+        )
+
+    # -- derived views -----------------------------------------------------------------
+    @property
+    def num_examples(self) -> int:
+        return len(self.names)
+
+    @property
+    def num_points(self) -> int:
+        return int(self.source_points.shape[1])
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.target_vertices.shape[1])
+
+    @property
+    def source_neutral(self) -> np.ndarray:
+        """(K, 3) source base feature points S_B."""
+        return self.source_points[0]
+
+    @property
+    def target_neutral(self) -> np.ndarray:
+        """(V, 3) target base vertices T_B."""
+        return self.target_vertices[0]
+
+    def subset(self, names: Sequence[str]) -> ExampleSet:
+        """A new set keeping the neutral and the named examples, in the given order."""
+        index = {n: i for i, n in enumerate(self.names)}
+        missing = [n for n in names if n not in index]
+        if missing:
+            raise ExampleSetError(f"no example named {missing[0]!r}")
+        keep = [0] + [index[n] for n in names if index[n] != 0]
+        pick = np.asarray(keep)
+        return ExampleSet(
+            names=tuple(self.names[i] for i in keep),
+            source_points=self.source_points[pick],
+            target_vertices=self.target_vertices[pick],
+            target_faces=self.target_faces,
+            source_vertices=None if self.source_vertices is None else self.source_vertices[pick],
+            source_faces=self.source_faces,
+            feature_indices=self.feature_indices,
+        )
+
+    def save_npz(self, path) -> None:
+        """Write the set as one ``.npz`` (no pickles), readable by ``load_example_set``."""
+        arrays = {
+            "names": np.asarray(self.names, dtype=str),
+            "source_points": self.source_points,
+            "target_vertices": self.target_vertices.astype(np.float32),
+            "target_faces": self.target_faces.astype(np.int32),
+        }
+        if self.source_vertices is not None:
+            arrays["source_vertices"] = self.source_vertices.astype(np.float32)
+        if self.source_faces is not None:
+            arrays["source_faces"] = self.source_faces.astype(np.int32)
+        if self.feature_indices is not None:
+            arrays["feature_indices"] = self.feature_indices.astype(np.int64)
+        np.savez_compressed(path, **arrays)
