@@ -6,12 +6,26 @@ or client, and does no networking.
 
 from .errors import ExampleSetError, FitError, InputError, RigError, RigFileError
 from .examples import ExampleSet
+from .fit import FitReport, IdentifiabilityWarning, fit
+from .kernels import KERNELS
+from .pose import align_points, similarity_transform
+from .rig import Rig
+from .rigfile import load_rig, rig_from_bytes
 
 __all__ = [
+    "KERNELS",
     "ExampleSet",
     "ExampleSetError",
     "FitError",
+    "FitReport",
+    "IdentifiabilityWarning",
     "InputError",
+    "Rig",
     "RigError",
     "RigFileError",
+    "align_points",
+    "fit",
+    "load_rig",
+    "rig_from_bytes",
+    "similarity_transform",
 ]

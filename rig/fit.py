@@ -1,0 +1,314 @@
+"""Fitting a rig: parameterization, PCA and cardinal-basis weight functions (thesis ch. 3).
+
+Everything that does not depend on a frame is computed here, once; evaluation lives in
+``rig.Rig``. No file I/O.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+
+from .errors import FitError
+from .examples import ExampleSet
+from .kernels import KERNELS, evaluate_kernel, kernel_slope
+from .rig import Rig, WeightModel
+
+__all__ = ["CLAMP_MODES", "FitReport", "IdentifiabilityWarning", "fit"]
+
+CLAMP_MODES = (None, "nonneg", "unit")
+
+# Parameter vectors closer than this, relative to the spread of all examples, are taken
+# to coincide: the radial system is singular there whatever the kernel.
+COINCIDE_RELATIVE = 1e-4
+# Examples whose nearest neighbour is closer than this fraction of the median nearest
+# distance collapse together: distinguishable only in the absence of any noise.
+COLLAPSE_RELATIVE = 0.05
+# A radial system worse conditioned than this is not solved unregularised.
+MAX_CONDITION = 1e10
+
+
+class IdentifiabilityWarning(UserWarning):
+    """Some examples lie so close in parameter space that noise makes them indistinguishable."""
+
+
+@dataclass
+class FitReport:
+    """What ``fit`` found: the numbers ``facecast fit`` prints and the rig file keeps."""
+
+    num_examples: int
+    num_points: int
+    num_vertices: int
+    kernel: str
+    noise: float
+    pca_threshold: float
+    eigenvalues: list[float]
+    components_kept: int
+    condition_number: float
+    linear_ridge: float
+    fit_seconds: float
+    # Per example: distance to the nearest other example in the kept space, and its name.
+    nearest_distance: list[float] = field(default_factory=list)
+    nearest_name: list[str] = field(default_factory=list)
+    # Per example: nearest distance / noise (inf without noise): how many noise standard
+    # deviations separate the example from its nearest neighbour.
+    separation_snr: list[float] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    # How much landmark noise of unit standard deviation moves the weights (RMS over the
+    # examples): the cost of the kept components.
+    noise_gain: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+def _sanitize(example_set, kernel, noise, pca_threshold, ridge, clamp):
+    if not isinstance(example_set, ExampleSet):
+        raise TypeError(f"expected an ExampleSet, got {type(example_set).__name__}")
+    if kernel not in KERNELS:
+        raise FitError(f"unknown kernel {kernel!r}; expected one of {', '.join(KERNELS)}")
+    noise = float(noise)
+    if not np.isfinite(noise) or noise < 0:
+        raise FitError(f"noise must be a finite number >= 0, got {noise}")
+    pca_threshold = 1e-10 if pca_threshold is None else float(pca_threshold)
+    if not (0.0 <= pca_threshold < 1.0):
+        raise FitError(
+            f"pca_threshold is relative to the largest eigenvalue: expected [0, 1), got "
+            f"{pca_threshold}"
+        )
+    if ridge is not None:
+        ridge = float(ridge)
+        if not np.isfinite(ridge) or ridge < 0:
+            raise FitError(f"ridge must be a finite number >= 0, got {ridge}")
+    if clamp not in CLAMP_MODES:
+        raise FitError(f"clamp must be one of {CLAMP_MODES}, got {clamp!r}")
+    return kernel, noise, pca_threshold, ridge, clamp
+
+
+def _pca(displacements: np.ndarray, relative_threshold: float):
+    """Eq. 3.2-3.7: centre, eigen-decompose the covariance, keep the significant axes.
+
+    Returns mean (3K,), feature matrix F (n, 3K), eigenvalues (all, descending).
+    """
+    mean = displacements.mean(axis=0)  # eq. 3.4
+    centred = displacements - mean
+    # The SVD of the centred data gives the covariance's eigenvectors (eq. 3.5) without
+    # forming the 3K x 3K matrix, and more accurately.
+    _, singular, vt = np.linalg.svd(centred, full_matrices=False)
+    eigenvalues = singular**2 / max(len(displacements) - 1, 1)
+    if eigenvalues[0] <= 0:
+        raise FitError(
+            "no example moves any feature point: every source example equals the neutral; "
+            "choose feature points that the expressions move"
+        )
+    keep = eigenvalues > relative_threshold * eigenvalues[0]
+    return mean, vt[keep], eigenvalues
+
+
+def _nearest(params: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    diff = params[:, None, :] - params[None, :, :]
+    dist = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
+    masked = dist + np.diag(np.full(len(params), np.inf))
+    nearest = masked.argmin(axis=1)
+    return dist, masked[np.arange(len(params)), nearest], nearest
+
+
+def _check_separation(names, nearest_distance, nearest, spread) -> None:
+    tol = COINCIDE_RELATIVE * spread
+    bad = np.flatnonzero(nearest_distance <= tol)
+    if bad.size:
+        i = int(bad[0])
+        j = int(nearest[i])
+        raise FitError(
+            f"examples {names[i]!r} and {names[j]!r} have coinciding feature-point parameters "
+            f"(distance {nearest_distance[i]:.3g}, {nearest_distance[i] / spread:.2g} of the "
+            "examples' spread): no feature point tells them apart, so the radial system is "
+            "singular. Add feature points that these expressions move, or drop one of them.",
+            code="examples_coincide",
+        )
+
+
+def fit(
+    example_set: ExampleSet,
+    *,
+    pca_threshold: float | None = None,
+    noise: float = 0.0,
+    kernel: str = "bspline",
+    ridge: float | None = None,
+    clamp: str | None = None,
+    stable_points=None,
+    align_scale: bool = False,
+) -> Rig:
+    """Fit the cardinal-basis weight functions of an example set (thesis section 3).
+
+    Parameters
+    ----------
+    example_set : ExampleSet
+        M paired examples, the neutral first.
+    pca_threshold : float, optional
+        Drop principal axes whose eigenvalue is below this fraction of the largest (the
+        thesis's threshold, made scale-free). Default 1e-10: only numerically empty axes.
+    noise : float
+        Expected landmark noise (standard deviation per coordinate, source units). 0 is
+        exact interpolation, the thesis's behaviour. Above 0 the linear and radial parts are
+        regularised for the error they would pass on from noise of that size (a ridge of
+        M * noise^2 on the hyperplanes; on each radial term, scaled by its slope), trading
+        exactness at the examples for stability between them.
+    kernel : {"bspline", "gaussian", "thin_plate", "linear"}
+        Radial cross-section; the thesis's cubic B-spline by default.
+    ridge : float, optional
+        Override the regularisation strength derived from ``noise`` (finer knob).
+    clamp : {None, "nonneg", "unit"}
+        Clip the non-neutral weights to >= 0 or to [0, 1] at evaluation; the neutral's
+        weight keeps the sum at 1.
+    stable_points : (S,) int, optional
+        Feature points used for head-pose alignment (``Rig.weights(align=True)``); all
+        points when omitted.
+    align_scale : bool
+        Whether head-pose alignment also removes uniform scale.
+    """
+    started = time.perf_counter()
+    kernel, noise, pca_threshold, ridge, clamp = _sanitize(
+        example_set, kernel, noise, pca_threshold, ridge, clamp
+    )
+    names = example_set.names
+    m = example_set.num_examples
+    k = example_set.num_points
+
+    source_neutral = example_set.source_neutral
+    displacements = (example_set.source_points - source_neutral).reshape(m, 3 * k)  # eq. 3.1
+    mean, features, eigenvalues = _pca(displacements, pca_threshold)
+    params = (displacements - mean) @ features.T  # eq. 3.7, (M, n)
+    n = params.shape[1]
+
+    dist, nearest_distance, nearest = _nearest(params)
+    spread = float(dist.max())
+    _check_separation(names, nearest_distance, nearest, spread)
+
+    noise_var = noise * noise
+    lam = m * noise_var if ridge is None else ridge
+
+    # Linear approximation, eq. 3.10: hyperplanes over [1, p] fitted to w_i(p_j) = delta_ij.
+    # The ridge leaves the constant column free, so the hyperplanes still sum to 1.
+    design = np.hstack([np.ones((m, 1)), params])
+    identity = np.eye(m)
+    if lam > 0:
+        reg = np.sqrt(lam) * np.hstack([np.zeros((n, 1)), np.eye(n)])
+        linear_coeffs = scipy.linalg.lstsq(
+            np.vstack([design, reg]), np.vstack([identity, np.zeros((n, m))])
+        )[0]
+    else:
+        linear_coeffs = scipy.linalg.lstsq(design, identity)[0]
+    residuals = identity - design @ linear_coeffs  # eq. 3.11, residuals[j, i] at example j
+
+    # Radial part, eq. 3.12-3.13: R_j(p) = B(|p - p_j| / alpha_j), alpha_j = nearest distance,
+    # so the B-spline's support radius (2 alpha_j) is twice that distance.
+    alpha = nearest_distance.copy()
+    basis = evaluate_kernel(kernel, dist / alpha[None, :])  # basis[j, l] = R_l(p_j)
+    condition = float(np.linalg.cond(basis))
+    if lam > 0:
+        # Each radial term passes on noise in proportion to its slope / alpha_l.
+        slope = kernel_slope(kernel) / alpha
+        penalty = np.diag(lam * slope * slope)
+        radial_coeffs = scipy.linalg.solve(
+            basis.T @ basis + penalty, basis.T @ residuals, assume_a="pos"
+        )
+    else:
+        if not np.isfinite(condition) or condition > MAX_CONDITION:
+            raise FitError(
+                f"the radial system is near-singular (condition number {condition:.3g} > "
+                f"{MAX_CONDITION:.0e}) with kernel {kernel!r}; use the cubic B-spline, set "
+                "--noise to regularise, or add feature points",
+                code="singular_system",
+            )
+        radial_coeffs = scipy.linalg.solve(basis, residuals)
+
+    model = WeightModel.build(
+        kernel=kernel,
+        source_neutral=source_neutral,
+        mean=mean,
+        features=features,
+        params=params,
+        linear_coeffs=linear_coeffs,
+        radial_coeffs=radial_coeffs,
+        alpha=alpha,
+        clamp=clamp,
+    )
+
+    report = FitReport(
+        num_examples=m,
+        num_points=k,
+        num_vertices=example_set.num_vertices,
+        kernel=kernel,
+        noise=noise,
+        pca_threshold=pca_threshold,
+        eigenvalues=[float(e) for e in eigenvalues],
+        components_kept=n,
+        condition_number=condition,
+        linear_ridge=float(lam),
+        fit_seconds=0.0,
+        nearest_distance=[float(d) for d in nearest_distance],
+        nearest_name=[names[int(j)] for j in nearest],
+        separation_snr=[float(d / noise) if noise > 0 else float("inf") for d in nearest_distance],
+    )
+    _warn_collapsing(report, names, noise)
+    report.noise_gain = _noise_gain(model, params)
+
+    rig = Rig.from_fit(
+        names=names,
+        model=model,
+        target_vertices=example_set.target_vertices,
+        target_faces=example_set.target_faces,
+        feature_indices=example_set.feature_indices,
+        source_preview=(
+            None
+            if example_set.source_vertices is None or example_set.source_faces is None
+            else (example_set.source_vertices[0], example_set.source_faces)
+        ),
+        stable_points=stable_points,
+        align_scale=align_scale,
+        report={},
+    )
+    report.fit_seconds = time.perf_counter() - started
+    rig.fit_report = report.to_dict()
+    return rig
+
+
+def _warn_collapsing(report: FitReport, names, noise: float) -> None:
+    nearest = np.asarray(report.nearest_distance)
+    median = float(np.median(nearest))
+    for i, d in enumerate(nearest):
+        other = report.nearest_name[i]
+        if d < COLLAPSE_RELATIVE * median:
+            msg = (
+                f"examples {names[i]!r} and {other!r} nearly collapse together: distance "
+                f"{d:.3g} is {d / median:.2g} of the median nearest distance; landmark noise "
+                "will swap their weights. Add feature points that tell them apart, or drop one."
+            )
+        elif noise > 0 and d < 3.0 * noise * np.sqrt(2.0):
+            msg = (
+                f"example {names[i]!r} is within {d / noise:.2g} noise standard deviations of "
+                f"{other!r}: at --noise {noise:g} the two cannot be told apart reliably"
+            )
+        else:
+            continue
+        if msg not in report.warnings:
+            report.warnings.append(msg)
+            warnings.warn(msg, IdentifiabilityWarning, stacklevel=3)
+
+
+def _noise_gain(model: WeightModel, params: np.ndarray) -> float:
+    """RMS change of the weights per unit landmark noise, by finite differences at the examples."""
+    eps = 1e-6 * max(float(np.abs(params).max()), 1e-12)
+    base = model.weights_from_params(params)
+    total = 0.0
+    for axis in range(params.shape[1]):
+        shifted = params.copy()
+        shifted[:, axis] += eps
+        grad = (model.weights_from_params(shifted) - base) / eps
+        total += float((grad * grad).sum())
+    return float(np.sqrt(total / len(params)))

@@ -1,0 +1,501 @@
+"""glTF 2.0 binary (GLB) export of a blend-shape rig and import of a mesh's morph targets.
+
+Writes one mesh with one morph target per example (plus an optional weights animation)
+and reads morph targets back for the example-set loader; it does no fitting or blending.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import struct
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ExampleSetError, InputError
+
+__all__ = ["export_glb", "read_glb_morph_targets"]
+
+_GLB_MAGIC = 0x46546C67  # b"glTF"
+_CHUNK_JSON = 0x4E4F534A
+_CHUNK_BIN = 0x004E4942
+_ARRAY_BUFFER = 34962
+_ELEMENT_ARRAY_BUFFER = 34963
+_FLOAT = 5126
+_UNSIGNED_INT = 5125
+_TRIANGLES = 4
+
+_COMPONENT_DTYPES = {
+    5120: np.int8,
+    5121: np.uint8,
+    5122: np.int16,
+    5123: np.uint16,
+    5125: np.uint32,
+    5126: np.float32,
+}
+_TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+
+
+# -- export ----------------------------------------------------------------------------
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float
+    faces : (F, 3) int
+
+    Returns
+    -------
+    (V, 3) float32
+        Unit normals; vertices on no (or only degenerate) triangles get +y, because
+        glTF requires every NORMAL to have unit length.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    tri = v[faces]
+    # The cross product's length is twice the triangle area: summing it weights by area.
+    face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normals = np.zeros_like(v)
+    for corner in range(3):
+        np.add.at(normals, faces[:, corner], face_normals)
+    length = np.linalg.norm(normals, axis=1)
+    ok = length > 1e-20
+    normals[ok] /= length[ok, None]
+    normals[~ok] = (0.0, 1.0, 0.0)
+    return normals.astype(np.float32)
+
+
+def _sanitize_export(neutral, faces, deltas, names, weights, fps):
+    neutral = np.asarray(neutral, dtype=np.float64)
+    if neutral.ndim != 2 or neutral.shape[1] != 3 or neutral.shape[0] < 1:
+        raise InputError(f"export_glb: expected neutral of shape (V, 3), got {neutral.shape}")
+    v = neutral.shape[0]
+    faces = np.asarray(faces)
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] < 1:
+        raise InputError(f"export_glb: expected faces of shape (F, 3), got {faces.shape}")
+    if not np.issubdtype(faces.dtype, np.integer):
+        raise InputError(f"export_glb: faces must be integers, got {faces.dtype}")
+    if faces.min() < 0 or faces.max() >= v:
+        raise InputError(f"export_glb: face indices must lie in [0, {v})")
+    deltas = np.asarray(deltas, dtype=np.float64)
+    if deltas.ndim == 2 and deltas.shape[1] == 3 * v:
+        deltas = deltas.reshape(deltas.shape[0], v, 3)
+    if deltas.ndim != 3 or deltas.shape[1:] != (v, 3):
+        raise InputError(f"export_glb: expected deltas of shape (M, {v}, 3), got {deltas.shape}")
+    m = deltas.shape[0]
+    names = [str(n) for n in names]
+    if len(names) != m:
+        raise InputError(f"export_glb: {len(names)} names for {m} morph targets")
+    if not (np.isfinite(neutral).all() and np.isfinite(deltas).all()):
+        raise InputError("export_glb: NaN or Inf in neutral or deltas")
+    fps = float(fps)
+    if not (np.isfinite(fps) and fps > 0):
+        raise InputError(f"export_glb: fps must be positive, got {fps}")
+    if weights is not None:
+        weights = np.asarray(weights, dtype=np.float64)
+        if weights.ndim != 2 or weights.shape[1] != m or weights.shape[0] < 1:
+            raise InputError(f"export_glb: expected weights of shape (F, {m}), got {weights.shape}")
+        if not np.isfinite(weights).all():
+            raise InputError("export_glb: NaN or Inf in weights")
+    return neutral, faces.astype(np.uint32), deltas, names, weights, fps
+
+
+class _BlobWriter:
+    """Appends 4-byte-aligned buffer views and their accessors to a glTF document."""
+
+    def __init__(self, doc: dict) -> None:
+        self.doc = doc
+        self.parts: list[bytes] = []
+        self.size = 0
+
+    def add(self, array: np.ndarray, *, type_: str, target: int | None, minmax: bool) -> int:
+        data = np.ascontiguousarray(array)
+        raw = data.tobytes()
+        view = {"buffer": 0, "byteOffset": self.size, "byteLength": len(raw)}
+        if target is not None:
+            view["target"] = target
+        self.parts.append(raw)
+        self.size += len(raw)
+        pad = (-self.size) % 4
+        if pad:
+            self.parts.append(b"\0" * pad)
+            self.size += pad
+        self.doc["bufferViews"].append(view)
+        component = _FLOAT if data.dtype == np.float32 else _UNSIGNED_INT
+        count = data.size // _TYPE_SIZES[type_]
+        accessor = {
+            "bufferView": len(self.doc["bufferViews"]) - 1,
+            "componentType": component,
+            "count": int(count),
+            "type": type_,
+        }
+        if minmax:
+            cols = data.reshape(accessor["count"], -1)
+            accessor["min"] = [float(x) for x in cols.min(axis=0)]
+            accessor["max"] = [float(x) for x in cols.max(axis=0)]
+        self.doc["accessors"].append(accessor)
+        return len(self.doc["accessors"]) - 1
+
+    def blob(self) -> bytes:
+        return b"".join(self.parts)
+
+
+def export_glb(
+    neutral,
+    faces,
+    deltas,
+    names: Sequence[str],
+    *,
+    weights=None,
+    fps: float = 60.0,
+    normals: bool = True,
+) -> bytes:
+    """Encode a target mesh and its examples as a GLB with morph targets.
+
+    Parameters
+    ----------
+    neutral : (V, 3) float
+        Target neutral vertices (the base mesh).
+    faces : (F, 3) int
+        Triangles, 0-based.
+    deltas : (M, V, 3) or (M, 3V) float
+        Per-example vertex offsets from the neutral; all M are written, including a
+        zero-delta neutral, so that weight index i is morph target i.
+    names : sequence of M str
+        Morph target names, stored in ``mesh.extras.targetNames``.
+    weights : (F_frames, M) float, optional
+        Per-frame weights, written as an animation with a LINEAR sampler over
+        t = frame / fps targeting the node's ``weights``.
+    fps : float
+    normals : bool
+        Write NORMAL computed from the neutral.
+
+    Returns
+    -------
+    bytes
+        A glTF 2.0 binary file.
+    """
+    neutral, faces, deltas, names, weights, fps = _sanitize_export(
+        neutral, faces, deltas, names, weights, fps
+    )
+    m = len(names)
+    doc: dict = {
+        "asset": {"version": "2.0", "generator": "facecast"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "name": "face"}],
+        "accessors": [],
+        "bufferViews": [],
+    }
+    writer = _BlobWriter(doc)
+    indices = writer.add(
+        faces.reshape(-1), type_="SCALAR", target=_ELEMENT_ARRAY_BUFFER, minmax=False
+    )
+    attributes = {
+        "POSITION": writer.add(
+            neutral.astype(np.float32), type_="VEC3", target=_ARRAY_BUFFER, minmax=True
+        )
+    }
+    if normals:
+        attributes["NORMAL"] = writer.add(
+            vertex_normals(neutral, faces.astype(np.int64)),
+            type_="VEC3",
+            target=_ARRAY_BUFFER,
+            minmax=False,
+        )
+    targets = [
+        {
+            "POSITION": writer.add(
+                deltas[i].astype(np.float32), type_="VEC3", target=_ARRAY_BUFFER, minmax=True
+            )
+        }
+        for i in range(m)
+    ]
+    doc["meshes"] = [
+        {
+            "name": "face",
+            "primitives": [
+                {
+                    "attributes": attributes,
+                    "indices": indices,
+                    "mode": _TRIANGLES,
+                    "targets": targets,
+                }
+            ],
+            "weights": [0.0] * m,
+            "extras": {"targetNames": names},
+        }
+    ]
+    if weights is not None:
+        times = (np.arange(weights.shape[0], dtype=np.float64) / fps).astype(np.float32)
+        t_in = writer.add(times, type_="SCALAR", target=None, minmax=True)
+        w_out = writer.add(
+            weights.astype(np.float32).reshape(-1), type_="SCALAR", target=None, minmax=False
+        )
+        doc["animations"] = [
+            {
+                "name": "clone",
+                "samplers": [{"input": t_in, "output": w_out, "interpolation": "LINEAR"}],
+                "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}],
+            }
+        ]
+    blob = writer.blob()
+    doc["buffers"] = [{"byteLength": len(blob)}]
+    return _pack_glb(doc, blob)
+
+
+def _pack_glb(doc: dict, blob: bytes) -> bytes:
+    json_bytes = json.dumps(doc, separators=(",", ":")).encode("utf-8")
+    json_bytes += b" " * ((-len(json_bytes)) % 4)
+    blob += b"\0" * ((-len(blob)) % 4)
+    total = 12 + 8 + len(json_bytes) + 8 + len(blob)
+    return b"".join(
+        [
+            struct.pack("<III", _GLB_MAGIC, 2, total),
+            struct.pack("<II", len(json_bytes), _CHUNK_JSON),
+            json_bytes,
+            struct.pack("<II", len(blob), _CHUNK_BIN),
+            blob,
+        ]
+    )
+
+
+# -- import ----------------------------------------------------------------------------
+
+
+def _load_document(path_or_bytes, label: str):
+    import pygltflib  # deferred: only the loader needs it
+
+    try:
+        if isinstance(path_or_bytes, bytes | bytearray | memoryview):
+            data = bytes(path_or_bytes)
+            if data[:4] == b"glTF":
+                gltf = pygltflib.GLTF2.load_from_bytes(data)
+            else:
+                gltf = pygltflib.GLTF2.from_json(data.decode("utf-8"))
+        else:
+            gltf = pygltflib.GLTF2.load(str(path_or_bytes))
+    except FileNotFoundError:
+        raise ExampleSetError(f"{label}: file not found", code="missing_file") from None
+    except Exception as exc:  # the parser raises many unrelated types on garbage input
+        raise ExampleSetError(
+            f"{label}: not a readable glTF/GLB file ({type(exc).__name__}: {exc})",
+            code="bad_gltf",
+        ) from None
+    if gltf is None:
+        raise ExampleSetError(f"{label}: not a readable glTF/GLB file", code="bad_gltf")
+    return gltf
+
+
+class _BufferReader:
+    def __init__(self, gltf, base: Path | None, label: str) -> None:
+        self.gltf = gltf
+        self.base = base
+        self.label = label
+        self.cache: dict[int, bytes] = {}
+
+    def buffer(self, index: int) -> bytes:
+        if index in self.cache:
+            return self.cache[index]
+        try:
+            buf = self.gltf.buffers[index]
+        except (IndexError, TypeError):
+            raise ExampleSetError(
+                f"{self.label}: buffer {index} does not exist", code="bad_gltf"
+            ) from None
+        uri = buf.uri
+        if uri is None:
+            data = self.gltf.binary_blob()
+            if data is None:
+                raise ExampleSetError(f"{self.label}: GLB has no binary chunk", code="bad_gltf")
+        elif uri.startswith("data:"):
+            try:
+                data = base64.b64decode(uri.split(",", 1)[1])
+            except (IndexError, ValueError):
+                raise ExampleSetError(
+                    f"{self.label}: bad data URI in buffer {index}", code="bad_gltf"
+                ) from None
+        else:
+            if self.base is None:
+                raise ExampleSetError(
+                    f"{self.label}: buffer {index} refers to external file {uri!r}", code="bad_gltf"
+                )
+            file = (self.base / uri).resolve()
+            if not file.is_relative_to(self.base.resolve()):
+                raise ExampleSetError(
+                    f"{self.label}: buffer uri {uri!r} escapes the folder", code="path_escape"
+                )
+            try:
+                data = file.read_bytes()
+            except OSError as exc:
+                raise ExampleSetError(
+                    f"{self.label}: cannot read buffer {uri!r} ({exc})", code="missing_file"
+                ) from None
+        self.cache[index] = data
+        return data
+
+    def _view(self, view_index: int, offset: int, count: int, dtype, ncomp: int) -> np.ndarray:
+        view = self.gltf.bufferViews[view_index]
+        data = self.buffer(view.buffer)
+        itemsize = np.dtype(dtype).itemsize
+        stride = view.byteStride or itemsize * ncomp
+        start = (view.byteOffset or 0) + offset
+        need = stride * (count - 1) + itemsize * ncomp if count else 0
+        if start + need > min(len(data), (view.byteOffset or 0) + view.byteLength):
+            raise ExampleSetError(
+                f"{self.label}: accessor runs past its buffer view", code="bad_gltf"
+            )
+        return np.ndarray(
+            (count, ncomp), dtype=dtype, buffer=data, offset=start, strides=(stride, itemsize)
+        ).copy()
+
+    def accessor(self, index: int) -> np.ndarray:
+        """Decode accessor ``index`` into a (count, ncomp) array (float64 or int64)."""
+        try:
+            acc = self.gltf.accessors[index]
+            dtype = _COMPONENT_DTYPES[acc.componentType]
+            ncomp = _TYPE_SIZES[acc.type]
+            count = int(acc.count)
+            if acc.bufferView is None:
+                out = np.zeros((count, ncomp), dtype=dtype)
+            else:
+                out = self._view(acc.bufferView, acc.byteOffset or 0, count, dtype, ncomp)
+            if acc.sparse is not None:
+                sp = acc.sparse
+                idx_dtype = _COMPONENT_DTYPES[sp.indices.componentType]
+                where = self._view(
+                    sp.indices.bufferView, sp.indices.byteOffset or 0, sp.count, idx_dtype, 1
+                )[:, 0]
+                values = self._view(
+                    sp.values.bufferView, sp.values.byteOffset or 0, sp.count, dtype, ncomp
+                )
+                if where.size and where.max() >= count:
+                    raise ExampleSetError(
+                        f"{self.label}: sparse index out of range", code="bad_gltf"
+                    )
+                out[where.astype(np.int64)] = values
+        except ExampleSetError:
+            raise
+        except (IndexError, KeyError, TypeError, AttributeError, ValueError) as exc:
+            raise ExampleSetError(
+                f"{self.label}: malformed accessor {index} ({type(exc).__name__}: {exc})",
+                code="bad_gltf",
+            ) from None
+        if np.issubdtype(dtype, np.floating):
+            return out.astype(np.float64)
+        if acc.normalized:
+            # glTF 2.0 §3.11: normalized integers map to [0, 1] or [-1, 1].
+            info = np.iinfo(dtype)
+            return np.maximum(out.astype(np.float64) / info.max, -1.0)
+        return out.astype(np.int64)
+
+
+def read_glb_morph_targets(path_or_bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """Read the first mesh that has morph targets from a glTF/GLB file.
+
+    All triangle primitives of that mesh are concatenated (primitives that share one
+    POSITION accessor share its vertices). Node transforms are not applied: vertices
+    are in the mesh's own space.
+
+    Parameters
+    ----------
+    path_or_bytes : path or bytes
+        A ``.glb``/``.gltf`` file, or its bytes.
+
+    Returns
+    -------
+    neutral : (V, 3) float64
+    faces : (F, 3) int64
+    deltas : (M', V, 3) float64
+        POSITION offsets of each morph target.
+    names : list of M' str
+        From ``mesh.extras.targetNames`` (or the first primitive's extras); unnamed
+        targets are called ``target_<i>``.
+
+    Raises
+    ------
+    ExampleSetError
+        Unreadable file, no mesh with morph targets, non-triangle primitives, or
+        primitives that disagree on the number of targets.
+    """
+    is_bytes = isinstance(path_or_bytes, bytes | bytearray | memoryview)
+    label = "<glTF bytes>" if is_bytes else str(path_or_bytes)
+    gltf = _load_document(path_or_bytes, label)
+    base = None if is_bytes else Path(path_or_bytes).parent
+    reader = _BufferReader(gltf, base, label)
+
+    mesh = next((m for m in gltf.meshes or [] if any(p.targets for p in m.primitives or [])), None)
+    if mesh is None:
+        raise ExampleSetError(f"{label}: no mesh with morph targets", code="no_morph_targets")
+    num_targets = {len(p.targets or []) for p in mesh.primitives}
+    if len(num_targets) != 1:
+        raise ExampleSetError(
+            f"{label}: primitives of mesh {mesh.name!r} have different numbers of morph targets",
+            code="bad_gltf",
+        )
+    m = num_targets.pop()
+
+    positions: list[np.ndarray] = []
+    deltas: list[np.ndarray] = []
+    faces: list[np.ndarray] = []
+    first_vertex: dict[int, int] = {}
+    total = 0
+    for number, prim in enumerate(mesh.primitives):
+        mode = _TRIANGLES if prim.mode is None else prim.mode
+        if mode != _TRIANGLES:
+            raise ExampleSetError(
+                f"{label}: primitive {number} has mode {mode}; only triangles (4) are supported",
+                code="bad_gltf",
+            )
+        pos_index = prim.attributes.POSITION
+        if pos_index is None:
+            raise ExampleSetError(f"{label}: primitive {number} has no POSITION", code="bad_gltf")
+        if pos_index not in first_vertex:
+            pos = reader.accessor(pos_index)
+            if pos.shape[1] != 3:
+                raise ExampleSetError(f"{label}: POSITION is not VEC3", code="bad_gltf")
+            first_vertex[pos_index] = total
+            total += pos.shape[0]
+            positions.append(pos)
+            prim_deltas = np.zeros((m, pos.shape[0], 3))
+            for t, target in enumerate(prim.targets):
+                t_pos = target.POSITION if hasattr(target, "POSITION") else target.get("POSITION")
+                if t_pos is not None:
+                    d = reader.accessor(t_pos)
+                    if d.shape != pos.shape:
+                        raise ExampleSetError(
+                            f"{label}: morph target {t} has {d.shape[0]} vertices, "
+                            f"the mesh has {pos.shape[0]}",
+                            code="bad_gltf",
+                        )
+                    prim_deltas[t] = d
+            deltas.append(prim_deltas)
+        if prim.indices is None:
+            tri = np.arange(reader.accessor(pos_index).shape[0], dtype=np.int64)
+        else:
+            tri = reader.accessor(prim.indices)[:, 0]
+        if tri.size % 3:
+            raise ExampleSetError(
+                f"{label}: primitive {number} index count is not a multiple of 3", code="bad_gltf"
+            )
+        faces.append(tri.reshape(-1, 3) + first_vertex[pos_index])
+
+    neutral = np.concatenate(positions)
+    all_faces = np.concatenate(faces)
+    if all_faces.size and (all_faces.min() < 0 or all_faces.max() >= neutral.shape[0]):
+        raise ExampleSetError(f"{label}: triangle indices out of range", code="bad_gltf")
+    names = _target_names(mesh, m)
+    return neutral, all_faces, np.concatenate(deltas, axis=1), names
+
+
+def _target_names(mesh, m: int) -> list[str]:
+    for extras in (mesh.extras, mesh.primitives[0].extras):
+        if isinstance(extras, dict) and isinstance(extras.get("targetNames"), list):
+            names = extras["targetNames"]
+            if len(names) == m and all(isinstance(n, str) and n for n in names):
+                return list(names)
+    return [f"target_{i}" for i in range(m)]

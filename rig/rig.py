@@ -1,0 +1,423 @@
+"""A fitted rig: feature points -> blend weights -> target vertices (thesis eq. 3.8, 3.14).
+
+The per-frame hot path: array code end to end, a single frame is a batch of one, and every
+frame-independent product is folded into matrices at construction. No fitting, no file I/O.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+from .kernels import evaluate_kernel
+from .pose import align_points, similarity_transform
+
+__all__ = ["Rig", "WeightModel"]
+
+
+@dataclass(frozen=True, eq=False)
+class WeightModel:
+    """The M cardinal weight functions w_i(p) of eq. 3.8, with p computed from raw points.
+
+    Attributes hold the fitted quantities in the thesis's terms; the underscored ones are the
+    same maps folded together for evaluation.
+    """
+
+    kernel: str
+    source_neutral: np.ndarray  # (K, 3) S_B
+    mean: np.ndarray  # (3K,) mean displacement, eq. 3.4
+    features: np.ndarray  # (n, 3K) feature matrix F, eq. 3.6
+    params: np.ndarray  # (M, n) example parameters p_j, eq. 3.7
+    linear_coeffs: np.ndarray  # (n + 1, M) a_il, eq. 3.10
+    radial_coeffs: np.ndarray  # (M, M) r_ji, eq. 3.13
+    alpha: np.ndarray  # (M,) dilation factors
+    clamp: str | None
+    # Input map x' = x @ input_matrix + input_offset on flattened points (calibration);
+    # identity when not calibrated.
+    input_matrix: np.ndarray | None = None
+    input_offset: np.ndarray | None = None
+    # Folded evaluation matrices (see build).
+    _project: np.ndarray | None = None  # (3K, M + n + 2M)
+    _offset: np.ndarray | None = None  # (M + n + 2M,)
+    _inv_alpha2: np.ndarray | None = None  # (2M,)
+    _knots: np.ndarray | None = None  # (2M,) 2 then 1
+    _radial2: np.ndarray | None = None  # (2M, M)
+
+    @classmethod
+    def build(cls, **fields) -> WeightModel:
+        model = cls(**fields)
+        model._fold()
+        return model
+
+    @property
+    def num_examples(self) -> int:
+        return int(self.params.shape[0])
+
+    @property
+    def num_points(self) -> int:
+        return int(self.source_neutral.shape[0])
+
+    def _fold(self) -> None:
+        """Fold eq. 3.1, 3.7, 3.10 and the distance expansion into one affine map.
+
+        For flattened points x: p = x F^T - c (c = (S_B + mean) F^T), the hyperplanes are
+        a_0 + p A, and |p - p_j|^2 = |p|^2 - 2 p.p_j + |p_j|^2. One product x @ G + g then
+        gives [linear weights | p | -2 p.p_j + |p_j|^2 (twice, for the two B-spline knots)].
+        """
+        m = self.num_examples
+        ft = self.features.T  # (3K, n)
+        c = (self.source_neutral.reshape(-1) + self.mean) @ ft  # (n,)
+        a0, a1 = self.linear_coeffs[0], self.linear_coeffs[1:]
+        cross = -2.0 * self.params.T  # (n, M)
+        pp = np.einsum("ij,ij->i", self.params, self.params)
+        project = np.hstack([ft @ a1, ft, ft @ cross, ft @ cross])
+        offset = np.concatenate([a0 - c @ a1, -c, pp - c @ cross, pp - c @ cross])
+        if self.input_matrix is not None:
+            offset = self.input_offset @ project + offset
+            project = self.input_matrix @ project
+        inv_alpha = 1.0 / self.alpha
+        set_ = object.__setattr__
+        set_(self, "_project", np.ascontiguousarray(project))
+        set_(self, "_offset", offset)
+        set_(self, "_inv_alpha2", np.concatenate([inv_alpha, inv_alpha]) ** 2)
+        set_(self, "_knots", np.concatenate([np.full(m, 2.0), np.ones(m)]))
+        # B(t) = ((2 - t)_+^3 - 4 (1 - t)_+^3) / 6, so B(t) @ r = [(2-t)_+^3, (1-t)_+^3] @ R2.
+        set_(self, "_radial2", np.vstack([self.radial_coeffs / 6.0, self.radial_coeffs * (-4.0 / 6.0)]))
+
+    # -- evaluation ---------------------------------------------------------------------
+    def evaluate(self, flat: np.ndarray) -> np.ndarray:
+        """Weights for flattened points (B, 3K) -> (B, M)."""
+        m = self.num_examples
+        n = self.params.shape[1]
+        z = flat @ self._project
+        z += self._offset
+        p = z[:, m : m + n]
+        if self.kernel == "bspline":
+            d2 = z[:, m + n :]
+            d2 += np.einsum("ij,ij->i", p, p)[:, None]
+            np.maximum(d2, 0.0, out=d2)
+            d2 *= self._inv_alpha2
+            np.sqrt(d2, out=d2)  # now t = |p - p_j| / alpha_j
+            np.subtract(self._knots, d2, out=d2)
+            np.maximum(d2, 0.0, out=d2)
+            cubed = d2 * d2
+            cubed *= d2
+            weights = cubed @ self._radial2
+        else:
+            d2 = z[:, m + n : m + n + m]
+            d2 += np.einsum("ij,ij->i", p, p)[:, None]
+            np.maximum(d2, 0.0, out=d2)
+            t = np.sqrt(d2 * self._inv_alpha2[:m])
+            weights = evaluate_kernel(self.kernel, t) @ self.radial_coeffs
+        weights += z[:, :m]
+        if self.clamp is not None:
+            _clamp(weights, self.clamp)
+        return weights
+
+    def weights_from_params(self, params: np.ndarray) -> np.ndarray:
+        """Unclamped weights at reduced parameters (B, n), straight from eq. 3.8 (for analysis)."""
+        lin = self.linear_coeffs[0] + params @ self.linear_coeffs[1:]
+        diff = params[:, None, :] - self.params[None, :, :]
+        t = np.sqrt(np.einsum("bjk,bjk->bj", diff, diff)) / self.alpha
+        return lin + evaluate_kernel(self.kernel, t) @ self.radial_coeffs
+
+    def project(self, flat: np.ndarray) -> np.ndarray:
+        """Reduced parameters p (B, n) of flattened points (B, 3K) (eq. 3.7)."""
+        m, n = self.num_examples, self.params.shape[1]
+        return (flat @ self._project[:, m : m + n]) + self._offset[m : m + n]
+
+    def with_input_map(self, matrix: np.ndarray, offset: np.ndarray) -> WeightModel:
+        fields = {f: getattr(self, f) for f in self.__dataclass_fields__ if not f.startswith("_")}
+        fields.update(input_matrix=matrix, input_offset=offset)
+        return WeightModel.build(**fields)
+
+
+def _clamp(weights: np.ndarray, mode: str) -> None:
+    """Clip the non-neutral weights in place; the neutral takes up the rest of the sum."""
+    rest = weights[:, 1:]
+    np.maximum(rest, 0.0, out=rest)
+    if mode == "unit":
+        np.minimum(rest, 1.0, out=rest)
+    weights[:, 0] = 1.0 - rest.sum(axis=1)
+
+
+class Rig:
+    """A fitted rig. Build with ``facecast.rig.fit`` or ``facecast.rig.load_rig``.
+
+    ``weights`` maps source feature points to the M blend weights, ``blend`` maps weights to
+    target vertices, ``clone`` does both. Single frames (K, 3) and batches (B, K, 3) take
+    the same vectorised path.
+    """
+
+    def __init__(
+        self,
+        *,
+        names: tuple[str, ...],
+        model: WeightModel,
+        target_neutral: np.ndarray,
+        blend_basis: np.ndarray,
+        target_faces: np.ndarray,
+        feature_indices: np.ndarray | None,
+        source_preview: tuple[np.ndarray, np.ndarray] | None,
+        stable_points: np.ndarray | None,
+        align_scale: bool,
+        report: dict,
+        calibration: np.ndarray | None = None,
+    ) -> None:
+        self.names = tuple(names)
+        self.model = model
+        self.target_neutral = target_neutral
+        # Row 0 holds T_B and rows i > 0 hold T_i - T_B, so with w_0 := 1 eq. 3.14 is the one
+        # contiguous product w @ basis.
+        self._blend_basis = blend_basis
+        self.target_faces = target_faces
+        self.feature_indices = feature_indices
+        self.source_preview = source_preview
+        self.stable_points = stable_points
+        self.align_scale = bool(align_scale)
+        self.fit_report = report
+        self.calibration = calibration
+        self._checksum: str | None = None
+
+    @classmethod
+    def from_fit(
+        cls,
+        *,
+        names,
+        model,
+        target_vertices,
+        target_faces,
+        feature_indices,
+        source_preview,
+        stable_points,
+        align_scale,
+        report,
+    ) -> Rig:
+        m, v, _ = target_vertices.shape
+        neutral = np.ascontiguousarray(target_vertices[0], dtype=np.float32)
+        basis = np.empty((m, 3 * v), dtype=np.float32)
+        basis[0] = neutral.reshape(-1)
+        basis[1:] = (target_vertices[1:] - target_vertices[0]).reshape(m - 1, 3 * v)
+        if stable_points is not None:
+            stable_points = np.asarray(stable_points, dtype=np.int64)
+            k = model.num_points
+            if stable_points.ndim != 1 or stable_points.size < 3:
+                raise InputError("stable_points: need at least 3 feature-point indices")
+            if stable_points.min() < 0 or stable_points.max() >= k:
+                raise InputError(f"stable_points: indices must lie in [0, {k})")
+        return cls(
+            names=names,
+            model=model,
+            target_neutral=neutral,
+            blend_basis=basis,
+            target_faces=np.ascontiguousarray(target_faces, dtype=np.int32),
+            feature_indices=feature_indices,
+            source_preview=source_preview,
+            stable_points=stable_points,
+            align_scale=align_scale,
+            report=report,
+        )
+
+    # -- sizes ---------------------------------------------------------------------------
+    @property
+    def num_examples(self) -> int:
+        return len(self.names)
+
+    @property
+    def num_points(self) -> int:
+        return self.model.num_points
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.target_neutral.shape[0])
+
+    @property
+    def source_neutral(self) -> np.ndarray:
+        return self.model.source_neutral
+
+    @property
+    def target_deltas(self) -> np.ndarray:
+        """(M, 3V) float32 T_i - T_B, row 0 zero (a copy; the rig stores them with T_B in row 0)."""
+        deltas = self._blend_basis.copy()
+        deltas[0] = 0.0
+        return deltas
+
+    @property
+    def blend_basis(self) -> np.ndarray:
+        """(M, 3V) float32: row 0 T_B, rows i > 0 T_i - T_B (read-only view)."""
+        view = self._blend_basis.view()
+        view.flags.writeable = False
+        return view
+
+    # -- evaluation ----------------------------------------------------------------------
+    def _points(self, points) -> tuple[np.ndarray, bool]:
+        x = np.asarray(points, dtype=np.float64)
+        single = x.ndim == 2
+        k = self.model.num_points
+        if x.shape[-2:] != (k, 3) or x.ndim not in (2, 3):
+            raise InputError(
+                f"expected feature points of shape ({k}, 3) or (B, {k}, 3), got {x.shape}",
+                code="wrong_point_count",
+            )
+        return (x[None] if single else x), single
+
+    def weights(self, points, *, align: bool = False) -> np.ndarray:
+        """Blend weights of source frames (eq. 3.8).
+
+        Parameters
+        ----------
+        points : (K, 3) or (B, K, 3) float
+            Source feature points, in the source model's space.
+        align : bool
+            First remove head pose by aligning each frame to the (calibrated) neutral on the
+            rig's stable points.
+
+        Returns
+        -------
+        (M,) or (B, M) float64; the weights sum to 1.
+        """
+        x, single = self._points(points)
+        if align:
+            reference = self.source_neutral if self.calibration is None else self.calibration
+            x = align_points(x, reference, stable=self.stable_points, scale=self.align_scale)
+        w = self.model.evaluate(x.reshape(x.shape[0], -1))
+        if not np.isfinite(w.sum()):
+            bad = np.flatnonzero(~np.isfinite(x.reshape(x.shape[0], -1)).all(axis=1))
+            where = f" (frame {int(bad[0])})" if bad.size and not single else ""
+            raise InputError(f"feature points hold NaN or Inf{where}", code="non_finite")
+        return w[0] if single else w
+
+    def blend(self, weights, *, out: np.ndarray | None = None) -> np.ndarray:
+        """Target vertices for blend weights (eq. 3.14): T_B + sum_i w_i (T_i - T_B).
+
+        Parameters
+        ----------
+        weights : (M,) or (B, M) float
+        out : (V, 3) or (B, V, 3) float32, optional
+            Preallocated output, C-contiguous.
+
+        Returns
+        -------
+        (V, 3) or (B, V, 3) float32
+        """
+        w = np.array(weights, dtype=np.float32, ndmin=1)
+        m = self.num_examples
+        if w.shape[-1] != m or w.ndim > 2:
+            raise InputError(f"expected weights of shape ({m},) or (B, {m}), got {w.shape}")
+        single = w.ndim == 1
+        w2 = w.reshape(-1, m)
+        w2[:, 0] = 1.0
+        v3 = self._blend_basis.shape[1]
+        if out is None:
+            flat = w2 @ self._blend_basis
+        else:
+            if out.dtype != np.float32 or not out.flags.c_contiguous or out.size != w2.shape[0] * v3:
+                raise InputError("out must be a C-contiguous float32 array of the output's size")
+            flat = np.matmul(w2, self._blend_basis, out=out.reshape(w2.shape[0], v3))
+        if out is not None:
+            return out
+        return flat.reshape(self.num_vertices, 3) if single else flat.reshape(-1, self.num_vertices, 3)
+
+    def clone(self, points, *, align: bool = False) -> np.ndarray:
+        """Target vertices for source feature points: ``blend(weights(points))``."""
+        return self.blend(self.weights(points, align=align))
+
+    # -- derived rigs --------------------------------------------------------------------
+    def calibrated(self, neutral_points, *, scale: bool = True) -> Rig:
+        """A rig re-based on another performer's captured neutral (K, 3).
+
+        Frames are read as displacements from that neutral, rotated (and scaled, with
+        ``scale``) into the source model's frame: x -> s R (x - N) + S_B, where (s, R) best
+        maps the performer's neutral onto the source neutral. Costs nothing per frame: the
+        map is folded into the rig's projection.
+        """
+        neutral = np.asarray(neutral_points, dtype=np.float64)
+        k = self.num_points
+        if neutral.shape != (k, 3):
+            raise InputError(
+                f"calibration neutral must have shape ({k}, 3), got {neutral.shape}",
+                code="wrong_point_count",
+            )
+        if not np.isfinite(neutral).all():
+            raise InputError("calibration neutral holds NaN or Inf", code="non_finite")
+        rotation, scales, _ = similarity_transform(neutral[None], self.source_neutral, scale=scale)
+        sr = scales[0] * rotation[0]  # x_row -> x_row @ sr.T
+        base = self.model
+        if base.input_matrix is not None:  # re-calibrating: start from the uncalibrated model
+            base = base.with_input_map(np.eye(3 * k), np.zeros(3 * k))
+        matrix = np.kron(np.eye(k), sr.T)
+        offset = (self.source_neutral - neutral @ sr.T).reshape(-1)
+        rig = self._derive(model=base.with_input_map(matrix, offset))
+        rig.calibration = neutral
+        return rig
+
+    def _derive(self, **changes) -> Rig:
+        fields = dict(
+            names=self.names,
+            model=self.model,
+            target_neutral=self.target_neutral,
+            blend_basis=self._blend_basis,
+            target_faces=self.target_faces,
+            feature_indices=self.feature_indices,
+            source_preview=self.source_preview,
+            stable_points=self.stable_points,
+            align_scale=self.align_scale,
+            report=self.fit_report,
+            calibration=self.calibration,
+        )
+        fields.update(changes)
+        return Rig(**fields)
+
+    def with_clamp(self, clamp: str | None) -> Rig:
+        """The same rig with another weight-clamping mode (None, "nonneg", "unit")."""
+        fields = {f: getattr(self.model, f) for f in self.model.__dataclass_fields__ if not f.startswith("_")}
+        fields["clamp"] = clamp
+        return self._derive(model=WeightModel.build(**fields))
+
+    # -- description -----------------------------------------------------------------------
+    @property
+    def checksum(self) -> str:
+        """SHA-256 of the rig's content (the arrays and settings the rig file stores)."""
+        if self._checksum is None:
+            from .rigfile import content_checksum
+
+            self._checksum = content_checksum(self)
+        return self._checksum
+
+    def summary(self) -> dict:
+        """A JSON-able description: sizes, names, fit settings, checksum."""
+        report = self.fit_report or {}
+        return {
+            "names": list(self.names),
+            "num_examples": self.num_examples,
+            "num_points": self.num_points,
+            "num_vertices": self.num_vertices,
+            "num_faces": int(self.target_faces.shape[0]),
+            "kernel": self.model.kernel,
+            "clamp": self.model.clamp,
+            "components": int(self.model.params.shape[1]),
+            "noise": report.get("noise", 0.0),
+            "condition_number": report.get("condition_number"),
+            "feature_indices": None if self.feature_indices is None else self.feature_indices.tolist(),
+            "checksum": self.checksum,
+        }
+
+    def save(self, path) -> None:
+        """Write the rig as one file (see ``facecast.rig.rigfile``)."""
+        from .rigfile import save_rig
+
+        save_rig(self, path)
+
+    def to_bytes(self) -> bytes:
+        from .rigfile import rig_to_bytes
+
+        return rig_to_bytes(self)
+
+    def __repr__(self) -> str:
+        return (
+            f"Rig(M={self.num_examples}, K={self.num_points}, V={self.num_vertices}, "
+            f"kernel={self.model.kernel!r})"
+        )
+

@@ -1,0 +1,246 @@
+"""The rig file: one ``.npz`` (no pickles) with a format version and a content checksum.
+
+Reads and writes only; a file that is truncated, tampered with or of an unknown version
+gives ``RigFileError``, never a crash or a silently wrong rig.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from .errors import RigFileError
+from .rig import Rig, WeightModel
+
+__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "load_rig", "rig_from_bytes", "rig_to_bytes", "save_rig"]
+
+FORMAT_NAME = "facecast-rig"
+FORMAT_VERSION = 1
+# A rig file larger than this once unpacked is refused before any array is read.
+DEFAULT_MAX_BYTES = 4 << 30
+
+_REQUIRED = (
+    "source_neutral",
+    "mean",
+    "features",
+    "params",
+    "linear_coeffs",
+    "radial_coeffs",
+    "alpha",
+    "blend_basis",
+    "target_faces",
+)
+_OPTIONAL = (
+    "feature_indices",
+    "stable_points",
+    "preview_vertices",
+    "preview_faces",
+    "calibration",
+    "input_matrix",
+    "input_offset",
+)
+
+
+def _arrays(rig: Rig) -> dict[str, np.ndarray]:
+    model = rig.model
+    arrays = {
+        "source_neutral": model.source_neutral,
+        "mean": model.mean,
+        "features": model.features,
+        "params": model.params,
+        "linear_coeffs": model.linear_coeffs,
+        "radial_coeffs": model.radial_coeffs,
+        "alpha": model.alpha,
+        "blend_basis": rig.blend_basis,
+        "target_faces": rig.target_faces,
+    }
+    optional = {
+        "feature_indices": rig.feature_indices,
+        "stable_points": rig.stable_points,
+        "preview_vertices": None if rig.source_preview is None else rig.source_preview[0],
+        "preview_faces": None if rig.source_preview is None else rig.source_preview[1],
+        "calibration": rig.calibration,
+        "input_matrix": model.input_matrix,
+        "input_offset": model.input_offset,
+    }
+    arrays.update({k: v for k, v in optional.items() if v is not None})
+    return {k: np.ascontiguousarray(v) for k, v in arrays.items()}
+
+
+def _meta(rig: Rig) -> dict:
+    return {
+        "format": FORMAT_NAME,
+        "format_version": FORMAT_VERSION,
+        "names": list(rig.names),
+        "kernel": rig.model.kernel,
+        "clamp": rig.model.clamp,
+        "align_scale": rig.align_scale,
+        "fit_report": rig.fit_report or {},
+    }
+
+
+def _checksum(meta: dict, arrays: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    h.update(json.dumps(meta, sort_keys=True, allow_nan=True).encode())
+    for name in sorted(arrays):
+        a = arrays[name]
+        h.update(f"|{name}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def content_checksum(rig: Rig) -> str:
+    return _checksum(_meta(rig), _arrays(rig))
+
+
+def rig_to_bytes(rig: Rig) -> bytes:
+    meta = _meta(rig)
+    arrays = _arrays(rig)
+    meta_with_sum = dict(meta, checksum=_checksum(meta, arrays))
+    buffer = io.BytesIO()
+    np.savez(
+        buffer,
+        meta=np.frombuffer(json.dumps(meta_with_sum).encode(), dtype=np.uint8),
+        **arrays,
+    )
+    return buffer.getvalue()
+
+
+def save_rig(rig: Rig, path) -> None:
+    """Write atomically: a temporary file beside ``path``, fsynced, then renamed over it."""
+    path = Path(path)
+    data = rig_to_bytes(rig)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def load_rig(path, *, max_bytes: int = DEFAULT_MAX_BYTES) -> Rig:
+    """Read a rig file written by ``Rig.save``."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise RigFileError(f"{path}: no such rig file", code="not_found") from None
+    except IsADirectoryError:
+        raise RigFileError(f"{path}: is a directory, not a rig file") from None
+    return rig_from_bytes(data, source=str(path), max_bytes=max_bytes)
+
+
+def rig_from_bytes(data: bytes, *, source: str = "rig", max_bytes: int = DEFAULT_MAX_BYTES) -> Rig:
+    """Parse rig file bytes, verifying format, version, sizes and checksum."""
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as archive:
+            total = sum(info.file_size for info in archive.infolist())
+            if total > max_bytes:
+                raise RigFileError(
+                    f"{source}: unpacks to {total} bytes, over the limit of {max_bytes}",
+                    code="rig_too_large",
+                )
+        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+            contents = {name: npz[name] for name in npz.files}
+    except RigFileError:
+        raise
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as exc:
+        raise RigFileError(
+            f"{source}: not a facecast rig file, or truncated ({type(exc).__name__}: {exc})"
+        ) from None
+    if "meta" not in contents:
+        raise RigFileError(f"{source}: not a facecast rig file (no meta record)")
+    try:
+        meta = json.loads(contents.pop("meta").tobytes().decode())
+    except (UnicodeDecodeError, json.JSONDecodeError, ValueError) as exc:
+        raise RigFileError(f"{source}: unreadable meta record ({exc})") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
+        raise RigFileError(f"{source}: not a facecast rig file")
+    version = meta.get("format_version")
+    if version != FORMAT_VERSION:
+        raise RigFileError(
+            f"{source}: rig file format version {version!r} is not supported (this facecast "
+            f"reads version {FORMAT_VERSION}); refit the rig or upgrade facecast",
+            code="unsupported_version",
+        )
+    missing = [k for k in _REQUIRED if k not in contents]
+    if missing:
+        raise RigFileError(f"{source}: rig file lacks {', '.join(missing)}")
+    unknown = set(contents) - set(_REQUIRED) - set(_OPTIONAL)
+    if unknown:
+        raise RigFileError(f"{source}: rig file has unknown records {sorted(unknown)}")
+    stored = meta.pop("checksum", None)
+    if stored != _checksum(meta, contents):
+        raise RigFileError(
+            f"{source}: checksum mismatch: the rig file was modified or corrupted",
+            code="checksum_mismatch",
+        )
+    try:
+        return _build(meta, contents)
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        raise RigFileError(f"{source}: inconsistent rig file ({exc})") from None
+
+
+def _build(meta: dict, a: dict[str, np.ndarray]) -> Rig:
+    names = tuple(str(n) for n in meta["names"])
+    m = len(names)
+    k = a["source_neutral"].shape[0]
+    n = a["features"].shape[0]
+    basis = a["blend_basis"]
+    shapes = {
+        "source_neutral": (k, 3),
+        "mean": (3 * k,),
+        "features": (n, 3 * k),
+        "params": (m, n),
+        "linear_coeffs": (n + 1, m),
+        "radial_coeffs": (m, m),
+        "alpha": (m,),
+    }
+    for key, shape in shapes.items():
+        if a[key].shape != shape:
+            raise ValueError(f"{key} has shape {a[key].shape}, expected {shape}")
+    if basis.ndim != 2 or basis.shape[0] != m or basis.shape[1] % 3 or basis.dtype != np.float32:
+        raise ValueError(f"blend_basis has shape {basis.shape} {basis.dtype}")
+    v = basis.shape[1] // 3
+    faces = a["target_faces"]
+    if faces.ndim != 2 or faces.shape[1] != 3 or (faces.size and (faces.min() < 0 or faces.max() >= v)):
+        raise ValueError("target_faces out of range")
+    model = WeightModel.build(
+        kernel=str(meta["kernel"]),
+        source_neutral=a["source_neutral"].astype(np.float64),
+        mean=a["mean"].astype(np.float64),
+        features=a["features"].astype(np.float64),
+        params=a["params"].astype(np.float64),
+        linear_coeffs=a["linear_coeffs"].astype(np.float64),
+        radial_coeffs=a["radial_coeffs"].astype(np.float64),
+        alpha=a["alpha"].astype(np.float64),
+        clamp=meta.get("clamp"),
+        input_matrix=a.get("input_matrix"),
+        input_offset=a.get("input_offset"),
+    )
+    preview = None
+    if "preview_vertices" in a and "preview_faces" in a:
+        preview = (a["preview_vertices"], a["preview_faces"])
+    return Rig(
+        names=names,
+        model=model,
+        target_neutral=np.ascontiguousarray(basis[0].reshape(v, 3)),
+        blend_basis=np.ascontiguousarray(basis),
+        target_faces=faces.astype(np.int32),
+        feature_indices=a.get("feature_indices"),
+        source_preview=preview,
+        stable_points=a.get("stable_points"),
+        align_scale=bool(meta.get("align_scale", False)),
+        report=meta.get("fit_report", {}),
+        calibration=a.get("calibration"),
+    )
