@@ -22,9 +22,7 @@ def _finite_array(name: str, value, dtype, ndim: int, where: str = "") -> np.nda
     except (TypeError, ValueError) as exc:
         raise ExampleSetError(f"{name}{where}: not a numeric array ({exc})") from None
     if array.ndim != ndim:
-        raise ExampleSetError(
-            f"{name}{where}: expected {ndim} dimensions, got shape {array.shape}"
-        )
+        raise ExampleSetError(f"{name}{where}: expected {ndim} dimensions, got shape {array.shape}")
     return array
 
 

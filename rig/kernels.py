@@ -41,7 +41,12 @@ _FUNCTIONS = {"bspline": bspline, "gaussian": gaussian, "thin_plate": thin_plate
 
 # Largest |dB/dt| of each cross-section over the range that matters (t in [0, 2]); it sets how
 # much landmark noise one radial term passes on, and so the regularisation it needs.
-_SLOPES = {"bspline": 2.0 / 3.0, "gaussian": float(np.sqrt(2.0 / np.e)), "thin_plate": 2.0, "linear": 1.0}
+_SLOPES = {
+    "bspline": 2.0 / 3.0,
+    "gaussian": float(np.sqrt(2.0 / np.e)),
+    "thin_plate": 2.0,
+    "linear": 1.0,
+}
 
 
 def evaluate_kernel(kernel: str, t: np.ndarray) -> np.ndarray:

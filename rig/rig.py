@@ -47,6 +47,11 @@ class WeightModel:
 
     @classmethod
     def build(cls, **fields) -> WeightModel:
+        # C-contiguous float64 everywhere, so a rig and its reloaded copy take the same BLAS
+        # paths and give bit-identical weights.
+        for name, value in fields.items():
+            if isinstance(value, np.ndarray):
+                fields[name] = np.ascontiguousarray(value, dtype=np.float64)
         model = cls(**fields)
         model._fold()
         return model
@@ -84,7 +89,11 @@ class WeightModel:
         set_(self, "_inv_alpha2", np.concatenate([inv_alpha, inv_alpha]) ** 2)
         set_(self, "_knots", np.concatenate([np.full(m, 2.0), np.ones(m)]))
         # B(t) = ((2 - t)_+^3 - 4 (1 - t)_+^3) / 6, so B(t) @ r = [(2-t)_+^3, (1-t)_+^3] @ R2.
-        set_(self, "_radial2", np.vstack([self.radial_coeffs / 6.0, self.radial_coeffs * (-4.0 / 6.0)]))
+        set_(
+            self,
+            "_radial2",
+            np.vstack([self.radial_coeffs / 6.0, self.radial_coeffs * (-4.0 / 6.0)]),
+        )
 
     # -- evaluation ---------------------------------------------------------------------
     def evaluate(self, flat: np.ndarray) -> np.ndarray:
@@ -313,12 +322,18 @@ class Rig:
         if out is None:
             flat = w2 @ self._blend_basis
         else:
-            if out.dtype != np.float32 or not out.flags.c_contiguous or out.size != w2.shape[0] * v3:
+            if (
+                out.dtype != np.float32
+                or not out.flags.c_contiguous
+                or out.size != w2.shape[0] * v3
+            ):
                 raise InputError("out must be a C-contiguous float32 array of the output's size")
             flat = np.matmul(w2, self._blend_basis, out=out.reshape(w2.shape[0], v3))
         if out is not None:
             return out
-        return flat.reshape(self.num_vertices, 3) if single else flat.reshape(-1, self.num_vertices, 3)
+        return (
+            flat.reshape(self.num_vertices, 3) if single else flat.reshape(-1, self.num_vertices, 3)
+        )
 
     def clone(self, points, *, align: bool = False) -> np.ndarray:
         """Target vertices for source feature points: ``blend(weights(points))``."""
@@ -372,7 +387,11 @@ class Rig:
 
     def with_clamp(self, clamp: str | None) -> Rig:
         """The same rig with another weight-clamping mode (None, "nonneg", "unit")."""
-        fields = {f: getattr(self.model, f) for f in self.model.__dataclass_fields__ if not f.startswith("_")}
+        fields = {
+            f: getattr(self.model, f)
+            for f in self.model.__dataclass_fields__
+            if not f.startswith("_")
+        }
         fields["clamp"] = clamp
         return self._derive(model=WeightModel.build(**fields))
 
@@ -400,7 +419,9 @@ class Rig:
             "components": int(self.model.params.shape[1]),
             "noise": report.get("noise", 0.0),
             "condition_number": report.get("condition_number"),
-            "feature_indices": None if self.feature_indices is None else self.feature_indices.tolist(),
+            "feature_indices": None
+            if self.feature_indices is None
+            else self.feature_indices.tolist(),
             "checksum": self.checksum,
         }
 
@@ -420,4 +441,3 @@ class Rig:
             f"Rig(M={self.num_examples}, K={self.num_points}, V={self.num_vertices}, "
             f"kernel={self.model.kernel!r})"
         )
-

@@ -18,7 +18,14 @@ import numpy as np
 from .errors import RigFileError
 from .rig import Rig, WeightModel
 
-__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "load_rig", "rig_from_bytes", "rig_to_bytes", "save_rig"]
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "load_rig",
+    "rig_from_bytes",
+    "rig_to_bytes",
+    "save_rig",
+]
 
 FORMAT_NAME = "facecast-rig"
 FORMAT_VERSION = 1
@@ -213,7 +220,11 @@ def _build(meta: dict, a: dict[str, np.ndarray]) -> Rig:
         raise ValueError(f"blend_basis has shape {basis.shape} {basis.dtype}")
     v = basis.shape[1] // 3
     faces = a["target_faces"]
-    if faces.ndim != 2 or faces.shape[1] != 3 or (faces.size and (faces.min() < 0 or faces.max() >= v)):
+    if (
+        faces.ndim != 2
+        or faces.shape[1] != 3
+        or (faces.size and (faces.min() < 0 or faces.max() >= v))
+    ):
         raise ValueError("target_faces out of range")
     model = WeightModel.build(
         kernel=str(meta["kernel"]),

@@ -1,0 +1,275 @@
+"""Behaviour of fit and Rig evaluation: the thesis's invariants and the engine's errors."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from facecast.rig import (
+    ExampleSet,
+    FitError,
+    IdentifiabilityWarning,
+    InputError,
+    align_points,
+    fit,
+    rig_from_bytes,
+)
+from facecast.rig.kernels import bspline
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+M, K, V = 9, 6, 40
+
+
+def make_set(m=M, k=K, v=V, seed=0) -> ExampleSet:
+    rng = np.random.default_rng(seed)
+    neutral = rng.normal(size=(k, 3))
+    source = neutral + np.concatenate([np.zeros((1, k, 3)), rng.normal(size=(m - 1, k, 3))])
+    target_neutral = rng.normal(size=(v, 3))
+    target = target_neutral + np.concatenate([np.zeros((1, v, 3)), rng.normal(size=(m - 1, v, 3))])
+    faces = np.array([[0, 1, 2], [1, 2, 3]])
+    return ExampleSet([f"e{i}" if i else "neutral" for i in range(m)], source, target, faces)
+
+
+@pytest.fixture(scope="module")
+def example_set():
+    return make_set()
+
+
+@pytest.fixture(scope="module")
+def rig(example_set):
+    return fit(example_set)
+
+
+def test_bspline_cross_section_matches_the_thesis():
+    t = np.array([0.0, 0.5, 1.0, 1.5, 2.0, 3.0])
+    expected = [2 / 3, 2 / 3 - 0.25 + 0.0625, 1 / 6, 0.5**3 / 6, 0.0, 0.0]
+    np.testing.assert_allclose(bspline(t), expected, atol=1e-15)
+
+
+@pytest.mark.parametrize("kernel", ["bspline", "gaussian", "thin_plate", "linear"])
+def test_cardinal_property_at_every_example(example_set, kernel):
+    rig = fit(example_set, kernel=kernel)
+    weights = rig.weights(example_set.source_points)
+    np.testing.assert_allclose(weights, np.eye(M), atol=1e-8)
+
+
+def test_cardinal_property_with_more_examples_than_parameters():
+    # 3K = 6 < M - 1 = 19, so the hyperplanes cannot interpolate and the radial part must.
+    example_set = make_set(m=20, k=2, seed=3)
+    rig = fit(example_set)
+    assert rig.fit_report["components_kept"] == 6
+    weights = rig.weights(example_set.source_points)
+    np.testing.assert_allclose(weights, np.eye(20), atol=1e-8)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(min_value=0, max_value=2**31 - 1), st.floats(min_value=0.01, max_value=5.0))
+def test_partition_of_unity_at_random_points(seed, scale):
+    example_set = make_set(m=12, k=2, seed=7)
+    rig = fit(example_set)
+    points = np.random.default_rng(seed).normal(scale=scale, size=(16, 2, 3))
+    np.testing.assert_allclose(rig.weights(points).sum(axis=1), 1.0, atol=1e-9)
+
+
+def test_every_example_is_reproduced_exactly(example_set, rig):
+    cloned = rig.clone(example_set.source_points)
+    np.testing.assert_allclose(cloned, example_set.target_vertices, atol=1e-5)
+
+
+def test_neutral_frame_reproduces_target_neutral(example_set, rig):
+    np.testing.assert_array_equal(
+        rig.clone(example_set.source_neutral), example_set.target_neutral.astype(np.float32)
+    )
+
+
+def test_single_frame_equals_batch_of_one(example_set, rig):
+    points = example_set.source_points[3] + 0.1
+    np.testing.assert_array_equal(rig.weights(points), rig.weights(points[None])[0])
+
+
+def test_weights_follow_equation_3_8_directly(example_set, rig):
+    points = np.random.default_rng(1).normal(size=(5, K, 3))
+    flat = (points - example_set.source_neutral).reshape(5, -1)
+    params = (flat - rig.model.mean) @ rig.model.features.T
+    np.testing.assert_allclose(
+        rig.weights(points), rig.model.weights_from_params(params), atol=1e-10
+    )
+
+
+def test_blend_with_preallocated_output(rig):
+    weights = np.random.default_rng(2).random((3, M))
+    out = np.empty((3, V, 3), np.float32)
+    result = rig.blend(weights, out=out)
+    assert result is out
+    np.testing.assert_allclose(out, rig.blend(weights), rtol=1e-6)
+
+
+def test_save_load_round_trip(tmp_path, example_set, rig):
+    path = tmp_path / "rig.npz"
+    rig.save(path)
+    from facecast.rig import load_rig
+
+    loaded = load_rig(path)
+    points = np.random.default_rng(4).normal(size=(7, K, 3))
+    np.testing.assert_array_equal(loaded.weights(points), rig.weights(points))
+    np.testing.assert_array_equal(loaded.blend_basis, rig.blend_basis)
+    assert loaded.names == rig.names
+    assert loaded.checksum == rig.checksum
+
+
+def test_noise_regularisation_keeps_unity_and_lowers_noise_gain(example_set):
+    exact = fit(example_set)
+    smooth = fit(example_set, noise=0.5)
+    points = np.random.default_rng(5).normal(size=(20, K, 3))
+    np.testing.assert_allclose(smooth.weights(points).sum(axis=1), 1.0, atol=1e-9)
+    assert smooth.fit_report["noise_gain"] < exact.fit_report["noise_gain"]
+
+
+@pytest.mark.parametrize("mode,low,high", [("nonneg", 0.0, np.inf), ("unit", 0.0, 1.0)])
+def test_clamped_weights_stay_in_range_and_sum_to_one(example_set, mode, low, high):
+    rig = fit(example_set, clamp=mode)
+    points = np.random.default_rng(6).normal(scale=3.0, size=(50, K, 3))
+    weights = rig.weights(points)
+    assert weights[:, 1:].min() >= low
+    assert weights[:, 1:].max() <= high
+    np.testing.assert_allclose(weights.sum(axis=1), 1.0, atol=1e-9)
+    np.testing.assert_allclose(rig.weights(example_set.source_points), np.eye(M), atol=1e-8)
+
+
+def test_head_pose_is_removed_before_weights(example_set):
+    rig = fit(example_set)
+    points = example_set.source_points[2]
+    angle = 0.4
+    rotation = np.array(
+        [[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]]
+    )
+    moved = points @ rotation.T + np.array([3.0, -1.0, 2.0])
+    stable_rig = fit(example_set, stable_points=[0, 1, 2, 3, 4, 5])
+    # Aligning on all points removes an exact rigid motion of the whole frame.
+    aligned = align_points(moved[None], points)[0]
+    np.testing.assert_allclose(aligned, points, atol=1e-10)
+    assert np.abs(rig.weights(moved) - np.eye(M)[2]).max() > 0.1
+    np.testing.assert_allclose(
+        stable_rig.weights(points, align=True),
+        rig.weights(align_points(points[None], example_set.source_neutral)[0]),
+        atol=1e-10,
+    )
+
+
+def test_uniform_scale_is_removed_with_align_scale():
+    frames = np.random.default_rng(8).normal(size=(4, 10, 3))
+    reference = frames[0]
+    scaled = frames * 1.7 + 0.3
+    aligned = align_points(scaled, reference, scale=True)
+    np.testing.assert_allclose(aligned[0], reference, atol=1e-10)
+
+
+def test_calibration_rebases_on_another_performers_neutral(example_set, rig):
+    performer_neutral = example_set.source_neutral * 1.2 + np.array([0.5, 0.0, -0.2])
+    calibrated = rig.calibrated(performer_neutral)
+    np.testing.assert_allclose(calibrated.weights(performer_neutral), np.eye(M)[0], atol=1e-9)
+    # The performer's own expression: the same displacement, scaled with the face.
+    happy = performer_neutral + 1.2 * (example_set.source_points[4] - example_set.source_neutral)
+    np.testing.assert_allclose(calibrated.weights(happy), np.eye(M)[4], atol=1e-8)
+
+
+def test_calibrated_rig_survives_save_and_load(example_set, rig):
+    calibrated = rig.calibrated(example_set.source_neutral + 0.3)
+    loaded = rig_from_bytes(calibrated.to_bytes())
+    points = example_set.source_points + 0.3
+    np.testing.assert_allclose(loaded.weights(points), np.eye(M), atol=1e-8)
+
+
+# -- bad input ---------------------------------------------------------------------------
+def test_fewer_than_two_examples_is_refused():
+    with pytest.raises(Exception, match="at least 2 examples"):
+        make_set(m=1)
+
+
+def test_coinciding_examples_are_named_with_advice():
+    example_set = make_set()
+    source = example_set.source_points.copy()
+    source[5] = source[2]
+    bad = ExampleSet(
+        example_set.names, source, example_set.target_vertices, example_set.target_faces
+    )
+    with pytest.raises(FitError, match=r"'e2' and 'e5'.*(add feature points|drop one)") as info:
+        fit(bad)
+    assert info.value.code == "examples_coincide"
+
+
+def test_nearly_collapsing_examples_warn_naming_both():
+    example_set = make_set()
+    source = example_set.source_points.copy()
+    source[5] = source[2] + 1e-3
+    near = ExampleSet(
+        example_set.names, source, example_set.target_vertices, example_set.target_faces
+    )
+    with pytest.warns(IdentifiabilityWarning, match="'e5' and 'e2'|'e2' and 'e5'"):
+        rig = fit(near)
+    assert rig.fit_report["nearest_name"][5] == "e2"
+
+
+def test_examples_that_move_no_feature_point_are_refused():
+    example_set = make_set()
+    source = np.repeat(example_set.source_points[:1], M, axis=0)
+    flat = ExampleSet(
+        example_set.names, source, example_set.target_vertices, example_set.target_faces
+    )
+    with pytest.raises(FitError, match="no example moves any feature point"):
+        fit(flat)
+
+
+def test_near_singular_radial_system_is_reported_with_its_condition_number():
+    # Thin-plate terms vanish at t = 0 and t = 1: on three evenly spaced examples the radial
+    # matrix has a zero row.
+    source = np.zeros((3, 1, 3))
+    source[:, 0, 0] = [0.0, 1.0, 2.0]
+    example_set = ExampleSet(
+        ["neutral", "a", "b"],
+        source,
+        np.random.default_rng(0).normal(size=(3, 4, 3)),
+        np.zeros((0, 3)),
+    )
+    with pytest.raises(FitError, match="condition number") as info:
+        fit(example_set, kernel="thin_plate")
+    assert info.value.code == "singular_system"
+
+
+@pytest.mark.parametrize(
+    "points,code",
+    [
+        (np.zeros((K + 1, 3)), "wrong_point_count"),
+        (np.zeros((K, 2)), "wrong_point_count"),
+        (np.zeros((2, 3, K, 3)), "wrong_point_count"),
+        (np.full((K, 3), np.nan), "non_finite"),
+        (np.full((K, 3), np.inf), "non_finite"),
+    ],
+)
+def test_bad_runtime_points_raise_input_error(rig, points, code):
+    with pytest.raises(InputError) as info:
+        rig.weights(points)
+    assert info.value.code == code
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        ({"kernel": "cubic"}, "unknown kernel"),
+        ({"noise": -1.0}, "noise"),
+        ({"noise": float("nan")}, "noise"),
+        ({"pca_threshold": 2.0}, "pca_threshold"),
+        ({"clamp": "yes"}, "clamp"),
+    ],
+)
+def test_bad_fit_settings_are_refused(example_set, kwargs, match):
+    with pytest.raises(FitError, match=match):
+        fit(example_set, **kwargs)
+
+
+def test_no_warning_on_well_separated_examples(example_set):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit(example_set)

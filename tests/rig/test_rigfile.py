@@ -1,0 +1,84 @@
+"""The rig file refuses truncated, tampered and unknown-version files with a clear error."""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+
+import numpy as np
+import pytest
+from facecast.rig import RigFileError, fit, load_rig, rig_from_bytes
+
+from .test_fit import make_set
+
+
+@pytest.fixture(scope="module")
+def rig_bytes():
+    return fit(make_set()).to_bytes()
+
+
+def _rewrite(data: bytes, change) -> bytes:
+    with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    change(arrays)
+    out = io.BytesIO()
+    np.savez(out, **arrays)
+    return out.getvalue()
+
+
+def test_loads_without_pickles(rig_bytes):
+    with np.load(io.BytesIO(rig_bytes), allow_pickle=False) as npz:
+        assert "meta" in npz.files
+
+
+@pytest.mark.parametrize("cut", [0, 10, 100, 1000, -200, -1])
+def test_truncated_file_is_refused(rig_bytes, cut):
+    with pytest.raises(RigFileError):
+        rig_from_bytes(rig_bytes[:cut])
+
+
+def test_tampered_array_fails_the_checksum(rig_bytes):
+    def change(arrays):
+        arrays["radial_coeffs"] = arrays["radial_coeffs"] * 1.0001
+
+    with pytest.raises(RigFileError, match="checksum") as info:
+        rig_from_bytes(_rewrite(rig_bytes, change))
+    assert info.value.code == "checksum_mismatch"
+
+
+def test_unknown_version_is_refused(rig_bytes):
+    def change(arrays):
+        meta = json.loads(arrays["meta"].tobytes())
+        meta["format_version"] = 99
+        arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+
+    with pytest.raises(RigFileError, match="version 99") as info:
+        rig_from_bytes(_rewrite(rig_bytes, change))
+    assert info.value.code == "unsupported_version"
+
+
+def test_not_a_rig_file_is_refused(tmp_path):
+    path = tmp_path / "x.npz"
+    np.savez(path, a=np.zeros(3))
+    with pytest.raises(RigFileError, match="not a facecast rig file"):
+        load_rig(path)
+
+
+def test_missing_file_names_the_path(tmp_path):
+    with pytest.raises(RigFileError, match=r"nothing-here\.npz"):
+        load_rig(tmp_path / "nothing-here.npz")
+
+
+def test_zip_bomb_is_refused_before_reading(rig_bytes):
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("meta.npy", b"\0" * (2 << 20))
+    with pytest.raises(RigFileError, match="over the limit") as info:
+        rig_from_bytes(buffer.getvalue(), max_bytes=1 << 20)
+    assert info.value.code == "rig_too_large"
+
+
+def test_garbage_bytes_are_refused():
+    with pytest.raises(RigFileError):
+        rig_from_bytes(b"\x00\x01garbage" * 50)
