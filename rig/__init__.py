@@ -9,6 +9,7 @@ from .examples import ExampleSet
 from .fit import FitReport, IdentifiabilityWarning, fit
 from .kernels import KERNELS
 from .pose import align_points, similarity_transform
+from .regions import Region, fit_regions, split_masks
 from .rig import Rig
 from .rigfile import load_rig, rig_from_bytes
 
@@ -20,12 +21,15 @@ __all__ = [
     "FitReport",
     "IdentifiabilityWarning",
     "InputError",
+    "Region",
     "Rig",
     "RigError",
     "RigFileError",
     "align_points",
     "fit",
+    "fit_regions",
     "load_rig",
     "rig_from_bytes",
     "similarity_transform",
+    "split_masks",
 ]

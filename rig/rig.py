@@ -138,8 +138,14 @@ class WeightModel:
         return (flat @ self._project[:, m : m + n]) + self._offset[m : m + n]
 
     def with_input_map(self, matrix: np.ndarray, offset: np.ndarray) -> WeightModel:
+        return self._rebuild(input_matrix=matrix, input_offset=offset)
+
+    def with_clamp(self, clamp: str | None) -> WeightModel:
+        return self._rebuild(clamp=clamp)
+
+    def _rebuild(self, **changes) -> WeightModel:
         fields = {f: getattr(self, f) for f in self.__dataclass_fields__ if not f.startswith("_")}
-        fields.update(input_matrix=matrix, input_offset=offset)
+        fields.update(changes)
         return WeightModel.build(**fields)
 
 
@@ -164,7 +170,7 @@ class Rig:
         self,
         *,
         names: tuple[str, ...],
-        model: WeightModel,
+        model: WeightModel | tuple[WeightModel, ...],
         target_neutral: np.ndarray,
         blend_basis: np.ndarray,
         target_faces: np.ndarray,
@@ -174,9 +180,13 @@ class Rig:
         align_scale: bool,
         report: dict,
         calibration: np.ndarray | None = None,
+        regions: tuple[tuple[str, np.ndarray], ...] | None = None,
     ) -> None:
         self.names = tuple(names)
-        self.model = model
+        # One weight model per face region (one for an ordinary rig). Region r's examples
+        # 1.. land in the output columns regions[r][1]; column 0 is the shared neutral.
+        self.models = tuple(model) if isinstance(model, tuple | list) else (model,)
+        self.regions = regions
         self.target_neutral = target_neutral
         # Row 0 holds T_B and rows i > 0 hold T_i - T_B, so with w_0 := 1 eq. 3.14 is the one
         # contiguous product w @ basis.
@@ -230,6 +240,11 @@ class Rig:
         )
 
     # -- sizes ---------------------------------------------------------------------------
+    @property
+    def model(self) -> WeightModel:
+        """The weight model (the first region's, for a region rig)."""
+        return self.models[0]
+
     @property
     def num_examples(self) -> int:
         return len(self.names)
@@ -291,7 +306,14 @@ class Rig:
         if align:
             reference = self.source_neutral if self.calibration is None else self.calibration
             x = align_points(x, reference, stable=self.stable_points, scale=self.align_scale)
-        w = self.model.evaluate(x.reshape(x.shape[0], -1))
+        flat = x.reshape(x.shape[0], -1)
+        if self.regions is None:
+            w = self.model.evaluate(flat)
+        else:
+            w = np.empty((flat.shape[0], self.num_examples))
+            for model, (_, columns) in zip(self.models, self.regions, strict=True):
+                w[:, columns] = model.evaluate(flat)[:, 1:]
+            w[:, 0] = 1.0 - w[:, 1:].sum(axis=1)
         if not np.isfinite(w.sum()):
             bad = np.flatnonzero(~np.isfinite(x.reshape(x.shape[0], -1)).all(axis=1))
             where = f" (frame {int(bad[0])})" if bad.size and not single else ""
@@ -359,19 +381,17 @@ class Rig:
             raise InputError("calibration neutral holds NaN or Inf", code="non_finite")
         rotation, scales, _ = similarity_transform(neutral[None], self.source_neutral, scale=scale)
         sr = scales[0] * rotation[0]  # x_row -> x_row @ sr.T
-        base = self.model
-        if base.input_matrix is not None:  # re-calibrating: start from the uncalibrated model
-            base = base.with_input_map(np.eye(3 * k), np.zeros(3 * k))
         matrix = np.kron(np.eye(k), sr.T)
         offset = (self.source_neutral - neutral @ sr.T).reshape(-1)
-        rig = self._derive(model=base.with_input_map(matrix, offset))
+        # Replacing the input map (not composing it) re-calibrates from the original rig.
+        rig = self._derive(model=tuple(m.with_input_map(matrix, offset) for m in self.models))
         rig.calibration = neutral
         return rig
 
     def _derive(self, **changes) -> Rig:
         fields = dict(
             names=self.names,
-            model=self.model,
+            model=self.models,
             target_neutral=self.target_neutral,
             blend_basis=self._blend_basis,
             target_faces=self.target_faces,
@@ -381,19 +401,14 @@ class Rig:
             align_scale=self.align_scale,
             report=self.fit_report,
             calibration=self.calibration,
+            regions=self.regions,
         )
         fields.update(changes)
         return Rig(**fields)
 
     def with_clamp(self, clamp: str | None) -> Rig:
         """The same rig with another weight-clamping mode (None, "nonneg", "unit")."""
-        fields = {
-            f: getattr(self.model, f)
-            for f in self.model.__dataclass_fields__
-            if not f.startswith("_")
-        }
-        fields["clamp"] = clamp
-        return self._derive(model=WeightModel.build(**fields))
+        return self._derive(model=tuple(m.with_clamp(clamp) for m in self.models))
 
     # -- description -----------------------------------------------------------------------
     @property
@@ -417,6 +432,7 @@ class Rig:
             "kernel": self.model.kernel,
             "clamp": self.model.clamp,
             "components": int(self.model.params.shape[1]),
+            "regions": None if self.regions is None else [name for name, _ in self.regions],
             "noise": report.get("noise", 0.0),
             "condition_number": report.get("condition_number"),
             "feature_indices": None

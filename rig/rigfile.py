@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import RigFileError
+from .kernels import KERNELS
 from .rig import Rig, WeightModel
 
 __all__ = [
@@ -43,6 +44,17 @@ _REQUIRED = (
     "blend_basis",
     "target_faces",
 )
+_MODEL_KEYS = (
+    "source_neutral",
+    "mean",
+    "features",
+    "params",
+    "linear_coeffs",
+    "radial_coeffs",
+    "alpha",
+    "input_matrix",
+    "input_offset",
+)
 _OPTIONAL = (
     "feature_indices",
     "stable_points",
@@ -52,6 +64,11 @@ _OPTIONAL = (
     "input_matrix",
     "input_offset",
 )
+
+
+def _model_arrays(model: WeightModel, prefix: str) -> dict[str, np.ndarray]:
+    values = {key: getattr(model, key) for key in _MODEL_KEYS}
+    return {prefix + k: v for k, v in values.items() if v is not None}
 
 
 def _arrays(rig: Rig) -> dict[str, np.ndarray]:
@@ -77,6 +94,9 @@ def _arrays(rig: Rig) -> dict[str, np.ndarray]:
         "input_offset": model.input_offset,
     }
     arrays.update({k: v for k, v in optional.items() if v is not None})
+    # Region rigs: the models after the first, prefixed r1., r2., ...
+    for r, extra in enumerate(rig.models[1:], start=1):
+        arrays.update(_model_arrays(extra, f"r{r}."))
     return {k: np.ascontiguousarray(v) for k, v in arrays.items()}
 
 
@@ -89,6 +109,9 @@ def _meta(rig: Rig) -> dict:
         "clamp": rig.model.clamp,
         "align_scale": rig.align_scale,
         "fit_report": rig.fit_report or {},
+        "regions": None
+        if rig.regions is None
+        else [{"name": name, "columns": columns.tolist()} for name, columns in rig.regions],
     }
 
 
@@ -183,7 +206,10 @@ def rig_from_bytes(data: bytes, *, source: str = "rig", max_bytes: int = DEFAULT
     missing = [k for k in _REQUIRED if k not in contents]
     if missing:
         raise RigFileError(f"{source}: rig file lacks {', '.join(missing)}")
-    unknown = set(contents) - set(_REQUIRED) - set(_OPTIONAL)
+    unknown = {k for k in set(contents) - set(_REQUIRED) - set(_OPTIONAL) if not k.startswith("r")}
+    unknown |= {
+        k for k in contents if k[:1] == "r" and "." in k and k.split(".", 1)[1] not in _MODEL_KEYS
+    }
     if unknown:
         raise RigFileError(f"{source}: rig file has unknown records {sorted(unknown)}")
     stored = meta.pop("checksum", None)
@@ -201,21 +227,7 @@ def rig_from_bytes(data: bytes, *, source: str = "rig", max_bytes: int = DEFAULT
 def _build(meta: dict, a: dict[str, np.ndarray]) -> Rig:
     names = tuple(str(n) for n in meta["names"])
     m = len(names)
-    k = a["source_neutral"].shape[0]
-    n = a["features"].shape[0]
     basis = a["blend_basis"]
-    shapes = {
-        "source_neutral": (k, 3),
-        "mean": (3 * k,),
-        "features": (n, 3 * k),
-        "params": (m, n),
-        "linear_coeffs": (n + 1, m),
-        "radial_coeffs": (m, m),
-        "alpha": (m,),
-    }
-    for key, shape in shapes.items():
-        if a[key].shape != shape:
-            raise ValueError(f"{key} has shape {a[key].shape}, expected {shape}")
     if basis.ndim != 2 or basis.shape[0] != m or basis.shape[1] % 3 or basis.dtype != np.float32:
         raise ValueError(f"blend_basis has shape {basis.shape} {basis.dtype}")
     v = basis.shape[1] // 3
@@ -226,25 +238,28 @@ def _build(meta: dict, a: dict[str, np.ndarray]) -> Rig:
         or (faces.size and (faces.min() < 0 or faces.max() >= v))
     ):
         raise ValueError("target_faces out of range")
-    model = WeightModel.build(
-        kernel=str(meta["kernel"]),
-        source_neutral=a["source_neutral"].astype(np.float64),
-        mean=a["mean"].astype(np.float64),
-        features=a["features"].astype(np.float64),
-        params=a["params"].astype(np.float64),
-        linear_coeffs=a["linear_coeffs"].astype(np.float64),
-        radial_coeffs=a["radial_coeffs"].astype(np.float64),
-        alpha=a["alpha"].astype(np.float64),
-        clamp=meta.get("clamp"),
-        input_matrix=a.get("input_matrix"),
-        input_offset=a.get("input_offset"),
-    )
+    models = [_build_model(meta, a, "")]
+    regions = None
+    if meta.get("regions"):
+        regions = []
+        for r, region in enumerate(meta["regions"]):
+            columns = np.asarray(region["columns"], dtype=np.int64)
+            if r:
+                models.append(_build_model(meta, a, f"r{r}."))
+            if columns.ndim != 1 or (columns.size and (columns.min() < 1 or columns.max() >= m)):
+                raise ValueError(f"region {region['name']!r} has columns out of range")
+            if columns.size != models[r].params.shape[0] - 1:
+                raise ValueError(f"region {region['name']!r} has {columns.size} columns")
+            regions.append((str(region["name"]), columns))
+        regions = tuple(regions)
+    elif models[0].params.shape[0] != m:
+        raise ValueError(f"{models[0].params.shape[0]} examples in the model for {m} names")
     preview = None
     if "preview_vertices" in a and "preview_faces" in a:
         preview = (a["preview_vertices"], a["preview_faces"])
     return Rig(
         names=names,
-        model=model,
+        model=tuple(models),
         target_neutral=np.ascontiguousarray(basis[0].reshape(v, 3)),
         blend_basis=np.ascontiguousarray(basis),
         target_faces=faces.astype(np.int32),
@@ -254,4 +269,33 @@ def _build(meta: dict, a: dict[str, np.ndarray]) -> Rig:
         align_scale=bool(meta.get("align_scale", False)),
         report=meta.get("fit_report", {}),
         calibration=a.get("calibration"),
+        regions=regions,
+    )
+
+
+def _build_model(meta: dict, a: dict[str, np.ndarray], prefix: str) -> WeightModel:
+    k = a[prefix + "source_neutral"].shape[0]
+    n = a[prefix + "features"].shape[0]
+    m = a[prefix + "params"].shape[0]
+    shapes = {
+        "source_neutral": (k, 3),
+        "mean": (3 * k,),
+        "features": (n, 3 * k),
+        "params": (m, n),
+        "linear_coeffs": (n + 1, m),
+        "radial_coeffs": (m, m),
+        "alpha": (m,),
+    }
+    for key, shape in shapes.items():
+        if a[prefix + key].shape != shape:
+            raise ValueError(f"{prefix}{key} has shape {a[prefix + key].shape}, expected {shape}")
+    clamp = meta.get("clamp")
+    if clamp not in (None, "nonneg", "unit"):
+        raise ValueError(f"unknown clamp mode {clamp!r}")
+    if str(meta["kernel"]) not in KERNELS:
+        raise ValueError(f"unknown kernel {meta['kernel']!r}")
+    return WeightModel.build(
+        kernel=str(meta["kernel"]),
+        clamp=clamp,
+        **{key: a.get(prefix + key) for key in _MODEL_KEYS},
     )

@@ -6,6 +6,9 @@ import warnings
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
 from facecast.rig import (
     ExampleSet,
     FitError,
@@ -16,8 +19,6 @@ from facecast.rig import (
     rig_from_bytes,
 )
 from facecast.rig.kernels import bspline
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 M, K, V = 9, 6, 40
 

@@ -8,6 +8,7 @@ import zipfile
 
 import numpy as np
 import pytest
+
 from facecast.rig import RigFileError, fit, load_rig, rig_from_bytes
 
 from .test_fit import make_set
