@@ -4,10 +4,14 @@ Pure numpy/scipy plus mesh-format libraries; it imports nothing from protocol, s
 or client, and does no networking.
 """
 
+from .animation import SourceAnimation, load_source_animation, write_clone_output
 from .errors import ExampleSetError, FitError, InputError, RigError, RigFileError
 from .examples import ExampleSet
 from .fit import FitReport, IdentifiabilityWarning, fit
+from .gltf import export_glb, read_glb_morph_targets
 from .kernels import KERNELS
+from .loaders import load_example_set
+from .meshio import read_obj, read_obj_vertices, read_points, write_obj
 from .pose import align_points, similarity_transform
 from .regions import Region, fit_regions, split_masks
 from .rig import Rig
@@ -25,11 +29,21 @@ __all__ = [
     "Rig",
     "RigError",
     "RigFileError",
+    "SourceAnimation",
     "align_points",
+    "export_glb",
     "fit",
     "fit_regions",
+    "load_example_set",
     "load_rig",
+    "load_source_animation",
+    "read_glb_morph_targets",
+    "read_obj",
+    "read_obj_vertices",
+    "read_points",
     "rig_from_bytes",
     "similarity_transform",
     "split_masks",
+    "write_clone_output",
+    "write_obj",
 ]

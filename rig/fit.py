@@ -15,7 +15,7 @@ import scipy.linalg
 
 from .errors import FitError
 from .examples import ExampleSet
-from .kernels import KERNELS, evaluate_kernel, kernel_slope
+from .kernels import KERNELS, evaluate_kernel, kernel_derivative, kernel_slope
 from .rig import Rig, WeightModel
 
 __all__ = ["CLAMP_MODES", "FitReport", "IdentifiabilityWarning", "fit"]
@@ -302,13 +302,17 @@ def _warn_collapsing(report: FitReport, names, noise: float) -> None:
 
 
 def _noise_gain(model: WeightModel, params: np.ndarray) -> float:
-    """RMS change of the weights per unit landmark noise, by finite differences at the examples."""
-    eps = 1e-6 * max(float(np.abs(params).max()), 1e-12)
-    base = model.weights_from_params(params)
-    total = 0.0
-    for axis in range(params.shape[1]):
-        shifted = params.copy()
-        shifted[:, axis] += eps
-        grad = (model.weights_from_params(shifted) - base) / eps
-        total += float((grad * grad).sum())
-    return float(np.sqrt(total / len(params)))
+    """RMS over the examples of |dw/dp|_F: how far unit landmark noise moves the weights.
+
+    F has orthonormal rows, so isotropic noise of standard deviation s on the points is
+    isotropic noise s on p, and the weights move by s |dw/dp|_F to first order.
+    """
+    diff = params[:, None, :] - model.params[None, :, :]  # (M, M, n): p_k - p_j
+    dist = np.sqrt(np.einsum("kjn,kjn->kj", diff, diff))
+    t = dist / model.alpha[None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(dist > 0, kernel_derivative(model.kernel, t) / (model.alpha * dist), 0.0)
+    # d R_j / d p at p_k = B'(t_kj) (p_k - p_j) / (alpha_j |p_k - p_j|)
+    radial = np.einsum("kj,kjn,ji->kni", scale, diff, model.radial_coeffs)
+    jacobian = model.linear_coeffs[1:][None, :, :] + radial  # (M, n, M)
+    return float(np.sqrt(np.einsum("kni,kni->", jacobian, jacobian) / len(params)))

@@ -35,6 +35,9 @@ _COMPONENT_DTYPES = {
     5125: np.uint32,
     5126: np.float32,
 }
+# Largest array (in values) the reader will allocate: ~20x the ICT head's 57 targets, so a
+# corrupted count cannot make it ask for terabytes.
+MAX_VALUES = 100_000_000
 _TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 
 
@@ -270,17 +273,24 @@ def _pack_glb(doc: dict, blob: bytes) -> bytes:
 def _load_document(path_or_bytes, label: str):
     import pygltflib  # deferred: only the loader needs it
 
+    if isinstance(path_or_bytes, bytes | bytearray | memoryview):
+        data = bytes(path_or_bytes)
+    else:
+        try:
+            data = Path(path_or_bytes).read_bytes()
+        except FileNotFoundError:
+            raise ExampleSetError(f"{label}: file not found", code="missing_file") from None
+        except OSError as exc:
+            raise ExampleSetError(f"{label}: cannot read ({exc})", code="missing_file") from None
+    if data[:4] == b"glTF" and (len(data) < 12 or struct.unpack_from("<I", data, 4)[0] != 2):
+        raise ExampleSetError(
+            f"{label}: not a glTF 2.0 binary (GLB version is not 2)", code="bad_gltf"
+        )
     try:
-        if isinstance(path_or_bytes, bytes | bytearray | memoryview):
-            data = bytes(path_or_bytes)
-            if data[:4] == b"glTF":
-                gltf = pygltflib.GLTF2.load_from_bytes(data)
-            else:
-                gltf = pygltflib.GLTF2.from_json(data.decode("utf-8"))
+        if data[:4] == b"glTF":
+            gltf = pygltflib.GLTF2.load_from_bytes(data)
         else:
-            gltf = pygltflib.GLTF2.load(str(path_or_bytes))
-    except FileNotFoundError:
-        raise ExampleSetError(f"{label}: file not found", code="missing_file") from None
+            gltf = pygltflib.GLTF2.from_json(data.decode("utf-8"))
     except Exception as exc:  # the parser raises many unrelated types on garbage input
         raise ExampleSetError(
             f"{label}: not a readable glTF/GLB file ({type(exc).__name__}: {exc})",
@@ -360,6 +370,11 @@ class _BufferReader:
             dtype = _COMPONENT_DTYPES[acc.componentType]
             ncomp = _TYPE_SIZES[acc.type]
             count = int(acc.count)
+            if count < 0 or count * ncomp > MAX_VALUES:
+                raise ExampleSetError(
+                    f"{self.label}: accessor {index} count {count} is out of bounds",
+                    code="bad_gltf",
+                )
             if acc.bufferView is None:
                 out = np.zeros((count, ncomp), dtype=dtype)
             else:
@@ -427,7 +442,18 @@ def read_glb_morph_targets(path_or_bytes) -> tuple[np.ndarray, np.ndarray, np.nd
     gltf = _load_document(path_or_bytes, label)
     base = None if is_bytes else Path(path_or_bytes).parent
     reader = _BufferReader(gltf, base, label)
+    try:
+        return _read_morph_mesh(gltf, reader, label)
+    except ExampleSetError:
+        raise
+    except (AttributeError, TypeError, KeyError, IndexError, ValueError) as exc:
+        # dataclasses-json leaves wrongly typed JSON fields as they are; say so, don't crash.
+        raise ExampleSetError(
+            f"{label}: malformed glTF ({type(exc).__name__}: {exc})", code="bad_gltf"
+        ) from None
 
+
+def _read_morph_mesh(gltf, reader: _BufferReader, label: str):
     mesh = next((m for m in gltf.meshes or [] if any(p.targets for p in m.primitives or [])), None)
     if mesh is None:
         raise ExampleSetError(f"{label}: no mesh with morph targets", code="no_morph_targets")
@@ -443,6 +469,7 @@ def read_glb_morph_targets(path_or_bytes) -> tuple[np.ndarray, np.ndarray, np.nd
     deltas: list[np.ndarray] = []
     faces: list[np.ndarray] = []
     first_vertex: dict[int, int] = {}
+    vertex_count: dict[int, int] = {}
     total = 0
     for number, prim in enumerate(mesh.primitives):
         mode = _TRIANGLES if prim.mode is None else prim.mode
@@ -459,8 +486,15 @@ def read_glb_morph_targets(path_or_bytes) -> tuple[np.ndarray, np.ndarray, np.nd
             if pos.shape[1] != 3:
                 raise ExampleSetError(f"{label}: POSITION is not VEC3", code="bad_gltf")
             first_vertex[pos_index] = total
+            vertex_count[pos_index] = pos.shape[0]
             total += pos.shape[0]
             positions.append(pos)
+            if m * total * 3 > MAX_VALUES:
+                raise ExampleSetError(
+                    f"{label}: {m} morph targets of {total} vertices exceed the reader's limit "
+                    f"of {MAX_VALUES} values",
+                    code="too_large",
+                )
             prim_deltas = np.zeros((m, pos.shape[0], 3))
             for t, target in enumerate(prim.targets):
                 t_pos = target.POSITION if hasattr(target, "POSITION") else target.get("POSITION")
@@ -475,19 +509,21 @@ def read_glb_morph_targets(path_or_bytes) -> tuple[np.ndarray, np.ndarray, np.nd
                     prim_deltas[t] = d
             deltas.append(prim_deltas)
         if prim.indices is None:
-            tri = np.arange(reader.accessor(pos_index).shape[0], dtype=np.int64)
+            tri = np.arange(vertex_count[pos_index], dtype=np.int64)
         else:
             tri = reader.accessor(prim.indices)[:, 0]
         if tri.size % 3:
             raise ExampleSetError(
                 f"{label}: primitive {number} index count is not a multiple of 3", code="bad_gltf"
             )
+        if tri.size and (tri.min() < 0 or tri.max() >= vertex_count[pos_index]):
+            raise ExampleSetError(
+                f"{label}: primitive {number} has triangle indices out of range", code="bad_gltf"
+            )
         faces.append(tri.reshape(-1, 3) + first_vertex[pos_index])
 
     neutral = np.concatenate(positions)
     all_faces = np.concatenate(faces)
-    if all_faces.size and (all_faces.min() < 0 or all_faces.max() >= neutral.shape[0]):
-        raise ExampleSetError(f"{label}: triangle indices out of range", code="bad_gltf")
     names = _target_names(mesh, m)
     return neutral, all_faces, np.concatenate(deltas, axis=1), names
 

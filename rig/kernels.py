@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["KERNELS", "evaluate_kernel", "kernel_slope"]
+__all__ = ["KERNELS", "evaluate_kernel", "kernel_derivative", "kernel_slope"]
 
 KERNELS = ("bspline", "gaussian", "thin_plate", "linear")
 
@@ -37,6 +37,33 @@ def linear(t: np.ndarray) -> np.ndarray:
     return np.asarray(t, dtype=np.float64).copy()
 
 
+def bspline_slope(t: np.ndarray) -> np.ndarray:
+    u = np.clip(2.0 - t, 0.0, None)
+    v = np.clip(1.0 - t, 0.0, None)
+    return (-3.0 * u * u + 12.0 * v * v) / 6.0
+
+
+def gaussian_slope(t: np.ndarray) -> np.ndarray:
+    return -2.0 * t * np.exp(-(t * t))
+
+
+def thin_plate_slope(t: np.ndarray) -> np.ndarray:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = t * (2.0 * np.log(t) + 1.0)
+    return np.where(t > 0.0, out, 0.0)
+
+
+def linear_slope(t: np.ndarray) -> np.ndarray:
+    return np.ones_like(t, dtype=np.float64)
+
+
+_DERIVATIVES = {
+    "bspline": bspline_slope,
+    "gaussian": gaussian_slope,
+    "thin_plate": thin_plate_slope,
+    "linear": linear_slope,
+}
+
 _FUNCTIONS = {"bspline": bspline, "gaussian": gaussian, "thin_plate": thin_plate, "linear": linear}
 
 # Largest |dB/dt| of each cross-section over the range that matters (t in [0, 2]); it sets how
@@ -52,6 +79,11 @@ _SLOPES = {
 def evaluate_kernel(kernel: str, t: np.ndarray) -> np.ndarray:
     """Cross-section ``kernel`` at scaled distances ``t`` (any shape, t >= 0)."""
     return _FUNCTIONS[kernel](t)
+
+
+def kernel_derivative(kernel: str, t: np.ndarray) -> np.ndarray:
+    """dB/dt of the cross-section ``kernel`` at scaled distances ``t``."""
+    return _DERIVATIVES[kernel](t)
 
 
 def kernel_slope(kernel: str) -> float:

@@ -17,7 +17,7 @@ import numpy as np
 from .errors import ExampleSetError
 from .examples import ExampleSet
 from .gltf import read_glb_morph_targets
-from .meshio import read_obj, read_points
+from .meshio import read_obj, read_obj_vertices, read_points
 
 __all__ = ["load_example_set"]
 
@@ -238,7 +238,7 @@ def _read_targets(names: list[str], files: list[Path]) -> tuple[np.ndarray, np.n
     vertices = np.empty((len(names), *neutral.shape))
     vertices[0] = neutral
     for i in range(1, len(names)):
-        v, _ = _read(names[i], read_obj, files[i])
+        v = _read(names[i], read_obj_vertices, files[i])
         if v.shape != neutral.shape:
             raise ExampleSetError(
                 f"example {names[i]!r}: target {files[i]} has {v.shape[0]} vertices, "
@@ -284,7 +284,7 @@ def _read_sources(
         vertices = np.empty((len(names), vs, 3))
         vertices[0] = neutral
         for i in range(1, len(names)):
-            v, _ = _read(names[i], read_obj, files[i])
+            v = _read(names[i], read_obj_vertices, files[i])
             if v.shape[0] != vs:
                 raise ExampleSetError(
                     f"example {names[i]!r}: source {files[i]} has {v.shape[0]} vertices, "
@@ -333,7 +333,8 @@ def _build(names, source_kw: dict, target_vertices, target_faces) -> ExampleSet:
 
 def _load_npz(path: Path) -> ExampleSet:
     try:
-        with np.load(path, allow_pickle=False) as archive:
+        # Our own handle: np.load leaks its file when the zip is corrupt.
+        with path.open("rb") as handle, np.load(handle, allow_pickle=False) as archive:
             missing = [k for k in _NPZ_REQUIRED if k not in archive.files]
             if missing:
                 raise ExampleSetError(

@@ -8,13 +8,22 @@ from __future__ import annotations
 
 import io
 import os
+import re
 from pathlib import Path
 
 import numpy as np
 
 from .errors import ExampleSetError
 
-__all__ = ["format_faces", "format_obj", "points_to_csv", "read_obj", "read_points", "write_obj"]
+__all__ = [
+    "format_faces",
+    "format_obj",
+    "points_to_csv",
+    "read_obj",
+    "read_obj_vertices",
+    "read_points",
+    "write_obj",
+]
 
 # trimesh's OBJ loader (process=False, maintain_order=True) drops vertices that no face
 # references once the file has `vt` lines, which silently shifts feature-point indices;
@@ -66,6 +75,72 @@ def read_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """
     path = Path(path)
     text = _read_text(path)
+    fast = _parse_obj_fast(text, with_faces=True)
+    if fast is not None:
+        return fast
+    return _parse_obj_checked(path, text)
+
+
+def read_obj_vertices(path: str | os.PathLike) -> np.ndarray:
+    """Only the (V, 3) float64 vertices of an OBJ, skipping the faces when it can.
+
+    For animation frames and example meshes whose topology comes from elsewhere: about
+    twice as fast as ``read_obj``. Errors as ``read_obj``.
+    """
+    path = Path(path)
+    text = _read_text(path)
+    fast = _parse_obj_fast(text, with_faces=False)
+    if fast is not None:
+        return fast[0]
+    return _parse_obj_checked(path, text)[0]
+
+
+_INDENTED_OR_TABBED = re.compile(r"^[ \t]+[vf][ \t]|^[vf]\t", re.MULTILINE)
+_CORNER_TAIL = re.compile(r"/\S*")
+
+
+def _parse_obj_fast(text: str, *, with_faces: bool) -> tuple[np.ndarray, np.ndarray] | None:
+    """Vectorised parse of a well-formed OBJ; None hands anything unusual to the checked path.
+
+    The checked path takes twice as long on a 26k-vertex head, and it is the one that
+    finds the line number of an error, so this one only has to recognise trouble.
+    """
+    if _INDENTED_OR_TABBED.search(text):
+        return None
+    first_face = 0 if text.startswith("f ") else text.find("\nf ")
+    if first_face >= 0 and text.rfind("\nv ") > first_face:
+        return None  # vertices after faces: let the checked path resolve indices in order
+    lines = text.splitlines()
+    vertex_text = [line[2:] for line in lines if line.startswith("v ")]
+    face_text = [line[2:] for line in lines if line.startswith("f ")] if with_faces else []
+    if not vertex_text:
+        return None
+    try:
+        flat = np.array(" ".join(vertex_text).split(), dtype=np.float64)
+        if flat.size != 3 * len(vertex_text) or not np.isfinite(flat).all():
+            return None
+        vertices = flat.reshape(-1, 3)
+        if not face_text:
+            return vertices, np.zeros((0, 3), dtype=np.int64)
+        corners = _CORNER_TAIL.sub("", "\n".join(face_text)).splitlines()
+        sizes = np.fromiter((len(c.split()) for c in corners), dtype=np.int64, count=len(corners))
+        ids = np.array(" ".join(corners).split(), dtype=np.int64) - 1
+    except ValueError:
+        return None
+    if sizes.min() < 3 or ids.size != sizes.sum() or ids.min() < 0 or ids.max() >= len(vertices):
+        return None
+    # Fan triangulation (a, b, c, d) -> (a, b, c), (a, c, d) of all polygons at once.
+    per_polygon = sizes - 2
+    starts = np.cumsum(sizes) - sizes
+    polygon = np.repeat(np.arange(sizes.size), per_polygon)
+    k = np.arange(per_polygon.sum()) - np.repeat(np.cumsum(per_polygon) - per_polygon, per_polygon)
+    first = starts[polygon]
+    faces = np.stack([ids[first], ids[first + k + 1], ids[first + k + 2]], axis=1)
+    return vertices, faces
+
+
+def _parse_obj_checked(path: Path, text: str) -> tuple[np.ndarray, np.ndarray]:
+    """Line-by-line parse that names the line of the first problem."""
     vertex_rows: list[list[str]] = []
     vertex_lines: list[int] = []
     faces: list[tuple[int, int, int]] = []
@@ -203,7 +278,8 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
 
 def _read_npy(path: Path) -> np.ndarray:
     try:
-        array = np.load(path, allow_pickle=False)
+        with path.open("rb") as handle:
+            array = np.load(handle, allow_pickle=False)
     except FileNotFoundError:
         raise ExampleSetError(f"{path}: file not found", code="missing_file") from None
     except (OSError, ValueError, EOFError) as exc:
