@@ -163,8 +163,10 @@ def fit(
     ridge : float, optional
         Override the regularisation strength derived from ``noise`` (finer knob).
     clamp : {None, "nonneg", "unit"}
-        Clip the non-neutral weights to >= 0 or to [0, 1] at evaluation; the neutral's
-        weight keeps the sum at 1.
+        Bound the non-neutral weights to >= 0 or to [0, 1] at evaluation: the cardinal
+        weights are projected onto the bounds in the metric of the examples' parameter
+        displacements (plus the noise ridge), i.e. the nearest bounded weights as the feature
+        points see them, not a plain clip. The neutral's weight keeps the sum at 1.
     stable_points : (S,) int, optional
         Feature points used for head-pose alignment (``Rig.weights(align=True)``); all
         points when omitted.
@@ -237,6 +239,7 @@ def fit(
         radial_coeffs=radial_coeffs,
         alpha=alpha,
         clamp=clamp,
+        ridge=float(lam),
     )
 
     report = FitReport(

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .bounds import project_box, weight_metric
 from .errors import InputError
 from .kernels import evaluate_kernel
 from .pose import align_points, similarity_transform
@@ -34,6 +35,8 @@ class WeightModel:
     radial_coeffs: np.ndarray  # (M, M) r_ji, eq. 3.13
     alpha: np.ndarray  # (M,) dilation factors
     clamp: str | None
+    # Noise prior (ridge) of the fit; sets the metric bounded weights are projected in.
+    ridge: float = 0.0
     # Input map x' = x @ input_matrix + input_offset on flattened points (calibration);
     # identity when not calibrated.
     input_matrix: np.ndarray | None = None
@@ -44,6 +47,7 @@ class WeightModel:
     _inv_alpha2: np.ndarray | None = None  # (2M,)
     _knots: np.ndarray | None = None  # (2M,) 2 then 1
     _radial2: np.ndarray | None = None  # (2M, M)
+    _metric: np.ndarray | None = None  # (M-1, M-1) for bounded weights
 
     @classmethod
     def build(cls, **fields) -> WeightModel:
@@ -87,6 +91,7 @@ class WeightModel:
         set_(self, "_project", np.ascontiguousarray(project))
         set_(self, "_offset", offset)
         set_(self, "_inv_alpha2", np.concatenate([inv_alpha, inv_alpha]) ** 2)
+        set_(self, "_metric", weight_metric(self.params, self.ridge))
         set_(self, "_knots", np.concatenate([np.full(m, 2.0), np.ones(m)]))
         # B(t) = ((2 - t)_+^3 - 4 (1 - t)_+^3) / 6, so B(t) @ r = [(2-t)_+^3, (1-t)_+^3] @ R2.
         set_(
@@ -122,7 +127,9 @@ class WeightModel:
             weights = evaluate_kernel(self.kernel, t) @ self.radial_coeffs
         weights += z[:, :m]
         if self.clamp is not None:
-            _clamp(weights, self.clamp)
+            rest = project_box(weights[:, 1:], self._metric, 1.0 if self.clamp == "unit" else None)
+            weights[:, 1:] = rest
+            weights[:, 0] = 1.0 - rest.sum(axis=1)
         return weights
 
     def weights_from_params(self, params: np.ndarray) -> np.ndarray:
@@ -147,15 +154,6 @@ class WeightModel:
         fields = {f: getattr(self, f) for f in self.__dataclass_fields__ if not f.startswith("_")}
         fields.update(changes)
         return WeightModel.build(**fields)
-
-
-def _clamp(weights: np.ndarray, mode: str) -> None:
-    """Clip the non-neutral weights in place; the neutral takes up the rest of the sum."""
-    rest = weights[:, 1:]
-    np.maximum(rest, 0.0, out=rest)
-    if mode == "unit":
-        np.minimum(rest, 1.0, out=rest)
-    weights[:, 0] = 1.0 - rest.sum(axis=1)
 
 
 class Rig:

@@ -107,6 +107,7 @@ def _meta(rig: Rig) -> dict:
         "names": list(rig.names),
         "kernel": rig.model.kernel,
         "clamp": rig.model.clamp,
+        "ridge": [m.ridge for m in rig.models],
         "align_scale": rig.align_scale,
         "fit_report": rig.fit_report or {},
         "regions": None
@@ -238,14 +239,14 @@ def _build(meta: dict, a: dict[str, np.ndarray]) -> Rig:
         or (faces.size and (faces.min() < 0 or faces.max() >= v))
     ):
         raise ValueError("target_faces out of range")
-    models = [_build_model(meta, a, "")]
+    models = [_build_model(meta, a, "", 0)]
     regions = None
     if meta.get("regions"):
         regions = []
         for r, region in enumerate(meta["regions"]):
             columns = np.asarray(region["columns"], dtype=np.int64)
             if r:
-                models.append(_build_model(meta, a, f"r{r}."))
+                models.append(_build_model(meta, a, f"r{r}.", r))
             if columns.ndim != 1 or (columns.size and (columns.min() < 1 or columns.max() >= m)):
                 raise ValueError(f"region {region['name']!r} has columns out of range")
             if columns.size != models[r].params.shape[0] - 1:
@@ -273,7 +274,7 @@ def _build(meta: dict, a: dict[str, np.ndarray]) -> Rig:
     )
 
 
-def _build_model(meta: dict, a: dict[str, np.ndarray], prefix: str) -> WeightModel:
+def _build_model(meta: dict, a: dict[str, np.ndarray], prefix: str, index: int) -> WeightModel:
     k = a[prefix + "source_neutral"].shape[0]
     n = a[prefix + "features"].shape[0]
     m = a[prefix + "params"].shape[0]
@@ -297,5 +298,6 @@ def _build_model(meta: dict, a: dict[str, np.ndarray], prefix: str) -> WeightMod
     return WeightModel.build(
         kernel=str(meta["kernel"]),
         clamp=clamp,
+        ridge=float(meta.get("ridge", [0.0] * (index + 1))[index]),
         **{key: a.get(prefix + key) for key in _MODEL_KEYS},
     )

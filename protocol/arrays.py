@@ -1,0 +1,115 @@
+"""Numeric arrays on the wire: one {dtype, shape, data} map per array (PROTOCOL.md §4).
+
+Converts between numpy arrays and that map, validating every part on the way in;
+it knows nothing about messages and never copies array data more than once.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Final
+
+import numpy as np
+
+from facecast.protocol.errors import ErrorCode, ProtocolError
+
+#: Wire dtype names and the little-endian numpy dtypes they stand for.
+WIRE_DTYPES: Final[dict[str, np.dtype[Any]]] = {
+    "f16": np.dtype("<f2"),
+    "f32": np.dtype("<f4"),
+    "f64": np.dtype("<f8"),
+}
+_NAME_BY_ITEMSIZE: Final = {2: "f16", 4: "f32", 8: "f64"}
+
+
+def wire_dtype_name(dtype: np.dtype[Any]) -> str:
+    """The wire name ("f16", "f32", "f64") of a floating numpy dtype."""
+    dtype = np.dtype(dtype)
+    name = _NAME_BY_ITEMSIZE.get(dtype.itemsize) if dtype.kind == "f" else None
+    if name is None:
+        raise ProtocolError(
+            ErrorCode.INVALID_ARRAY, f"only float16/32/64 arrays can be sent, got {dtype}"
+        )
+    return name
+
+
+def array_to_wire(array: np.ndarray) -> dict[str, Any]:
+    """The wire map of ``array``: {"dtype": name, "shape": [...], "data": bytes-like}.
+
+    ``data`` is a memoryview of ``array`` itself when it is already little-endian and
+    C-contiguous (the usual case), so msgpack copies the bytes once, straight into its
+    output buffer.
+    """
+    name = wire_dtype_name(array.dtype)
+    wire = WIRE_DTYPES[name]
+    if array.dtype != wire or not array.flags.c_contiguous:
+        array = np.ascontiguousarray(array, dtype=wire)
+    return {"dtype": name, "shape": list(array.shape), "data": array.data}
+
+
+def array_from_wire(
+    obj: Any, where: str, *, trailing: tuple[int, ...], max_rows: int
+) -> np.ndarray:
+    """Validate a wire array map and view its bytes as an array.
+
+    Parameters
+    ----------
+    obj : Any
+        The decoded msgpack value of the array field.
+    where : str
+        Field name for error messages, e.g. ``"frame.points"``.
+    trailing : tuple of int
+        Required shape after the first axis: ``(3,)`` for points and vertices, ``()``
+        for weights.
+    max_rows : int
+        Largest first axis accepted (``Limits.max_points`` etc.).
+
+    Returns
+    -------
+    (N, *trailing) array, read-only, in the wire dtype
+        A zero-copy view of the message's bytes (numpy's ``frombuffer``).
+    """
+    if type(obj) is not dict:
+        raise ProtocolError(
+            ErrorCode.INVALID_ARRAY, f"{where} must be a map with dtype, shape and data"
+        )
+    name = obj.get("dtype")
+    dtype = WIRE_DTYPES.get(name) if type(name) is str else None
+    if dtype is None:
+        raise ProtocolError(
+            ErrorCode.INVALID_ARRAY,
+            f"{where}.dtype must be one of {list(WIRE_DTYPES)}, got {name!r}",
+        )
+    shape = obj.get("shape")
+    expected = f"[N, {', '.join(map(str, trailing))}]" if trailing else "[N]"
+    if (
+        type(shape) is not list
+        or len(shape) != 1 + len(trailing)
+        or any(type(n) is not int or n < 0 for n in shape)
+        or tuple(shape[1:]) != trailing
+    ):
+        raise ProtocolError(
+            ErrorCode.INVALID_ARRAY, f"{where}.shape must be {expected}, got {shape!r}"
+        )
+    rows = shape[0]
+    if rows > max_rows:
+        raise ProtocolError(
+            ErrorCode.MESSAGE_TOO_LARGE, f"{where} has {rows} rows, more than the limit {max_rows}"
+        )
+    if rows == 0:
+        raise ProtocolError(ErrorCode.INVALID_ARRAY, f"{where} must not be empty")
+    data = obj.get("data")
+    if type(data) is not bytes:
+        raise ProtocolError(ErrorCode.INVALID_ARRAY, f"{where}.data must be bin")
+    count = rows
+    for n in trailing:
+        count *= n
+    if count * dtype.itemsize != len(data):
+        raise ProtocolError(
+            ErrorCode.INVALID_ARRAY,
+            f"{where}.data has {len(data)} bytes, shape {shape} of {name} needs "
+            f"{count * dtype.itemsize}",
+        )
+    array = np.frombuffer(data, dtype=dtype).reshape(shape)
+    if not np.isfinite(array).all():
+        raise ProtocolError(ErrorCode.NON_FINITE, f"{where} contains NaN or infinity")
+    return array

@@ -1,0 +1,764 @@
+"""The twelve protocol messages as frozen dataclasses with serialize/parse (PROTOCOL.md §5).
+
+Each class checks its own fields and converts to and from a msgpack-ready dict; framing,
+version and type dispatch live in codec.py, session order in connection.py.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from typing import Any, ClassVar, Final, Self
+
+import numpy as np
+
+from facecast.protocol.arrays import WIRE_DTYPES, array_from_wire, array_to_wire, wire_dtype_name
+from facecast.protocol.errors import ErrorCode, ProtocolError, error_code
+from facecast.protocol.fields import (
+    MAX_UINT64,
+    check_float,
+    check_str,
+    check_str_length,
+    invalid,
+    read_bool,
+    read_float,
+    read_int,
+    read_map,
+    read_str,
+    read_uint,
+)
+from facecast.protocol.limits import Limits
+
+PROTOCOL_VERSION: Final = 1
+
+#: What a session streams back: blendshape weights (M,) or target vertices (V, 3).
+OUTPUTS: Final = ("weights", "vertices")
+#: Dtypes a client may negotiate for results.
+RESULT_DTYPES: Final = ("f32", "f16")
+#: What the one-euro filter smooths: the incoming points or the outgoing weights.
+SMOOTHING_TARGETS: Final = ("points", "weights")
+#: Longest error message a server sends; longer ones are cut, so they always decode.
+MAX_ERROR_MESSAGE: Final = 256
+
+_DEFAULT_LIMITS: Final = Limits()
+
+
+def _fail(where: str, expected: str, value: Any) -> ProtocolError:
+    return invalid(where, expected, value)
+
+
+def _check_uint(value: Any, where: str) -> None:
+    if type(value) is not int or not 0 <= value <= MAX_UINT64:
+        raise _fail(where, "an integer in [0, 2**64-1]", value)
+
+
+def _check_bool(value: Any, where: str) -> None:
+    if type(value) is not bool:
+        raise _fail(where, "a bool", value)
+
+
+def _check_choice(value: Any, where: str, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise ProtocolError(
+            ErrorCode.INVALID_FIELD, f"{where} must be one of {list(choices)}, got {value!r}"
+        )
+
+
+def _check_array(value: Any, where: str, trailing: tuple[int, ...]) -> None:
+    if (
+        not isinstance(value, np.ndarray)
+        or value.ndim != 1 + len(trailing)
+        or value.shape[1:] != trailing
+        or value.shape[0] == 0
+        or value.dtype.kind != "f"
+        or value.dtype.itemsize not in (2, 4, 8)
+    ):
+        shape = f"(N, {', '.join(map(str, trailing))})" if trailing else "(N,)"
+        got = f"{value.dtype} {value.shape}" if isinstance(value, np.ndarray) else type(value)
+        raise ProtocolError(
+            ErrorCode.INVALID_ARRAY, f"{where} must be a non-empty float {shape} array, got {got}"
+        )
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return (
+            isinstance(a, np.ndarray)
+            and isinstance(b, np.ndarray)
+            and a.dtype == b.dtype
+            and a.shape == b.shape
+            and bool(np.array_equal(a, b))
+        )
+    return bool(a == b)
+
+
+class Message:
+    """Base of all messages: ``TYPE`` is the wire ``type``; ``serialize`` gives the map."""
+
+    TYPE: ClassVar[str]
+
+    def serialize(self) -> dict[str, Any]:
+        raise NotImplementedError
+
+    @classmethod
+    def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Self:
+        raise NotImplementedError
+
+
+class _ArrayMessage(Message):
+    """Equality for messages holding arrays: same dtype, shape and values."""
+
+    def __eq__(self, other: object) -> bool:
+        if type(self) is not type(other):
+            return NotImplemented
+        return all(_same(getattr(self, f.name), getattr(other, f.name)) for f in fields(self))  # type: ignore[arg-type]
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+def _header(kind: str) -> dict[str, Any]:
+    return {"v": PROTOCOL_VERSION, "type": kind}
+
+
+# --- client -> server -------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class Smoothing:
+    """One-euro filter parameters (Casiez et al. 2012), §5.1.1.
+
+    Attributes
+    ----------
+    min_cutoff : float
+        Minimum cutoff frequency in Hz, > 0; lower means smoother at rest.
+    beta : float
+        Speed coefficient, >= 0; higher means less lag on fast motion.
+    d_cutoff : float
+        Cutoff frequency in Hz for the derivative, > 0.
+    target : {"points", "weights"}
+        Smooth the incoming feature points or the outgoing weights.
+    """
+
+    min_cutoff: float = 1.0
+    beta: float = 0.0
+    d_cutoff: float = 1.0
+    target: str = "points"
+
+    def __post_init__(self) -> None:
+        for name, low, strict in (
+            ("min_cutoff", 0.0, True),
+            ("beta", 0.0, False),
+            ("d_cutoff", 0.0, True),
+        ):
+            where = f"hello.options.smoothing.{name}"
+            value = check_float(getattr(self, name), where)
+            if value < low or (strict and value == low):
+                raise ProtocolError(
+                    ErrorCode.INVALID_FIELD,
+                    f"{where} must be {'>' if strict else '>='} {low}, got {value!r}",
+                )
+            object.__setattr__(self, name, value)
+        _check_choice(self.target, "hello.options.smoothing.target", SMOOTHING_TARGETS)
+
+    def serialize(self) -> dict[str, Any]:
+        return {
+            "min_cutoff": self.min_cutoff,
+            "beta": self.beta,
+            "d_cutoff": self.d_cutoff,
+            "target": self.target,
+        }
+
+    @classmethod
+    def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Smoothing:
+        w = "hello.options.smoothing."
+        return cls(
+            min_cutoff=read_float(obj, "min_cutoff", w + "min_cutoff", 1.0),
+            beta=read_float(obj, "beta", w + "beta", 0.0),
+            d_cutoff=read_float(obj, "d_cutoff", w + "d_cutoff", 1.0),
+            target=read_str(
+                obj, "target", w + "target", limits, "points", choices=SMOOTHING_TARGETS
+            ),
+        )
+
+
+@dataclass(frozen=True, kw_only=True)
+class Hello(Message):
+    """Opens a session (§5.1.1): which rig, what to stream back, and how.
+
+    On the wire the five options travel in a nested ``options`` map.
+    """
+
+    TYPE: ClassVar[str] = "hello"
+    rig: str
+    output: str = "weights"
+    dtype: str = "f32"
+    align: bool = False
+    align_scale: bool = False
+    calibration: bool = False
+    smoothing: Smoothing | None = None
+
+    def __post_init__(self) -> None:
+        check_str(self.rig, "hello.rig", None)
+        _check_choice(self.output, "hello.output", OUTPUTS)
+        _check_choice(self.dtype, "hello.dtype", RESULT_DTYPES)
+        _check_bool(self.align, "hello.options.align")
+        _check_bool(self.align_scale, "hello.options.scale")
+        _check_bool(self.calibration, "hello.options.calibration")
+        if self.align_scale and not self.align:
+            raise ProtocolError(
+                ErrorCode.INVALID_FIELD, "hello.options.scale needs hello.options.align"
+            )
+        if self.smoothing is not None and not isinstance(self.smoothing, Smoothing):
+            raise _fail("hello.options.smoothing", "nil or a map", self.smoothing)
+
+    def serialize(self) -> dict[str, Any]:
+        return {
+            **_header(self.TYPE),
+            "rig": self.rig,
+            "output": self.output,
+            "dtype": self.dtype,
+            "options": {
+                "align": self.align,
+                "scale": self.align_scale,
+                "calibration": self.calibration,
+                "smoothing": None if self.smoothing is None else self.smoothing.serialize(),
+            },
+        }
+
+    @classmethod
+    def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Hello:
+        options = read_map(obj, "options", "hello.options", {})
+        smoothing = read_map(options, "smoothing", "hello.options.smoothing", None)
+        rig = read_str(obj, "rig", "hello.rig", limits)
+        return cls(
+            rig=rig,
+            output=read_str(obj, "output", "hello.output", limits, "weights", choices=OUTPUTS),
+            dtype=read_str(obj, "dtype", "hello.dtype", limits, "f32", choices=RESULT_DTYPES),
+            align=read_bool(options, "align", "hello.options.align", False),
+            align_scale=read_bool(options, "scale", "hello.options.scale", False),
+            calibration=read_bool(options, "calibration", "hello.options.calibration", False),
+            smoothing=None if smoothing is None else Smoothing.parse(smoothing, limits),
+        )
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Frame(_ArrayMessage):
+    """One frame of tracked feature points (§5.1.2).
+
+    Attributes
+    ----------
+    seq : int
+        Sender's sequence number, echoed in the result.
+    ts : float
+        Source timestamp (seconds, sender's clock), echoed in the result.
+    points : (K, 3) float16/32/64
+        Feature points; decoded frames hold a read-only view of the message bytes.
+    """
+
+    TYPE: ClassVar[str] = "frame"
+    seq: int
+    ts: float
+    points: np.ndarray
+
+    def __post_init__(self) -> None:
+        _check_uint(self.seq, "frame.seq")
+        object.__setattr__(self, "ts", check_float(self.ts, "frame.ts"))
+        _check_array(self.points, "frame.points", (3,))
+
+    def serialize(self) -> dict[str, Any]:
+        return {
+            **_header(self.TYPE),
+            "seq": self.seq,
+            "ts": self.ts,
+            "points": array_to_wire(self.points),
+        }
+
+    @classmethod
+    def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Frame:
+        return cls(
+            seq=read_uint(obj, "seq", "frame.seq"),
+            ts=read_float(obj, "ts", "frame.ts"),
+            points=array_from_wire(
+                obj.get("points"), "frame.points", trailing=(3,), max_rows=limits.max_points
+            ),
+        )
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Calibrate(_ArrayMessage):
+    """Capture (or clear) the performer's neutral pose (§5.1.3).
+
+    Attributes
+    ----------
+    points : (K, 3) float array or None
+        The neutral explicitly; None means "use the next frame received".
+    reset : bool
+        Clear the captured neutral instead; excludes ``points``.
+    """
+
+    TYPE: ClassVar[str] = "calibrate"
+    points: np.ndarray | None = None
+    reset: bool = False
+
+    def __post_init__(self) -> None:
+        _check_bool(self.reset, "calibrate.reset")
+        if self.points is not None:
+            _check_array(self.points, "calibrate.points", (3,))
+            if self.reset:
+                raise ProtocolError(
+                    ErrorCode.INVALID_FIELD,
+                    "calibrate.points and calibrate.reset exclude each other",
+                )
+
+    def serialize(self) -> dict[str, Any]:
+        return {
+            **_header(self.TYPE),
+            "points": None if self.points is None else array_to_wire(self.points),
+            "reset": self.reset,
+        }
+
+    @classmethod
+    def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Calibrate:
+        points = obj.get("points")
+        return cls(
+            points=None
+            if points is None
+            else array_from_wire(
+                points, "calibrate.points", trailing=(3,), max_rows=limits.max_points
+            ),
+            reset=read_bool(obj, "reset", "calibrate.reset", False),
+        )
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Probe(Message):
+    """Fields shared by `Ping` and `Pong`."""
+
+    id: int
+    ts: float
+
+    def __post_init__(self) -> None:
+        _check_uint(self.id, f"{self.TYPE}.id")
+        object.__setattr__(self, "ts", check_float(self.ts, f"{self.TYPE}.ts"))
+
+    def serialize(self) -> dict[str, Any]:
+        return {**_header(self.TYPE), "id": self.id, "ts": self.ts}
+
+    @classmethod
+    def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Self:
+        return cls(
+            id=read_uint(obj, "id", f"{cls.TYPE}.id"), ts=read_float(obj, "ts", f"{cls.TYPE}.ts")
+        )
+
+
+@dataclass(frozen=True, kw_only=True)
+class Ping(_Probe):
+    """Liveness and round-trip probe (§5.1.4); answered by a `Pong` with the same fields.
+
+    Attributes
+    ----------
+    id : int
+        Sender-chosen probe id.
+    ts : float
+        Sender's clock when sent, seconds.
+    """
+
+    TYPE: ClassVar[str] = "ping"
+
+
+# --- server -> client -------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class Ready(Message):
+    """The session is open (§5.2.1): what the rig is, what will stream, and the limits.
+
+    Attributes
+    ----------
+    session : str
+        Server-chosen session id (for logs and support).
+    rig : str
+        Rig id.
+    names : tuple of str, length M
+        Blendshape/example names; ``names[0]`` is the neutral.
+    num_points : int
+        K, feature points every frame must carry.
+    num_vertices : int
+        V, vertices of the target mesh.
+    output, dtype : str
+        What each ``result`` carries, as negotiated.
+    limits : mapping of str to number
+        Limits the server enforces (§7); unknown keys are informational.
+    """
+
+    TYPE: ClassVar[str] = "ready"
+    session: str
+    rig: str
+    names: tuple[str, ...]
+    num_points: int
+    num_vertices: int
+    output: str
+    dtype: str
+    limits: Mapping[str, int | float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        check_str(self.session, "ready.session", None)
+        check_str(self.rig, "ready.rig.id", None)
+        object.__setattr__(self, "names", tuple(self.names))
+        for name in self.names:
+            if type(name) is not str:
+                raise _fail("ready.rig.names[]", "a string", name)
+        if not self.names:
+            raise ProtocolError(ErrorCode.INVALID_FIELD, "ready.rig.names must not be empty")
+        _check_uint(self.num_points, "ready.rig.k")
+        _check_uint(self.num_vertices, "ready.rig.v")
+        _check_choice(self.output, "ready.output", OUTPUTS)
+        _check_choice(self.dtype, "ready.dtype", RESULT_DTYPES)
+        if not isinstance(self.limits, Mapping):
+            raise _fail("ready.limits", "a map", self.limits)
+        for key, value in self.limits.items():
+            if type(key) is not str:
+                raise _fail("ready.limits key", "a string", key)
+            if type(value) is int:
+                continue
+            if type(value) is not float or not math.isfinite(value):
+                raise _fail(f"ready.limits.{key}", "a finite number", value)
+
+    @property
+    def num_examples(self) -> int:
+        """M, the number of examples (and of weights per result)."""
+        return len(self.names)
+
+    def serialize(self) -> dict[str, Any]:
+        return {
+            **_header(self.TYPE),
+            "session": self.session,
+            "rig": {
+                "id": self.rig,
+                "m": len(self.names),
+                "names": list(self.names),
+                "k": self.num_points,
+                "v": self.num_vertices,
+            },
+            "output": self.output,
+            "dtype": self.dtype,
+            "limits": dict(self.limits),
+        }
+
+    @classmethod
+    def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Ready:
+        rig = read_map(obj, "rig", "ready.rig")
+        names = rig.get("names")
+        if type(names) is not list:
+            raise _fail("ready.rig.names", "an array", names)
+        for name in names:
+            if type(name) is not str:
+                raise _fail("ready.rig.names[]", "a string", name)
+            check_str_length(name, "ready.rig.names[]", limits)
+        m = read_uint(rig, "m", "ready.rig.m")
+        if m != len(names):
+            raise ProtocolError(
+                ErrorCode.INVALID_FIELD, f"ready.rig.m is {m} but there are {len(names)} names"
+            )
+        num_vertices = read_uint(rig, "v", "ready.rig.v")
+        if num_vertices > limits.max_vertices:
+            raise ProtocolError(
+                ErrorCode.MESSAGE_TOO_LARGE,
+                f"ready.rig.v is {num_vertices}, more than the limit {limits.max_vertices}",
+            )
+        num_points = read_uint(rig, "k", "ready.rig.k")
+        if num_points > limits.max_points:
+            raise ProtocolError(
+                ErrorCode.MESSAGE_TOO_LARGE,
+                f"ready.rig.k is {num_points}, more than the limit {limits.max_points}",
+            )
+        server_limits = read_map(obj, "limits", "ready.limits", {})
+        for key, value in server_limits.items():
+            if type(key) is not str:
+                raise _fail("ready.limits key", "a string", key)
+            check_str_length(key, "ready.limits key", limits)
+            check_float(value, f"ready.limits.{key}")
+        return cls(
+            session=read_str(obj, "session", "ready.session", limits),
+            rig=read_str(rig, "id", "ready.rig.id", limits),
+            names=tuple(names),
+            num_points=num_points,
+            num_vertices=num_vertices,
+            output=read_str(obj, "output", "ready.output", limits, choices=OUTPUTS),
+            dtype=read_str(obj, "dtype", "ready.dtype", limits, choices=RESULT_DTYPES),
+            limits=server_limits,
+        )
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Result(_ArrayMessage):
+    """The clone of one frame (§5.2.2); exactly one of ``weights`` / ``vertices`` is set.
+
+    Attributes
+    ----------
+    seq : int
+        The frame's sequence number.
+    ts : float
+        The frame's source timestamp, echoed unchanged.
+    weights : (M,) float16/32 or None
+        Example weights, when the session's output is "weights".
+    vertices : (V, 3) float16/32 or None
+        Target mesh vertices, when the session's output is "vertices".
+    proc_us : int
+        Server processing time for this frame, microseconds.
+    dropped : int
+        Frames this session has discarded unprocessed so far (§8).
+    """
+
+    TYPE: ClassVar[str] = "result"
+    seq: int
+    ts: float
+    weights: np.ndarray | None = None
+    vertices: np.ndarray | None = None
+    proc_us: int = 0
+    dropped: int = 0
+
+    def __post_init__(self) -> None:
+        # On the server's per-frame path: a handful of type checks, no array scans.
+        _check_uint(self.seq, "result.seq")
+        object.__setattr__(self, "ts", check_float(self.ts, "result.ts"))
+        _check_uint(self.proc_us, "result.proc_us")
+        _check_uint(self.dropped, "result.dropped")
+        if (self.weights is None) == (self.vertices is None):
+            raise ProtocolError(
+                ErrorCode.INVALID_FIELD, "a result carries exactly one of weights and vertices"
+            )
+        if self.weights is not None:
+            _check_array(self.weights, "result.weights", ())
+        else:
+            _check_array(self.vertices, "result.vertices", (3,))
+
+    @property
+    def output(self) -> str:
+        """ "weights" or "vertices": which one this result carries."""
+        return "weights" if self.weights is not None else "vertices"
+
+    @property
+    def values(self) -> np.ndarray:
+        """The array this result carries, (M,) weights or (V, 3) vertices."""
+        return self.weights if self.weights is not None else self.vertices  # type: ignore[return-value]
+
+    @property
+    def dtype(self) -> str:
+        """Wire dtype name of `values`."""
+        return wire_dtype_name(self.values.dtype)
+
+    def serialize(self) -> dict[str, Any]:
+        out = {**_header(self.TYPE), "seq": self.seq, "ts": self.ts}
+        if self.weights is not None:
+            out["weights"] = array_to_wire(self.weights)
+        else:
+            out["vertices"] = array_to_wire(self.vertices)  # type: ignore[arg-type]
+        out["proc_us"] = self.proc_us
+        out["dropped"] = self.dropped
+        return out
+
+    @classmethod
+    def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Result:
+        seq = read_uint(obj, "seq", "result.seq")
+        ts = read_float(obj, "ts", "result.ts")
+        weights = obj.get("weights")
+        vertices = obj.get("vertices")
+        if (weights is None) == (vertices is None):
+            raise ProtocolError(
+                ErrorCode.INVALID_FIELD, "a result carries exactly one of weights and vertices"
+            )
+        return cls(
+            seq=seq,
+            ts=ts,
+            weights=None
+            if weights is None
+            else array_from_wire(weights, "result.weights", trailing=(), max_rows=limits.max_names),
+            vertices=None
+            if vertices is None
+            else array_from_wire(
+                vertices, "result.vertices", trailing=(3,), max_rows=limits.max_vertices
+            ),
+            proc_us=read_uint(obj, "proc_us", "result.proc_us"),
+            dropped=read_uint(obj, "dropped", "result.dropped"),
+        )
+
+
+@dataclass(frozen=True, kw_only=True)
+class Error(Message):
+    """Something went wrong (§5.2.3, codes in §6).
+
+    ``code`` is an `ErrorCode`, or a bare int for a code newer than this library.
+    ``message`` is cut to `MAX_ERROR_MESSAGE` characters.
+    """
+
+    TYPE: ClassVar[str] = "error"
+    code: ErrorCode | int
+    message: str
+    seq: int | None = None
+    fatal: bool = False
+
+    def __post_init__(self) -> None:
+        if type(self.code) is not int and not isinstance(self.code, ErrorCode):
+            raise _fail("error.code", "an integer", self.code)
+        object.__setattr__(self, "code", error_code(int(self.code)))
+        if type(self.message) is not str:
+            raise _fail("error.message", "a string", self.message)
+        if len(self.message) > MAX_ERROR_MESSAGE:
+            object.__setattr__(self, "message", self.message[: MAX_ERROR_MESSAGE - 1] + "…")
+        if self.seq is not None:
+            _check_uint(self.seq, "error.seq")
+        _check_bool(self.fatal, "error.fatal")
+
+    def serialize(self) -> dict[str, Any]:
+        return {
+            **_header(self.TYPE),
+            "code": int(self.code),
+            "message": self.message,
+            "seq": self.seq,
+            "fatal": self.fatal,
+        }
+
+    @classmethod
+    def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Error:
+        message = obj.get("message")
+        if type(message) is not str:
+            raise _fail("error.message", "a string", message)
+        check_str_length(message, "error.message", limits)
+        return cls(
+            code=read_int(obj, "code", "error.code"),
+            message=message,
+            seq=read_uint(obj, "seq", "error.seq", None),
+            fatal=read_bool(obj, "fatal", "error.fatal", False),
+        )
+
+    def to_exception(self) -> ProtocolError:
+        """This error as a `ProtocolError` a client can raise."""
+        return ProtocolError(self.code, self.message, seq=self.seq, fatal=self.fatal)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Pong(_Probe):
+    """Answer to a `Ping` (§5.2.4): ``id`` and ``ts`` echoed unchanged."""
+
+    TYPE: ClassVar[str] = "pong"
+
+
+@dataclass(frozen=True, kw_only=True)
+class Calibrated(Message):
+    """Acknowledges a `Calibrate` (§5.2.5).
+
+    Attributes
+    ----------
+    active : bool
+        True when a neutral is now captured, False after a reset.
+    seq : int or None
+        The frame whose points became the neutral, or None (explicit points, reset).
+    """
+
+    TYPE: ClassVar[str] = "calibrated"
+    active: bool
+    seq: int | None = None
+
+    def __post_init__(self) -> None:
+        _check_bool(self.active, "calibrated.active")
+        if self.seq is not None:
+            _check_uint(self.seq, "calibrated.seq")
+
+    def serialize(self) -> dict[str, Any]:
+        return {**_header(self.TYPE), "active": self.active, "seq": self.seq}
+
+    @classmethod
+    def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Calibrated:
+        return cls(
+            active=read_bool(obj, "active", "calibrated.active"),
+            seq=read_uint(obj, "seq", "calibrated.seq", None),
+        )
+
+
+@dataclass(frozen=True, kw_only=True)
+class _ChannelEvent(Message):
+    """Fields shared by `ChannelIdle` and `ChannelLive`."""
+
+    channel: str
+
+    def __post_init__(self) -> None:
+        check_str(self.channel, f"{self.TYPE}.channel", None)
+
+    def serialize(self) -> dict[str, Any]:
+        return {**_header(self.TYPE), "channel": self.channel}
+
+    @classmethod
+    def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Self:
+        return cls(channel=read_str(obj, "channel", f"{cls.TYPE}.channel", limits))
+
+
+@dataclass(frozen=True, kw_only=True)
+class ChannelIdle(_ChannelEvent):
+    """The watched channel has no publisher (§5.2.6)."""
+
+    TYPE: ClassVar[str] = "channel_idle"
+
+
+@dataclass(frozen=True, kw_only=True)
+class ChannelLive(_ChannelEvent):
+    """The watched channel has a publisher again (§5.2.6)."""
+
+    TYPE: ClassVar[str] = "channel_live"
+
+
+@dataclass(frozen=True, kw_only=True)
+class FaceLost(Message):
+    """The publisher's tracker lost the face (§5.2.7); ``since`` is the last frame's ``ts``."""
+
+    TYPE: ClassVar[str] = "face_lost"
+    since: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "since", check_float(self.since, "face_lost.since"))
+
+    def serialize(self) -> dict[str, Any]:
+        return {**_header(self.TYPE), "since": self.since}
+
+    @classmethod
+    def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> FaceLost:
+        return cls(since=read_float(obj, "since", "face_lost.since"))
+
+
+ClientMessage = Hello | Frame | Calibrate | Ping
+ServerMessage = Ready | Result | Error | Pong | Calibrated | ChannelIdle | ChannelLive | FaceLost
+
+CLIENT_MESSAGES: Final[dict[str, type[Message]]] = {
+    cls.TYPE: cls for cls in (Hello, Frame, Calibrate, Ping)
+}
+SERVER_MESSAGES: Final[dict[str, type[Message]]] = {
+    cls.TYPE: cls
+    for cls in (Ready, Result, Error, Pong, Calibrated, ChannelIdle, ChannelLive, FaceLost)
+}
+
+__all__ = [
+    "CLIENT_MESSAGES",
+    "OUTPUTS",
+    "PROTOCOL_VERSION",
+    "RESULT_DTYPES",
+    "SERVER_MESSAGES",
+    "SMOOTHING_TARGETS",
+    "WIRE_DTYPES",
+    "Calibrate",
+    "Calibrated",
+    "ChannelIdle",
+    "ChannelLive",
+    "ClientMessage",
+    "Error",
+    "FaceLost",
+    "Frame",
+    "Hello",
+    "Message",
+    "Ping",
+    "Pong",
+    "Ready",
+    "Result",
+    "ServerMessage",
+    "Smoothing",
+]

@@ -1,0 +1,76 @@
+"""Golden bytes: every message type encodes to fixed bytes, and PROTOCOL.md shows them."""
+
+from __future__ import annotations
+
+import re
+from importlib import resources
+
+import pytest
+from _protocol_samples import SAMPLES
+
+from facecast.protocol import decode_client, decode_server, encode
+from facecast.protocol.messages import CLIENT_MESSAGES, SERVER_MESSAGES
+
+GOLDEN = {
+    "hello": "86a17601a474797065a568656c6c6fa3726967a464656d6fa66f7574707574a777656967687473a564"
+    "74797065a3663332a76f7074696f6e7384a5616c69676ec3a57363616c65c2ab63616c6962726174696f6ec2a9"
+    "736d6f6f7468696e6784aa6d696e5f6375746f6666cb3ff0000000000000a462657461cb3fe0000000000000a8"
+    "645f6375746f6666cb3ff0000000000000a6746172676574a6706f696e7473",
+    "frame": "85a17601a474797065a56672616d65a373657107a27473cb4029000000000000a6706f696e747383a5"
+    "6474797065a3663332a57368617065920203a464617461c418000000000000803f00000040000000bf0000803e"
+    "0000c03f",
+    "calibrate": "84a17601a474797065a963616c696272617465a6706f696e7473c0a57265736574c2",
+    "ping": "84a17601a474797065a470696e67a2696401a27473cb400a000000000000",
+    "ready": "87a17601a474797065a57265616479a773657373696f6ea27331a372696785a26964a464656d6fa16d"
+    "03a56e616d657393a76e65757472616ca5736d696c65a86a61775f6f70656ea16b02a17604a66f7574707574a7"
+    "77656967687473a56474797065a3663332a66c696d69747382b16d61785f6d6573736167655f6279746573ce00"
+    "100000a76d61785f66707378",
+    "result": "87a17601a474797065a6726573756c74a373657107a27473cb4029000000000000a7776569676874"
+    "7383a56474797065a3663332a573686170659103a464617461c40c0000003f0000803e0000803ea770726f635f"
+    "7573ccb4a764726f7070656402",
+    "error": "86a17601a474797065a56572726f72a4636f6465cd07d2a76d657373616765af6e656564204b3d3220"
+    "706f696e7473a373657108a5666174616cc2",
+    "pong": "84a17601a474797065a4706f6e67a2696401a27473cb400a000000000000",
+    "calibrated": "84a17601a474797065aa63616c69627261746564a6616374697665c3a373657109",
+    "channel_idle": "83a17601a474797065ac6368616e6e656c5f69646c65a76368616e6e656ca57374616765",
+    "channel_live": "83a17601a474797065ac6368616e6e656c5f6c697665a76368616e6e656ca57374616765",
+    "face_lost": "83a17601a474797065a9666163655f6c6f7374a573696e6365cb4029000000000000",
+}
+
+# Examples in PROTOCOL.md look like: <!-- example: frame --> then a fenced block of hex.
+_EXAMPLE = re.compile(r"<!-- example: (\w+) -->\s*```[a-z]*\n(.*?)```", re.DOTALL)
+
+
+def _decode(name: str, data: bytes):
+    return decode_client(data) if name in CLIENT_MESSAGES else decode_server(data)
+
+
+def _spec_examples() -> dict[str, bytes]:
+    text = resources.files("facecast.protocol").joinpath("PROTOCOL.md").read_text("utf-8")
+    return {
+        name: bytes.fromhex(re.sub(r"[^0-9a-fA-F]", "", block))
+        for name, block in _EXAMPLE.findall(text)
+    }
+
+
+def test_every_message_type_has_a_golden_sample() -> None:
+    assert set(GOLDEN) == set(CLIENT_MESSAGES) | set(SERVER_MESSAGES)
+
+
+@pytest.mark.parametrize("name", sorted(GOLDEN))
+def test_message_encodes_to_golden_bytes(name: str) -> None:
+    assert encode(SAMPLES[name]).hex() == GOLDEN[name]
+
+
+@pytest.mark.parametrize("name", sorted(GOLDEN))
+def test_golden_bytes_decode_to_the_message(name: str) -> None:
+    assert _decode(name, bytes.fromhex(GOLDEN[name])) == SAMPLES[name]
+
+
+def test_spec_shows_an_example_of_every_message_type() -> None:
+    assert set(_spec_examples()) == set(GOLDEN)
+
+
+@pytest.mark.parametrize("name", sorted(GOLDEN))
+def test_spec_hex_example_equals_encoded_bytes(name: str) -> None:
+    assert _spec_examples().get(name) == encode(SAMPLES[name])
