@@ -1,0 +1,190 @@
+"""``facecast bench engine``: the engine's speed on the ICT rig, each figure beside a baseline.
+
+Times the rig's hot paths and its fit against baselines measured in the same run (the
+unfolded eq. 3.8, a bare weights @ deltas product, scipy's RBFInterpolator) and judges each
+against its goal; it must not change the engine or tune itself to the goals.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import warnings
+
+import numpy as np
+
+BATCH = 1024
+# Goals, in seconds or as ratios; a figure passes when its test holds.
+GOALS = {
+    "weights_single": ("< 20 us", lambda f: f["value_s"] < 20e-6),
+    "weights_batched_per_frame": ("< 2 us per frame", lambda f: f["value_s"] < 2e-6),
+    "blend_single": ("<= 1.5x the memory floor", lambda f: f["ratio"] <= 1.5),
+    "fit": ("< 50 ms", lambda f: f["value_s"] < 50e-3),
+    "weights_vs_rbfinterpolator": (">= 10x faster", lambda f: f["ratio"] <= 0.1),
+}
+
+
+def _dataset(args: argparse.Namespace):
+    from facecast.rig.ict import ict_example_set, locate_ict
+
+    if not getattr(args, "demo", False):
+        archive = locate_ict(args.ict) if args.ict else locate_ict()
+        if archive is not None:
+            return "ict", str(archive), ict_example_set(archive)
+        print(
+            "notice: ICT-FaceKit not found (--ict PATH, $FACECAST_ICT or "
+            "../shared/data/ict-facekit); benchmarking the procedural demo instead",
+            file=sys.stderr,
+        )
+    from facecast.rig.demo import demo_example_set
+
+    return "demo", None, demo_example_set()
+
+
+def _frames(example_set, count: int, seed: int = 0) -> np.ndarray:
+    """Feature points (count, K, 3) of random sparse mixes of the source examples."""
+    rng = np.random.default_rng(seed)
+    m = example_set.num_examples
+    mix = rng.uniform(0.0, 1.0, size=(count, m - 1)) * (rng.random((count, m - 1)) < 0.1)
+    neutral = example_set.source_neutral
+    deltas = (example_set.source_points[1:] - neutral).reshape(m - 1, -1)
+    return (neutral.reshape(-1) + mix @ deltas).reshape(count, -1, 3)
+
+
+def measure(example_set, *, repeat: int) -> dict:
+    """Every figure with its baseline: {name: {value_s, baseline_s, baseline, ratio}}."""
+    from scipy.interpolate import RBFInterpolator
+
+    from facecast.rig import fit
+    from facecast.rig.evaluate import median_call_seconds
+
+    def timed(function):
+        return median_call_seconds(function, repeat=repeat)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rig = fit(example_set)
+        fit_s = timed(lambda: fit(example_set))
+    model = rig.model
+    points = _frames(example_set, BATCH)
+    frame = points[0]
+    flat = points.reshape(BATCH, -1)
+
+    def unfolded(x):  # eq. 3.7 then eq. 3.8, term by term, as the thesis writes them
+        return model.weights_from_params(model.project(x))
+
+    figures = {}
+    figures["weights_single"] = (
+        timed(lambda: rig.weights(frame)),
+        timed(lambda: unfolded(flat[:1])),
+        "eq. 3.8 unfolded (project, then linear + radial terms)",
+    )
+    figures["weights_batched_per_frame"] = (
+        timed(lambda: rig.weights(points)) / BATCH,
+        timed(lambda: unfolded(flat)) / BATCH,
+        f"eq. 3.8 unfolded, batch of {BATCH}",
+    )
+    weights = rig.weights(frame)
+    out = np.empty((rig.num_vertices, 3), dtype=np.float32)
+    w32 = weights.astype(np.float32)[None, :]
+    deltas = rig.target_deltas
+    floor_out = np.empty((1, deltas.shape[1]), dtype=np.float32)
+    figures["blend_single"] = (
+        timed(lambda: rig.blend(weights, out=out)),
+        timed(lambda: np.matmul(w32, deltas, out=floor_out)),
+        "memory floor: bare float32 weights @ deltas",
+    )
+    params = model.params
+    identity = np.eye(rig.num_examples)
+    figures["fit"] = (
+        fit_s,
+        timed(lambda: RBFInterpolator(params, identity, kernel="thin_plate_spline", degree=1)),
+        "scipy RBFInterpolator fit on the same centres",
+    )
+    interpolator = RBFInterpolator(params, identity, kernel="thin_plate_spline", degree=1)
+    p = model.project(flat[:1])
+    figures["weights_vs_rbfinterpolator"] = (
+        figures["weights_single"][0],
+        timed(lambda: interpolator(p)),
+        "scipy RBFInterpolator, one frame (from reduced parameters)",
+    )
+    result = {}
+    for name, (value, baseline, what) in figures.items():
+        entry = {
+            "value_s": float(value),
+            "baseline_s": float(baseline),
+            "baseline": what,
+            "ratio": float(value / baseline) if baseline > 0 else None,
+        }
+        goal, test = GOALS[name]
+        entry["goal"] = goal
+        entry["pass"] = bool(entry["ratio"] is not None and test(entry))
+        result[name] = entry
+    return result
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 1e-3:
+        return f"{seconds * 1e6:9.2f} us"
+    return f"{seconds * 1e3:9.2f} ms"
+
+
+def format_figures(figures: dict) -> str:
+    lines = [
+        f"{'figure':<28}{'value':>13}{'baseline':>13}{'ratio':>9}  {'goal':<26}result  baseline",
+    ]
+    for name, f in figures.items():
+        lines.append(
+            f"{name:<28}{_duration(f['value_s']):>13}{_duration(f['baseline_s']):>13}"
+            f"{f['ratio']:>9.3g}  {f['goal']:<26}{'PASS' if f['pass'] else 'FAIL':<8}"
+            f"{f['baseline']}"
+        )
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    import scipy
+
+    from facecast.client.cli import CommandError
+    from facecast.client.report import write_json
+
+    if args.repeat < 1:
+        raise CommandError(f"--repeat must be at least 1, got {args.repeat}")
+    if args.json is not None and not os.path.isdir(os.path.dirname(args.json) or "."):
+        raise CommandError(f"{os.path.dirname(args.json)}: no such folder for --json")
+    name, path, example_set = _dataset(args)
+    print(
+        f"{name}: M = {example_set.num_examples}, K = {example_set.num_points}, "
+        f"V = {example_set.num_vertices}; median of {args.repeat} runs",
+        file=sys.stderr,
+    )
+    figures = measure(example_set, repeat=args.repeat)
+    print(format_figures(figures))
+    passed = sum(f["pass"] for f in figures.values())
+    print(f"{passed} of {len(figures)} goals met")
+    if args.json is not None:
+        write_json(
+            args.json,
+            {
+                "dataset": name,
+                "path": path,
+                "num_examples": example_set.num_examples,
+                "num_points": example_set.num_points,
+                "num_vertices": example_set.num_vertices,
+                "repeat": args.repeat,
+                "batch": BATCH,
+                "figures": figures,
+                "environment": {
+                    "python": platform.python_version(),
+                    "numpy": np.__version__,
+                    "scipy": scipy.__version__,
+                    "machine": platform.machine(),
+                    "cpu_count": os.cpu_count(),
+                    "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
+                },
+            },
+        )
+        print(f"wrote {args.json}", file=sys.stderr)
+    return 0

@@ -1,0 +1,171 @@
+"""``facecast fit``: fit a rig from an example set and report how well it is determined.
+
+Loads, fits, prints the fit report and writes the rig file; the numbers come from
+``facecast.rig.fit`` and it must not compute any of its own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+# The engine's kernel names (facecast.rig.kernels.KERNELS), spelled out so --help does
+# not import numpy; a test keeps the two equal.
+KERNEL_CHOICES = ("bspline", "gaussian", "thin_plate", "linear")
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "fit",
+        help="fit a rig from an example set",
+        description=(
+            "Fit the cardinal weight functions of an example set (Kim 2003, ch. 3) and write "
+            "the rig file. Prints the PCA spectrum, the radial system's condition number, the "
+            "noise gain and, per example, its nearest neighbour in parameter space."
+        ),
+    )
+    parser.add_argument(
+        "examples",
+        metavar="EXAMPLES",
+        help="a folder with facecast.toml, an .npz example set, a .glb/.gltf target (with "
+        "--source), or the word 'demo' for the built-in procedural set",
+    )
+    parser.add_argument("-o", "--output", required=True, metavar="RIG", help="rig file to write")
+    parser.add_argument(
+        "--source", metavar="FOLDER", help="for a glTF target: the folder of source examples"
+    )
+    parser.add_argument(
+        "--noise",
+        type=float,
+        default=0.0,
+        metavar="SIGMA",
+        help="expected landmark noise (std per coordinate, source units); 0 = exact "
+        "interpolation (default)",
+    )
+    parser.add_argument(
+        "--pca-threshold",
+        type=float,
+        default=None,
+        metavar="T",
+        help="drop principal axes with eigenvalue below T times the largest (default 1e-10)",
+    )
+    parser.add_argument(
+        "--kernel", choices=KERNEL_CHOICES, default="bspline", help="radial cross-section"
+    )
+    parser.add_argument(
+        "--clamp", choices=("nonneg", "unit"), default=None, help="clip non-neutral weights"
+    )
+    parser.add_argument(
+        "--stable-points",
+        metavar="I,J,K",
+        help="feature-point indices used for head-pose alignment (default: all)",
+    )
+    parser.add_argument(
+        "--align-scale", action="store_true", help="head-pose alignment also removes scale"
+    )
+    parser.add_argument("--json", action="store_true", help="print the report as JSON")
+    parser.set_defaults(func=run)
+
+
+def _stable_points(text: str | None):
+    from facecast.client.cli import CommandError
+
+    if text is None:
+        return None
+    try:
+        values = [int(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        raise CommandError(
+            f"--stable-points: expected comma-separated integers, got {text!r}"
+        ) from None
+    if len(values) < 3:
+        raise CommandError("--stable-points: need at least 3 indices")
+    return values
+
+
+def load_examples(spec: str, source: str | None = None):
+    """The example set named on the command line: a path, or ``demo``."""
+    from facecast.client.cli import CommandError
+
+    if spec == "demo":
+        from facecast.rig.demo import demo_example_set
+
+        return demo_example_set()
+    from facecast.rig.loaders import load_example_set
+
+    path = Path(spec)
+    if not path.exists():
+        raise CommandError(f"{spec}: no such file or folder (expected an example set or 'demo')")
+    if source is not None and not Path(source).exists():
+        raise CommandError(f"{source}: no such folder (--source)")
+    return load_example_set(path, source=source)
+
+
+def _spectrum(eigenvalues: list[float], kept: int) -> str:
+    top = eigenvalues[0] if eigenvalues and eigenvalues[0] > 0 else 1.0
+    shown = [f"{e / top:.2g}" for e in eigenvalues[:12]]
+    more = f" ... ({len(eigenvalues)} in all)" if len(eigenvalues) > 12 else ""
+    return f"{', '.join(shown)}{more}  (relative to {top:.4g}; kept {kept})"
+
+
+def format_report(report: dict, names) -> str:
+    lines = [
+        f"examples M = {report['num_examples']}, feature points K = {report['num_points']}, "
+        f"target vertices V = {report['num_vertices']}",
+        f"kernel {report['kernel']}, noise {report['noise']:g}, "
+        f"PCA threshold {report['pca_threshold']:g}",
+        f"PCA eigenvalues: {_spectrum(report['eigenvalues'], report['components_kept'])}",
+        f"radial system condition number: {report['condition_number']:.4g}",
+        f"noise gain (RMS weight change per unit landmark noise): {report['noise_gain']:.4g}",
+        "identifiability (nearest other example, distance in parameter space):",
+    ]
+    order = sorted(range(len(names)), key=lambda i: report["nearest_distance"][i])
+    width = max(len(n) for n in names) + 2
+    for i in order:
+        snr = report["separation_snr"][i]
+        snr_text = "" if snr in (None, float("inf")) else f"  ({snr:.3g} noise std)"
+        lines.append(
+            f"  {names[i]:<{width}} -> {report['nearest_name'][i]:<{width}}"
+            f"{report['nearest_distance'][i]:.4g}{snr_text}"
+        )
+    lines.append(f"fit time: {report['fit_seconds'] * 1e3:.1f} ms")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    import warnings
+
+    from facecast.client.cli import CommandError
+    from facecast.rig import fit
+
+    output = Path(args.output)
+    if not output.parent.exists():
+        raise CommandError(f"{output.parent}: no such folder for the rig file {output.name}")
+    examples = load_examples(args.examples, args.source)
+    with warnings.catch_warnings():
+        # fit's IdentifiabilityWarnings are in the report, printed below once each.
+        warnings.simplefilter("ignore")
+        rig = fit(
+            examples,
+            pca_threshold=args.pca_threshold,
+            noise=args.noise,
+            kernel=args.kernel,
+            clamp=args.clamp,
+            stable_points=_stable_points(args.stable_points),
+            align_scale=args.align_scale,
+        )
+    rig.save(output)
+    report = rig.fit_report
+    if args.json:
+        from facecast.client.report import json_safe
+
+        payload = {"rig": str(output), "checksum": rig.checksum, "fit_report": report}
+        print(json.dumps(json_safe(payload), indent=1))
+    else:
+        print(format_report(report, rig.names))
+        for message in report["warnings"]:
+            print(f"warning: {message}", file=sys.stderr)
+        print(f"wrote {output} ({output.stat().st_size / 1e6:.1f} MB, {rig.checksum[:12]})")
+    return 0

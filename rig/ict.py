@@ -1,0 +1,289 @@
+"""The ICT-FaceKit face model as an example set, and synthetic performances driven on it.
+
+Reads the converted ``ict_facekit.npz`` (see shared/data/ict-facekit/README.md) and builds
+arrays; it must not fit, evaluate or write anything.
+
+The default feature points are 20 of the Multi-PIE 68 landmarks (brows, eye lids, nose,
+mouth corners and lips, chin). With them every ICT expression except ``PupilDilate_L`` and
+``PupilDilate_R`` (which move no vertex of the face surface) moves some feature point, so
+those two are left out by default. The nearest pair left is eyeWide / eyeLookUp (about
+0.11 cm apart in the reduced parameter space): distinguishable without noise, fragile with it.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .animation import SourceAnimation
+from .errors import ExampleSetError, InputError
+from .examples import ExampleSet
+
+__all__ = [
+    "DEFAULT_LANDMARKS",
+    "ICT_FILE",
+    "ict_animation",
+    "ict_example_set",
+    "ict_target_frames",
+    "locate_ict",
+]
+
+ICT_FILE = "ict_facekit.npz"
+
+# Positions in ICT's ``landmarks68`` (Multi-PIE order): brows 17, 19, 21 / 22, 24, 26;
+# upper and lower lids 37, 41 / 44, 46; nose tip and wings 30, 31, 35; mouth corners 48, 54;
+# outer upper and lower lip 51, 57; inner upper and lower lip 62, 66; chin 8. Both lids of
+# each eye are needed to tell blinks, squints, wides and looks apart; the inner lips to
+# tell rolls and presses from the outer-lip shapes.
+DEFAULT_LANDMARKS: tuple[int, ...] = (
+    17, 19, 21, 22, 24, 26, 37, 41, 44, 46, 30, 31, 35, 48, 51, 54, 57, 62, 66, 8,
+)  # fmt: skip
+
+# A shape whose largest feature-point displacement is below this (cm) is invisible to
+# the feature points and would coincide with the neutral in parameter space.
+_UNSEEN_CM = 1e-6
+_MAX_FRAMES = 36_000  # 10 min at 60 fps
+
+
+def _archive_path(path: str | os.PathLike) -> Path:
+    path = Path(path)
+    if path.is_dir():
+        path = path / ICT_FILE
+    if not path.is_file():
+        raise ExampleSetError(
+            f"{path}: no such file (the ICT-FaceKit archive)", code="missing_file"
+        )
+    return path
+
+
+def _read(path: Path) -> dict[str, np.ndarray]:
+    keys = ("neutral", "faces", "expressions", "expression_names", "landmarks68")
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            return {k: archive[k] for k in keys}
+    except KeyError as exc:
+        raise ExampleSetError(f"{path}: not an ICT-FaceKit archive (missing {exc})") from None
+    except Exception as exc:  # zipfile/zlib/numpy raise many types on a corrupt file
+        raise ExampleSetError(
+            f"{path}: not readable ({type(exc).__name__}: {exc})", code="bad_example_set"
+        ) from None
+
+
+def _identity(path: Path, name: str) -> np.ndarray:
+    with np.load(path, allow_pickle=False) as archive:
+        if "identity_names" not in archive.files:
+            raise ExampleSetError(f"{path}: holds no identities", code="unknown_identity")
+        names = [str(n) for n in archive["identity_names"]]
+        if name not in names:
+            raise ExampleSetError(
+                f"no ICT identity named {name!r}; expected one of {names[0]} ... {names[-1]}",
+                code="unknown_identity",
+            )
+        return archive["identities"][names.index(name)].astype(np.float64)
+
+
+def _landmark_vertices(landmarks68: np.ndarray, landmarks: Sequence[int]) -> np.ndarray:
+    chosen = np.asarray(landmarks)
+    if chosen.ndim != 1 or chosen.size == 0 or not np.issubdtype(chosen.dtype, np.integer):
+        raise ExampleSetError("landmarks: expected a non-empty list of integers in [0, 68)")
+    if chosen.min() < 0 or chosen.max() >= landmarks68.size:
+        raise ExampleSetError(
+            f"landmarks: positions must lie in [0, {landmarks68.size}), got "
+            f"[{chosen.min()}, {chosen.max()}]",
+            code="index_out_of_range",
+        )
+    if np.unique(chosen).size != chosen.size:
+        raise ExampleSetError("landmarks: a landmark is chosen twice")
+    return landmarks68[chosen].astype(np.int64)
+
+
+def ict_example_set(
+    path: str | os.PathLike,
+    *,
+    landmarks: Sequence[int] = DEFAULT_LANDMARKS,
+    expressions: Sequence[str] | None = None,
+    identity: str | None = None,
+) -> ExampleSet:
+    """The ICT expressions as paired examples: generic face -> itself or one identity.
+
+    Parameters
+    ----------
+    path : path-like
+        The ``ict-facekit`` folder or its ``ict_facekit.npz``.
+    landmarks : sequence of int
+        Positions in ICT's ``landmarks68`` used as feature points (K of them).
+    expressions : sequence of str, optional
+        Expression names to use, in this order. Default: all of them except those that
+        move no chosen feature point (with the default landmarks: PupilDilate_L/R).
+    identity : str, optional
+        A person (``person00`` ... ``person19``): the target is that face plus the same
+        expression deltas, as ICT's own linear model combines them. Default: the target
+        is the generic face itself.
+
+    Returns
+    -------
+    ExampleSet
+        ``names`` ("neutral", expressions...), ``source_vertices`` (M, 26719, 3) with
+        ``source_faces``, ``feature_indices`` (K,), ``target_vertices`` (M, 26719, 3) and
+        ``target_faces`` (52220, 3).
+
+    Raises
+    ------
+    ExampleSetError
+        Missing or unreadable archive, unknown expression or identity, bad landmarks, or
+        an explicitly requested expression that moves no feature point.
+    """
+    archive = _archive_path(path)
+    data = _read(archive)
+    neutral = data["neutral"].astype(np.float64)
+    all_names = [str(n) for n in data["expression_names"]]
+    feature = _landmark_vertices(data["landmarks68"], landmarks)
+    shapes = data["expressions"]
+    motion = np.abs(shapes[:, feature, :] - neutral[feature]).max(axis=(1, 2))
+    if expressions is None:
+        pick = [i for i in range(len(all_names)) if motion[i] > _UNSEEN_CM]
+    else:
+        index = {n: i for i, n in enumerate(all_names)}
+        unknown = [n for n in expressions if n not in index]
+        if unknown:
+            raise ExampleSetError(
+                f"no ICT expression named {unknown[0]!r}", code="unknown_expression"
+            )
+        pick = [index[n] for n in expressions]
+        unseen = [all_names[i] for i in pick if motion[i] <= _UNSEEN_CM]
+        if unseen:
+            raise ExampleSetError(
+                f"expression {unseen[0]!r} moves none of the chosen feature points, so it "
+                "would coincide with the neutral; add landmarks that it moves or drop it",
+                code="expression_unseen",
+            )
+    names = ("neutral", *(all_names[i] for i in pick))
+    source = np.empty((len(names), neutral.shape[0], 3))
+    source[0] = neutral
+    source[1:] = shapes[pick]
+    if identity is None:
+        target = source
+    else:
+        face = _identity(archive, identity)
+        target = source - neutral + face  # eq. of ICT's model: face + (expression - neutral)
+    return ExampleSet.from_source_meshes(
+        names, source, feature, target, data["faces"], source_faces=data["faces"]
+    )
+
+
+def _bump(t: np.ndarray, start: float, hold: float, ramp: float) -> np.ndarray:
+    """0 -> 1 -> 0 with raised-cosine ramps (C1 smooth); 1 on [start, start + hold]."""
+    rise = np.clip((t - (start - ramp)) / ramp, 0.0, 1.0)
+    fall = np.clip(((start + hold + ramp) - t) / ramp, 0.0, 1.0)
+    return (0.5 - 0.5 * np.cos(np.pi * rise)) * (0.5 - 0.5 * np.cos(np.pi * fall))
+
+
+def ict_animation(
+    example_set: ExampleSet, *, seconds: float = 10.0, fps: float = 60.0, seed: int = 0
+) -> tuple[np.ndarray, SourceAnimation]:
+    """A random performance of sparse, smooth expression mixes on the source face.
+
+    About three expressions are active at a time, each rising and falling in a smooth bump
+    of 0.3-1.6 s to a peak in [0.3, 1]; overlapping bumps of one expression take their
+    maximum, so every activation stays in [0, 1]. ``mouthClose`` is capped at ``jawOpen``
+    (ICT's caution: it is a corrective shape for an open jaw).
+
+    Parameters
+    ----------
+    example_set : ExampleSet
+        Any set whose source examples combine linearly (as ICT's do); usually from
+        ``ict_example_set``.
+    seconds, fps : float
+        Length and frame rate; frame ``i`` plays at ``i / fps``.
+    seed : int
+
+    Returns
+    -------
+    activations : (F, M) float64
+        Column 0 (the neutral) is zero; the others in [0, 1].
+    animation : SourceAnimation
+        ``points`` (F, K, 3): ``S_B + activations @ (S_i - S_B)`` at the feature points.
+    """
+    seconds, fps = float(seconds), float(fps)
+    if not (np.isfinite(seconds) and seconds > 0 and np.isfinite(fps) and fps > 0):
+        raise InputError(
+            f"seconds and fps must be finite and positive, got {seconds}, {fps}",
+            code="bad_animation",
+        )
+    frames = round(seconds * fps)
+    if not 1 <= frames <= _MAX_FRAMES:
+        raise InputError(
+            f"{seconds} s at {fps} fps is {frames} frames; allowed 1 to {_MAX_FRAMES}",
+            code="too_many_frames",
+        )
+    rng = np.random.default_rng(seed)
+    m = example_set.num_examples
+    t = np.arange(frames) / fps
+    activations = np.zeros((frames, m))
+    # Events arrive at 3 per second and last about a second each: ~3 active at a time.
+    count = max(1, round(3.0 * seconds))
+    for _ in range(count):
+        column = int(rng.integers(1, m))
+        ramp = rng.uniform(0.15, 0.4)
+        start = rng.uniform(-0.5, seconds)
+        bump = rng.uniform(0.3, 1.0) * _bump(t, start, rng.uniform(0.0, 0.8), ramp)
+        np.maximum(activations[:, column], bump, out=activations[:, column])
+    names = example_set.names
+    if "mouthClose" in names:
+        close = names.index("mouthClose")
+        jaw = activations[:, names.index("jawOpen")] if "jawOpen" in names else 0.0
+        np.minimum(activations[:, close], jaw, out=activations[:, close])
+    neutral = example_set.source_neutral
+    deltas = (example_set.source_points - neutral).reshape(m, -1)
+    points = (neutral.reshape(-1) + activations @ deltas).reshape(frames, -1, 3)
+    return activations, SourceAnimation(points=points, fps=fps)
+
+
+def ict_target_frames(
+    example_set: ExampleSet, activations: np.ndarray, *, dtype=np.float32
+) -> np.ndarray:
+    """The ideal clone of an ``ict_animation``: the target's examples mixed the same way.
+
+    Parameters
+    ----------
+    example_set : ExampleSet
+    activations : (F, M) float
+        Column 0 is ignored (the neutral carries the rest of the sum).
+
+    Returns
+    -------
+    (F, V, 3) ``dtype``: ``T_B + activations @ (T_i - T_B)``.
+    """
+    act = np.asarray(activations, dtype=np.float64)
+    m = example_set.num_examples
+    if act.ndim != 2 or act.shape[1] != m:
+        raise InputError(f"activations: expected shape (F, {m}), got {act.shape}")
+    target = example_set.target_vertices
+    deltas = (target[1:] - target[0]).reshape(m - 1, -1).astype(dtype)
+    frames = act[:, 1:].astype(dtype) @ deltas
+    frames += target[0].reshape(-1).astype(dtype)
+    return frames.reshape(act.shape[0], -1, 3)
+
+
+def locate_ict(path: str | os.PathLike | None = None) -> Path | None:
+    """The ICT-FaceKit archive: ``path``, else ``$FACECAST_ICT``, else the shared data folder.
+
+    The shared folder is ``../shared/data/ict-facekit`` next to the repository (or to the
+    current directory). Returns the ``.npz`` path, or None when none of them holds one; an
+    explicit ``path`` that does not exist is an error.
+    """
+    if path is not None:
+        return _archive_path(path)
+    candidates = []
+    if os.environ.get("FACECAST_ICT"):
+        candidates.append(Path(os.environ["FACECAST_ICT"]))
+    relative = Path("..", "shared", "data", "ict-facekit")
+    candidates += [Path(__file__).resolve().parents[1] / relative, Path.cwd() / relative]
+    for candidate in candidates:
+        archive = candidate / ICT_FILE if candidate.is_dir() else candidate
+        if archive.is_file():
+            return archive
+    return None

@@ -1,0 +1,59 @@
+"""``facecast bench``: the engine benchmark's JSON, and the sub-commands' wiring."""
+
+from __future__ import annotations
+
+import importlib
+import json
+
+import pytest
+
+from facecast.client import cli
+
+
+def _importable(name: str) -> bool:
+    try:
+        importlib.import_module(f"facecast.client.commands.{name}")
+    except ModuleNotFoundError:
+        return False
+    return True
+
+
+@pytest.fixture(autouse=True)
+def _available_commands(monkeypatch):
+    present = tuple(name for name in cli.COMMAND_MODULES if _importable(name))
+    monkeypatch.setattr(cli, "COMMAND_MODULES", present)
+
+
+def test_bench_engine_writes_every_figure_with_baseline_and_verdict(tmp_path, capsys):
+    out = tmp_path / "bench.json"
+
+    code = cli.main(["bench", "engine", "--demo", "--repeat", "1", "--json", str(out)])
+
+    assert code == 0
+    assert "goals met" in capsys.readouterr().out
+    report = json.loads(out.read_text())
+    assert report["dataset"] == "demo" and report["num_examples"] == 13
+    assert set(report["figures"]) == {
+        "weights_single", "weights_batched_per_frame", "blend_single", "fit",
+        "weights_vs_rbfinterpolator",
+    }  # fmt: skip
+    for figure in report["figures"].values():
+        assert {"value_s", "baseline_s", "baseline", "ratio", "goal", "pass"} <= set(figure)
+        assert figure["value_s"] > 0 and figure["baseline_s"] > 0
+
+
+def test_bench_engine_refuses_a_zero_repeat(capsys):
+    assert cli.main(["bench", "engine", "--demo", "--repeat", "0"]) == 2
+    assert "--repeat" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["transport", "broadcast"])
+def test_bench_sub_commands_run_or_say_they_are_missing(name, capsys, tmp_path):
+    try:
+        importlib.import_module(f"facecast.client.bench.{name}")
+    except ModuleNotFoundError:
+        code = cli.main(["bench", name, "--duration", "0.1", "--json", str(tmp_path / "b.json")])
+        assert code == 2
+        assert "not available" in capsys.readouterr().err
+    else:
+        pytest.skip(f"bench {name} exists; its own tests cover it")

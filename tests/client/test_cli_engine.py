@@ -1,0 +1,185 @@
+"""``facecast fit``, ``clone`` and ``eval`` end to end through ``main``, on real files."""
+
+from __future__ import annotations
+
+import importlib
+import json
+
+import numpy as np
+import pytest
+
+from facecast.client import cli
+from facecast.client.commands.fit import KERNEL_CHOICES
+from facecast.rig import KERNELS, load_rig
+from facecast.rig.ict import locate_ict
+
+
+def _importable(name: str) -> bool:
+    try:
+        importlib.import_module(f"facecast.client.commands.{name}")
+    except ModuleNotFoundError:
+        return False
+    return True
+
+
+def _present_commands() -> tuple[str, ...]:
+    # While some command modules are still being written, build the parser from those
+    # that exist; once all do, this changes nothing.
+    return tuple(name for name in cli.COMMAND_MODULES if _importable(name))
+
+
+@pytest.fixture(autouse=True)
+def _available_commands(monkeypatch):
+    monkeypatch.setattr(cli, "COMMAND_MODULES", _present_commands())
+
+
+@pytest.fixture(scope="module")
+def demo_rig(tmp_path_factory):
+    path = tmp_path_factory.mktemp("rig") / "demo.rig"
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(cli, "COMMAND_MODULES", _present_commands())
+        assert cli.main(["fit", "demo", "-o", str(path)]) == 0
+    return path
+
+
+def test_fit_demo_writes_a_loadable_rig_and_prints_the_report(demo_rig, capsys, tmp_path):
+    out = tmp_path / "again.rig"
+
+    code = cli.main(["fit", "demo", "-o", str(out), "--noise", "0.01", "--clamp", "unit"])
+
+    printed = capsys.readouterr().out
+    assert code == 0
+    assert "M = 13" in printed and "condition number" in printed and "fit time" in printed
+    rig = load_rig(out)
+    assert rig.num_examples == 13 and rig.model.clamp == "unit"
+
+
+def test_fit_json_prints_the_fit_report(tmp_path, capsys):
+    code = cli.main(["fit", "demo", "-o", str(tmp_path / "r.rig"), "--json"])
+
+    payload = json.loads(capsys.readouterr().out)
+    assert code == 0
+    assert payload["fit_report"]["num_examples"] == 13
+    assert len(payload["fit_report"]["nearest_name"]) == 13
+
+
+def test_fit_kernel_choices_match_the_engine():
+    assert KERNEL_CHOICES == KERNELS
+
+
+@pytest.mark.parametrize("output", ["clone.npz", "clone.glb", "frames"])
+def test_clone_demo_writes_each_output_format(demo_rig, tmp_path, output):
+    out = tmp_path / output
+
+    code = cli.main(["clone", str(demo_rig), "demo", "-o", str(out), "--seconds", "0.5"])
+
+    assert code == 0
+    if output.endswith(".npz"):
+        with np.load(out) as archive:
+            assert archive["weights"].shape == (30, 13)
+            assert archive["vertices"].shape[0] == 30
+    elif output.endswith(".glb"):
+        assert out.read_bytes()[:4] == b"glTF"
+    else:
+        assert len(list(out.glob("*.obj"))) == 30
+
+
+def test_clone_of_a_saved_animation_matches_the_rig(demo_rig, tmp_path):
+    rig = load_rig(demo_rig)
+    points = rig.source_neutral + np.random.default_rng(0).normal(0, 0.01, (7, rig.num_points, 3))
+    source = tmp_path / "perf.npz"
+    np.savez(source, points=points, fps=30.0)
+    out = tmp_path / "clone.npz"
+
+    assert cli.main(["clone", str(demo_rig), str(source), "-o", str(out)]) == 0
+
+    with np.load(out) as archive:
+        np.testing.assert_allclose(archive["weights"], rig.weights(points), atol=1e-6)
+
+
+def test_eval_demo_writes_json_and_plots(tmp_path, capsys):
+    report_path = tmp_path / "report.json"
+
+    code = cli.main([
+        "eval", "--demo", "--seconds", "1", "--kernels", "bspline", "--json", str(report_path),
+        "--plots", str(tmp_path / "plots"),
+    ])  # fmt: skip
+
+    assert code == 0
+    assert "Cloning error" in capsys.readouterr().out
+    report = json.loads(report_path.read_text())
+    assert {"methods", "errors", "timing", "dataset"} <= set(report)
+    assert (tmp_path / "plots" / "error_over_time.png").stat().st_size > 0
+    assert (tmp_path / "plots" / "frames.png").stat().st_size > 0
+
+
+@pytest.mark.ict
+@pytest.mark.skipif(locate_ict() is None, reason="ICT-FaceKit not found")
+def test_eval_ict_reports_exact_clean_clones_and_the_noise_gap(tmp_path):
+    report_path = tmp_path / "ict.json"
+
+    code = cli.main([
+        "eval", "--ict", "--seconds", "1", "--fps", "30", "--kernels", "bspline",
+        "--no-timing", "--json", str(report_path),
+    ])  # fmt: skip
+
+    assert code == 0
+    report = json.loads(report_path.read_text())
+    assert report["dataset"] == "ict" and report["num_examples"] == 56
+    assert report["num_vertices"] == 26719 and report["num_frames"] == 30
+    clean, noisy = report["errors"]["clean"], report["errors"]["noisy"]
+    assert max(clean["rig noise=0"]["eq41_percent"].values()) < 0.01
+    assert (
+        noisy["rig noise=0.02"]["eq41_percent"]["y"] * 10
+        < (noisy["least squares"]["eq41_percent"]["y"])
+    )
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["fit", "{tmp}/missing_set", "-o", "{tmp}/r.rig"],
+        ["clone", "{tmp}/missing.rig", "demo", "-o", "{tmp}/c.npz"],
+        ["eval", "{tmp}/missing_set", "{tmp}/missing_source"],
+    ],
+)
+def test_missing_files_exit_2_naming_the_file(argv, tmp_path, capsys):
+    code = cli.main([a.format(tmp=tmp_path) for a in argv])
+
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "missing" in err and "Traceback" not in err
+
+
+def test_clone_with_a_missing_source_exits_2_naming_it(demo_rig, tmp_path, capsys):
+    code = cli.main(
+        ["clone", str(demo_rig), str(tmp_path / "nope.npz"), "-o", str(tmp_path / "c.npz")]
+    )
+
+    assert code == 2
+    assert "nope.npz" in capsys.readouterr().err
+
+
+def test_eval_of_files_with_a_truth_file_reports_errors(tmp_path, capsys):
+    from facecast.rig.demo import (
+        demo_activations,
+        demo_animation,
+        demo_example_set,
+        demo_target_frames,
+    )
+
+    demo_example_set().save_npz(tmp_path / "set.npz")
+    np.savez(tmp_path / "perf.npz", points=demo_animation(0.5, with_vertices=False).points)
+    np.save(tmp_path / "truth.npy", demo_target_frames(demo_activations(0.5)))
+    report_path = tmp_path / "r.json"
+
+    code = cli.main([
+        "eval", str(tmp_path / "set.npz"), str(tmp_path / "perf.npz"),
+        "--truth", str(tmp_path / "truth.npy"), "--kernels", "bspline", "--noise", "0",
+        "--no-timing", "--json", str(report_path),
+    ])  # fmt: skip
+
+    assert code == 0
+    report = json.loads(report_path.read_text())
+    assert set(report["errors"]) == {"clean"}
+    assert report["errors"]["clean"]["rig noise=0"]["rms_percent"] < 1.0
