@@ -1,0 +1,79 @@
+// What the page shows besides the character: connection state, fps, latency, weights and
+// errors. DOM only; it never decides anything about connections.
+
+const STATE_CLASSES = ["connecting", "live", "idle", "waiting", "failed"];
+
+export class Hud {
+  constructor(doc, { showStats }) {
+    this.doc = doc;
+    this.showStats = showStats;
+    this.el = {
+      hud: doc.getElementById("hud"),
+      state: doc.getElementById("state"),
+      detail: doc.getElementById("detail"),
+      stats: doc.getElementById("stats"),
+      error: doc.getElementById("error"),
+      weights: doc.getElementById("weights"),
+    };
+    if (this.el.hud) this.el.hud.hidden = !showStats;
+    this.bars = [];
+    this.lastWeightsPaint = 0;
+  }
+
+  /** kind: one of STATE_CLASSES; text: short label; detail: longer, optional. */
+  state(kind, text, detail = "") {
+    if (!this.el.state) return;
+    this.el.state.classList.remove(...STATE_CLASSES);
+    this.el.state.classList.add(kind);
+    this.el.state.textContent = text;
+    if (this.el.detail) this.el.detail.textContent = detail;
+  }
+
+  /** A problem the user must act on: shown on every page, the overlay too. */
+  error(text) {
+    this.el.error.textContent = text;
+    this.el.error.hidden = false;
+  }
+
+  clearError() {
+    this.el.error.hidden = true;
+    this.el.error.textContent = "";
+  }
+
+  stats(s) {
+    if (!this.el.stats) return;
+    const ms = (v) => (v === null ? "–" : `${v.toFixed(1)} ms`);
+    const latencyLabel = s.mode === "demo" ? "latency" : "age";
+    this.el.stats.textContent =
+      `${s.fps.toFixed(1)} fps · ${latencyLabel} ${ms(s.latencyMs)} · rtt ${ms(s.rttMs)} · ` +
+      `frames ${s.frames} · dropped ${s.dropped} · connects ${s.connects}`;
+  }
+
+  names(names) {
+    if (!this.el.weights) return;
+    this.el.weights.replaceChildren();
+    this.bars = names.map((name) => {
+      const row = this.doc.createElement("div");
+      row.className = "weight";
+      const label = this.doc.createElement("span");
+      label.textContent = name;
+      const bar = this.doc.createElement("i");
+      row.append(label, bar);
+      this.el.weights.append(row);
+      return bar;
+    });
+  }
+
+  /** Paint weight bars, at most ~15 times a second (the DOM is slower than the canvas). */
+  weights(weights) {
+    if (!this.showStats || !this.bars.length) return;
+    const now = performance.now();
+    if (now - this.lastWeightsPaint < 66) return;
+    this.lastWeightsPaint = now;
+    for (let i = 0; i < this.bars.length && i < weights.length; i++) {
+      const w = Math.max(-0.5, Math.min(1.5, weights[i]));
+      this.bars[i].style.width = `${Math.abs(w) * 66}%`;
+      this.bars[i].classList.toggle("negative", w < 0);
+    }
+  }
+}

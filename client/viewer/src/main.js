@@ -1,0 +1,242 @@
+// Entry point of /viewer and /overlay: loads the rig's model, connects (demo stream or
+// channel watch), applies results to the view and publishes window.facecastStats.
+
+import { DemoPlayer } from "./demo.js";
+import { Hud } from "./hud.js";
+import { Link } from "./link.js";
+import { authHeaders, readParams, socketTarget } from "./params.js";
+import { decodeAnimation, encodeHello, ErrorCode, errorName } from "./protocol.js";
+import { FaceView } from "./scene.js";
+
+const RETRY_FIRST_MS = 250;
+const RETRY_MAX_MS = 5000;
+
+/** Counters for people and tests (tests wait on them instead of sleeping). */
+const stats = {
+  page: document.body.dataset.page,
+  mode: null,
+  state: "starting",
+  detail: "",
+  error: null,
+  frames: 0, // results applied to the view
+  rendered: 0, // canvas redraws
+  connects: 0,
+  fps: 0,
+  latencyMs: null,
+  rttMs: null,
+  seq: null,
+  demoTime: null, // demo mode: seconds into the performance of the frame shown
+  dropped: 0,
+  channel: null,
+  rig: null,
+};
+window.facecastStats = stats;
+
+/** An error another attempt would only repeat (bad token, unknown rig, bad URL). */
+class Permanent extends Error {}
+
+const hud = new Hud(document, { showStats: stats.page === "viewer" });
+
+function setState(kind, text, detail = "") {
+  stats.state = kind;
+  stats.detail = detail;
+  hud.state(kind, text, detail);
+}
+
+function failed(message) {
+  stats.error = message;
+  setState("failed", "error", message);
+  hud.error(message);
+}
+
+async function fetchBinary(params, path, what) {
+  let attempt = 0;
+  for (;;) {
+    let response;
+    try {
+      response = await fetch(`${params.server}${path}`, { headers: authHeaders(params) });
+    } catch (err) {
+      response = null;
+      setState("waiting", "waiting for the server", `${what}: ${err.message}`);
+    }
+    if (response && response.ok) return response.arrayBuffer();
+    if (response) {
+      const problem = await response.json().catch(() => ({}));
+      const detail = problem.detail || response.statusText;
+      if (response.status === 401) throw new Permanent(`Authentication failed (401 ${problem.code || "unauthorized"}): ${detail}`);
+      if (response.status === 403) throw new Permanent(`Not allowed (403 ${problem.code || "forbidden"}): ${detail}`);
+      if (response.status === 404 || response.status === 400) throw new Permanent(`${what}: ${detail}`);
+      setState("waiting", "waiting for the server", `${what}: HTTP ${response.status} ${detail}`);
+    }
+    const delay = Math.min(RETRY_MAX_MS, RETRY_FIRST_MS * 2 ** attempt++);
+    await new Promise((resolve) => setTimeout(resolve, delay));
+  }
+}
+
+async function main() {
+  let params;
+  try {
+    params = readParams(window.location.href, stats.page);
+  } catch (err) {
+    failed(`Bad page URL: ${err.message}`);
+    return;
+  }
+  stats.mode = params.mode;
+  stats.rig = params.rig;
+  stats.channel = params.channel;
+  hud.showStats = params.stats;
+  if (document.getElementById("hud")) document.getElementById("hud").hidden = !params.stats;
+
+  const view = new FaceView(document.getElementById("stage"), {
+    transparent: params.page === "overlay",
+    controls: params.page === "viewer",
+    width: params.width,
+    height: params.height,
+  });
+  if (view.controls) view.controls.addEventListener("change", () => (view.dirty = true));
+
+  setState("connecting", "loading", `rig ${params.rig}`);
+  let model;
+  let player = null;
+  try {
+    const rigPath = `/v1/rigs/${encodeURIComponent(params.rig)}/model.glb`;
+    const [glb, animation] = await Promise.all([
+      fetchBinary(params, rigPath, `rig ${params.rig}`),
+      params.mode === "demo" ? fetchBinary(params, "/v1/demo/animation", "demo animation") : null,
+    ]);
+    model = await view.load(glb);
+    if (animation) player = new DemoPlayer(decodeAnimation(animation), { start: params.start });
+  } catch (err) {
+    failed(err instanceof Permanent ? err.message : `Cannot load: ${err.message}`);
+    return;
+  }
+  hud.names(model.names);
+  view.render();
+
+  let latencyEma = null;
+  let pendingWeights = null;
+  let pendingVertices = null;
+
+  const link = new Link(socketTarget(params), {
+    onOpen(link) {
+      stats.connects = link.connects;
+      setState("connecting", params.mode === "demo" ? "opening session" : "joining channel");
+      if (params.mode === "demo") {
+        link.send(encodeHello({ rig: params.rig, output: params.output, dtype: params.dtype }));
+      }
+    },
+    onState(kind, detail) {
+      if (kind === "failed") {
+        if (player) player.stop();
+        failed(detail);
+      } else if (kind === "waiting") {
+        if (player) player.stop();
+        setState("waiting", "reconnecting", detail);
+      } else if (kind === "connecting") {
+        setState("connecting", detail);
+      }
+    },
+    onPong(rtt) {
+      stats.rttMs = rtt;
+    },
+    onMessage(msg, link) {
+      switch (msg.type) {
+        case "ready": {
+          const rig = msg.rig;
+          if (msg.output === "weights" && rig.names.join("\n") !== model.names.join("\n")) {
+            // The rig was replaced on the server: its model is stale.
+            link.fail(`rig ${rig.id} changed on the server (weights no longer match the model); reload the page`);
+            return;
+          }
+          if (msg.output === "vertices" && rig.v !== model.vertexCount) {
+            link.fail(`rig ${rig.id} has ${rig.v} vertices but its model ${model.vertexCount}; reload the page`);
+            return;
+          }
+          link.healthy();
+          hud.clearError();
+          stats.error = null;
+          if (player) {
+            if (rig.k !== player.animation.k) {
+              link.fail(
+                `the demo performance has ${player.animation.k} points per frame but rig ${rig.id} needs ${rig.k}: ` +
+                  "play the demo on the demo rig, or watch a channel instead",
+              );
+              return;
+            }
+            player.play(link);
+          }
+          setState("live", params.mode === "demo" ? "live · demo" : `live · ${params.channel}`);
+          break;
+        }
+        case "result": {
+          stats.frames += 1;
+          stats.seq = msg.seq;
+          stats.dropped = msg.dropped;
+          let latency = null;
+          if (player) {
+            const frame = player.received(msg.seq);
+            if (frame) {
+              latency = frame.latencyMs;
+              stats.demoTime = frame.demoTime;
+            }
+          } else if (typeof msg.server_ts === "number") latency = Date.now() - msg.server_ts * 1000;
+          if (latency !== null) {
+            latencyEma = latencyEma === null ? latency : 0.9 * latencyEma + 0.1 * latency;
+            stats.latencyMs = latencyEma;
+          }
+          if (msg.weights) pendingWeights = msg.weights;
+          else pendingVertices = msg.vertices;
+          break;
+        }
+        case "channel_idle":
+          setState("idle", `idle · ${msg.channel}`, "waiting for a publisher");
+          break;
+        case "channel_live":
+          setState("live", `live · ${msg.channel}`);
+          break;
+        case "face_lost":
+          setState("idle", "face lost", `no face since ${msg.since.toFixed?.(2) ?? msg.since}`);
+          break;
+        case "error":
+          if (msg.fatal) {
+            stats.error = `${errorName(msg.code)}: ${msg.message}`;
+            if (msg.code === ErrorCode.UNKNOWN_RIG) hud.error(`Unknown rig: ${msg.message}`);
+          } else {
+            setState(stats.state, `${errorName(msg.code)}`, msg.message);
+          }
+          break;
+        default:
+          break;
+      }
+    },
+  });
+  link.start();
+
+  // Apply at most one pose per display frame: results can outpace the screen.
+  let fpsFrames = 0;
+  let fpsSince = performance.now();
+  const tick = (now) => {
+    try {
+      if (pendingWeights) view.setWeights(pendingWeights);
+      if (pendingVertices) view.setVertices(pendingVertices);
+      if (pendingWeights) hud.weights(pendingWeights);
+    } catch (err) {
+      link.fail(err.message);
+    }
+    pendingWeights = pendingVertices = null;
+    if (view.dirty) {
+      view.render();
+      stats.rendered += 1;
+    }
+    if (now - fpsSince >= 500) {
+      stats.fps = ((stats.frames - fpsFrames) * 1000) / (now - fpsSince);
+      fpsFrames = stats.frames;
+      fpsSince = now;
+      hud.stats(stats);
+    }
+    requestAnimationFrame(tick);
+  };
+  requestAnimationFrame(tick);
+}
+
+main().catch((err) => failed(`Viewer error: ${err.message}`));

@@ -1,0 +1,97 @@
+// The viewer's protocol code against the byte examples of protocol/PROTOCOL.md §10.
+import assert from "node:assert/strict";
+import { test } from "node:test";
+
+import { arrayFromWire, decodeServer, encodeFrame, encodePing, ErrorCode, halfToFloat, ProtocolError } from "../src/protocol.js";
+
+const hex = (text) => Uint8Array.from(text.trim().split(/\s+/), (b) => parseInt(b, 16));
+
+test("frame encodes to the bytes of PROTOCOL.md §10.2", () => {
+  const expected = hex(`85 a1 76 01 a4 74 79 70 65 a5 66 72 61 6d 65 a3
+    73 65 71 07 a2 74 73 cb 40 29 00 00 00 00 00 00
+    a6 70 6f 69 6e 74 73 83 a5 64 74 79 70 65 a3 66
+    33 32 a5 73 68 61 70 65 92 02 03 a4 64 61 74 61
+    c4 18 00 00 00 00 00 00 80 3f 00 00 00 40 00 00
+    00 bf 00 00 80 3e 00 00 c0 3f`);
+  const points = new Float32Array([0, 1, 2, -0.5, 0.25, 1.5]);
+  // 12.5 is not an integer, so msgpack writes float 64 as the spec's example does.
+  assert.deepEqual(encodeFrame(7, 12.5, points), expected);
+});
+
+test("ping encodes to the bytes of PROTOCOL.md §10.5", () => {
+  const expected = hex(`84 a1 76 01 a4 74 79 70 65 a4 70 69 6e 67 a2 69
+    64 01 a2 74 73 cb 40 0a 00 00 00 00 00 00`);
+  assert.deepEqual(encodePing(1, 3.25), expected);
+});
+
+test("result of PROTOCOL.md §10.3 decodes to its weights", () => {
+  const bytes = hex(`87 a1 76 01 a4 74 79 70 65 a6 72 65 73 75 6c 74
+    a3 73 65 71 07 a2 74 73 cb 40 29 00 00 00 00 00
+    00 a7 77 65 69 67 68 74 73 83 a5 64 74 79 70 65
+    a3 66 33 32 a5 73 68 61 70 65 91 03 a4 64 61 74
+    61 c4 0c 00 00 00 3f 00 00 80 3e 00 00 80 3e a7
+    70 72 6f 63 5f 75 73 cc b4 a7 64 72 6f 70 70 65
+    64 02`);
+  const msg = decodeServer(bytes);
+  assert.equal(msg.type, "result");
+  assert.equal(msg.seq, 7);
+  assert.equal(msg.ts, 12.5);
+  assert.deepEqual(Array.from(msg.weights), [0.5, 0.25, 0.25]);
+  assert.equal(msg.proc_us, 180);
+  assert.equal(msg.dropped, 2);
+});
+
+test("error of PROTOCOL.md §10.7 decodes with its code", () => {
+  const bytes = hex(`86 a1 76 01 a4 74 79 70 65 a5 65 72 72 6f 72 a4
+    63 6f 64 65 cd 07 d2 a7 6d 65 73 73 61 67 65 af
+    6e 65 65 64 20 4b 3d 32 20 70 6f 69 6e 74 73 a3
+    73 65 71 08 a5 66 61 74 61 6c c2`);
+  const msg = decodeServer(bytes);
+  assert.equal(msg.code, ErrorCode.WRONG_POINT_COUNT);
+  assert.equal(msg.message, "need K=2 points");
+  assert.equal(msg.fatal, false);
+});
+
+test("f16 expands exactly, including subnormals and signs", () => {
+  // 1.0, -2.0, 0.5, 65504 (max), 2^-24 (smallest subnormal), -0
+  const bits = new Uint16Array([0x3c00, 0xc000, 0x3800, 0x7bff, 0x0001, 0x8000]);
+  assert.deepEqual(Array.from(halfToFloat(bits)), [1, -2, 0.5, 65504, 2 ** -24, -0]);
+});
+
+test("f16 array data at an odd offset decodes little-endian", () => {
+  const backing = new Uint8Array(5);
+  backing.set([0x00, 0x3c, 0x00, 0xc0], 1);
+  const { data } = arrayFromWire({ dtype: "f16", shape: [2], data: backing.subarray(1) }, { ndim: 1 });
+  assert.deepEqual(Array.from(data), [1, -2]);
+});
+
+test("array with a wrong data length is refused with INVALID_ARRAY", () => {
+  assert.throws(
+    () => arrayFromWire({ dtype: "f32", shape: [2], data: new Uint8Array(4) }),
+    (err) => err instanceof ProtocolError && err.code === ErrorCode.INVALID_ARRAY,
+  );
+});
+
+test("non-finite weights are refused with NON_FINITE", () => {
+  const data = new Uint8Array(new Float32Array([NaN]).buffer);
+  assert.throws(
+    () => arrayFromWire({ dtype: "f32", shape: [1], data }),
+    (err) => err instanceof ProtocolError && err.code === ErrorCode.NON_FINITE,
+  );
+});
+
+test("a message of another version is refused with UNSUPPORTED_VERSION", () => {
+  // {"v": 2, "type": "pong", "id": 1, "ts": 0}
+  const bytes = hex("84 a1 76 02 a4 74 79 70 65 a4 70 6f 6e 67 a2 69 64 01 a2 74 73 00");
+  assert.throws(
+    () => decodeServer(bytes),
+    (err) => err instanceof ProtocolError && err.code === ErrorCode.UNSUPPORTED_VERSION,
+  );
+});
+
+test("truncated bytes are refused with MALFORMED", () => {
+  assert.throws(
+    () => decodeServer(hex("84 a1 76 01 a4 74 79")),
+    (err) => err instanceof ProtocolError && err.code === ErrorCode.MALFORMED,
+  );
+});

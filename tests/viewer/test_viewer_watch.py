@@ -1,0 +1,80 @@
+"""The overlay watching a broadcast channel that a real publisher streams the demo into.
+
+Dormant (skipped) until the server has the channel routes (PROTOCOL.md §2.1).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import pytest
+from websockets.sync.client import connect
+
+from facecast.client.snapshot import serving
+from facecast.protocol import (
+    PUBLISH_PATH,
+    SUBPROTOCOL,
+    WATCH_PATH,
+    Frame,
+    Hello,
+    Ready,
+    decode_server,
+    encode,
+)
+from facecast.rig.demo import demo_animation
+from facecast.server.app import create_app
+
+from .test_viewer_pages import FRAMES, changed_fraction, frames, pixels
+
+
+def _has_channels(settings) -> bool:
+    return any(getattr(r, "path", None) == WATCH_PATH for r in create_app(settings).routes)
+
+
+@contextmanager
+def publishing(base_url: str, channel: str) -> Iterator[None]:
+    """Stream the demo performance into ``channel`` from a thread until the block exits."""
+    points = demo_animation(seconds=4.0, with_vertices=False).points.astype("float32")
+    stop = threading.Event()
+    ready = threading.Event()
+    url = base_url.replace("http", "ws") + PUBLISH_PATH.format(name=channel)
+
+    def run() -> None:
+        with connect(url, subprotocols=[SUBPROTOCOL]) as ws:
+            ws.send(encode(Hello(rig="demo")))
+            assert isinstance(decode_server(ws.recv(timeout=10)), Ready)
+            ready.set()
+            seq = 0
+            # Lockstep (send, wait for the result) at the performance's 60 fps: never
+            # ahead of the server and under its rate limit.
+            while not stop.wait(1 / 60):
+                ws.send(encode(Frame(seq=seq, ts=seq / 60, points=points[seq % len(points)])))
+                ws.recv(timeout=10)
+                seq += 1
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    assert ready.wait(10), "the publisher got no ready"
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(10)
+
+
+def test_overlay_animates_from_a_watched_channel(settings, page):
+    if not _has_channels(settings):
+        pytest.skip("the server has no channel routes yet")
+    with serving(settings) as base_url:
+        page.goto(f"{base_url}/overlay?channel=stage&rig=demo")
+        page.wait_for_function("['idle', 'live'].includes(window.facecastStats.state)")
+        with publishing(base_url, "stage"):
+            page.wait_for_function(FRAMES, arg=3)
+            first = pixels(page.screenshot(omit_background=True))
+            page.wait_for_function(FRAMES, arg=frames(page) + 10)
+            second = pixels(page.screenshot(omit_background=True))
+
+    assert changed_fraction(first, second) > 0.002
+    assert page.errors == []
