@@ -25,6 +25,8 @@ COMMAND_MODULES = (
     "rigs",
     "stream",
     "loadtest",
+    "bridge",
+    "import_",
 )
 
 

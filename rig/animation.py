@@ -151,6 +151,7 @@ def load_source_animation(
     feature_indices=None,
     num_points: int | None = None,
     keep_vertices: bool = False,
+    source_rig=None,
 ) -> SourceAnimation:
     """Load a source performance as feature points per frame.
 
@@ -162,7 +163,11 @@ def load_source_animation(
           select the points;
         - ``.npy`` holding (F, K, 3) points;
         - a folder of OBJ frames (natural name order, ``fps.txt`` optional, default 60);
-          ``feature_indices`` select the points.
+          ``feature_indices`` select the points;
+        - ``.csv``: a Live Link Face take (blendshape weights), turned into points by
+          ``source_rig`` (required for CSV);
+        - ``.ndjson`` / ``.jsonl``: MediaPipe face-landmarker results (see
+          ``facecast.rig.trackers``).
     feature_indices : (K,) int, optional
         0-based vertex indices of the feature points in the source meshes.
     num_points : int, optional
@@ -170,6 +175,8 @@ def load_source_animation(
     keep_vertices : bool
         Keep the full source meshes as ``source_vertices`` (float32 for OBJ frames).
         Off by default: a long mesh performance is large and the rig needs only points.
+    source_rig : SourceRig or path, optional
+        ARKit-named source shapes for blendshape-weight takes (``facecast.rig.source_rig``).
 
     Returns
     -------
@@ -187,11 +194,14 @@ def load_source_animation(
         animation = _load_npz(path, feature_indices, keep_vertices)
     elif path.suffix.lower() == ".npy":
         animation = SourceAnimation(points=_load_array(path, None), fps=DEFAULT_FPS)
+    elif path.suffix.lower() in (".csv", ".ndjson", ".jsonl") and path.is_file():
+        animation = _load_tracker_take(path, source_rig)
     elif not path.exists():
         raise InputError(f"{path}: no such file or folder", code="missing_file")
     else:
         raise InputError(
-            f"{path}: not a source animation (expected .npz, .npy or a folder of OBJ frames)",
+            f"{path}: not a source animation (expected .npz, .npy, a Live Link .csv, a "
+            "MediaPipe .ndjson or a folder of OBJ frames)",
             code="bad_animation",
         )
     if num_points is not None and animation.num_points != num_points:
@@ -200,6 +210,24 @@ def load_source_animation(
             code="point_count_mismatch",
         )
     return animation
+
+
+def _load_tracker_take(path: Path, source_rig) -> SourceAnimation:
+    # Imported here: the tracker parsers build on this module's SourceAnimation.
+    from .source_rig import SourceRig, load_source_rig
+    from .trackers import livelink_csv_animation, mediapipe_animation
+
+    if path.suffix.lower() != ".csv":
+        return mediapipe_animation(path)
+    if source_rig is None:
+        raise InputError(
+            f"{path}: a Live Link Face take holds blendshape weights, not points; give a "
+            "source rig (--source-rig) to turn them into feature points",
+            code="source_rig_required",
+        )
+    if not isinstance(source_rig, SourceRig):
+        source_rig = load_source_rig(source_rig)
+    return livelink_csv_animation(path, source_rig)
 
 
 def _load_array(path: Path, key: str | None) -> np.ndarray:

@@ -31,7 +31,14 @@ def register(subparsers) -> None:
         "source",
         metavar="SOURCE",
         help="source animation: .npz (points or vertices), .npy points, a folder of OBJ "
-        "frames, or 'demo' (the procedural performance; for a rig fitted on 'demo')",
+        "frames, a Live Link Face .csv take (with --source-rig), a MediaPipe .ndjson, or "
+        "'demo' (the procedural performance; for a rig fitted on 'demo')",
+    )
+    parser.add_argument(
+        "--source-rig",
+        metavar="PATH",
+        help="ARKit-named source shapes that turn a Live Link Face CSV's blendshape weights "
+        "into feature points (an example-set folder from 'facecast import', or ICT's npz)",
     )
     parser.add_argument(
         "-o", "--output", required=True, metavar="OUT", help=".npz, .glb, or a folder"
@@ -45,7 +52,7 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def load_animation(spec: str, rig, *, seconds: float = 12.0):
+def load_animation(spec: str, rig, *, seconds: float = 12.0, source_rig=None):
     """The source animation named on the command line, checked against the rig's K."""
     from facecast.client.cli import CommandError
 
@@ -59,7 +66,10 @@ def load_animation(spec: str, rig, *, seconds: float = 12.0):
         if not Path(spec).exists():
             raise CommandError(f"{spec}: no such file or folder (the source animation)")
         animation = load_source_animation(
-            spec, feature_indices=rig.feature_indices, num_points=rig.num_points
+            spec,
+            feature_indices=rig.feature_indices,
+            num_points=rig.num_points,
+            source_rig=source_rig,
         )
     if animation.num_points != rig.num_points:
         raise CommandError(
@@ -101,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     if not output.parent.exists():
         raise CommandError(f"{output.parent}: no such folder for {output.name}")
     rig = load_rig(args.rig)
-    animation = load_animation(args.source, rig, seconds=args.seconds)
+    animation = load_animation(args.source, rig, seconds=args.seconds, source_rig=args.source_rig)
     frames = animation.num_frames
     suffix = output.suffix.lower()
     vertex_bytes = frames * rig.num_vertices * 3 * 4

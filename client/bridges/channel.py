@@ -1,0 +1,388 @@
+"""WebSocket ends of a broadcast channel for bridges: a frame publisher and a result watcher.
+
+Speaks PROTOCOL.md §2.1 (``/v1/channels/{name}/publish`` and ``.../watch``) with
+facecast.protocol's state machines; it must not interpret results (the bridges do) and
+never re-encodes messages by hand.
+
+A live source cannot wait: while the publisher is reconnecting, frames are dropped
+(counted in ``stats.dropped``), never queued.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import AsyncIterator, Callable, Mapping
+from dataclasses import dataclass
+from urllib.parse import quote, urlencode
+
+import numpy as np
+from websockets.asyncio.client import ClientConnection
+from websockets.asyncio.client import connect as ws_connect
+from websockets.exceptions import ConnectionClosed, WebSocketException
+
+from facecast.client.connection import RETRYABLE_CODES, ConnectionFailed, Reconnect
+from facecast.client.urls import auth_headers, resolve_token, stream_url
+from facecast.protocol import (
+    PUBLISH_PATH,
+    STREAM_PATH,
+    SUBPROTOCOL,
+    WATCH_PATH,
+    ClientProtocol,
+    Error,
+    ErrorCode,
+    Frame,
+    Hello,
+    Limits,
+    Pong,
+    ProtocolError,
+    Ready,
+    Result,
+    ServerMessage,
+)
+
+__all__ = [
+    "FramePublisher",
+    "PublisherStats",
+    "channel_url",
+    "watch_channel",
+]
+
+log = logging.getLogger("facecast.bridges")
+
+_OPEN_ERRORS = (OSError, TimeoutError, WebSocketException)
+_DEFAULT_RECONNECT = Reconnect()
+
+
+def channel_url(
+    base_url: str, channel: str, kind: str, query: Mapping[str, str] | None = None
+) -> str:
+    """The WebSocket URL of a channel's ``publish`` or ``watch`` endpoint under ``base_url``.
+
+    ``http://h:p`` + ("stage", "watch", {"rig": "demo"}) ->
+    ``ws://h:p/v1/channels/stage/watch?rig=demo``; the name is URL-encoded.
+    """
+    if kind not in ("publish", "watch"):
+        raise ValueError(f"kind must be 'publish' or 'watch', got {kind!r}")
+    if not 1 <= len(channel) <= 256:
+        raise ValueError(f"a channel name has 1 to 256 characters, got {len(channel)}")
+    root = stream_url(base_url)[: -len(STREAM_PATH)]
+    template = PUBLISH_PATH if kind == "publish" else WATCH_PATH
+    url = root + template.format(name=quote(channel, safe=""))
+    return f"{url}?{urlencode(dict(query))}" if query else url
+
+
+async def _open(url: str, token: str | None, limits: Limits, open_timeout: float):
+    return await ws_connect(
+        url,
+        additional_headers=auth_headers(resolve_token(token)),
+        subprotocols=[SUBPROTOCOL],  # type: ignore[list-item]
+        max_size=limits.max_server_message_bytes,
+        open_timeout=open_timeout,
+        compression=None,  # float arrays: deflate costs latency and gains little
+    )
+
+
+async def _await_ready(ws: ClientConnection, protocol: ClientProtocol) -> Ready:
+    while True:
+        data = await ws.recv()
+        if isinstance(data, str):
+            raise ProtocolError(ErrorCode.TEXT_NOT_SUPPORTED, "server sent a text message")
+        message = protocol.receive(data)
+        if isinstance(message, Ready):
+            return message
+        if isinstance(message, Error):
+            raise message.to_exception()
+
+
+@dataclass
+class PublisherStats:
+    """Counters of a `FramePublisher` (all connections)."""
+
+    sent: int = 0
+    results: int = 0
+    errors: int = 0
+    dropped: int = 0
+    reconnects: int = 0
+
+
+class FramePublisher:
+    """Sends frames of points to a publish endpoint; reads and discards the results.
+
+    Parameters
+    ----------
+    url : str
+        Full WebSocket URL: ``channel_url(base, name, "publish")`` (or a
+        ``/v1/stream`` URL: the publish endpoint speaks the same protocol).
+    hello : Hello
+        The session's ``hello`` (rig, options).
+    token : str, optional
+        Bearer token; default ``FACECAST_TOKEN``.
+    reconnect : Reconnect
+        How hard to re-open a lost connection.
+    open_timeout : float
+        Seconds for the handshake plus ``ready``.
+    on_result : callable, optional
+        Called with every `Result` the server sends back (on the event loop: keep it
+        short); results are otherwise discarded, except the last (``last_result``).
+
+    Use ``async with FramePublisher(...) as pub: await pub.send(points, ts)``.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        hello: Hello,
+        *,
+        token: str | None = None,
+        reconnect: Reconnect = _DEFAULT_RECONNECT,
+        open_timeout: float = 10.0,
+        limits: Limits | None = None,
+        on_result: Callable[[Result], None] | None = None,
+    ) -> None:
+        self.url = url
+        self.on_result = on_result
+        self.hello = hello
+        self.token = token
+        self.reconnect = reconnect
+        self.open_timeout = open_timeout
+        self.limits = limits or Limits()
+        self.stats = PublisherStats()
+        self.ready: Ready | None = None
+        self.last_result: Result | None = None
+        self._ws: ClientConnection | None = None
+        self._protocol: ClientProtocol | None = None
+        self._supervisor: asyncio.Task[None] | None = None
+        self._failure: BaseException | None = None
+        self._closing = False
+        self._seq = 0
+
+    async def _connect(self) -> None:
+        ws = await _open(self.url, self.token, self.limits, self.open_timeout)
+        try:
+            protocol = ClientProtocol(self.limits)
+            await ws.send(protocol.send(self.hello))
+            async with asyncio.timeout(self.open_timeout):
+                ready = await _await_ready(ws, protocol)
+        except BaseException:
+            await ws.close()
+            raise
+        if self.ready is not None and ready.num_points != self.ready.num_points:
+            await ws.close()
+            raise ProtocolError(
+                ErrorCode.INVALID_FIELD,
+                f"rig {ready.rig!r} changed while reconnecting (K={self.ready.num_points} "
+                f"before, {ready.num_points} now)",
+                fatal=True,
+            )
+        self.ready = ready
+        self._ws, self._protocol = ws, protocol
+
+    async def start(self) -> FramePublisher:
+        """Connect and wait for ``ready``.
+
+        Raises
+        ------
+        ConnectionFailed
+            The server cannot be reached or refused the handshake (e.g. HTTP 404 when
+            the server has no channels).
+        ProtocolError
+            The server answered ``hello`` with an error (unknown rig, bad token...).
+        """
+        try:
+            await self._connect()
+        except _OPEN_ERRORS as exc:
+            raise ConnectionFailed(f"cannot publish to {self.url}: {_describe(exc)}") from exc
+        self._supervisor = asyncio.create_task(self._supervise(), name="facecast-publisher")
+        return self
+
+    async def _read(self) -> BaseException | None:
+        assert self._ws is not None and self._protocol is not None
+        async for data in self._ws:
+            if isinstance(data, str):
+                continue
+            try:
+                message = self._protocol.receive(data)
+            except ProtocolError as exc:
+                self.stats.errors += 1
+                log.warning("publisher: undecodable server message: %s", exc)
+                continue
+            if isinstance(message, Result):
+                self.stats.results += 1
+                self.last_result = message
+                if self.on_result is not None:
+                    self.on_result(message)
+            elif isinstance(message, Error):
+                error = message.to_exception()
+                if error.fatal:
+                    return error
+                self.stats.errors += 1
+                log.warning("publisher: server error %s", error)
+        return None
+
+    async def _supervise(self) -> None:
+        try:
+            while True:
+                try:
+                    reason = await self._read()
+                except (ConnectionClosed, OSError) as exc:
+                    reason = exc
+                self._ws = None
+                if self._closing:
+                    return
+                if isinstance(reason, ProtocolError) and reason.code not in RETRYABLE_CODES:
+                    raise reason
+                await self._reconnect(reason)
+        except asyncio.CancelledError:
+            raise
+        except (ProtocolError, ConnectionFailed) as exc:
+            self._failure = exc
+        except Exception as exc:  # a bug here must still end the publisher loudly
+            self._failure = ConnectionFailed(f"the publisher failed: {exc!r}")
+
+    async def _reconnect(self, reason: BaseException | None) -> None:
+        last = reason
+        for attempt in range(self.reconnect.attempts):
+            await asyncio.sleep(self.reconnect.delay(attempt))
+            try:
+                await self._connect()
+            except ProtocolError as exc:
+                if exc.code not in RETRYABLE_CODES:
+                    raise
+                last = exc
+            except _OPEN_ERRORS as exc:
+                last = exc
+            else:
+                self.stats.reconnects += 1
+                log.info("publisher: reconnected to %s", self.url)
+                return
+        raise ConnectionFailed(
+            f"lost {self.url} and gave up after {self.reconnect.attempts} attempt(s): "
+            f"{'closed' if last is None else _describe(last)}"
+        )
+
+    @property
+    def connected(self) -> bool:
+        return self._ws is not None
+
+    async def send(self, points: np.ndarray, ts: float) -> int | None:
+        """Send one frame; its ``seq``, or None when it was dropped (reconnecting).
+
+        Raises
+        ------
+        ProtocolError or ConnectionFailed
+            The publisher has failed for good (fatal server error, gave up
+            reconnecting), or it was closed.
+        """
+        if self._failure is not None:
+            raise self._failure
+        if self._closing:
+            raise ConnectionFailed("the publisher is closed")
+        ws, protocol = self._ws, self._protocol
+        if ws is None or protocol is None:
+            self.stats.dropped += 1
+            return None
+        seq = self._seq
+        data = protocol.send(Frame(seq=seq, ts=float(ts), points=points))
+        try:
+            await ws.send(data)
+        except ConnectionClosed:
+            self.stats.dropped += 1  # the supervisor notices and reconnects
+            return None
+        self._seq += 1
+        self.stats.sent += 1
+        return seq
+
+    async def close(self) -> None:
+        """Close the connection. Idempotent."""
+        self._closing = True
+        if self._supervisor is not None:
+            self._supervisor.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._supervisor
+        if self._ws is not None:
+            await self._ws.close()
+            self._ws = None
+
+    async def __aenter__(self) -> FramePublisher:
+        return await self.start()
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+
+async def watch_channel(
+    url: str,
+    *,
+    token: str | None = None,
+    reconnect: Reconnect = _DEFAULT_RECONNECT,
+    open_timeout: float = 10.0,
+    limits: Limits | None = None,
+) -> AsyncIterator[ServerMessage]:
+    """The messages a watch endpoint sends: ``ready``, then results and channel events.
+
+    Parameters
+    ----------
+    url : str
+        ``channel_url(base, name, "watch", {"rig": ..., "output": "weights"})``.
+
+    Yields
+    ------
+    Ready (again after each reconnection), Result, ChannelIdle, ChannelLive, FaceLost,
+    and non-fatal Error messages.
+
+    Raises
+    ------
+    ConnectionFailed
+        The first connection failed, or reconnection gave up.
+    ProtocolError
+        A fatal server error that reconnecting cannot cure (unknown rig, bad token).
+    """
+    limits = limits or Limits()
+    attempt = 0
+    first = True
+    while True:
+        try:
+            ws = await _open(url, token, limits, open_timeout)
+        except _OPEN_ERRORS as exc:
+            if first or attempt >= reconnect.attempts:
+                raise ConnectionFailed(f"cannot watch {url}: {_describe(exc)}") from exc
+            await asyncio.sleep(reconnect.delay(attempt))
+            attempt += 1
+            continue
+        first = False
+        fatal: ProtocolError | None = None
+        try:
+            protocol = ClientProtocol(limits, watching=True)
+            async for data in ws:
+                if isinstance(data, str):
+                    continue
+                try:
+                    message = protocol.receive(data)
+                except ProtocolError as exc:
+                    log.warning("watcher: undecodable server message: %s", exc)
+                    continue
+                if isinstance(message, Pong):
+                    continue
+                if isinstance(message, Ready):
+                    attempt = 0
+                if isinstance(message, Error) and message.fatal:
+                    fatal = message.to_exception()
+                    break
+                yield message
+        except (ConnectionClosed, OSError):
+            pass
+        finally:
+            await ws.close()
+        if fatal is not None and fatal.code not in RETRYABLE_CODES:
+            raise fatal
+        if attempt >= reconnect.attempts:
+            raise ConnectionFailed(f"lost {url} and gave up after {attempt} attempt(s)")
+        await asyncio.sleep(reconnect.delay(attempt))
+        attempt += 1
+
+
+def _describe(exc: BaseException) -> str:
+    text = str(exc) or type(exc).__name__
+    return text if isinstance(exc, ProtocolError) else f"{type(exc).__name__}: {text}"

@@ -1,0 +1,327 @@
+"""Live Link Face in: parse the app's UDP packets, turn weights into points, publish them.
+
+``parse_livelink_packet`` is sans-I/O (bytes in, a frame or a coded error out); the
+receiver is a thin asyncio datagram endpoint and the bridge loop feeds a
+`FramePublisher`. It must not compute cloning weights: the server does.
+
+Packet layout (Unreal's Apple ARKit Live Link remote publisher, packet version 6), all
+multi-byte numbers big-endian, no padding::
+
+    offset  size  field
+    0       1     uint8    packet version, 6
+    1       4     int32    N1, length in bytes of the device id
+    5       N1    UTF-8    device id (the app sends a 36-character UUID)
+    5+N1    4     int32    N2, length in bytes of the subject name
+    9+N1    N2    UTF-8    subject name (e.g. "iPhone")
+    then the frame time (FQualifiedFrameTime), 16 bytes:
+            4     int32    frame number
+            4     float32  sub-frame, a fraction of a frame in [0, 1)
+            4     int32    frame-rate numerator (e.g. 60)
+            4     int32    frame-rate denominator (e.g. 1)
+    then    1     uint8    value count, 61
+            244   float32  x 61 values: the 52 ARKit weights in Live Link order
+                           (``ARKIT_NAMES``: eyeBlinkLeft ... tongueOut), then head yaw,
+                           pitch, roll and left/right eye yaw, pitch, roll (radians)
+
+A packet of 1 + 4 + 36 + 4 + 6 + 16 + 1 + 244 = 312 bytes for a UUID and "iPhone".
+A packet that ends right after the subject name carries no face (some senders use it
+when tracking is lost): it parses to a frame whose ``weights`` are None. Anything else
+— another version, a truncated packet, a string length out of [0, 256], invalid
+UTF-8, a count other than 61, NaN/Inf values, bytes after the values — raises
+`LiveLinkPacketError` with a stable ``code``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import struct
+import time
+from collections import deque
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from facecast.rig.source_rig import NUM_ARKIT, SourceRig
+
+from .channel import FramePublisher
+
+__all__ = [
+    "DEFAULT_PORT",
+    "LIVELINK_VALUE_COUNT",
+    "LIVELINK_VERSION",
+    "MAX_PACKET_BYTES",
+    "BridgeStats",
+    "LiveLinkFrame",
+    "LiveLinkPacketError",
+    "LiveLinkReceiver",
+    "open_livelink_receiver",
+    "parse_livelink_packet",
+    "run_livelink_bridge",
+]
+
+log = logging.getLogger("facecast.bridges.livelink")
+
+LIVELINK_VERSION = 6
+LIVELINK_VALUE_COUNT = 61
+DEFAULT_PORT = 11111
+MAX_STRING_BYTES = 256
+#: The largest valid packet (two 256-byte strings); anything longer is refused unread.
+MAX_PACKET_BYTES = 1 + 4 + MAX_STRING_BYTES + 4 + MAX_STRING_BYTES + 16 + 1 + 4 * 61
+
+_INT32 = struct.Struct(">i")
+_FRAME_TIME = struct.Struct(">ifii")
+_VALUES = struct.Struct(f">B{LIVELINK_VALUE_COUNT}f")
+
+
+class LiveLinkPacketError(ValueError):
+    """A UDP packet that is not a valid Live Link Face packet; ``code`` says why.
+
+    Codes: ``too_large``, ``truncated``, ``unsupported_version``, ``bad_string``,
+    ``bad_value_count``, ``non_finite``, ``trailing_bytes``.
+    """
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass(frozen=True, eq=False)
+class LiveLinkFrame:
+    """One decoded Live Link Face packet.
+
+    Attributes
+    ----------
+    version : int
+    device_id, subject : str
+    frame_number : int
+    sub_frame : float
+    rate_numerator, rate_denominator : int
+    weights : (52,) float64 or None
+        ARKit weights in ``ARKIT_NAMES`` order; None for a packet without a face.
+    head : (9,) float64 or None
+        Head yaw/pitch/roll, left eye and right eye yaw/pitch/roll, radians.
+    received : float
+        ``time.monotonic()`` when the receiver got it (0 from the parser alone).
+    """
+
+    version: int
+    device_id: str
+    subject: str
+    frame_number: int = 0
+    sub_frame: float = 0.0
+    rate_numerator: int = 0
+    rate_denominator: int = 0
+    weights: np.ndarray | None = None
+    head: np.ndarray | None = None
+    received: float = 0.0
+
+    @property
+    def has_face(self) -> bool:
+        return self.weights is not None
+
+    @property
+    def time(self) -> float | None:
+        """The frame time in seconds, or None without a valid frame rate."""
+        if self.rate_numerator <= 0 or self.rate_denominator <= 0:
+            return None
+        return (self.frame_number + self.sub_frame) * self.rate_denominator / self.rate_numerator
+
+
+def _string(data: bytes, offset: int, what: str) -> tuple[str, int]:
+    if len(data) < offset + 4:
+        raise LiveLinkPacketError("truncated", f"packet ends before the {what} length")
+    (length,) = _INT32.unpack_from(data, offset)
+    if not 0 <= length <= MAX_STRING_BYTES:
+        raise LiveLinkPacketError(
+            "bad_string", f"{what} length {length} is outside [0, {MAX_STRING_BYTES}]"
+        )
+    start = offset + 4
+    if len(data) < start + length:
+        raise LiveLinkPacketError(
+            "truncated", f"packet ends inside the {what} ({length} bytes announced)"
+        )
+    try:
+        text = data[start : start + length].decode("utf-8")
+    except UnicodeDecodeError:
+        raise LiveLinkPacketError("bad_string", f"{what} is not valid UTF-8") from None
+    return text, start + length
+
+
+def parse_livelink_packet(data: bytes) -> LiveLinkFrame:
+    """Decode one Live Link Face UDP packet (layout in the module docstring).
+
+    Raises
+    ------
+    LiveLinkPacketError
+    """
+    data = bytes(data)
+    if len(data) > MAX_PACKET_BYTES:
+        raise LiveLinkPacketError(
+            "too_large", f"{len(data)} bytes; a Live Link Face packet is at most {MAX_PACKET_BYTES}"
+        )
+    if not data:
+        raise LiveLinkPacketError("truncated", "empty packet")
+    version = data[0]
+    if version != LIVELINK_VERSION:
+        raise LiveLinkPacketError(
+            "unsupported_version", f"packet version {version}; only {LIVELINK_VERSION} is known"
+        )
+    device_id, offset = _string(data, 1, "device id")
+    subject, offset = _string(data, offset, "subject name")
+    if offset == len(data):
+        return LiveLinkFrame(version=version, device_id=device_id, subject=subject)
+    if len(data) < offset + _FRAME_TIME.size + 1:
+        raise LiveLinkPacketError("truncated", "packet ends inside the frame time")
+    frame_number, sub_frame, numerator, denominator = _FRAME_TIME.unpack_from(data, offset)
+    offset += _FRAME_TIME.size
+    count = data[offset]
+    if count != LIVELINK_VALUE_COUNT:
+        raise LiveLinkPacketError(
+            "bad_value_count",
+            f"{count} values announced; Live Link Face sends {LIVELINK_VALUE_COUNT}",
+        )
+    if len(data) < offset + _VALUES.size:
+        raise LiveLinkPacketError(
+            "truncated", f"packet ends inside the {LIVELINK_VALUE_COUNT} values"
+        )
+    if len(data) > offset + _VALUES.size:
+        raise LiveLinkPacketError(
+            "trailing_bytes", f"{len(data) - offset - _VALUES.size} bytes after the values"
+        )
+    values = np.frombuffer(data, dtype=">f4", count=LIVELINK_VALUE_COUNT, offset=offset + 1)
+    values = values.astype(np.float64)
+    if not (np.isfinite(values).all() and math.isfinite(sub_frame)):
+        raise LiveLinkPacketError("non_finite", "NaN or Inf among the values")
+    return LiveLinkFrame(
+        version=version,
+        device_id=device_id,
+        subject=subject,
+        frame_number=frame_number,
+        sub_frame=sub_frame,
+        rate_numerator=numerator,
+        rate_denominator=denominator,
+        weights=values[:NUM_ARKIT],
+        head=values[NUM_ARKIT:],
+    )
+
+
+class LiveLinkReceiver(asyncio.DatagramProtocol):
+    """Receives Live Link Face packets; keeps the newest ``max_queue`` frames.
+
+    A live source must not build up latency: when the consumer falls behind, the
+    oldest waiting frame is dropped (``dropped``). Malformed packets are counted
+    (``malformed``, ``last_error``) and logged at most once a second, never raised.
+    Build with `open_livelink_receiver`.
+    """
+
+    def __init__(self, max_queue: int = 4) -> None:
+        if max_queue < 1:
+            raise ValueError(f"max_queue must be >= 1, got {max_queue}")
+        self._frames: deque[LiveLinkFrame] = deque(maxlen=max_queue)
+        self._arrived = asyncio.Event()
+        self._transport: asyncio.DatagramTransport | None = None
+        self._last_log = -math.inf
+        self.received = 0
+        self.malformed = 0
+        self.dropped = 0
+        self.last_error: LiveLinkPacketError | None = None
+
+    def connection_made(self, transport) -> None:  # asyncio callback
+        self._transport = transport
+
+    def datagram_received(self, data: bytes, addr) -> None:  # asyncio callback
+        try:
+            frame = parse_livelink_packet(data)
+        except LiveLinkPacketError as exc:
+            self.malformed += 1
+            self.last_error = exc
+            now = time.monotonic()
+            if now - self._last_log >= 1.0:
+                self._last_log = now
+                log.warning("ignoring a bad Live Link packet from %s: %s (%s)", addr, exc, exc.code)
+            return
+        self.received += 1
+        if len(self._frames) == self._frames.maxlen:
+            self.dropped += 1
+        self._frames.append(replace(frame, received=time.monotonic()))
+        self._arrived.set()
+
+    @property
+    def address(self) -> tuple[str, int]:
+        """(host, port) actually bound (the port chosen by the OS when 0 was asked)."""
+        assert self._transport is not None
+        host, port = self._transport.get_extra_info("sockname")[:2]
+        return host, port
+
+    async def get(self, timeout: float | None = None) -> LiveLinkFrame:
+        """The oldest waiting frame; waits for one (TimeoutError after ``timeout``)."""
+        async with asyncio.timeout(timeout):
+            while not self._frames:
+                self._arrived.clear()
+                await self._arrived.wait()
+        return self._frames.popleft()
+
+    def close(self) -> None:
+        if self._transport is not None:
+            self._transport.close()
+
+
+async def open_livelink_receiver(
+    host: str = "127.0.0.1", port: int = DEFAULT_PORT, *, max_queue: int = 4
+) -> LiveLinkReceiver:
+    """Bind a UDP socket on (host, port) and receive Live Link Face packets on it."""
+    loop = asyncio.get_running_loop()
+    _, receiver = await loop.create_datagram_endpoint(
+        lambda: LiveLinkReceiver(max_queue), local_addr=(host, port)
+    )
+    return receiver
+
+
+@dataclass
+class BridgeStats:
+    """What a bridge loop did."""
+
+    frames: int = 0
+    published: int = 0
+    skipped: int = 0
+
+
+async def run_livelink_bridge(
+    receiver: LiveLinkReceiver,
+    source_rig: SourceRig,
+    publisher: FramePublisher,
+    *,
+    head_pose: bool = False,
+    subject: str | None = None,
+    max_frames: int | None = None,
+) -> BridgeStats:
+    """Receive frames, turn them into points, publish them; until cancelled or ``max_frames``.
+
+    Parameters
+    ----------
+    head_pose : bool
+        Rotate the points by the packet's head yaw/pitch/roll (open the session with
+        ``align`` so the server removes it again); off: the head stays still.
+    subject : str, optional
+        Only frames of this Live Link subject; default every subject.
+    max_frames : int, optional
+        Return after this many frames with a face were published or dropped.
+
+    Each frame is sent as float32 points with ``ts`` = its arrival time on this
+    machine's monotonic clock, so latency is measured on one clock.
+    """
+    stats = BridgeStats()
+    while max_frames is None or stats.frames < max_frames:
+        frame = await receiver.get()
+        if frame.weights is None or (subject is not None and frame.subject != subject):
+            stats.skipped += 1
+            continue
+        head = frame.head[:3] if head_pose and frame.head is not None else None
+        # ~52 x 3K multiply-adds: microseconds, fine on the event loop.
+        points = source_rig.points(frame.weights, head=head).astype(np.float32)
+        stats.frames += 1
+        if await publisher.send(points, ts=frame.received) is not None:
+            stats.published += 1
+    return stats

@@ -1,0 +1,213 @@
+"""``facecast bridge``: connect trackers and avatar apps to a broadcast channel.
+
+``bridge livelink`` receives Live Link Face UDP and publishes points to a channel;
+``bridge vmc`` watches a channel's weights and sends VMC OSC. Only argument parsing and
+wiring here; the loops live in facecast.client.bridges, imported when a command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def _host_port(text: str, default_port: int | None = None) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        host, port = text, "" if default_port is None else str(default_port)
+    host = host.strip("[]")
+    try:
+        number = int(port)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}") from None
+    if not host or not 0 <= number <= 65535:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT with a port 0-65535, got {text!r}")
+    return host, number
+
+
+def _listen(text: str) -> tuple[str, int]:
+    return _host_port(text, 11111)
+
+
+def _send(text: str) -> tuple[str, int]:
+    return _host_port(text, 39539)
+
+
+def _mapping(text: str) -> tuple[str, str]:
+    name, sep, target = text.partition("=")
+    if not sep or not name or not target:
+        raise argparse.ArgumentTypeError(f"expected NAME=VMCNAME, got {text!r}")
+    return name, target
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "bridge",
+        help="bridge Live Link Face into a channel, or a channel out to VMC",
+        description="Bridges between facecast broadcast channels and outside tools.",
+    )
+    sub = parser.add_subparsers(dest="bridge", metavar="BRIDGE", required=True)
+
+    ll = sub.add_parser(
+        "livelink",
+        help="receive Live Link Face UDP and publish the points to a channel",
+        description=(
+            "Receive Live Link Face packets (iPhone app, UDP), turn the 52 ARKit weights "
+            "into feature points through a source rig, and publish them to a channel. "
+            "Point the app's Live Link target at this machine's --listen address."
+        ),
+    )
+    ll.add_argument("url", metavar="URL", help="server base URL, e.g. http://127.0.0.1:8000")
+    ll.add_argument("--channel", required=True, help="channel to publish to")
+    ll.add_argument("--rig", required=True, help="rig id on the server (its K must match)")
+    ll.add_argument(
+        "--source-rig",
+        required=True,
+        metavar="PATH",
+        help="ARKit-named example set (e.g. from 'facecast import ict-facekit') or ICT archive",
+    )
+    ll.add_argument(
+        "--listen",
+        type=_listen,
+        default=("0.0.0.0", 11111),
+        metavar="HOST:PORT",
+        help="UDP address to receive on (default 0.0.0.0:11111, the app's default port)",
+    )
+    ll.add_argument(
+        "--head-pose",
+        action="store_true",
+        help="apply the packets' head yaw/pitch/roll to the points (the session then "
+        "asks the server to align them away again)",
+    )
+    ll.add_argument("--subject", help="only this Live Link subject name")
+    ll.add_argument("--token", help="bearer token (default FACECAST_TOKEN)")
+    ll.add_argument("--frames", type=int, metavar="N", help="stop after N frames")
+    ll.set_defaults(func=run_livelink)
+
+    vmc = sub.add_parser(
+        "vmc",
+        help="watch a channel's weights and send them as VMC (OSC) blend shapes",
+        description=(
+            "Watch a channel on a rig and send every result as VMC protocol OSC "
+            "(/VMC/Ext/Blend/Val, /VMC/Ext/Blend/Apply, /VMC/Ext/OK) to an avatar app."
+        ),
+    )
+    vmc.add_argument("url", metavar="URL", help="server base URL")
+    vmc.add_argument("--channel", required=True, help="channel to watch")
+    vmc.add_argument("--rig", required=True, help="rig whose weights to receive")
+    vmc.add_argument(
+        "--send",
+        type=_send,
+        default=("127.0.0.1", 39539),
+        metavar="HOST:PORT",
+        help="VMC receiver (default 127.0.0.1:39539)",
+    )
+    vmc.add_argument(
+        "--map",
+        type=_mapping,
+        action="append",
+        default=[],
+        metavar="NAME=VMCNAME",
+        help="send rig expression NAME as VMCNAME (repeatable; over the VRM preset table)",
+    )
+    vmc.add_argument("--no-clamp", action="store_true", help="send weights outside [0, 1] too")
+    vmc.add_argument("--token", help="bearer token (default FACECAST_TOKEN)")
+    vmc.add_argument("--frames", type=int, metavar="N", help="stop after N frames")
+    vmc.set_defaults(func=run_vmc)
+
+
+def run_livelink(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from facecast.client.bridges.channel import FramePublisher, channel_url
+    from facecast.client.bridges.livelink import open_livelink_receiver, run_livelink_bridge
+    from facecast.client.cli import CommandError
+    from facecast.client.connection import ConnectionFailed
+    from facecast.protocol import Hello
+    from facecast.rig.source_rig import load_source_rig
+
+    source_rig = load_source_rig(args.source_rig)
+    if source_rig.missing:
+        print(
+            f"facecast bridge: the source rig has no shape for {', '.join(source_rig.missing)}; "
+            "those weights are ignored",
+            file=sys.stderr,
+        )
+    try:
+        url = channel_url(args.url, args.channel, "publish")
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+    hello = Hello(rig=args.rig, align=args.head_pose)
+
+    async def main() -> int:
+        receiver = await open_livelink_receiver(*args.listen)
+        try:
+            async with FramePublisher(url, hello, token=args.token) as publisher:
+                assert publisher.ready is not None
+                if publisher.ready.num_points != source_rig.num_points:
+                    raise CommandError(
+                        f"rig {args.rig!r} needs K={publisher.ready.num_points} points, the "
+                        f"source rig makes {source_rig.num_points}"
+                    )
+                host, port = receiver.address
+                print(
+                    f"facecast bridge: Live Link on udp://{host}:{port} -> channel "
+                    f"{args.channel!r} (rig {args.rig}, K={source_rig.num_points})",
+                    file=sys.stderr,
+                )
+                stats = await run_livelink_bridge(
+                    receiver,
+                    source_rig,
+                    publisher,
+                    head_pose=args.head_pose,
+                    subject=args.subject,
+                    max_frames=args.frames,
+                )
+                print(
+                    f"facecast bridge: {stats.published} frames published, "
+                    f"{publisher.stats.dropped} dropped, {receiver.malformed} bad packets",
+                    file=sys.stderr,
+                )
+        except ConnectionFailed as exc:
+            raise CommandError(str(exc)) from None
+        finally:
+            receiver.close()
+        return 0
+
+    return asyncio.run(main())
+
+
+def run_vmc(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from facecast.client.bridges.channel import channel_url, watch_channel
+    from facecast.client.bridges.vmc import VmcSender, run_vmc_bridge
+    from facecast.client.cli import CommandError
+    from facecast.client.connection import ConnectionFailed
+
+    try:
+        url = channel_url(args.url, args.channel, "watch", {"rig": args.rig, "output": "weights"})
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+
+    async def main() -> int:
+        with VmcSender(*args.send) as sender:
+            print(
+                f"facecast bridge: channel {args.channel!r} on rig {args.rig} -> VMC "
+                f"udp://{args.send[0]}:{args.send[1]}",
+                file=sys.stderr,
+            )
+            try:
+                stats = await run_vmc_bridge(
+                    watch_channel(url, token=args.token),
+                    sender,
+                    overrides=dict(args.map),
+                    clamp=not args.no_clamp,
+                    max_frames=args.frames,
+                )
+            except ConnectionFailed as exc:
+                raise CommandError(str(exc)) from None
+            print(f"facecast bridge: {stats.frames} frames sent as VMC", file=sys.stderr)
+        return 0
+
+    return asyncio.run(main())

@@ -1,0 +1,343 @@
+"""The source rig: ARKit blendshape weights -> source feature points, through an example set.
+
+Trackers such as Live Link Face send 52 ARKit weights, not points; a source rig with
+ARKit-named shapes turns them into the points the cloning rig expects. Linear only: it
+must not fit or evaluate the cloning rig, and does no network or tracker I/O.
+
+Points of a frame with weights ``w`` (52,)::
+
+    points = neutral + sum_k w_k (shape_k - neutral)
+
+Head angles (yaw, pitch, roll) optionally rotate those points rigidly about the
+neutral's centroid, so a bridged stream carries real head motion for the server's
+``align`` to remove.
+
+Shape names are matched case-insensitively, first to the ARKit name itself
+(``eyeBlinkLeft``, ``EyeBlinkLeft``), else to ICT-FaceKit's names in
+``ARKIT_TO_ICT``: ``Left``/``Right`` become ``_L``/``_R`` (``eyeBlink_L``), and ICT
+splits ``browInnerUp`` and ``cheekPuff`` into a left and a right shape, which the ARKit
+weight drives together. ICT has no ``tongueOut``: a set without a shape for an ARKit
+name gets a zero delta there and lists the name in ``SourceRig.missing``.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ExampleSetError, InputError
+from .examples import ExampleSet
+
+__all__ = [
+    "ARKIT_NAMES",
+    "ARKIT_TO_ICT",
+    "HEAD_POSE_NAMES",
+    "NUM_ARKIT",
+    "SourceRig",
+    "arkit_index",
+    "head_rotation",
+    "load_source_rig",
+]
+
+#: The 52 ARKit blendshapes in Live Link Face's order (Unreal's EARFaceBlendShape): the
+#: order of the UDP packet's values. CSV takes name their columns instead (PascalCase).
+ARKIT_NAMES: tuple[str, ...] = (
+    "eyeBlinkLeft", "eyeLookDownLeft", "eyeLookInLeft", "eyeLookOutLeft", "eyeLookUpLeft",
+    "eyeSquintLeft", "eyeWideLeft",
+    "eyeBlinkRight", "eyeLookDownRight", "eyeLookInRight", "eyeLookOutRight", "eyeLookUpRight",
+    "eyeSquintRight", "eyeWideRight",
+    "jawForward", "jawLeft", "jawRight", "jawOpen",
+    "mouthClose", "mouthFunnel", "mouthPucker", "mouthLeft", "mouthRight",
+    "mouthSmileLeft", "mouthSmileRight", "mouthFrownLeft", "mouthFrownRight",
+    "mouthDimpleLeft", "mouthDimpleRight", "mouthStretchLeft", "mouthStretchRight",
+    "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper",
+    "mouthPressLeft", "mouthPressRight", "mouthLowerDownLeft", "mouthLowerDownRight",
+    "mouthUpperUpLeft", "mouthUpperUpRight",
+    "browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight",
+    "cheekPuff", "cheekSquintLeft", "cheekSquintRight",
+    "noseSneerLeft", "noseSneerRight",
+    "tongueOut",
+)  # fmt: skip
+NUM_ARKIT = len(ARKIT_NAMES)
+
+#: The 9 extra Live Link Face values after the 52 weights, radians.
+HEAD_POSE_NAMES: tuple[str, ...] = (
+    "headYaw", "headPitch", "headRoll",
+    "leftEyeYaw", "leftEyePitch", "leftEyeRoll",
+    "rightEyeYaw", "rightEyePitch", "rightEyeRoll",
+)  # fmt: skip
+
+#: ARKit name -> the ICT-FaceKit shapes it drives (each at the ARKit weight).
+ARKIT_TO_ICT: dict[str, tuple[str, ...]] = {
+    "eyeBlinkLeft": ("eyeBlink_L",),
+    "eyeLookDownLeft": ("eyeLookDown_L",),
+    "eyeLookInLeft": ("eyeLookIn_L",),
+    "eyeLookOutLeft": ("eyeLookOut_L",),
+    "eyeLookUpLeft": ("eyeLookUp_L",),
+    "eyeSquintLeft": ("eyeSquint_L",),
+    "eyeWideLeft": ("eyeWide_L",),
+    "eyeBlinkRight": ("eyeBlink_R",),
+    "eyeLookDownRight": ("eyeLookDown_R",),
+    "eyeLookInRight": ("eyeLookIn_R",),
+    "eyeLookOutRight": ("eyeLookOut_R",),
+    "eyeLookUpRight": ("eyeLookUp_R",),
+    "eyeSquintRight": ("eyeSquint_R",),
+    "eyeWideRight": ("eyeWide_R",),
+    "jawForward": ("jawForward",),
+    "jawLeft": ("jawLeft",),
+    "jawRight": ("jawRight",),
+    "jawOpen": ("jawOpen",),
+    "mouthClose": ("mouthClose",),
+    "mouthFunnel": ("mouthFunnel",),
+    "mouthPucker": ("mouthPucker",),
+    "mouthLeft": ("mouthLeft",),
+    "mouthRight": ("mouthRight",),
+    "mouthSmileLeft": ("mouthSmile_L",),
+    "mouthSmileRight": ("mouthSmile_R",),
+    "mouthFrownLeft": ("mouthFrown_L",),
+    "mouthFrownRight": ("mouthFrown_R",),
+    "mouthDimpleLeft": ("mouthDimple_L",),
+    "mouthDimpleRight": ("mouthDimple_R",),
+    "mouthStretchLeft": ("mouthStretch_L",),
+    "mouthStretchRight": ("mouthStretch_R",),
+    "mouthRollLower": ("mouthRollLower",),
+    "mouthRollUpper": ("mouthRollUpper",),
+    "mouthShrugLower": ("mouthShrugLower",),
+    "mouthShrugUpper": ("mouthShrugUpper",),
+    "mouthPressLeft": ("mouthPress_L",),
+    "mouthPressRight": ("mouthPress_R",),
+    "mouthLowerDownLeft": ("mouthLowerDown_L",),
+    "mouthLowerDownRight": ("mouthLowerDown_R",),
+    "mouthUpperUpLeft": ("mouthUpperUp_L",),
+    "mouthUpperUpRight": ("mouthUpperUp_R",),
+    "browDownLeft": ("browDown_L",),
+    "browDownRight": ("browDown_R",),
+    "browInnerUp": ("browInnerUp_L", "browInnerUp_R"),
+    "browOuterUpLeft": ("browOuterUp_L",),
+    "browOuterUpRight": ("browOuterUp_R",),
+    "cheekPuff": ("cheekPuff_L", "cheekPuff_R"),
+    "cheekSquintLeft": ("cheekSquint_L",),
+    "cheekSquintRight": ("cheekSquint_R",),
+    "noseSneerLeft": ("noseSneer_L",),
+    "noseSneerRight": ("noseSneer_R",),
+    "tongueOut": (),
+}
+
+_ARKIT_LOWER = {name.lower(): i for i, name in enumerate(ARKIT_NAMES)}
+
+
+def arkit_index(name: str) -> int | None:
+    """Position of an ARKit blendshape name (any case: ``EyeBlinkLeft``), or None."""
+    return _ARKIT_LOWER.get(name.lower())
+
+
+def head_rotation(angles) -> np.ndarray:
+    """Rotation matrices of head (yaw, pitch, roll) angles in radians.
+
+    ``R = R_y(yaw) @ R_x(pitch) @ R_z(roll)`` in the face's frame (+y up, +z forward,
+    +x the subject's left), applied to column vectors: yaw turns about the vertical,
+    pitch nods about the ear-to-ear axis, roll tilts about the nose axis.
+
+    Parameters
+    ----------
+    angles : (..., 3) float
+
+    Returns
+    -------
+    (..., 3, 3) float64
+    """
+    a = np.asarray(angles, dtype=np.float64)
+    cy, sy = np.cos(a[..., 0]), np.sin(a[..., 0])
+    cp, sp = np.cos(a[..., 1]), np.sin(a[..., 1])
+    cr, sr = np.cos(a[..., 2]), np.sin(a[..., 2])
+    zero, one = np.zeros_like(cy), np.ones_like(cy)
+    ry = np.stack([cy, zero, sy, zero, one, zero, -sy, zero, cy], axis=-1)
+    rx = np.stack([one, zero, zero, zero, cp, -sp, zero, sp, cp], axis=-1)
+    rz = np.stack([cr, -sr, zero, sr, cr, zero, zero, zero, one], axis=-1)
+    shape = (*a.shape[:-1], 3, 3)
+    return ry.reshape(shape) @ rx.reshape(shape) @ rz.reshape(shape)
+
+
+def _match(names: Sequence[str]) -> tuple[tuple[tuple[int, ...], ...], tuple[str, ...]]:
+    """For each ARKit name, the example indices it drives; and the examples left unused."""
+    by_lower: dict[str, int] = {}
+    for i, name in enumerate(names):
+        if i == 0:
+            continue  # the neutral is the base, never a shape
+        key = name.lower()
+        if key in by_lower:
+            raise ExampleSetError(
+                f"source rig: examples {names[by_lower[key]]!r} and {name!r} differ only in "
+                "case; ARKit names are matched case-insensitively",
+                code="ambiguous_shape_name",
+            )
+        by_lower[key] = i
+    used: set[int] = set()
+    matched: list[tuple[int, ...]] = []
+    for arkit in ARKIT_NAMES:
+        own = by_lower.get(arkit.lower())
+        if own is not None:
+            picks: tuple[int, ...] = (own,)
+        else:
+            ict = [by_lower.get(n.lower()) for n in ARKIT_TO_ICT[arkit]]
+            picks = (
+                tuple(i for i in ict if i is not None) if all(i is not None for i in ict) else ()
+            )
+        used.update(picks)
+        matched.append(picks)
+    unused = tuple(names[i] for i in range(1, len(names)) if i not in used)
+    return tuple(matched), unused
+
+
+@dataclass(frozen=True, eq=False)
+class SourceRig:
+    """ARKit weights to source feature points: a neutral plus one delta per ARKit shape.
+
+    Parameters
+    ----------
+    neutral : (K, 3) float64
+        Feature points of the neutral face.
+    deltas : (52, K, 3) float64
+        ``shape_k - neutral`` per ARKit name in ``ARKIT_NAMES`` order (summed over the
+        shapes an ARKit name drives; zero where the set has none).
+    shapes : tuple of 52 tuples of str
+        The example names each ARKit weight drives (empty: missing).
+    unused : tuple of str
+        Examples of the set that match no ARKit name (ignored).
+    """
+
+    neutral: np.ndarray
+    deltas: np.ndarray
+    shapes: tuple[tuple[str, ...], ...]
+    unused: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        neutral = np.asarray(self.neutral, dtype=np.float64)
+        deltas = np.asarray(self.deltas, dtype=np.float64)
+        if neutral.ndim != 2 or neutral.shape[1] != 3 or neutral.shape[0] < 1:
+            raise ExampleSetError(f"source rig neutral: expected (K, 3), got {neutral.shape}")
+        if deltas.shape != (NUM_ARKIT, *neutral.shape):
+            raise ExampleSetError(
+                f"source rig deltas: expected ({NUM_ARKIT}, {neutral.shape[0]}, 3), got "
+                f"{deltas.shape}"
+            )
+        if len(self.shapes) != NUM_ARKIT:
+            raise ExampleSetError(f"source rig: expected {NUM_ARKIT} shape entries")
+        if not (np.isfinite(neutral).all() and np.isfinite(deltas).all()):
+            raise ExampleSetError("source rig: NaN or Inf coordinates", code="non_finite")
+        object.__setattr__(self, "neutral", neutral)
+        object.__setattr__(self, "deltas", deltas)
+        # (52, 3K): the hot path is one matrix product, like the cloning rig's blend.
+        object.__setattr__(self, "_flat", np.ascontiguousarray(deltas.reshape(NUM_ARKIT, -1)))
+        object.__setattr__(self, "_centroid", neutral.mean(axis=0))
+
+    @classmethod
+    def from_example_set(cls, example_set: ExampleSet) -> SourceRig:
+        """Take the source side of ``example_set``: example 0 is the neutral.
+
+        Raises
+        ------
+        ExampleSetError
+            ``no_arkit_shapes`` when no example matches an ARKit name;
+            ``ambiguous_shape_name`` when two names differ only in case.
+        """
+        names = example_set.names
+        matched, unused = _match(names)
+        if not any(matched):
+            raise ExampleSetError(
+                f"source rig: none of the examples ({', '.join(names[1:6])}"
+                f"{', ...' if len(names) > 6 else ''}) is named after an ARKit blendshape "
+                "(e.g. eyeBlinkLeft or ICT's eyeBlink_L)",
+                code="no_arkit_shapes",
+            )
+        points = example_set.source_points
+        neutral = points[0]
+        deltas = np.zeros((NUM_ARKIT, *neutral.shape))
+        for k, picks in enumerate(matched):
+            for i in picks:
+                deltas[k] += points[i] - neutral
+        shapes = tuple(tuple(names[i] for i in picks) for picks in matched)
+        return cls(neutral=neutral, deltas=deltas, shapes=shapes, unused=unused)
+
+    @property
+    def num_points(self) -> int:
+        """K, the feature points produced per frame."""
+        return int(self.neutral.shape[0])
+
+    @property
+    def missing(self) -> tuple[str, ...]:
+        """ARKit names this rig has no shape for (their weights are ignored)."""
+        return tuple(n for n, s in zip(ARKIT_NAMES, self.shapes, strict=True) if not s)
+
+    def points(self, weights, *, head=None) -> np.ndarray:
+        """Feature points for ARKit weights, optionally turned by head angles.
+
+        Parameters
+        ----------
+        weights : (52,) or (F, 52) float
+            In ``ARKIT_NAMES`` order.
+        head : (3,) or (F, 3) float, optional
+            Head yaw, pitch, roll in radians (see `head_rotation`); the points are
+            rotated about the neutral's centroid.
+
+        Returns
+        -------
+        (K, 3) or (F, K, 3) float64
+        """
+        w = np.asarray(weights, dtype=np.float64)
+        single = w.ndim == 1
+        batch = w[None] if single else w
+        if batch.ndim != 2 or batch.shape[1] != NUM_ARKIT:
+            raise InputError(
+                f"ARKit weights: expected shape ({NUM_ARKIT},) or (F, {NUM_ARKIT}), got {w.shape}",
+                code="bad_weights",
+            )
+        if not np.isfinite(batch).all():
+            raise InputError("ARKit weights: NaN or Inf values", code="non_finite")
+        out = (batch @ self._flat).reshape(batch.shape[0], -1, 3)  # type: ignore[attr-defined]
+        out += self.neutral
+        if head is not None:
+            angles = np.asarray(head, dtype=np.float64).reshape(-1, 3)
+            if angles.shape[0] != batch.shape[0] or not np.isfinite(angles).all():
+                raise InputError(
+                    f"head angles: expected {batch.shape[0]} finite (yaw, pitch, roll) "
+                    f"triples, got shape {np.shape(head)}",
+                    code="bad_head_pose",
+                )
+            centroid = self._centroid  # type: ignore[attr-defined]
+            out = np.einsum("fij,fkj->fki", head_rotation(angles), out - centroid) + centroid
+        return out[0] if single else out
+
+
+def _is_ict_archive(path: Path) -> bool:
+    if path.is_file():
+        return path.name == "ict_facekit.npz"
+    return (path / "ict_facekit.npz").is_file() and not (path / "facecast.toml").exists()
+
+
+def load_source_rig(path: str | os.PathLike) -> SourceRig:
+    """A source rig from an ARKit-named example set on disk.
+
+    Parameters
+    ----------
+    path : path-like
+        Anything ``load_example_set`` reads (e.g. the folder ``facecast import
+        ict-facekit`` writes), or the ICT-FaceKit archive ``ict_facekit.npz`` / its
+        folder (ICT's own shape names, default landmarks).
+
+    Raises
+    ------
+    ExampleSetError
+    """
+    from .loaders import load_example_set
+
+    path = Path(path)
+    if _is_ict_archive(path):
+        from .ict import ict_example_set
+
+        return SourceRig.from_example_set(ict_example_set(path))
+    return SourceRig.from_example_set(load_example_set(path))

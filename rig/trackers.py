@@ -1,0 +1,558 @@
+"""Recorded tracker takes -> source animations: Live Link Face CSV and MediaPipe NDJSON.
+
+Streams each file line by line with bounded memory and names the line at fault in every
+error; it must not fit, clone or touch the network.
+
+Live Link Face CSV (the app's take export): a header ``Timecode,BlendShapeCount,`` then
+one column per ARKit blendshape in PascalCase (``EyeBlinkLeft`` ... ``TongueOut``, any
+order, matched case-insensitively), then optionally ``HeadYaw,HeadPitch,HeadRoll,
+LeftEyeYaw,...,RightEyeRoll``. ``Timecode`` is ``HH:MM:SS:FF`` or ``HH:MM:SS:FF.fff``:
+``FF`` frames at the take's frame rate and ``.fff`` a fraction of a frame, so a row plays
+at ``h*3600 + m*60 + s + (FF + 0.fff) / fps`` seconds (timestamps start at 0 with the
+first row; a timecode wrapping past midnight continues).
+
+MediaPipe face-landmarker NDJSON: one JSON object per line,
+``{"landmarks": [[x, y, z] x 478], "transform": [16 floats], "t": seconds}``
+(``transform``, the row-major 4x4 facial transformation matrix, and ``t`` optional;
+468-landmark meshes without irises are accepted too). Blank lines are skipped.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .animation import SourceAnimation
+from .errors import InputError
+from .source_rig import ARKIT_NAMES, HEAD_POSE_NAMES, NUM_ARKIT, SourceRig
+
+__all__ = [
+    "MAX_TAKE_FRAMES",
+    "MEDIAPIPE_FEATURES",
+    "LiveLinkTake",
+    "MediaPipeTake",
+    "livelink_csv_animation",
+    "load_mediapipe_mapping",
+    "mediapipe_animation",
+    "parse_timecode",
+    "read_livelink_csv",
+    "read_mediapipe_ndjson",
+]
+
+#: Frames a take may hold (30 minutes at 60 fps); more is refused, not truncated.
+MAX_TAKE_FRAMES = 108_000
+#: Longest NDJSON line accepted, characters (478 landmarks at full precision is ~40 KB).
+MAX_LINE_CHARS = 1 << 20
+
+#: MediaPipe face-mesh landmark for each of the 20 standard feature points, in the order
+#: of ``facecast.rig.ict.DEFAULT_LANDMARKS`` (Multi-PIE 68 positions), so a MediaPipe take
+#: drives a rig imported from ICT-FaceKit with the default landmarks. Indices follow the
+#: usual dlib-68 <-> MediaPipe correspondence; "right" is the subject's right.
+MEDIAPIPE_FEATURES: tuple[tuple[str, int, int], ...] = (
+    # (feature, Multi-PIE 68 position, MediaPipe landmark)
+    ("right_brow_outer", 17, 70),
+    ("right_brow_middle", 19, 105),
+    ("right_brow_inner", 21, 107),
+    ("left_brow_inner", 22, 336),
+    ("left_brow_middle", 24, 334),
+    ("left_brow_outer", 26, 300),
+    ("right_upper_lid", 37, 160),
+    ("right_lower_lid", 41, 144),
+    ("left_upper_lid", 44, 387),
+    ("left_lower_lid", 46, 373),
+    ("nose_tip", 30, 4),
+    ("right_nose_wing", 31, 75),
+    ("left_nose_wing", 35, 305),
+    ("right_mouth_corner", 48, 61),
+    ("upper_lip_outer", 51, 0),
+    ("left_mouth_corner", 54, 291),
+    ("lower_lip_outer", 57, 17),
+    ("upper_lip_inner", 62, 13),
+    ("lower_lip_inner", 66, 14),
+    ("chin", 8, 152),
+)
+_DEFAULT_MEDIAPIPE = tuple(index for _, _, index in MEDIAPIPE_FEATURES)
+_MEDIAPIPE_COUNTS = (468, 478)
+
+_TIMECODE = re.compile(r"^\s*(\d{1,2}):(\d{2}):(\d{2})[:;](\d{1,3})(?:\.(\d+))?\s*$")
+_DAY = 24 * 3600.0
+
+
+def _open_text(path: Path, what: str) -> io.TextIOWrapper:
+    try:
+        return path.open("r", encoding="utf-8-sig", newline="")
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found", code="missing_file") from None
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a folder, expected a {what}", code="missing_file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror})", code="missing_file") from None
+
+
+def _check_fps(fps: float) -> float:
+    value = float(fps)
+    if not (math.isfinite(value) and value > 0):
+        raise InputError(f"fps must be positive and finite, got {fps}", code="bad_animation")
+    return value
+
+
+def parse_timecode(text: str, fps: float) -> float:
+    """Seconds of a ``HH:MM:SS:FF[.fff]`` timecode at ``fps`` frames per second.
+
+    Raises
+    ------
+    InputError
+        ``bad_timecode`` for anything else, or a frame number not below ``fps``.
+    """
+    match = _TIMECODE.match(text)
+    if match is None:
+        raise InputError(
+            f"timecode {text!r} is not HH:MM:SS:FF or HH:MM:SS:FF.fff", code="bad_timecode"
+        )
+    hours, minutes, seconds, frames = (int(g) for g in match.groups()[:4])
+    fraction = float("0." + match.group(5)) if match.group(5) else 0.0
+    if minutes >= 60 or seconds >= 60 or frames >= math.ceil(fps):
+        raise InputError(f"timecode {text!r} is out of range at {fps:g} fps", code="bad_timecode")
+    return hours * 3600.0 + minutes * 60.0 + seconds + (frames + fraction) / fps
+
+
+@dataclass(eq=False)
+class LiveLinkTake:
+    """A Live Link Face take as read from its CSV.
+
+    Attributes
+    ----------
+    weights : (F, 52) float64
+        ARKit weights in ``ARKIT_NAMES`` order.
+    head : (F, 9) float64 or None
+        ``HEAD_POSE_NAMES`` values (radians) when the CSV has all nine columns.
+    timestamps : (F,) float64
+        Seconds from the first row.
+    fps : float
+    """
+
+    weights: np.ndarray
+    head: np.ndarray | None
+    timestamps: np.ndarray
+    fps: float
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.weights.shape[0])
+
+
+def _csv_columns(header: list[str], where: str) -> tuple[int, list[int], list[int] | None]:
+    """(timecode column, column of each ARKit weight, columns of the head values or None)."""
+    lower = [h.strip().lower() for h in header]
+    seen: dict[str, int] = {}
+    for i, name in enumerate(lower):
+        if name in seen:
+            raise InputError(
+                f"{where} line 1: column {header[i].strip()!r} appears twice", code="bad_csv"
+            )
+        seen[name] = i
+    if "timecode" not in seen:
+        raise InputError(f"{where} line 1: no Timecode column", code="missing_column")
+    weight_cols = []
+    for name in ARKIT_NAMES:
+        if name.lower() not in seen:
+            pascal = name[0].upper() + name[1:]
+            raise InputError(
+                f"{where} line 1: no {pascal} column (a Live Link Face CSV has the 52 ARKit "
+                "blendshape columns)",
+                code="missing_column",
+            )
+        weight_cols.append(seen[name.lower()])
+    head_present = [n.lower() in seen for n in HEAD_POSE_NAMES]
+    head_cols = [seen[n.lower()] for n in HEAD_POSE_NAMES] if all(head_present) else None
+    return seen["timecode"], weight_cols, head_cols
+
+
+def read_livelink_csv(
+    path: str | os.PathLike, *, fps: float = 60.0, max_frames: int = MAX_TAKE_FRAMES
+) -> LiveLinkTake:
+    """Read a Live Link Face CSV take.
+
+    Parameters
+    ----------
+    path : path-like
+    fps : float
+        The take's frame rate (the app records at 60 by default; 30 is a setting): the
+        unit of the timecode's frame field.
+    max_frames : int
+        More rows than this is an error (``too_many_frames``).
+
+    Raises
+    ------
+    InputError
+        Naming the line: missing columns, a row with the wrong number of fields, a value
+        that is not a number (``bad_csv``), NaN or Inf (``non_finite``), a bad or
+        backwards timecode (``bad_timecode``), an empty take.
+    """
+    path = Path(path)
+    fps = _check_fps(fps)
+    with _open_text(path, "CSV file") as handle:
+        reader = csv.reader(handle)
+        try:
+            header = next(reader, None)
+            if header is None or not any(h.strip() for h in header):
+                raise InputError(f"{path}: empty file, expected a CSV header", code="bad_csv")
+            time_col, weight_cols, head_cols = _csv_columns(header, str(path))
+            wanted = np.asarray(weight_cols + (head_cols or []))
+            values: list[np.ndarray] = []
+            times: list[float] = []
+            previous = None
+            offset = 0.0
+            for row in reader:
+                line = reader.line_num
+                if not row or not any(cell.strip() for cell in row):
+                    continue
+                if len(row) != len(header):
+                    raise InputError(
+                        f"{path} line {line}: {len(row)} fields, the header has {len(header)}",
+                        code="wrong_column_count",
+                    )
+                if len(values) >= max_frames:
+                    raise InputError(
+                        f"{path} line {line}: more than {max_frames} frames", code="too_many_frames"
+                    )
+                try:
+                    stamp = parse_timecode(row[time_col], fps)
+                except InputError as exc:
+                    raise InputError(f"{path} line {line}: {exc.message}", code=exc.code) from None
+                if previous is not None and stamp + offset < previous:
+                    if previous - (stamp + offset) > _DAY / 2:
+                        offset += _DAY  # the take ran past midnight
+                    else:
+                        raise InputError(
+                            f"{path} line {line}: timecode {row[time_col].strip()} is earlier "
+                            "than the row before",
+                            code="bad_timecode",
+                        )
+                previous = stamp + offset
+                times.append(previous)
+                values.append(_row_numbers(row, wanted, header, path, line))
+        except csv.Error as exc:
+            raise InputError(
+                f"{path} line {reader.line_num}: malformed CSV ({exc})", code="bad_csv"
+            ) from None
+        except UnicodeDecodeError:
+            raise InputError(f"{path}: not UTF-8 text", code="bad_csv") from None
+    if not values:
+        raise InputError(f"{path}: the take has no frames", code="bad_csv")
+    table = np.stack(values)
+    stamps = np.asarray(times)
+    return LiveLinkTake(
+        weights=table[:, :NUM_ARKIT],
+        head=table[:, NUM_ARKIT:] if head_cols is not None else None,
+        timestamps=stamps - stamps[0],
+        fps=fps,
+    )
+
+
+def _row_numbers(row: list[str], columns: np.ndarray, header, path: Path, line: int) -> np.ndarray:
+    out = np.empty(columns.size)
+    for j, col in enumerate(columns):
+        cell = row[col].strip()
+        try:
+            out[j] = float(cell)
+        except ValueError:
+            raise InputError(
+                f"{path} line {line}: column {header[col].strip()} is {cell!r}, not a number",
+                code="bad_csv",
+            ) from None
+        if not math.isfinite(out[j]):
+            raise InputError(
+                f"{path} line {line}: column {header[col].strip()} is {cell}", code="non_finite"
+            )
+    return out
+
+
+def livelink_csv_animation(
+    path: str | os.PathLike,
+    source_rig: SourceRig,
+    *,
+    fps: float = 60.0,
+    head_pose: bool = False,
+) -> SourceAnimation:
+    """A Live Link Face CSV take as feature points, through ``source_rig``.
+
+    Parameters
+    ----------
+    head_pose : bool
+        Rotate each frame's points by the take's head yaw/pitch/roll (needs the head
+        columns; ``missing_column`` otherwise). Off: the head stays still.
+
+    Returns
+    -------
+    SourceAnimation
+        ``points`` (F, K, 3) = ``source_rig.points(weights)``, ``timestamps`` from the
+        timecodes, ``fps``.
+    """
+    take = read_livelink_csv(path, fps=fps)
+    head = None
+    if head_pose:
+        if take.head is None:
+            raise InputError(
+                f"{path}: head pose asked for, but the CSV has no HeadYaw/HeadPitch/HeadRoll "
+                "columns",
+                code="missing_column",
+            )
+        head = take.head[:, :3]
+    points = source_rig.points(take.weights, head=head)
+    return SourceAnimation(points=points, fps=take.fps, timestamps=take.timestamps)
+
+
+# -- MediaPipe -----------------------------------------------------------------------
+
+
+def load_mediapipe_mapping(path: str | os.PathLike) -> tuple[int, ...]:
+    """A custom MediaPipe landmark index per feature point, from a file.
+
+    JSON (a list of ints, or ``{"indices": [...]}``) or plain text (integers separated
+    by spaces, commas or newlines; ``#`` comments).
+
+    Raises
+    ------
+    InputError
+        ``bad_mapping``: unreadable, not integers, empty, out of [0, 478), repeated.
+    """
+    path = Path(path)
+    with _open_text(path, "mapping file") as handle:
+        try:
+            text = handle.read(MAX_LINE_CHARS + 1)
+        except UnicodeDecodeError:
+            raise InputError(f"{path}: not UTF-8 text", code="bad_mapping") from None
+    if len(text) > MAX_LINE_CHARS:
+        raise InputError(f"{path}: mapping file too large", code="bad_mapping")
+    stripped = text.lstrip()
+    try:
+        if stripped.startswith(("[", "{")):
+            doc = json.loads(text)
+            items = doc.get("indices") if isinstance(doc, dict) else doc
+            if not isinstance(items, list):
+                raise ValueError("expected a list of indices")
+        else:
+            items = []
+            for line in text.splitlines():
+                items.extend(t for t in re.split(r"[\s,]+", line.split("#", 1)[0]) if t)
+        indices = [_mapping_int(item) for item in items]
+    except ValueError as exc:
+        raise InputError(
+            f"{path}: a mapping is a list of MediaPipe landmark indices ({exc})", code="bad_mapping"
+        ) from None
+    return _check_mapping(indices, str(path))
+
+
+def _mapping_int(item) -> int:
+    if isinstance(item, bool) or not isinstance(item, int | str):
+        raise ValueError(f"{item!r} is not an integer")
+    return int(item)  # a non-integer string raises ValueError, reported by the caller
+
+
+def _check_mapping(indices: Sequence[int], where: str) -> tuple[int, ...]:
+    if not indices:
+        raise InputError(f"{where}: the mapping is empty", code="bad_mapping")
+    bad = [i for i in indices if not 0 <= i < _MEDIAPIPE_COUNTS[-1]]
+    if bad:
+        raise InputError(
+            f"{where}: landmark index {bad[0]} is outside [0, {_MEDIAPIPE_COUNTS[-1]})",
+            code="bad_mapping",
+        )
+    if len(set(indices)) != len(indices):
+        raise InputError(f"{where}: a landmark is mapped twice", code="bad_mapping")
+    return tuple(int(i) for i in indices)
+
+
+@dataclass(eq=False)
+class MediaPipeTake:
+    """Feature points of a MediaPipe face-landmarker take.
+
+    Attributes
+    ----------
+    points : (F, K, 3) float64
+        The mapped landmarks, y up (see `read_mediapipe_ndjson`).
+    timestamps : (F,) float64 or None
+        ``t`` of every line when all lines have one, from the first; else None.
+    transforms : (F, 4, 4) float64 or None
+        The facial transformation matrices when every line has one.
+    """
+
+    points: np.ndarray
+    timestamps: np.ndarray | None
+    transforms: np.ndarray | None
+
+
+def read_mediapipe_ndjson(
+    path: str | os.PathLike,
+    *,
+    mapping: Sequence[int] | None = None,
+    y_up: bool = True,
+    max_frames: int = MAX_TAKE_FRAMES,
+) -> MediaPipeTake:
+    """Read a MediaPipe face-landmarker NDJSON take, keeping the mapped landmarks.
+
+    Parameters
+    ----------
+    mapping : sequence of K int, optional
+        MediaPipe landmark index of each feature point; default the 20 of
+        ``MEDIAPIPE_FEATURES``.
+    y_up : bool
+        MediaPipe's normalised image coordinates have y down and z into the screen;
+        turn them 180 degrees about x to (x, -y, -z), y up like the rigs (a rotation,
+        so the server's ``align`` still applies).
+    max_frames : int
+
+    Raises
+    ------
+    InputError
+        Naming the line: not JSON or not an object (``bad_ndjson``), no ``landmarks``,
+        a landmark count other than 468/478 or a landmark that is not 3 numbers
+        (``wrong_landmark_count``/``bad_ndjson``), NaN/Inf (``non_finite``), a bad
+        ``transform`` or ``t``, ``t`` going backwards, an over-long line, no frames.
+    """
+    path = Path(path)
+    indices = np.asarray(
+        _DEFAULT_MEDIAPIPE if mapping is None else _check_mapping(list(mapping), "mapping")
+    )
+    frames: list[np.ndarray] = []
+    stamps: list[float | None] = []
+    transforms: list[np.ndarray | None] = []
+    with _open_text(path, "NDJSON file") as handle:
+        line_no = 0
+        while True:
+            try:
+                line = handle.readline(MAX_LINE_CHARS + 1)
+            except UnicodeDecodeError:
+                raise InputError(f"{path}: not UTF-8 text", code="bad_ndjson") from None
+            if not line:
+                break
+            line_no += 1
+            if len(line) > MAX_LINE_CHARS:
+                raise InputError(
+                    f"{path} line {line_no}: longer than {MAX_LINE_CHARS} characters",
+                    code="bad_ndjson",
+                )
+            if not line.strip():
+                continue
+            if len(frames) >= max_frames:
+                raise InputError(
+                    f"{path} line {line_no}: more than {max_frames} frames", code="too_many_frames"
+                )
+            where = f"{path} line {line_no}"
+            points, stamp, transform = _parse_mediapipe_line(line, indices, where)
+            if stamp is not None and stamps and stamps[-1] is not None and stamp < stamps[-1]:
+                raise InputError(
+                    f"{where}: t={stamp} is earlier than the line before", code="bad_time"
+                )
+            frames.append(points)
+            stamps.append(stamp)
+            transforms.append(transform)
+    if not frames:
+        raise InputError(f"{path}: the take has no frames", code="bad_ndjson")
+    points = np.stack(frames)
+    if y_up:
+        points[..., 1:] *= -1.0
+    times = None
+    if all(s is not None for s in stamps):
+        times = np.asarray(stamps, dtype=np.float64)
+        times -= times[0]
+    mats = np.stack(transforms) if all(m is not None for m in transforms) else None  # type: ignore[arg-type]
+    return MediaPipeTake(points=points, timestamps=times, transforms=mats)
+
+
+def _parse_mediapipe_line(
+    line: str, indices: np.ndarray, where: str
+) -> tuple[np.ndarray, float | None, np.ndarray | None]:
+    try:
+        # NaN/Infinity literals are not JSON; refuse them as non-finite, by name.
+        doc = json.loads(line, parse_constant=_refuse_constant)
+    except _NonFinite as exc:
+        raise InputError(f"{where}: {exc} is not a finite number", code="non_finite") from None
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise InputError(f"{where}: not valid JSON ({exc})", code="bad_ndjson") from None
+    if not isinstance(doc, dict):
+        raise InputError(f"{where}: expected a JSON object", code="bad_ndjson")
+    marks = doc.get("landmarks")
+    if not isinstance(marks, list):
+        raise InputError(f'{where}: no "landmarks" list', code="bad_ndjson")
+    if len(marks) not in _MEDIAPIPE_COUNTS:
+        raise InputError(
+            f"{where}: {len(marks)} landmarks, expected 478 (or 468 without irises)",
+            code="wrong_landmark_count",
+        )
+    if indices.max() >= len(marks):
+        raise InputError(
+            f"{where}: the mapping uses landmark {int(indices.max())} but the line has "
+            f"{len(marks)}",
+            code="wrong_landmark_count",
+        )
+    picked = np.empty((indices.size, 3))
+    for j, i in enumerate(indices):
+        picked[j] = _triple(marks[i], f"{where}: landmark {i}")
+    if not np.isfinite(picked).all():
+        raise InputError(f"{where}: a landmark has NaN or Inf coordinates", code="non_finite")
+    stamp = doc.get("t")
+    if stamp is not None:
+        if not _is_number(stamp):
+            raise InputError(f'{where}: "t" must be a number of seconds', code="bad_ndjson")
+        stamp = float(stamp)
+        if not math.isfinite(stamp):
+            raise InputError(f'{where}: "t" is not finite', code="non_finite")
+    transform = doc.get("transform")
+    if transform is not None:
+        if not (
+            isinstance(transform, list)
+            and len(transform) == 16
+            and all(_is_number(v) for v in transform)
+        ):
+            raise InputError(f'{where}: "transform" must be 16 numbers', code="bad_ndjson")
+        transform = np.asarray(transform, dtype=np.float64).reshape(4, 4)
+        if not np.isfinite(transform).all():
+            raise InputError(f'{where}: "transform" is not finite', code="non_finite")
+    return picked, stamp, transform
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _triple(value, where: str) -> tuple[float, float, float]:
+    """``[x, y, z]`` (or ``{"x":, "y":, "z":}``, as some exporters write) as three floats."""
+    if isinstance(value, dict):
+        value = [value.get("x"), value.get("y"), value.get("z")]
+    if not (isinstance(value, list) and len(value) == 3 and all(_is_number(v) for v in value)):
+        raise InputError(f"{where} is not [x, y, z]", code="bad_ndjson")
+    return float(value[0]), float(value[1]), float(value[2])
+
+
+class _NonFinite(ValueError):
+    pass
+
+
+def _refuse_constant(name: str):
+    raise _NonFinite(name)
+
+
+def mediapipe_animation(
+    path: str | os.PathLike,
+    *,
+    mapping: Sequence[int] | None = None,
+    fps: float = 30.0,
+) -> SourceAnimation:
+    """A MediaPipe NDJSON take as a ``SourceAnimation`` (``timestamps`` from ``t`` when given).
+
+    The points are in MediaPipe's normalised units, not the rig's: stream them with the
+    server's ``align`` and ``scale`` options (or calibration) to map them onto the rig.
+    """
+    take = read_mediapipe_ndjson(path, mapping=mapping)
+    return SourceAnimation(points=take.points, fps=_check_fps(fps), timestamps=take.timestamps)

@@ -1,0 +1,64 @@
+"""Shared helpers of the bridge tests: an ARKit-named example set, Live Link packet bytes."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import struct
+
+import numpy as np
+
+from facecast.rig import ExampleSet
+
+#: A few ARKit shapes, in ARKit and in ICT spelling (browInnerUp split in halves).
+SHAPES = ("eyeBlinkLeft", "JawOpen", "mouthSmile_L", "browInnerUp_L", "browInnerUp_R")
+
+
+def arkit_example_set(k: int = 6, seed: int = 0) -> ExampleSet:
+    """Neutral + 5 ARKit-named shapes on K random feature points; a small target strip."""
+    rng = np.random.default_rng(seed)
+    names = ("neutral", *SHAPES)
+    m = len(names)
+    source = np.repeat(rng.normal(size=(1, k, 3)), m, axis=0)
+    source[1:] += rng.normal(scale=0.3, size=(m - 1, k, 3))
+    target = np.repeat(rng.normal(size=(1, 12, 3)), m, axis=0)
+    target[1:] += rng.normal(scale=0.3, size=(m - 1, 12, 3))
+    faces = np.array([[i, i + 1, i + 2] for i in range(10)])
+    return ExampleSet(names, source, target, faces)
+
+
+def livelink_packet(
+    values,
+    *,
+    device: bytes = b"0C0D3C5E-6F8A-4B1C-9D2E-3F4A5B6C7D8E",
+    subject: bytes = b"iPhone",
+    frame: int = 100,
+    sub_frame: float = 0.25,
+    rate: tuple[int, int] = (60, 1),
+    count: int = 61,
+) -> bytes:
+    """A Live Link Face packet, field by field as the layout documents it."""
+    out = bytearray()
+    out += bytes([6])  # uint8 packet version
+    out += struct.pack(">i", len(device)) + device  # int32 length + device id
+    out += struct.pack(">i", len(subject)) + subject  # int32 length + subject name
+    out += struct.pack(">i", frame)  # frame number
+    out += struct.pack(">f", sub_frame)  # sub-frame
+    out += struct.pack(">i", rate[0]) + struct.pack(">i", rate[1])  # frame rate
+    out += bytes([count])  # uint8 value count
+    for value in values:
+        out += struct.pack(">f", value)  # big-endian float32 each
+    return bytes(out)
+
+
+def run_command(module: str, argv: list[str]) -> int:
+    """Run one command module's parser and ``func`` as ``facecast`` main does (errors raised).
+
+    ``facecast.client.cli`` lists every command module; these run alone so the tests do
+    not depend on the other commands being importable.
+    """
+    parser = argparse.ArgumentParser(prog="facecast")
+    sub = parser.add_subparsers(dest="command", required=True)
+    importlib.import_module(f"facecast.client.commands.{module}").register(sub)
+    args = parser.parse_args(argv)
+    return int(args.func(args) or 0)

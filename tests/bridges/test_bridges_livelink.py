@@ -1,0 +1,273 @@
+"""Live Link Face: packet bytes -> frames, UDP on 127.0.0.1 -> points, and points -> a server."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from websockets.exceptions import InvalidStatus
+
+from facecast.client.bridges.channel import FramePublisher, channel_url, watch_channel
+from facecast.client.bridges.livelink import (
+    MAX_PACKET_BYTES,
+    LiveLinkPacketError,
+    open_livelink_receiver,
+    parse_livelink_packet,
+    run_livelink_bridge,
+)
+from facecast.client.connection import ConnectionFailed, Reconnect
+from facecast.client.urls import stream_url
+from facecast.protocol import ChannelLive, Hello, Ready, Result
+from facecast.server.settings import Settings
+from facecast.server.testing import run_server
+
+from ._helpers import livelink_packet
+
+RIG_ID = "arkit"
+
+
+def _values(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    values = np.concatenate([rng.uniform(0, 1, 52), rng.uniform(-0.4, 0.4, 9)])
+    return values.astype(np.float32)
+
+
+# -- the parser -------------------------------------------------------------------------
+
+
+def test_golden_packet_bytes_decode_field_by_field():
+    data = bytes.fromhex(
+        "06"  # version
+        "00000001" "44"  # device id "D"
+        "00000002" "5331"  # subject "S1"
+        "0000003c" "3f000000"  # frame 60, sub-frame 0.5
+        "0000001e" "00000001"  # 30 / 1 fps
+        "3d"  # 61 values
+        "3f800000" + "00000000" * 51 + "3e800000" + "00000000" * 8  # 1.0, ..., head yaw 0.25
+    )  # fmt: skip
+    frame = parse_livelink_packet(data)
+    assert (frame.version, frame.device_id, frame.subject) == (6, "D", "S1")
+    assert (frame.frame_number, frame.sub_frame, frame.rate_numerator) == (60, 0.5, 30)
+    assert frame.time == pytest.approx(60.5 / 30)
+    assert frame.weights[0] == 1.0 and not frame.weights[1:].any()
+    assert frame.head[0] == 0.25 and not frame.head[1:].any()
+
+
+@settings(max_examples=50, deadline=None)
+@given(arrays(np.float32, 61, elements=st.floats(-2, 2, width=32)), st.text(max_size=40))
+def test_packets_round_trip_the_values_and_names(values, subject):
+    data = livelink_packet(values, subject=subject.encode())
+    frame = parse_livelink_packet(data)
+    assert np.array_equal(frame.weights, values[:52].astype(np.float64))
+    assert np.array_equal(frame.head, values[52:].astype(np.float64))
+    assert frame.subject == subject
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=400))
+def test_parser_raises_only_its_own_error_on_arbitrary_bytes(data):
+    try:
+        parse_livelink_packet(bytes([6]) + data)
+    except LiveLinkPacketError as exc:
+        assert exc.code
+
+
+def test_packet_ending_after_the_subject_has_no_face():
+    data = livelink_packet([])[: 1 + 4 + 36 + 4 + 6]
+    frame = parse_livelink_packet(data)
+    assert frame.subject == "iPhone" and not frame.has_face and frame.weights is None
+
+
+_GOOD = livelink_packet(_values(0))
+
+
+@pytest.mark.parametrize(
+    ("data", "code"),
+    [
+        (b"", "truncated"),
+        (bytes([5]) + _GOOD[1:], "unsupported_version"),
+        (_GOOD[:3], "truncated"),
+        (_GOOD[:-1], "truncated"),
+        (_GOOD + b"\0", "trailing_bytes"),
+        (livelink_packet(_values(0), count=52), "bad_value_count"),
+        (livelink_packet([float("nan"), *_values(0)[1:]]), "non_finite"),
+        (bytes([6]) + struct.pack(">i", -1), "bad_string"),
+        (bytes([6]) + struct.pack(">i", 1 << 30) + b"x", "bad_string"),
+        (livelink_packet(_values(0), subject=b"\xff\xfe"), "bad_string"),
+        (_GOOD + b"\0" * MAX_PACKET_BYTES, "too_large"),
+    ],
+)
+def test_bad_packets_raise_a_coded_value_error(data, code):
+    with pytest.raises(ValueError) as info:
+        parse_livelink_packet(data)
+    assert isinstance(info.value, LiveLinkPacketError) and info.value.code == code
+
+
+# -- the UDP receiver -----------------------------------------------------------------
+
+
+@pytest.fixture
+def udp_sender():
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    yield sock
+    sock.close()
+
+
+@pytest.mark.anyio
+async def test_udp_frames_equal_the_weights_sent_and_give_the_source_rig_points(
+    udp_sender, source_rig
+):
+    receiver = await open_livelink_receiver("127.0.0.1", 0)
+    try:
+        for seed in range(3):
+            values = _values(seed)
+            udp_sender.sendto(livelink_packet(values, frame=seed), receiver.address)
+            frame = await receiver.get(timeout=5)
+            assert frame.frame_number == seed
+            assert np.array_equal(frame.weights, values[:52].astype(np.float64))
+            assert np.array_equal(
+                source_rig.points(frame.weights), source_rig.points(values[:52].astype(np.float64))
+            )
+    finally:
+        receiver.close()
+
+
+@pytest.mark.anyio
+async def test_receiver_counts_bad_packets_and_keeps_receiving(udp_sender):
+    receiver = await open_livelink_receiver("127.0.0.1", 0)
+    try:
+        udp_sender.sendto(b"\x06\x00", receiver.address)
+        udp_sender.sendto(livelink_packet(_values(1), frame=7), receiver.address)
+        frame = await receiver.get(timeout=5)
+        assert frame.frame_number == 7
+        assert receiver.malformed == 1 and receiver.last_error.code == "truncated"
+    finally:
+        receiver.close()
+
+
+@pytest.mark.anyio
+async def test_receiver_keeps_only_the_newest_frames_when_the_consumer_lags(udp_sender):
+    receiver = await open_livelink_receiver("127.0.0.1", 0, max_queue=2)
+    try:
+        for i in range(5):
+            udp_sender.sendto(livelink_packet(_values(i), frame=i), receiver.address)
+        # Wait until all five arrived (the counter moves when each is queued).
+        async with asyncio.timeout(5):
+            while receiver.received < 5:
+                await asyncio.sleep(0)
+        frames = [await receiver.get(timeout=5) for _ in range(2)]
+        assert [f.frame_number for f in frames] == [3, 4]
+        assert receiver.dropped == 3
+    finally:
+        receiver.close()
+
+
+# -- bridged to a real server -----------------------------------------------------------
+
+
+@pytest.fixture
+def server_settings(tmp_path, cloning_rig):
+    cloning_rig.save(tmp_path / f"{RIG_ID}.rig")
+    return Settings(rigs_dir=tmp_path)
+
+
+async def _bridge_and_compare(receiver, publisher, results, arrived, udp_sender, source_rig, rig):
+    bridge = asyncio.create_task(run_livelink_bridge(receiver, source_rig, publisher))
+    try:
+        for seed in range(4):
+            values = _values(seed)
+            udp_sender.sendto(livelink_packet(values, frame=seed), receiver.address)
+            async with asyncio.timeout(10):
+                while len(results) <= seed:
+                    arrived.clear()
+                    await arrived.wait()
+            points = source_rig.points(values[:52].astype(np.float64)).astype(np.float32)
+            expected = rig.weights(points.astype(np.float64))
+            assert np.allclose(results[seed], expected, atol=1e-5)
+    finally:
+        bridge.cancel()
+
+
+@pytest.mark.anyio
+async def test_bridged_stream_output_equals_offline_cloning(
+    server_settings, udp_sender, source_rig, cloning_rig
+):
+    results: list[np.ndarray] = []
+    arrived = asyncio.Event()
+
+    def on_result(result: Result) -> None:
+        results.append(np.asarray(result.weights, dtype=np.float64))
+        arrived.set()
+
+    async with run_server(server_settings) as server:
+        receiver = await open_livelink_receiver("127.0.0.1", 0)
+        # The publish endpoint speaks /v1/stream's protocol, so the stream stands in for it.
+        publisher = FramePublisher(
+            stream_url(server.base_url), Hello(rig=RIG_ID), on_result=on_result
+        )
+        try:
+            async with publisher:
+                await _bridge_and_compare(
+                    receiver, publisher, results, arrived, udp_sender, source_rig, cloning_rig
+                )
+                assert publisher.stats.sent == 4 and publisher.stats.dropped == 0
+        finally:
+            receiver.close()
+
+
+@pytest.mark.anyio
+async def test_publisher_reports_an_unknown_rig(server_settings):
+    from facecast.protocol import ErrorCode, ProtocolError
+
+    async with run_server(server_settings) as server:
+        publisher = FramePublisher(stream_url(server.base_url), Hello(rig="nope"))
+        with pytest.raises(ProtocolError) as info:
+            await publisher.start()
+    assert info.value.code == ErrorCode.UNKNOWN_RIG
+
+
+@pytest.mark.anyio
+async def test_bridged_channel_output_equals_offline_cloning(
+    server_settings, udp_sender, source_rig, cloning_rig
+):
+    results: list[np.ndarray] = []
+    arrived = asyncio.Event()
+    async with run_server(server_settings) as server:
+        watch_url = channel_url(server.base_url, "stage", "watch", {"rig": RIG_ID})
+        messages = watch_channel(watch_url, reconnect=Reconnect(attempts=0))
+        try:
+            first = await anext(messages)
+        except ConnectionFailed as exc:
+            if isinstance(exc.__cause__, InvalidStatus):
+                pytest.skip("channels not available")
+            raise
+        assert isinstance(first, Ready)
+        publisher = FramePublisher(
+            channel_url(server.base_url, "stage", "publish"), Hello(rig=RIG_ID)
+        )
+
+        async def collect() -> None:
+            async for message in messages:
+                if isinstance(message, Result):
+                    results.append(np.asarray(message.weights, dtype=np.float64))
+                    arrived.set()
+                elif isinstance(message, ChannelLive):
+                    arrived.set()
+
+        collector = asyncio.create_task(collect())
+        receiver = await open_livelink_receiver("127.0.0.1", 0)
+        try:
+            async with publisher:
+                await _bridge_and_compare(
+                    receiver, publisher, results, arrived, udp_sender, source_rig, cloning_rig
+                )
+        finally:
+            receiver.close()
+            collector.cancel()
+            await messages.aclose()
