@@ -1,0 +1,40 @@
+"""``facecast demo`` runs the main job end to end: fit, serve, stream, compare, viewer URL."""
+
+from __future__ import annotations
+
+import re
+
+from facecast.client.cli import main
+
+
+def test_demo_streams_the_performance_and_matches_offline_cloning(capsys):
+    status = main(["demo", "--port", "0", "--exit", "--seconds", "2"])
+    out = capsys.readouterr().out
+    assert status == 0
+    assert re.search(r"streamed 120 frames .* as weights/f32", out)
+    assert "results vs offline cloning: max difference 0 (exactly equal)" in out
+    assert re.search(r"viewer: http://127\.0\.0\.1:\d+/viewer\?rig=demo", out)
+
+
+def test_demo_in_vertices_f16_matches_offline_cloning(capsys):
+    status = main(
+        [
+            "demo",
+            "--port",
+            "0",
+            "--exit",
+            "--seconds",
+            "1",
+            "--output",
+            "vertices",
+            "--dtype",
+            "f16",
+        ]
+    )
+    assert status == 0
+    assert "max difference 0 (exactly equal)" in capsys.readouterr().out
+
+
+def test_demo_refuses_a_bad_port(capsys):
+    assert main(["demo", "--port", "70000", "--exit"]) == 2
+    assert "--port must be in 0..65535" in capsys.readouterr().err
