@@ -1,0 +1,176 @@
+"""The application factory: ``create_app(settings)`` wires store, executors, routes and ops.
+
+Everything per-app lives on ``app.state`` (built here, from the settings given); nothing
+is read from the environment except by ``app_from_env``, the worker-process entry point.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import AsyncIterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import asynccontextmanager
+from typing import Any
+
+import anyio
+from fastapi import FastAPI, Request, Response
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from facecast import __version__
+
+from .auth import authorize, token_from_request
+from .errors import install_error_handlers, problem
+from .metrics import CONTENT_TYPE_LATEST, Metrics
+from .rest import router as rest_router
+from .sessions import SessionRegistry
+from .settings import Settings
+from .store import RigStore
+from .stream import router as stream_router
+from .viewer import mount_viewer
+
+__all__ = ["SESSIONS_STATE_KEY", "SETTINGS_ENV", "app_from_env", "create_app"]
+
+log = logging.getLogger("facecast.server")
+
+#: Key of the session registry in the ASGI lifespan state (read by ``runner``).
+SESSIONS_STATE_KEY = "facecast_sessions"
+#: Environment variable carrying serialised settings to worker processes.
+SETTINGS_ENV = "FACECAST_SETTINGS_JSON"
+
+
+def create_app(settings: Settings) -> FastAPI:
+    """A new, independent application serving ``settings``.
+
+    Raises ``SettingsError`` for settings the server must not run with (public address
+    without tokens), so every way of starting the app refuses them.
+    """
+    settings.check_startable()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[dict[str, Any]]:
+        await anyio.to_thread.run_sync(app.state.store.open)
+        app.state.clone_executor = ThreadPoolExecutor(
+            settings.clone_threads, thread_name_prefix="facecast-clone"
+        )
+        app.state.fit_executor = ThreadPoolExecutor(
+            settings.fit_threads, thread_name_prefix="facecast-fit"
+        )
+        log.info(
+            "server ready",
+            extra={
+                "event": "server.start",
+                "pid": os.getpid(),
+                "rigs_dir": str(settings.rigs_dir),
+                "auth": settings.auth_enabled,
+            },
+        )
+        try:
+            yield {SESSIONS_STATE_KEY: app.state.sessions}
+        finally:
+            # Normally the runner has already closed sessions with 1001; this catches
+            # servers stopped any other way.
+            await app.state.sessions.close_all(1001, "server shutting down", timeout=1.0)
+            app.state.clone_executor.shutdown(wait=False, cancel_futures=True)
+            app.state.fit_executor.shutdown(wait=False, cancel_futures=True)
+            log.info("server stopped", extra={"event": "server.stop", "pid": os.getpid()})
+
+    app = FastAPI(
+        title="facecast",
+        version=__version__,
+        summary="Real-time example-based facial expression cloning",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.store = RigStore(
+        settings.rigs_dir,
+        cache_size=settings.rig_cache_size,
+        max_rig_bytes=settings.max_extracted_bytes,
+    )
+    app.state.metrics = Metrics()
+    app.state.sessions = SessionRegistry()
+    app.state.pending_fits = 0
+    install_error_handlers(app)
+    app.include_router(rest_router)
+    app.include_router(stream_router)
+    _add_ops_routes(app)
+    mount_viewer(app, settings)
+    app.add_middleware(_AccessLog, metrics=app.state.metrics, enabled=settings.access_log)
+    return app
+
+
+def app_from_env() -> FastAPI:
+    """Factory for worker processes: settings arrive serialised in ``FACECAST_SETTINGS_JSON``."""
+    text = os.environ.get(SETTINGS_ENV)
+    if not text:
+        raise RuntimeError(f"{SETTINGS_ENV} is not set; start workers through `facecast serve`")
+    return create_app(Settings.from_json(text))
+
+
+def _add_ops_routes(app: FastAPI) -> None:
+    @app.get("/healthz", tags=["ops"], summary="The process is up")
+    async def healthz() -> dict[str, str]:
+        return {"status": "ok"}
+
+    @app.get("/readyz", tags=["ops"], summary="The rig store is usable")
+    async def readyz(request: Request) -> Response:
+        store: RigStore = request.app.state.store
+        try:
+            await anyio.to_thread.run_sync(store.check_readable)
+        except OSError as exc:
+            return problem(503, "not_ready", f"rig store: {exc}")
+        return Response('{"status":"ready"}', media_type="application/json")
+
+    @app.get("/metrics", tags=["ops"], summary="Prometheus metrics")
+    async def metrics(request: Request) -> Response:
+        settings: Settings = request.app.state.settings
+        if settings.metrics_auth:
+            authorize(settings, token_from_request(request), ("admin",))
+        body = await anyio.to_thread.run_sync(request.app.state.metrics.render)
+        return Response(body, media_type=CONTENT_TYPE_LATEST)
+
+
+class _AccessLog:
+    """Pure-ASGI middleware: one log line and one counter increment per HTTP request.
+
+    Pure ASGI (not BaseHTTPMiddleware) so request bodies stream through untouched.
+    """
+
+    def __init__(self, app: ASGIApp, *, metrics: Metrics, enabled: bool) -> None:
+        self.app = app
+        self.metrics = metrics
+        self.enabled = enabled
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        start = time.perf_counter()
+        status = 500
+
+        async def send_wrapper(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_wrapper)
+        finally:
+            route = scope.get("route")
+            template = getattr(route, "path", None) or "unmatched"
+            self.metrics.http_requests.labels(scope["method"], template, str(status)).inc()
+            if self.enabled:
+                client = scope.get("client")
+                log.info(
+                    "request",
+                    extra={
+                        "event": "http.request",
+                        "method": scope["method"],
+                        "path": scope["path"],
+                        "status": status,
+                        "ms": round((time.perf_counter() - start) * 1000, 2),
+                        "client": client[0] if client else None,
+                    },
+                )

@@ -1,0 +1,118 @@
+"""API-token auth: who is calling (token -> roles) and whether a role may use an endpoint.
+
+Tokens come from ``Settings.tokens``; compared in constant time. This module decides,
+it does not send responses: callers turn ``ApiError`` into 401/403 or a WS close 1008.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+
+from fastapi import Request
+
+from .errors import ApiError
+from .settings import ROLES, Settings
+
+__all__ = [
+    "READ_ROLES",
+    "Principal",
+    "authorize",
+    "requires",
+    "token_from_request",
+]
+
+#: Roles allowed to read rig metadata and meshes; ``admin`` is always allowed too.
+#: A publisher only sends points to a channel and learns K from its session's ready.
+READ_ROLES = frozenset({"viewer", "stream"})
+
+
+@dataclass(frozen=True)
+class Principal:
+    """An authenticated caller. ``name`` is a short token digest, safe to log."""
+
+    name: str
+    roles: frozenset[str]
+
+    def has_any(self, roles: Iterable[str]) -> bool:
+        return "admin" in self.roles or bool(self.roles & frozenset(roles))
+
+
+ANONYMOUS = Principal("anonymous", frozenset({"admin"}))
+
+
+def _digest(token: str) -> bytes:
+    return hashlib.sha256(token.encode("utf-8", "surrogatepass")).digest()
+
+
+def _lookup(tokens: Mapping[str, frozenset[str]], token: str) -> frozenset[str] | None:
+    """Find ``token`` comparing against every configured token in constant time."""
+    wanted = _digest(token)
+    found: frozenset[str] | None = None
+    for candidate, roles in tokens.items():
+        # Compare digests (equal length) and never stop early, so timing reveals
+        # neither which token nor how much of it matched.
+        if hmac.compare_digest(_digest(candidate), wanted):
+            found = roles
+    return found
+
+
+def authorize(settings: Settings, token: str | None, roles: Iterable[str]) -> Principal:
+    """Return the caller if ``token`` holds one of ``roles`` (or admin).
+
+    Raises
+    ------
+    ApiError
+        401 ``unauthorized`` for no or an unknown token, 403 ``forbidden`` for a
+        known token without a suitable role.
+    """
+    if not settings.auth_enabled:
+        return ANONYMOUS
+    needed = frozenset(roles)
+    if not token:
+        raise ApiError(
+            401,
+            "unauthorized",
+            "this endpoint needs an API token (Authorization: Bearer TOKEN)",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
+    held = _lookup(settings.tokens, token)
+    if held is None:
+        raise ApiError(
+            401, "unauthorized", "unknown API token", headers={"WWW-Authenticate": "Bearer"}
+        )
+    principal = Principal(_digest(token).hex()[:8], held)
+    if not principal.has_any(needed):
+        wanted = " or ".join(sorted(needed | {"admin"}))
+        raise ApiError(403, "forbidden", f"this endpoint needs the role {wanted}")
+    return principal
+
+
+def _bearer(value: str | None) -> str | None:
+    if not value:
+        return None
+    scheme, _, credentials = value.partition(" ")
+    if scheme.lower() != "bearer" or not credentials.strip():
+        return None
+    return credentials.strip()
+
+
+def token_from_request(request: Request) -> str | None:
+    return _bearer(request.headers.get("authorization"))
+
+
+def requires(*roles: str) -> Callable[[Request], Principal]:
+    """A FastAPI dependency admitting callers holding any of ``roles`` (admin always)."""
+    unknown = set(roles) - ROLES
+    if unknown:  # pragma: no cover - programming error caught at import of the routes
+        raise ValueError(f"unknown roles {unknown}")
+
+    def dependency(request: Request) -> Principal:
+        settings: Settings = request.app.state.settings
+        principal = authorize(settings, token_from_request(request), roles)
+        request.state.principal = principal
+        return principal
+
+    return dependency

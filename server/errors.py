@@ -1,0 +1,103 @@
+"""HTTP errors as values: ``ApiError(status, code, detail)`` and the problem+json responses.
+
+Route code raises ``ApiError`` (or lets a ``RigError`` through); the handlers here turn
+them into one JSON shape, once, at the boundary. No route logic lives here.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from facecast.rig.errors import RigError
+
+__all__ = ["ApiError", "install_error_handlers", "problem"]
+
+log = logging.getLogger("facecast.server")
+
+PROBLEM_TYPE = "application/problem+json"
+
+#: Stable codes for the status codes Starlette raises on its own (routing, methods).
+_STATUS_CODES = {
+    400: "bad_request",
+    401: "unauthorized",
+    403: "forbidden",
+    404: "not_found",
+    405: "method_not_allowed",
+    413: "payload_too_large",
+    415: "unsupported_media_type",
+    422: "invalid_request",
+    429: "too_many_requests",
+    503: "server_busy",
+}
+
+
+class ApiError(Exception):
+    """An HTTP failure with a stable machine-readable ``code`` and a human ``detail``."""
+
+    def __init__(
+        self, status: int, code: str, detail: str, *, headers: dict[str, str] | None = None
+    ) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.code = code
+        self.detail = detail
+        self.headers = headers
+
+
+def problem(
+    status: int, code: str, detail: str, *, headers: dict[str, str] | None = None
+) -> JSONResponse:
+    """An RFC 9457 problem response extended with our ``code``."""
+    body = {
+        "type": "about:blank",
+        "title": _title(status),
+        "status": status,
+        "code": code,
+        "detail": detail,
+    }
+    return JSONResponse(body, status_code=status, headers=headers, media_type=PROBLEM_TYPE)
+
+
+def _title(status: int) -> str:
+    from http import HTTPStatus
+
+    try:
+        return HTTPStatus(status).phrase
+    except ValueError:
+        return "Error"
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    @app.exception_handler(ApiError)
+    async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
+        return problem(exc.status, exc.code, exc.detail, headers=exc.headers)
+
+    @app.exception_handler(RigError)
+    async def _rig_error(request: Request, exc: RigError) -> JSONResponse:
+        return problem(422, exc.code, exc.message or exc.code)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+        parts = []
+        for err in exc.errors():
+            where = ".".join(str(p) for p in err.get("loc", ()))
+            parts.append(f"{where}: {err.get('msg', 'invalid')}")
+        return problem(422, "invalid_request", "; ".join(parts) or "invalid request")
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        code = _STATUS_CODES.get(exc.status_code, f"http_{exc.status_code}")
+        return problem(exc.status_code, code, str(exc.detail), headers=exc.headers)
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        # The one place an unexpected failure is logged with its traceback.
+        log.exception(
+            "unhandled error", extra={"event": "http.unhandled", "path": request.url.path}
+        )
+        return problem(500, "internal_error", "internal server error")

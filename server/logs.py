@@ -1,0 +1,86 @@
+"""Structured logs: one JSON object per line on stderr, one line per event.
+
+Call sites log an ``event`` name plus fields through ``extra=``; this module only formats
+and wires handlers (for this process and, via ``uvicorn_log_config``, uvicorn's workers).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from typing import Any
+
+__all__ = ["JsonFormatter", "uvicorn_log_config"]
+
+# Attributes every LogRecord has; anything else came from ``extra=`` and is a field.
+_STANDARD = set(logging.LogRecord("", 0, "", 0, "", (), None).__dict__.keys()) | {
+    "message",
+    "asctime",
+    "color_message",
+    "taskName",
+}
+
+
+# ``event`` is written first; ``websocket`` is a protocol object uvicorn attaches.
+_DROPPED_FIELDS = {"event", "websocket"}
+
+
+class _DropWebSocketChatter(logging.Filter):
+    """uvicorn logs every WebSocket open/accept/close; our session.open/close say it once."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        return not (
+            message in ("connection open", "connection closed")
+            or message.endswith(('" [accepted]', '" 403'))
+        )
+
+
+class JsonFormatter(logging.Formatter):
+    """Format a record as one line of JSON: ts, level, logger, event, msg, fields."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        entry: dict[str, Any] = {
+            "ts": time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created))
+            + f".{int(record.msecs):03d}Z",
+            "level": record.levelname.lower(),
+            "logger": record.name,
+        }
+        event = getattr(record, "event", None)
+        entry["event"] = event or record.name
+        entry["msg"] = record.getMessage()
+        for key, value in record.__dict__.items():
+            if key not in _STANDARD and key not in _DROPPED_FIELDS:
+                entry[key] = value
+        if record.exc_info:
+            entry["exc"] = self.formatException(record.exc_info)
+        return json.dumps(entry, default=str, separators=(",", ":"))
+
+
+def uvicorn_log_config(level: str) -> dict[str, Any]:
+    """A ``logging.config`` dict routing uvicorn's and facecast's loggers to JSON on stderr.
+
+    uvicorn's own access log is silenced: the app logs each request once itself.
+    """
+    level = level.upper()
+    return {
+        "version": 1,
+        "disable_existing_loggers": False,
+        "formatters": {"json": {"()": JsonFormatter}},
+        "filters": {"quiet_ws": {"()": _DropWebSocketChatter}},
+        "handlers": {
+            "stderr": {
+                "class": "logging.StreamHandler",
+                "formatter": "json",
+                "stream": "ext://sys.stderr",
+                "filters": ["quiet_ws"],
+            }
+        },
+        "loggers": {
+            "uvicorn": {"handlers": ["stderr"], "level": level, "propagate": False},
+            "uvicorn.error": {"level": level},
+            "uvicorn.access": {"handlers": [], "level": "WARNING", "propagate": False},
+            "facecast": {"handlers": ["stderr"], "level": level, "propagate": False},
+        },
+    }

@@ -1,0 +1,249 @@
+"""The REST API under ``/v1``: upload, fit, list, describe, download and delete rigs.
+
+Thin handlers: auth by dependency, bodies read with a size limit while streaming, all
+file and numeric work in threads (store I/O in anyio's pool, fitting in its own executor).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import tempfile
+from pathlib import Path
+from typing import Annotated, Any
+
+import anyio
+from fastapi import APIRouter, Depends, Query, Request, Response
+from fastapi.responses import JSONResponse
+
+from .archive import ArchiveError, ArchiveLimits, extract_archive, find_example_root
+from .auth import READ_ROLES, Principal, requires
+from .errors import ApiError
+from .settings import Settings
+from .store import RIG_ID_PATTERN, RigNotFoundError, RigStore, valid_rig_id
+
+__all__ = ["router"]
+
+log = logging.getLogger("facecast.server.rest")
+
+router = APIRouter(prefix="/v1", tags=["rigs"])
+
+Reader = Annotated[Principal, Depends(requires(*READ_ROLES))]
+Admin = Annotated[Principal, Depends(requires("admin"))]
+# A stream client may fetch the rig file to clone locally; viewers only see meshes.
+Downloader = Annotated[Principal, Depends(requires("stream"))]
+
+
+def _store(request: Request) -> RigStore:
+    return request.app.state.store
+
+
+def _settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+def _check_id(rig_id: str) -> str:
+    if not valid_rig_id(rig_id):
+        raise ApiError(
+            400,
+            "invalid_rig_id",
+            f"rig id {rig_id[:80]!r} must match {RIG_ID_PATTERN}",
+        )
+    return rig_id
+
+
+def _not_found(rig_id: str) -> ApiError:
+    return ApiError(404, "rig_not_found", f"no rig with id {rig_id!r}")
+
+
+async def read_body(request: Request, limit: int) -> bytes:
+    """The request body, refused with 413 as soon as it is known to exceed ``limit``.
+
+    Checks ``Content-Length`` first, then counts while streaming, so an oversized or
+    unannounced (chunked) body is never buffered beyond ``limit`` bytes.
+    """
+    declared = request.headers.get("content-length")
+    if declared is not None:
+        try:
+            size = int(declared)
+        except ValueError:
+            raise ApiError(400, "bad_request", "Content-Length is not a number") from None
+        if size > limit:
+            raise ApiError(
+                413, "payload_too_large", f"body of {size} bytes is over the limit of {limit}"
+            )
+    chunks: list[bytes] = []
+    received = 0
+    async for chunk in request.stream():
+        received += len(chunk)
+        if received > limit:
+            raise ApiError(413, "payload_too_large", f"body is over the limit of {limit} bytes")
+        chunks.append(chunk)
+    if received == 0:
+        raise ApiError(400, "empty_body", "the request body is empty")
+    return b"".join(chunks)
+
+
+def _described(rig_id: str, rig: Any) -> dict[str, Any]:
+    return {"id": rig_id, **rig.summary()}
+
+
+@router.get("/rigs", summary="List stored rigs")
+async def list_rigs(request: Request, _: Reader) -> dict[str, Any]:
+    infos = await anyio.to_thread.run_sync(_store(request).list)
+    return {"rigs": [{"id": i.id, "size": i.size, "modified": i.modified} for i in infos]}
+
+
+@router.get("/rigs/{rig_id}", summary="Describe a rig (Rig.summary())")
+async def get_rig(request: Request, rig_id: str, _: Reader) -> dict[str, Any]:
+    _check_id(rig_id)
+    try:
+        rig = await anyio.to_thread.run_sync(_store(request).get, rig_id)
+    except RigNotFoundError:
+        raise _not_found(rig_id) from None
+    return _described(rig_id, rig)
+
+
+@router.put(
+    "/rigs/{rig_id}",
+    summary="Store a fitted rig file (bytes of Rig.to_bytes())",
+    status_code=201,
+    openapi_extra={"requestBody": {"content": {"application/octet-stream": {}}, "required": True}},
+)
+async def put_rig(request: Request, rig_id: str, principal: Admin) -> JSONResponse:
+    _check_id(rig_id)
+    data = await read_body(request, _settings(request).max_upload_bytes)
+    rig, created = await anyio.to_thread.run_sync(_store(request).put_bytes, rig_id, data)
+    log.info(
+        "rig stored",
+        extra={"event": "rig.stored", "rig": rig_id, "bytes": len(data), "by": principal.name},
+    )
+    return JSONResponse(_described(rig_id, rig), status_code=201 if created else 200)
+
+
+@router.put(
+    "/rigs/{rig_id}/examples",
+    summary="Fit a rig from an example-set archive (zip, tar, tar.gz) and store it",
+    status_code=201,
+    openapi_extra={
+        "requestBody": {
+            "content": {"application/zip": {}, "application/gzip": {}, "application/x-tar": {}},
+            "required": True,
+        }
+    },
+)
+async def put_examples(
+    request: Request,
+    rig_id: str,
+    principal: Admin,
+    noise: Annotated[float, Query(ge=0.0, description="expected landmark noise")] = 0.0,
+    pca_threshold: Annotated[float | None, Query(gt=0.0, lt=1.0)] = None,
+    kernel: Annotated[str, Query(max_length=32)] = "bspline",
+) -> JSONResponse:
+    _check_id(rig_id)
+    settings = _settings(request)
+    state = request.app.state
+    if state.pending_fits >= settings.max_pending_fits:
+        raise ApiError(
+            503,
+            "server_busy",
+            f"{settings.max_pending_fits} fits are already running or queued; retry later",
+            headers={"Retry-After": "5"},
+        )
+    limits = ArchiveLimits(
+        max_members=settings.max_archive_members,
+        max_extracted_bytes=settings.max_extracted_bytes,
+        max_compression_ratio=settings.max_compression_ratio,
+    )
+    data = await read_body(request, settings.max_upload_bytes)
+    job = _FitJob(data, limits, noise, pca_threshold, kernel)
+    state.pending_fits += 1
+    try:
+        # Fitting is seconds of numpy: it runs in the dedicated fit executor, never on the
+        # event loop and never in the pool that clones frames.
+        rig = await asyncio.wrap_future(state.fit_executor.submit(job))
+    except ArchiveError as exc:
+        raise ApiError(exc.status, exc.code, str(exc)) from None
+    finally:
+        state.pending_fits -= 1
+    created = await anyio.to_thread.run_sync(_store(request).put_rig, rig_id, rig)
+    log.info(
+        "rig fitted",
+        extra={
+            "event": "rig.fitted",
+            "rig": rig_id,
+            "bytes": len(data),
+            "kernel": kernel,
+            "noise": noise,
+            "by": principal.name,
+        },
+    )
+    return JSONResponse(_described(rig_id, rig), status_code=201 if created else 200)
+
+
+class _FitJob:
+    """Extract, load and fit one uploaded example set (runs in a worker thread)."""
+
+    def __init__(self, data, limits, noise, pca_threshold, kernel) -> None:
+        self.data = data
+        self.limits = limits
+        self.noise = noise
+        self.pca_threshold = pca_threshold
+        self.kernel = kernel
+
+    def __call__(self):
+        from facecast.rig import fit
+        from facecast.rig.loaders import load_example_set
+
+        with tempfile.TemporaryDirectory(prefix="facecast-upload-") as tmp:
+            dest = Path(tmp)
+            extract_archive(self.data, dest, self.limits)
+            example_set = load_example_set(find_example_root(dest))
+        return fit(
+            example_set, noise=self.noise, pca_threshold=self.pca_threshold, kernel=self.kernel
+        )
+
+
+@router.get(
+    "/rigs/{rig_id}/model.glb",
+    summary="The target mesh with every example as a morph target (glTF binary)",
+    response_class=Response,
+    responses={200: {"content": {"model/gltf-binary": {}}}},
+)
+async def get_model(request: Request, rig_id: str, _: Reader) -> Response:
+    _check_id(rig_id)
+    try:
+        glb = await anyio.to_thread.run_sync(_store(request).glb, rig_id)
+    except RigNotFoundError:
+        raise _not_found(rig_id) from None
+    return Response(glb, media_type="model/gltf-binary")
+
+
+@router.get(
+    "/rigs/{rig_id}/rig",
+    summary="Download the rig file",
+    response_class=Response,
+    responses={200: {"content": {"application/octet-stream": {}}}},
+)
+async def download_rig(request: Request, rig_id: str, _: Downloader) -> Response:
+    _check_id(rig_id)
+    try:
+        data = await anyio.to_thread.run_sync(_store(request).get_bytes, rig_id)
+    except RigNotFoundError:
+        raise _not_found(rig_id) from None
+    return Response(
+        data,
+        media_type="application/octet-stream",
+        headers={"Content-Disposition": f'attachment; filename="{rig_id}.rig"'},
+    )
+
+
+@router.delete("/rigs/{rig_id}", summary="Delete a rig", status_code=204)
+async def delete_rig(request: Request, rig_id: str, principal: Admin) -> Response:
+    _check_id(rig_id)
+    try:
+        await anyio.to_thread.run_sync(_store(request).delete, rig_id)
+    except RigNotFoundError:
+        raise _not_found(rig_id) from None
+    log.info("rig deleted", extra={"event": "rig.deleted", "rig": rig_id, "by": principal.name})
+    return Response(status_code=204)

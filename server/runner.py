@@ -1,0 +1,145 @@
+"""Running the app under uvicorn: one process, or N worker processes sharing one socket.
+
+Adds what plain uvicorn lacks for us: on SIGTERM, stop accepting, then close open
+stream sessions with 1001 (uvicorn would send 1012) before its own shutdown.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import signal
+import socket
+import tempfile
+import time
+from typing import Any
+
+import uvicorn
+
+from .app import SESSIONS_STATE_KEY, SETTINGS_ENV, create_app
+from .logs import uvicorn_log_config
+from .settings import Settings
+
+__all__ = ["FacecastServer", "serve", "uvicorn_config"]
+
+log = logging.getLogger("facecast.server")
+
+#: Incoming WebSocket messages up to this multiple of ``max_message_bytes`` reach the
+#: protocol decoder (which answers MESSAGE_TOO_LARGE and keeps the session); larger
+#: ones are cut by uvicorn with close code 1009 before they are buffered.
+_WS_SIZE_FACTOR = 2
+
+
+def uvicorn_config(settings: Settings, app: Any, *, ws: str = "auto", **overrides: Any):
+    """The ``uvicorn.Config`` for ``settings`` (``app`` an ASGI app or an import string)."""
+    kwargs: dict[str, Any] = dict(
+        host=settings.host,
+        port=settings.port,
+        lifespan="on",
+        ws=ws,
+        ws_max_size=_WS_SIZE_FACTOR * settings.max_message_bytes + 64 * 1024,
+        ws_ping_interval=settings.ping_interval or None,
+        ws_ping_timeout=settings.ping_timeout or None,
+        timeout_graceful_shutdown=max(settings.shutdown_timeout, 0.1),
+        log_config=uvicorn_log_config(settings.log_level),
+        access_log=False,
+        server_header=False,
+        # Bound on concurrent HTTP+WS connections before uvicorn answers 503 itself;
+        # sessions have their own, lower, limit with a protocol error.
+        limit_concurrency=settings.max_connections + 64,
+    )
+    kwargs.update(overrides)
+    return uvicorn.Config(app, **kwargs)
+
+
+class FacecastServer(uvicorn.Server):
+    """uvicorn's server, closing stream sessions with 1001 ("going away") on shutdown."""
+
+    async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+        for server in getattr(self, "servers", []):
+            server.close()  # stop accepting before anything else
+        sessions = self.lifespan.state.get(SESSIONS_STATE_KEY)
+        if sessions is not None:
+            timeout = getattr(self.config, "timeout_graceful_shutdown", None) or 5.0
+            await sessions.close_all(1001, "server shutting down", timeout=timeout)
+        await super().shutdown(sockets=sockets)
+
+
+def serve(settings: Settings, *, ws: str = "auto") -> int:
+    """Run the server in the foreground until SIGINT/SIGTERM; returns an exit status."""
+    settings.check_startable()
+    if settings.workers == 1:
+        server = FacecastServer(uvicorn_config(settings, create_app(settings), ws=ws))
+        server.run()
+        return 0 if server.started else 1
+    return _serve_workers(settings, ws)
+
+
+def _worker(settings_json: str, ws: str, sock: socket.socket) -> None:
+    os.environ[SETTINGS_ENV] = settings_json
+    settings = Settings.from_json(settings_json)
+    config = uvicorn_config(
+        settings, "facecast.server.app:app_from_env", ws=ws, factory=True, workers=1
+    )
+    config.configure_logging()
+    FacecastServer(config).run(sockets=[sock])
+
+
+def _serve_workers(settings: Settings, ws: str) -> int:
+    """N spawned worker processes serving one listening socket bound here.
+
+    All share the rig directory (the store re-stats, so uploads through one worker are
+    seen by all); metrics are summed through prometheus multiprocess mode.
+    """
+    config = uvicorn_config(settings, "facecast.server.app:app_from_env", ws=ws, factory=True)
+    config.configure_logging()
+    sock = config.bind_socket()
+    metrics_dir = tempfile.TemporaryDirectory(prefix="facecast-metrics-")
+    # Read by prometheus_client in the workers (spawned processes inherit the env).
+    os.environ["PROMETHEUS_MULTIPROC_DIR"] = metrics_dir.name
+    ctx = multiprocessing.get_context("spawn")
+    text = settings.to_json()
+
+    def start() -> multiprocessing.process.BaseProcess:
+        process = ctx.Process(target=_worker, args=(text, ws, sock), daemon=False)
+        process.start()
+        return process
+
+    stopping = False
+
+    def on_signal(signum: int, frame: Any) -> None:
+        nonlocal stopping
+        stopping = True
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    processes = [start() for _ in range(settings.workers)]
+    log.info(
+        "workers started",
+        extra={"event": "server.workers", "workers": settings.workers, "pid": os.getpid()},
+    )
+    try:
+        while not stopping:
+            for i, process in enumerate(processes):
+                if not process.is_alive() and not stopping:
+                    log.warning(
+                        "worker died; restarting",
+                        extra={"event": "server.worker_died", "exitcode": process.exitcode},
+                    )
+                    processes[i] = start()
+            time.sleep(0.2)
+    finally:
+        for process in processes:
+            if process.is_alive() and process.pid is not None:
+                os.kill(process.pid, signal.SIGTERM)
+        deadline = time.monotonic() + settings.shutdown_timeout + 5.0
+        for process in processes:
+            process.join(max(deadline - time.monotonic(), 0.1))
+            if process.is_alive():
+                process.kill()
+                process.join()
+        sock.close()
+        metrics_dir.cleanup()
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    return 0

@@ -1,0 +1,483 @@
+"""One streaming session: a reader task, a one-slot frame mailbox and a writer task.
+
+The reader keeps reading and replacing the single pending frame (older ones are dropped
+and counted); the writer clones the newest frame in a worker thread and sends. Memory
+per session is bounded whatever the client does. No auth and no admission here.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import copy
+import logging
+import secrets
+import time
+from collections import deque
+from concurrent.futures import Executor
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from starlette.websockets import WebSocket, WebSocketDisconnect
+
+from facecast.protocol import (
+    Calibrate,
+    Calibrated,
+    ErrorCode,
+    Frame,
+    Hello,
+    Limits,
+    Ping,
+    Pong,
+    ProtocolError,
+    Ready,
+    Result,
+    ServerProtocol,
+    close_code,
+)
+from facecast.rig.errors import InputError, RigError
+from facecast.rig.filters import OneEuroFilter
+
+from .metrics import Metrics
+from .settings import Settings
+from .store import RigNotFoundError, RigStore, valid_rig_id
+
+__all__ = ["Session", "SessionCounters"]
+
+log = logging.getLogger("facecast.server.session")
+
+_RESULT_DTYPES = {"f32": np.float32, "f16": np.float16}
+#: Control messages (pongs, errors, acks) waiting for the writer; beyond this the oldest
+#: are dropped: a client that floods pings but never reads must not grow memory.
+_MAX_CONTROL = 32
+#: How long a closing session waits to hand its last error / close frame to the socket.
+_CLOSE_GRACE = 1.0
+#: A client over its rate gets at most one RATE_LIMITED error per this many seconds.
+_RATE_ERROR_INTERVAL = 1.0
+
+
+@dataclass
+class SessionCounters:
+    """What a session has done; read by tests and logged when it ends."""
+
+    frames_in: int = 0
+    results_out: int = 0
+    dropped_superseded: int = 0
+    dropped_rate: int = 0
+    errors: int = 0
+
+    @property
+    def dropped(self) -> int:
+        return self.dropped_superseded + self.dropped_rate
+
+
+class _TokenBucket:
+    """Allows ``rate`` events per second on average, ``burst`` at once."""
+
+    def __init__(self, rate: float, burst: int) -> None:
+        self.rate = rate
+        self.burst = float(burst)
+        self.tokens = float(burst)
+        self.last = time.monotonic()
+
+    def take(self) -> bool:
+        now = time.monotonic()
+        self.tokens = min(self.burst, self.tokens + (now - self.last) * self.rate)
+        self.last = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
+
+
+class _Closing(Exception):
+    """Raised inside the session's tasks to end it with a close code (and maybe an error)."""
+
+    def __init__(self, code: int, reason: str, error: ProtocolError | None = None) -> None:
+        super().__init__(reason)
+        self.code = code
+        self.reason = reason
+        self.error = error
+
+
+class Session:
+    """Serve one accepted WebSocket until either side ends it.
+
+    Parameters
+    ----------
+    websocket : starlette WebSocket, already accepted
+    settings, store, metrics : the app's
+    executor : the app's clone thread pool, shared by all sessions of this worker
+    """
+
+    def __init__(
+        self,
+        websocket: WebSocket,
+        *,
+        settings: Settings,
+        store: RigStore,
+        metrics: Metrics,
+        executor: Executor,
+        principal: str = "anonymous",
+    ) -> None:
+        self.id = secrets.token_hex(8)
+        self.ws = websocket
+        self.settings = settings
+        self.store = store
+        self.metrics = metrics
+        self.executor = executor
+        self.principal = principal
+        self.counters = SessionCounters()
+        self.protocol = ServerProtocol(
+            Limits(max_message_bytes=settings.max_message_bytes),
+        )
+        self.hello: Hello | None = None
+        self.rig_id: str | None = None
+        self._base_rig: Any = None  # as loaded; calibration derives ``_rig`` from it
+        self._rig: Any = None
+        self._calibrate_next = False
+        self._smoother: _Smoother | None = None
+        self._bucket = _TokenBucket(settings.max_fps, settings.rate_burst)
+        self._last_rate_error = -1e9
+        # The one-slot mailbox: (frame, arrival perf_counter) or None.
+        self._pending: tuple[Frame, float] | None = None
+        self._control: deque[bytes] = deque(maxlen=_MAX_CONTROL)
+        self._wake = asyncio.Event()
+        self._stop: asyncio.Future[_Closing] = asyncio.get_running_loop().create_future()
+        self._started = time.monotonic()
+        self._done = asyncio.Event()
+
+    # -- public --------------------------------------------------------------------------
+    @property
+    def pending(self) -> int:
+        """Frames waiting to be cloned: 0 or 1, by construction."""
+        return 0 if self._pending is None else 1
+
+    async def run(self) -> None:
+        """Run until the client leaves, a fatal error, the idle timeout or ``close``."""
+        reader = asyncio.create_task(self._read_loop(), name=f"session-{self.id}-reader")
+        writer = asyncio.create_task(self._write_loop(), name=f"session-{self.id}-writer")
+        ending: _Closing | None = None
+        try:
+            done, _ = await asyncio.wait(
+                {reader, writer, self._stop}, return_when=asyncio.FIRST_COMPLETED
+            )
+            for task in (self._stop, reader, writer):
+                if task in done and not task.cancelled():
+                    exc = task.exception()
+                    if isinstance(exc, _Closing):
+                        ending = exc
+                        break
+                    if isinstance(exc, WebSocketDisconnect):
+                        break  # the client went away mid-send: a normal end
+                    if exc is not None:
+                        log.error(
+                            "session failed",
+                            exc_info=exc,
+                            extra={"event": "session.crash", "session": self.id},
+                        )
+                        ending = _Closing(
+                            1011,
+                            "internal error",
+                            ProtocolError(ErrorCode.INTERNAL, "internal server error", fatal=True),
+                        )
+                        break
+                    if task is self._stop:
+                        ending = task.result()
+                        break
+        finally:
+            for task in (reader, writer):
+                task.cancel()
+            await asyncio.gather(reader, writer, return_exceptions=True)
+            if ending is not None:
+                await self._send_close(ending)
+            self._log_end(ending)
+            self._done.set()
+
+    async def close(self, code: int, reason: str) -> None:
+        """Ask the session to end with ``code`` (e.g. 1001 at shutdown) and wait for it."""
+        if not self._stop.done():
+            self._stop.set_result(_Closing(code, reason))
+        await self._done.wait()
+
+    # -- reading -------------------------------------------------------------------------
+    async def _read_loop(self) -> None:
+        while True:
+            try:
+                async with asyncio.timeout(self.settings.idle_timeout):
+                    message = await self.ws.receive()
+            except TimeoutError:
+                error = ProtocolError(
+                    ErrorCode.IDLE_TIMEOUT,
+                    f"no message for {self.settings.idle_timeout:g} s; closing",
+                    fatal=True,
+                )
+                self.counters.errors += 1
+                self.metrics.errors.labels(ErrorCode.IDLE_TIMEOUT.name).inc()
+                raise _Closing(close_code(error), "idle timeout", error) from None
+            if message["type"] == "websocket.disconnect":
+                return
+            data = message.get("bytes")
+            try:
+                if data is None:
+                    self.protocol.receive_text(message.get("text") or "")
+                decoded = self.protocol.receive(data)
+                await self._dispatch(decoded)
+            except ProtocolError as exc:
+                self._report(exc)
+
+    def _report(self, error: ProtocolError) -> None:
+        """Queue an error for the client; a fatal one ends the session after it is sent."""
+        self.counters.errors += 1
+        name = error.code.name if isinstance(error.code, ErrorCode) else str(error.code)
+        self.metrics.errors.labels(name).inc()
+        if error.fatal:
+            raise _Closing(close_code(error), name.lower(), error)
+        self._queue_control(error.to_message())
+
+    def _queue_control(self, message: Any) -> None:
+        self._control.append(self.protocol.send(message))
+        self._wake.set()
+
+    async def _dispatch(self, message: Any) -> None:
+        if isinstance(message, Frame):
+            self._on_frame(message)
+            # Let an idle writer take this frame before the next message is read: frames
+            # that arrived together (pipelined) are then processed, not superseded. Only
+            # frames that come while the writer is busy replace one another (§8).
+            await asyncio.sleep(0)
+        elif isinstance(message, Ping):
+            self._queue_control(Pong(id=message.id, ts=message.ts))
+        elif isinstance(message, Hello):
+            await self._on_hello(message)
+        elif isinstance(message, Calibrate):
+            await self._on_calibrate(message)
+
+    def _on_frame(self, frame: Frame) -> None:
+        self.counters.frames_in += 1
+        self.metrics.frames_in.inc()
+        if self._rig is None:  # hello accepted but ready not sent: cannot happen after await
+            raise ProtocolError(ErrorCode.WRONG_STATE, "frame before ready", seq=frame.seq)
+        if not self._bucket.take():
+            # Over the rate: drop this frame (not the pending one, which is older but
+            # within the rate) and tell the client, at most once a second.
+            self.counters.dropped_rate += 1
+            self.metrics.frames_dropped.labels("rate_limited").inc()
+            now = time.monotonic()
+            if now - self._last_rate_error >= _RATE_ERROR_INTERVAL:
+                self._last_rate_error = now
+                self._report(
+                    ProtocolError(
+                        ErrorCode.RATE_LIMITED,
+                        f"more than {self.settings.max_fps:g} frames/s; frames over the rate "
+                        "are dropped (counted in result.dropped)",
+                        seq=frame.seq,
+                    )
+                )
+            return
+        if self._pending is not None:
+            self.counters.dropped_superseded += 1
+            self.metrics.frames_dropped.labels("superseded").inc()
+        self._pending = (frame, time.perf_counter())
+        self._wake.set()
+
+    async def _on_hello(self, hello: Hello) -> None:
+        if not valid_rig_id(hello.rig):
+            raise ProtocolError(
+                ErrorCode.UNKNOWN_RIG, f"no rig with id {hello.rig[:64]!r}", fatal=True
+            )
+        loop = asyncio.get_running_loop()
+        try:
+            # File I/O and parsing: never on the loop.
+            rig = await loop.run_in_executor(None, self.store.get, hello.rig)
+        except RigNotFoundError:
+            raise ProtocolError(
+                ErrorCode.UNKNOWN_RIG, f"no rig with id {hello.rig!r}", fatal=True
+            ) from None
+        except RigError as exc:
+            raise ProtocolError(
+                ErrorCode.UNKNOWN_RIG, f"rig {hello.rig!r} cannot be loaded: {exc}", fatal=True
+            ) from None
+        if hello.align_scale and not rig.align_scale:
+            # The rig's weights() reads this flag; a shallow copy keeps the cached rig as is.
+            rig = copy.copy(rig)
+            rig.align_scale = True
+        self.hello = hello
+        self.rig_id = hello.rig
+        self._base_rig = rig
+        self._rig = rig
+        self._calibrate_next = hello.calibration
+        if hello.smoothing is not None:
+            sm = hello.smoothing
+            self._smoother = _Smoother(
+                OneEuroFilter(min_cutoff=sm.min_cutoff, beta=sm.beta, d_cutoff=sm.d_cutoff),
+                sm.target,
+            )
+        s = self.settings
+        self._queue_control(
+            Ready(
+                session=self.id,
+                rig=hello.rig,
+                names=rig.names,
+                num_points=rig.num_points,
+                num_vertices=rig.num_vertices,
+                output=hello.output,
+                dtype=hello.dtype,
+                limits={
+                    "max_points": int(self.protocol.limits.max_points),
+                    "max_fps": float(s.max_fps),
+                    "rate_burst": int(s.rate_burst),
+                    "max_message_bytes": int(s.max_message_bytes),
+                    "idle_timeout": float(s.idle_timeout),
+                },
+            )
+        )
+        log.info(
+            "session open",
+            extra={
+                "event": "session.open",
+                "session": self.id,
+                "rig": hello.rig,
+                "output": hello.output,
+                "dtype": hello.dtype,
+                "by": self.principal,
+            },
+        )
+
+    async def _on_calibrate(self, message: Calibrate) -> None:
+        if message.reset:
+            self._calibrate_next = False
+            self._rig = self._base_rig
+            self._queue_control(Calibrated(active=False))
+        elif message.points is None:
+            # The next frame the writer clones becomes the neutral.
+            self._calibrate_next = True
+        else:
+            self._rig = await self._calibrated(message.points)
+            self._queue_control(Calibrated(active=True))
+
+    async def _calibrated(self, points: np.ndarray, seq: int | None = None) -> Any:
+        loop = asyncio.get_running_loop()
+        try:
+            return await loop.run_in_executor(self.executor, self._base_rig.calibrated, points)
+        except RigError as exc:
+            raise ProtocolError(
+                ErrorCode.CALIBRATION_FAILED, f"calibration failed: {exc}", seq=seq
+            ) from None
+
+    # -- writing -------------------------------------------------------------------------
+    async def _write_loop(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            while self._control:
+                await self.ws.send_bytes(self._control.popleft())
+            if self._pending is None:
+                continue
+            frame, arrived = self._pending
+            self._pending = None
+            if self._calibrate_next:
+                self._calibrate_next = False
+                try:
+                    self._rig = await self._calibrated(frame.points, frame.seq)
+                except ProtocolError as exc:
+                    self._report(exc)
+                    continue
+                await self.ws.send_bytes(self.protocol.send(Calibrated(active=True, seq=frame.seq)))
+            rig, hello = self._rig, self.hello
+            assert hello is not None
+            try:
+                # Both outputs run in the clone pool: even weights-only evaluation of a
+                # large rig (K in the hundreds, M ~ 50) costs 50-300 us of numpy, and
+                # vertices (V x M matmul) milliseconds; keeping all of it off the loop
+                # means one busy session never delays another's reads or pings.
+                values = await loop.run_in_executor(
+                    self.executor, _clone, rig, frame, hello, self._smoother
+                )
+            except InputError as exc:
+                self._report(
+                    ProtocolError(
+                        ErrorCode.INVALID_ARRAY, f"frame cannot be cloned: {exc}", seq=frame.seq
+                    )
+                )
+                continue
+            elapsed = time.perf_counter() - arrived
+            result = Result(
+                seq=frame.seq,
+                ts=frame.ts,
+                weights=values if hello.output == "weights" else None,
+                vertices=values if hello.output == "vertices" else None,
+                proc_us=int(elapsed * 1e6),
+                dropped=self.counters.dropped,
+            )
+            data = self.protocol.send(result)
+            self.metrics.processing_seconds.observe(elapsed)
+            # Blocks while the client does not read; the reader keeps replacing the
+            # pending frame meanwhile, so nothing piles up.
+            await self.ws.send_bytes(data)
+            self.counters.results_out += 1
+            self.metrics.frames_out.inc()
+
+    async def _send_close(self, ending: _Closing) -> None:
+        with contextlib.suppress(Exception):
+            async with asyncio.timeout(_CLOSE_GRACE):
+                if ending.error is not None and self.ws.application_state.name == "CONNECTED":
+                    await self.ws.send_bytes(self.protocol.fail(ending.error))
+        with contextlib.suppress(Exception):
+            async with asyncio.timeout(_CLOSE_GRACE):
+                await self.ws.close(ending.code, ending.reason[:120])
+
+    def _log_end(self, ending: _Closing | None) -> None:
+        c = self.counters
+        log.info(
+            "session closed",
+            extra={
+                "event": "session.close",
+                "session": self.id,
+                "rig": self.rig_id,
+                "code": None if ending is None else ending.code,
+                "reason": "client left" if ending is None else ending.reason,
+                "seconds": round(time.monotonic() - self._started, 3),
+                "frames_in": c.frames_in,
+                "results_out": c.results_out,
+                "dropped_superseded": c.dropped_superseded,
+                "dropped_rate": c.dropped_rate,
+                "errors": c.errors,
+            },
+        )
+
+
+class _Smoother:
+    """A session's one-euro filter (PROTOCOL.md §5.1.1 ``smoothing``), clocked by ``frame.ts``.
+
+    Used only from the writer's clone call, one frame at a time, so needs no lock.
+    """
+
+    def __init__(self, one_euro: OneEuroFilter, target: str) -> None:
+        self.filter = one_euro
+        self.target = target
+        self.last_ts: float | None = None
+
+    def __call__(self, values: np.ndarray, ts: float) -> np.ndarray:
+        if self.last_ts is not None and ts < self.last_ts:
+            # A client clock that jumped back (restart, wrap): start the filter afresh
+            # rather than refusing every frame until ``ts`` catches up.
+            self.filter.reset()
+        self.last_ts = ts
+        return self.filter(values.reshape(-1), ts).reshape(values.shape)
+
+
+def _clone(rig: Any, frame: Frame, hello: Hello, smoother: _Smoother | None) -> np.ndarray:
+    """Weights (M,) or vertices (V, 3) of one frame, in the session's wire dtype."""
+    points = frame.points
+    if smoother is not None and smoother.target == "points":
+        points = smoother(np.asarray(points, dtype=np.float64), frame.ts)
+    weights = rig.weights(points, align=hello.align)
+    if smoother is not None and smoother.target == "weights":
+        weights = smoother(weights, frame.ts)
+    if hello.output == "weights":
+        return weights.astype(_RESULT_DTYPES[hello.dtype])
+    vertices = rig.blend(weights)
+    return vertices if hello.dtype == "f32" else vertices.astype(np.float16)

@@ -1,0 +1,293 @@
+"""The server's one typed configuration object: defaults < TOML file < FACECAST_* env < CLI.
+
+Built once at start-up and passed down explicitly; nothing here is read at import time
+and no other module reads the environment or the config file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import ipaddress
+import json
+import os
+import tomllib
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+__all__ = ["ROLES", "Settings", "SettingsError", "parse_tokens"]
+
+#: The roles a token can hold; ``admin`` implies all others (see ``auth``).
+ROLES = frozenset({"admin", "stream", "publisher", "viewer"})
+
+ENV_PREFIX = "FACECAST_"
+MiB = 1024 * 1024
+
+
+class SettingsError(ValueError):
+    """A configuration value that cannot be used; the message names the setting."""
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Everything the server can be told, with every limit named.
+
+    Sizes are in bytes, durations in seconds, rates in frames per second.
+    """
+
+    # -- where to listen and what to serve ---------------------------------------------
+    host: str = "127.0.0.1"
+    port: int = 8000
+    rigs_dir: Path = Path("rigs")
+    workers: int = 1
+
+    # -- auth -----------------------------------------------------------------------------
+    #: token -> roles. Read from ``[tokens]`` in the config file or ``FACECAST_TOKENS``.
+    tokens: Mapping[str, frozenset[str]] = field(
+        default_factory=lambda: MappingProxyType({}), repr=False
+    )
+    #: Force auth on for a loopback address; it is always on for any other address.
+    auth: bool = False
+    #: Whether ``/metrics`` needs an admin token (when auth is on).
+    metrics_auth: bool = False
+
+    # -- uploads --------------------------------------------------------------------------
+    max_upload_bytes: int = 64 * MiB
+    max_extracted_bytes: int = 256 * MiB
+    max_archive_members: int = 2000
+    #: Largest allowed (total uncompressed size / archive size): zip-bomb guard.
+    max_compression_ratio: float = 200.0
+    #: Fits waiting or running at once; more get 503 ``server_busy``.
+    max_pending_fits: int = 4
+    fit_threads: int = 1
+
+    # -- streaming ------------------------------------------------------------------------
+    max_connections: int = 200
+    #: Per-connection frame rate limit (token bucket refill rate).
+    max_fps: float = 240.0
+    #: Token bucket depth: frames a client may send in a burst above ``max_fps``.
+    rate_burst: int = 60
+    #: A session with no message from the client for this long is closed (IDLE_TIMEOUT).
+    idle_timeout: float = 60.0
+    max_message_bytes: int = 1 * MiB
+    #: WebSocket-level ping interval and timeout (uvicorn keepalive); 0 disables.
+    ping_interval: float = 20.0
+    ping_timeout: float = 20.0
+    #: Threads cloning frames for all sessions of one worker process.
+    clone_threads: int = 2
+    #: Loaded rigs kept in memory per worker process.
+    rig_cache_size: int = 16
+
+    # -- operations -----------------------------------------------------------------------
+    #: Seconds open sessions get to close (1001) on SIGTERM before they are cut.
+    shutdown_timeout: float = 5.0
+    log_level: str = "info"
+    access_log: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "rigs_dir", Path(self.rigs_dir))
+        tokens = {str(k): frozenset(v) for k, v in dict(self.tokens).items()}
+        object.__setattr__(self, "tokens", MappingProxyType(tokens))
+        for token, roles in tokens.items():
+            if not token:
+                raise SettingsError("tokens: an empty token is not allowed")
+            unknown = roles - ROLES
+            if unknown:
+                raise SettingsError(
+                    f"tokens: unknown role(s) {sorted(unknown)}; roles are {sorted(ROLES)}"
+                )
+            if not roles:
+                raise SettingsError("tokens: every token needs at least one role")
+        if not 0 <= self.port <= 65535:
+            raise SettingsError(f"port: {self.port} is not in 0..65535")
+        positive = (
+            "workers",
+            "max_upload_bytes",
+            "max_extracted_bytes",
+            "max_archive_members",
+            "max_compression_ratio",
+            "max_pending_fits",
+            "fit_threads",
+            "max_connections",
+            "max_fps",
+            "rate_burst",
+            "idle_timeout",
+            "max_message_bytes",
+            "clone_threads",
+            "rig_cache_size",
+        )
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise SettingsError(f"{name}: must be > 0, got {getattr(self, name)!r}")
+        for name in ("ping_interval", "ping_timeout", "shutdown_timeout"):
+            if getattr(self, name) < 0:
+                raise SettingsError(f"{name}: must be >= 0, got {getattr(self, name)!r}")
+
+    # -- derived ------------------------------------------------------------------------
+    @property
+    def auth_enabled(self) -> bool:
+        """Auth is on for any non-loopback bind address, and when forced with ``auth``."""
+        return self.auth or not is_loopback(self.host)
+
+    def check_startable(self) -> None:
+        """Raise ``SettingsError`` for a configuration the server must refuse to start with."""
+        if self.auth_enabled and not self.tokens:
+            why = "--auth was given" if is_loopback(self.host) else f"host {self.host} is public"
+            raise SettingsError(
+                f"auth is on ({why}) but no API tokens are configured: add a [tokens] table "
+                'to the config file (e.g. "secret" = ["admin"]) or set '
+                "FACECAST_TOKENS=token:admin,token2:stream+viewer"
+            )
+
+    # -- building -----------------------------------------------------------------------
+    @classmethod
+    def load(
+        cls,
+        *,
+        config_file: str | os.PathLike[str] | None = None,
+        env: Mapping[str, str] | None = None,
+        overrides: Mapping[str, Any] | None = None,
+    ) -> Settings:
+        """Merge defaults < TOML config file < ``FACECAST_*`` env < ``overrides`` (CLI).
+
+        ``config_file`` defaults to ``FACECAST_CONFIG`` from ``env``. ``None`` values in
+        ``overrides`` mean "not given" and are skipped.
+        """
+        env = os.environ if env is None else env
+        values: dict[str, Any] = {}
+        path = config_file if config_file is not None else env.get(f"{ENV_PREFIX}CONFIG")
+        if path:
+            values.update(_read_toml(Path(path)))
+        values.update(_from_env(env))
+        values.update({k: v for k, v in (overrides or {}).items() if v is not None})
+        return cls.from_mapping(values, source="settings")
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], *, source: str) -> Settings:
+        """Build from plain values (strings are converted to each field's type)."""
+        hints = typing.get_type_hints(cls)
+        known = {f.name for f in dataclasses.fields(cls)}
+        kwargs: dict[str, Any] = {}
+        for name, value in values.items():
+            if name not in known:
+                raise SettingsError(f"{source}: unknown setting {name!r}")
+            kwargs[name] = _coerce(name, hints[name], value, source)
+        try:
+            return cls(**kwargs)
+        except TypeError as exc:  # pragma: no cover - guarded by the known-name check
+            raise SettingsError(f"{source}: {exc}") from None
+
+    def to_json(self) -> str:
+        """Serialise for handing to worker processes (see ``runner``)."""
+        data: dict[str, Any] = {}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if f.name == "tokens":
+                value = {k: sorted(v) for k, v in value.items()}
+            elif isinstance(value, Path):
+                value = str(value)
+            data[f.name] = value
+        return json.dumps(data)
+
+    @classmethod
+    def from_json(cls, text: str) -> Settings:
+        return cls.from_mapping(json.loads(text), source="serialised settings")
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def parse_tokens(text: str) -> dict[str, frozenset[str]]:
+    """Parse ``"tok1:admin,tok2:stream+viewer"`` into ``{token: roles}``."""
+    tokens: dict[str, frozenset[str]] = {}
+    for item in text.split(","):
+        item = item.strip()
+        if not item:
+            continue
+        token, sep, roles = item.rpartition(":")
+        if not sep or not token:
+            raise SettingsError(
+                f"FACECAST_TOKENS: expected 'token:role[+role...]', got an item without ':'"
+                f" (item {len(tokens) + 1})"
+            )
+        tokens[token] = frozenset(r.strip() for r in roles.split("+") if r.strip())
+    return tokens
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    try:
+        with path.open("rb") as fh:
+            data = tomllib.load(fh)
+    except OSError as exc:
+        raise SettingsError(f"config file {path}: {exc.strerror or exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise SettingsError(f"config file {path}: not valid TOML ({exc})") from None
+    if "tokens" in data:
+        tokens = data["tokens"]
+        if not isinstance(tokens, dict) or not all(
+            isinstance(v, list) and all(isinstance(r, str) for r in v) for v in tokens.values()
+        ):
+            raise SettingsError(
+                f'config file {path}: [tokens] must map token strings to role lists, e.g. "s" = ["admin"]'
+            )
+        data["tokens"] = {k: frozenset(v) for k, v in tokens.items()}
+    return data
+
+
+def _from_env(env: Mapping[str, str]) -> dict[str, Any]:
+    values: dict[str, Any] = {}
+    names = {f.name for f in dataclasses.fields(Settings)}
+    for key, raw in env.items():
+        if not key.startswith(ENV_PREFIX) or key == f"{ENV_PREFIX}CONFIG":
+            continue
+        name = key[len(ENV_PREFIX) :].lower()
+        if name == "tokens":
+            values["tokens"] = parse_tokens(raw)
+        elif name in names:
+            values[name] = raw
+    return values
+
+
+def _coerce(name: str, hint: Any, value: Any, source: str) -> Any:
+    if name == "tokens":
+        if isinstance(value, str):
+            return parse_tokens(value)
+        if not isinstance(value, Mapping):
+            raise SettingsError(f"{source}: tokens must be a table of token -> roles")
+        return value
+    try:
+        if hint is bool:
+            if isinstance(value, bool):
+                return value
+            text = str(value).strip().lower()
+            if text in {"1", "true", "yes", "on"}:
+                return True
+            if text in {"0", "false", "no", "off", ""}:
+                return False
+            raise ValueError(f"not a boolean: {value!r}")
+        if hint is int:
+            if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+                raise ValueError(f"not an integer: {value!r}")
+            return int(value)
+        if hint is float:
+            if isinstance(value, bool):
+                raise ValueError(f"not a number: {value!r}")
+            return float(value)
+        if hint is Path:
+            return Path(value)
+        if hint is str:
+            if not isinstance(value, str):
+                raise ValueError(f"not a string: {value!r}")
+            return value
+    except (TypeError, ValueError) as exc:
+        raise SettingsError(f"{source}: {name}: {exc}") from None
+    return value  # pragma: no cover - every field type is handled above

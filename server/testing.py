@@ -1,0 +1,105 @@
+"""Test helpers: a real uvicorn serving ``create_app(settings)`` on 127.0.0.1, in a thread.
+
+For tests and benchmarks of any package (``from facecast.server.testing import
+run_server``); production code never imports this module.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import threading
+import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
+from typing import Any
+
+from fastapi import FastAPI
+
+from .app import create_app
+from .runner import FacecastServer, uvicorn_config
+from .settings import Settings
+
+__all__ = ["WS_IMPLEMENTATIONS", "RunningServer", "free_port", "run_server"]
+
+#: uvicorn's WebSocket implementations the server is tested under.
+WS_IMPLEMENTATIONS = ("websockets", "websockets-sansio")
+
+
+@dataclass
+class RunningServer:
+    """A started server: where it listens and its app (to inspect ``app.state``)."""
+
+    app: FastAPI
+    settings: Settings
+    server: FacecastServer
+    host: str
+    port: int
+
+    @property
+    def base_url(self) -> str:
+        return f"http://{self.host}:{self.port}"
+
+    @property
+    def ws_url(self) -> str:
+        return f"ws://{self.host}:{self.port}"
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A port free right now (for subprocess servers that must bind it themselves)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind((host, 0))
+        return sock.getsockname()[1]
+
+
+@asynccontextmanager
+async def run_server(
+    settings: Settings | None = None,
+    *,
+    ws: str = "websockets-sansio",
+    startup_timeout: float = 10.0,
+    **config: Any,
+) -> AsyncIterator[RunningServer]:
+    """Serve ``create_app(settings)`` with a real uvicorn on 127.0.0.1 until the block exits.
+
+    The server runs its own event loop in a thread, so the test's loop (and any
+    blocking call in the test) cannot stall it. The listening socket is bound here, on a
+    free port, before uvicorn starts: no race for the port. ``ws`` picks uvicorn's
+    WebSocket implementation (see ``WS_IMPLEMENTATIONS``); extra keywords go to
+    ``uvicorn.Config``.
+    """
+    settings = settings or Settings()
+    app = create_app(settings)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    uv_config = uvicorn_config(settings, app, ws=ws, host="127.0.0.1", port=port, **config)
+    server = FacecastServer(uv_config)
+    failure: list[BaseException] = []
+
+    def target() -> None:
+        try:
+            server.run(sockets=[sock])
+        except BaseException as exc:  # SystemExit on a failed startup, too
+            failure.append(exc)
+
+    thread = threading.Thread(target=target, name=f"uvicorn-{port}", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + startup_timeout
+    # uvicorn offers no start-up callback: wait on its ``started`` flag, with a deadline.
+    while not server.started:
+        if failure or not thread.is_alive():
+            sock.close()
+            raise RuntimeError(f"server failed to start: {failure[:1]}")
+        if time.monotonic() > deadline:
+            server.should_exit = True
+            raise TimeoutError(f"server did not start within {startup_timeout} s")
+        await asyncio.sleep(0.01)
+    try:
+        yield RunningServer(app, settings, server, "127.0.0.1", port)
+    finally:
+        server.should_exit = True
+        await asyncio.get_running_loop().run_in_executor(None, thread.join, 30.0)
+        sock.close()

@@ -1,0 +1,192 @@
+"""Shared helpers of the server tests: tiny rigs, example-set archives, WS and process tools."""
+
+from __future__ import annotations
+
+import asyncio
+import importlib.util
+import io
+import os
+import signal
+import subprocess
+import sys
+import tarfile
+import time
+import zipfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from facecast.protocol import ClientProtocol, Error, Hello, Ready, decode_server, encode
+from facecast.rig import ExampleSet, fit
+from facecast.rig.meshio import write_obj
+
+NAMES = ("neutral", "smile", "frown", "jaw")
+
+
+def tiny_example_set(num_vertices: int = 16, seed: int = 0) -> ExampleSet:
+    """4 examples, 5 feature points, a ``num_vertices`` target strip."""
+    rng = np.random.default_rng(seed)
+    m, k = len(NAMES), 5
+    source = np.repeat(rng.normal(size=(1, k, 3)), m, axis=0)
+    source[1:] += rng.normal(scale=0.3, size=(m - 1, k, 3))
+    target = np.repeat(rng.normal(size=(1, num_vertices, 3)), m, axis=0)
+    target[1:] += rng.normal(scale=0.3, size=(m - 1, num_vertices, 3))
+    faces = np.array([[i, i + 1, i + 2] for i in range(num_vertices - 2)])
+    return ExampleSet(NAMES, source, target, faces)
+
+
+def tiny_rig(num_vertices: int = 16, seed: int = 0):
+    return fit(tiny_example_set(num_vertices, seed))
+
+
+def frame_points(rig, seed: int, dtype=np.float32) -> np.ndarray:
+    """Feature points (K, 3) near the rig's neutral, different per ``seed``."""
+    rng = np.random.default_rng(1000 + seed)
+    return (rig.source_neutral + rng.normal(scale=0.1, size=rig.source_neutral.shape)).astype(dtype)
+
+
+def write_example_folder(folder: Path, example_set: ExampleSet | None = None) -> ExampleSet:
+    """A ``facecast.toml`` folder: .npy source points and .obj targets."""
+    es = example_set or tiny_example_set()
+    (folder / "source").mkdir(parents=True)
+    (folder / "target").mkdir()
+    lines = []
+    for i, name in enumerate(es.names):
+        np.save(folder / f"source/{name}.npy", es.source_points[i])
+        write_obj(folder / f"target/{name}.obj", es.target_vertices[i], es.target_faces)
+        if i:
+            lines.append(f'{name} = ["source/{name}.npy", "target/{name}.obj"]')
+    (folder / "facecast.toml").write_text(
+        '[source]\nneutral = "source/neutral.npy"\n'
+        '[target]\nneutral = "target/neutral.obj"\n'
+        "[examples]\n" + "\n".join(lines) + "\n"
+    )
+    return es
+
+
+def zip_bytes(members: dict[str, bytes]) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+        for name, data in members.items():
+            archive.writestr(name, data)
+    return buffer.getvalue()
+
+
+def tar_bytes(members: dict[str, bytes], *, gz: bool) -> bytes:
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w:gz" if gz else "w") as archive:
+        for name, data in members.items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            archive.addfile(info, io.BytesIO(data))
+    return buffer.getvalue()
+
+
+def folder_members(folder: Path, prefix: str = "") -> dict[str, bytes]:
+    return {
+        prefix + p.relative_to(folder).as_posix(): p.read_bytes()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
+
+
+# -- WebSocket helpers -----------------------------------------------------------------
+
+
+async def open_session(ws, rig_id: str, **hello: Any) -> Ready:
+    """Send hello on an open connection and return the server's ready."""
+    await ws.send(encode(Hello(rig=rig_id, **hello)))
+    message = decode_server(await asyncio.wait_for(ws.recv(), 10))
+    assert isinstance(message, Ready), message
+    return message
+
+
+async def recv_message(ws, timeout: float = 10.0):
+    return decode_server(await asyncio.wait_for(ws.recv(), timeout))
+
+
+async def recv_error(ws, timeout: float = 10.0) -> Error:
+    """The next message, which must be an error."""
+    message = await recv_message(ws, timeout)
+    assert isinstance(message, Error), message
+    return message
+
+
+def client_protocol() -> ClientProtocol:
+    return ClientProtocol()
+
+
+# -- subprocess servers ----------------------------------------------------------------
+
+
+_SERVE_ONLY = (
+    "import argparse, sys\n"
+    "from facecast.client.commands import serve\n"
+    "parser = argparse.ArgumentParser(prog='facecast')\n"
+    "serve.register(parser.add_subparsers(dest='command', required=True))\n"
+    "args = parser.parse_args(sys.argv[1:])\n"
+    "sys.exit(args.func(args))\n"
+)
+
+
+def serve_argv(*args: str) -> list[str]:
+    """The command line starting ``facecast serve`` in a fresh interpreter.
+
+    The full CLI imports every command module; while some are still missing from the
+    tree, the serve command is driven on its own (same parser, same ``run``).
+    """
+    from facecast.client.cli import COMMAND_MODULES
+
+    if all(
+        importlib.util.find_spec(f"facecast.client.commands.{name}") for name in COMMAND_MODULES
+    ):
+        return [sys.executable, "-m", "facecast.client.cli", "serve", *args]
+    return [sys.executable, "-c", _SERVE_ONLY, "serve", *args]
+
+
+@contextmanager
+def server_process(
+    port: int, rigs: Path, *extra: str, env: dict[str, str] | None = None
+) -> Iterator[subprocess.Popen]:
+    """A ``facecast serve`` subprocess on 127.0.0.1:``port``; ready when this yields."""
+    full_env = {**os.environ, **(env or {})}
+    process = subprocess.Popen(
+        serve_argv("--host", "127.0.0.1", "--port", str(port), "--rigs", str(rigs), *extra),
+        env=full_env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        wait_ready(f"http://127.0.0.1:{port}", process)
+        yield process
+    finally:
+        if process.poll() is None:
+            process.kill()
+        process.wait(10)
+        if process.stderr:
+            process.stderr.close()
+
+
+def wait_ready(base_url: str, process: subprocess.Popen, timeout: float = 20.0) -> None:
+    """Poll ``/healthz`` until it answers; fail early if the process died."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            err = process.stderr.read().decode() if process.stderr else ""
+            raise RuntimeError(f"server exited with {process.returncode}: {err[-2000:]}")
+        try:
+            if httpx.get(f"{base_url}/healthz", timeout=0.5).status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        time.sleep(0.05)  # polling a server we do not control; no event to wait on
+    raise TimeoutError(f"server at {base_url} not ready within {timeout} s")
+
+
+def stop(process: subprocess.Popen, sig: int = signal.SIGTERM, timeout: float = 15.0) -> int:
+    process.send_signal(sig)
+    return process.wait(timeout)

@@ -1,0 +1,187 @@
+"""Auth on every endpoint: no token -> 401, wrong role -> 403, right role -> served."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import httpx
+import pytest
+import websockets
+from _server_helpers import (
+    folder_members,
+    open_session,
+    recv_error,
+    write_example_folder,
+    zip_bytes,
+)
+
+from facecast.protocol import ErrorCode, Hello, encode
+from facecast.server.settings import Settings, SettingsError
+from facecast.server.testing import run_server
+
+pytestmark = pytest.mark.anyio
+
+# (method, path, a role that may, a role that may not); the rig "face" exists.
+ENDPOINTS = [
+    ("GET", "/v1/rigs", "viewer", "publisher"),
+    ("GET", "/v1/rigs/face", "viewer", "publisher"),
+    ("GET", "/v1/rigs/face/model.glb", "stream", "publisher"),
+    ("GET", "/v1/rigs/face/rig", "stream", "viewer"),
+    ("PUT", "/v1/rigs/face", "admin", "stream"),
+    ("PUT", "/v1/rigs/face/examples", "admin", "viewer"),
+    ("DELETE", "/v1/rigs/face", "admin", "stream"),
+]
+
+
+def _body(method: str, path: str, rig, tmp_path) -> bytes | None:
+    if method != "PUT":
+        return None
+    if path.endswith("/examples"):
+        write_example_folder(tmp_path / "set")
+        return zip_bytes(folder_members(tmp_path / "set"))
+    return rig.to_bytes()
+
+
+@pytest.mark.parametrize(("method", "path", "right", "wrong"), ENDPOINTS)
+async def test_endpoint_needs_a_token_with_the_right_role(
+    auth_settings, rig, tmp_path, method, path, right, wrong
+):
+    body = _body(method, path, rig, tmp_path)
+    async with run_server(auth_settings) as server:
+        server.app.state.store.put_rig("face", rig)
+        async with httpx.AsyncClient(base_url=server.base_url, timeout=30) as http:
+            missing = await http.request(method, path, content=body)
+            unknown = await http.request(
+                method, path, content=body, headers={"Authorization": "Bearer nope"}
+            )
+            forbidden = await http.request(
+                method, path, content=body, headers={"Authorization": f"Bearer {wrong}-token"}
+            )
+            allowed = await http.request(
+                method, path, content=body, headers={"Authorization": f"Bearer {right}-token"}
+            )
+
+    assert (missing.status_code, missing.json()["code"]) == (401, "unauthorized")
+    assert missing.headers["www-authenticate"] == "Bearer"
+    assert (unknown.status_code, unknown.json()["code"]) == (401, "unauthorized")
+    assert (forbidden.status_code, forbidden.json()["code"]) == (403, "forbidden")
+    assert allowed.status_code in (200, 201, 204), allowed.text
+
+
+async def test_admin_token_is_allowed_everywhere(auth_settings, rig, tmp_path):
+    statuses = []
+    async with (
+        run_server(auth_settings) as server,
+        httpx.AsyncClient(base_url=server.base_url, timeout=30) as http,
+    ):
+        for method, path, _, _ in ENDPOINTS:
+            server.app.state.store.put_rig("face", rig)
+            response = await http.request(
+                method,
+                path,
+                content=_body(method, path, rig, tmp_path / method / path.replace("/", "_")),
+                headers={"Authorization": "Bearer admin-token"},
+            )
+            statuses.append(response.status_code)
+
+    assert all(s in (200, 201, 204) for s in statuses), statuses
+
+
+async def test_health_and_ready_need_no_token(auth_settings):
+    async with (
+        run_server(auth_settings) as server,
+        httpx.AsyncClient(base_url=server.base_url) as http,
+    ):
+        health = await http.get("/healthz")
+        ready = await http.get("/readyz")
+
+    assert health.status_code == ready.status_code == 200
+
+
+async def test_metrics_needs_admin_when_metrics_auth_is_set(auth_settings):
+    settings = dataclasses.replace(auth_settings, metrics_auth=True)
+    async with (
+        run_server(settings) as server,
+        httpx.AsyncClient(base_url=server.base_url) as http,
+    ):
+        missing = await http.get("/metrics")
+        viewer = await http.get("/metrics", headers={"Authorization": "Bearer viewer-token"})
+        admin = await http.get("/metrics", headers={"Authorization": "Bearer admin-token"})
+
+    assert (missing.status_code, viewer.status_code, admin.status_code) == (401, 403, 200)
+
+
+# -- WebSocket ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("token", "code"),
+    [
+        (None, ErrorCode.UNAUTHORIZED),
+        ("nope", ErrorCode.UNAUTHORIZED),
+        ("viewer-token", ErrorCode.FORBIDDEN),
+    ],
+)
+async def test_stream_without_the_stream_role_gets_an_error_then_close_1008(
+    auth_settings, rig, ws_impl, token, code
+):
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    async with run_server(auth_settings, ws=ws_impl) as server:
+        server.app.state.store.put_rig("face", rig)
+        async with websockets.connect(
+            f"{server.ws_url}/v1/stream", additional_headers=headers
+        ) as ws:
+            await ws.send(encode(Hello(rig="face")))
+            error = await recv_error(ws)
+            with pytest.raises(websockets.ConnectionClosed):
+                await ws.recv()
+
+    assert (error.code, error.fatal) == (code, True)
+    assert ws.close_code == 1008
+
+
+@pytest.mark.parametrize("via", ["header", "subprotocol", "query"])
+async def test_stream_token_is_accepted_from_header_subprotocol_or_query(
+    auth_settings, rig, ws_impl, via
+):
+    url_query, headers, protocols = "", {}, ["facecast.v1"]
+    if via == "header":
+        headers = {"Authorization": "Bearer stream-token"}
+    elif via == "subprotocol":
+        protocols.append("facecast.bearer.stream-token")
+    else:
+        url_query = "?token=stream-token"
+    async with run_server(auth_settings, ws=ws_impl) as server:
+        server.app.state.store.put_rig("face", rig)
+        async with websockets.connect(
+            f"{server.ws_url}/v1/stream{url_query}",
+            additional_headers=headers,
+            subprotocols=protocols,
+        ) as ws:
+            ready = await open_session(ws, "face")
+
+    assert ready.rig == "face"
+    assert ws.subprotocol == "facecast.v1"  # never the bearer one: it would echo the token
+
+
+async def test_refusal_reaches_a_client_that_sends_nothing(auth_settings, ws_impl):
+    async with (
+        run_server(auth_settings, ws=ws_impl) as server,
+        websockets.connect(f"{server.ws_url}/v1/stream") as ws,
+    ):
+        error = await recv_error(ws)
+
+    assert error.code == ErrorCode.UNAUTHORIZED
+
+
+def test_public_bind_without_tokens_refuses_to_start():
+    settings = Settings(host="0.0.0.0")
+
+    with pytest.raises(SettingsError, match="no API tokens"):
+        settings.check_startable()
+
+
+def test_loopback_bind_has_auth_off_unless_forced():
+    assert not Settings().auth_enabled
+    assert Settings(auth=True).auth_enabled
+    assert Settings(host="10.1.2.3", tokens={"t": ["admin"]}).auth_enabled

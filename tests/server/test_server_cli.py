@@ -1,0 +1,102 @@
+"""`facecast rigs` against a real server, and `facecast serve`'s flags -> Settings."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import pytest
+from _server_helpers import write_example_folder
+
+from facecast.client.cli import CommandError
+from facecast.client.commands import rigs, serve
+from facecast.rig import load_rig
+from facecast.server.testing import run_server
+
+pytestmark = pytest.mark.anyio
+
+
+def parse(module, argv: list[str]) -> argparse.Namespace:
+    # The command's own parser, as `facecast` builds it.
+    parser = argparse.ArgumentParser(prog="facecast")
+    module.register(parser.add_subparsers(dest="command", required=True))
+    return parser.parse_args(argv)
+
+
+def run_rigs(server, *argv: str, token: str | None = None) -> int:
+    extra = ["--token", token] if token else []
+    args = parse(rigs, ["rigs", "--server", server.base_url, *extra, *argv])
+    return args.func(args)
+
+
+async def test_rigs_command_uploads_fits_lists_downloads_and_deletes(
+    settings, rig, tmp_path, capsys
+):
+    rig.save(tmp_path / "face.rig")
+    write_example_folder(tmp_path / "set")
+    async with run_server(settings) as server:
+        run_rigs(server, "upload", "face", str(tmp_path / "face.rig"))
+        run_rigs(server, "fit", "fitted", str(tmp_path / "set"), "--noise", "0.01")
+        capsys.readouterr()
+        run_rigs(server, "list")
+        listed = capsys.readouterr().out
+        run_rigs(server, "show", "face")
+        shown = json.loads(capsys.readouterr().out)
+        run_rigs(server, "download", "face", str(tmp_path / "back.rig"))
+        run_rigs(server, "model", "face", str(tmp_path / "face.glb"))
+        run_rigs(server, "delete", "face")
+        remaining = server.app.state.store.list()
+
+    assert [line.split("\t")[0] for line in listed.splitlines()] == ["face", "fitted"]
+    assert shown["checksum"] == rig.checksum
+    assert load_rig(tmp_path / "back.rig").checksum == rig.checksum
+    assert (tmp_path / "face.glb").read_bytes()[:4] == b"glTF"
+    assert [info.id for info in remaining] == ["fitted"]
+
+
+async def test_rigs_command_reports_the_server_error_code(auth_settings):
+    async with run_server(auth_settings) as server:
+        with pytest.raises(CommandError, match="401 unauthorized"):
+            run_rigs(server, "list")
+        with pytest.raises(CommandError, match="404 rig_not_found"):
+            run_rigs(server, "show", "ghost", token="viewer-token")
+
+
+def test_rigs_command_reports_an_unreachable_server():
+    args = parse(rigs, ["rigs", "--server", "http://127.0.0.1:9", "list"])
+
+    with pytest.raises(CommandError, match="cannot reach"):
+        args.func(args)
+
+
+def test_serve_flags_override_env_and_tokens_default_to_admin(tmp_path):
+    args = parse(
+        serve,
+        [
+            "serve",
+            "--port",
+            "9100",
+            "--rigs",
+            str(tmp_path),
+            "--token",
+            "abc",
+            "--token",
+            "s:stream",
+        ],
+    )
+
+    settings = serve.settings_from_args(
+        args, env={"FACECAST_PORT": "9000", "FACECAST_WORKERS": "3"}
+    )
+
+    assert (settings.port, settings.workers, settings.rigs_dir) == (9100, 3, tmp_path)
+    assert dict(settings.tokens) == {"abc": frozenset({"admin"}), "s": frozenset({"stream"})}
+
+
+def test_serve_refuses_public_bind_without_tokens_as_a_command_error(tmp_path, monkeypatch):
+    for name in ("FACECAST_TOKENS", "FACECAST_CONFIG"):
+        monkeypatch.delenv(name, raising=False)
+    args = parse(serve, ["serve", "--host", "0.0.0.0", "--rigs", str(tmp_path)])
+
+    with pytest.raises(CommandError, match="no API tokens"):
+        args.func(args)

@@ -1,0 +1,222 @@
+"""The server's parts without HTTP: settings precedence, the rig store, archive extraction."""
+
+from __future__ import annotations
+
+import io
+import tarfile
+import threading
+from pathlib import Path
+
+import pytest
+from _server_helpers import tiny_example_set, zip_bytes
+from hypothesis import HealthCheck, assume, given
+from hypothesis import settings as hsettings
+from hypothesis import strategies as st
+
+from facecast.rig import RigFileError, fit
+from facecast.server.archive import ArchiveError, ArchiveLimits, extract_archive
+from facecast.server.settings import Settings, SettingsError, parse_tokens
+from facecast.server.store import RigNotFoundError, RigStore
+
+# -- settings -----------------------------------------------------------------------------
+
+
+def test_precedence_is_defaults_then_file_then_env_then_cli(tmp_path):
+    config = tmp_path / "facecast.toml"
+    config.write_text(
+        'port = 9001\nmax_fps = 30.0\nlog_level = "debug"\n[tokens]\n"a" = ["admin"]\n'
+    )
+    env = {"FACECAST_PORT": "9002", "FACECAST_MAX_FPS": "60", "FACECAST_TOKENS": "b:viewer"}
+
+    settings = Settings.load(config_file=config, env=env, overrides={"port": 9003, "host": None})
+
+    assert settings.port == 9003  # CLI beats env beats file
+    assert settings.max_fps == 60.0  # env beats file
+    assert settings.log_level == "debug"  # file beats default
+    assert settings.host == "127.0.0.1"  # None means "flag not given"
+    assert dict(settings.tokens) == {"b": frozenset({"viewer"})}  # env replaces file tokens
+
+
+def test_config_file_may_come_from_the_environment(tmp_path):
+    config = tmp_path / "c.toml"
+    config.write_text("max_connections = 7\n")
+
+    settings = Settings.load(env={"FACECAST_CONFIG": str(config)})
+
+    assert settings.max_connections == 7
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        ("nonsense = 1\n", "unknown setting 'nonsense'"),
+        ("port = 'x'\n", "port"),
+        ("max_fps = 0\n", "max_fps: must be > 0"),
+        ("[tokens]\n'a' = ['root']\n", "unknown role"),
+        ("port = \n", "not valid TOML"),
+    ],
+)
+def test_bad_config_is_a_settings_error_naming_the_setting(tmp_path, content, message):
+    config = tmp_path / "c.toml"
+    config.write_text(content)
+
+    with pytest.raises(SettingsError, match=message):
+        Settings.load(config_file=config, env={})
+
+
+def test_env_tokens_parse_roles_joined_with_plus():
+    assert parse_tokens("t1:admin, t2:stream+viewer") == {
+        "t1": frozenset({"admin"}),
+        "t2": frozenset({"stream", "viewer"}),
+    }
+    with pytest.raises(SettingsError):
+        parse_tokens("no-roles-here")
+
+
+def test_settings_survive_the_json_trip_to_worker_processes(tmp_path):
+    settings = Settings(rigs_dir=tmp_path, port=0, tokens={"x": {"stream"}}, idle_timeout=2.5)
+
+    assert Settings.from_json(settings.to_json()) == settings
+
+
+# -- store ----------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def store(tmp_path) -> RigStore:
+    s = RigStore(tmp_path / "rigs")
+    s.open()
+    return s
+
+
+def test_concurrent_writes_of_one_id_leave_one_whole_rig(store, rig):
+    other = fit(tiny_example_set(seed=5))
+    blobs = [rig.to_bytes(), other.to_bytes()] * 8
+    barrier = threading.Barrier(len(blobs))
+
+    def put(data: bytes) -> None:
+        barrier.wait()
+        store.put_bytes("same", data)
+
+    threads = [threading.Thread(target=put, args=(b,)) for b in blobs]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+
+    assert store.get("same").checksum in {rig.checksum, other.checksum}
+    assert [p.name for p in store.directory.iterdir()] == ["same.rig"]
+
+
+def test_another_process_replacing_a_rig_is_seen_through_the_cache(tmp_path, rig):
+    other = fit(tiny_example_set(seed=3))
+    worker_a = RigStore(tmp_path)
+    worker_b = RigStore(tmp_path)  # as a second worker process would have
+    worker_a.put_rig("face", rig)
+    assert worker_b.get("face").checksum == rig.checksum
+
+    worker_a.put_rig("face", other)
+
+    assert worker_b.get("face").checksum == other.checksum
+
+
+def test_cached_rig_is_reused_while_the_file_is_unchanged(store, rig):
+    store.put_rig("face", rig)
+
+    assert store.get("face") is store.get("face")
+
+
+def test_deleted_rig_is_gone_for_other_workers_too(tmp_path, rig):
+    worker_a, worker_b = RigStore(tmp_path), RigStore(tmp_path)
+    worker_a.put_rig("face", rig)
+    worker_b.get("face")
+
+    worker_a.delete("face")
+
+    with pytest.raises(RigNotFoundError):
+        worker_b.get("face")
+
+
+def test_invalid_rig_bytes_write_nothing(store):
+    with pytest.raises(RigFileError):
+        store.put_bytes("bad", b"PK\x03\x04 not really")
+
+    assert list(store.directory.iterdir()) == []
+
+
+def test_stale_temp_files_of_killed_writers_are_removed_at_open(tmp_path):
+    import os
+
+    directory = tmp_path / "rigs"
+    directory.mkdir()
+    stale = directory / ".tmp-face-abc"
+    stale.write_bytes(b"half a rig")
+    os.utime(stale, (0, 0))
+
+    RigStore(directory).open()
+
+    assert not stale.exists()
+
+
+# -- archives -------------------------------------------------------------------------------
+
+LIMITS = ArchiveLimits(max_members=50, max_extracted_bytes=1 << 20, max_compression_ratio=100.0)
+
+_name_part = st.sampled_from(["a", "b", "..", ".", "", "c.txt", "/", "C:", "\\", "x\x00y"])
+
+
+@hsettings(
+    max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(parts=st.lists(_name_part, min_size=1, max_size=5), as_tar=st.booleans())
+def test_any_member_name_lands_inside_the_folder_or_is_refused(tmp_path_factory, parts, as_tar):
+    name = "/".join(parts)
+    assume(name)  # neither format can even store an empty name
+    dest = tmp_path_factory.mktemp("dest")
+    outside = dest.parent
+    before = set(outside.rglob("*"))
+    if as_tar:
+        buffer = io.BytesIO()
+        with tarfile.open(fileobj=buffer, mode="w") as archive:
+            info = tarfile.TarInfo(name)
+            info.size = 2
+            archive.addfile(info, io.BytesIO(b"hi"))
+        data = buffer.getvalue()
+    else:
+        data = zip_bytes({name: b"hi"})
+
+    try:
+        extract_archive(data, dest, LIMITS)
+    except ArchiveError as exc:
+        assert exc.code in {"unsafe_archive_member", "bad_archive", "duplicate_archive_member"}
+    created = set(outside.rglob("*")) - before
+    assert all(Path(p).is_relative_to(dest) for p in created)
+
+
+def test_tar_symlink_and_hardlink_members_are_refused(tmp_path):
+    for kind in (tarfile.SYMTYPE, tarfile.LNKTYPE, tarfile.CHRTYPE, tarfile.FIFOTYPE):
+        buffer = io.BytesIO()
+        with tarfile.open(fileobj=buffer, mode="w") as archive:
+            info = tarfile.TarInfo("facecast.toml")
+            info.type = kind
+            info.linkname = "/etc/passwd"
+            archive.addfile(info)
+        dest = tmp_path / str(kind)
+        dest.mkdir()
+
+        with pytest.raises(ArchiveError) as caught:
+            extract_archive(buffer.getvalue(), dest, LIMITS)
+
+        assert caught.value.code == "unsafe_archive_member"
+        assert list(dest.iterdir()) == []
+
+
+def test_extracted_bytes_are_counted_not_the_declared_sizes(tmp_path):
+    # 2 MB of zeros: the limit trips while streaming, before the member is written out.
+    data = bytearray(zip_bytes({"big": bytes(2 << 20)}))
+    limits = ArchiveLimits(max_members=5, max_extracted_bytes=1 << 20, max_compression_ratio=1e9)
+
+    with pytest.raises(ArchiveError) as caught:
+        extract_archive(bytes(data), tmp_path, limits)
+
+    assert caught.value.code == "archive_too_large"

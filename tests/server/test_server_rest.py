@@ -1,0 +1,281 @@
+"""The /v1 rig API against a real uvicorn: CRUD, fitting uploads and every bad upload."""
+
+from __future__ import annotations
+
+import io
+import zipfile
+
+import httpx
+import numpy as np
+import pytest
+from _server_helpers import (
+    folder_members,
+    tar_bytes,
+    tiny_example_set,
+    write_example_folder,
+    zip_bytes,
+)
+
+from facecast.rig import fit, rig_from_bytes
+from facecast.server.settings import Settings
+from facecast.server.testing import run_server
+
+pytestmark = pytest.mark.anyio
+
+
+def client(server) -> httpx.AsyncClient:
+    return httpx.AsyncClient(base_url=server.base_url, timeout=30)
+
+
+async def test_put_then_get_list_download_delete_round_trip(settings, rig):
+    async with run_server(settings) as server, client(server) as http:
+        put = await http.put("/v1/rigs/face-1", content=rig.to_bytes())
+        listed = await http.get("/v1/rigs")
+        meta = await http.get("/v1/rigs/face-1")
+        downloaded = await http.get("/v1/rigs/face-1/rig")
+        deleted = await http.delete("/v1/rigs/face-1")
+        after = await http.get("/v1/rigs/face-1")
+
+    assert put.status_code == 201 and put.json()["checksum"] == rig.checksum
+    assert [r["id"] for r in listed.json()["rigs"]] == ["face-1"]
+    assert meta.json() == {"id": "face-1", **rig.summary()}
+    assert rig_from_bytes(downloaded.content).checksum == rig.checksum
+    assert deleted.status_code == 204
+    assert after.status_code == 404 and after.json()["code"] == "rig_not_found"
+
+
+async def test_replacing_a_rig_answers_200_and_serves_the_new_one(settings, rig):
+    other = fit(tiny_example_set(seed=7))
+    async with run_server(settings) as server, client(server) as http:
+        first = await http.put("/v1/rigs/face", content=rig.to_bytes())
+        await http.get("/v1/rigs/face")  # load it into the cache
+        second = await http.put("/v1/rigs/face", content=other.to_bytes())
+        meta = await http.get("/v1/rigs/face")
+
+    assert (first.status_code, second.status_code) == (201, 200)
+    assert meta.json()["checksum"] == other.checksum
+
+
+async def test_model_glb_has_one_morph_target_per_example(settings, rig):
+    import pygltflib
+
+    async with run_server(settings) as server, client(server) as http:
+        await http.put("/v1/rigs/face", content=rig.to_bytes())
+        response = await http.get("/v1/rigs/face/model.glb")
+
+    assert response.headers["content-type"] == "model/gltf-binary"
+    gltf = pygltflib.GLTF2.load_from_bytes(response.content)
+    assert len(gltf.meshes[0].primitives[0].targets) == rig.num_examples
+
+
+@pytest.mark.parametrize("kind", ["zip", "tar", "tar.gz", "zip-with-top-folder"])
+async def test_examples_archive_is_fitted_server_side_like_fit(settings, tmp_path, kind):
+    example_set = write_example_folder(tmp_path / "set")
+    members = folder_members(tmp_path / "set", "face/" if kind.endswith("folder") else "")
+    body = zip_bytes(members) if kind.startswith("zip") else tar_bytes(members, gz=kind == "tar.gz")
+    expected = fit(example_set, noise=0.01)
+    points = expected.source_neutral + 0.05
+
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/fitted/examples", params={"noise": 0.01}, content=body)
+        stored = server.app.state.store.get("fitted")
+
+    assert response.status_code == 201, response.text
+    assert response.json()["names"] == list(example_set.names)
+    np.testing.assert_allclose(stored.weights(points), expected.weights(points), atol=1e-5)
+
+
+async def test_fit_error_in_examples_is_422_with_the_engine_code(settings, tmp_path):
+    es = tiny_example_set()
+    # Two identical key-expressions cannot be told apart.
+    source = es.source_points.copy()
+    source[2] = source[1]
+    write_example_folder(
+        tmp_path / "set",
+        type(es)(es.names, source, es.target_vertices, es.target_faces),
+    )
+    body = zip_bytes(folder_members(tmp_path / "set"))
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/bad/examples", content=body)
+
+    assert response.status_code == 422
+    assert response.json()["code"] == "examples_coincide"
+
+
+async def test_unknown_kernel_is_422(settings, tmp_path):
+    write_example_folder(tmp_path / "set")
+    body = zip_bytes(folder_members(tmp_path / "set"))
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/k/examples", params={"kernel": "nope"}, content=body)
+
+    assert response.status_code == 422 and response.json()["code"]
+
+
+# -- bad uploads --------------------------------------------------------------------------
+
+
+def _bad_archives(tmp_path) -> dict[str, tuple[bytes, int, str]]:
+    write_example_folder(tmp_path / "set")
+    good = folder_members(tmp_path / "set")
+    symlink = io.BytesIO()
+    with zipfile.ZipFile(symlink, "w") as archive:
+        info = zipfile.ZipInfo("facecast.toml")
+        info.external_attr = (0o120777) << 16  # a symlink
+        archive.writestr(info, "/etc/passwd")
+    return {
+        "zip-traversal": (zip_bytes({**good, "../evil.txt": b"x"}), 400, "unsafe_archive_member"),
+        "zip-absolute": (zip_bytes({**good, "/tmp/evil": b"x"}), 400, "unsafe_archive_member"),
+        "tar-traversal": (
+            tar_bytes({**good, "a/../../evil": b"x"}, gz=True),
+            400,
+            "unsafe_archive_member",
+        ),
+        "zip-symlink": (symlink.getvalue(), 400, "unsafe_archive_member"),
+        "zip-bomb": (zip_bytes({"bomb.bin": bytes(50_000_000)}), 413, "archive_ratio"),
+        "tar-bomb": (tar_bytes({"bomb.bin": bytes(50_000_000)}, gz=True), 413, "archive_ratio"),
+        "not-an-archive": (b"hello, world" * 100, 415, "unsupported_archive"),
+        "truncated-zip": (zip_bytes(good)[:200], 400, "bad_archive"),
+        "no-manifest": (zip_bytes({"readme.txt": b"hi"}), 422, "bad_example_set"),
+    }
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        "zip-traversal",
+        "zip-absolute",
+        "tar-traversal",
+        "zip-symlink",
+        "zip-bomb",
+        "tar-bomb",
+        "not-an-archive",
+        "truncated-zip",
+        "no-manifest",
+    ],
+)
+async def test_bad_archive_is_refused_with_its_code_and_writes_nothing(settings, tmp_path, case):
+    body, status, code = _bad_archives(tmp_path)[case]
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/evil/examples", content=body)
+        listed = await http.get("/v1/rigs")
+
+    assert (response.status_code, response.json()["code"]) == (status, code), response.text
+    assert listed.json()["rigs"] == []
+    assert not (tmp_path / "evil.txt").exists()
+
+
+async def test_archive_over_member_limit_is_413(tmp_path):
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_archive_members=5)
+    body = zip_bytes({f"f{i}.txt": b"x" for i in range(6)})
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/many/examples", content=body)
+
+    assert (response.status_code, response.json()["code"]) == (413, "archive_too_many_members")
+
+
+async def test_archive_over_extracted_size_limit_is_413(tmp_path):
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_extracted_bytes=10_000)
+    rng = np.random.default_rng(0)
+    body = zip_bytes({"big.bin": rng.bytes(20_000)})  # incompressible: ratio ~1
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/big/examples", content=body)
+
+    assert (response.status_code, response.json()["code"]) == (413, "archive_too_large")
+
+
+async def test_body_over_upload_limit_is_413_from_content_length(tmp_path, rig):
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_upload_bytes=1000)
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/big", content=bytes(4000))
+
+    assert (response.status_code, response.json()["code"]) == (413, "payload_too_large")
+
+
+async def test_chunked_body_over_upload_limit_is_413_while_streaming(tmp_path):
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_upload_bytes=1000)
+
+    async def chunks():
+        for _ in range(8):
+            yield bytes(500)
+
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/big", content=chunks())
+
+    assert "content-length" not in response.request.headers
+    assert (response.status_code, response.json()["code"]) == (413, "payload_too_large")
+
+
+@pytest.mark.parametrize(
+    "rig_id", ["-leading-dash", ".hidden", "a" * 65, "sp ace", "semi;colon", "ü"]
+)
+async def test_bad_rig_id_is_400(settings, rig, rig_id):
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put(f"/v1/rigs/{rig_id}", content=rig.to_bytes())
+
+    assert (response.status_code, response.json()["code"]) == (400, "invalid_rig_id")
+
+
+async def test_traversal_in_rig_id_never_reaches_the_store(settings, rig, tmp_path):
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/..%2Fescaped", content=rig.to_bytes())
+
+    assert response.status_code in (400, 404)
+    assert not (tmp_path / "escaped.rig").exists()
+
+
+@pytest.mark.parametrize("mangle", ["garbage", "truncated", "flipped-byte"])
+async def test_corrupt_rig_file_is_422_and_nothing_is_stored(settings, rig, mangle):
+    data = rig.to_bytes()
+    body = {
+        "garbage": b"not a rig at all",
+        "truncated": data[: len(data) // 2],
+        "flipped-byte": data[:100] + bytes([data[100] ^ 0xFF]) + data[101:],
+    }[mangle]
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/corrupt", content=body)
+        listed = await http.get("/v1/rigs")
+
+    assert response.status_code == 422
+    assert response.json()["code"] in {"bad_rig_file", "checksum_mismatch"}
+    assert listed.json()["rigs"] == []
+
+
+async def test_empty_body_is_400(settings):
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/empty", content=b"")
+
+    assert (response.status_code, response.json()["code"]) == (400, "empty_body")
+
+
+async def test_unknown_rig_is_404_on_every_read(settings):
+    async with run_server(settings) as server, client(server) as http:
+        responses = [
+            await http.get("/v1/rigs/ghost"),
+            await http.get("/v1/rigs/ghost/model.glb"),
+            await http.get("/v1/rigs/ghost/rig"),
+            await http.delete("/v1/rigs/ghost"),
+        ]
+
+    assert [(r.status_code, r.json()["code"]) for r in responses] == [(404, "rig_not_found")] * 4
+
+
+async def test_ops_endpoints_answer_and_docs_are_served(settings, rig):
+    async with run_server(settings) as server, client(server) as http:
+        await http.put("/v1/rigs/face", content=rig.to_bytes())
+        health = await http.get("/healthz")
+        ready = await http.get("/readyz")
+        metrics = await http.get("/metrics")
+        docs = await http.get("/docs")
+        openapi = await http.get("/openapi.json")
+
+    assert health.status_code == ready.status_code == docs.status_code == 200
+    assert 'facecast_http_requests_total{method="PUT",route="/v1/rigs/{rig_id}"' in metrics.text
+    assert "/v1/rigs/{rig_id}/examples" in openapi.json()["paths"]
+
+
+async def test_readyz_fails_when_the_rig_directory_is_gone(settings):
+    async with run_server(settings) as server, client(server) as http:
+        settings.rigs_dir.rmdir()
+        response = await http.get("/readyz")
+
+    assert (response.status_code, response.json()["code"]) == (503, "not_ready")

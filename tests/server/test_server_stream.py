@@ -1,0 +1,482 @@
+"""WS /v1/stream against a real uvicorn, under both of uvicorn's WebSocket implementations."""
+
+from __future__ import annotations
+
+import asyncio
+import statistics
+import time
+
+import msgpack
+import numpy as np
+import pytest
+import websockets
+from _server_helpers import frame_points, open_session, recv_error, recv_message, tiny_rig
+
+from facecast.protocol import (
+    Calibrate,
+    Calibrated,
+    ErrorCode,
+    Frame,
+    Hello,
+    Ping,
+    Pong,
+    Result,
+    Smoothing,
+    encode,
+)
+from facecast.server.settings import Settings
+from facecast.server.testing import run_server
+
+pytestmark = pytest.mark.anyio
+
+
+def connect(server, **kwargs):
+    return websockets.connect(f"{server.ws_url}/v1/stream", subprotocols=["facecast.v1"], **kwargs)
+
+
+def frame(seq: int, points: np.ndarray, ts: float | None = None) -> bytes:
+    return encode(Frame(seq=seq, ts=float(seq) / 60 if ts is None else ts, points=points))
+
+
+async def next_result(ws) -> Result:
+    message = await recv_message(ws)
+    assert isinstance(message, Result), message
+    return message
+
+
+async def wait_until(predicate, timeout: float = 10.0) -> None:
+    """Wait for a condition on the server's state (no event to await across threads)."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        await asyncio.sleep(0.01)
+
+
+@pytest.fixture
+async def served(settings, rig, ws_impl):
+    async with run_server(settings, ws=ws_impl) as server:
+        server.app.state.store.put_rig("face", rig)
+        yield server
+
+
+# -- results ------------------------------------------------------------------------------
+
+
+async def test_weights_f32_equal_rig_weights_exactly(served, rig):
+    points = [frame_points(rig, i) for i in range(5)]
+    async with connect(served) as ws:
+        ready = await open_session(ws, "face")
+        results = []
+        for seq, p in enumerate(points):
+            await ws.send(frame(seq, p, ts=100.0 + seq))
+            results.append(await next_result(ws))
+
+    assert ready.names == rig.names and ready.num_points == rig.num_points
+    for seq, (p, result) in enumerate(zip(points, results, strict=True)):
+        assert (result.seq, result.ts, result.weights.dtype) == (seq, 100.0 + seq, np.float32)
+        np.testing.assert_array_equal(result.weights, rig.weights(p).astype(np.float32))
+
+
+async def test_vertices_f32_equal_rig_blend_exactly(served, rig):
+    p = frame_points(rig, 1)
+    async with connect(served) as ws:
+        await open_session(ws, "face", output="vertices")
+        await ws.send(frame(7, p))
+        result = await next_result(ws)
+
+    assert result.vertices.shape == (rig.num_vertices, 3)
+    np.testing.assert_array_equal(result.vertices, rig.blend(rig.weights(p)))
+
+
+@pytest.mark.parametrize("output", ["weights", "vertices"])
+async def test_f16_results_are_within_f16_tolerance(served, rig, output):
+    p = frame_points(rig, 2)
+    expected = rig.weights(p) if output == "weights" else rig.blend(rig.weights(p))
+    async with connect(served) as ws:
+        await open_session(ws, "face", output=output, dtype="f16")
+        await ws.send(frame(0, p))
+        result = await next_result(ws)
+
+    assert result.values.dtype == np.float16
+    np.testing.assert_allclose(result.values.astype(np.float64), expected, rtol=2e-3, atol=2e-3)
+
+
+async def test_aligned_session_removes_head_pose(served, rig):
+    p = frame_points(rig, 3).astype(np.float64)
+    angle = 0.3
+    rot = np.array(
+        [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
+    )
+    moved = (p @ rot.T + [1.0, 2.0, 3.0]).astype(np.float32)
+    async with connect(served) as ws:
+        await open_session(ws, "face", align=True)
+        await ws.send(frame(0, moved))
+        result = await next_result(ws)
+
+    np.testing.assert_allclose(
+        result.weights, rig.weights(moved, align=True).astype(np.float32), atol=1e-6
+    )
+
+
+async def test_ping_is_answered_with_pong(served):
+    async with connect(served) as ws:
+        await open_session(ws, "face")
+        await ws.send(encode(Ping(id=42, ts=1.5)))
+        pong = await recv_message(ws)
+
+    assert pong == Pong(id=42, ts=1.5)
+
+
+async def test_calibrate_with_points_then_results_use_the_calibrated_rig(served, rig):
+    neutral = frame_points(rig, 10) + np.float32(0.5)
+    p = frame_points(rig, 11) + np.float32(0.5)
+    async with connect(served) as ws:
+        await open_session(ws, "face")
+        await ws.send(encode(Calibrate(points=neutral)))
+        ack = await recv_message(ws)
+        await ws.send(frame(0, p))
+        result = await next_result(ws)
+        await ws.send(encode(Calibrate(reset=True)))
+        reset = await recv_message(ws)
+
+    assert ack == Calibrated(active=True) and reset == Calibrated(active=False)
+    expected = rig.calibrated(neutral).weights(p).astype(np.float32)
+    np.testing.assert_allclose(result.weights, expected, atol=1e-6)
+
+
+async def test_calibrate_without_points_uses_the_next_frame(served, rig):
+    neutral = frame_points(rig, 12)
+    async with connect(served) as ws:
+        await open_session(ws, "face")
+        await ws.send(encode(Calibrate()))
+        await ws.send(frame(5, neutral))
+        ack = await recv_message(ws)
+        result = await next_result(ws)
+
+    assert ack == Calibrated(active=True, seq=5)
+    # The captured neutral maps onto the source neutral: weights of the neutral example.
+    np.testing.assert_allclose(result.weights, np.eye(rig.num_examples)[0], atol=1e-5)
+
+
+@pytest.mark.parametrize("target", ["points", "weights"])
+async def test_smoothing_applies_a_one_euro_filter_clocked_by_frame_ts(served, rig, target):
+    from facecast.rig.filters import OneEuroFilter
+
+    smoothing = Smoothing(min_cutoff=2.0, beta=0.5, target=target)
+    frames = [(frame_points(rig, i), 0.1 * i) for i in range(4)]
+    reference = OneEuroFilter(min_cutoff=2.0, beta=0.5)
+    expected = []
+    for p, ts in frames:
+        if target == "points":
+            smoothed = reference(p.astype(np.float64).reshape(-1), ts).reshape(p.shape)
+            expected.append(rig.weights(smoothed))
+        else:
+            expected.append(reference(rig.weights(p), ts))
+    async with connect(served) as ws:
+        await open_session(ws, "face", smoothing=smoothing)
+        results = []
+        for seq, (p, ts) in enumerate(frames):
+            await ws.send(frame(seq, p, ts=ts))
+            results.append(await next_result(ws))
+
+    for result, want in zip(results, expected, strict=True):
+        np.testing.assert_allclose(result.weights, want.astype(np.float32), atol=1e-6)
+    assert not np.allclose(results[-1].weights, rig.weights(frames[-1][0]), atol=1e-4)
+
+
+# -- bad input: each gets its code, and the server keeps serving ---------------------------
+
+
+def _raw(obj) -> bytes:
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+def _bad_points(rig, **change) -> bytes:
+    p = frame_points(rig, 0)
+    wire = {"dtype": "f32", "shape": list(p.shape), "data": p.tobytes()}
+    wire.update(change)
+    return _raw({"v": 1, "type": "frame", "seq": 9, "ts": 0.0, "points": wire})
+
+
+# name -> (bytes or str to send after a successful hello, expected code)
+def _after_hello_cases(rig) -> dict:
+    k = rig.num_points
+    nan = frame_points(rig, 0)
+    nan[0, 0] = np.nan
+    inf = frame_points(rig, 0)
+    inf[1, 2] = np.inf
+    return {
+        "malformed-msgpack": (b"\xc1\xc1\xc1", ErrorCode.MALFORMED),
+        "binary-garbage": (bytes(range(256)) * 4, ErrorCode.MALFORMED),
+        "text-frame": ("hello", ErrorCode.TEXT_NOT_SUPPORTED),
+        "not-a-map": (_raw([1, 2, 3]), ErrorCode.INVALID_MESSAGE),
+        "missing-type": (_raw({"v": 1, "seq": 1}), ErrorCode.INVALID_MESSAGE),
+        "unknown-type": (_raw({"v": 1, "type": "explode"}), ErrorCode.UNKNOWN_TYPE),
+        "missing-field": (_raw({"v": 1, "type": "frame", "seq": 1}), ErrorCode.INVALID_FIELD),
+        "wrong-k": (frame(1, np.zeros((k + 1, 3), np.float32)), ErrorCode.WRONG_POINT_COUNT),
+        "wrong-dtype": (_bad_points(rig, dtype="i32"), ErrorCode.INVALID_ARRAY),
+        "short-data": (_bad_points(rig, data=b"\x00" * 7), ErrorCode.INVALID_ARRAY),
+        "nan": (frame(1, nan), ErrorCode.NON_FINITE),
+        "inf": (frame(1, inf), ErrorCode.NON_FINITE),
+        "oversized": (
+            _raw({"v": 1, "type": "ping", "pad": bytes(70_000)}),
+            ErrorCode.MESSAGE_TOO_LARGE,
+        ),
+        "second-hello": (encode(Hello(rig="face")), ErrorCode.WRONG_STATE),
+    }
+
+
+CASES = [
+    "malformed-msgpack",
+    "binary-garbage",
+    "text-frame",
+    "not-a-map",
+    "missing-type",
+    "unknown-type",
+    "missing-field",
+    "wrong-k",
+    "wrong-dtype",
+    "short-data",
+    "nan",
+    "inf",
+    "oversized",
+    "second-hello",
+]
+
+
+async def test_each_bad_message_after_hello_gets_its_code_and_the_session_goes_on(
+    tmp_path, rig, ws_impl
+):
+
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_message_bytes=65536)
+    cases = _after_hello_cases(rig)
+    p = frame_points(rig, 4)
+    got = {}
+    async with run_server(settings, ws=ws_impl) as server:
+        server.app.state.store.put_rig("face", rig)
+        async with connect(server) as ws:
+            await open_session(ws, "face")
+            for name in CASES:
+                payload, _ = cases[name]
+                await ws.send(payload)
+                error = await recv_error(ws)
+                got[name] = (error.code, error.fatal)
+            await ws.send(frame(99, p))
+            result = await next_result(ws)
+
+    assert got == {name: (cases[name][1], False) for name in CASES}
+    assert result.seq == 99
+
+
+# name -> (messages to send on a fresh connection, expected code); all fatal.
+FATAL_CASES = {
+    "frame-before-hello": ([frame(0, np.zeros((5, 3), np.float32))], ErrorCode.WRONG_STATE),
+    "garbage-before-hello": ([b"\x00\x01garbage"], ErrorCode.MALFORMED),
+    "text-before-hello": (["hi"], ErrorCode.TEXT_NOT_SUPPORTED),
+    "unknown-version": (
+        [_raw({"v": 99, "type": "hello", "rig": "face"})],
+        ErrorCode.UNSUPPORTED_VERSION,
+    ),
+    "unknown-rig": ([encode(Hello(rig="nobody"))], ErrorCode.UNKNOWN_RIG),
+    "invalid-rig-id": ([encode(Hello(rig="../../etc/passwd"))], ErrorCode.UNKNOWN_RIG),
+    "scale-without-align": (
+        [_raw({"v": 1, "type": "hello", "rig": "face", "options": {"scale": True}})],
+        ErrorCode.INVALID_FIELD,
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(FATAL_CASES))
+async def test_fatal_error_closes_that_session_and_others_are_served(served, rig, case):
+    messages, code = FATAL_CASES[case]
+    p = frame_points(rig, 0)
+    async with connect(served) as healthy:
+        await open_session(healthy, "face")
+        async with connect(served) as bad:
+            for m in messages:
+                await bad.send(m)
+            error = await recv_error(bad)
+            with pytest.raises(websockets.ConnectionClosed):
+                await bad.recv()
+        await healthy.send(frame(1, p))
+        result = await next_result(healthy)
+
+    assert (error.code, error.fatal) == (code, True)
+    assert bad.close_code in (1003, 1008)
+    assert result.seq == 1
+
+
+async def test_message_far_over_the_limit_is_cut_by_the_socket_with_1009(tmp_path, rig, ws_impl):
+
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_message_bytes=4096)
+    async with run_server(settings, ws=ws_impl) as server:
+        server.app.state.store.put_rig("face", rig)
+        async with connect(server) as ws:
+            await open_session(ws, "face")
+            await ws.send(bytes(1_000_000))
+            with pytest.raises(websockets.ConnectionClosed):
+                while True:
+                    await ws.recv()
+
+    assert ws.close_code == 1009
+
+
+# -- flow control ---------------------------------------------------------------------------
+
+
+async def test_flood_of_frames_keeps_only_the_newest_and_counts_drops(tmp_path, ws_impl):
+
+    big = tiny_rig(num_vertices=30_000)
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_fps=1e6, rate_burst=100_000)
+    n = 300
+    p = frame_points(big, 0)
+    async with run_server(settings, ws=ws_impl) as server:
+        server.app.state.store.put_rig("big", big)
+        async with connect(server) as ws:
+            await open_session(ws, "big", output="vertices")
+            await asyncio.gather(*(ws.send(frame(seq, p)) for seq in range(n)))
+            results = []
+            while not results or results[-1].seq != n - 1:
+                results.append(await next_result(ws))
+
+    seqs = [r.seq for r in results]
+    assert seqs == sorted(seqs)  # newest-only never reorders
+    assert len(results) < n  # some were superseded
+    assert len(results) + results[-1].dropped == n  # every frame is a result or a drop
+
+
+async def test_pipelined_frames_reaching_an_idle_session_are_all_processed(served, rig):
+    p = frame_points(rig, 0)
+    seqs = []
+    async with connect(served) as ws:
+        await open_session(ws, "face")
+        for seq in range(0, 40, 2):
+            # Two frames in one burst (usually one TCP segment), then both answers.
+            await asyncio.gather(ws.send(frame(seq, p)), ws.send(frame(seq + 1, p)))
+            seqs += [(await next_result(ws)).seq, (await next_result(ws)).seq]
+
+    assert seqs == list(range(40))
+
+
+async def test_frames_over_the_rate_are_dropped_with_one_rate_limited_error(tmp_path, rig, ws_impl):
+
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_fps=5, rate_burst=3)
+    p = frame_points(rig, 0)
+    async with run_server(settings, ws=ws_impl) as server:
+        server.app.state.store.put_rig("face", rig)
+        async with connect(server) as ws:
+            await open_session(ws, "face")
+            for seq in range(20):
+                await ws.send(frame(seq, p))
+            await ws.send(encode(Ping(id=1, ts=0.0)))
+            messages = []
+            while not isinstance(messages[-1] if messages else None, Pong):
+                messages.append(await recv_message(ws))
+            session = next(iter(server.app.state.sessions))
+
+    errors = [m for m in messages if not isinstance(m, Result | Pong)]
+    assert [(e.code, e.fatal) for e in errors] == [(ErrorCode.RATE_LIMITED, False)]
+    assert session.counters.dropped_rate >= 20 - 3 - 1  # 5 fps refills at most 1 in the burst
+
+
+async def test_client_that_never_reads_is_bounded_and_does_not_slow_others(tmp_path, ws_impl):
+
+    big = tiny_rig(num_vertices=50_000)  # 600 kB per f32 result: socket buffers fill fast
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_fps=1e6, rate_burst=100_000)
+    p = frame_points(big, 0)
+    async with run_server(settings, ws=ws_impl) as server:
+        server.app.state.store.put_rig("big", big)
+        server.app.state.store.put_rig("face", tiny_rig())
+        # max_queue=1: the client library stops reading the socket once one message waits.
+        async with connect(server, max_queue=1, max_size=None, close_timeout=0.5) as stuck:
+            await open_session(stuck, "big", output="vertices")
+            sessions = list(server.app.state.sessions)
+            stuck_session = sessions[0]
+            async with connect(server) as other:
+                await open_session(other, "face")
+                latencies = []
+                for seq in range(400):
+                    await stuck.send(frame(seq, p))
+                    if seq % 4 == 0:
+                        start = time.perf_counter()
+                        await other.send(frame(seq, frame_points(big, 0)[:5]))
+                        await next_result(other)
+                        latencies.append(time.perf_counter() - start)
+            c = stuck_session.counters
+            await wait_until(lambda: c.frames_in == 400)  # the last sends may still be in flight
+            snapshot = (c.frames_in, c.results_out, c.dropped, stuck_session.pending)
+
+    frames_in, results_out, dropped, pending = snapshot
+    assert frames_in == 400
+    assert results_out < 50  # the socket stopped taking results ...
+    # ... and nothing piles up: one frame in the slot, one in the writer's hands.
+    assert frames_in - results_out - dropped <= 2
+    assert pending <= 1
+    assert statistics.median(latencies) < 0.05, latencies
+
+
+async def test_idle_session_gets_idle_timeout_then_close(tmp_path, rig, ws_impl):
+
+    settings = Settings(rigs_dir=tmp_path / "rigs", idle_timeout=0.3)
+    async with run_server(settings, ws=ws_impl) as server:
+        server.app.state.store.put_rig("face", rig)
+        async with connect(server) as ws:
+            await open_session(ws, "face")
+            started = time.monotonic()
+            error = await recv_error(ws, timeout=5)
+            waited = time.monotonic() - started
+            with pytest.raises(websockets.ConnectionClosed):
+                await ws.recv()
+
+    assert (error.code, error.fatal) == (ErrorCode.IDLE_TIMEOUT, True)
+    assert 0.25 < waited < 3
+    assert ws.close_code == 1008
+
+
+async def test_connection_over_the_limit_gets_overloaded(tmp_path, rig, ws_impl):
+
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_connections=1)
+    async with run_server(settings, ws=ws_impl) as server:
+        server.app.state.store.put_rig("face", rig)
+        async with connect(server) as first:
+            await open_session(first, "face")
+            async with connect(server) as second:
+                await second.send(encode(Hello(rig="face")))
+                error = await recv_error(second)
+                with pytest.raises(websockets.ConnectionClosed):
+                    await second.recv()
+
+    assert (error.code, error.fatal) == (ErrorCode.OVERLOADED, True)
+    assert second.close_code == 1013
+
+
+async def test_shutdown_closes_open_sessions_with_1001(settings, rig, ws_impl):
+    async with run_server(settings, ws=ws_impl) as server:
+        server.app.state.store.put_rig("face", rig)
+        ws = await connect(server)
+        await open_session(ws, "face")
+        server.server.should_exit = True
+        with pytest.raises(websockets.ConnectionClosed):
+            while True:
+                await asyncio.wait_for(ws.recv(), 10)
+
+    assert ws.close_code == 1001
+
+
+async def test_metrics_count_frames_results_and_errors(served, rig):
+    import httpx
+
+    async with connect(served) as ws:
+        await open_session(ws, "face")
+        await ws.send(frame(0, frame_points(rig, 0)))
+        await next_result(ws)
+        await ws.send(b"\xc1")
+        await recv_error(ws)
+        async with httpx.AsyncClient(base_url=served.base_url) as http:
+            text = (await http.get("/metrics")).text
+
+    assert "facecast_connections 1.0" in text
+    assert "facecast_frames_in_total 1.0" in text
+    assert "facecast_frames_out_total 1.0" in text
+    assert 'facecast_errors_total{code="MALFORMED"} 1.0' in text
+    assert "facecast_processing_seconds_count 1.0" in text
