@@ -23,9 +23,11 @@ __all__ = [
     "cloning_error",
     "default_settings",
     "evaluate",
+    "jitter",
     "least_squares_weights",
     "median_call_seconds",
     "nnls_weights",
+    "smoothing_report",
     "timing_table",
 ]
 
@@ -298,8 +300,8 @@ def default_settings(noise: float = 0.0, kernels: Sequence[str] = KERNELS) -> li
     """Rig settings worth comparing at input noise ``noise`` (std, source units).
 
     The thesis's rig (B-spline, no regularisation); with noise, the regularised rig at
-    noise/2, noise and 2 noise; every other kernel in ``kernels`` and the [0, 1] clamp at
-    the input noise (unregularised without noise).
+    noise/2, noise and 2 noise; every other kernel in ``kernels``; and the bounded rigs
+    (``clamp`` nonneg and unit, the metric projection) at the input noise and twice it.
     """
     noise = float(noise)
     settings: list[dict] = [{"noise": 0.0}]
@@ -308,7 +310,10 @@ def default_settings(noise: float = 0.0, kernels: Sequence[str] = KERNELS) -> li
     for kernel in kernels:
         if kernel != "bspline":
             settings.append({"kernel": kernel, "noise": noise})
-    settings.append({"clamp": "unit", "noise": noise})
+    for clamp in ("nonneg", "unit"):
+        settings.append({"clamp": clamp, "noise": noise})
+        if noise > 0:
+            settings.append({"clamp": clamp, "noise": 2.0 * noise})
     return settings
 
 
@@ -477,3 +482,68 @@ def evaluate(
         "errors": errors,
         "timing": timing_report,
     }
+
+
+def jitter(frames) -> float:
+    """RMS second difference between consecutive frames: how much a series shakes.
+
+    Parameters
+    ----------
+    frames : (F, ...) float
+        Any per-frame quantity (weights, vertices); F >= 3.
+
+    Returns
+    -------
+    float, in the frames' units per frame^2 (0 for a series moving at constant speed).
+    """
+    x = np.asarray(frames, dtype=np.float64).reshape(len(frames), -1)
+    if len(x) < 3:
+        raise InputError(f"jitter needs at least 3 frames, got {len(x)}")
+    second = x[2:] - 2.0 * x[1:-1] + x[:-2]
+    return float(np.sqrt(np.mean(second * second)))
+
+
+def smoothing_report(
+    rig: Rig,
+    clean_points,
+    noisy_points,
+    truth_vertices,
+    *,
+    fps: float,
+    min_cutoff: float = 1.0,
+    beta: float = 0.0,
+    d_cutoff: float = 1.0,
+) -> dict:
+    """Jitter and error of a noisy take cloned raw and through the one-euro filter.
+
+    The filter runs on the source feature points, as a streaming session does with
+    ``smoothing`` in its ``hello``. Jitter is of the cloned target vertices, in % of the
+    truth's bounding-box diagonal per frame^2; ``error`` is ``cloning_error``'s RMS %.
+
+    Returns
+    -------
+    dict (JSON-able): ``settings``, and for ``truth``, ``clean``, ``noisy`` and ``filtered``
+    the ``jitter`` (and ``rms_percent`` error for the cloned ones).
+    """
+    from .filters import OneEuroFilter
+
+    clean = np.asarray(clean_points, dtype=np.float64)
+    noisy = np.asarray(noisy_points, dtype=np.float64)
+    truth = _sanitize_frames("truth", truth_vertices, (len(clean), rig.num_vertices, 3))
+    if noisy.shape != clean.shape:
+        raise InputError(f"noisy points {noisy.shape} differ from clean points {clean.shape}")
+    times = np.arange(len(clean)) / float(fps)
+    one_euro = OneEuroFilter(min_cutoff=min_cutoff, beta=beta, d_cutoff=d_cutoff)
+    filtered = one_euro.filter_series(noisy.reshape(len(noisy), -1), times).reshape(noisy.shape)
+    _, diagonal = _truth_terms(truth)
+    report = {
+        "settings": {"min_cutoff": min_cutoff, "beta": beta, "d_cutoff": d_cutoff, "fps": fps},
+        "truth": {"jitter": jitter(truth) / diagonal * 100.0},
+    }
+    for name, points in (("clean", clean), ("noisy", noisy), ("filtered", filtered)):
+        vertices = rig.blend(rig.weights(points))
+        report[name] = {
+            "jitter": jitter(vertices) / diagonal * 100.0,
+            "rms_percent": cloning_error(truth, vertices)["rms_percent"],
+        }
+    return report

@@ -44,7 +44,13 @@ def register(subparsers) -> None:
     )
     transport.add_argument("--json", metavar="FILE", help="write the figures as JSON")
     transport.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds")
-    transport.add_argument("--clients", type=int, default=1, metavar="N", help="clients")
+    transport.add_argument(
+        "--clients",
+        type=int,
+        default=20,
+        metavar="N",
+        help="concurrent vertices-mode connections at 60 fps (default 20)",
+    )
     transport.set_defaults(func=_runner("transport"))
 
     broadcast = sub.add_parser(

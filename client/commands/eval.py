@@ -53,6 +53,12 @@ def register(subparsers) -> None:
     parser.add_argument("--fps", type=float, default=60.0, help="frame rate (demo/ICT)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the animation and noise")
     parser.add_argument("--no-timing", action="store_true", help="skip the timing table")
+    parser.add_argument(
+        "--smoothing",
+        metavar="MIN_CUTOFF,BETA",
+        default="1.0,0.0",
+        help="one-euro filter settings for the jitter table shown with --noise (default 1.0,0.0)",
+    )
     parser.add_argument("--json", metavar="FILE", help="write the full report as JSON")
     parser.add_argument("--plots", metavar="DIR", help="write PNG plots into DIR")
     parser.set_defaults(func=run)
@@ -186,6 +192,41 @@ def _write_plots(folder: Path, data: _Data, report: dict, fps: float) -> list[Pa
     return [w for w in written if w is not None]
 
 
+def _smoothing(args, data: _Data, report: dict) -> dict:
+    """Jitter of the noisy take cloned raw and through the one-euro filter (a table, printed)."""
+    import numpy as np
+
+    from facecast.client.cli import CommandError
+    from facecast.rig import fit
+    from facecast.rig.evaluate import smoothing_report
+
+    try:
+        min_cutoff, beta = (float(v) for v in args.smoothing.split(","))
+    except ValueError:
+        raise CommandError(f"--smoothing must be MIN_CUTOFF,BETA, got {args.smoothing!r}") from None
+    label = next(lbl for lbl, entry in report["methods"].items() if not entry.get("failed"))
+    rig = fit(data.examples, **report["methods"][label]["settings"])
+    clean = data.animation.points
+    noisy = clean + np.random.default_rng(args.seed).normal(0.0, args.noise, size=clean.shape)
+    table = smoothing_report(
+        rig, clean, noisy, data.truth, fps=data.animation.fps, min_cutoff=min_cutoff, beta=beta
+    )
+    table["rig"] = label
+    print(
+        f"\njitter (RMS 2nd difference of the cloned vertices, % of diagonal per frame^2), {label}:"
+    )
+    print(f"  {'input':<10}{'jitter':>12}{'RMS error %':>14}")
+    print(f"  {'truth':<10}{table['truth']['jitter']:>12.5f}{'':>14}")
+    for name in ("clean", "noisy", "filtered"):
+        row = table[name]
+        print(f"  {name:<10}{row['jitter']:>12.5f}{row['rms_percent']:>14.4f}")
+    print(
+        f"  one-euro filter (min_cutoff {min_cutoff:g}, beta {beta:g}) on the noisy points: "
+        f"jitter x{table['filtered']['jitter'] / max(table['noisy']['jitter'], 1e-300):.2f}"
+    )
+    return table
+
+
 def run(args: argparse.Namespace) -> int:
     from facecast.client.cli import CommandError
     from facecast.client.report import format_error_table, format_timing_table, write_json
@@ -228,6 +269,8 @@ def run(args: argparse.Namespace) -> int:
     if report["timing"] is not None:
         print()
         print(format_timing_table(report["timing"], num_examples=report["num_examples"]))
+    if args.noise > 0 and data.truth is not None:
+        report["smoothing"] = _smoothing(args, data, report)
     if args.plots is not None:
         for path in _write_plots(Path(args.plots), data, report, data.animation.fps):
             print(f"wrote {path}", file=sys.stderr)

@@ -1,0 +1,73 @@
+"""``facecast loadtest`` and ``facecast bench transport`` against real servers (no timing asserts)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from facecast.client.cli import main
+
+from ._stream_fixtures import RIG_ID, demo_rig, live_server, rigs_dir
+
+__all__ = ["demo_rig", "live_server", "rigs_dir"]  # fixtures used by name
+
+REPORT_KEYS = {
+    "clients", "fps", "duration", "sent", "received", "dropped", "errors", "throughput_fps",
+    "per_client_fps", "min_client_fps", "latency_ms", "payload_mb_per_s",
+}  # fmt: skip
+LATENCY_KEYS = {"count", "p50_ms", "p95_ms", "p99_ms", "max_ms", "mean_ms"}
+
+
+def test_loadtest_writes_a_json_report_and_a_png_histogram(live_server, tmp_path):
+    report_path, png_path = tmp_path / "load.json", tmp_path / "load.png"
+
+    status = main(
+        [
+            "loadtest", live_server.base_url, "--rig", RIG_ID, "--clients", "3", "--fps", "30",
+            "--duration", "1.5", "--json", str(report_path), "--png", str(png_path), "-q",
+        ]
+    )  # fmt: skip
+
+    assert status == 0
+    report = json.loads(report_path.read_text())
+    assert report.keys() >= REPORT_KEYS
+    assert report["latency_ms"].keys() >= LATENCY_KEYS
+    assert report["clients"] == 3
+    assert len(report["per_client_fps"]) == 3
+    assert report["sent"] == 3 * 45
+    assert 0 < report["received"] <= report["sent"]
+    assert report["errors"] == {}
+    assert png_path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_loadtest_refuses_more_clients_than_its_bound(live_server, capsys):
+    status = main(["loadtest", live_server.base_url, "--rig", RIG_ID, "--clients", "100000"])
+
+    assert status == 2
+    assert "--clients" in capsys.readouterr().err
+
+
+def test_loadtest_against_an_unreachable_server_exits_2(capsys):
+    from facecast.server.testing import free_port
+
+    status = main(
+        ["loadtest", f"http://127.0.0.1:{free_port()}", "--rig", RIG_ID, "--duration", "1"]
+    )
+
+    assert status == 2
+    assert "cannot reach the server" in capsys.readouterr().err
+
+
+def test_bench_transport_smoke_writes_its_json_keys(tmp_path):
+    from facecast.client.bench import transport
+
+    out = tmp_path / "transport.json"
+
+    status = transport.run(argparse.Namespace(json=str(out), duration=0.3, clients=2))
+
+    assert status == 0
+    figures = json.loads(out.read_text())
+    assert {"rtt_p50_ms", "throughput_msgs_per_s", "ratios", "goals", "vertices"} <= figures.keys()
+    assert set(figures["rtt_p50_ms"]) == {"websockets", "fastapi", "facecast"}
+    assert {"rtt_pass", "throughput_pass", "vertices_pass"} <= figures["goals"].keys()
+    assert {"min_client_fps", "mb_per_s", "latency_ms", "pass"} <= figures["vertices"].keys()
