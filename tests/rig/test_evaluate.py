@@ -173,3 +173,33 @@ def test_evaluate_refuses_truth_of_the_wrong_frame_count():
 
     with pytest.raises(InputError, match="truth"):
         evaluate(example_set, points, truth[:4], timing=False)
+
+
+# -- jitter and the one-euro filter ------------------------------------------------------
+def test_jitter_is_zero_at_constant_speed_and_grows_with_noise():
+    from facecast.rig.evaluate import jitter
+
+    ramp = np.linspace(0.0, 1.0, 50)[:, None] * np.ones((1, 6))
+    assert jitter(ramp) == pytest.approx(0.0, abs=1e-15)
+    noisy = ramp + np.random.default_rng(0).normal(0.0, 0.01, ramp.shape)
+    # White noise of std s has second differences of std s * sqrt(6).
+    assert jitter(noisy) == pytest.approx(0.01 * np.sqrt(6.0), rel=0.15)
+
+
+def test_one_euro_filter_reduces_the_jitter_of_a_noisy_clone():
+    from facecast.rig import fit
+    from facecast.rig.demo import (
+        demo_activations,
+        demo_animation,
+        demo_example_set,
+        demo_target_frames,
+    )
+    from facecast.rig.evaluate import smoothing_report
+
+    rig = fit(demo_example_set())
+    animation = demo_animation(3.0, with_vertices=False)
+    truth = demo_target_frames(demo_activations(3.0, 60.0))
+    noisy = animation.points + np.random.default_rng(1).normal(0.0, 0.05, animation.points.shape)
+    report = smoothing_report(rig, animation.points, noisy, truth, fps=60.0, min_cutoff=1.0)
+    assert report["noisy"]["jitter"] > 3.0 * report["clean"]["jitter"]
+    assert report["filtered"]["jitter"] < 0.25 * report["noisy"]["jitter"]
