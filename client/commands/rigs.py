@@ -14,50 +14,42 @@ import sys
 import zipfile
 from pathlib import Path
 
+ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz")
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "rigs",
-        help="list, upload, fit, download and delete rigs on a server",
-        description="Manage rigs on a facecast server (REST API under /v1/rigs).",
+        help="put, list, show, get and remove rigs on a server",
+        description="Manage rigs on a facecast server (REST API under /v1/rigs). URL is the "
+        "server's base URL, e.g. http://127.0.0.1:8000.",
     )
-    parser.add_argument(
-        "--server",
-        default=None,
-        help="server base URL (default $FACECAST_SERVER or http://127.0.0.1:8000)",
-    )
-    parser.add_argument("--token", default=None, help="API token (default $FACECAST_TOKEN)")
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
 
-    sub.add_parser("list", help="list rigs")
-    show = sub.add_parser("show", help="print a rig's metadata as JSON")
-    show.add_argument("id")
+    def action(name: str, help: str, *names: str) -> argparse.ArgumentParser:
+        command = sub.add_parser(name, help=help)
+        command.add_argument("url", metavar="URL", help="server base URL")
+        for arg in names:
+            command.add_argument(arg, metavar=arg.upper())
+        command.add_argument("--token", default=None, help="API token (default $FACECAST_TOKEN)")
+        return command
 
-    upload = sub.add_parser("upload", help="store a fitted rig file under ID")
-    upload.add_argument("id")
-    upload.add_argument("file", type=Path, help="a rig file written by `facecast fit`")
-
-    fit = sub.add_parser(
-        "fit", help="upload an example-set folder or archive and fit it on the server"
+    action("list", "list the rigs")
+    action("show", "print a rig's summary as JSON", "name")
+    put = action(
+        "put",
+        "store a rig: an example-set folder or archive (fitted on the server) or a rig file",
+        "name",
+        "path",
     )
-    fit.add_argument("id")
-    fit.add_argument(
-        "examples", type=Path, help="folder with facecast.toml, or a .zip/.tar/.tar.gz of one"
+    put.add_argument("--noise", type=float, default=None, help="fit: expected landmark noise")
+    put.add_argument("--pca-threshold", type=float, default=None, help="fit: PCA threshold")
+    put.add_argument("--kernel", default=None, help="fit: radial kernel")
+    get = action("get", "save a rig's file (or with --glb its target mesh)", "name", "out")
+    get.add_argument(
+        "--glb", action="store_true", help="save the target mesh with morph targets instead"
     )
-    fit.add_argument("--noise", type=float, default=None)
-    fit.add_argument("--pca-threshold", type=float, default=None)
-    fit.add_argument("--kernel", default=None)
-
-    download = sub.add_parser("download", help="save the rig file")
-    download.add_argument("id")
-    download.add_argument("out", type=Path)
-
-    model = sub.add_parser("model", help="save the target mesh with morph targets (.glb)")
-    model.add_argument("id")
-    model.add_argument("out", type=Path)
-
-    delete = sub.add_parser("delete", help="delete a rig")
-    delete.add_argument("id")
+    action("rm", "remove a rig", "name")
     parser.set_defaults(func=run)
 
 
@@ -75,7 +67,9 @@ def run(args: argparse.Namespace) -> int:
 
     from facecast.client.cli import CommandError
 
-    base = (args.server or os.environ.get("FACECAST_SERVER") or "http://127.0.0.1:8000").rstrip("/")
+    base = args.url.rstrip("/")
+    if not base.startswith(("http://", "https://")):
+        raise CommandError(f"URL must start with http:// or https://, got {args.url!r}")
     token = args.token or os.environ.get("FACECAST_TOKEN")
     headers = {"Authorization": f"Bearer {token}"} if token else {}
 
@@ -94,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
             raise CommandError(f"{method} {path} -> {response.status_code} {what}")
         return response
 
-    rig_path = f"/v1/rigs/{args.id}" if hasattr(args, "id") else ""
+    rig_path = f"/v1/rigs/{args.name}" if hasattr(args, "name") else ""
     if args.action == "list":
         rigs = call("GET", "/v1/rigs").json()["rigs"]
         for rig in rigs:
@@ -103,34 +97,34 @@ def run(args: argparse.Namespace) -> int:
             print("(no rigs)", file=sys.stderr)
     elif args.action == "show":
         print(json.dumps(call("GET", rig_path).json(), indent=2))
-    elif args.action == "upload":
-        response = call("PUT", rig_path, content=args.file.read_bytes())
-        print(f"{'created' if response.status_code == 201 else 'replaced'} {args.id}")
-    elif args.action == "fit":
-        examples = args.examples
-        body = _zip_folder(examples) if examples.is_dir() else examples.read_bytes()
-        params = {
-            k: v
-            for k, v in (
-                ("noise", args.noise),
-                ("pca_threshold", args.pca_threshold),
-                ("kernel", args.kernel),
+    elif args.action == "put":
+        path = Path(args.path)
+        if not path.exists():
+            raise CommandError(f"{path}: no such file or folder")
+        if path.is_dir() or path.name.lower().endswith(ARCHIVE_SUFFIXES):
+            body = _zip_folder(path) if path.is_dir() else path.read_bytes()
+            params = {
+                k: v
+                for k, v in (
+                    ("noise", args.noise),
+                    ("pca_threshold", args.pca_threshold),
+                    ("kernel", args.kernel),
+                )
+                if v is not None
+            }
+            summary = call("PUT", f"{rig_path}/examples", content=body, params=params).json()
+            print(
+                f"fitted {args.name}: M={summary['num_examples']} K={summary['num_points']} "
+                f"V={summary['num_vertices']}"
             )
-            if v is not None
-        }
-        response = call("PUT", f"{rig_path}/examples", content=body, params=params)
-        summary = response.json()
-        print(
-            f"fitted {args.id}: M={summary['num_examples']} K={summary['num_points']} "
-            f"V={summary['num_vertices']}"
-        )
-    elif args.action == "download":
-        args.out.write_bytes(call("GET", f"{rig_path}/rig").content)
+        else:
+            response = call("PUT", rig_path, content=path.read_bytes())
+            print(f"{'created' if response.status_code == 201 else 'replaced'} {args.name}")
+    elif args.action == "get":
+        suffix = "model.glb" if args.glb else "rig"
+        Path(args.out).write_bytes(call("GET", f"{rig_path}/{suffix}").content)
         print(f"wrote {args.out}")
-    elif args.action == "model":
-        args.out.write_bytes(call("GET", f"{rig_path}/model.glb").content)
-        print(f"wrote {args.out}")
-    elif args.action == "delete":
+    elif args.action == "rm":
         call("DELETE", rig_path)
-        print(f"deleted {args.id}")
+        print(f"removed {args.name}")
     return 0

@@ -29,7 +29,13 @@ def register(subparsers) -> None:
     parser.add_argument(
         "source",
         metavar="SOURCE",
-        help="source animation (.npz/.npy, folder of OBJ frames) or 'demo'",
+        help="source animation as 'facecast clone' reads it (.npz/.npy, folder of OBJ "
+        "frames, Live Link .csv with --source-rig, MediaPipe .ndjson) or 'demo'",
+    )
+    parser.add_argument(
+        "--source-rig",
+        metavar="PATH",
+        help="ARKit-named source shapes for a Live Link Face CSV take (see 'facecast clone')",
     )
     parser.add_argument("--rig", required=True, metavar="NAME", help="rig id on the server")
     parser.add_argument(
@@ -95,10 +101,11 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
 
     from facecast.client.cli import CommandError
+    from facecast.client.commands.clone import load_animation
     from facecast.client.connection import connect
     from facecast.client.fetch import fetch_rig
     from facecast.client.streaming import stream_frames, weights_from_vertices
-    from facecast.rig.animation import load_source_animation, write_clone_output
+    from facecast.rig.animation import write_clone_output
 
     if not Path(args.out).absolute().parent.is_dir():
         raise CommandError(f"{Path(args.out).parent}: no such folder for {Path(args.out).name}")
@@ -110,19 +117,7 @@ def run(args: argparse.Namespace) -> int:
         rig = fetch_rig(args.url, args.rig, token=args.token)
     except ValueError as exc:  # a malformed URL
         raise CommandError(str(exc)) from None
-    if args.source == "demo":
-        from facecast.rig.demo import demo_animation
-
-        animation = demo_animation()
-    else:
-        animation = load_source_animation(
-            args.source, feature_indices=rig.feature_indices, num_points=rig.num_points
-        )
-    if animation.num_points != rig.num_points:
-        raise CommandError(
-            f"{args.source} has {animation.num_points} feature points per frame; rig "
-            f"{args.rig!r} needs {rig.num_points}"
-        )
+    animation = load_animation(args.source, rig, seconds=12.0, source_rig=args.source_rig)
     if args.output == "vertices":
         size = animation.num_frames * rig.num_vertices * 3 * 4
         if size > MAX_VERTEX_BYTES:

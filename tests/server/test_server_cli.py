@@ -25,7 +25,8 @@ def parse(module, argv: list[str]) -> argparse.Namespace:
 
 def run_rigs(server, *argv: str, token: str | None = None) -> int:
     extra = ["--token", token] if token else []
-    args = parse(rigs, ["rigs", "--server", server.base_url, *extra, *argv])
+    action, *rest = argv
+    args = parse(rigs, ["rigs", action, server.base_url, *rest, *extra])
     return args.func(args)
 
 
@@ -35,16 +36,16 @@ async def test_rigs_command_uploads_fits_lists_downloads_and_deletes(
     rig.save(tmp_path / "face.rig")
     write_example_folder(tmp_path / "set")
     async with run_server(settings) as server:
-        run_rigs(server, "upload", "face", str(tmp_path / "face.rig"))
-        run_rigs(server, "fit", "fitted", str(tmp_path / "set"), "--noise", "0.01")
+        run_rigs(server, "put", "face", str(tmp_path / "face.rig"))
+        run_rigs(server, "put", "fitted", str(tmp_path / "set"), "--noise", "0.01")
         capsys.readouterr()
         run_rigs(server, "list")
         listed = capsys.readouterr().out
         run_rigs(server, "show", "face")
         shown = json.loads(capsys.readouterr().out)
-        run_rigs(server, "download", "face", str(tmp_path / "back.rig"))
-        run_rigs(server, "model", "face", str(tmp_path / "face.glb"))
-        run_rigs(server, "delete", "face")
+        run_rigs(server, "get", "face", str(tmp_path / "back.rig"))
+        run_rigs(server, "get", "face", str(tmp_path / "face.glb"), "--glb")
+        run_rigs(server, "rm", "face")
         remaining = server.app.state.store.list()
 
     assert [line.split("\t")[0] for line in listed.splitlines()] == ["face", "fitted"]
@@ -63,9 +64,16 @@ async def test_rigs_command_reports_the_server_error_code(auth_settings):
 
 
 def test_rigs_command_reports_an_unreachable_server():
-    args = parse(rigs, ["rigs", "--server", "http://127.0.0.1:9", "list"])
+    args = parse(rigs, ["rigs", "list", "http://127.0.0.1:9"])
 
     with pytest.raises(CommandError, match="cannot reach"):
+        args.func(args)
+
+
+def test_rigs_put_of_a_missing_path_names_it(tmp_path):
+    args = parse(rigs, ["rigs", "put", "http://127.0.0.1:9", "x", str(tmp_path / "nope")])
+
+    with pytest.raises(CommandError, match="nope: no such file"):
         args.func(args)
 
 
