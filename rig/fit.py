@@ -28,6 +28,8 @@ COINCIDE_RELATIVE = 1e-4
 # Examples whose nearest neighbour is closer than this fraction of the median nearest
 # distance collapse together: distinguishable only in the absence of any noise.
 COLLAPSE_RELATIVE = 0.05
+# Residuals of the hyperplanes below this are rounding: the radial part is then zero.
+EXACT_LINEAR = 1e-10
 # A radial system worse conditioned than this is not solved unregularised.
 MAX_CONDITION = 1e10
 
@@ -228,6 +230,11 @@ def fit(
                 code="singular_system",
             )
         radial_coeffs = scipy.linalg.solve(basis, residuals)
+    if np.abs(residuals).max() <= EXACT_LINEAR:
+        # The hyperplanes already interpolate every example (M - 1 <= n and the examples are
+        # affinely independent): the radial terms would only fit rounding noise. Exact zeros
+        # let evaluation skip them.
+        radial_coeffs = np.zeros_like(radial_coeffs)
 
     model = WeightModel.build(
         kernel=kernel,

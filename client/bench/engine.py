@@ -149,6 +149,7 @@ def run(args: argparse.Namespace) -> int:
 
     from facecast.client.cli import CommandError
     from facecast.client.report import write_json
+    from facecast.rig.kernel import description as kernel_description
 
     if args.repeat < 1:
         raise CommandError(f"--repeat must be at least 1, got {args.repeat}")
@@ -160,6 +161,8 @@ def run(args: argparse.Namespace) -> int:
         f"V = {example_set.num_vertices}; median of {args.repeat} runs",
         file=sys.stderr,
     )
+    single_frame_path = kernel_description()
+    print(f"single-frame weights: {single_frame_path}", file=sys.stderr)
     figures = measure(example_set, repeat=args.repeat)
     print(format_figures(figures))
     passed = sum(f["pass"] for f in figures.values())
@@ -183,6 +186,7 @@ def run(args: argparse.Namespace) -> int:
                     "machine": platform.machine(),
                     "cpu_count": os.cpu_count(),
                     "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
+                    "single_frame_weights": single_frame_path,
                 },
             },
         )

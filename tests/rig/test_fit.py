@@ -274,3 +274,15 @@ def test_no_warning_on_well_separated_examples(example_set):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         fit(example_set)
+
+
+def test_radial_terms_vanish_when_the_hyperplanes_interpolate(example_set, rig):
+    # M - 1 = 8 examples in 8 kept dimensions: affine interpolation is already exact.
+    assert rig.fit_report["components_kept"] == M - 1
+    assert not np.any(rig.model.radial_coeffs)
+    np.testing.assert_allclose(rig.weights(example_set.source_points), np.eye(M), atol=1e-10)
+
+
+def test_radial_terms_remain_when_examples_outnumber_the_dimensions():
+    rig = fit(make_set(m=20, k=2, seed=3))
+    assert np.abs(rig.model.radial_coeffs).max() > 1e-3

@@ -41,7 +41,7 @@ def test_truncated_file_is_refused(rig_bytes, cut):
 
 def test_tampered_array_fails_the_checksum(rig_bytes):
     def change(arrays):
-        arrays["radial_coeffs"] = arrays["radial_coeffs"] * 1.0001
+        arrays["linear_coeffs"] = arrays["linear_coeffs"] * 1.0001
 
     with pytest.raises(RigFileError, match="checksum") as info:
         rig_from_bytes(_rewrite(rig_bytes, change))

@@ -1,0 +1,89 @@
+"""The compiled single-frame weight kernel (``facecast.rig._kernel``), or None without it.
+
+Builds a kernel from a fitted model's arrays when the extension is built and not disabled;
+it must not change what the weights mean: the numpy path in ``rig.WeightModel`` stays the
+reference, and the kernel agrees with it to rounding (about 1e-15 relative, not bit for bit:
+the sums run in another order, and FMA rounds once where numpy rounds twice).
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+try:
+    from . import _kernel
+except ImportError:  # not built (no C compiler at install time): numpy does the work
+    _kernel = None
+
+__all__ = ["DISABLE_ENV", "bspline_kernel", "compiled", "description"]
+
+# Set to anything but "" or "0" to force the numpy path (read when a rig is built).
+DISABLE_ENV = "FACECAST_NO_KERNEL"
+
+
+def compiled() -> bool:
+    """Whether the extension is built and importable."""
+    return _kernel is not None
+
+
+def _disabled() -> bool:
+    return os.environ.get(DISABLE_ENV, "") not in ("", "0")
+
+
+def description() -> str:
+    """One line for reports: which single-frame path new rigs take, and why."""
+    if _kernel is None:
+        return "numpy (facecast.rig._kernel not built)"
+    if _disabled():
+        return f"numpy ({DISABLE_ENV} is set)"
+    return f"compiled (facecast.rig._kernel, {_kernel.ISA})"
+
+
+def bspline_kernel(
+    project: np.ndarray,
+    param_offset: np.ndarray,
+    linear_coeffs: np.ndarray,
+    params: np.ndarray,
+    alpha: np.ndarray,
+    radial_coeffs: np.ndarray,
+):
+    """A compiled B-spline weight kernel for one model, or None (not built, or disabled).
+
+    Parameters
+    ----------
+    project : (3K, n) float64
+        Flattened points -> reduced parameters, any input map folded in (eq. 3.7).
+    param_offset : (n,) float64
+        Added to ``x @ project``.
+    linear_coeffs : (n + 1, M) float64
+        Hyperplanes a_il, constant row first (eq. 3.10).
+    params : (M, n) float64
+        The examples' parameters p_j.
+    alpha : (M,) float64
+        Dilation factors, > 0.
+    radial_coeffs : (M, M) float64
+        r_ji (eq. 3.13).
+
+    Returns
+    -------
+    ``_kernel.BsplineKernel`` or None. Its ``evaluate(x, out)`` takes one frame's flattened
+    points x (3K,) float64, writes the M weights into ``out`` (M,) float64 and returns
+    their sum (non-finite when x holds NaN or Inf).
+    """
+    if _kernel is None or _disabled():
+        return None
+
+    def c(array):
+        return np.ascontiguousarray(array, dtype=np.float64)
+
+    return _kernel.BsplineKernel(
+        c(project),
+        c(param_offset),
+        c(linear_coeffs[1:]),
+        c(linear_coeffs[0]),
+        c(params),
+        c(alpha),
+        c(radial_coeffs),
+    )
