@@ -24,6 +24,8 @@ COMMAND_MODULES = (
     "serve",
     "rigs",
     "stream",
+    "publish",
+    "watch",
     "loadtest",
     "bridge",
     "import_",

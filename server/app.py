@@ -21,7 +21,9 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from facecast import __version__
 
 from .auth import authorize, token_from_request
+from .channel_routes import router as channel_router
 from .errors import install_error_handlers, problem
+from .hub import ChannelHub
 from .metrics import CONTENT_TYPE_LATEST, Metrics
 from .rest import router as rest_router
 from .sessions import SessionRegistry
@@ -57,6 +59,7 @@ def create_app(settings: Settings) -> FastAPI:
         app.state.fit_executor = ThreadPoolExecutor(
             settings.fit_threads, thread_name_prefix="facecast-fit"
         )
+        await app.state.channels.start(app.state.clone_executor)
         log.info(
             "server ready",
             extra={
@@ -72,6 +75,7 @@ def create_app(settings: Settings) -> FastAPI:
             # Normally the runner has already closed sessions with 1001; this catches
             # servers stopped any other way.
             await app.state.sessions.close_all(1001, "server shutting down", timeout=1.0)
+            await app.state.channels.close()
             app.state.clone_executor.shutdown(wait=False, cancel_futures=True)
             app.state.fit_executor.shutdown(wait=False, cancel_futures=True)
             log.info("server stopped", extra={"event": "server.stop", "pid": os.getpid()})
@@ -90,10 +94,12 @@ def create_app(settings: Settings) -> FastAPI:
     )
     app.state.metrics = Metrics()
     app.state.sessions = SessionRegistry()
+    app.state.channels = ChannelHub(settings, app.state.store, app.state.metrics)
     app.state.pending_fits = 0
     install_error_handlers(app)
     app.include_router(rest_router)
     app.include_router(stream_router)
+    app.include_router(channel_router)
     _add_ops_routes(app)
     mount_viewer(app, settings)
     app.add_middleware(_AccessLog, metrics=app.state.metrics, enabled=settings.access_log)
@@ -120,6 +126,9 @@ def _add_ops_routes(app: FastAPI) -> None:
             await anyio.to_thread.run_sync(store.check_readable)
         except OSError as exc:
             return problem(503, "not_ready", f"rig store: {exc}")
+        reason = request.app.state.channels.not_ready_reason()
+        if reason is not None:
+            return problem(503, "not_ready", reason)
         return Response('{"status":"ready"}', media_type="application/json")
 
     @app.get("/metrics", tags=["ops"], summary="Prometheus metrics")

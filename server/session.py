@@ -1,8 +1,9 @@
 """One streaming session: a reader task, a one-slot frame mailbox and a writer task.
 
 The reader keeps reading and replacing the single pending frame (older ones are dropped
-and counted); the writer clones the newest frame in a worker thread and sends. Memory
-per session is bounded whatever the client does. No auth and no admission here.
+and counted); the writer clones the frame it holds (on the loop when cheap, else in a
+worker thread) and sends. Memory per session is bounded whatever the client does. No
+auth and no admission here.
 """
 
 from __future__ import annotations
@@ -39,11 +40,12 @@ from facecast.protocol import (
 from facecast.rig.errors import InputError, RigError
 from facecast.rig.filters import OneEuroFilter
 
+from .blending import BlendBatcher
 from .metrics import Metrics
 from .settings import Settings
 from .store import RigNotFoundError, RigStore, valid_rig_id
 
-__all__ = ["Session", "SessionCounters"]
+__all__ = ["INLINE_MAX_SECONDS", "Session", "SessionCounters", "blend_seconds"]
 
 log = logging.getLogger("facecast.server.session")
 
@@ -55,6 +57,22 @@ _MAX_CONTROL = 32
 _CLOSE_GRACE = 1.0
 #: A client over its rate gets at most one RATE_LIMITED error per this many seconds.
 _RATE_ERROR_INTERVAL = 1.0
+#: A vertices frame whose clone is estimated (``blend_seconds``) to take at most this
+#: long is cloned on the event loop; costlier ones go to the clone pool, batched with
+#: other sessions' frames (``blending``). Weights-only frames always run on the loop
+#: (tens of µs). See SERVER.md, "Streaming choices".
+INLINE_MAX_SECONDS = 0.0005
+#: Cold-cache cost per vertex coordinate (this machine, one BLAS thread): a blend reads
+#: the (M, 3V) float32 basis once, ~0.16 ns per multiply-add when it is not in cache, and
+#: casting to f16 plus encoding and sending the result cost ~3 ns.
+_SECONDS_PER_MAC = 0.16e-9
+_SECONDS_PER_COORDINATE = 3e-9
+#: Frames that arrived together are cloned in order for at most this long after the
+#: first of them was read; later ones in the same burst replace one another (§8).
+_BURST_SECONDS = 0.005
+#: Encoded results the reader may leave for the writer (at least one is always
+#: allowed); past this, frames wait in the mailbox and newer ones replace them (§8).
+_MAX_OUTBOX_BYTES = 256 * 1024
 
 
 @dataclass
@@ -109,6 +127,7 @@ class Session:
     websocket : starlette WebSocket, already accepted
     settings, store, metrics : the app's
     executor : the app's clone thread pool, shared by all sessions of this worker
+    blender : the app's blend batcher (over ``executor``); default: one of this session's
     """
 
     def __init__(
@@ -119,6 +138,7 @@ class Session:
         store: RigStore,
         metrics: Metrics,
         executor: Executor,
+        blender: BlendBatcher | None = None,
         principal: str = "anonymous",
     ) -> None:
         self.id = secrets.token_hex(8)
@@ -127,6 +147,7 @@ class Session:
         self.store = store
         self.metrics = metrics
         self.executor = executor
+        self.blender = blender if blender is not None else BlendBatcher(executor)
         self.principal = principal
         self.counters = SessionCounters()
         self.protocol = ServerProtocol(
@@ -138,26 +159,41 @@ class Session:
         self._rig: Any = None
         self._calibrate_next = False
         self._smoother: _Smoother | None = None
+        self._outputs: _Outputs | None = None
+        self._inline = True  # whether frames are cloned on the loop (set by hello)
         self._bucket = _TokenBucket(settings.max_fps, settings.rate_burst)
         self._last_rate_error = -1e9
-        # The one-slot mailbox: (frame, arrival perf_counter) or None.
+        # Frames as (frame, arrival perf_counter). ``_held`` is the one the writer clones
+        # next (or is cloning); ``_pending`` is the one-slot mailbox behind it, where a
+        # newer frame replaces an older one (§8). So at most two frames per session.
+        self._held: tuple[Frame, float] | None = None
         self._pending: tuple[Frame, float] | None = None
         self._control: deque[bytes] = deque(maxlen=_MAX_CONTROL)
+        # Results cloned by the reader itself (cheap frames while the writer keeps up),
+        # in frame order, waiting for the writer to send them.
+        self._outbox: deque[bytes] = deque()
+        self._outbox_bytes = 0
         self._wake = asyncio.Event()
-        self._stop: asyncio.Future[_Closing] = asyncio.get_running_loop().create_future()
+        self._writer_idle = False
+        self._reader_waited = False
+        self._loop = asyncio.get_running_loop()
+        self._stop: asyncio.Future[_Closing] = self._loop.create_future()
+        self._last_message = self._loop.time()
+        self._idle_timer: asyncio.TimerHandle | None = None
         self._started = time.monotonic()
         self._done = asyncio.Event()
 
     # -- public --------------------------------------------------------------------------
     @property
     def pending(self) -> int:
-        """Frames waiting to be cloned: 0 or 1, by construction."""
+        """Frames waiting in the mailbox (not yet held by the writer): 0 or 1, by construction."""
         return 0 if self._pending is None else 1
 
     async def run(self) -> None:
         """Run until the client leaves, a fatal error, the idle timeout or ``close``."""
         reader = asyncio.create_task(self._read_loop(), name=f"session-{self.id}-reader")
         writer = asyncio.create_task(self._write_loop(), name=f"session-{self.id}-writer")
+        self._arm_idle_timer()
         ending: _Closing | None = None
         try:
             done, _ = await asyncio.wait(
@@ -187,6 +223,8 @@ class Session:
                         ending = task.result()
                         break
         finally:
+            if self._idle_timer is not None:
+                self._idle_timer.cancel()
             for task in (reader, writer):
                 task.cancel()
             await asyncio.gather(reader, writer, return_exceptions=True)
@@ -201,21 +239,41 @@ class Session:
             self._stop.set_result(_Closing(code, reason))
         await self._done.wait()
 
+    # -- idle timeout --------------------------------------------------------------------
+    def _arm_idle_timer(self) -> None:
+        # One timer per idle period, re-armed from the last message's time when it fires,
+        # instead of a timeout scope around every receive (a timer per message).
+        when = self._last_message + self.settings.idle_timeout
+        self._idle_timer = self._loop.call_at(when, self._check_idle)
+
+    def _check_idle(self) -> None:
+        if self._stop.done():
+            return
+        if self._loop.time() < self._last_message + self.settings.idle_timeout:
+            self._arm_idle_timer()
+            return
+        error = ProtocolError(
+            ErrorCode.IDLE_TIMEOUT,
+            f"no message for {self.settings.idle_timeout:g} s; closing",
+            fatal=True,
+        )
+        self.counters.errors += 1
+        self.metrics.errors.labels(ErrorCode.IDLE_TIMEOUT.name).inc()
+        self._stop.set_result(_Closing(close_code(error), "idle timeout", error))
+
     # -- reading -------------------------------------------------------------------------
     async def _read_loop(self) -> None:
+        receive, clock = self.ws.receive, self._loop.time
+        burst_start = 0.0
         while True:
-            try:
-                async with asyncio.timeout(self.settings.idle_timeout):
-                    message = await self.ws.receive()
-            except TimeoutError:
-                error = ProtocolError(
-                    ErrorCode.IDLE_TIMEOUT,
-                    f"no message for {self.settings.idle_timeout:g} s; closing",
-                    fatal=True,
-                )
-                self.counters.errors += 1
-                self.metrics.errors.labels(ErrorCode.IDLE_TIMEOUT.name).inc()
-                raise _Closing(close_code(error), "idle timeout", error) from None
+            self._reader_waited = False
+            self._loop.call_soon(self._mark_reader_waited)
+            message = await receive()
+            self._last_message = clock()
+            if self._reader_waited:
+                # The receive had to wait: this message starts a new burst (messages
+                # that were already queued when the reader got to them belong to one).
+                burst_start = time.perf_counter()
             if message["type"] == "websocket.disconnect":
                 return
             data = message.get("bytes")
@@ -223,9 +281,17 @@ class Session:
                 if data is None:
                     self.protocol.receive_text(message.get("text") or "")
                 decoded = self.protocol.receive(data)
-                await self._dispatch(decoded)
+                if type(decoded) is Frame:
+                    self._on_frame(decoded, time.perf_counter() - burst_start < _BURST_SECONDS)
+                else:
+                    await self._dispatch(decoded)
             except ProtocolError as exc:
                 self._report(exc)
+
+    def _mark_reader_waited(self) -> None:
+        # Scheduled before each receive: it runs before the receive returns only if the
+        # receive suspended (the loop turned), i.e. no message was already queued.
+        self._reader_waited = True
 
     def _report(self, error: ProtocolError) -> None:
         """Queue an error for the client; a fatal one ends the session after it is sent."""
@@ -241,20 +307,19 @@ class Session:
         self._wake.set()
 
     async def _dispatch(self, message: Any) -> None:
-        if isinstance(message, Frame):
-            self._on_frame(message)
-            # Let an idle writer take this frame before the next message is read: frames
-            # that arrived together (pipelined) are then processed, not superseded. Only
-            # frames that come while the writer is busy replace one another (§8).
-            await asyncio.sleep(0)
-        elif isinstance(message, Ping):
+        if isinstance(message, Ping):
             self._queue_control(Pong(id=message.id, ts=message.ts))
         elif isinstance(message, Hello):
             await self._on_hello(message)
         elif isinstance(message, Calibrate):
             await self._on_calibrate(message)
 
-    def _on_frame(self, frame: Frame) -> None:
+    def _on_frame(self, frame: Frame, in_burst: bool) -> None:
+        """Clone a cheap frame at once, or put it in the writer's hands or the mailbox.
+
+        ``in_burst``: the frame was read within ``_BURST_SECONDS`` of the first message
+        of its burst (the messages that were already waiting when the reader got to them).
+        """
         self.counters.frames_in += 1
         self.metrics.frames_in.inc()
         if self._rig is None:  # hello accepted but ready not sent: cannot happen after await
@@ -276,11 +341,36 @@ class Session:
                     )
                 )
             return
-        if self._pending is not None:
-            self.counters.dropped_superseded += 1
-            self.metrics.frames_dropped.labels("superseded").inc()
-        self._pending = (frame, time.perf_counter())
-        self._wake.set()
+        arrived = time.perf_counter()
+        if (
+            self._inline
+            and in_burst
+            and self._held is None
+            and self._pending is None
+            and not self._calibrate_next
+            and (not self._outbox or self._outbox_bytes < _MAX_OUTBOX_BYTES)
+        ):
+            # Cheap and nothing older waits: clone it right here, no hand-over to the
+            # writer task; frames that arrived together are so all answered, in order,
+            # while the writer keeps sending (a blocked send fills the outbox, and then
+            # frames go to the mailbox below).
+            data = self._clone_inline(frame, arrived)
+            if data is not None:
+                self._outbox.append(data)
+                self._outbox_bytes += len(data)
+                if self._writer_idle:
+                    self._wake.set()
+            return
+        item = (frame, arrived)
+        if self._held is None:
+            self._held = item
+        else:
+            if self._pending is not None:
+                self.counters.dropped_superseded += 1
+                self.metrics.frames_dropped.labels("superseded").inc()
+            self._pending = item
+        if self._writer_idle:
+            self._wake.set()
 
     async def _on_hello(self, hello: Hello) -> None:
         if not valid_rig_id(hello.rig):
@@ -308,6 +398,11 @@ class Session:
         self._base_rig = rig
         self._rig = rig
         self._calibrate_next = hello.calibration
+        self._outputs = _Outputs(hello, rig.num_vertices)
+        self._inline = (
+            hello.output == "weights"
+            or blend_seconds(rig.num_vertices, rig.num_examples) <= INLINE_MAX_SECONDS
+        )
         if hello.smoothing is not None:
             sm = hello.smoothing
             self._smoother = _Smoother(
@@ -341,6 +436,7 @@ class Session:
                 "rig": hello.rig,
                 "output": hello.output,
                 "dtype": hello.dtype,
+                "inline": self._inline,
                 "by": self.principal,
             },
         )
@@ -360,6 +456,7 @@ class Session:
     async def _calibrated(self, points: np.ndarray, seq: int | None = None) -> Any:
         loop = asyncio.get_running_loop()
         try:
+            # Re-fitting the projection is milliseconds for large K: in the clone pool.
             return await loop.run_in_executor(self.executor, self._base_rig.calibrated, points)
         except RigError as exc:
             raise ProtocolError(
@@ -368,57 +465,101 @@ class Session:
 
     # -- writing -------------------------------------------------------------------------
     async def _write_loop(self) -> None:
-        loop = asyncio.get_running_loop()
+        send = self.ws.send_bytes
         while True:
-            await self._wake.wait()
-            self._wake.clear()
-            while self._control:
-                await self.ws.send_bytes(self._control.popleft())
-            if self._pending is None:
+            if self._control:
+                await send(self._control.popleft())
                 continue
-            frame, arrived = self._pending
-            self._pending = None
-            if self._calibrate_next:
-                self._calibrate_next = False
+            if self._outbox:
+                data = self._outbox.popleft()
+                self._outbox_bytes -= len(data)
+                await send(data)
+                self.counters.results_out += 1
+                self.metrics.frames_out.inc()
+                continue
+            if self._held is None:
+                # Normally empty here (a pending frame is promoted before each send).
+                self._held, self._pending = self._pending, None
+            if self._held is None:
+                self._wake.clear()
+                self._writer_idle = True
                 try:
-                    self._rig = await self._calibrated(frame.points, frame.seq)
-                except ProtocolError as exc:
-                    self._report(exc)
-                    continue
-                await self.ws.send_bytes(self.protocol.send(Calibrated(active=True, seq=frame.seq)))
-            rig, hello = self._rig, self.hello
-            assert hello is not None
-            try:
-                # Both outputs run in the clone pool: even weights-only evaluation of a
-                # large rig (K in the hundreds, M ~ 50) costs 50-300 us of numpy, and
-                # vertices (V x M matmul) milliseconds; keeping all of it off the loop
-                # means one busy session never delays another's reads or pings.
-                values = await loop.run_in_executor(
-                    self.executor, _clone, rig, frame, hello, self._smoother
-                )
-            except InputError as exc:
-                self._report(
-                    ProtocolError(
-                        ErrorCode.INVALID_ARRAY, f"frame cannot be cloned: {exc}", seq=frame.seq
-                    )
-                )
+                    await self._wake.wait()
+                finally:
+                    self._writer_idle = False
                 continue
-            elapsed = time.perf_counter() - arrived
-            result = Result(
-                seq=frame.seq,
-                ts=frame.ts,
-                weights=values if hello.output == "weights" else None,
-                vertices=values if hello.output == "vertices" else None,
-                proc_us=int(elapsed * 1e6),
-                dropped=self.counters.dropped,
-            )
-            data = self.protocol.send(result)
-            self.metrics.processing_seconds.observe(elapsed)
+            frame, arrived = self._held
+            data = await self._result_bytes(frame, arrived)
+            # Hand the waiting frame to the writer before a send that may block: a frame
+            # arriving meanwhile then waits in the empty mailbox instead of replacing it,
+            # so a client keeping two frames in flight never loses one (§8).
+            self._held, self._pending = self._pending, None
+            if data is None:
+                continue
             # Blocks while the client does not read; the reader keeps replacing the
             # pending frame meanwhile, so nothing piles up.
-            await self.ws.send_bytes(data)
+            await send(data)
             self.counters.results_out += 1
             self.metrics.frames_out.inc()
+
+    async def _result_bytes(self, frame: Frame, arrived: float) -> bytes | None:
+        """The encoded result of ``frame``, or None when it was refused (error queued)."""
+        if self._calibrate_next:
+            self._calibrate_next = False
+            try:
+                self._rig = await self._calibrated(frame.points, frame.seq)
+            except ProtocolError as exc:
+                self._report(exc)
+                return None
+            await self.ws.send_bytes(self.protocol.send(Calibrated(active=True, seq=frame.seq)))
+        if self._inline:
+            return self._clone_inline(frame, arrived)
+        rig, hello, outputs = self._rig, self.hello, self._outputs
+        assert hello is not None and outputs is not None
+        # A large blend (ICT: 27k vertices x 56 examples, 0.3-0.8 ms plus 0.2 ms for the
+        # f16 cast) goes to the clone pool, batched with other sessions' frames on the
+        # same rig; the weights before it are cheap.
+        values = outputs.wire if outputs.wire is not None else outputs.vertices
+        assert values is not None
+        try:
+            weights = _weights(rig, frame, hello, self._smoother)
+            await self.blender.blend(rig, weights, values)
+        except InputError as exc:
+            self._refuse(frame, exc)
+            return None
+        return self._encode(frame, arrived, values)
+
+    def _clone_inline(self, frame: Frame, arrived: float) -> bytes | None:
+        """Clone on the loop (weights: µs; small blends: < INLINE_MAX_SECONDS) and encode."""
+        hello, outputs = self.hello, self._outputs
+        assert hello is not None and outputs is not None
+        try:
+            values = _clone(self._rig, frame, hello, self._smoother, outputs)
+        except InputError as exc:
+            self._refuse(frame, exc)
+            return None
+        return self._encode(frame, arrived, values)
+
+    def _refuse(self, frame: Frame, exc: InputError) -> None:
+        self._report(
+            ProtocolError(ErrorCode.INVALID_ARRAY, f"frame cannot be cloned: {exc}", seq=frame.seq)
+        )
+
+    def _encode(self, frame: Frame, arrived: float, values: np.ndarray) -> bytes:
+        elapsed = time.perf_counter() - arrived
+        vertices = self._outputs is not None and self._outputs.vertices is not None
+        result = Result(
+            seq=frame.seq,
+            ts=frame.ts,
+            weights=None if vertices else values,
+            vertices=values if vertices else None,
+            proc_us=int(elapsed * 1e6),
+            dropped=self.counters.dropped,
+        )
+        # Encoding copies ``values`` out of the session's reused buffers.
+        data = self.protocol.send(result)
+        self.metrics.processing_seconds.observe(elapsed)
+        return data
 
     async def _send_close(self, ending: _Closing) -> None:
         with contextlib.suppress(Exception):
@@ -469,15 +610,51 @@ class _Smoother:
         return self.filter(values.reshape(-1), ts).reshape(values.shape)
 
 
-def _clone(rig: Any, frame: Frame, hello: Hello, smoother: _Smoother | None) -> np.ndarray:
-    """Weights (M,) or vertices (V, 3) of one frame, in the session's wire dtype."""
+class _Outputs:
+    """A session's reused result buffers: (V, 3) float32 blend output, float16 wire copy.
+
+    Used by one clone at a time (the writer's), and each result is encoded (copied)
+    before the next clone starts, so reuse is safe.
+    """
+
+    def __init__(self, hello: Hello, num_vertices: int) -> None:
+        self.dtype = _RESULT_DTYPES[hello.dtype]
+        vertices = hello.output == "vertices"
+        self.vertices = np.empty((num_vertices, 3), np.float32) if vertices else None
+        self.wire = (
+            np.empty((num_vertices, 3), np.float16) if vertices and hello.dtype == "f16" else None
+        )
+
+
+def blend_seconds(num_vertices: int, num_examples: int) -> float:
+    """Estimated cost of one vertices frame (blend, f16 cast, encode, send), seconds."""
+    coordinates = 3 * num_vertices
+    return coordinates * (num_examples * _SECONDS_PER_MAC + _SECONDS_PER_COORDINATE)
+
+
+def _weights(rig: Any, frame: Frame, hello: Hello, smoother: _Smoother | None) -> np.ndarray:
+    """The (M,) float64 weights of one frame, smoothed as the session asked."""
     points = frame.points
     if smoother is not None and smoother.target == "points":
         points = smoother(np.asarray(points, dtype=np.float64), frame.ts)
     weights = rig.weights(points, align=hello.align)
     if smoother is not None and smoother.target == "weights":
         weights = smoother(weights, frame.ts)
-    if hello.output == "weights":
-        return weights.astype(_RESULT_DTYPES[hello.dtype])
-    vertices = rig.blend(weights)
-    return vertices if hello.dtype == "f32" else vertices.astype(np.float16)
+    return weights
+
+
+def _clone(
+    rig: Any, frame: Frame, hello: Hello, smoother: _Smoother | None, outputs: _Outputs
+) -> np.ndarray:
+    """Weights (M,) or vertices (V, 3) of one frame, in the session's wire dtype.
+
+    Vertices are written into ``outputs``' buffers and returned as one of them.
+    """
+    weights = _weights(rig, frame, hello, smoother)
+    if outputs.vertices is None:
+        return weights.astype(outputs.dtype)
+    vertices = rig.blend(weights, out=outputs.vertices)
+    if outputs.wire is None:
+        return vertices
+    np.copyto(outputs.wire, vertices, casting="same_kind")
+    return outputs.wire

@@ -81,6 +81,15 @@ class Settings:
     #: Loaded rigs kept in memory per worker process.
     rig_cache_size: int = 16
 
+    # -- broadcast channels (server/channels.py) --------------------------------------------
+    #: Redis URL spanning channels across processes (``redis://host:6379/0``); empty:
+    #: channels live in this process only.
+    redis_url: str = ""
+    #: Seconds without a frame from a connected publisher before watchers get face_lost.
+    face_lost_after: float = 0.5
+    #: Seconds over which a lost face eases from the last pose to the neutral.
+    face_lost_ease: float = 1.0
+
     # -- operations -----------------------------------------------------------------------
     #: Seconds open sessions get to close (1001) on SIGTERM before they are cut.
     shutdown_timeout: float = 5.0
@@ -118,6 +127,8 @@ class Settings:
             "max_message_bytes",
             "clone_threads",
             "rig_cache_size",
+            "face_lost_after",
+            "face_lost_ease",
         )
         for name in positive:
             if not getattr(self, name) > 0:
@@ -125,6 +136,11 @@ class Settings:
         for name in ("ping_interval", "ping_timeout", "shutdown_timeout"):
             if getattr(self, name) < 0:
                 raise SettingsError(f"{name}: must be >= 0, got {getattr(self, name)!r}")
+        if self.redis_url and not self.redis_url.startswith(("redis://", "rediss://", "unix://")):
+            raise SettingsError(
+                "redis_url: expected redis://host:port[/db], rediss://... or unix://...; "
+                f"got {self.redis_url[:60]!r}"
+            )
 
     # -- derived ------------------------------------------------------------------------
     @property

@@ -23,6 +23,7 @@ from facecast.protocol import (
 )
 
 from .auth import authorize
+from .blending import BlendBatcher
 from .errors import ApiError
 from .session import Session
 from .settings import Settings
@@ -83,12 +84,17 @@ async def stream(websocket: WebSocket) -> None:
         await _refuse(websocket, ProtocolError(code, exc.detail, fatal=True), subprotocol)
         return
 
+    blender = getattr(app.state, "blend_batcher", None)
+    if blender is None:
+        # One per app, so frames of all its sessions on one rig blend together.
+        blender = app.state.blend_batcher = BlendBatcher(app.state.clone_executor)
     session = Session(
         websocket,
         settings=settings,
         store=app.state.store,
         metrics=app.state.metrics,
         executor=app.state.clone_executor,
+        blender=blender,
         principal=principal.name,
     )
     registry = app.state.sessions

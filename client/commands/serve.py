@@ -39,6 +39,12 @@ def register(subparsers) -> None:
         default=None,
         help="require tokens even on a loopback address",
     )
+    parser.add_argument(
+        "--redis",
+        metavar="URL",
+        help="Redis URL spanning broadcast channels across workers and hosts "
+        "(or FACECAST_REDIS_URL; default: channels stay in this process)",
+    )
     parser.add_argument("--log-level", choices=("debug", "info", "warning", "error"))
     parser.add_argument(
         "--ws",
@@ -60,6 +66,7 @@ def settings_from_args(args: argparse.Namespace, env=None):
         "workers": args.workers,
         "auth": args.auth,
         "log_level": args.log_level,
+        "redis_url": getattr(args, "redis", None),
     }
     settings = Settings.load(config_file=args.config, env=env, overrides=overrides)
     if args.token:

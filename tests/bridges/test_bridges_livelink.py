@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import socket
 import struct
 
@@ -270,4 +271,7 @@ async def test_bridged_channel_output_equals_offline_cloning(
         finally:
             receiver.close()
             collector.cancel()
+            # The generator is closed only once the task iterating it has finished.
+            with contextlib.suppress(asyncio.CancelledError):
+                await collector
             await messages.aclose()

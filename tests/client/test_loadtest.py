@@ -71,3 +71,6 @@ def test_bench_transport_smoke_writes_its_json_keys(tmp_path):
     assert set(figures["rtt_p50_ms"]) == {"websockets", "fastapi", "facecast"}
     assert {"rtt_pass", "throughput_pass", "vertices_pass"} <= figures["goals"].keys()
     assert {"min_client_fps", "mb_per_s", "latency_ms", "pass"} <= figures["vertices"].keys()
+    # The server path is driven by the bare client; the library's round trip is apart.
+    assert figures["library_client"]["rtt_ms"]["count"] > 0
+    assert figures["servers"]["facecast"]["pipelined_dropped"] >= 0

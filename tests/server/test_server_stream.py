@@ -358,6 +358,58 @@ async def test_pipelined_frames_reaching_an_idle_session_are_all_processed(serve
     assert seqs == list(range(40))
 
 
+@pytest.mark.parametrize("where", ["inline", "thread"])
+async def test_client_with_two_frames_in_flight_never_loses_one(
+    tmp_path, ws_impl, monkeypatch, where
+):
+    from facecast.server import session as session_module
+
+    # All blends on the loop, or all in the clone pool, whatever the rig's size.
+    limit = 1e9 if where == "inline" else 0.0
+    monkeypatch.setattr(session_module, "INLINE_MAX_SECONDS", limit)
+    # 120 kB results: past the transport's high-water mark, so sends do wait for the
+    # client to read, the window in which a third frame used to replace the second.
+    rig = tiny_rig(num_vertices=10_000)
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_fps=1e6, rate_burst=100_000)
+    n = 60
+    p = frame_points(rig, 0)
+    async with run_server(settings, ws=ws_impl) as server:
+        server.app.state.store.put_rig("mid", rig)
+        async with connect(server, max_size=None) as ws:
+            await open_session(ws, "mid", output="vertices")
+            await ws.send(frame(0, p))
+            await ws.send(frame(1, p))
+            results = []
+            for seq in range(2, n + 2):
+                results.append(await next_result(ws))
+                if seq < n:
+                    await ws.send(frame(seq, p))  # one more each time one comes back
+
+    assert [r.seq for r in results] == list(range(n))
+    assert results[-1].dropped == 0
+    expected = rig.blend(rig.weights(p))
+    np.testing.assert_allclose(results[-1].vertices, expected, rtol=1e-5, atol=1e-5)
+
+
+async def test_idle_timeout_counts_from_the_last_message(tmp_path, rig, ws_impl):
+    settings = Settings(rigs_dir=tmp_path / "rigs", idle_timeout=0.4)
+    p = frame_points(rig, 0)
+    async with run_server(settings, ws=ws_impl) as server:
+        server.app.state.store.put_rig("face", rig)
+        async with connect(server) as ws:
+            await open_session(ws, "face")
+            started = time.monotonic()
+            for seq in range(8):  # 8 frames 0.1 s apart: 0.8 s, twice the timeout
+                await ws.send(frame(seq, p))
+                await next_result(ws)
+                await asyncio.sleep(0.1)  # pacing the client, not waiting for the server
+            busy = time.monotonic() - started
+            error = await recv_error(ws, timeout=5)
+
+    assert busy > 0.8
+    assert (error.code, error.fatal) == (ErrorCode.IDLE_TIMEOUT, True)
+
+
 async def test_frames_over_the_rate_are_dropped_with_one_rate_limited_error(tmp_path, rig, ws_impl):
 
     settings = Settings(rigs_dir=tmp_path / "rigs", max_fps=5, rate_burst=3)
@@ -409,8 +461,9 @@ async def test_client_that_never_reads_is_bounded_and_does_not_slow_others(tmp_p
     frames_in, results_out, dropped, pending = snapshot
     assert frames_in == 400
     assert results_out < 50  # the socket stopped taking results ...
-    # ... and nothing piles up: one frame in the slot, one in the writer's hands.
-    assert frames_in - results_out - dropped <= 2
+    # ... and nothing piles up: one result in the blocked send, one frame held for the
+    # writer after it, one in the mailbox.
+    assert frames_in - results_out - dropped <= 3
     assert pending <= 1
     assert statistics.median(latencies) < 0.05, latencies
 

@@ -1,0 +1,124 @@
+"""``facecast publish``: stream an animation file to a broadcast channel as its publisher.
+
+Maps flags onto the bridges' `FramePublisher` (PROTOCOL.md §2.1 ``.../publish``); it
+writes nothing and clones nothing: viewers (``facecast watch``, the web viewer) do.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "publish",
+        help="stream an animation to a broadcast channel (one performer, many viewers)",
+        description=(
+            "Send every frame of SOURCE to channel CHANNEL on the server at URL. Viewers "
+            "of the channel receive it cloned onto the character they watch. --rig names "
+            "the rig whose feature-point layout SOURCE follows (the publisher's own "
+            "results come back on it). Without --realtime frames go as fast as the "
+            "server's announced max_fps allows."
+        ),
+    )
+    parser.add_argument("url", metavar="URL", help="server base URL, e.g. http://127.0.0.1:8000")
+    parser.add_argument("channel", metavar="CHANNEL", help="channel name (1-256 characters)")
+    parser.add_argument(
+        "source", metavar="SOURCE", help="source animation (.npz/.npy, OBJ folder, ...) or 'demo'"
+    )
+    parser.add_argument(
+        "--rig", default="demo", metavar="NAME", help="layout rig id on the server (default demo)"
+    )
+    parser.add_argument(
+        "--realtime", action="store_true", help="pace frames at the animation's fps"
+    )
+    parser.add_argument("--loop", action="store_true", help="start over at the end, until Ctrl-C")
+    parser.add_argument("--seconds", type=float, default=12.0, help="length of 'demo' (default 12)")
+    parser.add_argument(
+        "--token", help="API token with the publisher role (default: FACECAST_TOKEN)"
+    )
+    parser.add_argument("-q", "--quiet", action="store_true", help="no summary on stderr")
+    parser.set_defaults(func=run)
+
+
+def _animation(args: argparse.Namespace, num_points: int):
+    """The source animation, checked against the channel rig's K."""
+    from facecast.client.cli import CommandError
+
+    if args.source == "demo":
+        from facecast.rig.demo import demo_animation
+
+        animation = demo_animation(args.seconds, with_vertices=False)
+    else:
+        import contextlib
+        from pathlib import Path
+
+        from facecast.client.fetch import ServerRequestError, fetch_rig
+        from facecast.rig.animation import load_source_animation
+
+        if not Path(args.source).exists():
+            raise CommandError(f"{args.source}: no such file or folder (the source animation)")
+        feature_indices = None
+        # Mesh sources need the rig's feature indices; a publisher-only token cannot
+        # read rigs, and point sources do not need them.
+        with contextlib.suppress(ServerRequestError):
+            feature_indices = fetch_rig(args.url, args.rig, token=args.token).feature_indices
+        animation = load_source_animation(
+            args.source, feature_indices=feature_indices, num_points=num_points
+        )
+    if animation.num_points != num_points:
+        raise CommandError(
+            f"{args.source}: {animation.num_points} feature points per frame, rig "
+            f"{args.rig!r} needs {num_points}"
+        )
+    return animation
+
+
+async def publish(args: argparse.Namespace) -> tuple[int, object]:
+    """Publish until the animation ends (or forever with ``--loop``); (frames sent, stats)."""
+    import asyncio
+    import time
+
+    from facecast.client.bridges.channel import FramePublisher, channel_url
+    from facecast.protocol import Hello
+
+    url = channel_url(args.url, args.channel, "publish")
+    async with FramePublisher(url, Hello(rig=args.rig), token=args.token) as publisher:
+        ready = publisher.ready
+        assert ready is not None
+        animation = _animation(args, ready.num_points)
+        fps = animation.fps if args.realtime else 0.9 * float(ready.limits.get("max_fps", 60.0))
+        start = time.perf_counter()
+        sent = 0
+        while True:
+            for points in animation.points:
+                delay = start + sent / fps - time.perf_counter()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                await publisher.send(points, time.time())
+                sent += 1
+            if not args.loop:
+                break
+        return sent, publisher.stats
+
+
+def run(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from facecast.client.cli import CommandError
+    from facecast.client.connection import ConnectionFailed
+
+    try:
+        sent, stats = asyncio.run(publish(args))
+    except ValueError as exc:  # a malformed URL or channel name
+        raise CommandError(str(exc)) from None
+    except ConnectionFailed as exc:
+        raise CommandError(str(exc)) from None
+    if not args.quiet:
+        print(
+            f"facecast publish: {sent} frames to {args.channel!r} (results back {stats.results}, "
+            f"dropped while reconnecting {stats.dropped}, reconnects {stats.reconnects})",
+            file=sys.stderr,
+        )
+    return 0

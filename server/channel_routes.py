@@ -1,0 +1,178 @@
+"""Channel endpoints: ``WS .../publish``, ``WS .../watch``, ``GET /v1/channels[/{name}]``.
+
+Authenticates, validates the name and the watcher's query, admits, then hands the socket
+to a member (``members``); refusals send one protocol ``error`` and close. No channel
+logic lives here.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Request, WebSocket
+
+from facecast.protocol import (
+    PUBLISH_PATH,
+    WATCH_PATH,
+    ErrorCode,
+    Limits,
+    ProtocolError,
+    Ready,
+    ServerProtocol,
+    bearer_token,
+    close_code,
+    select_subprotocol,
+    watch_hello,
+)
+
+from .auth import Principal, authorize, requires
+from .errors import ApiError
+from .hub import ChannelHub
+from .members import PublisherMember, WatcherMember
+from .outbox import Member
+from .settings import Settings
+
+__all__ = ["router"]
+
+log = logging.getLogger("facecast.server.channels")
+
+router = APIRouter(tags=["channels"])
+
+Viewer = Annotated[Principal, Depends(requires("viewer"))]
+
+MAX_NAME = 256
+#: A refused publisher gets this long to send its hello, so it reads the error (see stream).
+_REFUSE_WAIT = 1.0
+
+
+async def _refuse(websocket: WebSocket, error: ProtocolError, subprotocol: str | None,
+                  *, wait_first: bool) -> None:  # fmt: skip
+    """Accept, send ``error`` (fatal), close. A publisher's hello is awaited first."""
+    with contextlib.suppress(Exception):
+        await websocket.accept(subprotocol=subprotocol)
+        if wait_first:
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(_REFUSE_WAIT):
+                    if (await websocket.receive())["type"] == "websocket.disconnect":
+                        return
+        await websocket.send_bytes(ServerProtocol().fail(error))
+        await websocket.close(close_code(error), error.code.name.lower())
+
+
+def _authorize(websocket: WebSocket, role: str) -> Principal:
+    """The caller, or a fatal UNAUTHORIZED / FORBIDDEN ProtocolError."""
+    settings: Settings = websocket.app.state.settings
+    token = bearer_token(
+        authorization=websocket.headers.get("authorization"),
+        subprotocols=list(websocket.scope.get("subprotocols") or ()),
+        query_token=websocket.query_params.get("token"),
+    )
+    try:
+        return authorize(settings, token, (role,))
+    except ApiError as exc:
+        code = ErrorCode.UNAUTHORIZED if exc.status == 401 else ErrorCode.FORBIDDEN
+        raise ProtocolError(code, exc.detail, fatal=True) from None
+
+
+def _check_name(name: str) -> None:
+    if not 1 <= len(name) <= MAX_NAME:
+        raise ProtocolError(
+            ErrorCode.INVALID_FIELD,
+            f"a channel name has 1 to {MAX_NAME} characters, got {len(name)}",
+            fatal=True,
+        )
+
+
+async def _serve(websocket: WebSocket, member: Member, subprotocol: str | None) -> None:
+    """Admit ``member`` (max connections), accept, and run it until it ends."""
+    app = websocket.app
+    registry = app.state.sessions
+    settings: Settings = app.state.settings
+    if not registry.admit(member, settings.max_connections):
+        why = ("the server is shutting down" if registry.closing
+               else f"the server is at its limit of {settings.max_connections} connections")  # fmt: skip
+        app.state.metrics.errors.labels(ErrorCode.OVERLOADED.name).inc()
+        await _refuse(websocket, ProtocolError(ErrorCode.OVERLOADED, why, fatal=True),
+                      subprotocol, wait_first=isinstance(member, PublisherMember))  # fmt: skip
+        await member.leave()
+        return
+    app.state.metrics.connections.inc()
+    try:
+        await websocket.accept(subprotocol=subprotocol)
+        await member.run()
+    finally:
+        registry.remove(member)
+        app.state.metrics.connections.dec()
+        await member.leave()  # idempotent; covers a failed accept
+
+
+@router.websocket(PUBLISH_PATH.replace("{name}", "{name:path}"))
+async def publish(websocket: WebSocket, name: str) -> None:
+    """The channel's one publisher: ``hello`` then frames (PROTOCOL.md §2.1, §5.1)."""
+    hub: ChannelHub = websocket.app.state.channels
+    subprotocol = select_subprotocol(list(websocket.scope.get("subprotocols") or ()))
+    try:
+        principal = _authorize(websocket, "publisher")
+        _check_name(name)
+    except ProtocolError as exc:
+        websocket.app.state.metrics.errors.labels(exc.code.name).inc()
+        await _refuse(websocket, exc.evolve(fatal=True), subprotocol, wait_first=True)
+        return
+    member = PublisherMember(websocket, hub, name, principal.name)
+    await _serve(websocket, member, subprotocol)
+
+
+@router.websocket(WATCH_PATH.replace("{name}", "{name:path}"))
+async def watch(websocket: WebSocket, name: str) -> None:
+    """A viewer of channel ``name`` on one rig (query ``rig``, ``output``, ``dtype``)."""
+    hub: ChannelHub = websocket.app.state.channels
+    settings: Settings = websocket.app.state.settings
+    subprotocol = select_subprotocol(list(websocket.scope.get("subprotocols") or ()))
+    limits = Limits(max_message_bytes=settings.max_message_bytes)
+    try:
+        principal = _authorize(websocket, "viewer")
+        _check_name(name)
+        hello = watch_hello(websocket.query_params, limits)
+        rig = await hub.load_rig(hello.rig)
+    except ProtocolError as exc:
+        websocket.app.state.metrics.errors.labels(exc.code.name).inc()
+        await _refuse(websocket, exc.evolve(fatal=True), subprotocol, wait_first=False)
+        return
+    channel = await hub.open_channel(name)
+    member = WatcherMember(websocket, channel, hello, limits)
+    member.offer(
+        member.protocol.send(
+            Ready(
+                session=member.id,
+                rig=hello.rig,
+                names=rig.names,
+                num_points=rig.num_points,
+                num_vertices=rig.num_vertices,
+                output=hello.output,
+                dtype=hello.dtype,
+                limits={"max_message_bytes": int(settings.max_message_bytes)},
+            )
+        )
+    )
+    channel.add_watcher(member, rig)
+    log.info("watcher joined", extra={"event": "channel.watch", "channel": name,
+                                      "rig": hello.rig, "by": principal.name})  # fmt: skip
+    await _serve(websocket, member, subprotocol)
+
+
+@router.get("/v1/channels", summary="Channels with a publisher or viewers")
+async def list_channels(request: Request, _: Viewer) -> dict[str, Any]:
+    hub: ChannelHub = request.app.state.channels
+    return {"channels": await hub.list()}
+
+
+@router.get("/v1/channels/{name:path}", summary="One channel's figures")
+async def channel_info(name: str, request: Request, _: Viewer) -> dict[str, Any]:
+    hub: ChannelHub = request.app.state.channels
+    info = await hub.info(name)
+    if info is None:
+        raise ApiError(404, "channel_not_found", f"no channel {name[:64]!r} has members")
+    return info

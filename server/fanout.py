@@ -1,0 +1,232 @@
+"""One channel frame cloned once per (rig, output, dtype) key and encoded once for all its watchers.
+
+Runs in the clone worker threads: pure computation on a rig and a frame, returning bytes.
+It holds no sockets, never touches the event loop and knows nothing of who receives.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from facecast.protocol import Result, Smoothing, array_from_wire, array_to_wire, encode
+from facecast.rig.errors import RigError
+from facecast.rig.filters import OneEuroFilter
+
+__all__ = ["ChannelFrame", "Key", "KeyState", "WatchResult"]
+
+log = logging.getLogger("facecast.server.channels")
+
+#: (rig id, output, dtype): what a watcher asks for; watchers of one key share bytes.
+Key = tuple[str, str, str]
+
+_DTYPES = {"f32": np.float32, "f16": np.float16}
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class WatchResult(Result):
+    """A `Result` with ``server_ts``: the server's wall clock (epoch seconds) when encoded.
+
+    An optional key added within version 1 (PROTOCOL.md §5.2.2, §11): clients that do
+    not know it ignore it; watchers use it to measure latency without the publisher's clock.
+    """
+
+    server_ts: float = 0.0
+
+    def serialize(self) -> dict[str, Any]:
+        out = super().serialize()
+        out["server_ts"] = self.server_ts
+        return out
+
+
+@dataclass(frozen=True)
+class ChannelFrame:
+    """A publisher's frame plus the channel options every key's clone needs.
+
+    Small (K points), so it is what crosses processes through Redis (``to_bytes``).
+
+    Attributes
+    ----------
+    seq, ts : the publisher's frame ``seq`` and ``ts``
+    points : (K, 3) float16/32/64, as the publisher sent them (already point-smoothed)
+    dropped : frames the publisher's session discarded so far (result.dropped)
+    align, scale : the publisher's ``hello`` options, applied on every key's rig
+    smoothing : the publisher's weight smoothing (target "weights"), or None
+    neutral : (K, 3) or None, the performer's calibrated neutral
+    neutral_id : changes whenever ``neutral`` does (keys cache their calibrated rig by it)
+    """
+
+    seq: int
+    ts: float
+    points: np.ndarray
+    dropped: int = 0
+    align: bool = False
+    scale: bool = False
+    smoothing: Smoothing | None = None
+    neutral: np.ndarray | None = None
+    neutral_id: str = ""
+
+    def to_bytes(self) -> bytes:
+        return msgpack.packb(
+            {
+                "seq": self.seq,
+                "ts": self.ts,
+                "points": array_to_wire(self.points),
+                "dropped": self.dropped,
+                "align": self.align,
+                "scale": self.scale,
+                "smoothing": None if self.smoothing is None else self.smoothing.serialize(),
+                "neutral": None if self.neutral is None else array_to_wire(self.neutral),
+                "neutral_id": self.neutral_id,
+            },
+            use_bin_type=True,
+        )
+
+    @classmethod
+    def from_bytes(cls, data: bytes, max_points: int) -> ChannelFrame:
+        """Parse what ``to_bytes`` wrote; raises ``ValueError`` (or ProtocolError) if malformed."""
+        obj = msgpack.unpackb(data, raw=False, strict_map_key=True, max_bin_len=1 << 24)
+        if not isinstance(obj, dict):
+            raise ValueError("channel frame: not a map")
+        neutral = obj.get("neutral")
+        smoothing = obj.get("smoothing")
+        return cls(
+            seq=int(obj["seq"]),
+            ts=float(obj["ts"]),
+            points=array_from_wire(obj["points"], "points", trailing=(3,), max_rows=max_points),
+            dropped=int(obj.get("dropped", 0)),
+            align=bool(obj.get("align", False)),
+            scale=bool(obj.get("scale", False)),
+            smoothing=None if smoothing is None else Smoothing.parse(smoothing),
+            neutral=None
+            if neutral is None
+            else array_from_wire(neutral, "neutral", trailing=(3,), max_rows=max_points),
+            neutral_id=str(obj.get("neutral_id", "")),
+        )
+
+
+class KeyState:
+    """The clone pipeline of one key in one process: rig, calibration, filter, last pose.
+
+    ``clone`` and ``ease`` may be called from any clone thread; a lock keeps one frame
+    at a time per key (the filter and the last pose are per key state).
+    """
+
+    def __init__(self, key: Key, rig: Any) -> None:
+        self.key = key
+        self.rig = rig
+        self.rig_id, self.output, self.dtype = key
+        self.clones = 0
+        #: (M,) float64 weights of the newest clone, the pose a lost face eases from.
+        self.last_weights: np.ndarray | None = None
+        #: Encoded newest result: what a late joiner of this key gets at once.
+        self.last_bytes: bytes | None = None
+        self.last_seq = -1
+        #: The last frame could not be cloned for this key (logged once per streak).
+        self.failing = False
+        self._lock = threading.Lock()
+        self._rig_for: tuple[str, bool] = ("", False)
+        self._effective = rig
+        self._smoothing: Smoothing | None = None
+        self._filter: OneEuroFilter | None = None
+        self._filter_ts: float | None = None
+
+    def _rig(self, frame: ChannelFrame) -> Any:
+        wanted = (frame.neutral_id if frame.neutral is not None else "", frame.scale)
+        if wanted != self._rig_for:
+            rig = self.rig
+            if frame.neutral is not None:
+                try:
+                    rig = rig.calibrated(frame.neutral)
+                except RigError as exc:
+                    # The publisher's rig accepted this neutral; this one cannot: serve it
+                    # uncalibrated rather than not at all.
+                    log.warning(
+                        "calibration does not apply to this rig",
+                        extra={"event": "channel.calibration_skipped", "rig": self.rig_id,
+                               "error": str(exc)},
+                    )  # fmt: skip
+            if frame.scale and not rig.align_scale:
+                rig = copy.copy(rig)  # the cached rig stays as it is
+                rig.align_scale = True
+            self._effective, self._rig_for = rig, wanted
+        return self._effective
+
+    def _smooth(self, weights: np.ndarray, frame: ChannelFrame) -> np.ndarray:
+        if frame.smoothing is None:
+            self._filter = None
+            return weights
+        if self._filter is None or frame.smoothing != self._smoothing:
+            sm = frame.smoothing
+            self._filter = OneEuroFilter(
+                min_cutoff=sm.min_cutoff, beta=sm.beta, d_cutoff=sm.d_cutoff
+            )
+            self._smoothing, self._filter_ts = sm, None
+        if self._filter_ts is not None and frame.ts < self._filter_ts:
+            self._filter.reset()
+        self._filter_ts = frame.ts
+        return self._filter(weights, frame.ts)
+
+    def clone(self, frame: ChannelFrame, arrived: float, *, count: bool = True) -> bytes:
+        """The encoded result of ``frame`` for this key (runs in a clone thread).
+
+        ``arrived`` is the ``perf_counter`` when the frame reached this process (for
+        ``proc_us``); ``count`` is False for a late joiner's catch-up clone.
+
+        Raises ``InputError`` (RigError) when the points cannot be evaluated.
+        """
+        with self._lock:
+            rig = self._rig(frame)
+            weights = np.asarray(rig.weights(frame.points, align=frame.align), dtype=np.float64)
+            weights = self._smooth(weights, frame)
+            self.last_weights = weights
+            data = self._encode(rig, weights, frame.seq, frame.ts, frame.dropped, arrived)
+            if count:
+                self.clones += 1
+            if frame.seq >= self.last_seq or not count:
+                self.last_bytes, self.last_seq = data, frame.seq
+            return data
+
+    def ease(self, alpha: float, seq: int, ts: float, dropped: int) -> bytes | None:
+        """The last pose blended ``alpha`` (0..1) of the way to the neutral, encoded.
+
+        Weights mode blends towards the one-hot neutral ``(1, 0, ..., 0)``; vertices mode
+        blends those weights, so it moves towards the target's neutral mesh. None when
+        this key has never cloned a frame.
+        """
+        with self._lock:
+            if self.last_weights is None:
+                return None
+            neutral = np.zeros_like(self.last_weights)
+            neutral[0] = 1.0
+            weights = (1.0 - alpha) * self.last_weights + alpha * neutral
+            data = self._encode(self._effective, weights, seq, ts, dropped, time.perf_counter())
+            self.last_bytes = data
+            return data
+
+    def _encode(
+        self, rig: Any, weights: np.ndarray, seq: int, ts: float, dropped: int, arrived: float
+    ) -> bytes:
+        dtype = _DTYPES[self.dtype]
+        if self.output == "weights":
+            values = weights.astype(dtype)
+        else:
+            vertices = rig.blend(weights)
+            values = vertices if dtype is np.float32 else vertices.astype(dtype)
+        result = WatchResult(
+            seq=seq,
+            ts=ts,
+            weights=values if self.output == "weights" else None,
+            vertices=values if self.output == "vertices" else None,
+            proc_us=max(0, int((time.perf_counter() - arrived) * 1e6)),
+            dropped=dropped,
+            server_ts=time.time(),
+        )
+        return encode(result)

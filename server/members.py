@@ -1,0 +1,255 @@
+"""The two kinds of channel connection: a watcher, and the channel's one publisher.
+
+Each has a reader task and a writer task around a bounded outbox (the newest result
+replaces an unsent one), so a slow client only ever slows itself. They do no cloning and
+no fan-out: frames go to the `Channel`, results come back from it as shared bytes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import secrets
+import time
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from starlette.websockets import WebSocket
+
+from facecast.protocol import (
+    Calibrate,
+    Calibrated,
+    ErrorCode,
+    Frame,
+    Hello,
+    Limits,
+    Ping,
+    Pong,
+    ProtocolError,
+    Ready,
+    ServerProtocol,
+    close_code,
+)
+from facecast.rig.errors import RigError
+from facecast.rig.filters import OneEuroFilter
+
+from .fanout import ChannelFrame
+from .outbox import Closing, Member
+
+if TYPE_CHECKING:
+    from .channels import Channel
+    from .hub import ChannelHub
+
+__all__ = ["PublisherMember", "WatcherMember"]
+
+log = logging.getLogger("facecast.server.channels")
+
+_RATE_ERROR_INTERVAL = 1.0
+
+
+class WatcherMember(Member):
+    """``.../watch``: sends nothing but pings; receives ready, events and results."""
+
+    def __init__(
+        self, websocket: WebSocket, channel: Channel, hello: Hello, limits: Limits
+    ) -> None:
+        super().__init__(websocket, (hello.rig, hello.output, hello.dtype),
+                         ServerProtocol(limits, hello=hello))  # fmt: skip
+        self.channel = channel
+
+    async def _read_loop(self) -> None:
+        while True:
+            message = await self.ws.receive()
+            if message["type"] == "websocket.disconnect":
+                return
+            try:
+                data = message.get("bytes")
+                if data is None:
+                    self.protocol.receive_text(message.get("text") or "")
+                decoded = self.protocol.receive(data)
+                if isinstance(decoded, Ping):
+                    self.offer(self.protocol.send(Pong(id=decoded.id, ts=decoded.ts)))
+            except ProtocolError as exc:
+                self.report(exc)
+
+    async def leave(self) -> None:
+        self.channel.remove_member(self)
+
+
+class _TokenBucket:
+    """``rate`` events per second on average, ``burst`` at once (the stream's rate limit)."""
+
+    def __init__(self, rate: float, burst: int) -> None:
+        self.rate, self.burst = rate, float(burst)
+        self.tokens, self.last = float(burst), time.monotonic()
+
+    def take(self) -> bool:
+        now = time.monotonic()
+        self.tokens = min(self.burst, self.tokens + (now - self.last) * self.rate)
+        self.last = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
+
+
+class PublisherMember(Member):
+    """``.../publish``: ``hello`` then frames, like ``/v1/stream``; frames feed the channel.
+
+    Its own results are the channel's results for its hello's (rig, output, dtype): it
+    is a member of that key like any watcher, so it costs no extra clone when watchers
+    share its key. Options apply channel-wide: ``align``/``scale`` and calibration to
+    every key's rig, smoothing of points here (once), smoothing of weights per key.
+    """
+
+    watcher = False
+
+    def __init__(self, websocket: WebSocket, hub: ChannelHub, name: str, principal: str) -> None:
+        settings = hub.settings
+        super().__init__(websocket, ("", "", ""),
+                         ServerProtocol(Limits(max_message_bytes=settings.max_message_bytes)))  # fmt: skip
+        self.hub = hub
+        self.name = name
+        self.principal = principal
+        self.owner = f"{hub.bus.origin}:{self.id}"
+        self.channel: Channel | None = None
+        self.hello: Hello | None = None
+        self.frames_in = 0
+        self.dropped = 0
+        self._rig: Any = None
+        self._bucket = _TokenBucket(settings.max_fps, settings.rate_burst)
+        self._last_rate_error = -1e9
+        self._point_filter: OneEuroFilter | None = None
+        self._neutral: np.ndarray | None = None
+        self._neutral_id = ""
+        self._calibrate_next = False
+
+    async def _read_loop(self) -> None:
+        timeout = self.hub.settings.idle_timeout
+        while True:
+            try:
+                async with asyncio.timeout(timeout):
+                    message = await self.ws.receive()
+            except TimeoutError:
+                error = ProtocolError(ErrorCode.IDLE_TIMEOUT,
+                                      f"no message for {timeout:g} s; closing", fatal=True)  # fmt: skip
+                raise Closing(close_code(error), "idle timeout", error) from None
+            if message["type"] == "websocket.disconnect":
+                return
+            try:
+                data = message.get("bytes")
+                if data is None:
+                    self.protocol.receive_text(message.get("text") or "")
+                decoded = self.protocol.receive(data)
+                if isinstance(decoded, Frame):
+                    await self._on_frame(decoded)
+                elif isinstance(decoded, Ping):
+                    self.offer(self.protocol.send(Pong(id=decoded.id, ts=decoded.ts)))
+                elif isinstance(decoded, Hello):
+                    await self._on_hello(decoded)
+                elif isinstance(decoded, Calibrate):
+                    await self._on_calibrate(decoded)
+            except ProtocolError as exc:
+                self.report(exc)
+
+    async def _on_hello(self, hello: Hello) -> None:
+        rig = await self.hub.load_rig(hello.rig)
+        channel = await self.hub.claim(self.name, self)  # raises CHANNEL_BUSY / OVERLOADED
+        self.hello, self._rig, self.channel = hello, rig, channel
+        self.key = (hello.rig, hello.output, hello.dtype)
+        if hello.smoothing is not None and hello.smoothing.target == "points":
+            sm = hello.smoothing
+            self._point_filter = OneEuroFilter(sm.min_cutoff, sm.beta, sm.d_cutoff)
+        self._calibrate_next = hello.calibration
+        s = self.hub.settings
+        self.offer(
+            self.protocol.send(
+                Ready(
+                    session=self.id,
+                    rig=hello.rig,
+                    names=rig.names,
+                    num_points=rig.num_points,
+                    num_vertices=rig.num_vertices,
+                    output=hello.output,
+                    dtype=hello.dtype,
+                    limits={
+                        "max_points": int(self.protocol.limits.max_points),
+                        "max_fps": float(s.max_fps),
+                        "rate_burst": int(s.rate_burst),
+                        "max_message_bytes": int(s.max_message_bytes),
+                        "idle_timeout": float(s.idle_timeout),
+                    },
+                )
+            )
+        )
+        await channel.add_publisher(self, rig)
+        log.info("publisher joined",
+                 extra={"event": "channel.publish", "channel": self.name, "rig": hello.rig,
+                        "by": self.principal})  # fmt: skip
+
+    async def _on_frame(self, frame: Frame) -> None:
+        assert self.channel is not None and self.hello is not None
+        self.frames_in += 1
+        if not self._bucket.take():
+            self.dropped += 1
+            self.hub.metrics_dropped("rate_limited")
+            now = time.monotonic()
+            if now - self._last_rate_error >= _RATE_ERROR_INTERVAL:
+                self._last_rate_error = now
+                self.report(ProtocolError(
+                    ErrorCode.RATE_LIMITED,
+                    f"more than {self.hub.settings.max_fps:g} frames/s; frames over the rate "
+                    "are dropped (counted in result.dropped)", seq=frame.seq))  # fmt: skip
+            return
+        points = frame.points
+        if self._calibrate_next:
+            self._calibrate_next = False
+            if await self._set_neutral(points, frame.seq):
+                self.offer(self.protocol.send(Calibrated(active=True, seq=frame.seq)))
+        if self._point_filter is not None:
+            points = self._point_filter(np.asarray(points, dtype=np.float64).reshape(-1), frame.ts)
+            points = points.reshape(frame.points.shape)
+        hello = self.hello
+        smoothing = (
+            hello.smoothing if hello.smoothing and hello.smoothing.target == "weights" else None
+        )
+        self.channel.submit(
+            ChannelFrame(
+                seq=frame.seq, ts=frame.ts, points=points, dropped=self.dropped + self.channel.dropped,
+                align=hello.align, scale=hello.align_scale, smoothing=smoothing,
+                neutral=self._neutral, neutral_id=self._neutral_id,
+            )
+        )  # fmt: skip
+        # Let the pump take this frame before reading the next (pipelined frames are
+        # then cloned, not superseded), as /v1/stream does.
+        await asyncio.sleep(0)
+
+    async def _set_neutral(self, points: np.ndarray, seq: int | None) -> bool:
+        loop = asyncio.get_running_loop()
+        try:
+            # Checks the neutral on the publisher's rig; every key re-bases its own.
+            await loop.run_in_executor(self.hub.executor, self._rig.calibrated, points)
+        except RigError as exc:
+            self.report(ProtocolError(ErrorCode.CALIBRATION_FAILED,
+                                      f"calibration failed: {exc}", seq=seq))  # fmt: skip
+            return False
+        self._neutral = np.array(points, copy=True)
+        self._neutral_id = secrets.token_hex(6)
+        return True
+
+    async def _on_calibrate(self, message: Calibrate) -> None:
+        if message.reset:
+            self._calibrate_next = False
+            self._neutral, self._neutral_id = None, ""
+            self.offer(self.protocol.send(Calibrated(active=False)))
+        elif message.points is None:
+            self._calibrate_next = True
+        elif await self._set_neutral(message.points, None):
+            self.offer(self.protocol.send(Calibrated(active=True)))
+
+    async def leave(self) -> None:
+        if self.channel is not None:
+            await self.channel.remove_publisher(self)
+            log.info("publisher left",
+                     extra={"event": "channel.unpublish", "channel": self.name,
+                            "frames_in": self.frames_in, "dropped": self.dropped})  # fmt: skip

@@ -1,0 +1,233 @@
+"""A channel connection's sending side: a bounded outbox and a writer, newest result wins.
+
+Sends on the fan-out's own stack when the socket takes the bytes at once, else through
+the writer task; a slow client only ever slows itself. No protocol decisions here.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import secrets
+from collections import deque
+from typing import Any
+
+from starlette.websockets import WebSocket, WebSocketDisconnect
+
+from facecast.protocol import ErrorCode, ProtocolError, ServerProtocol, close_code
+
+from .fanout import Key
+
+__all__ = ["MAX_OUTBOX", "Closing", "Member"]
+
+log = logging.getLogger("facecast.server.channels")
+
+#: Messages waiting in one member's outbox. Consecutive results collapse into the newest,
+#: so this bounds control messages (events, pongs, errors); beyond it the oldest go.
+MAX_OUTBOX = 32
+_CLOSE_GRACE = 1.0
+
+
+class Closing(Exception):
+    """Raised in a member's tasks to end it with a close code (and maybe an error first)."""
+
+    def __init__(self, code: int, reason: str, error: ProtocolError | None = None) -> None:
+        super().__init__(reason)
+        self.code, self.reason, self.error = code, reason, error
+
+
+class Member:
+    """One accepted WebSocket in a channel: an outbox of encoded messages and a writer.
+
+    ``offer_result`` replaces a result still waiting (the viewer skips to the newest
+    frame; ``skipped`` counts it); ``offer`` queues a control message. Memory per member
+    is at most ``MAX_OUTBOX`` references to bytes shared with other members.
+    """
+
+    watcher = True
+
+    def __init__(self, websocket: WebSocket, key: Key, protocol: ServerProtocol) -> None:
+        self.id = secrets.token_hex(8)
+        self.ws = websocket
+        self.key = key
+        self.protocol = protocol
+        self.sent = 0
+        self.skipped = 0
+        self._items: deque[list[Any]] = deque()
+        self._wake = asyncio.Event()
+        # Direct sends (``_send_now``) only once the socket is accepted and the writer runs.
+        self._open = False
+        self._writing = False
+        self._inflight: asyncio.Task[None] | None = None
+        self._stop: asyncio.Future[Closing] = asyncio.get_running_loop().create_future()
+        self._done = asyncio.Event()
+
+    @property
+    def queued(self) -> int:
+        """Messages waiting to be sent (bounded by ``MAX_OUTBOX``)."""
+        return len(self._items)
+
+    def offer_result(self, data: bytes) -> None:
+        if self._items and self._items[-1][0] == "r":
+            self._items[-1][1] = data
+            self.skipped += 1
+            return
+        self._push("r", data)
+
+    def offer(self, data: bytes) -> None:
+        self._push("c", data)
+
+    def _push(self, kind: str, data: bytes) -> None:
+        if not self._items and self._idle and self._send_now(data):
+            return
+        if len(self._items) >= MAX_OUTBOX:
+            self._items.popleft()
+            self.skipped += 1
+        self._items.append([kind, data])
+        self._wake.set()
+
+    @property
+    def _idle(self) -> bool:
+        return self._open and self._inflight is None and not self._writing
+
+    def _send_now(self, data: bytes) -> bool:
+        """Send on the caller's stack when the socket takes it at once; False if not tried.
+
+        The fan-out reaches thousands of members per frame: waking a writer task for
+        each costs more than the send itself. Most sends complete without suspending
+        (uvicorn's buffer has room), so run the send coroutine right here; if it does
+        suspend (slow client), a task finishes it and the outbox holds newer results.
+        """
+        coro = self.ws.send_bytes(data)
+        try:
+            yielded = coro.send(None)
+        except StopIteration:
+            self.sent += 1
+            return True
+        except Exception:
+            # The client is gone; the reader sees the disconnect and ends the member.
+            self._open = False
+            return True
+        self._inflight = asyncio.get_running_loop().create_task(_finish(coro, yielded))
+        self._inflight.add_done_callback(self._finished)
+        return True
+
+    def _finished(self, task: asyncio.Task[None]) -> None:
+        self._inflight = None
+        if task.cancelled() or task.exception() is not None:
+            self._open = False
+            return
+        self.sent += 1
+        self._wake.set()  # the writer flushes what queued up meanwhile
+
+    def report(self, error: ProtocolError) -> None:
+        """Queue an error; a fatal one ends the connection after it is sent."""
+        if error.fatal:
+            raise Closing(close_code(error), error.code.name.lower(), error)
+        self.offer(self.protocol.send(error.to_message()))
+
+    async def _write_loop(self) -> None:
+        self._open = True
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            if self._inflight is not None:
+                continue  # its completion wakes us again
+            self._writing = True
+            try:
+                while self._items:
+                    _, data = self._items.popleft()
+                    # Blocks while this client does not read (uvicorn's write buffer is
+                    # full); meanwhile its outbox keeps only the newest result.
+                    await self.ws.send_bytes(data)
+                    self.sent += 1
+            finally:
+                self._writing = False
+
+    async def _read_loop(self) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    async def run(self) -> None:
+        """Serve until the client leaves, a fatal error, or ``close``."""
+        reader = asyncio.create_task(self._read_loop(), name=f"member-{self.id}-reader")
+        writer = asyncio.create_task(self._write_loop(), name=f"member-{self.id}-writer")
+        ending: Closing | None = None
+        try:
+            done, _ = await asyncio.wait(
+                {reader, writer, self._stop}, return_when=asyncio.FIRST_COMPLETED
+            )
+            for task in (self._stop, reader, writer):
+                if task not in done or task.cancelled():
+                    continue
+                exc = task.exception()
+                if isinstance(exc, Closing):
+                    ending = exc
+                elif isinstance(exc, WebSocketDisconnect | OSError):
+                    pass
+                elif exc is not None:
+                    log.error("channel member failed", exc_info=exc,
+                              extra={"event": "channel.crash", "member": self.id})  # fmt: skip
+                    error = ProtocolError(ErrorCode.INTERNAL, "internal server error", fatal=True)
+                    ending = Closing(1011, "internal error", error)
+                elif task is self._stop:
+                    ending = task.result()
+                break
+        finally:
+            self._open = False
+            tasks = [t for t in (reader, writer, self._inflight) if t is not None]
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            await self.leave()
+            if ending is not None:
+                await self._send_close(ending)
+            self._done.set()
+
+    async def leave(self) -> None:
+        """Called once when the connection ends (unregister from the channel)."""
+
+    async def close(self, code: int, reason: str) -> None:
+        if not self._stop.done():
+            self._stop.set_result(Closing(code, reason))
+        await self._done.wait()
+
+    def end(self, error: ProtocolError) -> None:
+        """End the connection with a fatal ``error`` (from outside its tasks)."""
+        if not self._stop.done():
+            self._stop.set_result(Closing(close_code(error), error.code.name.lower(), error))
+
+    async def _send_close(self, ending: Closing) -> None:
+        with contextlib.suppress(Exception):
+            async with asyncio.timeout(_CLOSE_GRACE):
+                if ending.error is not None:
+                    await self.ws.send_bytes(self.protocol.fail(ending.error))
+        with contextlib.suppress(Exception):
+            async with asyncio.timeout(_CLOSE_GRACE):
+                await self.ws.close(ending.code, ending.reason[:120])
+
+
+class _Resume:
+    """Awaitable handing a future a coroutine yielded back to the running task."""
+
+    __slots__ = ("future",)
+
+    def __init__(self, future: Any) -> None:
+        self.future = future
+
+    def __await__(self):
+        return (yield self.future)
+
+
+async def _finish(coro: Any, yielded: Any) -> None:
+    """Drive a coroutine started by hand (``coro.send(None)`` gave ``yielded``) to its end."""
+    try:
+        while True:
+            await _Resume(yielded)
+            try:
+                yielded = coro.send(None)
+            except StopIteration:
+                return
+    except BaseException:
+        coro.close()
+        raise

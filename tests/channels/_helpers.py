@@ -1,0 +1,235 @@
+"""Helpers of the channel tests: tiny rigs, a real redis-server, raw watcher and publisher clients.
+
+The clients speak facecast.protocol over plain websockets so the tests see exactly what a
+third-party client would; nothing here fakes a server component.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import shutil
+import socket
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import websockets
+
+from facecast.client.bridges.channel import channel_url
+from facecast.protocol import (
+    SUBPROTOCOL,
+    ClientProtocol,
+    Error,
+    Frame,
+    Hello,
+    Ready,
+    Result,
+)
+from facecast.rig import ExampleSet, fit
+from facecast.server.testing import free_port
+
+NAMES = ("neutral", "smile", "frown", "jaw")
+K = 5
+RIG_IDS = ("alpha", "beta", "gamma")
+
+
+def tiny_rig(seed: int, num_vertices: int = 12, k: int = K):
+    """4 examples, ``k`` feature points, a small target; different per ``seed``."""
+    rng = np.random.default_rng(seed)
+    m = len(NAMES)
+    source = np.repeat(rng.normal(size=(1, k, 3)), m, axis=0)
+    source[1:] += rng.normal(scale=0.3, size=(m - 1, k, 3))
+    target = np.repeat(rng.normal(size=(1, num_vertices, 3)), m, axis=0)
+    target[1:] += rng.normal(scale=0.3, size=(m - 1, num_vertices, 3))
+    faces = np.array([[i, i + 1, i + 2] for i in range(num_vertices - 2)])
+    return fit(ExampleSet(NAMES, source, target, faces))
+
+
+def write_rigs(directory: Path, rigs: dict[str, Any]) -> None:
+    directory.mkdir(parents=True, exist_ok=True)
+    for rig_id, rig in rigs.items():
+        rig.save(directory / f"{rig_id}.rig")
+
+
+def points(rig, seed: int) -> np.ndarray:
+    """(K, 3) float32 near the rig's source neutral, different per ``seed``."""
+    rng = np.random.default_rng(10_000 + seed)
+    return (rig.source_neutral + rng.normal(scale=0.1, size=rig.source_neutral.shape)).astype(
+        np.float32
+    )
+
+
+class RedisServer:
+    """A real redis-server on 127.0.0.1, no persistence; kill and restart on the same port."""
+
+    def __init__(self, port: int | None = None) -> None:
+        self.port = port or free_port()
+        self.process: subprocess.Popen[bytes] | None = None
+
+    @property
+    def url(self) -> str:
+        return f"redis://127.0.0.1:{self.port}/0"
+
+    def start(self, timeout: float = 10.0) -> None:
+        exe = shutil.which("redis-server") or "/usr/bin/redis-server"
+        self.process = subprocess.Popen(
+            [exe, "--port", str(self.port), "--bind", "127.0.0.1", "--save", "",
+             "--appendonly", "no", "--protected-mode", "no"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        deadline = time.monotonic() + timeout
+        while not self.ping():
+            if self.process.poll() is not None:
+                raise RuntimeError(f"redis-server exited with {self.process.returncode}")
+            if time.monotonic() > deadline:
+                raise TimeoutError("redis-server did not answer PING")
+            time.sleep(0.02)
+
+    def ping(self) -> bool:
+        try:
+            with socket.create_connection(("127.0.0.1", self.port), timeout=0.5) as sock:
+                sock.sendall(b"PING\r\n")
+                return sock.recv(16).startswith(b"+PONG")
+        except OSError:
+            return False
+
+    def kill(self) -> None:
+        """SIGKILL: no goodbye to the clients, as in a crash."""
+        if self.process is not None and self.process.poll() is None:
+            self.process.kill()
+            self.process.wait(10)
+
+
+async def wait_for(predicate, timeout: float = 10.0, what: str = "condition") -> None:
+    """Poll a cheap condition (an HTTP status, a counter) until true or fail after ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        result = predicate()
+        if asyncio.iscoroutine(result):
+            result = await result
+        if result:
+            return
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.05)
+
+
+async def _connect(url: str, token: str | None):
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    return await websockets.connect(
+        url, subprotocols=[SUBPROTOCOL], additional_headers=headers, compression=None,
+        max_size=2**26, open_timeout=5,
+    )  # fmt: skip
+
+
+class Watcher:
+    """A channel watcher: every server message goes into ``messages`` as it arrives."""
+
+    def __init__(self, ws, protocol: ClientProtocol) -> None:
+        self.ws = ws
+        self.protocol = protocol
+        self.queue: asyncio.Queue[Any] = asyncio.Queue()
+        self.results: list[Result] = []
+        self.arrivals: list[float] = []
+        self.closed = asyncio.Event()
+        self.close_code: int | None = None
+        self._task = asyncio.create_task(self._read())
+
+    @classmethod
+    async def open(cls, base: str, channel: str, rig: str, *, output: str = "weights",
+                   dtype: str = "f32", token: str | None = None) -> Watcher:  # fmt: skip
+        url = channel_url(base, channel, "watch", {"rig": rig, "output": output, "dtype": dtype})
+        return cls(await _connect(url, token), ClientProtocol(watching=True))
+
+    async def _read(self) -> None:
+        try:
+            async for data in self.ws:
+                message = self.protocol.receive(data)
+                if isinstance(message, Result):
+                    self.results.append(message)
+                    self.arrivals.append(time.time())
+                self.queue.put_nowait(message)
+        except websockets.ConnectionClosed:
+            pass
+        finally:
+            self.close_code = self.ws.close_code
+            self.closed.set()
+
+    async def next(self, *types: type, timeout: float = 5.0) -> Any:
+        """The next message of one of ``types`` (others are skipped)."""
+        async with asyncio.timeout(timeout):
+            while True:
+                message = await self.queue.get()
+                if not types or isinstance(message, types):
+                    return message
+
+    async def result_with_seq(self, seq: int, timeout: float = 5.0) -> Result:
+        async with asyncio.timeout(timeout):
+            while True:
+                message = await self.next(Result, timeout=timeout)
+                if message.seq >= seq:
+                    return message
+
+    async def close(self) -> None:
+        await self.ws.close()
+        with contextlib.suppress(Exception):
+            await self._task
+
+
+class Publisher:
+    """A channel publisher: ``hello``, then frames; server messages go into ``queue``."""
+
+    def __init__(self, ws, protocol: ClientProtocol, ready: Ready) -> None:
+        self.ws = ws
+        self.protocol = protocol
+        self.ready = ready
+        self.queue: asyncio.Queue[Any] = asyncio.Queue()
+        self._task = asyncio.create_task(self._read())
+
+    @classmethod
+    async def open(cls, base: str, channel: str, rig: str, *, token: str | None = None,
+                   **hello: Any) -> Publisher:  # fmt: skip
+        ws = await _connect(channel_url(base, channel, "publish"), token)
+        protocol = ClientProtocol()
+        await ws.send(protocol.send(Hello(rig=rig, **hello)))
+        message = protocol.receive(await asyncio.wait_for(ws.recv(), 5))
+        if isinstance(message, Error):
+            await ws.close()
+            raise message.to_exception()
+        assert isinstance(message, Ready)
+        return cls(ws, protocol, message)
+
+    async def _read(self) -> None:
+        with contextlib.suppress(websockets.ConnectionClosed):
+            async for data in self.ws:
+                self.queue.put_nowait(self.protocol.receive(data))
+
+    async def send(self, seq: int, pts: np.ndarray, ts: float | None = None) -> None:
+        ts = time.time() if ts is None else ts
+        await self.ws.send(self.protocol.send(Frame(seq=seq, ts=ts, points=pts)))
+
+    async def close(self) -> None:
+        await self.ws.close()
+        with contextlib.suppress(Exception):
+            await self._task
+
+
+async def refused(
+    url: str, *, token: str | None = None, hello: Hello | None = None
+) -> tuple[Error, int]:
+    """Connect, (send ``hello``), and return the server's fatal error and close code."""
+    ws = await _connect(url, token)
+    protocol = ClientProtocol(watching=hello is None)
+    if hello is not None:
+        await ws.send(protocol.send(hello))
+    try:
+        while True:
+            message = protocol.receive(await asyncio.wait_for(ws.recv(), 5))
+            if isinstance(message, Error):
+                await asyncio.wait_for(ws.wait_closed(), 5)
+                return message, ws.close_code
+    finally:
+        await ws.close()

@@ -1,0 +1,87 @@
+"""Face lost: the channel holds the last pose, eases to the neutral, recovers on the next frame."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import time
+
+import numpy as np
+import pytest
+
+from facecast.protocol import ChannelLive, FaceLost, Result
+from facecast.server.testing import run_server
+
+from ._helpers import Publisher, Watcher, points
+
+pytestmark = pytest.mark.anyio
+
+
+@pytest.fixture
+def face_settings(settings):
+    return dataclasses.replace(settings, face_lost_after=0.2, face_lost_ease=0.3)
+
+
+async def _until_neutral(watcher: Watcher, neutral: np.ndarray) -> list[Result]:
+    eased = []
+    while True:
+        result = await watcher.next(Result, timeout=5.0)
+        eased.append(result)
+        if np.array_equal(result.values, neutral):
+            return eased
+
+
+async def test_face_lost_eases_weights_to_the_neutral_then_recovers(face_settings, rigs):
+    neutral = np.eye(len(rigs["beta"].names), dtype=np.float32)[0]
+    async with run_server(face_settings) as server:
+        watcher = await Watcher.open(server.ws_url, "stage", "beta")
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        await publisher.send(0, points(rigs["alpha"], 0), ts=100.0)
+        held = await watcher.result_with_seq(0)
+        lost = await watcher.next(FaceLost)
+        eased = await _until_neutral(watcher, neutral)
+        await publisher.send(1, points(rigs["alpha"], 1), ts=101.0)
+        back = await watcher.next(ChannelLive)
+        resumed = await watcher.result_with_seq(1)
+
+    assert lost.since == 100.0
+    distances = [float(np.abs(r.weights - neutral).sum()) for r in [held, *eased]]
+    assert distances == sorted(distances, reverse=True)  # monotonically towards the neutral
+    assert len(eased) >= 3  # interpolated, not a jump
+    assert isinstance(back, ChannelLive)
+    np.testing.assert_array_equal(
+        resumed.weights, rigs["beta"].weights(points(rigs["alpha"], 1)).astype(np.float32)
+    )
+
+
+async def test_face_lost_eases_vertices_to_the_target_neutral(face_settings, rigs):
+    rig = rigs["gamma"]
+    async with run_server(face_settings) as server:
+        watcher = await Watcher.open(server.ws_url, "stage", "gamma", output="vertices")
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        await publisher.send(0, points(rigs["alpha"], 0))
+        await watcher.result_with_seq(0)
+        await watcher.next(FaceLost)
+        last = None
+        while True:
+            last = await watcher.next(Result, timeout=5.0)
+            if np.allclose(last.vertices, rig.target_neutral, atol=1e-5):
+                break
+        await publisher.close()
+
+    np.testing.assert_allclose(last.vertices, rig.target_neutral, atol=1e-5)
+
+
+async def test_no_face_lost_while_frames_keep_coming(face_settings, rigs):
+    async with run_server(face_settings) as server:
+        watcher = await Watcher.open(server.ws_url, "stage", "beta")
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        start = time.monotonic()
+        seq = 0
+        while time.monotonic() - start < 0.6:  # 3x face_lost_after, paced at 60 fps
+            await publisher.send(seq, points(rigs["alpha"], seq))
+            await watcher.result_with_seq(seq)
+            seq += 1
+            await asyncio.sleep(1 / 60)  # pacing the performer, not synchronisation
+
+    assert not [m for m in watcher.queue._queue if isinstance(m, FaceLost)]

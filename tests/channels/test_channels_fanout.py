@@ -1,0 +1,158 @@
+"""One process: fan-out per key, exact results, late joiners, publisher leave/return, busy."""
+
+from __future__ import annotations
+
+import httpx
+import numpy as np
+import pytest
+
+from facecast.client.bridges.channel import channel_url
+from facecast.protocol import ChannelIdle, ChannelLive, ErrorCode, Hello, Ready, Result
+from facecast.server.testing import run_server
+
+from ._helpers import RIG_IDS, Publisher, Watcher, points, refused
+
+pytestmark = pytest.mark.anyio
+
+
+async def test_three_rigs_cost_three_clones_per_frame_whatever_the_viewer_count(settings, rigs):
+    async with run_server(settings) as server:
+        watchers = {
+            rig_id: [await Watcher.open(server.ws_url, "stage", rig_id) for _ in range(4)]
+            for rig_id in RIG_IDS
+        }
+        publisher = await Publisher.open(server.ws_url, "stage", RIG_IDS[0])
+        frames = [points(rigs[RIG_IDS[0]], seed) for seed in range(10)]
+        for seq, pts in enumerate(frames):
+            await publisher.send(seq, pts)
+            for group in watchers.values():
+                for watcher in group:
+                    await watcher.result_with_seq(seq)
+        async with httpx.AsyncClient(base_url=server.base_url) as http:
+            info = (await http.get("/v1/channels/stage")).json()
+
+    assert info["clones"] == 3 * info["frames"]
+    assert info["clones_per_frame"] == 3.0
+    assert info["viewers_per_rig"] == {rig_id: 4 for rig_id in RIG_IDS}
+
+
+async def test_watchers_get_single_frame_clones_exactly_in_f32(settings, rigs):
+    async with run_server(settings) as server:
+        watchers = {
+            rig_id: await Watcher.open(server.ws_url, "stage", rig_id) for rig_id in RIG_IDS
+        }
+        publisher = await Publisher.open(server.ws_url, "stage", RIG_IDS[0])
+        pts = points(rigs[RIG_IDS[0]], 3)
+        await publisher.send(7, pts)
+        received = {rig_id: await w.result_with_seq(7) for rig_id, w in watchers.items()}
+
+    for rig_id, result in received.items():
+        expected = rigs[rig_id].weights(pts).astype(np.float32)
+        assert result.weights.dtype == np.float32
+        np.testing.assert_array_equal(result.weights, expected)
+
+
+async def test_vertices_watchers_get_the_blend_of_the_weights(settings, rigs):
+    async with run_server(settings) as server:
+        watcher = await Watcher.open(server.ws_url, "stage", "beta", output="vertices")
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        pts = points(rigs["alpha"], 1)
+        await publisher.send(0, pts)
+        result = await watcher.result_with_seq(0)
+
+    rig = rigs["beta"]
+    np.testing.assert_array_equal(result.vertices, rig.blend(rig.weights(pts)))
+
+
+async def test_results_to_watchers_carry_server_ts(settings, rigs):
+    async with run_server(settings) as server:
+        watcher = await Watcher.open(server.ws_url, "stage", "alpha")
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        await publisher.send(0, points(rigs["alpha"], 0))
+        await watcher.result_with_seq(0)
+        raw = await _raw_result(server, rigs)
+
+    assert isinstance(raw["server_ts"], float)
+
+
+async def _raw_result(server, rigs) -> dict:
+    import msgpack
+    import websockets
+
+    url = channel_url(server.ws_url, "stage", "watch", {"rig": "alpha"})
+    async with websockets.connect(url, subprotocols=["facecast.v1"]) as ws:
+        while True:
+            message = msgpack.unpackb(await ws.recv())
+            if message["type"] == "result":
+                return message
+
+
+async def test_late_joiner_gets_the_newest_frame_at_once(settings, rigs):
+    async with run_server(settings) as server:
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        early = await Watcher.open(server.ws_url, "stage", "alpha")
+        for seq in range(5):
+            await publisher.send(seq, points(rigs["alpha"], seq))
+        await early.result_with_seq(4)
+        same_key = await Watcher.open(server.ws_url, "stage", "alpha")
+        new_key = await Watcher.open(server.ws_url, "stage", "gamma")
+        first_same = await same_key.next(Result)
+        first_new = await new_key.next(Result)
+
+    assert first_same.seq == 4
+    assert first_new.seq == 4
+    np.testing.assert_array_equal(
+        first_new.weights, rigs["gamma"].weights(points(rigs["alpha"], 4)).astype(np.float32)
+    )
+
+
+async def test_watchers_see_the_publisher_leave_and_return(settings, rigs):
+    async with run_server(settings) as server:
+        watcher = await Watcher.open(server.ws_url, "stage", "beta")
+        first = await watcher.next(ChannelIdle, ChannelLive)
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        live = await watcher.next(ChannelIdle, ChannelLive)
+        await publisher.close()
+        idle = await watcher.next(ChannelIdle, ChannelLive)
+        again = await Publisher.open(server.ws_url, "stage", "alpha")
+        live_again = await watcher.next(ChannelIdle, ChannelLive)
+        await again.send(11, points(rigs["alpha"], 11))
+        resumed = await watcher.result_with_seq(11)
+
+    assert [type(m) for m in (first, live, idle, live_again)] == [
+        ChannelIdle, ChannelLive, ChannelIdle, ChannelLive,
+    ]  # fmt: skip
+    assert resumed.seq == 11
+    assert not watcher.closed.is_set() or watcher.close_code in (1000, 1001, None)
+
+
+async def test_second_publisher_is_refused_with_channel_busy(settings):
+    async with run_server(settings) as server:
+        first = await Publisher.open(server.ws_url, "stage", "alpha")
+        error, code = await refused(
+            channel_url(server.ws_url, "stage", "publish"), hello=Hello(rig="alpha")
+        )
+        await first.close()
+        second = await Publisher.open(server.ws_url, "stage", "alpha")
+
+    assert error.code == ErrorCode.CHANNEL_BUSY and error.fatal
+    assert code == 1008
+    assert isinstance(second.ready, Ready)
+
+
+async def test_publisher_receives_its_own_results(settings, rigs):
+    async with run_server(settings) as server:
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        pts = points(rigs["alpha"], 2)
+        await publisher.send(0, pts)
+        while not isinstance(message := await publisher.queue.get(), Result):
+            pass
+
+    np.testing.assert_array_equal(message.weights, rigs["alpha"].weights(pts).astype(np.float32))
+
+
+async def test_watching_an_unknown_rig_is_refused(settings):
+    async with run_server(settings) as server:
+        error, _ = await refused(channel_url(server.ws_url, "stage", "watch", {"rig": "nobody"}))
+
+    assert error.code == ErrorCode.UNKNOWN_RIG

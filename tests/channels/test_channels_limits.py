@@ -1,0 +1,91 @@
+"""Bounds of the channel endpoints: name length, watcher query, connection count, frame rate."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+
+import pytest
+
+from facecast.client.bridges.channel import channel_url
+from facecast.protocol import Error, ErrorCode, Ready
+from facecast.server.testing import run_server
+
+from ._helpers import Publisher, Watcher, points, refused, tiny_rig, write_rigs
+
+pytestmark = pytest.mark.anyio
+
+
+async def test_a_name_of_256_characters_is_accepted_and_257_refused(settings):
+    async with run_server(settings) as server:
+        ok = await Watcher.open(server.ws_url, "n" * 256, "alpha")
+        ready = await ok.next()
+        url = channel_url(server.ws_url, "n" * 256, "watch", {"rig": "alpha"})
+        error, code = await refused(url.replace("n" * 256, "n" * 257))
+
+    assert isinstance(ready, Ready)
+    assert (error.code, code) == (ErrorCode.INVALID_FIELD, 1008)
+
+
+async def test_names_with_slashes_and_spaces_are_channels_too(settings, rigs):
+    async with run_server(settings) as server:
+        watcher = await Watcher.open(server.ws_url, "studio/a b", "beta")
+        publisher = await Publisher.open(server.ws_url, "studio/a b", "alpha")
+        await publisher.send(0, points(rigs["alpha"], 0))
+        result = await watcher.result_with_seq(0)
+
+    assert result.seq == 0
+
+
+@pytest.mark.parametrize(
+    "query",
+    [{}, {"rig": "alpha", "output": "mesh"}, {"rig": "alpha", "dtype": "f64"}, {"rig": "../x"}],
+)
+async def test_a_bad_watch_query_is_refused_with_a_code(settings, query):
+    async with run_server(settings) as server:
+        error, code = await refused(channel_url(server.ws_url, "stage", "watch", query))
+
+    assert error.code in (ErrorCode.INVALID_FIELD, ErrorCode.UNKNOWN_RIG)
+    assert error.fatal and code == 1008
+
+
+async def test_watchers_beyond_max_connections_are_refused_overloaded(settings):
+    limited = dataclasses.replace(settings, max_connections=3)
+    async with run_server(limited) as server:
+        admitted = [await Watcher.open(server.ws_url, "stage", "alpha") for _ in range(3)]
+        for watcher in admitted:
+            await watcher.next(Ready)
+        error, code = await refused(channel_url(server.ws_url, "stage", "watch", {"rig": "alpha"}))
+
+    assert (error.code, code) == (ErrorCode.OVERLOADED, 1013)
+
+
+async def test_a_publisher_over_max_fps_gets_rate_limited_not_closed(settings, rigs):
+    limited = dataclasses.replace(settings, max_fps=5.0, rate_burst=2)
+    async with run_server(limited) as server:
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        for seq in range(10):
+            await publisher.send(seq, points(rigs["alpha"], seq))
+        while not isinstance(message := await publisher.queue.get(), Error):
+            pass
+        latency = await asyncio.wait_for(await publisher.ws.ping(), 5)  # still open
+
+    assert message.code == ErrorCode.RATE_LIMITED and not message.fatal
+    assert latency >= 0
+
+
+async def test_watchers_of_a_rig_that_does_not_fit_are_told_and_others_unaffected(settings, rigs):
+    write_rigs(settings.rigs_dir, {"wide": tiny_rig(3, k=6)})
+    async with run_server(settings) as server:
+        misfit = await Watcher.open(server.ws_url, "stage", "wide")
+        fine = await Watcher.open(server.ws_url, "stage", "beta")
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        await publisher.send(0, points(rigs["alpha"], 0))
+        told = await misfit.next(Error)
+        result = await fine.result_with_seq(0)
+        await publisher.send(1, points(rigs["alpha"], 1))
+        await fine.result_with_seq(1)
+
+    assert told.code == ErrorCode.WRONG_POINT_COUNT and not told.fatal
+    assert result.seq == 0
+    assert not [m for m in publisher.queue._queue if isinstance(m, Error)]

@@ -1,0 +1,108 @@
+"""Publisher options apply channel-wide; a watcher may only ping; ChannelFrame round-trips."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import settings as hsettings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from facecast.protocol import (
+    Calibrate,
+    Calibrated,
+    Error,
+    ErrorCode,
+    Frame,
+    Ping,
+    Pong,
+    Result,
+    Smoothing,
+    encode,
+)
+from facecast.server.fanout import ChannelFrame
+from facecast.server.testing import run_server
+
+from ._helpers import Publisher, Watcher, points
+
+pytestmark = pytest.mark.anyio
+
+
+async def test_calibration_rebases_every_watched_rig(settings, rigs):
+    neutral = points(rigs["alpha"], 99)
+    pts = points(rigs["alpha"], 5)
+    async with run_server(settings) as server:
+        watcher = await Watcher.open(server.ws_url, "stage", "gamma")
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        await publisher.ws.send(publisher.protocol.send(Calibrate(points=neutral)))
+        while not isinstance(await publisher.queue.get(), Calibrated):
+            pass
+        await publisher.send(0, pts)
+        result = await watcher.result_with_seq(0)
+
+    expected = rigs["gamma"].calibrated(neutral).weights(pts).astype(np.float32)
+    np.testing.assert_array_equal(result.weights, expected)
+
+
+async def test_align_applies_to_every_watched_rig(settings, rigs):
+    pts = points(rigs["alpha"], 8)
+    async with run_server(settings) as server:
+        watcher = await Watcher.open(server.ws_url, "stage", "beta")
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha", align=True)
+        await publisher.send(0, pts)
+        result = await watcher.result_with_seq(0)
+
+    expected = rigs["beta"].weights(pts, align=True).astype(np.float32)
+    np.testing.assert_array_equal(result.weights, expected)
+
+
+async def test_a_watcher_may_ping_but_not_send_frames(settings, rigs):
+    async with run_server(settings) as server:
+        watcher = await Watcher.open(server.ws_url, "stage", "beta")
+        await watcher.ws.send(watcher.protocol.send(Ping(id=4, ts=1.5)))
+        pong = await watcher.next(Pong)
+        frame = Frame(seq=1, ts=0.0, points=points(rigs["alpha"], 0))
+        await watcher.ws.send(encode(frame))
+        error = await watcher.next(Error)
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        await publisher.send(2, points(rigs["alpha"], 2))
+        still = await watcher.result_with_seq(2)
+
+    assert (pong.id, pong.ts) == (4, 1.5)
+    assert error.code == ErrorCode.WRONG_STATE and not error.fatal
+    assert isinstance(still, Result)
+
+
+@hsettings(max_examples=60, deadline=None)
+@given(
+    seq=st.integers(0, 2**63),
+    ts=st.floats(allow_nan=False, allow_infinity=False),
+    pts=arrays(
+        np.float32,
+        st.tuples(st.integers(1, 8), st.just(3)),
+        elements=st.floats(-1e6, 1e6, width=32),
+    ),
+    align=st.booleans(),
+    with_neutral=st.booleans(),
+    smoothing=st.none()
+    | st.builds(
+        Smoothing, min_cutoff=st.floats(0.01, 10), beta=st.floats(0, 5), target=st.just("weights")
+    ),
+)
+def test_channel_frames_cross_processes_unchanged(seq, ts, pts, align, with_neutral, smoothing):
+    frame = ChannelFrame(seq=seq, ts=ts, points=pts, align=align, smoothing=smoothing,
+                         neutral=pts + 1 if with_neutral else None,
+                         neutral_id="n1" if with_neutral else "")  # fmt: skip
+
+    back = ChannelFrame.from_bytes(frame.to_bytes(), max_points=4096)
+
+    assert (back.seq, back.ts, back.align, back.smoothing, back.neutral_id) == (
+        seq, ts, align, smoothing, frame.neutral_id,
+    )  # fmt: skip
+    np.testing.assert_array_equal(back.points, pts)
+    assert back.points.dtype == np.float32
+    if with_neutral:
+        np.testing.assert_array_equal(back.neutral, pts + 1)
+    else:
+        assert back.neutral is None

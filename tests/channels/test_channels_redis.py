@@ -1,0 +1,140 @@
+"""Channels across processes on a real redis-server: fan-out, presence, and Redis dying.
+
+Each "process" is a separate app with its own event loop, hub and Redis connections
+(``run_server``); they share only Redis and the rig directory, as replicas do.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import httpx
+import numpy as np
+import pytest
+
+from facecast.client.bridges.channel import channel_url
+from facecast.protocol import ChannelIdle, ChannelLive, ErrorCode, Hello, Result
+from facecast.server.testing import run_server
+
+from ._helpers import RIG_IDS, Publisher, Watcher, points, refused, wait_for
+
+pytestmark = pytest.mark.anyio
+
+
+@pytest.fixture
+def redis_settings(settings, redis_server):
+    return dataclasses.replace(settings, redis_url=redis_server.url)
+
+
+async def _live(watcher: Watcher) -> None:
+    while not isinstance(await watcher.next(ChannelIdle, ChannelLive, timeout=10), ChannelLive):
+        pass
+
+
+async def test_a_publisher_on_one_process_reaches_viewers_on_another(redis_settings, rigs):
+    async with run_server(redis_settings) as a, run_server(redis_settings) as b:
+        watchers = {rig_id: await Watcher.open(b.ws_url, "stage", rig_id) for rig_id in RIG_IDS}
+        publisher = await Publisher.open(a.ws_url, "stage", "alpha")
+        for watcher in watchers.values():
+            await _live(watcher)
+        sent = [points(rigs["alpha"], seed) for seed in range(5)]
+        for seq, pts in enumerate(sent):
+            await publisher.send(seq, pts)
+            for watcher in watchers.values():
+                await watcher.result_with_seq(seq)
+        async with httpx.AsyncClient(base_url=b.base_url) as http:
+            info = (await http.get("/v1/channels/stage")).json()
+
+    for rig_id, watcher in watchers.items():
+        by_seq = {r.seq: r for r in watcher.results}
+        for seq, pts in enumerate(sent):
+            expected = rigs[rig_id].weights(pts).astype(np.float32)
+            np.testing.assert_array_equal(by_seq[seq].weights, expected)
+    assert info["publisher"] is True
+    assert info["clones_per_frame"] == 3.0  # process B clones for its own three keys
+    assert info["viewers_per_rig"] == {rig_id: 1 for rig_id in RIG_IDS}
+    assert len(info["processes"]) == 2
+
+
+async def test_a_second_publisher_on_another_process_is_refused(redis_settings):
+    async with run_server(redis_settings) as a, run_server(redis_settings) as b:
+        first = await Publisher.open(a.ws_url, "stage", "alpha")
+        error, _ = await refused(
+            channel_url(b.ws_url, "stage", "publish"), hello=Hello(rig="alpha")
+        )
+        await first.close()
+        second = await Publisher.open(b.ws_url, "stage", "alpha")
+
+    assert error.code == ErrorCode.CHANNEL_BUSY
+    assert second.ready.rig == "alpha"
+
+
+async def test_remote_viewers_see_the_publisher_leave_and_return(redis_settings, rigs):
+    async with run_server(redis_settings) as a, run_server(redis_settings) as b:
+        watcher = await Watcher.open(b.ws_url, "stage", "beta")
+        publisher = await Publisher.open(a.ws_url, "stage", "alpha")
+        await _live(watcher)
+        await publisher.close()
+        idle = await watcher.next(ChannelIdle, ChannelLive, timeout=10)
+        again = await Publisher.open(a.ws_url, "stage", "alpha")
+        live = await watcher.next(ChannelIdle, ChannelLive, timeout=10)
+        await again.send(3, points(rigs["alpha"], 3))
+        resumed = await watcher.result_with_seq(3)
+
+    assert isinstance(idle, ChannelIdle) and isinstance(live, ChannelLive)
+    assert resumed.seq == 3
+
+
+async def test_channels_recover_when_redis_is_killed_and_restarted(
+    redis_settings, redis_server, rigs
+):
+    async with (
+        run_server(redis_settings) as a,
+        run_server(redis_settings) as b,
+        httpx.AsyncClient() as http,
+    ):
+
+        async def ready(server) -> int:
+            return (await http.get(f"{server.base_url}/readyz")).status_code
+
+        await wait_for(lambda: _both(ready, a, b, 200), what="both ready")
+        watcher = await Watcher.open(b.ws_url, "stage", "beta")
+        publisher = await Publisher.open(a.ws_url, "stage", "alpha")
+        await _live(watcher)
+        await publisher.send(0, points(rigs["alpha"], 0))
+        await watcher.result_with_seq(0)
+
+        redis_server.kill()
+        await wait_for(lambda: _both(ready, a, b, 503), what="readyz 503 while redis is down")
+        down = (await http.get(f"{a.base_url}/readyz")).json()
+        redis_server.start()
+        await wait_for(lambda: _both(ready, a, b, 200), what="readyz 200 after restart")
+
+        seq = 1
+        got: list[Result] = []
+
+        async def delivered() -> bool:
+            nonlocal seq
+            await publisher.send(seq, points(rigs["alpha"], seq))
+            seq += 1
+            got.extend(r for r in watcher.results if r.seq >= 1)
+            return bool(got)
+
+        await wait_for(delivered, timeout=15, what="frames through the restarted redis")
+
+    assert down["code"] == "not_ready" and "redis" in down["detail"]
+    assert got[0].seq >= 1
+
+
+async def _both(ready, a, b, status: int) -> bool:
+    return await ready(a) == status and await ready(b) == status
+
+
+async def test_a_watcher_joining_on_another_process_sees_the_channel_live_at_once(redis_settings):
+    async with run_server(redis_settings) as a, run_server(redis_settings) as b:
+        publisher = await Publisher.open(a.ws_url, "stage", "alpha")
+        watcher = await Watcher.open(b.ws_url, "stage", "beta")
+        first = await watcher.next(ChannelIdle, ChannelLive)
+        await publisher.close()
+
+    assert isinstance(first, ChannelLive)
