@@ -26,6 +26,7 @@ COMMAND_MODULES = (
     "stream",
     "publish",
     "watch",
+    "record",
     "loadtest",
     "bridge",
     "import_",

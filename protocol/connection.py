@@ -243,7 +243,11 @@ class ClientProtocol:
 
     @staticmethod
     def _check_result(result: Result, ready: Ready) -> None:
-        expected = (ready.num_examples,) if ready.output == "weights" else (ready.num_vertices, 3)
+        expected = {
+            "weights": (ready.num_examples,),
+            "vertices": (ready.num_vertices, 3),
+            "points": (ready.num_points, 3),
+        }[ready.output]
         if (
             result.output != ready.output
             or result.dtype != ready.dtype

@@ -36,6 +36,10 @@ PROTOCOL_VERSION: Final = 1
 OUTPUTS: Final = ("weights", "vertices")
 #: Dtypes a client may negotiate for results.
 RESULT_DTYPES: Final = ("f32", "f16")
+#: What a channel watcher may ask for (§2.4): the session outputs, or the published points.
+WATCH_OUTPUTS: Final = (*OUTPUTS, "points")
+#: Dtypes of ``points`` results: f16 would blur feature points, f64 keeps f64 frames exact.
+POINTS_DTYPES: Final = ("f32", "f64")
 #: What the one-euro filter smooths: the incoming points or the outgoing weights.
 SMOOTHING_TARGETS: Final = ("points", "weights")
 #: Longest error message a server sends; longer ones are cut, so they always decode.
@@ -79,6 +83,10 @@ def _check_array(value: Any, where: str, trailing: tuple[int, ...]) -> None:
         raise ProtocolError(
             ErrorCode.INVALID_ARRAY, f"{where} must be a non-empty float {shape} array, got {got}"
         )
+
+
+def _result_dtypes(output: str) -> tuple[str, ...]:
+    return POINTS_DTYPES if output == "points" else RESULT_DTYPES
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -387,7 +395,8 @@ class Ready(Message):
     num_vertices : int
         V, vertices of the target mesh.
     output, dtype : str
-        What each ``result`` carries, as negotiated.
+        What each ``result`` carries, as negotiated; "points" only for a channel
+        watcher that asked for the published frames (§2.4), with dtype "f32" or "f64".
     limits : mapping of str to number
         Limits the server enforces (§7); unknown keys are informational.
     """
@@ -413,8 +422,8 @@ class Ready(Message):
             raise ProtocolError(ErrorCode.INVALID_FIELD, "ready.rig.names must not be empty")
         _check_uint(self.num_points, "ready.rig.k")
         _check_uint(self.num_vertices, "ready.rig.v")
-        _check_choice(self.output, "ready.output", OUTPUTS)
-        _check_choice(self.dtype, "ready.dtype", RESULT_DTYPES)
+        _check_choice(self.output, "ready.output", WATCH_OUTPUTS)
+        _check_choice(self.dtype, "ready.dtype", _result_dtypes(self.output))
         if not isinstance(self.limits, Mapping):
             raise _fail("ready.limits", "a map", self.limits)
         for key, value in self.limits.items():
@@ -473,6 +482,7 @@ class Ready(Message):
                 ErrorCode.MESSAGE_TOO_LARGE,
                 f"ready.rig.k is {num_points}, more than the limit {limits.max_points}",
             )
+        output = read_str(obj, "output", "ready.output", limits, choices=WATCH_OUTPUTS)
         server_limits = read_map(obj, "limits", "ready.limits", {})
         for key, value in server_limits.items():
             if type(key) is not str:
@@ -485,15 +495,19 @@ class Ready(Message):
             names=tuple(names),
             num_points=num_points,
             num_vertices=num_vertices,
-            output=read_str(obj, "output", "ready.output", limits, choices=OUTPUTS),
-            dtype=read_str(obj, "dtype", "ready.dtype", limits, choices=RESULT_DTYPES),
+            output=output,
+            dtype=read_str(obj, "dtype", "ready.dtype", limits, choices=_result_dtypes(output)),
             limits=server_limits,
         )
 
 
+_RESULT_ARRAYS: Final = ("weights", "vertices", "points")
+_ONE_ARRAY: Final = "a result carries exactly one of weights, vertices and points"
+
+
 @dataclass(frozen=True, kw_only=True, eq=False)
 class Result(_ArrayMessage):
-    """The clone of one frame (§5.2.2); exactly one of ``weights`` / ``vertices`` is set.
+    """The clone of one frame (§5.2.2); exactly one of the three arrays is set.
 
     Attributes
     ----------
@@ -505,6 +519,9 @@ class Result(_ArrayMessage):
         Example weights, when the session's output is "weights".
     vertices : (V, 3) float16/32 or None
         Target mesh vertices, when the session's output is "vertices".
+    points : (K, 3) float32/64 or None
+        The frame's feature points as published, for a channel watcher whose output is
+        "points" (§2.4); nothing is cloned for it.
     proc_us : int
         Server processing time for this frame, microseconds.
     dropped : int
@@ -516,6 +533,7 @@ class Result(_ArrayMessage):
     ts: float
     weights: np.ndarray | None = None
     vertices: np.ndarray | None = None
+    points: np.ndarray | None = None
     proc_us: int = 0
     dropped: int = 0
 
@@ -525,24 +543,23 @@ class Result(_ArrayMessage):
         object.__setattr__(self, "ts", check_float(self.ts, "result.ts"))
         _check_uint(self.proc_us, "result.proc_us")
         _check_uint(self.dropped, "result.dropped")
-        if (self.weights is None) == (self.vertices is None):
-            raise ProtocolError(
-                ErrorCode.INVALID_FIELD, "a result carries exactly one of weights and vertices"
-            )
-        if self.weights is not None:
-            _check_array(self.weights, "result.weights", ())
-        else:
-            _check_array(self.vertices, "result.vertices", (3,))
+        present = [name for name in _RESULT_ARRAYS if getattr(self, name) is not None]
+        if len(present) != 1:
+            raise ProtocolError(ErrorCode.INVALID_FIELD, _ONE_ARRAY)
+        name = present[0]
+        _check_array(getattr(self, name), f"result.{name}", () if name == "weights" else (3,))
 
     @property
     def output(self) -> str:
-        """ "weights" or "vertices": which one this result carries."""
-        return "weights" if self.weights is not None else "vertices"
+        """ "weights", "vertices" or "points": which one this result carries."""
+        if self.weights is not None:
+            return "weights"
+        return "vertices" if self.vertices is not None else "points"
 
     @property
     def values(self) -> np.ndarray:
-        """The array this result carries, (M,) weights or (V, 3) vertices."""
-        return self.weights if self.weights is not None else self.vertices  # type: ignore[return-value]
+        """The array this result carries: (M,) weights, (V, 3) vertices or (K, 3) points."""
+        return getattr(self, self.output)
 
     @property
     def dtype(self) -> str:
@@ -551,10 +568,8 @@ class Result(_ArrayMessage):
 
     def serialize(self) -> dict[str, Any]:
         out = {**_header(self.TYPE), "seq": self.seq, "ts": self.ts}
-        if self.weights is not None:
-            out["weights"] = array_to_wire(self.weights)
-        else:
-            out["vertices"] = array_to_wire(self.vertices)  # type: ignore[arg-type]
+        output = self.output
+        out[output] = array_to_wire(self.values)
         out["proc_us"] = self.proc_us
         out["dropped"] = self.dropped
         return out
@@ -563,23 +578,20 @@ class Result(_ArrayMessage):
     def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Result:
         seq = read_uint(obj, "seq", "result.seq")
         ts = read_float(obj, "ts", "result.ts")
-        weights = obj.get("weights")
-        vertices = obj.get("vertices")
-        if (weights is None) == (vertices is None):
-            raise ProtocolError(
-                ErrorCode.INVALID_FIELD, "a result carries exactly one of weights and vertices"
-            )
+        present = [name for name in _RESULT_ARRAYS if obj.get(name) is not None]
+        if len(present) != 1:
+            raise ProtocolError(ErrorCode.INVALID_FIELD, _ONE_ARRAY)
+        name = present[0]
+        trailing, max_rows = {
+            "weights": ((), limits.max_names),
+            "vertices": ((3,), limits.max_vertices),
+            "points": ((3,), limits.max_points),
+        }[name]
+        values = array_from_wire(obj[name], f"result.{name}", trailing=trailing, max_rows=max_rows)
         return cls(
             seq=seq,
             ts=ts,
-            weights=None
-            if weights is None
-            else array_from_wire(weights, "result.weights", trailing=(), max_rows=limits.max_names),
-            vertices=None
-            if vertices is None
-            else array_from_wire(
-                vertices, "result.vertices", trailing=(3,), max_rows=limits.max_vertices
-            ),
+            **{name: values},
             proc_us=read_uint(obj, "proc_us", "result.proc_us"),
             dropped=read_uint(obj, "dropped", "result.dropped"),
         )
@@ -740,10 +752,12 @@ SERVER_MESSAGES: Final[dict[str, type[Message]]] = {
 __all__ = [
     "CLIENT_MESSAGES",
     "OUTPUTS",
+    "POINTS_DTYPES",
     "PROTOCOL_VERSION",
     "RESULT_DTYPES",
     "SERVER_MESSAGES",
     "SMOOTHING_TARGETS",
+    "WATCH_OUTPUTS",
     "WIRE_DTYPES",
     "Calibrate",
     "Calibrated",

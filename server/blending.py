@@ -36,29 +36,34 @@ class _Request:
 
 @dataclass
 class _Group:
-    """Requests for one blend basis, and the scratch space of its single runner."""
+    """Requests for one blend basis and the runners (at most ``concurrency``) serving them."""
 
     rig: Any
     waiting: list[_Request] = field(default_factory=list)
-    scratch: np.ndarray | None = None  # (B, V, 3) float32, grown on demand
-    runner: asyncio.Task[None] | None = None
+    runners: set[asyncio.Task[None]] = field(default_factory=set)
 
-    def blend(self, batch: list[_Request]) -> None:
+
+class _Scratch:
+    """One runner's (B, V, 3) float32 blend output, grown on demand."""
+
+    def __init__(self) -> None:
+        self.array: np.ndarray | None = None
+
+    def blend(self, rig: Any, batch: list[_Request]) -> None:
         """Fill every request's ``out`` (worker thread; numpy releases the GIL in matmul)."""
-        rig = self.rig
         rows = len(batch) if len(batch) >= MIN_BATCH else 1
-        if self.scratch is None or self.scratch.shape[0] < rows:
-            self.scratch = np.empty((rows, *batch[0].out.shape), np.float32)
+        if self.array is None or self.array.shape[0] < rows:
+            self.array = np.empty((rows, *batch[0].out.shape), np.float32)
         if len(batch) < MIN_BATCH:
             for request in batch:
                 if request.out.dtype == np.float32:
                     rig.blend(request.weights, out=request.out)
                 else:
-                    vertices = rig.blend(request.weights, out=self.scratch[0])
+                    vertices = rig.blend(request.weights, out=self.array[0])
                     np.copyto(request.out, vertices, casting="same_kind")
             return
         weights = np.stack([request.weights for request in batch])
-        vertices = rig.blend(weights, out=self.scratch[: len(batch)])
+        vertices = rig.blend(weights, out=self.array[: len(batch)])
         for request, frame in zip(batch, vertices, strict=True):
             np.copyto(request.out, frame, casting="same_kind")
 
@@ -74,10 +79,16 @@ class BlendBatcher:
     Parameters
     ----------
     executor : the clone thread pool
+    concurrency : int
+        Batches of one basis running at once (the pool's thread count: a lone rig can
+        then use every clone thread).
     """
 
-    def __init__(self, executor: Executor) -> None:
+    def __init__(self, executor: Executor, *, concurrency: int = 1) -> None:
+        if concurrency < 1:
+            raise ValueError(f"concurrency must be >= 1, got {concurrency}")
         self._executor = executor
+        self._concurrency = concurrency
         self._groups: dict[tuple[int, tuple[int, ...]], _Group] = {}
         #: Batches run and frames blended so far (single blends count as batches of one).
         self.batches = 0
@@ -97,10 +108,10 @@ class BlendBatcher:
             # The group keeps ``rig`` (so its basis) alive while it exists: the key's
             # address cannot be reused by another basis meanwhile.
             group = self._groups[key] = _Group(rig)
-            group.waiting.append(request)
-            group.runner = asyncio.create_task(self._run(key, group), name="facecast-blend")
-        else:
-            group.waiting.append(request)
+        group.waiting.append(request)
+        if len(group.runners) < self._concurrency:
+            runner = asyncio.create_task(self._run(key, group), name="facecast-blend")
+            group.runners.add(runner)
         await request.done
 
     @property
@@ -110,6 +121,7 @@ class BlendBatcher:
 
     async def _run(self, key: tuple[int, tuple[int, ...]], group: _Group) -> None:
         loop = asyncio.get_running_loop()
+        scratch = _Scratch()
         batch: list[_Request] = []
         try:
             while group.waiting:
@@ -118,7 +130,7 @@ class BlendBatcher:
                 self.batches += 1
                 self.frames += len(batch)
                 try:
-                    await loop.run_in_executor(self._executor, group.blend, batch)
+                    await loop.run_in_executor(self._executor, scratch.blend, group.rig, batch)
                 except Exception as exc:
                     for request in batch:
                         if not request.done.done():
@@ -129,8 +141,14 @@ class BlendBatcher:
                             request.done.set_result(None)
                 batch = []
         finally:
-            # Nothing waits now (or the loop is going away): the group ends with its runner.
-            del self._groups[key]
-            for request in (*batch, *group.waiting):
+            group.runners.discard(asyncio.current_task())  # type: ignore[arg-type]
+            for request in batch:  # only when cancelled mid-batch (the loop is closing)
                 if not request.done.done():
                     request.done.cancel()
+            if not group.runners:
+                # Nothing waits now (or the loop is going away): the group ends with its
+                # last runner.
+                del self._groups[key]
+                for request in group.waiting:
+                    if not request.done.done():
+                        request.done.cancel()

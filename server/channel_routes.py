@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+from collections.abc import Mapping
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Request, WebSocket
@@ -18,6 +19,7 @@ from facecast.protocol import (
     PUBLISH_PATH,
     WATCH_PATH,
     ErrorCode,
+    Hello,
     Limits,
     ProtocolError,
     Ready,
@@ -27,6 +29,8 @@ from facecast.protocol import (
     select_subprotocol,
     watch_hello,
 )
+from facecast.protocol.fields import check_str
+from facecast.protocol.messages import POINTS_DTYPES, WATCH_OUTPUTS
 
 from .auth import Principal, authorize, requires
 from .errors import ApiError
@@ -86,6 +90,27 @@ def _check_name(name: str) -> None:
         )
 
 
+def _watch_query(query: Mapping[str, str], limits: Limits) -> tuple[Hello, str, str]:
+    """The watcher's (hello, output, dtype) from its query string (PROTOCOL.md §2.1, §2.4).
+
+    ``output=points`` asks for the published frames themselves; ``rig`` still names the
+    layout (K) they must follow, and ``dtype`` is then "f32" or "f64". The hello (the
+    rig, a weights session) only opens the watcher's protocol state; the member's key
+    says what it receives. Raises a fatal INVALID_FIELD ProtocolError for a bad value.
+    """
+    try:
+        output = check_str(query.get("output", "weights"), "query output", limits,
+                           choices=WATCH_OUTPUTS)  # fmt: skip
+        if output != "points":
+            hello = watch_hello(query, limits)
+            return hello, hello.output, hello.dtype
+        dtype = check_str(query.get("dtype", "f32"), "query dtype", limits, choices=POINTS_DTYPES)
+        rig = query.get("rig")
+        return watch_hello({} if rig is None else {"rig": rig}, limits), output, dtype
+    except ProtocolError as exc:
+        raise exc.evolve(fatal=True) from None
+
+
 async def _serve(websocket: WebSocket, member: Member, subprotocol: str | None) -> None:
     """Admit ``member`` (max connections), accept, and run it until it ends."""
     app = websocket.app
@@ -127,7 +152,10 @@ async def publish(websocket: WebSocket, name: str) -> None:
 
 @router.websocket(WATCH_PATH.replace("{name}", "{name:path}"))
 async def watch(websocket: WebSocket, name: str) -> None:
-    """A viewer of channel ``name`` on one rig (query ``rig``, ``output``, ``dtype``)."""
+    """A viewer of channel ``name`` on one rig (query ``rig``, ``output``, ``dtype``).
+
+    ``output=points`` watchers (recorders) receive the published frames, not a clone.
+    """
     hub: ChannelHub = websocket.app.state.channels
     settings: Settings = websocket.app.state.settings
     subprotocol = select_subprotocol(list(websocket.scope.get("subprotocols") or ()))
@@ -135,7 +163,7 @@ async def watch(websocket: WebSocket, name: str) -> None:
     try:
         principal = _authorize(websocket, "viewer")
         _check_name(name)
-        hello = watch_hello(websocket.query_params, limits)
+        hello, output, dtype = _watch_query(websocket.query_params, limits)
         rig = await hub.load_rig(hello.rig)
     except ProtocolError as exc:
         websocket.app.state.metrics.errors.labels(exc.code.name).inc()
@@ -143,6 +171,7 @@ async def watch(websocket: WebSocket, name: str) -> None:
         return
     channel = await hub.open_channel(name)
     member = WatcherMember(websocket, channel, hello, limits)
+    member.key = (hello.rig, output, dtype)  # what it receives; a points key clones nothing
     member.offer(
         member.protocol.send(
             Ready(
@@ -151,15 +180,16 @@ async def watch(websocket: WebSocket, name: str) -> None:
                 names=rig.names,
                 num_points=rig.num_points,
                 num_vertices=rig.num_vertices,
-                output=hello.output,
-                dtype=hello.dtype,
+                output=output,
+                dtype=dtype,
                 limits={"max_message_bytes": int(settings.max_message_bytes)},
             )
         )
     )
     channel.add_watcher(member, rig)
     log.info("watcher joined", extra={"event": "channel.watch", "channel": name,
-                                      "rig": hello.rig, "by": principal.name})  # fmt: skip
+                                      "rig": hello.rig, "output": output,
+                                      "by": principal.name})  # fmt: skip
     await _serve(websocket, member, subprotocol)
 
 

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 from facecast.protocol import ChannelIdle, ChannelLive, ErrorCode, FaceLost, ProtocolError, encode
 from facecast.rig.errors import InputError
 
-from .fanout import ChannelFrame, Key, KeyState
+from .fanout import ChannelFrame, Key, KeyState, PointsKeyState, key_state
 
 if TYPE_CHECKING:
     from .hub import ChannelHub
@@ -46,7 +46,7 @@ class Channel:
         self.hub = hub
         self.name = name
         self.members: dict[Key, set[Member]] = {}
-        self.states: dict[Key, KeyState] = {}
+        self.states: dict[Key, KeyState | PointsKeyState] = {}
         self.publisher: PublisherMember | None = None
         self.claimed_by: PublisherMember | None = None
         self.remote_live_until = 0.0
@@ -84,7 +84,7 @@ class Channel:
     def _join(self, member: Member, rig: Any) -> KeyState:
         state = self.states.get(member.key)
         if state is None:
-            state = self.states[member.key] = KeyState(member.key, rig)
+            state = self.states[member.key] = key_state(member.key, rig)
         self.members.setdefault(member.key, set()).add(member)
         self.hub.members_gauge.labels("publisher" if not member.watcher else "viewer").inc()
         return state
@@ -301,12 +301,14 @@ class Channel:
                 member.offer_result(data)
             self.results_out += len(members)
             self.hub.results_counter.inc(len(members))
+        # ``output=points`` keys only encode the frame: not clones (PROTOCOL.md §2.4).
+        cloned = sum(1 for s in states if s.CLONES)
         if count:
             self.frames_cloned += 1
-            self.clones += len(states)
-            self.hub.clones_counter.inc(len(states))
+            self.clones += cloned
+            self.hub.clones_counter.inc(cloned)
         else:
-            self.catchup_clones += len(states)
+            self.catchup_clones += cloned
 
     # -- figures -------------------------------------------------------------------------
     def snapshot(self) -> None:
@@ -355,5 +357,7 @@ class Channel:
         await asyncio.gather(*(t for t in (self._pump, self._face) if t), return_exceptions=True)
 
 
-def _clone_call(state: KeyState, frame: ChannelFrame, arrived: float, count: bool) -> bytes:
+def _clone_call(
+    state: KeyState | PointsKeyState, frame: ChannelFrame, arrived: float, count: bool
+) -> bytes:
     return state.clone(frame, arrived, count=count)

@@ -17,17 +17,17 @@ import msgpack
 import numpy as np
 
 from facecast.protocol import Result, Smoothing, array_from_wire, array_to_wire, encode
-from facecast.rig.errors import RigError
+from facecast.rig.errors import InputError, RigError
 from facecast.rig.filters import OneEuroFilter
 
-__all__ = ["ChannelFrame", "Key", "KeyState", "WatchResult"]
+__all__ = ["ChannelFrame", "Key", "KeyState", "PointsKeyState", "WatchResult", "key_state"]
 
 log = logging.getLogger("facecast.server.channels")
 
 #: (rig id, output, dtype): what a watcher asks for; watchers of one key share bytes.
 Key = tuple[str, str, str]
 
-_DTYPES = {"f32": np.float32, "f16": np.float16}
+_DTYPES = {"f32": np.float32, "f16": np.float16, "f64": np.float64}
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -56,6 +56,8 @@ class ChannelFrame:
     ----------
     seq, ts : the publisher's frame ``seq`` and ``ts``
     points : (K, 3) float16/32/64, as the publisher sent them (already point-smoothed)
+    raw_points : (K, 3) or None, the frame's points before the publisher's point smoothing;
+        None when ``points`` are those (no smoothing). What ``output=points`` watchers get.
     dropped : frames the publisher's session discarded so far (result.dropped)
     align, scale : the publisher's ``hello`` options, applied on every key's rig
     smoothing : the publisher's weight smoothing (target "weights"), or None
@@ -66,6 +68,7 @@ class ChannelFrame:
     seq: int
     ts: float
     points: np.ndarray
+    raw_points: np.ndarray | None = None
     dropped: int = 0
     align: bool = False
     scale: bool = False
@@ -79,6 +82,7 @@ class ChannelFrame:
                 "seq": self.seq,
                 "ts": self.ts,
                 "points": array_to_wire(self.points),
+                "raw_points": None if self.raw_points is None else array_to_wire(self.raw_points),
                 "dropped": self.dropped,
                 "align": self.align,
                 "scale": self.scale,
@@ -96,11 +100,15 @@ class ChannelFrame:
         if not isinstance(obj, dict):
             raise ValueError("channel frame: not a map")
         neutral = obj.get("neutral")
+        raw = obj.get("raw_points")
         smoothing = obj.get("smoothing")
         return cls(
             seq=int(obj["seq"]),
             ts=float(obj["ts"]),
             points=array_from_wire(obj["points"], "points", trailing=(3,), max_rows=max_points),
+            raw_points=None
+            if raw is None
+            else array_from_wire(raw, "raw_points", trailing=(3,), max_rows=max_points),
             dropped=int(obj.get("dropped", 0)),
             align=bool(obj.get("align", False)),
             scale=bool(obj.get("scale", False)),
@@ -118,6 +126,9 @@ class KeyState:
     ``clone`` and ``ease`` may be called from any clone thread; a lock keeps one frame
     at a time per key (the filter and the last pose are per key state).
     """
+
+    #: Whether ``clone`` evaluates a rig (counted in the channel's ``clones``).
+    CLONES = True
 
     def __init__(self, key: Key, rig: Any) -> None:
         self.key = key
@@ -230,3 +241,59 @@ class KeyState:
             server_ts=time.time(),
         )
         return encode(result)
+
+
+class PointsKeyState:
+    """The ``output=points`` key (PROTOCOL.md §2.4): the published frame itself, encoded once.
+
+    Same interface as `KeyState` for the channel's pump, but no rig is evaluated: the
+    rig only fixes K (a frame with another K raises ``InputError``, reported to this
+    key's watchers like any rig mismatch). A lost face is not eased: there is no frame
+    to invent, so ``ease`` gives nothing.
+    """
+
+    CLONES = False
+
+    def __init__(self, key: Key, rig: Any) -> None:
+        self.key = key
+        self.rig = rig
+        self.rig_id, self.output, self.dtype = key
+        self.clones = 0
+        self.last_weights: np.ndarray | None = None
+        self.last_bytes: bytes | None = None
+        self.last_seq = -1
+        self.failing = False
+        self._lock = threading.Lock()
+
+    def clone(self, frame: ChannelFrame, arrived: float, *, count: bool = True) -> bytes:
+        """The encoded ``points`` result of ``frame``: its raw points in this key's dtype."""
+        points = frame.points if frame.raw_points is None else frame.raw_points
+        if points.shape[0] != self.rig.num_points:
+            raise InputError(
+                f"frame has {points.shape[0]} points, rig {self.rig_id!r} has K="
+                f"{self.rig.num_points}",
+                code="wrong_point_count",
+            )
+        result = WatchResult(
+            seq=frame.seq,
+            ts=frame.ts,
+            points=np.asarray(points, dtype=_DTYPES[self.dtype]),
+            proc_us=max(0, int((time.perf_counter() - arrived) * 1e6)),
+            dropped=frame.dropped,
+            server_ts=time.time(),
+        )
+        data = encode(result)
+        with self._lock:
+            if count:
+                self.clones += 1
+            if frame.seq >= self.last_seq or not count:
+                self.last_bytes, self.last_seq = data, frame.seq
+        return data
+
+    def ease(self, alpha: float, seq: int, ts: float, dropped: int) -> bytes | None:
+        return None
+
+
+def key_state(key: Key, rig: Any) -> KeyState | PointsKeyState:
+    """The pipeline of a watched ``key``: a clone on ``rig``, or the frames themselves."""
+    return PointsKeyState(key, rig) if key[1] == "points" else KeyState(key, rig)

@@ -218,6 +218,7 @@ class PublisherMember(Member):
                 seq=frame.seq, ts=frame.ts, points=points, dropped=self.dropped + self.channel.dropped,
                 align=hello.align, scale=hello.align_scale, smoothing=smoothing,
                 neutral=self._neutral, neutral_id=self._neutral_id,
+                raw_points=frame.points if self._point_filter is not None else None,
             )
         )  # fmt: skip
         # Let the pump take this frame before reading the next (pipelined frames are

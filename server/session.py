@@ -1,9 +1,9 @@
 """One streaming session: a reader task, a one-slot frame mailbox and a writer task.
 
-The reader keeps reading and replacing the single pending frame (older ones are dropped
-and counted); the writer clones the frame it holds (on the loop when cheap, else in a
-worker thread) and sends. Memory per session is bounded whatever the client does. No
-auth and no admission here.
+The reader clones cheap frames itself (on the loop) and queues their results; other
+frames wait for the writer in a one-slot mailbox (newer replace older, counted), and
+large blends run batched in the clone pool. The writer sends. Memory per session is
+bounded whatever the client does. No auth and no admission here.
 """
 
 from __future__ import annotations
@@ -186,8 +186,13 @@ class Session:
     # -- public --------------------------------------------------------------------------
     @property
     def pending(self) -> int:
-        """Frames waiting in the mailbox (not yet held by the writer): 0 or 1, by construction."""
+        """Frames waiting in the mailbox (not yet in the writer's hands): 0 or 1."""
         return 0 if self._pending is None else 1
+
+    @property
+    def queued_results(self) -> tuple[int, int]:
+        """Results cloned but not yet sent: (count, bytes); the bytes are bounded."""
+        return len(self._outbox), self._outbox_bytes
 
     async def run(self) -> None:
         """Run until the client leaves, a fatal error, the idle timeout or ``close``."""
@@ -593,7 +598,8 @@ class Session:
 class _Smoother:
     """A session's one-euro filter (PROTOCOL.md §5.1.1 ``smoothing``), clocked by ``frame.ts``.
 
-    Used only from the writer's clone call, one frame at a time, so needs no lock.
+    Used only on the event loop, one frame at a time and in frame order (weights are
+    always computed there), so needs no lock.
     """
 
     def __init__(self, one_euro: OneEuroFilter, target: str) -> None:

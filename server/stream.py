@@ -87,7 +87,9 @@ async def stream(websocket: WebSocket) -> None:
     blender = getattr(app.state, "blend_batcher", None)
     if blender is None:
         # One per app, so frames of all its sessions on one rig blend together.
-        blender = app.state.blend_batcher = BlendBatcher(app.state.clone_executor)
+        blender = app.state.blend_batcher = BlendBatcher(
+            app.state.clone_executor, concurrency=settings.clone_threads
+        )
     session = Session(
         websocket,
         settings=settings,

@@ -8,6 +8,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # numpy loads when the command runs, not for --help
+    import numpy as np
 
 
 def register(subparsers) -> None:
@@ -19,7 +23,9 @@ def register(subparsers) -> None:
             "of the channel receive it cloned onto the character they watch. --rig names "
             "the rig whose feature-point layout SOURCE follows (the publisher's own "
             "results come back on it). Without --realtime frames go as fast as the "
-            "server's announced max_fps allows."
+            "server's announced max_fps allows. A source with timestamps (a take written "
+            "by `facecast record`) is sent with its own timestamps as the frames' ts, and "
+            "--realtime replays it with its original timing."
         ),
     )
     parser.add_argument("url", metavar="URL", help="server base URL, e.g. http://127.0.0.1:8000")
@@ -31,7 +37,9 @@ def register(subparsers) -> None:
         "--rig", default="demo", metavar="NAME", help="layout rig id on the server (default demo)"
     )
     parser.add_argument(
-        "--realtime", action="store_true", help="pace frames at the animation's fps"
+        "--realtime",
+        action="store_true",
+        help="pace frames at the source's timestamps (else its fps), as performed",
     )
     parser.add_argument("--loop", action="store_true", help="start over at the end, until Ctrl-C")
     parser.add_argument("--seconds", type=float, default=12.0, help="length of 'demo' (default 12)")
@@ -75,6 +83,25 @@ def _animation(args: argparse.Namespace, num_points: int):
     return animation
 
 
+def _schedule(animation) -> tuple[np.ndarray, np.ndarray | None, float]:
+    """When each frame plays and what ``ts`` it carries, for one pass over ``animation``.
+
+    Returns
+    -------
+    offsets : (F,) float64
+        Seconds after the pass starts: ``timestamps - timestamps[0]``, else ``i / fps``.
+    stamps : (F,) float64 or None
+        The source's own timestamps, sent as the frames' ``ts`` so watchers see the
+        performance's clock; None when it has none (``ts`` is then the wall clock).
+    period : float
+        Seconds from one pass's start to the next (``--loop``): the take's length plus
+        one frame, so timestamps keep increasing across passes.
+    """
+    stamps = animation.timestamps
+    offsets = animation.times - animation.times[0]
+    return offsets, stamps, float(offsets[-1]) + 1.0 / animation.fps
+
+
 async def publish(args: argparse.Namespace) -> tuple[int, object]:
     """Publish until the animation ends (or forever with ``--loop``); (frames sent, stats)."""
     import asyncio
@@ -88,16 +115,22 @@ async def publish(args: argparse.Namespace) -> tuple[int, object]:
         ready = publisher.ready
         assert ready is not None
         animation = _animation(args, ready.num_points)
-        fps = animation.fps if args.realtime else 0.9 * float(ready.limits.get("max_fps", 60.0))
+        offsets, stamps, period = _schedule(animation)
+        # Not realtime: as fast as the server takes frames, a margin under its max_fps.
+        rate = 0.9 * float(ready.limits.get("max_fps", 60.0))
         start = time.perf_counter()
         sent = 0
+        passes = 0
         while True:
-            for points in animation.points:
-                delay = start + sent / fps - time.perf_counter()
+            for i, points in enumerate(animation.points):
+                due = passes * period + offsets[i] if args.realtime else sent / rate
+                delay = start + due - time.perf_counter()
                 if delay > 0:
                     await asyncio.sleep(delay)
-                await publisher.send(points, time.time())
+                ts = time.time() if stamps is None else passes * period + stamps[i]
+                await publisher.send(points, ts)
                 sent += 1
+            passes += 1
             if not args.loop:
                 break
         return sent, publisher.stats

@@ -43,7 +43,14 @@ async def test_a_publisher_on_one_process_reaches_viewers_on_another(redis_setti
             for watcher in watchers.values():
                 await watcher.result_with_seq(seq)
         async with httpx.AsyncClient(base_url=b.base_url) as http:
-            info = (await http.get("/v1/channels/stage")).json()
+            info = {}
+
+            async def both_processes_reported() -> bool:
+                # Each process reports itself to Redis about once a second.
+                info.update((await http.get("/v1/channels/stage")).json())
+                return len(info["processes"]) == 2
+
+            await wait_for(both_processes_reported, what="both processes' reports")
 
     for rig_id, watcher in watchers.items():
         by_seq = {r.seq: r for r in watcher.results}

@@ -45,15 +45,3 @@ def test_bench_engine_writes_every_figure_with_baseline_and_verdict(tmp_path, ca
 def test_bench_engine_refuses_a_zero_repeat(capsys):
     assert cli.main(["bench", "engine", "--demo", "--repeat", "0"]) == 2
     assert "--repeat" in capsys.readouterr().err
-
-
-@pytest.mark.parametrize("name", ["transport", "broadcast"])
-def test_bench_sub_commands_run_or_say_they_are_missing(name, capsys, tmp_path):
-    try:
-        importlib.import_module(f"facecast.client.bench.{name}")
-    except ModuleNotFoundError:
-        code = cli.main(["bench", name, "--duration", "0.1", "--json", str(tmp_path / "b.json")])
-        assert code == 2
-        assert "not available" in capsys.readouterr().err
-    else:
-        pytest.skip(f"bench {name} exists; its own tests cover it")

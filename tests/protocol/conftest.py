@@ -1,34 +1,9 @@
-"""Shared helpers for the protocol tests: raw message maps and packing of hostile input."""
+"""Shared fixtures for the protocol tests (helpers live in _protocol_wire)."""
 
 from __future__ import annotations
 
-import copy
-from typing import Any
-
-import msgpack
 import pytest
-from _protocol_samples import SAMPLES
-
-
-def _materialise(value: Any) -> Any:
-    # serialize() hands array bytes over as memoryviews; tests edit plain bytes.
-    if isinstance(value, memoryview):
-        return value.tobytes()
-    if isinstance(value, dict):
-        return {k: _materialise(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_materialise(v) for v in value]
-    return value
-
-
-def raw(name: str) -> dict[str, Any]:
-    """A fresh, editable wire map of the sample message ``name``."""
-    return copy.deepcopy(_materialise(SAMPLES[name].serialize()))
-
-
-def pack(obj: Any) -> bytes:
-    """msgpack bytes of ``obj`` exactly as given, valid or not."""
-    return msgpack.packb(obj, use_bin_type=True)
+from _protocol_wire import raw
 
 
 @pytest.fixture

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from _protocol_samples import SAMPLES
-from conftest import pack
+from _protocol_wire import pack
 
 from facecast.protocol import (
     Calibrate,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import pack, raw
+from _protocol_wire import pack, raw
 
 from facecast.protocol import (
     ErrorCode,

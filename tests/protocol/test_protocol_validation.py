@@ -9,7 +9,7 @@ import msgpack
 import numpy as np
 import pytest
 from _protocol_samples import SAMPLES
-from conftest import pack, raw
+from _protocol_wire import pack, raw
 
 from facecast.protocol import (
     MAX_ERROR_MESSAGE,

@@ -30,9 +30,10 @@ def _weights(rig, count: int) -> list[np.ndarray]:
     return [rig.weights(frame_points(rig, i)) for i in range(count)]
 
 
+@pytest.mark.parametrize("concurrency", [1, 2])
 @pytest.mark.parametrize("count", [1, MIN_BATCH - 1, MIN_BATCH, MAX_BATCH + 3])
-async def test_each_frame_gets_its_own_blend_in_f32(big_rig, executor, count):
-    batcher = BlendBatcher(executor)
+async def test_each_frame_gets_its_own_blend_in_f32(big_rig, executor, count, concurrency):
+    batcher = BlendBatcher(executor, concurrency=concurrency)
     weights = _weights(big_rig, count)
     outs = [np.empty((big_rig.num_vertices, 3), np.float32) for _ in weights]
 
@@ -97,3 +98,8 @@ async def test_a_failing_blend_raises_in_every_caller_and_the_next_batch_works(b
 
     np.testing.assert_allclose(out, big_rig.blend(_weights(big_rig, 1)[0]), rtol=1e-6, atol=1e-6)
     assert batcher.active_groups == 0
+
+
+def test_concurrency_below_one_is_refused(executor):
+    with pytest.raises(ValueError, match="concurrency"):
+        BlendBatcher(executor, concurrency=0)

@@ -468,6 +468,30 @@ async def test_client_that_never_reads_is_bounded_and_does_not_slow_others(tmp_p
     assert statistics.median(latencies) < 0.05, latencies
 
 
+async def test_client_that_never_reads_an_inline_session_is_bounded(tmp_path, ws_impl):
+    from facecast.server import session as session_module
+
+    mid = tiny_rig(num_vertices=20_000)  # 240 kB results, cloned on the loop
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_fps=1e6, rate_burst=100_000)
+    p = frame_points(mid, 0)
+    async with run_server(settings, ws=ws_impl) as server:
+        server.app.state.store.put_rig("mid", mid)
+        async with connect(server, max_queue=1, max_size=None, close_timeout=0.5) as stuck:
+            await open_session(stuck, "mid", output="vertices")
+            session = next(iter(server.app.state.sessions))
+            for seq in range(300):
+                await stuck.send(frame(seq, p))
+            c = session.counters
+            await wait_until(lambda: c.frames_in == 300)
+            snapshot = (c.results_out, c.dropped, *session.queued_results)
+
+    results_out, dropped, outbox, outbox_bytes = snapshot
+    assert results_out < 100 and dropped > 100  # the socket stopped taking results
+    # Waiting results are bounded by bytes (one past the bound at most), frames by two.
+    assert outbox_bytes <= session_module._MAX_OUTBOX_BYTES + 250_000
+    assert 300 - results_out - dropped <= outbox + 3
+
+
 async def test_idle_session_gets_idle_timeout_then_close(tmp_path, rig, ws_impl):
 
     settings = Settings(rigs_dir=tmp_path / "rigs", idle_timeout=0.3)

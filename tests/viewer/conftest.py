@@ -58,7 +58,9 @@ def server(settings) -> Iterator[str]:
         yield base_url
 
 
-@pytest.fixture(scope="session")
+# Package scope: sync Playwright keeps an event loop running while it is open, which would
+# stop any async test that runs after the viewer tests from starting its own.
+@pytest.fixture(scope="package")
 def browser():
     reason = _missing()
     if reason is not None:

@@ -34,10 +34,15 @@ def test_viewer_animates_the_demo_with_no_console_errors(server, page):
     page.wait_for_function(FRAMES, arg=5)
     hud = page.locator("#hud")
     first = pixels(page.screenshot(mask=[hud]))
-    page.wait_for_function(FRAMES, arg=frames(page) + 10)
-    second = pixels(page.screenshot(mask=[hud]))
+    # The performance has quiet moments: look again every 15 frames, for up to 2 s of it.
+    changes = []
+    for _ in range(8):
+        page.wait_for_function(FRAMES, arg=frames(page) + 15)
+        changes.append(changed_fraction(first, pixels(page.screenshot(mask=[hud]))))
+        if changes[-1] > 0.002:
+            break
 
-    assert changed_fraction(first, second) > 0.002
+    assert max(changes) > 0.002, changes
     assert page.evaluate("window.facecastStats.state") == "live"
     assert page.locator("#state").inner_text().startswith("live")
     assert page.errors == []
