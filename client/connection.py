@@ -116,6 +116,29 @@ class Reconnect:
         return min(self.max_delay, self.initial_delay * self.factor**attempt)
 
 
+async def reopen_with_backoff(
+    open_once, reconnect: Reconnect, last: BaseException | None
+) -> tuple[bool, BaseException | None]:
+    """Call ``open_once()`` after each backoff delay until it succeeds or the attempts run out.
+
+    Returns (True, None) once open, or (False, the last error or ``last``). A protocol
+    error that retrying cannot cure (not in RETRYABLE_CODES) is raised at once.
+    """
+    for attempt in range(reconnect.attempts):
+        await asyncio.sleep(reconnect.delay(attempt))
+        try:
+            await open_once()
+        except ProtocolError as exc:
+            if exc.code not in RETRYABLE_CODES:
+                raise
+            last = exc
+        except _OPEN_ERRORS as exc:
+            last = exc
+        else:
+            return True, None
+    return False, last
+
+
 class _Marker:
     def __init__(self, name: str) -> None:
         self.name = name
@@ -323,21 +346,11 @@ class StreamSession:
             self._protocol.close()
 
     async def _reconnect(self, reason: BaseException | None) -> None:
-        last = reason
-        for attempt in range(self.reconnect.attempts):
-            await asyncio.sleep(self.reconnect.delay(attempt))
-            try:
-                await self._open()
-            except ProtocolError as exc:
-                if exc.code not in RETRYABLE_CODES:
-                    raise
-                last = exc
-            except _OPEN_ERRORS as exc:
-                last = exc
-            else:
-                self.reconnects += 1
-                self._queue.put_nowait(_RECONNECTED)
-                return
+        reopened, last = await reopen_with_backoff(self._open, self.reconnect, reason)
+        if reopened:
+            self.reconnects += 1
+            self._queue.put_nowait(_RECONNECTED)
+            return
         why = "the connection closed" if last is None else _describe(last)
         raise ConnectionFailed(
             f"lost the session at {self.url} and gave up after "

@@ -22,7 +22,12 @@ from websockets.asyncio.client import ClientConnection
 from websockets.asyncio.client import connect as ws_connect
 from websockets.exceptions import ConnectionClosed, WebSocketException
 
-from facecast.client.connection import RETRYABLE_CODES, ConnectionFailed, Reconnect
+from facecast.client.connection import (
+    RETRYABLE_CODES,
+    ConnectionFailed,
+    Reconnect,
+    reopen_with_backoff,
+)
 from facecast.client.urls import auth_headers, resolve_token, stream_url
 from facecast.protocol import (
     PUBLISH_PATH,
@@ -242,21 +247,11 @@ class FramePublisher:
             self._failure = ConnectionFailed(f"the publisher failed: {exc!r}")
 
     async def _reconnect(self, reason: BaseException | None) -> None:
-        last = reason
-        for attempt in range(self.reconnect.attempts):
-            await asyncio.sleep(self.reconnect.delay(attempt))
-            try:
-                await self._connect()
-            except ProtocolError as exc:
-                if exc.code not in RETRYABLE_CODES:
-                    raise
-                last = exc
-            except _OPEN_ERRORS as exc:
-                last = exc
-            else:
-                self.stats.reconnects += 1
-                log.info("publisher: reconnected to %s", self.url)
-                return
+        reopened, last = await reopen_with_backoff(self._connect, self.reconnect, reason)
+        if reopened:
+            self.stats.reconnects += 1
+            log.info("publisher: reconnected to %s", self.url)
+            return
         raise ConnectionFailed(
             f"lost {self.url} and gave up after {self.reconnect.attempts} attempt(s): "
             f"{'closed' if last is None else _describe(last)}"
