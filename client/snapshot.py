@@ -11,7 +11,6 @@ import os
 import socket
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -85,7 +84,7 @@ def serving(settings: Any, *, port: int = 0, startup_timeout: float = 10.0) -> I
     stop a server and start the next one on the same port at once.
     """
     from facecast.server.app import create_app
-    from facecast.server.runner import FacecastServer, uvicorn_config
+    from facecast.server.runner import ThreadedServer, uvicorn_config
     from facecast.server.viewer import mount_viewer
 
     app = create_app(settings)
@@ -96,33 +95,13 @@ def serving(settings: Any, *, port: int = 0, startup_timeout: float = 10.0) -> I
     sock.bind(("127.0.0.1", port))
     port = sock.getsockname()[1]
     config = uvicorn_config(settings, app, host="127.0.0.1", port=port, log_level="warning")
-    server = FacecastServer(config)
-    failure: list[BaseException] = []
-
-    def run() -> None:
-        try:
-            server.run(sockets=[sock])
-        except BaseException as exc:  # SystemExit on a failed start-up, too
-            failure.append(exc)
-
-    thread = threading.Thread(target=run, name=f"facecast-{port}", daemon=True)
-    thread.start()
-    deadline = time.monotonic() + startup_timeout
-    # uvicorn has no start-up callback: poll its ``started`` flag against a deadline.
-    while not server.started:
-        if failure or not thread.is_alive():
-            sock.close()
-            raise RuntimeError(f"server failed to start: {failure[:1]}")
-        if time.monotonic() > deadline:
-            server.should_exit = True
-            raise TimeoutError(f"server did not start within {startup_timeout} s")
+    threaded = ThreadedServer(config, sock, startup_timeout=startup_timeout)
+    while not threaded.started():
         time.sleep(0.01)
     try:
         yield f"http://127.0.0.1:{port}"
     finally:
-        server.should_exit = True
-        thread.join(30.0)
-        sock.close()
+        threaded.stop()
 
 
 def build_parser() -> argparse.ArgumentParser:

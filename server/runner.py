@@ -12,6 +12,7 @@ import os
 import signal
 import socket
 import tempfile
+import threading
 import time
 from typing import Any
 
@@ -21,7 +22,7 @@ from .app import SESSIONS_STATE_KEY, SETTINGS_ENV, create_app
 from .logs import uvicorn_log_config
 from .settings import Settings
 
-__all__ = ["FacecastServer", "serve", "uvicorn_config"]
+__all__ = ["FacecastServer", "ThreadedServer", "serve", "uvicorn_config"]
 
 log = logging.getLogger("facecast.server")
 
@@ -64,6 +65,50 @@ class FacecastServer(uvicorn.Server):
             timeout = getattr(self.config, "timeout_graceful_shutdown", None) or 5.0
             await sessions.close_all(1001, "server shutting down", timeout=timeout)
         await super().shutdown(sockets=sockets)
+
+
+class ThreadedServer:
+    """A `FacecastServer` running its own event loop in a thread, on a socket bound by the caller.
+
+    For the demo and for tests: the caller's loop (or blocking calls) cannot stall it.
+    uvicorn has no start-up callback, so callers poll `started()` between short waits of
+    their own (``time.sleep`` or ``asyncio.sleep``).
+    """
+
+    def __init__(self, config: uvicorn.Config, sock: socket.socket, *, startup_timeout: float):
+        self.server = FacecastServer(config)
+        self.sock = sock
+        self._failure: list[BaseException] = []
+        self._deadline = time.monotonic() + startup_timeout
+        self._startup_timeout = startup_timeout
+        self.thread = threading.Thread(
+            target=self._run, name=f"facecast-{sock.getsockname()[1]}", daemon=True
+        )
+        self.thread.start()
+
+    def _run(self) -> None:
+        try:
+            self.server.run(sockets=[self.sock])
+        except BaseException as exc:  # SystemExit on a failed start-up, too
+            self._failure.append(exc)
+
+    def started(self) -> bool:
+        """Whether it serves yet; raises if it failed or missed its start-up deadline."""
+        if self.server.started:
+            return True
+        if self._failure or not self.thread.is_alive():
+            self.sock.close()
+            raise RuntimeError(f"server failed to start: {self._failure[:1]}")
+        if time.monotonic() > self._deadline:
+            self.server.should_exit = True
+            raise TimeoutError(f"server did not start within {self._startup_timeout} s")
+        return False
+
+    def stop(self, timeout: float = 30.0) -> None:
+        """Ask it to exit, wait for the thread, close the socket (blocking)."""
+        self.server.should_exit = True
+        self.thread.join(timeout)
+        self.sock.close()
 
 
 def serve(settings: Settings, *, ws: str = "auto") -> int:

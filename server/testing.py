@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import socket
-import threading
-import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
@@ -18,7 +16,7 @@ from typing import Any
 from fastapi import FastAPI
 
 from .app import create_app
-from .runner import FacecastServer, uvicorn_config
+from .runner import FacecastServer, ThreadedServer, uvicorn_config
 from .settings import Settings
 
 __all__ = ["WS_IMPLEMENTATIONS", "RunningServer", "free_port", "run_server"]
@@ -76,30 +74,10 @@ async def run_server(
     sock.bind(("127.0.0.1", 0))
     port = sock.getsockname()[1]
     uv_config = uvicorn_config(settings, app, ws=ws, host="127.0.0.1", port=port, **config)
-    server = FacecastServer(uv_config)
-    failure: list[BaseException] = []
-
-    def target() -> None:
-        try:
-            server.run(sockets=[sock])
-        except BaseException as exc:  # SystemExit on a failed startup, too
-            failure.append(exc)
-
-    thread = threading.Thread(target=target, name=f"uvicorn-{port}", daemon=True)
-    thread.start()
-    deadline = time.monotonic() + startup_timeout
-    # uvicorn offers no start-up callback: wait on its ``started`` flag, with a deadline.
-    while not server.started:
-        if failure or not thread.is_alive():
-            sock.close()
-            raise RuntimeError(f"server failed to start: {failure[:1]}")
-        if time.monotonic() > deadline:
-            server.should_exit = True
-            raise TimeoutError(f"server did not start within {startup_timeout} s")
+    threaded = ThreadedServer(uv_config, sock, startup_timeout=startup_timeout)
+    while not threaded.started():
         await asyncio.sleep(0.01)
     try:
-        yield RunningServer(app, settings, server, "127.0.0.1", port)
+        yield RunningServer(app, settings, threaded.server, "127.0.0.1", port)
     finally:
-        server.should_exit = True
-        await asyncio.get_running_loop().run_in_executor(None, thread.join, 30.0)
-        sock.close()
+        await asyncio.get_running_loop().run_in_executor(None, threaded.stop)
