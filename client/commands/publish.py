@@ -31,7 +31,15 @@ def register(subparsers) -> None:
     parser.add_argument("url", metavar="URL", help="server base URL, e.g. http://127.0.0.1:8000")
     parser.add_argument("channel", metavar="CHANNEL", help="channel name (1-256 characters)")
     parser.add_argument(
-        "source", metavar="SOURCE", help="source animation (.npz/.npy, OBJ folder, ...) or 'demo'"
+        "source",
+        metavar="SOURCE",
+        help="source animation as 'facecast clone' reads it (.npz/.npy, OBJ folder, Live Link "
+        ".csv with --source-rig, MediaPipe .ndjson) or 'demo'",
+    )
+    parser.add_argument(
+        "--source-rig",
+        metavar="PATH",
+        help="ARKit-named source shapes for a Live Link Face CSV take (see 'facecast clone')",
     )
     parser.add_argument(
         "--rig", default="demo", metavar="NAME", help="layout rig id on the server (default demo)"
@@ -73,7 +81,10 @@ def _animation(args: argparse.Namespace, num_points: int):
         with contextlib.suppress(ServerRequestError):
             feature_indices = fetch_rig(args.url, args.rig, token=args.token).feature_indices
         animation = load_source_animation(
-            args.source, feature_indices=feature_indices, num_points=num_points
+            args.source,
+            feature_indices=feature_indices,
+            num_points=num_points,
+            source_rig=args.source_rig,
         )
     if animation.num_points != num_points:
         raise CommandError(

@@ -240,3 +240,23 @@ def test_load_source_animation_reads_a_mediapipe_take(tmp_path):
     loaded = load_source_animation(path)
     np.testing.assert_array_equal(loaded.points, mediapipe_animation(path).points)
     assert loaded.points.shape == (2, len(MEDIAPIPE_FEATURES), 3)
+
+
+def test_clone_command_clones_a_livelink_take_through_a_source_rig(take, tmp_path, example_set):
+    from facecast.client.cli import main
+    from facecast.rig import fit
+    from facecast.rig.source_rig import SourceRig
+
+    path, _, _ = take
+    example_set.save_npz(tmp_path / "source_rig.npz")
+    rig = fit(example_set)
+    rig.save(tmp_path / "face.rig")
+    out = tmp_path / "cloned.npz"
+    status = main(
+        ["clone", str(tmp_path / "face.rig"), str(path), "--source-rig",
+         str(tmp_path / "source_rig.npz"), "-o", str(out)]
+    )  # fmt: skip
+
+    assert status == 0
+    points = livelink_csv_animation(path, SourceRig.from_example_set(example_set)).points
+    np.testing.assert_allclose(np.load(out)["weights"], rig.weights(points), atol=1e-12)
