@@ -50,6 +50,25 @@ def _pairs_to_map(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:
     return result
 
 
+#: ``Limits.unpack_kwargs`` results by (limits, max_bytes): building the dict is a tenth of
+#: a small frame's decode. Entries keep their Limits alive, so an id is never reused while
+#: cached; bounded by clearing (peers use one or two Limits).
+_KWARGS_CACHE_SIZE = 16
+_kwargs_cache: dict[tuple[int, int], tuple[Limits, dict[str, Any]]] = {}
+
+
+def _unpack_kwargs(limits: Limits, max_bytes: int) -> dict[str, Any]:
+    key = (id(limits), max_bytes)
+    cached = _kwargs_cache.get(key)
+    if cached is not None and cached[0] is limits:
+        return cached[1]
+    kwargs = limits.unpack_kwargs(max_bytes)
+    if len(_kwargs_cache) >= _KWARGS_CACHE_SIZE:
+        _kwargs_cache.clear()
+    _kwargs_cache[key] = (limits, kwargs)
+    return kwargs
+
+
 def _unpack(data: Any, max_bytes: int, limits: Limits) -> Any:
     if isinstance(data, str):
         reject_text(data)
@@ -66,7 +85,7 @@ def _unpack(data: Any, max_bytes: int, limits: Limits) -> Any:
         )
     try:
         return msgpack.unpackb(
-            data, object_pairs_hook=_pairs_to_map, **limits.unpack_kwargs(max_bytes)
+            data, object_pairs_hook=_pairs_to_map, **_unpack_kwargs(limits, max_bytes)
         )
     except ProtocolError:
         raise

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
-from typing import Any, ClassVar, Final, Self
+from typing import Any, ClassVar, Final, Self, TypeVar
 
 import numpy as np
 
@@ -123,6 +123,20 @@ class _ArrayMessage(Message):
         return all(_same(getattr(self, f.name), getattr(other, f.name)) for f in fields(self))  # type: ignore[arg-type]
 
     __hash__ = None  # type: ignore[assignment]
+
+
+_M = TypeVar("_M", bound=Message)
+
+
+def _checked(cls: type[_M], **values: Any) -> _M:
+    """A message of ``cls`` from field values its ``parse`` has already validated.
+
+    Skips ``__post_init__``, which would check the same fields again (a third of a frame's
+    decode). Every field must be given, each exactly as ``__post_init__`` would store it.
+    """
+    message = object.__new__(cls)
+    message.__dict__.update(values)
+    return message
 
 
 def _header(kind: str) -> dict[str, Any]:
@@ -284,7 +298,8 @@ class Frame(_ArrayMessage):
 
     @classmethod
     def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Frame:
-        return cls(
+        return _checked(
+            cls,
             seq=read_uint(obj, "seq", "frame.seq"),
             ts=read_float(obj, "ts", "frame.ts"),
             points=array_from_wire(
@@ -588,10 +603,13 @@ class Result(_ArrayMessage):
             "points": ((3,), limits.max_points),
         }[name]
         values = array_from_wire(obj[name], f"result.{name}", trailing=trailing, max_rows=max_rows)
-        return cls(
+        arrays: dict[str, np.ndarray | None] = dict.fromkeys(_RESULT_ARRAYS)
+        arrays[name] = values
+        return _checked(
+            cls,
             seq=seq,
             ts=ts,
-            **{name: values},
+            **arrays,
             proc_us=read_uint(obj, "proc_us", "result.proc_us"),
             dropped=read_uint(obj, "dropped", "result.dropped"),
         )

@@ -1,9 +1,10 @@
-"""The compiled single-frame weight kernel (``facecast.rig._kernel``), or None without it.
+"""The compiled single-frame weight kernel and float16 cast (``facecast.rig._kernel``).
 
 Builds a kernel from a fitted model's arrays when the extension is built and not disabled;
 it must not change what the weights mean: the numpy path in ``rig.WeightModel`` stays the
 reference, and the kernel agrees with it to rounding (about 1e-15 relative, not bit for bit:
-the sums run in another order, and FMA rounds once where numpy rounds twice).
+the sums run in another order, and FMA rounds once where numpy rounds twice). The float16
+cast must give numpy's bits exactly; without F16C it is numpy's own cast.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ try:
 except ImportError:  # not built (no C compiler at install time): numpy does the work
     _kernel = None
 
-__all__ = ["DISABLE_ENV", "bspline_kernel", "compiled", "description"]
+__all__ = ["DISABLE_ENV", "bspline_kernel", "compiled", "description", "to_float16"]
 
 # Set to anything but "" or "0" to force the numpy path (read when a rig is built).
 DISABLE_ENV = "FACECAST_NO_KERNEL"
@@ -30,6 +31,38 @@ def compiled() -> bool:
 
 def _disabled() -> bool:
     return os.environ.get(DISABLE_ENV, "") not in ("", "0")
+
+
+def _fast_f16() -> bool:
+    # The plain-C conversion is slower than numpy's loop: only F16C is worth the call.
+    return _kernel is not None and _kernel.F16_ISA != "generic"
+
+
+def to_float16(src: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """Write ``src`` rounded to float16 into ``out`` and return ``out``.
+
+    The same bits as ``np.copyto(out, src, casting="unsafe")`` (round to nearest, ties to
+    even; overflow to infinity; NaN payloads as numpy truncates them), ~30x faster with the
+    extension on a CPU with F16C (ICT's 80k coordinates: ~7 us instead of ~200 us).
+
+    Parameters
+    ----------
+    src : (...) float32 (any float dtype takes numpy's path)
+    out : (...) float16, the same shape, not overlapping ``src``
+    """
+    if (
+        src.dtype == np.float32
+        and out.dtype == np.float16
+        and src.shape == out.shape
+        and src.flags.c_contiguous
+        and out.flags.c_contiguous
+        and _fast_f16()
+        and not _disabled()
+    ):
+        _kernel.f32_to_f16(src, out)
+    else:
+        np.copyto(out, src, casting="unsafe")
+    return out
 
 
 def description() -> str:

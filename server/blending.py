@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from facecast.rig.kernel import to_float16
+
 __all__ = ["MAX_BATCH", "MIN_BATCH", "BlendBatcher"]
 
 #: Most frames blended in one ``Rig.blend`` call (bounds the scratch buffer: ICT's
@@ -59,13 +61,15 @@ class _Scratch:
                 if request.out.dtype == np.float32:
                     rig.blend(request.weights, out=request.out)
                 else:
-                    vertices = rig.blend(request.weights, out=self.array[0])
-                    np.copyto(request.out, vertices, casting="same_kind")
+                    to_float16(rig.blend(request.weights, out=self.array[0]), request.out)
             return
         weights = np.stack([request.weights for request in batch])
         vertices = rig.blend(weights, out=self.array[: len(batch)])
         for request, frame in zip(batch, vertices, strict=True):
-            np.copyto(request.out, frame, casting="same_kind")
+            if request.out.dtype == np.float32:
+                np.copyto(request.out, frame)
+            else:
+                to_float16(frame, request.out)
 
 
 class BlendBatcher:

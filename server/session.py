@@ -39,6 +39,7 @@ from facecast.protocol import (
 )
 from facecast.rig.errors import InputError, RigError
 from facecast.rig.filters import OneEuroFilter
+from facecast.rig.kernel import to_float16
 
 from .blending import BlendBatcher
 from .metrics import Metrics
@@ -662,5 +663,4 @@ def _clone(
     vertices = rig.blend(weights, out=outputs.vertices)
     if outputs.wire is None:
         return vertices
-    np.copyto(outputs.wire, vertices, casting="same_kind")
-    return outputs.wire
+    return to_float16(vertices, outputs.wire)
