@@ -1,7 +1,8 @@
 """A channel connection's sending side: a bounded outbox and a writer, newest result wins.
 
-Sends on the fan-out's own stack when the socket takes the bytes at once, else through
-the writer task; a slow client only ever slows itself. No protocol decisions here.
+Sends on the fan-out's own stack when the socket takes the bytes at once (a result's
+WebSocket frame is built once and written as is where uvicorn's protocol allows), else
+through the writer task; a slow client only ever slows itself. No protocol decisions here.
 """
 
 from __future__ import annotations
@@ -10,16 +11,18 @@ import asyncio
 import contextlib
 import logging
 import secrets
+import struct
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
-from starlette.websockets import WebSocket, WebSocketDisconnect
+from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 from facecast.protocol import ErrorCode, ProtocolError, ServerProtocol, close_code
 
 from .fanout import Key
 
-__all__ = ["MAX_OUTBOX", "Closing", "Member"]
+__all__ = ["MAX_OUTBOX", "Closing", "Member", "binary_frame", "direct_writer"]
 
 log = logging.getLogger("facecast.server.channels")
 
@@ -62,6 +65,13 @@ class Member:
         self._inflight: asyncio.Task[None] | None = None
         self._stop: asyncio.Future[Closing] = asyncio.get_running_loop().create_future()
         self._done = asyncio.Event()
+        #: Writes a whole frame straight to the socket, or False; found once accepted.
+        self._direct: Callable[[bytes], bool] | None = None
+
+    @property
+    def direct(self) -> bool:
+        """Whether results are written straight to the socket (see ``direct_writer``)."""
+        return self._direct is not None
 
     @property
     def queued(self) -> int:
@@ -69,6 +79,19 @@ class Member:
         return len(self._items)
 
     def offer_result(self, data: bytes) -> None:
+        # The fan-out's hot path (once per viewer and frame): the common case, an idle
+        # member whose socket takes the frame, without the calls of ``_push``.
+        direct = self._direct
+        if (
+            direct is not None
+            and not self._items
+            and self._open
+            and self._inflight is None
+            and not self._writing
+            and direct(binary_frame(data))
+        ):
+            self.sent += 1
+            return
         if self._items and self._items[-1][0] == "r":
             self._items[-1][1] = data
             self.skipped += 1
@@ -99,6 +122,9 @@ class Member:
         (uvicorn's buffer has room), so run the send coroutine right here; if it does
         suspend (slow client), a task finishes it and the outbox holds newer results.
         """
+        if self._direct is not None and self._direct(binary_frame(data)):
+            self.sent += 1
+            return True
         coro = self.ws.send_bytes(data)
         try:
             yielded = coro.send(None)
@@ -128,6 +154,7 @@ class Member:
         self.offer(self.protocol.send(error.to_message()))
 
     async def _write_loop(self) -> None:
+        self._direct = direct_writer(self.ws)
         self._open = True
         while True:
             await self._wake.wait()
@@ -231,3 +258,99 @@ async def _finish(coro: Any, yielded: Any) -> None:
     except BaseException:
         coro.close()
         raise
+
+
+# -- the direct path: one frame's bytes, written to the socket as they are ---------------
+_LENGTH16 = struct.Struct(">BBH")
+_LENGTH64 = struct.Struct(">BBQ")
+_last_frame: tuple[bytes, bytes] = (b"", b"\x82\x00")
+
+
+def binary_frame(data: bytes) -> bytes:
+    """``data`` as one unmasked, unfragmented RFC 6455 binary frame (a server's frame).
+
+    The fan-out hands the same result bytes to every member of a key in a row, so the
+    newest frame is kept: it is built once per result, not once per viewer.
+    """
+    global _last_frame
+    cached = _last_frame  # one read: servers in other threads (tests) may replace it
+    if cached[0] is data:
+        return cached[1]
+    n = len(data)
+    if n < 126:
+        header = bytes((0x82, n))
+    elif n < 65536:
+        header = _LENGTH16.pack(0x82, 126, n)
+    else:
+        header = _LENGTH64.pack(0x82, 127, n)
+    frame = header + data
+    _last_frame = (data, frame)
+    return frame
+
+
+def direct_writer(websocket: WebSocket) -> Callable[[bytes], bool] | None:
+    """A function writing a whole frame to ``websocket``'s socket, or None if unsafe.
+
+    Only for uvicorn's ``websockets-sansio`` protocol reached through Starlette's own
+    exception wrapper (nothing else between the route and uvicorn that might look at
+    sends), with no extension negotiated (the frame is sent as built). Each call checks
+    that the connection is open, accepted by the app, not closing and not paused by
+    back-pressure; it returns False otherwise, and the caller uses the ASGI send (which
+    waits, raises or closes as uvicorn decides). The protocol object only sees whole
+    frames written between its own, so its state machine is unaffected: a server's data
+    frame changes no protocol state (RFC 6455 §5; websockets ``send_binary`` only
+    appends the serialised frame).
+    """
+    protocol = _sansio_protocol(getattr(websocket, "_send", None))
+    if protocol is None:
+        return None
+    conn = protocol.conn
+    if conn.extensions:
+        return None
+    from websockets.protocol import State
+
+    opened = State.OPEN
+    connected = WebSocketState.CONNECTED
+    writable = protocol.writable
+    transport = protocol.transport
+
+    def write(frame: bytes) -> bool:
+        if (
+            websocket.application_state is not connected
+            or protocol.close_sent
+            or protocol.disconnected
+            or not writable.is_set()
+            or conn.state is not opened
+            or conn.writes
+            or transport.is_closing()
+        ):
+            return False
+        transport.write(frame)
+        return True
+
+    return write
+
+
+def _sansio_protocol(send: Any, depth: int = 4) -> Any:
+    """The uvicorn ``WebSocketsSansIOProtocol`` whose ``send`` ``send`` is, or None."""
+    try:
+        from uvicorn.protocols.websockets.websockets_sansio_impl import (
+            WebSocketsSansIOProtocol,
+        )
+    except ImportError:  # pragma: no cover - uvicorn without websockets
+        return None
+    for _ in range(depth):
+        owner = getattr(send, "__self__", None)
+        if isinstance(owner, WebSocketsSansIOProtocol):
+            return owner if send.__func__ is WebSocketsSansIOProtocol.send else None
+        # Starlette's exception wrapper only notes http.response.start: see through it.
+        if getattr(send, "__qualname__", "") != _STARLETTE_SENDER:
+            return None
+        names = send.__code__.co_freevars
+        if "send" not in names:
+            return None
+        send = send.__closure__[names.index("send")].cell_contents
+    return None
+
+
+_STARLETTE_SENDER = "wrap_app_handling_exceptions.<locals>.wrapped_app.<locals>.sender"

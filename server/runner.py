@@ -46,6 +46,9 @@ def uvicorn_config(settings: Settings, app: Any, *, ws: str = "auto", **override
         log_config=uvicorn_log_config(settings.log_level),
         access_log=False,
         server_header=False,
+        # Results are float arrays that deflate barely shrinks, and per-connection
+        # compression would cost every viewer its own pass over each result.
+        ws_per_message_deflate=False,
         # Bound on concurrent HTTP+WS connections before uvicorn answers 503 itself;
         # sessions have their own, lower, limit with a protocol error.
         limit_concurrency=settings.max_connections + 64,

@@ -334,7 +334,6 @@ async def _ramp(
     ports: dict[str, int], pids: list[int], frames: np.ndarray, seconds: float, say
 ) -> dict[str, Any]:
     """Ramp viewers over ``ports`` (split evenly); figures per step, per group of viewers."""
-    import httpx
 
     counter, stop = [0], asyncio.Event()
     publisher = asyncio.create_task(_publish(ports["a"], frames, counter, stop))
@@ -350,12 +349,27 @@ async def _ramp(
                 failed += await client.add(group, share)
             total = target
             await asyncio.sleep(1.0)  # warm-up: let the new viewers' first results settle
+            client_pids = [p.pid for c in clients.values() for p in c.processes]
+            before = await _channel_info(ports["a"])
             cpu0, wall0 = _cpu_seconds(pids), time.perf_counter()
+            client_cpu0 = _cpu_seconds(client_pids)
             figures = await asyncio.gather(
                 *(c.measure(seconds, lambda: counter[0]) for c in clients.values())
             )
             cpu = _cpu_seconds(pids) - cpu0
             wall = time.perf_counter() - wall0
+            # The load generator shares the machine: its CPU says whether it, not the
+            # server, was the limit (each client process can use one core at most).
+            client_cores = (_cpu_seconds(client_pids) - client_cpu0) / wall
+            after = await _channel_info(ports["a"])
+            # Where results went missing: frames the server never cloned (the fan-out
+            # of one frame outlasted the next), or results it skipped for a slow viewer.
+            uncloned = 1.0 - min(
+                1.0,
+                (after["frames"] - before["frames"])
+                / max(1, sum(f["frames"] for f in figures) / len(figures)),
+            )
+            skipped = after["skipped"] - before["skipped"]
             results = sum(f["results"] for f in figures)
             by_group = dict(zip(clients, figures, strict=True))
             p99 = max(f["p99_ms"] for f in figures)
@@ -368,15 +382,18 @@ async def _ramp(
                           "delivered": round(delivered, 3), "ok": ok,
                           "server_cpu_cores": round(server_cores, 3),
                           "server_us_per_result": round(us_per_result, 2),
+                          "client_cpu_cores": round(client_cores, 3),
+                          "frames_not_cloned": round(uncloned, 3), "server_skipped": skipped,
                           "groups": by_group})  # fmt: skip
             say(f"  {target:5d} viewers: p99 {p99:7.2f} ms, delivered {delivered:6.1%}, "
                 f"server CPU {server_cores:4.2f} cores ({us_per_result:5.1f} us/result), "
+                f"clients {client_cores:4.2f} cores, not cloned {uncloned:5.1%}, "
+                f"skipped {skipped}, "
                 f"connect failures {failed}  {'ok' if ok else 'OVER'}")  # fmt: skip
             if not ok:
                 break
             held = target
-        async with httpx.AsyncClient() as http:
-            info = (await http.get(f"http://127.0.0.1:{ports['a']}/v1/channels/bench")).json()
+        info = await _channel_info(ports["a"])
     finally:
         stop.set()
         await asyncio.gather(publisher, return_exceptions=True)
@@ -384,6 +401,14 @@ async def _ramp(
             await client.close()
     return {"held": held, "steps": steps, "clones_per_frame": info.get("clones_per_frame"),
             "keys": len(info.get("keys", []))}  # fmt: skip
+
+
+async def _channel_info(port: int) -> dict[str, Any]:
+    """``GET /v1/channels/bench`` of the server on ``port`` (this process's figures)."""
+    import httpx
+
+    async with httpx.AsyncClient() as http:
+        return (await http.get(f"http://127.0.0.1:{port}/v1/channels/bench")).json()
 
 
 def _start_redis() -> tuple[subprocess.Popen | None, str | None]:
