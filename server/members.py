@@ -26,7 +26,6 @@ from facecast.protocol import (
     Ping,
     Pong,
     ProtocolError,
-    Ready,
     ServerProtocol,
     close_code,
 )
@@ -35,6 +34,7 @@ from facecast.rig.filters import OneEuroFilter
 
 from .fanout import ChannelFrame
 from .outbox import Closing, Member
+from .session import ready_message
 
 if TYPE_CHECKING:
     from .channels import Channel
@@ -162,26 +162,7 @@ class PublisherMember(Member):
             self._point_filter = OneEuroFilter(sm.min_cutoff, sm.beta, sm.d_cutoff)
         self._calibrate_next = hello.calibration
         s = self.hub.settings
-        self.offer(
-            self.protocol.send(
-                Ready(
-                    session=self.id,
-                    rig=hello.rig,
-                    names=rig.names,
-                    num_points=rig.num_points,
-                    num_vertices=rig.num_vertices,
-                    output=hello.output,
-                    dtype=hello.dtype,
-                    limits={
-                        "max_points": int(self.protocol.limits.max_points),
-                        "max_fps": float(s.max_fps),
-                        "rate_burst": int(s.rate_burst),
-                        "max_message_bytes": int(s.max_message_bytes),
-                        "idle_timeout": float(s.idle_timeout),
-                    },
-                )
-            )
-        )
+        self.offer(self.protocol.send(ready_message(self.id, hello, rig, self.protocol.limits, s)))
         await channel.add_publisher(self, rig)
         log.info("publisher joined",
                  extra={"event": "channel.publish", "channel": self.name, "rig": hello.rig,

@@ -416,24 +416,7 @@ class Session:
                 sm.target,
             )
         s = self.settings
-        self._queue_control(
-            Ready(
-                session=self.id,
-                rig=hello.rig,
-                names=rig.names,
-                num_points=rig.num_points,
-                num_vertices=rig.num_vertices,
-                output=hello.output,
-                dtype=hello.dtype,
-                limits={
-                    "max_points": int(self.protocol.limits.max_points),
-                    "max_fps": float(s.max_fps),
-                    "rate_burst": int(s.rate_burst),
-                    "max_message_bytes": int(s.max_message_bytes),
-                    "idle_timeout": float(s.idle_timeout),
-                },
-            )
-        )
+        self._queue_control(ready_message(self.id, hello, rig, self.protocol.limits, s))
         log.info(
             "session open",
             extra={
@@ -664,3 +647,23 @@ def _clone(
     if outputs.wire is None:
         return vertices
     return to_float16(vertices, outputs.wire)
+
+
+def ready_message(session_id: str, hello, rig, limits, settings) -> Ready:
+    """The ``ready`` answering ``hello`` for ``rig``, with the limits the server enforces."""
+    return Ready(
+        session=session_id,
+        rig=hello.rig,
+        names=rig.names,
+        num_points=rig.num_points,
+        num_vertices=rig.num_vertices,
+        output=hello.output,
+        dtype=hello.dtype,
+        limits={
+            "max_points": int(limits.max_points),
+            "max_fps": float(settings.max_fps),
+            "rate_burst": int(settings.rate_burst),
+            "max_message_bytes": int(settings.max_message_bytes),
+            "idle_timeout": float(settings.idle_timeout),
+        },
+    )
