@@ -116,6 +116,19 @@ class Reconnect:
         return min(self.max_delay, self.initial_delay * self.factor**attempt)
 
 
+async def await_ready(ws: ClientConnection, protocol: ClientProtocol) -> Ready:
+    """Read until the server's ``ready`` (returned) or ``error`` (raised as ProtocolError)."""
+    while True:
+        data = await ws.recv()
+        if isinstance(data, str):
+            raise ProtocolError(ErrorCode.TEXT_NOT_SUPPORTED, "server sent a text message")
+        message = protocol.receive(data)
+        if isinstance(message, Ready):
+            return message
+        if isinstance(message, Error):
+            raise message.to_exception()
+
+
 async def reopen_with_backoff(
     open_once, reconnect: Reconnect, last: BaseException | None
 ) -> tuple[bool, BaseException | None]:
@@ -239,7 +252,7 @@ class StreamSession:
             with contextlib.suppress(ConnectionClosed):
                 await ws.send(protocol.send(self.hello))
             async with asyncio.timeout(self.open_timeout):
-                ready = await self._await_ready(ws, protocol)
+                ready = await await_ready(ws, protocol)
             self._check_same_rig(ready)
             if self._calibration_points is not None:
                 # The server forgets calibration with the connection: restore it.
@@ -249,18 +262,6 @@ class StreamSession:
             raise
         self._ws, self._protocol = ws, protocol
         self._connected.set()
-
-    @staticmethod
-    async def _await_ready(ws: ClientConnection, protocol: ClientProtocol) -> Ready:
-        while True:
-            data = await ws.recv()
-            if isinstance(data, str):
-                raise ProtocolError(ErrorCode.TEXT_NOT_SUPPORTED, "server sent a text message")
-            message = protocol.receive(data)
-            if isinstance(message, Ready):
-                return message
-            if isinstance(message, Error):
-                raise message.to_exception()
 
     def _check_same_rig(self, ready: Ready) -> None:
         if self.ready is None:

@@ -34,7 +34,7 @@ from facecast.rig.filters import OneEuroFilter
 
 from .fanout import ChannelFrame
 from .outbox import Closing, Member
-from .session import ready_message
+from .session import TokenBucket, ready_message
 
 if TYPE_CHECKING:
     from .channels import Channel
@@ -76,23 +76,6 @@ class WatcherMember(Member):
         self.channel.remove_member(self)
 
 
-class _TokenBucket:
-    """``rate`` events per second on average, ``burst`` at once (the stream's rate limit)."""
-
-    def __init__(self, rate: float, burst: int) -> None:
-        self.rate, self.burst = rate, float(burst)
-        self.tokens, self.last = float(burst), time.monotonic()
-
-    def take(self) -> bool:
-        now = time.monotonic()
-        self.tokens = min(self.burst, self.tokens + (now - self.last) * self.rate)
-        self.last = now
-        if self.tokens >= 1.0:
-            self.tokens -= 1.0
-            return True
-        return False
-
-
 class PublisherMember(Member):
     """``.../publish``: ``hello`` then frames, like ``/v1/stream``; frames feed the channel.
 
@@ -117,7 +100,7 @@ class PublisherMember(Member):
         self.frames_in = 0
         self.dropped = 0
         self._rig: Any = None
-        self._bucket = _TokenBucket(settings.max_fps, settings.rate_burst)
+        self._bucket = TokenBucket(settings.max_fps, settings.rate_burst)
         self._last_rate_error = -1e9
         self._point_filter: OneEuroFilter | None = None
         self._neutral: np.ndarray | None = None

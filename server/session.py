@@ -91,7 +91,7 @@ class SessionCounters:
         return self.dropped_superseded + self.dropped_rate
 
 
-class _TokenBucket:
+class TokenBucket:
     """Allows ``rate`` events per second on average, ``burst`` at once."""
 
     def __init__(self, rate: float, burst: int) -> None:
@@ -162,7 +162,7 @@ class Session:
         self._smoother: _Smoother | None = None
         self._outputs: _Outputs | None = None
         self._inline = True  # whether frames are cloned on the loop (set by hello)
-        self._bucket = _TokenBucket(settings.max_fps, settings.rate_burst)
+        self._bucket = TokenBucket(settings.max_fps, settings.rate_burst)
         self._last_rate_error = -1e9
         # Frames as (frame, arrival perf_counter). ``_held`` is the one the writer clones
         # next (or is cloning); ``_pending`` is the one-slot mailbox behind it, where a

@@ -26,6 +26,7 @@ from facecast.client.connection import (
     RETRYABLE_CODES,
     ConnectionFailed,
     Reconnect,
+    await_ready,
     reopen_with_backoff,
 )
 from facecast.client.urls import auth_headers, resolve_token, stream_url
@@ -87,18 +88,6 @@ async def _open(url: str, token: str | None, limits: Limits, open_timeout: float
         open_timeout=open_timeout,
         compression=None,  # float arrays: deflate costs latency and gains little
     )
-
-
-async def _await_ready(ws: ClientConnection, protocol: ClientProtocol) -> Ready:
-    while True:
-        data = await ws.recv()
-        if isinstance(data, str):
-            raise ProtocolError(ErrorCode.TEXT_NOT_SUPPORTED, "server sent a text message")
-        message = protocol.receive(data)
-        if isinstance(message, Ready):
-            return message
-        if isinstance(message, Error):
-            raise message.to_exception()
 
 
 @dataclass
@@ -169,7 +158,7 @@ class FramePublisher:
             protocol = ClientProtocol(self.limits)
             await ws.send(protocol.send(self.hello))
             async with asyncio.timeout(self.open_timeout):
-                ready = await _await_ready(ws, protocol)
+                ready = await await_ready(ws, protocol)
         except BaseException:
             await ws.close()
             raise
