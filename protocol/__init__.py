@@ -4,7 +4,13 @@ No asyncio, no sockets; imports only numpy and msgpack. The spec is PROTOCOL.md.
 """
 
 from facecast.protocol.arrays import WIRE_DTYPES, array_from_wire, array_to_wire
-from facecast.protocol.codec import decode_client, decode_server, encode, reject_text
+from facecast.protocol.codec import (
+    decode_client,
+    decode_server,
+    encode,
+    encode_result,
+    reject_text,
+)
 from facecast.protocol.connection import ClientProtocol, ClientState, ServerProtocol, ServerState
 from facecast.protocol.errors import ErrorCode, ProtocolError
 from facecast.protocol.limits import Limits
@@ -89,6 +95,7 @@ __all__ = [
     "decode_client",
     "decode_server",
     "encode",
+    "encode_result",
     "reject_text",
     "select_subprotocol",
     "watch_hello",

@@ -11,6 +11,7 @@ from typing import Any, NoReturn
 
 import msgpack
 
+from facecast.protocol.arrays import array_to_wire
 from facecast.protocol.errors import ErrorCode, ProtocolError
 from facecast.protocol.limits import Limits
 from facecast.protocol.messages import (
@@ -40,6 +41,33 @@ def encode(message: Message) -> bytes:
     if packer is None:
         packer = _local.packer = msgpack.Packer(use_bin_type=True, autoreset=True)
     return packer.pack(message.serialize())
+
+
+def encode_result(
+    seq: int, ts: float, output: str, values: Any, proc_us: int, dropped: int
+) -> bytes:
+    """The wire bytes of ``Result(seq=seq, ts=ts, <output>=values, ...)`` (§5.2.2).
+
+    For results the sender built itself (a server's per-frame path): the same bytes as
+    `encode` of that `Result`, without constructing and re-checking the dataclass, which
+    costs as much as the encoding. ``values`` must already be a valid array for ``output``
+    ("weights" (M,), "vertices" (V, 3) or "points" (K, 3), float16/32/64); ints are
+    unsigned, as a `Result` requires.
+    """
+    packer = getattr(_local, "packer", None)
+    if packer is None:
+        packer = _local.packer = msgpack.Packer(use_bin_type=True, autoreset=True)
+    return packer.pack(
+        {
+            "v": PROTOCOL_VERSION,
+            "type": "result",
+            "seq": seq,
+            "ts": float(ts),
+            output: array_to_wire(values),
+            "proc_us": proc_us,
+            "dropped": dropped,
+        }
+    )
 
 
 def _pairs_to_map(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:

@@ -7,13 +7,14 @@ bytes to send out. The caller owns the socket; nothing here blocks, sleeps or aw
 from __future__ import annotations
 
 from enum import Enum
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from facecast.protocol.codec import (
     DEFAULT_LIMITS,
     decode_client,
     decode_server,
     encode,
+    encode_result,
     reject_text,
 )
 from facecast.protocol.errors import ErrorCode, ProtocolError
@@ -166,6 +167,18 @@ class ServerProtocol:
         elif self.ready is None:
             raise _wrong_state(f"cannot send {message.TYPE} before ready", fatal=False)
         return encode(message)
+
+    def send_result(
+        self, seq: int, ts: float, values: Any, *, output: str, proc_us: int, dropped: int
+    ) -> bytes:
+        """Bytes of a `Result` the server computed: ``send(Result(...))``'s, made faster.
+
+        The per-frame path: the session state is checked as `send` does, the fields are
+        trusted (``values`` a valid array for ``output``; see `encode_result`).
+        """
+        if self.ready is None or self.state is not ServerState.STREAMING:
+            raise _wrong_state("cannot send result before ready", fatal=False)
+        return encode_result(seq, ts, output, values, proc_us, dropped)
 
     def fail(self, error: ProtocolError) -> bytes:
         """Bytes of the `Error` reporting ``error``; closes the session when it is fatal."""

@@ -146,6 +146,18 @@ def test_server_cannot_send_result_before_ready() -> None:
     _raises(ErrorCode.WRONG_STATE, server.send, SAMPLES["result"])
 
 
+def test_server_cannot_send_a_computed_result_before_ready() -> None:
+    server = ServerProtocol()
+    server.receive(HELLO)
+    result = SAMPLES["result"]
+    _raises(
+        ErrorCode.WRONG_STATE,
+        lambda: server.send_result(
+            result.seq, result.ts, result.values, output=result.output, proc_us=1, dropped=0
+        ),
+    )
+
+
 def test_fatal_error_closes_the_server_session() -> None:
     server = ServerProtocol()
     data = server.fail(ProtocolError(ErrorCode.UNKNOWN_RIG, "no rig 'x'", fatal=True))
