@@ -7,7 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["project_box", "weight_metric"]
+__all__ = ["project_box", "sparsity_penalty", "weight_metric"]
+
+# Full exchanges a frame may make without reducing its count of infeasible variables before
+# it falls back to single exchanges (Judice & Pires 1994's p; Kim & Park 2011 use 3).
+_BACKUP_CHANCES = 3
 
 
 def weight_metric(params: np.ndarray, ridge: float) -> np.ndarray:
@@ -24,21 +28,64 @@ def weight_metric(params: np.ndarray, ridge: float) -> np.ndarray:
     return gram + max(ridge, floor) * np.eye(len(gram))
 
 
+def sparsity_penalty(noise: float, sparsity: float, num_examples: int) -> float:
+    """The linear term lambda of the bounded projection for a sparsity prior on the weights.
+
+    With landmark noise of variance s^2 per coordinate the projection's quadratic term is
+    |dw @ D|^2 / (2 s^2) in log-likelihood units. An exponential prior of rate beta on each
+    non-neutral weight (w_i >= 0, mean 1/beta) adds beta * sum_i w_i; scaled like the
+    quadratic term that is lambda = 2 s^2 beta. ``sparsity`` is beta in units of the M - 1
+    non-neutral examples, beta = sparsity * (M - 1): the prior expects a frame's non-neutral
+    weights to add up to 1 / sparsity. No noise, no penalty: exact points need no prior.
+
+    Parameters
+    ----------
+    noise : float
+        Landmark noise standard deviation s (source units), >= 0.
+    sparsity : float
+        >= 0; 0 is no prior.
+    num_examples : int
+        M, the neutral included.
+
+    Returns
+    -------
+    float
+        lambda >= 0, in the units of the metric (source units squared).
+    """
+    return 2.0 * noise * noise * sparsity * (num_examples - 1)
+
+
 def project_box(
-    weights: np.ndarray, metric: np.ndarray, upper: float | None, *, max_iter: int = 64
+    weights: np.ndarray,
+    metric: np.ndarray,
+    upper: float | None,
+    *,
+    penalty: float = 0.0,
+    max_iter: int = 200,
 ) -> np.ndarray:
-    """argmin_x (x - w) H (x - w) subject to 0 <= x (<= upper), for each row of ``weights``.
+    """argmin_x (x - w) H (x - w) + penalty 1^T x subject to 0 <= x (<= upper), for each row.
+
+    With ``penalty`` 0 this is the metric projection of ``w`` onto the bounds; with
+    ``penalty`` lambda > 0 it is the MAP weights under Gaussian noise (the quadratic term)
+    and an exponential sparsity prior on w >= 0 (the linear term; see ``sparsity_penalty``).
+    The same QP either way: the linear term only shifts H w to H w - lambda / 2.
 
     Block principal pivoting (Judice & Pires 1994) batched over frames: every frame keeps its
-    own free / at-zero / at-upper sets and all frames solve their reduced systems in one
-    batched ``np.linalg.solve`` per iteration. Frames converge independently; the loop ends
-    when none changes its sets (or after ``max_iter``, a bound no test has reached).
+    own free / at-zero / at-upper sets, exchanges all its infeasible variables at once, and
+    falls back to exchanging one (the last) when that has not reduced their number for
+    ``_BACKUP_CHANCES`` steps, which guarantees termination. Frames still pivoting solve
+    their reduced systems in one batched ``np.linalg.solve`` per iteration; frames that
+    have converged drop out. ``max_iter`` is a safety bound no test has reached.
 
     Parameters
     ----------
     weights : (B, N) float
+        The unbounded weights w.
     metric : (N, N) symmetric positive definite H
     upper : float or None
+    penalty : float
+        lambda >= 0.
+    max_iter : int
 
     Returns
     -------
@@ -46,25 +93,69 @@ def project_box(
     """
     n = weights.shape[1]
     target = weights @ metric  # H w for each frame (H symmetric)
-    at_low = weights < 0.0
-    at_high = np.zeros_like(at_low) if upper is None else weights > upper
+    half = 0.5 * penalty
+    start = weights
+    if penalty:
+        target = target - half
+        # Start from the signs of the unbounded minimiser w - (lambda / 2) H^-1 1.
+        start = weights - half * np.linalg.solve(metric, np.ones(n))
+    low = start < 0.0
+    high = None if upper is None else start > upper
     eye = np.eye(n)
-    x = weights
+    out = np.empty_like(target)
+    # The frames still pivoting, and their rows of everything below; compacted only when
+    # some finish, so a single frame never pays for indexing.
+    rows = np.arange(len(weights))
+    tol = 1e-12 * (1.0 + np.abs(target))
+    best = np.full(len(weights), n + 1)  # fewest infeasible variables seen, per frame
+    chances = np.full(len(weights), _BACKUP_CHANCES)
     for _ in range(max_iter):
-        free = ~(at_low | at_high)
+        free = ~low if high is None else ~(low | high)
         both = free[:, :, None] & free[:, None, :]
         system = np.where(both, metric, 0.0) + np.where(free, 0.0, 1.0)[:, :, None] * eye
-        fixed = np.where(at_high, upper if upper is not None else 0.0, 0.0)
-        rhs = np.where(free, target - fixed @ metric, fixed)
+        if high is None:
+            rhs = np.where(free, target, 0.0)
+        else:
+            fixed = np.where(high, upper, 0.0)
+            rhs = np.where(free, target - fixed @ metric, fixed)
         x = np.linalg.solve(system, rhs[:, :, None])[:, :, 0]
+        # Half the objective's gradient, H (x - w) + lambda / 2: >= 0 where x sits at 0,
+        # <= 0 where it sits at the upper bound, 0 where it is free (KKT).
         gradient = (x - weights) @ metric
-        tol = 1e-12 * (1.0 + np.abs(target))
-        new_low = (free & (x < 0.0)) | (at_low & (gradient >= -tol))
-        new_high = np.zeros_like(new_low)
-        if upper is not None:
-            new_high = (free & (x > upper)) | (at_high & (gradient <= tol))
-            new_low &= ~new_high
-        if np.array_equal(new_low, at_low) and np.array_equal(new_high, at_high):
+        if penalty:
+            gradient += half
+        to_low = free & (x < 0.0)
+        infeasible = to_low | (low & (gradient < -tol))
+        if high is not None:
+            to_high = free & (x > upper)
+            infeasible |= to_high | (high & (gradient > tol))
+        count = infeasible.sum(axis=1)
+        done = count == 0
+        if done.all():
+            out[rows] = x
             break
-        at_low, at_high = new_low, new_high
-    return np.clip(x, 0.0, upper)
+        if done.any():
+            out[rows[done]] = x[done]
+            keep = ~done
+            rows, weights, target, tol, low, best, chances = (
+                a[keep] for a in (rows, weights, target, tol, low, best, chances)
+            )
+            x, infeasible, count, to_low = x[keep], infeasible[keep], count[keep], to_low[keep]
+            if high is not None:
+                high, to_high = high[keep], to_high[keep]
+        improved = count < best
+        best = np.minimum(best, count)
+        chances = np.where(improved, _BACKUP_CHANCES, chances - 1)
+        stalled = chances <= 0
+        if stalled.any():
+            # Murty's rule for the stalled frames: exchange only the last infeasible index.
+            last = n - 1 - np.argmax(infeasible[:, ::-1], axis=1)
+            only = np.arange(n) == last[:, None]
+            infeasible = np.where(stalled[:, None], infeasible & only, infeasible)
+        # Infeasible free variables go to the bound they cross; infeasible bound ones go free.
+        low = (low & ~infeasible) | (to_low & infeasible)
+        if high is not None:
+            high = (high & ~infeasible) | (to_high & infeasible)
+    else:
+        out[rows] = x
+    return np.clip(out, 0.0, upper)

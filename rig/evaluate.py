@@ -292,6 +292,8 @@ def _label(setting: dict) -> str:
         parts.append(str(setting["kernel"]))
     if setting.get("clamp"):
         parts.append(f"clamp={setting['clamp']}")
+    if setting.get("sparsity") is not None:
+        parts.append(f"sparsity={float(setting['sparsity']):g}")
     parts.append(f"noise={float(setting.get('noise', 0.0)):g}")
     return " ".join(parts)
 
@@ -300,8 +302,10 @@ def default_settings(noise: float = 0.0, kernels: Sequence[str] = KERNELS) -> li
     """Rig settings worth comparing at input noise ``noise`` (std, source units).
 
     The thesis's rig (B-spline, no regularisation); with noise, the regularised rig at
-    noise/2, noise and 2 noise; every other kernel in ``kernels``; and the bounded rigs
-    (``clamp`` nonneg and unit, the metric projection) at the input noise and twice it.
+    noise/2, noise and 2 noise; every other kernel in ``kernels``; the bounded rigs
+    (``clamp`` nonneg and unit, the metric projection with the default sparsity prior) at
+    the input noise and twice it; and, with noise, the nonneg rig without the prior
+    (``sparsity`` 0), to show what the prior adds.
     """
     noise = float(noise)
     settings: list[dict] = [{"noise": 0.0}]
@@ -314,11 +318,13 @@ def default_settings(noise: float = 0.0, kernels: Sequence[str] = KERNELS) -> li
         settings.append({"clamp": clamp, "noise": noise})
         if noise > 0:
             settings.append({"clamp": clamp, "noise": 2.0 * noise})
+    if noise > 0:
+        settings.append({"clamp": "nonneg", "sparsity": 0.0, "noise": noise})
     return settings
 
 
 def _sanitize_settings(settings) -> list[tuple[str, dict]]:
-    allowed = {"noise", "kernel", "clamp", "pca_threshold", "ridge", "label"}
+    allowed = {"noise", "kernel", "clamp", "sparsity", "pca_threshold", "ridge", "label"}
     out = []
     seen = set()
     for setting in settings:
@@ -383,7 +389,7 @@ def evaluate(
     truth_vertices : (F, V, 3) float or None
         The ideal clone; None skips the error tables (timing only).
     settings : sequence of dict, optional
-        ``fit`` keyword arguments per rig (``noise``, ``kernel``, ``clamp``,
+        ``fit`` keyword arguments per rig (``noise``, ``kernel``, ``clamp``, ``sparsity``,
         ``pca_threshold``, ``ridge``) and an optional ``label``; default
         ``default_settings(noise)``. A setting that cannot be fitted is reported as failed.
     noise : float

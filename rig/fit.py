@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
+from .bounds import sparsity_penalty
 from .errors import FitError
 from .examples import ExampleSet
 from .kernels import KERNELS, evaluate_kernel, kernel_derivative, kernel_slope
@@ -21,6 +22,9 @@ from .rig import Rig, WeightModel
 __all__ = ["CLAMP_MODES", "FitReport", "IdentifiabilityWarning", "fit"]
 
 CLAMP_MODES = (None, "nonneg", "unit")
+# The sparsity prior's default: a frame's non-neutral weights are expected to add up to
+# about one (one expression's worth, however it is shared), see bounds.sparsity_penalty.
+DEFAULT_SPARSITY = 1.0
 
 # Parameter vectors closer than this, relative to the spread of all examples, are taken
 # to coincide: the radial system is singular there whatever the kernel.
@@ -53,6 +57,12 @@ class FitReport:
     condition_number: float
     linear_ridge: float
     fit_seconds: float
+    # The bounds on the weights, and the sparsity prior on bounded weights
+    # (bounds.sparsity_penalty): its setting and the linear term lambda it gives at this
+    # noise (used only with a clamp).
+    clamp: str | None = None
+    sparsity: float = 0.0
+    sparsity_penalty: float = 0.0
     # Per example: distance to the nearest other example in the kept space, and its name.
     nearest_distance: list[float] = field(default_factory=list)
     nearest_name: list[str] = field(default_factory=list)
@@ -68,7 +78,7 @@ class FitReport:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
 
 
-def _sanitize(example_set, kernel, noise, pca_threshold, ridge, clamp):
+def _sanitize(example_set, kernel, noise, pca_threshold, ridge, clamp, sparsity):
     if not isinstance(example_set, ExampleSet):
         raise TypeError(f"expected an ExampleSet, got {type(example_set).__name__}")
     if kernel not in KERNELS:
@@ -88,7 +98,18 @@ def _sanitize(example_set, kernel, noise, pca_threshold, ridge, clamp):
             raise FitError(f"ridge must be a finite number >= 0, got {ridge}")
     if clamp not in CLAMP_MODES:
         raise FitError(f"clamp must be one of {CLAMP_MODES}, got {clamp!r}")
-    return kernel, noise, pca_threshold, ridge, clamp
+    if sparsity is None:
+        sparsity = DEFAULT_SPARSITY
+    else:
+        sparsity = float(sparsity)
+        if not np.isfinite(sparsity) or sparsity < 0:
+            raise FitError(f"sparsity must be a finite number >= 0, got {sparsity}")
+        if sparsity > 0 and clamp is None:
+            raise FitError(
+                "sparsity is a prior on bounded weights: it needs clamp 'nonneg' or 'unit'",
+                code="sparsity_without_clamp",
+            )
+    return kernel, noise, pca_threshold, ridge, clamp, sparsity
 
 
 def _pca(displacements: np.ndarray, relative_threshold: float):
@@ -142,6 +163,7 @@ def fit(
     kernel: str = "bspline",
     ridge: float | None = None,
     clamp: str | None = None,
+    sparsity: float | None = None,
     stable_points=None,
     align_scale: bool = False,
 ) -> Rig:
@@ -169,6 +191,15 @@ def fit(
         weights are projected onto the bounds in the metric of the examples' parameter
         displacements (plus the noise ridge), i.e. the nearest bounded weights as the feature
         points see them, not a plain clip. The neutral's weight keeps the sum at 1.
+        With ``noise`` above 0 the projection is the MAP weights under that landmark noise and
+        a sparsity prior (see ``sparsity``).
+    sparsity : float, optional
+        Rate of an exponential prior on each bounded non-neutral weight, in units of the
+        M - 1 non-neutral examples: the prior expects a frame's non-neutral weights to add
+        up to 1 / sparsity (faces show few expressions at once). The bounded projection
+        then minimises (x - w) H (x - w) + lambda 1^T x with lambda = 2 noise^2 sparsity
+        (M - 1) (``bounds.sparsity_penalty``), so it vanishes without noise. Default 1;
+        0 is the plain metric projection. Giving it without ``clamp`` is an error.
     stable_points : (S,) int, optional
         Feature points used for head-pose alignment (``Rig.weights(align=True)``); all
         points when omitted.
@@ -176,8 +207,8 @@ def fit(
         Whether head-pose alignment also removes uniform scale.
     """
     started = time.perf_counter()
-    kernel, noise, pca_threshold, ridge, clamp = _sanitize(
-        example_set, kernel, noise, pca_threshold, ridge, clamp
+    kernel, noise, pca_threshold, ridge, clamp, sparsity = _sanitize(
+        example_set, kernel, noise, pca_threshold, ridge, clamp, sparsity
     )
     names = example_set.names
     m = example_set.num_examples
@@ -247,6 +278,7 @@ def fit(
         alpha=alpha,
         clamp=clamp,
         ridge=float(lam),
+        sparsity_penalty=sparsity_penalty(noise, sparsity, m),
     )
 
     report = FitReport(
@@ -261,6 +293,9 @@ def fit(
         condition_number=condition,
         linear_ridge=float(lam),
         fit_seconds=0.0,
+        clamp=clamp,
+        sparsity=sparsity,
+        sparsity_penalty=model.sparsity_penalty,
         nearest_distance=[float(d) for d in nearest_distance],
         nearest_name=[names[int(j)] for j in nearest],
         separation_snr=[float(d / noise) if noise > 0 else float("inf") for d in nearest_distance],

@@ -38,6 +38,9 @@ class WeightModel:
     clamp: str | None
     # Noise prior (ridge) of the fit; sets the metric bounded weights are projected in.
     ridge: float = 0.0
+    # Linear term lambda of the bounded projection (bounds.sparsity_penalty): the sparsity
+    # prior on the bounded weights; 0 is the plain metric projection. Unused without clamp.
+    sparsity_penalty: float = 0.0
     # Input map x' = x @ input_matrix + input_offset on flattened points (calibration);
     # identity when not calibrated.
     input_matrix: np.ndarray | None = None
@@ -162,7 +165,12 @@ class WeightModel:
 
     def _bounded(self, weights: np.ndarray) -> np.ndarray:
         if self.clamp is not None:
-            rest = project_box(weights[:, 1:], self._metric, 1.0 if self.clamp == "unit" else None)
+            rest = project_box(
+                weights[:, 1:],
+                self._metric,
+                1.0 if self.clamp == "unit" else None,
+                penalty=self.sparsity_penalty,
+            )
             weights[:, 1:] = rest
             weights[:, 0] = 1.0 - rest.sum(axis=1)
         return weights
@@ -452,7 +460,11 @@ class Rig:
         return Rig(**fields)
 
     def with_clamp(self, clamp: str | None) -> Rig:
-        """The same rig with another weight-clamping mode (None, "nonneg", "unit")."""
+        """The same rig with another weight-clamping mode (None, "nonneg", "unit").
+
+        The sparsity penalty fit derived from its noise (``bounds.sparsity_penalty``) comes
+        along: bounding an unbounded noise rig gives what ``fit(..., clamp=...)`` would.
+        """
         return self._derive(model=tuple(m.with_clamp(clamp) for m in self.models))
 
     # -- description -----------------------------------------------------------------------

@@ -101,7 +101,7 @@ def _arrays(rig: Rig) -> dict[str, np.ndarray]:
 
 
 def _meta(rig: Rig) -> dict:
-    return {
+    meta = {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
         "names": list(rig.names),
@@ -114,6 +114,12 @@ def _meta(rig: Rig) -> dict:
         if rig.regions is None
         else [{"name": name, "columns": columns.tolist()} for name, columns in rig.regions],
     }
+    penalties = [m.sparsity_penalty for m in rig.models]
+    if any(penalties):
+        # Written only when set; files without it (all that older facecast wrote) read as
+        # 0, the plain projection they were made with, so the format version stays 1.
+        meta["sparsity_penalty"] = penalties
+    return meta
 
 
 def _checksum(meta: dict, arrays: dict[str, np.ndarray]) -> str:
@@ -299,5 +305,13 @@ def _build_model(meta: dict, a: dict[str, np.ndarray], prefix: str, index: int) 
         kernel=str(meta["kernel"]),
         clamp=clamp,
         ridge=float(meta.get("ridge", [0.0] * (index + 1))[index]),
+        sparsity_penalty=_penalty(meta, index),
         **{key: a.get(prefix + key) for key in _MODEL_KEYS},
     )
+
+
+def _penalty(meta: dict, index: int) -> float:
+    penalty = float(meta.get("sparsity_penalty", [0.0] * (index + 1))[index])
+    if not np.isfinite(penalty) or penalty < 0:
+        raise ValueError(f"sparsity_penalty must be a finite number >= 0, got {penalty}")
+    return penalty

@@ -55,7 +55,19 @@ def register(subparsers) -> None:
         "--kernel", choices=KERNEL_CHOICES, default="bspline", help="radial cross-section"
     )
     parser.add_argument(
-        "--clamp", choices=("nonneg", "unit"), default=None, help="clip non-neutral weights"
+        "--clamp",
+        choices=("nonneg", "unit"),
+        default=None,
+        help="bound the non-neutral weights to >= 0 or [0, 1] (the nearest bounded weights in "
+        "the metric of the examples; with --noise, the MAP weights under a sparsity prior)",
+    )
+    parser.add_argument(
+        "--sparsity",
+        type=float,
+        default=None,
+        metavar="S",
+        help="with --clamp and --noise: exponential prior on the bounded weights, expecting "
+        "a frame's non-neutral weights to add up to 1/S (default 1; 0 = plain projection)",
     )
     parser.add_argument(
         "--stable-points",
@@ -119,6 +131,7 @@ def format_report(report: dict, names) -> str:
         f"PCA eigenvalues: {_spectrum(report['eigenvalues'], report['components_kept'])}",
         f"radial system condition number: {report['condition_number']:.4g}",
         f"noise gain (RMS weight change per unit landmark noise): {report['noise_gain']:.4g}",
+        *_bounds_line(report),
         "identifiability (nearest other example, distance in parameter space):",
     ]
     order = sorted(range(len(names)), key=lambda i: report["nearest_distance"][i])
@@ -132,6 +145,15 @@ def format_report(report: dict, names) -> str:
         )
     lines.append(f"fit time: {report['fit_seconds'] * 1e3:.1f} ms")
     return "\n".join(lines)
+
+
+def _bounds_line(report: dict) -> list[str]:
+    if report.get("clamp") is None:
+        return []
+    return [
+        f"bounded weights: {report['clamp']}, sparsity prior {report.get('sparsity', 0.0):g} "
+        f"(penalty {report.get('sparsity_penalty', 0.0):.4g})"
+    ]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -153,6 +175,7 @@ def run(args: argparse.Namespace) -> int:
             noise=args.noise,
             kernel=args.kernel,
             clamp=args.clamp,
+            sparsity=args.sparsity,
             stable_points=_stable_points(args.stable_points),
             align_scale=args.align_scale,
         )

@@ -54,6 +54,25 @@ def test_fit_demo_writes_a_loadable_rig_and_prints_the_report(demo_rig, capsys, 
     assert rig.num_examples == 13 and rig.model.clamp == "unit"
 
 
+def test_fit_sparsity_is_stored_in_the_rig_and_printed(tmp_path, capsys):
+    out = tmp_path / "sparse.rig"
+
+    code = cli.main(
+        ["fit", "demo", "-o", str(out), "--noise", "0.01", "--clamp", "nonneg", "--sparsity", "2"]
+    )
+
+    assert code == 0
+    assert "sparsity prior 2" in capsys.readouterr().out
+    assert load_rig(out).model.sparsity_penalty == pytest.approx(2 * 0.01**2 * 2 * 12)
+
+
+def test_fit_sparsity_without_clamp_exits_2_saying_why(tmp_path, capsys):
+    code = cli.main(["fit", "demo", "-o", str(tmp_path / "r.rig"), "--sparsity", "1"])
+
+    assert code == 2
+    assert "clamp" in capsys.readouterr().err
+
+
 def test_fit_json_prints_the_fit_report(tmp_path, capsys):
     code = cli.main(["fit", "demo", "-o", str(tmp_path / "r.rig"), "--json"])
 

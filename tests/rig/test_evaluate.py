@@ -137,6 +137,27 @@ def test_default_settings_bracket_the_input_noise_and_cover_the_kernels():
     assert {"clamp": "unit", "noise": 0.1} in chosen
 
 
+def test_default_settings_show_the_bounded_rig_with_and_without_the_sparsity_prior():
+    chosen = default_settings(0.1, ["bspline"])
+
+    assert {"clamp": "nonneg", "noise": 0.1} in chosen
+    assert {"clamp": "nonneg", "sparsity": 0.0, "noise": 0.1} in chosen
+    assert not any("sparsity" in setting for setting in default_settings(0.0, ["bspline"]))
+
+
+def test_sparsity_setting_is_fitted_and_named_in_the_report():
+    example_set = _linear_set()
+    _, points, truth = _linear_mix(example_set, 10)
+
+    report = evaluate(
+        example_set, points, truth, settings=[{"clamp": "nonneg", "sparsity": 0.0, "noise": 0.05}],
+        noise=0.02, timing=False,
+    )  # fmt: skip
+
+    entry = report["methods"]["rig clamp=nonneg sparsity=0 noise=0.05"]
+    assert entry["failed"] is None and entry["settings"]["sparsity"] == 0.0
+
+
 def test_evaluate_reports_every_method_in_both_conditions_as_json():
     example_set = _linear_set()
     _, points, truth = _linear_mix(example_set, 30)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import io
+import json
 import warnings
 
 import numpy as np
@@ -263,11 +265,58 @@ def test_bad_runtime_points_raise_input_error(rig, points, code):
         ({"noise": float("nan")}, "noise"),
         ({"pca_threshold": 2.0}, "pca_threshold"),
         ({"clamp": "yes"}, "clamp"),
+        ({"sparsity": 1.0}, "sparsity"),
+        ({"clamp": "nonneg", "sparsity": -1.0}, "sparsity"),
+        ({"clamp": "nonneg", "sparsity": float("inf")}, "sparsity"),
     ],
 )
 def test_bad_fit_settings_are_refused(example_set, kwargs, match):
     with pytest.raises(FitError, match=match):
         fit(example_set, **kwargs)
+
+
+def test_bounded_noise_rig_holds_the_sparsity_penalty_of_its_noise(example_set):
+    rig = fit(example_set, noise=0.3, clamp="nonneg")
+    report = rig.fit_report
+
+    assert report["sparsity"] == 1.0 and report["clamp"] == "nonneg"
+    assert rig.model.sparsity_penalty == pytest.approx(2 * 0.3**2 * (M - 1))
+    assert report["sparsity_penalty"] == rig.model.sparsity_penalty
+
+
+def test_sparsity_prior_zeroes_more_weights_than_the_plain_projection(example_set):
+    points = example_set.source_points[None, 1:4].mean(axis=1) + np.random.default_rng(7).normal(
+        scale=0.3, size=(200, K, 3)
+    )
+    plain = fit(example_set, noise=0.3, clamp="nonneg", sparsity=0.0).weights(points)
+    sparse = fit(example_set, noise=0.3, clamp="nonneg").weights(points)
+
+    assert (sparse[:, 1:] > 0).sum() < (plain[:, 1:] > 0).sum()
+    np.testing.assert_allclose(sparse.sum(axis=1), 1.0, atol=1e-9)
+
+
+def test_sparsity_prior_survives_the_rig_file(example_set):
+    rig = fit(example_set, noise=0.3, clamp="unit", sparsity=2.0)
+    points = np.random.default_rng(8).normal(size=(30, K, 3))
+
+    loaded = rig_from_bytes(rig.to_bytes())
+
+    assert loaded.model.sparsity_penalty == rig.model.sparsity_penalty > 0
+    np.testing.assert_array_equal(loaded.weights(points), rig.weights(points))
+    assert loaded.checksum == rig.checksum
+
+
+def test_rig_without_the_prior_writes_no_sparsity_record_and_reads_back_without_it(
+    example_set,
+):
+    # Older facecast wrote no such record: its files must read as rigs without the prior.
+    rig = fit(example_set, noise=0.3, clamp="nonneg", sparsity=0.0)
+    data = rig.to_bytes()
+    with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+        meta = json.loads(npz["meta"].tobytes())
+
+    assert "sparsity_penalty" not in meta
+    assert rig_from_bytes(data).model.sparsity_penalty == 0.0
 
 
 def test_no_warning_on_well_separated_examples(example_set):
