@@ -6,6 +6,7 @@ it knows nothing about messages and never copies array data more than once.
 
 from __future__ import annotations
 
+import math
 from typing import Any, Final
 
 import numpy as np
@@ -21,6 +22,8 @@ WIRE_DTYPES: Final[dict[str, np.dtype[Any]]] = {
 _NAME_BY_ITEMSIZE: Final = {2: "f16", 4: "f32", 8: "f64"}
 #: float16 arrays with more values than this are checked by their exponent bits (below).
 _F16_BITS_CHECK_MIN = 256
+#: float32/64 arrays with at most this many values are first checked by a dot product.
+_DOT_CHECK_MAX = 4096
 _F16_ABS_MASK: Final = np.uint16(0x7FFF)
 _F16_EXPONENT_ALL_ONES: Final = 0x7C00
 
@@ -34,9 +37,16 @@ def all_finite(array: np.ndarray) -> bool:
     and float64 keep ``isfinite``, which numpy vectorises (a bit mask is slower there).
     Small arrays too: below a few hundred values the call overhead is all there is.
     """
-    if array.dtype.itemsize == 2 and array.size > _F16_BITS_CHECK_MIN:
-        bits = np.ascontiguousarray(array).view(np.uint16)
-        return int(np.bitwise_and(bits, _F16_ABS_MASK).max()) < _F16_EXPONENT_ALL_ONES
+    if array.dtype.itemsize == 2:
+        if array.size > _F16_BITS_CHECK_MIN:
+            bits = np.ascontiguousarray(array).view(np.uint16)
+            return int(np.bitwise_and(bits, _F16_ABS_MASK).max()) < _F16_EXPONENT_ALL_ONES
+    elif array.size <= _DOT_CHECK_MAX and math.isfinite(np.vdot(array, array)):
+        # A frame's points: one BLAS dot (0.5 us) instead of isfinite + all (1.2 us). A
+        # NaN or infinity makes the sum of squares NaN or +inf (squares cannot cancel);
+        # a finite sum proves every value finite. Not finite (maybe only an overflow of
+        # huge values): the exact check below decides.
+        return True
     return bool(np.isfinite(array).all())
 
 

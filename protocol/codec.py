@@ -13,6 +13,7 @@ import msgpack
 
 from facecast.protocol.arrays import array_to_wire
 from facecast.protocol.errors import ErrorCode, ProtocolError
+from facecast.protocol.fastframe import decode_frame
 from facecast.protocol.limits import Limits
 from facecast.protocol.messages import (
     CLIENT_MESSAGES,
@@ -177,6 +178,10 @@ def decode_client(data: bytes, limits: Limits = DEFAULT_LIMITS) -> ClientMessage
         For anything that is not exactly one valid client message within ``limits``;
         ``seq`` is set when the message carried a readable one.
     """
+    # Most client messages are frames, most frames are laid out as `encode` writes them.
+    frame = decode_frame(data, limits)
+    if frame is not None:
+        return frame
     return _decode(data, limits.max_message_bytes, limits, CLIENT_MESSAGES, "client->server")
 
 

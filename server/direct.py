@@ -12,7 +12,7 @@ from typing import Any
 
 from starlette.websockets import WebSocket, WebSocketState
 
-__all__ = ["binary_frame", "direct_writer"]
+__all__ = ["binary_frame", "direct_writer", "queued_messages"]
 
 _LENGTH16 = struct.Struct(">BBH")
 _LENGTH64 = struct.Struct(">BBQ")
@@ -82,6 +82,18 @@ def direct_writer(websocket: WebSocket) -> Callable[[bytes], bool] | None:
         return True
 
     return write
+
+
+def queued_messages(websocket: WebSocket) -> Callable[[], int] | None:
+    """A function counting the messages already received for ``websocket``'s app, or None.
+
+    Where `direct_writer` is allowed (uvicorn's ``websockets-sansio`` protocol reached
+    through Starlette only), the app's ``receive`` is that protocol's: it returns what
+    its queue holds, so a count above zero means the next receive will not wait. A
+    reader uses it to tell a burst of messages that arrived together from a lone one.
+    """
+    protocol = _sansio_protocol(getattr(websocket, "_send", None))
+    return None if protocol is None else protocol.queue.qsize
 
 
 def _sansio_protocol(send: Any, depth: int = 4) -> Any:

@@ -42,7 +42,7 @@ from facecast.rig.filters import OneEuroFilter
 from facecast.rig.kernel import to_float16
 
 from .blending import BlendBatcher
-from .direct import binary_frame, direct_writer
+from .direct import binary_frame, direct_writer, queued_messages
 from .metrics import Metrics
 from .settings import Settings
 from .store import RigNotFoundError, RigStore, valid_rig_id
@@ -72,6 +72,9 @@ _SECONDS_PER_COORDINATE = 3e-9
 #: Frames that arrived together are cloned in order for at most this long after the
 #: first of them was read; later ones in the same burst replace one another (§8).
 _BURST_SECONDS = 0.005
+#: Results of one burst written to the socket together (one syscall) at the burst's end,
+#: or as soon as they reach this many bytes.
+_CORK_BYTES = 64 * 1024
 #: Encoded results the reader may leave for the writer (at least one is always
 #: allowed); past this, frames wait in the mailbox and newer ones replace them (§8).
 _MAX_OUTBOX_BYTES = 256 * 1024
@@ -180,6 +183,11 @@ class Session:
         #: Writes a whole frame straight to the socket, or False (``direct_writer``);
         #: None where uvicorn's protocol does not allow it. Set once the session runs.
         self._direct: Callable[[bytes], bool] | None = None
+        #: Results of the current burst waiting to be written in one go (``_flush``),
+        #: and how many received messages wait for the reader (with ``_direct`` only).
+        self._corked: list[bytes] = []
+        self._corked_bytes = 0
+        self._queued: Callable[[], int] | None = None
         self._reader_waited = False
         self._loop = asyncio.get_running_loop()
         self._stop: asyncio.Future[_Closing] = self._loop.create_future()
@@ -202,6 +210,7 @@ class Session:
     async def run(self) -> None:
         """Run until the client leaves, a fatal error, the idle timeout or ``close``."""
         self._direct = direct_writer(self.ws)
+        self._queued = queued_messages(self.ws) if self._direct is not None else None
         reader = asyncio.create_task(self._read_loop(), name=f"session-{self.id}-reader")
         writer = asyncio.create_task(self._write_loop(), name=f"session-{self.id}-writer")
         self._arm_idle_timer()
@@ -274,14 +283,19 @@ class Session:
 
     # -- reading -------------------------------------------------------------------------
     async def _read_loop(self) -> None:
-        receive, clock = self.ws.receive, self._loop.time
+        receive, clock, queued = self.ws.receive, self._loop.time, self._queued
         burst_start = 0.0
         while True:
-            self._reader_waited = False
-            self._loop.call_soon(self._mark_reader_waited)
+            if queued is not None:
+                waits = not queued()
+                if waits:
+                    self._flush()  # the burst is over: its results go out together
+            else:
+                self._reader_waited = False
+                self._loop.call_soon(self._mark_reader_waited)
             message = await receive()
             self._last_message = clock()
-            if self._reader_waited:
+            if waits if queued is not None else self._reader_waited:
                 # The receive had to wait: this message starts a new burst (messages
                 # that were already queued when the reader got to them belong to one).
                 burst_start = time.perf_counter()
@@ -295,6 +309,7 @@ class Session:
                 if type(decoded) is Frame:
                     self._on_frame(decoded, time.perf_counter() - burst_start < _BURST_SECONDS)
                 else:
+                    self._flush()
                     await self._dispatch(decoded)
             except ProtocolError as exc:
                 self._report(exc)
@@ -304,8 +319,30 @@ class Session:
         # receive suspended (the loop turned), i.e. no message was already queued.
         self._reader_waited = True
 
+    def _flush(self) -> None:
+        """Write the burst's corked results to the socket in one go (or hand them on).
+
+        Called by the reader before anything else is queued or sent, and before it
+        waits, so results never overtake one another or a control message.
+        """
+        corked = self._corked
+        if not corked:
+            return
+        self._corked, self._corked_bytes = [], 0
+        data = binary_frame(corked[0]) if len(corked) == 1 else b"".join(map(binary_frame, corked))
+        direct = self._direct
+        if direct is not None and not self._outbox and not self._control and direct(data):
+            self.counters.results_out += len(corked)
+            self.metrics.frames_out.inc(len(corked))
+            return
+        # The socket cannot take them at once (back-pressure): the writer sends them.
+        self._outbox.extend(corked)
+        self._outbox_bytes += sum(map(len, corked))
+        self._wake.set()
+
     def _report(self, error: ProtocolError) -> None:
         """Queue an error for the client; a fatal one ends the session after it is sent."""
+        self._flush()
         self.counters.errors += 1
         name = error.code.name if isinstance(error.code, ErrorCode) else str(error.code)
         self.metrics.errors.labels(name).inc()
@@ -314,6 +351,7 @@ class Session:
         self._queue_control(error.to_message())
 
     def _queue_control(self, message: Any) -> None:
+        self._flush()
         self._control.append(self.protocol.send(message))
         self._wake.set()
 
@@ -369,23 +407,26 @@ class Session:
             if data is None:
                 return
             if (
-                self._writer_idle
+                self._direct is not None
+                and self._writer_idle
                 and not self._outbox
                 and not self._control
-                and self._direct is not None
-                and self._direct(binary_frame(data))
             ):
-                # Nothing queued before it and the socket took it at once: sent here,
-                # without waking the writer task or the ASGI send path (the round
-                # trip's and the pipelined rate's largest cost after the syscall).
-                self.counters.results_out += 1
-                self.metrics.frames_out.inc()
+                # Nothing queued before it: the reader writes it to the socket itself
+                # at the end of this burst (``_flush``), without waking the writer task
+                # or the ASGI send path, and with one syscall for the whole burst.
+                self._corked.append(data)
+                self._corked_bytes += len(data)
+                if self._corked_bytes >= _CORK_BYTES:
+                    self._flush()
                 return
+            self._flush()
             self._outbox.append(data)
             self._outbox_bytes += len(data)
             if self._writer_idle:
                 self._wake.set()
             return
+        self._flush()
         item = (frame, arrived)
         if self._held is None:
             self._held = item

@@ -91,3 +91,11 @@ def test_large_finite_float16_wire_array_is_accepted_unchanged():
     array = array_from_wire(wire, "result.vertices", trailing=(3,), max_rows=1000)
 
     np.testing.assert_array_equal(array, values)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_small_array_of_finite_values_whose_squares_overflow_is_finite(dtype):
+    huge = np.full((20, 3), np.finfo(dtype).max, dtype)
+    assert all_finite(huge)
+    huge[7, 1] = -np.inf
+    assert not all_finite(huge)
