@@ -38,6 +38,8 @@ MAX_DURATION = 3600.0
 MAX_FPS = 1000.0
 #: After the last frame, how long to wait for results still in flight.
 _DRAIN_SECONDS = 2.0
+#: How long the sessions may take to connect before the schedule starts without them.
+_CONNECT_SECONDS = 30.0
 #: Frames of motion precomputed per client (cycled).
 _CYCLE = 120
 
@@ -126,29 +128,40 @@ def _code(error: BaseException) -> str:
 
 
 async def _one_client(
-    index: int,
+    connecting: asyncio.Task[StreamSession],
     *,
-    url: str,
-    rig: str,
     frames: np.ndarray,
     fps: float,
     count: int,
-    start: float,
+    start: asyncio.Future[float],
     stagger: float,
-    options: dict[str, Any],
     tally: ClientTally,
 ) -> None:
     session: StreamSession | None = None
     try:
-        session = await connect(url, rig, **options)
+        try:
+            session = await connecting
+        except asyncio.CancelledError:
+            if not connecting.cancelled():
+                raise
+            tally.errors["TIMEOUT"] += 1
+            return
+        origin = await start + stagger
         sender_done = asyncio.Event()
 
         async def sender() -> None:
+            nonlocal origin
+            period = 1.0 / fps
             try:
                 for i in range(count):
-                    delay = start + stagger + i / fps - time.perf_counter()
+                    delay = origin + i * period - time.perf_counter()
                     if delay > 0:
                         await asyncio.sleep(delay)
+                    elif delay < -period:
+                        # More than a frame late (this process was busy): go on from
+                        # now at the same rate rather than send the missed frames in a
+                        # burst, which the server would rightly treat as superseded.
+                        origin -= delay
                     await session.send(frames[i % len(frames)])
                     tally.sent += 1
             finally:
@@ -213,9 +226,11 @@ async def run_load(
     progress : callable, optional
         Called about once a second with {"elapsed", "sent", "received", "errors"}.
 
-    Frames go on a fixed schedule (client i starts i/(clients*fps) s later, so sends
-    spread evenly); a client that falls behind sends late, never in a burst of catch-up
-    frames beyond its schedule.
+    Every session connects first; the schedule starts once all are ready (or failed),
+    so slow connections do not leave frames overdue. Frames then go on a fixed schedule
+    (client i starts i/(clients*fps) s later, so sends spread evenly); a client that
+    falls more than a frame behind goes on from where it is, never in a burst of
+    catch-up frames.
     """
     if not 1 <= clients <= MAX_CLIENTS:
         raise ValueError(f"clients must be in 1..{MAX_CLIENTS}, got {clients}")
@@ -227,24 +242,31 @@ async def run_load(
     count = max(1, math.ceil(duration * fps))
     options = {"output": output, "dtype": dtype, "token": token, "reconnect": reconnect}
     tallies = [ClientTally() for _ in range(clients)]
-    start = time.perf_counter() + 0.05
+
+    async def opened() -> StreamSession:
+        return await connect(url, rig, **options)
+
+    connecting = [asyncio.create_task(opened()) for _ in range(clients)]
+    scheduled: asyncio.Future[float] = asyncio.get_running_loop().create_future()
     tasks = [
         asyncio.create_task(
             _one_client(
-                i,
-                url=url,
-                rig=rig,
+                connecting[i],
                 frames=motion_frames(neutral, i, amplitude=amplitude),
                 fps=fps,
                 count=count,
-                start=start,
+                start=scheduled,
                 stagger=i / (clients * fps),
-                options=options,
                 tally=tallies[i],
             )
         )
         for i in range(clients)
     ]
+    _, late = await asyncio.wait(connecting, timeout=_CONNECT_SECONDS)
+    for task in late:
+        task.cancel()  # its client counts a TIMEOUT error
+    start = time.perf_counter() + 0.05
+    scheduled.set_result(start)
     # Hard stop: whatever happens, the run ends this long after its nominal end.
     deadline = duration + _DRAIN_SECONDS + 30.0
     all_done = asyncio.gather(*tasks)

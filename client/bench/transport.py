@@ -12,7 +12,9 @@ for vertices. Echo messages are the bytes of a real facecast ``frame`` of the de
 so every path carries messages of the same size.
 
 The servers are compared with the same bare client: pre-encoded messages, one msgpack
-unpack per facecast reply (to count results and drops), nothing else. The facecast
+unpack per facecast reply (to count results and drops), nothing else. All three run at
+once and are measured in alternating rounds from one client process, so a busy moment
+of the machine weighs on the baselines and facecast alike. The facecast
 client library's own round trip (encode, full decode and validation, its reader task)
 is measured too and printed apart, as client cost, not server cost.
 """
@@ -53,6 +55,8 @@ PIPELINE_WINDOW = 32
 BENCH_MAX_FPS = 1e6
 #: Distinct pre-encoded frames the bare facecast client cycles through (seq 0..N-1).
 _FRAME_CYCLE = 1024
+#: Slices each server's measurement is cut into, taken in turn (``_interleaved_figures``).
+ROUNDS = 10
 #: Messages sent and discarded before timing (connection and JIT-less warm-up).
 WARMUP = 50
 _SERVER_START_TIMEOUT = 60.0
@@ -158,111 +162,174 @@ def _server(kind: str, rigs_dir: Path | None, log_dir: Path) -> Iterator[int]:
 # -- client measurements (run in the client subprocess) ----------------------------------
 
 
-async def _echo_figures(url: str, message: bytes, seconds: float) -> dict[str, Any]:
-    from websockets.asyncio.client import connect
+class _Echo:
+    """A bare client of an echo server: sends pre-encoded messages, reads the replies."""
 
-    from facecast.client.latency import latency_stats
+    def __init__(self, url: str, message: bytes) -> None:
+        self.url, self.message = url, message
+        self.dropped = 0  # an echo answers every message
 
-    async with connect(url, compression=None, max_size=1 << 24) as ws:
+    async def open(self, stack: contextlib.AsyncExitStack) -> None:
+        from websockets.asyncio.client import connect
+
+        self.ws = await stack.enter_async_context(
+            connect(self.url, compression=None, max_size=1 << 24)
+        )
         for _ in range(WARMUP):
-            await ws.send(message)
-            await ws.recv()
-        rtts: list[float] = []
-        end = time.perf_counter() + seconds / 2
-        while time.perf_counter() < end:
-            start = time.perf_counter()
-            await ws.send(message)
-            await ws.recv()
-            rtts.append(time.perf_counter() - start)
-        # Pipelined: keep PIPELINE_WINDOW in flight; echo keeps order, so one reply
-        # frees one slot.
+            await self.rtt()
+
+    async def rtt(self) -> float:
+        start = time.perf_counter()
+        await self.ws.send(self.message)
+        await self.ws.recv()
+        return time.perf_counter() - start
+
+    async def pipelined(self, seconds: float) -> tuple[int, float]:
+        """Results received in ``seconds`` with PIPELINE_WINDOW in flight, and the time."""
+        ws, message = self.ws, self.message
         for _ in range(PIPELINE_WINDOW):
             await ws.send(message)
         count = 0
         start = time.perf_counter()
-        end = start + seconds / 2
+        end = start + seconds
         while time.perf_counter() < end:
-            await ws.recv()
+            await ws.recv()  # echo keeps order: one reply frees one slot
             count += 1
             await ws.send(message)
         elapsed = time.perf_counter() - start
         for _ in range(PIPELINE_WINDOW):
             await ws.recv()
-    return {
-        "rtt_ms": latency_stats(rtts).to_dict(),
-        "throughput_msgs_per_s": count / elapsed,
-        "pipelined_dropped": 0,
-    }
+        return count, elapsed
 
 
-async def _facecast_bare_figures(
-    url: str, rig: str, points: np.ndarray, seconds: float
-) -> dict[str, Any]:
+class _Facecast:
     """Facecast's path driven like the echo servers: bare websockets, pre-encoded frames.
 
     Each reply is msgpack-unpacked once (results are counted, ``dropped`` read to free
     the window slots of superseded frames); the first and last results are decoded and
     validated in full.
     """
-    import msgpack
-    from websockets.asyncio.client import connect
 
-    from facecast.client.latency import latency_stats
-    from facecast.client.urls import stream_url
-    from facecast.protocol import SUBPROTOCOL, Frame, Hello, Ready, Result, decode_server, encode
+    def __init__(self, url: str, rig: str, points: np.ndarray) -> None:
+        from facecast.protocol import Frame, encode
 
-    frames = [encode(Frame(seq=i, ts=i / 60, points=points)) for i in range(_FRAME_CYCLE)]
-    async with connect(
-        stream_url(url), subprotocols=[SUBPROTOCOL], compression=None, max_size=1 << 24
-    ) as ws:
-        await ws.send(encode(Hello(rig=rig)))
-        while not isinstance(decode_server(await ws.recv()), Ready):
+        self.url, self.rig = url, rig
+        self.frames = [encode(Frame(seq=i, ts=i / 60, points=points)) for i in range(_FRAME_CYCLE)]
+        self.i = 0
+        self.dropped = 0  # superseded in the pipelined phases (newest-only, not answered)
+
+    async def open(self, stack: contextlib.AsyncExitStack) -> None:
+        from websockets.asyncio.client import connect
+
+        from facecast.client.urls import stream_url
+        from facecast.protocol import SUBPROTOCOL, Hello, Ready, Result, decode_server, encode
+
+        self.ws = await stack.enter_async_context(
+            connect(stream_url(self.url), subprotocols=[SUBPROTOCOL], compression=None,
+                    max_size=1 << 24)
+        )  # fmt: skip
+        await self.ws.send(encode(Hello(rig=self.rig)))
+        while not isinstance(decode_server(await self.ws.recv()), Ready):
             pass
-        for i in range(WARMUP):
-            await ws.send(frames[i])
-            reply = await ws.recv()
-        first = decode_server(reply)
-        if not isinstance(first, Result):
-            raise RuntimeError(f"facecast answered a frame with {first!r}")
-        rtts: list[float] = []
-        i = 0
-        end = time.perf_counter() + seconds / 2
-        while time.perf_counter() < end:
-            start = time.perf_counter()
-            await ws.send(frames[i % _FRAME_CYCLE])
-            reply = await ws.recv()
-            rtts.append(time.perf_counter() - start)
-            i += 1
-            if msgpack.unpackb(reply)["type"] != "result":
-                raise RuntimeError(f"facecast answered a frame with {decode_server(reply)!r}")
-        # Pipelined: PIPELINE_WINDOW frames in flight; a result frees its own slot and
-        # those of the frames it reports as dropped (superseded, never answered).
-        dropped_before = msgpack.unpackb(reply)["dropped"]
-        dropped = dropped_before
-        sent = results = 0
-        count = 0
+        for _ in range(WARMUP):
+            await self.rtt()
+        self._check(self.reply, Result)
+
+    def _check(self, reply: bytes, kind: type) -> Any:
+        from facecast.protocol import decode_server
+
+        message = decode_server(reply)
+        if not isinstance(message, kind):
+            raise RuntimeError(f"facecast answered a frame with {message!r}")
+        return message
+
+    def _next(self) -> bytes:
+        frame = self.frames[self.i % _FRAME_CYCLE]
+        self.i += 1
+        return frame
+
+    async def rtt(self) -> float:
+        import msgpack
+
         start = time.perf_counter()
-        end = start + seconds / 2
+        await self.ws.send(self._next())
+        self.reply = await self.ws.recv()
+        elapsed = time.perf_counter() - start
+        if msgpack.unpackb(self.reply)["type"] != "result":
+            self._check(self.reply, type(None))
+        return elapsed
+
+    async def pipelined(self, seconds: float) -> tuple[int, float]:
+        """Results received in ``seconds`` with PIPELINE_WINDOW frames in flight.
+
+        A result frees its own slot and those of the frames it reports as dropped.
+        """
+        import msgpack
+
+        from facecast.protocol import Result
+
+        ws = self.ws
+        dropped_before = dropped = msgpack.unpackb(self.reply)["dropped"]
+        sent = results = 0
+        start = time.perf_counter()
+        end = start + seconds
         while time.perf_counter() < end:
             while sent - results - (dropped - dropped_before) < PIPELINE_WINDOW:
-                await ws.send(frames[i % _FRAME_CYCLE])
-                i += 1
+                await ws.send(self._next())
                 sent += 1
             reply = await ws.recv()
             message = msgpack.unpackb(reply)
             if message["type"] != "result":
-                raise RuntimeError(f"facecast answered a frame with {decode_server(reply)!r}")
+                self._check(reply, type(None))
             results += 1
-            count += 1
             dropped = message["dropped"]
         elapsed = time.perf_counter() - start
-        last = decode_server(reply)
-        if not isinstance(last, Result) or last.weights is None:
+        count = results
+        # Drain what is still in flight so the next round starts from an idle session.
+        while sent - results - (dropped - dropped_before) > 0:
+            reply = await ws.recv()
+            results += 1
+            dropped = msgpack.unpackb(reply)["dropped"]
+        self.reply = reply
+        self.dropped += dropped - dropped_before
+        last = self._check(reply, Result)
+        if last.weights is None:
             raise RuntimeError(f"facecast's last reply is not a weights result: {last!r}")
+        return count, elapsed
+
+
+async def _interleaved_figures(targets: dict[str, Any], seconds: float) -> dict[str, Any]:
+    """Each target's RTTs and pipelined rate, measured in alternating short rounds.
+
+    Every target gets ``seconds / 2`` of round trips and as much of pipelining, cut into
+    ``ROUNDS`` slices taken in turn, so that whatever else the machine does meanwhile
+    weighs on baselines and facecast alike (one long block each would not).
+    """
+    from facecast.client.latency import latency_stats
+
+    rtts: dict[str, list[float]] = {name: [] for name in targets}
+    counts = dict.fromkeys(targets, 0)
+    times = dict.fromkeys(targets, 0.0)
+    piece = seconds / 2 / ROUNDS
+    async with contextlib.AsyncExitStack() as stack:
+        for target in targets.values():
+            await target.open(stack)
+        for _ in range(ROUNDS):
+            for name, target in targets.items():
+                end = time.perf_counter() + piece
+                while time.perf_counter() < end:
+                    rtts[name].append(await target.rtt())
+            for name, target in targets.items():
+                count, elapsed = await target.pipelined(piece)
+                counts[name] += count
+                times[name] += elapsed
     return {
-        "rtt_ms": latency_stats(rtts).to_dict(),
-        "throughput_msgs_per_s": count / elapsed,
-        "pipelined_dropped": dropped - dropped_before,
+        name: {
+            "rtt_ms": latency_stats(rtts[name]).to_dict(),
+            "throughput_msgs_per_s": counts[name] / times[name],
+            "pipelined_dropped": targets[name].dropped,
+        }
+        for name in targets
     }
 
 
@@ -313,11 +380,14 @@ async def _facecast_figures(
 
 async def _client_task(spec: dict[str, Any]) -> dict[str, Any]:
     kind = spec["kind"]
-    if kind == "echo":
-        return await _echo_figures(spec["url"], bytes.fromhex(spec["message"]), spec["seconds"])
-    if kind == "facecast":
+    if kind == "interleaved":
+        message = bytes.fromhex(spec["message"])
+        targets: dict[str, Any] = {
+            name: _Echo(url, message) for name, url in spec["echo_urls"].items()
+        }
         points = np.asarray(spec["points"], dtype=np.float32)
-        return await _facecast_bare_figures(spec["url"], spec["rig"], points, spec["seconds"])
+        targets["facecast"] = _Facecast(spec["url"], spec["rig"], points)
+        return await _interleaved_figures(targets, spec["seconds"])
     if kind == "facecast-library":
         points = np.asarray(spec["points"], dtype=np.float32)
         return await _facecast_figures(spec["url"], spec["rig"], points, spec["seconds"])
@@ -422,26 +492,26 @@ def run(args: argparse.Namespace) -> int:
         say("bench transport: fitting rigs ...")
         neutral, vertices_neutral, vertices_id = _rigs(rigs_dir)
         message = encode(Frame(seq=1, ts=0.0, points=neutral))
-        results: dict[str, dict[str, Any]] = {}
-        for kind in _BASELINES:
-            say(f"bench transport: {kind} echo ({duration:g} s) ...")
-            with _server(kind, None, tmp_path) as port:
-                path = "/echo" if kind == "fastapi" else "/"
-                spec = {
-                    "kind": "echo",
-                    "url": f"ws://127.0.0.1:{port}{path}",
-                    "message": message.hex(),
-                    "seconds": duration,
-                }
-                results[kind] = _measure(spec, timeout)
-        with _server("facecast", rigs_dir, tmp_path) as port:
+        with contextlib.ExitStack() as servers:
+            ports = {
+                kind: servers.enter_context(_server(kind, None, tmp_path)) for kind in _BASELINES
+            }
+            port = servers.enter_context(_server("facecast", rigs_dir, tmp_path))
             base = f"http://127.0.0.1:{port}"
             say(
-                f"bench transport: facecast weights ({duration:g} s; max_fps raised to "
-                f"{BENCH_MAX_FPS:g}) ..."
+                f"bench transport: {', '.join(_BASELINES)} echo and facecast weights "
+                f"({duration:g} s each, in {ROUNDS} alternating rounds; facecast's max_fps "
+                f"raised to {BENCH_MAX_FPS:g}) ..."
             )
             spec = {"url": base, "rig": "demo", "points": neutral.tolist(), "seconds": duration}
-            results["facecast"] = _measure({**spec, "kind": "facecast"}, timeout)
+            echo_urls = {
+                kind: f"ws://127.0.0.1:{ports[kind]}{'/echo' if kind == 'fastapi' else '/'}"
+                for kind in _BASELINES
+            }
+            results = _measure(
+                {**spec, "kind": "interleaved", "message": message.hex(), "echo_urls": echo_urls},
+                timeout * (len(_BASELINES) + 1),
+            )
             say(f"bench transport: facecast weights, library client ({duration:g} s) ...")
             library = _measure({**spec, "kind": "facecast-library"}, timeout)
             say(

@@ -74,3 +74,38 @@ def test_bench_transport_smoke_writes_its_json_keys(tmp_path):
     # The server path is driven by the bare client; the library's round trip is apart.
     assert figures["library_client"]["rtt_ms"]["count"] > 0
     assert figures["servers"]["facecast"]["pipelined_dropped"] >= 0
+
+
+def test_a_client_that_falls_behind_never_sends_a_catch_up_burst(rigs_dir, demo_rig):
+    # The server allows 1.5x the load's rate with a burst of 2: frames sent in a
+    # catch-up burst would be refused as RATE_LIMITED and counted as errors.
+    import asyncio
+    import time
+
+    from facecast.client.loadgen import run_load
+
+    from ._stream_fixtures import LiveServer, server_settings
+
+    server = LiveServer(server_settings(rigs_dir, max_fps=45.0, rate_burst=2)).start()
+
+    async def stall_the_loop() -> None:
+        await asyncio.sleep(0.3)
+        time.sleep(0.25)  # this process is busy for 7 frame periods (blocks on purpose)
+
+    async def run():
+        stall = asyncio.create_task(stall_the_loop())
+        report = await run_load(
+            server.base_url, RIG_ID, clients=2, fps=30.0, duration=1.0,
+            neutral=demo_rig.source_neutral,
+        )  # fmt: skip
+        await stall
+        return report
+
+    try:
+        report = asyncio.run(run()).to_dict()
+    finally:
+        server.stop()
+
+    assert report["sent"] == 2 * 30
+    assert report["errors"] == {}
+    assert report["received"] == report["sent"]
