@@ -120,12 +120,8 @@ class ChannelFrame:
         )
 
 
-class KeyState:
-    """The clone pipeline of one key in one process: rig, calibration, filter, last pose.
-
-    ``clone`` and ``ease`` may be called from any clone thread; a lock keeps one frame
-    at a time per key (the filter and the last pose are per key state).
-    """
+class _Key:
+    """What every key's pipeline keeps: its watchers' newest result and how it was made."""
 
     #: Whether ``clone`` evaluates a rig (counted in the channel's ``clones``).
     CLONES = True
@@ -143,6 +139,24 @@ class KeyState:
         #: The last frame could not be cloned for this key (logged once per streak).
         self.failing = False
         self._lock = threading.Lock()
+
+    def _keep(self, data: bytes, seq: int, count: bool) -> None:
+        """Count a clone and keep ``data`` as the newest result (the lock held)."""
+        if count:
+            self.clones += 1
+        if seq >= self.last_seq or not count:
+            self.last_bytes, self.last_seq = data, seq
+
+
+class KeyState(_Key):
+    """The clone pipeline of one key in one process: rig, calibration, filter, last pose.
+
+    ``clone`` and ``ease`` may be called from any clone thread; a lock keeps one frame
+    at a time per key (the filter and the last pose are per key state).
+    """
+
+    def __init__(self, key: Key, rig: Any) -> None:
+        super().__init__(key, rig)
         self._rig_for: tuple[str, bool] = ("", False)
         self._effective = rig
         self._smoothing: Smoothing | None = None
@@ -199,10 +213,7 @@ class KeyState:
             weights = self._smooth(weights, frame)
             self.last_weights = weights
             data = self._encode(rig, weights, frame.seq, frame.ts, frame.dropped, arrived)
-            if count:
-                self.clones += 1
-            if frame.seq >= self.last_seq or not count:
-                self.last_bytes, self.last_seq = data, frame.seq
+            self._keep(data, frame.seq, count)
             return data
 
     def ease(self, alpha: float, seq: int, ts: float, dropped: int) -> bytes | None:
@@ -243,7 +254,7 @@ class KeyState:
         return encode(result)
 
 
-class PointsKeyState:
+class PointsKeyState(_Key):
     """The ``output=points`` key (PROTOCOL.md §2.4): the published frame itself, encoded once.
 
     Same interface as `KeyState` for the channel's pump, but no rig is evaluated: the
@@ -253,17 +264,6 @@ class PointsKeyState:
     """
 
     CLONES = False
-
-    def __init__(self, key: Key, rig: Any) -> None:
-        self.key = key
-        self.rig = rig
-        self.rig_id, self.output, self.dtype = key
-        self.clones = 0
-        self.last_weights: np.ndarray | None = None
-        self.last_bytes: bytes | None = None
-        self.last_seq = -1
-        self.failing = False
-        self._lock = threading.Lock()
 
     def clone(self, frame: ChannelFrame, arrived: float, *, count: bool = True) -> bytes:
         """The encoded ``points`` result of ``frame``: its raw points in this key's dtype."""
@@ -284,10 +284,7 @@ class PointsKeyState:
         )
         data = encode(result)
         with self._lock:
-            if count:
-                self.clones += 1
-            if frame.seq >= self.last_seq or not count:
-                self.last_bytes, self.last_seq = data, frame.seq
+            self._keep(data, frame.seq, count)
         return data
 
     def ease(self, alpha: float, seq: int, ts: float, dropped: int) -> bytes | None:

@@ -63,10 +63,7 @@ class WatcherMember(Member):
             if message["type"] == "websocket.disconnect":
                 return
             try:
-                data = message.get("bytes")
-                if data is None:
-                    self.protocol.receive_text(message.get("text") or "")
-                decoded = self.protocol.receive(data)
+                decoded = self.decode(message)
                 if isinstance(decoded, Ping):
                     self.offer(self.protocol.send(Pong(id=decoded.id, ts=decoded.ts)))
             except ProtocolError as exc:
@@ -120,10 +117,7 @@ class PublisherMember(Member):
             if message["type"] == "websocket.disconnect":
                 return
             try:
-                data = message.get("bytes")
-                if data is None:
-                    self.protocol.receive_text(message.get("text") or "")
-                decoded = self.protocol.receive(data)
+                decoded = self.decode(message)
                 if isinstance(decoded, Frame):
                     await self._on_frame(decoded)
                 elif isinstance(decoded, Ping):

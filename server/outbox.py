@@ -147,6 +147,13 @@ class Member:
         self.sent += 1
         self._wake.set()  # the writer flushes what queued up meanwhile
 
+    def decode(self, message: dict[str, Any]) -> Any:
+        """The protocol message in an ASGI ``websocket.receive`` event (ProtocolError if bad)."""
+        data = message.get("bytes")
+        if data is None:
+            self.protocol.receive_text(message.get("text") or "")
+        return self.protocol.receive(data)
+
     def report(self, error: ProtocolError) -> None:
         """Queue an error; a fatal one ends the connection after it is sent."""
         if error.fatal:
