@@ -17,6 +17,7 @@ import time
 from typing import Any
 
 import uvicorn
+from prometheus_client.multiprocess import mark_process_dead
 
 from .app import SESSIONS_STATE_KEY, SETTINGS_ENV, create_app
 from .logs import uvicorn_log_config
@@ -174,6 +175,9 @@ def _serve_workers(settings: Settings, ws: str) -> int:
                         "worker died; restarting",
                         extra={"event": "server.worker_died", "exitcode": process.exitcode},
                     )
+                    # Its live gauges (open connections) would otherwise count for ever.
+                    if process.pid is not None:
+                        mark_process_dead(process.pid, metrics_dir.name)
                     processes[i] = start()
             time.sleep(0.2)
     finally:

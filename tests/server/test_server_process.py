@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import signal
 import subprocess
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -102,3 +104,52 @@ def test_two_workers_share_the_rig_directory(tmp_path, rig):
     assert seen == [200] * 8
     assert "facecast_http_requests_total" in metrics
     assert exit_status == 0
+
+
+def _worker_pids(parent: int) -> list[int]:
+    children = Path(f"/proc/{parent}/task/{parent}/children").read_text().split()
+    return [
+        int(pid)
+        for pid in children
+        if b"spawn_main" in Path(f"/proc/{pid}/cmdline").read_bytes()
+        and b"resource_tracker" not in Path(f"/proc/{pid}/cmdline").read_bytes()
+    ]
+
+
+def _open_connections(base: str) -> float:
+    for line in httpx.get(f"{base}/metrics", timeout=5).text.splitlines():
+        if line.startswith("facecast_connections "):
+            return float(line.split()[1])
+    raise AssertionError("no facecast_connections in /metrics")
+
+
+def test_a_killed_worker_no_longer_counts_its_connections(tmp_path, rig):
+    port = free_port()
+    base = f"http://127.0.0.1:{port}"
+    (tmp_path / "rigs").mkdir()
+    (tmp_path / "rigs" / "face.rig").write_bytes(rig.to_bytes())
+
+    async def scenario(process) -> tuple[float, float]:
+        async with websockets.connect(f"ws://127.0.0.1:{port}/v1/stream") as ws:
+            await open_session(ws, "face")
+            during = _open_connections(base)
+            workers = _worker_pids(process.pid)
+            assert len(workers) == 2
+            for pid in workers:
+                os.kill(pid, signal.SIGKILL)
+        # Wait (bounded) for two new workers to serve, then read the gauge they share.
+        deadline = asyncio.get_running_loop().time() + 30
+        while True:
+            replaced = [pid for pid in _worker_pids(process.pid) if pid not in workers]
+            if len(replaced) == 2:
+                with contextlib.suppress(httpx.HTTPError):
+                    return during, _open_connections(base)
+            assert asyncio.get_running_loop().time() < deadline, "workers were not restarted"
+            await asyncio.sleep(0.1)
+
+    with server_process(port, tmp_path / "rigs", "--workers", "2") as process:
+        during, after = asyncio.run(scenario(process))
+        stop(process, signal.SIGTERM)
+
+    assert during == 1.0
+    assert after == 0.0
