@@ -11,6 +11,7 @@ import argparse
 import os
 import platform
 import sys
+import time
 import warnings
 
 import numpy as np
@@ -58,15 +59,13 @@ def measure(example_set, *, repeat: int) -> dict:
     from scipy.interpolate import RBFInterpolator
 
     from facecast.rig import fit
-    from facecast.rig.evaluate import median_call_seconds
 
-    def timed(function):
-        return median_call_seconds(function, repeat=repeat)
+    def paired(function, baseline):
+        return _paired_seconds(function, baseline, repeat=repeat)
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         rig = fit(example_set)
-        fit_s = timed(lambda: fit(example_set))
     model = rig.model
     points = _frames(example_set, BATCH)
     frame = points[0]
@@ -75,41 +74,49 @@ def measure(example_set, *, repeat: int) -> dict:
     def unfolded(x):  # eq. 3.7 then eq. 3.8, term by term, as the thesis writes them
         return model.weights_from_params(model.project(x))
 
-    figures = {}
-    figures["weights_single"] = (
-        timed(lambda: rig.weights(frame)),
-        timed(lambda: unfolded(flat[:1])),
-        "eq. 3.8 unfolded (project, then linear + radial terms)",
-    )
-    figures["weights_batched_per_frame"] = (
-        timed(lambda: rig.weights(points)) / BATCH,
-        timed(lambda: unfolded(flat)) / BATCH,
-        f"eq. 3.8 unfolded, batch of {BATCH}",
-    )
     weights = rig.weights(frame)
     out = np.empty((rig.num_vertices, 3), dtype=np.float32)
     w32 = weights.astype(np.float32)[None, :]
     deltas = rig.target_deltas
     floor_out = np.empty((1, deltas.shape[1]), dtype=np.float32)
-    figures["blend_single"] = (
-        timed(lambda: rig.blend(weights, out=out)),
-        timed(lambda: np.matmul(w32, deltas, out=floor_out)),
-        "memory floor: bare float32 weights @ deltas",
-    )
     params = model.params
     identity = np.eye(rig.num_examples)
-    figures["fit"] = (
-        fit_s,
-        timed(lambda: RBFInterpolator(params, identity, kernel="thin_plate_spline", degree=1)),
-        "scipy RBFInterpolator fit on the same centres",
-    )
     interpolator = RBFInterpolator(params, identity, kernel="thin_plate_spline", degree=1)
     p = model.project(flat[:1])
-    figures["weights_vs_rbfinterpolator"] = (
-        figures["weights_single"][0],
-        timed(lambda: interpolator(p)),
-        "scipy RBFInterpolator, one frame (from reduced parameters)",
-    )
+
+    def fit_quietly():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fit(example_set)
+
+    figures = {
+        "weights_single": (
+            *paired(lambda: rig.weights(frame), lambda: unfolded(flat[:1])),
+            "eq. 3.8 unfolded (project, then linear + radial terms)",
+        ),
+        "weights_batched_per_frame": (
+            *(t / BATCH for t in paired(lambda: rig.weights(points), lambda: unfolded(flat))),
+            f"eq. 3.8 unfolded, batch of {BATCH}",
+        ),
+        "blend_single": (
+            *paired(
+                lambda: rig.blend(weights, out=out),
+                lambda: np.matmul(w32, deltas, out=floor_out),
+            ),
+            "memory floor: bare float32 weights @ deltas",
+        ),
+        "fit": (
+            *paired(
+                fit_quietly,
+                lambda: RBFInterpolator(params, identity, kernel="thin_plate_spline", degree=1),
+            ),
+            "scipy RBFInterpolator fit on the same centres",
+        ),
+        "weights_vs_rbfinterpolator": (
+            *paired(lambda: rig.weights(frame), lambda: interpolator(p)),
+            "scipy RBFInterpolator, one frame (from reduced parameters)",
+        ),
+    }
     result = {}
     for name, (value, baseline, what) in figures.items():
         entry = {
@@ -123,6 +130,30 @@ def measure(example_set, *, repeat: int) -> dict:
         entry["pass"] = bool(entry["ratio"] is not None and test(entry))
         result[name] = entry
     return result
+
+
+def _paired_seconds(
+    function, baseline, *, repeat: int, min_run_seconds: float = 0.02
+) -> tuple[float, float]:
+    """Median seconds per call of ``function`` and of ``baseline``, timed in alternating runs.
+
+    Each run makes as many calls as fill about ``min_run_seconds``; the two alternate run
+    by run, so whatever else the machine does weighs on both alike (timing one after the
+    other let a busy moment land on one side only).
+    """
+    numbers = []
+    for f in (function, baseline):
+        started = time.perf_counter()
+        f()
+        numbers.append(max(1, int(min_run_seconds / max(time.perf_counter() - started, 1e-9))))
+    runs: tuple[list[float], list[float]] = ([], [])
+    for _ in range(max(1, int(repeat))):
+        for f, number, out in zip((function, baseline), numbers, runs, strict=True):
+            started = time.perf_counter()
+            for _ in range(number):
+                f()
+            out.append((time.perf_counter() - started) / number)
+    return float(np.median(runs[0])), float(np.median(runs[1]))
 
 
 def _duration(seconds: float) -> str:
