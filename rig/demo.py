@@ -24,7 +24,6 @@ The heads' neutral geometry is built in ``demo_geometry`` and posed by the contr
 from __future__ import annotations
 
 import functools
-import math
 
 import numpy as np
 
@@ -32,6 +31,7 @@ from .animation import SourceAnimation
 from .demo_controls import CONTROL_INDEX, CONTROLS, character_model, pose_vertices
 from .errors import InputError
 from .examples import ExampleSet
+from .synthetic import frame_count, smooth_bump
 
 __all__ = [
     "DEMO_EMOTIONS",
@@ -150,34 +150,6 @@ def demo_example_set() -> ExampleSet:
     )
 
 
-def _frame_count(seconds: float, fps: float, limit: int) -> int:
-    try:
-        seconds, fps = float(seconds), float(fps)
-    except (TypeError, ValueError):
-        raise InputError(
-            f"seconds and fps must be numbers, got {seconds!r}, {fps!r}", code="bad_demo_argument"
-        ) from None
-    if not (math.isfinite(seconds) and seconds > 0 and math.isfinite(fps) and fps > 0):
-        raise InputError(
-            f"seconds and fps must be finite and positive, got {seconds}, {fps}",
-            code="bad_demo_argument",
-        )
-    frames = round(seconds * fps)
-    if not 1 <= frames <= limit:
-        raise InputError(
-            f"{seconds} s at {fps} fps is {frames} frames; allowed 1 to {limit}",
-            code="too_many_frames",
-        )
-    return frames
-
-
-def _bump(t: np.ndarray, start: float, end: float, attack: float, release: float) -> np.ndarray:
-    """0 -> 1 -> 0 with raised-cosine ramps (C1 smooth), 1 on [start, end]."""
-    rise = np.clip((t - (start - attack)) / attack, 0.0, 1.0)
-    fall = np.clip(((end + release) - t) / release, 0.0, 1.0)
-    return (0.5 - 0.5 * np.cos(np.pi * rise)) * (0.5 - 0.5 * np.cos(np.pi * fall))
-
-
 def demo_activations(seconds: float = 12.0, fps: float = 60.0, *, seed: int = 7) -> np.ndarray:
     """Activation curves of the demo performance, one column per example.
 
@@ -191,7 +163,7 @@ def demo_activations(seconds: float = 12.0, fps: float = 60.0, *, seed: int = 7)
         ``F = round(seconds * fps)`` frames; columns follow ``DEMO_NAMES`` (column 0, the
         neutral, is zero); frame ``i`` is at ``i / fps`` seconds.
     """
-    frames = _frame_count(seconds, fps, _MAX_FRAMES)
+    frames = frame_count(seconds, fps, _MAX_FRAMES, code="bad_demo_argument")
     rng = np.random.default_rng(seed)
     t = np.arange(frames) / float(fps)
     total = frames / float(fps)
@@ -205,10 +177,10 @@ def demo_activations(seconds: float = 12.0, fps: float = 60.0, *, seed: int = 7)
         name = order[k % len(order)]
         hold = rng.uniform(0.9, 1.7)
         peak = rng.uniform(0.6, 1.15)
-        act[:, col[name]] += peak * _bump(t, start, start + hold, 0.5, 0.6)
+        act[:, col[name]] += peak * smooth_bump(t, start, start + hold, 0.5, 0.6)
         if rng.random() < 0.4:  # blend in a second emotion for part of the segment
             other = order[(k + rng.integers(1, len(order))) % len(order)]
-            act[:, col[other]] += rng.uniform(0.25, 0.5) * _bump(
+            act[:, col[other]] += rng.uniform(0.25, 0.5) * smooth_bump(
                 t, start + 0.3 * hold, start + 0.8 * hold, 0.4, 0.4
             )
         start += hold + rng.uniform(0.7, 1.2)
@@ -222,13 +194,15 @@ def demo_activations(seconds: float = 12.0, fps: float = 60.0, *, seed: int = 7)
         while s < min(start + length, total):
             step = rng.uniform(0.13, 0.22)
             name = visemes[rng.integers(len(visemes))]
-            act[:, col[name]] += rng.uniform(0.35, 0.9) * _bump(t, s, s + 0.02, step, step)
+            act[:, col[name]] += rng.uniform(0.35, 0.9) * smooth_bump(t, s, s + 0.02, step, step)
             s += step
         start += length + rng.uniform(0.4, 1.0)
 
     start = rng.uniform(0.8, 1.8)
     while start < total:
-        act[:, col["blink"]] += rng.choice([1.0, 1.0, 0.85]) * _bump(t, start, start, 0.09, 0.13)
+        act[:, col["blink"]] += rng.choice([1.0, 1.0, 0.85]) * smooth_bump(
+            t, start, start, 0.09, 0.13
+        )
         start += rng.uniform(2.2, 4.2)
 
     wobble = np.zeros_like(act)
@@ -307,7 +281,8 @@ def demo_animation(
         ``points`` (F, 21, 3) float64 and, with ``with_vertices``, ``source_vertices``
         (F, Vs, 3) float32; driven by ``demo_activations(seconds, fps, seed=seed)``.
     """
-    _frame_count(seconds, fps, _MAX_VERTEX_FRAMES if with_vertices else _MAX_FRAMES)
+    limit = _MAX_VERTEX_FRAMES if with_vertices else _MAX_FRAMES
+    frame_count(seconds, fps, limit, code="bad_demo_argument")
     act = demo_activations(seconds, fps, seed=seed)
     controls = act @ _controls_of(_SOURCE_POSES)
     model = character_model("source")

@@ -21,6 +21,7 @@ import numpy as np
 from .animation import SourceAnimation
 from .errors import ExampleSetError, InputError
 from .examples import ExampleSet
+from .synthetic import frame_count, smooth_bump
 
 __all__ = [
     "DEFAULT_LANDMARKS",
@@ -174,13 +175,6 @@ def ict_example_set(
     )
 
 
-def _bump(t: np.ndarray, start: float, hold: float, ramp: float) -> np.ndarray:
-    """0 -> 1 -> 0 with raised-cosine ramps (C1 smooth); 1 on [start, start + hold]."""
-    rise = np.clip((t - (start - ramp)) / ramp, 0.0, 1.0)
-    fall = np.clip(((start + hold + ramp) - t) / ramp, 0.0, 1.0)
-    return (0.5 - 0.5 * np.cos(np.pi * rise)) * (0.5 - 0.5 * np.cos(np.pi * fall))
-
-
 def ict_animation(
     example_set: ExampleSet, *, seconds: float = 10.0, fps: float = 60.0, seed: int = 0
 ) -> tuple[np.ndarray, SourceAnimation]:
@@ -207,18 +201,8 @@ def ict_animation(
     animation : SourceAnimation
         ``points`` (F, K, 3): ``S_B + activations @ (S_i - S_B)`` at the feature points.
     """
+    frames = frame_count(seconds, fps, _MAX_FRAMES, code="bad_animation")
     seconds, fps = float(seconds), float(fps)
-    if not (np.isfinite(seconds) and seconds > 0 and np.isfinite(fps) and fps > 0):
-        raise InputError(
-            f"seconds and fps must be finite and positive, got {seconds}, {fps}",
-            code="bad_animation",
-        )
-    frames = round(seconds * fps)
-    if not 1 <= frames <= _MAX_FRAMES:
-        raise InputError(
-            f"{seconds} s at {fps} fps is {frames} frames; allowed 1 to {_MAX_FRAMES}",
-            code="too_many_frames",
-        )
     rng = np.random.default_rng(seed)
     m = example_set.num_examples
     t = np.arange(frames) / fps
@@ -229,7 +213,9 @@ def ict_animation(
         column = int(rng.integers(1, m))
         ramp = rng.uniform(0.15, 0.4)
         start = rng.uniform(-0.5, seconds)
-        bump = rng.uniform(0.3, 1.0) * _bump(t, start, rng.uniform(0.0, 0.8), ramp)
+        peak = rng.uniform(0.3, 1.0)
+        end = start + rng.uniform(0.0, 0.8)
+        bump = peak * smooth_bump(t, start, end, ramp, ramp)
         np.maximum(activations[:, column], bump, out=activations[:, column])
     names = example_set.names
     if "mouthClose" in names:
