@@ -233,19 +233,49 @@ def _read(name: str, reader, path: Path):
         raise ExampleSetError(f"example {name!r}: {exc.message}", code=exc.code) from None
 
 
+def _stack_examples(
+    names: list[str], files: list[Path], neutral: np.ndarray, reader, role: str, unit: str
+) -> np.ndarray:
+    """Stack the neutral, already read from ``files[0]``, with every other example's file.
+
+    Parameters
+    ----------
+    names, files : M each
+        The examples and their files; ``files[0]`` is the neutral's.
+    neutral : (N, 3) float
+    reader : callable
+        ``reader(path) -> (N', 3)`` for the other examples' files.
+    role, unit : str
+        How the error names the files ("source", "target") and their rows ("vertices",
+        "points").
+
+    Returns
+    -------
+    (M, N, 3) float64
+
+    Raises
+    ------
+    ExampleSetError
+        ``vertex_count_mismatch``/``point_count_mismatch`` naming the first example whose
+        row count differs from the neutral's.
+    """
+    stacked = np.empty((len(names), *neutral.shape))
+    stacked[0] = neutral
+    for i in range(1, len(names)):
+        example = _read(names[i], reader, files[i])
+        if example.shape != neutral.shape:
+            raise ExampleSetError(
+                f"example {names[i]!r}: {role} {files[i]} has {example.shape[0]} {unit}, "
+                f"the {role} neutral {files[0]} has {neutral.shape[0]}",
+                code="vertex_count_mismatch" if unit == "vertices" else "point_count_mismatch",
+            )
+        stacked[i] = example
+    return stacked
+
+
 def _read_targets(names: list[str], files: list[Path]) -> tuple[np.ndarray, np.ndarray]:
     neutral, faces = _read(names[0], read_obj, files[0])
-    vertices = np.empty((len(names), *neutral.shape))
-    vertices[0] = neutral
-    for i in range(1, len(names)):
-        v = _read(names[i], read_obj_vertices, files[i])
-        if v.shape != neutral.shape:
-            raise ExampleSetError(
-                f"example {names[i]!r}: target {files[i]} has {v.shape[0]} vertices, "
-                f"the target neutral {files[0]} has {neutral.shape[0]}",
-                code="vertex_count_mismatch",
-            )
-        vertices[i] = v
+    vertices = _stack_examples(names, files, neutral, read_obj_vertices, "target", "vertices")
     return vertices, faces
 
 
@@ -281,17 +311,7 @@ def _read_sources(
                 f"neutral {files[0]} of {vs} vertices",
                 code="index_out_of_range",
             )
-        vertices = np.empty((len(names), vs, 3))
-        vertices[0] = neutral
-        for i in range(1, len(names)):
-            v = _read(names[i], read_obj_vertices, files[i])
-            if v.shape[0] != vs:
-                raise ExampleSetError(
-                    f"example {names[i]!r}: source {files[i]} has {v.shape[0]} vertices, "
-                    f"the source neutral {files[0]} has {vs}",
-                    code="vertex_count_mismatch",
-                )
-            vertices[i] = v
+        vertices = _stack_examples(names, files, neutral, read_obj_vertices, "source", "vertices")
         return {
             "source_points": vertices[:, indices],
             "source_vertices": vertices,
@@ -305,17 +325,7 @@ def _read_sources(
             code="bad_feature_points",
         )
     neutral = _read(names[0], read_points, files[0])
-    points = np.empty((len(names), *neutral.shape))
-    points[0] = neutral
-    for i in range(1, len(names)):
-        p = _read(names[i], read_points, files[i])
-        if p.shape != neutral.shape:
-            raise ExampleSetError(
-                f"example {names[i]!r}: source {files[i]} has {p.shape[0]} points, "
-                f"the source neutral {files[0]} has {neutral.shape[0]}",
-                code="point_count_mismatch",
-            )
-        points[i] = p
+    points = _stack_examples(names, files, neutral, read_points, "source", "points")
     return {"source_points": points}
 
 
