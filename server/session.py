@@ -514,7 +514,14 @@ class Session:
 
     # -- writing -------------------------------------------------------------------------
     async def _write_loop(self) -> None:
-        send = self.ws.send_bytes
+        ws_send, direct = self.ws.send_bytes, self._direct
+
+        async def send(data: bytes) -> None:
+            # Straight to the socket when it takes the frame at once (one copy of a large
+            # result instead of three); else the ASGI send, which waits for the client.
+            if direct is None or not direct(binary_frame(data)):
+                await ws_send(data)
+
         while True:
             if self._control:
                 await send(self._control.popleft())
