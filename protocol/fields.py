@@ -7,8 +7,8 @@ or knows which message it is reading beyond the name used in its error text.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
-from typing import Any, Final
+from collections.abc import Callable, Mapping
+from typing import Any, Final, Protocol
 
 from facecast.protocol.errors import ErrorCode, ProtocolError
 from facecast.protocol.limits import Limits
@@ -44,43 +44,19 @@ def invalid(where: str, expected: str, value: Any) -> ProtocolError:
     )
 
 
-def _get(obj: Mapping[str, Any], key: str, where: str, default: Any) -> Any:
+def _absent(where: str, default: Any) -> Any:
     # nil and absence mean the same thing, so clients in languages without "absent" can
     # send every key.
-    value = obj.get(key)
-    if value is None:
-        if default is REQUIRED:
-            raise ProtocolError(ErrorCode.INVALID_FIELD, f"{where} is required")
-        return default
-    return value
+    if default is REQUIRED:
+        raise ProtocolError(ErrorCode.INVALID_FIELD, f"{where} is required")
+    return default
 
 
-def read_uint(obj: Mapping[str, Any], key: str, where: str, default: Any = REQUIRED) -> Any:
-    """An integer in [0, 2**64 - 1]; bool is not an integer here."""
-    value = _get(obj, key, where, default)
-    if value is default:
-        return value
+def check_uint(value: Any, where: str) -> int:
+    """``value`` as an integer in [0, 2**64 - 1]; bool is not an integer here."""
     if type(value) is not int or not 0 <= value <= MAX_UINT64:
         raise invalid(where, "an integer in [0, 2**64-1]", value)
     return value
-
-
-def read_int(obj: Mapping[str, Any], key: str, where: str, default: Any = REQUIRED) -> Any:
-    """Any msgpack integer; bool is not an integer here."""
-    value = _get(obj, key, where, default)
-    if value is default:
-        return value
-    if type(value) is not int:
-        raise invalid(where, "an integer", value)
-    return value
-
-
-def read_float(obj: Mapping[str, Any], key: str, where: str, default: Any = REQUIRED) -> Any:
-    """A finite number (msgpack int or float), returned as float; NaN/Inf -> NON_FINITE."""
-    value = _get(obj, key, where, default)
-    if value is default:
-        return value
-    return check_float(value, where)
 
 
 def check_float(value: Any, where: str) -> float:
@@ -96,13 +72,61 @@ def check_float(value: Any, where: str) -> float:
     return value
 
 
-def read_bool(obj: Mapping[str, Any], key: str, where: str, default: Any = REQUIRED) -> Any:
-    value = _get(obj, key, where, default)
-    if value is default:
+def _exactly(kind: type, expected: str) -> Callable[[Any, str], Any]:
+    """The check that a value's type is ``kind`` itself (so a bool is not an int)."""
+
+    def check(value: Any, where: str) -> Any:
+        if type(value) is not kind:
+            raise invalid(where, expected, value)
         return value
-    if type(value) is not bool:
-        raise invalid(where, "a bool", value)
-    return value
+
+    return check
+
+
+check_int: Final = _exactly(int, "an integer")
+check_bool: Final = _exactly(bool, "a bool")
+check_map: Final = _exactly(dict, "a map")
+
+
+class FieldReader(Protocol):
+    """``read_*(obj, key, where, default)``: field ``key`` of ``obj``, checked."""
+
+    def __call__(
+        self, obj: Mapping[str, Any], key: str, where: str, default: Any = REQUIRED
+    ) -> Any: ...
+
+
+def _reader(name: str, check: Callable[[Any, str], Any], doc: str) -> FieldReader:
+    """A reader returning ``check(value, where)``, or ``default`` when the field is nil/absent.
+
+    Built once per type rather than written out per type; a closure keeps the decode path
+    at one Python call per field plus the check.
+    """
+
+    def read(obj: Mapping[str, Any], key: str, where: str, default: Any = REQUIRED) -> Any:
+        value = obj.get(key)
+        if value is None:
+            return _absent(where, default)
+        return check(value, where)
+
+    read.__name__ = read.__qualname__ = name
+    read.__doc__ = doc
+    return read
+
+
+read_uint: Final = _reader(
+    "read_uint", check_uint, "An integer in [0, 2**64 - 1]; bool is not an integer here."
+)
+read_int: Final = _reader(
+    "read_int", check_int, "Any msgpack integer; bool is not an integer here."
+)
+read_float: Final = _reader(
+    "read_float",
+    check_float,
+    "A finite number (msgpack int or float), returned as float; NaN/Inf -> NON_FINITE.",
+)
+read_bool: Final = _reader("read_bool", check_bool, "A bool.")
+read_map: Final = _reader("read_map", check_map, "A map.")
 
 
 def read_str(
@@ -115,9 +139,9 @@ def read_str(
     choices: tuple[str, ...] | None = None,
 ) -> Any:
     """A non-empty string of at most ``limits.max_string`` characters, or one of ``choices``."""
-    value = _get(obj, key, where, default)
-    if value is default:
-        return value
+    value = obj.get(key)
+    if value is None:
+        return _absent(where, default)
     return check_str(value, where, limits, choices=choices)
 
 
@@ -146,12 +170,3 @@ def check_str_length(value: str, where: str, limits: Limits) -> None:
             ErrorCode.MESSAGE_TOO_LARGE,
             f"{where} has {len(value)} characters, more than the limit {limits.max_string}",
         )
-
-
-def read_map(obj: Mapping[str, Any], key: str, where: str, default: Any = REQUIRED) -> Any:
-    value = _get(obj, key, where, default)
-    if value is default:
-        return value
-    if type(value) is not dict:
-        raise invalid(where, "a map", value)
-    return value
