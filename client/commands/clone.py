@@ -10,6 +10,8 @@ import argparse
 import time
 from pathlib import Path
 
+from facecast.client.commands._animation import add_source_arguments
+
 BATCH = 256
 # Above this many bytes of cloned vertices an .npz keeps only the weights (the rig and
 # the weights give the vertices back), so a long performance cannot exhaust memory.
@@ -27,18 +29,14 @@ def register(subparsers) -> None:
         ),
     )
     parser.add_argument("rig", metavar="RIG", help="a rig file written by 'facecast fit'")
-    parser.add_argument(
-        "source",
-        metavar="SOURCE",
-        help="source animation: .npz (points or vertices), .npy points, a folder of OBJ "
+    add_source_arguments(
+        parser,
+        source_help="source animation: .npz (points or vertices), .npy points, a folder of OBJ "
         "frames, a Live Link Face .csv take (with --source-rig), a MediaPipe .ndjson, or "
         "'demo' (the procedural performance; for a rig fitted on 'demo')",
-    )
-    parser.add_argument(
-        "--source-rig",
-        metavar="PATH",
-        help="ARKit-named source shapes that turn a Live Link Face CSV's blendshape weights "
-        "into feature points (an example-set folder from 'facecast import', or ICT's npz)",
+        source_rig_help="ARKit-named source shapes that turn a Live Link Face CSV's blendshape "
+        "weights into feature points (an example-set folder from 'facecast import', or ICT's "
+        "npz)",
     )
     parser.add_argument(
         "-o", "--output", required=True, metavar="OUT", help=".npz, .glb, or a folder"
@@ -50,33 +48,6 @@ def register(subparsers) -> None:
         "--seconds", type=float, default=12.0, help="length of the 'demo' source (default 12)"
     )
     parser.set_defaults(func=run)
-
-
-def load_animation(spec: str, rig, *, seconds: float = 12.0, source_rig=None):
-    """The source animation named on the command line, checked against the rig's K."""
-    from facecast.client.cli import CommandError
-
-    if spec == "demo":
-        from facecast.rig.demo import demo_animation
-
-        animation = demo_animation(seconds, with_vertices=False)
-    else:
-        from facecast.rig.animation import load_source_animation
-
-        if not Path(spec).exists():
-            raise CommandError(f"{spec}: no such file or folder (the source animation)")
-        animation = load_source_animation(
-            spec,
-            feature_indices=rig.feature_indices,
-            num_points=rig.num_points,
-            source_rig=source_rig,
-        )
-    if animation.num_points != rig.num_points:
-        raise CommandError(
-            f"{spec}: {animation.num_points} feature points per frame, the rig expects "
-            f"{rig.num_points}"
-        )
-    return animation
 
 
 def clone_frames(rig, points, *, align: bool = False, with_vertices: bool = True, progress=True):
@@ -102,8 +73,8 @@ def clone_frames(rig, points, *, align: bool = False, with_vertices: bool = True
 
 def run(args: argparse.Namespace) -> int:
     from facecast.client.cli import CommandError
+    from facecast.client.commands._animation import load_animation, write_cloned
     from facecast.rig import load_rig
-    from facecast.rig.animation import write_clone_output
 
     if not Path(args.rig).exists():
         raise CommandError(f"{args.rig}: no such rig file")
@@ -111,7 +82,13 @@ def run(args: argparse.Namespace) -> int:
     if not output.parent.exists():
         raise CommandError(f"{output.parent}: no such folder for {output.name}")
     rig = load_rig(args.rig)
-    animation = load_animation(args.source, rig, seconds=args.seconds, source_rig=args.source_rig)
+    animation = load_animation(
+        args.source,
+        num_points=rig.num_points,
+        feature_indices=lambda: rig.feature_indices,
+        source_rig=args.source_rig,
+        seconds=args.seconds,
+    )
     frames = animation.num_frames
     suffix = output.suffix.lower()
     vertex_bytes = frames * rig.num_vertices * 3 * 4
@@ -124,16 +101,7 @@ def run(args: argparse.Namespace) -> int:
         progress=frames > 4 * BATCH,
     )  # fmt: skip
     elapsed = time.perf_counter() - started
-    written = write_clone_output(
-        output,
-        weights=weights,
-        vertices=vertices,
-        names=rig.names,
-        neutral=rig.target_neutral,
-        faces=rig.target_faces,
-        deltas=rig.target_deltas,
-        fps=animation.fps,
-    )
+    written = write_cloned(output, rig, weights, vertices, animation.fps)
     rate = frames / elapsed if elapsed > 0 else float("inf")
     print(
         f"cloned {frames} frames ({frames / animation.fps:.1f} s at {animation.fps:g} fps) "

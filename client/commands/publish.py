@@ -10,6 +10,8 @@ import argparse
 import sys
 from typing import TYPE_CHECKING
 
+from facecast.client.commands._animation import add_source_arguments
+
 if TYPE_CHECKING:  # numpy loads when the command runs, not for --help
     import numpy as np
 
@@ -30,16 +32,10 @@ def register(subparsers) -> None:
     )
     parser.add_argument("url", metavar="URL", help="server base URL, e.g. http://127.0.0.1:8000")
     parser.add_argument("channel", metavar="CHANNEL", help="channel name (1-256 characters)")
-    parser.add_argument(
-        "source",
-        metavar="SOURCE",
-        help="source animation as 'facecast clone' reads it (.npz/.npy, OBJ folder, Live Link "
-        ".csv with --source-rig, MediaPipe .ndjson) or 'demo'",
-    )
-    parser.add_argument(
-        "--source-rig",
-        metavar="PATH",
-        help="ARKit-named source shapes for a Live Link Face CSV take (see 'facecast clone')",
+    add_source_arguments(
+        parser,
+        source_help="source animation as 'facecast clone' reads it (.npz/.npy, OBJ folder, "
+        "Live Link .csv with --source-rig, MediaPipe .ndjson) or 'demo'",
     )
     parser.add_argument(
         "--rig", default="demo", metavar="NAME", help="layout rig id on the server (default demo)"
@@ -60,38 +56,27 @@ def register(subparsers) -> None:
 
 def _animation(args: argparse.Namespace, num_points: int):
     """The source animation, checked against the channel rig's K."""
-    from facecast.client.cli import CommandError
+    from facecast.client.commands._animation import load_animation
 
-    if args.source == "demo":
-        from facecast.rig.demo import demo_animation
-
-        animation = demo_animation(args.seconds, with_vertices=False)
-    else:
+    def feature_indices():
         import contextlib
-        from pathlib import Path
 
         from facecast.client.fetch import ServerRequestError, fetch_rig
-        from facecast.rig.animation import load_source_animation
 
-        if not Path(args.source).exists():
-            raise CommandError(f"{args.source}: no such file or folder (the source animation)")
-        feature_indices = None
         # Mesh sources need the rig's feature indices; a publisher-only token cannot
         # read rigs, and point sources do not need them.
         with contextlib.suppress(ServerRequestError):
-            feature_indices = fetch_rig(args.url, args.rig, token=args.token).feature_indices
-        animation = load_source_animation(
-            args.source,
-            feature_indices=feature_indices,
-            num_points=num_points,
-            source_rig=args.source_rig,
-        )
-    if animation.num_points != num_points:
-        raise CommandError(
-            f"{args.source}: {animation.num_points} feature points per frame, rig "
-            f"{args.rig!r} needs {num_points}"
-        )
-    return animation
+            return fetch_rig(args.url, args.rig, token=args.token).feature_indices
+        return None
+
+    return load_animation(
+        args.source,
+        num_points=num_points,
+        feature_indices=feature_indices,
+        source_rig=args.source_rig,
+        seconds=args.seconds,
+        expected_by=f"rig {args.rig!r} needs",
+    )
 
 
 def _schedule(animation) -> tuple[np.ndarray, np.ndarray | None, float]:

@@ -10,6 +10,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from facecast.client.commands._animation import add_source_arguments
+
 #: Largest (frames x vertices) result kept in memory for --output vertices, bytes.
 MAX_VERTEX_BYTES = 2 << 30
 
@@ -26,16 +28,10 @@ def register(subparsers) -> None:
         ),
     )
     parser.add_argument("url", metavar="URL", help="server base URL, e.g. http://127.0.0.1:8000")
-    parser.add_argument(
-        "source",
-        metavar="SOURCE",
-        help="source animation as 'facecast clone' reads it (.npz/.npy, folder of OBJ "
+    add_source_arguments(
+        parser,
+        source_help="source animation as 'facecast clone' reads it (.npz/.npy, folder of OBJ "
         "frames, Live Link .csv with --source-rig, MediaPipe .ndjson) or 'demo'",
-    )
-    parser.add_argument(
-        "--source-rig",
-        metavar="PATH",
-        help="ARKit-named source shapes for a Live Link Face CSV take (see 'facecast clone')",
     )
     parser.add_argument("--rig", required=True, metavar="NAME", help="rig id on the server")
     parser.add_argument(
@@ -101,11 +97,10 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
 
     from facecast.client.cli import CommandError
-    from facecast.client.commands.clone import load_animation
+    from facecast.client.commands._animation import load_animation, write_results
     from facecast.client.connection import connect
     from facecast.client.fetch import fetch_rig
-    from facecast.client.streaming import stream_frames, weights_from_vertices
-    from facecast.rig.animation import write_clone_output
+    from facecast.client.streaming import stream_frames
 
     if not Path(args.out).absolute().parent.is_dir():
         raise CommandError(f"{Path(args.out).parent}: no such folder for {Path(args.out).name}")
@@ -117,7 +112,12 @@ def run(args: argparse.Namespace) -> int:
         rig = fetch_rig(args.url, args.rig, token=args.token)
     except ValueError as exc:  # a malformed URL
         raise CommandError(str(exc)) from None
-    animation = load_animation(args.source, rig, seconds=12.0, source_rig=args.source_rig)
+    animation = load_animation(
+        args.source,
+        num_points=rig.num_points,
+        feature_indices=lambda: rig.feature_indices,
+        source_rig=args.source_rig,
+    )
     if args.output == "vertices":
         size = animation.num_frames * rig.num_vertices * 3 * 4
         if size > MAX_VERTEX_BYTES:
@@ -151,20 +151,7 @@ def run(args: argparse.Namespace) -> int:
         outcome = asyncio.run(main())
     finally:
         line.finish()
-    if args.output == "weights":
-        weights, vertices = outcome.values, None
-    else:
-        weights, vertices = weights_from_vertices(rig, outcome.values), outcome.values
-    path = write_clone_output(
-        args.out,
-        weights=weights,
-        vertices=vertices,
-        names=rig.names,
-        neutral=rig.target_neutral,
-        faces=rig.target_faces,
-        deltas=rig.target_deltas,
-        fps=animation.fps,
-    )
+    path = write_results(args.out, rig, args.output, outcome.values, animation.fps)
     errors = ", ".join(f"{k} x{v}" for k, v in sorted(outcome.errors.items())) or "none"
     print(
         f"facecast stream: {animation.num_frames} frames -> {path}  "

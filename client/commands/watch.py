@@ -108,16 +108,10 @@ def run(args: argparse.Namespace) -> int:
         arrays["weights" if args.output == "weights" else "vertices"] = values
         np.savez(out, **arrays)
     else:
+        from facecast.client.commands._animation import write_results
         from facecast.client.fetch import fetch_rig
-        from facecast.client.streaming import weights_from_vertices
-        from facecast.rig.animation import write_clone_output
 
         rig = fetch_rig(args.url, args.rig, token=args.token)
-        weights = values if args.output == "weights" else weights_from_vertices(rig, values)
-        write_clone_output(
-            out, weights=weights, vertices=None if args.output == "weights" else values,
-            names=rig.names, neutral=rig.target_neutral, faces=rig.target_faces,
-            deltas=rig.target_deltas, fps=fps,
-        )  # fmt: skip
+        write_results(out, rig, args.output, values, fps)
     print(f"facecast watch: {len(seq)} results (seq {seq[0]}..{seq[-1]}) -> {out}", file=sys.stderr)
     return 0
