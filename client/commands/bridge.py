@@ -40,6 +40,35 @@ def _mapping(text: str) -> tuple[str, str]:
     return name, target
 
 
+def _add_bridge(
+    sub, name: str, *, help: str, description: str, url_help: str, channel_help: str, rig_help: str
+) -> argparse.ArgumentParser:
+    """A bridge's sub-parser, opened with the channel it bridges: URL, --channel, --rig."""
+    parser = sub.add_parser(name, help=help, description=description)
+    parser.add_argument("url", metavar="URL", help=url_help)
+    parser.add_argument("--channel", required=True, help=channel_help)
+    parser.add_argument("--rig", required=True, help=rig_help)
+    return parser
+
+
+def _add_run_arguments(parser: argparse.ArgumentParser, run) -> None:
+    """The options every bridge ends with (--token, --frames), and ``run`` to run it."""
+    parser.add_argument("--token", help="bearer token (default FACECAST_TOKEN)")
+    parser.add_argument("--frames", type=int, metavar="N", help="stop after N frames")
+    parser.set_defaults(func=run)
+
+
+def _bridge_url(args: argparse.Namespace, kind: str, query: dict[str, str] | None = None) -> str:
+    """The channel's ``publish`` or ``watch`` URL; a malformed URL or name is a CommandError."""
+    from facecast.client.bridges.channel import channel_url
+    from facecast.client.cli import CommandError
+
+    try:
+        return channel_url(args.url, args.channel, kind, query)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+
+
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "bridge",
@@ -48,7 +77,8 @@ def register(subparsers) -> None:
     )
     sub = parser.add_subparsers(dest="bridge", metavar="BRIDGE", required=True)
 
-    ll = sub.add_parser(
+    ll = _add_bridge(
+        sub,
         "livelink",
         help="receive Live Link Face UDP and publish the points to a channel",
         description=(
@@ -56,10 +86,10 @@ def register(subparsers) -> None:
             "into feature points through a source rig, and publish them to a channel. "
             "Point the app's Live Link target at this machine's --listen address."
         ),
+        url_help="server base URL, e.g. http://127.0.0.1:8000",
+        channel_help="channel to publish to",
+        rig_help="rig id on the server (its K must match)",
     )
-    ll.add_argument("url", metavar="URL", help="server base URL, e.g. http://127.0.0.1:8000")
-    ll.add_argument("--channel", required=True, help="channel to publish to")
-    ll.add_argument("--rig", required=True, help="rig id on the server (its K must match)")
     ll.add_argument(
         "--source-rig",
         required=True,
@@ -80,21 +110,20 @@ def register(subparsers) -> None:
         "asks the server to align them away again)",
     )
     ll.add_argument("--subject", help="only this Live Link subject name")
-    ll.add_argument("--token", help="bearer token (default FACECAST_TOKEN)")
-    ll.add_argument("--frames", type=int, metavar="N", help="stop after N frames")
-    ll.set_defaults(func=run_livelink)
+    _add_run_arguments(ll, run_livelink)
 
-    vmc = sub.add_parser(
+    vmc = _add_bridge(
+        sub,
         "vmc",
         help="watch a channel's weights and send them as VMC (OSC) blend shapes",
         description=(
             "Watch a channel on a rig and send every result as VMC protocol OSC "
             "(/VMC/Ext/Blend/Val, /VMC/Ext/Blend/Apply, /VMC/Ext/OK) to an avatar app."
         ),
+        url_help="server base URL",
+        channel_help="channel to watch",
+        rig_help="rig whose weights to receive",
     )
-    vmc.add_argument("url", metavar="URL", help="server base URL")
-    vmc.add_argument("--channel", required=True, help="channel to watch")
-    vmc.add_argument("--rig", required=True, help="rig whose weights to receive")
     vmc.add_argument(
         "--send",
         type=_send,
@@ -111,15 +140,13 @@ def register(subparsers) -> None:
         help="send rig expression NAME as VMCNAME (repeatable; over the VRM preset table)",
     )
     vmc.add_argument("--no-clamp", action="store_true", help="send weights outside [0, 1] too")
-    vmc.add_argument("--token", help="bearer token (default FACECAST_TOKEN)")
-    vmc.add_argument("--frames", type=int, metavar="N", help="stop after N frames")
-    vmc.set_defaults(func=run_vmc)
+    _add_run_arguments(vmc, run_vmc)
 
 
 def run_livelink(args: argparse.Namespace) -> int:
     import asyncio
 
-    from facecast.client.bridges.channel import FramePublisher, channel_url
+    from facecast.client.bridges.channel import FramePublisher
     from facecast.client.bridges.livelink import open_livelink_receiver, run_livelink_bridge
     from facecast.client.cli import CommandError
     from facecast.client.connection import ConnectionFailed
@@ -133,10 +160,7 @@ def run_livelink(args: argparse.Namespace) -> int:
             "those weights are ignored",
             file=sys.stderr,
         )
-    try:
-        url = channel_url(args.url, args.channel, "publish")
-    except ValueError as exc:
-        raise CommandError(str(exc)) from None
+    url = _bridge_url(args, "publish")
     hello = Hello(rig=args.rig, align=args.head_pose)
 
     async def main() -> int:
@@ -180,15 +204,12 @@ def run_livelink(args: argparse.Namespace) -> int:
 def run_vmc(args: argparse.Namespace) -> int:
     import asyncio
 
-    from facecast.client.bridges.channel import channel_url, watch_channel
+    from facecast.client.bridges.channel import watch_channel
     from facecast.client.bridges.vmc import VmcSender, run_vmc_bridge
     from facecast.client.cli import CommandError
     from facecast.client.connection import ConnectionFailed
 
-    try:
-        url = channel_url(args.url, args.channel, "watch", {"rig": args.rig, "output": "weights"})
-    except ValueError as exc:
-        raise CommandError(str(exc)) from None
+    url = _bridge_url(args, "watch", {"rig": args.rig, "output": "weights"})
 
     async def main() -> int:
         with VmcSender(*args.send) as sender:
