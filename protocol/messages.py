@@ -16,10 +16,11 @@ import numpy as np
 from facecast.protocol.arrays import WIRE_DTYPES, array_from_wire, array_to_wire, wire_dtype_name
 from facecast.protocol.errors import ErrorCode, ProtocolError, error_code
 from facecast.protocol.fields import (
-    MAX_UINT64,
+    check_bool,
     check_float,
     check_str,
     check_str_length,
+    check_uint,
     invalid,
     read_bool,
     read_float,
@@ -50,16 +51,6 @@ _DEFAULT_LIMITS: Final = Limits()
 
 def _fail(where: str, expected: str, value: Any) -> ProtocolError:
     return invalid(where, expected, value)
-
-
-def _check_uint(value: Any, where: str) -> None:
-    if type(value) is not int or not 0 <= value <= MAX_UINT64:
-        raise _fail(where, "an integer in [0, 2**64-1]", value)
-
-
-def _check_bool(value: Any, where: str) -> None:
-    if type(value) is not bool:
-        raise _fail(where, "a bool", value)
 
 
 def _check_choice(value: Any, where: str, choices: tuple[str, ...]) -> None:
@@ -224,9 +215,9 @@ class Hello(Message):
         check_str(self.rig, "hello.rig", None)
         _check_choice(self.output, "hello.output", OUTPUTS)
         _check_choice(self.dtype, "hello.dtype", RESULT_DTYPES)
-        _check_bool(self.align, "hello.options.align")
-        _check_bool(self.align_scale, "hello.options.scale")
-        _check_bool(self.calibration, "hello.options.calibration")
+        check_bool(self.align, "hello.options.align")
+        check_bool(self.align_scale, "hello.options.scale")
+        check_bool(self.calibration, "hello.options.calibration")
         if self.align_scale and not self.align:
             raise ProtocolError(
                 ErrorCode.INVALID_FIELD, "hello.options.scale needs hello.options.align"
@@ -284,7 +275,7 @@ class Frame(_ArrayMessage):
     points: np.ndarray
 
     def __post_init__(self) -> None:
-        _check_uint(self.seq, "frame.seq")
+        check_uint(self.seq, "frame.seq")
         object.__setattr__(self, "ts", check_float(self.ts, "frame.ts"))
         _check_array(self.points, "frame.points", (3,))
 
@@ -325,7 +316,7 @@ class Calibrate(_ArrayMessage):
     reset: bool = False
 
     def __post_init__(self) -> None:
-        _check_bool(self.reset, "calibrate.reset")
+        check_bool(self.reset, "calibrate.reset")
         if self.points is not None:
             _check_array(self.points, "calibrate.points", (3,))
             if self.reset:
@@ -362,7 +353,7 @@ class _Probe(Message):
     ts: float
 
     def __post_init__(self) -> None:
-        _check_uint(self.id, f"{self.TYPE}.id")
+        check_uint(self.id, f"{self.TYPE}.id")
         object.__setattr__(self, "ts", check_float(self.ts, f"{self.TYPE}.ts"))
 
     def serialize(self) -> dict[str, Any]:
@@ -435,8 +426,8 @@ class Ready(Message):
                 raise _fail("ready.rig.names[]", "a string", name)
         if not self.names:
             raise ProtocolError(ErrorCode.INVALID_FIELD, "ready.rig.names must not be empty")
-        _check_uint(self.num_points, "ready.rig.k")
-        _check_uint(self.num_vertices, "ready.rig.v")
+        check_uint(self.num_points, "ready.rig.k")
+        check_uint(self.num_vertices, "ready.rig.v")
         _check_choice(self.output, "ready.output", WATCH_OUTPUTS)
         _check_choice(self.dtype, "ready.dtype", _result_dtypes(self.output))
         if not isinstance(self.limits, Mapping):
@@ -554,10 +545,10 @@ class Result(_ArrayMessage):
 
     def __post_init__(self) -> None:
         # On the server's per-frame path: a handful of type checks, no array scans.
-        _check_uint(self.seq, "result.seq")
+        check_uint(self.seq, "result.seq")
         object.__setattr__(self, "ts", check_float(self.ts, "result.ts"))
-        _check_uint(self.proc_us, "result.proc_us")
-        _check_uint(self.dropped, "result.dropped")
+        check_uint(self.proc_us, "result.proc_us")
+        check_uint(self.dropped, "result.dropped")
         present = [name for name in _RESULT_ARRAYS if getattr(self, name) is not None]
         if len(present) != 1:
             raise ProtocolError(ErrorCode.INVALID_FIELD, _ONE_ARRAY)
@@ -638,8 +629,8 @@ class Error(Message):
         if len(self.message) > MAX_ERROR_MESSAGE:
             object.__setattr__(self, "message", self.message[: MAX_ERROR_MESSAGE - 1] + "…")
         if self.seq is not None:
-            _check_uint(self.seq, "error.seq")
-        _check_bool(self.fatal, "error.fatal")
+            check_uint(self.seq, "error.seq")
+        check_bool(self.fatal, "error.fatal")
 
     def serialize(self) -> dict[str, Any]:
         return {
@@ -692,9 +683,9 @@ class Calibrated(Message):
     seq: int | None = None
 
     def __post_init__(self) -> None:
-        _check_bool(self.active, "calibrated.active")
+        check_bool(self.active, "calibrated.active")
         if self.seq is not None:
-            _check_uint(self.seq, "calibrated.seq")
+            check_uint(self.seq, "calibrated.seq")
 
     def serialize(self) -> dict[str, Any]:
         return {**_header(self.TYPE), "active": self.active, "seq": self.seq}
