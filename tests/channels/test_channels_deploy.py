@@ -1,18 +1,32 @@
 """docker/: the compose file parses and has the broadcast topology; nginx passes WebSockets.
 
-Docker cannot run on the test machine: these check structure only. ``nginx -t`` runs
-when nginx is installed and is skipped otherwise.
+Docker cannot run on the test machine: the compose file and Dockerfile are checked for
+structure; the nginx config runs for real (addresses moved to loopback) in front of a
+real facecast when nginx is installed, and is skipped otherwise.
 """
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import dataclasses
 import re
 import shutil
+import socket
 import subprocess
+import time
 from pathlib import Path
 
+import httpx
+import numpy as np
 import pytest
 import yaml
+
+from facecast.protocol import ChannelLive
+from facecast.server.testing import free_port, run_server
+
+from ._helpers import Publisher, Watcher, points
+from .conftest import TOKENS
 
 DOCKER = Path(__file__).resolve().parents[2] / "docker"
 
@@ -64,3 +78,68 @@ def test_nginx_accepts_the_config(tmp_path):
     )  # fmt: skip
 
     assert result.returncode == 0, result.stderr
+
+
+@contextlib.contextmanager
+def _nginx(upstream_port: int, tmp_path: Path):
+    """Real nginx running docker/nginx.conf, with only its addresses moved to loopback."""
+    port = free_port()
+    text = (DOCKER / "nginx.conf").read_text()
+    text = text.replace("listen 80;", f"listen 127.0.0.1:{port};")
+    text = text.replace("http://facecast:8000", f"http://127.0.0.1:{upstream_port}")
+    assert f"127.0.0.1:{port}" in text and f"127.0.0.1:{upstream_port}" in text
+    (tmp_path / "logs").mkdir()
+    (tmp_path / "nginx.conf").write_text(text)
+    process = subprocess.Popen(
+        ["nginx", "-c", str(tmp_path / "nginx.conf"), "-p", str(tmp_path),
+         "-g", f"daemon off; pid {tmp_path / 'nginx.pid'}; error_log stderr;"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 10
+        while True:
+            with socket.socket() as sock:
+                if sock.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            assert process.poll() is None, process.stderr.read().decode()
+            assert time.monotonic() < deadline, "nginx did not listen"
+            time.sleep(0.02)
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        process.terminate()
+        process.wait(10)
+
+
+@pytest.mark.skipif(shutil.which("nginx") is None, reason="nginx is not installed here")
+def test_the_proxy_config_passes_rest_and_channel_websockets_with_auth(settings, rigs, tmp_path):
+    settings = dataclasses.replace(settings, auth=True, tokens=TOKENS)
+    frame = points(rigs["alpha"], 3)
+
+    async def scenario(base: str):
+        async with httpx.AsyncClient(base_url=base) as http:
+            listed = await http.get("/v1/rigs", headers={"Authorization": "Bearer admin-token"})
+            denied = await http.get("/v1/rigs")
+        watcher = await Watcher.open(base, "stage", "beta", token="viewer-token")
+        publisher = await Publisher.open(base, "stage", "alpha", token="publisher-token")
+        try:
+            await watcher.next(ChannelLive)
+            await publisher.send(1, frame)
+            result = await watcher.result_with_seq(1)
+        finally:
+            await publisher.close()
+            await watcher.close()
+        return listed, denied, result
+
+    async def main():
+        async with run_server(settings) as server:
+            with _nginx(server.port, tmp_path) as base:
+                return await scenario(base)
+
+    listed, denied, result = asyncio.run(main())
+
+    assert listed.status_code == 200
+    assert {rig["id"] for rig in listed.json()["rigs"]} >= {"alpha", "beta"}
+    assert denied.status_code == 401
+    np.testing.assert_array_equal(
+        result.weights, rigs["beta"].weights(frame.astype(np.float32)).astype(np.float32)
+    )
