@@ -17,8 +17,9 @@
  * features; elsewhere a generic build runs (correct, but its 4-double vectors live in memory
  * without AVX: a few times slower, still faster than numpy for one frame).
  *
- * It also holds f32_to_f16, the float16 wire copy of vertices results (F16C where the CPU has
- * it), which must give numpy's bits exactly (see its section below).
+ * The module also holds project_box (bounded weights, in _boxqp.c) and f32_to_f16, the
+ * float16 wire copy of vertices results (F16C where the CPU has it), which must give numpy's
+ * bits exactly (see its section below).
  */
 
 #define PY_SSIZE_T_CLEAN
@@ -861,16 +862,30 @@ PyDoc_STRVAR(f32_to_f16_doc,
              "src.astype(float16), NaN payloads included. generic=True forces the plain-C\n"
              "path (for tests). Releases the GIL while converting.");
 
+/* In _boxqp.c. */
+PyObject *facecast_project_box(PyObject *module, PyObject *const *args, Py_ssize_t nargs);
+
+PyDoc_STRVAR(project_box_doc,
+             "project_box(metric, weights, shift, half, out, upper, max_iter)\n"
+             "--\n\n"
+             "For each row w of weights (B, N): out = argmin_x (x - w) H (x - w) + 2 half 1^T x\n"
+             "subject to 0 <= x (<= upper unless None), H = metric (N, N) symmetric positive\n"
+             "definite, shift (N,) = half H^-1 1 (None when half is 0); float64, C-contiguous.\n"
+             "Block principal pivoting on the free variables only (see facecast.rig.bounds);\n"
+             "each frame's result depends on that frame alone. Releases the GIL while solving.");
+
 static PyMethodDef module_methods[] = {
     {"f32_to_f16", (PyCFunction)(void (*)(void))module_f32_to_f16, METH_FASTCALL, f32_to_f16_doc},
+    {"project_box", (PyCFunction)(void (*)(void))facecast_project_box, METH_FASTCALL,
+     project_box_doc},
     {NULL, NULL, 0, NULL},
 };
 
 static struct PyModuleDef kernel_module = {
     PyModuleDef_HEAD_INIT,
     .m_name = "facecast.rig._kernel",
-    .m_doc = "Compiled single-frame B-spline weights and the float32 -> float16 result cast "
-             "(see facecast.rig.kernel).",
+    .m_doc = "Compiled single-frame B-spline weights, bounded weights and the float32 -> "
+             "float16 result cast (see facecast.rig.kernel and facecast.rig.bounds).",
     .m_size = -1,
     .m_methods = module_methods,
 };

@@ -18,7 +18,14 @@ try:
 except ImportError:  # not built (no C compiler at install time): numpy does the work
     _kernel = None
 
-__all__ = ["DISABLE_ENV", "bspline_kernel", "compiled", "description", "to_float16"]
+__all__ = [
+    "DISABLE_ENV",
+    "box_kernel",
+    "bspline_kernel",
+    "compiled",
+    "description",
+    "to_float16",
+]
 
 # Set to anything but "" or "0" to force the numpy path (read when a rig is built).
 DISABLE_ENV = "FACECAST_NO_KERNEL"
@@ -31,6 +38,15 @@ def compiled() -> bool:
 
 def _disabled() -> bool:
     return os.environ.get(DISABLE_ENV, "") not in ("", "0")
+
+
+def box_kernel():
+    """The compiled bounded-weights solver (``_kernel.project_box``), or None.
+
+    None when the extension is not built or ``FACECAST_NO_KERNEL`` is set (read when a rig
+    is built); ``bounds.project_box`` is then the solver, and always the reference.
+    """
+    return None if _kernel is None or _disabled() else _kernel.project_box
 
 
 def _fast_f16() -> bool:

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bounds import project_box, weight_metric
+from .bounds import BoxProjection, weight_metric
 from .errors import InputError
 from .kernel import bspline_kernel
 from .kernels import evaluate_kernel
@@ -52,6 +52,7 @@ class WeightModel:
     _knots: np.ndarray | None = None  # (2M,) 2 then 1
     _radial2: np.ndarray | None = None  # (2M, M)
     _metric: np.ndarray | None = None  # (M-1, M-1) for bounded weights
+    _box: BoxProjection | None = None  # the bounded-weights step (clamp set)
     _has_radial: bool = True
     _project_linear: np.ndarray | None = None  # (3K, M): the hyperplanes on raw points
     # Compiled single-frame evaluator (facecast.rig.kernel); None: numpy does every frame.
@@ -100,6 +101,11 @@ class WeightModel:
         set_(self, "_offset", offset)
         set_(self, "_inv_alpha2", np.concatenate([inv_alpha, inv_alpha]) ** 2)
         set_(self, "_metric", weight_metric(self.params, self.ridge))
+        box = None
+        if self.clamp is not None:
+            upper = 1.0 if self.clamp == "unit" else None
+            box = BoxProjection(self._metric, upper, self.sparsity_penalty)
+        set_(self, "_box", box)
         set_(self, "_has_radial", bool(np.any(self.radial_coeffs)))
         set_(self, "_project_linear", np.ascontiguousarray(project[:, :m]))
         set_(self, "_knots", np.concatenate([np.full(m, 2.0), np.ones(m)]))
@@ -164,13 +170,8 @@ class WeightModel:
         return self._bounded(weights)
 
     def _bounded(self, weights: np.ndarray) -> np.ndarray:
-        if self.clamp is not None:
-            rest = project_box(
-                weights[:, 1:],
-                self._metric,
-                1.0 if self.clamp == "unit" else None,
-                penalty=self.sparsity_penalty,
-            )
+        if self._box is not None:
+            rest = self._box(weights[:, 1:])
             weights[:, 1:] = rest
             weights[:, 0] = 1.0 - rest.sum(axis=1)
         return weights

@@ -12,7 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import lsq_linear, nnls
 
-from facecast.rig.bounds import project_box, sparsity_penalty
+from facecast.rig.bounds import BoxProjection, project_box, sparsity_penalty
+from facecast.rig.kernel import DISABLE_ENV, compiled
 
 
 def _problem(seed, n=12, frames=40):
@@ -176,3 +177,50 @@ def test_sparsity_penalty_is_twice_the_noise_variance_times_the_prior_rate():
     assert sparsity_penalty(0.1, 1.0, 56) == pytest.approx(2 * 0.01 * 55)
     assert sparsity_penalty(0.0, 3.0, 56) == 0.0
     assert sparsity_penalty(0.1, 0.0, 56) == 0.0
+
+
+needs_kernel = pytest.mark.skipif(
+    not compiled(), reason="facecast.rig._kernel is not built (no C compiler at install)"
+)
+
+
+@needs_kernel
+@settings(max_examples=40, deadline=None)
+@given(
+    st.integers(0, 2**31 - 1),
+    st.sampled_from([None, 1.0]),
+    st.floats(0.0, 3.0),
+    st.booleans(),
+)
+def test_compiled_projection_meets_the_kkt_conditions_and_agrees_with_numpy(
+    seed, upper, penalty, hard
+):
+    metric, weights = (_hard_problem if hard else _problem)(seed)
+    box = BoxProjection(metric, upper, penalty)
+
+    x = box(weights)
+
+    assert box._solve is not None  # the compiled path ran
+    assert _kkt_violation(x, weights, metric, upper, penalty) < 1e-9
+    reference = project_box(weights, metric, upper, penalty=penalty)
+    np.testing.assert_allclose(x, reference, rtol=0, atol=1e-8 * (1 + np.abs(reference).max()))
+
+
+@needs_kernel
+def test_compiled_projection_of_a_single_frame_equals_its_row_of_a_batch():
+    metric, weights = _hard_problem(11)
+    box = BoxProjection(metric, None, 0.5)
+
+    together = box(weights)
+    alone = np.vstack([box(w[None]) for w in weights])
+
+    np.testing.assert_array_equal(together, alone)
+
+
+def test_without_the_kernel_the_projection_is_numpys(monkeypatch):
+    monkeypatch.setenv(DISABLE_ENV, "1")
+    metric, weights = _problem(3)
+    box = BoxProjection(metric, 1.0, 0.2)
+
+    assert box._solve is None
+    np.testing.assert_array_equal(box(weights), project_box(weights, metric, 1.0, penalty=0.2))
