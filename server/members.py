@@ -34,7 +34,8 @@ from facecast.rig.filters import OneEuroFilter
 
 from .fanout import ChannelFrame
 from .outbox import Closing, Member
-from .session import TokenBucket, ready_message
+from .ratelimit import TokenBucket
+from .session import ready_message
 
 if TYPE_CHECKING:
     from .channels import Channel

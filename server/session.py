@@ -39,19 +39,19 @@ from facecast.protocol import (
 )
 from facecast.rig.errors import InputError, RigError
 from facecast.rig.filters import OneEuroFilter
-from facecast.rig.kernel import to_float16
 
 from .blending import BlendBatcher
+from .cloning import Outputs, Smoother, blend_seconds, clone_frame, frame_weights
 from .direct import binary_frame, direct_writer, queued_messages
 from .metrics import Metrics
+from .ratelimit import TokenBucket
 from .settings import Settings
 from .store import RigNotFoundError, RigStore, valid_rig_id
 
-__all__ = ["INLINE_MAX_SECONDS", "Session", "SessionCounters", "blend_seconds"]
+__all__ = ["INLINE_MAX_SECONDS", "Session", "SessionCounters", "ready_message"]
 
 log = logging.getLogger("facecast.server.session")
 
-_RESULT_DTYPES = {"f32": np.float32, "f16": np.float16}
 #: Control messages (pongs, errors, acks) waiting for the writer; beyond this the oldest
 #: are dropped: a client that floods pings but never reads must not grow memory.
 _MAX_CONTROL = 32
@@ -64,11 +64,6 @@ _RATE_ERROR_INTERVAL = 1.0
 #: other sessions' frames (``blending``). Weights-only frames always run on the loop
 #: (tens of µs). See SERVER.md, "Streaming choices".
 INLINE_MAX_SECONDS = 0.0005
-#: Cold-cache cost per vertex coordinate (this machine, one BLAS thread): a blend reads
-#: the (M, 3V) float32 basis once, ~0.16 ns per multiply-add when it is not in cache, and
-#: casting to f16 plus encoding and sending the result cost ~3 ns.
-_SECONDS_PER_MAC = 0.16e-9
-_SECONDS_PER_COORDINATE = 3e-9
 #: Frames that arrived together are cloned in order for at most this long after the
 #: first of them was read; later ones in the same burst replace one another (§8).
 _BURST_SECONDS = 0.005
@@ -93,25 +88,6 @@ class SessionCounters:
     @property
     def dropped(self) -> int:
         return self.dropped_superseded + self.dropped_rate
-
-
-class TokenBucket:
-    """Allows ``rate`` events per second on average, ``burst`` at once."""
-
-    def __init__(self, rate: float, burst: int) -> None:
-        self.rate = rate
-        self.burst = float(burst)
-        self.tokens = float(burst)
-        self.last = time.monotonic()
-
-    def take(self) -> bool:
-        now = time.monotonic()
-        self.tokens = min(self.burst, self.tokens + (now - self.last) * self.rate)
-        self.last = now
-        if self.tokens >= 1.0:
-            self.tokens -= 1.0
-            return True
-        return False
 
 
 class _Closing(Exception):
@@ -163,8 +139,8 @@ class Session:
         self._base_rig: Any = None  # as loaded; calibration derives ``_rig`` from it
         self._rig: Any = None
         self._calibrate_next = False
-        self._smoother: _Smoother | None = None
-        self._outputs: _Outputs | None = None
+        self._smoother: Smoother | None = None
+        self._outputs: Outputs | None = None
         self._inline = True  # whether frames are cloned on the loop (set by hello)
         self._bucket = TokenBucket(settings.max_fps, settings.rate_burst)
         self._last_rate_error = -1e9
@@ -464,14 +440,14 @@ class Session:
         self._base_rig = rig
         self._rig = rig
         self._calibrate_next = hello.calibration
-        self._outputs = _Outputs(hello, rig.num_vertices)
+        self._outputs = Outputs(hello, rig.num_vertices)
         self._inline = (
             hello.output == "weights"
             or blend_seconds(rig.num_vertices, rig.num_examples) <= INLINE_MAX_SECONDS
         )
         if hello.smoothing is not None:
             sm = hello.smoothing
-            self._smoother = _Smoother(
+            self._smoother = Smoother(
                 OneEuroFilter(min_cutoff=sm.min_cutoff, beta=sm.beta, d_cutoff=sm.d_cutoff),
                 sm.target,
             )
@@ -578,7 +554,7 @@ class Session:
         values = outputs.wire if outputs.wire is not None else outputs.vertices
         assert values is not None
         try:
-            weights = _weights(rig, frame, hello, self._smoother)
+            weights = frame_weights(rig, frame, hello, self._smoother)
             await self.blender.blend(rig, weights, values)
         except InputError as exc:
             self._refuse(frame, exc)
@@ -590,7 +566,7 @@ class Session:
         hello, outputs = self.hello, self._outputs
         assert hello is not None and outputs is not None
         try:
-            values = _clone(self._rig, frame, hello, self._smoother, outputs)
+            values = clone_frame(self._rig, frame, hello, self._smoother, outputs)
         except InputError as exc:
             self._refuse(frame, exc)
             return None
@@ -644,77 +620,6 @@ class Session:
                 "errors": c.errors,
             },
         )
-
-
-class _Smoother:
-    """A session's one-euro filter (PROTOCOL.md §5.1.1 ``smoothing``), clocked by ``frame.ts``.
-
-    Used only on the event loop, one frame at a time and in frame order (weights are
-    always computed there), so needs no lock.
-    """
-
-    def __init__(self, one_euro: OneEuroFilter, target: str) -> None:
-        self.filter = one_euro
-        self.target = target
-        self.last_ts: float | None = None
-
-    def __call__(self, values: np.ndarray, ts: float) -> np.ndarray:
-        if self.last_ts is not None and ts < self.last_ts:
-            # A client clock that jumped back (restart, wrap): start the filter afresh
-            # rather than refusing every frame until ``ts`` catches up.
-            self.filter.reset()
-        self.last_ts = ts
-        return self.filter(values.reshape(-1), ts).reshape(values.shape)
-
-
-class _Outputs:
-    """A session's reused result buffers: (V, 3) float32 blend output, float16 wire copy.
-
-    Used by one clone at a time (the writer's), and each result is encoded (copied)
-    before the next clone starts, so reuse is safe.
-    """
-
-    def __init__(self, hello: Hello, num_vertices: int) -> None:
-        self.dtype = _RESULT_DTYPES[hello.dtype]
-        self.name = hello.output  # the result's array field, "weights" or "vertices"
-        vertices = hello.output == "vertices"
-        self.vertices = np.empty((num_vertices, 3), np.float32) if vertices else None
-        self.wire = (
-            np.empty((num_vertices, 3), np.float16) if vertices and hello.dtype == "f16" else None
-        )
-
-
-def blend_seconds(num_vertices: int, num_examples: int) -> float:
-    """Estimated cost of one vertices frame (blend, f16 cast, encode, send), seconds."""
-    coordinates = 3 * num_vertices
-    return coordinates * (num_examples * _SECONDS_PER_MAC + _SECONDS_PER_COORDINATE)
-
-
-def _weights(rig: Any, frame: Frame, hello: Hello, smoother: _Smoother | None) -> np.ndarray:
-    """The (M,) float64 weights of one frame, smoothed as the session asked."""
-    points = frame.points
-    if smoother is not None and smoother.target == "points":
-        points = smoother(np.asarray(points, dtype=np.float64), frame.ts)
-    weights = rig.weights(points, align=hello.align)
-    if smoother is not None and smoother.target == "weights":
-        weights = smoother(weights, frame.ts)
-    return weights
-
-
-def _clone(
-    rig: Any, frame: Frame, hello: Hello, smoother: _Smoother | None, outputs: _Outputs
-) -> np.ndarray:
-    """Weights (M,) or vertices (V, 3) of one frame, in the session's wire dtype.
-
-    Vertices are written into ``outputs``' buffers and returned as one of them.
-    """
-    weights = _weights(rig, frame, hello, smoother)
-    if outputs.vertices is None:
-        return weights.astype(outputs.dtype)
-    vertices = rig.blend(weights, out=outputs.vertices)
-    if outputs.wire is None:
-        return vertices
-    return to_float16(vertices, outputs.wire)
 
 
 def ready_message(session_id: str, hello, rig, limits, settings) -> Ready:

@@ -1,0 +1,95 @@
+"""One stream frame's clone: its weights (smoothed as the session asked) and vertices.
+
+Pure computation on a rig and a frame, into buffers the session reuses, plus the cost
+estimate that decides where it runs; no sockets, no session state but the filter.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from facecast.protocol import Frame, Hello
+from facecast.rig.filters import OneEuroFilter
+from facecast.rig.kernel import to_float16
+
+__all__ = ["Outputs", "Smoother", "blend_seconds", "clone_frame", "frame_weights"]
+
+_RESULT_DTYPES = {"f32": np.float32, "f16": np.float16}
+#: Cold-cache cost per vertex coordinate (this machine, one BLAS thread): a blend reads
+#: the (M, 3V) float32 basis once, ~0.16 ns per multiply-add when it is not in cache, and
+#: casting to f16 plus encoding and sending the result cost ~3 ns.
+_SECONDS_PER_MAC = 0.16e-9
+_SECONDS_PER_COORDINATE = 3e-9
+
+
+class Smoother:
+    """A session's one-euro filter (PROTOCOL.md §5.1.1 ``smoothing``), clocked by ``frame.ts``.
+
+    Used only on the event loop, one frame at a time and in frame order (weights are
+    always computed there), so needs no lock.
+    """
+
+    def __init__(self, one_euro: OneEuroFilter, target: str) -> None:
+        self.filter = one_euro
+        self.target = target
+        self.last_ts: float | None = None
+
+    def __call__(self, values: np.ndarray, ts: float) -> np.ndarray:
+        if self.last_ts is not None and ts < self.last_ts:
+            # A client clock that jumped back (restart, wrap): start the filter afresh
+            # rather than refusing every frame until ``ts`` catches up.
+            self.filter.reset()
+        self.last_ts = ts
+        return self.filter(values.reshape(-1), ts).reshape(values.shape)
+
+
+class Outputs:
+    """A session's reused result buffers: (V, 3) float32 blend output, float16 wire copy.
+
+    Used by one clone at a time (the writer's), and each result is encoded (copied)
+    before the next clone starts, so reuse is safe.
+    """
+
+    def __init__(self, hello: Hello, num_vertices: int) -> None:
+        self.dtype = _RESULT_DTYPES[hello.dtype]
+        self.name = hello.output  # the result's array field, "weights" or "vertices"
+        vertices = hello.output == "vertices"
+        self.vertices = np.empty((num_vertices, 3), np.float32) if vertices else None
+        self.wire = (
+            np.empty((num_vertices, 3), np.float16) if vertices and hello.dtype == "f16" else None
+        )
+
+
+def blend_seconds(num_vertices: int, num_examples: int) -> float:
+    """Estimated cost of one vertices frame (blend, f16 cast, encode, send), seconds."""
+    coordinates = 3 * num_vertices
+    return coordinates * (num_examples * _SECONDS_PER_MAC + _SECONDS_PER_COORDINATE)
+
+
+def frame_weights(rig: Any, frame: Frame, hello: Hello, smoother: Smoother | None) -> np.ndarray:
+    """The (M,) float64 weights of one frame, smoothed as the session asked."""
+    points = frame.points
+    if smoother is not None and smoother.target == "points":
+        points = smoother(np.asarray(points, dtype=np.float64), frame.ts)
+    weights = rig.weights(points, align=hello.align)
+    if smoother is not None and smoother.target == "weights":
+        weights = smoother(weights, frame.ts)
+    return weights
+
+
+def clone_frame(
+    rig: Any, frame: Frame, hello: Hello, smoother: Smoother | None, outputs: Outputs
+) -> np.ndarray:
+    """Weights (M,) or vertices (V, 3) of one frame, in the session's wire dtype.
+
+    Vertices are written into ``outputs``' buffers and returned as one of them.
+    """
+    weights = frame_weights(rig, frame, hello, smoother)
+    if outputs.vertices is None:
+        return weights.astype(outputs.dtype)
+    vertices = rig.blend(weights, out=outputs.vertices)
+    if outputs.wire is None:
+        return vertices
+    return to_float16(vertices, outputs.wire)
