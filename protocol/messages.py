@@ -542,6 +542,7 @@ class Result(_ArrayMessage):
     points: np.ndarray | None = None
     proc_us: int = 0
     dropped: int = 0
+    server_ts: float | None = None
 
     def __post_init__(self) -> None:
         # On the server's per-frame path: a handful of type checks, no array scans.
@@ -549,6 +550,8 @@ class Result(_ArrayMessage):
         object.__setattr__(self, "ts", check_float(self.ts, "result.ts"))
         check_uint(self.proc_us, "result.proc_us")
         check_uint(self.dropped, "result.dropped")
+        if self.server_ts is not None:
+            object.__setattr__(self, "server_ts", check_float(self.server_ts, "result.server_ts"))
         present = [name for name in _RESULT_ARRAYS if getattr(self, name) is not None]
         if len(present) != 1:
             raise ProtocolError(ErrorCode.INVALID_FIELD, _ONE_ARRAY)
@@ -578,6 +581,8 @@ class Result(_ArrayMessage):
         out[output] = array_to_wire(self.values)
         out["proc_us"] = self.proc_us
         out["dropped"] = self.dropped
+        if self.server_ts is not None:
+            out["server_ts"] = self.server_ts
         return out
 
     @classmethod
@@ -603,6 +608,7 @@ class Result(_ArrayMessage):
             **arrays,
             proc_us=read_uint(obj, "proc_us", "result.proc_us"),
             dropped=read_uint(obj, "dropped", "result.dropped"),
+            server_ts=read_float(obj, "server_ts", "result.server_ts", None),
         )
 
 

@@ -20,7 +20,7 @@ from facecast.protocol import Result, Smoothing, array_from_wire, array_to_wire,
 from facecast.rig.errors import InputError, RigError
 from facecast.rig.filters import OneEuroFilter
 
-__all__ = ["ChannelFrame", "Key", "KeyState", "PointsKeyState", "WatchResult", "key_state"]
+__all__ = ["ChannelFrame", "Key", "KeyState", "PointsKeyState", "key_state"]
 
 log = logging.getLogger("facecast.server.channels")
 
@@ -28,22 +28,6 @@ log = logging.getLogger("facecast.server.channels")
 Key = tuple[str, str, str]
 
 _DTYPES = {"f32": np.float32, "f16": np.float16, "f64": np.float64}
-
-
-@dataclass(frozen=True, kw_only=True, eq=False)
-class WatchResult(Result):
-    """A `Result` with ``server_ts``: the server's wall clock (epoch seconds) when encoded.
-
-    An optional key added within version 1 (PROTOCOL.md §5.2.2, §11): clients that do
-    not know it ignore it; watchers use it to measure latency without the publisher's clock.
-    """
-
-    server_ts: float = 0.0
-
-    def serialize(self) -> dict[str, Any]:
-        out = super().serialize()
-        out["server_ts"] = self.server_ts
-        return out
 
 
 @dataclass(frozen=True)
@@ -242,7 +226,7 @@ class KeyState(_Key):
         else:
             vertices = rig.blend(weights)
             values = vertices if dtype is np.float32 else vertices.astype(dtype)
-        result = WatchResult(
+        result = Result(
             seq=seq,
             ts=ts,
             weights=values if self.output == "weights" else None,
@@ -274,7 +258,7 @@ class PointsKeyState(_Key):
                 f"{self.rig.num_points}",
                 code="wrong_point_count",
             )
-        result = WatchResult(
+        result = Result(
             seq=frame.seq,
             ts=frame.ts,
             points=np.asarray(points, dtype=_DTYPES[self.dtype]),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import httpx
 import numpy as np
 import pytest
@@ -68,11 +70,15 @@ async def test_results_to_watchers_carry_server_ts(settings, rigs):
     async with run_server(settings) as server:
         watcher = await Watcher.open(server.ws_url, "stage", "alpha")
         publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        before = time.time()
         await publisher.send(0, points(rigs["alpha"], 0))
-        await watcher.result_with_seq(0)
+        result = await watcher.result_with_seq(0)
+        after = time.time()
         raw = await _raw_result(server, rigs)
 
     assert isinstance(raw["server_ts"], float)
+    # The protocol package decodes it too (PROTOCOL.md §5.2.2), for Python watchers.
+    assert before <= result.server_ts <= after
 
 
 async def _raw_result(server, rigs) -> dict:

@@ -75,8 +75,9 @@ def results(draw) -> Result:
     else:
         values = {"vertices": draw(float_arrays(dtype, st.tuples(st.integers(1, 50), st.just(3))))}
     return Result(
-        seq=draw(uint64), ts=draw(finite), proc_us=draw(uint64), dropped=draw(uint64), **values
-    )
+        seq=draw(uint64), ts=draw(finite), proc_us=draw(uint64), dropped=draw(uint64),
+        server_ts=draw(st.none() | finite), **values,
+    )  # fmt: skip
 
 
 client_messages = st.one_of(
