@@ -13,9 +13,12 @@ from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from typing import Any
+from urllib.parse import quote
 
 import anyio
 from fastapi import FastAPI, Request, Response
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import HTMLResponse, JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from facecast import __version__
@@ -27,7 +30,7 @@ from .hub import ChannelHub
 from .metrics import CONTENT_TYPE_LATEST, Metrics
 from .rest import router as rest_router
 from .sessions import SessionRegistry
-from .settings import Settings
+from .settings import ROLES, Settings
 from .store import RigStore
 from .stream import router as stream_router
 from .viewer import mount_viewer
@@ -85,6 +88,10 @@ def create_app(settings: Settings) -> FastAPI:
         version=__version__,
         summary="Real-time example-based facial expression cloning",
         lifespan=lifespan,
+        # Served by _add_docs_routes, behind auth when it is on.
+        docs_url=None,
+        redoc_url=None,
+        openapi_url=None,
     )
     app.state.settings = settings
     app.state.store = RigStore(
@@ -101,6 +108,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.include_router(stream_router)
     app.include_router(channel_router)
     _add_ops_routes(app)
+    _add_docs_routes(app)
     mount_viewer(app, settings)
     app.add_middleware(_AccessLog, metrics=app.state.metrics, enabled=settings.access_log)
     return app
@@ -138,6 +146,29 @@ def _add_ops_routes(app: FastAPI) -> None:
             authorize(settings, token_from_request(request), ("admin",))
         body = await anyio.to_thread.run_sync(request.app.state.metrics.render)
         return Response(body, media_type=CONTENT_TYPE_LATEST)
+
+
+def _docs_token(request: Request) -> str | None:
+    """Admit any valid token (header, or ``?token=`` for a browser) when auth is on.
+
+    Returns the query token, which the docs page must hand on to its schema request.
+    """
+    query = request.query_params.get("token")
+    authorize(request.app.state.settings, token_from_request(request) or query, ROLES)
+    return query
+
+
+def _add_docs_routes(app: FastAPI) -> None:
+    @app.get("/openapi.json", include_in_schema=False)
+    async def openapi(request: Request) -> JSONResponse:
+        _docs_token(request)
+        return JSONResponse(request.app.openapi())
+
+    @app.get("/docs", include_in_schema=False)
+    async def docs(request: Request) -> HTMLResponse:
+        token = _docs_token(request)
+        schema = "/openapi.json" if token is None else f"/openapi.json?token={quote(token)}"
+        return get_swagger_ui_html(openapi_url=schema, title="facecast API")
 
 
 class _AccessLog:

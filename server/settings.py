@@ -51,8 +51,9 @@ class Settings:
     )
     #: Force auth on for a loopback address; it is always on for any other address.
     auth: bool = False
-    #: Whether ``/metrics`` needs an admin token (when auth is on).
-    metrics_auth: bool = False
+    #: Whether ``/metrics`` needs an admin token when auth is on (as every endpoint but
+    #: ``/healthz`` and ``/readyz`` does); false opens it to tokenless scrapers.
+    metrics_auth: bool = True
 
     # -- uploads --------------------------------------------------------------------------
     max_upload_bytes: int = 64 * MiB

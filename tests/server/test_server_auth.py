@@ -98,10 +98,9 @@ async def test_health_and_ready_need_no_token(auth_settings):
     assert health.status_code == ready.status_code == 200
 
 
-async def test_metrics_needs_admin_when_metrics_auth_is_set(auth_settings):
-    settings = dataclasses.replace(auth_settings, metrics_auth=True)
+async def test_metrics_needs_admin_when_auth_is_on(auth_settings):
     async with (
-        run_server(settings) as server,
+        run_server(auth_settings) as server,
         httpx.AsyncClient(base_url=server.base_url) as http,
     ):
         missing = await http.get("/metrics")
@@ -109,6 +108,45 @@ async def test_metrics_needs_admin_when_metrics_auth_is_set(auth_settings):
         admin = await http.get("/metrics", headers={"Authorization": "Bearer admin-token"})
 
     assert (missing.status_code, viewer.status_code, admin.status_code) == (401, 403, 200)
+
+
+async def test_metrics_auth_off_opens_metrics_to_tokenless_scrapers(auth_settings):
+    settings = dataclasses.replace(auth_settings, metrics_auth=False)
+    async with (
+        run_server(settings) as server,
+        httpx.AsyncClient(base_url=server.base_url) as http,
+    ):
+        missing = await http.get("/metrics")
+        rigs = await http.get("/v1/rigs")
+
+    assert (missing.status_code, rigs.status_code) == (200, 401)
+
+
+@pytest.mark.parametrize("path", ["/docs", "/openapi.json"])
+async def test_api_docs_need_a_token_of_any_role_when_auth_is_on(auth_settings, path):
+    async with (
+        run_server(auth_settings) as server,
+        httpx.AsyncClient(base_url=server.base_url) as http,
+    ):
+        missing = await http.get(path)
+        unknown = await http.get(path, headers={"Authorization": "Bearer nobody"})
+        viewer = await http.get(path, headers={"Authorization": "Bearer viewer-token"})
+        in_query = await http.get(path, params={"token": "publisher-token"})
+
+    assert (missing.status_code, unknown.status_code) == (401, 401)
+    assert viewer.status_code == in_query.status_code == 200
+
+
+async def test_docs_page_opened_with_a_query_token_fetches_its_schema_with_it(auth_settings):
+    async with (
+        run_server(auth_settings) as server,
+        httpx.AsyncClient(base_url=server.base_url) as http,
+    ):
+        page = await http.get("/docs", params={"token": "viewer-token"})
+        schema = await http.get("/openapi.json?token=viewer-token")
+
+    assert "/openapi.json?token=viewer-token" in page.text
+    assert "/v1/rigs" in schema.json()["paths"]
 
 
 # -- WebSocket ----------------------------------------------------------------------------
