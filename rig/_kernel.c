@@ -638,6 +638,56 @@ static PyObject *kernel_evaluate(KernelObject *self, PyObject *const *args, Py_s
     return failed ? NULL : PyFloat_FromDouble(total);
 }
 
+PyDoc_STRVAR(evaluate_rows_doc,
+             "evaluate_rows(x, out)\n--\n\n"
+             "Weights of B frames: row b of out gets evaluate(x[b]), the same bits as one frame\n"
+             "alone (so batched and single-frame results agree exactly). x: (B, 3K) C-contiguous\n"
+             "float64; out: (B, M) writable C-contiguous float64. Releases the GIL.");
+
+static PyObject *kernel_evaluate_rows(KernelObject *self, PyObject *const *args,
+                                      Py_ssize_t nargs) {
+    if (nargs != 2) {
+        PyErr_Format(PyExc_TypeError, "evaluate_rows() takes 2 arguments (x, out), got %zd",
+                     nargs);
+        return NULL;
+    }
+    Py_buffer xv, ov;
+    if (PyObject_GetBuffer(args[0], &xv, PyBUF_STRIDES | PyBUF_FORMAT) < 0) return NULL;
+    const Py_ssize_t rows = xv.ndim == 2 ? xv.shape[0] : -1;
+    PyBuffer_Release(&xv);
+    if (rows < 0) {
+        PyErr_SetString(PyExc_ValueError, "x: expected a 2-d (B, 3K) array");
+        return NULL;
+    }
+    if (get_array(args[0], &xv, rows, self->num_inputs, "x") < 0) return NULL;
+    if (get_array(args[1], &ov, rows, self->num_examples, "out") < 0) {
+        PyBuffer_Release(&xv);
+        return NULL;
+    }
+    if (ov.readonly) {
+        PyErr_SetString(PyExc_ValueError, "out must be writable");
+        PyBuffer_Release(&xv);
+        PyBuffer_Release(&ov);
+        return NULL;
+    }
+    double *scratch = PyMem_Malloc(sizeof(double) * (size_t)scratch_size(self));
+    if (scratch == NULL) {
+        PyBuffer_Release(&xv);
+        PyBuffer_Release(&ov);
+        return PyErr_NoMemory();
+    }
+    const double *x = xv.buf;
+    double *out = ov.buf;
+    const Py_ssize_t k3 = self->num_inputs, m = self->num_examples;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t b = 0; b < rows; b++) self->compute(self, x + b * k3, out + b * m, scratch);
+    Py_END_ALLOW_THREADS
+    PyMem_Free(scratch);
+    PyBuffer_Release(&xv);
+    PyBuffer_Release(&ov);
+    Py_RETURN_NONE;
+}
+
 PyDoc_STRVAR(weights_doc,
              "weights(points) -> ndarray | None\n--\n\n"
              "Weights of one frame as a new (M,) float64 array, or None when they are not all\n"
@@ -691,6 +741,8 @@ static PyObject *kernel_weights(KernelObject *self, PyObject *const *args, Py_ss
 static PyMethodDef kernel_methods[] = {
     {"evaluate", (PyCFunction)(void (*)(void))kernel_evaluate, METH_FASTCALL, evaluate_doc},
     {"weights", (PyCFunction)(void (*)(void))kernel_weights, METH_FASTCALL, weights_doc},
+    {"evaluate_rows", (PyCFunction)(void (*)(void))kernel_evaluate_rows, METH_FASTCALL,
+     evaluate_rows_doc},
     {NULL, NULL, 0, NULL},
 };
 

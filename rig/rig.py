@@ -115,7 +115,7 @@ class WeightModel:
             "_radial2",
             np.vstack([self.radial_coeffs / 6.0, self.radial_coeffs * (-4.0 / 6.0)]),
         )
-        if self.kernel == "bspline" and self.clamp is None:
+        if self.kernel == "bspline":
             # One frame through numpy is ~13 calls of ~1 us overhead each; the compiled kernel
             # does the same sums in ~1 us. It agrees with the numpy path to rounding.
             n = self.params.shape[1]
@@ -136,10 +136,16 @@ class WeightModel:
     def evaluate(self, flat: np.ndarray) -> np.ndarray:
         """Weights for flattened points (B, 3K) -> (B, M)."""
         m = self.num_examples
-        if self._kernel is not None and flat.shape[0] == 1:
-            weights = np.empty((1, m))
-            self._kernel.evaluate(np.ascontiguousarray(flat[0], dtype=np.float64), weights[0])
-            return weights
+        if self._kernel is not None:
+            # Every frame, alone or in a batch, through the same compiled sums: a frame's
+            # weights do not depend on the batch it came in (streamed == offline, exactly).
+            weights = np.empty((flat.shape[0], m))
+            x = np.ascontiguousarray(flat, dtype=np.float64)
+            if flat.shape[0] == 1:
+                self._kernel.evaluate(x[0], weights[0])
+            else:
+                self._kernel.evaluate_rows(x, weights)
+            return self._bounded(weights)
         if not self._has_radial:
             # The hyperplanes interpolate (see fit): no distances, no radial terms.
             weights = flat @ self._project_linear
@@ -345,7 +351,7 @@ class Rig:
         (M,) or (B, M) float64; the weights sum to 1.
         """
         kernel = self.models[0]._kernel
-        if kernel is not None and not align and self.regions is None:
+        if kernel is not None and not align and self.regions is None and self.model._box is None:
             # One frame straight to the compiled kernel: the general path's conversions and
             # checks alone cost more than the kernel. The kernel takes only a C-contiguous
             # (K, 3) float array and returns None for non-finite weights; anything else

@@ -63,6 +63,15 @@ def single_frame_weights(rig, frames: np.ndarray) -> np.ndarray:
     return np.array([rig.weights(frame) for frame in frames])
 
 
+def numpy_weights(rig, frames: np.ndarray) -> np.ndarray:
+    """The numpy (BLAS) path's weights: the same rig rebuilt with the kernel disabled."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv(rig_kernel.DISABLE_ENV, "1")
+        numpy_rig = rig_from_bytes(rig.to_bytes())
+    assert numpy_rig.model._kernel is None
+    return numpy_rig.weights(frames)
+
+
 @pytest.fixture(scope="module")
 def big_set():
     # M = 41 and n > 8 leading components: two column panels, padding, a distance tail.
@@ -78,10 +87,33 @@ def big_rig(big_set):
 
 
 @needs_kernel
-def test_bspline_rig_gets_a_kernel_and_other_settings_do_not(big_set, big_rig):
+def test_bspline_rigs_get_a_kernel_and_other_kernels_do_not(big_set, big_rig):
     assert big_rig.model._kernel is not None
-    assert quiet_fit(big_set, clamp="nonneg").model._kernel is None
+    # Bounded rigs too: the kernel gives the unbounded weights, the box projection bounds them.
+    assert quiet_fit(big_set, clamp="nonneg").model._kernel is not None
     assert quiet_fit(big_set, kernel="gaussian").model._kernel is None
+
+
+@needs_kernel
+@pytest.mark.parametrize(
+    "options", [{}, {"noise": 0.05, "clamp": "nonneg"}], ids=["exact", "bounded"]
+)
+def test_batched_weights_equal_single_frame_weights_bit_for_bit(big_set, options):
+    rig = quiet_fit(big_set, **options)
+    frames = frames_near(big_set, 16, seed=12)
+
+    np.testing.assert_array_equal(rig.weights(frames), single_frame_weights(rig, frames))
+
+
+@needs_kernel
+def test_bounded_kernel_weights_match_the_numpy_path(big_set):
+    rig = quiet_fit(big_set, noise=0.05, clamp="nonneg")
+    frames = frames_near(big_set, 16, seed=13)
+
+    weights = rig.weights(frames)
+
+    assert weights[:, 1:].min() >= 0.0
+    np.testing.assert_allclose(weights, numpy_weights(rig, frames), rtol=0, atol=1e-9)
 
 
 @needs_kernel
@@ -102,16 +134,16 @@ def test_single_frame_weights_match_extended_precision_and_the_numpy_path(m, k, 
     frames = frames_near(example_set, 8, seed)
 
     kernel_weights = single_frame_weights(rig, frames)
-    numpy_weights = rig.weights(frames)  # a batch: the numpy BLAS path
+    numpy_path = numpy_weights(rig, frames)
     reference = reference_weights(rig.model, frames)
 
     scale = max(1.0, float(np.abs(reference).max()))
     kernel_error = np.abs(kernel_weights - reference)
-    numpy_error = np.abs(numpy_weights - reference)
+    numpy_error = np.abs(numpy_path - reference)
     assert kernel_error.max() <= 1e-13 * scale
     # The numpy path expands |p - p_j|^2 and can lose more than 1e-12 to cancellation on
     # such random rigs; the kernel is never farther from it than that loss.
-    assert np.all(np.abs(kernel_weights - numpy_weights) <= numpy_error + 1e-13 * scale)
+    assert np.all(np.abs(kernel_weights - numpy_path) <= numpy_error + 1e-13 * scale)
 
 
 @needs_kernel
@@ -120,7 +152,7 @@ def test_single_frame_weights_match_the_numpy_path_within_1e_12(big_set, big_rig
 
     kernel_weights = single_frame_weights(big_rig, frames)
 
-    np.testing.assert_allclose(kernel_weights, big_rig.weights(frames), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(kernel_weights, numpy_weights(big_rig, frames), rtol=0, atol=1e-12)
 
 
 @needs_kernel
@@ -160,7 +192,9 @@ def test_calibrated_rig_kernel_matches_its_numpy_path(big_set, big_rig):
     rig = big_rig.calibrated(performer)
     frames = frames_near(big_set, 8, seed=6)
 
-    np.testing.assert_allclose(single_frame_weights(rig, frames), rig.weights(frames), atol=1e-12)
+    np.testing.assert_allclose(
+        single_frame_weights(rig, frames), numpy_weights(rig, frames), atol=1e-12
+    )
 
 
 @needs_kernel
