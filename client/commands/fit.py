@@ -22,8 +22,10 @@ def register(subparsers) -> None:
         help="fit a rig from an example set",
         description=(
             "Fit the cardinal weight functions of an example set (Kim 2003, ch. 3) and write "
-            "the rig file. Prints the PCA spectrum, the radial system's condition number, the "
-            "noise gain and, per example, its nearest neighbour in parameter space."
+            "the rig file. Prints the PCA spectrum, the radial and hyperplane systems' "
+            "condition numbers, the noise gain (and the landmark noise that moves the weights "
+            "0.05 RMS, with a warning when it is far below any tracker's) and, per example, its "
+            "nearest neighbour in parameter space."
         ),
     )
     parser.add_argument(
@@ -130,7 +132,9 @@ def format_report(report: dict, names) -> str:
         f"PCA threshold {report['pca_threshold']:g}",
         f"PCA eigenvalues: {_spectrum(report['eigenvalues'], report['components_kept'])}",
         f"radial system condition number: {report['condition_number']:.4g}",
+        *_hyperplane_line(report),
         f"noise gain (RMS weight change per unit landmark noise): {report['noise_gain']:.4g}",
+        *_tolerance_line(report),
         *_bounds_line(report),
         "identifiability (nearest other example, distance in parameter space):",
     ]
@@ -145,6 +149,27 @@ def format_report(report: dict, names) -> str:
         )
     lines.append(f"fit time: {report['fit_seconds'] * 1e3:.1f} ms")
     return "\n".join(lines)
+
+
+def _hyperplane_line(report: dict) -> list[str]:
+    # Rig files fitted before the hyperplanes' conditioning was reported lack it.
+    if report.get("hyperplane_condition_number") is None:
+        return []
+    return [
+        f"hyperplane system [1, p] condition number: {report['hyperplane_condition_number']:.4g}"
+    ]
+
+
+def _tolerance_line(report: dict) -> list[str]:
+    from facecast.rig.fit import NOISE_WEIGHT_CHANGE
+
+    tolerance = report.get("noise_tolerance")
+    if tolerance is None or tolerance == float("inf"):
+        return []
+    return [
+        f"  landmark noise that moves the weights {NOISE_WEIGHT_CHANGE:g} RMS: {tolerance:.3g} "
+        f"(feature points' extent {report.get('feature_extent', 0.0):.3g})"
+    ]
 
 
 def _bounds_line(report: dict) -> list[str]:

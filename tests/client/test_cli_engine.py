@@ -82,6 +82,48 @@ def test_fit_json_prints_the_fit_report(tmp_path, capsys):
     assert len(payload["fit_report"]["nearest_name"]) == 13
 
 
+def test_fit_prints_both_systems_condition_numbers_and_no_warning_on_the_demo(tmp_path, capsys):
+    code = cli.main(["fit", "demo", "-o", str(tmp_path / "r.rig")])
+
+    captured = capsys.readouterr()
+    assert code == 0
+    assert "radial system condition number" in captured.out
+    assert "hyperplane system [1, p] condition number: 66" in captured.out
+    assert "landmark noise that moves the weights 0.05 RMS" in captured.out
+    assert "warning" not in captured.err
+
+
+@pytest.fixture(scope="module")
+def ict_npz(tmp_path_factory):
+    from facecast.rig.ict import ict_example_set
+
+    path = tmp_path_factory.mktemp("ict") / "ict.npz"
+    ict_example_set(locate_ict()).save_npz(path)
+    return path
+
+
+@pytest.mark.ict
+@pytest.mark.skipif(locate_ict() is None, reason="ICT-FaceKit not found")
+def test_exact_fit_of_ict_warns_that_the_rig_amplifies_landmark_noise(ict_npz, tmp_path, capsys):
+    code = cli.main(["fit", str(ict_npz), "-o", str(tmp_path / "ict.rig")])
+
+    err = capsys.readouterr().err
+    assert code == 0
+    assert "warning: the rig amplifies landmark noise" in err
+    assert "--noise SIGMA --clamp nonneg" in err
+
+
+@pytest.mark.ict
+@pytest.mark.skipif(locate_ict() is None, reason="ICT-FaceKit not found")
+def test_fit_of_ict_for_tracker_noise_does_not_warn_about_amplification(ict_npz, tmp_path, capsys):
+    argv = ["fit", str(ict_npz), "-o", str(tmp_path / "ict.rig"), "--noise", "0.01"]
+
+    code = cli.main([*argv, "--clamp", "nonneg"])
+
+    assert code == 0
+    assert "amplifies" not in capsys.readouterr().err
+
+
 def test_fit_kernel_choices_match_the_engine():
     assert KERNEL_CHOICES == KERNELS
 

@@ -255,3 +255,16 @@ def test_unknown_character_is_refused():
     with pytest.raises(InputError) as info:
         demo_landmarks("dragon")
     assert info.value.code == "bad_demo_argument"
+
+
+def test_exact_demo_rig_does_not_warn_about_noise_amplification(example_set):
+    import warnings
+
+    from facecast.rig import fit
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rig = fit(example_set)
+
+    assert rig.fit_report["warnings"] == []
+    assert rig.fit_report["noise_tolerance"] > 1e-4 * rig.fit_report["feature_extent"]

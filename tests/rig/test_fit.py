@@ -335,3 +335,81 @@ def test_radial_terms_vanish_when_the_hyperplanes_interpolate(example_set, rig):
 def test_radial_terms_remain_when_examples_outnumber_the_dimensions():
     rig = fit(make_set(m=20, k=2, seed=3))
     assert np.abs(rig.model.radial_coeffs).max() > 1e-3
+
+
+def test_nearly_collapsing_examples_show_in_the_hyperplane_condition_number(rig):
+    example_set = make_set()
+    source = example_set.source_points.copy()
+    source[5] = source[2] + 1e-3
+    near = ExampleSet(
+        example_set.names, source, example_set.target_vertices, example_set.target_faces
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        near_rig = fit(near)
+
+    clean = rig.fit_report["hyperplane_condition_number"]
+    assert near_rig.fit_report["hyperplane_condition_number"] > 100 * clean
+
+
+def _nearly_affinely_dependent_set(offset: float) -> ExampleSet:
+    # e8 sits almost at the midpoint of e1 and e2: no two examples are close, but the
+    # examples barely span one direction of parameter space.
+    example_set = make_set()
+    source = example_set.source_points.copy()
+    source[8] = (source[1] + source[2]) / 2
+    source[8, 0, 0] += offset
+    return ExampleSet(
+        example_set.names, source, example_set.target_vertices, example_set.target_faces
+    )
+
+
+def test_near_singular_hyperplane_system_is_refused_with_its_condition_number():
+    example_set = _nearly_affinely_dependent_set(1e-11)
+
+    with pytest.raises(
+        FitError, match=r"hyperplane system .*condition number [\d.]+e\+\d+ > 1e\+10"
+    ) as info:
+        fit(example_set, pca_threshold=1e-30)
+    assert info.value.code == "singular_system"
+
+
+def test_near_singular_hyperplane_system_is_fitted_with_noise_and_reported():
+    example_set = _nearly_affinely_dependent_set(1e-11)
+
+    rig = fit(example_set, pca_threshold=1e-30, noise=0.01)
+
+    assert rig.fit_report["hyperplane_condition_number"] > 1e10
+    assert np.isfinite(rig.fit_report["noise_gain"])
+
+
+def test_hyperplane_condition_number_does_not_depend_on_the_length_unit(example_set, rig):
+    in_mm = ExampleSet(
+        example_set.names,
+        example_set.source_points * 1000.0,
+        example_set.target_vertices,
+        example_set.target_faces,
+    )
+    scaled = fit(in_mm)
+
+    assert scaled.fit_report["hyperplane_condition_number"] == pytest.approx(
+        rig.fit_report["hyperplane_condition_number"], rel=1e-9
+    )
+    np.testing.assert_allclose(
+        scaled.weights(in_mm.source_points * 1.0001),
+        rig.weights(example_set.source_points * 1.0001),
+        atol=1e-9,
+    )
+
+
+def test_strong_noise_amplification_warns_with_the_tolerable_noise_and_the_remedy():
+    example_set = _nearly_affinely_dependent_set(1e-6)
+
+    with pytest.warns(IdentifiabilityWarning, match="amplifies landmark noise") as caught:
+        rig = fit(example_set, pca_threshold=1e-20)
+
+    report = rig.fit_report
+    message = next(str(w.message) for w in caught if "amplifies" in str(w.message))
+    assert f"{report['noise_tolerance']:.2g} source units" in message
+    assert "--noise SIGMA --clamp nonneg" in message
+    assert report["noise_tolerance"] == pytest.approx(0.05 / report["noise_gain"])

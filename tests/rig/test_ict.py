@@ -182,3 +182,28 @@ def test_unknown_identity_and_expression_are_named_in_the_error():
 def test_missing_archive_is_an_error_naming_the_path(tmp_path):
     with pytest.raises(ExampleSetError, match="nowhere"):
         ict_example_set(tmp_path / "nowhere")
+
+
+def _amplification_warnings(example_set, **settings) -> list[str]:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        fit(example_set, **settings)
+    return [str(w.message) for w in caught if "amplifies landmark noise" in str(w.message)]
+
+
+@pytest.mark.ict
+@pytest.mark.skipif(ARCHIVE is None, reason=SKIP_REASON)
+def test_exact_rig_warns_that_it_amplifies_landmark_noise(example_set, rig):
+    (message,) = _amplification_warnings(example_set)
+
+    tolerance = rig.fit_report["noise_tolerance"]
+    assert tolerance < 1e-4  # a micrometre (ICT is in cm): far below any tracker's noise
+    assert f"{tolerance:.2g} source units" in message
+    assert "--noise SIGMA --clamp nonneg" in message
+    assert message in rig.fit_report["warnings"]
+
+
+@pytest.mark.ict
+@pytest.mark.skipif(ARCHIVE is None, reason=SKIP_REASON)
+def test_rig_fitted_for_a_tenth_of_a_millimetre_of_noise_does_not_warn(example_set):
+    assert _amplification_warnings(example_set, noise=0.01) == []
