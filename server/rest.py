@@ -10,7 +10,7 @@ import asyncio
 import logging
 import tempfile
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import anyio
 from fastapi import APIRouter, Depends, Query, Request, Response
@@ -136,11 +136,32 @@ async def put_examples(
     request: Request,
     rig_id: str,
     principal: Admin,
-    noise: Annotated[float, Query(ge=0.0, description="expected landmark noise")] = 0.0,
+    noise: Annotated[
+        float, Query(ge=0.0, allow_inf_nan=False, description="expected landmark noise")
+    ] = 0.0,
     pca_threshold: Annotated[float | None, Query(gt=0.0, lt=1.0)] = None,
     kernel: Annotated[str, Query(max_length=32)] = "bspline",
+    clamp: Annotated[
+        Literal["nonneg", "unit"] | None,
+        Query(description="bound the non-neutral weights to >= 0 or [0, 1]"),
+    ] = None,
+    sparsity: Annotated[
+        float | None,
+        Query(
+            ge=0.0,
+            allow_inf_nan=False,
+            description="with clamp: the sparsity prior's rate (default 1; 0 = plain projection)",
+        ),
+    ] = None,
 ) -> JSONResponse:
     _check_id(rig_id)
+    if sparsity is not None and sparsity > 0 and clamp is None:
+        # The engine refuses this too, but only after the upload has been read and unpacked.
+        raise ApiError(
+            422,
+            "sparsity_without_clamp",
+            "sparsity is a prior on bounded weights: it needs clamp 'nonneg' or 'unit'",
+        )
     settings = _settings(request)
     state = request.app.state
     if state.pending_fits >= settings.max_pending_fits:
@@ -156,7 +177,17 @@ async def put_examples(
         max_compression_ratio=settings.max_compression_ratio,
     )
     data = await read_body(request, settings.max_upload_bytes)
-    job = _FitJob(data, limits, noise, pca_threshold, kernel)
+    job = _FitJob(
+        data,
+        limits,
+        {
+            "noise": noise,
+            "pca_threshold": pca_threshold,
+            "kernel": kernel,
+            "clamp": clamp,
+            "sparsity": sparsity,
+        },
+    )
     state.pending_fits += 1
     try:
         # Fitting is seconds of numpy: it runs in the dedicated fit executor, never on the
@@ -175,21 +206,25 @@ async def put_examples(
             "bytes": len(data),
             "kernel": kernel,
             "noise": noise,
+            "clamp": clamp,
+            "sparsity": sparsity,
             "by": principal.name,
         },
     )
-    return JSONResponse(_described(rig_id, rig), status_code=201 if created else 200)
+    # The fit's warnings (collapsing examples, noise amplification) go to the uploader, who
+    # would otherwise never see them.
+    described = {**_described(rig_id, rig), "warnings": list(rig.fit_report.get("warnings", []))}
+    return JSONResponse(described, status_code=201 if created else 200)
 
 
 class _FitJob:
     """Extract, load and fit one uploaded example set (runs in a worker thread)."""
 
-    def __init__(self, data, limits, noise, pca_threshold, kernel) -> None:
+    def __init__(self, data: bytes, limits: ArchiveLimits, options: dict[str, Any]) -> None:
         self.data = data
         self.limits = limits
-        self.noise = noise
-        self.pca_threshold = pca_threshold
-        self.kernel = kernel
+        # Keyword arguments of facecast.rig.fit: noise, pca_threshold, kernel, clamp, sparsity.
+        self.options = options
 
     def __call__(self):
         from facecast.rig import fit
@@ -199,9 +234,7 @@ class _FitJob:
             dest = Path(tmp)
             extract_archive(self.data, dest, self.limits)
             example_set = load_example_set(find_example_root(dest))
-        return fit(
-            example_set, noise=self.noise, pca_threshold=self.pca_threshold, kernel=self.kernel
-        )
+        return fit(example_set, **self.options)
 
 
 @router.get(

@@ -45,6 +45,19 @@ def register(subparsers) -> None:
     put.add_argument("--noise", type=float, default=None, help="fit: expected landmark noise")
     put.add_argument("--pca-threshold", type=float, default=None, help="fit: PCA threshold")
     put.add_argument("--kernel", default=None, help="fit: radial kernel")
+    put.add_argument(
+        "--clamp",
+        choices=("nonneg", "unit"),
+        default=None,
+        help="fit: bound the non-neutral weights to >= 0 or [0, 1]",
+    )
+    put.add_argument(
+        "--sparsity",
+        type=float,
+        default=None,
+        metavar="S",
+        help="fit, with --clamp: the sparsity prior (default 1; 0 = plain projection)",
+    )
     get = action("get", "save a rig's file (or with --glb its target mesh)", "name", "out")
     get.add_argument(
         "--glb", action="store_true", help="save the target mesh with morph targets instead"
@@ -101,23 +114,35 @@ def run(args: argparse.Namespace) -> int:
         path = Path(args.path)
         if not path.exists():
             raise CommandError(f"{path}: no such file or folder")
+        params = {
+            k: v
+            for k, v in (
+                ("noise", args.noise),
+                ("pca_threshold", args.pca_threshold),
+                ("kernel", args.kernel),
+                ("clamp", args.clamp),
+                ("sparsity", args.sparsity),
+            )
+            if v is not None
+        }
         if path.is_dir() or path.name.lower().endswith(ARCHIVE_SUFFIXES):
             body = _zip_folder(path) if path.is_dir() else path.read_bytes()
-            params = {
-                k: v
-                for k, v in (
-                    ("noise", args.noise),
-                    ("pca_threshold", args.pca_threshold),
-                    ("kernel", args.kernel),
-                )
-                if v is not None
-            }
             summary = call("PUT", f"{rig_path}/examples", content=body, params=params).json()
             print(
                 f"fitted {args.name}: M={summary['num_examples']} K={summary['num_points']} "
                 f"V={summary['num_vertices']}"
+                + (f", clamp {summary['clamp']}" if summary.get("clamp") else "")
             )
+            for message in summary.get("warnings", []):
+                print(f"warning: {message}", file=sys.stderr)
         else:
+            if params:
+                flags = ", ".join("--" + k.replace("_", "-") for k in params)
+                raise CommandError(
+                    f"{flags}: fit options apply to an example-set folder or archive, but "
+                    f"{path} is a fitted rig file; refit it with facecast fit, or upload the "
+                    "example set"
+                )
             response = call("PUT", rig_path, content=path.read_bytes())
             print(f"{'created' if response.status_code == 201 else 'replaced'} {args.name}")
     elif args.action == "get":

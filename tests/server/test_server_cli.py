@@ -55,6 +55,42 @@ async def test_rigs_command_uploads_fits_lists_downloads_and_deletes(
     assert [info.id for info in remaining] == ["fitted"]
 
 
+async def test_rigs_put_fits_an_example_set_with_clamp_and_sparsity(settings, tmp_path, capsys):
+    write_example_folder(tmp_path / "set")
+    async with run_server(settings) as server:
+        code = run_rigs(
+            server,
+            "put",
+            "bounded",
+            str(tmp_path / "set"),
+            *("--noise", "0.05", "--clamp", "nonneg", "--sparsity", "0.5"),
+        )
+        stored = server.app.state.store.get("bounded")
+
+    assert code == 0
+    assert "clamp nonneg" in capsys.readouterr().out
+    assert stored.model.clamp == "nonneg" and stored.fit_report["sparsity"] == 0.5
+
+
+async def test_rigs_put_shows_the_servers_422_for_sparsity_without_clamp(settings, tmp_path):
+    write_example_folder(tmp_path / "set")
+    async with run_server(settings) as server:
+        with pytest.raises(CommandError, match="422 sparsity_without_clamp"):
+            run_rigs(server, "put", "bad", str(tmp_path / "set"), "--sparsity", "1")
+
+
+@pytest.mark.parametrize("flags", [["--clamp", "nonneg"], ["--sparsity", "1"], ["--noise", "1"]])
+def test_rigs_put_of_a_rig_file_refuses_fit_options(rig, tmp_path, flags):
+    rig.save(tmp_path / "face.rig")
+    # Refused before any request: the URL is never contacted.
+    args = parse(
+        rigs, ["rigs", "put", "http://127.0.0.1:9", "face", str(tmp_path / "face.rig"), *flags]
+    )
+
+    with pytest.raises(CommandError, match=f"{flags[0]}: fit options .* fitted rig file"):
+        args.func(args)
+
+
 async def test_rigs_command_reports_the_server_error_code(auth_settings):
     async with run_server(auth_settings) as server:
         with pytest.raises(CommandError, match="401 unauthorized"):

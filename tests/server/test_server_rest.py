@@ -111,6 +111,90 @@ async def test_unknown_kernel_is_422(settings, tmp_path):
     assert response.status_code == 422 and response.json()["code"]
 
 
+async def test_examples_fitted_with_clamp_nonneg_keep_the_bound_and_nonnegative_weights(
+    settings, tmp_path
+):
+    example_set = write_example_folder(tmp_path / "set")
+    body = zip_bytes(folder_members(tmp_path / "set"))
+    expected = fit(example_set, noise=0.05, clamp="nonneg")
+    points = expected.source_neutral + np.random.default_rng(4).normal(
+        scale=0.3, size=(64, *expected.source_neutral.shape)
+    )
+
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put(
+            "/v1/rigs/bounded/examples",
+            params={"noise": 0.05, "clamp": "nonneg"},
+            content=body,
+        )
+        meta = await http.get("/v1/rigs/bounded")
+        stored = server.app.state.store.get("bounded")
+
+    assert response.status_code == 201, response.text
+    assert response.json()["clamp"] == meta.json()["clamp"] == "nonneg"
+    assert stored.fit_report["clamp"] == "nonneg" and stored.fit_report["sparsity"] == 1.0
+    weights = stored.weights(points)
+    assert weights[:, 1:].min() >= 0.0
+    np.testing.assert_allclose(weights, expected.weights(points), atol=1e-6)
+
+
+async def test_examples_fitted_with_a_sparsity_setting_store_its_penalty(settings, tmp_path):
+    example_set = write_example_folder(tmp_path / "set")
+    body = zip_bytes(folder_members(tmp_path / "set"))
+    expected = fit(example_set, noise=0.05, clamp="unit", sparsity=0.5)
+
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put(
+            "/v1/rigs/sparse/examples",
+            params={"noise": 0.05, "clamp": "unit", "sparsity": 0.5},
+            content=body,
+        )
+        stored = server.app.state.store.get("sparse")
+
+    assert response.status_code == 201, response.text
+    assert stored.fit_report["sparsity"] == 0.5
+    assert stored.model.sparsity_penalty == expected.model.sparsity_penalty > 0
+
+
+@pytest.mark.parametrize(
+    "params,code,match",
+    [
+        ({"clamp": "yes"}, "invalid_request", "clamp"),
+        ({"clamp": "nonneg", "sparsity": -1}, "invalid_request", "sparsity"),
+        ({"clamp": "nonneg", "sparsity": "inf"}, "invalid_request", "sparsity"),
+        ({"sparsity": 1}, "sparsity_without_clamp", "clamp"),
+    ],
+)
+async def test_bad_clamp_or_sparsity_is_422_naming_it_and_stores_nothing(
+    settings, tmp_path, params, code, match
+):
+    write_example_folder(tmp_path / "set")
+    body = zip_bytes(folder_members(tmp_path / "set"))
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/bad/examples", params=params, content=body)
+        listed = await http.get("/v1/rigs")
+
+    assert (response.status_code, response.json()["code"]) == (422, code)
+    assert match in response.json()["detail"]
+    assert listed.json()["rigs"] == []
+
+
+@pytest.mark.filterwarnings("ignore::facecast.rig.IdentifiabilityWarning")
+async def test_fit_warnings_are_returned_to_the_uploader(settings, tmp_path):
+    es = tiny_example_set()
+    source = es.source_points.copy()
+    source[3] = source[2] + 1e-3  # 'jaw' nearly collapses onto 'frown'
+    write_example_folder(
+        tmp_path / "set", type(es)(es.names, source, es.target_vertices, es.target_faces)
+    )
+    body = zip_bytes(folder_members(tmp_path / "set"))
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/near/examples", content=body)
+
+    assert response.status_code == 201, response.text
+    assert any("collapse" in message for message in response.json()["warnings"])
+
+
 # -- bad uploads --------------------------------------------------------------------------
 
 
