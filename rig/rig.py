@@ -495,6 +495,7 @@ class Rig:
             "num_faces": int(self.target_faces.shape[0]),
             "kernel": self.model.kernel,
             "clamp": self.model.clamp,
+            "sparsity_penalty": self.model.sparsity_penalty,
             "components": int(self.model.params.shape[1]),
             "regions": None if self.regions is None else [name for name, _ in self.regions],
             "noise": report.get("noise", 0.0),
