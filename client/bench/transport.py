@@ -223,7 +223,7 @@ class _Facecast:
         from websockets.asyncio.client import connect
 
         from facecast.client.urls import stream_url
-        from facecast.protocol import SUBPROTOCOL, Hello, Ready, Result, decode_server, encode
+        from facecast.protocol import SUBPROTOCOL, Hello, Ready, decode_server, encode
 
         self.ws = await stack.enter_async_context(
             connect(stream_url(self.url), subprotocols=[SUBPROTOCOL], compression=None,
@@ -234,13 +234,14 @@ class _Facecast:
             pass
         for _ in range(WARMUP):
             await self.rtt()
-        self._check(self.reply, Result)
+        self._result(self.reply)
 
-    def _check(self, reply: bytes, kind: type) -> Any:
-        from facecast.protocol import decode_server
+    def _result(self, reply: bytes) -> Any:
+        """The reply decoded and validated in full; RuntimeError unless it is a result."""
+        from facecast.protocol import Result, decode_server
 
         message = decode_server(reply)
-        if not isinstance(message, kind):
+        if not isinstance(message, Result):
             raise RuntimeError(f"facecast answered a frame with {message!r}")
         return message
 
@@ -257,7 +258,7 @@ class _Facecast:
         self.reply = await self.ws.recv()
         elapsed = time.perf_counter() - start
         if msgpack.unpackb(self.reply)["type"] != "result":
-            self._check(self.reply, type(None))
+            self._result(self.reply)
         return elapsed
 
     async def pipelined(self, seconds: float) -> tuple[int, float]:
@@ -267,10 +268,9 @@ class _Facecast:
         """
         import msgpack
 
-        from facecast.protocol import Result
-
         ws = self.ws
-        dropped_before = dropped = msgpack.unpackb(self.reply)["dropped"]
+        reply = self.reply
+        dropped_before = dropped = msgpack.unpackb(reply)["dropped"]
         sent = results = 0
         start = time.perf_counter()
         end = start + seconds
@@ -281,7 +281,7 @@ class _Facecast:
             reply = await ws.recv()
             message = msgpack.unpackb(reply)
             if message["type"] != "result":
-                self._check(reply, type(None))
+                self._result(reply)
             results += 1
             dropped = message["dropped"]
         elapsed = time.perf_counter() - start
@@ -293,7 +293,7 @@ class _Facecast:
             dropped = msgpack.unpackb(reply)["dropped"]
         self.reply = reply
         self.dropped += dropped - dropped_before
-        last = self._check(reply, Result)
+        last = self._result(reply)
         if last.weights is None:
             raise RuntimeError(f"facecast's last reply is not a weights result: {last!r}")
         return count, elapsed
