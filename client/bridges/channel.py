@@ -99,6 +99,10 @@ class PublisherStats:
     errors: int = 0
     dropped: int = 0
     reconnects: int = 0
+    #: Frames the server discarded unprocessed (the newest ``result.dropped``, §8).
+    server_dropped: int = 0
+    #: Frames the server refused with an error naming their ``seq`` (§8).
+    refused: int = 0
 
 
 class FramePublisher:
@@ -151,6 +155,9 @@ class FramePublisher:
         self._failure: BaseException | None = None
         self._closing = False
         self._seq = 0
+        #: The highest ``seq`` the server has answered (a result or an error naming it).
+        self._answered = -1
+        self._answer = asyncio.Event()
 
     async def _connect(self) -> None:
         ws = await _open(self.url, self.token, self.limits, self.open_timeout)
@@ -204,7 +211,9 @@ class FramePublisher:
                 continue
             if isinstance(message, Result):
                 self.stats.results += 1
+                self.stats.server_dropped = message.dropped
                 self.last_result = message
+                self._answered_up_to(message.seq)
                 if self.on_result is not None:
                     self.on_result(message)
             elif isinstance(message, Error):
@@ -212,6 +221,9 @@ class FramePublisher:
                 if error.fatal:
                     return error
                 self.stats.errors += 1
+                if message.seq is not None:
+                    self.stats.refused += 1
+                    self._answered_up_to(message.seq)
                 log.warning("publisher: server error %s", error)
         return None
 
@@ -234,6 +246,8 @@ class FramePublisher:
             self._failure = exc
         except Exception as exc:  # a bug here must still end the publisher loudly
             self._failure = ConnectionFailed(f"the publisher failed: {exc!r}")
+        finally:
+            self._answer.set()  # a drain() waiting on an answer learns there is none
 
     async def _reconnect(self, reason: BaseException | None) -> None:
         reopened, last = await reopen_with_backoff(self._connect, self.reconnect, reason)
@@ -246,9 +260,33 @@ class FramePublisher:
             f"{'closed' if last is None else _describe(last)}"
         )
 
+    def _answered_up_to(self, seq: int) -> None:
+        if seq > self._answered:
+            self._answered = seq
+            self._answer.set()
+
     @property
     def connected(self) -> bool:
         return self._ws is not None
+
+    async def drain(self, timeout: float) -> bool:
+        """Wait until the server has answered the last frame sent; False after ``timeout`` s.
+
+        The server answers frames in order (§8), so once the last sent ``seq`` has its
+        result (or an error naming it) every earlier frame is settled too: a result, a
+        counted drop or a refusal. True at once when nothing was sent.
+        """
+        last = self._seq - 1
+        try:
+            async with asyncio.timeout(timeout):
+                while self._answered < last:
+                    if self._failure is not None or self._supervisor is None:
+                        return False
+                    self._answer.clear()
+                    await self._answer.wait()
+        except TimeoutError:
+            return False
+        return True
 
     async def send(self, points: np.ndarray, ts: float) -> int | None:
         """Send one frame; its ``seq``, or None when it was dropped (reconnecting).
