@@ -137,7 +137,23 @@ def register(subparsers) -> None:
         action="append",
         default=[],
         metavar="NAME=VMCNAME",
-        help="send rig expression NAME as VMCNAME (repeatable; over the VRM preset table)",
+        help="send rig expression NAME as VMCNAME (repeatable; over --names)",
+    )
+    vmc.add_argument(
+        "--names",
+        choices=("vrm0", "vrm1", "perfectsync"),
+        default="vrm0",
+        help="how the receiver spells expressions: vrm0 (default, VSeeFace: VRM 0.x presets "
+        "A/Joy/Blink_L, ARKit names in Perfect Sync PascalCase), vrm1 (aa/happy/blinkLeft), "
+        "perfectsync (every ARKit name as its Perfect Sync clip, eyeBlinkLeft -> EyeBlinkLeft)",
+    )
+    vmc.add_argument(
+        "--max-datagram",
+        type=int,
+        default=1400,
+        metavar="BYTES",
+        help="split each frame into OSC bundles of at most BYTES (default 1400: no IP "
+        "fragmentation on a 1500-byte MTU; 576-65507)",
     )
     vmc.add_argument("--no-clamp", action="store_true", help="send weights outside [0, 1] too")
     _add_run_arguments(vmc, run_vmc)
@@ -205,10 +221,14 @@ def run_vmc(args: argparse.Namespace) -> int:
     import asyncio
 
     from facecast.client.bridges.channel import watch_channel
-    from facecast.client.bridges.vmc import VmcSender, run_vmc_bridge
+    from facecast.client.bridges.vmc import MIN_DATAGRAM, VmcSender, run_vmc_bridge
     from facecast.client.cli import CommandError
     from facecast.client.connection import ConnectionFailed
 
+    if not MIN_DATAGRAM <= args.max_datagram <= 65507:
+        raise CommandError(
+            f"--max-datagram must be in [{MIN_DATAGRAM}, 65507] bytes, got {args.max_datagram}"
+        )
     url = _bridge_url(args, "watch", {"rig": args.rig, "output": "weights"})
 
     async def main() -> int:
@@ -222,13 +242,20 @@ def run_vmc(args: argparse.Namespace) -> int:
                 stats = await run_vmc_bridge(
                     watch_channel(url, token=args.token),
                     sender,
+                    convention=args.names,
                     overrides=dict(args.map),
                     clamp=not args.no_clamp,
+                    max_datagram=args.max_datagram,
                     max_frames=args.frames,
                 )
             except ConnectionFailed as exc:
                 raise CommandError(str(exc)) from None
-            print(f"facecast bridge: {stats.frames} frames sent as VMC", file=sys.stderr)
+            print(
+                f"facecast bridge: {stats.frames} frames sent as VMC ({args.names} names), "
+                f"{sender.sent} datagrams sent, {sender.failed} failed"
+                + (f" (last: {sender.last_error})" if sender.last_error else ""),
+                file=sys.stderr,
+            )
         return 0
 
     return asyncio.run(main())
