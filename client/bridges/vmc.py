@@ -134,9 +134,7 @@ def head_bone_message(
     return _message("/VMC/Ext/Bone/Pos", "Head", px, py, pz, qx, qy, qz, qw).build()
 
 
-def vmc_head_bundle(
-    angles: Sequence[float], position: Sequence[float] = (0.0, 0.0, 0.0)
-) -> bytes:
+def vmc_head_bundle(angles: Sequence[float], position: Sequence[float] = (0.0, 0.0, 0.0)) -> bytes:
     """A datagram with only the head transform, for a tracker bridge beside ``bridge vmc``.
 
     No ``/VMC/Ext/OK`` nor ``T``: the expression sender owns the tracking state.

@@ -203,9 +203,11 @@ def run_livelink(args: argparse.Namespace) -> int:
                     subject=args.subject,
                     max_frames=args.frames,
                 )
+                last = receiver.last_error
                 print(
                     f"facecast bridge: {stats.published} frames published, "
-                    f"{publisher.stats.dropped} dropped, {receiver.malformed} bad packets",
+                    f"{publisher.stats.dropped} dropped, {receiver.malformed} bad packets"
+                    + (f" (last: {last.code}: {last})" if last is not None else ""),
                     file=sys.stderr,
                 )
         except ConnectionFailed as exc:

@@ -51,6 +51,31 @@ def livelink_packet(
     return bytes(out)
 
 
+def pylivelinkface_packet(
+    values,
+    *,
+    device: bytes = b"$my-phone",
+    subject: str = "Python_LiveLinkFace",
+    frame: int = 7,
+    sub_frame: float = 0.5,
+    rate: tuple[int, int] = (60, 1),
+) -> bytes:
+    """A packet in PyLiveLinkFace's layout, field by field as livelink.py documents it.
+
+    Version 6 as a little-endian uint32, the device id with no length before it, the
+    subject name's length in characters (big-endian int32), then as the app's layout.
+    An empty ``values`` ends the packet after the name (no face).
+    """
+    out = bytearray()
+    out += struct.pack("<I", 6)  # uint32 little-endian version
+    out += device  # "$" + id, no length
+    out += struct.pack(">i", len(subject)) + subject.encode()  # length in characters
+    if len(values):
+        out += struct.pack(">ifii", frame, sub_frame, *rate)  # frame time
+        out += bytes([61]) + struct.pack(">61f", *values)
+    return bytes(out)
+
+
 def run_command(module: str, argv: list[str]) -> int:
     """Run one command module's parser and ``func`` as ``facecast`` main does (errors raised).
 
