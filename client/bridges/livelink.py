@@ -56,19 +56,23 @@ fits, its message says what each layout found.
 
 from __future__ import annotations
 
-import asyncio
-import logging
 import math
 import struct
-import time
-from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from facecast.rig.source_rig import NUM_ARKIT, SourceRig
 
 from .channel import FramePublisher
+from .tracker import (
+    BridgeStats,
+    DatagramReceiver,
+    HeadSink,
+    TrackerPacketError,
+    open_receiver,
+    run_tracker_bridge,
+)
 
 __all__ = [
     "DEFAULT_PORT",
@@ -83,8 +87,6 @@ __all__ = [
     "parse_livelink_packet",
     "run_livelink_bridge",
 ]
-
-log = logging.getLogger("facecast.bridges.livelink")
 
 LIVELINK_VERSION = 6
 LIVELINK_VALUE_COUNT = 61
@@ -103,17 +105,13 @@ _FRAME_TIME = struct.Struct(">ifii")
 _VALUES = struct.Struct(f">B{LIVELINK_VALUE_COUNT}f")
 
 
-class LiveLinkPacketError(ValueError):
+class LiveLinkPacketError(TrackerPacketError):
     """A UDP packet that is not a valid Live Link Face packet; ``code`` says why.
 
     Codes: ``too_large``, ``truncated``, ``unsupported_version``, ``bad_string``,
     ``bad_value_count``, ``non_finite``, ``trailing_bytes``. When neither known layout
     fits, the code is the app layout's and the message adds PyLiveLinkFace's reason.
     """
-
-    def __init__(self, code: str, message: str) -> None:
-        super().__init__(message)
-        self.code = code
 
 
 @dataclass(frozen=True, eq=False)
@@ -303,85 +301,23 @@ def parse_livelink_packet(data: bytes) -> LiveLinkFrame:
             ) from None
 
 
-class LiveLinkReceiver(asyncio.DatagramProtocol):
+class LiveLinkReceiver(DatagramReceiver[LiveLinkFrame]):
     """Receives Live Link Face packets; keeps the newest ``max_queue`` frames.
 
-    A live source must not build up latency: when the consumer falls behind, the
-    oldest waiting frame is dropped (``dropped``). Malformed packets are counted
-    (``malformed``, ``last_error``) and logged at most once a second, never raised.
-    Build with `open_livelink_receiver`.
+    `DatagramReceiver` with `parse_livelink_packet`. Build with `open_livelink_receiver`.
     """
 
     def __init__(self, max_queue: int = 4) -> None:
-        if max_queue < 1:
-            raise ValueError(f"max_queue must be >= 1, got {max_queue}")
-        self._frames: deque[LiveLinkFrame] = deque(maxlen=max_queue)
-        self._arrived = asyncio.Event()
-        self._transport: asyncio.DatagramTransport | None = None
-        self._last_log = -math.inf
-        self.received = 0
-        self.malformed = 0
-        self.dropped = 0
-        self.last_error: LiveLinkPacketError | None = None
-
-    def connection_made(self, transport) -> None:  # asyncio callback
-        self._transport = transport
-
-    def datagram_received(self, data: bytes, addr) -> None:  # asyncio callback
-        try:
-            frame = parse_livelink_packet(data)
-        except LiveLinkPacketError as exc:
-            self.malformed += 1
-            self.last_error = exc
-            now = time.monotonic()
-            if now - self._last_log >= 1.0:
-                self._last_log = now
-                log.warning("ignoring a bad Live Link packet from %s: %s (%s)", addr, exc, exc.code)
-            return
-        self.received += 1
-        if len(self._frames) == self._frames.maxlen:
-            self.dropped += 1
-        self._frames.append(replace(frame, received=time.monotonic()))
-        self._arrived.set()
-
-    @property
-    def address(self) -> tuple[str, int]:
-        """(host, port) actually bound (the port chosen by the OS when 0 was asked)."""
-        assert self._transport is not None
-        host, port = self._transport.get_extra_info("sockname")[:2]
-        return host, port
-
-    async def get(self, timeout: float | None = None) -> LiveLinkFrame:
-        """The oldest waiting frame; waits for one (TimeoutError after ``timeout``)."""
-        async with asyncio.timeout(timeout):
-            while not self._frames:
-                self._arrived.clear()
-                await self._arrived.wait()
-        return self._frames.popleft()
-
-    def close(self) -> None:
-        if self._transport is not None:
-            self._transport.close()
+        super().__init__(parse_livelink_packet, max_queue, what="Live Link")
 
 
 async def open_livelink_receiver(
     host: str = "127.0.0.1", port: int = DEFAULT_PORT, *, max_queue: int = 4
 ) -> LiveLinkReceiver:
     """Bind a UDP socket on (host, port) and receive Live Link Face packets on it."""
-    loop = asyncio.get_running_loop()
-    _, receiver = await loop.create_datagram_endpoint(
-        lambda: LiveLinkReceiver(max_queue), local_addr=(host, port)
-    )
+    receiver = LiveLinkReceiver(max_queue)
+    await open_receiver(receiver, host, port)
     return receiver
-
-
-@dataclass
-class BridgeStats:
-    """What a bridge loop did."""
-
-    frames: int = 0
-    published: int = 0
-    skipped: int = 0
 
 
 async def run_livelink_bridge(
@@ -391,33 +327,22 @@ async def run_livelink_bridge(
     *,
     head_pose: bool = False,
     subject: str | None = None,
+    on_head: HeadSink | None = None,
     max_frames: int | None = None,
 ) -> BridgeStats:
     """Receive frames, turn them into points, publish them; until cancelled or ``max_frames``.
 
-    Parameters
-    ----------
-    head_pose : bool
-        Rotate the points by the packet's head yaw/pitch/roll (open the session with
-        ``align`` so the server removes it again); off: the head stays still.
-    subject : str, optional
-        Only frames of this Live Link subject; default every subject.
-    max_frames : int, optional
-        Return after this many frames with a face were published or dropped.
-
-    Each frame is sent as float32 points with ``ts`` = its arrival time on this
-    machine's monotonic clock, so latency is measured on one clock.
+    `run_tracker_bridge` for Live Link frames; ``subject``: only frames of this Live
+    Link subject (default every subject). ``on_head`` gets each published frame's head
+    yaw, pitch, roll (radians), e.g. to send them on as VMC.
     """
-    stats = BridgeStats()
-    while max_frames is None or stats.frames < max_frames:
-        frame = await receiver.get()
-        if frame.weights is None or (subject is not None and frame.subject != subject):
-            stats.skipped += 1
-            continue
-        head = frame.head[:3] if head_pose and frame.head is not None else None
-        # ~52 x 3K multiply-adds: microseconds, fine on the event loop.
-        points = source_rig.points(frame.weights, head=head).astype(np.float32)
-        stats.frames += 1
-        if await publisher.send(points, ts=frame.received) is not None:
-            stats.published += 1
-    return stats
+    accept = None if subject is None else (lambda frame: frame.subject == subject)
+    return await run_tracker_bridge(
+        receiver,
+        source_rig,
+        publisher,
+        head_pose=head_pose,
+        accept=accept,
+        on_head=on_head,
+        max_frames=max_frames,
+    )

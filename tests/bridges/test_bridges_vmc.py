@@ -1,7 +1,7 @@
 """VMC out: names per receiver convention, bundles split to fit UDP, tracking, head, failures.
 
-The receiver in these tests is python-osc's own UDP server on 127.0.0.1, standing in for
-the avatar app.
+The receiver in these tests is python-osc's own UDP server on 127.0.0.1 (`OscReceiver`),
+standing in for the avatar app.
 """
 
 from __future__ import annotations
@@ -9,14 +9,10 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-import queue
-import threading
 
 import numpy as np
 import pytest
-from pythonosc.dispatcher import Dispatcher
 from pythonosc.osc_packet import OscPacket
-from pythonosc.osc_server import BlockingOSCUDPServer
 from websockets.exceptions import InvalidStatus
 
 from facecast.client.bridges.channel import FramePublisher, channel_url, watch_channel
@@ -37,42 +33,9 @@ from facecast.rig.source_rig import ARKIT_NAMES
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
 
-from ._helpers import run_command
+from ._helpers import OscReceiver, run_command
 
 RIG_ID = "arkit"
-
-
-class OscReceiver:
-    """python-osc's UDP server in a thread; every message it dispatches lands in a queue.
-
-    The blocking server handles one datagram at a time, so the queue keeps their order.
-    """
-
-    def __init__(self) -> None:
-        self.messages: queue.Queue[tuple[str, list]] = queue.Queue()
-        dispatcher = Dispatcher()
-        dispatcher.set_default_handler(
-            lambda address, *args: self.messages.put((address, list(args)))
-        )
-        self.server = BlockingOSCUDPServer(("127.0.0.1", 0), dispatcher)
-        self.address = self.server.server_address[:2]
-        self._thread = threading.Thread(target=self.server.serve_forever, daemon=True)
-        self._thread.start()
-
-    def get(self, timeout: float = 10.0) -> tuple[str, list]:
-        return self.messages.get(timeout=timeout)
-
-    def until_apply(self, timeout: float = 10.0) -> list[tuple[str, list]]:
-        """Messages up to and including the next ``/VMC/Ext/Blend/Apply``."""
-        out = [self.get(timeout)]
-        while out[-1][0] != "/VMC/Ext/Blend/Apply":
-            out.append(self.get(timeout))
-        return out
-
-    def close(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()
-        self._thread.join(timeout=10)
 
 
 @pytest.fixture
