@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import queue
 import socket
 import struct
 
@@ -22,13 +23,14 @@ from facecast.client.bridges.livelink import (
     parse_livelink_packet,
     run_livelink_bridge,
 )
+from facecast.client.bridges.vmc import head_bone_message
 from facecast.client.connection import ConnectionFailed, Reconnect
 from facecast.client.urls import stream_url
 from facecast.protocol import ChannelLive, Hello, Ready, Result
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
 
-from ._helpers import livelink_packet, pylivelinkface_packet
+from ._helpers import OscReceiver, livelink_packet, pylivelinkface_packet, run_command
 
 RIG_ID = "arkit"
 
@@ -381,3 +383,46 @@ async def test_bridged_channel_output_equals_offline_cloning(
             with contextlib.suppress(asyncio.CancelledError):
                 await collector
             await messages.aclose()
+
+
+@pytest.mark.anyio
+async def test_bridge_livelink_command_sends_the_head_pose_as_vmc(
+    server_settings, udp_sender, example_set, tmp_path, capsys
+):
+    example_set.save_npz(tmp_path / "source.npz")
+    avatar = OscReceiver()
+    try:
+        async with run_server(server_settings) as server:
+            # The bridge binds the port the test then sends to, so it has to be chosen
+            # first: a free port from the OS, released just before the bridge binds it.
+            probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
+            probe.close()
+            argv = [
+                "bridge", "livelink", server.base_url, "--channel", "stage", "--rig", RIG_ID,
+                "--source-rig", str(tmp_path / "source.npz"), "--listen", f"127.0.0.1:{port}",
+                "--vmc-head", f"127.0.0.1:{avatar.address[1]}", "--frames", "2",
+            ]  # fmt: skip
+            command = asyncio.create_task(asyncio.to_thread(run_command, "bridge", argv))
+            values = _values(9)
+            values[52:55] = (0.3, -0.2, 0.1)
+            heads = []
+            async with asyncio.timeout(30):
+                while not command.done():
+                    # Until the bridge listens, packets go nowhere; each one it gets
+                    # comes back as a head message, which is what this waits on.
+                    udp_sender.sendto(livelink_packet(values), ("127.0.0.1", port))
+                    try:
+                        heads.append(await asyncio.to_thread(avatar.get, 0.2))
+                    except queue.Empty:
+                        continue
+            assert await command == 0
+    finally:
+        avatar.close()
+    expected = list(head_bone_message(values[52:55].astype(np.float64)).params)
+    assert len(heads) >= 2
+    for address, params in heads[:2]:
+        assert address == "/VMC/Ext/Bone/Pos" and params[0] == "Head"
+        assert np.allclose(params[1:], expected[1:], atol=1e-6)
+    assert "VMC head 2 sent, 0 failed" in capsys.readouterr().err
