@@ -28,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import socket
+import struct
 from collections.abc import AsyncIterable, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -47,6 +48,7 @@ __all__ = [
     "MIN_DATAGRAM",
     "SAFE_DATAGRAM",
     "VmcBridgeStats",
+    "VmcFrameEncoder",
     "VmcSender",
     "head_bone_message",
     "run_vmc_bridge",
@@ -63,8 +65,7 @@ DEFAULT_VMC_PORT = 39539
 SAFE_DATAGRAM = 1400
 #: The smallest ``max_datagram`` accepted (IPv4's minimum reassembly size).
 MIN_DATAGRAM = 576
-#: "#bundle\0" + the 8-byte time tag; each element adds a 4-byte size before it.
-_BUNDLE_HEADER = 16
+_FLOAT32 = struct.Struct(">f")
 
 
 def _message(address: str, *args) -> OscMessageBuilder:
@@ -86,31 +87,34 @@ def _status_messages(tracking: bool, t: float) -> list[OscMessage]:
     ]
 
 
-def _bundle(messages: Sequence[OscMessage]) -> bytes:
-    builder = OscBundleBuilder(IMMEDIATELY)
-    for message in messages:
-        builder.add_content(message)
-    return builder.build().dgram
+#: An empty immediate bundle as python-osc writes it: "#bundle\0" + the time tag 1.
+_BUNDLE_HEAD = OscBundleBuilder(IMMEDIATELY).build().dgram
+_SIZE = struct.Struct(">i")
 
 
-def _split(messages: Sequence[OscMessage], max_datagram: int) -> list[bytes]:
-    """Bundles of consecutive ``messages``, each at most ``max_datagram`` bytes.
+def _element(message: OscMessage) -> bytes:
+    """A message as one bundle element: its int32 size, then its bytes (OSC 1.0)."""
+    return _SIZE.pack(message.size) + message.dgram
 
-    A single message bigger than the bound (a very long name with a small bound) goes
+
+def _bundle(elements: Sequence[bytes]) -> bytes:
+    return _BUNDLE_HEAD + b"".join(elements)
+
+
+def _split(elements: Sequence[bytes], max_datagram: int) -> list[bytes]:
+    """Bundles of consecutive ``elements``, each at most ``max_datagram`` bytes.
+
+    A single element bigger than the bound (a very long name with a small bound) goes
     alone in its bundle: it cannot be split, and dropping it silently would be worse.
     """
     datagrams: list[bytes] = []
-    current: list[OscMessage] = []
-    size = _BUNDLE_HEADER
-    for message in messages:
-        needed = 4 + message.size
-        if current and size + needed > max_datagram:
-            datagrams.append(_bundle(current))
-            current, size = [], _BUNDLE_HEADER
-        current.append(message)
-        size += needed
-    if current:
-        datagrams.append(_bundle(current))
+    start, size = 0, len(_BUNDLE_HEAD)
+    for i, element in enumerate(elements):
+        if i > start and size + len(element) > max_datagram:
+            datagrams.append(_bundle(elements[start:i]))
+            start, size = i, len(_BUNDLE_HEAD)
+        size += len(element)
+    datagrams.append(_bundle(elements[start:]))
     return datagrams
 
 
@@ -139,7 +143,7 @@ def vmc_head_bundle(angles: Sequence[float], position: Sequence[float] = (0.0, 0
 
     No ``/VMC/Ext/OK`` nor ``T``: the expression sender owns the tracking state.
     """
-    return _bundle([head_bone_message(angles, position)])
+    return _bundle([_element(head_bone_message(angles, position))])
 
 
 def _check_max_datagram(max_datagram: int) -> None:
@@ -148,6 +152,100 @@ def _check_max_datagram(max_datagram: int) -> None:
             f"max_datagram must be in [{MIN_DATAGRAM}, 65507] bytes (one UDP datagram), "
             f"got {max_datagram}"
         )
+
+
+class VmcFrameEncoder:
+    """The datagrams of frames for a fixed list of names, fast enough for the event loop.
+
+    python-osc encodes every message; its builders also parse back each message and
+    bundle they build, ~1 ms for a 52-name frame. So each name's ``Blend/Val`` is encoded
+    once, here, with python-osc, and a frame only replaces its last 4 bytes (the float32
+    value, big-endian, as OSC writes it) and joins the elements into bundles (OSC 1.0
+    framing: "#bundle", time tag, int32 size before each element). The tests check the
+    bytes against python-osc's own builders.
+
+    Parameters
+    ----------
+    names : sequence of N str
+        VMC names, in the order of the weights.
+    clamp : bool
+        Clamp weights to [0, 1].
+    max_datagram : int
+        Bytes per datagram at most; a frame is split over bundles to fit, ``Apply`` in
+        the last one.
+    """
+
+    def __init__(
+        self, names: Sequence[str], *, clamp: bool = True, max_datagram: int = SAFE_DATAGRAM
+    ) -> None:
+        _check_max_datagram(max_datagram)
+        for name in names:
+            if "\x00" in name:
+                raise ValueError(f"VMC name {name!r} contains NUL, where an OSC string ends")
+        self.names = tuple(names)
+        self.clamp = clamp
+        self.max_datagram = max_datagram
+        # Each name's element without its value: size, address, ",sf", name.
+        self._value_heads = [
+            _element(_message("/VMC/Ext/Blend/Val", name, 0.0).build())[:-4] for name in names
+        ]
+        self._apply = _element(_message("/VMC/Ext/Blend/Apply").build())
+        self._ok = {
+            tracking: _element(_message("/VMC/Ext/OK", 1, 3, 0, int(tracking)).build())
+            for tracking in (False, True)
+        }
+        self._time_head = _element(_message("/VMC/Ext/T", 0.0).build())[:-4]
+
+    def _status(self, tracking: bool, t: float) -> list[bytes]:
+        return [self._ok[bool(tracking)], self._time_head + _FLOAT32.pack(t)]
+
+    def datagrams(
+        self,
+        weights: np.ndarray,
+        t: float,
+        *,
+        tracking: bool = True,
+        head: OscMessage | None = None,
+    ) -> list[bytes]:
+        """The datagrams of one frame: OK, T, [Bone/Pos Head], one Blend/Val per name, Apply.
+
+        Parameters
+        ----------
+        weights : (N,) float
+        t : float
+            Seconds, sent as ``/VMC/Ext/T``.
+        tracking : bool
+            ``/VMC/Ext/OK``'s tracking status.
+        head : OscMessage, optional
+            A `head_bone_message` to send with the frame.
+
+        Returns
+        -------
+        list of bytes, in sending order
+
+        Raises
+        ------
+        ValueError
+            Weights of another shape, NaN/Inf, or beyond float32 (with ``clamp=False``).
+        """
+        values = np.asarray(weights, dtype=np.float64)
+        if values.shape != (len(self.names),):
+            raise ValueError(f"weights: expected shape ({len(self.names)},), got {values.shape}")
+        if self.clamp:
+            values = np.clip(values, 0.0, 1.0)
+        with np.errstate(over="ignore"):
+            wire = values.astype(">f4")
+        if not np.isfinite(wire).all():
+            raise ValueError("weights: NaN, Inf or beyond float32")
+        raw = wire.tobytes()
+        elements = self._status(tracking, t)
+        if head is not None:
+            elements.append(_element(head))
+        elements += [
+            value_head + raw[4 * i : 4 * i + 4] for i, value_head in enumerate(self._value_heads)
+        ]
+        elements.append(self._apply)
+        return _split(elements, self.max_datagram)
 
 
 def vmc_frame_datagrams(
@@ -160,44 +258,9 @@ def vmc_frame_datagrams(
     head: OscMessage | None = None,
     max_datagram: int = SAFE_DATAGRAM,
 ) -> list[bytes]:
-    """The datagrams of one frame: OK, T, [Bone/Pos Head], one Blend/Val per name, Apply.
-
-    Parameters
-    ----------
-    names : sequence of N str
-        VMC names, in the order of ``weights``.
-    weights : (N,) float
-    t : float
-        Seconds, sent as ``/VMC/Ext/T``.
-    tracking : bool
-        ``/VMC/Ext/OK``'s tracking status.
-    head : OscMessage, optional
-        A `head_bone_message` to send with the frame.
-    max_datagram : int
-        Bytes per datagram at most; the frame is split over bundles to fit, ``Apply``
-        in the last one.
-
-    Returns
-    -------
-    list of bytes, in sending order
-    """
-    _check_max_datagram(max_datagram)
-    values = np.asarray(weights, dtype=np.float64)
-    if values.shape != (len(names),):
-        raise ValueError(f"weights: expected shape ({len(names)},), got {values.shape}")
-    if not np.isfinite(values).all():
-        raise ValueError("weights: NaN or Inf")
-    if clamp:
-        values = np.clip(values, 0.0, 1.0)
-    messages = _status_messages(tracking, t)
-    if head is not None:
-        messages.append(head)
-    messages += [
-        _message("/VMC/Ext/Blend/Val", name, value).build()
-        for name, value in zip(names, values.tolist(), strict=True)
-    ]
-    messages.append(_message("/VMC/Ext/Blend/Apply").build())
-    return _split(messages, max_datagram)
+    """One frame's datagrams (`VmcFrameEncoder.datagrams`); for many frames keep an encoder."""
+    encoder = VmcFrameEncoder(names, clamp=clamp, max_datagram=max_datagram)
+    return encoder.datagrams(weights, t, tracking=tracking, head=head)
 
 
 def vmc_status_bundle(tracking: bool, t: float, head: OscMessage | None = None) -> bytes:
@@ -205,7 +268,7 @@ def vmc_status_bundle(tracking: bool, t: float, head: OscMessage | None = None) 
     messages = _status_messages(tracking, t)
     if head is not None:
         messages.append(head)
-    return _bundle(messages)
+    return _bundle([_element(m) for m in messages])
 
 
 class VmcSender:
@@ -319,24 +382,18 @@ async def run_vmc_bridge(
     vmc_names((), convention)  # an unknown convention fails before the first frame
     clock = clock or asyncio.get_running_loop().time
     stats = VmcBridgeStats()
-    names: tuple[str, ...] | None = None
+    encoder: VmcFrameEncoder | None = None
     tracking = True
     async for message in messages:
         if isinstance(message, Ready):
             if message.output != "weights":
                 raise ValueError("the VMC bridge needs output=weights")
             names = vmc_names(message.names[1:], convention, overrides)
+            encoder = VmcFrameEncoder(names, clamp=clamp, max_datagram=max_datagram)
         elif isinstance(message, Result):
-            if names is None or message.weights is None:
+            if encoder is None or message.weights is None:
                 continue
-            datagrams = vmc_frame_datagrams(
-                names,
-                message.weights[1:],
-                clock(),
-                tracking=tracking,
-                clamp=clamp,
-                max_datagram=max_datagram,
-            )
+            datagrams = encoder.datagrams(message.weights[1:], clock(), tracking=tracking)
             if not sender.send_all(datagrams):
                 stats.failed_frames += 1
             stats.frames += 1

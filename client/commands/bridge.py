@@ -369,7 +369,7 @@ def run_vmc(args: argparse.Namespace) -> int:
                     max_datagram=args.max_datagram,
                     max_frames=args.frames,
                 )
-            except ConnectionFailed as exc:
+            except (ConnectionFailed, ValueError) as exc:  # ValueError: names VMC cannot carry
                 raise CommandError(str(exc)) from None
             print(
                 f"facecast bridge: {stats.frames} frames sent as VMC ({args.names} names), "

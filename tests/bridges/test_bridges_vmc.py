@@ -12,12 +12,17 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
+from pythonosc.osc_message_builder import OscMessageBuilder
 from pythonosc.osc_packet import OscPacket
 from websockets.exceptions import InvalidStatus
 
 from facecast.client.bridges.channel import FramePublisher, channel_url, watch_channel
 from facecast.client.bridges.vmc import (
     SAFE_DATAGRAM,
+    VmcFrameEncoder,
     VmcSender,
     head_bone_message,
     run_vmc_bridge,
@@ -115,9 +120,15 @@ def test_unclamped_frame_keeps_values_outside_the_unit_range():
     assert _messages(datagram)[2] == ("/VMC/Ext/Blend/Val", ["A", 1.5])
 
 
-def test_non_finite_weights_are_refused():
+def test_a_name_with_a_nul_is_refused_since_osc_strings_end_at_nul():
+    with pytest.raises(ValueError, match="NUL"):
+        VmcFrameEncoder(("Jaw\x00Open",))
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, 1e39])
+def test_weights_that_are_no_finite_float32_are_refused(value):
     with pytest.raises(ValueError, match="NaN"):
-        vmc_frame_datagrams(("A",), np.array([np.nan]), 0.0)
+        vmc_frame_datagrams(("A",), np.array([value]), 0.0, clamp=False)
 
 
 def test_a_perfect_sync_frame_is_split_into_datagrams_under_the_safe_size(osc_receiver):
@@ -135,6 +146,58 @@ def test_a_perfect_sync_frame_is_split_into_datagrams_under_the_safe_size(osc_re
     received = _values(messages)
     assert [n for n, _ in received] == list(names)
     assert np.allclose([v for _, v in received], weights, atol=1e-6)
+
+
+def _python_osc_message(address: str, *args):
+    builder = OscMessageBuilder(address)
+    for arg in args:
+        kind = {str: "s", int: "i", float: "f"}[type(arg)]
+        builder.add_arg(arg, kind)
+    return builder.build()
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(
+        st.text(st.characters(exclude_characters="\x00"), min_size=1, max_size=40),
+        min_size=1,
+        max_size=80,
+    ),
+    st.data(),
+    st.booleans(),
+    st.floats(0, 1e6, width=32),
+    st.booleans(),
+    st.integers(576, 4000),
+)
+def test_encoder_bytes_are_python_oscs_own_messages_and_bundles(
+    names, data, tracking, t, with_head, max_datagram
+):
+    weights = data.draw(st.lists(st.floats(-2, 2, width=32), min_size=len(names),
+                                 max_size=len(names)))  # fmt: skip
+    head = head_bone_message((0.1, 0.2, 0.3)) if with_head else None
+    datagrams = VmcFrameEncoder(names, max_datagram=max_datagram).datagrams(
+        np.array(weights), t, tracking=tracking, head=head
+    )
+    expected = [
+        _python_osc_message("/VMC/Ext/OK", 1, 3, 0, int(tracking)),
+        _python_osc_message("/VMC/Ext/T", float(t)),
+        *([head] if head is not None else []),
+        *[
+            _python_osc_message("/VMC/Ext/Blend/Val", n, float(np.clip(w, 0, 1)))
+            for n, w in zip(names, weights, strict=True)
+        ],
+        _python_osc_message("/VMC/Ext/Blend/Apply"),
+    ]
+    got = []
+    for datagram in datagrams:
+        messages = [m.message for m in OscPacket(datagram).messages]
+        rebuilt = OscBundleBuilder(IMMEDIATELY)
+        for message in messages:
+            rebuilt.add_content(message)
+        assert rebuilt.build().dgram == datagram  # python-osc's own bundle bytes
+        assert len(datagram) <= max_datagram or len(messages) == 1
+        got += messages
+    assert [m.dgram for m in got] == [m.dgram for m in expected]  # python-osc's messages
 
 
 @pytest.mark.parametrize("size", [575, 65508])
