@@ -408,35 +408,53 @@ def test_bridge_vmc_refuses_a_datagram_bound_outside_udp_limits(size):
         )  # fmt: skip
 
 
+async def _run_vmc_command(server, source_rig, *options: str) -> int:
+    """``bridge vmc ... --frames 2`` against a publisher that keeps the channel busy."""
+    argv = ["bridge", "vmc", server.base_url, "--channel", "stage", "--rig", RIG_ID,
+            "--frames", "2", *options]  # fmt: skip
+    command = asyncio.create_task(asyncio.to_thread(run_command, "bridge", argv))
+    # Frames published before the command watches are simply not seen by it: keep
+    # publishing, one per answer, until it has sent its two frames and returned.
+    answered = asyncio.Event()
+    publisher = FramePublisher(
+        channel_url(server.base_url, "stage", "publish"),
+        Hello(rig=RIG_ID),
+        on_result=lambda _: answered.set(),
+    )
+    async with asyncio.timeout(30), publisher:
+        seed = 0
+        while not command.done():
+            answered.clear()
+            await publisher.send(source_rig.points(np.full(52, 0.1 * (seed % 5))), ts=seed)
+            seed += 1
+            waiter = asyncio.ensure_future(answered.wait())
+            await asyncio.wait([command, waiter], return_when=asyncio.FIRST_COMPLETED)
+            waiter.cancel()
+    return await command
+
+
 @pytest.mark.anyio
 async def test_bridge_vmc_command_sends_perfect_sync_names_and_reports_datagrams(
     server_settings, osc_receiver, source_rig, cloning_rig, capsys
 ):
     host, port = osc_receiver.address
     async with run_server(server_settings) as server:
-        argv = ["bridge", "vmc", server.base_url, "--channel", "stage", "--rig", RIG_ID,
-                "--send", f"{host}:{port}", "--names", "perfectsync", "--frames", "2"]  # fmt: skip
-        command = asyncio.create_task(asyncio.to_thread(run_command, "bridge", argv))
-        # Frames published before the command watches are simply not seen by it: keep
-        # publishing, one per answer, until it has sent its two frames and returned.
-        answered = asyncio.Event()
-        publisher = FramePublisher(
-            channel_url(server.base_url, "stage", "publish"),
-            Hello(rig=RIG_ID),
-            on_result=lambda _: answered.set(),
+        code = await _run_vmc_command(
+            server, source_rig, "--send", f"{host}:{port}", "--names", "perfectsync"
         )
-        async with asyncio.timeout(30), publisher:
-            seed = 0
-            while not command.done():
-                answered.clear()
-                await publisher.send(source_rig.points(np.full(52, 0.1 * (seed % 5))), ts=seed)
-                seed += 1
-                waiter = asyncio.ensure_future(answered.wait())
-                await asyncio.wait([command, waiter], return_when=asyncio.FIRST_COMPLETED)
-                waiter.cancel()
-        assert await command == 0
+    assert code == 0
     expected = vmc_names(cloning_rig.names[1:], "perfectsync")
     for _ in range(2):
         assert tuple(n for n, _ in _values(osc_receiver.until_apply())) == expected
     err = capsys.readouterr().err
     assert "2 frames sent as VMC (perfectsync names)" in err and ", 0 failed" in err
+
+
+@pytest.mark.anyio
+async def test_bridge_vmc_command_reports_its_send_failures(server_settings, source_rig, capsys):
+    async with run_server(server_settings) as server:
+        code = await _run_vmc_command(server, source_rig, "--send", "255.255.255.255:9")
+    assert code == 0
+    err = capsys.readouterr().err
+    assert "2 frames sent as VMC (vrm0 names), 0 datagrams sent, " in err
+    assert "failed (last: [Errno 13] Permission denied)" in err
