@@ -7,8 +7,9 @@ from importlib import resources
 
 import pytest
 
+from facecast.client.bridges.channel import FramePublisher, channel_url
 from facecast.client.connection import connect
-from facecast.protocol import ErrorCode, ProtocolError, decode_server
+from facecast.protocol import ErrorCode, Hello, ProtocolError, decode_server
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
 
@@ -40,9 +41,14 @@ async def test_section_10_6_shows_the_limits_a_default_server_sends(tmp_path, ri
     block = re.search(r"<!-- example: ready -->\s*```text\n(.*?)```", _SPEC, re.DOTALL)
     assert block is not None
     example = decode_server(bytes.fromhex(re.sub(r"\s", "", block.group(1))))
-    async with run_server(Settings(rigs_dir=rigs)) as server, connect(server.base_url, "demo") as s:
-        sent = s.ready.limits
-    assert dict(example.limits) == dict(sent)
+    async with run_server(Settings(rigs_dir=rigs)) as server:
+        async with connect(server.base_url, "demo") as session:
+            streamed = dict(session.ready.limits)
+        publish = channel_url(server.base_url, "stage", "publish")
+        async with FramePublisher(publish, Hello(rig="demo")) as publisher:
+            assert publisher.ready is not None
+            published = dict(publisher.ready.limits)
+    assert dict(example.limits) == streamed == published
 
 
 async def test_the_stream_needs_the_stream_role_as_section_2_1_says(tmp_path, rig):
