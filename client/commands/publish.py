@@ -107,11 +107,11 @@ def _schedule(animation) -> tuple[np.ndarray, np.ndarray | None, float]:
     return offsets, stamps, float(offsets[-1]) + 1.0 / animation.fps
 
 
-async def publish(args: argparse.Namespace) -> tuple[int, PublisherStats, bool]:
+async def publish(args: argparse.Namespace) -> tuple[int, PublisherStats, bool, int]:
     """Publish until the animation ends (or forever with ``--loop``).
 
     Returns (frames sent, the publisher's stats, whether the last frame was answered
-    within ``--drain-timeout``).
+    within ``--drain-timeout``, frames neither a result nor a counted drop or refusal).
     """
     import asyncio
     import time
@@ -144,7 +144,7 @@ async def publish(args: argparse.Namespace) -> tuple[int, PublisherStats, bool]:
                 break
         # Leave only once the last frame is answered, or the summary misses its result.
         drained = await publisher.drain(args.drain_timeout)
-        return sent, publisher.stats, drained
+        return sent, publisher.stats, drained, publisher.unaccounted
 
 
 def run(args: argparse.Namespace) -> int:
@@ -156,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.drain_timeout <= 600:  # also refuses NaN
         raise CommandError(f"--drain-timeout must be in [0, 600] seconds, got {args.drain_timeout}")
     try:
-        sent, stats, drained = asyncio.run(publish(args))
+        sent, stats, drained, unaccounted = asyncio.run(publish(args))
     except ValueError as exc:  # a malformed URL or channel name
         raise CommandError(str(exc)) from None
     except ConnectionFailed as exc:
@@ -165,7 +165,9 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"facecast publish: {sent} frames to {args.channel!r} (results back {stats.results}, "
             f"dropped by the server {stats.server_dropped}, refused {stats.refused}, "
-            f"dropped while reconnecting {stats.dropped}, reconnects {stats.reconnects})",
+            f"dropped while reconnecting {stats.dropped}, reconnects {stats.reconnects}"
+            + (f", unaccounted {unaccounted}" if unaccounted else "")
+            + ")",
             file=sys.stderr,
         )
         if not drained:
