@@ -182,6 +182,10 @@ class VmcFrameEncoder:
         for name in names:
             if "\x00" in name:
                 raise ValueError(f"VMC name {name!r} contains NUL, where an OSC string ends")
+            try:
+                name.encode("utf-8")
+            except UnicodeEncodeError:
+                raise ValueError(f"VMC name {name!r} cannot be written as UTF-8") from None
         self.names = tuple(names)
         self.clamp = clamp
         self.max_datagram = max_datagram

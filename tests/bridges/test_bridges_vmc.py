@@ -125,6 +125,11 @@ def test_a_name_with_a_nul_is_refused_since_osc_strings_end_at_nul():
         VmcFrameEncoder(("Jaw\x00Open",))
 
 
+def test_a_name_that_is_no_utf8_is_refused():
+    with pytest.raises(ValueError, match="UTF-8"):
+        VmcFrameEncoder(("\ud800",))
+
+
 @pytest.mark.parametrize("value", [np.nan, np.inf, 1e39])
 def test_weights_that_are_no_finite_float32_are_refused(value):
     with pytest.raises(ValueError, match="NaN"):
@@ -159,7 +164,7 @@ def _python_osc_message(address: str, *args):
 @settings(max_examples=60, deadline=None)
 @given(
     st.lists(
-        st.text(st.characters(exclude_characters="\x00"), min_size=1, max_size=40),
+        st.text(st.characters(codec="utf-8", exclude_characters="\x00"), min_size=1, max_size=40),
         min_size=1,
         max_size=80,
     ),
