@@ -36,9 +36,9 @@ but for its start and the name's length::
     4+N1    4     int32    N2, big-endian, the subject name's length in *characters*
     8+N1    ...   UTF-8    subject name, then frame time, count and values as above
 
-Its bytes for a 36-character UUID are exactly an app packet's (the app's length 36 is
-the byte 0x24, "$"), and are read as one (device id without the "$"). Other ids have
-no length to read: the parser tries the app's layout first and, when that does not
+Its bytes for a 36-character UUID and an ASCII name are exactly an app packet's (the
+app's length 36 is the byte 0x24, "$"), and are read as one (device id without the
+"$"). Other ids have no length to read: the parser tries the app's layout first and, when that does not
 fit a packet starting ``06 00 00 00 24``, finds where the id ends from the packet's
 total length (the subject name and the 261 bytes after it must fill it exactly).
 `LiveLinkFrame.layout` says which layout was read.
