@@ -8,6 +8,7 @@ watches a channel's weights and sends VMC OSC. Only argument parsing and wiring 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 
@@ -63,6 +64,24 @@ def _add_tracker_arguments(parser: argparse.ArgumentParser, port: int, why: str)
         help="also send each frame's head rotation as VMC /VMC/Ext/Bone/Pos Head to this "
         "receiver (the avatar app 'bridge vmc' sends the expressions to)",
     )
+    parser.add_argument(
+        "--vmc-head-position",
+        type=_vector,
+        default=(0.0, 0.0, 0.0),
+        metavar="X,Y,Z",
+        help="the head bone's local position sent with --vmc-head (metres, Unity frame; "
+        "default 0,0,0, for receivers that apply bone rotations only)",
+    )
+
+
+def _vector(text: str) -> tuple[float, float, float]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z (three finite numbers), got {text!r}")
+    return values  # type: ignore[return-value]
 
 
 def _mapping(text: str) -> tuple[str, str]:
@@ -253,7 +272,7 @@ def _run_tracker(args: argparse.Namespace, what: str, open_receiver, run_bridge,
 
                 def send_head(head) -> None:
                     assert head_sender is not None
-                    head_sender.send(vmc_head_bundle(head))
+                    head_sender.send(vmc_head_bundle(head, args.vmc_head_position))
 
                 on_head = None if head_sender is None else send_head
                 stats = await run_bridge(receiver, source_rig, publisher, on_head)

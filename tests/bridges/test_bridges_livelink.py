@@ -403,6 +403,7 @@ async def test_bridge_livelink_command_sends_the_head_pose_as_vmc(
                 "bridge", "livelink", server.base_url, "--channel", "stage", "--rig", RIG_ID,
                 "--source-rig", str(tmp_path / "source.npz"), "--listen", f"127.0.0.1:{port}",
                 "--vmc-head", f"127.0.0.1:{avatar.address[1]}", "--frames", "2",
+                "--vmc-head-position", "0,0.06,0.01",
             ]  # fmt: skip
             command = asyncio.create_task(asyncio.to_thread(run_command, "bridge", argv))
             values = _values(9)
@@ -420,7 +421,8 @@ async def test_bridge_livelink_command_sends_the_head_pose_as_vmc(
             assert await command == 0
     finally:
         avatar.close()
-    expected = list(head_bone_message(values[52:55].astype(np.float64)).params)
+    angles = values[52:55].astype(np.float64)
+    expected = list(head_bone_message(angles, (0.0, 0.06, 0.01)).params)
     assert len(heads) >= 2
     for address, params in heads[:2]:
         assert address == "/VMC/Ext/Bone/Pos" and params[0] == "Head"
