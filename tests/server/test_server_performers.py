@@ -376,3 +376,34 @@ async def test_capture_needs_the_performer_or_admin_role(tmp_path, token, status
     assert get.status_code == expected_get and refit.status_code in (
         (200,) if status == 201 else (status,)
     )
+
+
+def _rigs_cli(*argv: str) -> int:
+    import argparse
+
+    from facecast.client.commands import rigs
+
+    parser = argparse.ArgumentParser(prog="facecast")
+    rigs.register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["rigs", *argv])
+    return args.func(args)
+
+
+async def test_rigs_capture_and_refit_commands_drive_the_endpoints(server, tmp_path, capsys):
+    capture = tmp_path / "alice.json"
+    capture.write_text(json.dumps(capture_body(performer_points())))
+    _rigs_cli("capture", server.base_url, "hero", "alice", str(capture), "--noise", "0.02")
+    captured = capsys.readouterr().out
+    _rigs_cli("refit", server.base_url, "--performer", "alice", "--rig", "other")
+    refitted = capsys.readouterr().out
+
+    assert captured.startswith("fitted hero@alice: M=5 K=20 (skipped: none)")
+    assert refitted.startswith("fitted other@alice: M=3 K=20 (skipped: pout)")
+    assert server.app.state.store.get("hero@alice").fit_report["noise"] == 0.02
+
+
+async def test_rigs_refit_shows_the_servers_code(server, capsys):
+    from facecast.client.cli import CommandError
+
+    with pytest.raises(CommandError, match="performer_not_found"):
+        _rigs_cli("refit", server.base_url, "--performer", "nobody", "--rig", "other")
