@@ -407,3 +407,35 @@ async def test_rigs_refit_shows_the_servers_code(server, capsys):
 
     with pytest.raises(CommandError, match="performer_not_found"):
         _rigs_cli("refit", server.base_url, "--performer", "nobody", "--rig", "other")
+
+
+async def test_a_performer_rig_publishes_to_a_channel_watched_on_another_character(server):
+    import asyncio
+
+    from facecast.client.bridges.channel import FramePublisher, channel_url, watch_channel
+    from facecast.protocol import Hello, Ready
+
+    points = performer_points()
+    async with http(server) as client:
+        await client.put("/v1/rigs/hero/performer/alice", json=capture_body(points))
+    watch = channel_url(server.base_url, "stage", "watch", {"rig": "other"})
+    publish = channel_url(server.base_url, "stage", "publish")
+    seen: list = []
+
+    async def watcher():
+        async for message in watch_channel(watch):
+            seen.append(message)
+            if isinstance(message, Result):
+                return
+
+    task = asyncio.create_task(watcher())
+    async with asyncio.timeout(20):
+        while not any(isinstance(m, Ready) for m in seen):
+            await asyncio.sleep(0.01)
+        async with FramePublisher(publish, Hello(rig="hero@alice")) as publisher:
+            assert publisher.ready.rig == "hero@alice"
+            while not task.done():
+                await publisher.send(points["jawOpen"].astype(np.float32), 0.0)
+                await asyncio.sleep(0.05)
+    result = next(m for m in seen if isinstance(m, Result))
+    assert seen[0].rig == "other" and np.isfinite(result.weights).all()
