@@ -206,3 +206,19 @@ async def test_a_rig_with_another_point_count_is_refused_by_name(tmp_path, face_
         code = await asyncio.to_thread(main, argv)
 
     assert code == 2 and "has 5 feature points" in capsys.readouterr().err
+
+
+def test_with_two_faces_in_view_the_largest_is_tracked():
+    photo = skimage_data.astronaut()
+    head = photo[30:260, 110:330]
+    small = cv2.resize(head, None, fx=0.85, fy=0.85)
+    canvas = np.full((300, 500, 3), 90, np.uint8)
+    canvas[40:270, 10:230] = head
+    canvas[40 : 40 + small.shape[0], 260 : 260 + small.shape[1]] = small
+    with FaceTracker() as tracker:
+        both = tracker.track(canvas)
+        alone = tracker.track(canvas[:, :250].copy())
+
+    assert both.faces == 2 and alone.faces == 1
+    # The left, larger face: the same mesh as when it is alone in view (to a pixel or two).
+    assert np.abs(both.mesh[:, :2] - alone.mesh[:, :2]).mean() < 1.0
