@@ -1,26 +1,32 @@
 """``facecast perform`` on a real video (scikit-image's astronaut photo, moved and warped),
-tracked by the real MediaPipe FaceMesh, published to a real server's channel."""
+tracked by the real MediaPipe FaceMesh, published to a real server's channel.
+
+MediaPipe and OpenCV run only in the perform venv (``tests._perform_venv``): the video is
+made, tracked and performed by its interpreter as subprocesses; this process holds the
+server, the watchers and the assertions.
+"""
 
 from __future__ import annotations
 
 import asyncio
+import importlib.util
+import json
 import re
 
 import numpy as np
 import pytest
+from skimage import data as skimage_data
+from skimage.transform import rescale
 
-cv2 = pytest.importorskip("cv2")
-pytest.importorskip("mediapipe")
-skimage_data = pytest.importorskip("skimage.data")
+from facecast.client.bridges.channel import channel_url, watch_channel
+from facecast.client.cli import main
+from facecast.protocol import ChannelIdle, Ready, Result
+from facecast.rig import ExampleSet, fit
+from facecast.rig.ict import locate_ict
+from facecast.server.settings import Settings
+from facecast.server.testing import run_server
 
-from facecast.client.bridges.channel import channel_url, watch_channel  # noqa: E402
-from facecast.client.cli import main  # noqa: E402
-from facecast.client.facetrack import FaceTracker, VideoSource  # noqa: E402
-from facecast.protocol import ChannelIdle, Ready, Result  # noqa: E402
-from facecast.rig import ExampleSet, fit  # noqa: E402
-from facecast.rig.ict import locate_ict  # noqa: E402
-from facecast.server.settings import Settings  # noqa: E402
-from facecast.server.testing import run_server  # noqa: E402
+from .._perform_venv import run_facecast, run_worker, track_images
 
 pytestmark = pytest.mark.slow
 
@@ -40,64 +46,43 @@ BLANK_FRAMES = 3
 CHIN = 19  # feature "chin" in the mediapipe_face_mesh layout
 
 
-def _similarity(image, angle, scale, dx, dy):
-    h, w = image.shape[:2]
-    matrix = cv2.getRotationMatrix2D((w / 2, h / 2), angle, scale)
-    matrix[:, 2] += (dx, dy)
-    return cv2.warpAffine(image, matrix, (w, h), borderMode=cv2.BORDER_REFLECT)
-
-
-def _jaw_open(image, mesh_pixels, amount):
-    """Pull the lower face down below the lips, most at the chin: the jaw drops."""
-    h, w = image.shape[:2]
-    lip, chin = mesh_pixels[14, 1], mesh_pixels[152, 1]
-    centre = mesh_pixels[[61, 291], 0].mean()
-    half = abs(mesh_pixels[291, 0] - mesh_pixels[61, 0])
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    ramp = np.clip((yy - lip) / (chin - lip), 0, 1)
-    ramp = ramp * ramp * (3 - 2 * ramp)
-    dy = amount * ramp * np.exp(-(((xx - centre) / (1.6 * half)) ** 2))
-    return cv2.remap(image, xx, (yy - dy).astype(np.float32), cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REFLECT)  # fmt: skip
-
-
 @pytest.fixture(scope="module")
-def face_video(tmp_path_factory):
+def face_video(tmp_path_factory, perform_python):
     """An MJPG video: the astronaut's head moving, then her jaw dropping, then no face."""
-    photo = skimage_data.astronaut()
-    with FaceTracker(static=True) as tracker:
-        mesh = tracker.track(photo).mesh
-    pixels = mesh * [1.0, -1.0, -1.0]  # back to image x right, y down
-    frames = [_similarity(photo, *motion) for motion in MOTIONS]
-    frames += [_jaw_open(photo, pixels, amount) for amount in JAW_PIXELS]
-    frames += [np.full_like(photo, 128)] * BLANK_FRAMES
-    path = tmp_path_factory.mktemp("video") / "astronaut.avi"
-    h, w = photo.shape[:2]
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 15.0, (w, h))
-    for frame in frames:
-        writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
-    writer.release()
+    work = tmp_path_factory.mktemp("video")
+    spec = {"motions": MOTIONS, "jaw_pixels": JAW_PIXELS, "blank_frames": BLANK_FRAMES}
+    (work / "spec.json").write_text(json.dumps({**spec, "fps": 15.0}))
+    np.save(work / "astronaut.npy", skimage_data.astronaut())
+    path = work / "astronaut.avi"
+    run_worker(perform_python, "video", work / "spec.json", work / "astronaut.npy", path)
     return path
 
 
 @pytest.fixture(scope="module")
-def tracked(face_video):
-    with VideoSource(face_video) as video, FaceTracker() as tracker:
-        return [tracker.track(rgb) for rgb in video.frames()]
+def tracked(face_video, perform_python, tmp_path_factory):
+    """Every frame of the video through the real FaceTracker (in the perform venv)."""
+    out = tmp_path_factory.mktemp("tracked") / "tracked.npz"
+    run_worker(perform_python, "track-video", face_video, out)
+    with np.load(out) as data:
+        return {name: data[name] for name in data.files}
+
+
+def _found(points: np.ndarray) -> np.ndarray:
+    """The frames (of (N, K, 3) points, NaN where no face) in which a face was found."""
+    return points[np.isfinite(points).all(axis=(1, 2))]
 
 
 def test_the_face_is_found_in_the_face_frames_and_not_in_the_blank_ones(tracked):
-    faces = tracked[: len(MOTIONS) + JAW_FRAMES]
-    assert len(tracked) == len(MOTIONS) + JAW_FRAMES + BLANK_FRAMES
-    assert sum(t.points is not None for t in faces) >= 0.9 * len(faces)
-    assert all(t.points is None and t.faces == 0 for t in tracked[len(faces) :])
+    faces = len(MOTIONS) + JAW_FRAMES
+    points = tracked["points"]
+    assert len(points) == len(MOTIONS) + JAW_FRAMES + BLANK_FRAMES
+    assert len(_found(points[:faces])) >= 0.9 * faces
+    assert np.isnan(points[faces:]).all() and (tracked["faces"][faces:] == 0).all()
 
 
 def test_points_stay_put_when_the_head_moves_and_the_chin_drops_with_the_jaw(tracked):
-    still = np.stack([t.points for t in tracked[: len(MOTIONS)] if t.points is not None])
-    jaw = np.stack(
-        [t.points for t in tracked[len(MOTIONS) : -BLANK_FRAMES] if t.points is not None]
-    )
+    still = _found(tracked["points"][: len(MOTIONS)])
+    jaw = _found(tracked["points"][len(MOTIONS) : -BLANK_FRAMES])
     neutral = np.median(still, axis=0)
     head_motion = np.linalg.norm(still - neutral, axis=2).max()
     chin_drop = neutral[CHIN, 1] - np.median(jaw[:, CHIN, 1])
@@ -115,9 +100,11 @@ def _character() -> ExampleSet:
     return ExampleSet(names, source, target, np.array([[i, i + 1, i + 2] for i in range(8)]))
 
 
-async def _watch(url: str, into: list) -> None:
+async def _watch(url: str, into: list, ready: asyncio.Event) -> None:
     async for message in watch_channel(url):
         into.append(message)
+        if isinstance(message, Ready):
+            ready.set()
         if isinstance(message, ChannelIdle) and any(isinstance(m, Result) for m in into):
             return
 
@@ -128,36 +115,35 @@ def _perform_stats(err: str) -> dict[str, int]:
     return dict(zip(("read", "found", "published"), map(int, match.groups()), strict=True))
 
 
-async def _perform_to_channel(settings, rig, argv_extra, video):
+async def _perform_to_channel(python, settings, rig, argv_extra, video):
+    """Run ``facecast perform`` (perform venv) on ``video`` to channel "stage" of a real
+    server while a watcher of the channel on rig "hero" records what it is sent."""
     async with run_server(settings) as server:
         server.app.state.store.put_rig("hero", rig)
         url = channel_url(server.base_url, "stage", "watch", {"rig": "hero"})
         messages: list = []
-        watcher = asyncio.create_task(_watch(url, messages))
-        await asyncio.wait_for(_first_ready(messages), 20)
-        argv = ["perform", server.base_url, "--channel", "stage", "--rig", "hero",
-                "--video", str(video), *argv_extra]  # fmt: skip
-        code = await asyncio.to_thread(main, argv)
+        ready = asyncio.Event()
+        watcher = asyncio.create_task(_watch(url, messages, ready))
+        await asyncio.wait_for(ready.wait(), 20)
+        finished = await run_facecast(
+            python, "perform", server.base_url, "--channel", "stage", "--rig", "hero",
+            "--video", str(video), *argv_extra,
+        )  # fmt: skip
+        assert finished.code == 0, finished.err
         await asyncio.wait_for(watcher, 30)
-    return code, messages
-
-
-async def _first_ready(messages: list) -> None:
-    while not any(isinstance(m, Ready) for m in messages):
-        await asyncio.sleep(0.01)
+    return finished, messages
 
 
 @pytest.mark.anyio
 async def test_perform_publishes_the_tracked_points_and_viewers_see_them(
-    tmp_path, face_video, capsys
+    tmp_path, perform_python, face_video
 ):
     rig = fit(_character())
-    code, messages = await _perform_to_channel(
-        Settings(rigs_dir=tmp_path / "rigs"), rig, ["--no-calibrate"], face_video
+    finished, messages = await _perform_to_channel(
+        perform_python, Settings(rigs_dir=tmp_path / "rigs"), rig, ["--no-calibrate"], face_video
     )
-    stats = _perform_stats(capsys.readouterr().err)
+    stats = _perform_stats(finished.err)
     results = [m for m in messages if isinstance(m, Result)]
-    assert code == 0
     assert stats["read"] == len(MOTIONS) + JAW_FRAMES + BLANK_FRAMES
     assert stats["found"] >= 0.9 * (len(MOTIONS) + JAW_FRAMES)
     assert stats["published"] == stats["found"]
@@ -169,56 +155,74 @@ async def test_perform_publishes_the_tracked_points_and_viewers_see_them(
 @pytest.mark.anyio
 @pytest.mark.skipif(locate_ict() is None, reason="needs ../shared/data/ict-facekit")
 async def test_generic_ict_rig_calibrated_on_the_neutral_opens_the_jaw(
-    tmp_path, face_video, capsys
+    tmp_path, perform_python, face_video
 ):
     from facecast.client.commands.import_ import arkit_example_set
     from facecast.rig.ict import DEFAULT_LANDMARKS
 
     example_set, _ = arkit_example_set(locate_ict(), DEFAULT_LANDMARKS, "face")
     rig = fit(example_set, noise=0.05, clamp="unit")
-    code, messages = await _perform_to_channel(
-        Settings(rigs_dir=tmp_path / "rigs"), rig, ["--neutral-frames", "4"], face_video
+    finished, messages = await _perform_to_channel(
+        perform_python,
+        Settings(rigs_dir=tmp_path / "rigs"),
+        rig,
+        ["--neutral-frames", "4"],
+        face_video,
     )
-    stats = _perform_stats(capsys.readouterr().err)
+    stats = _perform_stats(finished.err)
     weights = np.stack([m.weights for m in messages if isinstance(m, Result)])
     jaw = weights[:, rig.names.index("jawOpen")]
-    assert code == 0 and stats["published"] == stats["found"] - 3  # 4 neutral frames, 1 frame
+    assert stats["published"] == stats["found"] - 3  # 4 neutral frames, 1 frame
     # Watchers may skip frames; the published sequence is head motion, then the jaw drop.
     assert jaw[-1] > jaw[0] + 0.1
 
 
-def test_an_absent_camera_is_a_clear_error(capsys):
-    code = main(["perform", "http://127.0.0.1:9", "--channel", "x", "--rig", "hero",
-                 "--camera", "9", "-q"])  # fmt: skip
-    assert code == 2 and "cannot open camera 9" in capsys.readouterr().err
+@pytest.mark.anyio
+async def test_an_absent_camera_is_a_clear_error(perform_python):
+    finished = await run_facecast(
+        perform_python, "perform", "http://127.0.0.1:9", "--channel", "x", "--rig", "hero",
+        "--camera", "9", "-q",
+    )  # fmt: skip
+    assert finished.code == 2 and "cannot open camera 9" in finished.err
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("mediapipe") is not None,
+    reason="this .venv has the perform extra (scripts/setup --perform)",
+)
+def test_without_the_extra_perform_says_what_to_install(capsys):
+    code = main(["perform", "http://127.0.0.1:9", "--channel", "x", "--rig", "hero", "-q"])
+    assert code == 2 and "pip install 'facecast[perform]'" in capsys.readouterr().err
 
 
 @pytest.mark.anyio
-async def test_a_rig_with_another_point_count_is_refused_by_name(tmp_path, face_video, capsys):
+async def test_a_rig_with_another_point_count_is_refused_by_name(
+    tmp_path, perform_python, face_video
+):
     rng = np.random.default_rng(1)
     source = rng.normal(size=(2, 5, 3))
     target = rng.normal(size=(2, 4, 3))
     small = fit(ExampleSet(("neutral", "smile"), source, target, np.array([[0, 1, 2]])))
     async with run_server(Settings(rigs_dir=tmp_path / "rigs")) as server:
         server.app.state.store.put_rig("small", small)
-        argv = ["perform", server.base_url, "--channel", "stage", "--rig", "small",
-                "--video", str(face_video), "-q"]  # fmt: skip
-        code = await asyncio.to_thread(main, argv)
+        finished = await run_facecast(
+            perform_python, "perform", server.base_url, "--channel", "stage", "--rig", "small",
+            "--video", str(face_video), "-q",
+        )  # fmt: skip
 
-    assert code == 2 and "has 5 feature points" in capsys.readouterr().err
+    assert finished.code == 2 and "has 5 feature points" in finished.err
 
 
-def test_with_two_faces_in_view_the_largest_is_tracked():
+def test_with_two_faces_in_view_the_largest_is_tracked(tmp_path, perform_python):
     photo = skimage_data.astronaut()
     head = photo[30:260, 110:330]
-    small = cv2.resize(head, None, fx=0.85, fy=0.85)
+    small = rescale(head, 0.85, channel_axis=-1, preserve_range=True).round().astype(np.uint8)
     canvas = np.full((300, 500, 3), 90, np.uint8)
     canvas[40:270, 10:230] = head
     canvas[40 : 40 + small.shape[0], 260 : 260 + small.shape[1]] = small
-    with FaceTracker() as tracker:
-        both = tracker.track(canvas)
-        alone = tracker.track(canvas[:, :250].copy())
+    tracked = track_images(perform_python, [canvas, canvas[:, :250].copy()], tmp_path)
 
-    assert both.faces == 2 and alone.faces == 1
+    both, alone = tracked["meshes"]
+    assert tracked["faces"].tolist() == [2, 1]
     # The left, larger face: the same mesh as when it is alone in view (to a pixel or two).
-    assert np.abs(both.mesh[:, :2] - alone.mesh[:, :2]).mean() < 1.0
+    assert np.abs(both[:, :2] - alone[:, :2]).mean() < 1.0

@@ -13,6 +13,8 @@ from facecast.rig.ict import DEFAULT_LANDMARKS
 from facecast.rig.layouts import layout_from_dict, layout_names, load_layout
 from facecast.rig.trackers import MEDIAPIPE_FEATURES
 
+from .._perform_venv import track_images
+
 
 @pytest.fixture(scope="module")
 def layout():
@@ -165,14 +167,15 @@ def test_bad_meshes_are_refused_by_code(layout, mutate, code):
 
 
 @pytest.mark.ict
-def test_layout_points_land_on_icts_landmarks_on_a_real_tracked_face(layout):
+def test_layout_points_land_on_icts_landmarks_on_a_real_tracked_face(
+    layout, perform_python, tmp_path
+):
     """MediaPipe's mesh of a real photo, aligned onto ICT's neutral by the 20 features:
     each feature lands near its ICT landmark, and for the parts a smile does not move
     (brows, lids, nose, chin, eye corners) no other mesh point is much nearer to it (a
     wrong index - the other lid, the other side - would be centimetres off)."""
-    pytest.importorskip("mediapipe")
-    skimage_data = pytest.importorskip("skimage.data")
-    from facecast.client.facetrack import FaceTracker
+    from skimage import data as skimage_data
+
     from facecast.rig.ict import locate_ict
     from facecast.rig.pose import similarity_transform
 
@@ -181,8 +184,8 @@ def test_layout_points_land_on_icts_landmarks_on_a_real_tracked_face(layout):
         pytest.skip("needs ../shared/data/ict-facekit (or FACECAST_ICT)")
     with np.load(archive) as data:
         ict68 = data["neutral"][data["landmarks68"]].astype(np.float64)
-    with FaceTracker() as tracker:
-        mesh = tracker.track(skimage_data.astronaut()).mesh
+    # MediaPipe runs in the perform venv (numpy < 2), never in this process.
+    mesh = track_images(perform_python, [skimage_data.astronaut()], tmp_path)["meshes"][0]
     multipie = np.asarray(layout.multipie68)
     rotation, scale, shift = similarity_transform(
         mesh[None, layout.features], ict68[multipie], scale=True
