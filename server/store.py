@@ -18,10 +18,20 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from facecast.protocol import Limits
+from facecast.rig.errors import RigFileError
+
 if TYPE_CHECKING:
     from facecast.rig.rig import Rig
 
-__all__ = ["RIG_ID_PATTERN", "RigInfo", "RigNotFoundError", "RigStore", "valid_rig_id"]
+__all__ = [
+    "RIG_ID_PATTERN",
+    "RigInfo",
+    "RigNotFoundError",
+    "RigStore",
+    "check_servable",
+    "valid_rig_id",
+]
 
 RIG_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
 _RIG_ID = re.compile(RIG_ID_PATTERN)
@@ -29,6 +39,33 @@ SUFFIX = ".rig"
 _TEMP_PREFIX = ".tmp-"
 #: Temp files older than this at start-up are leftovers of a killed writer.
 _STALE_TEMP_SECONDS = 3600.0
+
+
+def check_servable(rig: Rig, limits: Limits, source: str) -> None:
+    """Raise ``RigFileError`` (``rig_exceeds_limits``) for a rig the protocol cannot carry.
+
+    A rig is only worth storing if its ``ready`` and results fit PROTOCOL.md §7 as every
+    client decodes it: K <= max_points, V <= max_vertices, M <= max_names, and every
+    example name at most max_string characters.
+    """
+    problems = []
+    if rig.num_points > limits.max_points:
+        problems.append(f"K={rig.num_points} feature points (max_points {limits.max_points})")
+    if rig.num_vertices > limits.max_vertices:
+        problems.append(f"V={rig.num_vertices} vertices (max_vertices {limits.max_vertices})")
+    if rig.num_examples > limits.max_names:
+        problems.append(f"M={rig.num_examples} examples (max_names {limits.max_names})")
+    long = [name for name in rig.names if len(name) > limits.max_string]
+    if long:
+        problems.append(
+            f"{len(long)} example name(s) over {limits.max_string} characters "
+            f"(the first: {long[0][:40]!r}...)"
+        )
+    if problems:
+        raise RigFileError(
+            f"{source} cannot be streamed: " + "; ".join(problems) + " (PROTOCOL.md §7)",
+            code="rig_exceeds_limits",
+        )
 
 
 class RigNotFoundError(LookupError):
@@ -71,6 +108,8 @@ class RigStore:
         self.max_rig_bytes = max_rig_bytes
         self._cache: OrderedDict[str, _Entry] = OrderedDict()
         self._lock = threading.Lock()
+        #: What a stored rig must fit: the protocol's limits, as every client decodes.
+        self.limits = Limits()
 
     # -- lifecycle ----------------------------------------------------------------------
     def open(self) -> None:
@@ -139,16 +178,22 @@ class RigStore:
     def put_bytes(self, rig_id: str, data: bytes) -> tuple[Rig, bool]:
         """Validate ``data`` as a rig file and store it; returns ``(rig, created)``.
 
-        Raises ``RigFileError`` (nothing written) when ``data`` is not a valid rig.
+        Raises ``RigFileError`` (nothing written) when ``data`` is not a valid rig, or
+        one the protocol cannot carry (``check_servable``).
         """
         from facecast.rig.rigfile import rig_from_bytes
 
         rig = rig_from_bytes(data, source=f"rig {rig_id!r}", max_bytes=self.max_rig_bytes)
+        check_servable(rig, self.limits, f"rig {rig_id!r}")
         created = self._write(rig_id, data)
         return rig, created
 
     def put_rig(self, rig_id: str, rig: Rig) -> bool:
-        """Store a fitted rig; returns whether the id is new."""
+        """Store a fitted rig; returns whether the id is new.
+
+        Raises ``RigFileError`` (nothing written) for a rig the protocol cannot carry.
+        """
+        check_servable(rig, self.limits, f"rig {rig_id!r}")
         return self._write(rig_id, rig.to_bytes())
 
     def delete(self, rig_id: str) -> None:
@@ -214,9 +259,10 @@ class RigStore:
                     self._cache.move_to_end(rig_id)
                     return entry
             data = fh.read()
-        entry = _Entry(
-            key, rig_from_bytes(data, source=f"rig {rig_id!r}", max_bytes=self.max_rig_bytes)
-        )
+        rig = rig_from_bytes(data, source=f"rig {rig_id!r}", max_bytes=self.max_rig_bytes)
+        # A file put in the directory by hand is held to what an upload is.
+        check_servable(rig, self.limits, f"rig {rig_id!r}")
+        entry = _Entry(key, rig)
         with self._lock:
             self._cache[rig_id] = entry
             self._cache.move_to_end(rig_id)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import zipfile
 
@@ -322,6 +323,69 @@ async def test_corrupt_rig_file_is_422_and_nothing_is_stored(settings, rig, mang
     assert response.status_code == 422
     assert response.json()["code"] in {"bad_rig_file", "checksum_mismatch"}
     assert listed.json()["rigs"] == []
+
+
+# -- rig files held to the protocol's limits (issue 13, item 8) ------------------------
+
+
+def _example_set_with(*, names=None, k: int | None = None):
+    es = tiny_example_set()
+    if k is not None:
+        rng = np.random.default_rng(5)
+        m = len(es.names)
+        source = np.repeat(rng.normal(size=(1, k, 3)), m, axis=0)
+        source[1:] += rng.normal(scale=0.3, size=(m - 1, k, 3))
+        es = dataclasses.replace(es, source_points=source)
+    return es if names is None else dataclasses.replace(es, names=names)
+
+
+@pytest.mark.parametrize("length,status", [(256, 201), (257, 422)])
+async def test_example_names_up_to_the_protocols_256_characters_are_stored(
+    settings, length, status
+):
+    named = fit(_example_set_with(names=("neutral", "s" * length, "frown", "jaw")))
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/named", content=named.to_bytes())
+        listed = await http.get("/v1/rigs")
+
+    assert response.status_code == status, response.text
+    if status == 422:
+        assert response.json()["code"] == "rig_exceeds_limits"
+        assert "over 256 characters" in response.json()["detail"]
+        assert listed.json()["rigs"] == []
+
+
+async def test_examples_with_more_feature_points_than_the_protocol_carries_are_refused(
+    settings, tmp_path
+):
+    write_example_folder(tmp_path / "set", _example_set_with(k=4097))
+    body = zip_bytes(folder_members(tmp_path / "set"))
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/wide/examples", content=body)
+        listed = await http.get("/v1/rigs")
+
+    assert (response.status_code, response.json()["code"]) == (422, "rig_exceeds_limits")
+    assert "K=4097" in response.json()["detail"] and listed.json()["rigs"] == []
+
+
+async def test_a_rig_file_with_a_nan_blend_basis_is_refused_naming_the_record(settings):
+    spoiled = fit(tiny_example_set())
+    spoiled._blend_basis[2, 5] = np.nan  # written with a valid checksum all the same
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/nan", content=spoiled.to_bytes())
+
+    assert (response.status_code, response.json()["code"]) == (422, "rig_not_finite")
+    assert "blend_basis" in response.json()["detail"]
+
+
+async def test_a_rig_file_put_in_the_directory_by_hand_is_checked_on_load(settings):
+    named = fit(_example_set_with(names=("neutral", "s" * 300, "frown", "jaw")))
+    settings.rigs_dir.mkdir(parents=True)
+    named.save(settings.rigs_dir / "byhand.rig")
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.get("/v1/rigs/byhand")
+
+    assert (response.status_code, response.json()["code"]) == (422, "rig_exceeds_limits")
 
 
 async def test_empty_body_is_400(settings):

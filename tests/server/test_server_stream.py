@@ -226,6 +226,19 @@ async def test_calibrate_with_an_absurd_neutral_is_refused_and_results_stay_fini
     np.testing.assert_array_equal(result.weights, rig.weights(p).astype(np.float32))
 
 
+async def test_hello_on_a_rig_file_the_protocol_cannot_carry_is_refused_not_readied(served):
+    # A ready naming a 300-character example would be refused by every client.
+    es = tiny_example_set()
+    named = fit(dataclasses.replace(es, names=("neutral", "s" * 300, "frown", "jaw")))
+    named.save(served.settings.rigs_dir / "long.rig")
+    async with connect(served) as ws:
+        await ws.send(encode(Hello(rig="long")))
+        error = await recv_error(ws)
+
+    assert (error.code, error.fatal) == (ErrorCode.UNKNOWN_RIG, True)
+    assert "cannot be streamed" in error.message
+
+
 @pytest.mark.parametrize("target", ["points", "weights"])
 async def test_smoothing_applies_a_one_euro_filter_clocked_by_frame_ts(served, rig, target):
     from facecast.rig.filters import OneEuroFilter
