@@ -37,6 +37,27 @@ class _DropWebSocketChatter(logging.Filter):
         )
 
 
+#: uvicorn records about a client's own fault, by message: (our event name, why). uvicorn
+#: logs them at error level with a traceback although it answered them correctly.
+_CLIENT_FAULTS = {
+    # websockets-sansio, on invalid UTF-8 in a text frame; it then closes with 1007 as
+    # RFC 6455 §8.1 says (the legacy implementation does so without a word).
+    "Invalid UTF-8 sequence received from client.": "ws.invalid_utf8",
+}
+
+
+class _DemoteClientFaults(logging.Filter):
+    """Log what a client did wrong at info, without a traceback: it is not our failure."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        event = _CLIENT_FAULTS.get(record.getMessage())
+        if event is not None and record.levelno > logging.INFO:
+            record.levelno, record.levelname = logging.INFO, "INFO"
+            record.exc_info, record.exc_text = None, None
+            record.event = event
+        return True
+
+
 class JsonFormatter(logging.Formatter):
     """Format a record as one line of JSON: ts, level, logger, event, msg, fields."""
 
@@ -68,7 +89,10 @@ def uvicorn_log_config(level: str) -> dict[str, Any]:
         "version": 1,
         "disable_existing_loggers": False,
         "formatters": {"json": {"()": JsonFormatter}},
-        "filters": {"quiet_ws": {"()": _DropWebSocketChatter}},
+        "filters": {
+            "quiet_ws": {"()": _DropWebSocketChatter},
+            "client_faults": {"()": _DemoteClientFaults},
+        },
         "handlers": {
             "stderr": {
                 "class": "logging.StreamHandler",
@@ -79,7 +103,7 @@ def uvicorn_log_config(level: str) -> dict[str, Any]:
         },
         "loggers": {
             "uvicorn": {"handlers": ["stderr"], "level": level, "propagate": False},
-            "uvicorn.error": {"level": level},
+            "uvicorn.error": {"level": level, "filters": ["client_faults"]},
             "uvicorn.access": {"handlers": [], "level": "WARNING", "propagate": False},
             "facecast": {"handlers": ["stderr"], "level": level, "propagate": False},
         },

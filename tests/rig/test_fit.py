@@ -332,6 +332,7 @@ def test_calibration_with_an_absurd_neutral_is_refused(example_set, rig, neutral
         ({"kernel": "cubic"}, "unknown kernel"),
         ({"noise": -1.0}, "noise"),
         ({"noise": float("nan")}, "noise"),
+        ({"noise": 1e300}, "extent"),  # its square overflows: a 500 over REST before
         ({"pca_threshold": 2.0}, "pca_threshold"),
         ({"clamp": "yes"}, "clamp"),
         ({"sparsity": 1.0}, "sparsity"),

@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import io
+import time
 import zipfile
 
 import httpx
 import numpy as np
 import pytest
 from _server_helpers import (
+    errors_logged,
     folder_members,
+    server_logs,
     tar_bytes,
     tiny_example_set,
     write_example_folder,
@@ -26,6 +30,14 @@ pytestmark = pytest.mark.anyio
 
 def client(server) -> httpx.AsyncClient:
     return httpx.AsyncClient(base_url=server.base_url, timeout=30)
+
+
+async def wait_for_record(records, event: str, timeout: float = 10.0) -> None:
+    """Wait until the server (in its own thread) has logged ``event``."""
+    deadline = time.monotonic() + timeout
+    while not any(getattr(r, "event", None) == event for r in records):
+        assert time.monotonic() < deadline, f"no {event} logged"
+        await asyncio.sleep(0.01)
 
 
 async def test_put_then_get_list_download_delete_round_trip(settings, rig):
@@ -221,7 +233,21 @@ def _bad_archives(tmp_path) -> dict[str, tuple[bytes, int, str]]:
         "not-an-archive": (b"hello, world" * 100, 415, "unsupported_archive"),
         "truncated-zip": (zip_bytes(good)[:200], 400, "bad_archive"),
         "no-manifest": (zip_bytes({"readme.txt": b"hi"}), 422, "bad_example_set"),
+        # Issue 13, item 7: these were 500s with a traceback.
+        "zip-long-name": (zip_bytes({**good, "n" * 256: b"x"}), 400, _TOO_LONG),
+        "tar-long-name": (tar_bytes({**good, "n" * 256: b"x"}, gz=True), 400, _TOO_LONG),
+        "zip-deep-path": (zip_bytes({**good, _DEEP: b"x"}), 400, _TOO_LONG),
+        "tar-deep-path": (tar_bytes({**good, _DEEP: b"x"}, gz=False), 400, _TOO_LONG),
+        "zip-file-then-folder": (zip_bytes({**good, "x": b"1", "x/y": b"2"}), 400, _CLASH),
+        "tar-file-then-folder": (tar_bytes({**good, "x": b"1", "x/y": b"2"}, gz=True), 400, _CLASH),
+        "zip-folder-then-file": (zip_bytes({**good, "x/y": b"2", "x": b"1"}), 400, _CLASH),
     }
+
+
+_TOO_LONG = "archive_member_name_too_long"
+_CLASH = "archive_member_conflict"
+#: Deeper than PATH_MAX (4096 bytes), each name within NAME_MAX (255).
+_DEEP = "/".join(["d" * 200] * 25) + "/f"
 
 
 @pytest.mark.parametrize(
@@ -236,17 +262,59 @@ def _bad_archives(tmp_path) -> dict[str, tuple[bytes, int, str]]:
         "not-an-archive",
         "truncated-zip",
         "no-manifest",
+        "zip-long-name",
+        "tar-long-name",
+        "zip-deep-path",
+        "tar-deep-path",
+        "zip-file-then-folder",
+        "tar-file-then-folder",
+        "zip-folder-then-file",
     ],
 )
 async def test_bad_archive_is_refused_with_its_code_and_writes_nothing(settings, tmp_path, case):
     body, status, code = _bad_archives(tmp_path)[case]
     async with run_server(settings) as server, client(server) as http:
-        response = await http.put("/v1/rigs/evil/examples", content=body)
+        with server_logs() as records:
+            response = await http.put("/v1/rigs/evil/examples", content=body)
         listed = await http.get("/v1/rigs")
 
     assert (response.status_code, response.json()["code"]) == (status, code), response.text
     assert listed.json()["rigs"] == []
     assert not (tmp_path / "evil.txt").exists()
+    assert errors_logged(records) == []
+
+
+@pytest.mark.parametrize("clamp", [None, "unit"])
+async def test_absurd_noise_is_422_naming_it_not_a_500(settings, tmp_path, clamp):
+    write_example_folder(tmp_path / "set")
+    body = zip_bytes(folder_members(tmp_path / "set"))
+    params = {"noise": 1e300} if clamp is None else {"noise": 1e300, "clamp": clamp}
+    async with run_server(settings) as server, client(server) as http:
+        with server_logs() as records:
+            response = await http.put("/v1/rigs/noisy/examples", params=params, content=body)
+
+    assert (response.status_code, response.json()["code"]) == (422, "noise_too_large")
+    assert "noise" in response.json()["detail"] and errors_logged(records) == []
+
+
+@pytest.mark.parametrize("path", ["/v1/rigs/gone", "/v1/rigs/gone/examples"])
+async def test_a_client_leaving_mid_body_is_logged_once_without_a_traceback(settings, path):
+    async with run_server(settings) as server, client(server) as http:
+        with server_logs() as records:
+            _, writer = await asyncio.open_connection(server.host, server.port)
+            writer.write(
+                f"PUT {path} HTTP/1.1\r\nHost: {server.host}\r\nContent-Length: 100000\r\n\r\n"
+                .encode() + bytes(1000)
+            )  # fmt: skip
+            await writer.drain()
+            writer.close()
+            await writer.wait_closed()
+            await wait_for_record(records, "http.request")
+        after = await http.get("/healthz")
+
+    assert errors_logged(records) == []
+    assert [getattr(r, "event", None) for r in records].count("http.client_disconnect") == 1
+    assert after.status_code == 200
 
 
 async def test_archive_over_member_limit_is_413(tmp_path):

@@ -12,10 +12,15 @@ import numpy as np
 import pytest
 import websockets
 from _server_helpers import (
+    close_code_of,
+    errors_logged,
     frame_points,
+    masked_frame,
     open_session,
+    raw_websocket,
     recv_error,
     recv_message,
+    server_logs,
     tiny_example_set,
     tiny_rig,
 )
@@ -237,6 +242,18 @@ async def test_hello_on_a_rig_file_the_protocol_cannot_carry_is_refused_not_read
 
     assert (error.code, error.fatal) == (ErrorCode.UNKNOWN_RIG, True)
     assert "cannot be streamed" in error.message
+
+
+async def test_invalid_utf8_in_a_text_frame_closes_1007_without_an_error_log(served):
+    reader, writer, status = await raw_websocket(served.host, served.port, "/v1/stream")
+    with server_logs() as records:
+        writer.write(masked_frame(0x1, b"\xff\xfe not UTF-8"))
+        await writer.drain()
+        code = await close_code_of(reader)
+    writer.close()
+
+    assert status.startswith("HTTP/1.1 101") and code == 1007
+    assert errors_logged(records) == []
 
 
 @pytest.mark.parametrize("target", ["points", "weights"])
