@@ -81,6 +81,7 @@ def create_app(settings: Settings) -> FastAPI:
             await app.state.channels.close()
             app.state.clone_executor.shutdown(wait=False, cancel_futures=True)
             app.state.fit_executor.shutdown(wait=False, cancel_futures=True)
+            await anyio.to_thread.run_sync(app.state.store.close)
             log.info("server stopped", extra={"event": "server.stop", "pid": os.getpid()})
 
     app = FastAPI(

@@ -7,8 +7,10 @@ file and numeric work in threads (store I/O in anyio's pool, fitting in its own 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -40,6 +42,10 @@ def _store(request: Request) -> RigStore:
 
 def _settings(request: Request) -> Settings:
     return request.app.state.settings
+
+
+def _scratch(request: Request) -> Path:
+    return _store(request).scratch
 
 
 def _check_id(rig_id: str) -> str:
@@ -164,39 +170,30 @@ async def put_examples(
         )
     settings = _settings(request)
     state = request.app.state
-    if state.pending_fits >= settings.max_pending_fits:
-        raise ApiError(
-            503,
-            "server_busy",
-            f"{settings.max_pending_fits} fits are already running or queued; retry later",
-            headers={"Retry-After": "5"},
-        )
     limits = ArchiveLimits(
         max_members=settings.max_archive_members,
         max_extracted_bytes=settings.max_extracted_bytes,
         max_compression_ratio=settings.max_compression_ratio,
     )
-    data = await read_body(request, settings.max_upload_bytes)
-    job = _FitJob(
-        data,
-        limits,
-        {
-            "noise": noise,
-            "pca_threshold": pca_threshold,
-            "kernel": kernel,
-            "clamp": clamp,
-            "sparsity": sparsity,
-        },
-    )
-    state.pending_fits += 1
-    try:
-        # Fitting is seconds of numpy: it runs in the dedicated fit executor, never on the
-        # event loop and never in the pool that clones frames.
-        rig = await asyncio.wrap_future(state.fit_executor.submit(job))
-    except ArchiveError as exc:
-        raise ApiError(exc.status, exc.code, str(exc)) from None
-    finally:
-        state.pending_fits -= 1
+    options = {
+        "noise": noise,
+        "pca_threshold": pca_threshold,
+        "kernel": kernel,
+        "clamp": clamp,
+        "sparsity": sparsity,
+    }
+    with _fit_slot(state, settings.max_pending_fits):
+        # The slot is held from before the body is read: concurrent uploads cannot all
+        # pass the check while none is counted yet, nor buffer more bodies than fits.
+        data = await read_body(request, settings.max_upload_bytes)
+        try:
+            # Fitting is seconds of numpy: it runs in the dedicated fit executor, never on
+            # the event loop and never in the pool that clones frames.
+            rig = await asyncio.wrap_future(
+                state.fit_executor.submit(_FitJob(data, limits, options, _scratch(request)))
+            )
+        except ArchiveError as exc:
+            raise ApiError(exc.status, exc.code, str(exc)) from None
     created = await anyio.to_thread.run_sync(_store(request).put_rig, rig_id, rig)
     log.info(
         "rig fitted",
@@ -217,12 +214,38 @@ async def put_examples(
     return JSONResponse(described, status_code=201 if created else 200)
 
 
+@contextlib.contextmanager
+def _fit_slot(state: Any, limit: int) -> Iterator[None]:
+    """Hold one of ``limit`` fit slots (``state.pending_fits``), or raise 503 server_busy.
+
+    Check and count happen together on the event loop (no await between), so no number
+    of simultaneous requests can get past ``limit``.
+    """
+    if state.pending_fits >= limit:
+        raise ApiError(
+            503,
+            "server_busy",
+            f"{limit} fits are already running or queued; retry later",
+            headers={"Retry-After": "5"},
+        )
+    state.pending_fits += 1
+    try:
+        yield
+    finally:
+        state.pending_fits -= 1
+
+
 class _FitJob:
     """Extract, load and fit one uploaded example set (runs in a worker thread)."""
 
-    def __init__(self, data: bytes, limits: ArchiveLimits, options: dict[str, Any]) -> None:
+    def __init__(
+        self, data: bytes, limits: ArchiveLimits, options: dict[str, Any], scratch: Path
+    ) -> None:
         self.data = data
         self.limits = limits
+        #: Where the archive is unpacked: the rig store's scratch folder, which the next
+        #: start cleans if this process is killed mid-fit.
+        self.scratch = scratch
         # Keyword arguments of facecast.rig.fit: noise, pca_threshold, kernel, clamp, sparsity.
         self.options = options
 
@@ -230,7 +253,7 @@ class _FitJob:
         from facecast.rig import fit
         from facecast.rig.loaders import load_example_set
 
-        with tempfile.TemporaryDirectory(prefix="facecast-upload-") as tmp:
+        with tempfile.TemporaryDirectory(prefix="upload-", dir=self.scratch) as tmp:
             dest = Path(tmp)
             extract_archive(self.data, dest, self.limits)
             example_set = load_example_set(find_example_root(dest))

@@ -1,16 +1,19 @@
 """The rig store: fitted rigs as ``<id>.rig`` files in one directory, with an in-memory cache.
 
 Writes are atomic (temp file, fsync, rename, fsync dir) so a crash leaves the old or the
-new rig; every read re-stats, so other worker processes' changes are seen. Blocking
-calls: run them in a thread, never on the event loop.
+new rig; every read re-stats, so other worker processes' changes are seen. Temp files
+(rig writes, unpacked uploads) live in the store's scratch directory, which a later
+start cleans. Blocking calls: run them in a thread, never on the event loop.
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
 import re
 import secrets
+import shutil
 import threading
 import time
 from collections import OrderedDict
@@ -36,9 +39,18 @@ __all__ = [
 RIG_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
 _RIG_ID = re.compile(RIG_ID_PATTERN)
 SUFFIX = ".rig"
+#: Under the rig directory: one folder per live store (process), holding its temp files.
+SCRATCH_DIR = ".scratch"
+#: In each such folder, a file its store holds an exclusive ``flock`` on while it lives:
+#: the kernel drops the lock when the process dies, kill -9 included, so any store that
+#: can take the lock knows the folder is a dead one's leftovers.
+_LOCK_NAME = ".lock"
+#: Temp files of facecast versions that wrote them beside the rigs; removed at start-up
+#: once older than this (they cannot be told from a live writer's otherwise).
 _TEMP_PREFIX = ".tmp-"
-#: Temp files older than this at start-up are leftovers of a killed writer.
 _STALE_TEMP_SECONDS = 3600.0
+#: A scratch folder without its lock file is being created, or its creator died doing so.
+_UNLOCKED_GRACE_SECONDS = 60.0
 
 
 def check_servable(rig: Rig, limits: Limits, source: str) -> None:
@@ -110,16 +122,46 @@ class RigStore:
         self._lock = threading.Lock()
         #: What a stored rig must fit: the protocol's limits, as every client decodes.
         self.limits = Limits()
+        self._scratch: Path | None = None
+        self._scratch_lock: int | None = None  # the fd holding the scratch folder's flock
 
     # -- lifecycle ----------------------------------------------------------------------
     def open(self) -> None:
-        """Create the directory if needed and remove stale temp files of killed writers."""
+        """Create the directory if needed and remove what killed processes left behind.
+
+        Every scratch folder no live store holds (partial rig writes, unpacked uploads of
+        a process killed mid-request) goes, at once; legacy ``.tmp-*`` files after an hour.
+        """
         self.directory.mkdir(parents=True, exist_ok=True)
         now = time.time()
         for path in self.directory.glob(f"{_TEMP_PREFIX}*"):
             with contextlib.suppress(OSError):
                 if now - path.stat().st_mtime > _STALE_TEMP_SECONDS:
                     path.unlink()
+        root = self.directory / SCRATCH_DIR
+        root.mkdir(exist_ok=True)
+        for folder in root.iterdir():
+            if folder != self._scratch:
+                _remove_if_abandoned(folder, now)
+        _ = self.scratch
+
+    def close(self) -> None:
+        """Remove this store's scratch folder and release it (at shutdown)."""
+        with self._lock:
+            scratch, fd = self._scratch, self._scratch_lock
+            self._scratch = self._scratch_lock = None
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
+        if fd is not None:
+            os.close(fd)
+
+    @property
+    def scratch(self) -> Path:
+        """This store's own folder for temp files (created, and locked, on first use)."""
+        with self._lock:
+            if self._scratch is None:
+                self._scratch, self._scratch_lock = _claim_scratch(self.directory / SCRATCH_DIR)
+            return self._scratch
 
     def check_readable(self) -> None:
         """Raise ``OSError`` unless the directory can be listed and written."""
@@ -215,7 +257,9 @@ class RigStore:
     def _write(self, rig_id: str, data: bytes) -> bool:
         path = self._path(rig_id)
         existed = path.exists()
-        temp = self.directory / f"{_TEMP_PREFIX}{rig_id}-{secrets.token_hex(6)}"
+        # In the scratch folder (same file system: the rename stays atomic), so a writer
+        # killed mid-write leaves nothing the next start does not remove.
+        temp = self.scratch / f"{rig_id}-{secrets.token_hex(6)}.rig"
         fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         try:
             with os.fdopen(fd, "wb") as fh:
@@ -269,3 +313,42 @@ class RigStore:
             while len(self._cache) > self.cache_size:
                 self._cache.popitem(last=False)
         return entry
+
+
+def _claim_scratch(root: Path) -> tuple[Path, int]:
+    """A new scratch folder under ``root`` and the fd holding the flock on its lock file.
+
+    The lock file is created and locked under a temporary name, then renamed into place,
+    so a lock file that can be seen is already held while its process lives.
+    """
+    root.mkdir(parents=True, exist_ok=True)
+    folder = root / f"{os.getpid()}-{secrets.token_hex(6)}"
+    folder.mkdir()
+    pending = folder / f".pending-{secrets.token_hex(4)}"
+    fd = os.open(pending, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    os.rename(pending, folder / _LOCK_NAME)
+    return folder, fd
+
+
+def _remove_if_abandoned(folder: Path, now: float) -> None:
+    """Delete a scratch folder whose store is gone (its lock free); keep live ones."""
+    try:
+        fd = os.open(folder / _LOCK_NAME, os.O_RDONLY)
+    except NotADirectoryError:
+        with contextlib.suppress(OSError):
+            folder.unlink()
+        return
+    except FileNotFoundError:
+        with contextlib.suppress(OSError):
+            if now - folder.stat().st_mtime > _UNLOCKED_GRACE_SECONDS:
+                shutil.rmtree(folder, ignore_errors=True)
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return  # its store is alive
+        shutil.rmtree(folder, ignore_errors=True)
+    finally:
+        os.close(fd)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import io
+import subprocess
+import sys
 import tarfile
 import threading
 from pathlib import Path
@@ -16,7 +18,7 @@ from hypothesis import strategies as st
 from facecast.rig import RigFileError, fit
 from facecast.server.archive import ArchiveError, ArchiveLimits, extract_archive
 from facecast.server.settings import Settings, SettingsError, parse_tokens
-from facecast.server.store import RigNotFoundError, RigStore
+from facecast.server.store import SCRATCH_DIR, RigNotFoundError, RigStore
 
 # -- settings -----------------------------------------------------------------------------
 
@@ -89,6 +91,14 @@ def store(tmp_path) -> RigStore:
     return s
 
 
+def _rig_dir_entries(store: RigStore) -> list[str]:
+    """What the rig directory holds besides the store's scratch folder, which must be empty
+    but for its lock: no temp file left behind."""
+    leftovers = [p.name for p in store.scratch.iterdir() if p.name != ".lock"]
+    assert leftovers == []
+    return sorted(p.name for p in store.directory.iterdir() if p.name != SCRATCH_DIR)
+
+
 def test_concurrent_writes_of_one_id_leave_one_whole_rig(store, rig):
     other = fit(tiny_example_set(seed=5))
     blobs = [rig.to_bytes(), other.to_bytes()] * 8
@@ -105,7 +115,7 @@ def test_concurrent_writes_of_one_id_leave_one_whole_rig(store, rig):
         t.join()
 
     assert store.get("same").checksum in {rig.checksum, other.checksum}
-    assert [p.name for p in store.directory.iterdir()] == ["same.rig"]
+    assert _rig_dir_entries(store) == ["same.rig"]
 
 
 def test_another_process_replacing_a_rig_is_seen_through_the_cache(tmp_path, rig):
@@ -141,7 +151,7 @@ def test_invalid_rig_bytes_write_nothing(store):
     with pytest.raises(RigFileError):
         store.put_bytes("bad", b"PK\x03\x04 not really")
 
-    assert list(store.directory.iterdir()) == []
+    assert _rig_dir_entries(store) == []
 
 
 def test_stale_temp_files_of_killed_writers_are_removed_at_open(tmp_path):
@@ -156,6 +166,56 @@ def test_stale_temp_files_of_killed_writers_are_removed_at_open(tmp_path):
     RigStore(directory).open()
 
     assert not stale.exists()
+
+
+_KILLED_STORE = (
+    "import sys\n"
+    "from pathlib import Path\n"
+    "from facecast.server.store import RigStore\n"
+    "store = RigStore(Path(sys.argv[1]))\n"
+    "store.open()\n"
+    "(store.scratch / 'upload-abc').mkdir()\n"
+    "(store.scratch / 'upload-abc' / 'facecast.toml').write_text('[source]')\n"
+    "(store.scratch / 'face-123.rig').write_bytes(b'half a rig')\n"
+    "print(store.scratch, flush=True)\n"
+    "sys.stdin.read()  # until killed\n"
+)
+
+
+def test_scratch_of_a_killed_process_is_removed_at_the_next_open_and_live_ones_kept(tmp_path):
+    directory = tmp_path / "rigs"
+    live = RigStore(directory)
+    live.open()
+    (live.scratch / "upload-live").mkdir()
+    child = subprocess.Popen(
+        [sys.executable, "-c", _KILLED_STORE, str(directory)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    dead = Path(child.stdout.readline().strip())
+    child.kill()  # SIGKILL: no cleanup of its own
+    child.wait(10)
+    child.stdin.close()
+    child.stdout.close()
+    assert (dead / "upload-abc").is_dir() and (dead / "face-123.rig").is_file()
+
+    RigStore(directory).open()
+
+    assert not dead.exists()
+    assert (live.scratch / "upload-live").is_dir()
+
+
+def test_a_closed_store_leaves_no_scratch_behind(tmp_path, rig):
+    store = RigStore(tmp_path / "rigs")
+    store.open()
+    store.put_rig("face", rig)
+    scratch = store.scratch
+
+    store.close()
+
+    assert not scratch.exists()
+    assert sorted(p.name for p in (tmp_path / "rigs").iterdir()) == [SCRATCH_DIR, "face.rig"]
 
 
 # -- archives -------------------------------------------------------------------------------
