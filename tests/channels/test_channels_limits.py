@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+from urllib.parse import quote
 
+import httpx
 import numpy as np
 import pytest
 
@@ -36,6 +38,24 @@ async def test_names_with_slashes_and_spaces_are_channels_too(settings, rigs):
         result = await watcher.result_with_seq(0)
 
     assert result.seq == 0
+
+
+@pytest.mark.parametrize("name", ["a\r\nb", "line\nbreak", "\n", "tab\tand\x7f"])
+async def test_names_with_line_breaks_and_controls_are_channels_too(settings, rigs, name):
+    # Issue 13, item 9: CR/LF got a bare HTTP 403 where §2.1 promises any character.
+    async with run_server(settings) as server:
+        watcher = await Watcher.open(server.ws_url, name, "beta")
+        ready = await watcher.next(Ready)
+        publisher = await Publisher.open(server.ws_url, name, "alpha")
+        await publisher.send(0, points(rigs["alpha"], 0))
+        result = await watcher.result_with_seq(0)
+        async with httpx.AsyncClient(base_url=server.base_url) as http:
+            info = await http.get(f"/v1/channels/{quote(name, safe='')}")
+            listed = await http.get("/v1/channels")
+
+    assert ready.rig == "beta" and result.seq == 0
+    assert info.status_code == 200
+    assert [c["name"] for c in listed.json()["channels"]] == [name]
 
 
 @pytest.mark.parametrize(
