@@ -19,6 +19,7 @@ import anyio
 from fastapi import FastAPI, Request, Response
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse
+from starlette.middleware.cors import CORSMiddleware
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from facecast import __version__
@@ -28,6 +29,7 @@ from .channel_routes import router as channel_router
 from .errors import install_error_handlers, problem
 from .hub import ChannelHub
 from .metrics import CONTENT_TYPE_LATEST, Metrics
+from .origins import OriginGuard
 from .rest import router as rest_router
 from .sessions import SessionRegistry
 from .settings import ROLES, Settings
@@ -111,6 +113,17 @@ def create_app(settings: Settings) -> FastAPI:
     _add_ops_routes(app)
     _add_docs_routes(app)
     mount_viewer(app, settings)
+    # Added innermost first: access log > Host/Origin checks > CORS > routes.
+    if settings.allowed_origins:
+        # Pages of these origins (a viewer pointed here with server=) may read the API.
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=list(settings.allowed_origins),
+            allow_methods=["GET", "PUT", "DELETE"],
+            allow_headers=["Authorization", "Content-Type"],
+            max_age=600,
+        )
+    app.add_middleware(OriginGuard, settings=settings)
     app.add_middleware(_AccessLog, metrics=app.state.metrics, enabled=settings.access_log)
     return app
 

@@ -132,9 +132,9 @@ async def raw_websocket(host: str, port: int, path: str, headers: dict[str, str]
 
     reader, writer = await asyncio.open_connection(host, port)
     key = base64.b64encode(os.urandom(16)).decode()
+    headers = {"Host": f"{host}:{port}", **(headers or {})}
     lines = [
         f"GET {path} HTTP/1.1",
-        f"Host: {host}:{port}",
         "Upgrade: websocket",
         "Connection: Upgrade",
         f"Sec-WebSocket-Key: {key}",

@@ -75,6 +75,42 @@ def test_env_tokens_parse_roles_joined_with_plus():
         parse_tokens("no-roles-here")
 
 
+def test_allowed_origins_and_hosts_come_from_toml_or_the_environment(tmp_path):
+    config = tmp_path / "c.toml"
+    config.write_text('allowed_origins = ["https://Viewer.Example:443", "http://a.example:81"]\n')
+
+    from_file = Settings.load(config_file=config, env={})
+    from_env = Settings.load(
+        env={
+            "FACECAST_ALLOWED_ORIGINS": "http://b.example,*",
+            "FACECAST_ALLOWED_HOSTS": "Proxy.Example",
+        }
+    )
+
+    assert from_file.allowed_origins == ("https://viewer.example", "http://a.example:81")
+    assert from_env.allowed_origins == ("http://b.example", "*")
+    assert from_env.allowed_hosts == ("proxy.example",)
+    assert Settings.from_json(from_file.to_json()).allowed_origins == from_file.allowed_origins
+
+
+@pytest.mark.parametrize(
+    "values",
+    [
+        {"allowed_origins": ("viewer.example",)},  # no scheme
+        {"allowed_origins": ("ftp://viewer.example",)},
+        {"allowed_origins": ("http://viewer.example/page",)},
+        {"allowed_origins": ("http://viewer.example:99999",)},
+        {"allowed_hosts": ("proxy.example:8000",)},
+        {"allowed_hosts": ("",)},
+    ],
+)
+def test_bad_allowed_origins_or_hosts_are_refused_naming_the_setting(values):
+    name = next(iter(values))
+
+    with pytest.raises(SettingsError, match=name):
+        Settings(**values)
+
+
 def test_settings_survive_the_json_trip_to_worker_processes(tmp_path):
     settings = Settings(rigs_dir=tmp_path, port=0, tokens={"x": {"stream"}}, idle_timeout=2.5)
 
