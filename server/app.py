@@ -24,7 +24,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from facecast import __version__
 
-from .auth import authorize, token_from_request
+from .auth import authorize_page, authorize_request
 from .channel_routes import router as channel_router
 from .errors import install_error_handlers, problem
 from .hub import ChannelHub
@@ -157,7 +157,7 @@ def _add_ops_routes(app: FastAPI) -> None:
     async def metrics(request: Request) -> Response:
         settings: Settings = request.app.state.settings
         if settings.metrics_auth:
-            authorize(settings, token_from_request(request), ("admin",))
+            authorize_request(request, ("admin",))
         body = await anyio.to_thread.run_sync(request.app.state.metrics.render)
         return Response(body, media_type=CONTENT_TYPE_LATEST)
 
@@ -167,22 +167,28 @@ def _docs_token(request: Request) -> str | None:
 
     Returns the query token, which the docs page must hand on to its schema request.
     """
-    query = request.query_params.get("token")
-    authorize(request.app.state.settings, token_from_request(request) or query, ROLES)
+    _, query = authorize_page(request, ROLES)
     return query
+
+
+#: Headers of the pages that may carry ``?token=`` in their URL: never sent on in a
+#: Referer (the docs page loads Swagger UI from a CDN) and never cached.
+_TOKEN_PAGE_HEADERS = {"Referrer-Policy": "no-referrer", "Cache-Control": "no-store"}
 
 
 def _add_docs_routes(app: FastAPI) -> None:
     @app.get("/openapi.json", include_in_schema=False)
     async def openapi(request: Request) -> JSONResponse:
         _docs_token(request)
-        return JSONResponse(request.app.openapi())
+        return JSONResponse(request.app.openapi(), headers=_TOKEN_PAGE_HEADERS)
 
     @app.get("/docs", include_in_schema=False)
     async def docs(request: Request) -> HTMLResponse:
         token = _docs_token(request)
         schema = "/openapi.json" if token is None else f"/openapi.json?token={quote(token)}"
-        return get_swagger_ui_html(openapi_url=schema, title="facecast API")
+        page = get_swagger_ui_html(openapi_url=schema, title="facecast API")
+        page.headers.update(_TOKEN_PAGE_HEADERS)
+        return page
 
 
 class _AccessLog:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import time
 from typing import Any
 
@@ -58,6 +59,23 @@ class _DemoteClientFaults(logging.Filter):
         return True
 
 
+class _RedactQueryTokens(logging.Filter):
+    """Blank ``token=...`` in uvicorn's messages (they quote request paths with queries).
+
+    PROTOCOL.md §2.2 allows ``?token=`` on WebSockets; whatever uvicorn says about such a
+    connection (an error, a refusal) must not write the token into the logs.
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        if "token=" in message:
+            record.msg, record.args = _QUERY_TOKEN.sub(r"\1[redacted]", message), ()
+        return True
+
+
+_QUERY_TOKEN = re.compile(r"([?&]token=)[^&\s\"']*")
+
+
 class JsonFormatter(logging.Formatter):
     """Format a record as one line of JSON: ts, level, logger, event, msg, fields."""
 
@@ -92,18 +110,22 @@ def uvicorn_log_config(level: str) -> dict[str, Any]:
         "filters": {
             "quiet_ws": {"()": _DropWebSocketChatter},
             "client_faults": {"()": _DemoteClientFaults},
+            "no_tokens": {"()": _RedactQueryTokens},
         },
         "handlers": {
             "stderr": {
                 "class": "logging.StreamHandler",
                 "formatter": "json",
                 "stream": "ext://sys.stderr",
-                "filters": ["quiet_ws"],
             }
         },
         "loggers": {
             "uvicorn": {"handlers": ["stderr"], "level": level, "propagate": False},
-            "uvicorn.error": {"level": level, "filters": ["client_faults"]},
+            # On the logger, not the handler: every handler sees only what is left.
+            "uvicorn.error": {
+                "level": level,
+                "filters": ["quiet_ws", "client_faults", "no_tokens"],
+            },
             "uvicorn.access": {"handlers": [], "level": "WARNING", "propagate": False},
             "facecast": {"handlers": ["stderr"], "level": level, "propagate": False},
         },
