@@ -20,6 +20,7 @@ from facecast.rig import (
     fit,
     rig_from_bytes,
 )
+from facecast.rig.fit import NOISE_MAX_RELATIVE
 from facecast.rig.kernels import bspline
 from facecast.rig.rig import CALIBRATION_RANGE, POINT_RANGE
 
@@ -324,6 +325,19 @@ def test_calibration_with_an_absurd_neutral_is_refused(example_set, rig, neutral
     with pytest.raises(InputError, match="calibration neutral") as info:
         rig.calibrated(neutral_of(example_set.source_neutral))
     assert info.value.code == "out_of_range"
+
+
+@pytest.mark.filterwarnings("ignore::facecast.rig.IdentifiabilityWarning")
+def test_noise_up_to_ten_times_the_feature_points_extent_is_fitted_beyond_refused(example_set):
+    flat = example_set.source_points.reshape(-1, 3)
+    extent = float(np.linalg.norm(flat.max(axis=0) - flat.min(axis=0)))
+
+    rig = fit(example_set, noise=NOISE_MAX_RELATIVE * extent * 0.999, clamp="unit")
+    with pytest.raises(FitError) as info:
+        fit(example_set, noise=NOISE_MAX_RELATIVE * extent * 1.001, clamp="unit")
+
+    assert np.isfinite(rig.weights(example_set.source_points)).all()
+    assert info.value.code == "noise_too_large"
 
 
 @pytest.mark.parametrize(

@@ -16,7 +16,13 @@ from hypothesis import settings as hsettings
 from hypothesis import strategies as st
 
 from facecast.rig import RigFileError, fit
-from facecast.server.archive import ArchiveError, ArchiveLimits, extract_archive
+from facecast.server.archive import (
+    MAX_NAME_BYTES,
+    MAX_PATH_BYTES,
+    ArchiveError,
+    ArchiveLimits,
+    extract_archive,
+)
 from facecast.server.settings import Settings, SettingsError, parse_tokens
 from facecast.server.store import SCRATCH_DIR, RigNotFoundError, RigStore
 
@@ -287,6 +293,66 @@ def test_any_member_name_lands_inside_the_folder_or_is_refused(tmp_path_factory,
         assert exc.code in {"unsafe_archive_member", "bad_archive", "duplicate_archive_member"}
     created = set(outside.rglob("*")) - before
     assert all(Path(p).is_relative_to(dest) for p in created)
+
+
+def _deep(total: int) -> str:
+    """A member path of exactly ``total`` bytes, in names of at most 220."""
+    names = [200] * 4 + [total - 4 - 800]
+    return "/".join("d" * n for n in names)
+
+
+@pytest.mark.parametrize(
+    ("name", "ok"),
+    [
+        ("n" * MAX_NAME_BYTES, True),
+        ("n" * (MAX_NAME_BYTES + 1), False),
+        ("é" * 128, False),  # 128 characters, 256 bytes: the limit is in bytes
+        (_deep(MAX_PATH_BYTES), True),
+        (_deep(MAX_PATH_BYTES + 1), False),
+    ],
+    ids=["name-255", "name-256", "name-256-bytes", "path-1024", "path-1025"],
+)
+@pytest.mark.parametrize("as_tar", [False, True])
+def test_member_names_and_paths_are_bounded_in_bytes(tmp_path, name, ok, as_tar):
+    if as_tar:
+        buffer = io.BytesIO()
+        with tarfile.open(fileobj=buffer, mode="w", format=tarfile.PAX_FORMAT) as archive:
+            info = tarfile.TarInfo(name)
+            info.size = 2
+            archive.addfile(info, io.BytesIO(b"hi"))
+        data = buffer.getvalue()
+    else:
+        data = zip_bytes({name: b"hi"})
+
+    if ok:
+        extract_archive(data, tmp_path, LIMITS)
+        assert (tmp_path / name).read_bytes() == b"hi"
+    else:
+        with pytest.raises(ArchiveError) as info:
+            extract_archive(data, tmp_path, LIMITS)
+        assert (info.value.status, info.value.code) == (400, "archive_member_name_too_long")
+
+
+@pytest.mark.parametrize("as_tar", [False, True])
+@pytest.mark.parametrize("order", [("x", "x/y"), ("x/y", "x"), ("x", "x/")])
+def test_a_file_and_a_folder_of_one_name_are_a_conflict_not_a_crash(tmp_path, order, as_tar):
+    if as_tar:
+        buffer = io.BytesIO()
+        with tarfile.open(fileobj=buffer, mode="w") as archive:
+            for member in order:
+                info = tarfile.TarInfo(member.rstrip("/"))
+                if member.endswith("/"):
+                    info.type = tarfile.DIRTYPE
+                else:
+                    info.size = 1
+                archive.addfile(info, None if member.endswith("/") else io.BytesIO(b"1"))
+        data = buffer.getvalue()
+    else:
+        data = zip_bytes({member: b"" if member.endswith("/") else b"1" for member in order})
+
+    with pytest.raises(ArchiveError) as info:
+        extract_archive(data, tmp_path, LIMITS)
+    assert (info.value.status, info.value.code) == (400, "archive_member_conflict")
 
 
 def test_tar_symlink_and_hardlink_members_are_refused(tmp_path):
