@@ -385,8 +385,9 @@ class Rig:
             except (TypeError, ValueError):
                 w = None
             if w is not None:
-                # The kernel took it, so ``points`` is a finite (K, 3) float array.
-                if not np.vdot(points, points) <= self._fast2:
+                # The kernel took it, so ``points`` is a finite (K, 3) float array. (float16
+                # squares overflow in float16: those frames take the exact check.)
+                if points.itemsize < 4 or not np.vdot(points, points) <= self._fast2:
                     self._check_range(points[None], single=True)
                 return w
         x, single = self._points(points)
