@@ -50,6 +50,22 @@ def all_finite(array: np.ndarray) -> bool:
     return bool(np.isfinite(array).all())
 
 
+def check_result_finite(values: np.ndarray, where: str, seq: int | None) -> None:
+    """Raise RESULT_NOT_FINITE unless a result's array is finite in its own dtype (§4).
+
+    For senders: finite input can still give values that overflow the negotiated dtype
+    (float16 ends at 65504), and no peer may send NaN or infinity. The frame gets this
+    error instead of a result; the session goes on.
+    """
+    if not all_finite(values):
+        raise ProtocolError(
+            ErrorCode.RESULT_NOT_FINITE,
+            f"{where} is not finite in {values.dtype} (an overflow: points far from the "
+            "rig's neutral, or a dtype too small for the result); no result for this frame",
+            seq=seq,
+        )
+
+
 def wire_dtype_name(dtype: np.dtype[Any]) -> str:
     """The wire name ("f16", "f32", "f64") of a floating numpy dtype."""
     dtype = np.dtype(dtype)

@@ -9,6 +9,7 @@ from __future__ import annotations
 from enum import Enum
 from typing import Any, NoReturn
 
+from facecast.protocol.arrays import check_result_finite
 from facecast.protocol.codec import (
     DEFAULT_LIMITS,
     decode_client,
@@ -166,6 +167,8 @@ class ServerProtocol:
             self.ready = message
         elif self.ready is None:
             raise _wrong_state(f"cannot send {message.TYPE} before ready", fatal=False)
+        elif isinstance(message, Result):
+            check_result_finite(message.values, f"result.{message.output}", message.seq)
         return encode(message)
 
     def send_result(
@@ -174,10 +177,12 @@ class ServerProtocol:
         """Bytes of a `Result` the server computed: ``send(Result(...))``'s, made faster.
 
         The per-frame path: the session state is checked as `send` does, the fields are
-        trusted (``values`` a valid array for ``output``; see `encode_result`).
+        trusted (``values`` a valid array for ``output``; see `encode_result`) except
+        that ``values`` must be finite (§4): RESULT_NOT_FINITE (not fatal) otherwise.
         """
         if self.ready is None or self.state is not ServerState.STREAMING:
             raise _wrong_state("cannot send result before ready", fatal=False)
+        check_result_finite(values, f"result.{output}", seq)
         return encode_result(seq, ts, output, values, proc_us, dropped)
 
     def fail(self, error: ProtocolError) -> bytes:

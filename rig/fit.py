@@ -43,6 +43,9 @@ MAX_CONDITION = 1e10
 # at 2e-4, ICT at --noise 0.1 mm at 1e-4: a decade or more either side.
 NOISE_WEIGHT_CHANGE = 0.05
 NOISE_FLOOR_RELATIVE = 1e-5
+# Landmark noise above this many times the feature points' extent is refused: it could not
+# be told from no tracking at all, and its square overflows the regularised fit.
+NOISE_MAX_RELATIVE = 10.0
 
 
 class IdentifiabilityWarning(UserWarning):
@@ -107,6 +110,14 @@ def _sanitize(example_set, kernel, noise, pca_threshold, ridge, clamp, sparsity)
     noise = float(noise)
     if not np.isfinite(noise) or noise < 0:
         raise FitError(f"noise must be a finite number >= 0, got {noise}")
+    extent = _extent(example_set.source_points)
+    if noise > NOISE_MAX_RELATIVE * extent:
+        # Noise beyond the face itself means nothing, and its square overflows the fit.
+        raise FitError(
+            f"noise {noise:g} is more than {NOISE_MAX_RELATIVE:g}x the feature points' extent "
+            f"{extent:.3g}: give the landmark noise in the source's units",
+            code="noise_too_large",
+        )
     pca_threshold = 1e-10 if pca_threshold is None else float(pca_threshold)
     if not (0.0 <= pca_threshold < 1.0):
         raise FitError(
@@ -405,14 +416,19 @@ def _warn(report: FitReport, message: str) -> None:
         warnings.warn(message, IdentifiabilityWarning, stacklevel=4)
 
 
+def _extent(source_points: np.ndarray) -> float:
+    """The diagonal of the feature points' bounding box over every example."""
+    flat = source_points.reshape(-1, 3)
+    return float(np.linalg.norm(flat.max(axis=0) - flat.min(axis=0)))
+
+
 def _warn_noise_gain(report: FitReport, source_points: np.ndarray, noise: float, clamp) -> None:
     """Warn when landmark noise far below any tracker's already moves the weights.
 
     Judged on the rig as fitted, whatever ``noise`` was: at 0 (exact interpolation) this is
     the usual cause; above 0 it means the given noise is far below any tracker's.
     """
-    flat = source_points.reshape(-1, 3)
-    extent = float(np.linalg.norm(flat.max(axis=0) - flat.min(axis=0)))
+    extent = _extent(source_points)
     tolerance = NOISE_WEIGHT_CHANGE / report.noise_gain if report.noise_gain > 0 else np.inf
     report.noise_tolerance = float(tolerance)
     report.feature_extent = extent

@@ -16,7 +16,20 @@ from .kernel import bspline_kernel
 from .kernels import evaluate_kernel
 from .pose import align_points, similarity_transform
 
-__all__ = ["Rig", "WeightModel"]
+__all__ = ["CALIBRATION_RANGE", "POINT_RANGE", "Rig", "WeightModel"]
+
+#: A frame's feature points are refused (``InputError`` code ``out_of_range``) when their
+#: root-mean-square distance from the reference neutral's centroid is more than this many
+#: times that neutral's radius (its own RMS distance from its centroid). The reference is
+#: the rig's source neutral, or the performer's neutral once calibrated. Far looser than
+#: any real face (a head 2 m from the origin of a 10 cm rig is 20x), it catches points in
+#: other units than the rig (mm for m is 1000x), whose weights mean nothing and overflow.
+POINT_RANGE = 100.0
+#: A calibration neutral is refused (``out_of_range``) when its RMS distance from the source
+#: neutral's centroid is more than this many times the source neutral's radius, or when its
+#: own radius is more than this factor larger or smaller: calibration absorbs a performer's
+#: position and units, not an absurd scale (a 1e300 neutral makes every later frame NaN).
+CALIBRATION_RANGE = 1e4
 
 
 @dataclass(frozen=True, eq=False)
@@ -246,6 +259,17 @@ class Rig:
         self.align_scale = bool(align_scale)
         self.fit_report = report
         self.calibration = calibration
+        reference = self.model.source_neutral if calibration is None else calibration
+        self._centre, radius = _centre_radius(np.asarray(reference, dtype=np.float64))
+        k = reference.shape[0]
+        #: Bound on a frame's sum of squared distances from ``_centre`` (see POINT_RANGE).
+        self._range2 = k * (POINT_RANGE * radius) ** 2
+        #: A sum of squares of the points themselves up to this proves the bound without a
+        #: subtraction (RMS |x - c| <= RMS |x| + |c|), with room for float32 rounding: one
+        #: dot product for every ordinary frame instead of three calls.
+        slack = POINT_RANGE * radius - float(np.linalg.norm(self._centre))
+        self._fast2 = k * max(slack, 0.0) ** 2 * (1.0 - 1e-5)
+        self._radius = radius
         self._checksum: str | None = None
 
     @classmethod
@@ -361,8 +385,13 @@ class Rig:
             except (TypeError, ValueError):
                 w = None
             if w is not None:
+                # The kernel took it, so ``points`` is a finite (K, 3) float array. (float16
+                # squares overflow in float16: those frames take the exact check.)
+                if points.itemsize < 4 or not np.vdot(points, points) <= self._fast2:
+                    self._check_range(points[None], single=True)
                 return w
         x, single = self._points(points)
+        self._check_range(x, single=single)
         if align:
             reference = self.source_neutral if self.calibration is None else self.calibration
             x = align_points(x, reference, stable=self.stable_points, scale=self.align_scale)
@@ -379,6 +408,31 @@ class Rig:
             where = f" (frame {int(bad[0])})" if bad.size and not single else ""
             raise InputError(f"feature points hold NaN or Inf{where}", code="non_finite")
         return w[0] if single else w
+
+    def check_range(self, points) -> None:
+        """Raise ``InputError`` unless frames (K, 3) or (B, K, 3) are within POINT_RANGE.
+
+        ``weights`` checks this itself; for callers that pass frames on unevaluated.
+        """
+        x, single = self._points(points)
+        self._check_range(x, single=single)
+
+    def _check_range(self, x: np.ndarray, *, single: bool) -> None:
+        """Raise ``InputError`` for frames (B, K, 3) outside POINT_RANGE (or not finite)."""
+        d = x - self._centre
+        sums = np.einsum("bkc,bkc->b", d, d)
+        bad = np.flatnonzero(~(sums <= self._range2))
+        if not bad.size:
+            return
+        where = "" if single else f" (frame {int(bad[0])})"
+        if not np.isfinite(x[bad[0]]).all():
+            raise InputError(f"feature points hold NaN or Inf{where}", code="non_finite")
+        rms = float(np.sqrt(sums[bad[0]] / x.shape[1]))
+        raise InputError(
+            f"feature points{where} lie {rms:.3g} (RMS) from the neutral's centre, more than "
+            f"{POINT_RANGE:g}x its radius {self._radius:.3g}: are they in the rig's units?",
+            code="out_of_range",
+        )
 
     def blend(self, weights, *, out: np.ndarray | None = None) -> np.ndarray:
         """Target vertices for blend weights (eq. 3.14): T_B + sum_i w_i (T_i - T_B).
@@ -439,14 +493,35 @@ class Rig:
             )
         if not np.isfinite(neutral).all():
             raise InputError("calibration neutral holds NaN or Inf", code="non_finite")
+        self._check_calibration_range(neutral)
         rotation, scales, _ = similarity_transform(neutral[None], self.source_neutral, scale=scale)
         sr = scales[0] * rotation[0]  # x_row -> x_row @ sr.T
         matrix = np.kron(np.eye(k), sr.T)
         offset = (self.source_neutral - neutral @ sr.T).reshape(-1)
         # Replacing the input map (not composing it) re-calibrates from the original rig.
-        rig = self._derive(model=tuple(m.with_input_map(matrix, offset) for m in self.models))
-        rig.calibration = neutral
-        return rig
+        return self._derive(
+            model=tuple(m.with_input_map(matrix, offset) for m in self.models),
+            calibration=neutral,
+        )
+
+    def _check_calibration_range(self, neutral: np.ndarray) -> None:
+        """Refuse a neutral too far from, or too much larger or smaller than, the source's."""
+        source_centre, source_radius = _centre_radius(self.model.source_neutral)
+        _, radius = _centre_radius(neutral)
+        d = neutral - source_centre
+        distance = float(np.sqrt(np.vdot(d, d) / neutral.shape[0]))
+        limit = CALIBRATION_RANGE
+        if not distance <= limit * source_radius:
+            why = f"lies {distance:.3g} (RMS) from the source neutral's centre"
+        elif not source_radius / limit <= radius <= source_radius * limit:
+            why = f"has radius {radius:.3g}"
+        else:
+            return
+        raise InputError(
+            f"calibration neutral {why}; it must lie within {limit:g}x the source neutral's "
+            f"radius {source_radius:.3g} of its centre, with a radius within a factor {limit:g}",
+            code="out_of_range",
+        )
 
     def _derive(self, **changes) -> Rig:
         fields = dict(
@@ -522,3 +597,11 @@ class Rig:
             f"Rig(M={self.num_examples}, K={self.num_points}, V={self.num_vertices}, "
             f"kernel={self.model.kernel!r})"
         )
+
+
+def _centre_radius(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Centroid (3,) of points (K, 3) and their RMS distance from it (never 0)."""
+    centre = points.mean(axis=0)
+    d = points - centre
+    radius = float(np.sqrt(np.vdot(d, d) / points.shape[0]))
+    return centre, max(radius, float(np.finfo(np.float64).tiny))

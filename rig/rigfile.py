@@ -225,10 +225,26 @@ def rig_from_bytes(data: bytes, *, source: str = "rig", max_bytes: int = DEFAULT
             f"{source}: checksum mismatch: the rig file was modified or corrupted",
             code="checksum_mismatch",
         )
+    _check_finite(contents, source)
     try:
         return _build(meta, contents)
     except (KeyError, TypeError, ValueError, IndexError) as exc:
         raise RigFileError(f"{source}: inconsistent rig file ({exc})") from None
+
+
+def _check_finite(arrays: dict[str, np.ndarray], source: str) -> None:
+    """Refuse NaN or Inf in any float record: they would stream as NaN vertices or weights.
+
+    The checksum proves only that the file is as written, not that its writer was sane
+    (anyone can write a file with a valid checksum), so the values are checked too.
+    """
+    for name in sorted(arrays):
+        values = arrays[name]
+        if values.dtype.kind == "f" and not np.isfinite(values).all():
+            raise RigFileError(
+                f"{source}: record {name!r} holds NaN or Inf; a rig file must be finite",
+                code="rig_not_finite",
+            )
 
 
 def _build(meta: dict, a: dict[str, np.ndarray]) -> Rig:
@@ -296,6 +312,11 @@ def _build_model(meta: dict, a: dict[str, np.ndarray], prefix: str, index: int) 
     for key, shape in shapes.items():
         if a[prefix + key].shape != shape:
             raise ValueError(f"{prefix}{key} has shape {a[prefix + key].shape}, expected {shape}")
+    if not (a[prefix + "alpha"] > 0).all():
+        raise ValueError(f"{prefix}alpha must be > 0")
+    ridge = float(meta.get("ridge", [0.0] * (index + 1))[index])
+    if not np.isfinite(ridge) or ridge < 0:
+        raise ValueError(f"ridge must be a finite number >= 0, got {ridge}")
     clamp = meta.get("clamp")
     if clamp not in (None, "nonneg", "unit"):
         raise ValueError(f"unknown clamp mode {clamp!r}")
@@ -304,7 +325,7 @@ def _build_model(meta: dict, a: dict[str, np.ndarray], prefix: str, index: int) 
     return WeightModel.build(
         kernel=str(meta["kernel"]),
         clamp=clamp,
-        ridge=float(meta.get("ridge", [0.0] * (index + 1))[index]),
+        ridge=ridge,
         sparsity_penalty=_penalty(meta, index),
         **{key: a.get(prefix + key) for key in _MODEL_KEYS},
     )

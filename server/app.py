@@ -19,15 +19,17 @@ import anyio
 from fastapi import FastAPI, Request, Response
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse
+from starlette.middleware.cors import CORSMiddleware
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from facecast import __version__
 
-from .auth import authorize, token_from_request
+from .auth import authorize_page, authorize_request
 from .channel_routes import router as channel_router
 from .errors import install_error_handlers, problem
 from .hub import ChannelHub
 from .metrics import CONTENT_TYPE_LATEST, Metrics
+from .origins import OriginGuard
 from .performer_routes import profile_store
 from .performer_routes import router as performer_router
 from .rest import router as rest_router
@@ -83,6 +85,7 @@ def create_app(settings: Settings) -> FastAPI:
             await app.state.channels.close()
             app.state.clone_executor.shutdown(wait=False, cancel_futures=True)
             app.state.fit_executor.shutdown(wait=False, cancel_futures=True)
+            await anyio.to_thread.run_sync(app.state.store.close)
             log.info("server stopped", extra={"event": "server.stop", "pid": os.getpid()})
 
     app = FastAPI(
@@ -105,7 +108,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.sessions = SessionRegistry()
     app.state.channels = ChannelHub(settings, app.state.store, app.state.metrics)
     app.state.pending_fits = 0
-    app.state.profiles = profile_store(settings)
+    app.state.profiles = profile_store(settings, app.state.store)
     install_error_handlers(app)
     app.include_router(rest_router)
     app.include_router(stream_router)
@@ -114,6 +117,17 @@ def create_app(settings: Settings) -> FastAPI:
     _add_ops_routes(app)
     _add_docs_routes(app)
     mount_viewer(app, settings)
+    # Added innermost first: access log > Host/Origin checks > CORS > routes.
+    if settings.allowed_origins:
+        # Pages of these origins (a viewer pointed here with server=) may read the API.
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=list(settings.allowed_origins),
+            allow_methods=["GET", "PUT", "DELETE"],
+            allow_headers=["Authorization", "Content-Type"],
+            max_age=600,
+        )
+    app.add_middleware(OriginGuard, settings=settings)
     app.add_middleware(_AccessLog, metrics=app.state.metrics, enabled=settings.access_log)
     return app
 
@@ -147,7 +161,7 @@ def _add_ops_routes(app: FastAPI) -> None:
     async def metrics(request: Request) -> Response:
         settings: Settings = request.app.state.settings
         if settings.metrics_auth:
-            authorize(settings, token_from_request(request), ("admin",))
+            authorize_request(request, ("admin",))
         body = await anyio.to_thread.run_sync(request.app.state.metrics.render)
         return Response(body, media_type=CONTENT_TYPE_LATEST)
 
@@ -157,22 +171,28 @@ def _docs_token(request: Request) -> str | None:
 
     Returns the query token, which the docs page must hand on to its schema request.
     """
-    query = request.query_params.get("token")
-    authorize(request.app.state.settings, token_from_request(request) or query, ROLES)
+    _, query = authorize_page(request, ROLES)
     return query
+
+
+#: Headers of the pages that may carry ``?token=`` in their URL: never sent on in a
+#: Referer (the docs page loads Swagger UI from a CDN) and never cached.
+_TOKEN_PAGE_HEADERS = {"Referrer-Policy": "no-referrer", "Cache-Control": "no-store"}
 
 
 def _add_docs_routes(app: FastAPI) -> None:
     @app.get("/openapi.json", include_in_schema=False)
     async def openapi(request: Request) -> JSONResponse:
         _docs_token(request)
-        return JSONResponse(request.app.openapi())
+        return JSONResponse(request.app.openapi(), headers=_TOKEN_PAGE_HEADERS)
 
     @app.get("/docs", include_in_schema=False)
     async def docs(request: Request) -> HTMLResponse:
         token = _docs_token(request)
         schema = "/openapi.json" if token is None else f"/openapi.json?token={quote(token)}"
-        return get_swagger_ui_html(openapi_url=schema, title="facecast API")
+        page = get_swagger_ui_html(openapi_url=schema, title="facecast API")
+        page.headers.update(_TOKEN_PAGE_HEADERS)
+        return page
 
 
 class _AccessLog:

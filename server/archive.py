@@ -18,6 +18,11 @@ from pathlib import Path, PurePosixPath
 __all__ = ["ArchiveError", "ArchiveLimits", "extract_archive", "find_example_root"]
 
 _CHUNK = 1 << 16
+#: Longest path component (bytes of UTF-8): NAME_MAX of every common file system.
+MAX_NAME_BYTES = 255
+#: Longest member path (bytes of UTF-8) below the destination: far under PATH_MAX (4096)
+#: whatever the destination's own path, and ample for any example set.
+MAX_PATH_BYTES = 1024
 #: Below this many extracted bytes the ratio check is off: tar's block padding alone
 #: makes small, legitimate archives compress far beyond any sane bomb threshold.
 _RATIO_FLOOR = 1 << 20
@@ -90,17 +95,50 @@ def _safe_relative(name: str) -> PurePosixPath | None:
     parts = [p for p in name.split("/") if p not in ("", ".")]
     if bad or ".." in parts:
         raise ArchiveError(
-            400, "unsafe_archive_member", f"archive member {name!r} has an unsafe path"
+            400, "unsafe_archive_member", f"archive member {name[:80]!r} has an unsafe path"
+        )
+    encoded = [p.encode("utf-8", "surrogateescape") for p in parts]
+    if any(len(p) > MAX_NAME_BYTES for p in encoded) or len(b"/".join(encoded)) > MAX_PATH_BYTES:
+        raise ArchiveError(
+            400,
+            "archive_member_name_too_long",
+            f"archive member {name[:80]!r}... has a path over {MAX_PATH_BYTES} bytes or a name "
+            f"over {MAX_NAME_BYTES}",
         )
     return PurePosixPath(*parts) if parts else None
 
 
+def _conflict(relative: PurePosixPath) -> ArchiveError:
+    return ArchiveError(
+        400,
+        "archive_member_conflict",
+        f"archive member {str(relative)[:80]!r} clashes with another: a file and a folder "
+        "of the same name",
+    )
+
+
+def _make_dir(dest: Path, relative: PurePosixPath) -> None:
+    try:
+        dest.joinpath(*relative.parts).mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        # "x" is a file and "x/" or "x/y/" wants it as a folder.
+        raise _conflict(relative) from None
+
+
 def _write_member(dest: Path, relative: PurePosixPath, source, budget: _Budget) -> None:
+    if relative.parent.parts:
+        _make_dir(dest, relative.parent)
     target = dest.joinpath(*relative.parts)
-    if target.exists():
-        raise ArchiveError(400, "duplicate_archive_member", f"archive member {relative} twice")
-    target.parent.mkdir(parents=True, exist_ok=True)
-    with target.open("wb") as out:
+    if target.is_dir():
+        raise _conflict(relative)
+    try:
+        # "x" (O_EXCL): a member twice is refused, never silently overwritten.
+        out = target.open("xb")
+    except FileExistsError:
+        raise ArchiveError(
+            400, "duplicate_archive_member", f"archive member {str(relative)[:80]!r} twice"
+        ) from None
+    with out:
         while chunk := source.read(_CHUNK):
             budget.consume(len(chunk))
             out.write(chunk)
@@ -129,7 +167,7 @@ def _extract_zip(data: bytes, dest: Path, budget: _Budget) -> None:
                 )
             if info.is_dir() or kind == stat.S_IFDIR:
                 if relative is not None:
-                    dest.joinpath(*relative.parts).mkdir(parents=True, exist_ok=True)
+                    _make_dir(dest, relative)
                 continue
             if relative is None:
                 raise ArchiveError(400, "unsafe_archive_member", "archive member with no name")
@@ -191,7 +229,7 @@ def _extract_tar(data: bytes, dest: Path, budget: _Budget, compressed: bool) -> 
                 relative = _safe_relative(member.name)
                 if member.isdir():
                     if relative is not None:
-                        dest.joinpath(*relative.parts).mkdir(parents=True, exist_ok=True)
+                        _make_dir(dest, relative)
                     continue
                 if not member.isreg():
                     raise ArchiveError(
@@ -205,9 +243,7 @@ def _extract_tar(data: bytes, dest: Path, budget: _Budget, compressed: bool) -> 
                 if source is None:  # pragma: no cover - isreg() members always have data
                     continue
                 _write_member(dest, relative, source, budget)
-    except (tarfile.TarError, gzip.BadGzipFile, zlib.error, EOFError, OSError) as exc:
-        if isinstance(exc, ArchiveError):  # pragma: no cover - ArchiveError is not OSError
-            raise
+    except (tarfile.TarError, gzip.BadGzipFile, zlib.error, EOFError) as exc:
         raise ArchiveError(400, "bad_archive", f"not a readable tar archive ({exc})") from None
 
 

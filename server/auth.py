@@ -1,7 +1,11 @@
 """API-token auth: who is calling (token -> roles) and whether a role may use an endpoint.
 
-Tokens come from ``Settings.tokens``; compared in constant time. This module decides,
-it does not send responses: callers turn ``ApiError`` into 401/403 or a WS close 1008.
+Tokens come from ``Settings.tokens``; compared in constant time. REST endpoints take the
+token from the ``Authorization: Bearer`` header only; ``?token=`` is refused there with
+its own code (URLs end up in logs, histories and Referer headers), and accepted only by
+the pages a browser opens by URL (``/docs``, ``/openapi.json``: ``authorize_page``) and by
+WebSockets (PROTOCOL.md §2.2). This module decides, it does not send responses: callers
+turn ``ApiError`` into 401/403 or a WS close 1008.
 """
 
 from __future__ import annotations
@@ -20,6 +24,8 @@ __all__ = [
     "READ_ROLES",
     "Principal",
     "authorize",
+    "authorize_page",
+    "authorize_request",
     "requires",
     "token_from_request",
 ]
@@ -100,7 +106,37 @@ def _bearer(value: str | None) -> str | None:
 
 
 def token_from_request(request: Request) -> str | None:
+    """The bearer token of the ``Authorization`` header (the only place REST reads one)."""
     return _bearer(request.headers.get("authorization"))
+
+
+def authorize_request(request: Request, roles: Iterable[str]) -> Principal:
+    """The caller of a REST request, by its ``Authorization`` header (see the module doc).
+
+    Raises ``ApiError`` as ``authorize`` does, and 401 ``token_in_query`` when auth is on
+    and the token came as ``?token=`` instead (it is not used, so no URL carries it).
+    """
+    settings: Settings = request.app.state.settings
+    token = token_from_request(request)
+    if token is None and settings.auth_enabled and "token" in request.query_params:
+        raise ApiError(
+            401,
+            "token_in_query",
+            "this endpoint takes the token as 'Authorization: Bearer TOKEN' only; ?token= is "
+            "accepted by /docs and WebSockets, where no header can be set",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
+    return authorize(settings, token, roles)
+
+
+def authorize_page(request: Request, roles: Iterable[str]) -> tuple[Principal, str | None]:
+    """The caller of a page a browser opens by URL: header, else ``?token=``.
+
+    Returns the query token too, for a page that must hand it on to its own requests.
+    """
+    query = request.query_params.get("token")
+    token = token_from_request(request) or query
+    return authorize(request.app.state.settings, token, roles), query
 
 
 def requires(*roles: str) -> Callable[[Request], Principal]:
@@ -110,8 +146,7 @@ def requires(*roles: str) -> Callable[[Request], Principal]:
         raise ValueError(f"unknown roles {unknown}")
 
     def dependency(request: Request) -> Principal:
-        settings: Settings = request.app.state.settings
-        principal = authorize(settings, token_from_request(request), roles)
+        principal = authorize_request(request, roles)
         request.state.principal = principal
         return principal
 

@@ -14,6 +14,7 @@ from collections.abc import Mapping
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Request, WebSocket
+from starlette.convertors import Convertor, register_url_convertor
 
 from facecast.protocol import (
     PUBLISH_PATH,
@@ -48,6 +49,25 @@ router = APIRouter(tags=["channels"])
 Viewer = Annotated[Principal, Depends(requires("viewer"))]
 
 MAX_NAME = 256
+
+
+class _ChannelName(Convertor[str]):
+    """``{name:channel}``: any characters, ``/`` and line breaks included (PROTOCOL.md §2.1).
+
+    Starlette's own ``path`` convertor is ``.*``, which stops at a newline: a name with
+    CR/LF matched no route and got a bare 403 instead of its channel.
+    """
+
+    regex = "(?s:.*)"
+
+    def convert(self, value: str) -> str:
+        return value
+
+    def to_string(self, value: str) -> str:
+        return value
+
+
+register_url_convertor("channel", _ChannelName())
 #: A refused publisher gets this long to send its hello, so it reads the error (see stream).
 _REFUSE_WAIT = 1.0
 
@@ -134,7 +154,7 @@ async def _serve(websocket: WebSocket, member: Member, subprotocol: str | None) 
         await member.leave()  # idempotent; covers a failed accept
 
 
-@router.websocket(PUBLISH_PATH.replace("{name}", "{name:path}"))
+@router.websocket(PUBLISH_PATH.replace("{name}", "{name:channel}"))
 async def publish(websocket: WebSocket, name: str) -> None:
     """The channel's one publisher: ``hello`` then frames (PROTOCOL.md §2.1, §5.1)."""
     hub: ChannelHub = websocket.app.state.channels
@@ -150,7 +170,7 @@ async def publish(websocket: WebSocket, name: str) -> None:
     await _serve(websocket, member, subprotocol)
 
 
-@router.websocket(WATCH_PATH.replace("{name}", "{name:path}"))
+@router.websocket(WATCH_PATH.replace("{name}", "{name:channel}"))
 async def watch(websocket: WebSocket, name: str) -> None:
     """A viewer of channel ``name`` on one rig (query ``rig``, ``output``, ``dtype``).
 
@@ -199,7 +219,7 @@ async def list_channels(request: Request, _: Viewer) -> dict[str, Any]:
     return {"channels": await hub.list()}
 
 
-@router.get("/v1/channels/{name:path}", summary="One channel's figures")
+@router.get("/v1/channels/{name:channel}", summary="One channel's figures")
 async def channel_info(name: str, request: Request, _: Viewer) -> dict[str, Any]:
     hub: ChannelHub = request.app.state.channels
     info = await hub.info(name)

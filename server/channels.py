@@ -13,9 +13,10 @@ import time
 from collections import deque
 from typing import TYPE_CHECKING, Any
 
-from facecast.protocol import ChannelIdle, ChannelLive, ErrorCode, FaceLost, ProtocolError, encode
+from facecast.protocol import ChannelIdle, ChannelLive, FaceLost, ProtocolError, encode
 from facecast.rig.errors import InputError
 
+from .cloning import frame_error
 from .fanout import ChannelFrame, Key, KeyState, PointsKeyState, key_state
 
 if TYPE_CHECKING:
@@ -272,24 +273,8 @@ class Channel:
         ]
         results = await asyncio.gather(*futures, return_exceptions=True)
         for state, data in zip(states, results, strict=True):
-            if isinstance(data, InputError):
-                publisher = self.publisher
-                if publisher is not None and publisher.key == state.key:
-                    error = ProtocolError(ErrorCode.INVALID_ARRAY,
-                                          f"frame cannot be cloned: {data}", seq=frame.seq)  # fmt: skip
-                    publisher.report(error)
-                elif not state.failing:
-                    # Another rig's problem (e.g. its K differs from the layout rig's):
-                    # its watchers are told once per streak; the publisher is not.
-                    log.warning("frame does not fit a watched rig",
-                                extra={"event": "channel.rig_mismatch", "channel": self.name,
-                                       "rig": state.rig_id, "error": str(data)})  # fmt: skip
-                    error = ProtocolError(ErrorCode.WRONG_POINT_COUNT,
-                                          f"the channel's frames do not fit rig {state.rig_id!r}: "
-                                          f"{data}", seq=frame.seq)  # fmt: skip
-                    for member in self.watchers(state.key):
-                        member.offer(encode(error.to_message()))
-                state.failing = True
+            if isinstance(data, InputError | ProtocolError):
+                self._clone_refused(state, frame, data)
                 continue
             if isinstance(data, BaseException):
                 log.error("clone failed", exc_info=data,
@@ -309,6 +294,30 @@ class Channel:
             self.hub.clones_counter.inc(cloned)
         else:
             self.catchup_clones += cloned
+
+    def _clone_refused(
+        self, state: KeyState | PointsKeyState, frame: ChannelFrame, exc: InputError | ProtocolError
+    ) -> None:
+        """Tell who must know that ``frame`` gave no result for ``state``'s key."""
+        # A ProtocolError here is RESULT_NOT_FINITE: the frame overflows this key's dtype.
+        error = frame_error(exc, frame.seq) if isinstance(exc, InputError) else exc
+        publisher = self.publisher
+        if publisher is not None and publisher.key == state.key:
+            publisher.report(error)
+        elif not state.failing:
+            # Another rig's problem (its K differs from the layout rig's, or the frame
+            # overflows its dtype): its watchers are told once per streak; the publisher
+            # is not.
+            log.warning("frame does not fit a watched rig",
+                        extra={"event": "channel.rig_mismatch", "channel": self.name,
+                               "rig": state.rig_id, "error": str(exc)})  # fmt: skip
+            message = f"the channel's frames do not fit rig {state.rig_id!r}: {exc}"
+            if isinstance(exc, ProtocolError):
+                message = f"rig {state.rig_id!r}: {exc.message}"
+            notice = ProtocolError(error.code, message, seq=frame.seq)
+            for member in self.watchers(state.key):
+                member.offer(encode(notice.to_message()))
+        state.failing = True
 
     # -- figures -------------------------------------------------------------------------
     def snapshot(self) -> None:

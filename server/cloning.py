@@ -10,11 +10,19 @@ from typing import Any
 
 import numpy as np
 
-from facecast.protocol import Frame, Hello
+from facecast.protocol import ErrorCode, Frame, Hello, ProtocolError
+from facecast.rig.errors import InputError
 from facecast.rig.filters import OneEuroFilter
 from facecast.rig.kernel import to_float16
 
-__all__ = ["Outputs", "Smoother", "blend_seconds", "clone_frame", "frame_weights"]
+__all__ = [
+    "Outputs",
+    "Smoother",
+    "blend_seconds",
+    "clone_frame",
+    "frame_error",
+    "frame_weights",
+]
 
 _RESULT_DTYPES = {"f32": np.float32, "f16": np.float16}
 #: Cold-cache cost per vertex coordinate (this machine, one BLAS thread): a blend reads
@@ -22,6 +30,12 @@ _RESULT_DTYPES = {"f32": np.float32, "f16": np.float16}
 #: casting to f16 plus encoding and sending the result cost ~3 ns.
 _SECONDS_PER_MAC = 0.16e-9
 _SECONDS_PER_COORDINATE = 3e-9
+#: The protocol error (§6.1) for each ``InputError`` code a rig raises about a frame.
+_INPUT_ERRORS = {
+    "out_of_range": ErrorCode.POINTS_OUT_OF_RANGE,
+    "non_finite": ErrorCode.NON_FINITE,
+    "wrong_point_count": ErrorCode.WRONG_POINT_COUNT,
+}
 
 
 class Smoother:
@@ -60,6 +74,12 @@ class Outputs:
         self.wire = (
             np.empty((num_vertices, 3), np.float16) if vertices and hello.dtype == "f16" else None
         )
+
+
+def frame_error(exc: InputError, seq: int | None, prefix: str = "frame") -> ProtocolError:
+    """The non-fatal protocol error telling a client why its frame has no result."""
+    code = _INPUT_ERRORS.get(exc.code, ErrorCode.INVALID_ARRAY)
+    return ProtocolError(code, f"{prefix} cannot be cloned: {exc}", seq=seq)
 
 
 def blend_seconds(num_vertices: int, num_examples: int) -> float:

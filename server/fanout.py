@@ -17,6 +17,7 @@ import msgpack
 import numpy as np
 
 from facecast.protocol import Result, Smoothing, array_from_wire, array_to_wire, encode
+from facecast.protocol.arrays import check_result_finite
 from facecast.rig.errors import InputError, RigError
 from facecast.rig.filters import OneEuroFilter
 
@@ -189,7 +190,8 @@ class KeyState(_Key):
         ``arrived`` is the ``perf_counter`` when the frame reached this process (for
         ``proc_us``); ``count`` is False for a late joiner's catch-up clone.
 
-        Raises ``InputError`` (RigError) when the points cannot be evaluated.
+        Raises ``InputError`` (RigError) when the points cannot be evaluated, and
+        ``ProtocolError`` (RESULT_NOT_FINITE) when the result overflows this key's dtype.
         """
         with self._lock:
             rig = self._rig(frame)
@@ -221,11 +223,14 @@ class KeyState(_Key):
         self, rig: Any, weights: np.ndarray, seq: int, ts: float, dropped: int, arrived: float
     ) -> bytes:
         dtype = _DTYPES[self.dtype]
-        if self.output == "weights":
-            values = weights.astype(dtype)
-        else:
-            vertices = rig.blend(weights)
-            values = vertices if dtype is np.float32 else vertices.astype(dtype)
+        # An overflow to infinity is caught below, as RESULT_NOT_FINITE, not warned about.
+        with np.errstate(over="ignore"):
+            if self.output == "weights":
+                values = weights.astype(dtype)
+            else:
+                vertices = rig.blend(weights)
+                values = vertices if dtype is np.float32 else vertices.astype(dtype)
+        check_result_finite(values, f"result.{self.output}", seq)
         result = Result(
             seq=seq,
             ts=ts,
@@ -258,10 +263,12 @@ class PointsKeyState(_Key):
                 f"{self.rig.num_points}",
                 code="wrong_point_count",
             )
+        values = np.asarray(points, dtype=_DTYPES[self.dtype])
+        check_result_finite(values, "result.points", frame.seq)  # f64 beyond f32's range
         result = Result(
             seq=frame.seq,
             ts=frame.ts,
-            points=np.asarray(points, dtype=_DTYPES[self.dtype]),
+            points=values,
             proc_us=max(0, int((time.perf_counter() - arrived) * 1e6)),
             dropped=frame.dropped,
             server_ts=time.time(),

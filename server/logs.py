@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import time
 from typing import Any
 
@@ -35,6 +36,44 @@ class _DropWebSocketChatter(logging.Filter):
             message in ("connection open", "connection closed")
             or message.endswith(('" [accepted]', '" 403'))
         )
+
+
+#: uvicorn records about a client's own fault, by message: (our event name, why). uvicorn
+#: logs them at error level with a traceback although it answered them correctly.
+_CLIENT_FAULTS = {
+    # websockets-sansio, on invalid UTF-8 in a text frame; it then closes with 1007 as
+    # RFC 6455 §8.1 says (the legacy implementation does so without a word).
+    "Invalid UTF-8 sequence received from client.": "ws.invalid_utf8",
+}
+
+
+class _DemoteClientFaults(logging.Filter):
+    """Log what a client did wrong at info, without a traceback: it is not our failure."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        event = _CLIENT_FAULTS.get(record.getMessage())
+        if event is not None and record.levelno > logging.INFO:
+            record.levelno, record.levelname = logging.INFO, "INFO"
+            record.exc_info, record.exc_text = None, None
+            record.event = event
+        return True
+
+
+class _RedactQueryTokens(logging.Filter):
+    """Blank ``token=...`` in uvicorn's messages (they quote request paths with queries).
+
+    PROTOCOL.md §2.2 allows ``?token=`` on WebSockets; whatever uvicorn says about such a
+    connection (an error, a refusal) must not write the token into the logs.
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        if "token=" in message:
+            record.msg, record.args = _QUERY_TOKEN.sub(r"\1[redacted]", message), ()
+        return True
+
+
+_QUERY_TOKEN = re.compile(r"([?&]token=)[^&\s\"']*")
 
 
 class JsonFormatter(logging.Formatter):
@@ -68,18 +107,25 @@ def uvicorn_log_config(level: str) -> dict[str, Any]:
         "version": 1,
         "disable_existing_loggers": False,
         "formatters": {"json": {"()": JsonFormatter}},
-        "filters": {"quiet_ws": {"()": _DropWebSocketChatter}},
+        "filters": {
+            "quiet_ws": {"()": _DropWebSocketChatter},
+            "client_faults": {"()": _DemoteClientFaults},
+            "no_tokens": {"()": _RedactQueryTokens},
+        },
         "handlers": {
             "stderr": {
                 "class": "logging.StreamHandler",
                 "formatter": "json",
                 "stream": "ext://sys.stderr",
-                "filters": ["quiet_ws"],
             }
         },
         "loggers": {
             "uvicorn": {"handlers": ["stderr"], "level": level, "propagate": False},
-            "uvicorn.error": {"level": level},
+            # On the logger, not the handler: every handler sees only what is left.
+            "uvicorn.error": {
+                "level": level,
+                "filters": ["quiet_ws", "client_faults", "no_tokens"],
+            },
             "uvicorn.access": {"handlers": [], "level": "WARNING", "propagate": False},
             "facecast": {"handlers": ["stderr"], "level": level, "propagate": False},
         },

@@ -29,9 +29,10 @@ from facecast.protocol import (
     ServerProtocol,
     close_code,
 )
-from facecast.rig.errors import RigError
+from facecast.rig.errors import InputError, RigError
 from facecast.rig.filters import OneEuroFilter
 
+from .cloning import frame_error
 from .fanout import ChannelFrame
 from .outbox import Closing, Member
 from .ratelimit import TokenBucket
@@ -103,6 +104,9 @@ class PublisherMember(Member):
         self._point_filter: OneEuroFilter | None = None
         self._neutral: np.ndarray | None = None
         self._neutral_id = ""
+        #: The layout rig as the frames see it (calibrated once a neutral is captured):
+        #: what their range is checked against before they reach the channel.
+        self._range_rig: Any = None
         self._calibrate_next = False
 
     async def _read_loop(self) -> None:
@@ -134,6 +138,7 @@ class PublisherMember(Member):
         rig = await self.hub.load_rig(hello.rig)
         channel = await self.hub.claim(self.name, self)  # raises CHANNEL_BUSY / OVERLOADED
         self.hello, self._rig, self.channel = hello, rig, channel
+        self._range_rig = rig
         self.key = (hello.rig, hello.output, hello.dtype)
         if hello.smoothing is not None and hello.smoothing.target == "points":
             sm = hello.smoothing
@@ -165,6 +170,13 @@ class PublisherMember(Member):
             self._calibrate_next = False
             if await self._set_neutral(points, frame.seq):
                 self.offer(self.protocol.send(Calibrated(active=True, seq=frame.seq)))
+        try:
+            # Refused here, a frame far outside the layout rig's range (wrong units) never
+            # reaches the channel, whose every watched rig would make garbage of it.
+            self._range_rig.check_range(points)
+        except InputError as exc:
+            self.report(frame_error(exc, frame.seq))
+            return
         if self._point_filter is not None:
             points = self._point_filter(np.asarray(points, dtype=np.float64).reshape(-1), frame.ts)
             points = points.reshape(frame.points.shape)
@@ -188,11 +200,12 @@ class PublisherMember(Member):
         loop = asyncio.get_running_loop()
         try:
             # Checks the neutral on the publisher's rig; every key re-bases its own.
-            await loop.run_in_executor(self.hub.executor, self._rig.calibrated, points)
+            calibrated = await loop.run_in_executor(self.hub.executor, self._rig.calibrated, points)
         except RigError as exc:
             self.report(ProtocolError(ErrorCode.CALIBRATION_FAILED,
                                       f"calibration failed: {exc}", seq=seq))  # fmt: skip
             return False
+        self._range_rig = calibrated
         self._neutral = np.array(points, copy=True)
         self._neutral_id = secrets.token_hex(6)
         return True
@@ -201,6 +214,7 @@ class PublisherMember(Member):
         if message.reset:
             self._calibrate_next = False
             self._neutral, self._neutral_id = None, ""
+            self._range_rig = self._rig
             self.offer(self.protocol.send(Calibrated(active=False)))
         elif message.points is None:
             self._calibrate_next = True

@@ -3,7 +3,7 @@
 ``PUT /v1/rigs/{id}/performer/{performer}`` takes a capture and stores the rig
 ``{id}@{performer}`` and the performer's profile; ``/v1/performers/{performer}`` shows,
 refits (onto another character) or deletes that profile. Thin handlers: parsing and
-files in threads, fitting in the fit executor (``rest.run_fit``). See server/SERVER.md.
+files in threads, fitting in the fit executor (``rest.run_fit``, holding a ``rest.fit_slot``). See server/SERVER.md.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from facecast.rig.retarget import NEUTRAL, fit_performer, shared_names
 from .auth import Principal, requires
 from .errors import ApiError
 from .performers import Capture, PerformerProfile, ProfileNotFoundError, ProfileStore, parse_capture
-from .rest import check_fit_capacity, read_body, run_fit
+from .rest import fit_slot, read_body, run_fit
 from .settings import Settings
 from .store import NAME_PATTERN, RigNotFoundError, RigStore, performer_rig_id, valid_name
 
@@ -38,9 +38,13 @@ PROFILES_DIR = "performers"
 Performer = Annotated[Principal, Depends(requires("performer"))]
 
 
-def profile_store(settings: Settings) -> ProfileStore:
+def profile_store(settings: Settings, rigs: RigStore) -> ProfileStore:
     """The app's profile store: ``performers/`` in the rig store (built by ``create_app``)."""
-    return ProfileStore(settings.rigs_dir / PROFILES_DIR, max_bytes=settings.max_capture_bytes)
+    return ProfileStore(
+        settings.rigs_dir / PROFILES_DIR,
+        max_bytes=settings.max_capture_bytes,
+        scratch=lambda: rigs.scratch,
+    )
 
 
 def _profiles(request: Request) -> ProfileStore:
@@ -161,14 +165,14 @@ async def put_performer(
 ) -> JSONResponse:
     _check_rig_id(rig_id)
     _check_performer(performer)
-    check_fit_capacity(request)
-    data = await read_body(request, request.app.state.settings.max_capture_bytes)
-    capture = await anyio.to_thread.run_sync(
-        parse_capture, data, request.headers.get("content-type")
-    )
-    described, created = await _fit_and_store(
-        request, rig_id, performer, capture, principal.name, refit=False
-    )
+    with fit_slot(request):
+        data = await read_body(request, request.app.state.settings.max_capture_bytes)
+        capture = await anyio.to_thread.run_sync(
+            parse_capture, data, request.headers.get("content-type")
+        )
+        described, created = await _fit_and_store(
+            request, rig_id, performer, capture, principal.name, refit=False
+        )
     profile = PerformerProfile(performer=performer, rig=rig_id, capture=capture)
     await anyio.to_thread.run_sync(_profiles(request).put, profile)
     return JSONResponse(described, status_code=201 if created else 200)
@@ -204,9 +208,10 @@ async def refit_performer(
 ) -> JSONResponse:
     _check_rig_id(rig)
     profile = await _profile(request, performer)
-    described, created = await _fit_and_store(
-        request, rig, performer, profile.capture, principal.name, refit=True
-    )
+    with fit_slot(request):
+        described, created = await _fit_and_store(
+            request, rig, performer, profile.capture, principal.name, refit=True
+        )
     return JSONResponse(described, status_code=201 if created else 200)
 
 

@@ -11,6 +11,7 @@ import contextlib
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -258,9 +259,11 @@ class ProfileStore:
     ``ValueError``). A file that does not validate on load is a ``ValueError`` too.
     """
 
-    def __init__(self, directory: Path, *, max_bytes: int) -> None:
+    def __init__(self, directory: Path, *, max_bytes: int, scratch: Callable[[], Path]) -> None:
         self.directory = Path(directory)
         self.max_bytes = max_bytes
+        # The rig store's scratch folder (claimed on first use), for temp files of writes.
+        self._scratch = scratch
 
     def _path(self, performer: str) -> Path:
         if not valid_name(performer):
@@ -285,7 +288,12 @@ class ProfileStore:
         """Store (replace) the profile; returns whether it is new."""
         self._path(profile.performer)
         self.directory.mkdir(parents=True, exist_ok=True)
-        return write_atomically(self.directory, f"{profile.performer}{_SUFFIX}", profile.to_bytes())
+        return write_atomically(
+            self.directory,
+            f"{profile.performer}{_SUFFIX}",
+            profile.to_bytes(),
+            scratch=self._scratch(),
+        )
 
     def delete(self, performer: str) -> None:
         path = self._path(performer)

@@ -7,9 +7,10 @@ file and numeric work in threads (store I/O in anyio's pool, fitting in its own 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -23,7 +24,7 @@ from .errors import ApiError
 from .settings import Settings
 from .store import RIG_ID_PATTERN, RigNotFoundError, RigStore, valid_rig_id
 
-__all__ = ["check_fit_capacity", "read_body", "router", "run_fit"]
+__all__ = ["fit_slot", "read_body", "router", "run_fit"]
 
 log = logging.getLogger("facecast.server.rest")
 
@@ -41,6 +42,10 @@ def _store(request: Request) -> RigStore:
 
 def _settings(request: Request) -> Settings:
     return request.app.state.settings
+
+
+def _scratch(request: Request) -> Path:
+    return _store(request).scratch
 
 
 def _check_id(rig_id: str) -> str:
@@ -85,29 +90,35 @@ async def read_body(request: Request, limit: int) -> bytes:
     return b"".join(chunks)
 
 
-def check_fit_capacity(request: Request) -> None:
-    """503 ``server_busy`` when ``max_pending_fits`` fits are already running or queued."""
-    settings = _settings(request)
-    if request.app.state.pending_fits >= settings.max_pending_fits:
+@contextlib.contextmanager
+def fit_slot(request: Request) -> Iterator[None]:
+    """Hold one of ``max_pending_fits`` fit slots, or raise 503 ``server_busy``.
+
+    Check and count happen together on the event loop (no await between), so no number
+    of simultaneous requests can get past the limit. Take it before reading the body:
+    concurrent uploads then cannot buffer more bodies than there are fits.
+    """
+    state = request.app.state
+    limit = _settings(request).max_pending_fits
+    if state.pending_fits >= limit:
         raise ApiError(
             503,
             "server_busy",
-            f"{settings.max_pending_fits} fits are already running or queued; retry later",
+            f"{limit} fits are already running or queued; retry later",
             headers={"Retry-After": "5"},
         )
+    state.pending_fits += 1
+    try:
+        yield
+    finally:
+        state.pending_fits -= 1
 
 
 async def run_fit(request: Request, job: Callable[[], Any]) -> Any:
-    """Run ``job`` (a fit) in the app's fit executor, counted against ``max_pending_fits``."""
-    check_fit_capacity(request)
-    state = request.app.state
-    state.pending_fits += 1
-    try:
-        # Fitting is seconds of numpy: it runs in the dedicated fit executor, never on the
-        # event loop and never in the pool that clones frames.
-        return await asyncio.wrap_future(state.fit_executor.submit(job))
-    finally:
-        state.pending_fits -= 1
+    """Run ``job`` (a fit) in the app's fit executor; the caller holds a ``fit_slot``."""
+    # Fitting is seconds of numpy: it runs in the dedicated fit executor, never on the
+    # event loop and never in the pool that clones frames.
+    return await asyncio.wrap_future(request.app.state.fit_executor.submit(job))
 
 
 def _described(rig_id: str, rig: Any) -> dict[str, Any]:
@@ -188,29 +199,27 @@ async def put_examples(
             "sparsity_without_clamp",
             "sparsity is a prior on bounded weights: it needs clamp 'nonneg' or 'unit'",
         )
-    check_fit_capacity(request)
     settings = _settings(request)
     limits = ArchiveLimits(
         max_members=settings.max_archive_members,
         max_extracted_bytes=settings.max_extracted_bytes,
         max_compression_ratio=settings.max_compression_ratio,
     )
-    data = await read_body(request, settings.max_upload_bytes)
-    job = _FitJob(
-        data,
-        limits,
-        {
-            "noise": noise,
-            "pca_threshold": pca_threshold,
-            "kernel": kernel,
-            "clamp": clamp,
-            "sparsity": sparsity,
-        },
-    )
-    try:
-        rig = await run_fit(request, job)
-    except ArchiveError as exc:
-        raise ApiError(exc.status, exc.code, str(exc)) from None
+    options = {
+        "noise": noise,
+        "pca_threshold": pca_threshold,
+        "kernel": kernel,
+        "clamp": clamp,
+        "sparsity": sparsity,
+    }
+    with fit_slot(request):
+        # The slot is held from before the body is read: concurrent uploads cannot all
+        # pass the check while none is counted yet, nor buffer more bodies than fits.
+        data = await read_body(request, settings.max_upload_bytes)
+        try:
+            rig = await run_fit(request, _FitJob(data, limits, options, _scratch(request)))
+        except ArchiveError as exc:
+            raise ApiError(exc.status, exc.code, str(exc)) from None
     created = await anyio.to_thread.run_sync(_store(request).put_rig, rig_id, rig)
     log.info(
         "rig fitted",
@@ -234,9 +243,14 @@ async def put_examples(
 class _FitJob:
     """Extract, load and fit one uploaded example set (runs in a worker thread)."""
 
-    def __init__(self, data: bytes, limits: ArchiveLimits, options: dict[str, Any]) -> None:
+    def __init__(
+        self, data: bytes, limits: ArchiveLimits, options: dict[str, Any], scratch: Path
+    ) -> None:
         self.data = data
         self.limits = limits
+        #: Where the archive is unpacked: the rig store's scratch folder, which the next
+        #: start cleans if this process is killed mid-fit.
+        self.scratch = scratch
         # Keyword arguments of facecast.rig.fit: noise, pca_threshold, kernel, clamp, sparsity.
         self.options = options
 
@@ -244,7 +258,7 @@ class _FitJob:
         from facecast.rig import fit
         from facecast.rig.loaders import load_example_set
 
-        with tempfile.TemporaryDirectory(prefix="facecast-upload-") as tmp:
+        with tempfile.TemporaryDirectory(prefix="upload-", dir=self.scratch) as tmp:
             dest = Path(tmp)
             extract_archive(self.data, dest, self.limits)
             example_set = load_example_set(find_example_root(dest))

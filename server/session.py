@@ -41,7 +41,14 @@ from facecast.rig.errors import InputError, RigError
 from facecast.rig.filters import OneEuroFilter
 
 from .blending import BlendBatcher
-from .cloning import Outputs, Smoother, blend_seconds, clone_frame, frame_weights
+from .cloning import (
+    Outputs,
+    Smoother,
+    blend_seconds,
+    clone_frame,
+    frame_error,
+    frame_weights,
+)
 from .direct import binary_frame, direct_writer, queued_messages
 from .metrics import Metrics
 from .ratelimit import TokenBucket
@@ -573,23 +580,26 @@ class Session:
         return self._encode(frame, arrived, values)
 
     def _refuse(self, frame: Frame, exc: InputError) -> None:
-        self._report(
-            ProtocolError(ErrorCode.INVALID_ARRAY, f"frame cannot be cloned: {exc}", seq=frame.seq)
-        )
+        self._report(frame_error(exc, frame.seq))
 
-    def _encode(self, frame: Frame, arrived: float, values: np.ndarray) -> bytes:
+    def _encode(self, frame: Frame, arrived: float, values: np.ndarray) -> bytes | None:
+        """The result's bytes, or None (error queued) when ``values`` are not finite."""
         elapsed = time.perf_counter() - arrived
         outputs = self._outputs
         assert outputs is not None
-        # Encoding copies ``values`` out of the session's reused buffers.
-        data = self.protocol.send_result(
-            frame.seq,
-            frame.ts,
-            values,
-            output=outputs.name,
-            proc_us=int(elapsed * 1e6),
-            dropped=self.counters.dropped,
-        )
+        try:
+            # Encoding copies ``values`` out of the session's reused buffers.
+            data = self.protocol.send_result(
+                frame.seq,
+                frame.ts,
+                values,
+                output=outputs.name,
+                proc_us=int(elapsed * 1e6),
+                dropped=self.counters.dropped,
+            )
+        except ProtocolError as exc:  # RESULT_NOT_FINITE: this frame only
+            self._report(exc)
+            return None
         self.metrics.processing_seconds.observe(elapsed)
         return data
 

@@ -17,8 +17,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
+from urllib.parse import urlsplit
 
-__all__ = ["ROLES", "Settings", "SettingsError", "parse_tokens"]
+__all__ = ["ROLES", "Settings", "SettingsError", "normalise_origin", "parse_tokens"]
 
 #: The roles a token can hold; ``admin`` implies all others (see ``auth``). ``performer``
 #: may store calibration captures and refit rigs on them (server/SERVER.md, "Performers").
@@ -96,6 +97,15 @@ class Settings:
     #: Seconds over which a lost face eases from the last pose to the neutral.
     face_lost_ease: float = 1.0
 
+    # -- browsers (server/origins.py) -------------------------------------------------------
+    #: Origins (``scheme://host[:port]``) besides the server's own whose pages may open
+    #: WebSockets and send PUT/DELETE here, and read the REST API (CORS): a viewer page
+    #: served elsewhere that points here with ``server=``. ``"*"``: any origin.
+    allowed_origins: tuple[str, ...] = ()
+    #: Host names a loopback-bound server answers to besides loopback names and ``host``
+    #: (a reverse proxy's public name); ``"*"``: any (no Host check).
+    allowed_hosts: tuple[str, ...] = ()
+
     # -- operations -----------------------------------------------------------------------
     #: Seconds open sessions get to close (1001) on SIGTERM before they are cut.
     shutdown_timeout: float = 5.0
@@ -143,6 +153,19 @@ class Settings:
         for name in ("ping_interval", "ping_timeout", "shutdown_timeout"):
             if getattr(self, name) < 0:
                 raise SettingsError(f"{name}: must be >= 0, got {getattr(self, name)!r}")
+        origins = []
+        for origin in self.allowed_origins:
+            try:
+                origins.append(origin if origin == "*" else normalise_origin(origin))
+            except ValueError as exc:
+                raise SettingsError(f"allowed_origins: {exc}") from None
+        object.__setattr__(self, "allowed_origins", tuple(origins))
+        for name in self.allowed_hosts:
+            if name != "*" and (not name or any(c in name for c in "/:[] ")):
+                raise SettingsError(
+                    f"allowed_hosts: expected host names without port, got {name[:80]!r}"
+                )
+        object.__setattr__(self, "allowed_hosts", tuple(n.lower() for n in self.allowed_hosts))
         if self.redis_url and not self.redis_url.startswith(("redis://", "rediss://", "unix://")):
             raise SettingsError(
                 "redis_url: expected redis://host:port[/db], rediss://... or unix://...; "
@@ -305,6 +328,12 @@ def _coerce(name: str, hint: Any, value: Any, source: str) -> Any:
             if isinstance(value, bool):
                 raise ValueError(f"not a number: {value!r}")
             return float(value)
+        if hint == tuple[str, ...]:
+            # TOML arrays, or "a,b" from the environment.
+            items = value.split(",") if isinstance(value, str) else value
+            if not isinstance(items, list | tuple) or not all(isinstance(i, str) for i in items):
+                raise ValueError(f"not a list of strings: {value!r}")
+            return tuple(i.strip() for i in items if i.strip())
         if hint is Path:
             return Path(value)
         if hint is str:
@@ -314,3 +343,16 @@ def _coerce(name: str, hint: Any, value: Any, source: str) -> Any:
     except (TypeError, ValueError) as exc:
         raise SettingsError(f"{source}: {name}: {exc}") from None
     return value  # pragma: no cover - every field type is handled above
+
+
+def normalise_origin(origin: str) -> str:
+    """``scheme://host[:port]`` in lower case, default ports dropped; ValueError otherwise."""
+    parts = urlsplit(origin.strip())
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise ValueError(f"expected http(s)://host[:port], got {origin[:80]!r}")
+    if parts.path not in ("", "/") or parts.query or parts.fragment or parts.username:
+        raise ValueError(f"an origin has no path, query or user: {origin[:80]!r}")
+    port = parts.port  # ValueError for a bad port
+    host = parts.hostname if ":" not in parts.hostname else f"[{parts.hostname}]"
+    default = {"http": 80, "https": 443}[parts.scheme]
+    return f"{parts.scheme}://{host}" + ("" if port in (None, default) else f":{port}")

@@ -1,22 +1,28 @@
 """The rig store: fitted rigs as ``<id>.rig`` files in one directory, with an in-memory cache.
 
 Writes are atomic (temp file, fsync, rename, fsync dir) so a crash leaves the old or the
-new rig; every read re-stats, so other worker processes' changes are seen. Blocking
-calls: run them in a thread, never on the event loop.
+new rig; every read re-stats, so other worker processes' changes are seen. Temp files
+(rig writes, unpacked uploads) live in the store's scratch directory, which a later
+start cleans. Blocking calls: run them in a thread, never on the event loop.
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
 import re
 import secrets
+import shutil
 import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from facecast.protocol import Limits
+from facecast.rig.errors import RigFileError
 
 if TYPE_CHECKING:
     from facecast.rig.rig import Rig
@@ -28,6 +34,7 @@ __all__ = [
     "RigInfo",
     "RigNotFoundError",
     "RigStore",
+    "check_servable",
     "fsync_directory",
     "performer_rig_id",
     "valid_name",
@@ -44,9 +51,45 @@ RIG_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}(@[A-Za-z0-9][A-Za-z0-9._-]{0
 _RIG_ID = re.compile(RIG_ID_PATTERN)
 _NAME = re.compile(NAME_PATTERN)
 SUFFIX = ".rig"
+#: Under the rig directory: one folder per live store (process), holding its temp files.
+SCRATCH_DIR = ".scratch"
+#: In each such folder, a file its store holds an exclusive ``flock`` on while it lives:
+#: the kernel drops the lock when the process dies, kill -9 included, so any store that
+#: can take the lock knows the folder is a dead one's leftovers.
+_LOCK_NAME = ".lock"
+#: Temp files of facecast versions that wrote them beside the rigs; removed at start-up
+#: once older than this (they cannot be told from a live writer's otherwise).
 _TEMP_PREFIX = ".tmp-"
-#: Temp files older than this at start-up are leftovers of a killed writer.
 _STALE_TEMP_SECONDS = 3600.0
+#: A scratch folder without its lock file is being created, or its creator died doing so.
+_UNLOCKED_GRACE_SECONDS = 60.0
+
+
+def check_servable(rig: Rig, limits: Limits, source: str) -> None:
+    """Raise ``RigFileError`` (``rig_exceeds_limits``) for a rig the protocol cannot carry.
+
+    A rig is only worth storing if its ``ready`` and results fit PROTOCOL.md §7 as every
+    client decodes it: K <= max_points, V <= max_vertices, M <= max_names, and every
+    example name at most max_string characters.
+    """
+    problems = []
+    if rig.num_points > limits.max_points:
+        problems.append(f"K={rig.num_points} feature points (max_points {limits.max_points})")
+    if rig.num_vertices > limits.max_vertices:
+        problems.append(f"V={rig.num_vertices} vertices (max_vertices {limits.max_vertices})")
+    if rig.num_examples > limits.max_names:
+        problems.append(f"M={rig.num_examples} examples (max_names {limits.max_names})")
+    long = [name for name in rig.names if len(name) > limits.max_string]
+    if long:
+        problems.append(
+            f"{len(long)} example name(s) over {limits.max_string} characters "
+            f"(the first: {long[0][:40]!r}...)"
+        )
+    if problems:
+        raise RigFileError(
+            f"{source} cannot be streamed: " + "; ".join(problems) + " (PROTOCOL.md §7)",
+            code="rig_exceeds_limits",
+        )
 
 
 class RigNotFoundError(LookupError):
@@ -73,15 +116,18 @@ def performer_rig_id(rig_id: str, performer: str) -> str:
     return f"{rig_id}{PERFORMER_SEPARATOR}{performer}"
 
 
-def write_atomically(directory: Path, name: str, data: bytes) -> bool:
+def write_atomically(directory: Path, name: str, data: bytes, *, scratch: Path) -> bool:
     """Write ``directory / name`` whole or not at all; returns whether it is new.
 
-    Temp file, fsync, rename, fsync of the directory: a crash leaves the old file or the
-    new one, and concurrent writers of one name each replace whole files (last one wins).
+    Temp file in ``scratch`` (a rig store's scratch folder, on the same file system, so
+    the rename stays atomic and a writer killed mid-write leaves nothing the next start
+    does not remove), fsync, rename, fsync of the directory: a crash leaves the old file
+    or the new one, and concurrent writers of one name each replace whole files (last one
+    wins).
     """
     path = directory / name
     existed = path.exists()
-    temp = directory / f"{_TEMP_PREFIX}{name}-{secrets.token_hex(6)}"
+    temp = scratch / f"{name}-{secrets.token_hex(6)}"
     fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
     try:
         with os.fdopen(fd, "wb") as fh:
@@ -135,16 +181,48 @@ class RigStore:
         self.max_rig_bytes = max_rig_bytes
         self._cache: OrderedDict[str, _Entry] = OrderedDict()
         self._lock = threading.Lock()
+        #: What a stored rig must fit: the protocol's limits, as every client decodes.
+        self.limits = Limits()
+        self._scratch: Path | None = None
+        self._scratch_lock: int | None = None  # the fd holding the scratch folder's flock
 
     # -- lifecycle ----------------------------------------------------------------------
     def open(self) -> None:
-        """Create the directory if needed and remove stale temp files of killed writers."""
+        """Create the directory if needed and remove what killed processes left behind.
+
+        Every scratch folder no live store holds (partial rig writes, unpacked uploads of
+        a process killed mid-request) goes, at once; legacy ``.tmp-*`` files after an hour.
+        """
         self.directory.mkdir(parents=True, exist_ok=True)
         now = time.time()
         for path in self.directory.glob(f"{_TEMP_PREFIX}*"):
             with contextlib.suppress(OSError):
                 if now - path.stat().st_mtime > _STALE_TEMP_SECONDS:
                     path.unlink()
+        root = self.directory / SCRATCH_DIR
+        root.mkdir(exist_ok=True)
+        for folder in root.iterdir():
+            if folder != self._scratch:
+                _remove_if_abandoned(folder, now)
+        _ = self.scratch
+
+    def close(self) -> None:
+        """Remove this store's scratch folder and release it (at shutdown)."""
+        with self._lock:
+            scratch, fd = self._scratch, self._scratch_lock
+            self._scratch = self._scratch_lock = None
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
+        if fd is not None:
+            os.close(fd)
+
+    @property
+    def scratch(self) -> Path:
+        """This store's own folder for temp files (created, and locked, on first use)."""
+        with self._lock:
+            if self._scratch is None:
+                self._scratch, self._scratch_lock = _claim_scratch(self.directory / SCRATCH_DIR)
+            return self._scratch
 
     def check_readable(self) -> None:
         """Raise ``OSError`` unless the directory can be listed and written."""
@@ -203,16 +281,22 @@ class RigStore:
     def put_bytes(self, rig_id: str, data: bytes) -> tuple[Rig, bool]:
         """Validate ``data`` as a rig file and store it; returns ``(rig, created)``.
 
-        Raises ``RigFileError`` (nothing written) when ``data`` is not a valid rig.
+        Raises ``RigFileError`` (nothing written) when ``data`` is not a valid rig, or
+        one the protocol cannot carry (``check_servable``).
         """
         from facecast.rig.rigfile import rig_from_bytes
 
         rig = rig_from_bytes(data, source=f"rig {rig_id!r}", max_bytes=self.max_rig_bytes)
+        check_servable(rig, self.limits, f"rig {rig_id!r}")
         created = self._write(rig_id, data)
         return rig, created
 
     def put_rig(self, rig_id: str, rig: Rig) -> bool:
-        """Store a fitted rig; returns whether the id is new."""
+        """Store a fitted rig; returns whether the id is new.
+
+        Raises ``RigFileError`` (nothing written) for a rig the protocol cannot carry.
+        """
+        check_servable(rig, self.limits, f"rig {rig_id!r}")
         return self._write(rig_id, rig.to_bytes())
 
     def delete(self, rig_id: str) -> None:
@@ -233,7 +317,7 @@ class RigStore:
 
     def _write(self, rig_id: str, data: bytes) -> bool:
         self._path(rig_id)  # validates the id
-        return write_atomically(self.directory, f"{rig_id}{SUFFIX}", data)
+        return write_atomically(self.directory, f"{rig_id}{SUFFIX}", data, scratch=self.scratch)
 
     def _load(self, rig_id: str) -> _Entry:
         from facecast.rig.rigfile import rig_from_bytes
@@ -254,12 +338,52 @@ class RigStore:
                     self._cache.move_to_end(rig_id)
                     return entry
             data = fh.read()
-        entry = _Entry(
-            key, rig_from_bytes(data, source=f"rig {rig_id!r}", max_bytes=self.max_rig_bytes)
-        )
+        rig = rig_from_bytes(data, source=f"rig {rig_id!r}", max_bytes=self.max_rig_bytes)
+        # A file put in the directory by hand is held to what an upload is.
+        check_servable(rig, self.limits, f"rig {rig_id!r}")
+        entry = _Entry(key, rig)
         with self._lock:
             self._cache[rig_id] = entry
             self._cache.move_to_end(rig_id)
             while len(self._cache) > self.cache_size:
                 self._cache.popitem(last=False)
         return entry
+
+
+def _claim_scratch(root: Path) -> tuple[Path, int]:
+    """A new scratch folder under ``root`` and the fd holding the flock on its lock file.
+
+    The lock file is created and locked under a temporary name, then renamed into place,
+    so a lock file that can be seen is already held while its process lives.
+    """
+    root.mkdir(parents=True, exist_ok=True)
+    folder = root / f"{os.getpid()}-{secrets.token_hex(6)}"
+    folder.mkdir()
+    pending = folder / f".pending-{secrets.token_hex(4)}"
+    fd = os.open(pending, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    os.rename(pending, folder / _LOCK_NAME)
+    return folder, fd
+
+
+def _remove_if_abandoned(folder: Path, now: float) -> None:
+    """Delete a scratch folder whose store is gone (its lock free); keep live ones."""
+    try:
+        fd = os.open(folder / _LOCK_NAME, os.O_RDONLY)
+    except NotADirectoryError:
+        with contextlib.suppress(OSError):
+            folder.unlink()
+        return
+    except FileNotFoundError:
+        with contextlib.suppress(OSError):
+            if now - folder.stat().st_mtime > _UNLOCKED_GRACE_SECONDS:
+                shutil.rmtree(folder, ignore_errors=True)
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return  # its store is alive
+        shutil.rmtree(folder, ignore_errors=True)
+    finally:
+        os.close(fd)

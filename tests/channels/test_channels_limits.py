@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+from urllib.parse import quote
 
+import httpx
+import numpy as np
 import pytest
 
 from facecast.client.bridges.channel import channel_url
-from facecast.protocol import Error, ErrorCode, Ready
+from facecast.protocol import Error, ErrorCode, Ready, Result
 from facecast.server.testing import run_server
 
 from ._helpers import Publisher, Watcher, points, refused, tiny_rig, write_rigs
@@ -35,6 +38,24 @@ async def test_names_with_slashes_and_spaces_are_channels_too(settings, rigs):
         result = await watcher.result_with_seq(0)
 
     assert result.seq == 0
+
+
+@pytest.mark.parametrize("name", ["a\r\nb", "line\nbreak", "\n", "tab\tand\x7f"])
+async def test_names_with_line_breaks_and_controls_are_channels_too(settings, rigs, name):
+    # Issue 13, item 9: CR/LF got a bare HTTP 403 where §2.1 promises any character.
+    async with run_server(settings) as server:
+        watcher = await Watcher.open(server.ws_url, name, "beta")
+        ready = await watcher.next(Ready)
+        publisher = await Publisher.open(server.ws_url, name, "alpha")
+        await publisher.send(0, points(rigs["alpha"], 0))
+        result = await watcher.result_with_seq(0)
+        async with httpx.AsyncClient(base_url=server.base_url) as http:
+            info = await http.get(f"/v1/channels/{quote(name, safe='')}")
+            listed = await http.get("/v1/channels")
+
+    assert ready.rig == "beta" and result.seq == 0
+    assert info.status_code == 200
+    assert [c["name"] for c in listed.json()["channels"]] == [name]
 
 
 @pytest.mark.parametrize(
@@ -89,3 +110,44 @@ async def test_watchers_of_a_rig_that_does_not_fit_are_told_and_others_unaffecte
     assert told.code == ErrorCode.WRONG_POINT_COUNT and not told.fatal
     assert result.seq == 0
     assert not [m for m in publisher.queue._queue if isinstance(m, Error)]
+
+
+# -- results that would not be finite (issue 13, item 3) -----------------------------------
+
+
+async def test_a_published_frame_in_other_units_is_refused_before_any_watcher(settings, rigs):
+    async with run_server(settings) as server:
+        watchers = [
+            await Watcher.open(server.ws_url, "stage", "beta", output=output, dtype="f16")
+            for output in ("weights", "vertices")
+        ]
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        await publisher.send(0, points(rigs["alpha"], 0) * np.float32(1e5))
+        error = await asyncio.wait_for(publisher.queue.get(), 5)
+        await publisher.send(1, points(rigs["alpha"], 1))
+        first = [await w.next(Result) for w in watchers]
+
+    assert isinstance(error, Error)
+    assert (error.code, error.seq, error.fatal) == (ErrorCode.POINTS_OUT_OF_RANGE, 0, False)
+    assert [r.seq for r in first] == [1, 1]  # frame 0 reached nobody
+
+
+async def test_a_watched_rig_overflowing_f16_tells_its_watchers_and_spares_the_others(
+    settings, rigs
+):
+    write_rigs(settings.rigs_dir, {"huge": tiny_rig(1, target_scale=1e5)})
+    async with run_server(settings) as server:
+        f16 = await Watcher.open(server.ws_url, "stage", "huge", output="vertices", dtype="f16")
+        f32 = await Watcher.open(server.ws_url, "stage", "huge", output="vertices", dtype="f32")
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        for seq in range(2):
+            await publisher.send(seq, points(rigs["alpha"], seq))
+            await f32.result_with_seq(seq)
+        error = await f16.next(Error)
+        await publisher.send(2, points(rigs["alpha"], 2))
+        await f32.result_with_seq(2)
+
+    assert (error.code, error.fatal) == (ErrorCode.RESULT_NOT_FINITE, False)
+    assert f16.results == []  # nothing non-finite, and nothing else, was sent to it
+    assert f16.queue.empty()  # one error per streak, not one per frame
+    assert np.isfinite(f32.results[-1].vertices).all()

@@ -158,6 +158,32 @@ def test_server_cannot_send_a_computed_result_before_ready() -> None:
     )
 
 
+@pytest.mark.parametrize(
+    "values",
+    [
+        np.array([1.0, np.inf, 0.0], np.float16),  # what 7e4 becomes in f16
+        np.array([1.0, np.nan, 0.0], np.float32),
+        np.full((300,), np.inf, np.float16),  # the bit-test path of all_finite
+    ],
+    ids=["f16-overflow", "nan", "many-f16"],
+)
+def test_server_refuses_to_send_a_non_finite_result_and_stays_open(values) -> None:
+    server = _open_server()
+
+    error = _raises(
+        ErrorCode.RESULT_NOT_FINITE,
+        lambda: server.send_result(5, 0.0, values, output="weights", proc_us=1, dropped=0),
+    )
+    _raises(
+        ErrorCode.RESULT_NOT_FINITE,
+        server.send,
+        Result(seq=6, ts=0.0, weights=values),
+    )
+    assert (error.seq, error.fatal) == (5, False)
+    assert server.state is ServerState.STREAMING
+    server.send_result(7, 0.0, np.ones(3, np.float32), output="weights", proc_us=1, dropped=0)
+
+
 def test_fatal_error_closes_the_server_session() -> None:
     server = ServerProtocol()
     data = server.fail(ProtocolError(ErrorCode.UNKNOWN_RIG, "no rig 'x'", fatal=True))

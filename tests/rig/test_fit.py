@@ -20,7 +20,9 @@ from facecast.rig import (
     fit,
     rig_from_bytes,
 )
+from facecast.rig.fit import NOISE_MAX_RELATIVE
 from facecast.rig.kernels import bspline
+from facecast.rig.rig import CALIBRATION_RANGE, POINT_RANGE
 
 M, K, V = 9, 6, 40
 
@@ -257,12 +259,94 @@ def test_bad_runtime_points_raise_input_error(rig, points, code):
     assert info.value.code == code
 
 
+def _at_rms(neutral: np.ndarray, factor: float) -> np.ndarray:
+    """``neutral`` scaled about its centroid so its RMS distance from it is ``factor`` x its radius."""
+    centre = neutral.mean(axis=0)
+    return centre + (neutral - centre) * factor
+
+
+def _bspline_and_clamped_rigs(example_set, rig):
+    # The compiled single-frame path and the numpy path (taken with clamp) check alike.
+    return [rig, fit(example_set, clamp="nonneg", noise=0.01)]
+
+
+@pytest.mark.parametrize("which", [0, 1])
+def test_points_at_the_range_bound_are_accepted_and_beyond_it_refused(example_set, rig, which):
+    model = _bspline_and_clamped_rigs(example_set, rig)[which]
+    neutral = example_set.source_neutral
+
+    model.weights(_at_rms(neutral, POINT_RANGE * 0.999))
+    with pytest.raises(InputError, match="in the rig's units") as info:
+        model.weights(_at_rms(neutral, POINT_RANGE * 1.001))
+    assert info.value.code == "out_of_range"
+
+
+def test_points_in_other_units_are_refused_naming_the_frame_of_a_batch(example_set, rig):
+    frames = example_set.source_points.copy()
+    frames[3] *= 1000.0  # mm for m
+
+    with pytest.raises(InputError, match=r"\(frame 3\)") as info:
+        rig.weights(frames)
+    assert info.value.code == "out_of_range"
+
+
+def test_check_range_refuses_what_weights_refuses(example_set, rig):
+    rig.check_range(example_set.source_points)
+    with pytest.raises(InputError) as info:
+        rig.check_range(example_set.source_neutral * 1e5)
+    assert info.value.code == "out_of_range"
+
+
+def test_calibrated_rig_measures_the_range_from_the_performers_neutral(example_set, rig):
+    # A performer tracked 1000x larger (other units), far from the origin: legitimate once
+    # calibrated, while the same points are out of range for the uncalibrated rig.
+    performer = example_set.source_neutral * 1000.0 + 3e3
+    calibrated = rig.calibrated(performer)
+
+    np.testing.assert_allclose(calibrated.weights(performer), np.eye(M)[0], atol=1e-6)
+    with pytest.raises(InputError):
+        rig.weights(performer)
+    calibrated.weights(_at_rms(performer, POINT_RANGE * 0.999))
+    with pytest.raises(InputError):
+        calibrated.weights(_at_rms(performer, POINT_RANGE * 1.001))
+
+
+@pytest.mark.parametrize(
+    "neutral_of",
+    [
+        lambda n: n * 0 + 1e300,  # the absurd neutral of issue 13: every later frame NaN
+        lambda n: n + 2 * CALIBRATION_RANGE * np.abs(n).max() * 10,  # too far
+        lambda n: _at_rms(n, 2 * CALIBRATION_RANGE),  # too large
+        lambda n: _at_rms(n, 0.5 / CALIBRATION_RANGE),  # too small
+    ],
+    ids=["1e300", "far", "large", "small"],
+)
+def test_calibration_with_an_absurd_neutral_is_refused(example_set, rig, neutral_of):
+    with pytest.raises(InputError, match="calibration neutral") as info:
+        rig.calibrated(neutral_of(example_set.source_neutral))
+    assert info.value.code == "out_of_range"
+
+
+@pytest.mark.filterwarnings("ignore::facecast.rig.IdentifiabilityWarning")
+def test_noise_up_to_ten_times_the_feature_points_extent_is_fitted_beyond_refused(example_set):
+    flat = example_set.source_points.reshape(-1, 3)
+    extent = float(np.linalg.norm(flat.max(axis=0) - flat.min(axis=0)))
+
+    rig = fit(example_set, noise=NOISE_MAX_RELATIVE * extent * 0.999, clamp="unit")
+    with pytest.raises(FitError) as info:
+        fit(example_set, noise=NOISE_MAX_RELATIVE * extent * 1.001, clamp="unit")
+
+    assert np.isfinite(rig.weights(example_set.source_points)).all()
+    assert info.value.code == "noise_too_large"
+
+
 @pytest.mark.parametrize(
     "kwargs,match",
     [
         ({"kernel": "cubic"}, "unknown kernel"),
         ({"noise": -1.0}, "noise"),
         ({"noise": float("nan")}, "noise"),
+        ({"noise": 1e300}, "extent"),  # its square overflows: a 500 over REST before
         ({"pca_threshold": 2.0}, "pca_threshold"),
         ({"clamp": "yes"}, "clamp"),
         ({"sparsity": 1.0}, "sparsity"),

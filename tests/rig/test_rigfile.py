@@ -83,3 +83,24 @@ def test_zip_bomb_is_refused_before_reading(rig_bytes):
 def test_garbage_bytes_are_refused():
     with pytest.raises(RigFileError):
         rig_from_bytes(b"\x00\x01garbage" * 50)
+
+
+@pytest.mark.parametrize(
+    "spoil",
+    [
+        lambda rig: rig._blend_basis.__setitem__((1, 0), np.nan),
+        lambda rig: rig.model.linear_coeffs.__setitem__((0, 1), np.inf),
+        lambda rig: rig.model.radial_coeffs.__setitem__((1, 1), -np.inf),
+        lambda rig: rig.model.source_neutral.__setitem__((0, 0), np.nan),
+    ],
+    ids=["nan-basis", "inf-linear", "inf-radial", "nan-neutral"],
+)
+def test_non_finite_records_are_refused_even_with_a_valid_checksum(spoil):
+    # Anyone can write a file whose checksum matches; NaN would then stream as vertices.
+    rig = fit(make_set())
+    spoil(rig)
+    data = rig.to_bytes()
+
+    with pytest.raises(RigFileError, match="NaN or Inf") as info:
+        rig_from_bytes(data)
+    assert info.value.code == "rig_not_finite"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import importlib.util
 import io
+import logging
 import os
 import signal
 import subprocess
@@ -94,7 +95,78 @@ def folder_members(folder: Path, prefix: str = "") -> dict[str, bytes]:
     }
 
 
+@contextmanager
+def server_logs() -> Iterator[list[logging.LogRecord]]:
+    """Every record facecast and uvicorn log while the block runs (after their filters).
+
+    Enter it once the server runs: uvicorn configures its loggers when it starts.
+    """
+    records: list[logging.LogRecord] = []
+
+    class _Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            records.append(record)
+
+    handler = _Keep(logging.DEBUG)
+    loggers = [logging.getLogger(name) for name in ("uvicorn", "facecast")]
+    for logger in loggers:
+        logger.addHandler(handler)
+    try:
+        yield records
+    finally:
+        for logger in loggers:
+            logger.removeHandler(handler)
+
+
+def errors_logged(records: list[logging.LogRecord]) -> list[str]:
+    """The messages of records at error level or above, or carrying a traceback."""
+    return [r.getMessage() for r in records if r.levelno >= logging.ERROR or r.exc_info]
+
+
 # -- WebSocket helpers -----------------------------------------------------------------
+
+
+async def raw_websocket(host: str, port: int, path: str, headers: dict[str, str] | None = None):
+    """A WebSocket handshake by hand: (reader, writer, status line) for frames no client sends."""
+    import base64
+
+    reader, writer = await asyncio.open_connection(host, port)
+    key = base64.b64encode(os.urandom(16)).decode()
+    headers = {"Host": f"{host}:{port}", **(headers or {})}
+    lines = [
+        f"GET {path} HTTP/1.1",
+        "Upgrade: websocket",
+        "Connection: Upgrade",
+        f"Sec-WebSocket-Key: {key}",
+        "Sec-WebSocket-Version: 13",
+        *(f"{name}: {value}" for name, value in (headers or {}).items()),
+    ]
+    writer.write(("\r\n".join(lines) + "\r\n\r\n").encode())
+    await writer.drain()
+    head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), 10)
+    return reader, writer, head.split(b"\r\n", 1)[0].decode()
+
+
+def masked_frame(opcode: int, payload: bytes) -> bytes:
+    """One final client frame (RFC 6455 §5.2), masked, payload under 126 bytes."""
+    mask = os.urandom(4)
+    body = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+    return bytes([0x80 | opcode, 0x80 | len(payload)]) + mask + body
+
+
+async def close_code_of(reader, timeout: float = 10.0) -> int:
+    """Read server frames until a close frame; its status code."""
+    async with asyncio.timeout(timeout):
+        while True:
+            first, second = await reader.readexactly(2)
+            length = second & 0x7F
+            if length == 126:
+                length = int.from_bytes(await reader.readexactly(2), "big")
+            elif length == 127:
+                length = int.from_bytes(await reader.readexactly(8), "big")
+            payload = await reader.readexactly(length)
+            if first & 0x0F == 0x8:
+                return int.from_bytes(payload[:2], "big")
 
 
 async def open_session(ws, rig_id: str, **hello: Any) -> Ready:

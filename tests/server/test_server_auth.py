@@ -11,11 +11,13 @@ from _server_helpers import (
     folder_members,
     open_session,
     recv_error,
+    server_logs,
     write_example_folder,
     zip_bytes,
 )
 
 from facecast.protocol import ErrorCode, Hello, encode
+from facecast.server.logs import JsonFormatter
 from facecast.server.settings import Settings, SettingsError
 from facecast.server.testing import run_server
 
@@ -147,6 +149,71 @@ async def test_docs_page_opened_with_a_query_token_fetches_its_schema_with_it(au
 
     assert "/openapi.json?token=viewer-token" in page.text
     assert "/v1/rigs" in schema.json()["paths"]
+
+
+# -- how REST takes a token (issue 15, item 6) ---------------------------------------------
+
+#: Every REST endpoint behind auth: each reads the header only, and refuses ?token= alike.
+HEADER_ONLY = [(m, p) for m, p, _, _ in ENDPOINTS] + [
+    ("GET", "/v1/channels"),
+    ("GET", "/v1/channels/stage"),
+    ("GET", "/v1/demo/animation"),
+    ("GET", "/metrics"),
+]
+
+
+@pytest.mark.parametrize(("method", "path"), HEADER_ONLY)
+async def test_rest_endpoints_refuse_a_query_token_and_say_where_it_goes(
+    auth_settings, rig, tmp_path, method, path
+):
+    body = _body(method, path, rig, tmp_path)
+    async with run_server(auth_settings) as server:
+        server.app.state.store.put_rig("face", rig)
+        async with httpx.AsyncClient(base_url=server.base_url, timeout=30) as http:
+            response = await http.request(
+                method, path, content=body, params={"token": "admin-token"}
+            )
+        still = server.app.state.store.get("face")  # a refused DELETE/PUT changed nothing
+
+    assert (response.status_code, response.json()["code"]) == (401, "token_in_query")
+    assert "Authorization: Bearer" in response.json()["detail"]
+    assert "admin-token" not in response.text
+    assert still.checksum == rig.checksum
+
+
+async def test_docs_pages_keep_their_query_token_out_of_referers_and_caches(auth_settings):
+    async with (
+        run_server(auth_settings) as server,
+        httpx.AsyncClient(base_url=server.base_url) as http,
+    ):
+        page = await http.get("/docs", params={"token": "viewer-token"})
+        schema = await http.get("/openapi.json", params={"token": "viewer-token"})
+
+    for response in (page, schema):
+        assert response.status_code == 200
+        assert response.headers["referrer-policy"] == "no-referrer"
+        assert response.headers["cache-control"] == "no-store"
+
+
+async def test_a_query_token_never_reaches_the_logs(auth_settings, rig):
+    secret = "stream-token"
+    formatter = JsonFormatter()
+    async with run_server(auth_settings) as server:
+        server.app.state.store.put_rig("face", rig)
+        with server_logs() as records:
+            async with httpx.AsyncClient(base_url=server.base_url) as http:
+                await http.get("/docs", params={"token": secret})
+                await http.get("/v1/rigs", params={"token": secret})
+            url = f"{server.ws_url}/v1/stream?token={secret}"
+            async with websockets.connect(url) as ws:
+                await open_session(ws, "face")
+            url = f"{server.ws_url}/v1/stream?token=not-{secret}"
+            async with websockets.connect(url) as ws:
+                await recv_error(ws)
+        logged = "\n".join(formatter.format(r) for r in records)
+
+    assert "/v1/rigs" in logged and "session.open" in logged  # the requests were logged
+    assert secret not in logged
 
 
 # -- WebSocket ----------------------------------------------------------------------------

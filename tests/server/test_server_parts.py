@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import io
+import subprocess
+import sys
 import tarfile
 import threading
 from pathlib import Path
@@ -14,9 +16,15 @@ from hypothesis import settings as hsettings
 from hypothesis import strategies as st
 
 from facecast.rig import RigFileError, fit
-from facecast.server.archive import ArchiveError, ArchiveLimits, extract_archive
+from facecast.server.archive import (
+    MAX_NAME_BYTES,
+    MAX_PATH_BYTES,
+    ArchiveError,
+    ArchiveLimits,
+    extract_archive,
+)
 from facecast.server.settings import Settings, SettingsError, parse_tokens
-from facecast.server.store import RigNotFoundError, RigStore
+from facecast.server.store import SCRATCH_DIR, RigNotFoundError, RigStore
 
 # -- settings -----------------------------------------------------------------------------
 
@@ -73,6 +81,42 @@ def test_env_tokens_parse_roles_joined_with_plus():
         parse_tokens("no-roles-here")
 
 
+def test_allowed_origins_and_hosts_come_from_toml_or_the_environment(tmp_path):
+    config = tmp_path / "c.toml"
+    config.write_text('allowed_origins = ["https://Viewer.Example:443", "http://a.example:81"]\n')
+
+    from_file = Settings.load(config_file=config, env={})
+    from_env = Settings.load(
+        env={
+            "FACECAST_ALLOWED_ORIGINS": "http://b.example,*",
+            "FACECAST_ALLOWED_HOSTS": "Proxy.Example",
+        }
+    )
+
+    assert from_file.allowed_origins == ("https://viewer.example", "http://a.example:81")
+    assert from_env.allowed_origins == ("http://b.example", "*")
+    assert from_env.allowed_hosts == ("proxy.example",)
+    assert Settings.from_json(from_file.to_json()).allowed_origins == from_file.allowed_origins
+
+
+@pytest.mark.parametrize(
+    "values",
+    [
+        {"allowed_origins": ("viewer.example",)},  # no scheme
+        {"allowed_origins": ("ftp://viewer.example",)},
+        {"allowed_origins": ("http://viewer.example/page",)},
+        {"allowed_origins": ("http://viewer.example:99999",)},
+        {"allowed_hosts": ("proxy.example:8000",)},
+        {"allowed_hosts": ("",)},
+    ],
+)
+def test_bad_allowed_origins_or_hosts_are_refused_naming_the_setting(values):
+    name = next(iter(values))
+
+    with pytest.raises(SettingsError, match=name):
+        Settings(**values)
+
+
 def test_settings_survive_the_json_trip_to_worker_processes(tmp_path):
     settings = Settings(rigs_dir=tmp_path, port=0, tokens={"x": {"stream"}}, idle_timeout=2.5)
 
@@ -87,6 +131,14 @@ def store(tmp_path) -> RigStore:
     s = RigStore(tmp_path / "rigs")
     s.open()
     return s
+
+
+def _rig_dir_entries(store: RigStore) -> list[str]:
+    """What the rig directory holds besides the store's scratch folder, which must be empty
+    but for its lock: no temp file left behind."""
+    leftovers = [p.name for p in store.scratch.iterdir() if p.name != ".lock"]
+    assert leftovers == []
+    return sorted(p.name for p in store.directory.iterdir() if p.name != SCRATCH_DIR)
 
 
 def test_concurrent_writes_of_one_id_leave_one_whole_rig(store, rig):
@@ -105,7 +157,7 @@ def test_concurrent_writes_of_one_id_leave_one_whole_rig(store, rig):
         t.join()
 
     assert store.get("same").checksum in {rig.checksum, other.checksum}
-    assert [p.name for p in store.directory.iterdir()] == ["same.rig"]
+    assert _rig_dir_entries(store) == ["same.rig"]
 
 
 def test_another_process_replacing_a_rig_is_seen_through_the_cache(tmp_path, rig):
@@ -141,7 +193,7 @@ def test_invalid_rig_bytes_write_nothing(store):
     with pytest.raises(RigFileError):
         store.put_bytes("bad", b"PK\x03\x04 not really")
 
-    assert list(store.directory.iterdir()) == []
+    assert _rig_dir_entries(store) == []
 
 
 def test_stale_temp_files_of_killed_writers_are_removed_at_open(tmp_path):
@@ -156,6 +208,56 @@ def test_stale_temp_files_of_killed_writers_are_removed_at_open(tmp_path):
     RigStore(directory).open()
 
     assert not stale.exists()
+
+
+_KILLED_STORE = (
+    "import sys\n"
+    "from pathlib import Path\n"
+    "from facecast.server.store import RigStore\n"
+    "store = RigStore(Path(sys.argv[1]))\n"
+    "store.open()\n"
+    "(store.scratch / 'upload-abc').mkdir()\n"
+    "(store.scratch / 'upload-abc' / 'facecast.toml').write_text('[source]')\n"
+    "(store.scratch / 'face-123.rig').write_bytes(b'half a rig')\n"
+    "print(store.scratch, flush=True)\n"
+    "sys.stdin.read()  # until killed\n"
+)
+
+
+def test_scratch_of_a_killed_process_is_removed_at_the_next_open_and_live_ones_kept(tmp_path):
+    directory = tmp_path / "rigs"
+    live = RigStore(directory)
+    live.open()
+    (live.scratch / "upload-live").mkdir()
+    child = subprocess.Popen(
+        [sys.executable, "-c", _KILLED_STORE, str(directory)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    dead = Path(child.stdout.readline().strip())
+    child.kill()  # SIGKILL: no cleanup of its own
+    child.wait(10)
+    child.stdin.close()
+    child.stdout.close()
+    assert (dead / "upload-abc").is_dir() and (dead / "face-123.rig").is_file()
+
+    RigStore(directory).open()
+
+    assert not dead.exists()
+    assert (live.scratch / "upload-live").is_dir()
+
+
+def test_a_closed_store_leaves_no_scratch_behind(tmp_path, rig):
+    store = RigStore(tmp_path / "rigs")
+    store.open()
+    store.put_rig("face", rig)
+    scratch = store.scratch
+
+    store.close()
+
+    assert not scratch.exists()
+    assert sorted(p.name for p in (tmp_path / "rigs").iterdir()) == [SCRATCH_DIR, "face.rig"]
 
 
 # -- archives -------------------------------------------------------------------------------
@@ -191,6 +293,66 @@ def test_any_member_name_lands_inside_the_folder_or_is_refused(tmp_path_factory,
         assert exc.code in {"unsafe_archive_member", "bad_archive", "duplicate_archive_member"}
     created = set(outside.rglob("*")) - before
     assert all(Path(p).is_relative_to(dest) for p in created)
+
+
+def _deep(total: int) -> str:
+    """A member path of exactly ``total`` bytes, in names of at most 220."""
+    names = [200] * 4 + [total - 4 - 800]
+    return "/".join("d" * n for n in names)
+
+
+@pytest.mark.parametrize(
+    ("name", "ok"),
+    [
+        ("n" * MAX_NAME_BYTES, True),
+        ("n" * (MAX_NAME_BYTES + 1), False),
+        ("é" * 128, False),  # 128 characters, 256 bytes: the limit is in bytes
+        (_deep(MAX_PATH_BYTES), True),
+        (_deep(MAX_PATH_BYTES + 1), False),
+    ],
+    ids=["name-255", "name-256", "name-256-bytes", "path-1024", "path-1025"],
+)
+@pytest.mark.parametrize("as_tar", [False, True])
+def test_member_names_and_paths_are_bounded_in_bytes(tmp_path, name, ok, as_tar):
+    if as_tar:
+        buffer = io.BytesIO()
+        with tarfile.open(fileobj=buffer, mode="w", format=tarfile.PAX_FORMAT) as archive:
+            info = tarfile.TarInfo(name)
+            info.size = 2
+            archive.addfile(info, io.BytesIO(b"hi"))
+        data = buffer.getvalue()
+    else:
+        data = zip_bytes({name: b"hi"})
+
+    if ok:
+        extract_archive(data, tmp_path, LIMITS)
+        assert (tmp_path / name).read_bytes() == b"hi"
+    else:
+        with pytest.raises(ArchiveError) as info:
+            extract_archive(data, tmp_path, LIMITS)
+        assert (info.value.status, info.value.code) == (400, "archive_member_name_too_long")
+
+
+@pytest.mark.parametrize("as_tar", [False, True])
+@pytest.mark.parametrize("order", [("x", "x/y"), ("x/y", "x"), ("x", "x/")])
+def test_a_file_and_a_folder_of_one_name_are_a_conflict_not_a_crash(tmp_path, order, as_tar):
+    if as_tar:
+        buffer = io.BytesIO()
+        with tarfile.open(fileobj=buffer, mode="w") as archive:
+            for member in order:
+                info = tarfile.TarInfo(member.rstrip("/"))
+                if member.endswith("/"):
+                    info.type = tarfile.DIRTYPE
+                else:
+                    info.size = 1
+                archive.addfile(info, None if member.endswith("/") else io.BytesIO(b"1"))
+        data = buffer.getvalue()
+    else:
+        data = zip_bytes({member: b"" if member.endswith("/") else b"1" for member in order})
+
+    with pytest.raises(ArchiveError) as info:
+        extract_archive(data, tmp_path, LIMITS)
+    assert (info.value.status, info.value.code) == (400, "archive_member_conflict")
 
 
 def test_tar_symlink_and_hardlink_members_are_refused(tmp_path):

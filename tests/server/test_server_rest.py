@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
+import asyncio
+import dataclasses
 import io
+import shutil
+import time
 import zipfile
 
 import httpx
 import numpy as np
 import pytest
 from _server_helpers import (
+    errors_logged,
     folder_members,
+    server_logs,
     tar_bytes,
     tiny_example_set,
     write_example_folder,
@@ -25,6 +31,22 @@ pytestmark = pytest.mark.anyio
 
 def client(server) -> httpx.AsyncClient:
     return httpx.AsyncClient(base_url=server.base_url, timeout=30)
+
+
+async def wait_until(predicate, timeout: float = 10.0) -> None:
+    """Wait for a condition on the server's state (it runs in its own thread)."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        await asyncio.sleep(0.01)
+
+
+async def wait_for_record(records, event: str, timeout: float = 10.0) -> None:
+    """Wait until the server (in its own thread) has logged ``event``."""
+    deadline = time.monotonic() + timeout
+    while not any(getattr(r, "event", None) == event for r in records):
+        assert time.monotonic() < deadline, f"no {event} logged"
+        await asyncio.sleep(0.01)
 
 
 async def test_put_then_get_list_download_delete_round_trip(settings, rig):
@@ -195,6 +217,32 @@ async def test_fit_warnings_are_returned_to_the_uploader(settings, tmp_path):
     assert any("collapse" in message for message in response.json()["warnings"])
 
 
+async def test_max_pending_fits_counts_an_upload_from_before_its_body_is_read(tmp_path):
+    # Issue 13, item 5: checked before the body, counted after it, so uploads sent together
+    # all passed the check (10 at once: no 503, 330 MB more RSS).
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_pending_fits=1)
+    write_example_folder(tmp_path / "set")
+    body = zip_bytes(folder_members(tmp_path / "set"))
+    release = asyncio.Event()
+
+    async def slow_body():
+        yield body[:100]
+        await release.wait()
+        yield body[100:]
+
+    async with run_server(settings) as server, client(server) as http:
+        first = asyncio.create_task(http.put("/v1/rigs/first/examples", content=slow_body()))
+        await wait_until(lambda: server.app.state.pending_fits == 1)
+        second = await http.put("/v1/rigs/second/examples", content=body)
+        release.set()
+        first_response = await first
+        third = await http.put("/v1/rigs/third/examples", content=body)
+
+    assert (second.status_code, second.json()["code"]) == (503, "server_busy")
+    assert second.headers["retry-after"] == "5"
+    assert first_response.status_code == third.status_code == 201
+
+
 # -- bad uploads --------------------------------------------------------------------------
 
 
@@ -220,7 +268,21 @@ def _bad_archives(tmp_path) -> dict[str, tuple[bytes, int, str]]:
         "not-an-archive": (b"hello, world" * 100, 415, "unsupported_archive"),
         "truncated-zip": (zip_bytes(good)[:200], 400, "bad_archive"),
         "no-manifest": (zip_bytes({"readme.txt": b"hi"}), 422, "bad_example_set"),
+        # Issue 13, item 7: these were 500s with a traceback.
+        "zip-long-name": (zip_bytes({**good, "n" * 256: b"x"}), 400, _TOO_LONG),
+        "tar-long-name": (tar_bytes({**good, "n" * 256: b"x"}, gz=True), 400, _TOO_LONG),
+        "zip-deep-path": (zip_bytes({**good, _DEEP: b"x"}), 400, _TOO_LONG),
+        "tar-deep-path": (tar_bytes({**good, _DEEP: b"x"}, gz=False), 400, _TOO_LONG),
+        "zip-file-then-folder": (zip_bytes({**good, "x": b"1", "x/y": b"2"}), 400, _CLASH),
+        "tar-file-then-folder": (tar_bytes({**good, "x": b"1", "x/y": b"2"}, gz=True), 400, _CLASH),
+        "zip-folder-then-file": (zip_bytes({**good, "x/y": b"2", "x": b"1"}), 400, _CLASH),
     }
+
+
+_TOO_LONG = "archive_member_name_too_long"
+_CLASH = "archive_member_conflict"
+#: Deeper than PATH_MAX (4096 bytes), each name within NAME_MAX (255).
+_DEEP = "/".join(["d" * 200] * 25) + "/f"
 
 
 @pytest.mark.parametrize(
@@ -235,17 +297,59 @@ def _bad_archives(tmp_path) -> dict[str, tuple[bytes, int, str]]:
         "not-an-archive",
         "truncated-zip",
         "no-manifest",
+        "zip-long-name",
+        "tar-long-name",
+        "zip-deep-path",
+        "tar-deep-path",
+        "zip-file-then-folder",
+        "tar-file-then-folder",
+        "zip-folder-then-file",
     ],
 )
 async def test_bad_archive_is_refused_with_its_code_and_writes_nothing(settings, tmp_path, case):
     body, status, code = _bad_archives(tmp_path)[case]
     async with run_server(settings) as server, client(server) as http:
-        response = await http.put("/v1/rigs/evil/examples", content=body)
+        with server_logs() as records:
+            response = await http.put("/v1/rigs/evil/examples", content=body)
         listed = await http.get("/v1/rigs")
 
     assert (response.status_code, response.json()["code"]) == (status, code), response.text
     assert listed.json()["rigs"] == []
     assert not (tmp_path / "evil.txt").exists()
+    assert errors_logged(records) == []
+
+
+@pytest.mark.parametrize("clamp", [None, "unit"])
+async def test_absurd_noise_is_422_naming_it_not_a_500(settings, tmp_path, clamp):
+    write_example_folder(tmp_path / "set")
+    body = zip_bytes(folder_members(tmp_path / "set"))
+    params = {"noise": 1e300} if clamp is None else {"noise": 1e300, "clamp": clamp}
+    async with run_server(settings) as server, client(server) as http:
+        with server_logs() as records:
+            response = await http.put("/v1/rigs/noisy/examples", params=params, content=body)
+
+    assert (response.status_code, response.json()["code"]) == (422, "noise_too_large")
+    assert "noise" in response.json()["detail"] and errors_logged(records) == []
+
+
+@pytest.mark.parametrize("path", ["/v1/rigs/gone", "/v1/rigs/gone/examples"])
+async def test_a_client_leaving_mid_body_is_logged_once_without_a_traceback(settings, path):
+    async with run_server(settings) as server, client(server) as http:
+        with server_logs() as records:
+            _, writer = await asyncio.open_connection(server.host, server.port)
+            writer.write(
+                f"PUT {path} HTTP/1.1\r\nHost: {server.host}\r\nContent-Length: 100000\r\n\r\n"
+                .encode() + bytes(1000)
+            )  # fmt: skip
+            await writer.drain()
+            writer.close()
+            await writer.wait_closed()
+            await wait_for_record(records, "http.request")
+        after = await http.get("/healthz")
+
+    assert errors_logged(records) == []
+    assert [getattr(r, "event", None) for r in records].count("http.client_disconnect") == 1
+    assert after.status_code == 200
 
 
 async def test_archive_over_member_limit_is_413(tmp_path):
@@ -324,6 +428,69 @@ async def test_corrupt_rig_file_is_422_and_nothing_is_stored(settings, rig, mang
     assert listed.json()["rigs"] == []
 
 
+# -- rig files held to the protocol's limits (issue 13, item 8) ------------------------
+
+
+def _example_set_with(*, names=None, k: int | None = None):
+    es = tiny_example_set()
+    if k is not None:
+        rng = np.random.default_rng(5)
+        m = len(es.names)
+        source = np.repeat(rng.normal(size=(1, k, 3)), m, axis=0)
+        source[1:] += rng.normal(scale=0.3, size=(m - 1, k, 3))
+        es = dataclasses.replace(es, source_points=source)
+    return es if names is None else dataclasses.replace(es, names=names)
+
+
+@pytest.mark.parametrize("length,status", [(256, 201), (257, 422)])
+async def test_example_names_up_to_the_protocols_256_characters_are_stored(
+    settings, length, status
+):
+    named = fit(_example_set_with(names=("neutral", "s" * length, "frown", "jaw")))
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/named", content=named.to_bytes())
+        listed = await http.get("/v1/rigs")
+
+    assert response.status_code == status, response.text
+    if status == 422:
+        assert response.json()["code"] == "rig_exceeds_limits"
+        assert "over 256 characters" in response.json()["detail"]
+        assert listed.json()["rigs"] == []
+
+
+async def test_examples_with_more_feature_points_than_the_protocol_carries_are_refused(
+    settings, tmp_path
+):
+    write_example_folder(tmp_path / "set", _example_set_with(k=4097))
+    body = zip_bytes(folder_members(tmp_path / "set"))
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/wide/examples", content=body)
+        listed = await http.get("/v1/rigs")
+
+    assert (response.status_code, response.json()["code"]) == (422, "rig_exceeds_limits")
+    assert "K=4097" in response.json()["detail"] and listed.json()["rigs"] == []
+
+
+async def test_a_rig_file_with_a_nan_blend_basis_is_refused_naming_the_record(settings):
+    spoiled = fit(tiny_example_set())
+    spoiled._blend_basis[2, 5] = np.nan  # written with a valid checksum all the same
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/rigs/nan", content=spoiled.to_bytes())
+
+    assert (response.status_code, response.json()["code"]) == (422, "rig_not_finite")
+    assert "blend_basis" in response.json()["detail"]
+
+
+async def test_a_rig_file_put_in_the_directory_by_hand_is_checked_on_load(settings):
+    named = fit(_example_set_with(names=("neutral", "s" * 300, "frown", "jaw")))
+    settings.rigs_dir.mkdir(parents=True)
+    named.save(settings.rigs_dir / "byhand.rig")
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.get("/v1/rigs/byhand")
+
+    assert (response.status_code, response.json()["code"]) == (422, "rig_exceeds_limits")
+
+
 async def test_empty_body_is_400(settings):
     async with run_server(settings) as server, client(server) as http:
         response = await http.put("/v1/rigs/empty", content=b"")
@@ -359,7 +526,7 @@ async def test_ops_endpoints_answer_and_docs_are_served(settings, rig):
 
 async def test_readyz_fails_when_the_rig_directory_is_gone(settings):
     async with run_server(settings) as server, client(server) as http:
-        settings.rigs_dir.rmdir()
+        shutil.rmtree(settings.rigs_dir)  # its scratch folder too
         response = await http.get("/readyz")
 
     assert (response.status_code, response.json()["code"]) == (503, "not_ready")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import statistics
 import time
 
@@ -10,11 +11,24 @@ import msgpack
 import numpy as np
 import pytest
 import websockets
-from _server_helpers import frame_points, open_session, recv_error, recv_message, tiny_rig
+from _server_helpers import (
+    close_code_of,
+    errors_logged,
+    frame_points,
+    masked_frame,
+    open_session,
+    raw_websocket,
+    recv_error,
+    recv_message,
+    server_logs,
+    tiny_example_set,
+    tiny_rig,
+)
 
 from facecast.protocol import (
     Calibrate,
     Calibrated,
+    Error,
     ErrorCode,
     Frame,
     Hello,
@@ -24,6 +38,7 @@ from facecast.protocol import (
     Smoothing,
     encode,
 )
+from facecast.rig import fit
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
 
@@ -156,6 +171,89 @@ async def test_calibrate_without_points_uses_the_next_frame(served, rig):
     assert ack == Calibrated(active=True, seq=5)
     # The captured neutral maps onto the source neutral: weights of the neutral example.
     np.testing.assert_allclose(result.weights, np.eye(rig.num_examples)[0], atol=1e-5)
+
+
+# -- results that would not be finite (issue 13, item 3) ----------------------------------
+
+
+def _huge_rig():
+    """A rig whose target mesh lies beyond float16's range (65504): every f16 vertex is inf."""
+    example_set = tiny_example_set()
+    return fit(dataclasses.replace(example_set, target_vertices=example_set.target_vertices * 1e5))
+
+
+async def test_points_in_other_units_get_points_out_of_range_and_the_session_lives(served, rig):
+    millimetres = frame_points(rig, 20) * np.float32(1000.0)
+    async with connect(served) as ws:
+        await open_session(ws, "face", output="vertices", dtype="f16")
+        await ws.send(frame(3, millimetres))
+        error = await recv_error(ws)
+        await ws.send(frame(4, frame_points(rig, 21)))
+        result = await next_result(ws)
+
+    assert (error.code, error.seq, error.fatal) == (ErrorCode.POINTS_OUT_OF_RANGE, 3, False)
+    assert "rig's units" in error.message
+    assert result.seq == 4 and np.isfinite(result.vertices.astype(np.float32)).all()
+
+
+@pytest.mark.parametrize("dtype", ["f16", "f32"])
+async def test_a_result_beyond_its_dtype_is_an_error_for_that_frame_only(served, dtype):
+    huge = _huge_rig()
+    served.app.state.store.put_rig("huge", huge)
+    p = frame_points(huge, 22)
+    async with connect(served) as ws:
+        await open_session(ws, "huge", output="vertices", dtype=dtype)
+        await ws.send(frame(0, p))
+        first = await recv_message(ws)
+        await ws.send(encode(Ping(id=1, ts=0.0)))
+        pong = await recv_message(ws)
+
+    assert pong == Pong(id=1, ts=0.0)  # the session lives
+    if dtype == "f16":
+        assert isinstance(first, Error)
+        assert (first.code, first.seq, first.fatal) == (ErrorCode.RESULT_NOT_FINITE, 0, False)
+    else:
+        assert isinstance(first, Result)
+        np.testing.assert_array_equal(first.vertices, huge.clone(p))
+
+
+async def test_calibrate_with_an_absurd_neutral_is_refused_and_results_stay_finite(served, rig):
+    absurd = np.full((rig.num_points, 3), 1e300)
+    p = frame_points(rig, 23)
+    async with connect(served) as ws:
+        await open_session(ws, "face")
+        await ws.send(encode(Calibrate(points=absurd)))
+        error = await recv_error(ws)
+        await ws.send(frame(0, p))
+        result = await next_result(ws)
+
+    assert (error.code, error.fatal) == (ErrorCode.CALIBRATION_FAILED, False)
+    np.testing.assert_array_equal(result.weights, rig.weights(p).astype(np.float32))
+
+
+async def test_hello_on_a_rig_file_the_protocol_cannot_carry_is_refused_not_readied(served):
+    # A ready naming a 300-character example would be refused by every client.
+    es = tiny_example_set()
+    named = fit(dataclasses.replace(es, names=("neutral", "s" * 300, "frown", "jaw")))
+    named.save(served.settings.rigs_dir / "long.rig")
+    async with connect(served) as ws:
+        await ws.send(encode(Hello(rig="long")))
+        error = await recv_error(ws)
+
+    assert (error.code, error.fatal) == (ErrorCode.UNKNOWN_RIG, True)
+    assert "cannot be streamed" in error.message
+
+
+async def test_invalid_utf8_in_a_text_frame_closes_1007_without_an_error_log(served):
+    reader, writer, status = await raw_websocket(served.host, served.port, "/v1/stream")
+    with server_logs() as records:
+        writer.write(masked_frame(0x1, b"\xff\xfe not UTF-8"))
+        await writer.drain()
+        code = await close_code_of(reader)
+    writer.close()
+
+    assert status.startswith("HTTP/1.1 101") and code == 1007
+    assert errors_logged(records) == []
 
 
 @pytest.mark.parametrize("target", ["points", "weights"])
