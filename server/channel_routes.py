@@ -34,6 +34,7 @@ from .hub import ChannelHub
 from .members import PublisherMember, WatcherMember
 from .outbox import Member
 from .refusal import refuse
+from .sessions import Owner, Quotas
 from .settings import Settings
 
 __all__ = ["router"]
@@ -92,18 +93,20 @@ def _watch_query(query: Mapping[str, str], limits: Limits) -> tuple[Hello, str, 
         raise exc.evolve(fatal=True) from None
 
 
-async def _serve(websocket: WebSocket, member: Member, subprotocol: str | None) -> None:
-    """Admit ``member`` (max connections), accept, and run it until it ends."""
+async def _serve(
+    websocket: WebSocket, member: Member, subprotocol: str | None, principal: Principal
+) -> None:
+    """Admit ``member`` (connection limits and quotas), accept, and run it until it ends."""
     app = websocket.app
     registry = app.state.sessions
     settings: Settings = app.state.settings
-    if not registry.admit(member, settings.max_connections):
-        why = ("the server is shutting down" if registry.closing
-               else f"the server is at its limit of {settings.max_connections} connections")  # fmt: skip
+    publisher = isinstance(member, PublisherMember)
+    owner = Owner.of(settings, principal.name, websocket.client)
+    why = registry.admit(member, Quotas.from_settings(settings), owner, publisher=publisher)
+    if why is not None:
         app.state.metrics.errors.labels(ErrorCode.OVERLOADED.name).inc()
         await refuse(websocket, ProtocolError(ErrorCode.OVERLOADED, why, fatal=True), subprotocol,
-                     timeout=settings.refuse_timeout,
-                     wait_first=isinstance(member, PublisherMember))  # fmt: skip
+                     timeout=settings.refuse_timeout, wait_first=publisher)  # fmt: skip
         await member.leave()
         return
     app.state.metrics.connections.inc()
@@ -130,7 +133,7 @@ async def publish(websocket: WebSocket, name: str) -> None:
                      timeout=hub.settings.refuse_timeout)  # fmt: skip
         return
     member = PublisherMember(websocket, hub, name, principal.name)
-    await _serve(websocket, member, subprotocol)
+    await _serve(websocket, member, subprotocol, principal)
 
 
 @router.websocket(WATCH_PATH.replace("{name}", "{name:path}"))
@@ -174,7 +177,7 @@ async def watch(websocket: WebSocket, name: str) -> None:
     log.info("watcher joined", extra={"event": "channel.watch", "channel": name,
                                       "rig": hello.rig, "output": output,
                                       "by": principal.name})  # fmt: skip
-    await _serve(websocket, member, subprotocol)
+    await _serve(websocket, member, subprotocol, principal)
 
 
 @router.get("/v1/channels", summary="Channels with a publisher or viewers")

@@ -23,6 +23,7 @@ from .blending import BlendBatcher
 from .errors import ApiError
 from .refusal import refuse
 from .session import Session
+from .sessions import Owner, Quotas
 from .settings import Settings
 
 __all__ = ["router"]
@@ -82,12 +83,9 @@ async def stream(websocket: WebSocket) -> None:
         principal=principal.name,
     )
     registry = app.state.sessions
-    if not registry.admit(session, settings.max_connections):
-        why = (
-            "the server is shutting down"
-            if registry.closing
-            else f"the server is at its limit of {settings.max_connections} connections"
-        )
+    owner = Owner.of(settings, principal.name, websocket.client)
+    why = registry.admit(session, Quotas.from_settings(settings), owner)
+    if why is not None:
         app.state.metrics.errors.labels(ErrorCode.OVERLOADED.name).inc()
         await refuse(
             websocket,
