@@ -208,8 +208,11 @@ class PublisherMember(Member):
             self.offer(self.protocol.send(Calibrated(active=True)))
 
     async def leave(self) -> None:
-        if self.channel is not None:
-            await self.channel.remove_publisher(self)
+        # Called when the member ends and again by the route (which covers a failed
+        # accept): only the first call leaves, and logs.
+        channel, self.channel = self.channel, None
+        if channel is not None:
+            await channel.remove_publisher(self)
             log.info("publisher left",
                      extra={"event": "channel.unpublish", "channel": self.name,
                             "frames_in": self.frames_in, "dropped": self.dropped})  # fmt: skip
