@@ -41,6 +41,10 @@ WS_IMPLEMENTATIONS = ("websockets-sansio", "websockets")
 #: HTTP requests and WebSocket connections beyond ``max_connections`` (+ publisher
 #: slots) before uvicorn answers 503 itself; sessions have their own, lower, limit.
 _HTTP_HEADROOM = 64
+#: Messages uvicorn's legacy ``websockets`` implementation reads ahead of the app per
+#: connection (its default, 32, let one tokenless connection make the server buffer
+#: 32 x ws_max_size = 66 MB while it was being refused); ``websockets-sansio`` holds one.
+_WS_MAX_QUEUE = 2
 
 
 def _ws_protocol(settings: Settings, ws: str) -> type:
@@ -68,6 +72,7 @@ def uvicorn_config(
         lifespan="on",
         ws=_ws_protocol(settings, ws),
         ws_max_size=_WS_SIZE_FACTOR * settings.max_message_bytes + 64 * 1024,
+        ws_max_queue=_WS_MAX_QUEUE,
         ws_ping_interval=settings.ping_interval or None,
         ws_ping_timeout=settings.ping_timeout or None,
         timeout_graceful_shutdown=max(settings.shutdown_timeout, 0.1),

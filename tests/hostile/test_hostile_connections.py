@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from pathlib import Path
 
 import pytest
 
@@ -78,3 +79,52 @@ async def test_a_refused_connection_that_sends_and_reads_nothing_is_closed_in_bo
             took = time.monotonic() - start
 
     assert took <= bound
+
+
+def rss_bytes() -> int:
+    """This process's resident memory (the server runs in a thread of it)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) * 1024
+    raise RuntimeError("no VmRSS in /proc/self/status")
+
+
+def send_messages(sock, conn, *, count: int, size: int, seconds: float) -> None:
+    """Send up to ``count`` binary messages of ``size`` bytes within ``seconds``."""
+    conn.send_binary(b"\x00" * size)
+    message = b"".join(conn.data_to_send())
+    sock.settimeout(0.2)
+    deadline = time.monotonic() + seconds
+    for _ in range(count):
+        view = memoryview(message)
+        while view and time.monotonic() < deadline:
+            try:
+                view = view[sock.send(view) :]
+            except TimeoutError:
+                continue  # the server stopped reading
+            except OSError:
+                return
+
+
+async def test_refused_connections_cannot_make_the_server_read_ahead_many_large_messages(
+    auth_settings, ws_impl
+):
+    size = 2 * auth_settings.max_message_bytes  # just under uvicorn's ws_max_size
+    connections = 2
+    async with run_server(auth_settings, ws=ws_impl) as server:
+        peers = [open_raw(server.port, "/v1/stream") for _ in range(connections)]
+        before = peak = rss_bytes()
+        sends = [
+            asyncio.to_thread(send_messages, *peer, count=40, size=size, seconds=4.0)
+            for peer in peers
+        ]
+        senders = [asyncio.create_task(send) for send in sends]
+        while not all(task.done() for task in senders):
+            peak = max(peak, rss_bytes())
+            await asyncio.sleep(0.05)  # sampling memory while the peers send
+        for sock, _ in peers:
+            sock.close()
+
+    # A few messages per connection (read ahead of the app, being parsed, one copy in
+    # the app); uvicorn's legacy default read 32 messages (64 MiB) ahead of each.
+    assert peak - before <= connections * 12 * size, (peak - before) / size / connections
