@@ -2,8 +2,8 @@
 """Measures what a tokenless client costs a real `facecast serve` on 127.0.0.1 (SERVER.md).
 
 Ping floods that never read (1 and 10 connections, 8 s), slowloris (265 connections that
-send nothing or half a request head) and a refused connection that reads nothing, against
-each WebSocket implementation; prints server RSS, /healthz answers and connection
+send nothing or half a request head), a refused connection that reads nothing, and 10
+refused connections sending large messages, against each WebSocket implementation; prints server RSS, /healthz answers and connection
 lifetimes. Loopback only, bounded in count and time. Run from the repository:
 `.venv/bin/python scripts/hostile_costs.py`. Uses the test suite's raw peer (tests/hostile).
 """
@@ -146,6 +146,40 @@ def refused_silent(ws: str, rigs: Path) -> None:
         stop(process)
 
 
+def large_messages(ws: str, rigs: Path, connections: int = 10) -> None:
+    """Refused connections each sending 2 MiB messages (just under ws_max_size) unread."""
+    process, port = start(ws, rigs)
+    try:
+        before = peak = rss_mb(process.pid)
+        peers = [open_raw(port, "/v1/stream") for _ in range(connections)]
+
+        def run(sock: socket.socket, conn) -> None:
+            conn.send_binary(b"\x00" * (2 * 1024 * 1024))
+            message = b"".join(conn.data_to_send())
+            sock.settimeout(0.5)
+            deadline = time.monotonic() + 6
+            for _ in range(40):
+                try:
+                    sock.sendall(message)
+                except OSError:
+                    return
+                if time.monotonic() > deadline:
+                    return
+
+        threads = [threading.Thread(target=run, args=peer) for peer in peers]
+        for thread in threads:
+            thread.start()
+        while any(t.is_alive() for t in threads):
+            peak = max(peak, rss_mb(process.pid))
+            time.sleep(0.1)
+        print(f"large messages, {ws:17s} {connections} refused conn x 40 x 2 MiB: RSS "
+              f"{before:.1f} -> peak {peak:.1f} MB")  # fmt: skip
+        for sock, _ in peers:
+            sock.close()
+    finally:
+        stop(process)
+
+
 def main() -> None:
     with tempfile.TemporaryDirectory(prefix="facecast-hostile-") as tmp:
         rigs = Path(tmp)
@@ -154,6 +188,7 @@ def main() -> None:
             ping_flood(ws, rigs, 10)
             slowloris(ws, rigs)
             refused_silent(ws, rigs)
+            large_messages(ws, rigs)
 
 
 if __name__ == "__main__":
