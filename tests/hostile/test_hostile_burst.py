@@ -105,3 +105,16 @@ async def test_every_frame_of_a_burst_on_a_channel_publisher_is_a_result_or_a_co
 
     assert tally.rate_errors >= 1
     assert tally.accounted == BURST, vars(tally)
+
+
+def test_a_rate_limited_error_round_trips_its_dropped_total():
+    error = Error(code=ErrorCode.RATE_LIMITED, message="over", seq=7, dropped=39)
+
+    assert decode_server(encode(error)) == error
+
+
+def test_an_error_without_dropped_encodes_as_before():
+    error = Error(code=ErrorCode.RATE_LIMITED, message="over", seq=7)
+
+    assert b"dropped" not in encode(error)
+    assert decode_server(encode(error)).dropped is None

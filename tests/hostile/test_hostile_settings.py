@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 
+from facecast.client.cli import main
 from facecast.server.runner import uvicorn_config
 from facecast.server.settings import Settings, SettingsError
 
@@ -54,8 +55,6 @@ def test_a_websocket_implementation_the_server_cannot_bound_is_refused(ws):
 
 
 def test_serve_does_not_offer_wsproto_which_is_not_installed(capsys):
-    from facecast.client.cli import main
-
     with pytest.raises(SystemExit) as exc:
         main(["serve", "--ws", "wsproto"])
 
