@@ -14,6 +14,7 @@ import time
 import pytest
 import websockets
 
+from facecast.client import connect
 from facecast.client.bridges.channel import channel_url
 from facecast.protocol import (
     SUBPROTOCOL,
@@ -118,3 +119,22 @@ def test_an_error_without_dropped_encodes_as_before():
 
     assert b"dropped" not in encode(error)
     assert decode_server(encode(error)).dropped is None
+
+
+async def test_the_client_library_counts_the_burst_tail_in_dropped(rigs_dir, rigs, ws_impl):
+    async with (
+        run_server(rate_settings(rigs_dir), ws=ws_impl) as server,
+        connect(server.base_url, rig="alpha") as session,
+    ):
+        for seq in range(BURST):
+            await session.send(points(rigs["alpha"], 0), seq=seq)
+        results = 0
+        deadline = time.monotonic() + 5
+        while results + session.dropped < BURST and time.monotonic() < deadline:
+            try:
+                item = await session.receive(errors="return", timeout=0.5)
+            except TimeoutError:
+                continue
+            results += isinstance(item, Result)
+
+    assert results + session.dropped == BURST
