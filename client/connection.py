@@ -319,9 +319,14 @@ class StreamSession:
                 continue
             if isinstance(message, Result):
                 self.latency.received(message.seq)
-                self._dropped_now = message.dropped
+                self._dropped_now = max(self._dropped_now, message.dropped)
                 await self._deliver(message)
             elif isinstance(message, Error):
+                if message.dropped is not None:
+                    # RATE_LIMITED carries the total too: the frames of a burst's tail,
+                    # which no later result reports (PROTOCOL.md §8). It may overtake
+                    # results encoded before it, hence the max.
+                    self._dropped_now = max(self._dropped_now, message.dropped)
                 error = message.to_exception()
                 if error.fatal:
                     return error

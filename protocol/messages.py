@@ -617,7 +617,9 @@ class Error(Message):
     """Something went wrong (§5.2.3, codes in §6).
 
     ``code`` is an `ErrorCode`, or a bare int for a code newer than this library.
-    ``message`` is cut to `MAX_ERROR_MESSAGE` characters.
+    ``message`` is cut to `MAX_ERROR_MESSAGE` characters. ``dropped``: on RATE_LIMITED,
+    the session's total of discarded frames so far, like ``result.dropped`` (§8); None
+    (not sent) on other errors.
     """
 
     TYPE: ClassVar[str] = "error"
@@ -625,6 +627,7 @@ class Error(Message):
     message: str
     seq: int | None = None
     fatal: bool = False
+    dropped: int | None = None
 
     def __post_init__(self) -> None:
         if type(self.code) is not int and not isinstance(self.code, ErrorCode):
@@ -637,15 +640,20 @@ class Error(Message):
         if self.seq is not None:
             check_uint(self.seq, "error.seq")
         check_bool(self.fatal, "error.fatal")
+        if self.dropped is not None:
+            check_uint(self.dropped, "error.dropped")
 
     def serialize(self) -> dict[str, Any]:
-        return {
+        fields = {
             **_header(self.TYPE),
             "code": int(self.code),
             "message": self.message,
             "seq": self.seq,
             "fatal": self.fatal,
         }
+        if self.dropped is not None:
+            fields["dropped"] = self.dropped
+        return fields
 
     @classmethod
     def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Error:
@@ -658,6 +666,7 @@ class Error(Message):
             message=message,
             seq=read_uint(obj, "seq", "error.seq", None),
             fatal=read_bool(obj, "fatal", "error.fatal", False),
+            dropped=read_uint(obj, "dropped", "error.dropped", None),
         )
 
     def to_exception(self) -> ProtocolError:

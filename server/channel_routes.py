@@ -7,8 +7,6 @@ logic lives here.
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import logging
 from collections.abc import Mapping
 from typing import Annotated, Any
@@ -24,9 +22,7 @@ from facecast.protocol import (
     Limits,
     ProtocolError,
     Ready,
-    ServerProtocol,
     bearer_token,
-    close_code,
     select_subprotocol,
     watch_hello,
 )
@@ -38,6 +34,8 @@ from .errors import ApiError
 from .hub import ChannelHub
 from .members import PublisherMember, WatcherMember
 from .outbox import Member
+from .refusal import refuse
+from .sessions import Owner, Quotas
 from .settings import Settings
 
 __all__ = ["router"]
@@ -68,22 +66,6 @@ class _ChannelName(Convertor[str]):
 
 
 register_url_convertor("channel", _ChannelName())
-#: A refused publisher gets this long to send its hello, so it reads the error (see stream).
-_REFUSE_WAIT = 1.0
-
-
-async def _refuse(websocket: WebSocket, error: ProtocolError, subprotocol: str | None,
-                  *, wait_first: bool) -> None:  # fmt: skip
-    """Accept, send ``error`` (fatal), close. A publisher's hello is awaited first."""
-    with contextlib.suppress(Exception):
-        await websocket.accept(subprotocol=subprotocol)
-        if wait_first:
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(_REFUSE_WAIT):
-                    if (await websocket.receive())["type"] == "websocket.disconnect":
-                        return
-        await websocket.send_bytes(ServerProtocol().fail(error))
-        await websocket.close(close_code(error), error.code.name.lower())
 
 
 def _authorize(websocket: WebSocket, role: str) -> Principal:
@@ -131,17 +113,20 @@ def _watch_query(query: Mapping[str, str], limits: Limits) -> tuple[Hello, str, 
         raise exc.evolve(fatal=True) from None
 
 
-async def _serve(websocket: WebSocket, member: Member, subprotocol: str | None) -> None:
-    """Admit ``member`` (max connections), accept, and run it until it ends."""
+async def _serve(
+    websocket: WebSocket, member: Member, subprotocol: str | None, principal: Principal
+) -> None:
+    """Admit ``member`` (connection limits and quotas), accept, and run it until it ends."""
     app = websocket.app
     registry = app.state.sessions
     settings: Settings = app.state.settings
-    if not registry.admit(member, settings.max_connections):
-        why = ("the server is shutting down" if registry.closing
-               else f"the server is at its limit of {settings.max_connections} connections")  # fmt: skip
+    publisher = isinstance(member, PublisherMember)
+    owner = Owner.of(settings, principal.name, websocket.client)
+    why = registry.admit(member, Quotas.from_settings(settings), owner, publisher=publisher)
+    if why is not None:
         app.state.metrics.errors.labels(ErrorCode.OVERLOADED.name).inc()
-        await _refuse(websocket, ProtocolError(ErrorCode.OVERLOADED, why, fatal=True),
-                      subprotocol, wait_first=isinstance(member, PublisherMember))  # fmt: skip
+        await refuse(websocket, ProtocolError(ErrorCode.OVERLOADED, why, fatal=True), subprotocol,
+                     timeout=settings.refuse_timeout, wait_first=publisher)  # fmt: skip
         await member.leave()
         return
     app.state.metrics.connections.inc()
@@ -164,10 +149,11 @@ async def publish(websocket: WebSocket, name: str) -> None:
         _check_name(name)
     except ProtocolError as exc:
         websocket.app.state.metrics.errors.labels(exc.code.name).inc()
-        await _refuse(websocket, exc.evolve(fatal=True), subprotocol, wait_first=True)
+        await refuse(websocket, exc.evolve(fatal=True), subprotocol,
+                     timeout=hub.settings.refuse_timeout)  # fmt: skip
         return
     member = PublisherMember(websocket, hub, name, principal.name)
-    await _serve(websocket, member, subprotocol)
+    await _serve(websocket, member, subprotocol, principal)
 
 
 @router.websocket(WATCH_PATH.replace("{name}", "{name:channel}"))
@@ -187,7 +173,8 @@ async def watch(websocket: WebSocket, name: str) -> None:
         rig = await hub.load_rig(hello.rig)
     except ProtocolError as exc:
         websocket.app.state.metrics.errors.labels(exc.code.name).inc()
-        await _refuse(websocket, exc.evolve(fatal=True), subprotocol, wait_first=False)
+        await refuse(websocket, exc.evolve(fatal=True), subprotocol,
+                     timeout=settings.refuse_timeout, wait_first=False)  # fmt: skip
         return
     channel = await hub.open_channel(name)
     member = WatcherMember(websocket, channel, hello, limits)
@@ -210,7 +197,7 @@ async def watch(websocket: WebSocket, name: str) -> None:
     log.info("watcher joined", extra={"event": "channel.watch", "channel": name,
                                       "rig": hello.rig, "output": output,
                                       "by": principal.name})  # fmt: skip
-    await _serve(websocket, member, subprotocol)
+    await _serve(websocket, member, subprotocol, principal)
 
 
 @router.get("/v1/channels", summary="Channels with a publisher or viewers")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import time
 from collections import deque
@@ -206,11 +207,19 @@ class Channel:
                     return  # a frame arrived: the face is back
 
     # -- frames --------------------------------------------------------------------------
-    def submit(self, frame: ChannelFrame) -> None:
-        """A frame from this process's publisher: to the other processes, then here."""
+    def submit(self, frame: ChannelFrame) -> ChannelFrame:
+        """A frame from this process's publisher: to the other processes, then here.
+
+        Returns the frame as accepted: when it supersedes a pending one, its ``dropped``
+        counts that one too (``accept`` counts it in ``self.dropped``), so the result of
+        a burst's last frame carries every frame the burst lost.
+        """
+        if self._pending is not None:
+            frame = dataclasses.replace(frame, dropped=frame.dropped + 1)
         if self.hub.bus.distributed:
             self.hub.bus.send(self.name, "frame", frame.to_bytes())
         self.accept(frame)
+        return frame
 
     def on_bus(self, kind: str, payload: bytes | None) -> None:
         """An event from another process (see ``bus``)."""

@@ -10,7 +10,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import secrets
-import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -34,8 +33,8 @@ from facecast.rig.filters import OneEuroFilter
 
 from .cloning import frame_error
 from .fanout import ChannelFrame
+from .frame_rate import FrameRateLimit
 from .outbox import Closing, Member
-from .ratelimit import TokenBucket
 from .session import ready_message
 
 if TYPE_CHECKING:
@@ -45,8 +44,6 @@ if TYPE_CHECKING:
 __all__ = ["PublisherMember", "WatcherMember"]
 
 log = logging.getLogger("facecast.server.channels")
-
-_RATE_ERROR_INTERVAL = 1.0
 
 
 class WatcherMember(Member):
@@ -99,8 +96,12 @@ class PublisherMember(Member):
         self.frames_in = 0
         self.dropped = 0
         self._rig: Any = None
-        self._bucket = TokenBucket(settings.max_fps, settings.rate_burst)
-        self._last_rate_error = -1e9
+        self._rate = FrameRateLimit(
+            settings.max_fps,
+            settings.rate_burst,
+            total=self._dropped_total,
+            tell=lambda error: self.offer(self.protocol.send(error)),
+        )
         self._point_filter: OneEuroFilter | None = None
         self._neutral: np.ndarray | None = None
         self._neutral_id = ""
@@ -154,16 +155,10 @@ class PublisherMember(Member):
     async def _on_frame(self, frame: Frame) -> None:
         assert self.channel is not None and self.hello is not None
         self.frames_in += 1
-        if not self._bucket.take():
+        if not self._rate.allow():
             self.dropped += 1
             self.hub.metrics_dropped("rate_limited")
-            now = time.monotonic()
-            if now - self._last_rate_error >= _RATE_ERROR_INTERVAL:
-                self._last_rate_error = now
-                self.report(ProtocolError(
-                    ErrorCode.RATE_LIMITED,
-                    f"more than {self.hub.settings.max_fps:g} frames/s; frames over the rate "
-                    "are dropped (counted in result.dropped)", seq=frame.seq))  # fmt: skip
+            self._rate.discarded(frame.seq)
             return
         points = frame.points
         if self._calibrate_next:
@@ -184,17 +179,23 @@ class PublisherMember(Member):
         smoothing = (
             hello.smoothing if hello.smoothing and hello.smoothing.target == "weights" else None
         )
-        self.channel.submit(
+        submitted = self.channel.submit(
             ChannelFrame(
-                seq=frame.seq, ts=frame.ts, points=points, dropped=self.dropped + self.channel.dropped,
+                seq=frame.seq, ts=frame.ts, points=points, dropped=self._dropped_total(),
                 align=hello.align, scale=hello.align_scale, smoothing=smoothing,
                 neutral=self._neutral, neutral_id=self._neutral_id,
                 raw_points=frame.points if self._point_filter is not None else None,
             )
         )  # fmt: skip
+        # Its result (the newest frame's is never superseded) carries this total.
+        self._rate.told(submitted.dropped)
         # Let the pump take this frame before reading the next (pipelined frames are
         # then cloned, not superseded), as /v1/stream does.
         await asyncio.sleep(0)
+
+    def _dropped_total(self) -> int:
+        """Frames of this publisher discarded so far: over the rate, or superseded (§8)."""
+        return self.dropped + (self.channel.dropped if self.channel is not None else 0)
 
     async def _set_neutral(self, points: np.ndarray, seq: int | None) -> bool:
         loop = asyncio.get_running_loop()
@@ -222,8 +223,12 @@ class PublisherMember(Member):
             self.offer(self.protocol.send(Calibrated(active=True)))
 
     async def leave(self) -> None:
-        if self.channel is not None:
-            await self.channel.remove_publisher(self)
+        # Called when the member ends and again by the route (which covers a failed
+        # accept): only the first call leaves, and logs.
+        self._rate.close()
+        channel, self.channel = self.channel, None
+        if channel is not None:
+            await channel.remove_publisher(self)
             log.info("publisher left",
                      extra={"event": "channel.unpublish", "channel": self.name,
                             "frames_in": self.frames_in, "dropped": self.dropped})  # fmt: skip

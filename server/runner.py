@@ -6,6 +6,7 @@ stream sessions with 1001 (uvicorn would send 1012) before its own shutdown.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing
 import os
@@ -14,16 +15,19 @@ import socket
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import uvicorn
 from prometheus_client.multiprocess import mark_process_dead
 
 from .app import SESSIONS_STATE_KEY, SETTINGS_ENV, create_app
+from .http_guard import HTTP_IMPLEMENTATIONS, PendingConnections, guarded_http_protocol
 from .logs import uvicorn_log_config
-from .settings import Settings
+from .settings import Settings, SettingsError
+from .ws_guard import guarded_ws_protocol
 
-__all__ = ["FacecastServer", "ThreadedServer", "serve", "uvicorn_config"]
+__all__ = ["WS_IMPLEMENTATIONS", "FacecastServer", "ThreadedServer", "serve", "uvicorn_config"]
 
 log = logging.getLogger("facecast.server")
 
@@ -31,16 +35,44 @@ log = logging.getLogger("facecast.server")
 #: protocol decoder (which answers MESSAGE_TOO_LARGE and keeps the session); larger
 #: ones are cut by uvicorn with close code 1009 before they are buffered.
 _WS_SIZE_FACTOR = 2
+#: uvicorn's WebSocket implementations the server supports ("auto" is the first). Not
+#: wsproto: it is not a dependency, and its pongs are not bounded (SERVER.md).
+WS_IMPLEMENTATIONS = ("websockets-sansio", "websockets")
+#: HTTP requests and WebSocket connections beyond ``max_connections`` (+ publisher
+#: slots) before uvicorn answers 503 itself; sessions have their own, lower, limit.
+_HTTP_HEADROOM = 64
+#: Messages uvicorn's legacy ``websockets`` implementation reads ahead of the app per
+#: connection (its default, 32, let one tokenless connection make the server buffer
+#: 32 x ws_max_size = 66 MB while it was being refused); ``websockets-sansio`` holds one.
+_WS_MAX_QUEUE = 2
 
 
-def uvicorn_config(settings: Settings, app: Any, *, ws: str = "auto", **overrides: Any):
-    """The ``uvicorn.Config`` for ``settings`` (``app`` an ASGI app or an import string)."""
+def _ws_protocol(settings: Settings, ws: str) -> type:
+    if ws == "auto":
+        ws = WS_IMPLEMENTATIONS[0]
+    if ws not in WS_IMPLEMENTATIONS:
+        raise SettingsError(f"ws: {ws!r} is not supported; choose one of {WS_IMPLEMENTATIONS}")
+    return guarded_ws_protocol(
+        ws, max_pong_backlog=settings.max_pong_backlog, close_timeout=settings.ws_close_timeout
+    )
+
+
+def uvicorn_config(
+    settings: Settings, app: Any, *, ws: str = "auto", http: str = "auto", **overrides: Any
+):
+    """The ``uvicorn.Config`` for ``settings`` (``app`` an ASGI app or an import string).
+
+    ``http``: uvicorn's HTTP implementation, a key of ``http_guard.HTTP_IMPLEMENTATIONS``.
+    """
+    if http not in HTTP_IMPLEMENTATIONS:
+        raise SettingsError(f"http: {http!r} is not one of {sorted(HTTP_IMPLEMENTATIONS)}")
     kwargs: dict[str, Any] = dict(
         host=settings.host,
         port=settings.port,
         lifespan="on",
-        ws=ws,
+        ws=_ws_protocol(settings, ws),
         ws_max_size=_WS_SIZE_FACTOR * settings.max_message_bytes + 64 * 1024,
+        ws_max_queue=_WS_MAX_QUEUE,
         ws_ping_interval=settings.ping_interval or None,
         ws_ping_timeout=settings.ping_timeout or None,
         timeout_graceful_shutdown=max(settings.shutdown_timeout, 0.1),
@@ -50,9 +82,22 @@ def uvicorn_config(settings: Settings, app: Any, *, ws: str = "auto", **override
         # Results are float arrays that deflate barely shrinks, and per-connection
         # compression would cost every viewer its own pass over each result.
         ws_per_message_deflate=False,
-        # Bound on concurrent HTTP+WS connections before uvicorn answers 503 itself;
-        # sessions have their own, lower, limit with a protocol error.
-        limit_concurrency=settings.max_connections + 64,
+        # Connections that have not sent a complete request are bounded apart (deadlines
+        # and max_pending_connections, http_guard), so they cannot fill this one.
+        http=guarded_http_protocol(
+            PendingConnections(
+                idle_timeout=settings.request_idle_timeout,
+                head_timeout=settings.request_head_timeout,
+                max_pending=settings.max_pending_connections,
+            ),
+            http,
+        ),
+        timeout_keep_alive=settings.request_idle_timeout,
+        # uvicorn counts every open connection, pending ones too: they get room of their own.
+        limit_concurrency=settings.max_connections
+        + settings.publisher_slots
+        + _HTTP_HEADROOM
+        + settings.max_pending_connections,
     )
     kwargs.update(overrides)
     return uvicorn.Config(app, **kwargs)
@@ -120,9 +165,30 @@ def serve(settings: Settings, *, ws: str = "auto") -> int:
     settings.check_startable()
     if settings.workers == 1:
         server = FacecastServer(uvicorn_config(settings, create_app(settings), ws=ws))
-        server.run()
+        with _signals_end_in_status():
+            server.run()
         return 0 if server.started else 1
     return _serve_workers(settings, ws)
+
+
+@contextlib.contextmanager
+def _signals_end_in_status() -> Iterator[None]:
+    """Let SIGTERM/SIGINT end ``serve`` with its return value, as with ``--workers N``.
+
+    After a graceful shutdown uvicorn re-raises the signal it caught, with the handlers
+    found at start restored: those are these no-ops, so the process is not killed by it
+    (exit status -15) and ``serve`` returns.
+    """
+    previous = {s: signal.signal(s, _ignore) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def _ignore(signum: int, frame: Any) -> None:
+    """A handler that only marks the signal as handled (uvicorn's own runs meanwhile)."""
 
 
 def _worker(settings_json: str, ws: str, sock: socket.socket) -> None:

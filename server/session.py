@@ -26,6 +26,7 @@ from starlette.websockets import WebSocket, WebSocketDisconnect
 from facecast.protocol import (
     Calibrate,
     Calibrated,
+    Error,
     ErrorCode,
     Frame,
     Hello,
@@ -50,8 +51,8 @@ from .cloning import (
     frame_weights,
 )
 from .direct import binary_frame, direct_writer, queued_messages
+from .frame_rate import FrameRateLimit
 from .metrics import Metrics
-from .ratelimit import TokenBucket
 from .settings import Settings
 from .store import RigNotFoundError, RigStore, valid_rig_id
 
@@ -64,8 +65,6 @@ log = logging.getLogger("facecast.server.session")
 _MAX_CONTROL = 32
 #: How long a closing session waits to hand its last error / close frame to the socket.
 _CLOSE_GRACE = 1.0
-#: A client over its rate gets at most one RATE_LIMITED error per this many seconds.
-_RATE_ERROR_INTERVAL = 1.0
 #: A vertices frame whose clone is estimated (``blend_seconds``) to take at most this
 #: long is cloned on the event loop; costlier ones go to the clone pool, batched with
 #: other sessions' frames (``blending``). Weights-only frames always run on the loop
@@ -149,8 +148,12 @@ class Session:
         self._smoother: Smoother | None = None
         self._outputs: Outputs | None = None
         self._inline = True  # whether frames are cloned on the loop (set by hello)
-        self._bucket = TokenBucket(settings.max_fps, settings.rate_burst)
-        self._last_rate_error = -1e9
+        self._rate = FrameRateLimit(
+            settings.max_fps,
+            settings.rate_burst,
+            total=lambda: self.counters.dropped,
+            tell=self._tell_rate_limited,
+        )
         # Frames as (frame, arrival perf_counter). ``_held`` is the one the writer clones
         # next (or is cloning); ``_pending`` is the one-slot mailbox behind it, where a
         # newer frame replaces an older one (§8). So at most two frames per session.
@@ -228,6 +231,7 @@ class Session:
         finally:
             if self._idle_timer is not None:
                 self._idle_timer.cancel()
+            self._rate.close()
             for task in (reader, writer):
                 task.cancel()
             await asyncio.gather(reader, writer, return_exceptions=True)
@@ -333,6 +337,11 @@ class Session:
             raise _Closing(close_code(error), name.lower(), error)
         self._queue_control(error.to_message())
 
+    def _tell_rate_limited(self, error: Error) -> None:
+        self.counters.errors += 1
+        self.metrics.errors.labels(ErrorCode.RATE_LIMITED.name).inc()
+        self._queue_control(error)
+
     def _queue_control(self, message: Any) -> None:
         self._flush()
         self._control.append(self.protocol.send(message))
@@ -356,22 +365,12 @@ class Session:
         self.metrics.frames_in.inc()
         if self._rig is None:  # hello accepted but ready not sent: cannot happen after await
             raise ProtocolError(ErrorCode.WRONG_STATE, "frame before ready", seq=frame.seq)
-        if not self._bucket.take():
+        if not self._rate.allow():
             # Over the rate: drop this frame (not the pending one, which is older but
-            # within the rate) and tell the client, at most once a second.
+            # within the rate); the client is told the total (``frame_rate``).
             self.counters.dropped_rate += 1
             self.metrics.frames_dropped.labels("rate_limited").inc()
-            now = time.monotonic()
-            if now - self._last_rate_error >= _RATE_ERROR_INTERVAL:
-                self._last_rate_error = now
-                self._report(
-                    ProtocolError(
-                        ErrorCode.RATE_LIMITED,
-                        f"more than {self.settings.max_fps:g} frames/s; frames over the rate "
-                        "are dropped (counted in result.dropped)",
-                        seq=frame.seq,
-                    )
-                )
+            self._rate.discarded(frame.seq)
             return
         arrived = time.perf_counter()
         if (
@@ -587,19 +586,21 @@ class Session:
         elapsed = time.perf_counter() - arrived
         outputs = self._outputs
         assert outputs is not None
+        # Encoding copies ``values`` out of the session's reused buffers.
+        dropped = self.counters.dropped
         try:
-            # Encoding copies ``values`` out of the session's reused buffers.
             data = self.protocol.send_result(
                 frame.seq,
                 frame.ts,
                 values,
                 output=outputs.name,
                 proc_us=int(elapsed * 1e6),
-                dropped=self.counters.dropped,
+                dropped=dropped,
             )
         except ProtocolError as exc:  # RESULT_NOT_FINITE: this frame only
             self._report(exc)
             return None
+        self._rate.told(dropped)
         self.metrics.processing_seconds.observe(elapsed)
         return data
 

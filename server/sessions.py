@@ -1,16 +1,20 @@
-"""The registry of open streaming sessions of one app: admission (max connections) and close-all.
+"""The registry of open WebSocket connections of one app: admission (limits, quotas) and close-all.
 
-It knows sessions only through the small ``Closable`` interface; what a session does
-with its socket lives in ``session``.
+It knows connections only through the small ``Closable`` interface; what a session does
+with its socket lives in ``session`` and ``members``.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+from collections import Counter
+from dataclasses import dataclass
 from typing import Protocol
 
-__all__ = ["Closable", "SessionRegistry"]
+from .settings import Settings
+
+__all__ = ["Closable", "Owner", "Quotas", "SessionRegistry"]
 
 log = logging.getLogger("facecast.server.sessions")
 
@@ -21,11 +25,50 @@ class Closable(Protocol):
     async def close(self, code: int, reason: str) -> None: ...
 
 
+@dataclass(frozen=True)
+class Quotas:
+    """How many connections may be open: in all, per token, per address; 0 means no quota.
+
+    ``publisher_slots`` connections beyond ``max_connections`` are kept for channel
+    publishers, so watchers (or streams) filling the server cannot lock the performer out.
+    """
+
+    max_connections: int
+    publisher_slots: int = 0
+    per_token: int = 0
+    per_address: int = 0
+
+    @classmethod
+    def from_settings(cls, settings: Settings) -> Quotas:
+        return cls(
+            max_connections=settings.max_connections,
+            publisher_slots=settings.publisher_slots,
+            per_token=settings.max_connections_per_token,
+            per_address=settings.max_connections_per_address,
+        )
+
+
+@dataclass(frozen=True)
+class Owner:
+    """Whom a connection's quotas count against: its token (digest) and its address."""
+
+    token: str | None
+    address: str | None
+
+    @classmethod
+    def of(cls, settings: Settings, principal: str, client: tuple[str, int] | None) -> Owner:
+        # With auth off every caller is "anonymous": no token to tell them apart.
+        return cls(principal if settings.auth_enabled else None, client[0] if client else None)
+
+
 class SessionRegistry:
-    """Open sessions of one app, used from its event loop only."""
+    """Open connections of one app, used from its event loop only."""
 
     def __init__(self) -> None:
         self._sessions: dict[str, Closable] = {}
+        self._owners: dict[str, tuple[str | None, str | None]] = {}
+        self._per_token: Counter[str] = Counter()
+        self._per_address: Counter[str] = Counter()
         self.closing = False
 
     def __len__(self) -> int:
@@ -34,15 +77,46 @@ class SessionRegistry:
     def __iter__(self):
         return iter(list(self._sessions.values()))
 
-    def admit(self, session: Closable, limit: int) -> bool:
-        """Register ``session`` unless ``limit`` sessions are open or the server is closing."""
-        if self.closing or len(self._sessions) >= limit:
-            return False
+    def admit(
+        self,
+        session: Closable,
+        quotas: Quotas,
+        owner: Owner = Owner(None, None),
+        *,
+        publisher: bool = False,
+    ) -> str | None:
+        """Register ``session`` for ``owner``, or say why not (None: admitted)."""
+        token, address = owner.token, owner.address
+        if self.closing:
+            return "the server is shutting down"
+        limit = quotas.max_connections + (quotas.publisher_slots if publisher else 0)
+        if len(self._sessions) >= limit:
+            return f"the server is at its limit of {quotas.max_connections} connections"
+        if token is not None and quotas.per_token and self._per_token[token] >= quotas.per_token:
+            return f"this token already holds its limit of {quotas.per_token} connections"
+        if (
+            address is not None
+            and quotas.per_address
+            and self._per_address[address] >= quotas.per_address
+        ):
+            return f"this address already holds its limit of {quotas.per_address} connections"
         self._sessions[session.id] = session
-        return True
+        self._owners[session.id] = (token, address)
+        if token is not None:
+            self._per_token[token] += 1
+        if address is not None:
+            self._per_address[address] += 1
+        return None
 
     def remove(self, session: Closable) -> None:
-        self._sessions.pop(session.id, None)
+        if self._sessions.pop(session.id, None) is None:
+            return
+        token, address = self._owners.pop(session.id)
+        for counts, key in ((self._per_token, token), (self._per_address, address)):
+            if key is not None:
+                counts[key] -= 1
+                if counts[key] <= 0:
+                    del counts[key]
 
     def get(self, session_id: str) -> Closable | None:
         return self._sessions.get(session_id)

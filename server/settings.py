@@ -88,6 +88,36 @@ class Settings:
     #: Loaded rigs kept in memory per worker process.
     rig_cache_size: int = 16
 
+    # -- hostile clients (SERVER.md, "What a client without a token can cost the server") --
+    #: Seconds a TCP connection may stay silent before its request (after it opened, or
+    #: after its previous response); it is then closed. Also uvicorn's keep-alive timeout.
+    request_idle_timeout: float = 5.0
+    #: Seconds from a request's first byte to its complete head (request line and headers);
+    #: a slower one (slowloris) is closed.
+    request_head_timeout: float = 10.0
+    #: Connections open without a request in progress (not yet sent, or idle between
+    #: requests); one more closes the oldest of them, so they cannot fill the server.
+    max_pending_connections: int = 256
+    #: Bytes of pongs the server may queue for a WebSocket client that does not read
+    #: (a ping flood) before it cuts the connection.
+    max_pong_backlog: int = 64 * 1024
+    #: Seconds the server waits for a WebSocket client's part of the closing handshake
+    #: before it drops the connection (uvicorn's own wait is 10 s).
+    ws_close_timeout: float = 2.0
+    #: Seconds a refused WebSocket connection may take in all (wait for its first
+    #: message, the error, the close) before it is cut, whatever the peer does.
+    refuse_timeout: float = 3.0
+    #: WebSocket connections (stream, publish, watch) one token may hold at once (with
+    #: auth on); 0: no per-token limit.
+    max_connections_per_token: int = 100
+    #: WebSocket connections one client address may hold at once; 0: no limit. Behind
+    #: a reverse proxy every client has the proxy's address unless uvicorn's
+    #: ``forwarded_allow_ips`` names it.
+    max_connections_per_address: int = 100
+    #: Connections beyond ``max_connections`` that only channel publishers may take,
+    #: so watchers (or streams) filling the server cannot lock the performer out.
+    publisher_slots: int = 4
+
     # -- broadcast channels (server/channels.py) --------------------------------------------
     #: Redis URL spanning channels across processes (``redis://host:6379/0``); empty:
     #: channels live in this process only.
@@ -146,11 +176,24 @@ class Settings:
             "rig_cache_size",
             "face_lost_after",
             "face_lost_ease",
+            "request_idle_timeout",
+            "request_head_timeout",
+            "max_pending_connections",
+            "max_pong_backlog",
+            "refuse_timeout",
+            "ws_close_timeout",
         )
         for name in positive:
             if not getattr(self, name) > 0:
                 raise SettingsError(f"{name}: must be > 0, got {getattr(self, name)!r}")
-        for name in ("ping_interval", "ping_timeout", "shutdown_timeout"):
+        for name in (
+            "ping_interval",
+            "ping_timeout",
+            "shutdown_timeout",
+            "max_connections_per_token",
+            "max_connections_per_address",
+            "publisher_slots",
+        ):
             if getattr(self, name) < 0:
                 raise SettingsError(f"{name}: must be >= 0, got {getattr(self, name)!r}")
         origins = []

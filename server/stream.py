@@ -6,8 +6,6 @@ handshake, send one protocol ``error`` and close, so clients see a code, not a b
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import logging
 
 from fastapi import APIRouter, WebSocket
@@ -16,16 +14,16 @@ from facecast.protocol import (
     STREAM_PATH,
     ErrorCode,
     ProtocolError,
-    ServerProtocol,
     bearer_token,
-    close_code,
     select_subprotocol,
 )
 
 from .auth import authorize
 from .blending import BlendBatcher
 from .errors import ApiError
+from .refusal import refuse
 from .session import Session
+from .sessions import Owner, Quotas
 from .settings import Settings
 
 __all__ = ["router"]
@@ -33,28 +31,6 @@ __all__ = ["router"]
 log = logging.getLogger("facecast.server.stream")
 
 router = APIRouter(tags=["stream"])
-
-
-#: How long a refused connection may take to send its first message (see ``_refuse``).
-_REFUSE_WAIT = 1.0
-
-
-async def _refuse(websocket: WebSocket, error: ProtocolError, subprotocol: str | None) -> None:
-    """Accept, answer the client's first message with ``error`` (fatal), then close.
-
-    Waiting for that first message (the ``hello``, at most ``_REFUSE_WAIT`` seconds)
-    means a client that sends right after connecting has finished sending before the
-    close arrives, so it reads the error instead of failing on a send to a closed socket.
-    """
-    with contextlib.suppress(Exception):
-        await websocket.accept(subprotocol=subprotocol)
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(_REFUSE_WAIT):
-                message = await websocket.receive()
-                if message["type"] == "websocket.disconnect":
-                    return
-        await websocket.send_bytes(ServerProtocol().fail(error))
-        await websocket.close(close_code(error), error.code.name.lower())
 
 
 @router.websocket(STREAM_PATH)
@@ -72,7 +48,9 @@ async def stream(websocket: WebSocket) -> None:
         )
         principal = authorize(settings, token, ("stream",))
     except ProtocolError as exc:
-        await _refuse(websocket, exc.evolve(fatal=True), subprotocol)
+        await refuse(
+            websocket, exc.evolve(fatal=True), subprotocol, timeout=settings.refuse_timeout
+        )
         return
     except ApiError as exc:
         code = ErrorCode.UNAUTHORIZED if exc.status == 401 else ErrorCode.FORBIDDEN
@@ -81,7 +59,12 @@ async def stream(websocket: WebSocket) -> None:
             extra={"event": "stream.refused", "code": code.name, "status": exc.status},
         )
         app.state.metrics.errors.labels(code.name).inc()
-        await _refuse(websocket, ProtocolError(code, exc.detail, fatal=True), subprotocol)
+        await refuse(
+            websocket,
+            ProtocolError(code, exc.detail, fatal=True),
+            subprotocol,
+            timeout=settings.refuse_timeout,
+        )
         return
 
     blender = getattr(app.state, "blend_batcher", None)
@@ -100,14 +83,16 @@ async def stream(websocket: WebSocket) -> None:
         principal=principal.name,
     )
     registry = app.state.sessions
-    if not registry.admit(session, settings.max_connections):
-        why = (
-            "the server is shutting down"
-            if registry.closing
-            else f"the server is at its limit of {settings.max_connections} connections"
-        )
+    owner = Owner.of(settings, principal.name, websocket.client)
+    why = registry.admit(session, Quotas.from_settings(settings), owner)
+    if why is not None:
         app.state.metrics.errors.labels(ErrorCode.OVERLOADED.name).inc()
-        await _refuse(websocket, ProtocolError(ErrorCode.OVERLOADED, why, fatal=True), subprotocol)
+        await refuse(
+            websocket,
+            ProtocolError(ErrorCode.OVERLOADED, why, fatal=True),
+            subprotocol,
+            timeout=settings.refuse_timeout,
+        )
         return
     app.state.metrics.connections.inc()
     try:

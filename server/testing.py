@@ -16,13 +16,10 @@ from typing import Any
 from fastapi import FastAPI
 
 from .app import create_app
-from .runner import FacecastServer, ThreadedServer, uvicorn_config
+from .runner import WS_IMPLEMENTATIONS, FacecastServer, ThreadedServer, uvicorn_config
 from .settings import Settings
 
 __all__ = ["WS_IMPLEMENTATIONS", "RunningServer", "free_port", "run_server"]
-
-#: uvicorn's WebSocket implementations the server is tested under.
-WS_IMPLEMENTATIONS = ("websockets", "websockets-sansio")
 
 
 @dataclass

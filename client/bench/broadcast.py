@@ -266,6 +266,7 @@ def _prepare_rigs(directory: Path) -> np.ndarray:
 def _start_server(rigs: Path, redis_url: str | None) -> tuple[subprocess.Popen, int]:
     port = _free_port()
     env = {**os.environ, "FACECAST_MAX_CONNECTIONS": "5000", "FACECAST_ACCESS_LOG": "false",
+           "FACECAST_MAX_CONNECTIONS_PER_ADDRESS": "0",  # every viewer is on 127.0.0.1
            "FACECAST_LOG_LEVEL": "warning", "OPENBLAS_NUM_THREADS": "1"}  # fmt: skip
     command = [sys.executable, "-m", "facecast.client.cli", "serve", "--port", str(port),
                "--rigs", str(rigs)]  # fmt: skip

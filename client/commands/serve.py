@@ -48,9 +48,9 @@ def register(subparsers) -> None:
     parser.add_argument("--log-level", choices=("debug", "info", "warning", "error"))
     parser.add_argument(
         "--ws",
-        choices=("auto", "websockets", "websockets-sansio", "wsproto"),
+        choices=("auto", "websockets-sansio", "websockets"),
         default="auto",
-        help="uvicorn WebSocket implementation",
+        help="uvicorn WebSocket implementation (auto: websockets-sansio)",
     )
     parser.set_defaults(func=run)
 

@@ -70,8 +70,9 @@ def test_sigterm_closes_open_sessions_with_1001_and_exits_cleanly(tmp_path, rig)
         log = process.stderr.read().decode()
 
     assert code == 1001
-    # uvicorn re-raises the signal after its graceful shutdown, so the status may say so.
-    assert exit_status in (0, -signal.SIGTERM)
+    # uvicorn re-raises the signal after its graceful shutdown; serve takes it and says 0,
+    # as the --workers N supervisor does.
+    assert exit_status == 0
     assert '"event":"session.close"' in log and '"code":1001' in log
     assert '"event":"server.stop"' in log  # the lifespan shutdown ran to its end
 

@@ -1,0 +1,121 @@
+"""One token or one address cannot hold every connection, and watchers cannot lock out the performer.
+
+Issue #13 item 10: one viewer token held all 200 slots and the publisher got OVERLOADED.
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+import websockets
+
+from facecast.client.bridges.channel import channel_url
+from facecast.protocol import SUBPROTOCOL, ClientProtocol, ErrorCode, Hello, ProtocolError, Ready
+from facecast.server.settings import Settings
+from facecast.server.testing import run_server
+from tests.channels._helpers import Publisher, Watcher, refused, wait_for
+
+from .conftest import TOKENS
+
+pytestmark = pytest.mark.anyio
+
+
+@pytest.fixture
+def quota_settings(rigs_dir) -> Settings:
+    return Settings(
+        rigs_dir=rigs_dir,
+        auth=True,
+        tokens=TOKENS,
+        max_connections=6,
+        max_connections_per_token=2,
+        max_connections_per_address=0,
+        publisher_slots=1,
+    )
+
+
+async def open_watchers(server, count: int, token: str) -> list[Watcher]:
+    watchers = [
+        await Watcher.open(server.ws_url, "stage", "alpha", token=token) for _ in range(count)
+    ]
+    for watcher in watchers:
+        await watcher.next(Ready)
+    return watchers
+
+
+async def test_a_token_over_its_quota_is_refused_overloaded_and_others_are_not(
+    quota_settings, ws_impl
+):
+    async with run_server(quota_settings, ws=ws_impl) as server:
+        await open_watchers(server, 2, "viewer-token")
+        url = channel_url(server.ws_url, "stage", "watch", {"rig": "alpha"})
+        error, code = await refused(url, token="viewer-token")
+        others = await open_watchers(server, 2, "other-viewer-token")
+
+    assert (error.code, code) == (ErrorCode.OVERLOADED, 1013)
+    assert "token" in error.message
+    assert len(others) == 2
+
+
+async def open_stream(url: str, token: str):
+    """A ``/v1/stream`` session past its ``ready``."""
+    ws = await websockets.connect(
+        url, subprotocols=[SUBPROTOCOL], additional_headers={"Authorization": f"Bearer {token}"}
+    )
+    protocol = ClientProtocol()
+    await ws.send(protocol.send(Hello(rig="alpha")))
+    assert isinstance(protocol.receive(await asyncio.wait_for(ws.recv(), 5)), Ready)
+    return ws
+
+
+async def test_a_token_quota_counts_streams_too(quota_settings, ws_impl):
+    async with run_server(quota_settings, ws=ws_impl) as server:
+        url = f"{server.ws_url}/v1/stream"
+        sessions = [await open_stream(url, "stream-token") for _ in range(2)]
+        error, code = await refused(url, token="stream-token", hello=Hello(rig="alpha"))
+        for ws in sessions:
+            await ws.close()
+
+    assert (error.code, code) == (ErrorCode.OVERLOADED, 1013)
+
+
+async def test_an_address_over_its_quota_is_refused_overloaded(rigs_dir, ws_impl):
+    settings = Settings(rigs_dir=rigs_dir, max_connections_per_address=3)
+    async with run_server(settings, ws=ws_impl) as server:
+        await open_watchers(server, 3, token=None)
+        error, code = await refused(channel_url(server.ws_url, "stage", "watch", {"rig": "alpha"}))
+
+    assert (error.code, code) == (ErrorCode.OVERLOADED, 1013)
+    assert "address" in error.message
+
+
+async def test_a_quota_is_given_back_when_the_connection_ends(quota_settings, ws_impl):
+    async with run_server(quota_settings, ws=ws_impl) as server:
+        first, _ = await open_watchers(server, 2, "viewer-token")
+        await first.close()
+        registry = server.app.state.sessions
+        await wait_for(lambda: len(registry) == 1, 5, "the closed watcher to leave")
+        again = await open_watchers(server, 1, "viewer-token")
+
+    assert len(again) == 1
+
+
+async def test_watchers_filling_the_server_cannot_lock_out_the_publisher(rigs_dir, ws_impl):
+    settings = Settings(rigs_dir=rigs_dir, max_connections=3, publisher_slots=1)
+    async with run_server(settings, ws=ws_impl) as server:
+        await open_watchers(server, 3, token=None)
+        error, code = await refused(channel_url(server.ws_url, "stage", "watch", {"rig": "alpha"}))
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        try:
+            second = await Publisher.open(server.ws_url, "other", "alpha")
+        except ProtocolError as exc:
+            second_refused = exc.code
+        else:  # pragma: no cover - the assert below reports it
+            second_refused = None
+            await second.close()
+        await publisher.close()
+
+    assert (error.code, code) == (ErrorCode.OVERLOADED, 1013)
+    assert publisher.ready.rig == "alpha"
+    # The slots are for publishers only as far as publisher_slots goes.
+    assert second_refused == ErrorCode.OVERLOADED
