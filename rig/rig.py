@@ -14,7 +14,14 @@ from .bounds import BoxProjection, weight_metric
 from .errors import InputError
 from .kernel import bspline_kernel
 from .kernels import evaluate_kernel
-from .pose import align_points, similarity_transform
+from .pose import (
+    POSE_REFINE_MAX_CONDITION,
+    align_points,
+    expression_complement,
+    pose_condition,
+    refine_pose,
+    similarity_transform,
+)
 
 __all__ = ["Rig", "WeightModel"]
 
@@ -247,6 +254,8 @@ class Rig:
         self.fit_report = report
         self.calibration = calibration
         self._checksum: str | None = None
+        # Derived from the models and the calibration at first use (see pose_refinement).
+        self._pose_complements: dict[bool, tuple[np.ndarray, float]] = {}
 
     @classmethod
     def from_fit(
@@ -366,6 +375,9 @@ class Rig:
         if align:
             reference = self.source_neutral if self.calibration is None else self.calibration
             x = align_points(x, reference, stable=self.stable_points, scale=self.align_scale)
+            complement = self.pose_refinement(scale=self.align_scale)
+            if complement is not None:
+                x = refine_pose(x, reference, complement, scale=self.align_scale)
         flat = x.reshape(x.shape[0], -1)
         if self.regions is None:
             w = self.model.evaluate(flat)
@@ -379,6 +391,41 @@ class Rig:
             where = f" (frame {int(bad[0])})" if bad.size and not single else ""
             raise InputError(f"feature points hold NaN or Inf{where}", code="non_finite")
         return w[0] if single else w
+
+    def pose_refinement(self, *, scale: bool = False) -> np.ndarray | None:
+        """The basis ``align`` refines head pose in, or None when the rig cannot separate it.
+
+        Head-pose removal first aligns each frame on the stable points, then
+        (``pose.refine_pose``) removes the rigid motion left in the displacement directions
+        that no example makes. That needs 3K to exceed the examples' rank by 6 (7 with
+        ``scale``) and rigid motions of the neutral that are not nearly expressions
+        (condition number <= ``POSE_REFINE_MAX_CONDITION``); otherwise the stable-point
+        alignment stands alone.
+
+        Returns
+        -------
+        (C, 3K) float64 or None
+            Rows orthogonal to every expression displacement, in the space of the frames
+            (the performer's, for a calibrated rig).
+        """
+        if scale not in self._pose_complements:
+            directions = np.vstack([np.vstack([m.mean[None], m.features]) for m in self.models])
+            complement = expression_complement(directions)
+            matrix = self.model.input_matrix
+            if matrix is not None:
+                # Frames enter the models as x @ matrix: a displacement d of the frame is
+                # d @ matrix to them, so a model-space row c tests the frame with matrix @ c.
+                complement = complement @ matrix.T
+            reference = self.source_neutral if self.calibration is None else self.calibration
+            condition = pose_condition(complement, reference, scale=scale)
+            self._pose_complements[scale] = (complement, condition)
+        complement, condition = self._pose_complements[scale]
+        return complement if condition <= POSE_REFINE_MAX_CONDITION else None
+
+    def pose_condition(self, *, scale: bool = False) -> float:
+        """Condition number of the pose refinement (inf: too few feature points for it)."""
+        self.pose_refinement(scale=scale)
+        return self._pose_complements[scale][1]
 
     def blend(self, weights, *, out: np.ndarray | None = None) -> np.ndarray:
         """Target vertices for blend weights (eq. 3.14): T_B + sum_i w_i (T_i - T_B).
