@@ -424,7 +424,7 @@ def _load_gltf_pair(
     unpaired_targets = []
     for name, delta in zip(target_names, deltas, strict=True):
         if name == "neutral":
-            # Our own export_glb writes the neutral as a zero morph target.
+            # Older facecast exports (and other tools) write the neutral as a zero target.
             if np.abs(delta).max(initial=0.0) > 1e-6 * max(1.0, np.abs(neutral).max()):
                 raise ExampleSetError(
                     f"{gltf}: morph target 'neutral' is not zero; rename it", code="bad_gltf"
