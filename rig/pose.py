@@ -23,7 +23,7 @@ __all__ = [
     "align_points",
     "expression_complement",
     "pose_condition",
-    "pose_jacobian",
+    "projected_pose_jacobian",
     "refine_pose",
     "similarity_transform",
 ]
@@ -33,9 +33,10 @@ __all__ = [
 POSE_REFINE_MAX_CONDITION = 1e6
 # Gauss-Newton steps: near the solution the error squares each step (on ICT-FaceKit 4-5
 # steps reach rounding from the stable-point alignment); a frame far from any expression
-# takes more, hence the cap. A step below the tolerance ends the loop early.
+# takes more, hence the cap. A step below the tolerance leaves an error of about its
+# square, rounding, so it ends the loop.
 _REFINE_STEPS = 20
-_REFINE_TOLERANCE = 1e-12
+_REFINE_TOLERANCE = 1e-8
 
 
 def similarity_transform(
@@ -140,36 +141,56 @@ def pose_condition(complement: np.ndarray, reference: np.ndarray, *, scale: bool
     columns = 7 if scale else 6
     if complement.shape[0] < columns:
         return float("inf")
-    projected = complement @ pose_jacobian(reference[None], scale=scale)[0]
-    return float(np.linalg.cond(projected))
+    k = reference.shape[0]
+    projected = projected_pose_jacobian(
+        reference[None] - reference.mean(axis=0), complement.reshape(-1, k, 3), scale=scale
+    )
+    return float(np.linalg.cond(projected[0]))
 
 
-def pose_jacobian(points: np.ndarray, *, scale: bool = False) -> np.ndarray:
-    """Derivative of flattened points under a small rotation, translation (and scale).
+def projected_pose_jacobian(
+    centred: np.ndarray, complement: np.ndarray, *, scale: bool = False
+) -> np.ndarray:
+    """How a small rotation, translation (and scale) moves frames, seen through ``complement``.
 
     Parameters
     ----------
-    points : (B, K, 3) float
+    centred : (B, K, 3) float
+        Frames minus their centroids.
+    complement : (C, K, 3) float
+        Rows of ``expression_complement`` as points.
     scale : bool
         Add a seventh column: uniform scale about the centroid.
 
     Returns
     -------
-    (B, 3K, 6) or (B, 3K, 7) float64
-        Columns: rotation vector (x, y, z) about the frame's centroid, translation (x, y, z),
-        [scale]: d/dθ of ``R(θ) (p - c) + c + t`` at θ = 0.
+    (B, C, 6) or (B, C, 7) float64
+        Columns: rotation vector (x, y, z) about the centroid, translation (x, y, z),
+        [scale]: d/dθ of ``c · vec(R(θ) y + t)`` at θ = 0 for each complement row c.
     """
-    b, k, _ = points.shape
-    y = points - points.mean(axis=1, keepdims=True)
-    jac = np.zeros((b, k, 3, 7 if scale else 6))
-    # d(omega x y)/d omega = -[y]_x
-    jac[:, :, 0, 1], jac[:, :, 0, 2] = y[:, :, 2], -y[:, :, 1]
-    jac[:, :, 1, 0], jac[:, :, 1, 2] = -y[:, :, 2], y[:, :, 0]
-    jac[:, :, 2, 0], jac[:, :, 2, 1] = y[:, :, 1], -y[:, :, 0]
-    jac[:, :, 0, 3] = jac[:, :, 1, 4] = jac[:, :, 2, 5] = 1.0
+    linear, constant = _jacobian_parts(complement, scale)
+    b = centred.shape[0]
+    return (centred.reshape(b, -1) @ linear).reshape(b, *constant.shape) + constant
+
+
+# Levi-Civita symbol: (a x b)_i = eps[i, j, k] a_j b_k.
+_EPS = np.zeros((3, 3, 3))
+_EPS[0, 1, 2] = _EPS[1, 2, 0] = _EPS[2, 0, 1] = 1.0
+_EPS[0, 2, 1] = _EPS[2, 1, 0] = _EPS[1, 0, 2] = -1.0
+
+
+def _jacobian_parts(complement: np.ndarray, scale: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The projected Jacobian as ``vec(y) @ linear + constant``: (3K, C·P) and (C, P)."""
+    c, k, _ = complement.shape
+    columns = 7 if scale else 6
+    linear = np.zeros((k, 3, c, columns))
+    # Rotation: c · (w x y) = w · (y x c) = sum_k eps[a, i, j] y_ki c_kj.
+    linear[:, :, :, :3] = np.einsum("aij,ckj->kica", _EPS, complement)
     if scale:
-        jac[:, :, :, 6] = y
-    return jac.reshape(b, 3 * k, -1)
+        linear[:, :, :, 6] = complement.transpose(1, 2, 0)  # c · y
+    constant = np.zeros((c, columns))
+    constant[:, 3:6] = complement.sum(axis=1)  # translation: c · t
+    return linear.reshape(3 * k, c * columns), constant
 
 
 def refine_pose(
@@ -198,18 +219,17 @@ def refine_pose(
     finite = np.isfinite(out).all(axis=(1, 2))
     # Non-finite frames pass through unchanged for the caller to report.
     x = out[finite] if not finite.all() else out
-    b = x.shape[0]
-    flat_reference = reference.reshape(-1)
+    b, k, _ = x.shape
+    linear, constant = _jacobian_parts(complement.reshape(-1, k, 3), scale)
     for _ in range(_REFINE_STEPS if b else 0):
-        residual = (x.reshape(b, -1) - flat_reference) @ complement.T  # (B, C)
-        projected = np.einsum("cj,bjp->bcp", complement, pose_jacobian(x, scale=scale))
-        # Least squares through the pseudo-inverse: a degenerate frame (all points at one
-        # place) gets no rotation instead of a singular-matrix error.
-        step = -np.einsum("bpc,bc->bp", np.linalg.pinv(projected, rcond=1e-12), residual)
         centroid = x.mean(axis=1, keepdims=True)
+        centred = x - centroid
+        residual = (x - reference).reshape(b, -1) @ complement.T  # (B, C)
+        projected = (centred.reshape(b, -1) @ linear).reshape(b, *constant.shape) + constant
+        step = _least_squares_step(projected, residual)
         rotation = Rotation.from_rotvec(step[:, :3]).as_matrix()
         factor = 1.0 + step[:, 6, None, None] if scale else 1.0
-        x = factor * np.einsum("bij,bkj->bki", rotation, x - centroid) + centroid
+        x = factor * np.einsum("bij,bkj->bki", rotation, centred) + centroid
         x += step[:, None, 3:6]
         if not np.abs(step).max() > _REFINE_TOLERANCE:
             break
@@ -217,3 +237,17 @@ def refine_pose(
         out[finite] = x
         return out
     return x
+
+
+def _least_squares_step(projected: np.ndarray, residual: np.ndarray) -> np.ndarray:
+    """argmin |P θ + r| per frame: normal equations (6 x 6), the pseudo-inverse if singular.
+
+    P's conditioning at the neutral is checked at fit (``pose_condition``); a degenerate
+    frame (all points at one place) makes it singular, and then gets no rotation.
+    """
+    normal = np.einsum("bcp,bcq->bpq", projected, projected)
+    rhs = -np.einsum("bcp,bc->bp", projected, residual)
+    try:
+        return np.linalg.solve(normal, rhs[:, :, None])[:, :, 0]
+    except np.linalg.LinAlgError:
+        return -np.einsum("bpc,bc->bp", np.linalg.pinv(projected, rcond=1e-12), residual)
