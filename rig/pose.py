@@ -7,7 +7,7 @@ transform fitted on the stable points alone: exact only when the expression leav
 still, and no feature point is perfectly still (on ICT-FaceKit every landmark moves
 0.07-4 cm in some shape). ``refine_pose`` then solves for the remaining small rigid
 motion jointly with the expression: the frame minus the neutral must lie in the span of
-the examples' displacements, so the part of it outside that span (``expression_complement``)
+the examples' displacements (``expression_basis``), so the part of it outside that span
 that a small rotation and translation explain is head motion (Gauss-Newton on the six
 pose parameters, the expression eliminated by the projection). A frame that is an example
 under any rigid motion then comes back as that example to rounding.
@@ -21,9 +21,9 @@ from scipy.spatial.transform import Rotation
 __all__ = [
     "POSE_REFINE_MAX_CONDITION",
     "align_points",
-    "expression_complement",
+    "expression_basis",
     "pose_condition",
-    "projected_pose_jacobian",
+    "pose_jacobian",
     "refine_pose",
     "similarity_transform",
 ]
@@ -109,8 +109,8 @@ def align_points(
     return moved
 
 
-def expression_complement(directions: np.ndarray, *, rtol: float = 1e-9) -> np.ndarray:
-    """Orthonormal basis of the displacements that no combination of ``directions`` makes.
+def expression_basis(directions: np.ndarray, *, rtol: float = 1e-9) -> np.ndarray:
+    """Orthonormal basis of the span of ``directions`` (the displacements expressions make).
 
     Parameters
     ----------
@@ -121,82 +121,70 @@ def expression_complement(directions: np.ndarray, *, rtol: float = 1e-9) -> np.n
 
     Returns
     -------
-    (C, 3K) float64, C = 3K - rank(directions); rows orthonormal and orthogonal to every row
-    of ``directions``.
+    (R, 3K) float64, R = rank(directions) <= D: orthonormal rows (a thin SVD, so the cost
+    grows with D, not with 3K).
     """
     directions = np.asarray(directions, dtype=np.float64)
-    width = directions.shape[1]
-    _, singular, vt = np.linalg.svd(directions, full_matrices=True)
+    _, singular, vt = np.linalg.svd(directions, full_matrices=False)
     top = singular[0] if singular.size and singular[0] > 0 else 1.0
-    rank = int((singular > rtol * top).sum())
-    return vt[rank:width].copy()
+    return vt[: int((singular > rtol * top).sum())].copy()
 
 
-def pose_condition(complement: np.ndarray, reference: np.ndarray, *, scale: bool = False) -> float:
-    """Condition number of the projected pose Jacobian at ``reference`` (inf if too few rows).
-
-    Large means some rigid motion of the neutral is (nearly) an expression of the rig, so
-    ``refine_pose`` cannot tell the two apart.
-    """
-    columns = 7 if scale else 6
-    if complement.shape[0] < columns:
-        return float("inf")
-    k = reference.shape[0]
-    projected = projected_pose_jacobian(
-        reference[None] - reference.mean(axis=0), complement.reshape(-1, k, 3), scale=scale
-    )
-    return float(np.linalg.cond(projected[0]))
-
-
-def projected_pose_jacobian(
-    centred: np.ndarray, complement: np.ndarray, *, scale: bool = False
-) -> np.ndarray:
-    """How a small rotation, translation (and scale) moves frames, seen through ``complement``.
+def pose_jacobian(centred: np.ndarray, *, scale: bool = False) -> np.ndarray:
+    """Derivative of flattened frames under a small rotation, translation (and scale).
 
     Parameters
     ----------
     centred : (B, K, 3) float
         Frames minus their centroids.
-    complement : (C, K, 3) float
-        Rows of ``expression_complement`` as points.
     scale : bool
         Add a seventh column: uniform scale about the centroid.
 
     Returns
     -------
-    (B, C, 6) or (B, C, 7) float64
+    (B, 3K, 6) or (B, 3K, 7) float64
         Columns: rotation vector (x, y, z) about the centroid, translation (x, y, z),
-        [scale]: d/dθ of ``c · vec(R(θ) y + t)`` at θ = 0 for each complement row c.
+        [scale]: d/dθ of ``vec(R(θ) y + t)`` (times ``1 + s``) at θ = 0.
     """
-    linear, constant = _jacobian_parts(complement, scale)
-    b = centred.shape[0]
-    return (centred.reshape(b, -1) @ linear).reshape(b, *constant.shape) + constant
-
-
-# Levi-Civita symbol: (a x b)_i = eps[i, j, k] a_j b_k.
-_EPS = np.zeros((3, 3, 3))
-_EPS[0, 1, 2] = _EPS[1, 2, 0] = _EPS[2, 0, 1] = 1.0
-_EPS[0, 2, 1] = _EPS[2, 1, 0] = _EPS[1, 0, 2] = -1.0
-
-
-def _jacobian_parts(complement: np.ndarray, scale: bool) -> tuple[np.ndarray, np.ndarray]:
-    """The projected Jacobian as ``vec(y) @ linear + constant``: (3K, C·P) and (C, P)."""
-    c, k, _ = complement.shape
-    columns = 7 if scale else 6
-    linear = np.zeros((k, 3, c, columns))
-    # Rotation: c · (w x y) = w · (y x c) = sum_k eps[a, i, j] y_ki c_kj.
-    linear[:, :, :, :3] = np.einsum("aij,ckj->kica", _EPS, complement)
+    b, k, _ = centred.shape
+    y = centred
+    jac = np.zeros((b, k, 3, 7 if scale else 6))
+    # d(w x y)/dw = -[y]x
+    jac[:, :, 0, 1], jac[:, :, 0, 2] = y[:, :, 2], -y[:, :, 1]
+    jac[:, :, 1, 0], jac[:, :, 1, 2] = -y[:, :, 2], y[:, :, 0]
+    jac[:, :, 2, 0], jac[:, :, 2, 1] = y[:, :, 1], -y[:, :, 0]
+    jac[:, :, 0, 3] = jac[:, :, 1, 4] = jac[:, :, 2, 5] = 1.0
     if scale:
-        linear[:, :, :, 6] = complement.transpose(1, 2, 0)  # c · y
-    constant = np.zeros((c, columns))
-    constant[:, 3:6] = complement.sum(axis=1)  # translation: c · t
-    return linear.reshape(3 * k, c * columns), constant
+        jac[:, :, :, 6] = y
+    return jac.reshape(b, 3 * k, -1)
+
+
+def _outside(basis: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """The part of each column of (B, 3K, P) ``vectors`` outside the span of ``basis`` (R, 3K)."""
+    return vectors - basis.T @ (basis @ vectors)  # matmul broadcasts over B
+
+
+def pose_condition(basis: np.ndarray, reference: np.ndarray, *, scale: bool = False) -> float:
+    """Condition number of the pose Jacobian outside the expressions, at ``reference``.
+
+    inf when the expressions leave fewer than 6 (7 with ``scale``) directions free; large
+    when some rigid motion of the neutral is nearly an expression. Either way
+    ``refine_pose`` could not tell head motion from expression.
+    """
+    columns = 7 if scale else 6
+    if reference.size - basis.shape[0] < columns:
+        return float("inf")
+    centred = reference[None] - reference.mean(axis=0)
+    return float(np.linalg.cond(_outside(basis, pose_jacobian(centred, scale=scale))[0]))
 
 
 def refine_pose(
-    points: np.ndarray, reference: np.ndarray, complement: np.ndarray, *, scale: bool = False
+    points: np.ndarray, reference: np.ndarray, basis: np.ndarray, *, scale: bool = False
 ) -> np.ndarray:
     """Remove the rigid motion (and scale) that the expressions cannot explain.
+
+    Gauss-Newton on the pose parameters θ: minimise |Q (x(θ) - reference)|, Q the projection
+    outside the expression span, so the expression part of the frame costs nothing.
 
     Parameters
     ----------
@@ -204,28 +192,25 @@ def refine_pose(
         Frames already roughly aligned to ``reference`` (by ``align_points``).
     reference : (K, 3) float
         The neutral the expressions displace.
-    complement : (C, 3K) float
-        ``expression_complement`` of the rig's displacement directions (in the frames'
-        space), C >= 6 (7 with ``scale``).
+    basis : (R, 3K) float
+        ``expression_basis`` of the rig's displacement directions, in the frames' space,
+        with ``pose_condition`` finite.
     scale : bool
 
     Returns
     -------
     (B, K, 3) float64
-        Each frame moved by the small rigid transform that minimises the part of
-        ``frame - reference`` outside the expression span.
     """
     out = np.array(points, dtype=np.float64)
     finite = np.isfinite(out).all(axis=(1, 2))
     # Non-finite frames pass through unchanged for the caller to report.
     x = out[finite] if not finite.all() else out
-    b, k, _ = x.shape
-    linear, constant = _jacobian_parts(complement.reshape(-1, k, 3), scale)
+    b = x.shape[0]
     for _ in range(_REFINE_STEPS if b else 0):
         centroid = x.mean(axis=1, keepdims=True)
         centred = x - centroid
-        residual = (x - reference).reshape(b, -1) @ complement.T  # (B, C)
-        projected = (centred.reshape(b, -1) @ linear).reshape(b, *constant.shape) + constant
+        residual = _outside(basis, (x - reference).reshape(b, -1, 1))[:, :, 0]  # (B, 3K)
+        projected = _outside(basis, pose_jacobian(centred, scale=scale))  # (B, 3K, 6|7)
         step = _least_squares_step(projected, residual)
         rotation = Rotation.from_rotvec(step[:, :3]).as_matrix()
         factor = 1.0 + step[:, 6, None, None] if scale else 1.0
@@ -245,9 +230,9 @@ def _least_squares_step(projected: np.ndarray, residual: np.ndarray) -> np.ndarr
     P's conditioning at the neutral is checked at fit (``pose_condition``); a degenerate
     frame (all points at one place) makes it singular, and then gets no rotation.
     """
-    normal = np.einsum("bcp,bcq->bpq", projected, projected)
-    rhs = -np.einsum("bcp,bc->bp", projected, residual)
+    normal = np.einsum("bjp,bjq->bpq", projected, projected)
+    rhs = -np.einsum("bjp,bj->bp", projected, residual)
     try:
         return np.linalg.solve(normal, rhs[:, :, None])[:, :, 0]
     except np.linalg.LinAlgError:
-        return -np.einsum("bpc,bc->bp", np.linalg.pinv(projected, rcond=1e-12), residual)
+        return -np.einsum("bpj,bj->bp", np.linalg.pinv(projected, rcond=1e-12), residual)

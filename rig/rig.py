@@ -17,7 +17,7 @@ from .kernels import evaluate_kernel
 from .pose import (
     POSE_REFINE_MAX_CONDITION,
     align_points,
-    expression_complement,
+    expression_basis,
     pose_condition,
     refine_pose,
     similarity_transform,
@@ -255,7 +255,7 @@ class Rig:
         self.calibration = calibration
         self._checksum: str | None = None
         # Derived from the models and the calibration at first use (see pose_refinement).
-        self._pose_complements: dict[bool, tuple[np.ndarray, float]] = {}
+        self._pose_bases: dict[bool, tuple[np.ndarray, float]] = {}
 
     @classmethod
     def from_fit(
@@ -375,9 +375,9 @@ class Rig:
         if align:
             reference = self.source_neutral if self.calibration is None else self.calibration
             x = align_points(x, reference, stable=self.stable_points, scale=self.align_scale)
-            complement = self.pose_refinement(scale=self.align_scale)
-            if complement is not None:
-                x = refine_pose(x, reference, complement, scale=self.align_scale)
+            basis = self.pose_refinement(scale=self.align_scale)
+            if basis is not None:
+                x = refine_pose(x, reference, basis, scale=self.align_scale)
         flat = x.reshape(x.shape[0], -1)
         if self.regions is None:
             w = self.model.evaluate(flat)
@@ -393,39 +393,43 @@ class Rig:
         return w[0] if single else w
 
     def pose_refinement(self, *, scale: bool = False) -> np.ndarray | None:
-        """The basis ``align`` refines head pose in, or None when the rig cannot separate it.
+        """The expression span ``align`` refines head pose against, or None if it cannot.
 
         Head-pose removal first aligns each frame on the stable points, then
-        (``pose.refine_pose``) removes the rigid motion left in the displacement directions
-        that no example makes. That needs 3K to exceed the examples' rank by 6 (7 with
+        (``pose.refine_pose``) removes the rigid motion left outside the span of the
+        examples' displacements. That needs 3K to exceed the span's dimension by 6 (7 with
         ``scale``) and rigid motions of the neutral that are not nearly expressions
         (condition number <= ``POSE_REFINE_MAX_CONDITION``); otherwise the stable-point
         alignment stands alone.
 
         Returns
         -------
-        (C, 3K) float64 or None
-            Rows orthogonal to every expression displacement, in the space of the frames
-            (the performer's, for a calibrated rig).
+        (R, 3K) float64 or None
+            Orthonormal rows spanning the expression displacements, in the space of the
+            frames (the performer's, for a calibrated rig).
         """
-        if scale not in self._pose_complements:
+        if scale not in self._pose_bases:
             directions = np.vstack([np.vstack([m.mean[None], m.features]) for m in self.models])
-            complement = expression_complement(directions)
+            basis = expression_basis(directions)
             matrix = self.model.input_matrix
             if matrix is not None:
-                # Frames enter the models as x @ matrix: a displacement d of the frame is
-                # d @ matrix to them, so a model-space row c tests the frame with matrix @ c.
-                complement = complement @ matrix.T
+                # calibrated() maps each frame point p to (s R) p (frames enter the models as
+                # x @ kron(I, (s R)^T)), so a frame displacement is an expression when it lies
+                # in (s R)^-1 = R^T / s of the span: rows e_k @ (s R) per point, made
+                # orthonormal again.
+                k = self.num_points
+                sr = matrix[:3, :3].T
+                rows = (basis.reshape(-1, k, 3) @ sr).reshape(basis.shape[0], -1)
+                basis = np.linalg.qr(rows.T)[0].T
             reference = self.source_neutral if self.calibration is None else self.calibration
-            condition = pose_condition(complement, reference, scale=scale)
-            self._pose_complements[scale] = (complement, condition)
-        complement, condition = self._pose_complements[scale]
-        return complement if condition <= POSE_REFINE_MAX_CONDITION else None
+            self._pose_bases[scale] = (basis, pose_condition(basis, reference, scale=scale))
+        basis, condition = self._pose_bases[scale]
+        return basis if condition <= POSE_REFINE_MAX_CONDITION else None
 
     def pose_condition(self, *, scale: bool = False) -> float:
         """Condition number of the pose refinement (inf: too few feature points for it)."""
         self.pose_refinement(scale=scale)
-        return self._pose_complements[scale][1]
+        return self._pose_bases[scale][1]
 
     def blend(self, weights, *, out: np.ndarray | None = None) -> np.ndarray:
         """Target vertices for blend weights (eq. 3.14): T_B + sum_i w_i (T_i - T_B).
