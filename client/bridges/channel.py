@@ -58,6 +58,8 @@ __all__ = [
 log = logging.getLogger("facecast.bridges")
 
 _OPEN_ERRORS = (OSError, TimeoutError, WebSocketException)
+#: Refused ``seq``s a publisher remembers above its newest result (bounded memory).
+_MAX_REFUSED_KEPT = 1024
 _DEFAULT_RECONNECT = Reconnect()
 
 
@@ -99,6 +101,11 @@ class PublisherStats:
     errors: int = 0
     dropped: int = 0
     reconnects: int = 0
+    #: Frames the server discarded unprocessed (the newest ``result.dropped``, §8).
+    server_dropped: int = 0
+    #: Frames the server refused with an error naming their ``seq`` and did not count
+    #: in ``dropped`` (invalid frames, §8; ``RATE_LIMITED`` ones are in ``dropped``).
+    refused: int = 0
 
 
 class FramePublisher:
@@ -151,6 +158,15 @@ class FramePublisher:
         self._failure: BaseException | None = None
         self._closing = False
         self._seq = 0
+        #: Set whenever the server answers a frame (a result or an error naming it).
+        self._answer = asyncio.Event()
+        #: The highest ``seq`` with a result, and the refused ``seq``s above it (pruned
+        #: as results pass them, at most `_MAX_REFUSED_KEPT`): what `drain` waits on.
+        self._result_seq = -1
+        self._refused_seqs: set[int] = set()
+        #: ``result.dropped`` is per session: the totals of earlier connections.
+        self._dropped_before = 0
+        self._session_dropped = 0
 
     async def _connect(self) -> None:
         ws = await _open(self.url, self.token, self.limits, self.open_timeout)
@@ -171,6 +187,8 @@ class FramePublisher:
                 fatal=True,
             )
         self.ready = ready
+        self._dropped_before += self._session_dropped
+        self._session_dropped = 0
         self._ws, self._protocol = ws, protocol
 
     async def start(self) -> FramePublisher:
@@ -204,7 +222,13 @@ class FramePublisher:
                 continue
             if isinstance(message, Result):
                 self.stats.results += 1
+                self._session_dropped = message.dropped
+                self.stats.server_dropped = self._dropped_before + message.dropped
                 self.last_result = message
+                if message.seq > self._result_seq:
+                    self._result_seq = message.seq
+                    self._refused_seqs = {q for q in self._refused_seqs if q > message.seq}
+                self._answer.set()
                 if self.on_result is not None:
                     self.on_result(message)
             elif isinstance(message, Error):
@@ -212,6 +236,14 @@ class FramePublisher:
                 if error.fatal:
                     return error
                 self.stats.errors += 1
+                # An over-rate frame is counted in result.dropped already (§6.1, §8).
+                if message.seq is not None and error.code != ErrorCode.RATE_LIMITED:
+                    self.stats.refused += 1
+                    if message.seq > self._result_seq:
+                        if len(self._refused_seqs) >= _MAX_REFUSED_KEPT:
+                            self._refused_seqs.discard(min(self._refused_seqs))
+                        self._refused_seqs.add(message.seq)
+                    self._answer.set()
                 log.warning("publisher: server error %s", error)
         return None
 
@@ -234,6 +266,8 @@ class FramePublisher:
             self._failure = exc
         except Exception as exc:  # a bug here must still end the publisher loudly
             self._failure = ConnectionFailed(f"the publisher failed: {exc!r}")
+        finally:
+            self._answer.set()  # a drain() waiting on an answer learns there is none
 
     async def _reconnect(self, reason: BaseException | None) -> None:
         reopened, last = await reopen_with_backoff(self._connect, self.reconnect, reason)
@@ -249,6 +283,43 @@ class FramePublisher:
     @property
     def connected(self) -> bool:
         return self._ws is not None
+
+    @property
+    def unaccounted(self) -> int:
+        """Frames sent that are neither a result, a counted drop nor a refusal (§8).
+
+        0 once the server has answered everything, unless frames were lost with a
+        connection or the server skipped one without counting it.
+        """
+        stats = self.stats
+        return max(0, stats.sent - stats.results - stats.server_dropped - stats.refused)
+
+    def _settled(self) -> bool:
+        """Whether the last frame that can still get a result has got it."""
+        target = self._seq - 1
+        while target in self._refused_seqs:
+            target -= 1
+        return self._result_seq >= target
+
+    async def drain(self, timeout: float) -> bool:
+        """Wait until the server has answered every frame sent; False after ``timeout`` s.
+
+        Results come in processing order (§8), so the result of the last frame not
+        refused settles every frame before it; a refused (invalid) frame's error comes
+        at once and may overtake earlier results, so refusals are skipped, not waited
+        for. An over-rate last frame gets no result; the timeout bounds that wait.
+        True at once when nothing was sent.
+        """
+        try:
+            async with asyncio.timeout(timeout):
+                while not self._settled():
+                    if self._failure is not None or self._supervisor is None:
+                        return False
+                    self._answer.clear()
+                    await self._answer.wait()
+        except TimeoutError:
+            return False
+        return True
 
     async def send(self, points: np.ndarray, ts: float) -> int | None:
         """Send one frame; its ``seq``, or None when it was dropped (reconnecting).

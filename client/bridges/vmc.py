@@ -1,19 +1,26 @@
 """VMC out: a channel's weights as VMC protocol OSC messages for avatar apps (VSeeFace...).
 
-Builds one OSC bundle per frame (sans-I/O, python-osc's builders) and sends it over UDP;
+Builds OSC bundles per frame (sans-I/O, python-osc's builders) and sends them over UDP;
 it must not compute weights (the channel's server does) nor read the avatar.
 
-Per frame, in this order, in one bundle::
+Per frame, in this order (VMC protocol spec, Marionette side)::
 
     /VMC/Ext/OK        (int 1 loaded, int 3 calibrated, int 0 normal mode, int tracking)
     /VMC/Ext/T         (float seconds)
+    /VMC/Ext/Bone/Pos  (str "Head", float p.x p.y p.z, float q.x q.y q.z q.w)  when given
     /VMC/Ext/Blend/Val (str name, float value)     one per expression
     /VMC/Ext/Blend/Apply
 
-When the channel loses its face or its publisher, a bundle with only ``/VMC/Ext/OK``
-(tracking 0) and ``/VMC/Ext/T`` tells the app. Weights are clamped to [0, 1] (VRM
-expressions are 0..1; the cardinal weights may overshoot) unless ``clamp=False``; the
-neutral (example 0) is not sent — VRM has no weight for "the rest".
+split over as many bundles as keep each datagram within ``max_datagram`` bytes (default
+`SAFE_DATAGRAM`, under a 1500-byte Ethernet MTU so no IP fragment can be lost); only
+the last carries ``Apply``, so a receiver applies whole frames.
+
+Tracking: ``OK``'s last int is 1 while the channel has a live face, 0 from
+``face_lost`` or ``channel_idle`` until ``channel_live``; the eased results the server
+sends after ``face_lost`` (PROTOCOL.md §5.2.7) go out with tracking 0. Weights are
+clamped to [0, 1] (VRM expressions are 0..1; the cardinal weights may overshoot) unless
+``clamp=False``; the neutral (example 0) is not sent. Names follow the receiver's
+convention (`vmc_names`: ``vrm0``, ``vrm1``, ``perfectsync``).
 """
 
 from __future__ import annotations
@@ -21,63 +28,44 @@ from __future__ import annotations
 import asyncio
 import logging
 import socket
+import struct
 from collections.abc import AsyncIterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
+from pythonosc.osc_message import OscMessage
 from pythonosc.osc_message_builder import OscMessageBuilder
+from scipy.spatial.transform import Rotation
 
 from facecast.protocol import ChannelIdle, ChannelLive, Error, FaceLost, Ready, Result
+from facecast.rig.source_rig import head_rotation
+
+from .vmc_names import DEFAULT_CONVENTION, vmc_names
 
 __all__ = [
     "DEFAULT_VMC_PORT",
-    "VRM_PRESETS",
+    "MIN_DATAGRAM",
+    "SAFE_DATAGRAM",
     "VmcBridgeStats",
+    "VmcFrameEncoder",
     "VmcSender",
+    "head_bone_message",
     "run_vmc_bridge",
-    "vmc_frame_bundle",
-    "vmc_names",
+    "vmc_frame_datagrams",
+    "vmc_head_bundle",
     "vmc_status_bundle",
 ]
 
 log = logging.getLogger("facecast.bridges.vmc")
 
 DEFAULT_VMC_PORT = 39539
-
-#: facecast / VRM 1.0 expression names -> VRM 0.x blend shape presets (matched
-#: case-insensitively). The demo's emotions and visemes, VRM 1.0 preset names, and the
-#: presets themselves; names not listed pass through unchanged (custom clips,
-#: ARKit "perfect sync" names).
-VRM_PRESETS: dict[str, str] = {
-    # vowels / visemes
-    "aa": "A", "a": "A",
-    "ih": "I", "i": "I", "ee": "E", "e": "E",
-    "ou": "U", "u": "U", "oo": "U",
-    "oh": "O", "o": "O",
-    # emotions
-    "happy": "Joy", "joy": "Joy",
-    "angry": "Angry", "anger": "Angry",
-    "sad": "Sorrow", "sorrow": "Sorrow",
-    "relaxed": "Fun", "fun": "Fun",
-    "surprised": "Surprised", "surprise": "Surprised",
-    # eyes
-    "blink": "Blink",
-    "blinkleft": "Blink_L", "blink_l": "Blink_L",
-    "blinkright": "Blink_R", "blink_r": "Blink_R",
-    "lookup": "LookUp", "lookdown": "LookDown", "lookleft": "LookLeft", "lookright": "LookRight",
-    "neutral": "Neutral",
-}  # fmt: skip
-
-
-def vmc_names(names: Sequence[str], overrides: Mapping[str, str] | None = None) -> tuple[str, ...]:
-    """The VMC blend shape name for each rig expression name.
-
-    ``overrides`` (exact rig name -> VMC name) win; then `VRM_PRESETS`, case-insensitive;
-    otherwise the name itself.
-    """
-    overrides = dict(overrides or {})
-    return tuple(overrides.get(n) or VRM_PRESETS.get(n.lower(), n) for n in names)
+#: Bytes of UDP payload that fit a 1500-byte MTU behind IPv6 (40) + UDP (8) headers,
+#: with room to spare: the default bound on one VMC datagram.
+SAFE_DATAGRAM = 1400
+#: The smallest ``max_datagram`` accepted (IPv4's minimum reassembly size).
+MIN_DATAGRAM = 576
+_FLOAT32 = struct.Struct(">f")
 
 
 def _message(address: str, *args) -> OscMessageBuilder:
@@ -92,71 +80,250 @@ def _message(address: str, *args) -> OscMessageBuilder:
     return builder
 
 
-def _status(builder: OscBundleBuilder, tracking: bool, t: float) -> None:
-    builder.add_content(_message("/VMC/Ext/OK", 1, 3, 0, 1 if tracking else 0).build())
-    builder.add_content(_message("/VMC/Ext/T", float(t)).build())
+def _status_messages(tracking: bool, t: float) -> list[OscMessage]:
+    return [
+        _message("/VMC/Ext/OK", 1, 3, 0, 1 if tracking else 0).build(),
+        _message("/VMC/Ext/T", float(t)).build(),
+    ]
 
 
-def vmc_frame_bundle(
-    names: Sequence[str], weights: np.ndarray, t: float, *, clamp: bool = True
-) -> bytes:
-    """The datagram of one frame: OK (tracking), T, one Blend/Val per name, Apply.
+#: An empty immediate bundle as python-osc writes it: "#bundle\0" + the time tag 1.
+_BUNDLE_HEAD = OscBundleBuilder(IMMEDIATELY).build().dgram
+_SIZE = struct.Struct(">i")
+
+
+def _element(message: OscMessage) -> bytes:
+    """A message as one bundle element: its int32 size, then its bytes (OSC 1.0)."""
+    return _SIZE.pack(message.size) + message.dgram
+
+
+def _bundle(elements: Sequence[bytes]) -> bytes:
+    return _BUNDLE_HEAD + b"".join(elements)
+
+
+def _split(elements: Sequence[bytes], max_datagram: int) -> list[bytes]:
+    """Bundles of consecutive ``elements``, each at most ``max_datagram`` bytes.
+
+    A single element bigger than the bound (a very long name with a small bound) goes
+    alone in its bundle: it cannot be split, and dropping it silently would be worse.
+    """
+    datagrams: list[bytes] = []
+    start, size = 0, len(_BUNDLE_HEAD)
+    for i, element in enumerate(elements):
+        if i > start and size + len(element) > max_datagram:
+            datagrams.append(_bundle(elements[start:i]))
+            start, size = i, len(_BUNDLE_HEAD)
+        size += len(element)
+    datagrams.append(_bundle(elements[start:]))
+    return datagrams
+
+
+def head_bone_message(
+    angles: Sequence[float], position: Sequence[float] = (0.0, 0.0, 0.0)
+) -> OscMessage:
+    """``/VMC/Ext/Bone/Pos "Head"`` for head (yaw, pitch, roll) in radians.
+
+    The rotation is the one ``--head-pose`` applies to the points
+    (`facecast.rig.source_rig.head_rotation`: face frame +x the subject's left, +y up,
+    +z out of the face), re-expressed in Unity's left-handed frame, where a VRM avatar
+    faces +z with its left at -x (so x is mirrored: ``R_unity = S R S``, S = diag(-1,
+    1, 1)), as the quaternion (x, y, z, w) the spec asks for. ``position`` is the bone's
+    local position (metres, Unity frame); receivers that apply bone rotations only
+    ignore it.
+    """
+    mirror = np.diag([-1.0, 1.0, 1.0])
+    rotation = mirror @ head_rotation(np.asarray(angles, dtype=np.float64)) @ mirror
+    qx, qy, qz, qw = Rotation.from_matrix(rotation).as_quat().tolist()
+    px, py, pz = (float(v) for v in position)
+    return _message("/VMC/Ext/Bone/Pos", "Head", px, py, pz, qx, qy, qz, qw).build()
+
+
+def vmc_head_bundle(angles: Sequence[float], position: Sequence[float] = (0.0, 0.0, 0.0)) -> bytes:
+    """A datagram with only the head transform, for a tracker bridge beside ``bridge vmc``.
+
+    No ``/VMC/Ext/OK`` nor ``T``: the expression sender owns the tracking state.
+    """
+    return _bundle([_element(head_bone_message(angles, position))])
+
+
+def _check_max_datagram(max_datagram: int) -> None:
+    if not MIN_DATAGRAM <= max_datagram <= 65507:
+        raise ValueError(
+            f"max_datagram must be in [{MIN_DATAGRAM}, 65507] bytes (one UDP datagram), "
+            f"got {max_datagram}"
+        )
+
+
+class VmcFrameEncoder:
+    """The datagrams of frames for a fixed list of names, fast enough for the event loop.
+
+    python-osc encodes every message; its builders also parse back each message and
+    bundle they build, ~1 ms for a 52-name frame. So each name's ``Blend/Val`` is encoded
+    once, here, with python-osc, and a frame only replaces its last 4 bytes (the float32
+    value, big-endian, as OSC writes it) and joins the elements into bundles (OSC 1.0
+    framing: "#bundle", time tag, int32 size before each element). The tests check the
+    bytes against python-osc's own builders.
 
     Parameters
     ----------
     names : sequence of N str
-        VMC names, in the order of ``weights``.
-    weights : (N,) float
-    t : float
-        Seconds, sent as ``/VMC/Ext/T``.
+        VMC names, in the order of the weights.
+    clamp : bool
+        Clamp weights to [0, 1].
+    max_datagram : int
+        Bytes per datagram at most; a frame is split over bundles to fit, ``Apply`` in
+        the last one.
     """
-    values = np.asarray(weights, dtype=np.float64)
-    if values.shape != (len(names),):
-        raise ValueError(f"weights: expected shape ({len(names)},), got {values.shape}")
-    if clamp:
-        values = np.clip(values, 0.0, 1.0)
-    builder = OscBundleBuilder(IMMEDIATELY)
-    _status(builder, True, t)
-    for name, value in zip(names, values.tolist(), strict=True):
-        builder.add_content(_message("/VMC/Ext/Blend/Val", name, value).build())
-    builder.add_content(_message("/VMC/Ext/Blend/Apply").build())
-    return builder.build().dgram
+
+    def __init__(
+        self, names: Sequence[str], *, clamp: bool = True, max_datagram: int = SAFE_DATAGRAM
+    ) -> None:
+        _check_max_datagram(max_datagram)
+        for name in names:
+            if "\x00" in name:
+                raise ValueError(f"VMC name {name!r} contains NUL, where an OSC string ends")
+            try:
+                name.encode("utf-8")
+            except UnicodeEncodeError:
+                raise ValueError(f"VMC name {name!r} cannot be written as UTF-8") from None
+        self.names = tuple(names)
+        self.clamp = clamp
+        self.max_datagram = max_datagram
+        # Each name's element without its value: size, address, ",sf", name.
+        self._value_heads = [
+            _element(_message("/VMC/Ext/Blend/Val", name, 0.0).build())[:-4] for name in names
+        ]
+        self._apply = _element(_message("/VMC/Ext/Blend/Apply").build())
+        self._ok = {
+            tracking: _element(_message("/VMC/Ext/OK", 1, 3, 0, int(tracking)).build())
+            for tracking in (False, True)
+        }
+        self._time_head = _element(_message("/VMC/Ext/T", 0.0).build())[:-4]
+
+    def _status(self, tracking: bool, t: float) -> list[bytes]:
+        return [self._ok[bool(tracking)], self._time_head + _FLOAT32.pack(t)]
+
+    def datagrams(
+        self,
+        weights: np.ndarray,
+        t: float,
+        *,
+        tracking: bool = True,
+        head: OscMessage | None = None,
+    ) -> list[bytes]:
+        """The datagrams of one frame: OK, T, [Bone/Pos Head], one Blend/Val per name, Apply.
+
+        Parameters
+        ----------
+        weights : (N,) float
+        t : float
+            Seconds, sent as ``/VMC/Ext/T``.
+        tracking : bool
+            ``/VMC/Ext/OK``'s tracking status.
+        head : OscMessage, optional
+            A `head_bone_message` to send with the frame.
+
+        Returns
+        -------
+        list of bytes, in sending order
+
+        Raises
+        ------
+        ValueError
+            Weights of another shape, NaN/Inf, or beyond float32 (with ``clamp=False``).
+        """
+        values = np.asarray(weights, dtype=np.float64)
+        if values.shape != (len(self.names),):
+            raise ValueError(f"weights: expected shape ({len(self.names)},), got {values.shape}")
+        if self.clamp:
+            values = np.clip(values, 0.0, 1.0)
+        with np.errstate(over="ignore"):
+            wire = values.astype(">f4")
+        if not np.isfinite(wire).all():
+            raise ValueError("weights: NaN, Inf or beyond float32")
+        raw = wire.tobytes()
+        elements = self._status(tracking, t)
+        if head is not None:
+            elements.append(_element(head))
+        elements += [
+            value_head + raw[4 * i : 4 * i + 4] for i, value_head in enumerate(self._value_heads)
+        ]
+        elements.append(self._apply)
+        return _split(elements, self.max_datagram)
 
 
-def vmc_status_bundle(tracking: bool, t: float) -> bytes:
-    """The datagram saying the tracking state without weights: OK, T."""
-    builder = OscBundleBuilder(IMMEDIATELY)
-    _status(builder, tracking, t)
-    return builder.build().dgram
+def vmc_frame_datagrams(
+    names: Sequence[str],
+    weights: np.ndarray,
+    t: float,
+    *,
+    tracking: bool = True,
+    clamp: bool = True,
+    head: OscMessage | None = None,
+    max_datagram: int = SAFE_DATAGRAM,
+) -> list[bytes]:
+    """One frame's datagrams (`VmcFrameEncoder.datagrams`); for many frames keep an encoder."""
+    encoder = VmcFrameEncoder(names, clamp=clamp, max_datagram=max_datagram)
+    return encoder.datagrams(weights, t, tracking=tracking, head=head)
+
+
+def vmc_status_bundle(tracking: bool, t: float, head: OscMessage | None = None) -> bytes:
+    """The datagram saying the tracking state without weights: OK, T, [Bone/Pos Head]."""
+    messages = _status_messages(tracking, t)
+    if head is not None:
+        messages.append(head)
+    return _bundle([_element(m) for m in messages])
 
 
 class VmcSender:
     """A UDP socket that sends VMC datagrams to (host, port); non-blocking sends.
 
-    A VMC receiver that is not running yet is normal: ICMP "port unreachable" errors
-    are ignored (and counted), the next frame is simply sent again.
+    A send that fails (no receiver yet: ICMP "port unreachable"; a full socket buffer;
+    no route) drops that datagram and never raises: the next frame is sent again. Each
+    failure is counted (``failed``, ``last_error``) and logged: the first one, then at
+    most once every ``log_every`` failures, and once more when sends work again.
     """
 
-    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_VMC_PORT) -> None:
+    def __init__(
+        self, host: str = "127.0.0.1", port: int = DEFAULT_VMC_PORT, *, log_every: int = 1000
+    ) -> None:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)
         family, _, _, _, address = infos[0]
         self.address = address
         self._sock = socket.socket(family, socket.SOCK_DGRAM)
         self._sock.setblocking(False)
+        self._log_every = max(1, log_every)
+        self._failing = False
         self.sent = 0
         self.failed = 0
+        self.last_error: OSError | None = None
 
     def send(self, datagram: bytes) -> bool:
+        """Send one datagram; False (counted, logged) when it could not be sent."""
         try:
             self._sock.sendto(datagram, self.address)
-        except (BlockingIOError, ConnectionRefusedError, OSError) as exc:
-            # A full socket buffer or an absent receiver: drop this frame, keep going.
+        except OSError as exc:  # BlockingIOError, ConnectionRefusedError, EMSGSIZE...
             self.failed += 1
-            if self.failed == 1 or self.failed % 1000 == 0:
-                log.warning("VMC send to %s failed (%s); %d so far", self.address, exc, self.failed)
+            self.last_error = exc
+            if not self._failing or self.failed % self._log_every == 0:
+                log.warning(
+                    "VMC send to %s failed (%s); %d failed so far",
+                    self.address, exc, self.failed,
+                )  # fmt: skip
+            self._failing = True
             return False
+        if self._failing:
+            log.warning("VMC sends to %s work again (%d failed)", self.address, self.failed)
+            self._failing = False
         self.sent += 1
         return True
+
+    def send_all(self, datagrams: Sequence[bytes]) -> bool:
+        """Send datagrams in order; True when every one went."""
+        ok = True
+        for datagram in datagrams:
+            ok = self.send(datagram) and ok
+        return ok
 
     def close(self) -> None:
         self._sock.close()
@@ -170,17 +337,23 @@ class VmcSender:
 
 @dataclass
 class VmcBridgeStats:
+    """What `run_vmc_bridge` did: frames and status bundles sent, and failures."""
+
     frames: int = 0
     status: int = 0
     errors: int = 0
+    #: Frames at least one of whose datagrams could not be sent.
+    failed_frames: int = 0
 
 
 async def run_vmc_bridge(
     messages: AsyncIterable,
     sender: VmcSender,
     *,
+    convention: str = DEFAULT_CONVENTION,
     overrides: Mapping[str, str] | None = None,
     clamp: bool = True,
+    max_datagram: int = SAFE_DATAGRAM,
     max_frames: int | None = None,
     clock=None,
 ) -> VmcBridgeStats:
@@ -192,27 +365,41 @@ async def run_vmc_bridge(
         ``watch_channel(...)`` (or any stream of ``Ready`` then ``Result`` weights).
         A ``Ready`` fixes the names (again after a reconnection).
     sender : VmcSender
+    convention : {"vrm0", "vrm1", "perfectsync"}
+        The receiver's naming (`vmc_names`).
     overrides : mapping, optional
-        Rig name -> VMC name, over `VRM_PRESETS`.
+        Rig name -> VMC name, over the convention.
     clamp : bool
         Clamp weights to [0, 1].
+    max_datagram : int
+        Split each frame into bundles of at most this many bytes.
     max_frames : int, optional
         Return after this many frames were sent.
     clock : callable, optional
         Seconds for ``/VMC/Ext/T``; default the event loop's clock.
+
+    Tracking (``/VMC/Ext/OK``) is on from ``ready`` until ``face_lost`` or
+    ``channel_idle``, and on again at ``channel_live``; results in between (the
+    server's ease to the neutral) are sent with tracking off.
     """
+    _check_max_datagram(max_datagram)
+    vmc_names((), convention)  # an unknown convention fails before the first frame
     clock = clock or asyncio.get_running_loop().time
     stats = VmcBridgeStats()
-    names: tuple[str, ...] | None = None
+    encoder: VmcFrameEncoder | None = None
+    tracking = True
     async for message in messages:
         if isinstance(message, Ready):
             if message.output != "weights":
                 raise ValueError("the VMC bridge needs output=weights")
-            names = vmc_names(message.names[1:], overrides)
+            names = vmc_names(message.names[1:], convention, overrides)
+            encoder = VmcFrameEncoder(names, clamp=clamp, max_datagram=max_datagram)
         elif isinstance(message, Result):
-            if names is None or message.weights is None:
+            if encoder is None or message.weights is None:
                 continue
-            sender.send(vmc_frame_bundle(names, message.weights[1:], clock(), clamp=clamp))
+            datagrams = encoder.datagrams(message.weights[1:], clock(), tracking=tracking)
+            if not sender.send_all(datagrams):
+                stats.failed_frames += 1
             stats.frames += 1
             if max_frames is not None and stats.frames >= max_frames:
                 break

@@ -15,6 +15,8 @@ from facecast.client.commands._animation import add_source_arguments
 if TYPE_CHECKING:  # numpy loads when the command runs, not for --help
     import numpy as np
 
+    from facecast.client.bridges.channel import PublisherStats
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -49,6 +51,13 @@ def register(subparsers) -> None:
     parser.add_argument("--seconds", type=float, default=12.0, help="length of 'demo' (default 12)")
     parser.add_argument(
         "--token", help="API token with the publisher role (default: FACECAST_TOKEN)"
+    )
+    parser.add_argument(
+        "--drain-timeout",
+        type=float,
+        default=5.0,
+        metavar="SECONDS",
+        help="at the end, wait at most this long for the last frame's result (default 5)",
     )
     parser.add_argument("-q", "--quiet", action="store_true", help="no summary on stderr")
     parser.set_defaults(func=run)
@@ -98,8 +107,12 @@ def _schedule(animation) -> tuple[np.ndarray, np.ndarray | None, float]:
     return offsets, stamps, float(offsets[-1]) + 1.0 / animation.fps
 
 
-async def publish(args: argparse.Namespace) -> tuple[int, object]:
-    """Publish until the animation ends (or forever with ``--loop``); (frames sent, stats)."""
+async def publish(args: argparse.Namespace) -> tuple[int, PublisherStats, bool, int]:
+    """Publish until the animation ends (or forever with ``--loop``).
+
+    Returns (frames sent, the publisher's stats, whether the last frame was answered
+    within ``--drain-timeout``, frames neither a result nor a counted drop or refusal).
+    """
     import asyncio
     import time
 
@@ -129,7 +142,9 @@ async def publish(args: argparse.Namespace) -> tuple[int, object]:
             passes += 1
             if not args.loop:
                 break
-        return sent, publisher.stats
+        # Leave only once the last frame is answered, or the summary misses its result.
+        drained = await publisher.drain(args.drain_timeout)
+        return sent, publisher.stats, drained, publisher.unaccounted
 
 
 def run(args: argparse.Namespace) -> int:
@@ -138,8 +153,10 @@ def run(args: argparse.Namespace) -> int:
     from facecast.client.cli import CommandError
     from facecast.client.connection import ConnectionFailed
 
+    if not 0 <= args.drain_timeout <= 600:  # also refuses NaN
+        raise CommandError(f"--drain-timeout must be in [0, 600] seconds, got {args.drain_timeout}")
     try:
-        sent, stats = asyncio.run(publish(args))
+        sent, stats, drained, unaccounted = asyncio.run(publish(args))
     except ValueError as exc:  # a malformed URL or channel name
         raise CommandError(str(exc)) from None
     except ConnectionFailed as exc:
@@ -147,7 +164,16 @@ def run(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(
             f"facecast publish: {sent} frames to {args.channel!r} (results back {stats.results}, "
-            f"dropped while reconnecting {stats.dropped}, reconnects {stats.reconnects})",
+            f"dropped by the server {stats.server_dropped}, refused {stats.refused}, "
+            f"dropped while reconnecting {stats.dropped}, reconnects {stats.reconnects}"
+            + (f", unaccounted {unaccounted}" if unaccounted else "")
+            + ")",
             file=sys.stderr,
         )
+        if not drained:
+            print(
+                f"facecast publish: the last frame's result did not arrive within "
+                f"{args.drain_timeout:g} s",
+                file=sys.stderr,
+            )
     return 0

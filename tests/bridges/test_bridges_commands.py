@@ -128,3 +128,14 @@ def test_bridge_refuses_bad_addresses(address, capsys):
             ["bridge", "vmc", "http://h", "--channel", "c", "--rig", "r", "--send", address],
         )
     assert "HOST:PORT" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("position", ["1,2", "a,b,c", "0,nan,0"])
+def test_bridge_refuses_a_head_position_that_is_not_three_finite_numbers(position, capsys):
+    with pytest.raises(SystemExit):
+        run_command(
+            "bridge",
+            ["bridge", "livelink", "http://h", "--channel", "c", "--rig", "r",
+             "--source-rig", "x", "--vmc-head-position", position],
+        )  # fmt: skip
+    assert "X,Y,Z" in capsys.readouterr().err

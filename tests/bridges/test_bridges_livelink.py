@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import queue
 import socket
 import struct
 
@@ -22,13 +23,14 @@ from facecast.client.bridges.livelink import (
     parse_livelink_packet,
     run_livelink_bridge,
 )
+from facecast.client.bridges.vmc import head_bone_message
 from facecast.client.connection import ConnectionFailed, Reconnect
 from facecast.client.urls import stream_url
 from facecast.protocol import ChannelLive, Hello, Ready, Result
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
 
-from ._helpers import livelink_packet
+from ._helpers import OscReceiver, livelink_packet, pylivelinkface_packet, run_command
 
 RIG_ID = "arkit"
 
@@ -108,6 +110,112 @@ def test_bad_packets_raise_a_coded_value_error(data, code):
     with pytest.raises(ValueError) as info:
         parse_livelink_packet(data)
     assert isinstance(info.value, LiveLinkPacketError) and info.value.code == code
+
+
+# -- PyLiveLinkFace's layout --------------------------------------------------------------
+
+
+def test_golden_pylivelinkface_packet_with_a_short_id_and_no_face():
+    data = bytes.fromhex(
+        "06000000"  # version 6, little-endian uint32
+        "2449"  # "$I": device id, no length
+        "00000002" "5331"  # subject "S1"
+    )  # fmt: skip
+    frame = parse_livelink_packet(data)
+    assert (frame.layout, frame.device_id, frame.subject) == ("pylivelinkface", "$I", "S1")
+    assert not frame.has_face
+
+
+def test_golden_pylivelinkface_packet_with_a_face():
+    data = bytes.fromhex(
+        "06000000" "246964"  # version, "$id"
+        "00000002" "5331"  # subject "S1"
+        "0000003c" "3f000000" "0000001e" "00000001"  # frame 60 + 0.5 at 30/1 fps
+        "3d" "3f800000" + "00000000" * 51 + "3e800000" + "00000000" * 8
+    )  # fmt: skip
+    frame = parse_livelink_packet(data)
+    assert (frame.layout, frame.device_id, frame.subject) == ("pylivelinkface", "$id", "S1")
+    assert frame.time == pytest.approx(60.5 / 30)
+    assert frame.weights[0] == 1.0 and not frame.weights[1:].any()
+    assert frame.head[0] == 0.25
+
+
+def test_a_pylivelinkface_uuid_packet_is_byte_for_byte_an_app_packet():
+    uuid = b"0c0d3c5e-6f8a-11ee-9d2e-3f4a5b6c7d8e"
+    values = _values(2)
+    data = pylivelinkface_packet(values, device=b"$" + uuid, subject="iPhone")
+    assert data == livelink_packet(values, device=uuid, frame=7, sub_frame=0.5)
+    frame = parse_livelink_packet(data)
+    assert (frame.layout, frame.device_id) == ("livelinkface", uuid.decode())
+
+
+def test_a_subject_name_counted_in_characters_is_read_whole():
+    values = _values(3)
+    frame = parse_livelink_packet(pylivelinkface_packet(values, subject="Jürgen's 顔"))
+    assert (frame.layout, frame.subject, frame.device_id) == (
+        "pylivelinkface", "Jürgen's 顔", "$my-phone",
+    )  # fmt: skip
+    assert np.array_equal(frame.weights, values[:52].astype(np.float64))
+    assert np.array_equal(frame.head, values[52:].astype(np.float64))
+
+
+def test_the_app_layout_counts_a_non_ascii_subject_in_bytes():
+    frame = parse_livelink_packet(livelink_packet(_values(4), subject="Jürgen".encode()))
+    assert (frame.layout, frame.subject) == ("livelinkface", "Jürgen")
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    st.text(st.characters(codec="utf-8"), max_size=60),
+    st.text(st.characters(codec="utf-8"), max_size=60),
+    st.booleans(),
+)
+def test_pylivelinkface_packets_round_trip_any_id_and_name(device, subject, with_face):
+    values = _values(5) if with_face else []
+    data = pylivelinkface_packet(values, device=("$" + device).encode(), subject=subject)
+    frame = parse_livelink_packet(data)
+    assert frame.subject == subject and frame.has_face == with_face
+    if frame.layout == "pylivelinkface":
+        assert frame.device_id == "$" + device
+    else:  # the bytes happen to be an app packet too (a 36-byte id): then exactly one
+        app = livelink_packet(
+            values, device=frame.device_id.encode(), subject=frame.subject.encode(),
+            frame=7, sub_frame=0.5,
+        )  # fmt: skip
+        assert data == (app if with_face else app[: len(data)])
+    if with_face:
+        assert np.array_equal(frame.weights, np.asarray(values[:52], dtype=np.float64))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=400))
+def test_parser_raises_only_its_own_error_on_pylivelinkface_starts(data):
+    try:
+        parse_livelink_packet(b"\x06\x00\x00\x00$" + data)
+    except LiveLinkPacketError as exc:
+        assert exc.code
+
+
+def test_a_packet_neither_layout_fits_names_both_reasons():
+    data = pylivelinkface_packet(_values(0))[:-3]  # three bytes short of the last value
+    with pytest.raises(LiveLinkPacketError) as info:
+        parse_livelink_packet(data)
+    message = str(info.value)
+    assert "Live Link Face app's layout" in message and "PyLiveLinkFace" in message
+
+
+def test_a_pylivelinkface_packet_with_nan_is_refused_for_the_nan():
+    values = _values(0)
+    values[60] = np.nan
+    with pytest.raises(LiveLinkPacketError) as info:
+        parse_livelink_packet(pylivelinkface_packet(values))
+    assert info.value.code == "non_finite"
+
+
+def test_a_device_id_that_is_not_utf8_says_where():
+    with pytest.raises(LiveLinkPacketError, match="byte 1 of 2") as info:
+        parse_livelink_packet(livelink_packet(_values(0), device=b"a\xff"))
+    assert info.value.code == "bad_string"
 
 
 # -- the UDP receiver -----------------------------------------------------------------
@@ -275,3 +383,48 @@ async def test_bridged_channel_output_equals_offline_cloning(
             with contextlib.suppress(asyncio.CancelledError):
                 await collector
             await messages.aclose()
+
+
+@pytest.mark.anyio
+async def test_bridge_livelink_command_sends_the_head_pose_as_vmc(
+    server_settings, udp_sender, example_set, tmp_path, capsys
+):
+    example_set.save_npz(tmp_path / "source.npz")
+    avatar = OscReceiver()
+    try:
+        async with run_server(server_settings) as server:
+            # The bridge binds the port the test then sends to, so it has to be chosen
+            # first: a free port from the OS, released just before the bridge binds it.
+            probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
+            probe.close()
+            argv = [
+                "bridge", "livelink", server.base_url, "--channel", "stage", "--rig", RIG_ID,
+                "--source-rig", str(tmp_path / "source.npz"), "--listen", f"127.0.0.1:{port}",
+                "--vmc-head", f"127.0.0.1:{avatar.address[1]}", "--frames", "2",
+                "--vmc-head-position", "0,0.06,0.01",
+            ]  # fmt: skip
+            command = asyncio.create_task(asyncio.to_thread(run_command, "bridge", argv))
+            values = _values(9)
+            values[52:55] = (0.3, -0.2, 0.1)
+            heads = []
+            async with asyncio.timeout(30):
+                while not command.done():
+                    # Until the bridge listens, packets go nowhere; each one it gets
+                    # comes back as a head message, which is what this waits on.
+                    udp_sender.sendto(livelink_packet(values), ("127.0.0.1", port))
+                    try:
+                        heads.append(await asyncio.to_thread(avatar.get, 0.2))
+                    except queue.Empty:
+                        continue
+            assert await command == 0
+    finally:
+        avatar.close()
+    angles = values[52:55].astype(np.float64)
+    expected = list(head_bone_message(angles, (0.0, 0.06, 0.01)).params)
+    assert len(heads) >= 2
+    for address, params in heads[:2]:
+        assert address == "/VMC/Ext/Bone/Pos" and params[0] == "Head"
+        assert np.allclose(params[1:], expected[1:], atol=1e-6)
+    assert "VMC head 2 sent, 0 failed" in capsys.readouterr().err

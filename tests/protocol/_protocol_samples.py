@@ -48,7 +48,14 @@ SAMPLES: dict[str, Message] = {
         num_vertices=4,
         output="weights",
         dtype="f32",
-        limits={"max_message_bytes": 1048576, "max_fps": 120},
+        # What a server with default settings sends (PROTOCOL.md §7, §10.6).
+        limits={
+            "max_points": 4096,
+            "max_fps": 240.0,
+            "rate_burst": 60,
+            "max_message_bytes": 1048576,
+            "idle_timeout": 60.0,
+        },
     ),
     "result": Result(
         seq=7,
