@@ -13,7 +13,7 @@ import numpy as np
 
 from .errors import ExampleSetError
 
-__all__ = ["ExampleSet"]
+__all__ = ["ExampleSet", "check_stable_points"]
 
 
 def _finite_array(name: str, value, dtype, ndim: int, where: str = "") -> np.ndarray:
@@ -39,6 +39,31 @@ def _check_finite(name: str, array: np.ndarray, names: Sequence[str] | None = No
     raise ExampleSetError(f"{name}: NaN or Inf coordinates", code="non_finite")
 
 
+def check_stable_points(value, num_points: int) -> np.ndarray:
+    """Stable points as distinct positions in [0, K), at least 3 of them, or an error."""
+    try:
+        stable = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise ExampleSetError(
+            f"stable_points: not an array ({exc})", code="bad_stable_points"
+        ) from None
+    if stable.ndim != 1 or stable.size < 3 or not np.issubdtype(stable.dtype, np.integer):
+        raise ExampleSetError(
+            f"stable_points: expected at least 3 feature-point positions (integers), got "
+            f"{stable.tolist()!r}",
+            code="bad_stable_points",
+        )
+    if stable.min() < 0 or stable.max() >= num_points:
+        raise ExampleSetError(
+            f"stable_points: positions must lie in [0, {num_points}) (the feature points, not "
+            f"mesh vertices), got [{stable.min()}, {stable.max()}]",
+            code="bad_stable_points",
+        )
+    if np.unique(stable).size != stable.size:
+        raise ExampleSetError("stable_points: a point is named twice", code="bad_stable_points")
+    return stable.astype(np.int64)
+
+
 @dataclass(frozen=True, eq=False)
 class ExampleSet:
     """M paired key-expressions; example 0 is always the neutral pair.
@@ -60,6 +85,10 @@ class ExampleSet:
     source_faces : (Fs, 3) int, optional
     feature_indices : (K,) int, optional
         Vertex indices of the feature points in ``source_vertices``.
+    stable_points : (S,) int, optional
+        Positions among the K feature points that expressions move least (no jaw, no
+        lips), S >= 3: where head-pose removal aligns each frame first (``fit`` keeps them
+        on the rig).
     """
 
     names: tuple[str, ...]
@@ -69,6 +98,7 @@ class ExampleSet:
     source_vertices: np.ndarray | None = None
     source_faces: np.ndarray | None = None
     feature_indices: np.ndarray | None = None
+    stable_points: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         names = tuple(str(n) for n in self.names)
@@ -142,6 +172,10 @@ class ExampleSet:
                     code="index_out_of_range",
                 )
 
+        stable = self.stable_points
+        if stable is not None:
+            stable = check_stable_points(stable, src.shape[1])
+
         object.__setattr__(self, "names", names)
         object.__setattr__(self, "source_points", src)
         object.__setattr__(self, "target_vertices", tgt)
@@ -149,6 +183,7 @@ class ExampleSet:
         object.__setattr__(self, "source_vertices", src_vertices)
         object.__setattr__(self, "source_faces", src_faces)
         object.__setattr__(self, "feature_indices", indices)
+        object.__setattr__(self, "stable_points", stable)
 
     @classmethod
     def from_source_meshes(
@@ -160,6 +195,7 @@ class ExampleSet:
         target_faces,
         *,
         source_faces=None,
+        stable_points=None,
     ) -> ExampleSet:
         """Build from full source meshes (M, Vs, 3) and 0-based feature vertex indices (K,)."""
         src = _finite_array("source_vertices", source_vertices, np.float64, 3)
@@ -180,6 +216,7 @@ class ExampleSet:
             source_vertices=src,
             source_faces=source_faces,
             feature_indices=idx,
+            stable_points=stable_points,
         )
 
     # -- derived views -----------------------------------------------------------------
@@ -221,6 +258,7 @@ class ExampleSet:
             source_vertices=None if self.source_vertices is None else self.source_vertices[pick],
             source_faces=self.source_faces,
             feature_indices=self.feature_indices,
+            stable_points=self.stable_points,
         )
 
     def save_npz(self, path) -> None:
@@ -237,4 +275,6 @@ class ExampleSet:
             arrays["source_faces"] = self.source_faces.astype(np.int32)
         if self.feature_indices is not None:
             arrays["feature_indices"] = self.feature_indices.astype(np.int64)
+        if self.stable_points is not None:
+            arrays["stable_points"] = self.stable_points.astype(np.int64)
         np.savez_compressed(path, **arrays)

@@ -97,6 +97,12 @@ class FitReport:
     # column's: unit-free, and sqrt(largest / smallest kept PCA eigenvalue) since p is centred.
     # Without the ridge: it is what --noise has to tame.
     hyperplane_condition_number: float = 1.0
+    # Head-pose removal (Rig.weights(align=True)): the feature points it aligns on first
+    # (None: the set named none, so all of them, jaw and lips included) and the condition
+    # number of the pose refinement against the examples' span (inf: not possible, the
+    # stable-point alignment stands alone).
+    stable_points: list[int] | None = None
+    pose_condition: float = float("inf")
 
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -271,8 +277,11 @@ def fit(
         (M - 1) (``bounds.sparsity_penalty``), so it vanishes without noise. Default 1;
         0 is the plain metric projection. Giving it without ``clamp`` is an error.
     stable_points : (S,) int, optional
-        Feature points used for head-pose alignment (``Rig.weights(align=True)``); all
-        points when omitted.
+        Feature points (positions among the K) that head-pose alignment
+        (``Rig.weights(align=True)``) fits the head's rigid motion on first; default the
+        example set's ``stable_points``, else all K points. The report says which
+        (``stable_points``) and whether the pose refinement against the examples' span
+        that follows is possible (``pose_condition``).
     align_scale : bool
         Whether head-pose alignment also removes uniform scale.
     """
@@ -380,10 +389,13 @@ def fit(
             if example_set.source_vertices is None or example_set.source_faces is None
             else (example_set.source_vertices[0], example_set.source_faces)
         ),
-        stable_points=stable_points,
+        stable_points=example_set.stable_points if stable_points is None else stable_points,
         align_scale=align_scale,
         report={},
     )
+    if rig.stable_points is not None:
+        report.stable_points = [int(i) for i in rig.stable_points]
+    report.pose_condition = rig.pose_condition(scale=align_scale)
     report.fit_seconds = time.perf_counter() - started
     rig.fit_report = report.to_dict()
     return rig

@@ -1,7 +1,8 @@
 """glTF 2.0 binary (GLB) export of a blend-shape rig and import of a mesh's morph targets.
 
-Writes one mesh with one morph target per example (plus an optional weights animation)
-and reads morph targets back for the example-set loader; it does no fitting or blending.
+Writes one mesh with one morph target per example that moves something (plus an optional
+weights animation), each target with POSITION and NORMAL offsets, and reads morph targets
+back for the example-set loader; it does no fitting or blending.
 """
 
 from __future__ import annotations
@@ -62,9 +63,13 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     tri = v[faces]
     # The cross product's length is twice the triangle area: summing it weights by area.
     face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normals = np.zeros_like(v)
-    for corner in range(3):
-        np.add.at(normals, faces[:, corner], face_normals)
+    corners = faces.reshape(-1)
+    normals = np.empty_like(v)
+    for axis in range(3):
+        # Each face's normal goes to its three corners (bincount sums repeated indices).
+        normals[:, axis] = np.bincount(
+            corners, weights=np.repeat(face_normals[:, axis], 3), minlength=v.shape[0]
+        )
     length = np.linalg.norm(normals, axis=1)
     ok = length > 1e-20
     normals[ok] /= length[ok, None]
@@ -166,16 +171,19 @@ def export_glb(
     faces : (F, 3) int
         Triangles, 0-based.
     deltas : (M, V, 3) or (M, 3V) float
-        Per-example vertex offsets from the neutral; all M are written, including a
-        zero-delta neutral, so that weight index i is morph target i.
+        Per-example vertex offsets from the neutral. Examples whose offsets are all zero
+        (a rig's neutral, weight 0) are left out: such a target moves nothing, and its
+        animation track would only cost loaders and players. The others are written in
+        order, so weight column i is the target named ``names[i]``.
     names : sequence of M str
-        Morph target names, stored in ``mesh.extras.targetNames``.
+        Example names; those of the targets written go to ``mesh.extras.targetNames``.
     weights : (F_frames, M) float, optional
-        Per-frame weights, written as an animation with a LINEAR sampler over
-        t = frame / fps targeting the node's ``weights``.
+        Per-frame weights, written (the columns of the written targets) as an animation
+        with a LINEAR sampler over t = frame / fps targeting the node's ``weights``.
     fps : float
     normals : bool
-        Write NORMAL computed from the neutral.
+        Write NORMAL computed from the neutral, and on each morph target the NORMAL
+        offsets to that example's own normals, so shading follows the expression.
 
     Returns
     -------
@@ -185,6 +193,9 @@ def export_glb(
     neutral, faces, deltas, names, weights, fps = _sanitize_export(
         neutral, faces, deltas, names, weights, fps
     )
+    # Targets that move nothing (exact zeros: a rig's neutral row) are not written.
+    kept = np.flatnonzero(np.abs(deltas).reshape(deltas.shape[0], -1).max(axis=1, initial=0) > 0)
+    names = [names[i] for i in kept]
     m = len(names)
     doc: dict = {
         "asset": {"version": "2.0", "generator": "facecast"},
@@ -203,37 +214,35 @@ def export_glb(
             neutral.astype(np.float32), type_="VEC3", target=_ARRAY_BUFFER, minmax=True
         )
     }
+    int_faces = faces.astype(np.int64)
     if normals:
+        base_normals = vertex_normals(neutral, int_faces)
         attributes["NORMAL"] = writer.add(
-            vertex_normals(neutral, faces.astype(np.int64)),
-            type_="VEC3",
-            target=_ARRAY_BUFFER,
-            minmax=False,
+            base_normals, type_="VEC3", target=_ARRAY_BUFFER, minmax=False
         )
-    targets = [
-        {
+    targets = []
+    for i in kept:
+        target = {
             "POSITION": writer.add(
                 deltas[i].astype(np.float32), type_="VEC3", target=_ARRAY_BUFFER, minmax=True
             )
         }
-        for i in range(m)
-    ]
-    doc["meshes"] = [
-        {
-            "name": "face",
-            "primitives": [
-                {
-                    "attributes": attributes,
-                    "indices": indices,
-                    "mode": _TRIANGLES,
-                    "targets": targets,
-                }
-            ],
-            "weights": [0.0] * m,
-            "extras": {"targetNames": names},
-        }
-    ]
-    if weights is not None:
+        if normals:
+            # glTF blends normal offsets with the same weights as positions (and the player
+            # renormalises), so a weight of 1 shades as the example's own normals.
+            posed = vertex_normals(neutral + deltas[i], int_faces)
+            target["NORMAL"] = writer.add(
+                posed - base_normals, type_="VEC3", target=_ARRAY_BUFFER, minmax=False
+            )
+        targets.append(target)
+    primitive = {"attributes": attributes, "indices": indices, "mode": _TRIANGLES}
+    mesh = {"name": "face", "primitives": [primitive], "extras": {"targetNames": names}}
+    if m:  # glTF wants at least one target where there is a targets array
+        primitive["targets"] = targets
+        mesh["weights"] = [0.0] * m
+    doc["meshes"] = [mesh]
+    if weights is not None and m:
+        weights = weights[:, kept]
         times = (np.arange(weights.shape[0], dtype=np.float64) / fps).astype(np.float32)
         t_in = writer.add(times, type_="SCALAR", target=None, minmax=True)
         w_out = writer.add(

@@ -25,11 +25,13 @@ from .synthetic import frame_count, smooth_bump
 
 __all__ = [
     "DEFAULT_LANDMARKS",
+    "DEFAULT_STABLE_LANDMARKS",
     "ICT_FILE",
     "ict_animation",
     "ict_example_set",
     "ict_target_frames",
     "locate_ict",
+    "stable_positions",
 ]
 
 ICT_FILE = "ict_facekit.npz"
@@ -42,6 +44,16 @@ ICT_FILE = "ict_facekit.npz"
 DEFAULT_LANDMARKS: tuple[int, ...] = (
     17, 19, 21, 22, 24, 26, 37, 41, 44, 46, 30, 31, 35, 48, 51, 54, 57, 62, 66, 8,
 )  # fmt: skip
+
+# Multi-PIE 68 positions that expressions move least, relative to how far a head rotation
+# moves them: inner brows 21, 22, lower lids 41, 46 and the nose tip 30 (no jaw, no lips).
+# Chosen by measurement over all 55 ICT expressions: among every subset of 3 or more of the
+# 13 default landmarks off the jaw and lips, aligning an unmoved expression to the neutral
+# on these turns it least, at most 24.5 mrad (rms 11.1), against 104 mrad for inner brows
+# and upper lids (eyeBlink) and 136 mrad for all 20 points (jawOpen). Every landmark moves
+# in some shape (the least, inner eye corners, by 0.07 cm), so no set is exact alone; the
+# rig's pose refinement (pose.refine_pose) removes what remains.
+DEFAULT_STABLE_LANDMARKS: tuple[int, ...] = (21, 22, 41, 46, 30)
 
 # A shape whose largest feature-point displacement is below this (cm) is invisible to
 # the feature points and would coincide with the neutral in parameter space.
@@ -101,6 +113,15 @@ def _landmark_vertices(landmarks68: np.ndarray, landmarks: Sequence[int]) -> np.
     return landmarks68[chosen].astype(np.int64)
 
 
+def stable_positions(
+    landmarks: Sequence[int], stable_landmarks: Sequence[int] = DEFAULT_STABLE_LANDMARKS
+) -> tuple[int, ...] | None:
+    """Positions in ``landmarks`` of the stable landmarks it holds; None if fewer than 3."""
+    chosen = list(landmarks)
+    positions = tuple(chosen.index(mark) for mark in stable_landmarks if mark in chosen)
+    return positions if len(positions) >= 3 else None
+
+
 def ict_example_set(
     path: str | os.PathLike,
     *,
@@ -128,8 +149,9 @@ def ict_example_set(
     -------
     ExampleSet
         ``names`` ("neutral", expressions...), ``source_vertices`` (M, 26719, 3) with
-        ``source_faces``, ``feature_indices`` (K,), ``target_vertices`` (M, 26719, 3) and
-        ``target_faces`` (52220, 3).
+        ``source_faces``, ``feature_indices`` (K,), ``target_vertices`` (M, 26719, 3),
+        ``target_faces`` (52220, 3) and ``stable_points``: the positions of
+        ``DEFAULT_STABLE_LANDMARKS`` among ``landmarks`` (None if fewer than 3 are chosen).
 
     Raises
     ------
@@ -171,7 +193,13 @@ def ict_example_set(
         face = _identity(archive, identity)
         target = source - neutral + face  # eq. of ICT's model: face + (expression - neutral)
     return ExampleSet.from_source_meshes(
-        names, source, feature, target, data["faces"], source_faces=data["faces"]
+        names,
+        source,
+        feature,
+        target,
+        data["faces"],
+        source_faces=data["faces"],
+        stable_points=stable_positions(landmarks),
     )
 
 

@@ -6,6 +6,7 @@ it must not fit or evaluate anything (that is ``fit``), nor read outside the set
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import tomllib
@@ -28,7 +29,7 @@ _POINT_SUFFIXES = (".npy", ".csv")
 _SOURCE_SUFFIXES = _MESH_SUFFIXES + _POINT_SUFFIXES
 _GLTF_SUFFIXES = (".glb", ".gltf")
 _NPZ_REQUIRED = ("names", "source_points", "target_vertices", "target_faces")
-_NPZ_OPTIONAL = ("source_vertices", "source_faces", "feature_indices")
+_NPZ_OPTIONAL = ("source_vertices", "source_faces", "feature_indices", "stable_points")
 
 
 def load_example_set(
@@ -135,6 +136,7 @@ def _load_manifest(folder: Path, allow_unpaired: bool) -> ExampleSet:
         [source]
         neutral = "source/neutral.obj"        # or .npy/.csv K x 3 points
         feature_points = [1225, 1888, 1052]   # or "source/feature_points.txt"; meshes only
+        stable_points = [0, 1, 2]             # optional: feature-point positions for align
         [target]
         neutral = "target/neutral.obj"
         [examples]                            # name = [source file, target file]
@@ -147,11 +149,13 @@ def _load_manifest(folder: Path, allow_unpaired: bool) -> ExampleSet:
     source = _table(doc, "source", manifest)
     target = _table(doc, "target", manifest)
     indices = _feature_indices(source.get("feature_points"), folder, manifest)
+    stable = source.get("stable_points")
 
     if "gltf" in target:
         gltf = _inside(folder, target["gltf"], f"{manifest} [target] gltf")
         src_folder = _inside(folder, source.get("folder", "."), f"{manifest} [source] folder")
-        return _load_gltf_pair(gltf, src_folder, allow_unpaired, feature_points=indices)
+        example_set = _load_gltf_pair(gltf, src_folder, allow_unpaired, feature_points=indices)
+        return _with_stable_points(example_set, stable, manifest)
 
     examples = _table(doc, "examples", manifest, required=False)
     names = ["neutral"]
@@ -183,7 +187,27 @@ def _load_manifest(folder: Path, allow_unpaired: bool) -> ExampleSet:
 
     target_vertices, target_faces = _read_targets(names, [t for _, t in pairs])
     source_kw = _read_sources(names, [s for s, _ in pairs], indices, manifest)
-    return _build(names, source_kw, target_vertices, target_faces)
+    example_set = _build(names, source_kw, target_vertices, target_faces)
+    return _with_stable_points(example_set, stable, manifest)
+
+
+def _with_stable_points(example_set: ExampleSet, value, manifest: Path) -> ExampleSet:
+    """The set with ``[source] stable_points`` (positions among the feature points)."""
+    if value is None:
+        return example_set
+    if not (
+        isinstance(value, list)
+        and all(isinstance(i, int) and not isinstance(i, bool) for i in value)
+    ):
+        raise ExampleSetError(
+            f"{manifest}: [source] stable_points must be a list of feature-point positions "
+            f"(0-based, among the K feature points), got {value!r}",
+            code="bad_stable_points",
+        )
+    try:
+        return dataclasses.replace(example_set, stable_points=np.asarray(value, dtype=np.int64))
+    except ExampleSetError as exc:
+        raise ExampleSetError(f"{manifest}: [source] {exc.message}", code=exc.code) from None
 
 
 def _feature_indices(value, folder: Path, manifest: Path | str) -> np.ndarray | None:
@@ -400,7 +424,7 @@ def _load_gltf_pair(
     unpaired_targets = []
     for name, delta in zip(target_names, deltas, strict=True):
         if name == "neutral":
-            # Our own export_glb writes the neutral as a zero morph target.
+            # Older facecast exports (and other tools) write the neutral as a zero target.
             if np.abs(delta).max(initial=0.0) > 1e-6 * max(1.0, np.abs(neutral).max()):
                 raise ExampleSetError(
                     f"{gltf}: morph target 'neutral' is not zero; rename it", code="bad_gltf"

@@ -14,7 +14,14 @@ from .bounds import BoxProjection, weight_metric
 from .errors import InputError
 from .kernel import bspline_kernel
 from .kernels import evaluate_kernel
-from .pose import align_points, similarity_transform
+from .pose import (
+    POSE_REFINE_MAX_CONDITION,
+    align_points,
+    expression_basis,
+    pose_condition,
+    refine_pose,
+    similarity_transform,
+)
 
 __all__ = ["CALIBRATION_RANGE", "POINT_RANGE", "Rig", "WeightModel"]
 
@@ -271,6 +278,8 @@ class Rig:
         self._fast2 = k * max(slack, 0.0) ** 2 * (1.0 - 1e-5)
         self._radius = radius
         self._checksum: str | None = None
+        # Derived from the models and the calibration at first use (see pose_refinement).
+        self._pose_bases: dict[bool, tuple[np.ndarray, float]] = {}
 
     @classmethod
     def from_fit(
@@ -395,6 +404,9 @@ class Rig:
         if align:
             reference = self.source_neutral if self.calibration is None else self.calibration
             x = align_points(x, reference, stable=self.stable_points, scale=self.align_scale)
+            basis = self.pose_refinement(scale=self.align_scale)
+            if basis is not None:
+                x = refine_pose(x, reference, basis, scale=self.align_scale)
         flat = x.reshape(x.shape[0], -1)
         if self.regions is None:
             w = self.model.evaluate(flat)
@@ -433,6 +445,45 @@ class Rig:
             f"{POINT_RANGE:g}x its radius {self._radius:.3g}: are they in the rig's units?",
             code="out_of_range",
         )
+
+    def pose_refinement(self, *, scale: bool = False) -> np.ndarray | None:
+        """The expression span ``align`` refines head pose against, or None if it cannot.
+
+        Head-pose removal first aligns each frame on the stable points, then
+        (``pose.refine_pose``) removes the rigid motion left outside the span of the
+        examples' displacements. That needs 3K to exceed the span's dimension by 6 (7 with
+        ``scale``) and rigid motions of the neutral that are not nearly expressions
+        (condition number <= ``POSE_REFINE_MAX_CONDITION``); otherwise the stable-point
+        alignment stands alone.
+
+        Returns
+        -------
+        (R, 3K) float64 or None
+            Orthonormal rows spanning the expression displacements, in the space of the
+            frames (the performer's, for a calibrated rig).
+        """
+        if scale not in self._pose_bases:
+            directions = np.vstack([np.vstack([m.mean[None], m.features]) for m in self.models])
+            basis = expression_basis(directions)
+            matrix = self.model.input_matrix
+            if matrix is not None:
+                # calibrated() maps each frame point p to (s R) p (frames enter the models as
+                # x @ kron(I, (s R)^T)), so a frame displacement is an expression when it lies
+                # in (s R)^-1 = R^T / s of the span: rows e_k @ (s R) per point, made
+                # orthonormal again.
+                k = self.num_points
+                sr = matrix[:3, :3].T
+                rows = (basis.reshape(-1, k, 3) @ sr).reshape(basis.shape[0], -1)
+                basis = np.linalg.qr(rows.T)[0].T
+            reference = self.source_neutral if self.calibration is None else self.calibration
+            self._pose_bases[scale] = (basis, pose_condition(basis, reference, scale=scale))
+        basis, condition = self._pose_bases[scale]
+        return basis if condition <= POSE_REFINE_MAX_CONDITION else None
+
+    def pose_condition(self, *, scale: bool = False) -> float:
+        """Condition number of the pose refinement (inf: too few feature points for it)."""
+        self.pose_refinement(scale=scale)
+        return self._pose_bases[scale][1]
 
     def blend(self, weights, *, out: np.ndarray | None = None) -> np.ndarray:
         """Target vertices for blend weights (eq. 3.14): T_B + sum_i w_i (T_i - T_B).

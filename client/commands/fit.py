@@ -74,7 +74,9 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--stable-points",
         metavar="I,J,K",
-        help="feature-point indices used for head-pose alignment (default: all)",
+        help="feature-point positions (0-based, among the K) that head-pose alignment fits "
+        "the head's motion on: expressions must barely move them, so no jaw or lips (default: "
+        "the example set's [source] stable_points, else all K, which the report flags)",
     )
     parser.add_argument(
         "--align-scale", action="store_true", help="head-pose alignment also removes scale"
@@ -136,6 +138,7 @@ def format_report(report: dict, names) -> str:
         f"noise gain (RMS weight change per unit landmark noise): {report['noise_gain']:.4g}",
         *_tolerance_line(report),
         *_bounds_line(report),
+        *_pose_lines(report),
         "identifiability (nearest other example, distance in parameter space):",
     ]
     order = sorted(range(len(names)), key=lambda i: report["nearest_distance"][i])
@@ -170,6 +173,35 @@ def _tolerance_line(report: dict) -> list[str]:
         f"  landmark noise that moves the weights {NOISE_WEIGHT_CHANGE:g} RMS: {tolerance:.3g} "
         f"(feature points' extent {report.get('feature_extent', 0.0):.3g})"
     ]
+
+
+def _pose_lines(report: dict) -> list[str]:
+    from facecast.rig.pose import POSE_REFINE_MAX_CONDITION
+
+    # Rig files fitted before head-pose refinement was reported lack the keys.
+    if "pose_condition" not in report:
+        return []
+    stable = report.get("stable_points")
+    if stable is None:
+        line = (
+            f"head-pose alignment (align): on all {report['num_points']} feature points - the "
+            "example set names no stable points, so jaw and lip motion will first be taken "
+            "for head motion (give --stable-points)"
+        )
+    else:
+        line = f"head-pose alignment (align): on stable points {', '.join(map(str, stable))}"
+    condition = report["pose_condition"]
+    if condition == float("inf") or condition > POSE_REFINE_MAX_CONDITION:
+        refine = (
+            "  then no pose refinement: the examples leave too few directions of the feature "
+            "points free to tell head motion from expression (add feature points)"
+        )
+    else:
+        refine = (
+            "  then refined against the examples' span (rigid motions' condition number "
+            f"{condition:.4g})"
+        )
+    return [line, refine]
 
 
 def _bounds_line(report: dict) -> list[str]:

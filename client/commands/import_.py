@@ -12,7 +12,8 @@ into ARKit's single shapes; ICT has no ``tongueOut``, so the set has 51 ARKit sh
 
 Output::
 
-    DIR/facecast.toml           [source] neutral, [target] neutral, [examples] 51 pairs
+    DIR/facecast.toml           [source] neutral and stable_points, [target] neutral,
+                                [examples] 51 pairs
     DIR/source/<name>.npy       (K, 3) feature points
     DIR/target/<name>.obj       the face area (vertices [0, 9409)) or the full head
 """
@@ -160,6 +161,7 @@ def arkit_example_set(path: Path, landmarks, target: str):
 
     from facecast.rig.errors import ExampleSetError
     from facecast.rig.examples import ExampleSet
+    from facecast.rig.ict import stable_positions
     from facecast.rig.source_rig import ARKIT_NAMES, ARKIT_TO_ICT
 
     names, neutral, shapes, faces, landmarks68 = read_ict(path)
@@ -191,6 +193,7 @@ def arkit_example_set(path: Path, landmarks, target: str):
         source_points=vertices[:, feature],
         target_vertices=target_vertices,
         target_faces=faces,
+        stable_points=stable_positions(landmarks),
     )
     return example_set, feature
 
@@ -203,7 +206,11 @@ def write_example_folder(example_set, folder: Path, comment: str) -> None:
 
     (folder / "source").mkdir(parents=True, exist_ok=True)
     (folder / "target").mkdir(exist_ok=True)
-    lines = [comment, "[source]", 'neutral = "source/neutral.npy"', "[target]"]
+    lines = [comment, "[source]", 'neutral = "source/neutral.npy"']
+    if example_set.stable_points is not None:
+        # Positions among the feature points: where head-pose removal aligns first.
+        lines.append(f"stable_points = {example_set.stable_points.tolist()}")
+    lines.append("[target]")
     lines += ['neutral = "target/neutral.obj"', "[examples]"]
     for i, name in enumerate(example_set.names):
         np.save(folder / "source" / f"{name}.npy", example_set.source_points[i])
@@ -219,6 +226,7 @@ def write_example_folder(example_set, folder: Path, comment: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from facecast.client.cli import CommandError
+    from facecast.rig.ict import DEFAULT_STABLE_LANDMARKS
 
     out = Path(args.output)
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not args.force)):
@@ -232,7 +240,23 @@ def run(args: argparse.Namespace) -> int:
         f"# Feature points: Multi-PIE 68 positions {list(landmarks)}\n"
         f"# = ICT vertices {feature.tolist()}"
     )
+    if example_set.stable_points is None:
+        comment += (
+            "\n# No stable points: --landmarks holds fewer than 3 of Multi-PIE "
+            f"{list(DEFAULT_STABLE_LANDMARKS)}, so head-pose alignment would use all of them."
+        )
+    else:
+        stable = [landmarks[i] for i in example_set.stable_points]
+        comment += f"\n# Stable points (head-pose alignment): Multi-PIE positions {stable}"
     write_example_folder(example_set, out, comment)
+    if example_set.stable_points is None:
+        print(
+            "facecast import: warning: --landmarks names fewer than 3 of the stable landmarks "
+            f"{list(DEFAULT_STABLE_LANDMARKS)} (inner brows, lower lids, nose tip); the set "
+            "has no stable points, so head-pose removal would align on jaw and lips too "
+            "(give 'facecast fit' --stable-points)",
+            file=sys.stderr,
+        )
     print(
         f"facecast import: wrote {out} ({example_set.num_examples} examples, "
         f"K={example_set.num_points}, target V={example_set.num_vertices})",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import json
 
@@ -91,6 +92,33 @@ def test_fit_prints_both_systems_condition_numbers_and_no_warning_on_the_demo(tm
     assert "hyperplane system [1, p] condition number: 66" in captured.out
     assert "landmark noise that moves the weights 0.05 RMS" in captured.out
     assert "warning" not in captured.err
+
+
+def test_fit_says_which_stable_points_align_uses(tmp_path, capsys):
+    code = cli.main(["fit", "demo", "-o", str(tmp_path / "r.rig")])
+
+    assert code == 0
+    assert "head-pose alignment (align): on stable points 6, 7, 12, 13" in capsys.readouterr().out
+
+
+def test_fit_of_a_set_without_stable_points_says_align_uses_all(tmp_path, capsys):
+    from facecast.rig.demo import demo_example_set
+
+    path = tmp_path / "set.npz"
+    dataclasses.replace(demo_example_set(), stable_points=None).save_npz(path)
+    code = cli.main(["fit", str(path), "-o", str(tmp_path / "r.rig")])
+
+    assert code == 0
+    assert "on all 21 feature points" in capsys.readouterr().out
+    assert load_rig(tmp_path / "r.rig").stable_points is None
+
+
+def test_fit_stable_points_flag_overrides_the_sets(tmp_path, capsys):
+    code = cli.main(["fit", "demo", "-o", str(tmp_path / "r.rig"), "--stable-points", "0,1,2"])
+
+    assert code == 0
+    assert "on stable points 0, 1, 2" in capsys.readouterr().out
+    assert load_rig(tmp_path / "r.rig").stable_points.tolist() == [0, 1, 2]
 
 
 @pytest.fixture(scope="module")

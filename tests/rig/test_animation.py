@@ -236,9 +236,13 @@ def test_write_glb_holds_morph_targets_and_weight_animation(tmp_path):
     neutral, _, deltas, names = read_glb_morph_targets(path)
     gltf = pygltflib.GLTF2.load(str(path))
     scene = trimesh.load(io.BytesIO(path.read_bytes()), file_type="glb")
-    np.testing.assert_allclose(neutral + deltas, inputs["neutral"] + inputs["deltas"], atol=1e-6)
-    assert names == inputs["names"]
-    assert gltf.accessors[gltf.animations[0].samplers[0].input].count == 3
+    # The neutral's all-zero target is left out, and with it its animation track.
+    expected = inputs["neutral"] + inputs["deltas"][1:]
+    np.testing.assert_allclose(neutral + deltas, expected, atol=1e-6)
+    assert names == inputs["names"][1:]
+    sampler = gltf.animations[0].samplers[0]
+    assert gltf.accessors[sampler.input].count == 3
+    assert gltf.accessors[sampler.output].count == 3 * 2
     assert len(next(iter(scene.geometry.values())).vertices) == 4
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import warnings
@@ -13,6 +14,7 @@ from hypothesis import strategies as st
 
 from facecast.rig import (
     ExampleSet,
+    ExampleSetError,
     FitError,
     IdentifiabilityWarning,
     InputError,
@@ -143,24 +145,68 @@ def test_clamped_weights_stay_in_range_and_sum_to_one(example_set, mode, low, hi
     np.testing.assert_allclose(rig.weights(example_set.source_points), np.eye(M), atol=1e-8)
 
 
-def test_head_pose_is_removed_before_weights(example_set):
-    rig = fit(example_set)
-    points = example_set.source_points[2]
-    angle = 0.4
+def _turned(points: np.ndarray, angle: float = 0.4) -> np.ndarray:
     rotation = np.array(
         [[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]]
     )
-    moved = points @ rotation.T + np.array([3.0, -1.0, 2.0])
-    stable_rig = fit(example_set, stable_points=[0, 1, 2, 3, 4, 5])
-    # Aligning on all points removes an exact rigid motion of the whole frame.
-    aligned = align_points(moved[None], points)[0]
-    np.testing.assert_allclose(aligned, points, atol=1e-10)
-    assert np.abs(rig.weights(moved) - np.eye(M)[2]).max() > 0.1
+    return points @ rotation.T + np.array([3.0, -1.0, 2.0])
+
+
+def test_aligned_weights_of_a_rigidly_moved_example_are_that_example(example_set):
+    # Stable points that the examples move too: alignment on them alone is off, and the
+    # pose refinement against the examples' span removes the rest.
+    rig = fit(example_set, stable_points=[0, 1, 2])
+    moved = _turned(example_set.source_points)
+    assert rig.pose_refinement() is not None
+    assert np.abs(rig.weights(moved) - np.eye(M)).max() > 0.1
+    np.testing.assert_allclose(rig.weights(moved, align=True), np.eye(M), atol=1e-8)
+
+
+def test_aligned_weights_of_a_mix_under_motion_equal_the_unmoved_mix(example_set):
+    rig = fit(example_set, stable_points=[0, 1, 2])
+    mix = np.random.default_rng(3).dirichlet(np.ones(M), size=5)
+    neutral = example_set.source_neutral
+    points = neutral + np.einsum("fm,mkj->fkj", mix, example_set.source_points - neutral)
     np.testing.assert_allclose(
-        stable_rig.weights(points, align=True),
-        rig.weights(align_points(points[None], example_set.source_neutral)[0]),
+        rig.weights(_turned(points), align=True), rig.weights(points), atol=1e-8
+    )
+
+
+def test_without_free_directions_align_uses_the_stable_points_alone():
+    # 3 points, 8 examples: 9 coordinates hold no direction that no expression makes.
+    example_set = make_set(k=3)
+    rig = fit(example_set, stable_points=[0, 1, 2])
+    moved = _turned(example_set.source_points[2])
+    assert rig.pose_refinement() is None
+    assert rig.fit_report["pose_condition"] == float("inf")
+    np.testing.assert_allclose(
+        rig.weights(moved, align=True),
+        rig.weights(align_points(moved[None], example_set.source_neutral)[0]),
         atol=1e-10,
     )
+
+
+def test_fit_takes_the_example_sets_stable_points_unless_given_others(example_set):
+    named = dataclasses.replace(example_set, stable_points=np.array([1, 3, 5]))
+    assert fit(named).stable_points.tolist() == [1, 3, 5]
+    assert fit(named).fit_report["stable_points"] == [1, 3, 5]
+    assert fit(named, stable_points=[0, 2, 4]).fit_report["stable_points"] == [0, 2, 4]
+    assert fit(example_set).fit_report["stable_points"] is None
+
+
+@pytest.mark.parametrize("stable", [[0, 1], [0, 1, K], [0, 0, 1], [0.5, 1, 2]])
+def test_example_set_refuses_bad_stable_points(example_set, stable):
+    with pytest.raises(ExampleSetError) as info:
+        dataclasses.replace(example_set, stable_points=np.array(stable))
+    assert info.value.code == "bad_stable_points"
+
+
+def test_aligned_non_finite_points_are_an_input_error(example_set):
+    rig = fit(example_set, stable_points=[0, 1, 2])
+    points = np.repeat(example_set.source_points[None, 1], 3, axis=0)
+    points[1, 4, 0] = np.nan
+    with pytest.raises(InputError, match="frame 1"):
+        rig.weights(points, align=True)
 
 
 def test_uniform_scale_is_removed_with_align_scale():

@@ -19,7 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from facecast.rig.errors import ExampleSetError, InputError
-from facecast.rig.gltf import export_glb, read_glb_morph_targets
+from facecast.rig.gltf import export_glb, read_glb_morph_targets, vertex_normals
 
 NAMES = ["neutral", "smile", "frown"]
 
@@ -48,7 +48,7 @@ def accessor_array(gltf: pygltflib.GLTF2, index: int, dtype, width: int) -> np.n
     return np.frombuffer(blob, dtype=dtype, count=count, offset=start).reshape(acc.count, width)
 
 
-def test_exported_glb_is_read_by_pygltflib_with_one_morph_target_per_example():
+def test_exported_glb_has_a_morph_target_per_example_but_the_zero_neutral():
     neutral, faces, deltas = small_rig()
 
     gltf = pygltflib.GLTF2.load_from_bytes(export_glb(neutral, faces, deltas, NAMES))
@@ -56,9 +56,9 @@ def test_exported_glb_is_read_by_pygltflib_with_one_morph_target_per_example():
     (mesh,) = gltf.meshes
     (prim,) = mesh.primitives
     assert gltf.asset.version == "2.0"
-    assert len(prim.targets) == 3
-    assert mesh.extras["targetNames"] == NAMES
-    assert mesh.weights == [0.0, 0.0, 0.0]
+    assert len(prim.targets) == 2
+    assert mesh.extras["targetNames"] == NAMES[1:]
+    assert mesh.weights == [0.0, 0.0]
     assert gltf.accessors[prim.indices].componentType == pygltflib.UNSIGNED_INT
 
 
@@ -83,7 +83,7 @@ def test_applying_reread_morph_targets_reproduces_each_example():
     prim = gltf.meshes[0].primitives[0]
     base = accessor_array(gltf, prim.attributes.POSITION, np.float32, 3)
 
-    for i, target in enumerate(prim.targets):
+    for i, target in enumerate(prim.targets, start=1):
         blended = base + accessor_array(gltf, target["POSITION"], np.float32, 3)
 
         np.testing.assert_allclose(blended, neutral + deltas[i], atol=1e-5)
@@ -101,12 +101,45 @@ def test_exported_normals_are_unit_length_and_face_up_for_a_flat_up_facing_grid(
     np.testing.assert_allclose(normals, np.tile([0.0, 0.0, 1.0], (9, 1)), atol=1e-6)
 
 
+def test_morph_target_normals_turn_the_flat_grid_into_the_tilted_examples():
+    # A flat grid facing +z whose examples tilt it into planes z = slope * x: each example's
+    # normals are (-slope, 0, 1) / |.|, what the base normal plus the target's must give.
+    neutral, faces, _ = small_rig()
+    neutral[:, 2] = 0.0
+    slopes = [0.0, 0.5, -2.0]
+    deltas = np.zeros((3, 9, 3))
+    for i, slope in enumerate(slopes):
+        deltas[i, :, 2] = slope * neutral[:, 0]
+    gltf = pygltflib.GLTF2.load_from_bytes(export_glb(neutral, faces, deltas, NAMES))
+    prim = gltf.meshes[0].primitives[0]
+    base = accessor_array(gltf, prim.attributes.NORMAL, np.float32, 3)
+
+    for slope, target in zip(slopes[1:], prim.targets, strict=True):
+        normals = base + accessor_array(gltf, target["NORMAL"], np.float32, 3)
+
+        expected = np.array([-slope, 0.0, 1.0]) / np.hypot(slope, 1.0)
+        np.testing.assert_allclose(normals, np.tile(expected, (9, 1)), atol=1e-6)
+
+
 def test_export_without_normals_writes_no_normal_attribute():
     neutral, faces, deltas = small_rig()
 
     gltf = pygltflib.GLTF2.load_from_bytes(export_glb(neutral, faces, deltas, NAMES, normals=False))
 
-    assert gltf.meshes[0].primitives[0].attributes.NORMAL is None
+    prim = gltf.meshes[0].primitives[0]
+    assert prim.attributes.NORMAL is None
+    assert all("NORMAL" not in target for target in prim.targets)
+
+
+def test_export_of_only_zero_deltas_writes_a_plain_mesh():
+    neutral, faces, deltas = small_rig()
+
+    gltf = pygltflib.GLTF2.load_from_bytes(
+        export_glb(neutral, faces, deltas[:1], NAMES[:1], weights=np.ones((2, 1)))
+    )
+
+    assert gltf.meshes[0].primitives[0].targets in (None, [])
+    assert not gltf.animations
 
 
 def test_trimesh_loads_exported_glb_with_all_vertices():
@@ -131,13 +164,14 @@ def test_weights_become_a_linear_weights_animation_over_frame_times():
     (sampler,) = animation.samplers
     (channel,) = animation.channels
     times = accessor_array(gltf, sampler.input, np.float32, 1)[:, 0]
-    values = accessor_array(gltf, sampler.output, np.float32, 1).reshape(4, 3)
+    values = accessor_array(gltf, sampler.output, np.float32, 1).reshape(4, 2)
     assert sampler.interpolation == "LINEAR"
     assert channel.target.path == "weights" and channel.target.node == 0
     np.testing.assert_allclose(times, np.arange(4) / 30.0, rtol=1e-6)
     assert gltf.accessors[sampler.input].min == [0.0]
     assert gltf.accessors[sampler.input].max == pytest.approx([3 / 30.0])
-    np.testing.assert_allclose(values, weights, rtol=1e-6)
+    # The neutral's column goes with its target: the animation drives the other two.
+    np.testing.assert_allclose(values, weights[:, 1:], rtol=1e-6)
 
 
 def test_glb_chunks_are_four_byte_aligned_and_length_matches():
@@ -160,8 +194,8 @@ def test_read_glb_morph_targets_round_trips_export():
 
     np.testing.assert_allclose(got_neutral, neutral, atol=1e-6)
     np.testing.assert_array_equal(got_faces, faces)
-    np.testing.assert_allclose(got_deltas, deltas, atol=1e-6)
-    assert names == NAMES
+    np.testing.assert_allclose(got_deltas, deltas[1:], atol=1e-6)
+    assert names == NAMES[1:]
 
 
 def test_read_glb_morph_targets_from_a_file_path(tmp_path):
@@ -171,7 +205,7 @@ def test_read_glb_morph_targets_from_a_file_path(tmp_path):
 
     _, _, got_deltas, names = read_glb_morph_targets(path)
 
-    assert got_deltas.shape == (3, 9, 3) and names == NAMES
+    assert got_deltas.shape == (2, 9, 3) and names == NAMES[1:]
 
 
 def _gltf_json_with_sparse_target(neutral, faces):
@@ -323,6 +357,61 @@ def test_exported_glb_passes_khronos_gltf_validator(tmp_path):
     assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"]
 
 
+THREE_JS = """
+import { readFileSync } from 'node:fs';
+import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+const data = readFileSync(process.argv[1]);
+const buffer = data.buffer.slice(data.byteOffset, data.byteOffset + data.byteLength);
+new GLTFLoader().parse(buffer, '', (gltf) => {
+  let mesh = null;
+  gltf.scene.traverse((node) => { if (!mesh && node.isMesh) mesh = node; });
+  const g = mesh.geometry;
+  console.log(JSON.stringify({
+    names: mesh.userData.targetNames,
+    influences: mesh.morphTargetInfluences.length,
+    normal: Array.from(g.attributes.normal.array),
+    morphPositions: (g.morphAttributes.position || []).map((a) => Array.from(a.array)),
+    morphNormals: (g.morphAttributes.normal || []).map((a) => Array.from(a.array)),
+    tracks: gltf.animations.flatMap((a) => a.tracks.map((t) => t.values.length)),
+  }));
+}, (err) => { console.error(String(err)); process.exit(1); });
+"""
+VIEWER = NODE_MODULES.parent
+
+
+def _node_has_three() -> bool:
+    return shutil.which("node") is not None and (NODE_MODULES / "three" / "package.json").is_file()
+
+
+@pytest.mark.skipif(
+    os.environ.get("CI") != "true" and not _node_has_three(),
+    reason="node with the npm package three (npm ci in client/viewer) not available",
+)
+def test_three_js_loads_the_targets_with_their_normals_and_the_animation(tmp_path):
+    neutral, faces, deltas = small_rig()
+    path = tmp_path / "face.glb"
+    path.write_bytes(export_glb(neutral, faces, deltas, NAMES, weights=np.ones((5, 3))))
+
+    result = subprocess.run(
+        ["node", "--input-type=module", "-e", THREE_JS, str(path)],
+        capture_output=True, text=True, timeout=60, cwd=VIEWER,
+    )  # fmt: skip
+
+    assert result.returncode == 0, result.stderr
+    loaded = json.loads(result.stdout)
+    assert loaded["names"] == NAMES[1:] and loaded["influences"] == 2
+    assert loaded["tracks"] == [5 * 2]
+    base = np.reshape(loaded["normal"], (9, 3))
+    for i, (moved, turned) in enumerate(
+        zip(loaded["morphPositions"], loaded["morphNormals"], strict=True), start=1
+    ):
+        np.testing.assert_allclose(np.reshape(moved, (9, 3)), deltas[i], atol=1e-6)
+        # The example's own unit normals, from the base plus the target's offsets.
+        posed = base + np.reshape(turned, (9, 3))
+        np.testing.assert_allclose(np.linalg.norm(posed, axis=1), 1.0, atol=1e-5)
+        np.testing.assert_allclose(posed, vertex_normals(neutral + deltas[i], faces), atol=1e-6)
+
+
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(data=st.data())
 def test_reading_a_corrupted_glb_raises_only_example_set_error(data):
@@ -392,7 +481,7 @@ def test_primitives_sharing_positions_share_vertices_and_concatenate_faces():
     data = edit_glb_json(export_glb(neutral, faces, deltas, NAMES), duplicate_primitive)
     got_neutral, got_faces, got_deltas, _ = read_glb_morph_targets(data)
 
-    assert got_neutral.shape == (9, 3) and got_deltas.shape == (3, 9, 3)
+    assert got_neutral.shape == (9, 3) and got_deltas.shape == (2, 9, 3)
     np.testing.assert_array_equal(got_faces, np.concatenate([faces, faces]))
 
 
@@ -415,7 +504,7 @@ def test_primitives_with_own_positions_are_appended_with_offset_faces():
     )
     got_neutral, got_faces, got_deltas, _ = read_glb_morph_targets(data)
 
-    assert got_neutral.shape == (18, 3) and got_deltas.shape == (3, 18, 3)
+    assert got_neutral.shape == (18, 3) and got_deltas.shape == (2, 18, 3)
     np.testing.assert_array_equal(got_faces, np.concatenate([faces, faces + 9]))
 
 

@@ -78,7 +78,7 @@ async def test_replacing_a_rig_answers_200_and_serves_the_new_one(settings, rig)
     assert meta.json()["checksum"] == other.checksum
 
 
-async def test_model_glb_has_one_morph_target_per_example(settings, rig):
+async def test_model_glb_has_a_morph_target_per_example_but_the_neutral(settings, rig):
     import pygltflib
 
     async with run_server(settings) as server, client(server) as http:
@@ -87,7 +87,11 @@ async def test_model_glb_has_one_morph_target_per_example(settings, rig):
 
     assert response.headers["content-type"] == "model/gltf-binary"
     gltf = pygltflib.GLTF2.load_from_bytes(response.content)
-    assert len(gltf.meshes[0].primitives[0].targets) == rig.num_examples
+    # The neutral's target would move nothing; every other carries normals too.
+    targets = gltf.meshes[0].primitives[0].targets
+    assert gltf.meshes[0].extras["targetNames"] == list(rig.names[1:])
+    assert len(targets) == rig.num_examples - 1
+    assert all(set(target) == {"POSITION", "NORMAL"} for target in targets)
 
 
 @pytest.mark.parametrize("kind", ["zip", "tar", "tar.gz", "zip-with-top-folder"])

@@ -2,6 +2,8 @@
 // errors. DOM only; it never decides anything about connections.
 
 const STATE_CLASSES = ["connecting", "live", "idle", "waiting", "failed"];
+// Widest weight label; longer names are cut with an ellipsis.
+const LABEL_MAX_CH = 16;
 
 export class Hud {
   constructor(doc, { showStats }) {
@@ -52,13 +54,21 @@ export class Hud {
   names(names) {
     if (!this.el.weights) return;
     this.el.weights.replaceChildren();
+    // One label column as wide as the longest name (up to LABEL_MAX_CH, then "…" with the
+    // full name on hover); each bar lives in its own track beside it, so it cannot reach
+    // into the labels however large the weight.
+    const longest = names.reduce((n, name) => Math.max(n, name.length), 1);
+    this.el.weights.style.setProperty("--label-ch", `${Math.min(longest, LABEL_MAX_CH)}ch`);
     this.bars = names.map((name) => {
       const row = this.doc.createElement("div");
       row.className = "weight";
       const label = this.doc.createElement("span");
       label.textContent = name;
+      label.title = name;
+      const track = this.doc.createElement("b");
       const bar = this.doc.createElement("i");
-      row.append(label, bar);
+      track.append(bar);
+      row.append(label, track);
       this.el.weights.append(row);
       return bar;
     });
@@ -71,8 +81,9 @@ export class Hud {
     if (now - this.lastWeightsPaint < 66) return;
     this.lastWeightsPaint = now;
     for (let i = 0; i < this.bars.length && i < weights.length; i++) {
-      const w = Math.max(-0.5, Math.min(1.5, weights[i]));
-      this.bars[i].style.width = `${Math.abs(w) * 66}%`;
+      // The track is |w| = 1.5 wide: weights past it stop at its end.
+      const w = Math.max(-1.5, Math.min(1.5, weights[i]));
+      this.bars[i].style.width = `${(Math.abs(w) / 1.5) * 100}%`;
       this.bars[i].classList.toggle("negative", w < 0);
     }
   }

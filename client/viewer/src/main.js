@@ -110,7 +110,6 @@ async function main() {
     failed(err instanceof Permanent ? err.message : `Cannot load: ${err.message}`);
     return;
   }
-  hud.names(model.names);
   view.render();
 
   let latencyEma = null;
@@ -143,7 +142,7 @@ async function main() {
       switch (msg.type) {
         case "ready": {
           const rig = msg.rig;
-          if (msg.output === "weights" && rig.names.join("\n") !== model.names.join("\n")) {
+          if (msg.output === "weights" && !view.bindWeights(rig.names)) {
             // The rig was replaced on the server: its model is stale.
             link.fail(`rig ${rig.id} changed on the server (weights no longer match the model); reload the page`);
             return;
@@ -152,6 +151,7 @@ async function main() {
             link.fail(`rig ${rig.id} has ${rig.v} vertices but its model ${model.vertexCount}; reload the page`);
             return;
           }
+          hud.names(rig.names);
           link.healthy();
           hud.clearError();
           stats.error = null;

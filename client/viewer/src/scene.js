@@ -76,13 +76,28 @@ export class FaceView {
     return { names, vertexCount: geometry.attributes.position.count };
   }
 
-  /** weights: Float32Array of M, in targetNames order (== the rig's weight order). */
+  /**
+   * Match the rig's weight names (its `ready`) to the morph targets by name: the GLB leaves
+   * out targets that move nothing (the neutral). False when a target has no weight, i.e.
+   * the model is not this rig's.
+   */
+  bindWeights(names) {
+    const index = new Map(names.map((name, i) => [name, i]));
+    const order = this.names.map((name) => index.get(name));
+    if (order.some((i) => i === undefined)) return false;
+    this.weightOrder = order;
+    this.weightCount = names.length;
+    return true;
+  }
+
+  /** weights: Float32Array of M, in the rig's weight order (see bindWeights). */
   setWeights(weights) {
     const influences = this.mesh.morphTargetInfluences;
-    if (weights.length !== influences.length) {
-      throw new Error(`got ${weights.length} weights for ${influences.length} morph targets`);
+    const order = this.weightOrder;
+    if (!order || weights.length !== this.weightCount) {
+      throw new Error(`got ${weights.length} weights for a rig of ${this.weightCount ?? "unknown"}`);
     }
-    for (let i = 0; i < weights.length; i++) influences[i] = weights[i];
+    for (let j = 0; j < order.length; j++) influences[j] = weights[order[j]];
     this.dirty = true;
   }
 
@@ -111,40 +126,84 @@ export class FaceView {
     this.renderer.setSize(width, height);
     this.camera.aspect = width / height;
     this.camera.updateProjectionMatrix();
+    // Without controls (the overlay) nobody moves the camera: frame again for the new shape.
+    if (!this.controls && this.framed) this.frame(this.framed);
     this.dirty = true;
   }
 
-  /** Put the camera in front of the face (+z out of the face, y up) so it fills the view. */
+  /**
+   * Put the camera in front of the face (+z out of the face, y up, a little from the right
+   * and above) so the neutral's box, as drawn, fills FRAME_FILL of the view's shorter side.
+   */
   frame(geometry) {
     // The neutral's bounds: three.js's own bounding sphere also takes in every morph
     // target at full weight, which makes the face small and off-centre.
     const box = new THREE.Box3().setFromBufferAttribute(geometry.attributes.position);
     const center = box.getCenter(new THREE.Vector3());
-    const radius = box.getSize(new THREE.Vector3()).length() / 2;
+    const size = box.getSize(new THREE.Vector3());
+    const direction = new THREE.Vector3(0.18, 0.1, 1).normalize();
+    // Start from the distance at which the bounding sphere fills the view, then scale it by
+    // how much of the view the projected box really takes (a sphere around a flat face or
+    // a tall head is far larger than either): drawn size goes as 1 / distance, so a few
+    // rounds settle it to within a pixel.
     const fov = THREE.MathUtils.degToRad(this.camera.fov);
-    // The face's bounding sphere fills ~85% of the shorter side of the view.
-    const fit = Math.min(1, this.camera.aspect);
-    const distance = radius / (0.85 * Math.tan(fov / 2) * fit);
-    this.camera.position.set(center.x + 0.18 * distance, center.y + 0.1 * distance, center.z + distance);
-    this.camera.near = distance / 100;
-    this.camera.far = distance * 10;
-    this.camera.updateProjectionMatrix();
-    this.camera.lookAt(center);
+    let distance = size.length() / 2 / (Math.tan(fov / 2) * Math.min(1, this.camera.aspect));
+    for (let round = 0; round < 4; round++) {
+      this.placeCamera(center, direction, distance);
+      distance *= projectedFill(box, this.camera) / FRAME_FILL;
+    }
+    this.placeCamera(center, direction, distance);
+    this.framed = geometry;
     if (this.controls) {
       this.controls.target.copy(center);
       this.controls.update();
     }
   }
+
+  placeCamera(center, direction, distance) {
+    this.camera.position.copy(center).addScaledVector(direction, distance);
+    this.camera.near = distance / 100;
+    this.camera.far = distance * 10;
+    this.camera.lookAt(center);
+    this.camera.updateProjectionMatrix();
+    this.camera.updateMatrixWorld();
+  }
+}
+
+/** Share of the shorter side the neutral's box corners take: its silhouette then fills ~65-75 %. */
+const FRAME_FILL = 0.8;
+
+/** The larger side of a box's drawn extent over the view's shorter side (1 = it just fits). */
+function projectedFill(box, camera) {
+  const corner = new THREE.Vector3();
+  let minX = Infinity;
+  let maxX = -Infinity;
+  let minY = Infinity;
+  let maxY = -Infinity;
+  for (let i = 0; i < 8; i++) {
+    corner.set(i & 1 ? box.max.x : box.min.x, i & 2 ? box.max.y : box.min.y, i & 4 ? box.max.z : box.min.z);
+    corner.project(camera);
+    minX = Math.min(minX, corner.x);
+    maxX = Math.max(maxX, corner.x);
+    minY = Math.min(minY, corner.y);
+    maxY = Math.max(maxY, corner.y);
+  }
+  // Normalised device coordinates span 2 across the width and 2 across the height.
+  const width = ((maxX - minX) / 2) * camera.aspect;
+  const height = (maxY - minY) / 2;
+  return Math.max(width, height) / Math.min(1, camera.aspect);
 }
 
 /**
  * Normal offsets per morph target, from each target's own vertex normals, so lighting
- * follows the expression (the GLB carries position targets only). Computed once here;
- * the GPU blends them with the same weights as the positions.
+ * follows the expression; only for GLBs that carry position targets alone (facecast's own
+ * carry NORMAL offsets too). Computed once here; the GPU blends them with the same
+ * weights as the positions.
  */
 function addMorphNormals(geometry) {
   const morphs = geometry.morphAttributes.position || [];
   if (!morphs.length || !geometry.attributes.normal) return;
+  if ((geometry.morphAttributes.normal || []).length === morphs.length) return;
   const base = geometry.attributes.normal.array;
   const scratch = new THREE.BufferGeometry();
   scratch.setIndex(geometry.index);
