@@ -13,6 +13,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import scipy.optimize
 
+from .bounds import project_box, sparsity_penalty, stream_sparsity, weight_metric
 from .errors import FitError, InputError
 from .examples import ExampleSet
 from .fit import fit
@@ -32,6 +33,10 @@ __all__ = [
 ]
 
 AXES = ("x", "y", "z")
+# ``sparsity`` of a setting whose prior's rate is estimated from the stream (empirical Bayes,
+# bounds.stream_sparsity) over the STREAM_WINDOW frames before each frame.
+STREAM = "stream"
+STREAM_WINDOW = 60
 # Frames blended at once while measuring errors: bounds the (B, V, 3) scratch arrays.
 _CHUNK = 256
 
@@ -292,8 +297,12 @@ def _label(setting: dict) -> str:
         parts.append(str(setting["kernel"]))
     if setting.get("clamp"):
         parts.append(f"clamp={setting['clamp']}")
-    if setting.get("sparsity") is not None:
+    if setting.get("sparsity") == STREAM:
+        parts.append(f"sparsity={STREAM}")
+    elif setting.get("sparsity") is not None:
         parts.append(f"sparsity={float(setting['sparsity']):g}")
+    if setting.get("pca_threshold") is not None:
+        parts.append(f"pca={float(setting['pca_threshold']):g}")
     parts.append(f"noise={float(setting.get('noise', 0.0)):g}")
     return " ".join(parts)
 
@@ -303,9 +312,9 @@ def default_settings(noise: float = 0.0, kernels: Sequence[str] = KERNELS) -> li
 
     The thesis's rig (B-spline, no regularisation); with noise, the regularised rig at
     noise/2, noise and 2 noise; every other kernel in ``kernels``; the bounded rigs
-    (``clamp`` nonneg and unit, the metric projection with the default sparsity prior) at
-    the input noise and twice it; and, with noise, the nonneg rig without the prior
-    (``sparsity`` 0), to show what the prior adds.
+    (``clamp`` nonneg and unit, the plain metric projection, the default) at the input noise
+    and twice it; and, with noise, the nonneg rig with a sparsity prior of rate 1 and with
+    its rate estimated from the stream (``sparsity`` "stream"), to show what a prior adds.
     """
     noise = float(noise)
     settings: list[dict] = [{"noise": 0.0}]
@@ -319,7 +328,8 @@ def default_settings(noise: float = 0.0, kernels: Sequence[str] = KERNELS) -> li
         if noise > 0:
             settings.append({"clamp": clamp, "noise": 2.0 * noise})
     if noise > 0:
-        settings.append({"clamp": "nonneg", "sparsity": 0.0, "noise": noise})
+        settings.append({"clamp": "nonneg", "sparsity": 1.0, "noise": noise})
+        settings.append({"clamp": "nonneg", "sparsity": STREAM, "noise": noise})
     return settings
 
 
@@ -346,6 +356,8 @@ def _sanitize_settings(settings) -> list[tuple[str, dict]]:
 
 def _fit_setting(example_set: ExampleSet, kwargs: dict) -> tuple[Rig | None, dict]:
     entry: dict = {"kind": "rig", "settings": dict(kwargs), "failed": None}
+    if kwargs.get("sparsity") == STREAM:
+        kwargs = {**kwargs, "sparsity": 0.0}
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -362,6 +374,32 @@ def _fit_setting(example_set: ExampleSet, kwargs: dict) -> tuple[Rig | None, dic
         "warnings": len(report["warnings"]),
     }
     return rig, entry
+
+
+def _rig_weights(rig: Rig, points: np.ndarray, setting: dict) -> np.ndarray:
+    """The rig's weights; with ``sparsity`` "stream", the MAP weights under a prior whose
+    rate is re-estimated for every frame from the frames before it (bounds.stream_sparsity).
+
+    The plain projection's weights feed the estimate; the exponential prior's linear term
+    lambda_t then shifts each frame's unbounded weights by (lambda_t / 2) H^-1 1 before the
+    same projection, which is that MAP problem.
+    """
+    if setting.get("sparsity") != STREAM:
+        return rig.weights(points)
+    model = rig.model
+    plain = rig.weights(points)
+    rates = stream_sparsity(plain[:, 1:], STREAM_WINDOW)
+    unbounded = rig.with_clamp(None).weights(points)[:, 1:]
+    metric = weight_metric(model.params, model.ridge)
+    unit_shift = 0.5 * np.linalg.solve(metric, np.ones(len(metric)))
+    noise = float(setting.get("noise", 0.0))
+    penalties = np.array([sparsity_penalty(noise, r, rig.num_examples) for r in rates])
+    upper = 1.0 if model.clamp == "unit" else None
+    rest = project_box(unbounded - penalties[:, None] * unit_shift, metric, upper)
+    weights = np.empty_like(plain)
+    weights[:, 1:] = rest
+    weights[:, 0] = 1.0 - rest.sum(axis=1)
+    return weights
 
 
 def _blend_with(rig: Rig) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
@@ -427,6 +465,7 @@ def evaluate(
     if not np.isfinite(noise) or noise < 0:
         raise InputError(f"noise must be a finite number >= 0, got {noise}")
     chosen = _sanitize_settings(default_settings(noise) if settings is None else settings)
+    settings_by_label = dict(chosen)
 
     methods: dict[str, dict] = {}
     rigs: dict[str, Rig] = {}
@@ -457,7 +496,9 @@ def evaluate(
         errors = {}
         for condition, x in inputs.items():
             table = {}
-            weights_by_label = {label: rig.weights(x) for label, rig in rigs.items()}
+            weights_by_label = {
+                label: _rig_weights(rig, x, settings_by_label[label]) for label, rig in rigs.items()
+            }
             weights_by_label.update({label: peer(example_set, x) for label, peer in PEERS.items()})
             scratch = np.empty((min(frames, _CHUNK), example_set.num_vertices, 3), np.float32)
             for label, weights in weights_by_label.items():

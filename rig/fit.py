@@ -19,12 +19,21 @@ from .examples import ExampleSet
 from .kernels import KERNELS, evaluate_kernel, kernel_derivative, kernel_slope
 from .rig import Rig, WeightModel
 
-__all__ = ["CLAMP_MODES", "FitReport", "IdentifiabilityWarning", "fit"]
+__all__ = [
+    "CLAMP_MODES",
+    "FitReport",
+    "IdentifiabilityWarning",
+    "fit",
+    "resolution_threshold",
+]
 
 CLAMP_MODES = (None, "nonneg", "unit")
-# The sparsity prior's default: a frame's non-neutral weights are expected to add up to
-# about one (one expression's worth, however it is shared), see bounds.sparsity_penalty.
-DEFAULT_SPARSITY = 1.0
+# The sparsity prior's default: none, the plain metric projection. Chosen on real takes
+# (tests/data/livelink, README "Real takes"): an iPhone's ARKit weights hold 4-10
+# expressions' worth a frame, many small weights at once, and every exponential prior tried
+# (1, the take's own rate, per-shape rates) cloned them worse than none at sigma = 0.5 mm.
+# On synthetic sparse mixes the prior helps; --sparsity 1 asks for it.
+DEFAULT_SPARSITY = 0.0
 
 # Parameter vectors closer than this, relative to the spread of all examples, are taken
 # to coincide: the radial system is singular there whatever the kernel.
@@ -32,6 +41,9 @@ COINCIDE_RELATIVE = 1e-4
 # Examples whose nearest neighbour is closer than this fraction of the median nearest
 # distance collapse together: distinguishable only in the absence of any noise.
 COLLAPSE_RELATIVE = 0.05
+# Points reach a rig as float32 (the protocol's frames, rig and example files): a coordinate
+# x is known to eps32 |x|, so a difference of two to about eps32 * max|x| per coordinate.
+POINT_PRECISION = float(np.finfo(np.float32).eps)
 # Residuals of the hyperplanes below this are rounding: the radial part is then zero.
 EXACT_LINEAR = 1e-10
 # A radial or hyperplane system worse conditioned than this is not solved unregularised.
@@ -107,8 +119,9 @@ def _sanitize(example_set, kernel, noise, pca_threshold, ridge, clamp, sparsity)
     noise = float(noise)
     if not np.isfinite(noise) or noise < 0:
         raise FitError(f"noise must be a finite number >= 0, got {noise}")
-    pca_threshold = 1e-10 if pca_threshold is None else float(pca_threshold)
-    if not (0.0 <= pca_threshold < 1.0):
+    if pca_threshold is not None:
+        pca_threshold = float(pca_threshold)
+    if pca_threshold is not None and not (0.0 <= pca_threshold < 1.0):
         raise FitError(
             f"pca_threshold is relative to the largest eigenvalue: expected [0, 1), got "
             f"{pca_threshold}"
@@ -133,10 +146,34 @@ def _sanitize(example_set, kernel, noise, pca_threshold, ridge, clamp, sparsity)
     return kernel, noise, pca_threshold, ridge, clamp, sparsity
 
 
-def _pca(displacements: np.ndarray, relative_threshold: float):
+def resolution_threshold(source_points: np.ndarray) -> float:
+    """The smallest singular value of the centred displacements that is signal, not rounding.
+
+    Each coordinate is known to ``POINT_PRECISION * max|x|`` (float32); rounding of that
+    size on the (M, 3K) displacement matrix has singular values up to about that times
+    sqrt(M) + sqrt(3K) (the edge of the Marchenko-Pastur law), so a principal axis whose
+    singular value is above it stands above the input's numerical resolution.
+
+    Parameters
+    ----------
+    source_points : (M, K, 3) float
+
+    Returns
+    -------
+    float, in source units.
+    """
+    m, k, _ = source_points.shape
+    step = POINT_PRECISION * float(np.abs(source_points).max())
+    return step * (np.sqrt(m) + np.sqrt(3 * k))
+
+
+def _pca(displacements: np.ndarray, relative_threshold: float | None, resolution: float):
     """Eq. 3.2-3.7: centre, eigen-decompose the covariance, keep the significant axes.
 
-    Returns mean (3K,), feature matrix F (n, 3K), eigenvalues (all, descending).
+    ``relative_threshold`` None keeps every axis whose singular value is above
+    ``resolution`` (``resolution_threshold``); a number keeps eigenvalues above that
+    fraction of the largest. Returns mean (3K,), feature matrix F (n, 3K), eigenvalues (all,
+    descending) and the relative eigenvalue threshold applied.
     """
     mean = displacements.mean(axis=0)  # eq. 3.4
     centred = displacements - mean
@@ -144,13 +181,15 @@ def _pca(displacements: np.ndarray, relative_threshold: float):
     # forming the 3K x 3K matrix, and more accurately.
     _, singular, vt = np.linalg.svd(centred, full_matrices=False)
     eigenvalues = singular**2 / max(len(displacements) - 1, 1)
-    if eigenvalues[0] <= 0:
+    if eigenvalues[0] <= 0 or singular[0] <= resolution:
         raise FitError(
-            "no example moves any feature point: every source example equals the neutral; "
-            "choose feature points that the expressions move"
+            "no example moves any feature point beyond the points' float precision: every "
+            "source example equals the neutral; choose feature points that the expressions move"
         )
+    if relative_threshold is None:
+        relative_threshold = float((resolution / singular[0]) ** 2)
     keep = eigenvalues > relative_threshold * eigenvalues[0]
-    return mean, vt[keep], eigenvalues
+    return mean, vt[keep], eigenvalues, relative_threshold
 
 
 def _nearest(params: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -202,7 +241,7 @@ def _fit_hyperplanes(params: np.ndarray, lam: float) -> tuple[np.ndarray, float]
                 f"the hyperplane system [1, p] is near-singular (condition number "
                 f"{condition:.3g} > {MAX_CONDITION:.0e}): the examples barely span some kept "
                 "principal axis, so exact interpolation along it divides by almost nothing. "
-                "Raise --pca-threshold (default 1e-10), set --noise to regularise, or add "
+                "Raise --pca-threshold (e.g. 1e-10), set --noise to regularise, or add "
                 "feature points",
                 code="singular_system",
             )
@@ -231,7 +270,10 @@ def fit(
         M paired examples, the neutral first.
     pca_threshold : float, optional
         Drop principal axes whose eigenvalue is below this fraction of the largest (the
-        thesis's threshold, made scale-free). Default 1e-10: only numerically empty axes.
+        thesis's threshold, made scale-free). Default: keep every axis that stands above
+        the input's numerical resolution (``resolution_threshold``: float32 precision of
+        the feature points' coordinates), so clean input is as exact as least squares;
+        robustness to tracker noise is ``noise``'s job. The report keeps the fraction used.
     noise : float
         Expected landmark noise (standard deviation per coordinate, source units). 0 is
         exact interpolation, the thesis's behaviour. Above 0 the linear and radial parts are
@@ -257,8 +299,10 @@ def fit(
         M - 1 non-neutral examples: the prior expects a frame's non-neutral weights to add
         up to 1 / sparsity (faces show few expressions at once). The bounded projection
         then minimises (x - w) H (x - w) + lambda 1^T x with lambda = 2 noise^2 sparsity
-        (M - 1) (``bounds.sparsity_penalty``), so it vanishes without noise. Default 1;
-        0 is the plain metric projection. Giving it without ``clamp`` is an error.
+        (M - 1) (``bounds.sparsity_penalty``), so it vanishes without noise. Default 0,
+        the plain metric projection (``DEFAULT_SPARSITY``: real performances carry many
+        small weights at once; 1 suits sparse mixes). Giving it without ``clamp`` is an
+        error.
     stable_points : (S,) int, optional
         Feature points used for head-pose alignment (``Rig.weights(align=True)``); all
         points when omitted.
@@ -275,7 +319,9 @@ def fit(
 
     source_neutral = example_set.source_neutral
     displacements = (example_set.source_points - source_neutral).reshape(m, 3 * k)  # eq. 3.1
-    mean, features, eigenvalues = _pca(displacements, pca_threshold)
+    mean, features, eigenvalues, pca_threshold = _pca(
+        displacements, pca_threshold, resolution_threshold(example_set.source_points)
+    )
     params = (displacements - mean) @ features.T  # eq. 3.7, (M, n)
     n = params.shape[1]
 

@@ -150,7 +150,7 @@ async def put_examples(
         Query(
             ge=0.0,
             allow_inf_nan=False,
-            description="with clamp: the sparsity prior's rate (default 1; 0 = plain projection)",
+            description="with clamp: the sparsity prior's rate (default 0, the plain projection)",
         ),
     ] = None,
 ) -> JSONResponse:

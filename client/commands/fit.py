@@ -51,7 +51,8 @@ def register(subparsers) -> None:
         type=float,
         default=None,
         metavar="T",
-        help="drop principal axes with eigenvalue below T times the largest (default 1e-10)",
+        help="drop principal axes with eigenvalue below T times the largest (default: keep "
+        "every axis above the points' float32 resolution)",
     )
     parser.add_argument(
         "--kernel", choices=KERNEL_CHOICES, default="bspline", help="radial cross-section"
@@ -69,7 +70,8 @@ def register(subparsers) -> None:
         default=None,
         metavar="S",
         help="with --clamp and --noise: exponential prior on the bounded weights, expecting "
-        "a frame's non-neutral weights to add up to 1/S (default 1; 0 = plain projection)",
+        "a frame's non-neutral weights to add up to 1/S (default 0, the plain projection; "
+        "real takes carry many small weights at once)",
     )
     parser.add_argument(
         "--stable-points",

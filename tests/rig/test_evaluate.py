@@ -141,7 +141,8 @@ def test_default_settings_show_the_bounded_rig_with_and_without_the_sparsity_pri
     chosen = default_settings(0.1, ["bspline"])
 
     assert {"clamp": "nonneg", "noise": 0.1} in chosen
-    assert {"clamp": "nonneg", "sparsity": 0.0, "noise": 0.1} in chosen
+    assert {"clamp": "nonneg", "sparsity": 1.0, "noise": 0.1} in chosen
+    assert {"clamp": "nonneg", "sparsity": "stream", "noise": 0.1} in chosen
     assert not any("sparsity" in setting for setting in default_settings(0.0, ["bspline"]))
 
 
