@@ -67,14 +67,16 @@ def format_error_table(report: dict) -> str:
     width = max(len(label) for label in labels) + 2
     conditions = list(errors)
     head = f"{'method':<{width}}" + "".join(
-        f"| {c + (' (noise ' + format(report['noise'], 'g') + ')' if c == 'noisy' else ''):<44}"
+        f"| {c + (' (noise ' + format(report['noise'], 'g') + ')' if c == 'noisy' else ''):<53}"
         for c in conditions
     )
     sub = f"{'':<{width}}" + "".join(
-        f"| {'x %':>8}{'y %':>8}{'z %':>8}{'RMS %':>9}{'max %':>9}  " for _ in conditions
+        f"| {'x %':>8}{'y %':>8}{'z %':>8}{'RMS %':>9}{'max %':>9}{'jitter':>9}  "
+        for _ in conditions
     )
     lines = [
-        "Cloning error (thesis eq. 4.1 per axis; RMS and max of the bounding-box diagonal)",
+        "Cloning error (thesis eq. 4.1 per axis; RMS and max of the bounding-box diagonal; "
+        "jitter: RMS 2nd difference of the cloned vertices, % of the diagonal per frame^2)",
         head,
         sub,
         "-" * len(sub),
@@ -85,12 +87,13 @@ def format_error_table(report: dict) -> str:
         for condition in conditions:
             entry = errors[condition].get(label)
             if entry is None:
-                row += f"| {'failed: ' + (failed or '?'):<44.44}"
+                row += f"| {'failed: ' + (failed or '?'):<53.53}"
                 continue
             eq = entry["eq41_percent"]
             row += (
                 f"| {_pct(eq['x']):>8}{_pct(eq['y']):>8}{_pct(eq['z']):>8}"
-                f"{_pct(entry['rms_percent']):>9}{_pct(entry['max_percent']):>9}  "
+                f"{_pct(entry['rms_percent']):>9}{_pct(entry['max_percent']):>9}"
+                f"{_pct(entry.get('jitter_percent')):>9}  "
             )
         lines.append(row)
     return "\n".join(lines)

@@ -66,6 +66,11 @@ class _ErrorSums:
         self.eq41_numerator = np.zeros((num_frames, 3))
         self.mean_sq = np.zeros(num_frames)
         self.max_dist = np.zeros(num_frames)
+        # Jitter (``jitter``) of the cloned vertices across chunks: the last two frames of
+        # the chunk before, and the running sum of squared second differences.
+        self._tail: np.ndarray | None = None
+        self._second_sq = 0.0
+        self._second_count = 0
 
     def add(self, start: int, truth: np.ndarray, pred: np.ndarray) -> None:
         # float32 when both are: the differences of float32 vertices are exact enough
@@ -76,9 +81,18 @@ class _ErrorSums:
         # Products with vectors of ones are the fastest reductions over these axes.
         dist2 = np.matmul(diff * diff, ones)
         np.abs(diff, out=diff)
+        self._add_jitter(pred)
         self.eq41_numerator[start:stop] = np.matmul(np.ones(diff.shape[1], diff.dtype), diff)
         self.mean_sq[start:stop] = dist2.mean(axis=1)
         self.max_dist[start:stop] = np.sqrt(dist2.max(axis=1))
+
+    def _add_jitter(self, pred: np.ndarray) -> None:
+        run = pred if self._tail is None else np.concatenate([self._tail, pred])
+        if len(run) >= 3:
+            second = run[2:] - 2.0 * run[1:-1] + run[:-2]
+            self._second_sq += float(np.square(second, dtype=np.float64).sum())
+            self._second_count += second.size
+        self._tail = run[-2:].copy()
 
     def result(self, eq41_denominator: np.ndarray, diagonal: float, *, series: bool = True) -> dict:
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -90,6 +104,12 @@ class _ErrorSums:
             "eq41_percent": {a: float(v) for a, v in zip(AXES, per_axis.mean(axis=0), strict=True)},
             "rms_percent": float(np.sqrt(self.mean_sq.mean()) * scale),
             "max_percent": float(max_frames.max()),
+            # RMS second difference of the cloned vertices (``jitter``), % of the diagonal.
+            "jitter_percent": (
+                float(np.sqrt(self._second_sq / self._second_count) * scale)
+                if self._second_count
+                else float("nan")
+            ),
         }
         if series:
             out["per_frame"] = {

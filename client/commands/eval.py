@@ -26,8 +26,8 @@ def register(subparsers) -> None:
             "error per axis, RMS and max vertex error, for rigs of several settings and for "
             "plain and non-negative least-squares weights, on clean and on noisy feature "
             "points; then the timing table (thesis Table 4.4). Data: --demo (procedural), "
-            "--ict (ICT-FaceKit; truth = the target's expression mixes), or EXAMPLES SOURCE "
-            "[--truth FILE]."
+            "--ict (ICT-FaceKit; truth = the target's expression mixes), --take CSV (a real "
+            "Live Link Face take on ICT-FaceKit), or EXAMPLES SOURCE [--truth FILE]."
         ),
     )
     parser.add_argument("examples", metavar="EXAMPLES", nargs="?", help="an example set")
@@ -40,7 +40,17 @@ def register(subparsers) -> None:
         "--ict", nargs="?", const="", metavar="PATH",
         help="use ICT-FaceKit (default: $FACECAST_ICT or ../shared/data/ict-facekit)",
     )  # fmt: skip
+    group.add_argument(
+        "--take", metavar="CSV",
+        help="a real Live Link Face CSV take driving ICT-FaceKit's ARKit-named shapes; the "
+        "truth is the same weights on another ICT identity (--identity, default person01)",
+    )  # fmt: skip
     parser.add_argument("--identity", metavar="PERSON", help="ICT target identity (person00...)")
+    parser.add_argument(
+        "--estimate-noise", action="store_true",
+        help="estimate the landmark noise from the input's stillest half second and add the "
+        "bounded rig fitted with it",
+    )  # fmt: skip
     parser.add_argument(
         "--noise", type=float, default=DEFAULT_NOISE, metavar="SIGMA",
         help=f"std of the noise added to the source points (default {DEFAULT_NOISE}; 0 = "
@@ -120,6 +130,45 @@ def _ict(args) -> _Data:
 
     name = "ict" if args.identity is None else f"ict ({args.identity})"
     return _Data(name, examples, animation, truth, source_frames)
+
+
+def _take(args) -> _Data:
+    from facecast.client.cli import CommandError
+    from facecast.rig.animation import SourceAnimation
+    from facecast.rig.ict import locate_ict
+    from facecast.rig.takes import ARKIT_TARGET_IDENTITY, arkit_example_set, take_experiment
+    from facecast.rig.trackers import read_livelink_csv
+
+    archive = locate_ict(args.ict or None)
+    if archive is None:
+        raise CommandError(
+            "ICT-FaceKit not found (a take drives its shapes): set FACECAST_ICT or place it "
+            "in ../shared/data/ict-facekit"
+        )
+    if not Path(args.take).is_file():
+        raise CommandError(f"{args.take}: no such file (a Live Link Face CSV take)")
+    identity = args.identity or ARKIT_TARGET_IDENTITY
+    examples = arkit_example_set(archive, identity=identity)
+    livelink = read_livelink_csv(args.take)
+    experiment = take_experiment(examples, livelink.weights, livelink.fps)
+    animation = SourceAnimation(points=experiment.points, fps=livelink.fps)
+    return _Data(f"take {Path(args.take).name} -> ICT {identity}", examples, animation,
+                 experiment.truth)  # fmt: skip
+
+
+def _estimated_noise(args, data: _Data) -> tuple[float, tuple[int, int]]:
+    """Sigma from the stillest half second of the input the rigs see (noisy if --noise)."""
+    import numpy as np
+
+    from facecast.rig.noise import estimate_noise, still_segment
+
+    points = data.animation.points
+    if args.noise > 0:
+        # The same noise evaluate adds (same seed, same draw).
+        points = points + np.random.default_rng(args.seed).normal(0.0, args.noise, points.shape)
+    window = max(2, min(len(points), round(0.5 * data.animation.fps)))
+    start, stop = still_segment(points, window)
+    return estimate_noise(points[start:stop]), (start, stop)
 
 
 def _files(args) -> _Data:
@@ -244,6 +293,8 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--noise must be >= 0, got {args.noise}")
     if args.demo:
         data = _demo(args)
+    elif args.take is not None:
+        data = _take(args)
     elif args.ict is not None:
         data = _ict(args)
     else:
@@ -254,11 +305,25 @@ def run(args: argparse.Namespace) -> int:
         f"vertices, {data.animation.num_frames} frames",
         file=sys.stderr,
     )
+    settings = default_settings(args.noise, args.kernels)
+    estimated = None
+    if args.estimate_noise:
+        sigma, (start, stop) = _estimated_noise(args, data)
+        fps = data.animation.fps
+        estimated = {"sigma": sigma, "frames": [start, stop]}
+        print(
+            f"estimated landmark noise: sigma = {sigma:.4g} from the stillest frames "
+            f"[{start}, {stop}) (t = {start / fps:.2f}-{stop / fps:.2f} s)",
+            file=sys.stderr,
+        )
+        settings.append(
+            {"clamp": "nonneg", "noise": sigma, "label": f"rig clamp=nonneg noise=est {sigma:.3g}"}
+        )
     report = evaluate(
         data.examples,
         data.animation,
         data.truth,
-        settings=default_settings(args.noise, args.kernels),
+        settings=settings,
         noise=args.noise,
         seed=args.seed,
         timing=not args.no_timing,
@@ -266,6 +331,7 @@ def run(args: argparse.Namespace) -> int:
     )
     report["dataset"] = data.name
     report["fps"] = data.animation.fps
+    report["estimated_noise"] = estimated
     print(format_error_table(report))
     for label, entry in report["methods"].items():
         if entry.get("failed"):
