@@ -106,6 +106,9 @@ class FitReport:
     # column's: unit-free, and sqrt(largest / smallest kept PCA eigenvalue) since p is centred.
     # Without the ridge: it is what --noise has to tame.
     hyperplane_condition_number: float = 1.0
+    # Of fit_seconds, the time spent building the (M, 3V) float32 blend basis (memory-bound,
+    # proportional to the target's vertices); the rest is the math of this module.
+    basis_seconds: float = 0.0
 
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -404,6 +407,7 @@ def fit(
     report.noise_gain = _noise_gain(model, params)
     _warn_noise_gain(report, example_set.source_points, noise, clamp)
 
+    basis_started = time.perf_counter()
     rig = Rig.from_fit(
         names=names,
         model=model,
@@ -420,6 +424,7 @@ def fit(
         report={},
     )
     report.fit_seconds = time.perf_counter() - started
+    report.basis_seconds = report.fit_seconds - (basis_started - started)
     rig.fit_report = report.to_dict()
     return rig
 
@@ -487,7 +492,8 @@ def _noise_gain(model: WeightModel, params: np.ndarray) -> float:
     t = dist / model.alpha[None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         scale = np.where(dist > 0, kernel_derivative(model.kernel, t) / (model.alpha * dist), 0.0)
-    # d R_j / d p at p_k = B'(t_kj) (p_k - p_j) / (alpha_j |p_k - p_j|)
-    radial = np.einsum("kj,kjn,ji->kni", scale, diff, model.radial_coeffs)
+    # d R_j / d p at p_k = B'(t_kj) (p_k - p_j) / (alpha_j |p_k - p_j|); one batched
+    # product over k (an einsum over the three indices at once is ~20x slower).
+    radial = np.matmul((scale[:, :, None] * diff).transpose(0, 2, 1), model.radial_coeffs)
     jacobian = model.linear_coeffs[1:][None, :, :] + radial  # (M, n, M)
     return float(np.sqrt(np.einsum("kni,kni->", jacobian, jacobian) / len(params)))
