@@ -202,3 +202,49 @@ def save_frames_picture(path, panels: Sequence[Sequence[tuple]], *, title: str |
         figure.suptitle(title)
     figure.savefig(str(path))
     return Path(path)
+
+
+def plot_jitter_against_lag(path, tradeoff: dict, *, title: str | None = None):
+    """PNG of ``rig.temporal.temporal_tradeoff``: jitter against lag, one line per family.
+
+    The one-frame lag is marked; the raw (unfiltered) clone and the truth's own jitter are
+    drawn for reference.
+    """
+    figure = _figure(8, 5)
+    axes = figure.add_subplot(1, 1, 1)
+    rows = tradeoff["rows"]
+    markers = {"one-euro": "o", "kalman": "s"}
+    for family, marker in markers.items():
+        points = sorted(
+            (r["lag_frames"], r["jitter"], r["label"]) for r in rows if r["family"] == family
+        )
+        if not points:
+            continue
+        lags, jitters, _ = zip(*points, strict=True)
+        # Kalman settings are one knob (a curve); one-euro's are a grid (points).
+        axes.plot(lags, jitters, marker=marker, linewidth=0.8 if family == "kalman" else 0.0,
+                  label=family)  # fmt: skip
+        for lag, jitter, label in points:
+            short = label.replace("one-euro ", "").replace("Kalman, acceleration ", "a=")
+            axes.annotate(short, (lag, jitter), fontsize=6, xytext=(3, 3),
+                          textcoords="offset points")  # fmt: skip
+    raw = [r for r in rows if r["family"] == "raw"]
+    if raw:
+        axes.axhline(raw[0]["jitter"], color="grey", linestyle=":", label="raw (no filter)")
+    axes.axhline(tradeoff["truth_jitter"], color="black", linestyle="--", label="truth")
+    axes.axvline(1.0, color="red", linewidth=0.8, label="one frame")
+    far = max((r["lag_frames"] for r in rows), default=0.0)
+    if far > 6.0:
+        axes.set_xlim(-2.2, 6.0)
+        axes.text(0.99, 0.02, f"settings lagging more than 6 frames (up to {far:.1f}) off "
+                  "the plot", transform=axes.transAxes, ha="right", fontsize=7)  # fmt: skip
+    axes.set_xlabel("lag behind the ideal clone, frames (negative: ahead)")
+    axes.set_ylabel("jitter, % of the diagonal per frame^2")
+    axes.set_yscale("log")
+    axes.grid(True, which="both", alpha=0.3)
+    axes.legend(fontsize=8)
+    if title:
+        axes.set_title(title, fontsize=9)
+    figure.tight_layout()
+    figure.savefig(str(path))
+    return Path(path)

@@ -577,8 +577,8 @@ def smoothing_report(
     truth_vertices,
     *,
     fps: float,
-    min_cutoff: float = 1.0,
-    beta: float = 0.0,
+    min_cutoff: float = 3.0,
+    beta: float = 2.0,
     d_cutoff: float = 1.0,
 ) -> dict:
     """Jitter and error of a noisy take cloned raw and through the one-euro filter.
