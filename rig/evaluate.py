@@ -330,8 +330,9 @@ def _label(setting: dict) -> str:
 def default_settings(noise: float = 0.0, kernels: Sequence[str] = KERNELS) -> list[dict]:
     """Rig settings worth comparing at input noise ``noise`` (std, source units).
 
-    The thesis's rig (B-spline, no regularisation); with noise, the regularised rig at
-    noise/2, noise and 2 noise; every other kernel in ``kernels``; the bounded rigs
+    The thesis's rig (B-spline, no regularisation); with noise, the regularised unbounded
+    rig (``clamp`` "none") at noise/2, noise and 2 noise; every other kernel in ``kernels``
+    (with fit's default bounds); the bounded rigs
     (``clamp`` nonneg and unit, the plain metric projection, the default) at the input noise
     and twice it; and, with noise, the nonneg rig with a sparsity prior of rate 1 and with
     its rate estimated from the stream (``sparsity`` "stream"), to show what a prior adds.
@@ -339,7 +340,7 @@ def default_settings(noise: float = 0.0, kernels: Sequence[str] = KERNELS) -> li
     noise = float(noise)
     settings: list[dict] = [{"noise": 0.0}]
     if noise > 0:
-        settings += [{"noise": s * noise} for s in (0.5, 1.0, 2.0)]
+        settings += [{"clamp": "none", "noise": s * noise} for s in (0.5, 1.0, 2.0)]
     for kernel in kernels:
         if kernel != "bspline":
             settings.append({"kernel": kernel, "noise": noise})

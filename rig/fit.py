@@ -27,7 +27,11 @@ __all__ = [
     "resolution_threshold",
 ]
 
-CLAMP_MODES = (None, "nonneg", "unit")
+CLAMP_MODES = (None, "none", "nonneg", "unit")
+# clamp None (the default) chooses: bounded ("nonneg") when fitted for noise, where every
+# unbounded noise rig cloned real takes worse than NNLS (README "Real takes"); unbounded
+# without noise, where exact interpolation needs no bounds. "none" asks for unbounded.
+NOISE_CLAMP = "nonneg"
 # The sparsity prior's default: none, the plain metric projection. Chosen on real takes
 # (tests/data/livelink, README "Real takes"): an iPhone's ARKit weights hold 4-10
 # expressions' worth a frame, many small weights at once, and every exponential prior tried
@@ -135,13 +139,18 @@ def _sanitize(example_set, kernel, noise, pca_threshold, ridge, clamp, sparsity)
             raise FitError(f"ridge must be a finite number >= 0, got {ridge}")
     if clamp not in CLAMP_MODES:
         raise FitError(f"clamp must be one of {CLAMP_MODES}, got {clamp!r}")
+    explicit_clamp = clamp
+    if clamp is None:
+        clamp = NOISE_CLAMP if noise > 0 else None
+    elif clamp == "none":
+        clamp = None
     if sparsity is None:
         sparsity = DEFAULT_SPARSITY
     else:
         sparsity = float(sparsity)
         if not np.isfinite(sparsity) or sparsity < 0:
             raise FitError(f"sparsity must be a finite number >= 0, got {sparsity}")
-        if sparsity > 0 and clamp is None:
+        if sparsity > 0 and explicit_clamp in (None, "none"):
             raise FitError(
                 "sparsity is a prior on bounded weights: it needs clamp 'nonneg' or 'unit'",
                 code="sparsity_without_clamp",
@@ -290,9 +299,11 @@ def fit(
         Radial cross-section; the thesis's cubic B-spline by default.
     ridge : float, optional
         Override the regularisation strength derived from ``noise`` (finer knob).
-    clamp : {None, "nonneg", "unit"}
-        Bound the non-neutral weights to >= 0 or to [0, 1] at evaluation: the cardinal
-        weights are projected onto the bounds in the metric of the examples' parameter
+    clamp : {None, "none", "nonneg", "unit"}
+        Bound the non-neutral weights to >= 0 or to [0, 1] at evaluation. Default (None):
+        "nonneg" when ``noise`` is above 0 (unbounded noise rigs cloned real takes worse
+        than NNLS; bounded ones better), unbounded without noise; "none" is unbounded
+        whatever the noise. Bounding projects the cardinal weights onto the bounds in the metric of the examples' parameter
         displacements (plus the noise ridge), i.e. the nearest bounded weights as the feature
         points see them, not a plain clip. The neutral's weight keeps the sum at 1.
         With ``noise`` above 0 the projection is the MAP weights under that landmark noise and

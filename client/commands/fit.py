@@ -59,10 +59,11 @@ def register(subparsers) -> None:
     )
     parser.add_argument(
         "--clamp",
-        choices=("nonneg", "unit"),
+        choices=("none", "nonneg", "unit"),
         default=None,
         help="bound the non-neutral weights to >= 0 or [0, 1] (the nearest bounded weights in "
-        "the metric of the examples; with --noise, the MAP weights under a sparsity prior)",
+        "the metric of the examples; with --noise, the MAP weights under a sparsity prior); "
+        "default nonneg with --noise, none without",
     )
     parser.add_argument(
         "--sparsity",

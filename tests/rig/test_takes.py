@@ -138,11 +138,45 @@ def test_real_take_clean_defaults_within_one_percent_of_least_squares(take):
 
 @pytest.mark.ict
 @pytest.mark.skipif(ARCHIVE is None, reason=SKIP_REASON)
-def test_real_take_at_half_a_millimetre_bounded_default_beats_nnls_and_one_percent(take):
-    sigma = 0.05  # cm
+@pytest.mark.parametrize("sigma", [0.01, 0.05])  # cm: 0.1 mm and 0.5 mm
+def test_real_take_noise_rig_with_its_defaults_beats_nnls_and_one_percent(take, sigma):
     noisy = take.points + np.random.default_rng(0).normal(0.0, sigma, take.points.shape)
-    rig = _quiet_fit(take.examples, noise=sigma, clamp="nonneg")
+    rig = _quiet_fit(take.examples, noise=sigma)  # bounded (nonneg) by default, no prior
+    assert rig.model.clamp == "nonneg" and rig.model.sparsity_penalty == 0.0
     ours = _max_axis(take.truth, rig.clone(noisy))
     nnls = _max_axis(take.truth, rig.blend(nnls_weights(take.examples, noisy)))
     assert ours < nnls
     assert ours <= 1.0
+
+
+@pytest.mark.ict
+@pytest.mark.skipif(ARCHIVE is None, reason=SKIP_REASON)
+def test_real_take_unbounded_noise_rig_is_worse_than_the_bounded_default(take):
+    # Why the default bounds a noise rig: unbounded, it clones this take worse than NNLS.
+    sigma = 0.05
+    noisy = take.points + np.random.default_rng(0).normal(0.0, sigma, take.points.shape)
+    unbounded = _quiet_fit(take.examples, noise=sigma, clamp="none")
+    bounded = _quiet_fit(take.examples, noise=sigma)
+    nnls = _max_axis(take.truth, bounded.blend(nnls_weights(take.examples, noisy)))
+    assert unbounded.model.clamp is None
+    assert _max_axis(take.truth, unbounded.clone(noisy)) > nnls
+    assert _max_axis(take.truth, bounded.clone(noisy)) < nnls
+
+
+def test_clamp_default_bounds_noise_rigs_only():
+    examples = _small_set()
+    assert _quiet_fit(examples).model.clamp is None
+    assert _quiet_fit(examples, noise=0.1).model.clamp == "nonneg"
+    assert _quiet_fit(examples, noise=0.1, clamp="none").model.clamp is None
+    assert _quiet_fit(examples, noise=0.1, clamp="unit").model.clamp == "unit"
+
+
+def _small_set() -> ExampleSet:
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(6, 5, 3))
+    return ExampleSet(
+        names=tuple(f"e{i}" for i in range(6)),
+        source_points=points,
+        target_vertices=rng.normal(size=(6, 7, 3)),
+        target_faces=np.array([[0, 1, 2]]),
+    )
