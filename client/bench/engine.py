@@ -24,10 +24,12 @@ GOALS = {
     "weights_batched_per_frame": ("< 2 us per frame", lambda f: f["value_s"] < 2e-6),
     "blend_single": ("<= 1.5x the memory floor", lambda f: f["ratio"] <= 1.5),
     "fit": ("<= 10 ms", lambda f: f["value_s"] <= 10e-3),
-    # The fit's two parts (issue 12): its math beside scipy's RBF fit on the same centres
-    # (which solves one radial system; fit adds PCA, the hyperplanes, condition numbers and
-    # the noise-gain check), and the blend basis beside a bare read of the same bytes.
-    "fit_math": ("<= 3x RBFInterpolator", lambda f: f["ratio"] <= 3.0),
+    # The fit's two parts (issue 12): its math beside scipy's RBF fit on the same centres,
+    # and the blend basis beside a bare read of the same bytes. RBFInterpolator factorises
+    # one (M + n + 1)-square system; fit factorises about six of size M (the PCA's SVD, the
+    # hyperplanes' least squares, two condition numbers, the radial solve, the noise-gain
+    # Jacobian), so on a par per factorisation is about 8x.
+    "fit_math": ("<= 8x RBFInterpolator", lambda f: f["ratio"] <= 8.0),
     "fit_blend_basis": ("<= 1.5x the memory floor", lambda f: f["ratio"] <= 1.5),
     "weights_vs_rbfinterpolator": (">= 10x faster", lambda f: f["ratio"] <= 0.1),
 }
