@@ -41,10 +41,9 @@ def test_bench_engine_writes_every_figure_with_baseline_and_verdict(tmp_path, ca
         assert {"value_s", "baseline_s", "baseline", "ratio", "goal", "pass"} <= set(figure)
         assert figure["value_s"] > 0 and figure["baseline_s"] > 0
     figures = report["figures"]
-    # The fit's two parts are its own: they add up to the fits timed.
-    assert figures["fit_math"]["value_s"] + figures["fit_blend_basis"]["value_s"] == (
-        pytest.approx(figures["fit"]["value_s"], rel=0.5)
-    )
+    # The fit's two parts stand beside their own floors.
+    assert "RBFInterpolator" in figures["fit_math"]["baseline"]
+    assert "copy" in figures["fit_blend_basis"]["baseline"]
 
 
 def test_bench_engine_refuses_a_zero_repeat(capsys):

@@ -163,6 +163,11 @@ def test_real_take_unbounded_noise_rig_is_worse_than_the_bounded_default(take):
     assert _max_axis(take.truth, bounded.clone(noisy)) < nnls
 
 
+def test_fit_report_splits_its_time_into_math_and_the_blend_basis():
+    report = _quiet_fit(_small_set()).fit_report
+    assert 0.0 < report["basis_seconds"] <= report["fit_seconds"]
+
+
 def test_clamp_default_bounds_noise_rigs_only():
     examples = _small_set()
     assert _quiet_fit(examples).model.clamp is None
