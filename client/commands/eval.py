@@ -333,6 +333,8 @@ def run(args: argparse.Namespace) -> int:
         Path(args.plots).mkdir(parents=True, exist_ok=True)
     if args.noise < 0:
         raise CommandError(f"--noise must be >= 0, got {args.noise}")
+    if args.temporal and args.noise <= 0:
+        raise CommandError("--temporal needs --noise above 0 (the filters smooth noisy points)")
     if args.demo:
         data = _demo(args)
     elif args.take is not None:
@@ -384,8 +386,8 @@ def run(args: argparse.Namespace) -> int:
     if args.noise > 0 and data.truth is not None:
         report["smoothing"] = _smoothing(args, data, report)
     if args.temporal:
-        if args.noise <= 0 or data.truth is None:
-            raise CommandError("--temporal needs --noise above 0 and a known truth")
+        if data.truth is None:
+            raise CommandError("--temporal needs a known truth (--demo, --ict, --take, --truth)")
         plots = None if args.plots is None else Path(args.plots)
         report["temporal"] = _temporal(args, data, plots)
     if args.plots is not None:

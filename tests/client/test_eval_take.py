@@ -41,3 +41,29 @@ def test_eval_on_a_real_take_meets_the_goals_with_measured_noise(tmp_path, monke
     assert _max_axis(estimated) <= 1.0
     assert _max_axis(estimated) < _max_axis(errors["noisy"]["nnls"])
     assert estimated["jitter_percent"] < errors["noisy"]["nnls"]["jitter_percent"]
+
+
+@pytest.mark.ict
+@pytest.mark.skipif(ARCHIVE is None, reason="ICT-FaceKit not found")
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [(None, "no such file"), ("Timecode,JawOpen\n00:00:00:00,0.5\n", "no EyeBlinkLeft column")],
+)
+def test_eval_refuses_a_missing_or_malformed_take_with_a_message(
+    tmp_path, monkeypatch, capsys, content, message
+):
+    monkeypatch.setenv("FACECAST_ICT", str(ARCHIVE))
+    take = tmp_path / "take.csv"
+    if content is not None:
+        take.write_text(content)
+    assert cli.main(["eval", "--take", str(take), "--no-timing"]) == 2
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.ict
+@pytest.mark.skipif(ARCHIVE is None, reason="ICT-FaceKit not found")
+def test_eval_temporal_needs_noise(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("FACECAST_ICT", str(ARCHIVE))
+    argv = ["eval", "--take", str(TAKE), "--noise", "0", "--temporal", "--no-timing"]
+    assert cli.main([*argv, "--kernels", "bspline"]) == 2
+    assert "--temporal needs --noise" in capsys.readouterr().err
