@@ -227,19 +227,23 @@ def _check_separation(names, nearest_distance, nearest, spread) -> None:
         )
 
 
-def _fit_hyperplanes(params: np.ndarray, lam: float) -> tuple[np.ndarray, float]:
+def _fit_hyperplanes(
+    params: np.ndarray, lam: float, largest_singular: float
+) -> tuple[np.ndarray, float]:
     """Eq. 3.10: least-squares hyperplanes over [1, p] with w_i(p_j) = delta_ij, ridge ``lam``.
 
     Returns the coefficients (n + 1, M) and the system's condition number. The parameters
-    are scaled by one factor so that their largest singular value equals the constant
-    column's norm: the solution is the same, but the condition number (and the solver's
-    accuracy) no longer depends on the source's length unit. Refused when near-singular
-    without a ridge, as the radial system is.
+    are scaled by one factor so that their largest singular value (``largest_singular``,
+    the PCA's) equals the constant column's norm: the solution is the same, but the
+    condition number (and the solver's accuracy) no longer depends on the source's length
+    unit. Refused when near-singular without a ridge, as the radial system is. One SVD of
+    the design gives both the condition number and, without a ridge, the solution.
     """
     m, n = params.shape
-    scale = np.sqrt(m) / np.linalg.norm(params, 2)
+    scale = np.sqrt(m) / largest_singular
     design = np.hstack([np.ones((m, 1)), params * scale])
-    condition = float(np.linalg.cond(design))
+    u, singular, vt = np.linalg.svd(design, full_matrices=False)
+    condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else float("inf")
     identity = np.eye(m)
     if lam > 0:
         # lam |c|^2 on the unscaled coefficients c = scale * c_scaled.
@@ -257,7 +261,7 @@ def _fit_hyperplanes(params: np.ndarray, lam: float) -> tuple[np.ndarray, float]
                 "feature points",
                 code="singular_system",
             )
-        coeffs = scipy.linalg.lstsq(design, identity)[0]
+        coeffs = vt.T @ (u.T / singular[:, None])  # the least-squares solution for I
     coeffs[1:] *= scale
     return coeffs, condition
 
@@ -348,7 +352,8 @@ def fit(
 
     # Linear approximation, eq. 3.10: hyperplanes over [1, p] fitted to w_i(p_j) = delta_ij.
     # The ridge leaves the constant column free, so the hyperplanes still sum to 1.
-    linear_coeffs, hyperplane_condition = _fit_hyperplanes(params, lam)
+    largest_singular = float(np.sqrt(eigenvalues[0] * max(m - 1, 1)))
+    linear_coeffs, hyperplane_condition = _fit_hyperplanes(params, lam, largest_singular)
     identity = np.eye(m)
     design = np.hstack([np.ones((m, 1)), params])
     residuals = identity - design @ linear_coeffs  # eq. 3.11, residuals[j, i] at example j
