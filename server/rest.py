@@ -143,7 +143,10 @@ async def put_examples(
     kernel: Annotated[str, Query(max_length=32)] = "bspline",
     clamp: Annotated[
         Literal["nonneg", "unit"] | None,
-        Query(description="bound the non-neutral weights to >= 0 or [0, 1]"),
+        Query(
+            description="bound the non-neutral weights to >= 0 or [0, 1] (default: nonneg "
+            "when noise > 0, unbounded at 0)"
+        ),
     ] = None,
     sparsity: Annotated[
         float | None,
