@@ -67,14 +67,16 @@ def format_error_table(report: dict) -> str:
     width = max(len(label) for label in labels) + 2
     conditions = list(errors)
     head = f"{'method':<{width}}" + "".join(
-        f"| {c + (' (noise ' + format(report['noise'], 'g') + ')' if c == 'noisy' else ''):<44}"
+        f"| {c + (' (noise ' + format(report['noise'], 'g') + ')' if c == 'noisy' else ''):<53}"
         for c in conditions
     )
     sub = f"{'':<{width}}" + "".join(
-        f"| {'x %':>8}{'y %':>8}{'z %':>8}{'RMS %':>9}{'max %':>9}  " for _ in conditions
+        f"| {'x %':>8}{'y %':>8}{'z %':>8}{'RMS %':>9}{'max %':>9}{'jitter':>9}  "
+        for _ in conditions
     )
     lines = [
-        "Cloning error (thesis eq. 4.1 per axis; RMS and max of the bounding-box diagonal)",
+        "Cloning error (thesis eq. 4.1 per axis; RMS and max of the bounding-box diagonal; "
+        "jitter: RMS 2nd difference of the cloned vertices, % of the diagonal per frame^2)",
         head,
         sub,
         "-" * len(sub),
@@ -85,12 +87,13 @@ def format_error_table(report: dict) -> str:
         for condition in conditions:
             entry = errors[condition].get(label)
             if entry is None:
-                row += f"| {'failed: ' + (failed or '?'):<44.44}"
+                row += f"| {'failed: ' + (failed or '?'):<53.53}"
                 continue
             eq = entry["eq41_percent"]
             row += (
                 f"| {_pct(eq['x']):>8}{_pct(eq['y']):>8}{_pct(eq['z']):>8}"
-                f"{_pct(entry['rms_percent']):>9}{_pct(entry['max_percent']):>9}  "
+                f"{_pct(entry['rms_percent']):>9}{_pct(entry['max_percent']):>9}"
+                f"{_pct(entry.get('jitter_percent')):>9}  "
             )
         lines.append(row)
     return "\n".join(lines)
@@ -197,5 +200,51 @@ def save_frames_picture(path, panels: Sequence[Sequence[tuple]], *, title: str |
             axes.set_title(label, fontsize=8)
     if title:
         figure.suptitle(title)
+    figure.savefig(str(path))
+    return Path(path)
+
+
+def plot_jitter_against_lag(path, tradeoff: dict, *, title: str | None = None):
+    """PNG of ``rig.temporal.temporal_tradeoff``: jitter against lag, one line per family.
+
+    The one-frame lag is marked; the raw (unfiltered) clone and the truth's own jitter are
+    drawn for reference.
+    """
+    figure = _figure(8, 5)
+    axes = figure.add_subplot(1, 1, 1)
+    rows = tradeoff["rows"]
+    markers = {"one-euro": "o", "kalman": "s"}
+    for family, marker in markers.items():
+        points = sorted(
+            (r["lag_frames"], r["jitter"], r["label"]) for r in rows if r["family"] == family
+        )
+        if not points:
+            continue
+        lags, jitters, _ = zip(*points, strict=True)
+        # Kalman settings are one knob (a curve); one-euro's are a grid (points).
+        axes.plot(lags, jitters, marker=marker, linewidth=0.8 if family == "kalman" else 0.0,
+                  label=family)  # fmt: skip
+        for lag, jitter, label in points:
+            short = label.replace("one-euro ", "").replace("Kalman, acceleration ", "a=")
+            axes.annotate(short, (lag, jitter), fontsize=6, xytext=(3, 3),
+                          textcoords="offset points")  # fmt: skip
+    raw = [r for r in rows if r["family"] == "raw"]
+    if raw:
+        axes.axhline(raw[0]["jitter"], color="grey", linestyle=":", label="raw (no filter)")
+    axes.axhline(tradeoff["truth_jitter"], color="black", linestyle="--", label="truth")
+    axes.axvline(1.0, color="red", linewidth=0.8, label="one frame")
+    far = max((r["lag_frames"] for r in rows), default=0.0)
+    if far > 6.0:
+        axes.set_xlim(-2.2, 6.0)
+        axes.text(0.99, 0.02, f"settings lagging more than 6 frames (up to {far:.1f}) off "
+                  "the plot", transform=axes.transAxes, ha="right", fontsize=7)  # fmt: skip
+    axes.set_xlabel("lag behind the ideal clone, frames (negative: ahead)")
+    axes.set_ylabel("jitter, % of the diagonal per frame^2")
+    axes.set_yscale("log")
+    axes.grid(True, which="both", alpha=0.3)
+    axes.legend(fontsize=8)
+    if title:
+        axes.set_title(title, fontsize=9)
+    figure.tight_layout()
     figure.savefig(str(path))
     return Path(path)

@@ -153,8 +153,10 @@ class Smoothing:
         Smooth the incoming feature points or the outgoing weights.
     """
 
-    min_cutoff: float = 1.0
-    beta: float = 0.0
+    # Defaults: the one-euro setting with the least jitter at under a frame of lag on real
+    # Live Link takes (README "Temporal coherence"; beta per source unit, centimetres there).
+    min_cutoff: float = 3.0
+    beta: float = 2.0
     d_cutoff: float = 1.0
     target: str = "points"
 
@@ -186,8 +188,8 @@ class Smoothing:
     def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Smoothing:
         w = "hello.options.smoothing."
         return cls(
-            min_cutoff=read_float(obj, "min_cutoff", w + "min_cutoff", 1.0),
-            beta=read_float(obj, "beta", w + "beta", 0.0),
+            min_cutoff=read_float(obj, "min_cutoff", w + "min_cutoff", 3.0),
+            beta=read_float(obj, "beta", w + "beta", 2.0),
             d_cutoff=read_float(obj, "d_cutoff", w + "d_cutoff", 1.0),
             target=read_str(
                 obj, "target", w + "target", limits, "points", choices=SMOOTHING_TARGETS

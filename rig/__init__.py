@@ -12,6 +12,7 @@ from .gltf import export_glb, read_glb_morph_targets
 from .kernels import KERNELS
 from .loaders import load_example_set
 from .meshio import read_obj, read_obj_vertices, read_points, write_obj
+from .noise import estimate_noise
 from .pose import align_points, similarity_transform
 from .regions import Region, fit_regions, split_masks
 from .rig import Rig
@@ -31,6 +32,7 @@ __all__ = [
     "RigFileError",
     "SourceAnimation",
     "align_points",
+    "estimate_noise",
     "export_glb",
     "fit",
     "fit_regions",

@@ -10,11 +10,20 @@ import numpy as np
 
 from .kernel import box_kernel
 
-__all__ = ["BoxProjection", "project_box", "sparsity_penalty", "weight_metric"]
+__all__ = [
+    "BoxProjection",
+    "project_box",
+    "sparsity_penalty",
+    "stream_sparsity",
+    "weight_metric",
+]
 
 # Full exchanges a frame may make without reducing its count of infeasible variables before
 # it falls back to single exchanges (Judice & Pires 1994's p; Kim & Park 2011 use 3).
 _BACKUP_CHANCES = 3
+#: The largest rate stream_sparsity gives (a still neutral face would otherwise make it
+#: unbounded): the prior then expects a thousandth of an expression a frame.
+MAX_STREAM_SPARSITY = 1e3
 #: Pivoting steps a frame may take (a safety bound; no test has come near it).
 _MAX_ITER = 200
 
@@ -198,3 +207,33 @@ class BoxProjection:
         out = np.empty_like(w)
         self._solve(self.metric, w, self._shift, self._half, out, self.upper, _MAX_ITER)
         return out
+
+
+def stream_sparsity(weights: np.ndarray, window: int) -> np.ndarray:
+    """Empirical-Bayes rates of the sparsity prior, read off the stream itself.
+
+    The exponential prior's rate that maximises the likelihood of the recent frames'
+    weights is one over their mean: for each frame, ``sparsity`` (in ``sparsity_penalty``'s
+    units) = 1 / the mean over the ``window`` frames before it of the sum of the non-neutral
+    weights. Causal, so a live session could run it; the first frame, with no past, gets 0.
+
+    Parameters
+    ----------
+    weights : (F, N) float
+        Bounded non-neutral weights of the stream (e.g. the plain projection's).
+    window : int
+        >= 1 frames.
+
+    Returns
+    -------
+    (F,) float in [0, ``MAX_STREAM_SPARSITY``].
+    """
+    totals = np.clip(np.asarray(weights, dtype=np.float64), 0.0, None).sum(axis=1)
+    cumulative = np.concatenate([[0.0], np.cumsum(totals)])
+    index = np.arange(len(totals))
+    start = np.maximum(index - int(window), 0)
+    count = index - start
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean = (cumulative[index] - cumulative[start]) / count
+        rate = np.where((count > 0) & (mean > 0), 1.0 / mean, 0.0)
+    return np.minimum(rate, MAX_STREAM_SPARSITY)

@@ -13,6 +13,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import scipy.optimize
 
+from .bounds import project_box, sparsity_penalty, stream_sparsity, weight_metric
 from .errors import FitError, InputError
 from .examples import ExampleSet
 from .fit import fit
@@ -32,6 +33,10 @@ __all__ = [
 ]
 
 AXES = ("x", "y", "z")
+# ``sparsity`` of a setting whose prior's rate is estimated from the stream (empirical Bayes,
+# bounds.stream_sparsity) over the STREAM_WINDOW frames before each frame.
+STREAM = "stream"
+STREAM_WINDOW = 60
 # Frames blended at once while measuring errors: bounds the (B, V, 3) scratch arrays.
 _CHUNK = 256
 
@@ -61,6 +66,11 @@ class _ErrorSums:
         self.eq41_numerator = np.zeros((num_frames, 3))
         self.mean_sq = np.zeros(num_frames)
         self.max_dist = np.zeros(num_frames)
+        # Jitter (``jitter``) of the cloned vertices across chunks: the last two frames of
+        # the chunk before, and the running sum of squared second differences.
+        self._tail: np.ndarray | None = None
+        self._second_sq = 0.0
+        self._second_count = 0
 
     def add(self, start: int, truth: np.ndarray, pred: np.ndarray) -> None:
         # float32 when both are: the differences of float32 vertices are exact enough
@@ -71,9 +81,18 @@ class _ErrorSums:
         # Products with vectors of ones are the fastest reductions over these axes.
         dist2 = np.matmul(diff * diff, ones)
         np.abs(diff, out=diff)
+        self._add_jitter(pred)
         self.eq41_numerator[start:stop] = np.matmul(np.ones(diff.shape[1], diff.dtype), diff)
         self.mean_sq[start:stop] = dist2.mean(axis=1)
         self.max_dist[start:stop] = np.sqrt(dist2.max(axis=1))
+
+    def _add_jitter(self, pred: np.ndarray) -> None:
+        run = pred if self._tail is None else np.concatenate([self._tail, pred])
+        if len(run) >= 3:
+            second = run[2:] - 2.0 * run[1:-1] + run[:-2]
+            self._second_sq += float(np.square(second, dtype=np.float64).sum())
+            self._second_count += second.size
+        self._tail = run[-2:].copy()
 
     def result(self, eq41_denominator: np.ndarray, diagonal: float, *, series: bool = True) -> dict:
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -85,6 +104,12 @@ class _ErrorSums:
             "eq41_percent": {a: float(v) for a, v in zip(AXES, per_axis.mean(axis=0), strict=True)},
             "rms_percent": float(np.sqrt(self.mean_sq.mean()) * scale),
             "max_percent": float(max_frames.max()),
+            # RMS second difference of the cloned vertices (``jitter``), % of the diagonal.
+            "jitter_percent": (
+                float(np.sqrt(self._second_sq / self._second_count) * scale)
+                if self._second_count
+                else float("nan")
+            ),
         }
         if series:
             out["per_frame"] = {
@@ -292,8 +317,12 @@ def _label(setting: dict) -> str:
         parts.append(str(setting["kernel"]))
     if setting.get("clamp"):
         parts.append(f"clamp={setting['clamp']}")
-    if setting.get("sparsity") is not None:
+    if setting.get("sparsity") == STREAM:
+        parts.append(f"sparsity={STREAM}")
+    elif setting.get("sparsity") is not None:
         parts.append(f"sparsity={float(setting['sparsity']):g}")
+    if setting.get("pca_threshold") is not None:
+        parts.append(f"pca={float(setting['pca_threshold']):g}")
     parts.append(f"noise={float(setting.get('noise', 0.0)):g}")
     return " ".join(parts)
 
@@ -301,16 +330,17 @@ def _label(setting: dict) -> str:
 def default_settings(noise: float = 0.0, kernels: Sequence[str] = KERNELS) -> list[dict]:
     """Rig settings worth comparing at input noise ``noise`` (std, source units).
 
-    The thesis's rig (B-spline, no regularisation); with noise, the regularised rig at
-    noise/2, noise and 2 noise; every other kernel in ``kernels``; the bounded rigs
-    (``clamp`` nonneg and unit, the metric projection with the default sparsity prior) at
-    the input noise and twice it; and, with noise, the nonneg rig without the prior
-    (``sparsity`` 0), to show what the prior adds.
+    The thesis's rig (B-spline, no regularisation); with noise, the regularised unbounded
+    rig (``clamp`` "none") at noise/2, noise and 2 noise; every other kernel in ``kernels``
+    (with fit's default bounds); the bounded rigs
+    (``clamp`` nonneg and unit, the plain metric projection, the default) at the input noise
+    and twice it; and, with noise, the nonneg rig with a sparsity prior of rate 1 and with
+    its rate estimated from the stream (``sparsity`` "stream"), to show what a prior adds.
     """
     noise = float(noise)
     settings: list[dict] = [{"noise": 0.0}]
     if noise > 0:
-        settings += [{"noise": s * noise} for s in (0.5, 1.0, 2.0)]
+        settings += [{"clamp": "none", "noise": s * noise} for s in (0.5, 1.0, 2.0)]
     for kernel in kernels:
         if kernel != "bspline":
             settings.append({"kernel": kernel, "noise": noise})
@@ -319,7 +349,8 @@ def default_settings(noise: float = 0.0, kernels: Sequence[str] = KERNELS) -> li
         if noise > 0:
             settings.append({"clamp": clamp, "noise": 2.0 * noise})
     if noise > 0:
-        settings.append({"clamp": "nonneg", "sparsity": 0.0, "noise": noise})
+        settings.append({"clamp": "nonneg", "sparsity": 1.0, "noise": noise})
+        settings.append({"clamp": "nonneg", "sparsity": STREAM, "noise": noise})
     return settings
 
 
@@ -346,6 +377,8 @@ def _sanitize_settings(settings) -> list[tuple[str, dict]]:
 
 def _fit_setting(example_set: ExampleSet, kwargs: dict) -> tuple[Rig | None, dict]:
     entry: dict = {"kind": "rig", "settings": dict(kwargs), "failed": None}
+    if kwargs.get("sparsity") == STREAM:
+        kwargs = {**kwargs, "sparsity": 0.0}
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -362,6 +395,32 @@ def _fit_setting(example_set: ExampleSet, kwargs: dict) -> tuple[Rig | None, dic
         "warnings": len(report["warnings"]),
     }
     return rig, entry
+
+
+def _rig_weights(rig: Rig, points: np.ndarray, setting: dict) -> np.ndarray:
+    """The rig's weights; with ``sparsity`` "stream", the MAP weights under a prior whose
+    rate is re-estimated for every frame from the frames before it (bounds.stream_sparsity).
+
+    The plain projection's weights feed the estimate; the exponential prior's linear term
+    lambda_t then shifts each frame's unbounded weights by (lambda_t / 2) H^-1 1 before the
+    same projection, which is that MAP problem.
+    """
+    if setting.get("sparsity") != STREAM:
+        return rig.weights(points)
+    model = rig.model
+    plain = rig.weights(points)
+    rates = stream_sparsity(plain[:, 1:], STREAM_WINDOW)
+    unbounded = rig.with_clamp(None).weights(points)[:, 1:]
+    metric = weight_metric(model.params, model.ridge)
+    unit_shift = 0.5 * np.linalg.solve(metric, np.ones(len(metric)))
+    noise = float(setting.get("noise", 0.0))
+    penalties = np.array([sparsity_penalty(noise, r, rig.num_examples) for r in rates])
+    upper = 1.0 if model.clamp == "unit" else None
+    rest = project_box(unbounded - penalties[:, None] * unit_shift, metric, upper)
+    weights = np.empty_like(plain)
+    weights[:, 1:] = rest
+    weights[:, 0] = 1.0 - rest.sum(axis=1)
+    return weights
 
 
 def _blend_with(rig: Rig) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
@@ -427,6 +486,7 @@ def evaluate(
     if not np.isfinite(noise) or noise < 0:
         raise InputError(f"noise must be a finite number >= 0, got {noise}")
     chosen = _sanitize_settings(default_settings(noise) if settings is None else settings)
+    settings_by_label = dict(chosen)
 
     methods: dict[str, dict] = {}
     rigs: dict[str, Rig] = {}
@@ -457,7 +517,9 @@ def evaluate(
         errors = {}
         for condition, x in inputs.items():
             table = {}
-            weights_by_label = {label: rig.weights(x) for label, rig in rigs.items()}
+            weights_by_label = {
+                label: _rig_weights(rig, x, settings_by_label[label]) for label, rig in rigs.items()
+            }
             weights_by_label.update({label: peer(example_set, x) for label, peer in PEERS.items()})
             scratch = np.empty((min(frames, _CHUNK), example_set.num_vertices, 3), np.float32)
             for label, weights in weights_by_label.items():
@@ -516,8 +578,8 @@ def smoothing_report(
     truth_vertices,
     *,
     fps: float,
-    min_cutoff: float = 1.0,
-    beta: float = 0.0,
+    min_cutoff: float = 3.0,
+    beta: float = 2.0,
     d_cutoff: float = 1.0,
 ) -> dict:
     """Jitter and error of a noisy take cloned raw and through the one-euro filter.

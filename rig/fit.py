@@ -19,12 +19,25 @@ from .examples import ExampleSet
 from .kernels import KERNELS, evaluate_kernel, kernel_derivative, kernel_slope
 from .rig import Rig, WeightModel
 
-__all__ = ["CLAMP_MODES", "FitReport", "IdentifiabilityWarning", "fit"]
+__all__ = [
+    "CLAMP_MODES",
+    "FitReport",
+    "IdentifiabilityWarning",
+    "fit",
+    "resolution_threshold",
+]
 
-CLAMP_MODES = (None, "nonneg", "unit")
-# The sparsity prior's default: a frame's non-neutral weights are expected to add up to
-# about one (one expression's worth, however it is shared), see bounds.sparsity_penalty.
-DEFAULT_SPARSITY = 1.0
+CLAMP_MODES = (None, "none", "nonneg", "unit")
+# clamp None (the default) chooses: bounded ("nonneg") when fitted for noise, where every
+# unbounded noise rig cloned real takes worse than NNLS (README "Real takes"); unbounded
+# without noise, where exact interpolation needs no bounds. "none" asks for unbounded.
+NOISE_CLAMP = "nonneg"
+# The sparsity prior's default: none, the plain metric projection. Chosen on real takes
+# (tests/data/livelink, README "Real takes"): an iPhone's ARKit weights hold 4-10
+# expressions' worth a frame, many small weights at once, and every exponential prior tried
+# (1, the take's own rate, per-shape rates) cloned them worse than none at sigma = 0.5 mm.
+# On synthetic sparse mixes the prior helps; --sparsity 1 asks for it.
+DEFAULT_SPARSITY = 0.0
 
 # Parameter vectors closer than this, relative to the spread of all examples, are taken
 # to coincide: the radial system is singular there whatever the kernel.
@@ -32,6 +45,9 @@ COINCIDE_RELATIVE = 1e-4
 # Examples whose nearest neighbour is closer than this fraction of the median nearest
 # distance collapse together: distinguishable only in the absence of any noise.
 COLLAPSE_RELATIVE = 0.05
+# Points reach a rig as float32 (the protocol's frames, rig and example files): a coordinate
+# x is known to eps32 |x|, so a difference of two to about eps32 * max|x| per coordinate.
+POINT_PRECISION = float(np.finfo(np.float32).eps)
 # Residuals of the hyperplanes below this are rounding: the radial part is then zero.
 EXACT_LINEAR = 1e-10
 # A radial or hyperplane system worse conditioned than this is not solved unregularised.
@@ -103,6 +119,9 @@ class FitReport:
     # stable-point alignment stands alone).
     stable_points: list[int] | None = None
     pose_condition: float = float("inf")
+    # Of fit_seconds, the time spent building the (M, 3V) float32 blend basis (memory-bound,
+    # proportional to the target's vertices); the rest is the math of this module.
+    basis_seconds: float = 0.0
 
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -124,8 +143,9 @@ def _sanitize(example_set, kernel, noise, pca_threshold, ridge, clamp, sparsity)
             f"{extent:.3g}: give the landmark noise in the source's units",
             code="noise_too_large",
         )
-    pca_threshold = 1e-10 if pca_threshold is None else float(pca_threshold)
-    if not (0.0 <= pca_threshold < 1.0):
+    if pca_threshold is not None:
+        pca_threshold = float(pca_threshold)
+    if pca_threshold is not None and not (0.0 <= pca_threshold < 1.0):
         raise FitError(
             f"pca_threshold is relative to the largest eigenvalue: expected [0, 1), got "
             f"{pca_threshold}"
@@ -136,13 +156,18 @@ def _sanitize(example_set, kernel, noise, pca_threshold, ridge, clamp, sparsity)
             raise FitError(f"ridge must be a finite number >= 0, got {ridge}")
     if clamp not in CLAMP_MODES:
         raise FitError(f"clamp must be one of {CLAMP_MODES}, got {clamp!r}")
+    explicit_clamp = clamp
+    if clamp is None:
+        clamp = NOISE_CLAMP if noise > 0 else None
+    elif clamp == "none":
+        clamp = None
     if sparsity is None:
         sparsity = DEFAULT_SPARSITY
     else:
         sparsity = float(sparsity)
         if not np.isfinite(sparsity) or sparsity < 0:
             raise FitError(f"sparsity must be a finite number >= 0, got {sparsity}")
-        if sparsity > 0 and clamp is None:
+        if sparsity > 0 and explicit_clamp in (None, "none"):
             raise FitError(
                 "sparsity is a prior on bounded weights: it needs clamp 'nonneg' or 'unit'",
                 code="sparsity_without_clamp",
@@ -150,10 +175,34 @@ def _sanitize(example_set, kernel, noise, pca_threshold, ridge, clamp, sparsity)
     return kernel, noise, pca_threshold, ridge, clamp, sparsity
 
 
-def _pca(displacements: np.ndarray, relative_threshold: float):
+def resolution_threshold(source_points: np.ndarray) -> float:
+    """The smallest singular value of the centred displacements that is signal, not rounding.
+
+    Each coordinate is known to ``POINT_PRECISION * max|x|`` (float32); rounding of that
+    size on the (M, 3K) displacement matrix has singular values up to about that times
+    sqrt(M) + sqrt(3K) (the edge of the Marchenko-Pastur law), so a principal axis whose
+    singular value is above it stands above the input's numerical resolution.
+
+    Parameters
+    ----------
+    source_points : (M, K, 3) float
+
+    Returns
+    -------
+    float, in source units.
+    """
+    m, k, _ = source_points.shape
+    step = POINT_PRECISION * float(np.abs(source_points).max())
+    return step * (np.sqrt(m) + np.sqrt(3 * k))
+
+
+def _pca(displacements: np.ndarray, relative_threshold: float | None, resolution: float):
     """Eq. 3.2-3.7: centre, eigen-decompose the covariance, keep the significant axes.
 
-    Returns mean (3K,), feature matrix F (n, 3K), eigenvalues (all, descending).
+    ``relative_threshold`` None keeps every axis whose singular value is above
+    ``resolution`` (``resolution_threshold``); a number keeps eigenvalues above that
+    fraction of the largest. Returns mean (3K,), feature matrix F (n, 3K), eigenvalues (all,
+    descending) and the relative eigenvalue threshold applied.
     """
     mean = displacements.mean(axis=0)  # eq. 3.4
     centred = displacements - mean
@@ -161,13 +210,15 @@ def _pca(displacements: np.ndarray, relative_threshold: float):
     # forming the 3K x 3K matrix, and more accurately.
     _, singular, vt = np.linalg.svd(centred, full_matrices=False)
     eigenvalues = singular**2 / max(len(displacements) - 1, 1)
-    if eigenvalues[0] <= 0:
+    if eigenvalues[0] <= 0 or singular[0] <= resolution:
         raise FitError(
-            "no example moves any feature point: every source example equals the neutral; "
-            "choose feature points that the expressions move"
+            "no example moves any feature point beyond the points' float precision: every "
+            "source example equals the neutral; choose feature points that the expressions move"
         )
+    if relative_threshold is None:
+        relative_threshold = float((resolution / singular[0]) ** 2)
     keep = eigenvalues > relative_threshold * eigenvalues[0]
-    return mean, vt[keep], eigenvalues
+    return mean, vt[keep], eigenvalues, relative_threshold
 
 
 def _nearest(params: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -193,19 +244,23 @@ def _check_separation(names, nearest_distance, nearest, spread) -> None:
         )
 
 
-def _fit_hyperplanes(params: np.ndarray, lam: float) -> tuple[np.ndarray, float]:
+def _fit_hyperplanes(
+    params: np.ndarray, lam: float, largest_singular: float
+) -> tuple[np.ndarray, float]:
     """Eq. 3.10: least-squares hyperplanes over [1, p] with w_i(p_j) = delta_ij, ridge ``lam``.
 
     Returns the coefficients (n + 1, M) and the system's condition number. The parameters
-    are scaled by one factor so that their largest singular value equals the constant
-    column's norm: the solution is the same, but the condition number (and the solver's
-    accuracy) no longer depends on the source's length unit. Refused when near-singular
-    without a ridge, as the radial system is.
+    are scaled by one factor so that their largest singular value (``largest_singular``,
+    the PCA's) equals the constant column's norm: the solution is the same, but the
+    condition number (and the solver's accuracy) no longer depends on the source's length
+    unit. Refused when near-singular without a ridge, as the radial system is. One SVD of
+    the design gives both the condition number and, without a ridge, the solution.
     """
     m, n = params.shape
-    scale = np.sqrt(m) / np.linalg.norm(params, 2)
+    scale = np.sqrt(m) / largest_singular
     design = np.hstack([np.ones((m, 1)), params * scale])
-    condition = float(np.linalg.cond(design))
+    u, singular, vt = np.linalg.svd(design, full_matrices=False)
+    condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else float("inf")
     identity = np.eye(m)
     if lam > 0:
         # lam |c|^2 on the unscaled coefficients c = scale * c_scaled.
@@ -219,11 +274,11 @@ def _fit_hyperplanes(params: np.ndarray, lam: float) -> tuple[np.ndarray, float]
                 f"the hyperplane system [1, p] is near-singular (condition number "
                 f"{condition:.3g} > {MAX_CONDITION:.0e}): the examples barely span some kept "
                 "principal axis, so exact interpolation along it divides by almost nothing. "
-                "Raise --pca-threshold (default 1e-10), set --noise to regularise, or add "
+                "Raise --pca-threshold (e.g. 1e-10), set --noise to regularise, or add "
                 "feature points",
                 code="singular_system",
             )
-        coeffs = scipy.linalg.lstsq(design, identity)[0]
+        coeffs = vt.T @ (u.T / singular[:, None])  # the least-squares solution for I
     coeffs[1:] *= scale
     return coeffs, condition
 
@@ -248,7 +303,10 @@ def fit(
         M paired examples, the neutral first.
     pca_threshold : float, optional
         Drop principal axes whose eigenvalue is below this fraction of the largest (the
-        thesis's threshold, made scale-free). Default 1e-10: only numerically empty axes.
+        thesis's threshold, made scale-free). Default: keep every axis that stands above
+        the input's numerical resolution (``resolution_threshold``: float32 precision of
+        the feature points' coordinates), so clean input is as exact as least squares;
+        robustness to tracker noise is ``noise``'s job. The report keeps the fraction used.
     noise : float
         Expected landmark noise (standard deviation per coordinate, source units). 0 is
         exact interpolation, the thesis's behaviour. Above 0 the linear and radial parts are
@@ -262,9 +320,11 @@ def fit(
         Radial cross-section; the thesis's cubic B-spline by default.
     ridge : float, optional
         Override the regularisation strength derived from ``noise`` (finer knob).
-    clamp : {None, "nonneg", "unit"}
-        Bound the non-neutral weights to >= 0 or to [0, 1] at evaluation: the cardinal
-        weights are projected onto the bounds in the metric of the examples' parameter
+    clamp : {None, "none", "nonneg", "unit"}
+        Bound the non-neutral weights to >= 0 or to [0, 1] at evaluation. Default (None):
+        "nonneg" when ``noise`` is above 0 (unbounded noise rigs cloned real takes worse
+        than NNLS; bounded ones better), unbounded without noise; "none" is unbounded
+        whatever the noise. Bounding projects the cardinal weights onto the bounds in the metric of the examples' parameter
         displacements (plus the noise ridge), i.e. the nearest bounded weights as the feature
         points see them, not a plain clip. The neutral's weight keeps the sum at 1.
         With ``noise`` above 0 the projection is the MAP weights under that landmark noise and
@@ -274,8 +334,10 @@ def fit(
         M - 1 non-neutral examples: the prior expects a frame's non-neutral weights to add
         up to 1 / sparsity (faces show few expressions at once). The bounded projection
         then minimises (x - w) H (x - w) + lambda 1^T x with lambda = 2 noise^2 sparsity
-        (M - 1) (``bounds.sparsity_penalty``), so it vanishes without noise. Default 1;
-        0 is the plain metric projection. Giving it without ``clamp`` is an error.
+        (M - 1) (``bounds.sparsity_penalty``), so it vanishes without noise. Default 0,
+        the plain metric projection (``DEFAULT_SPARSITY``: real performances carry many
+        small weights at once; 1 suits sparse mixes). Giving it without ``clamp`` is an
+        error.
     stable_points : (S,) int, optional
         Feature points (positions among the K) that head-pose alignment
         (``Rig.weights(align=True)``) fits the head's rigid motion on first; default the
@@ -295,7 +357,9 @@ def fit(
 
     source_neutral = example_set.source_neutral
     displacements = (example_set.source_points - source_neutral).reshape(m, 3 * k)  # eq. 3.1
-    mean, features, eigenvalues = _pca(displacements, pca_threshold)
+    mean, features, eigenvalues, pca_threshold = _pca(
+        displacements, pca_threshold, resolution_threshold(example_set.source_points)
+    )
     params = (displacements - mean) @ features.T  # eq. 3.7, (M, n)
     n = params.shape[1]
 
@@ -308,7 +372,8 @@ def fit(
 
     # Linear approximation, eq. 3.10: hyperplanes over [1, p] fitted to w_i(p_j) = delta_ij.
     # The ridge leaves the constant column free, so the hyperplanes still sum to 1.
-    linear_coeffs, hyperplane_condition = _fit_hyperplanes(params, lam)
+    largest_singular = float(np.sqrt(eigenvalues[0] * max(m - 1, 1)))
+    linear_coeffs, hyperplane_condition = _fit_hyperplanes(params, lam, largest_singular)
     identity = np.eye(m)
     design = np.hstack([np.ones((m, 1)), params])
     residuals = identity - design @ linear_coeffs  # eq. 3.11, residuals[j, i] at example j
@@ -378,6 +443,7 @@ def fit(
     report.noise_gain = _noise_gain(model, params)
     _warn_noise_gain(report, example_set.source_points, noise, clamp)
 
+    basis_started = time.perf_counter()
     rig = Rig.from_fit(
         names=names,
         model=model,
@@ -393,8 +459,10 @@ def fit(
         align_scale=align_scale,
         report={},
     )
+    report.basis_seconds = time.perf_counter() - basis_started
     if rig.stable_points is not None:
         report.stable_points = [int(i) for i in rig.stable_points]
+    # The head-pose refinement's span and condition number: math of the fit, not basis.
     report.pose_condition = rig.pose_condition(scale=align_scale)
     report.fit_seconds = time.perf_counter() - started
     rig.fit_report = report.to_dict()
@@ -469,7 +537,8 @@ def _noise_gain(model: WeightModel, params: np.ndarray) -> float:
     t = dist / model.alpha[None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         scale = np.where(dist > 0, kernel_derivative(model.kernel, t) / (model.alpha * dist), 0.0)
-    # d R_j / d p at p_k = B'(t_kj) (p_k - p_j) / (alpha_j |p_k - p_j|)
-    radial = np.einsum("kj,kjn,ji->kni", scale, diff, model.radial_coeffs)
+    # d R_j / d p at p_k = B'(t_kj) (p_k - p_j) / (alpha_j |p_k - p_j|); one batched
+    # product over k (an einsum over the three indices at once is ~20x slower).
+    radial = np.matmul((scale[:, :, None] * diff).transpose(0, 2, 1), model.radial_coeffs)
     jacobian = model.linear_coeffs[1:][None, :, :] + radial  # (M, n, M)
     return float(np.sqrt(np.einsum("kni,kni->", jacobian, jacobian) / len(params)))

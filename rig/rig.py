@@ -299,7 +299,15 @@ class Rig:
         neutral = np.ascontiguousarray(target_vertices[0], dtype=np.float32)
         basis = np.empty((m, 3 * v), dtype=np.float32)
         basis[0] = neutral.reshape(-1)
-        basis[1:] = (target_vertices[1:] - target_vertices[0]).reshape(m - 1, 3 * v)
+        # Subtracted in float64 and rounded once into float32 (as (T_i - T_B).astype would),
+        # an example at a time through one float64 row of scratch: a (M - 1, 3V) float64
+        # temporary, or numpy's buffered casting, doubles the memory traffic of what is
+        # most of a fit's time (bench engine's fit_blend_basis).
+        flat = target_vertices.reshape(m, 3 * v)
+        scratch = np.empty(3 * v, dtype=flat.dtype)
+        for i in range(1, m):
+            np.subtract(flat[i], flat[0], out=scratch)
+            basis[i] = scratch
         if stable_points is not None:
             stable_points = np.asarray(stable_points, dtype=np.int64)
             k = model.num_points

@@ -180,14 +180,17 @@ async def put_examples(
     kernel: Annotated[str, Query(max_length=32)] = "bspline",
     clamp: Annotated[
         Literal["nonneg", "unit"] | None,
-        Query(description="bound the non-neutral weights to >= 0 or [0, 1]"),
+        Query(
+            description="bound the non-neutral weights to >= 0 or [0, 1] (default: nonneg "
+            "when noise > 0, unbounded at 0)"
+        ),
     ] = None,
     sparsity: Annotated[
         float | None,
         Query(
             ge=0.0,
             allow_inf_nan=False,
-            description="with clamp: the sparsity prior's rate (default 1; 0 = plain projection)",
+            description="with clamp: the sparsity prior's rate (default 0, the plain projection)",
         ),
     ] = None,
 ) -> JSONResponse:

@@ -1,8 +1,9 @@
 """``facecast bench engine``: the engine's speed on the ICT rig, each figure beside a baseline.
 
 Times the rig's hot paths and its fit against baselines measured in the same run (the
-unfolded eq. 3.8, a bare weights @ deltas product, scipy's RBFInterpolator) and judges each
-against its goal; it must not change the engine or tune itself to the goals.
+unfolded eq. 3.8, a bare weights @ deltas product, scipy's RBFInterpolator, a bare copy of
+the target examples) and judges each against its goal; the fit is also split into its math
+and building the blend basis. It must not change the engine or tune itself to the goals.
 """
 
 from __future__ import annotations
@@ -22,7 +23,14 @@ GOALS = {
     "weights_single": ("< 20 us", lambda f: f["value_s"] < 20e-6),
     "weights_batched_per_frame": ("< 2 us per frame", lambda f: f["value_s"] < 2e-6),
     "blend_single": ("<= 1.5x the memory floor", lambda f: f["ratio"] <= 1.5),
-    "fit": ("< 50 ms", lambda f: f["value_s"] < 50e-3),
+    "fit": ("<= 10 ms", lambda f: f["value_s"] <= 10e-3),
+    # The fit's two parts (issue 12): its math beside scipy's RBF fit on the same centres,
+    # and the blend basis beside a bare read of the same bytes. RBFInterpolator factorises
+    # one (M + n + 1)-square system; fit factorises about six of size M (the PCA's SVD, the
+    # hyperplanes' least squares, two condition numbers, the radial solve, the noise-gain
+    # Jacobian), so on a par per factorisation is about 8x.
+    "fit_math": ("<= 8x RBFInterpolator", lambda f: f["ratio"] <= 8.0),
+    "fit_blend_basis": ("<= 1.5x the memory floor", lambda f: f["ratio"] <= 1.5),
     "weights_vs_rbfinterpolator": (">= 10x faster", lambda f: f["ratio"] <= 0.1),
 }
 
@@ -84,10 +92,26 @@ def measure(example_set, *, repeat: int) -> dict:
     interpolator = RBFInterpolator(params, identity, kernel="thin_plate_spline", degree=1)
     p = model.project(flat[:1])
 
+    parts: list[tuple[float, float]] = []  # (fit_seconds, basis_seconds) of every fit timed
+
     def fit_quietly():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            fit(example_set)
+            report = fit(example_set).fit_report
+        parts.append((report["fit_seconds"], report["basis_seconds"]))
+
+    def rbf_fit():
+        RBFInterpolator(params, identity, kernel="thin_plate_spline", degree=1)
+
+    target = example_set.target_vertices
+    m = example_set.num_examples
+    target_flat = target.reshape(m, -1)
+
+    def basis_floor():
+        # Read the float64 target examples once and write them as float32 into a new array
+        # (a fit's rig owns a new basis): the bytes the blend basis must move.
+        out = np.empty((m - 1, target_flat.shape[1]), dtype=np.float32)
+        np.copyto(out, target_flat[1:], casting="same_kind")
 
     figures = {
         "weights_single": (
@@ -105,18 +129,22 @@ def measure(example_set, *, repeat: int) -> dict:
             ),
             "memory floor: bare float32 weights @ deltas",
         ),
-        "fit": (
-            *paired(
-                fit_quietly,
-                lambda: RBFInterpolator(params, identity, kernel="thin_plate_spline", degree=1),
-            ),
-            "scipy RBFInterpolator fit on the same centres",
-        ),
+        "fit": (*paired(fit_quietly, rbf_fit), "scipy RBFInterpolator fit on the same centres"),
         "weights_vs_rbfinterpolator": (
             *paired(lambda: rig.weights(frame), lambda: interpolator(p)),
             "scipy RBFInterpolator, one frame (from reduced parameters)",
         ),
     }
+    # The same fits, split by their own clocks: the math, and building the blend basis.
+    math_s = float(np.median([total - basis for total, basis in parts]))
+    basis_s = float(np.median([basis for _, basis in parts]))
+    rbf_s = figures["fit"][1]
+    figures["fit_math"] = (math_s, rbf_s, "scipy RBFInterpolator fit on the same centres")
+    figures["fit_blend_basis"] = (
+        basis_s,
+        paired(basis_floor, basis_floor)[0],
+        "memory floor: bare float64 -> float32 copy of the target examples into a new array",
+    )
     result = {}
     for name, (value, baseline, what) in figures.items():
         entry = {

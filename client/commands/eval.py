@@ -26,8 +26,8 @@ def register(subparsers) -> None:
             "error per axis, RMS and max vertex error, for rigs of several settings and for "
             "plain and non-negative least-squares weights, on clean and on noisy feature "
             "points; then the timing table (thesis Table 4.4). Data: --demo (procedural), "
-            "--ict (ICT-FaceKit; truth = the target's expression mixes), or EXAMPLES SOURCE "
-            "[--truth FILE]."
+            "--ict (ICT-FaceKit; truth = the target's expression mixes), --take CSV (a real "
+            "Live Link Face take on ICT-FaceKit), or EXAMPLES SOURCE [--truth FILE]."
         ),
     )
     parser.add_argument("examples", metavar="EXAMPLES", nargs="?", help="an example set")
@@ -40,7 +40,17 @@ def register(subparsers) -> None:
         "--ict", nargs="?", const="", metavar="PATH",
         help="use ICT-FaceKit (default: $FACECAST_ICT or ../shared/data/ict-facekit)",
     )  # fmt: skip
+    group.add_argument(
+        "--take", metavar="CSV",
+        help="a real Live Link Face CSV take driving ICT-FaceKit's ARKit-named shapes; the "
+        "truth is the same weights on another ICT identity (--identity, default person01)",
+    )  # fmt: skip
     parser.add_argument("--identity", metavar="PERSON", help="ICT target identity (person00...)")
+    parser.add_argument(
+        "--estimate-noise", action="store_true",
+        help="estimate the landmark noise from the input's stillest half second and add the "
+        "bounded rig fitted with it",
+    )  # fmt: skip
     parser.add_argument(
         "--noise", type=float, default=DEFAULT_NOISE, metavar="SIGMA",
         help=f"std of the noise added to the source points (default {DEFAULT_NOISE}; 0 = "
@@ -57,9 +67,15 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--smoothing",
         metavar="MIN_CUTOFF,BETA",
-        default="1.0,0.0",
-        help="one-euro filter settings for the jitter table shown with --noise (default 1.0,0.0)",
+        default="3.0,2.0",
+        help="one-euro filter settings for the jitter table shown with --noise (default 3,2, "
+        "the protocol's smoothing defaults)",
     )
+    parser.add_argument(
+        "--temporal", action="store_true",
+        help="with --noise: jitter against lag of one-euro and Kalman filters at several "
+        "settings (a table; a plot with --plots)",
+    )  # fmt: skip
     parser.add_argument("--json", metavar="FILE", help="write the full report as JSON")
     parser.add_argument("--plots", metavar="DIR", help="write PNG plots into DIR")
     parser.set_defaults(func=run)
@@ -120,6 +136,45 @@ def _ict(args) -> _Data:
 
     name = "ict" if args.identity is None else f"ict ({args.identity})"
     return _Data(name, examples, animation, truth, source_frames)
+
+
+def _take(args) -> _Data:
+    from facecast.client.cli import CommandError
+    from facecast.rig.animation import SourceAnimation
+    from facecast.rig.ict import locate_ict
+    from facecast.rig.takes import ARKIT_TARGET_IDENTITY, arkit_example_set, take_experiment
+    from facecast.rig.trackers import read_livelink_csv
+
+    archive = locate_ict(args.ict or None)
+    if archive is None:
+        raise CommandError(
+            "ICT-FaceKit not found (a take drives its shapes): set FACECAST_ICT or place it "
+            "in ../shared/data/ict-facekit"
+        )
+    if not Path(args.take).is_file():
+        raise CommandError(f"{args.take}: no such file (a Live Link Face CSV take)")
+    identity = args.identity or ARKIT_TARGET_IDENTITY
+    examples = arkit_example_set(archive, identity=identity)
+    livelink = read_livelink_csv(args.take)
+    experiment = take_experiment(examples, livelink.weights, livelink.fps)
+    animation = SourceAnimation(points=experiment.points, fps=livelink.fps)
+    return _Data(f"take {Path(args.take).name} -> ICT {identity}", examples, animation,
+                 experiment.truth)  # fmt: skip
+
+
+def _estimated_noise(args, data: _Data) -> tuple[float, tuple[int, int]]:
+    """Sigma from the stillest half second of the input the rigs see (noisy if --noise)."""
+    import numpy as np
+
+    from facecast.rig.noise import estimate_noise, still_segment
+
+    points = data.animation.points
+    if args.noise > 0:
+        # The same noise evaluate adds (same seed, same draw).
+        points = points + np.random.default_rng(args.seed).normal(0.0, args.noise, points.shape)
+    window = max(2, min(len(points), round(0.5 * data.animation.fps)))
+    start, stop = still_segment(points, window)
+    return estimate_noise(points[start:stop]), (start, stop)
 
 
 def _files(args) -> _Data:
@@ -231,6 +286,42 @@ def _smoothing(args, data: _Data, report: dict) -> dict:
     return table
 
 
+def _temporal(args, data: _Data, plots: Path | None) -> dict:
+    """Jitter against lag of filtered noisy input, cloned by the default bounded noise rig."""
+    import numpy as np
+
+    from facecast.client.report import plot_jitter_against_lag
+    from facecast.rig import fit
+    from facecast.rig.temporal import best_under_one_frame, temporal_tradeoff
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the settings are chosen; fit's advice is printed
+        rig = fit(data.examples, noise=args.noise, clamp="nonneg")
+    clean = data.animation.points
+    noisy = clean + np.random.default_rng(args.seed).normal(0.0, args.noise, size=clean.shape)
+    table = temporal_tradeoff(rig, noisy, data.truth, fps=data.animation.fps, noise=args.noise)
+    table["best_under_one_frame"] = best_under_one_frame(table)
+    print(
+        f"\ntemporal filters on the noisy points (noise {args.noise:g}), rig clamp=nonneg: "
+        f"jitter (% of diagonal per frame^2; truth {table['truth_jitter']:.4f}) and lag"
+    )
+    print(f"  {'filter':<34}{'jitter':>9}{'lag, frames':>13}{'RMS error %':>13}")
+    for row in table["rows"]:
+        print(
+            f"  {row['label']:<34}{row['jitter']:>9.4f}{row['lag_frames']:>13.2f}"
+            f"{row['rms_percent']:>13.4f}"
+        )
+    for family, row in table["best_under_one_frame"].items():
+        print(f"  best {family} under one frame of lag: {row['label']}")
+    if plots is not None:
+        path = plot_jitter_against_lag(
+            plots / "jitter_vs_lag.png", table,
+            title=f"{data.name}: jitter against lag, noise {args.noise:g}",
+        )  # fmt: skip
+        print(f"wrote {path}", file=sys.stderr)
+    return table
+
+
 def run(args: argparse.Namespace) -> int:
     from facecast.client.cli import CommandError
     from facecast.client.report import format_error_table, format_timing_table, write_json
@@ -242,8 +333,12 @@ def run(args: argparse.Namespace) -> int:
         Path(args.plots).mkdir(parents=True, exist_ok=True)
     if args.noise < 0:
         raise CommandError(f"--noise must be >= 0, got {args.noise}")
+    if args.temporal and args.noise <= 0:
+        raise CommandError("--temporal needs --noise above 0 (the filters smooth noisy points)")
     if args.demo:
         data = _demo(args)
+    elif args.take is not None:
+        data = _take(args)
     elif args.ict is not None:
         data = _ict(args)
     else:
@@ -254,11 +349,25 @@ def run(args: argparse.Namespace) -> int:
         f"vertices, {data.animation.num_frames} frames",
         file=sys.stderr,
     )
+    settings = default_settings(args.noise, args.kernels)
+    estimated = None
+    if args.estimate_noise:
+        sigma, (start, stop) = _estimated_noise(args, data)
+        fps = data.animation.fps
+        estimated = {"sigma": sigma, "frames": [start, stop]}
+        print(
+            f"estimated landmark noise: sigma = {sigma:.4g} from the stillest frames "
+            f"[{start}, {stop}) (t = {start / fps:.2f}-{stop / fps:.2f} s)",
+            file=sys.stderr,
+        )
+        settings.append(
+            {"clamp": "nonneg", "noise": sigma, "label": f"rig clamp=nonneg noise=est {sigma:.3g}"}
+        )
     report = evaluate(
         data.examples,
         data.animation,
         data.truth,
-        settings=default_settings(args.noise, args.kernels),
+        settings=settings,
         noise=args.noise,
         seed=args.seed,
         timing=not args.no_timing,
@@ -266,6 +375,7 @@ def run(args: argparse.Namespace) -> int:
     )
     report["dataset"] = data.name
     report["fps"] = data.animation.fps
+    report["estimated_noise"] = estimated
     print(format_error_table(report))
     for label, entry in report["methods"].items():
         if entry.get("failed"):
@@ -275,6 +385,11 @@ def run(args: argparse.Namespace) -> int:
         print(format_timing_table(report["timing"], num_examples=report["num_examples"]))
     if args.noise > 0 and data.truth is not None:
         report["smoothing"] = _smoothing(args, data, report)
+    if args.temporal:
+        if data.truth is None:
+            raise CommandError("--temporal needs a known truth (--demo, --ict, --take, --truth)")
+        plots = None if args.plots is None else Path(args.plots)
+        report["temporal"] = _temporal(args, data, plots)
     if args.plots is not None:
         for path in _write_plots(Path(args.plots), data, report, data.animation.fps):
             print(f"wrote {path}", file=sys.stderr)

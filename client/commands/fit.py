@@ -51,17 +51,19 @@ def register(subparsers) -> None:
         type=float,
         default=None,
         metavar="T",
-        help="drop principal axes with eigenvalue below T times the largest (default 1e-10)",
+        help="drop principal axes with eigenvalue below T times the largest (default: keep "
+        "every axis above the points' float32 resolution)",
     )
     parser.add_argument(
         "--kernel", choices=KERNEL_CHOICES, default="bspline", help="radial cross-section"
     )
     parser.add_argument(
         "--clamp",
-        choices=("nonneg", "unit"),
+        choices=("none", "nonneg", "unit"),
         default=None,
         help="bound the non-neutral weights to >= 0 or [0, 1] (the nearest bounded weights in "
-        "the metric of the examples; with --noise, the MAP weights under a sparsity prior)",
+        "the metric of the examples; with --noise, the MAP weights under a sparsity prior); "
+        "default nonneg with --noise, none without",
     )
     parser.add_argument(
         "--sparsity",
@@ -69,7 +71,8 @@ def register(subparsers) -> None:
         default=None,
         metavar="S",
         help="with --clamp and --noise: exponential prior on the bounded weights, expecting "
-        "a frame's non-neutral weights to add up to 1/S (default 1; 0 = plain projection)",
+        "a frame's non-neutral weights to add up to 1/S (default 0, the plain projection; "
+        "real takes carry many small weights at once)",
     )
     parser.add_argument(
         "--stable-points",

@@ -56,7 +56,7 @@ def register(subparsers) -> None:
         type=float,
         default=None,
         metavar="S",
-        help="fit, with --clamp: the sparsity prior (default 1; 0 = plain projection)",
+        help="fit, with --clamp: the sparsity prior (default 0, the plain projection)",
     )
     get = action("get", "save a rig's file (or with --glb its target mesh)", "name", "out")
     get.add_argument(

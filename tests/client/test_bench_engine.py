@@ -35,11 +35,15 @@ def test_bench_engine_writes_every_figure_with_baseline_and_verdict(tmp_path, ca
     assert report["dataset"] == "demo" and report["num_examples"] == 13
     assert set(report["figures"]) == {
         "weights_single", "weights_batched_per_frame", "blend_single", "fit",
-        "weights_vs_rbfinterpolator",
+        "weights_vs_rbfinterpolator", "fit_math", "fit_blend_basis",
     }  # fmt: skip
     for figure in report["figures"].values():
         assert {"value_s", "baseline_s", "baseline", "ratio", "goal", "pass"} <= set(figure)
         assert figure["value_s"] > 0 and figure["baseline_s"] > 0
+    figures = report["figures"]
+    # The fit's two parts stand beside their own floors.
+    assert "RBFInterpolator" in figures["fit_math"]["baseline"]
+    assert "copy" in figures["fit_blend_basis"]["baseline"]
 
 
 def test_bench_engine_refuses_a_zero_repeat(capsys):

@@ -219,7 +219,7 @@ def test_eval_ict_reports_exact_clean_clones_and_the_noise_gap(tmp_path):
     clean, noisy = report["errors"]["clean"], report["errors"]["noisy"]
     assert max(clean["rig noise=0"]["eq41_percent"].values()) < 0.01
     assert (
-        noisy["rig noise=0.02"]["eq41_percent"]["y"] * 10
+        noisy["rig clamp=none noise=0.02"]["eq41_percent"]["y"] * 10
         < (noisy["least squares"]["eq41_percent"]["y"])
     )
 

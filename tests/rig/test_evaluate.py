@@ -130,7 +130,8 @@ def test_peers_refuse_points_of_the_wrong_shape():
 def test_default_settings_bracket_the_input_noise_and_cover_the_kernels():
     chosen = default_settings(0.1, ["bspline", "gaussian"])
 
-    assert {s["noise"] for s in chosen if "kernel" not in s and "clamp" not in s} == {
+    unbounded = [s for s in chosen if "kernel" not in s and s.get("clamp") in (None, "none")]
+    assert {s["noise"] for s in unbounded} == {
         0.0, 0.05, 0.1, 0.2,
     }  # fmt: skip
     assert {"kernel": "gaussian", "noise": 0.1} in chosen
@@ -141,7 +142,8 @@ def test_default_settings_show_the_bounded_rig_with_and_without_the_sparsity_pri
     chosen = default_settings(0.1, ["bspline"])
 
     assert {"clamp": "nonneg", "noise": 0.1} in chosen
-    assert {"clamp": "nonneg", "sparsity": 0.0, "noise": 0.1} in chosen
+    assert {"clamp": "nonneg", "sparsity": 1.0, "noise": 0.1} in chosen
+    assert {"clamp": "nonneg", "sparsity": "stream", "noise": 0.1} in chosen
     assert not any("sparsity" in setting for setting in default_settings(0.0, ["bspline"]))
 
 

@@ -406,7 +406,7 @@ def test_bad_fit_settings_are_refused(example_set, kwargs, match):
 
 
 def test_bounded_noise_rig_holds_the_sparsity_penalty_of_its_noise(example_set):
-    rig = fit(example_set, noise=0.3, clamp="nonneg")
+    rig = fit(example_set, noise=0.3, clamp="nonneg", sparsity=1.0)
     report = rig.fit_report
 
     assert report["sparsity"] == 1.0 and report["clamp"] == "nonneg"
@@ -419,7 +419,7 @@ def test_sparsity_prior_zeroes_more_weights_than_the_plain_projection(example_se
         scale=0.3, size=(200, K, 3)
     )
     plain = fit(example_set, noise=0.3, clamp="nonneg", sparsity=0.0).weights(points)
-    sparse = fit(example_set, noise=0.3, clamp="nonneg").weights(points)
+    sparse = fit(example_set, noise=0.3, clamp="nonneg", sparsity=1.0).weights(points)
 
     assert (sparse[:, 1:] > 0).sum() < (plain[:, 1:] > 0).sum()
     np.testing.assert_allclose(sparse.sum(axis=1), 1.0, atol=1e-9)

@@ -158,7 +158,7 @@ async def test_examples_fitted_with_clamp_nonneg_keep_the_bound_and_nonnegative_
 
     assert response.status_code == 201, response.text
     assert response.json()["clamp"] == meta.json()["clamp"] == "nonneg"
-    assert stored.fit_report["clamp"] == "nonneg" and stored.fit_report["sparsity"] == 1.0
+    assert stored.fit_report["clamp"] == "nonneg" and stored.fit_report["sparsity"] == 0.0
     weights = stored.weights(points)
     assert weights[:, 1:].min() >= 0.0
     np.testing.assert_allclose(weights, expected.weights(points), atol=1e-6)

@@ -1,0 +1,190 @@
+"""Temporal coherence measured: jitter against lag of filtered takes (one-euro, Kalman).
+
+Runs each filter on a take's noisy feature points (as a session's ``smoothing`` does),
+clones the result and measures the cloned vertices' jitter and their lag behind the ideal
+clone. Returns JSON-able numbers; it must not plot, print or do I/O.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from .errors import InputError
+from .filters import KalmanFilter, OneEuroFilter
+from .rig import Rig
+
+__all__ = [
+    "DEFAULT_KALMAN_ACCELERATIONS",
+    "DEFAULT_ONE_EURO",
+    "MAX_LAG_FRAMES",
+    "best_under_one_frame",
+    "lag_frames",
+    "temporal_tradeoff",
+]
+
+#: One-euro settings (min_cutoff Hz, beta) compared: the protocol's default (1, 0) and
+#: the range a 60 fps face sits in.
+DEFAULT_ONE_EURO: tuple[tuple[float, float], ...] = (
+    (0.5, 0.0), (1.0, 0.0), (2.0, 0.0), (4.0, 0.0), (8.0, 0.0), (16.0, 0.0),
+    (1.0, 1.0), (1.0, 2.0), (1.0, 4.0), (1.0, 8.0),
+    (2.0, 1.0), (2.0, 2.0), (2.0, 4.0), (3.0, 1.0), (3.0, 2.0), (4.0, 1.0), (4.0, 2.0),
+)  # fmt: skip
+#: Kalman process noise (std of the acceleration, source units / s^2) compared.
+DEFAULT_KALMAN_ACCELERATIONS: tuple[float, ...] = (
+    5.0,
+    10.0,
+    15.0,
+    20.0,
+    30.0,
+    45.0,
+    70.0,
+    100.0,
+    300.0,
+    1000.0,
+)
+#: Lags searched, in frames.
+MAX_LAG_FRAMES = 20
+# Leads searched (frames): a constant-velocity filter can run slightly ahead.
+_MAX_LEAD_FRAMES = 2
+# Lag is measured on every LAG_STRIDE-th vertex: the whole face moves as one in time, and
+# the search compares MAX_LAG_FRAMES + 1 shifted copies of the take.
+_LAG_STRIDE = 16
+
+
+def lag_frames(truth, delayed, *, max_lag: int = MAX_LAG_FRAMES) -> float:
+    """How many frames ``delayed`` trails ``truth``: the shift that best aligns them.
+
+    The RMS difference of delayed[t + s] and truth[t] over whole frames s in [-2, max_lag]
+    (a predictive filter may lead a little), refined between frames by the parabola through
+    the best shift and its neighbours.
+
+    Parameters
+    ----------
+    truth, delayed : (F, ...) float
+        The same quantity per frame; F > max_lag + 4.
+
+    Returns
+    -------
+    float, frames in [-2, max_lag]; negative leads.
+    """
+    a = np.asarray(truth, dtype=np.float64).reshape(len(truth), -1)
+    b = np.asarray(delayed, dtype=np.float64).reshape(len(delayed), -1)
+    if a.shape != b.shape:
+        raise InputError(f"lag: shapes differ, {a.shape} and {b.shape}")
+    lead = _MAX_LEAD_FRAMES
+    if len(a) <= max_lag + lead + 2:
+        raise InputError(f"lag: need more than {max_lag + lead + 2} frames, got {len(a)}")
+    # Every shift compared over the same frames of the truth (those all of them cover).
+    span = len(a) - max_lag - lead
+    shifts = np.arange(-lead, max_lag + 1)
+    errors = np.array(
+        [np.sqrt(np.mean((b[lead + s : lead + s + span] - a[lead : lead + span]) ** 2))
+         for s in shifts]
+    )  # fmt: skip
+    best = int(np.argmin(errors))
+    if 0 < best < len(shifts) - 1:
+        left, mid, right = errors[best - 1 : best + 2]
+        curve = left - 2.0 * mid + right
+        if curve > 0:
+            return float(shifts[best] + 0.5 * (left - right) / curve)
+    return float(shifts[best])
+
+
+def _jitter(frames: np.ndarray) -> float:
+    x = frames.reshape(len(frames), -1).astype(np.float64)
+    second = x[2:] - 2.0 * x[1:-1] + x[:-2]
+    return float(np.sqrt(np.mean(second * second)))
+
+
+def temporal_tradeoff(
+    rig: Rig,
+    noisy_points,
+    truth_vertices,
+    *,
+    fps: float,
+    noise: float,
+    one_euro: Sequence[tuple[float, float]] = DEFAULT_ONE_EURO,
+    kalman: Sequence[float] = DEFAULT_KALMAN_ACCELERATIONS,
+) -> dict:
+    """Jitter and lag of a noisy take cloned raw, through one-euro filters and Kalman filters.
+
+    Parameters
+    ----------
+    rig : Rig
+        Clones the (filtered) points.
+    noisy_points : (F, K, 3) float
+    truth_vertices : (F, V, 3) float
+        The ideal clone.
+    fps : float
+    noise : float
+        Landmark noise std (the Kalman filters' measurement noise), > 0.
+    one_euro : sequence of (min_cutoff, beta)
+    kalman : sequence of float
+        Accelerations (source units / s^2).
+
+    Returns
+    -------
+    dict (JSON-able): ``truth_jitter`` and ``rows``, one per filter (and ``raw``), each
+    {family, label, settings, jitter, lag_frames, rms_percent}; jitter in % of the
+    truth's bounding-box diagonal per frame^2, lag in frames.
+    """
+    points = np.asarray(noisy_points, dtype=np.float64)
+    truth = np.asarray(truth_vertices)
+    if points.ndim != 3 or truth.ndim != 3 or len(points) != len(truth):
+        raise InputError(
+            f"temporal: expected (F, K, 3) points and (F, V, 3) truth of the same F, got "
+            f"{points.shape} and {truth.shape}"
+        )
+    flat = truth.reshape(-1, 3)
+    diagonal = float(np.linalg.norm(flat.max(axis=0) - flat.min(axis=0)))
+    scale = 100.0 / diagonal
+    times = np.arange(len(points)) / float(fps)
+    channels = points.reshape(len(points), -1)
+    candidates: list[tuple[str, str, dict, object]] = [("raw", "raw", {}, None)]
+    for min_cutoff, beta in one_euro:
+        candidates.append(
+            (
+                "one-euro",
+                f"one-euro {min_cutoff:g} Hz, beta {beta:g}",
+                {"min_cutoff": float(min_cutoff), "beta": float(beta)},
+                OneEuroFilter(min_cutoff=min_cutoff, beta=beta),
+            )
+        )
+    for acceleration in kalman:
+        candidates.append(
+            (
+                "kalman",
+                f"Kalman, acceleration {acceleration:g}",
+                {"noise": float(noise), "acceleration": float(acceleration)},
+                KalmanFilter(noise=noise, acceleration=acceleration),
+            )
+        )
+    rows = []
+    for family, label, settings, smoother in candidates:
+        filtered = channels if smoother is None else smoother.filter_series(channels, times)
+        vertices = rig.clone(filtered.reshape(points.shape))
+        diff = vertices.astype(np.float64) - truth
+        rows.append(
+            {
+                "family": family,
+                "label": label,
+                "settings": settings,
+                "jitter": _jitter(vertices) * scale,
+                "lag_frames": lag_frames(truth[:, ::_LAG_STRIDE], vertices[:, ::_LAG_STRIDE]),
+                "rms_percent": float(np.sqrt(np.mean(np.sum(diff * diff, axis=-1))) * scale),
+            }
+        )
+    return {"truth_jitter": _jitter(truth) * scale, "fps": float(fps), "rows": rows}
+
+
+def best_under_one_frame(tradeoff: dict) -> dict[str, dict]:
+    """Per filter family, the row of least jitter among those lagging less than one frame."""
+    best: dict[str, dict] = {}
+    for row in tradeoff["rows"]:
+        if row["family"] == "raw" or not row["lag_frames"] < 1.0:
+            continue
+        if row["family"] not in best or row["jitter"] < best[row["family"]]["jitter"]:
+            best[row["family"]] = row
+    return best
