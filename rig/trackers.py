@@ -33,6 +33,7 @@ import numpy as np
 
 from .animation import SourceAnimation
 from .errors import InputError
+from .layouts import load_layout
 from .source_rig import ARKIT_NAMES, HEAD_POSE_NAMES, NUM_ARKIT, SourceRig
 
 __all__ = [
@@ -55,32 +56,14 @@ MAX_LINE_CHARS = 1 << 20
 
 #: MediaPipe face-mesh landmark for each of the 20 standard feature points, in the order
 #: of ``facecast.rig.ict.DEFAULT_LANDMARKS`` (Multi-PIE 68 positions), so a MediaPipe take
-#: drives a rig imported from ICT-FaceKit with the default landmarks. Indices follow the
-#: usual dlib-68 <-> MediaPipe correspondence; "right" is the subject's right.
-MEDIAPIPE_FEATURES: tuple[tuple[str, int, int], ...] = (
-    # (feature, Multi-PIE 68 position, MediaPipe landmark)
-    ("right_brow_outer", 17, 70),
-    ("right_brow_middle", 19, 105),
-    ("right_brow_inner", 21, 107),
-    ("left_brow_inner", 22, 336),
-    ("left_brow_middle", 24, 334),
-    ("left_brow_outer", 26, 300),
-    ("right_upper_lid", 37, 160),
-    ("right_lower_lid", 41, 144),
-    ("left_upper_lid", 44, 387),
-    ("left_lower_lid", 46, 373),
-    ("nose_tip", 30, 4),
-    ("right_nose_wing", 31, 75),
-    ("left_nose_wing", 35, 305),
-    ("right_mouth_corner", 48, 61),
-    ("upper_lip_outer", 51, 0),
-    ("left_mouth_corner", 54, 291),
-    ("lower_lip_outer", 57, 17),
-    ("upper_lip_inner", 62, 13),
-    ("lower_lip_inner", 66, 14),
-    ("chin", 8, 152),
+#: drives a rig imported from ICT-FaceKit with the default landmarks: (feature, Multi-PIE
+#: 68 position, MediaPipe landmark), read from the one table the /perform page uses too,
+#: ``facecast/rig/layouts/mediapipe_face_mesh.json``; "right" is the subject's right.
+_LAYOUT = load_layout("mediapipe_face_mesh")
+MEDIAPIPE_FEATURES: tuple[tuple[str, int, int], ...] = tuple(
+    zip(_LAYOUT.feature_names, _LAYOUT.multipie68 or (), _LAYOUT.features.tolist(), strict=True)
 )
-_DEFAULT_MEDIAPIPE = tuple(index for _, _, index in MEDIAPIPE_FEATURES)
+_DEFAULT_MEDIAPIPE = tuple(_LAYOUT.features.tolist())
 _MEDIAPIPE_COUNTS = (468, 478)
 
 _TIMECODE = re.compile(r"^\s*(\d{1,2}):(\d{2}):(\d{2})[:;](\d{1,3})(?:\.(\d+))?\s*$")

@@ -43,6 +43,7 @@ def test_wheel_holds_every_package_and_the_protocol_spec(wheel):
         "facecast/protocol/PROTOCOL.md",
         "facecast/protocol/codec.py",
         "facecast/rig/fit.py",
+        "facecast/rig/layouts/mediapipe_face_mesh.json",
         "facecast/rig/demo.py",
         "facecast/server/app.py",
         "facecast/client/cli.py",

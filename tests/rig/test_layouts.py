@@ -1,0 +1,164 @@
+"""Landmark layouts load from package data, validate, and normalise a mesh's head pose away."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from facecast.rig.errors import InputError
+from facecast.rig.facemesh import image_to_mesh, normalise_mesh
+from facecast.rig.ict import DEFAULT_LANDMARKS
+from facecast.rig.layouts import layout_from_dict, layout_names, load_layout
+from facecast.rig.trackers import MEDIAPIPE_FEATURES
+
+
+@pytest.fixture(scope="module")
+def layout():
+    return load_layout("mediapipe_face_mesh")
+
+
+def test_shipped_mediapipe_layout_maps_the_ict_default_landmarks_in_order(layout):
+    assert "mediapipe_face_mesh" in layout_names()
+    assert layout.tracker_points == 468 and layout.num_features == len(DEFAULT_LANDMARKS)
+    assert layout.multipie68 == DEFAULT_LANDMARKS
+    assert layout.features.max() < 468
+
+
+def test_ndjson_reader_uses_the_layout_table(layout):
+    assert [index for _, _, index in MEDIAPIPE_FEATURES] == layout.features.tolist()
+    assert [name for name, _, _ in MEDIAPIPE_FEATURES] == list(layout.feature_names)
+
+
+def test_stable_points_avoid_brows_lids_lips_and_chin(layout):
+    moving = {n for n in layout.feature_names if n != "nose_tip"}
+    moving_indices = {
+        i for n, i in zip(layout.feature_names, layout.features, strict=True) if n in moving
+    }
+    eyelids = {layout.eyes[s][p] for s in ("left", "right") for p in ("upper", "lower")}
+    assert not (set(layout.stable.tolist()) & (moving_indices | eyelids))
+    for part in ("left", "right", "top", "bottom"):
+        assert set(layout.frame[part].tolist()) <= set(layout.stable.tolist())
+
+
+def test_layout_round_trips_through_its_dict(layout):
+    again = layout_from_dict(layout.to_dict())
+    assert again.to_dict() == layout.to_dict()
+
+
+def test_unknown_layout_name_is_refused():
+    with pytest.raises(InputError) as info:
+        load_layout("dlib_68")
+    assert info.value.code == "unknown_layout" and "mediapipe_face_mesh" in info.value.message
+
+
+def _broken(layout, path, value):
+    doc = copy.deepcopy(layout.to_dict())
+    node = doc
+    for key in path[:-1]:
+        node = node[key]
+    if value is KeyError:
+        del node[path[-1]]
+    else:
+        node[path[-1]] = value
+    return doc
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "needle"),
+    [
+        (("features",), [70, 70], "twice"),
+        (("features",), [70, 468], "outside [0, 468)"),
+        (("features",), [70, 1.5], "integer"),
+        (("feature_names",), ["a"], "name the 20 features"),
+        (("stable",), [1, 2], "at least 3"),
+        (("eyes", "left", "upper"), KeyError, "eyes.left"),
+        (("frame", "span"), 0, "frame.span"),
+        (("frame", "top"), [], "frame.top"),
+        (("multipie68",), [0] * 19, "multipie68"),
+        (("name",), "Bad Name", "name must match"),
+        (("tracker_points",), True, "tracker_points"),
+        (("extra",), 1, "unknown key"),
+        (("stable",), KeyError, "missing key 'stable'"),
+    ],
+)
+def test_bad_layouts_name_the_field_at_fault(layout, path, value, needle):
+    with pytest.raises(InputError) as info:
+        layout_from_dict(_broken(layout, path, value), "test")
+    assert info.value.code == "bad_layout" and needle in info.value.message
+
+
+def _face_mesh(layout, rng):
+    """A synthetic 468-point mesh: random points with the frame points placed like a face."""
+    mesh = rng.normal(scale=4.0, size=(468, 3))
+    frame = layout.frame
+    mesh[frame["right"]] = np.array([-3.2, 0.0, 0.0]) + rng.normal(scale=0.3, size=(2, 3))
+    mesh[frame["left"]] = np.array([3.2, 0.0, 0.0]) + rng.normal(scale=0.3, size=(2, 3))
+    mesh[frame["top"]] = np.array([0.0, 6.0, 0.5]) + rng.normal(scale=0.3, size=(2, 3))
+    mesh[frame["bottom"]] = np.array([0.0, -4.0, 2.0]) + rng.normal(scale=0.3, size=(2, 3))
+    return mesh
+
+
+def _rotation(yaw, pitch, roll):
+    cy, sy, cp, sp, cr, sr = (f(a) for a in (yaw, pitch, roll) for f in (np.cos, np.sin))
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rx = np.array([[1, 0, 0], [0, cp, -sp], [0, sp, cp]])
+    rz = np.array([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]])
+    return rz @ rx @ ry
+
+
+def test_normalised_points_do_not_move_when_the_head_turns_or_backs_away(layout):
+    rng = np.random.default_rng(3)
+    mesh = _face_mesh(layout, rng)
+    moved = 0.4 * mesh @ _rotation(0.5, -0.3, 0.2).T + [120.0, -40.0, 7.0]
+    still = normalise_mesh(np.stack([mesh, moved]), layout)
+    np.testing.assert_allclose(still[1], still[0], atol=1e-9)
+
+
+def test_normalised_points_move_when_a_feature_moves(layout):
+    rng = np.random.default_rng(4)
+    mesh = _face_mesh(layout, rng)
+    opened = mesh.copy()
+    chin = layout.feature_names.index("chin")
+    opened[layout.features[chin], 1] -= 2.0
+    before, after = normalise_mesh(np.stack([mesh, opened]), layout)
+    moved = np.linalg.norm(after - before, axis=1)
+    assert moved[chin] > 1.0 and np.delete(moved, chin).max() < 1e-9
+
+
+def test_normalised_eye_span_is_the_layout_span(layout):
+    rng = np.random.default_rng(5)
+    mesh = 37.0 * _face_mesh(layout, rng)
+    frame_points = np.concatenate([mesh[layout.frame["left"]], mesh[layout.frame["right"]]])
+    extended = np.vstack([mesh, frame_points])  # the 478-point mesh carries extra points
+    features = normalise_mesh(extended, layout)
+    assert features.shape == (20, 3)
+    # The eye centres are not features; map them through the same frame by hand.
+    left = mesh[layout.frame["left"]].mean(axis=0)
+    right = mesh[layout.frame["right"]].mean(axis=0)
+    ratio = layout.span / np.linalg.norm(left - right)
+    raw = mesh[layout.features]
+    assert np.isclose(
+        np.linalg.norm(features[0] - features[1]), ratio * np.linalg.norm(raw[0] - raw[1])
+    )
+
+
+def test_image_landmarks_become_isotropic_and_y_up():
+    marks = np.array([[0.5, 0.25, -0.1]])
+    np.testing.assert_allclose(image_to_mesh(marks, 640, 480), [[320.0, -120.0, 64.0]])
+
+
+@pytest.mark.parametrize(
+    ("mutate", "code"),
+    [
+        (lambda m: m[:400], "wrong_landmark_count"),
+        (lambda m: np.where(np.arange(468)[:, None] == 5, np.nan, m), "non_finite"),
+        (lambda m: np.zeros_like(m), "degenerate_face"),
+    ],
+)
+def test_bad_meshes_are_refused_by_code(layout, mutate, code):
+    mesh = _face_mesh(layout, np.random.default_rng(6))
+    with pytest.raises(InputError) as info:
+        normalise_mesh(mutate(mesh), layout)
+    assert info.value.code == code
