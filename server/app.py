@@ -28,6 +28,7 @@ from .channel_routes import router as channel_router
 from .errors import install_error_handlers, problem
 from .hub import ChannelHub
 from .metrics import CONTENT_TYPE_LATEST, Metrics
+from .perform_page import mount_perform
 from .rest import router as rest_router
 from .sessions import SessionRegistry
 from .settings import ROLES, Settings
@@ -110,6 +111,7 @@ def create_app(settings: Settings) -> FastAPI:
     _add_ops_routes(app)
     _add_docs_routes(app)
     mount_viewer(app, settings)
+    mount_perform(app)
     app.add_middleware(_AccessLog, metrics=app.state.metrics, enabled=settings.access_log)
     return app
 

@@ -38,7 +38,10 @@ export function readParams(href, page) {
   const dtype = q.get("dtype") || "f32";
   if (!DTYPES.has(dtype)) throw new ParamError(`dtype must be f32 or f16, got ${dtype}`);
   const rig = q.get("rig") || "demo";
-  if (!/^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$/.test(rig)) throw new ParamError(`invalid rig id ${rig}`);
+  // server/store.py's RIG_ID_PATTERN: a name, optionally @performer (a performer's own rig).
+  if (!/^[A-Za-z0-9][A-Za-z0-9._-]{0,63}(@[A-Za-z0-9][A-Za-z0-9._-]{0,63})?$/.test(rig)) {
+    throw new ParamError(`invalid rig id ${rig}`);
+  }
   const token = q.get("token") || null;
   return {
     page,
@@ -80,6 +83,9 @@ export function socketTarget(params) {
   if (params.mode === "watch") {
     const q = new URLSearchParams({ rig: params.rig, output: params.output, dtype: params.dtype });
     url = `${base}/v1/channels/${encodeURIComponent(params.channel)}/watch?${q}`;
+  } else if (params.mode === "publish") {
+    // The performer page (/perform): the channel's publisher, hello sent on open.
+    url = `${base}/v1/channels/${encodeURIComponent(params.channel)}/publish`;
   } else {
     url = `${base}/v1/stream`;
   }

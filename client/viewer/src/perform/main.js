@@ -1,0 +1,418 @@
+// Entry point of /perform: camera -> face mesh -> the layout's feature points (head pose
+// and distance removed) -> published on the channel; the character's live pose beside
+// the camera; the calibration walk-through (studio.js). Publishes window.facecastStats.
+
+import layoutTable from "../../../../rig/layouts/mediapipe_face_mesh.json";
+import { Link } from "../link.js";
+import { authHeaders, socketTarget } from "../params.js";
+import { encodeFrame, encodeHello, ErrorCode, errorName } from "../protocol.js";
+import { FaceView } from "../scene.js";
+import { checkLayout, eyeOpenness, headAngles, imageToMesh, normaliseMesh } from "./facemesh.js";
+import { readPerformParams } from "./params.js";
+import { Studio } from "./studio.js";
+import { Tracker } from "./tracker.js";
+
+const layout = checkLayout(layoutTable);
+const K = layout.features.length;
+const MAX_BUFFERED_BYTES = 64 * 1024; // a stalled socket drops frames instead of queueing them
+const WINDOW = 120; // frames in the rolling timing statistics
+
+/** Counters for people and tests (tests wait on them instead of sleeping). */
+const stats = {
+  page: "perform",
+  layout: layout.name,
+  backend: null,
+  track: "starting", // starting | loading | tracking | no-camera | failed
+  trackDetail: "",
+  publish: "off", // off | connecting | live | waiting | failed | unsuitable
+  publishDetail: "",
+  error: null,
+  tracked: 0, // frames the model ran on
+  withFace: 0, // of those, frames with a face
+  faces: 0, // faces in the last frame
+  faceFound: false,
+  trackFps: 0,
+  modelMs: null, // model time per frame (mean over the window)
+  published: 0, // frames sent
+  skipped: 0, // frames not sent: socket backed up
+  publishFps: 0,
+  seq: null,
+  results: 0, // results (weights) received back for our frames
+  latencyMs: null, // landmarks ready -> frame handed to the socket (mean, p95, max)
+  latencyP95Ms: null,
+  latencyMaxMs: null,
+  overlayMs: null, // drawing the camera image and points (mean)
+  addedMs: null, // everything facecast adds per frame (normalise, encode, send, draw), mean
+  addedP95Ms: null,
+  points: null, // the last published points, K*3
+  head: null, // {yaw, pitch, roll, turn} of the last frame, degrees
+  eyes: null,
+  rig: null,
+  channel: null,
+};
+window.facecastStats = stats;
+
+const $ = (id) => document.getElementById(id);
+
+function setTrack(kind, text, detail = "") {
+  stats.track = kind;
+  stats.trackDetail = detail;
+  paintState($("track-state"), kind === "tracking" ? (stats.faceFound ? "live" : "idle") : kind === "failed" || kind === "no-camera" ? "failed" : "connecting", text);
+  $("track-detail").textContent = detail;
+}
+
+function setPublish(kind, text, detail = "") {
+  stats.publish = kind;
+  stats.publishDetail = detail;
+  const cls = { live: "live", waiting: "waiting", connecting: "connecting", failed: "failed", unsuitable: "failed" }[kind] || "idle";
+  paintState($("publish-state"), cls, text);
+  $("publish-detail").textContent = detail;
+}
+
+function paintState(el, cls, text) {
+  el.className = `state ${cls}`;
+  el.textContent = text;
+}
+
+function fatal(message) {
+  stats.error = message;
+  $("error").textContent = message;
+  $("error").hidden = false;
+}
+
+/** What a 401/403/4xx problem means on this page, naming the role the token lacks. */
+function problemText(response, problem, role, what) {
+  const detail = problem.detail || response.statusText;
+  if (response.status === 401) return `the token is not accepted (401 ${problem.code || "unauthorized"}): cannot ${what}. ${detail}`;
+  if (response.status === 403) {
+    return `the token lacks the role ${role} (or admin) needed to ${what} (403 ${problem.code || "forbidden"}: ${detail})`;
+  }
+  return `${response.status} ${problem.code || ""}: ${detail}`.trim();
+}
+
+class Rolling {
+  constructor(n) {
+    this.values = new Float64Array(n);
+    this.n = 0;
+    this.i = 0;
+  }
+  push(v) {
+    this.values[this.i] = v;
+    this.i = (this.i + 1) % this.values.length;
+    this.n = Math.min(this.n + 1, this.values.length);
+  }
+  mean() {
+    let s = 0;
+    for (let j = 0; j < this.n; j++) s += this.values[j];
+    return this.n ? s / this.n : null;
+  }
+  quantile(q) {
+    if (!this.n) return null;
+    const sorted = Float64Array.from(this.values.subarray(0, this.n)).sort();
+    return sorted[Math.min(this.n - 1, Math.floor(q * this.n))];
+  }
+  max() {
+    return this.n ? Math.max(...this.values.subarray(0, this.n)) : null;
+  }
+}
+
+async function openCamera(video) {
+  if (!navigator.mediaDevices || !navigator.mediaDevices.getUserMedia) {
+    throw new Error("this browser gives no camera access here (getUserMedia needs https or localhost)");
+  }
+  let stream;
+  try {
+    stream = await navigator.mediaDevices.getUserMedia({ video: { width: { ideal: 640 }, height: { ideal: 480 }, facingMode: "user" }, audio: false });
+  } catch (err) {
+    if (err.name === "NotAllowedError" || err.name === "SecurityError") {
+      throw new Error("camera access was denied: allow the camera for this page and reload");
+    }
+    if (err.name === "NotFoundError" || err.name === "OverconstrainedError") {
+      throw new Error("no camera found: connect one and reload");
+    }
+    if (err.name === "NotReadableError") throw new Error("the camera is in use by another program: close it and reload");
+    throw new Error(`cannot open the camera: ${err.name}: ${err.message}`);
+  }
+  video.srcObject = stream;
+  await video.play();
+  return stream;
+}
+
+function nextVideoFrame(video) {
+  return new Promise((resolve) => {
+    if (video.requestVideoFrameCallback) video.requestVideoFrameCallback(() => resolve());
+    else requestAnimationFrame(() => resolve());
+  });
+}
+
+/** The camera image, mirrored like a mirror, with the feature points (and the rest faint). */
+function drawCamera(ctx, video, face) {
+  const { width, height } = ctx.canvas;
+  ctx.save();
+  ctx.translate(width, 0);
+  ctx.scale(-1, 1);
+  ctx.drawImage(video, 0, 0, width, height);
+  if (face) {
+    const sx = width / video.videoWidth;
+    const sy = height / video.videoHeight;
+    const lm = face.landmarks;
+    ctx.fillStyle = "rgba(160, 200, 255, 0.45)";
+    for (const i of layout.stable) ctx.fillRect(lm[i][0] * sx - 1, lm[i][1] * sy - 1, 2, 2);
+    ctx.fillStyle = "#ffb070";
+    for (const i of layout.features) {
+      ctx.beginPath();
+      ctx.arc(lm[i][0] * sx, lm[i][1] * sy, 2.5, 0, 2 * Math.PI);
+      ctx.fill();
+    }
+    const [bx, by, bw, bh] = face.box;
+    ctx.strokeStyle = "rgba(61, 220, 132, 0.6)";
+    ctx.strokeRect(bx * sx, by * sy, bw * sx, bh * sy);
+  }
+  ctx.restore();
+}
+
+async function fetchModel(params) {
+  const response = await fetch(`${params.server}/v1/rigs/${encodeURIComponent(params.rig)}/model.glb`, {
+    headers: authHeaders(params),
+  });
+  if (!response.ok) {
+    const problem = await response.json().catch(() => ({}));
+    throw new Error(problemText(response, problem, "viewer", `load the character of rig ${params.rig}`));
+  }
+  return response.arrayBuffer();
+}
+
+async function main() {
+  let params;
+  try {
+    params = readPerformParams(window.location.href);
+  } catch (err) {
+    fatal(`Bad page URL: ${err.message}`);
+    setTrack("failed", "not started", err.message);
+    return;
+  }
+  stats.rig = params.rig;
+  stats.channel = params.channel;
+
+  const view = new FaceView($("stage"), { controls: false });
+  let names = [];
+  let live = true; // the view follows the server's weights (else: showing a target example)
+  const showWeights = (weights) => {
+    view.setWeights(weights);
+    view.dirty = true;
+  };
+  const studio = new Studio(document, {
+    stats,
+    params,
+    layoutName: layout.name,
+    authHeaders: () => authHeaders(params),
+    problemText,
+    performHref: (rig) => {
+      const url = new URL(window.location.href);
+      url.searchParams.set("rig", rig);
+      return url.toString();
+    },
+    showExample(name) {
+      live = false;
+      const weights = new Float32Array(names.length);
+      const i = names.indexOf(name);
+      if (i >= 0) weights[i] = 1;
+      if (view.mesh) showWeights(weights);
+    },
+    showLive() {
+      live = true;
+    },
+  });
+  const modelLoad = fetchModel(params)
+    .then((glb) => view.load(glb))
+    .then((model) => {
+      names = model.names;
+      studio.setNames(names);
+      $("stage-label").textContent = `character · ${params.rig}`;
+    })
+    .catch((err) => {
+      $("stage-label").textContent = `character not loaded: ${err.message}`;
+      stats.modelError = err.message;
+    });
+
+  // Publishing: the channel's publisher session; tracking goes on whatever happens here.
+  let publishing = false;
+  let latencyEma = null;
+  const link = new Link(socketTarget(params), {
+    onOpen(l) {
+      setPublish("connecting", "opening session", `channel ${params.channel}, rig ${params.rig}`);
+      l.send(encodeHello({ rig: params.rig, output: "weights", dtype: "f32" }));
+    },
+    onState(kind, detail) {
+      publishing = false;
+      if (kind === "failed") {
+        const forbidden = /FORBIDDEN|Not allowed/.test(detail);
+        setPublish(
+          "failed",
+          "not publishing",
+          forbidden ? `the token lacks the role publisher (or admin) needed to publish to ${params.channel}: ${detail}` : detail,
+        );
+      } else if (kind === "waiting") setPublish("waiting", "reconnecting", detail);
+      else if (kind === "connecting") setPublish("connecting", detail);
+    },
+    onMessage(msg, l) {
+      if (msg.type === "ready") {
+        if (msg.rig.k !== K) {
+          l.fail("");
+          setPublish(
+            "unsuitable",
+            "not publishing",
+            `rig ${msg.rig.id} takes ${msg.rig.k} feature points, this page's layout gives ${K}: ` +
+              "calibrate to make your own rig of this character, or open a rig fitted for this layout",
+          );
+          return;
+        }
+        l.healthy();
+        publishing = true;
+        setPublish("live", `live · ${params.channel}`, `rig ${msg.rig.id}, ${K} points a frame`);
+      } else if (msg.type === "result") {
+        stats.results += 1;
+        if (typeof msg.server_ts === "number") {
+          const rtt = Date.now() - msg.server_ts * 1000;
+          latencyEma = latencyEma === null ? rtt : 0.9 * latencyEma + 0.1 * rtt;
+        }
+        if (live && msg.weights && view.mesh && msg.weights.length === names.length) showWeights(msg.weights);
+      } else if (msg.type === "error") {
+        const text = `${errorName(msg.code)}: ${msg.message}`;
+        if (msg.code === ErrorCode.UNKNOWN_RIG) setPublish("failed", "not publishing", `unknown rig ${params.rig}: ${msg.message}`);
+        else if (msg.code === ErrorCode.CHANNEL_BUSY) setPublish("waiting", "channel busy", `${text}; another performer publishes there`);
+        else setPublish(stats.publish, $("publish-state").textContent, text);
+      }
+    },
+  });
+  link.start();
+
+  // Camera and model.
+  const video = $("video");
+  setTrack("loading", "opening the camera");
+  try {
+    await openCamera(video);
+  } catch (err) {
+    setTrack("no-camera", "no camera", err.message);
+    fatal(err.message);
+    return;
+  }
+  setTrack("loading", "loading the face model");
+  const tracker = new Tracker();
+  try {
+    stats.backend = await tracker.load();
+  } catch (err) {
+    setTrack("failed", "face model failed", err.message);
+    fatal(`The face model did not load: ${err.message}`);
+    return;
+  }
+  await modelLoad;
+
+  const canvas = $("camera");
+  canvas.width = video.videoWidth || 640;
+  canvas.height = video.videoHeight || 480;
+  const ctx = canvas.getContext("2d");
+  const points = new Float32Array(K * 3);
+  const modelTimes = new Rolling(WINDOW);
+  const latency = new Rolling(WINDOW);
+  const overlay = new Rolling(WINDOW);
+  const added = new Rolling(WINDOW);
+  const frameTimes = [];
+  const publishTimes = [];
+  let seq = 0;
+  let lastPaint = 0;
+  setTrack("tracking", "looking for a face");
+
+  for (;;) {
+    await nextVideoFrame(video);
+    const t0 = performance.now();
+    let result;
+    try {
+      result = await tracker.track(video);
+    } catch (err) {
+      setTrack("failed", "tracking failed", err.message);
+      fatal(`Tracking failed: ${err.message}`);
+      return;
+    }
+    const tLandmarks = performance.now();
+    modelTimes.push(tLandmarks - t0);
+    stats.tracked += 1;
+    stats.faces = result.faces;
+    frameTimes.push(tLandmarks);
+    let sample = null;
+    if (result.face) {
+      const mesh = imageToMesh(result.face.landmarks);
+      const { frame } = normaliseMesh(mesh, layout, points);
+      const head = headAngles(frame);
+      const eyes = eyeOpenness(mesh, layout);
+      if (publishing && link.bufferedAmount < MAX_BUFFERED_BYTES) {
+        if (link.send(encodeFrame(seq, performance.now() / 1000, points))) {
+          stats.seq = seq;
+          seq += 1;
+          stats.published += 1;
+          publishTimes.push(performance.now());
+        }
+      } else if (publishing) stats.skipped += 1;
+      const tSent = performance.now();
+      latency.push(tSent - tLandmarks);
+      stats.withFace += 1;
+      stats.faceFound = true;
+      stats.points = Array.from(points);
+      stats.head = head;
+      stats.eyes = eyes;
+      sample = { points: points.slice(), eyes, head };
+    } else {
+      stats.faceFound = false;
+    }
+    const tDraw = performance.now();
+    drawCamera(ctx, video, result.face);
+    const tEnd = performance.now();
+    overlay.push(tEnd - tDraw);
+    added.push(tEnd - tLandmarks);
+    studio.frame(sample);
+
+    // Rolling rates over the last second.
+    while (frameTimes.length && frameTimes[0] < tEnd - 1000) frameTimes.shift();
+    while (publishTimes.length && publishTimes[0] < tEnd - 1000) publishTimes.shift();
+    if (tEnd - lastPaint > 250) {
+      lastPaint = tEnd;
+      stats.trackFps = frameTimes.length;
+      stats.publishFps = publishTimes.length;
+      stats.modelMs = modelTimes.mean();
+      stats.latencyMs = latency.mean();
+      stats.latencyP95Ms = latency.quantile(0.95);
+      stats.latencyMaxMs = latency.max();
+      stats.overlayMs = overlay.mean();
+      stats.addedMs = added.mean();
+      stats.addedP95Ms = added.quantile(0.95);
+      stats.serverLatencyMs = latencyEma;
+      paintStats(result);
+    }
+    if (view.mesh && view.dirty) view.render();
+  }
+}
+
+function paintStats(result) {
+  const faceText =
+    result.faces === 0 ? "no face in view" : result.faces > 1 ? `${result.faces} faces: tracking the largest` : "face found";
+  setTrack("tracking", faceText, stats.head ? `head yaw ${stats.head.yaw.toFixed(0)}° pitch ${stats.head.pitch.toFixed(0)}° roll ${stats.head.roll.toFixed(0)}° · eyes ${stats.eyes.toFixed(2)}` : "");
+  const fmt = (v, d = 2) => (v === null || v === undefined ? "–" : v.toFixed(d));
+  $("stats").textContent = [
+    `model ${stats.backend} · ${fmt(stats.modelMs, 0)} ms a frame`,
+    `tracking ${stats.trackFps} fps (${stats.withFace}/${stats.tracked} frames with a face)`,
+    `landmarks → publish ${fmt(stats.latencyMs)} ms (p95 ${fmt(stats.latencyP95Ms)}, max ${fmt(stats.latencyMaxMs)})`,
+    `facecast per frame ${fmt(stats.addedMs)} ms (p95 ${fmt(stats.addedP95Ms)}; drawing ${fmt(stats.overlayMs)})`,
+    `server → back ${fmt(stats.serverLatencyMs, 0)} ms`,
+  ].join("\n");
+  const p = stats.points;
+  $("published").textContent =
+    stats.publish === "live"
+      ? [
+          `${stats.publishFps} frames/s · seq ${stats.seq ?? "–"} · ${stats.skipped} dropped`,
+          `${K} points (${layout.name}, head pose removed, ≈ cm)`,
+          p && result.face ? `chin (${p.slice(-3).map((v) => v.toFixed(2)).join(", ")})` : "face lost: nothing sent (viewers see face_lost)",
+        ].join("\n")
+      : "";
+}
+
+main().catch((err) => fatal(`Performer page error: ${err.message}`));
