@@ -29,6 +29,8 @@ from .errors import install_error_handlers, problem
 from .hub import ChannelHub
 from .metrics import CONTENT_TYPE_LATEST, Metrics
 from .perform_page import mount_perform
+from .performer_routes import profile_store
+from .performer_routes import router as performer_router
 from .rest import router as rest_router
 from .sessions import SessionRegistry
 from .settings import ROLES, Settings
@@ -104,10 +106,12 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.sessions = SessionRegistry()
     app.state.channels = ChannelHub(settings, app.state.store, app.state.metrics)
     app.state.pending_fits = 0
+    app.state.profiles = profile_store(settings)
     install_error_handlers(app)
     app.include_router(rest_router)
     app.include_router(stream_router)
     app.include_router(channel_router)
+    app.include_router(performer_router)
     _add_ops_routes(app)
     _add_docs_routes(app)
     mount_viewer(app, settings)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -22,7 +23,7 @@ from .errors import ApiError
 from .settings import Settings
 from .store import RIG_ID_PATTERN, RigNotFoundError, RigStore, valid_rig_id
 
-__all__ = ["router"]
+__all__ = ["check_fit_capacity", "read_body", "router", "run_fit"]
 
 log = logging.getLogger("facecast.server.rest")
 
@@ -82,6 +83,31 @@ async def read_body(request: Request, limit: int) -> bytes:
     if received == 0:
         raise ApiError(400, "empty_body", "the request body is empty")
     return b"".join(chunks)
+
+
+def check_fit_capacity(request: Request) -> None:
+    """503 ``server_busy`` when ``max_pending_fits`` fits are already running or queued."""
+    settings = _settings(request)
+    if request.app.state.pending_fits >= settings.max_pending_fits:
+        raise ApiError(
+            503,
+            "server_busy",
+            f"{settings.max_pending_fits} fits are already running or queued; retry later",
+            headers={"Retry-After": "5"},
+        )
+
+
+async def run_fit(request: Request, job: Callable[[], Any]) -> Any:
+    """Run ``job`` (a fit) in the app's fit executor, counted against ``max_pending_fits``."""
+    check_fit_capacity(request)
+    state = request.app.state
+    state.pending_fits += 1
+    try:
+        # Fitting is seconds of numpy: it runs in the dedicated fit executor, never on the
+        # event loop and never in the pool that clones frames.
+        return await asyncio.wrap_future(state.fit_executor.submit(job))
+    finally:
+        state.pending_fits -= 1
 
 
 def _described(rig_id: str, rig: Any) -> dict[str, Any]:
@@ -162,15 +188,8 @@ async def put_examples(
             "sparsity_without_clamp",
             "sparsity is a prior on bounded weights: it needs clamp 'nonneg' or 'unit'",
         )
+    check_fit_capacity(request)
     settings = _settings(request)
-    state = request.app.state
-    if state.pending_fits >= settings.max_pending_fits:
-        raise ApiError(
-            503,
-            "server_busy",
-            f"{settings.max_pending_fits} fits are already running or queued; retry later",
-            headers={"Retry-After": "5"},
-        )
     limits = ArchiveLimits(
         max_members=settings.max_archive_members,
         max_extracted_bytes=settings.max_extracted_bytes,
@@ -188,15 +207,10 @@ async def put_examples(
             "sparsity": sparsity,
         },
     )
-    state.pending_fits += 1
     try:
-        # Fitting is seconds of numpy: it runs in the dedicated fit executor, never on the
-        # event loop and never in the pool that clones frames.
-        rig = await asyncio.wrap_future(state.fit_executor.submit(job))
+        rig = await run_fit(request, job)
     except ArchiveError as exc:
         raise ApiError(exc.status, exc.code, str(exc)) from None
-    finally:
-        state.pending_fits -= 1
     created = await anyio.to_thread.run_sync(_store(request).put_rig, rig_id, rig)
     log.info(
         "rig fitted",

@@ -20,8 +20,9 @@ from typing import Any
 
 __all__ = ["ROLES", "Settings", "SettingsError", "parse_tokens"]
 
-#: The roles a token can hold; ``admin`` implies all others (see ``auth``).
-ROLES = frozenset({"admin", "stream", "publisher", "viewer"})
+#: The roles a token can hold; ``admin`` implies all others (see ``auth``). ``performer``
+#: may store calibration captures and refit rigs on them (server/SERVER.md, "Performers").
+ROLES = frozenset({"admin", "stream", "publisher", "viewer", "performer"})
 
 ENV_PREFIX = "FACECAST_"
 MiB = 1024 * 1024
@@ -64,6 +65,10 @@ class Settings:
     #: Fits waiting or running at once; more get 503 ``server_busy``.
     max_pending_fits: int = 4
     fit_threads: int = 1
+
+    # -- performers (server/performer_routes.py) -------------------------------------------
+    #: Largest calibration capture body (JSON or msgpack points per expression).
+    max_capture_bytes: int = 1 * MiB
 
     # -- streaming ------------------------------------------------------------------------
     max_connections: int = 200
@@ -121,6 +126,7 @@ class Settings:
             "max_compression_ratio",
             "max_pending_fits",
             "fit_threads",
+            "max_capture_bytes",
             "max_connections",
             "max_fps",
             "rate_burst",

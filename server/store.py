@@ -21,10 +21,28 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from facecast.rig.rig import Rig
 
-__all__ = ["RIG_ID_PATTERN", "RigInfo", "RigNotFoundError", "RigStore", "valid_rig_id"]
+__all__ = [
+    "NAME_PATTERN",
+    "PERFORMER_SEPARATOR",
+    "RIG_ID_PATTERN",
+    "RigInfo",
+    "RigNotFoundError",
+    "RigStore",
+    "fsync_directory",
+    "performer_rig_id",
+    "valid_name",
+    "valid_rig_id",
+    "write_atomically",
+]
 
-RIG_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+#: A plain rig id, and a performer's name.
+NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+#: Joins a character's rig id and a performer's name into the id of the rig fitted on that
+#: performer's own expressions (``ict@alice``; see server/SERVER.md, "Performers").
+PERFORMER_SEPARATOR = "@"
+RIG_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}(@[A-Za-z0-9][A-Za-z0-9._-]{0,63})?$"
 _RIG_ID = re.compile(RIG_ID_PATTERN)
+_NAME = re.compile(NAME_PATTERN)
 SUFFIX = ".rig"
 _TEMP_PREFIX = ".tmp-"
 #: Temp files older than this at start-up are leftovers of a killed writer.
@@ -38,8 +56,54 @@ class RigNotFoundError(LookupError):
 
 
 def valid_rig_id(rig_id: str) -> bool:
+    """A plain id (``ict``) or a performer rig's (``ict@alice``)."""
     # fullmatch: ``$`` alone would accept a trailing newline.
     return _RIG_ID.fullmatch(rig_id) is not None
+
+
+def valid_name(name: str) -> bool:
+    """A plain rig id or a performer's name: no separator."""
+    return _NAME.fullmatch(name) is not None
+
+
+def performer_rig_id(rig_id: str, performer: str) -> str:
+    """The id of ``rig_id`` refitted on ``performer``'s expressions (both plain names)."""
+    if not (valid_name(rig_id) and valid_name(performer)):
+        raise ValueError(f"not plain names: {rig_id!r}, {performer!r}")
+    return f"{rig_id}{PERFORMER_SEPARATOR}{performer}"
+
+
+def write_atomically(directory: Path, name: str, data: bytes) -> bool:
+    """Write ``directory / name`` whole or not at all; returns whether it is new.
+
+    Temp file, fsync, rename, fsync of the directory: a crash leaves the old file or the
+    new one, and concurrent writers of one name each replace whole files (last one wins).
+    """
+    path = directory / name
+    existed = path.exists()
+    temp = directory / f"{_TEMP_PREFIX}{name}-{secrets.token_hex(6)}"
+    fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(temp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            temp.unlink()
+        raise
+    fsync_directory(directory)
+    return not existed
+
+
+def fsync_directory(directory: Path) -> None:
+    """Make a rename or unlink in ``directory`` durable (else a power cut could lose it)."""
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 @dataclass(frozen=True)
@@ -157,7 +221,7 @@ class RigStore:
             path.unlink()
         except FileNotFoundError:
             raise RigNotFoundError(rig_id) from None
-        self._fsync_dir()
+        fsync_directory(self.directory)
         with self._lock:
             self._cache.pop(rig_id, None)
 
@@ -168,32 +232,8 @@ class RigStore:
         return self.directory / f"{rig_id}{SUFFIX}"
 
     def _write(self, rig_id: str, data: bytes) -> bool:
-        path = self._path(rig_id)
-        existed = path.exists()
-        temp = self.directory / f"{_TEMP_PREFIX}{rig_id}-{secrets.token_hex(6)}"
-        fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(data)
-                fh.flush()
-                os.fsync(fh.fileno())
-            # Atomic on POSIX: readers see the old file or the new one, never a mix;
-            # concurrent writers of one id each replace whole files (last one wins).
-            os.replace(temp, path)
-        except BaseException:
-            with contextlib.suppress(OSError):
-                temp.unlink()
-            raise
-        self._fsync_dir()
-        return not existed
-
-    def _fsync_dir(self) -> None:
-        # Makes the rename itself durable: without it a power cut could lose the entry.
-        fd = os.open(self.directory, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        self._path(rig_id)  # validates the id
+        return write_atomically(self.directory, f"{rig_id}{SUFFIX}", data)
 
     def _load(self, rig_id: str) -> _Entry:
         from facecast.rig.rigfile import rig_from_bytes

@@ -38,7 +38,7 @@ export function readParams(href, page) {
   const dtype = q.get("dtype") || "f32";
   if (!DTYPES.has(dtype)) throw new ParamError(`dtype must be f32 or f16, got ${dtype}`);
   const rig = q.get("rig") || "demo";
-  // server/store.py's RIG_ID_PATTERN: a name, optionally @performer (a performer's own rig).
+  // A character's rig id, or a performer's rig fitted from it: "ict@alice" (server/store.py).
   if (!/^[A-Za-z0-9][A-Za-z0-9._-]{0,63}(@[A-Za-z0-9][A-Za-z0-9._-]{0,63})?$/.test(rig)) {
     throw new ParamError(`invalid rig id ${rig}`);
   }

@@ -21,6 +21,13 @@ test("channel mode watches the channel with rig, output and dtype in the query",
   );
 });
 
+test("a performer's rig id (character@performer) is a rig id", () => {
+  const p = readParams("http://h/viewer?channel=live&rig=ict%40alice", "viewer");
+  assert.equal(p.rig, "ict@alice");
+  assert.throws(() => readParams("http://h/viewer?rig=ict@alice@bob", "viewer"), ParamError);
+  assert.throws(() => readParams("http://h/viewer?rig=ict@", "viewer"), ParamError);
+});
+
 test("a token travels as the bearer subprotocol and as a Bearer header", () => {
   const p = readParams("http://h/viewer?token=s3cr3t-_.", "viewer");
   assert.deepEqual(socketTarget(p).protocols, ["facecast.v1", "facecast.bearer.s3cr3t-_."]);

@@ -1,0 +1,297 @@
+"""Performer profiles: a performer's captured source examples, validated, kept in the rig store.
+
+Parses a calibration capture (JSON or msgpack) and the profile files made from it, and
+reads and writes those files under ``<rigs_dir>/performers/``; no fitting, no HTTP.
+Blocking calls: run them in a thread. See server/SERVER.md, "Performers".
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import msgpack
+import numpy as np
+
+from facecast.rig.layouts import DEFAULT_LAYOUT, layout_names
+
+from .errors import ApiError
+from .store import fsync_directory, valid_name, write_atomically
+
+__all__ = [
+    "PROFILE_FORMAT",
+    "Capture",
+    "PerformerProfile",
+    "ProfileNotFoundError",
+    "ProfileStore",
+    "parse_capture",
+]
+
+PROFILE_FORMAT = "facecast-performer"
+PROFILE_VERSION = 1
+#: Most expressions a capture may name, and the most points per expression.
+MAX_EXPRESSIONS = 4096
+MAX_POINTS = 4096
+MAX_NAME_CHARS = 256
+_SUFFIX = ".json"
+_JSON_TYPES = ("application/json",)
+_MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vnd.msgpack")
+
+
+@dataclass(frozen=True, eq=False)
+class Capture:
+    """A validated capture body: points per expression name, in some landmark layout.
+
+    Attributes
+    ----------
+    points : {name: (K, 3) float64}
+        Every entry has the same K; shapes and finiteness are checked, names against a
+        rig are not (``facecast.rig.retarget`` does that).
+    noise : float or None
+        The measured landmark spread, when the capture gives one.
+    """
+
+    layout: str
+    points: dict[str, np.ndarray]
+    noise: float | None
+
+    @property
+    def num_points(self) -> int:
+        return int(next(iter(self.points.values())).shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class PerformerProfile:
+    """A performer's latest capture and where it was made (the file under ``performers/``)."""
+
+    performer: str
+    rig: str  # the rig the capture was made for
+    capture: Capture
+    captured: float = field(default_factory=time.time)  # POSIX seconds
+
+    def to_bytes(self) -> bytes:
+        doc = {
+            "format": PROFILE_FORMAT,
+            "version": PROFILE_VERSION,
+            "performer": self.performer,
+            "rig": self.rig,
+            "captured": self.captured,
+            "layout": self.capture.layout,
+            "noise": self.capture.noise,
+            "points": {name: p.tolist() for name, p in self.capture.points.items()},
+        }
+        return json.dumps(doc, separators=(",", ":")).encode()
+
+    def summary(self) -> dict:
+        return {
+            "performer": self.performer,
+            "rig": self.rig,
+            "captured": self.captured,
+            "layout": self.capture.layout,
+            "noise": self.capture.noise,
+            "num_points": self.capture.num_points,
+            "expressions": list(self.capture.points),
+        }
+
+    @classmethod
+    def from_bytes(cls, data: bytes, where: str) -> PerformerProfile:
+        """Parse and validate a profile file; ``ValueError`` naming what is wrong."""
+        try:
+            doc = json.loads(data, parse_constant=_refuse_constant)
+        except (ValueError, RecursionError) as exc:
+            raise ValueError(f"{where}: not a profile ({exc})") from None
+        if not isinstance(doc, dict) or doc.get("format") != PROFILE_FORMAT:
+            raise ValueError(f"{where}: not a {PROFILE_FORMAT} file")
+        if doc.get("version") != PROFILE_VERSION:
+            raise ValueError(f"{where}: unknown profile version {doc.get('version')!r}")
+        performer, rig, captured = doc.get("performer"), doc.get("rig"), doc.get("captured")
+        if not (isinstance(performer, str) and valid_name(performer)):
+            raise ValueError(f"{where}: bad performer name")
+        if not (isinstance(rig, str) and valid_name(rig)):
+            raise ValueError(f"{where}: bad rig id")
+        if not (_is_number(captured) and math.isfinite(captured)):
+            raise ValueError(f"{where}: bad capture time")
+        body = {k: doc.get(k) for k in ("layout", "noise", "points")}
+        try:
+            capture = _capture_from_doc(body)
+        except ApiError as exc:
+            raise ValueError(f"{where}: {exc.detail}") from None
+        return cls(performer=performer, rig=rig, capture=capture, captured=float(captured))
+
+
+class _NonFinite(ValueError):
+    pass
+
+
+def _refuse_constant(name: str):
+    # NaN/Infinity literals are not JSON; refuse them as non-finite, by name.
+    raise _NonFinite(f"{name} is not a finite number")
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _bad(code: str, detail: str, status: int = 422) -> ApiError:
+    return ApiError(status, code, detail)
+
+
+def parse_capture(data: bytes, content_type: str | None) -> Capture:
+    """Decode and validate a capture body (JSON, or msgpack by its content type).
+
+    The body is ``{"layout": str, "points": {name: [[x, y, z] x K]}, "noise": float}``
+    (``layout`` defaults to ``mediapipe_face_mesh``; ``noise`` is optional).
+
+    Raises
+    ------
+    ApiError
+        415 ``unsupported_media_type``; 400 ``bad_capture`` for bytes that do not decode;
+        422 ``bad_capture`` (wrong types, empty, too many names), ``wrong_point_count``
+        (not K x 3, or K differing between expressions), ``non_finite``, ``bad_noise``,
+        ``unknown_layout``.
+    """
+    kind = (content_type or "application/json").split(";", 1)[0].strip().lower()
+    try:
+        if kind in _JSON_TYPES:
+            doc = json.loads(data, parse_constant=_refuse_constant)
+        elif kind in _MSGPACK_TYPES:
+            doc = msgpack.unpackb(
+                data,
+                raw=False,
+                strict_map_key=True,
+                max_str_len=4 * MAX_NAME_CHARS,
+                max_bin_len=0,
+                max_array_len=MAX_POINTS * 3,
+                max_map_len=MAX_EXPRESSIONS,
+                max_ext_len=0,
+            )
+        else:
+            raise _bad(
+                "unsupported_media_type",
+                f"a capture is application/json or application/msgpack, not {kind!r}",
+                415,
+            )
+    except ApiError:
+        raise
+    except _NonFinite as exc:
+        raise _bad("non_finite", f"the capture holds {exc}") from None
+    except (ValueError, RecursionError, msgpack.UnpackException, TypeError) as exc:
+        raise _bad("bad_capture", f"the body is not valid {kind} ({exc})", 400) from None
+    return _capture_from_doc(doc)
+
+
+def _capture_from_doc(doc: object) -> Capture:
+    if not isinstance(doc, dict):
+        raise _bad("bad_capture", 'a capture is an object {"layout", "points", "noise"}')
+    unknown = sorted(str(k) for k in doc if k not in ("layout", "points", "noise"))
+    if unknown:
+        raise _bad("bad_capture", f"unknown capture field {unknown[0][:40]!r}")
+    layout = doc.get("layout") or DEFAULT_LAYOUT
+    if not isinstance(layout, str) or layout not in layout_names():
+        raise _bad(
+            "unknown_layout",
+            f"no landmark layout named {str(layout)[:64]!r}; expected one of "
+            f"{', '.join(layout_names())}",
+        )
+    noise = doc.get("noise")
+    if noise is not None and not (_is_number(noise) and math.isfinite(noise) and noise >= 0):
+        raise _bad("bad_noise", f"noise must be a finite number >= 0, got {str(noise)[:40]}")
+    points_doc = doc.get("points")
+    if not isinstance(points_doc, dict) or not points_doc:
+        raise _bad("bad_capture", 'points must be an object {"neutral": [[x, y, z], ...], ...}')
+    if len(points_doc) > MAX_EXPRESSIONS:
+        raise _bad("bad_capture", f"more than {MAX_EXPRESSIONS} expressions")
+    points: dict[str, np.ndarray] = {}
+    k = None
+    for name, value in points_doc.items():
+        if not isinstance(name, str) or not 0 < len(name) <= MAX_NAME_CHARS:
+            raise _bad("bad_capture", f"expression names are 1-{MAX_NAME_CHARS} characters")
+        array = _points_array(name, value)
+        if k is None:
+            k = array.shape[0]
+        elif array.shape[0] != k:
+            raise _bad(
+                "wrong_point_count",
+                f"points[{name!r}] has {array.shape[0]} points, the first expression {k}",
+            )
+        points[name] = array
+    return Capture(layout=layout, points=points, noise=None if noise is None else float(noise))
+
+
+def _points_array(name: str, value: object) -> np.ndarray:
+    rows_ok = (
+        isinstance(value, list)
+        and 0 < len(value) <= MAX_POINTS
+        and all(
+            isinstance(row, list) and len(row) == 3 and all(_is_number(v) for v in row)
+            for row in value
+        )
+    )
+    if not rows_ok:
+        raise _bad(
+            "wrong_point_count",
+            f"points[{name!r}] must be a list of 1-{MAX_POINTS} [x, y, z] numbers",
+        )
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except OverflowError:  # an integer beyond float range
+        array = np.full((len(value), 3), np.inf)
+    if not np.isfinite(array).all():
+        raise _bad("non_finite", f"points[{name!r}] holds NaN or Inf")
+    return array
+
+
+class ProfileNotFoundError(LookupError):
+    def __init__(self, performer: str) -> None:
+        super().__init__(f"no performer profile named {performer!r}")
+        self.performer = performer
+
+
+class ProfileStore:
+    """Performer profiles as ``<name>.json`` in ``directory`` (the rig store's ``performers/``).
+
+    Names must satisfy ``valid_name`` (callers check first; here a bad one is a
+    ``ValueError``). A file that does not validate on load is a ``ValueError`` too.
+    """
+
+    def __init__(self, directory: Path, *, max_bytes: int) -> None:
+        self.directory = Path(directory)
+        self.max_bytes = max_bytes
+
+    def _path(self, performer: str) -> Path:
+        if not valid_name(performer):
+            raise ValueError(f"invalid performer name {performer!r}")
+        return self.directory / f"{performer}{_SUFFIX}"
+
+    def get(self, performer: str) -> PerformerProfile:
+        path = self._path(performer)
+        try:
+            with path.open("rb") as fh:
+                data = fh.read(4 * self.max_bytes + 1)
+        except FileNotFoundError:
+            raise ProfileNotFoundError(performer) from None
+        if len(data) > 4 * self.max_bytes:
+            raise ValueError(f"performer profile {performer!r}: file too large")
+        profile = PerformerProfile.from_bytes(data, f"performer profile {performer!r}")
+        if profile.performer != performer:
+            raise ValueError(f"performer profile {performer!r} names {profile.performer!r}")
+        return profile
+
+    def put(self, profile: PerformerProfile) -> bool:
+        """Store (replace) the profile; returns whether it is new."""
+        self._path(profile.performer)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        return write_atomically(self.directory, f"{profile.performer}{_SUFFIX}", profile.to_bytes())
+
+    def delete(self, performer: str) -> None:
+        path = self._path(performer)
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            raise ProfileNotFoundError(performer) from None
+        with contextlib.suppress(OSError):
+            fsync_directory(self.directory)

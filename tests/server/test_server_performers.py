@@ -1,0 +1,378 @@
+"""Performer calibration against a real uvicorn: capture -> {id}@{performer} rig, profile, refit."""
+
+from __future__ import annotations
+
+import json
+
+import httpx
+import msgpack
+import numpy as np
+import pytest
+import websockets
+from _server_helpers import open_session, tiny_rig
+
+from facecast.protocol import Frame, Result, decode_server, encode
+from facecast.rig import ExampleSet, fit
+from facecast.rig.capture import robust_example
+from facecast.server.settings import Settings
+from facecast.server.testing import run_server
+
+pytestmark = pytest.mark.anyio
+
+K = 20  # the mediapipe_face_mesh layout's feature points
+NAMES = ("neutral", "smile", "frown", "jawOpen", "browUp")
+
+
+def character(names=NAMES, seed: int = 0, num_vertices: int = 30) -> ExampleSet:
+    """A character whose source face has the layout's 20 feature points."""
+    rng = np.random.default_rng(seed)
+    m = len(names)
+    source = np.repeat(rng.normal(scale=3.0, size=(1, K, 3)), m, axis=0)
+    source[1:] += rng.normal(scale=0.5, size=(m - 1, K, 3))
+    target = np.repeat(rng.normal(size=(1, num_vertices, 3)), m, axis=0)
+    target[1:] += rng.normal(scale=0.3, size=(m - 1, num_vertices, 3))
+    faces = np.array([[i, i + 1, i + 2] for i in range(num_vertices - 2)])
+    return ExampleSet(names, source, target, faces)
+
+
+def performer_points(names=NAMES, seed: int = 11) -> dict[str, np.ndarray]:
+    """Another face making the expressions: its own neutral and its own displacements."""
+    rng = np.random.default_rng(seed)
+    neutral = rng.normal(scale=3.0, size=(K, 3))
+    points = {"neutral": neutral}
+    for name in names[1:]:
+        points[name] = neutral + rng.normal(scale=0.6, size=(K, 3))
+    return points
+
+
+def capture_body(points, **extra) -> dict:
+    return {
+        "layout": "mediapipe_face_mesh",
+        "points": {n: np.asarray(p).tolist() for n, p in points.items()},
+        **extra,
+    }
+
+
+@pytest.fixture
+async def server(settings):
+    async with run_server(settings) as running:
+        store = running.app.state.store
+        store.put_rig("hero", fit(character()))
+        store.put_rig("other", fit(character(("neutral", "jawOpen", "smile", "pout"), seed=5)))
+        store.put_rig("tiny", tiny_rig())
+        yield running
+
+
+def http(server, **kwargs) -> httpx.AsyncClient:
+    return httpx.AsyncClient(base_url=server.base_url, timeout=60, **kwargs)
+
+
+async def test_capture_fits_a_rig_whose_weights_are_cardinal_on_the_captured_points(server):
+    points = performer_points()
+    async with http(server) as client:
+        response = await client.put("/v1/rigs/hero/performer/alice", json=capture_body(points))
+        rig_file = await client.get("/v1/rigs/hero@alice/rig")
+
+    assert response.status_code == 201, response.text
+    body = response.json()
+    assert body["id"] == "hero@alice" and body["names"] == list(NAMES)
+    assert body["performer"] == "alice" and body["skipped"] == [] and body["warnings"] == []
+    from facecast.rig import rig_from_bytes
+
+    rig = rig_from_bytes(rig_file.content)
+    weights = rig.weights(np.stack([points[n] for n in NAMES]))
+    np.testing.assert_allclose(weights, np.eye(len(NAMES)), atol=1e-8)
+    # The targets are the character's own: the expression's captured points give its mesh.
+    hero = server.app.state.store.get("hero")
+    np.testing.assert_allclose(
+        rig.clone(points["smile"]), hero.blend(np.eye(len(NAMES))[1]), atol=1e-5
+    )
+
+
+async def test_msgpack_capture_gives_the_same_rig_and_a_second_put_answers_200(server):
+    points = performer_points()
+    packed = msgpack.packb(capture_body(points))
+    async with http(server) as client:
+        first = await client.put("/v1/rigs/hero/performer/bob", json=capture_body(points))
+        second = await client.put(
+            "/v1/rigs/hero/performer/bob",
+            content=packed,
+            headers={"Content-Type": "application/msgpack"},
+        )
+
+    assert (first.status_code, second.status_code) == (201, 200)
+    same = ("names", "condition_number", "components", "noise")
+    assert [first.json()[k] for k in same] == [second.json()[k] for k in same]
+
+
+async def test_skipped_expressions_are_left_out_of_the_fit_and_named(server):
+    points = performer_points()
+    del points["frown"], points["browUp"]
+    async with http(server) as client:
+        response = await client.put("/v1/rigs/hero/performer/alice", json=capture_body(points))
+
+    body = response.json()
+    assert response.status_code == 201
+    assert body["names"] == ["neutral", "smile", "jawOpen"]
+    assert body["skipped"] == ["frown", "browUp"]
+
+
+async def test_the_capture_spread_becomes_the_fit_noise_with_bounded_weights(server):
+    rng = np.random.default_rng(2)
+    sigma = 0.05
+    points = performer_points()
+    captured, spreads = {}, []
+    for name, held in points.items():
+        frames = held + rng.normal(scale=sigma, size=(30, K, 3))
+        captured[name], spread, _ = robust_example(frames)
+        spreads.append(spread)
+    noise = float(np.sqrt(np.mean(np.square(spreads))))
+    async with http(server) as client:
+        response = await client.put(
+            "/v1/rigs/hero/performer/carol", json=capture_body(captured, noise=noise)
+        )
+
+    body = response.json()
+    assert response.status_code == 201, body
+    assert abs(noise - sigma) < 0.3 * sigma  # the robust spread measures the tracker noise
+    assert body["noise"] == noise and body["clamp"] == "unit"
+
+
+def _nan_json(points) -> bytes:
+    text = json.dumps(capture_body(points))
+    return text.replace(str(points["smile"][0][0].tolist()), "NaN", 1).encode()
+
+
+def _bad_cases():
+    points = performer_points()
+    no_neutral = {k: v for k, v in points.items() if k != "neutral"}
+    coincide = dict(points, frown=points["smile"])
+    short = dict(points, smile=points["smile"][:19])
+    only_neutral = {"neutral": points["neutral"]}
+    return {
+        "no-neutral": (capture_body(no_neutral), None, 422, "no_neutral"),
+        "unknown-expression": (capture_body(dict(points, wink=points["smile"])), None, 422,
+                               "unknown_expression"),
+        "wrong-k": (capture_body({n: p[:19] for n, p in points.items()}), None, 422,
+                    "wrong_point_count"),
+        "k-differs": (capture_body(short), None, 422, "wrong_point_count"),
+        "not-triples": (dict(capture_body(points), points={"neutral": [[1, 2]] * K}), None, 422,
+                        "wrong_point_count"),
+        "only-neutral": (capture_body(only_neutral), None, 422, "too_few_examples"),
+        "negative-noise": (capture_body(points, noise=-1.0), None, 422, "bad_noise"),
+        "string-noise": (capture_body(points, noise="high"), None, 422, "bad_noise"),
+        "unknown-layout": (dict(capture_body(points), layout="dlib_68"), None, 422,
+                           "unknown_layout"),
+        "unknown-field": (dict(capture_body(points), extra=1), None, 422, "bad_capture"),
+        "coinciding": (capture_body(coincide), None, 422, "examples_coincide"),
+        "nan-literal": (_nan_json(points), "application/json", 422, "non_finite"),
+        "not-json": (b"{not json", "application/json", 400, "bad_capture"),
+        "not-msgpack": (b"\xc1\xc1", "application/msgpack", 400, "bad_capture"),
+        "text-plain": (b"hello", "text/plain", 415, "unsupported_media_type"),
+        "empty": (b"", "application/json", 400, "empty_body"),
+    }  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(_bad_cases()))
+async def test_each_bad_capture_gets_its_status_and_code(server, case):
+    body, content_type, status, code = _bad_cases()[case]
+    async with http(server) as client:
+        if content_type is None:
+            response = await client.put("/v1/rigs/hero/performer/alice", json=body)
+        else:
+            response = await client.put(
+                "/v1/rigs/hero/performer/alice",
+                content=body,
+                headers={"Content-Type": content_type},
+            )
+        stored = await client.get("/v1/rigs/hero@alice")
+
+    assert (response.status_code, response.json()["code"]) == (status, code), response.text
+    assert stored.status_code == 404  # nothing is stored from a refused capture
+
+
+async def test_coinciding_expressions_are_named_in_the_refusal(server):
+    points = performer_points()
+    points["frown"] = points["smile"]
+    async with http(server) as client:
+        response = await client.put("/v1/rigs/hero/performer/alice", json=capture_body(points))
+
+    detail = response.json()["detail"]
+    assert "'smile'" in detail and "'frown'" in detail
+
+
+async def test_a_huge_number_is_refused_as_non_finite(server):
+    text = json.dumps(capture_body(performer_points()))
+    first = text.index("[[") + 2
+    end = text.index(",", first)
+    body = (text[:first] + "1e400" + text[end:]).encode()
+    async with http(server) as client:
+        response = await client.put(
+            "/v1/rigs/hero/performer/alice",
+            content=body,
+            headers={"Content-Type": "application/json"},
+        )
+
+    assert (response.status_code, response.json()["code"]) == (422, "non_finite")
+
+
+@pytest.mark.parametrize(
+    ("path", "status", "code"),
+    [
+        ("/v1/rigs/nobody/performer/alice", 404, "rig_not_found"),
+        ("/v1/rigs/hero/performer/bad name", 400, "invalid_performer"),
+        ("/v1/rigs/hero@bob/performer/alice", 400, "invalid_rig_id"),
+        ("/v1/rigs/tiny/performer/alice", 422, "layout_mismatch"),
+    ],
+)
+async def test_bad_rig_or_performer_in_the_path_is_refused(server, path, status, code):
+    async with http(server) as client:
+        response = await client.put(path, json=capture_body(performer_points()))
+
+    assert (response.status_code, response.json()["code"]) == (status, code)
+
+
+async def test_capture_over_the_size_limit_is_413(tmp_path):
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_capture_bytes=1000)
+    body = json.dumps(capture_body(performer_points())).encode()
+    async with run_server(settings) as running, http(running) as client:
+        running.app.state.store.put_rig("hero", fit(character()))
+        response = await client.put(
+            "/v1/rigs/hero/performer/alice",
+            content=body,
+            headers={"Content-Type": "application/json"},
+        )
+
+    assert len(body) > 1000
+    assert (response.status_code, response.json()["code"]) == (413, "payload_too_large")
+
+
+async def test_profile_is_refitted_onto_another_character_sharing_expression_names(server):
+    points = performer_points()
+    async with http(server) as client:
+        await client.put("/v1/rigs/hero/performer/alice", json=capture_body(points))
+        profile = await client.get("/v1/performers/alice")
+        refit = await client.post("/v1/performers/alice/refit", params={"rig": "other"})
+        again = await client.post("/v1/performers/alice/refit", params={"rig": "other"})
+        rig_file = await client.get("/v1/rigs/other@alice/rig")
+
+    assert profile.json()["expressions"] == list(NAMES) and profile.json()["rig"] == "hero"
+    assert (refit.status_code, again.status_code) == (201, 200)
+    body = refit.json()
+    assert body["id"] == "other@alice" and body["names"] == ["neutral", "jawOpen", "smile"]
+    assert body["skipped"] == ["pout"]
+    from facecast.rig import rig_from_bytes
+
+    rig = rig_from_bytes(rig_file.content)
+    weights = rig.weights(np.stack([points[n] for n in ("neutral", "jawOpen", "smile")]))
+    np.testing.assert_allclose(weights, np.eye(3), atol=1e-8)
+
+
+@pytest.mark.parametrize(
+    ("request_args", "status", "code"),
+    [
+        (("POST", "/v1/performers/nobody/refit", {"rig": "other"}), 404, "performer_not_found"),
+        (("GET", "/v1/performers/nobody", None), 404, "performer_not_found"),
+        (("DELETE", "/v1/performers/nobody", None), 404, "performer_not_found"),
+        (("POST", "/v1/performers/alice/refit", {"rig": "nobody"}), 404, "rig_not_found"),
+        (("POST", "/v1/performers/alice/refit", {"rig": "tiny"}), 422, "layout_mismatch"),
+        (("POST", "/v1/performers/alice/refit", {"rig": "x@y"}), 400, "invalid_rig_id"),
+        (("GET", "/v1/performers/bad%20name", None), 400, "invalid_performer"),
+    ],
+)
+async def test_bad_profile_requests_get_their_codes(server, request_args, status, code):
+    method, path, params = request_args
+    async with http(server) as client:
+        await client.put("/v1/rigs/hero/performer/alice", json=capture_body(performer_points()))
+        response = await client.request(method, path, params=params)
+
+    assert (response.status_code, response.json()["code"]) == (status, code)
+
+
+async def test_refit_without_shared_expressions_is_refused(server):
+    async with http(server) as client:
+        points = performer_points()
+        await client.put(
+            "/v1/rigs/hero/performer/dan",
+            json=capture_body({n: points[n] for n in ("neutral", "frown", "browUp")}),
+        )
+        response = await client.post("/v1/performers/dan/refit", params={"rig": "other"})
+
+    assert (response.status_code, response.json()["code"]) == (422, "too_few_examples")
+
+
+async def test_a_tampered_profile_is_refused_on_load(server, settings):
+    async with http(server) as client:
+        await client.put("/v1/rigs/hero/performer/alice", json=capture_body(performer_points()))
+        path = settings.rigs_dir / "performers" / "alice.json"
+        doc = json.loads(path.read_text())
+        doc["points"]["smile"] = doc["points"]["smile"][:3]
+        path.write_text(json.dumps(doc))
+        response = await client.post("/v1/performers/alice/refit", params={"rig": "other"})
+
+    assert (response.status_code, response.json()["code"]) == (500, "bad_profile")
+
+
+async def test_deleting_a_profile_keeps_its_rigs(server):
+    async with http(server) as client:
+        await client.put("/v1/rigs/hero/performer/alice", json=capture_body(performer_points()))
+        deleted = await client.delete("/v1/performers/alice")
+        profile = await client.get("/v1/performers/alice")
+        rig = await client.get("/v1/rigs/hero@alice")
+
+    assert deleted.status_code == 204 and profile.status_code == 404
+    assert rig.status_code == 200
+
+
+async def test_performer_rig_id_is_streamable_and_listed(server):
+    points = performer_points()
+    async with http(server) as client:
+        await client.put("/v1/rigs/hero/performer/alice", json=capture_body(points))
+        listed = await client.get("/v1/rigs")
+    async with websockets.connect(f"{server.ws_url}/v1/stream", subprotocols=["facecast.v1"]) as ws:
+        ready = await open_session(ws, "hero@alice")
+        await ws.send(encode(Frame(seq=1, ts=0.0, points=points["jawOpen"].astype(np.float32))))
+        result = decode_server(await ws.recv())
+
+    assert "hero@alice" in [r["id"] for r in listed.json()["rigs"]]
+    assert ready.rig == "hero@alice" and ready.names == NAMES
+    assert isinstance(result, Result)
+    assert int(np.argmax(result.weights)) == NAMES.index("jawOpen")
+
+
+TOKENS = {
+    "admin-token": frozenset({"admin"}),
+    "performer-token": frozenset({"performer"}),
+    "viewer-token": frozenset({"viewer"}),
+    "publisher-token": frozenset({"publisher"}),
+    "stream-token": frozenset({"stream"}),
+}
+
+
+@pytest.mark.parametrize(
+    ("token", "status"),
+    [
+        (None, 401),
+        ("viewer-token", 403),
+        ("publisher-token", 403),
+        ("stream-token", 403),
+        ("performer-token", 201),
+        ("admin-token", 201),
+    ],
+)
+async def test_capture_needs_the_performer_or_admin_role(tmp_path, token, status):
+    settings = Settings(rigs_dir=tmp_path / "rigs", auth=True, tokens=TOKENS)
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    async with run_server(settings) as running, http(running, headers=headers) as client:
+        running.app.state.store.put_rig("hero", fit(character()))
+        put = await client.put(
+            "/v1/rigs/hero/performer/alice", json=capture_body(performer_points())
+        )
+        get = await client.get("/v1/performers/alice")
+        refit = await client.post("/v1/performers/alice/refit", params={"rig": "hero"})
+
+    assert put.status_code == status
+    expected_get = 200 if status == 201 else status
+    assert get.status_code == expected_get and refit.status_code in (
+        (200,) if status == 201 else (status,)
+    )
