@@ -101,13 +101,34 @@ def _rgb_to_i420(rgb: np.ndarray) -> bytes:
     return b"".join(np.clip(p + 0.5, 0, 255).astype(np.uint8).tobytes() for p in planes)
 
 
-def write_y4m(path: Path, poses: Iterable[FacePose], fps: int = 15) -> Path:
-    """Write one frame per pose to ``path`` (4:2:0, full range) and return the path."""
+def _with_second_face(image: np.ndarray, photo: np.ndarray, size: float) -> np.ndarray:
+    """The frame with the face moved left and a second, ``size`` times smaller, on the right."""
+    face = render(FacePose(), photo)[20:220, 60:260]
+    small = ndimage.zoom(face.astype(np.float32), (size, size, 1), order=1)
+    h, w = small.shape[:2]
+    out = image.copy()
+    out[60 : 60 + h, 318 - w : 318] = np.clip(small + 0.5, 0, 255).astype(np.uint8)
+    return out
+
+
+def write_y4m(
+    path: Path, poses: Iterable[FacePose], fps: int = 15, second_face: float | None = None
+) -> Path:
+    """Write one frame per pose to ``path`` (4:2:0, full range) and return the path.
+
+    ``second_face``: also show a second person, that many times the first's size, on the
+    right (the first then stands further left).
+    """
     photo = _photo()
     _, _, width, height = _CROP
     with open(path, "wb") as f:
         f.write(f"YUV4MPEG2 W{width} H{height} F{fps}:1 Ip A1:1 C420jpeg XYSCSS=420JPEG\n".encode())
         for pose in poses:
+            if second_face is None:
+                image = render(pose, photo)
+            else:
+                moved = FacePose(pose.mouth, pose.brows, pose.roll, pose.scale, (-70.0, 0.0))
+                image = _with_second_face(render(moved, photo), photo, second_face)
             f.write(b"FRAME\n")
-            f.write(_rgb_to_i420(render(pose, photo)))
+            f.write(_rgb_to_i420(image))
     return path

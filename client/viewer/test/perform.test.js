@@ -129,6 +129,9 @@ test("a held expression gives its median and its spread as the noise", () => {
   assert.ok(Math.abs(summary.points[3][1] - 1.0) < 0.02);
   assert.ok(summary.spread > 0.012 && summary.spread < 0.03, `spread ${summary.spread}`);
   assert.equal(measuredNoise([summary]), summary.spread);
+  const still = summariseCapture(frames(20, { sigma: 0 }), 20, "neutral");
+  assert.equal(still.spread, 0);
+  assert.equal(measuredNoise([still]), 0.01); // a still image measures no noise: the floor
 });
 
 test("blink frames and outlier frames are left out of the average", () => {

@@ -136,8 +136,14 @@ export function summariseCapture(samples, seen, name, reference = null, limits =
   return result;
 }
 
+/**
+ * Below this (layout units: 0.1 mm) a spread measures the tracker's stillness, not the
+ * landmark noise of a performance: a still image tracks identically frame after frame.
+ */
+export const NOISE_FLOOR = 0.01;
+
 /** The landmark noise σ the fit gets from the accepted captures: their median spread. */
 export function measuredNoise(captures) {
   const spreads = captures.filter((c) => c.ok).map((c) => c.spread);
-  return spreads.length ? median(spreads) : null;
+  return spreads.length ? Math.max(NOISE_FLOOR, median(spreads)) : null;
 }
