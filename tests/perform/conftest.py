@@ -145,6 +145,14 @@ class ChannelRecorder:
     events: list = field(default_factory=list)  # (monotonic time, message type)
     ready: threading.Event = field(default_factory=threading.Event)
     stop: threading.Event = field(default_factory=threading.Event)
+    arrived: threading.Condition = field(default_factory=threading.Condition)
+
+    def wait_for(self, kind: str, timeout: float) -> bool:
+        """Wait until an event of ``kind`` (``face_lost``...) has arrived; False on timeout."""
+        with self.arrived:
+            return self.arrived.wait_for(
+                lambda: kind in [k for _, k in self.events], timeout=timeout
+            )
 
     def run(self) -> None:
         from websockets.sync.client import connect
@@ -159,10 +167,12 @@ class ChannelRecorder:
                 kind = getattr(message, "TYPE", type(message).__name__)
                 if kind == "ready":
                     self.ready.set()
-                if kind == "result":
-                    self.results.append((now, message))
-                else:
-                    self.events.append((now, kind))
+                with self.arrived:
+                    if kind == "result":
+                        self.results.append((now, message))
+                    else:
+                        self.events.append((now, kind))
+                    self.arrived.notify_all()
 
 
 def watching(base_url: str, channel: str, rig: str, output: str = "weights"):

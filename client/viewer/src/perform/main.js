@@ -41,9 +41,10 @@ const stats = {
   latencyMs: null, // landmarks ready -> frame handed to the socket (mean, p95, max)
   latencyP95Ms: null,
   latencyMaxMs: null,
-  overlayMs: null, // drawing the camera image and points (mean)
+  overlayMs: null, // drawing the points over the camera image (mean)
   addedMs: null, // everything facecast adds per frame (normalise, encode, send, draw), mean
   addedP95Ms: null,
+  renderMs: null, // drawing the character (three.js; the GPU's work, or SwiftShader's), mean
   points: null, // the last published points, K*3
   head: null, // {yaw, pitch, roll, turn} of the last frame, degrees
   eyes: null,
@@ -145,30 +146,36 @@ function nextVideoFrame(video) {
   });
 }
 
-/** The camera image, mirrored like a mirror, with the feature points (and the rest faint). */
-function drawCamera(ctx, video, face) {
-  const { width, height } = ctx.canvas;
-  ctx.save();
-  ctx.translate(width, 0);
-  ctx.scale(-1, 1);
-  ctx.drawImage(video, 0, 0, width, height);
-  if (face) {
-    const sx = width / video.videoWidth;
-    const sy = height / video.videoHeight;
-    const lm = face.landmarks;
-    ctx.fillStyle = "rgba(160, 200, 255, 0.45)";
-    for (const i of layout.stable) ctx.fillRect(lm[i][0] * sx - 1, lm[i][1] * sy - 1, 2, 2);
-    ctx.fillStyle = "#ffb070";
-    for (const i of layout.features) {
-      ctx.beginPath();
-      ctx.arc(lm[i][0] * sx, lm[i][1] * sy, 2.5, 0, 2 * Math.PI);
-      ctx.fill();
-    }
-    const [bx, by, bw, bh] = face.box;
-    ctx.strokeStyle = "rgba(61, 220, 132, 0.6)";
-    ctx.strokeRect(bx * sx, by * sy, bw * sx, bh * sy);
+/**
+ * The feature points (and the stable ones, faint) over the camera image. The canvas has
+ * the video's pixel size and is mirrored by CSS with the video; only the face's box is
+ * cleared and drawn, so this costs the same whatever the camera's resolution.
+ */
+function drawPoints(ctx, face, previousBox) {
+  if (previousBox) ctx.clearRect(previousBox[0] - 4, previousBox[1] - 4, previousBox[2] + 8, previousBox[3] + 8);
+  if (!face) return null;
+  const lm = face.landmarks;
+  ctx.fillStyle = "rgba(160, 200, 255, 0.6)";
+  for (const i of layout.stable) ctx.fillRect(lm[i][0] - 1, lm[i][1] - 1, 2, 2);
+  ctx.fillStyle = "#ffb070";
+  ctx.beginPath();
+  for (const i of layout.features) {
+    ctx.moveTo(lm[i][0] + 2.5, lm[i][1]);
+    ctx.arc(lm[i][0], lm[i][1], 2.5, 0, 2 * Math.PI);
   }
-  ctx.restore();
+  ctx.fill();
+  const [bx, by, bw, bh] = face.box;
+  ctx.strokeStyle = "rgba(61, 220, 132, 0.6)";
+  ctx.strokeRect(bx, by, bw, bh);
+  // Everything drawn lies within the box grown by the points that stick out of it.
+  let [x0, y0, x1, y1] = [bx, by, bx + bw, by + bh];
+  for (const p of lm) {
+    if (p[0] < x0) x0 = p[0];
+    if (p[1] < y0) y0 = p[1];
+    if (p[0] > x1) x1 = p[0];
+    if (p[1] > y1) y1 = p[1];
+  }
+  return [x0, y0, x1 - x0, y1 - y0];
 }
 
 async function fetchModel(params) {
@@ -311,12 +318,15 @@ async function main() {
   const canvas = $("camera");
   canvas.width = video.videoWidth || 640;
   canvas.height = video.videoHeight || 480;
+  $("camera-box").style.aspectRatio = `${canvas.width} / ${canvas.height}`;
   const ctx = canvas.getContext("2d");
+  let drawnBox = null;
   const points = new Float32Array(K * 3);
   const modelTimes = new Rolling(WINDOW);
   const latency = new Rolling(WINDOW);
   const overlay = new Rolling(WINDOW);
   const added = new Rolling(WINDOW);
+  const render = new Rolling(WINDOW);
   const frameTimes = [];
   const publishTimes = [];
   let seq = 0;
@@ -365,7 +375,7 @@ async function main() {
       stats.faceFound = false;
     }
     const tDraw = performance.now();
-    drawCamera(ctx, video, result.face);
+    drawnBox = drawPoints(ctx, result.face, drawnBox);
     const tEnd = performance.now();
     overlay.push(tEnd - tDraw);
     added.push(tEnd - tLandmarks);
@@ -386,9 +396,14 @@ async function main() {
       stats.addedMs = added.mean();
       stats.addedP95Ms = added.quantile(0.95);
       stats.serverLatencyMs = latencyEma;
+      stats.renderMs = render.mean();
       paintStats(result);
     }
-    if (view.mesh && view.dirty) view.render();
+    if (view.mesh && view.dirty) {
+      const tRender = performance.now();
+      view.render();
+      render.push(performance.now() - tRender);
+    }
   }
 }
 
@@ -402,7 +417,7 @@ function paintStats(result) {
     `tracking ${stats.trackFps} fps (${stats.withFace}/${stats.tracked} frames with a face)`,
     `landmarks → publish ${fmt(stats.latencyMs)} ms (p95 ${fmt(stats.latencyP95Ms)}, max ${fmt(stats.latencyMaxMs)})`,
     `facecast per frame ${fmt(stats.addedMs)} ms (p95 ${fmt(stats.addedP95Ms)}; drawing ${fmt(stats.overlayMs)})`,
-    `server → back ${fmt(stats.serverLatencyMs, 0)} ms`,
+    `character render ${fmt(stats.renderMs, 1)} ms · server → back ${fmt(stats.serverLatencyMs, 0)} ms`,
   ].join("\n");
   const p = stats.points;
   $("published").textContent =
