@@ -60,5 +60,8 @@ test("the performer page publishes to its channel; a performer's own rig id is a
   assert.deepEqual(socketTarget(p), { url: "ws://h:1/v1/channels/live%201/publish", protocols: ["facecast.v1", "facecast.bearer.tk"] });
   assert.throws(() => readPerformParams("http://h/perform?rig=cat"), /channel=NAME is required/);
   assert.throws(() => readPerformParams("http://h/perform?channel=c&performer=a/b"), /performer must be/);
+  assert.equal(p.backend, "wasm");
+  assert.equal(readPerformParams("http://h/perform?channel=c&backend=webgl").backend, "webgl");
+  assert.throws(() => readPerformParams("http://h/perform?channel=c&backend=webgpu"), /backend must be/);
   assert.throws(() => readParams("http://h/viewer?rig=cat@", "viewer"), ParamError);
 });

@@ -33,6 +33,7 @@ const stats = {
   faceFound: false,
   trackFps: 0,
   modelMs: null, // model time per frame (mean over the window)
+  firstModelMs: null, // the first frame's model time (WebGL: shader compilation)
   published: 0, // frames sent
   skipped: 0, // frames not sent: socket backed up
   publishFps: 0,
@@ -305,7 +306,7 @@ async function main() {
     return;
   }
   setTrack("loading", "loading the face model");
-  const tracker = new Tracker();
+  const tracker = new Tracker({ backend: params.backend });
   try {
     stats.backend = await tracker.load();
   } catch (err) {
@@ -346,6 +347,7 @@ async function main() {
     }
     const tLandmarks = performance.now();
     modelTimes.push(tLandmarks - t0);
+    if (stats.firstModelMs === null) stats.firstModelMs = tLandmarks - t0;
     stats.tracked += 1;
     stats.faces = result.faces;
     frameTimes.push(tLandmarks);

@@ -4,12 +4,15 @@
 import { ParamError, readParams } from "../params.js";
 
 const PERFORMER = /^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$/;
+// TensorFlow.js backends the face model can run on (docs/perform.md compares them).
+const BACKENDS = new Set(["wasm", "webgl", "cpu"]);
 
 /**
  * channel (required): publish to /v1/channels/{channel}/publish
  * rig: the rig the channel is published for (its K must be the layout's feature count to
  *      publish; any rig's character can be calibrated for)
  * performer: name of the performer profile a calibration makes (default "performer")
+ * backend: the face model's TensorFlow.js backend, wasm (default) | webgl | cpu
  */
 export function readPerformParams(href) {
   const q = new URL(href).searchParams;
@@ -19,8 +22,10 @@ export function readPerformParams(href) {
   if (!PERFORMER.test(performer)) {
     throw new ParamError("performer must be 1 to 64 of A-Z a-z 0-9 . _ - (starting with a letter or digit)");
   }
+  const backend = q.get("backend") || "wasm";
+  if (!BACKENDS.has(backend)) throw new ParamError(`backend must be wasm, webgl or cpu, got ${backend}`);
   // A performer's own rig is named {character}@{performer}: calibrating again starts from
   // the character, not from the rig made by the last calibration.
   const character = params.rig.split("@")[0];
-  return { ...params, mode: "publish", performer, character };
+  return { ...params, mode: "publish", performer, character, backend };
 }

@@ -9,11 +9,11 @@ import { largestFace } from "./facemesh.js";
 /** Where build.mjs puts the models and the WebAssembly binaries, relative to the page. */
 export const ASSETS = "perform/assets/";
 
-function config(base) {
+function config(base, backend) {
   return {
     // WASM (SIMD) runs this model in ~30 ms a frame on a 2-core CPU; WebGL on SwiftShader
     // takes 0.7–1.5 s and the plain JS backend ~1.3 s (docs/perform.md, measured).
-    backend: "wasm",
+    backend,
     wasmPath: `${base}`,
     modelBasePath: `${base}`,
     debug: false,
@@ -40,8 +40,8 @@ function config(base) {
 }
 
 export class Tracker {
-  constructor(base = ASSETS) {
-    this.human = new Human(config(base));
+  constructor({ base = ASSETS, backend = "wasm" } = {}) {
+    this.human = new Human(config(base, backend));
     this.backend = null;
   }
 
