@@ -49,6 +49,11 @@ export class Tracker {
   async load() {
     await this.human.load();
     await this.human.tf.ready();
+    // Human logs a model it could not fetch and goes on; a page without it would only
+    // ever report "no face", so say what is missing instead.
+    const loaded = this.human.models.loaded().join(" ");
+    const missing = ["blazeface", "facemesh"].filter((name) => !loaded.includes(name));
+    if (missing.length) throw new Error(`could not load ${missing.join(" and ")} from ${ASSETS} (is the server up?)`);
     this.backend = this.human.tf.getBackend();
     return this.backend;
   }
