@@ -117,7 +117,7 @@ def server(rigs_dir) -> Iterator[str]:
 def open_page(browser, url: str, *, camera: bool = True):
     """A page in its own context (camera allowed or not) recording its errors in ``errors``."""
     context = browser.new_context(
-        viewport={"width": 1280, "height": 720}, permissions=["camera"] if camera else []
+        viewport={"width": 960, "height": 540}, permissions=["camera"] if camera else []
     )
     page = context.new_page()
     page.errors = []

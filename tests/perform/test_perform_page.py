@@ -94,7 +94,6 @@ def test_the_face_is_found_in_most_frames_on_the_wasm_backend(browser, server, c
 
     assert stats["backend"] == "wasm"
     assert sum(s is not None for s in samples) >= 36
-    assert stats["trackFps"] >= 5
     assert page.errors == []
 
 

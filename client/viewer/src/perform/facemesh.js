@@ -110,8 +110,7 @@ export function normaliseMesh(mesh, layout, out = new Float32Array(layout.featur
 
 /**
  * How far the head is turned from facing the camera, in degrees: yaw (about y), pitch
- * (about x), roll (in the image plane), and `turn`, the angle between the face's z axis
- * and the direction to the camera.
+ * (about x) and roll (in the image plane).
  */
 export function headAngles(frame) {
   const [ax, , az] = frame.rotation;
@@ -120,7 +119,6 @@ export function headAngles(frame) {
     yaw: Math.atan2(az[0], az[2]) * deg,
     pitch: Math.atan2(-az[1], az[2]) * deg,
     roll: Math.atan2(ax[1], ax[0]) * deg,
-    turn: Math.acos(Math.max(-1, Math.min(1, az[2]))) * deg,
   };
 }
 

@@ -47,7 +47,7 @@ const stats = {
   addedP95Ms: null,
   renderMs: null, // drawing the character (three.js; the GPU's work, or SwiftShader's), mean
   points: null, // the last published points, K*3
-  head: null, // {yaw, pitch, roll, turn} of the last frame, degrees
+  head: null, // {yaw, pitch, roll} of the last frame, degrees
   eyes: null,
   rig: null,
   channel: null,
@@ -334,8 +334,12 @@ async function main() {
   let lastPaint = 0;
   setTrack("tracking", "looking for a face");
 
+  let nextFrame = nextVideoFrame(video);
   for (;;) {
-    await nextVideoFrame(video);
+    await nextFrame;
+    // Ask for the frame after this one now: one the camera delivers while the model runs
+    // is tracked as soon as the model is done, so the rate is min(camera, 1 / model time).
+    nextFrame = nextVideoFrame(video);
     const t0 = performance.now();
     let result;
     try {
