@@ -382,3 +382,19 @@ def test_a_token_without_the_performer_role_cannot_fit_and_is_told(
     error = page.evaluate("window.facecastStats.calibration.fitError")
     assert "the token lacks the role performer" in error
     assert "the token lacks the role performer" in page.text_content("#verdict")
+
+
+def test_a_generic_rig_is_rebased_on_the_captured_neutral(browser, server, camera, pages):
+    camera.show([FacePose()] * 5)
+    page = open_page(browser, perform_url(server, "generic", CHARACTER))
+    pages.append(page)
+    page.wait_for_function("window.facecastStats.publish === 'live'")
+    page.wait_for_selector('#steps button[data-name="aa"]')
+    tracking(page)
+    assert page.evaluate("window.facecastStats.rebased") is False
+
+    page.click("#calibrate")
+    page.click("#capture")
+    # The server answers the page's calibrate (PROTOCOL.md §5.1.3) with calibrated.
+    page.wait_for_function("window.facecastStats.rebased === true")
+    assert "re-based on your neutral" in page.text_content("#publish-detail")

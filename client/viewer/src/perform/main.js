@@ -5,11 +5,13 @@
 import layoutTable from "../../../../rig/layouts/mediapipe_face_mesh.json";
 import { Link } from "../link.js";
 import { authHeaders, socketTarget } from "../params.js";
-import { encodeFrame, encodeHello, ErrorCode, errorName } from "../protocol.js";
+import { encodeCalibrate, encodeFrame, encodeHello, ErrorCode, errorName } from "../protocol.js";
 import { FaceView } from "../scene.js";
 import { checkLayout, eyeOpenness, headAngles, imageToMesh, normaliseMesh } from "./facemesh.js";
+import { drawPoints, nextVideoFrame, openCamera } from "./camera.js";
 import { readPerformParams } from "./params.js";
 import { Studio } from "./studio.js";
+import { Rolling } from "./timing.js";
 import { Tracker } from "./tracker.js";
 
 const layout = checkLayout(layoutTable);
@@ -49,6 +51,7 @@ const stats = {
   points: null, // the last published points, K*3
   head: null, // {yaw, pitch, roll} of the last frame, degrees
   eyes: null,
+  rebased: false, // a generic rig re-based on the performer's captured neutral (calibrated)
   rig: null,
   channel: null,
 };
@@ -90,93 +93,6 @@ function problemText(response, problem, role, what) {
     return `the token lacks the role ${role} (or admin) needed to ${what} (403 ${problem.code || "forbidden"}: ${detail})`;
   }
   return `${response.status} ${problem.code || ""}: ${detail}`.trim();
-}
-
-class Rolling {
-  constructor(n) {
-    this.values = new Float64Array(n);
-    this.n = 0;
-    this.i = 0;
-  }
-  push(v) {
-    this.values[this.i] = v;
-    this.i = (this.i + 1) % this.values.length;
-    this.n = Math.min(this.n + 1, this.values.length);
-  }
-  mean() {
-    let s = 0;
-    for (let j = 0; j < this.n; j++) s += this.values[j];
-    return this.n ? s / this.n : null;
-  }
-  quantile(q) {
-    if (!this.n) return null;
-    const sorted = Float64Array.from(this.values.subarray(0, this.n)).sort();
-    return sorted[Math.min(this.n - 1, Math.floor(q * this.n))];
-  }
-  max() {
-    return this.n ? Math.max(...this.values.subarray(0, this.n)) : null;
-  }
-}
-
-async function openCamera(video) {
-  if (!navigator.mediaDevices || !navigator.mediaDevices.getUserMedia) {
-    throw new Error("this browser gives no camera access here (getUserMedia needs https or localhost)");
-  }
-  let stream;
-  try {
-    stream = await navigator.mediaDevices.getUserMedia({ video: { width: { ideal: 640 }, height: { ideal: 480 }, facingMode: "user" }, audio: false });
-  } catch (err) {
-    if (err.name === "NotAllowedError" || err.name === "SecurityError") {
-      throw new Error("camera access was denied: allow the camera for this page and reload");
-    }
-    if (err.name === "NotFoundError" || err.name === "OverconstrainedError") {
-      throw new Error("no camera found: connect one and reload");
-    }
-    if (err.name === "NotReadableError") throw new Error("the camera is in use by another program: close it and reload");
-    throw new Error(`cannot open the camera: ${err.name}: ${err.message}`);
-  }
-  video.srcObject = stream;
-  await video.play();
-  return stream;
-}
-
-function nextVideoFrame(video) {
-  return new Promise((resolve) => {
-    if (video.requestVideoFrameCallback) video.requestVideoFrameCallback(() => resolve());
-    else requestAnimationFrame(() => resolve());
-  });
-}
-
-/**
- * The feature points (and the stable ones, faint) over the camera image. The canvas has
- * the video's pixel size and is mirrored by CSS with the video; only the face's box is
- * cleared and drawn, so this costs the same whatever the camera's resolution.
- */
-function drawPoints(ctx, face, previousBox) {
-  if (previousBox) ctx.clearRect(previousBox[0] - 4, previousBox[1] - 4, previousBox[2] + 8, previousBox[3] + 8);
-  if (!face) return null;
-  const lm = face.landmarks;
-  ctx.fillStyle = "rgba(160, 200, 255, 0.6)";
-  for (const i of layout.stable) ctx.fillRect(lm[i][0] - 1, lm[i][1] - 1, 2, 2);
-  ctx.fillStyle = "#ffb070";
-  ctx.beginPath();
-  for (const i of layout.features) {
-    ctx.moveTo(lm[i][0] + 2.5, lm[i][1]);
-    ctx.arc(lm[i][0], lm[i][1], 2.5, 0, 2 * Math.PI);
-  }
-  ctx.fill();
-  const [bx, by, bw, bh] = face.box;
-  ctx.strokeStyle = "rgba(61, 220, 132, 0.6)";
-  ctx.strokeRect(bx, by, bw, bh);
-  // Everything drawn lies within the box grown by the points that stick out of it.
-  let [x0, y0, x1, y1] = [bx, by, bx + bw, by + bh];
-  for (const p of lm) {
-    if (p[0] < x0) x0 = p[0];
-    if (p[1] < y0) y0 = p[1];
-    if (p[0] > x1) x1 = p[0];
-    if (p[1] > y1) y1 = p[1];
-  }
-  return [x0, y0, x1 - x0, y1 - y0];
 }
 
 async function fetchModel(params) {
@@ -230,6 +146,10 @@ async function main() {
     showLive() {
       live = true;
     },
+    neutralCaptured(points) {
+      neutral = Float32Array.from(points.flat());
+      rebase(link);
+    },
   });
   const modelLoad = fetchModel(params)
     .then((glb) => view.load(glb))
@@ -245,6 +165,12 @@ async function main() {
 
   // Publishing: the channel's publisher session; tracking goes on whatever happens here.
   let publishing = false;
+  // Generic first: a rig that is not the performer's own (no "@performer") is re-based on
+  // the performer's captured neutral (PROTOCOL.md §5.1.3), on every connection.
+  let neutral = null;
+  const rebase = (l) => {
+    if (neutral && publishing && !params.rig.includes("@")) l.send(encodeCalibrate(neutral));
+  };
   let latencyEma = null;
   const link = new Link(socketTarget(params), {
     onOpen(l) {
@@ -277,7 +203,12 @@ async function main() {
         }
         l.healthy();
         publishing = true;
+        stats.rebased = false;
         setPublish("live", `live · ${params.channel}`, `rig ${msg.rig.id}, ${K} points a frame`);
+        rebase(l);
+      } else if (msg.type === "calibrated") {
+        stats.rebased = msg.active === true;
+        if (stats.rebased) setPublish("live", `live · ${params.channel}`, `rig ${params.rig} re-based on your neutral, ${K} points a frame`);
       } else if (msg.type === "result") {
         stats.results += 1;
         if (typeof msg.server_ts === "number") {
@@ -381,7 +312,7 @@ async function main() {
       stats.faceFound = false;
     }
     const tDraw = performance.now();
-    drawnBox = drawPoints(ctx, result.face, drawnBox);
+    drawnBox = drawPoints(ctx, result.face, drawnBox, layout);
     const tEnd = performance.now();
     overlay.push(tEnd - tDraw);
     added.push(tEnd - tLandmarks);

@@ -7,8 +7,8 @@ import { measuredNoise, summariseCapture } from "./capture.js";
 export const CAPTURE_MS = 1000;
 
 /**
- * host: {view, names, layoutName, params, authHeaders(), stats, problemText(response, role),
- *        showLive(), link to perform (href builder)}
+ * host: {stats, params, layoutName, authHeaders(), problemText(response, problem, role, what),
+ *        performHref(rigId), showExample(name), showLive(), neutralCaptured(points K×3)}
  */
 export class Studio {
   constructor(doc, host) {
@@ -111,6 +111,7 @@ export class Studio {
       frames: rec.samples.length,
     };
     if (summary.ok) {
+      if (step.name === "neutral") this.host.neutralCaptured(summary.points);
       this.verdict(
         `${step.name}: held well — spread ${(summary.spread * 10).toFixed(2)} mm, head yaw ${summary.head.yaw.toFixed(0)}° ` +
           `pitch ${summary.head.pitch.toFixed(0)}° (moved ${summary.headMotion.toFixed(1)}°), ${summary.kept} frames kept, ` +
@@ -194,7 +195,6 @@ export class Studio {
     delete summary.warnings;
     const line = this.doc.createElement("div");
     const perform = this.host.performHref(answer.id);
-    line.innerHTML = "";
     line.append(`Fitted ${answer.id}: `);
     const a = this.doc.createElement("a");
     a.href = perform;
