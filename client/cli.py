@@ -25,6 +25,7 @@ COMMAND_MODULES = (
     "rigs",
     "stream",
     "publish",
+    "perform",
     "watch",
     "record",
     "loadtest",

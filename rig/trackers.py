@@ -33,6 +33,7 @@ import numpy as np
 
 from .animation import SourceAnimation
 from .errors import InputError
+from .facemesh import image_to_mesh, normalise_mesh
 from .layouts import load_layout
 from .source_rig import ARKIT_NAMES, HEAD_POSE_NAMES, NUM_ARKIT, SourceRig
 
@@ -380,6 +381,8 @@ def read_mediapipe_ndjson(
     *,
     mapping: Sequence[int] | None = None,
     y_up: bool = True,
+    face_frame: bool = False,
+    image_size: tuple[float, float] = (1.0, 1.0),
     max_frames: int = MAX_TAKE_FRAMES,
 ) -> MediaPipeTake:
     """Read a MediaPipe face-landmarker NDJSON take, keeping the mapped landmarks.
@@ -393,6 +396,15 @@ def read_mediapipe_ndjson(
         MediaPipe's normalised image coordinates have y down and z into the screen;
         turn them 180 degrees about x to (x, -y, -z), y up like the rigs (a rotation,
         so the server's ``align`` still applies).
+    face_frame : bool
+        Remove head pose and distance to the camera as ``facecast perform`` and the
+        /perform page do: each line's whole mesh goes through
+        ``facecast.rig.facemesh.normalise_mesh`` with the ``mediapipe_face_mesh`` layout
+        (points about in cm, y up; ``mapping`` and ``y_up`` do not apply). Needs every
+        line's mesh to be complete; a degenerate one is ``degenerate_face``.
+    image_size : (width, height)
+        With ``face_frame``: the video's size in pixels, which makes MediaPipe's
+        normalised x and y one unit (leave (1, 1) for a square video).
     max_frames : int
 
     Raises
@@ -404,9 +416,17 @@ def read_mediapipe_ndjson(
         ``transform`` or ``t``, ``t`` going backwards, an over-long line, no frames.
     """
     path = Path(path)
+    if face_frame and mapping is not None:
+        raise InputError("a mapping does not apply with face_frame", code="bad_mapping")
     indices = np.asarray(
         _DEFAULT_MEDIAPIPE if mapping is None else _check_mapping(list(mapping), "mapping")
     )
+    if face_frame:
+        # The frame needs the stable points too: keep every mesh point of a line.
+        indices = np.arange(_LAYOUT.tracker_points)
+        width, height = (float(v) for v in image_size)
+        if not (math.isfinite(width) and math.isfinite(height) and width > 0 and height > 0):
+            raise InputError(f"image_size must be positive, got {image_size}", code="bad_input")
     frames: list[np.ndarray] = []
     stamps: list[float | None] = []
     transforms: list[np.ndarray | None] = []
@@ -433,6 +453,11 @@ def read_mediapipe_ndjson(
                 )
             where = f"{path} line {line_no}"
             points, stamp, transform = _parse_mediapipe_line(line, indices, where)
+            if face_frame:
+                try:
+                    points = normalise_mesh(image_to_mesh(points, width, height), _LAYOUT)
+                except InputError as exc:
+                    raise InputError(f"{where}: {exc.message}", code=exc.code) from None
             if stamp is not None and stamps and stamps[-1] is not None and stamp < stamps[-1]:
                 raise InputError(
                     f"{where}: t={stamp} is earlier than the line before", code="bad_time"
@@ -443,7 +468,7 @@ def read_mediapipe_ndjson(
     if not frames:
         raise InputError(f"{path}: the take has no frames", code="bad_ndjson")
     points = np.stack(frames)
-    if y_up:
+    if y_up and not face_frame:
         points[..., 1:] *= -1.0
     times = None
     if all(s is not None for s in stamps):
@@ -531,11 +556,17 @@ def mediapipe_animation(
     *,
     mapping: Sequence[int] | None = None,
     fps: float = 30.0,
+    face_frame: bool = False,
+    image_size: tuple[float, float] = (1.0, 1.0),
 ) -> SourceAnimation:
     """A MediaPipe NDJSON take as a ``SourceAnimation`` (``timestamps`` from ``t`` when given).
 
     The points are in MediaPipe's normalised units, not the rig's: stream them with the
     server's ``align`` and ``scale`` options (or calibration) to map them onto the rig.
+    With ``face_frame`` (see `read_mediapipe_ndjson`) they are what ``facecast perform``
+    publishes: head pose and distance removed, about in cm; calibration maps them on.
     """
-    take = read_mediapipe_ndjson(path, mapping=mapping)
+    take = read_mediapipe_ndjson(
+        path, mapping=mapping, face_frame=face_frame, image_size=image_size
+    )
     return SourceAnimation(points=take.points, fps=_check_fps(fps), timestamps=take.timestamps)

@@ -15,6 +15,7 @@ import anyio
 from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import JSONResponse
 
+from facecast.rig import Rig
 from facecast.rig.layouts import load_layout
 from facecast.rig.retarget import NEUTRAL, fit_performer, shared_names
 
@@ -23,7 +24,7 @@ from .errors import ApiError
 from .performers import Capture, PerformerProfile, ProfileNotFoundError, ProfileStore, parse_capture
 from .rest import check_fit_capacity, read_body, run_fit
 from .settings import Settings
-from .store import NAME_PATTERN, RigNotFoundError, performer_rig_id, valid_name
+from .store import NAME_PATTERN, RigNotFoundError, RigStore, performer_rig_id, valid_name
 
 __all__ = ["PROFILES_DIR", "profile_store", "router"]
 
@@ -82,13 +83,15 @@ class _PerformerFit:
     refitted onto another character) instead of refusing them (a capture for this one).
     """
 
-    def __init__(self, store, rig_id: str, capture: Capture, *, shared_only: bool) -> None:
+    def __init__(
+        self, store: RigStore, rig_id: str, capture: Capture, *, shared_only: bool
+    ) -> None:
         self.store = store
         self.rig_id = rig_id
         self.capture = capture
         self.shared_only = shared_only
 
-    def __call__(self):
+    def __call__(self) -> tuple[Rig, list[str]]:
         try:
             base = self.store.get(self.rig_id)
         except RigNotFoundError:

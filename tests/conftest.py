@@ -1,6 +1,20 @@
-"""Suite-wide set-up: one BLAS thread (as the CLI sets it) before numpy is imported."""
+"""Suite-wide set-up: one BLAS thread (as the CLI sets it) before numpy is imported, and the
+perform venv's interpreter for the tests that run MediaPipe (``tests._perform_venv``)."""
 
 import os
 
 for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_name, "1")
+
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+from ._perform_venv import require_perform_venv  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def perform_python() -> Path:
+    """The interpreter of .venv-perform, checked once a session (a missing one fails the
+    test under CI=true and skips it elsewhere)."""
+    return require_perform_venv()

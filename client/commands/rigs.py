@@ -63,7 +63,29 @@ def register(subparsers) -> None:
         "--glb", action="store_true", help="save the target mesh with morph targets instead"
     )
     action("rm", "remove a rig", "name")
+    capture = action(
+        "capture",
+        "fit NAME@PERFORMER from a performer's captured expressions (a JSON capture file)",
+        "name",
+        "performer",
+        "path",
+    )
+    capture.add_argument(
+        "--noise", type=float, default=None, help="measured landmark spread (overrides the file's)"
+    )
+    refit = action("refit", "fit OTHER@PERFORMER from a performer's stored profile")
+    refit.add_argument("--performer", required=True, metavar="NAME", help="the performer")
+    refit.add_argument("--rig", required=True, metavar="OTHER", help="the character to refit onto")
     parser.set_defaults(func=run)
+
+
+def _print_performer_fit(summary: dict) -> None:
+    print(
+        f"fitted {summary['id']}: M={summary['num_examples']} K={summary['num_points']} "
+        f"(skipped: {', '.join(summary['skipped']) or 'none'})"
+    )
+    for message in summary.get("warnings", []):
+        print(f"warning: {message}", file=sys.stderr)
 
 
 def _zip_folder(folder: Path) -> bytes:
@@ -152,4 +174,21 @@ def run(args: argparse.Namespace) -> int:
     elif args.action == "rm":
         call("DELETE", rig_path)
         print(f"removed {args.name}")
+    elif args.action == "capture":
+        path = Path(args.path)
+        try:
+            body = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise CommandError(f"{path}: no such file") from None
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise CommandError(f"{path}: not a JSON capture ({exc})") from None
+        if args.noise is not None and isinstance(body, dict):
+            body["noise"] = args.noise
+        _print_performer_fit(
+            call("PUT", f"{rig_path}/performer/{args.performer}", json=body).json()
+        )
+    elif args.action == "refit":
+        _print_performer_fit(
+            call("POST", f"/v1/performers/{args.performer}/refit", params={"rig": args.rig}).json()
+        )
     return 0

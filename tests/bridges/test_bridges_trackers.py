@@ -172,6 +172,39 @@ def test_mediapipe_custom_mapping_file_and_transforms(tmp_path):
     assert take.timestamps is None
 
 
+def _turned(marks: np.ndarray, yaw: float, shift) -> np.ndarray:
+    """The same mesh with the head turned about y and moved (normalised image units)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    rotation = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    centre = marks.mean(axis=0)
+    return (marks - centre) @ rotation.T + centre + shift
+
+
+def test_mediapipe_face_frame_is_the_shared_normalisation_and_ignores_head_turns(tmp_path):
+    from facecast.rig.facemesh import image_to_mesh, normalise_mesh
+    from facecast.rig.layouts import load_layout
+
+    marks = _landmarks(3, 478)
+    turned = _turned(marks, 0.4, [0.05, -0.02, 0.0])
+    docs = [{"landmarks": m.tolist()} for m in (marks, turned)]
+    take = read_mediapipe_ndjson(_ndjson(tmp_path, docs), face_frame=True)
+    layout = load_layout("mediapipe_face_mesh")
+    expected = normalise_mesh(image_to_mesh(marks, 1.0, 1.0), layout)
+    np.testing.assert_allclose(take.points[0], expected, atol=1e-9)
+    np.testing.assert_allclose(take.points[1], take.points[0], atol=1e-6)
+
+
+def test_mediapipe_face_frame_refuses_a_mapping_and_a_degenerate_mesh(tmp_path):
+    flat = np.zeros((468, 3))
+    path = _ndjson(tmp_path, [{"landmarks": flat.tolist()}])
+    with pytest.raises(InputError) as degenerate:
+        read_mediapipe_ndjson(path, face_frame=True)
+    with pytest.raises(InputError) as mapped:
+        read_mediapipe_ndjson(path, face_frame=True, mapping=[1, 2, 3])
+    assert degenerate.value.code == "degenerate_face" and "line 1" in degenerate.value.message
+    assert mapped.value.code == "bad_mapping"
+
+
 def test_mediapipe_animation_has_one_frame_per_line(tmp_path):
     docs = [{"landmarks": _landmarks(i).tolist()} for i in range(4)]
     animation = mediapipe_animation(_ndjson(tmp_path, ["", *docs]), fps=30.0)

@@ -376,3 +376,66 @@ async def test_capture_needs_the_performer_or_admin_role(tmp_path, token, status
     assert get.status_code == expected_get and refit.status_code in (
         (200,) if status == 201 else (status,)
     )
+
+
+def _rigs_cli(*argv: str) -> int:
+    import argparse
+
+    from facecast.client.commands import rigs
+
+    parser = argparse.ArgumentParser(prog="facecast")
+    rigs.register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["rigs", *argv])
+    return args.func(args)
+
+
+async def test_rigs_capture_and_refit_commands_drive_the_endpoints(server, tmp_path, capsys):
+    capture = tmp_path / "alice.json"
+    capture.write_text(json.dumps(capture_body(performer_points())))
+    _rigs_cli("capture", server.base_url, "hero", "alice", str(capture), "--noise", "0.02")
+    captured = capsys.readouterr().out
+    _rigs_cli("refit", server.base_url, "--performer", "alice", "--rig", "other")
+    refitted = capsys.readouterr().out
+
+    assert captured.startswith("fitted hero@alice: M=5 K=20 (skipped: none)")
+    assert refitted.startswith("fitted other@alice: M=3 K=20 (skipped: pout)")
+    assert server.app.state.store.get("hero@alice").fit_report["noise"] == 0.02
+
+
+async def test_rigs_refit_shows_the_servers_code(server, capsys):
+    from facecast.client.cli import CommandError
+
+    with pytest.raises(CommandError, match="performer_not_found"):
+        _rigs_cli("refit", server.base_url, "--performer", "nobody", "--rig", "other")
+
+
+async def test_a_performer_rig_publishes_to_a_channel_watched_on_another_character(server):
+    import asyncio
+
+    from facecast.client.bridges.channel import FramePublisher, channel_url, watch_channel
+    from facecast.protocol import Hello, Ready
+
+    points = performer_points()
+    async with http(server) as client:
+        await client.put("/v1/rigs/hero/performer/alice", json=capture_body(points))
+    watch = channel_url(server.base_url, "stage", "watch", {"rig": "other"})
+    publish = channel_url(server.base_url, "stage", "publish")
+    seen: list = []
+
+    async def watcher():
+        async for message in watch_channel(watch):
+            seen.append(message)
+            if isinstance(message, Result):
+                return
+
+    task = asyncio.create_task(watcher())
+    async with asyncio.timeout(20):
+        while not any(isinstance(m, Ready) for m in seen):
+            await asyncio.sleep(0.01)
+        async with FramePublisher(publish, Hello(rig="hero@alice")) as publisher:
+            assert publisher.ready.rig == "hero@alice"
+            while not task.done():
+                await publisher.send(points["jawOpen"].astype(np.float32), 0.0)
+                await asyncio.sleep(0.05)
+    result = next(m for m in seen if isinstance(m, Result))
+    assert seen[0].rig == "other" and np.isfinite(result.weights).all()
