@@ -93,6 +93,7 @@ def test_the_face_is_found_in_most_frames_on_the_wasm_backend(browser, server, c
     stats = page.evaluate("window.facecastStats")
 
     assert stats["backend"] == "wasm"
+    assert stats["backendFeatures"] == {"simd": True, "threads": False}
     assert sum(s is not None for s in samples) >= 36
     assert page.errors == []
 

@@ -24,6 +24,7 @@ const stats = {
   page: "perform",
   layout: layout.name,
   backend: null,
+  backendFeatures: null, // wasm: {simd, threads}, as loaded
   track: "starting", // starting | loading | tracking | no-camera | failed
   trackDetail: "",
   publish: "off", // off | connecting | live | waiting | failed | unsuitable
@@ -240,6 +241,7 @@ async function main() {
   const tracker = new Tracker({ backend: params.backend });
   try {
     stats.backend = await tracker.load();
+    stats.backendFeatures = tracker.features;
   } catch (err) {
     setTrack("failed", "face model failed", err.message);
     fatal(`The face model did not load: ${err.message}`);
@@ -350,7 +352,7 @@ function paintStats(result) {
   setTrack("tracking", faceText, stats.head ? `head yaw ${stats.head.yaw.toFixed(0)}° pitch ${stats.head.pitch.toFixed(0)}° roll ${stats.head.roll.toFixed(0)}° · eyes ${stats.eyes.toFixed(2)}` : "");
   const fmt = (v, d = 2) => (v === null || v === undefined ? "–" : v.toFixed(d));
   $("stats").textContent = [
-    `model ${stats.backend} · ${fmt(stats.modelMs, 0)} ms a frame`,
+    `model ${stats.backend}${stats.backendFeatures?.simd ? " (SIMD)" : ""} · ${fmt(stats.modelMs, 0)} ms a frame`,
     `tracking ${stats.trackFps} fps (${stats.withFace}/${stats.tracked} frames with a face)`,
     `landmarks → publish ${fmt(stats.latencyMs)} ms (p95 ${fmt(stats.latencyP95Ms)}, max ${fmt(stats.latencyMaxMs)})`,
     `facecast per frame ${fmt(stats.addedMs)} ms (p95 ${fmt(stats.addedP95Ms)}; drawing ${fmt(stats.overlayMs)})`,

@@ -43,9 +43,11 @@ export class Tracker {
   constructor({ base = ASSETS, backend = "wasm" } = {}) {
     this.human = new Human(config(base, backend));
     this.backend = null;
+    this.features = {};
   }
 
-  /** Load the models and the backend; returns the backend that really runs ("wasm"). */
+  /** Load the models and the backend; returns the backend that really runs ("wasm"), and
+   * sets `features` ({simd, threads} for wasm). */
   async load() {
     await this.human.load();
     await this.human.tf.ready();
@@ -55,6 +57,9 @@ export class Tracker {
     const missing = ["blazeface", "facemesh"].filter((name) => !loaded.includes(name));
     if (missing.length) throw new Error(`could not load ${missing.join(" and ")} from ${ASSETS} (is the server up?)`);
     this.backend = this.human.tf.getBackend();
+    const wasm = this.human.env.wasm || {};
+    // What really runs: the backend TensorFlow.js settled on and, for wasm, which binary.
+    this.features = this.backend === "wasm" ? { simd: wasm.simd === true, threads: wasm.multithread === true } : {};
     return this.backend;
   }
 
