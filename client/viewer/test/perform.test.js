@@ -150,7 +150,7 @@ test("a capture with the head turned is refused, with the angle", () => {
   const summary = summariseCapture(frames(30, { head: { yaw: 28, pitch: -10, roll: 0 } }), 30, "neutral");
   assert.equal(summary.ok, false);
   assert.match(summary.reason, /head turned 28° to the side/);
-  const away = summariseCapture(frames(30, { head: { yaw: 14, pitch: -10, roll: 0 } }), 30, "aa", HEAD);
+  const away = summariseCapture(frames(30, { head: { yaw: 14, pitch: -10, roll: 0 } }), 30, "aa", { head: HEAD, eyes: 0.3 });
   assert.match(away.reason, /from where it was for the neutral/);
 });
 
@@ -158,6 +158,9 @@ test("a capture with the eyes shut is refused unless the expression shuts them",
   const shut = frames(30, { eyes: 0.04 });
   assert.match(summariseCapture(shut, 30, "neutral").reason, /eyes shut/);
   assert.ok(summariseCapture(shut, 30, "blink").ok);
+  const neutral = { head: HEAD, eyes: 0.3 };
+  assert.match(summariseCapture(frames(30, { eyes: 0.13 }), 30, "aa", neutral).reason, /eyes nearly shut/);
+  assert.ok(summariseCapture(frames(30, { eyes: 0.25 }), 30, "aa", neutral).ok);
   assert.ok(expectsEyesShut("eyeBlink_L") && expectsEyesShut("eyes_closed") && !expectsEyesShut("aa"));
 });
 

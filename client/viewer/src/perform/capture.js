@@ -12,6 +12,7 @@ export const CAPTURE_LIMITS = Object.freeze({
   maxTurnDeg: 12, // other expressions: head turned away from where it was for the neutral
   maxHeadMotionDeg: 6, // any frame's head angles this far from the capture's median
   shutEyes: 0.12, // eye openness (lid gap / eye width) below this is eyes shut
+  shutShare: 0.5, // other expressions: openness under this share of the neutral's is shut
   blinkShare: 0.6, // a frame whose openness is under this share of the capture's median is a blink
   outlierMads: 4, // frames this many MADs (scaled to σ) beyond the median distance are out
   maxSpread: 0.25, // layout units (≈ cm): held worse than this is a refusal, not a capture
@@ -39,6 +40,7 @@ function headOf(samples) {
 
 function headTurnReason(head, reference, limits) {
   if (reference) {
+    reference = reference.head;
     const turn = Math.hypot(head.yaw - reference.yaw, head.pitch - reference.pitch);
     if (turn > limits.maxTurnDeg) {
       return `head turned ${turn.toFixed(0)}° from where it was for the neutral (at most ${limits.maxTurnDeg}°): face the camera as then and redo`;
@@ -61,7 +63,7 @@ function headTurnReason(head, reference, limits) {
  *   (frames with a face)
  * seen: frames the tracker processed during the capture (with or without a face)
  * name: the expression being captured ("neutral" first)
- * reference: the neutral capture's head angles (null for the neutral itself)
+ * reference: the neutral capture's {head, eyes} (null for the neutral itself)
  *
  * Returns {ok, reason, points: K×3 arrays (the robust average), spread (RMS per-coordinate
  * σ of the kept frames, layout units), kept, blinks, outliers, head, headMotion, eyes}.
@@ -88,6 +90,12 @@ export function summariseCapture(samples, seen, name, reference = null, limits =
   const shutWanted = expectsEyesShut(name);
   if (!shutWanted && result.eyes < limits.shutEyes) {
     result.reason = `eyes shut (openness ${result.eyes.toFixed(2)}, open is above ${limits.shutEyes}): open your eyes and redo`;
+    return result;
+  }
+  if (!shutWanted && reference && result.eyes < limits.shutShare * reference.eyes) {
+    result.reason =
+      `eyes nearly shut (openness ${result.eyes.toFixed(2)} against ${reference.eyes.toFixed(2)} for the neutral): ` +
+      "open your eyes as for the neutral and redo";
     return result;
   }
   // Blinks out (not for an eyes-shut expression), then frames far from the median shape.

@@ -94,7 +94,7 @@ export class Studio {
       this.recording = { name: step.name, samples: [], seen: 0, until: performance.now() + CAPTURE_MS, resolve };
     });
     const neutral = this.steps[0];
-    const reference = step.name !== "neutral" && neutral.status === "ok" ? neutral.result.head : null;
+    const reference = step.name !== "neutral" && neutral.status === "ok" ? neutral.result : null;
     const summary = summariseCapture(rec.samples, rec.seen, step.name, reference);
     step.result = summary;
     step.status = summary.ok ? "ok" : "refused";
