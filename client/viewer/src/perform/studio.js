@@ -54,6 +54,7 @@ export class Studio {
     this.el.capture.disabled = this.el.skip.disabled = true;
     this.el["live-view"].disabled = true;
     this.el["stage-label"].textContent = "character · live";
+    this.el.prompt.textContent = "Live. Calibrate again to redo or add expressions.";
     this.renderSteps();
     this.host.showLive();
   }
