@@ -30,6 +30,7 @@ from .errors import install_error_handlers, problem
 from .hub import ChannelHub
 from .metrics import CONTENT_TYPE_LATEST, Metrics
 from .origins import OriginGuard
+from .perform_page import mount_perform
 from .performer_routes import profile_store
 from .performer_routes import router as performer_router
 from .rest import router as rest_router
@@ -117,6 +118,7 @@ def create_app(settings: Settings) -> FastAPI:
     _add_ops_routes(app)
     _add_docs_routes(app)
     mount_viewer(app, settings)
+    mount_perform(app)
     # Added innermost first: access log > Host/Origin checks > CORS > routes.
     if settings.allowed_origins:
         # Pages of these origins (a viewer pointed here with server=) may read the API.

@@ -1,15 +1,41 @@
 // Bundles src/main.js (three.js, @msgpack/msgpack included) into dist/viewer.js, the one
-// script viewer.html and overlay.html load. Run by `npm run build` (scripts/setup does).
+// script viewer.html and overlay.html load, and src/perform/main.js into dist/perform.js
+// for perform.html, next to the face model's weights and WebAssembly binaries copied out
+// of their npm packages (dist/perform/: served by facecast, never fetched from elsewhere).
+// Run by `npm run build` (scripts/setup does).
+import { copyFile, mkdir } from "node:fs/promises";
+import { join } from "node:path";
+
 import { build } from "esbuild";
 
-await build({
-  entryPoints: ["src/main.js"],
+const common = {
   bundle: true,
   format: "esm",
   target: ["es2020"],
   minify: true,
   sourcemap: true,
-  outfile: "dist/viewer.js",
   logLevel: "warning",
   legalComments: "linked",
-});
+};
+
+await build({ ...common, entryPoints: ["src/main.js"], outfile: "dist/viewer.js" });
+await build({ ...common, entryPoints: ["src/perform/main.js"], outfile: "dist/perform.js" });
+
+// The face model (BlazeFace + FaceMesh, TensorFlow.js graph models) and the WebAssembly
+// backend's binaries; server/perform_page.py serves exactly these names.
+// Human's package.json exports neither itself nor its models: read them from node_modules.
+const packageDir = (name) => join("node_modules", name);
+const PERFORM_ASSETS = {
+  "@vladmandic/human": ["models/blazeface.json", "models/blazeface.bin", "models/facemesh.json", "models/facemesh.bin"],
+  "@tensorflow/tfjs-backend-wasm": [
+    "dist/tfjs-backend-wasm.wasm",
+    "dist/tfjs-backend-wasm-simd.wasm",
+    "dist/tfjs-backend-wasm-threaded-simd.wasm",
+  ],
+};
+await mkdir("dist/perform", { recursive: true });
+for (const [pkg, files] of Object.entries(PERFORM_ASSETS)) {
+  for (const file of files) {
+    await copyFile(join(packageDir(pkg), file), join("dist/perform", file.split("/").pop()));
+  }
+}

@@ -83,6 +83,9 @@ export function socketTarget(params) {
   if (params.mode === "watch") {
     const q = new URLSearchParams({ rig: params.rig, output: params.output, dtype: params.dtype });
     url = `${base}/v1/channels/${encodeURIComponent(params.channel)}/watch?${q}`;
+  } else if (params.mode === "publish") {
+    // The performer page (/perform): the channel's publisher, hello sent on open.
+    url = `${base}/v1/channels/${encodeURIComponent(params.channel)}/publish`;
   } else {
     url = `${base}/v1/stream`;
   }

@@ -163,6 +163,11 @@ export function encodeFrame(seq, ts, points) {
   });
 }
 
+/** §5.1.3: re-base the session's rig on this neutral (`points`: Float32Array K*3). */
+export function encodeCalibrate(points) {
+  return msgpackEncode({ v: PROTOCOL_VERSION, type: "calibrate", points: arrayToWire(points, [points.length / 3, 3]), reset: false });
+}
+
 export function encodePing(id, ts) {
   return msgpackEncode({ v: PROTOCOL_VERSION, type: "ping", id, ts });
 }

@@ -52,3 +52,16 @@ for (const query of ["output=mesh", "dtype=f64", "width=5", "height=x", "rig=../
     assert.throws(() => readParams(`http://h/viewer?${query}`, "viewer"), ParamError);
   });
 }
+
+test("the performer page publishes to its channel; a performer's own rig id is accepted", async () => {
+  const { readPerformParams } = await import("../src/perform/params.js");
+  const p = readPerformParams("http://h:1/perform?channel=live%201&rig=cat@ann&performer=ann&token=tk");
+  assert.deepEqual([p.mode, p.rig, p.character, p.performer], ["publish", "cat@ann", "cat", "ann"]);
+  assert.deepEqual(socketTarget(p), { url: "ws://h:1/v1/channels/live%201/publish", protocols: ["facecast.v1", "facecast.bearer.tk"] });
+  assert.throws(() => readPerformParams("http://h/perform?rig=cat"), /channel=NAME is required/);
+  assert.throws(() => readPerformParams("http://h/perform?channel=c&performer=a/b"), /performer must be/);
+  assert.equal(p.backend, "wasm");
+  assert.equal(readPerformParams("http://h/perform?channel=c&backend=webgl").backend, "webgl");
+  assert.throws(() => readPerformParams("http://h/perform?channel=c&backend=webgpu"), /backend must be/);
+  assert.throws(() => readParams("http://h/viewer?rig=cat@", "viewer"), ParamError);
+});

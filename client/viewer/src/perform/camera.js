@@ -1,0 +1,66 @@
+// The camera side of /perform: opening the camera with errors a person can act on,
+// pacing by the camera's frames, drawing the points over its image. DOM only; no
+// tracking, no network.
+
+/** Open the user-facing camera into `video`; rejects with a message saying what to do. */
+export async function openCamera(video) {
+  if (!navigator.mediaDevices || !navigator.mediaDevices.getUserMedia) {
+    throw new Error("this browser gives no camera access here (getUserMedia needs https or localhost)");
+  }
+  let stream;
+  try {
+    stream = await navigator.mediaDevices.getUserMedia({ video: { width: { ideal: 640 }, height: { ideal: 480 }, facingMode: "user" }, audio: false });
+  } catch (err) {
+    if (err.name === "NotAllowedError" || err.name === "SecurityError") {
+      throw new Error("camera access was denied: allow the camera for this page and reload");
+    }
+    if (err.name === "NotFoundError" || err.name === "OverconstrainedError") {
+      throw new Error("no camera found: connect one and reload");
+    }
+    if (err.name === "NotReadableError") throw new Error("the camera is in use by another program: close it and reload");
+    throw new Error(`cannot open the camera: ${err.name}: ${err.message}`);
+  }
+  video.srcObject = stream;
+  await video.play();
+  return stream;
+}
+
+/** Resolves when `video` presents its next frame (each animation frame where unsupported). */
+export function nextVideoFrame(video) {
+  return new Promise((resolve) => {
+    if (video.requestVideoFrameCallback) video.requestVideoFrameCallback(() => resolve());
+    else requestAnimationFrame(() => resolve());
+  });
+}
+
+/**
+ * The feature points (and the stable ones, faint) over the camera image. The canvas has
+ * the video's pixel size and is mirrored by CSS with the video; only the face's box is
+ * cleared and drawn, so this costs the same whatever the camera's resolution.
+ */
+export function drawPoints(ctx, face, previousBox, layout) {
+  if (previousBox) ctx.clearRect(previousBox[0] - 4, previousBox[1] - 4, previousBox[2] + 8, previousBox[3] + 8);
+  if (!face) return null;
+  const lm = face.landmarks;
+  ctx.fillStyle = "rgba(160, 200, 255, 0.6)";
+  for (const i of layout.stable) ctx.fillRect(lm[i][0] - 1, lm[i][1] - 1, 2, 2);
+  ctx.fillStyle = "#ffb070";
+  ctx.beginPath();
+  for (const i of layout.features) {
+    ctx.moveTo(lm[i][0] + 2.5, lm[i][1]);
+    ctx.arc(lm[i][0], lm[i][1], 2.5, 0, 2 * Math.PI);
+  }
+  ctx.fill();
+  const [bx, by, bw, bh] = face.box;
+  ctx.strokeStyle = "rgba(61, 220, 132, 0.6)";
+  ctx.strokeRect(bx, by, bw, bh);
+  // Everything drawn lies within the box grown by the points that stick out of it.
+  let [x0, y0, x1, y1] = [bx, by, bx + bw, by + bh];
+  for (const p of lm) {
+    if (p[0] < x0) x0 = p[0];
+    if (p[1] < y0) y0 = p[1];
+    if (p[0] > x1) x1 = p[0];
+    if (p[1] > y1) y1 = p[1];
+  }
+  return [x0, y0, x1 - x0, y1 - y0];
+}

@@ -1,0 +1,372 @@
+// Entry point of /perform: camera -> face mesh -> the layout's feature points (head pose
+// and distance removed) -> published on the channel; the character's live pose beside
+// the camera; the calibration walk-through (studio.js). Publishes window.facecastStats.
+
+import layoutTable from "../../../../rig/layouts/mediapipe_face_mesh.json";
+import { Link } from "../link.js";
+import { authHeaders, socketTarget } from "../params.js";
+import { encodeCalibrate, encodeFrame, encodeHello, ErrorCode, errorName } from "../protocol.js";
+import { FaceView } from "../scene.js";
+import { checkLayout, eyeOpenness, headAngles, imageToMesh, normaliseMesh } from "./facemesh.js";
+import { drawPoints, nextVideoFrame, openCamera } from "./camera.js";
+import { readPerformParams } from "./params.js";
+import { Studio } from "./studio.js";
+import { Rolling } from "./timing.js";
+import { Tracker } from "./tracker.js";
+
+const layout = checkLayout(layoutTable);
+const K = layout.features.length;
+const MAX_BUFFERED_BYTES = 64 * 1024; // a stalled socket drops frames instead of queueing them
+const WINDOW = 120; // frames in the rolling timing statistics
+
+/** Counters for people and tests (tests wait on them instead of sleeping). */
+const stats = {
+  page: "perform",
+  layout: layout.name,
+  backend: null,
+  backendFeatures: null, // wasm: {simd, threads}, as loaded
+  track: "starting", // starting | loading | tracking | no-camera | failed
+  trackDetail: "",
+  publish: "off", // off | connecting | live | waiting | failed | unsuitable
+  publishDetail: "",
+  error: null,
+  tracked: 0, // frames the model ran on
+  withFace: 0, // of those, frames with a face
+  faces: 0, // faces in the last frame
+  faceFound: false,
+  trackFps: 0,
+  modelMs: null, // model time per frame (mean over the window)
+  firstModelMs: null, // the first frame's model time (WebGL: shader compilation)
+  published: 0, // frames sent
+  skipped: 0, // frames not sent: socket backed up
+  publishFps: 0,
+  seq: null,
+  results: 0, // results (weights) received back for our frames
+  latencyMs: null, // landmarks ready -> frame handed to the socket (mean, p95, max)
+  latencyP95Ms: null,
+  latencyMaxMs: null,
+  overlayMs: null, // drawing the points over the camera image (mean)
+  addedMs: null, // everything facecast adds per frame (normalise, encode, send, draw), mean
+  addedP95Ms: null,
+  renderMs: null, // drawing the character (three.js; the GPU's work, or SwiftShader's), mean
+  points: null, // the last published points, K*3
+  head: null, // {yaw, pitch, roll} of the last frame, degrees
+  eyes: null,
+  rebased: false, // a generic rig re-based on the performer's captured neutral (calibrated)
+  rig: null,
+  channel: null,
+};
+window.facecastStats = stats;
+
+const $ = (id) => document.getElementById(id);
+
+function setTrack(kind, text, detail = "") {
+  stats.track = kind;
+  stats.trackDetail = detail;
+  paintState($("track-state"), kind === "tracking" ? (stats.faceFound ? "live" : "idle") : kind === "failed" || kind === "no-camera" ? "failed" : "connecting", text);
+  $("track-detail").textContent = detail;
+}
+
+function setPublish(kind, text, detail = "") {
+  stats.publish = kind;
+  stats.publishDetail = detail;
+  const cls = { live: "live", waiting: "waiting", connecting: "connecting", failed: "failed", unsuitable: "failed" }[kind] || "idle";
+  paintState($("publish-state"), cls, text);
+  $("publish-detail").textContent = detail;
+}
+
+function paintState(el, cls, text) {
+  el.className = `state ${cls}`;
+  el.textContent = text;
+}
+
+function fatal(message) {
+  stats.error = message;
+  $("error").textContent = message;
+  $("error").hidden = false;
+}
+
+/** What a 401/403/4xx problem means on this page, naming the role the token lacks. */
+function problemText(response, problem, role, what) {
+  const detail = problem.detail || response.statusText;
+  if (response.status === 401) return `the token is not accepted (401 ${problem.code || "unauthorized"}): cannot ${what}. ${detail}`;
+  if (response.status === 403) {
+    return `the token lacks the role ${role} (or admin) needed to ${what} (403 ${problem.code || "forbidden"}: ${detail})`;
+  }
+  return `${response.status} ${problem.code || ""}: ${detail}`.trim();
+}
+
+async function fetchModel(params) {
+  const response = await fetch(`${params.server}/v1/rigs/${encodeURIComponent(params.rig)}/model.glb`, {
+    headers: authHeaders(params),
+  });
+  if (!response.ok) {
+    const problem = await response.json().catch(() => ({}));
+    throw new Error(problemText(response, problem, "viewer", `load the character of rig ${params.rig}`));
+  }
+  return response.arrayBuffer();
+}
+
+async function main() {
+  let params;
+  try {
+    params = readPerformParams(window.location.href);
+  } catch (err) {
+    fatal(`Bad page URL: ${err.message}`);
+    setTrack("failed", "not started", err.message);
+    return;
+  }
+  stats.rig = params.rig;
+  stats.channel = params.channel;
+
+  const view = new FaceView($("stage"), { controls: false });
+  let names = [];
+  let live = true; // the view follows the server's weights (else: showing a target example)
+  const showWeights = (weights) => {
+    view.setWeights(weights);
+    view.dirty = true;
+  };
+  const studio = new Studio(document, {
+    stats,
+    params,
+    layoutName: layout.name,
+    authHeaders: () => authHeaders(params),
+    problemText,
+    performHref: (rig) => {
+      const url = new URL(window.location.href);
+      url.searchParams.set("rig", rig);
+      return url.toString();
+    },
+    showExample(name) {
+      live = false;
+      const weights = new Float32Array(names.length);
+      const i = names.indexOf(name);
+      if (i >= 0) weights[i] = 1;
+      if (view.mesh) showWeights(weights);
+    },
+    showLive() {
+      live = true;
+    },
+    neutralCaptured(points) {
+      neutral = Float32Array.from(points.flat());
+      rebase(link);
+    },
+  });
+  const modelLoad = fetchModel(params)
+    .then((glb) => view.load(glb))
+    .then((model) => {
+      names = model.names;
+      studio.setNames(names);
+      $("stage-label").textContent = `character · ${params.rig}`;
+    })
+    .catch((err) => {
+      $("stage-label").textContent = `character not loaded: ${err.message}`;
+      stats.modelError = err.message;
+    });
+
+  // Publishing: the channel's publisher session; tracking goes on whatever happens here.
+  let publishing = false;
+  // Generic first: a rig that is not the performer's own (no "@performer") is re-based on
+  // the performer's captured neutral (PROTOCOL.md §5.1.3), on every connection.
+  let neutral = null;
+  const rebase = (l) => {
+    if (neutral && publishing && !params.rig.includes("@")) l.send(encodeCalibrate(neutral));
+  };
+  let latencyEma = null;
+  const link = new Link(socketTarget(params), {
+    onOpen(l) {
+      setPublish("connecting", "opening session", `channel ${params.channel}, rig ${params.rig}`);
+      l.send(encodeHello({ rig: params.rig, output: "weights", dtype: "f32" }));
+    },
+    onState(kind, detail) {
+      publishing = false;
+      if (kind === "failed") {
+        const forbidden = /FORBIDDEN|Not allowed/.test(detail);
+        setPublish(
+          "failed",
+          "not publishing",
+          forbidden ? `the token lacks the role publisher (or admin) needed to publish to ${params.channel}: ${detail}` : detail,
+        );
+      } else if (kind === "waiting") setPublish("waiting", "reconnecting", detail);
+      else if (kind === "connecting") setPublish("connecting", detail);
+    },
+    onMessage(msg, l) {
+      if (msg.type === "ready") {
+        if (msg.rig.k !== K) {
+          l.fail("");
+          setPublish(
+            "unsuitable",
+            "not publishing",
+            `rig ${msg.rig.id} takes ${msg.rig.k} feature points, this page's layout gives ${K}: ` +
+              "calibrate to make your own rig of this character, or open a rig fitted for this layout",
+          );
+          return;
+        }
+        l.healthy();
+        publishing = true;
+        stats.rebased = false;
+        setPublish("live", `live · ${params.channel}`, `rig ${msg.rig.id}, ${K} points a frame`);
+        rebase(l);
+      } else if (msg.type === "calibrated") {
+        stats.rebased = msg.active === true;
+        if (stats.rebased) setPublish("live", `live · ${params.channel}`, `rig ${params.rig} re-based on your neutral, ${K} points a frame`);
+      } else if (msg.type === "result") {
+        stats.results += 1;
+        if (typeof msg.server_ts === "number") {
+          const rtt = Date.now() - msg.server_ts * 1000;
+          latencyEma = latencyEma === null ? rtt : 0.9 * latencyEma + 0.1 * rtt;
+        }
+        if (live && msg.weights && view.mesh && msg.weights.length === names.length) showWeights(msg.weights);
+      } else if (msg.type === "error") {
+        const text = `${errorName(msg.code)}: ${msg.message}`;
+        if (msg.code === ErrorCode.UNKNOWN_RIG) setPublish("failed", "not publishing", `unknown rig ${params.rig}: ${msg.message}`);
+        else if (msg.code === ErrorCode.CHANNEL_BUSY) setPublish("waiting", "channel busy", `${text}; another performer publishes there`);
+        else setPublish(stats.publish, $("publish-state").textContent, text);
+      }
+    },
+  });
+  link.start();
+
+  // Camera and model.
+  const video = $("video");
+  setTrack("loading", "opening the camera");
+  try {
+    await openCamera(video);
+  } catch (err) {
+    setTrack("no-camera", "no camera", err.message);
+    fatal(err.message);
+    return;
+  }
+  setTrack("loading", "loading the face model");
+  const tracker = new Tracker({ backend: params.backend });
+  try {
+    stats.backend = await tracker.load();
+    stats.backendFeatures = tracker.features;
+  } catch (err) {
+    setTrack("failed", "face model failed", err.message);
+    fatal(`The face model did not load: ${err.message}`);
+    return;
+  }
+  await modelLoad;
+
+  const canvas = $("camera");
+  canvas.width = video.videoWidth || 640;
+  canvas.height = video.videoHeight || 480;
+  $("camera-box").style.aspectRatio = `${canvas.width} / ${canvas.height}`;
+  const ctx = canvas.getContext("2d");
+  let drawnBox = null;
+  const points = new Float32Array(K * 3);
+  const modelTimes = new Rolling(WINDOW);
+  const latency = new Rolling(WINDOW);
+  const overlay = new Rolling(WINDOW);
+  const added = new Rolling(WINDOW);
+  const render = new Rolling(WINDOW);
+  const frameTimes = [];
+  const publishTimes = [];
+  let seq = 0;
+  let lastPaint = 0;
+  setTrack("tracking", "looking for a face");
+
+  let nextFrame = nextVideoFrame(video);
+  for (;;) {
+    await nextFrame;
+    // Ask for the frame after this one now: one the camera delivers while the model runs
+    // is tracked as soon as the model is done, so the rate is min(camera, 1 / model time).
+    nextFrame = nextVideoFrame(video);
+    const t0 = performance.now();
+    let result;
+    try {
+      result = await tracker.track(video);
+    } catch (err) {
+      setTrack("failed", "tracking failed", err.message);
+      fatal(`Tracking failed: ${err.message}`);
+      return;
+    }
+    const tLandmarks = performance.now();
+    modelTimes.push(tLandmarks - t0);
+    if (stats.firstModelMs === null) stats.firstModelMs = tLandmarks - t0;
+    stats.tracked += 1;
+    stats.faces = result.faces;
+    frameTimes.push(tLandmarks);
+    let sample = null;
+    if (result.face) {
+      const mesh = imageToMesh(result.face.landmarks);
+      const { frame } = normaliseMesh(mesh, layout, points);
+      const head = headAngles(frame);
+      const eyes = eyeOpenness(mesh, layout);
+      if (publishing && link.bufferedAmount < MAX_BUFFERED_BYTES) {
+        if (link.send(encodeFrame(seq, performance.now() / 1000, points))) {
+          stats.seq = seq;
+          seq += 1;
+          stats.published += 1;
+          publishTimes.push(performance.now());
+        }
+      } else if (publishing) stats.skipped += 1;
+      const tSent = performance.now();
+      latency.push(tSent - tLandmarks);
+      stats.withFace += 1;
+      stats.faceFound = true;
+      stats.points = Array.from(points);
+      stats.head = head;
+      stats.eyes = eyes;
+      sample = { points: points.slice(), eyes, head };
+    } else {
+      stats.faceFound = false;
+    }
+    const tDraw = performance.now();
+    drawnBox = drawPoints(ctx, result.face, drawnBox, layout);
+    const tEnd = performance.now();
+    overlay.push(tEnd - tDraw);
+    added.push(tEnd - tLandmarks);
+    studio.frame(sample);
+
+    // Rolling rates over the last second.
+    while (frameTimes.length && frameTimes[0] < tEnd - 1000) frameTimes.shift();
+    while (publishTimes.length && publishTimes[0] < tEnd - 1000) publishTimes.shift();
+    if (tEnd - lastPaint > 250) {
+      lastPaint = tEnd;
+      stats.trackFps = frameTimes.length;
+      stats.publishFps = publishTimes.length;
+      stats.modelMs = modelTimes.mean();
+      stats.latencyMs = latency.mean();
+      stats.latencyP95Ms = latency.quantile(0.95);
+      stats.latencyMaxMs = latency.max();
+      stats.overlayMs = overlay.mean();
+      stats.addedMs = added.mean();
+      stats.addedP95Ms = added.quantile(0.95);
+      stats.serverLatencyMs = latencyEma;
+      stats.renderMs = render.mean();
+      paintStats(result);
+    }
+    if (view.mesh && view.dirty) {
+      const tRender = performance.now();
+      view.render();
+      render.push(performance.now() - tRender);
+    }
+  }
+}
+
+function paintStats(result) {
+  const faceText =
+    result.faces === 0 ? "no face in view" : result.faces > 1 ? `${result.faces} faces: tracking the largest` : "face found";
+  setTrack("tracking", faceText, stats.head ? `head yaw ${stats.head.yaw.toFixed(0)}° pitch ${stats.head.pitch.toFixed(0)}° roll ${stats.head.roll.toFixed(0)}° · eyes ${stats.eyes.toFixed(2)}` : "");
+  const fmt = (v, d = 2) => (v === null || v === undefined ? "–" : v.toFixed(d));
+  $("stats").textContent = [
+    `model ${stats.backend}${stats.backendFeatures?.simd ? " (SIMD)" : ""} · ${fmt(stats.modelMs, 0)} ms a frame`,
+    `tracking ${stats.trackFps} fps (${stats.withFace}/${stats.tracked} frames with a face)`,
+    `landmarks → publish ${fmt(stats.latencyMs)} ms (p95 ${fmt(stats.latencyP95Ms)}, max ${fmt(stats.latencyMaxMs)})`,
+    `facecast per frame ${fmt(stats.addedMs)} ms (p95 ${fmt(stats.addedP95Ms)}; drawing ${fmt(stats.overlayMs)})`,
+    `character render ${fmt(stats.renderMs, 1)} ms · server → back ${fmt(stats.serverLatencyMs, 0)} ms`,
+  ].join("\n");
+  const p = stats.points;
+  $("published").textContent =
+    stats.publish === "live"
+      ? [
+          `${stats.publishFps} frames/s · seq ${stats.seq ?? "–"} · ${stats.skipped} dropped`,
+          `${K} points (${layout.name}, head pose removed, ≈ cm)`,
+          p && result.face ? `chin (${p.slice(-3).map((v) => v.toFixed(2)).join(", ")})` : "face lost: nothing sent (viewers see face_lost)",
+        ].join("\n")
+      : "";
+}
+
+main().catch((err) => fatal(`Performer page error: ${err.message}`));

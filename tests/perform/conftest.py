@@ -1,0 +1,185 @@
+"""Fixtures of the performer-studio tests: a real Chromium with a fake camera, a real server.
+
+One browser for the whole package (the fake camera is a browser flag): each test writes
+the video it needs to the camera file, and a page opened afterwards plays it from the
+start (Chromium opens the file anew for each getUserMedia). Skips, with the reason, when
+Chromium, the studio's build or scikit-image is missing.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+from facecast.client.snapshot import CHROMIUM_ARGS, chromium_path, serving, write_demo_rig
+from facecast.protocol import SUBPROTOCOL, decode_server
+from facecast.rig import fit
+from facecast.rig.demo import demo_example_set
+from facecast.rig.examples import ExampleSet
+from facecast.rig.layouts import load_layout
+from facecast.server.perform_page import PERFORM_ASSETS
+from facecast.server.settings import Settings
+from facecast.server.viewer import viewer_dir
+
+playwright_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
+pytest.importorskip("skimage", reason="scikit-image (the test extras) is not installed")
+
+from .facevideo import FacePose, write_y4m  # noqa: E402
+
+FPS = 25
+
+
+def _missing() -> str | None:
+    if chromium_path() is None:
+        return "no Chromium at /usr/bin/chromium (scripts/setup --test installs it)"
+    if not all((viewer_dir() / "dist" / path).is_file() for path, _ in PERFORM_ASSETS.values()):
+        return "the performer studio is not built (npm ci && npm run build in client/viewer)"
+    return None
+
+
+@pytest.fixture(scope="package")
+def camera_file(tmp_path_factory) -> Path:
+    """The y4m file the browser's fake camera plays; tests rewrite it (``Camera.show``)."""
+    path = tmp_path_factory.mktemp("camera") / "camera.y4m"
+    write_y4m(path, [FacePose()] * 2, fps=FPS)
+    return path
+
+
+@dataclass
+class Camera:
+    path: Path
+
+    def show(self, poses: list[FacePose], second_face: float | None = None) -> None:
+        """What the next page to open the camera sees, looped; ``second_face``: also a
+        second person, that much smaller, beside the first."""
+        write_y4m(self.path, poses, fps=FPS, second_face=second_face)
+
+
+@pytest.fixture
+def camera(camera_file) -> Camera:
+    return Camera(camera_file)
+
+
+@pytest.fixture(scope="package")
+def browser(camera_file):
+    reason = _missing()
+    if reason is not None:
+        pytest.skip(reason)
+    args = [
+        *CHROMIUM_ARGS,
+        "--use-fake-device-for-media-stream",
+        f"--use-file-for-fake-video-capture={camera_file}",
+    ]
+    with playwright_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=chromium_path(), headless=True, args=args)
+        try:
+            yield browser
+        finally:
+            browser.close()
+
+
+#: The demo character in a rig that takes the layout's 20 points (the demo rig takes 21):
+#: a character the page can publish for and calibrate on without ICT-FaceKit's data.
+CHARACTER = "cartoon"
+
+
+def _write_character_rig(rigs: Path) -> None:
+    demo = demo_example_set()
+    k = load_layout().num_features
+    examples = ExampleSet(
+        demo.names, demo.source_points[:, :k], demo.target_vertices, demo.target_faces
+    )
+    fit(examples).save(rigs / f"{CHARACTER}.rig")
+
+
+@pytest.fixture(scope="package")
+def rigs_dir(tmp_path_factory) -> Path:
+    """The demo rig (``demo``, K = 21) and the demo character for this layout (``cartoon``)."""
+    rigs = tmp_path_factory.mktemp("perform-rigs")
+    write_demo_rig(rigs)
+    _write_character_rig(rigs)
+    return rigs
+
+
+@pytest.fixture(scope="package")
+def server(rigs_dir) -> Iterator[str]:
+    """A real uvicorn with the demo rig, no auth (rigs fitted by a test stay for the next)."""
+    settings = Settings(rigs_dir=rigs_dir, access_log=False, log_level="warning")
+    with serving(settings) as base_url:
+        yield base_url
+
+
+def open_page(browser, url: str, *, camera: bool = True):
+    """A page in its own context (camera allowed or not) recording its errors in ``errors``."""
+    context = browser.new_context(
+        viewport={"width": 960, "height": 540}, permissions=["camera"] if camera else []
+    )
+    page = context.new_page()
+    page.errors = []
+    page.on("pageerror", lambda exc: page.errors.append(f"pageerror: {exc}"))
+    page.set_default_timeout(30_000)
+    page.goto(url)
+    return page
+
+
+@pytest.fixture
+def pages(browser) -> Iterator[list]:
+    """Pages a test opens through ``open_page``; their contexts close after the test."""
+    opened: list = []
+    yield opened
+    for page in opened:
+        page.context.close()
+
+
+@dataclass
+class ChannelRecorder:
+    """A real channel watcher in a thread: every result and event it receives, timed."""
+
+    url: str
+    results: list = field(default_factory=list)  # (monotonic time, Result)
+    events: list = field(default_factory=list)  # (monotonic time, message type)
+    ready: threading.Event = field(default_factory=threading.Event)
+    stop: threading.Event = field(default_factory=threading.Event)
+    arrived: threading.Condition = field(default_factory=threading.Condition)
+
+    def wait_for(self, kind: str, timeout: float) -> bool:
+        """Wait until an event of ``kind`` (``face_lost``...) has arrived; False on timeout."""
+        with self.arrived:
+            return self.arrived.wait_for(
+                lambda: kind in [k for _, k in self.events], timeout=timeout
+            )
+
+    def run(self) -> None:
+        from websockets.sync.client import connect
+
+        with connect(self.url, subprotocols=[SUBPROTOCOL], open_timeout=10) as ws:
+            while not self.stop.is_set():
+                try:
+                    message = decode_server(ws.recv(timeout=0.2))
+                except TimeoutError:
+                    continue
+                now = time.monotonic()
+                kind = getattr(message, "TYPE", type(message).__name__)
+                if kind == "ready":
+                    self.ready.set()
+                with self.arrived:
+                    if kind == "result":
+                        self.results.append((now, message))
+                    else:
+                        self.events.append((now, kind))
+                    self.arrived.notify_all()
+
+
+def watching(base_url: str, channel: str, rig: str, output: str = "weights"):
+    """Start a ChannelRecorder on ``channel`` (cloned on ``rig``); returns (recorder, thread)."""
+    ws_base = base_url.replace("http", "ws")
+    recorder = ChannelRecorder(f"{ws_base}/v1/channels/{channel}/watch?rig={rig}&output={output}")
+    thread = threading.Thread(target=recorder.run, daemon=True)
+    thread.start()
+    assert recorder.ready.wait(10), "the watcher got no ready"
+    return recorder, thread

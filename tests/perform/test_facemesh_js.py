@@ -1,0 +1,54 @@
+"""The page's face-frame normalisation (JavaScript) gives the numbers Python's gives.
+
+Both read rig/layouts/mediapipe_face_mesh.json; points published from /perform and from
+a MediaPipe NDJSON file or ``facecast perform`` must agree for a performer's rig to work.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from facecast.rig.facemesh import normalise_mesh
+from facecast.rig.layouts import load_layout
+from facecast.server.viewer import viewer_dir
+
+_SCRIPT = """
+import { readFileSync } from "node:fs";
+import { checkLayout, normaliseMesh } from "./src/perform/facemesh.js";
+const layout = checkLayout(JSON.parse(readFileSync("../../rig/layouts/mediapipe_face_mesh.json")));
+const meshes = JSON.parse(readFileSync(0, "utf8"));
+const out = meshes.map((m) => Array.from(normaliseMesh(Float64Array.from(m.flat()), layout).points));
+process.stdout.write(JSON.stringify(out));
+"""
+
+
+def test_javascript_and_python_normalise_a_mesh_alike():
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("node is not installed")
+    layout = load_layout()
+    rng = np.random.default_rng(4)
+    # Face-sized meshes in isotropic y-up pixels, turned and scaled differently.
+    meshes = rng.normal(scale=40.0, size=(3, layout.tracker_points, 3))
+    meshes[:, layout.frame["right"]] += [-30.0, 0.0, 0.0]
+    meshes[:, layout.frame["left"]] += [30.0, 0.0, 0.0]
+    meshes[:, layout.frame["top"]] += [0.0, 60.0, 0.0]
+
+    run = subprocess.run(
+        [node, "--input-type=module", "-e", _SCRIPT],
+        cwd=viewer_dir(),
+        input=json.dumps(meshes.tolist()),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+    assert run.returncode == 0, run.stderr[-2000:]
+    from_js = np.array(json.loads(run.stdout)).reshape(3, -1, 3)
+    from_python = normalise_mesh(meshes, layout)
+    np.testing.assert_allclose(from_js, from_python, rtol=1e-5, atol=1e-4)
