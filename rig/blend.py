@@ -44,11 +44,10 @@ def blend_into(weights: np.ndarray, basis: np.ndarray, out: np.ndarray) -> np.nd
     basis : (M, C) float32, C-contiguous
     out : (B, C) float32, C-contiguous
 
-    Each output column is computed from that column of ``basis`` alone, in the same
-    order whatever the other columns are, so a blend of a subset of columns (the
-    moving vertices) equals the full blend on that subset bit for bit. Sparse and
-    dense products of the same weights agree to float rounding (another summation
-    order), not bit for bit.
+    Sparse and dense products of the same weights agree to float rounding (another
+    summation order), not bit for bit; so may products over different column sets
+    (BLAS blocks columns by position), which is why ``Rig.blend`` takes every output,
+    full or moving, from the one product over the moving columns.
     """
     used = np.flatnonzero(weights.any(axis=0))
     if used.size > SPARSE_ROWS_MAX * weights.shape[1]:

@@ -333,21 +333,23 @@ class Rig:
         """(N,) int64, increasing: the vertices some example moves (read-only).
 
         Every other vertex is the target neutral's in every blend, bit for bit, so
-        ``blend(w, moving=True)`` (those N vertices only) loses nothing. Computed once
-        per basis (~10 ms for ICT's), on first use.
+        ``blend(w, moving=True)`` (those N vertices only) loses nothing. Found once per
+        basis on first use, with the basis columns every blend reads (ICT: ~15 ms).
         """
-        if "vertices" not in self._moving:
+        return self._moving_basis()[1]
+
+    def _moving_basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The moving vertices' basis columns (M, 3N) float32, their column and vertex indices."""
+        if "basis" not in self._moving:
             indices = moving_vertices(self._blend_basis)
             indices.flags.writeable = False
-            self._moving["vertices"] = indices
-        return self._moving["vertices"]
-
-    def _moving_basis(self) -> np.ndarray:
-        """(M, 3N) float32: the basis columns of the moving vertices, C-contiguous."""
-        if "basis" not in self._moving:
-            columns = (3 * self.moving_vertices[:, None] + np.arange(3)).reshape(-1)
-            self._moving["basis"] = np.ascontiguousarray(self._blend_basis[:, columns])
-        return self._moving["basis"]
+            columns = (3 * indices[:, None] + np.arange(3)).reshape(-1)
+            basis = np.ascontiguousarray(self._blend_basis[:, columns])
+            # Filled last: another thread seeing "basis" sees the rest too.
+            self._moving.update(vertices=indices, columns=columns)
+            self._moving["basis"] = basis
+        moving = self._moving
+        return moving["basis"], moving["vertices"], moving["columns"]
 
     # -- evaluation ----------------------------------------------------------------------
     def _points(self, points) -> tuple[np.ndarray, bool]:
@@ -409,9 +411,10 @@ class Rig:
     def blend(self, weights, *, out: np.ndarray | None = None, moving: bool = False) -> np.ndarray:
         """Target vertices for blend weights (eq. 3.14): T_B + sum_i w_i (T_i - T_B).
 
-        Only the basis rows of non-zero weights are read when few are (bounded weights,
-        ``rig.blend.SPARSE_ROWS_MAX``); the result then equals the dense product to float
-        rounding.
+        Only the basis columns of the ``moving_vertices`` are blended (the others are
+        T_B), and only the rows of non-zero weights when few are (bounded weights,
+        ``rig.blend.SPARSE_ROWS_MAX``); the result equals the dense product ``w @ basis``
+        to float rounding.
 
         Parameters
         ----------
@@ -433,18 +436,26 @@ class Rig:
         single = w.ndim == 1
         w2 = w.reshape(-1, m)
         w2[:, 0] = 1.0
-        basis = self._moving_basis() if moving else self._blend_basis
-        v3 = basis.shape[1]
+        basis, _, columns = self._moving_basis()
+        rows = w2.shape[0]
+        size = basis.shape[1] if moving else self._blend_basis.shape[1]
         if out is None:
-            flat = np.empty((w2.shape[0], v3), dtype=np.float32)
-        elif out.dtype != np.float32 or not out.flags.c_contiguous or out.size != w2.shape[0] * v3:
+            flat = np.empty((rows, size), dtype=np.float32)
+        elif out.dtype != np.float32 or not out.flags.c_contiguous or out.size != rows * size:
             raise InputError("out must be a C-contiguous float32 array of the output's size")
         else:
-            flat = out.reshape(w2.shape[0], v3)
-        blend_into(w2, basis, flat)
+            flat = out.reshape(rows, size)
+        if moving or columns.size == size:
+            blend_into(w2, basis, flat)
+        else:
+            # Every vertex no example moves is T_B (row 0 of the basis); the others come
+            # from the very product a moving blend makes, so both agree bit for bit.
+            moved = blend_into(w2, basis, np.empty((rows, columns.size), dtype=np.float32))
+            flat[:] = self._blend_basis[0]
+            flat[:, columns] = moved
         if out is not None:
             return out
-        return flat.reshape(v3 // 3, 3) if single else flat.reshape(-1, v3 // 3, 3)
+        return flat.reshape(size // 3, 3) if single else flat.reshape(-1, size // 3, 3)
 
     def clone(self, points, *, align: bool = False) -> np.ndarray:
         """Target vertices for source feature points: ``blend(weights(points))``."""

@@ -48,18 +48,21 @@ class Smoother:
 class Outputs:
     """A session's reused result buffers: (V, 3) float32 blend output, float16 wire copy.
 
-    Used by one clone at a time (the writer's), and each result is encoded (copied)
-    before the next clone starts, so reuse is safe.
+    With output "moving" (PROTOCOL.md §5.2.1) they hold only the rig's N moving vertices
+    and ``moving`` is True. Used by one clone at a time (the writer's), and each result
+    is encoded (copied) before the next clone starts, so reuse is safe.
     """
 
-    def __init__(self, hello: Hello, num_vertices: int) -> None:
+    def __init__(self, hello: Hello, rig: Any) -> None:
         self.dtype = _RESULT_DTYPES[hello.dtype]
-        self.name = hello.output  # the result's array field, "weights" or "vertices"
-        vertices = hello.output == "vertices"
-        self.vertices = np.empty((num_vertices, 3), np.float32) if vertices else None
-        self.wire = (
-            np.empty((num_vertices, 3), np.float16) if vertices and hello.dtype == "f16" else None
-        )
+        self.moving = hello.output == "moving"
+        vertices = hello.output != "weights"
+        # The result's array field: a moving session's N vertices travel in "vertices".
+        self.name = "vertices" if vertices else "weights"
+        rows = rig.moving_vertices.size if self.moving else rig.num_vertices
+        self.rows = rows
+        self.vertices = np.empty((rows, 3), np.float32) if vertices else None
+        self.wire = np.empty((rows, 3), np.float16) if vertices and hello.dtype == "f16" else None
 
 
 def blend_seconds(num_vertices: int, num_examples: int) -> float:
@@ -89,7 +92,7 @@ def clone_frame(
     weights = frame_weights(rig, frame, hello, smoother)
     if outputs.vertices is None:
         return weights.astype(outputs.dtype)
-    vertices = rig.blend(weights, out=outputs.vertices)
+    vertices = rig.blend(weights, out=outputs.vertices, moving=outputs.moving)
     if outputs.wire is None:
         return vertices
     return to_float16(vertices, outputs.wire)

@@ -435,15 +435,23 @@ class Session:
             # The rig's weights() reads this flag; a shallow copy keeps the cached rig as is.
             rig = copy.copy(rig)
             rig.align_scale = True
+        # A scan of the basis the first time a rig is asked for it (~3 ms for ICT's).
+        moving = hello.output == "moving"
+        if moving and (await loop.run_in_executor(None, lambda: rig.moving_vertices)).size == 0:
+            raise ProtocolError(
+                ErrorCode.INVALID_FIELD,
+                f"rig {hello.rig!r} moves no vertex; ask for output vertices",
+                fatal=True,
+            )
         self.hello = hello
         self.rig_id = hello.rig
         self._base_rig = rig
         self._rig = rig
         self._calibrate_next = hello.calibration
-        self._outputs = Outputs(hello, rig.num_vertices)
+        self._outputs = outputs = Outputs(hello, rig)
         self._inline = (
             hello.output == "weights"
-            or blend_seconds(rig.num_vertices, rig.num_examples) <= INLINE_MAX_SECONDS
+            or blend_seconds(outputs.rows, rig.num_examples) <= INLINE_MAX_SECONDS
         )
         if hello.smoothing is not None:
             sm = hello.smoothing
@@ -555,7 +563,7 @@ class Session:
         assert values is not None
         try:
             weights = frame_weights(rig, frame, hello, self._smoother)
-            await self.blender.blend(rig, weights, values)
+            await self.blender.blend(rig, weights, values, moving=outputs.moving)
         except InputError as exc:
             self._refuse(frame, exc)
             return None
@@ -632,6 +640,7 @@ def ready_message(session_id: str, hello, rig, limits, settings) -> Ready:
         num_vertices=rig.num_vertices,
         output=hello.output,
         dtype=hello.dtype,
+        moving=rig.moving_vertices if hello.output == "moving" else None,
         limits={
             "max_points": int(limits.max_points),
             "max_fps": float(settings.max_fps),
