@@ -45,3 +45,8 @@ for (const query of ["output=mesh", "dtype=f64", "width=5", "height=x", "rig=../
     assert.throws(() => readParams(`http://h/viewer?${query}`, "viewer"), ParamError);
   });
 }
+
+test("the demo stream may ask for the moving vertices only, a channel may not", () => {
+  assert.equal(readParams("https://example.org/viewer?output=moving&dtype=f16", "viewer").output, "moving");
+  assert.throws(() => readParams("https://example.org/viewer?channel=stage&output=moving", "viewer"), ParamError);
+});
