@@ -8,6 +8,7 @@ batch at a time per blend basis. Arrays only: no sockets, no sessions, no math o
 from __future__ import annotations
 
 import asyncio
+import time
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Any
@@ -15,6 +16,8 @@ from typing import Any
 import numpy as np
 
 from facecast.rig.kernel import to_float16
+
+from .stages import StageTimes
 
 __all__ = ["MAX_BATCH", "MIN_BATCH", "BlendBatcher"]
 
@@ -52,8 +55,14 @@ class _Scratch:
     def __init__(self) -> None:
         self.array: np.ndarray | None = None
 
-    def blend(self, rig: Any, batch: list[_Request], moving: bool) -> None:
-        """Fill every request's ``out`` (worker thread; numpy releases the GIL in matmul)."""
+    def blend(self, rig: Any, batch: list[_Request], moving: bool) -> tuple[float, float]:
+        """Fill every request's ``out`` (worker thread; numpy releases the GIL in matmul).
+
+        Returns the seconds spent blending and casting to the wire dtype.
+        """
+        clock = time.perf_counter
+        started = clock()
+        cast = 0.0
         rows = len(batch) if len(batch) >= MIN_BATCH else 1
         if self.array is None or self.array.shape[0] < rows:
             self.array = np.empty((rows, *batch[0].out.shape), np.float32)
@@ -63,15 +72,19 @@ class _Scratch:
                     rig.blend(request.weights, out=request.out, moving=moving)
                 else:
                     frame = rig.blend(request.weights, out=self.array[0], moving=moving)
+                    cast -= clock()
                     to_float16(frame, request.out)
-            return
+                    cast += clock()
+            return clock() - started - cast, cast
         weights = np.stack([request.weights for request in batch])
         vertices = rig.blend(weights, out=self.array[: len(batch)], moving=moving)
+        blended = clock()
         for request, frame in zip(batch, vertices, strict=True):
             if request.out.dtype == np.float32:
                 np.copyto(request.out, frame)
             else:
                 to_float16(frame, request.out)
+        return blended - started, clock() - blended
 
 
 class BlendBatcher:
@@ -88,13 +101,18 @@ class BlendBatcher:
     concurrency : int
         Batches of one basis running at once (the pool's thread count: a lone rig can
         then use every clone thread).
+    stages : StageTimes, optional
+        Where the blend and cast times and the batch sizes are added.
     """
 
-    def __init__(self, executor: Executor, *, concurrency: int = 1) -> None:
+    def __init__(
+        self, executor: Executor, *, concurrency: int = 1, stages: StageTimes | None = None
+    ) -> None:
         if concurrency < 1:
             raise ValueError(f"concurrency must be >= 1, got {concurrency}")
         self._executor = executor
         self._concurrency = concurrency
+        self._stages = stages
         self._groups: dict[tuple[int, tuple[int, ...], bool], _Group] = {}
         #: Batches run and frames blended so far (single blends count as batches of one).
         self.batches = 0
@@ -139,7 +157,7 @@ class BlendBatcher:
                 self.batches += 1
                 self.frames += len(batch)
                 try:
-                    await loop.run_in_executor(
+                    blend, cast = await loop.run_in_executor(
                         self._executor, scratch.blend, group.rig, batch, group.moving
                     )
                 except Exception as exc:
@@ -147,6 +165,10 @@ class BlendBatcher:
                         if not request.done.done():
                             request.done.set_exception(exc)
                 else:
+                    if self._stages is not None:
+                        self._stages.add("blend", blend, len(batch))
+                        self._stages.add("cast", cast, len(batch))
+                        self._stages.batch_sizes[len(batch)] += 1
                     for request in batch:
                         if not request.done.done():
                             request.done.set_result(None)

@@ -260,6 +260,7 @@ class Session:
     # -- reading -------------------------------------------------------------------------
     async def _read_loop(self) -> None:
         receive, clock, queued = self.ws.receive, self._loop.time, self._queued
+        stages = self.metrics.stages
         burst_start = 0.0
         while True:
             if queued is not None:
@@ -281,9 +282,12 @@ class Session:
             try:
                 if data is None:
                     self.protocol.receive_text(message.get("text") or "")
+                decoding = time.perf_counter()
                 decoded = self.protocol.receive(data)
                 if type(decoded) is Frame:
-                    self._on_frame(decoded, time.perf_counter() - burst_start < _BURST_SECONDS)
+                    decoded_at = time.perf_counter()
+                    stages.add("decode", decoded_at - decoding)
+                    self._on_frame(decoded, decoded_at - burst_start < _BURST_SECONDS)
                 else:
                     self._flush()
                     await self._dispatch(decoded)
@@ -307,7 +311,9 @@ class Session:
         self._corked, self._corked_bytes = [], 0
         data = binary_frame(corked[0]) if len(corked) == 1 else b"".join(map(binary_frame, corked))
         direct = self._direct
+        writing = time.perf_counter()
         if direct is not None and not self._outbox and not self._control and direct(data):
+            self.metrics.stages.add("write", time.perf_counter() - writing, len(corked))
             self.counters.results_out += len(corked)
             self.metrics.frames_out.inc(len(corked))
             return
@@ -499,6 +505,8 @@ class Session:
     # -- writing -------------------------------------------------------------------------
     async def _write_loop(self) -> None:
         ws_send, direct = self.ws.send_bytes, self._direct
+        # "write" includes waiting for a client that does not read (the ASGI send).
+        stages, clock = self.metrics.stages, time.perf_counter
 
         async def send(data: bytes) -> None:
             # Straight to the socket when it takes the frame at once (one copy of a large
@@ -513,7 +521,9 @@ class Session:
             if self._outbox:
                 data = self._outbox.popleft()
                 self._outbox_bytes -= len(data)
+                writing = clock()
                 await send(data)
+                stages.add("write", clock() - writing)
                 self.counters.results_out += 1
                 self.metrics.frames_out.inc()
                 continue
@@ -538,7 +548,9 @@ class Session:
                 continue
             # Blocks while the client does not read; the reader keeps replacing the
             # pending frame meanwhile, so nothing piles up.
+            writing = clock()
             await send(data)
+            stages.add("write", clock() - writing)
             self.counters.results_out += 1
             self.metrics.frames_out.inc()
 
@@ -562,7 +574,9 @@ class Session:
         values = outputs.wire if outputs.wire is not None else outputs.vertices
         assert values is not None
         try:
+            started = time.perf_counter()
             weights = frame_weights(rig, frame, hello, self._smoother)
+            self.metrics.stages.add("weights", time.perf_counter() - started)
             await self.blender.blend(rig, weights, values, moving=outputs.moving)
         except InputError as exc:
             self._refuse(frame, exc)
@@ -574,7 +588,9 @@ class Session:
         hello, outputs = self.hello, self._outputs
         assert hello is not None and outputs is not None
         try:
-            values = clone_frame(self._rig, frame, hello, self._smoother, outputs)
+            values = clone_frame(
+                self._rig, frame, hello, self._smoother, outputs, self.metrics.stages
+            )
         except InputError as exc:
             self._refuse(frame, exc)
             return None
@@ -586,7 +602,8 @@ class Session:
         )
 
     def _encode(self, frame: Frame, arrived: float, values: np.ndarray) -> bytes:
-        elapsed = time.perf_counter() - arrived
+        encoding = time.perf_counter()
+        elapsed = encoding - arrived
         outputs = self._outputs
         assert outputs is not None
         # Encoding copies ``values`` out of the session's reused buffers.
@@ -598,6 +615,7 @@ class Session:
             proc_us=int(elapsed * 1e6),
             dropped=self.counters.dropped,
         )
+        self.metrics.stages.add("encode", time.perf_counter() - encoding)
         self.metrics.processing_seconds.observe(elapsed)
         return data
 
