@@ -3,7 +3,10 @@
 Starts real ``facecast serve`` processes on 127.0.0.1 (and a redis-server when needed),
 publishes the demo performance at 60 fps (weights mode) and ramps viewers held by
 separate client processes, so the load generator does not starve the server. It
-measures from outside only: it never imports the server.
+measures from outside only: it never imports the server. The same ramp then runs
+against its floor, a bare ``websockets`` server that broadcasts (``broadcast()``) a
+result of the same bytes to the same viewers per published frame: facecast's server
+CPU per result is reported as a ratio to the floor's at each viewer count.
 """
 
 from __future__ import annotations
@@ -27,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from .measure import cpu_seconds
+
 #: Viewer counts tried, in order; the ramp stops at the first step over the goal.
 STEPS = (250, 500, 750, 1000, 1250, 1500, 2000)
 GOAL_P99_MS = 50.0
@@ -36,6 +41,75 @@ RIGS = ("bench-a", "bench-b", "bench-c")
 CLIENT_PROCESSES = 2
 #: A step fails too when viewers get fewer than this share of the frames published.
 MIN_DELIVERY = 0.9
+#: Goal: facecast's server CPU per delivered result at most this times the floor's.
+GOAL_FLOOR_RATIO = 1.2
+
+
+# -- the floor: a bare websockets broadcast of the same bytes ------------------------------
+def _serve_floor(port: int, ready: bytes, weights: bytes) -> None:
+    """Subprocess: viewers connect on any ``.../watch`` path; each frame the publisher
+    sends is answered by one ``broadcast()`` of a result to each rig's viewers."""
+    import msgpack
+    import uvloop
+    from websockets.asyncio.server import broadcast, serve
+
+    from facecast.protocol import SUBPROTOCOL, Result, encode
+
+    values = np.frombuffer(weights, dtype=np.float32)
+    groups: dict[str, set] = {}
+
+    async def handler(ws) -> None:
+        path = ws.request.path
+        if "/publish" in path:
+            await ws.recv()  # hello
+            await ws.send(ready)
+            async for message in ws:
+                frame = msgpack.unpackb(message)
+                for members in groups.values():
+                    # What facecast sends a watcher: the rig's result, encoded once.
+                    data = encode(Result(seq=frame["seq"], ts=frame["ts"], weights=values,
+                                         server_ts=time.time()))  # fmt: skip
+                    broadcast(members, data)
+            return
+        rig = path.split("rig=", 1)[-1].split("&", 1)[0]
+        members = groups.setdefault(rig, set())
+        members.add(ws)
+        try:
+            await ws.wait_closed()
+        finally:
+            members.discard(ws)
+
+    async def main() -> None:
+        async with serve(handler, "127.0.0.1", port, compression=None, max_size=1 << 20,
+                         subprotocols=[SUBPROTOCOL], ping_interval=None):  # fmt: skip
+            await asyncio.Future()
+
+    uvloop.run(main())
+
+
+def _start_floor(rig) -> tuple[subprocess.Popen, int]:
+    from facecast.protocol import Ready, encode
+
+    port = _free_port()
+    ready = encode(Ready(session="floor", rig=RIGS[0], names=rig.names,
+                         num_points=rig.num_points, num_vertices=rig.num_vertices,
+                         output="weights", dtype="f32"))  # fmt: skip
+    weights = np.full(rig.num_examples, 1.0 / rig.num_examples, np.float32).tobytes()
+    code = (
+        "from facecast.client.bench.broadcast import _serve_floor; "
+        f"_serve_floor({port}, bytes.fromhex({ready.hex()!r}), bytes.fromhex({weights.hex()!r}))"
+    )
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+    process = subprocess.Popen([sys.executable, "-c", code], env=env,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        with socket.socket() as sock:
+            if sock.connect_ex(("127.0.0.1", port)) == 0:
+                return process, port
+        time.sleep(0.05)
+    _stop(process)
+    raise TimeoutError("the bare broadcast server did not listen within 30 s")
 
 
 # -- client processes: many raw WebSocket viewers each -----------------------------------
@@ -251,8 +325,8 @@ def _free_port() -> int:
         return sock.getsockname()[1]
 
 
-def _prepare_rigs(directory: Path) -> np.ndarray:
-    """The demo rig under three ids (three characters); the demo performance's points."""
+def _prepare_rigs(directory: Path) -> tuple[Any, np.ndarray]:
+    """The demo rig under three ids (three characters), and the demo performance's points."""
     from facecast.rig import fit
     from facecast.rig.demo import demo_animation, demo_example_set
 
@@ -260,7 +334,7 @@ def _prepare_rigs(directory: Path) -> np.ndarray:
     directory.mkdir(parents=True, exist_ok=True)
     for rig_id in RIGS:
         rig.save(directory / f"{rig_id}.rig")
-    return demo_animation(10.0, with_vertices=False).points.astype(np.float32)
+    return rig, demo_animation(10.0, with_vertices=False).points.astype(np.float32)
 
 
 def _start_server(rigs: Path, redis_url: str | None) -> tuple[subprocess.Popen, int]:
@@ -318,22 +392,14 @@ async def _publish(port: int, frames: np.ndarray, counter: list[int], stop: asyn
             counter[0] += 1
 
 
-def _cpu_seconds(pids: list[int]) -> float:
-    """User + system CPU time of processes ``pids`` (Linux /proc; NaN elsewhere)."""
-    total = 0.0
-    for pid in pids:
-        try:
-            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            return float("nan")
-        total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    return total
-
-
 async def _ramp(
-    ports: dict[str, int], pids: list[int], frames: np.ndarray, seconds: float, say
-) -> dict[str, Any]:
-    """Ramp viewers over ``ports`` (split evenly); figures per step, per group of viewers."""
+    ports: dict[str, int], pids: list[int], frames: np.ndarray, seconds: float, say,
+    *, facecast: bool = True,
+) -> dict[str, Any]:  # fmt: skip
+    """Ramp viewers over ``ports`` (split evenly); figures per step, per group of viewers.
+
+    ``facecast`` False: the floor, which has no ``GET /v1/channels/{name}`` to read.
+    """
 
     counter, stop = [0], asyncio.Event()
     publisher = asyncio.create_task(_publish(ports["a"], frames, counter, stop))
@@ -350,25 +416,25 @@ async def _ramp(
             total = target
             await asyncio.sleep(1.0)  # warm-up: let the new viewers' first results settle
             client_pids = [p.pid for c in clients.values() for p in c.processes]
-            before = await _channel_info(ports["a"])
-            cpu0, wall0 = _cpu_seconds(pids), time.perf_counter()
-            client_cpu0 = _cpu_seconds(client_pids)
+            before = await _channel_info(ports["a"]) if facecast else _NO_INFO
+            cpu0, wall0 = cpu_seconds(pids), time.perf_counter()
+            client_cpu0 = cpu_seconds(client_pids)
             figures = await asyncio.gather(
                 *(c.measure(seconds, lambda: counter[0]) for c in clients.values())
             )
-            cpu = _cpu_seconds(pids) - cpu0
+            cpu = cpu_seconds(pids) - cpu0
             wall = time.perf_counter() - wall0
             # The load generator shares the machine: its CPU says whether it, not the
             # server, was the limit (each client process can use one core at most).
-            client_cores = (_cpu_seconds(client_pids) - client_cpu0) / wall
-            after = await _channel_info(ports["a"])
+            client_cores = (cpu_seconds(client_pids) - client_cpu0) / wall
+            after = await _channel_info(ports["a"]) if facecast else _NO_INFO
             # Where results went missing: frames the server never cloned (the fan-out
             # of one frame outlasted the next), or results it skipped for a slow viewer.
             uncloned = 1.0 - min(
                 1.0,
                 (after["frames"] - before["frames"])
                 / max(1, sum(f["frames"] for f in figures) / len(figures)),
-            )
+            ) if facecast else 0.0  # fmt: skip
             skipped = after["skipped"] - before["skipped"]
             results = sum(f["results"] for f in figures)
             by_group = dict(zip(clients, figures, strict=True))
@@ -393,7 +459,7 @@ async def _ramp(
             if not ok:
                 break
             held = target
-        info = await _channel_info(ports["a"])
+        info = await _channel_info(ports["a"]) if facecast else {}
     finally:
         stop.set()
         await asyncio.gather(publisher, return_exceptions=True)
@@ -401,6 +467,10 @@ async def _ramp(
             await client.close()
     return {"held": held, "steps": steps, "clones_per_frame": info.get("clones_per_frame"),
             "keys": len(info.get("keys", []))}  # fmt: skip
+
+
+#: What the floor reports instead of ``GET /v1/channels/{name}``: nothing skipped.
+_NO_INFO: dict[str, Any] = {"frames": 0, "skipped": 0}
 
 
 async def _channel_info(port: int) -> dict[str, Any]:
@@ -438,7 +508,7 @@ def run(args: argparse.Namespace) -> int:
                                "cpus": os.cpu_count()}  # fmt: skip
     with tempfile.TemporaryDirectory(prefix="facecast-bench-") as tmp:
         rigs = Path(tmp) / "rigs"
-        frames = _prepare_rigs(rigs)
+        rig, frames = _prepare_rigs(rigs)
         say(f"one process, {len(RIGS)} rigs, 60 fps weights; {seconds:.1f} s per step")
         server, port = _start_server(rigs, None)
         try:
@@ -448,6 +518,15 @@ def run(args: argparse.Namespace) -> int:
             )
         finally:
             _stop(server)
+        say("floor: a bare websockets server broadcasting a result of the same bytes")
+        floor, floor_port = _start_floor(rig)
+        try:
+            figures["floor"] = asyncio.run(
+                _ramp({"a": floor_port}, [floor.pid], frames, seconds, say, facecast=False)
+            )
+        finally:
+            _stop(floor)
+        figures["floor_ratio"] = _floor_ratios(figures["one_process"], figures["floor"])
         redis_process, redis_url = (None, args.redis) if args.redis else _start_redis()
         if redis_url is None:
             say("two processes on Redis: skipped (no --redis and no redis-server installed)")
@@ -472,6 +551,14 @@ def run(args: argparse.Namespace) -> int:
                 if redis_process is not None:
                     _stop(redis_process)
     one = figures["one_process"]
+    ratios = figures["floor_ratio"]
+    for viewers, ratio in ratios["per_step"].items():
+        say(f"  {viewers:>5} viewers: server CPU per result {ratio:.2f}x the floor's")
+    worst = ratios["worst_held"]
+    say(f"server CPU per result against a bare websockets broadcast (steps held by both): "
+        f"{'-' if worst is None else f'{worst:.2f}'}x (goal <= {GOAL_FLOOR_RATIO}x) "
+        f"{'n/a' if worst is None else 'PASS' if worst <= GOAL_FLOOR_RATIO else 'FAIL'}; "
+        f"viewers held: facecast {one['held']}, floor {figures['floor']['held']}")  # fmt: skip
     passed = one["held"] >= GOAL_VIEWERS
     clones_ok = one["clones_per_frame"] == float(len(RIGS))
     say(f"viewers held by one process at p99 < {GOAL_P99_MS:g} ms: {one['held']} "
@@ -488,6 +575,23 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(figures, indent=2, default=float))
     return 0 if passed and clones_ok else 1
+
+
+def _floor_ratios(facecast: dict[str, Any], floor: dict[str, Any]) -> dict[str, Any]:
+    """facecast's server CPU per result over the floor's, at each viewer count both ran."""
+    ours = {step["viewers"]: step for step in facecast["steps"]}
+    per_step = {}
+    held = []
+    for step in floor["steps"]:
+        mine = ours.get(step["viewers"])
+        if mine is None or not step["server_us_per_result"] > 0:
+            continue
+        ratio = round(mine["server_us_per_result"] / step["server_us_per_result"], 3)
+        per_step[step["viewers"]] = ratio
+        if mine["ok"] and step["ok"]:
+            held.append(ratio)
+    return {"per_step": per_step, "worst_held": max(held) if held else None,
+            "goal": GOAL_FLOOR_RATIO}  # fmt: skip
 
 
 def _added_latency(two: dict[str, Any]) -> float | None:
