@@ -98,21 +98,25 @@ def clone_frame(
     Vertices are written into ``outputs``' buffers and returned as one of them. With
     ``stages``, the time of the weights, blend and cast is added to it.
     """
+    if stages is None:
+        weights = frame_weights(rig, frame, hello, smoother)
+        if outputs.vertices is None:
+            return weights.astype(outputs.dtype)
+        vertices = rig.blend(weights, out=outputs.vertices, moving=outputs.moving)
+        return vertices if outputs.wire is None else to_float16(vertices, outputs.wire)
     clock = time.perf_counter
     started = clock()
     weights = frame_weights(rig, frame, hello, smoother)
     if outputs.vertices is None:
         values = weights.astype(outputs.dtype)
-        if stages is not None:
-            stages.add("weights", clock() - started)
+        stages.add("weights", clock() - started)
         return values
     blended = clock()
     vertices = rig.blend(weights, out=outputs.vertices, moving=outputs.moving)
     cast = clock()
     if outputs.wire is not None:
         vertices = to_float16(vertices, outputs.wire)
-    if stages is not None:
-        stages.add("weights", blended - started)
-        stages.add("blend", cast - blended)
-        stages.add("cast", clock() - cast)
+    stages.add("weights", blended - started)
+    stages.add("blend", cast - blended)
+    stages.add("cast", clock() - cast)
     return vertices

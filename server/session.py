@@ -131,6 +131,8 @@ class Session:
         self.blender = blender if blender is not None else BlendBatcher(executor)
         self.principal = principal
         self.counters = SessionCounters()
+        #: Where stage times go (``stages``), with ``settings.stage_timing`` only.
+        self._stages = metrics.stages if settings.stage_timing else None
         self.protocol = ServerProtocol(
             Limits(max_message_bytes=settings.max_message_bytes),
         )
@@ -260,7 +262,7 @@ class Session:
     # -- reading -------------------------------------------------------------------------
     async def _read_loop(self) -> None:
         receive, clock, queued = self.ws.receive, self._loop.time, self._queued
-        stages = self.metrics.stages
+        stages = self._stages
         burst_start = 0.0
         while True:
             if queued is not None:
@@ -286,7 +288,8 @@ class Session:
                 decoded = self.protocol.receive(data)
                 if type(decoded) is Frame:
                     decoded_at = time.perf_counter()
-                    stages.add("decode", decoded_at - decoding)
+                    if stages is not None:
+                        stages.add("decode", decoded_at - decoding)
                     self._on_frame(decoded, decoded_at - burst_start < _BURST_SECONDS)
                 else:
                     self._flush()
@@ -313,7 +316,8 @@ class Session:
         direct = self._direct
         writing = time.perf_counter()
         if direct is not None and not self._outbox and not self._control and direct(data):
-            self.metrics.stages.add("write", time.perf_counter() - writing, len(corked))
+            if self._stages is not None:
+                self._stages.add("write", time.perf_counter() - writing, len(corked))
             self.counters.results_out += len(corked)
             self.metrics.frames_out.inc(len(corked))
             return
@@ -506,7 +510,7 @@ class Session:
     async def _write_loop(self) -> None:
         ws_send, direct = self.ws.send_bytes, self._direct
         # "write" includes waiting for a client that does not read (the ASGI send).
-        stages, clock = self.metrics.stages, time.perf_counter
+        stages, clock = self._stages, time.perf_counter
 
         async def send(data: bytes) -> None:
             # Straight to the socket when it takes the frame at once (one copy of a large
@@ -523,7 +527,8 @@ class Session:
                 self._outbox_bytes -= len(data)
                 writing = clock()
                 await send(data)
-                stages.add("write", clock() - writing)
+                if stages is not None:
+                    stages.add("write", clock() - writing)
                 self.counters.results_out += 1
                 self.metrics.frames_out.inc()
                 continue
@@ -550,7 +555,8 @@ class Session:
             # pending frame meanwhile, so nothing piles up.
             writing = clock()
             await send(data)
-            stages.add("write", clock() - writing)
+            if stages is not None:
+                stages.add("write", clock() - writing)
             self.counters.results_out += 1
             self.metrics.frames_out.inc()
 
@@ -576,7 +582,8 @@ class Session:
         try:
             started = time.perf_counter()
             weights = frame_weights(rig, frame, hello, self._smoother)
-            self.metrics.stages.add("weights", time.perf_counter() - started)
+            if self._stages is not None:
+                self._stages.add("weights", time.perf_counter() - started)
             await self.blender.blend(rig, weights, values, moving=outputs.moving)
         except InputError as exc:
             self._refuse(frame, exc)
@@ -588,9 +595,7 @@ class Session:
         hello, outputs = self.hello, self._outputs
         assert hello is not None and outputs is not None
         try:
-            values = clone_frame(
-                self._rig, frame, hello, self._smoother, outputs, self.metrics.stages
-            )
+            values = clone_frame(self._rig, frame, hello, self._smoother, outputs, self._stages)
         except InputError as exc:
             self._refuse(frame, exc)
             return None
@@ -615,7 +620,8 @@ class Session:
             proc_us=int(elapsed * 1e6),
             dropped=self.counters.dropped,
         )
-        self.metrics.stages.add("encode", time.perf_counter() - encoding)
+        if self._stages is not None:
+            self._stages.add("encode", time.perf_counter() - encoding)
         self.metrics.processing_seconds.observe(elapsed)
         return data
 

@@ -90,7 +90,7 @@ async def stream(websocket: WebSocket) -> None:
         blender = app.state.blend_batcher = BlendBatcher(
             app.state.clone_executor,
             concurrency=settings.clone_threads,
-            stages=app.state.metrics.stages,
+            stages=app.state.metrics.stages if settings.stage_timing else None,
         )
     session = Session(
         websocket,

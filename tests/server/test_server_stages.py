@@ -49,7 +49,9 @@ async def test_every_stage_of_every_vertices_frame_is_timed(tmp_path, ws_impl, m
 
     monkeypatch.setattr(session_module, "INLINE_MAX_SECONDS", 1e9 if where == "inline" else 0.0)
     rig = tiny_rig(num_vertices=2000)
-    async with run_server(Settings(rigs_dir=tmp_path / "rigs"), ws=ws_impl) as server:
+    async with run_server(
+        Settings(rigs_dir=tmp_path / "rigs", stage_timing=True), ws=ws_impl
+    ) as server:
         server.app.state.store.put_rig("face", rig)
         results = await stream_vertices(server, rig)
         samples = await scrape(server)
@@ -65,7 +67,9 @@ async def test_pooled_blends_count_their_batch_sizes(tmp_path, ws_impl, monkeypa
 
     monkeypatch.setattr(session_module, "INLINE_MAX_SECONDS", 0.0)
     rig = tiny_rig(num_vertices=2000)
-    async with run_server(Settings(rigs_dir=tmp_path / "rigs"), ws=ws_impl) as server:
+    async with run_server(
+        Settings(rigs_dir=tmp_path / "rigs", stage_timing=True), ws=ws_impl
+    ) as server:
         server.app.state.store.put_rig("face", rig)
         await stream_vertices(server, rig)
         samples = await scrape(server)
@@ -77,3 +81,14 @@ async def test_pooled_blends_count_their_batch_sizes(tmp_path, ws_impl, monkeypa
     }
     # One session, one frame in flight at a time: every batch is of one frame.
     assert sizes == {1: FRAMES}
+
+
+async def test_stage_clocks_stay_off_unless_asked_for(tmp_path, ws_impl):
+    rig = tiny_rig(num_vertices=2000)
+    async with run_server(Settings(rigs_dir=tmp_path / "rigs"), ws=ws_impl) as server:
+        server.app.state.store.put_rig("face", rig)
+        await stream_vertices(server, rig)
+        samples = await scrape(server)
+
+    for stage in STAGES:
+        assert samples[("facecast_stage_items_total", stage)] == 0, stage
