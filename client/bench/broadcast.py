@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from .measure import cpu_seconds
+from .measure import cpu_seconds, stage_snapshot
 
 #: Viewer counts tried, in order; the ramp stops at the first step over the goal.
 STEPS = (250, 500, 750, 1000, 1250, 1500, 2000)
@@ -340,7 +340,8 @@ def _prepare_rigs(directory: Path) -> tuple[Any, np.ndarray]:
 def _start_server(rigs: Path, redis_url: str | None) -> tuple[subprocess.Popen, int]:
     port = _free_port()
     env = {**os.environ, "FACECAST_MAX_CONNECTIONS": "5000", "FACECAST_ACCESS_LOG": "false",
-           "FACECAST_LOG_LEVEL": "warning", "OPENBLAS_NUM_THREADS": "1"}  # fmt: skip
+           "FACECAST_LOG_LEVEL": "warning", "OPENBLAS_NUM_THREADS": "1",
+           "FACECAST_STAGE_TIMING": "true"}  # fmt: skip
     command = [sys.executable, "-m", "facecast.client.cli", "serve", "--port", str(port),
                "--rigs", str(rigs)]  # fmt: skip
     if redis_url:
@@ -417,6 +418,7 @@ async def _ramp(
             await asyncio.sleep(1.0)  # warm-up: let the new viewers' first results settle
             client_pids = [p.pid for c in clients.values() for p in c.processes]
             before = await _channel_info(ports["a"]) if facecast else _NO_INFO
+            stages0 = await _snapshots(ports) if facecast else None
             cpu0, wall0 = cpu_seconds(pids), time.perf_counter()
             client_cpu0 = cpu_seconds(client_pids)
             figures = await asyncio.gather(
@@ -428,6 +430,10 @@ async def _ramp(
             # server, was the limit (each client process can use one core at most).
             client_cores = (cpu_seconds(client_pids) - client_cpu0) / wall
             after = await _channel_info(ports["a"]) if facecast else _NO_INFO
+            stages = None
+            if stages0 is not None:
+                stages1 = await _snapshots(ports)
+                stages = _summed_stages(stages0, stages1)
             # Where results went missing: frames the server never cloned (the fan-out
             # of one frame outlasted the next), or results it skipped for a slow viewer.
             uncloned = 1.0 - min(
@@ -450,12 +456,17 @@ async def _ramp(
                           "server_us_per_result": round(us_per_result, 2),
                           "client_cpu_cores": round(client_cores, 3),
                           "frames_not_cloned": round(uncloned, 3), "server_skipped": skipped,
-                          "groups": by_group})  # fmt: skip
+                          "groups": by_group, "stages": stages})  # fmt: skip
             say(f"  {target:5d} viewers: p99 {p99:7.2f} ms, delivered {delivered:6.1%}, "
                 f"server CPU {server_cores:4.2f} cores ({us_per_result:5.1f} us/result), "
                 f"clients {client_cores:4.2f} cores, not cloned {uncloned:5.1%}, "
                 f"skipped {skipped}, "
                 f"connect failures {failed}  {'ok' if ok else 'OVER'}")  # fmt: skip
+            if stages is not None and results:
+                per = {k: v / results * 1e6 for k, v in stages.items()}
+                say(f"          server us/result by stage: clone and encode {per['weights']:.2f} "
+                    f"(one per rig and frame, shared by its viewers), fan-out write "
+                    f"{per['write']:.2f}")  # fmt: skip
             if not ok:
                 break
             held = target
@@ -467,6 +478,24 @@ async def _ramp(
             await client.close()
     return {"held": held, "steps": steps, "clones_per_frame": info.get("clones_per_frame"),
             "keys": len(info.get("keys", []))}  # fmt: skip
+
+
+async def _snapshots(ports: dict[str, int]) -> list[dict[str, Any]]:
+    """Every server's stage clocks (read in a thread: the publisher shares this loop)."""
+    return [
+        await asyncio.to_thread(stage_snapshot, f"http://127.0.0.1:{port}")
+        for port in ports.values()
+    ]
+
+
+def _summed_stages(before: list[dict], after: list[dict]) -> dict[str, float]:
+    """Seconds per stage spent between two snapshots of every server, summed."""
+    return {
+        stage: sum(
+            a["seconds"][stage] - b["seconds"][stage] for b, a in zip(before, after, strict=True)
+        )
+        for stage in ("weights", "write")
+    }
 
 
 #: What the floor reports instead of ``GET /v1/channels/{name}``: nothing skipped.
