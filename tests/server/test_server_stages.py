@@ -53,10 +53,9 @@ async def test_every_stage_of_every_vertices_frame_is_timed(tmp_path, ws_impl, m
         Settings(rigs_dir=tmp_path / "rigs", stage_timing=True), ws=ws_impl
     ) as server:
         server.app.state.store.put_rig("face", rig)
-        results = await stream_vertices(server, rig)
+        await stream_vertices(server, rig)
         samples = await scrape(server)
 
-    assert len(results) == FRAMES
     for stage in STAGES:
         assert samples[("facecast_stage_items_total", stage)] == FRAMES, stage
         assert samples[("facecast_stage_seconds_total", stage)] > 0, stage
