@@ -412,9 +412,9 @@ class Rig:
         """Target vertices for blend weights (eq. 3.14): T_B + sum_i w_i (T_i - T_B).
 
         Only the basis columns of the ``moving_vertices`` are blended (the others are
-        T_B), and only the rows of non-zero weights when few are (bounded weights,
-        ``rig.blend.SPARSE_ROWS_MAX``); the result equals the dense product ``w @ basis``
-        to float rounding.
+        T_B), and only the rows of non-zero weights when that reads less of the basis
+        (bounded weights; ``rig.blend.blend_plan``); the result equals the dense product
+        ``w @ basis`` to float rounding.
 
         Parameters
         ----------

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from facecast.rig import ExampleSet, InputError, fit
-from facecast.rig.blend import SPARSE_ROWS_MAX, blend_into
+from facecast.rig.blend import blend_into, blend_plan
 from facecast.rig.ict import ict_animation, ict_example_set, locate_ict
 
 M, K, V = 9, 6, 50
@@ -96,24 +96,41 @@ def test_calibrated_rig_shares_the_moving_vertices(rig):
 @pytest.mark.parametrize("used", [1, 2, 3])
 def test_sparse_blend_equals_dense_product_within_rounding(rig, rows, used):
     weights = sparse_weights(rows, used, seed=rows + used)
-    # Few enough rows used that the sparse path is taken (neutral row included).
-    assert used + 1 <= SPARSE_ROWS_MAX * M
     dense = weights.copy()
     dense[:, 0] = 1.0
     expected = (dense @ rig.blend_basis.astype(np.float64)).reshape(rows, V, 3)
     np.testing.assert_allclose(rig.blend(weights), expected, rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize("rows", [1, 5])
-def test_blend_into_sparse_and_dense_paths_agree(rows):
-    rng = np.random.default_rng(rows)
-    basis = rng.normal(size=(12, 300)).astype(np.float32)
-    weights = np.zeros((rows, 12), np.float32)
+def _plan_weights(plan: str) -> np.ndarray:
+    """(B, 12) weights that ``blend_plan`` multiplies the way ``plan`` says."""
+    rng = np.random.default_rng(3)
+    if plan == "dense":  # every row used by every frame
+        return rng.random((4, 12)).astype(np.float32)
+    weights = np.zeros((16, 12), np.float32)
     weights[:, 0] = 1.0
-    weights[:, 5] = rng.random(rows)
-    sparse = blend_into(weights, basis, np.empty((rows, 300), np.float32))
-    dense = np.matmul(weights, basis)
-    np.testing.assert_allclose(sparse, dense, rtol=1e-6, atol=1e-6)
+    if plan == "gathered":  # 16 frames sharing 3 rows: 48 non-zeros, 9 rows gathered
+        weights[:, [2, 7]] = rng.random((16, 2))
+    else:  # one frame, two rows
+        weights = weights[:1]
+        weights[0, 5] = 0.5
+    return weights
+
+
+@pytest.mark.parametrize("plan", ["dense", "gathered", "sparse"])
+def test_every_blend_plan_equals_the_dense_product_within_rounding(plan):
+    weights = _plan_weights(plan)
+    basis = np.random.default_rng(4).normal(size=(12, 300)).astype(np.float32)
+    assert blend_plan(weights)[0] == plan
+    result = blend_into(weights, basis, np.empty((len(weights), 300), np.float32))
+    expected = weights.astype(np.float64) @ basis.astype(np.float64)
+    np.testing.assert_allclose(result, expected, rtol=1e-5, atol=1e-5)
+
+
+def test_a_sparse_frame_reads_only_its_rows():
+    plan, used = blend_plan(_plan_weights("sparse"))
+    assert plan == "sparse"
+    np.testing.assert_array_equal(used, [0, 5])
 
 
 @pytest.mark.ict
@@ -125,8 +142,8 @@ def test_ict_moving_vertices_stream_a_performance_losslessly():
         rig = fit(example_set, noise=0.01, clamp="nonneg")
     _, animation = ict_animation(example_set, seconds=0.5, fps=30.0, seed=5)
     weights = rig.weights(animation.points)
-    # Bounded weights are sparse: most frames use few rows of the basis.
-    assert np.median((weights[:, 1:] != 0).sum(axis=1)) < SPARSE_ROWS_MAX * (rig.num_examples - 1)
+    # Bounded weights are sparse: a frame alone is blended from its non-zero rows only.
+    assert all(blend_plan(w[None].astype(np.float32))[0] == "sparse" for w in weights)
     moving = rig.moving_vertices
     assert 0 < moving.size < rig.num_vertices
     full = rig.blend(weights)
