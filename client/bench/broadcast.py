@@ -534,7 +534,12 @@ def run(args: argparse.Namespace) -> int:
     seconds = max(2.0, float(args.duration) / len(STEPS))
     figures: dict[str, Any] = {"fps": FPS, "goal_p99_ms": GOAL_P99_MS, "goal_viewers": GOAL_VIEWERS,
                                "rigs": len(RIGS), "seconds_per_step": seconds,
-                               "cpus": os.cpu_count()}  # fmt: skip
+                               "cpus": os.cpu_count(),
+                               "load_average_start": list(os.getloadavg())}  # fmt: skip
+    say(
+        f"{os.cpu_count()} CPUs, load average {'/'.join(f'{x:.1f}' for x in os.getloadavg())} "
+        "(1/5/15 min; other work on the machine disturbs every figure, the ratios least)"
+    )
     with tempfile.TemporaryDirectory(prefix="facecast-bench-") as tmp:
         rigs = Path(tmp) / "rigs"
         rig, frames = _prepare_rigs(rigs)
@@ -579,6 +584,7 @@ def run(args: argparse.Namespace) -> int:
                     _stop(process)
                 if redis_process is not None:
                     _stop(redis_process)
+    figures["load_average_end"] = list(os.getloadavg())
     one = figures["one_process"]
     ratios = figures["floor_ratio"]
     for viewers, ratio in ratios["per_step"].items():

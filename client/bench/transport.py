@@ -33,6 +33,7 @@ import argparse
 import asyncio
 import contextlib
 import json
+import os
 import socket
 import subprocess
 import sys
@@ -671,6 +672,7 @@ def run(args: argparse.Namespace) -> int:
     if steps[-1] < max_streams and max_streams not in steps:
         steps.append(max_streams)
     bench = _Run(say, timeout)
+    load_start = list(os.getloadavg())
 
     with tempfile.TemporaryDirectory(prefix="facecast-bench-") as tmp:
         tmp_path = Path(tmp)
@@ -743,6 +745,8 @@ def run(args: argparse.Namespace) -> int:
                                f"{name}-bounded", steps, step_seconds, "floor", False)  # fmt: skip
 
     figures = _figures(results, full["exact"], duration, clients, len(message), name)
+    figures["machine"] = {"cpus": os.cpu_count(), "load_average_start": load_start,
+                          "load_average_end": list(os.getloadavg())}  # fmt: skip
     figures["library_client"] = library
     figures["load_generator_cpu_cores"] = client_cpu / wall
     figures["weights_stages"] = weights_stages
@@ -845,9 +849,14 @@ def _format(f: dict[str, Any]) -> str:
     def num(value: float | None, fmt: str) -> str:
         return "-" if value is None else format(value, fmt)
 
+    machine = f.get("machine") or {}
+    loads = [machine.get("load_average_start"), machine.get("load_average_end")]
+    load_text = " -> ".join("/".join(f"{x:.1f}" for x in v) for v in loads if v)
     lines = [
         f"transport benchmark: frame of {f['frame_bytes']} bytes, "
-        f"{f['duration']:g} s per phase, window {f['pipeline_window']}",
+        f"{f['duration']:g} s per phase, window {f['pipeline_window']}; "
+        f"{machine.get('cpus', '?')} CPUs, load average {load_text or '?'} (1/5/15 min: "
+        "other work on the machine disturbs every figure, the ratios least)",
         f"  {'server':<12}{'RTT p50 (ms)':>14}{'pipelined (msg/s)':>20}{'server CPU (us/msg)':>22}",
     ]
     for name in (*_BASELINES, "facecast"):
