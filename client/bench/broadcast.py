@@ -415,58 +415,64 @@ async def _ramp(
                 share = (target - total) // len(clients) + (i < (target - total) % len(clients))
                 failed += await client.add(group, share)
             total = target
-            await asyncio.sleep(1.0)  # warm-up: let the new viewers' first results settle
-            client_pids = [p.pid for c in clients.values() for p in c.processes]
-            before = await _channel_info(ports["a"]) if facecast else _NO_INFO
-            stages0 = await _snapshots(ports) if facecast else None
-            cpu0, wall0 = cpu_seconds(pids), time.perf_counter()
-            client_cpu0 = cpu_seconds(client_pids)
-            figures = await asyncio.gather(
-                *(c.measure(seconds, lambda: counter[0]) for c in clients.values())
-            )
-            cpu = cpu_seconds(pids) - cpu0
-            wall = time.perf_counter() - wall0
-            # The load generator shares the machine: its CPU says whether it, not the
-            # server, was the limit (each client process can use one core at most).
-            client_cores = (cpu_seconds(client_pids) - client_cpu0) / wall
-            after = await _channel_info(ports["a"]) if facecast else _NO_INFO
-            stages = None
-            if stages0 is not None:
-                stages1 = await _snapshots(ports)
-                stages = _summed_stages(stages0, stages1)
-            # Where results went missing: frames the server never cloned (the fan-out
-            # of one frame outlasted the next), or results it skipped for a slow viewer.
-            uncloned = 1.0 - min(
-                1.0,
-                (after["frames"] - before["frames"])
-                / max(1, sum(f["frames"] for f in figures) / len(figures)),
-            ) if facecast else 0.0  # fmt: skip
-            skipped = after["skipped"] - before["skipped"]
-            results = sum(f["results"] for f in figures)
-            by_group = dict(zip(clients, figures, strict=True))
-            p99 = max(f["p99_ms"] for f in figures)
-            expected = sum(f["frames"] for f in figures) / len(figures) * target
-            delivered = sum(f["results"] for f in figures) / expected if expected else 0.0
-            ok = failed == 0 and p99 < GOAL_P99_MS and delivered >= MIN_DELIVERY
-            server_cores = cpu / wall
-            us_per_result = cpu / results * 1e6 if results else float("nan")
-            steps.append({"viewers": target, "failed_connections": failed, "p99_ms": p99,
-                          "delivered": round(delivered, 3), "ok": ok,
-                          "server_cpu_cores": round(server_cores, 3),
-                          "server_us_per_result": round(us_per_result, 2),
-                          "client_cpu_cores": round(client_cores, 3),
-                          "frames_not_cloned": round(uncloned, 3), "server_skipped": skipped,
-                          "groups": by_group, "stages": stages})  # fmt: skip
-            say(f"  {target:5d} viewers: p99 {p99:7.2f} ms, delivered {delivered:6.1%}, "
-                f"server CPU {server_cores:4.2f} cores ({us_per_result:5.1f} us/result), "
-                f"clients {client_cores:4.2f} cores, not cloned {uncloned:5.1%}, "
-                f"skipped {skipped}, "
-                f"connect failures {failed}  {'ok' if ok else 'OVER'}")  # fmt: skip
-            if stages is not None and results:
-                per = {k: v / results * 1e6 for k, v in stages.items()}
-                say(f"          server us/result by stage: clone and encode {per['weights']:.2f} "
-                    f"(one per rig and frame, shared by its viewers), fan-out write "
-                    f"{per['write']:.2f}")  # fmt: skip
+            # A step over the goal is measured once more: one busy moment of a shared
+            # machine must not end the ramp (both attempts are kept in ``steps``).
+            for attempt in (1, 2):
+                await asyncio.sleep(1.0)  # warm-up: let the new viewers' first results settle
+                client_pids = [p.pid for c in clients.values() for p in c.processes]
+                before = await _channel_info(ports["a"]) if facecast else _NO_INFO
+                stages0 = await _snapshots(ports) if facecast else None
+                cpu0, wall0 = cpu_seconds(pids), time.perf_counter()
+                client_cpu0 = cpu_seconds(client_pids)
+                figures = await asyncio.gather(
+                    *(c.measure(seconds, lambda: counter[0]) for c in clients.values())
+                )
+                cpu = cpu_seconds(pids) - cpu0
+                wall = time.perf_counter() - wall0
+                # The load generator shares the machine: its CPU says whether it, not the
+                # server, was the limit (each client process can use one core at most).
+                client_cores = (cpu_seconds(client_pids) - client_cpu0) / wall
+                after = await _channel_info(ports["a"]) if facecast else _NO_INFO
+                stages = None
+                if stages0 is not None:
+                    stages1 = await _snapshots(ports)
+                    stages = _summed_stages(stages0, stages1)
+                # Where results went missing: frames the server never cloned (the fan-out
+                # of one frame outlasted the next), or results it skipped for a slow viewer.
+                uncloned = 1.0 - min(
+                    1.0,
+                    (after["frames"] - before["frames"])
+                    / max(1, sum(f["frames"] for f in figures) / len(figures)),
+                ) if facecast else 0.0  # fmt: skip
+                skipped = after["skipped"] - before["skipped"]
+                results = sum(f["results"] for f in figures)
+                by_group = dict(zip(clients, figures, strict=True))
+                p99 = max(f["p99_ms"] for f in figures)
+                expected = sum(f["frames"] for f in figures) / len(figures) * target
+                delivered = sum(f["results"] for f in figures) / expected if expected else 0.0
+                ok = failed == 0 and p99 < GOAL_P99_MS and delivered >= MIN_DELIVERY
+                server_cores = cpu / wall
+                us_per_result = cpu / results * 1e6 if results else float("nan")
+                steps.append({"viewers": target, "attempt": attempt,
+                              "failed_connections": failed, "p99_ms": p99,
+                              "delivered": round(delivered, 3), "ok": ok,
+                              "server_cpu_cores": round(server_cores, 3),
+                              "server_us_per_result": round(us_per_result, 2),
+                              "client_cpu_cores": round(client_cores, 3),
+                              "frames_not_cloned": round(uncloned, 3), "server_skipped": skipped,
+                              "groups": by_group, "stages": stages})  # fmt: skip
+                say(f"  {target:5d} viewers: p99 {p99:7.2f} ms, delivered {delivered:6.1%}, "
+                    f"server CPU {server_cores:4.2f} cores ({us_per_result:5.1f} us/result), "
+                    f"clients {client_cores:4.2f} cores, not cloned {uncloned:5.1%}, "
+                    f"skipped {skipped}, "
+                    f"connect failures {failed}  {'ok' if ok else 'OVER'}")  # fmt: skip
+                if stages is not None and results:
+                    per = {k: v / results * 1e6 for k, v in stages.items()}
+                    say(f"          server us/result by stage: clone and encode {per['weights']:.2f} "
+                        f"(one per rig and frame, shared by its viewers), fan-out write "
+                        f"{per['write']:.2f}")  # fmt: skip
+                if ok:
+                    break
             if not ok:
                 break
             held = target
