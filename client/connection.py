@@ -268,11 +268,12 @@ class StreamSession:
             self.ready = ready
             return
         old = self.ready
-        if (ready.names, ready.num_points, ready.num_vertices) != (
+        if (ready.names, ready.num_points, ready.num_vertices, ready.result_vertices) != (
             old.names,
             old.num_points,
             old.num_vertices,
-        ):
+            old.result_vertices,
+        ) or (ready.moving is not None and not np.array_equal(ready.moving, old.moving)):
             raise ProtocolError(
                 ErrorCode.INVALID_FIELD,
                 f"rig {ready.rig!r} changed on the server while reconnecting "
@@ -414,6 +415,44 @@ class StreamSession:
         """The rig's M example names (``names[0]`` is the neutral)."""
         assert self.ready is not None
         return self.ready.names
+
+    @property
+    def moving(self) -> np.ndarray | None:
+        """With output "moving": the (N,) indices of the vertices results carry, else None."""
+        assert self.ready is not None
+        return self.ready.moving
+
+    def full_vertices(self, vertices: np.ndarray, neutral: np.ndarray) -> np.ndarray:
+        """The whole mesh of a "moving" result: ``neutral`` with ``vertices`` at ``moving``.
+
+        Parameters
+        ----------
+        vertices : (N, 3) or (F, N, 3) float
+            Results' vertices, in the order of ``moving``.
+        neutral : (V, 3) float
+            The target's neutral mesh (``Rig.target_neutral``, or the model's positions).
+
+        Returns
+        -------
+        (V, 3) or (F, V, 3) float32: equal to a "vertices" result of the same frames
+        (bit for bit in f32: the vertices not sent are the neutral's in every blend).
+        """
+        moving = self.moving
+        if moving is None:
+            raise ValueError("full_vertices needs a session whose output is moving")
+        vertices = np.asarray(vertices)
+        neutral = np.asarray(neutral, dtype=np.float32)
+        if neutral.shape != (self.ready.num_vertices, 3) or vertices.shape[-2:] != (
+            moving.size,
+            3,
+        ):
+            raise ValueError(
+                f"expected vertices (..., {moving.size}, 3) and a neutral "
+                f"({self.ready.num_vertices}, 3), got {vertices.shape} and {neutral.shape}"
+            )
+        full = np.array(np.broadcast_to(neutral, (*vertices.shape[:-2], *neutral.shape)))
+        full[..., moving, :] = vertices
+        return full
 
     @property
     def dropped(self) -> int:
@@ -654,7 +693,7 @@ def connect(
     url: str,
     rig: str,
     *,
-    output: Literal["weights", "vertices"] = "weights",
+    output: Literal["weights", "vertices", "moving"] = "weights",
     dtype: Literal["f32", "f16"] = "f32",
     token: str | None = None,
     align: bool = False,
@@ -674,8 +713,10 @@ def connect(
         URL ``ws(s)://.../v1/stream`` is derived).
     rig : str
         Rig id on the server.
-    output : {"weights", "vertices"}
-        Results carry (M,) weights or (V, 3) target vertices.
+    output : {"weights", "vertices", "moving"}
+        Results carry (M,) weights, (V, 3) target vertices, or (N, 3) vertices: only the
+        rig's moving ones (``StreamSession.moving``; ``StreamSession.full_vertices``
+        puts them into the target's neutral mesh).
     dtype : {"f32", "f16"}
         Result dtype.
     token : str, optional

@@ -54,7 +54,7 @@ class StreamOutcome:
 
     Attributes
     ----------
-    values : (F, M) or (F, V, 3) float32
+    values : (F, M), (F, V, 3) or (output "moving") (F, N, 3) float32
         The result of every frame, in frame order.
     live : int
         Frames whose result arrived while streaming.
@@ -154,7 +154,7 @@ async def stream_frames(
     ready = session.ready
     assert ready is not None
     total = points.shape[0]
-    shape = (ready.num_examples,) if ready.output == "weights" else (ready.num_vertices, 3)
+    shape = (ready.num_examples,) if ready.output == "weights" else (ready.result_vertices, 3)
     values = np.zeros((total, *shape), dtype=np.float32)
     have = np.zeros(total, dtype=bool)
     errors: Counter[str] = Counter()

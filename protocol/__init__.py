@@ -15,6 +15,7 @@ from facecast.protocol.connection import ClientProtocol, ClientState, ServerProt
 from facecast.protocol.errors import ErrorCode, ProtocolError
 from facecast.protocol.limits import Limits
 from facecast.protocol.messages import (
+    CHANNEL_OUTPUTS,
     MAX_ERROR_MESSAGE,
     OUTPUTS,
     POINTS_DTYPES,
@@ -53,6 +54,7 @@ from facecast.protocol.transport import (
 
 __all__ = [
     "BEARER_SUBPROTOCOL_PREFIX",
+    "CHANNEL_OUTPUTS",
     "MAX_ERROR_MESSAGE",
     "OUTPUTS",
     "POINTS_DTYPES",

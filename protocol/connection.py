@@ -264,10 +264,13 @@ class ClientProtocol:
         expected = {
             "weights": (ready.num_examples,),
             "vertices": (ready.num_vertices, 3),
+            "moving": (ready.result_vertices, 3),
             "points": (ready.num_points, 3),
         }[ready.output]
+        # A "moving" session's results carry its N vertices in ``vertices`` (§5.2.2).
+        carried = "vertices" if ready.output == "moving" else ready.output
         if (
-            result.output != ready.output
+            result.output != carried
             or result.dtype != ready.dtype
             or result.values.shape != expected
         ):

@@ -33,12 +33,19 @@ from facecast.protocol.limits import Limits
 
 PROTOCOL_VERSION: Final = 1
 
-#: What a session streams back: blendshape weights (M,) or target vertices (V, 3).
-OUTPUTS: Final = ("weights", "vertices")
+#: What a channel clones for its watchers (§2.4): weights (M,) or target vertices (V, 3).
+CHANNEL_OUTPUTS: Final = ("weights", "vertices")
+#: What a ``/v1/stream`` session streams back: a channel's outputs, or only the N vertices
+#: the rig's examples move (``moving``, §5.2.1; their indices come once, in ``ready``).
+OUTPUTS: Final = (*CHANNEL_OUTPUTS, "moving")
 #: Dtypes a client may negotiate for results.
 RESULT_DTYPES: Final = ("f32", "f16")
-#: What a channel watcher may ask for (§2.4): the session outputs, or the published points.
-WATCH_OUTPUTS: Final = (*OUTPUTS, "points")
+#: What a channel watcher may ask for (§2.4): the channel outputs, or the published points.
+WATCH_OUTPUTS: Final = (*CHANNEL_OUTPUTS, "points")
+#: All that ``ready.output`` may say.
+READY_OUTPUTS: Final = (*OUTPUTS, "points")
+#: ``ready.rig.moving``: the moving vertices' indices as little-endian uint32 (§5.2.1).
+MOVING_DTYPE: Final = np.dtype("<u4")
 #: Dtypes of ``points`` results: f16 would blur feature points, f64 keeps f64 frames exact.
 POINTS_DTYPES: Final = ("f32", "f64")
 #: What the one-euro filter smooths: the incoming points or the outgoing weights.
@@ -74,6 +81,23 @@ def _check_array(value: Any, where: str, trailing: tuple[int, ...]) -> None:
         raise ProtocolError(
             ErrorCode.INVALID_ARRAY, f"{where} must be a non-empty float {shape} array, got {got}"
         )
+
+
+def _checked_moving(moving: Any, num_vertices: int) -> np.ndarray:
+    """``ready.rig.moving`` as a read-only (N,) uint32 array, or INVALID_FIELD."""
+    if not isinstance(moving, np.ndarray) or moving.ndim != 1 or moving.dtype.kind not in "iu":
+        raise _fail("ready.rig.moving", "a 1-d integer array", moving)
+    if moving.size == 0:
+        raise ProtocolError(ErrorCode.INVALID_FIELD, "ready.rig.moving must not be empty")
+    values = moving.astype(np.int64)
+    if values[0] < 0 or values[-1] >= num_vertices or np.any(np.diff(values) <= 0):
+        raise ProtocolError(
+            ErrorCode.INVALID_FIELD,
+            f"ready.rig.moving must be strictly increasing vertex indices below {num_vertices}",
+        )
+    out = np.array(moving, dtype=MOVING_DTYPE)
+    out.flags.writeable = False
+    return out
 
 
 def _result_dtypes(output: str) -> tuple[str, ...]:
@@ -386,8 +410,8 @@ class Ping(_Probe):
 # --- server -> client -------------------------------------------------------------------
 
 
-@dataclass(frozen=True, kw_only=True)
-class Ready(Message):
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Ready(_ArrayMessage):
     """The session is open (§5.2.1): what the rig is, what will stream, and the limits.
 
     Attributes
@@ -407,6 +431,9 @@ class Ready(Message):
         watcher that asked for the published frames (§2.4), with dtype "f32" or "f64".
     limits : mapping of str to number
         Limits the server enforces (§7); unknown keys are informational.
+    moving : (N,) uint32 or None
+        With output "moving" (and only then): the indices, strictly increasing and
+        below V, of the vertices each result carries, in that order.
     """
 
     TYPE: ClassVar[str] = "ready"
@@ -418,6 +445,7 @@ class Ready(Message):
     output: str
     dtype: str
     limits: Mapping[str, int | float] = field(default_factory=dict)
+    moving: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         check_str(self.session, "ready.session", None)
@@ -430,8 +458,14 @@ class Ready(Message):
             raise ProtocolError(ErrorCode.INVALID_FIELD, "ready.rig.names must not be empty")
         check_uint(self.num_points, "ready.rig.k")
         check_uint(self.num_vertices, "ready.rig.v")
-        _check_choice(self.output, "ready.output", WATCH_OUTPUTS)
+        _check_choice(self.output, "ready.output", READY_OUTPUTS)
         _check_choice(self.dtype, "ready.dtype", _result_dtypes(self.output))
+        if (self.moving is None) != (self.output != "moving"):
+            raise ProtocolError(
+                ErrorCode.INVALID_FIELD, "ready.rig.moving is present exactly when output is moving"
+            )
+        if self.moving is not None:
+            object.__setattr__(self, "moving", _checked_moving(self.moving, self.num_vertices))
         if not isinstance(self.limits, Mapping):
             raise _fail("ready.limits", "a map", self.limits)
         for key, value in self.limits.items():
@@ -447,17 +481,25 @@ class Ready(Message):
         """M, the number of examples (and of weights per result)."""
         return len(self.names)
 
+    @property
+    def result_vertices(self) -> int:
+        """Rows of a vertices result: N with output "moving", else V."""
+        return self.num_vertices if self.moving is None else int(self.moving.size)
+
     def serialize(self) -> dict[str, Any]:
+        rig: dict[str, Any] = {
+            "id": self.rig,
+            "m": len(self.names),
+            "names": list(self.names),
+            "k": self.num_points,
+            "v": self.num_vertices,
+        }
+        if self.moving is not None:
+            rig["moving"] = self.moving.astype(MOVING_DTYPE, copy=False).data
         return {
             **_header(self.TYPE),
             "session": self.session,
-            "rig": {
-                "id": self.rig,
-                "m": len(self.names),
-                "names": list(self.names),
-                "k": self.num_points,
-                "v": self.num_vertices,
-            },
+            "rig": rig,
             "output": self.output,
             "dtype": self.dtype,
             "limits": dict(self.limits),
@@ -490,7 +532,22 @@ class Ready(Message):
                 ErrorCode.MESSAGE_TOO_LARGE,
                 f"ready.rig.k is {num_points}, more than the limit {limits.max_points}",
             )
-        output = read_str(obj, "output", "ready.output", limits, choices=WATCH_OUTPUTS)
+        output = read_str(obj, "output", "ready.output", limits, choices=READY_OUTPUTS)
+        moving = rig.get("moving")
+        if moving is not None:
+            if type(moving) is not bytes:
+                raise _fail("ready.rig.moving", "bin", moving)
+            if len(moving) % MOVING_DTYPE.itemsize:
+                raise ProtocolError(
+                    ErrorCode.INVALID_FIELD,
+                    f"ready.rig.moving holds {len(moving)} bytes, not a whole number of uint32",
+                )
+            if len(moving) // MOVING_DTYPE.itemsize > limits.max_vertices:
+                raise ProtocolError(
+                    ErrorCode.MESSAGE_TOO_LARGE,
+                    f"ready.rig.moving has more than the limit of {limits.max_vertices} vertices",
+                )
+            moving = np.frombuffer(moving, dtype=MOVING_DTYPE)
         server_limits = read_map(obj, "limits", "ready.limits", {})
         for key, value in server_limits.items():
             if type(key) is not str:
@@ -506,6 +563,7 @@ class Ready(Message):
             output=output,
             dtype=read_str(obj, "dtype", "ready.dtype", limits, choices=_result_dtypes(output)),
             limits=server_limits,
+            moving=moving,
         )
 
 
@@ -776,10 +834,13 @@ SERVER_MESSAGES: Final[dict[str, type[Message]]] = {
 }
 
 __all__ = [
+    "CHANNEL_OUTPUTS",
     "CLIENT_MESSAGES",
+    "MOVING_DTYPE",
     "OUTPUTS",
     "POINTS_DTYPES",
     "PROTOCOL_VERSION",
+    "READY_OUTPUTS",
     "RESULT_DTYPES",
     "SERVER_MESSAGES",
     "SMOOTHING_TARGETS",

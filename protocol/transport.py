@@ -12,7 +12,7 @@ from typing import Final
 from facecast.protocol.errors import ErrorCode, ProtocolError
 from facecast.protocol.fields import check_str
 from facecast.protocol.limits import Limits
-from facecast.protocol.messages import OUTPUTS, RESULT_DTYPES, Hello
+from facecast.protocol.messages import CHANNEL_OUTPUTS, RESULT_DTYPES, Hello
 
 STREAM_PATH: Final = "/v1/stream"
 PUBLISH_PATH: Final = "/v1/channels/{name}/publish"
@@ -98,7 +98,7 @@ def watch_hello(query: Mapping[str, str], limits: Limits = _DEFAULT_LIMITS) -> H
         return Hello(
             rig=check_str(rig, "query rig", limits),
             output=check_str(
-                query.get("output", "weights"), "query output", limits, choices=OUTPUTS
+                query.get("output", "weights"), "query output", limits, choices=CHANNEL_OUTPUTS
             ),
             dtype=check_str(
                 query.get("dtype", "f32"), "query dtype", limits, choices=RESULT_DTYPES

@@ -8,6 +8,7 @@ batch at a time per blend basis. Arrays only: no sockets, no sessions, no math o
 from __future__ import annotations
 
 import asyncio
+import time
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Any
@@ -15,6 +16,8 @@ from typing import Any
 import numpy as np
 
 from facecast.rig.kernel import to_float16
+
+from .stages import StageTimes
 
 __all__ = ["MAX_BATCH", "MIN_BATCH", "BlendBatcher"]
 
@@ -32,7 +35,7 @@ MIN_BATCH = 4
 @dataclass
 class _Request:
     weights: np.ndarray  # (M,) float
-    out: np.ndarray  # (V, 3) float16 or float32, C-contiguous
+    out: np.ndarray  # (V, 3) or (N, 3) (moving) float16 or float32, C-contiguous
     done: asyncio.Future[None]
 
 
@@ -41,6 +44,7 @@ class _Group:
     """Requests for one blend basis and the runners (at most ``concurrency``) serving them."""
 
     rig: Any
+    moving: bool  # every request of the group blends only the rig's moving vertices
     waiting: list[_Request] = field(default_factory=list)
     runners: set[asyncio.Task[None]] = field(default_factory=set)
 
@@ -51,25 +55,36 @@ class _Scratch:
     def __init__(self) -> None:
         self.array: np.ndarray | None = None
 
-    def blend(self, rig: Any, batch: list[_Request]) -> None:
-        """Fill every request's ``out`` (worker thread; numpy releases the GIL in matmul)."""
+    def blend(self, rig: Any, batch: list[_Request], moving: bool) -> tuple[float, float]:
+        """Fill every request's ``out`` (worker thread; numpy releases the GIL in matmul).
+
+        Returns the seconds spent blending and casting to the wire dtype.
+        """
+        clock = time.perf_counter
+        started = clock()
+        cast = 0.0
         rows = len(batch) if len(batch) >= MIN_BATCH else 1
         if self.array is None or self.array.shape[0] < rows:
             self.array = np.empty((rows, *batch[0].out.shape), np.float32)
         if len(batch) < MIN_BATCH:
             for request in batch:
                 if request.out.dtype == np.float32:
-                    rig.blend(request.weights, out=request.out)
+                    rig.blend(request.weights, out=request.out, moving=moving)
                 else:
-                    to_float16(rig.blend(request.weights, out=self.array[0]), request.out)
-            return
+                    frame = rig.blend(request.weights, out=self.array[0], moving=moving)
+                    cast -= clock()
+                    to_float16(frame, request.out)
+                    cast += clock()
+            return clock() - started - cast, cast
         weights = np.stack([request.weights for request in batch])
-        vertices = rig.blend(weights, out=self.array[: len(batch)])
+        vertices = rig.blend(weights, out=self.array[: len(batch)], moving=moving)
+        blended = clock()
         for request, frame in zip(batch, vertices, strict=True):
             if request.out.dtype == np.float32:
                 np.copyto(request.out, frame)
             else:
                 to_float16(frame, request.out)
+        return blended - started, clock() - blended
 
 
 class BlendBatcher:
@@ -86,32 +101,40 @@ class BlendBatcher:
     concurrency : int
         Batches of one basis running at once (the pool's thread count: a lone rig can
         then use every clone thread).
+    stages : StageTimes, optional
+        Where the blend and cast times and the batch sizes are added.
     """
 
-    def __init__(self, executor: Executor, *, concurrency: int = 1) -> None:
+    def __init__(
+        self, executor: Executor, *, concurrency: int = 1, stages: StageTimes | None = None
+    ) -> None:
         if concurrency < 1:
             raise ValueError(f"concurrency must be >= 1, got {concurrency}")
         self._executor = executor
         self._concurrency = concurrency
-        self._groups: dict[tuple[int, tuple[int, ...]], _Group] = {}
+        self._stages = stages
+        self._groups: dict[tuple[int, tuple[int, ...], bool], _Group] = {}
         #: Batches run and frames blended so far (single blends count as batches of one).
         self.batches = 0
         self.frames = 0
 
-    async def blend(self, rig: Any, weights: np.ndarray, out: np.ndarray) -> None:
-        """Write ``rig.blend(weights)`` into ``out`` (V, 3), float16 or float32.
+    async def blend(
+        self, rig: Any, weights: np.ndarray, out: np.ndarray, *, moving: bool = False
+    ) -> None:
+        """Write ``rig.blend(weights, moving=moving)`` into ``out`` (V, 3) or (N, 3).
 
-        Raises whatever ``rig.blend`` raises for this frame's batch.
+        ``out`` is float16 or float32. Raises whatever ``rig.blend`` raises for this
+        frame's batch.
         """
         basis = rig.blend_basis
-        key = (basis.__array_interface__["data"][0], basis.shape)
+        key = (basis.__array_interface__["data"][0], basis.shape, moving)
         loop = asyncio.get_running_loop()
         request = _Request(weights, out, loop.create_future())
         group = self._groups.get(key)
         if group is None:
             # The group keeps ``rig`` (so its basis) alive while it exists: the key's
             # address cannot be reused by another basis meanwhile.
-            group = self._groups[key] = _Group(rig)
+            group = self._groups[key] = _Group(rig, moving)
         group.waiting.append(request)
         if len(group.runners) < self._concurrency:
             runner = asyncio.create_task(self._run(key, group), name="facecast-blend")
@@ -123,7 +146,7 @@ class BlendBatcher:
         """Bases with frames waiting or being blended."""
         return len(self._groups)
 
-    async def _run(self, key: tuple[int, tuple[int, ...]], group: _Group) -> None:
+    async def _run(self, key: tuple[int, tuple[int, ...], bool], group: _Group) -> None:
         loop = asyncio.get_running_loop()
         scratch = _Scratch()
         batch: list[_Request] = []
@@ -134,12 +157,18 @@ class BlendBatcher:
                 self.batches += 1
                 self.frames += len(batch)
                 try:
-                    await loop.run_in_executor(self._executor, scratch.blend, group.rig, batch)
+                    blend, cast = await loop.run_in_executor(
+                        self._executor, scratch.blend, group.rig, batch, group.moving
+                    )
                 except Exception as exc:
                     for request in batch:
                         if not request.done.done():
                             request.done.set_exception(exc)
                 else:
+                    if self._stages is not None:
+                        self._stages.add("blend", blend, len(batch))
+                        self._stages.add("cast", cast, len(batch))
+                        self._stages.batch_sizes[len(batch)] += 1
                     for request in batch:
                         if not request.done.done():
                             request.done.set_result(None)

@@ -276,11 +276,19 @@ class Channel:
         states = [self.states[k] for k in keys if k in self.states]
         if not states:
             return
+        stages = self.hub.metrics.stages if self.hub.settings.stage_timing else None
+        call = _clone_call if stages is None else _timed_clone_call
         futures = [
-            self._loop.run_in_executor(self.hub.executor, _clone_call, s, frame, arrived, count)
+            self._loop.run_in_executor(self.hub.executor, call, s, frame, arrived, count)
             for s in states
         ]
         results = await asyncio.gather(*futures, return_exceptions=True)
+        if stages is not None:
+            # A key's clone (its weights, any blend, and its encode) counts as "weights".
+            for i, outcome in enumerate(results):
+                if isinstance(outcome, tuple):
+                    results[i], seconds = outcome
+                    stages.add("weights", seconds)
         for state, data in zip(states, results, strict=True):
             if isinstance(data, InputError | ProtocolError):
                 self._clone_refused(state, frame, data)
@@ -291,8 +299,11 @@ class Channel:
                 continue
             state.failing = False
             members = self.members.get(state.key, ())
+            writing = time.perf_counter()
             for member in members:
                 member.offer_result(data)
+            if stages is not None:
+                stages.add("write", time.perf_counter() - writing, len(members))
             self.results_out += len(members)
             self.hub.results_counter.inc(len(members))
         # ``output=points`` keys only encode the frame: not clones (PROTOCOL.md §2.4).
@@ -379,3 +390,12 @@ def _clone_call(
     state: KeyState | PointsKeyState, frame: ChannelFrame, arrived: float, count: bool
 ) -> bytes:
     return state.clone(frame, arrived, count=count)
+
+
+def _timed_clone_call(
+    state: KeyState | PointsKeyState, frame: ChannelFrame, arrived: float, count: bool
+) -> tuple[bytes, float]:
+    """``_clone_call`` and its seconds (in the clone thread: the loop adds them up)."""
+    started = time.perf_counter()
+    data = state.clone(frame, arrived, count=count)
+    return data, time.perf_counter() - started

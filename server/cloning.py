@@ -6,6 +6,7 @@ estimate that decides where it runs; no sockets, no session state but the filter
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import numpy as np
@@ -14,6 +15,8 @@ from facecast.protocol import ErrorCode, Frame, Hello, ProtocolError
 from facecast.rig.errors import InputError
 from facecast.rig.filters import OneEuroFilter
 from facecast.rig.kernel import to_float16
+
+from .stages import StageTimes
 
 __all__ = [
     "Outputs",
@@ -62,18 +65,21 @@ class Smoother:
 class Outputs:
     """A session's reused result buffers: (V, 3) float32 blend output, float16 wire copy.
 
-    Used by one clone at a time (the writer's), and each result is encoded (copied)
-    before the next clone starts, so reuse is safe.
+    With output "moving" (PROTOCOL.md §5.2.1) they hold only the rig's N moving vertices
+    and ``moving`` is True. Used by one clone at a time (the writer's), and each result
+    is encoded (copied) before the next clone starts, so reuse is safe.
     """
 
-    def __init__(self, hello: Hello, num_vertices: int) -> None:
+    def __init__(self, hello: Hello, rig: Any) -> None:
         self.dtype = _RESULT_DTYPES[hello.dtype]
-        self.name = hello.output  # the result's array field, "weights" or "vertices"
-        vertices = hello.output == "vertices"
-        self.vertices = np.empty((num_vertices, 3), np.float32) if vertices else None
-        self.wire = (
-            np.empty((num_vertices, 3), np.float16) if vertices and hello.dtype == "f16" else None
-        )
+        self.moving = hello.output == "moving"
+        vertices = hello.output != "weights"
+        # The result's array field: a moving session's N vertices travel in "vertices".
+        self.name = "vertices" if vertices else "weights"
+        rows = rig.moving_vertices.size if self.moving else rig.num_vertices
+        self.rows = rows
+        self.vertices = np.empty((rows, 3), np.float32) if vertices else None
+        self.wire = np.empty((rows, 3), np.float16) if vertices and hello.dtype == "f16" else None
 
 
 def frame_error(exc: InputError, seq: int | None, prefix: str = "frame") -> ProtocolError:
@@ -100,16 +106,37 @@ def frame_weights(rig: Any, frame: Frame, hello: Hello, smoother: Smoother | Non
 
 
 def clone_frame(
-    rig: Any, frame: Frame, hello: Hello, smoother: Smoother | None, outputs: Outputs
+    rig: Any,
+    frame: Frame,
+    hello: Hello,
+    smoother: Smoother | None,
+    outputs: Outputs,
+    stages: StageTimes | None = None,
 ) -> np.ndarray:
     """Weights (M,) or vertices (V, 3) of one frame, in the session's wire dtype.
 
-    Vertices are written into ``outputs``' buffers and returned as one of them.
+    Vertices are written into ``outputs``' buffers and returned as one of them. With
+    ``stages``, the time of the weights, blend and cast is added to it.
     """
+    if stages is None:
+        weights = frame_weights(rig, frame, hello, smoother)
+        if outputs.vertices is None:
+            return weights.astype(outputs.dtype)
+        vertices = rig.blend(weights, out=outputs.vertices, moving=outputs.moving)
+        return vertices if outputs.wire is None else to_float16(vertices, outputs.wire)
+    clock = time.perf_counter
+    started = clock()
     weights = frame_weights(rig, frame, hello, smoother)
     if outputs.vertices is None:
-        return weights.astype(outputs.dtype)
-    vertices = rig.blend(weights, out=outputs.vertices)
-    if outputs.wire is None:
-        return vertices
-    return to_float16(vertices, outputs.wire)
+        values = weights.astype(outputs.dtype)
+        stages.add("weights", clock() - started)
+        return values
+    blended = clock()
+    vertices = rig.blend(weights, out=outputs.vertices, moving=outputs.moving)
+    cast = clock()
+    if outputs.wire is not None:
+        vertices = to_float16(vertices, outputs.wire)
+    stages.add("weights", blended - started)
+    stages.add("blend", cast - blended)
+    stages.add("cast", clock() - cast)
+    return vertices

@@ -16,6 +16,7 @@ import numpy as np
 from starlette.websockets import WebSocket
 
 from facecast.protocol import (
+    CHANNEL_OUTPUTS,
     Calibrate,
     Calibrated,
     ErrorCode,
@@ -136,6 +137,10 @@ class PublisherMember(Member):
                 self.report(exc)
 
     async def _on_hello(self, hello: Hello) -> None:
+        if hello.output not in CHANNEL_OUTPUTS:
+            raise ProtocolError(ErrorCode.INVALID_FIELD, f"hello.output {hello.output!r} is "
+                                f"for /v1/stream only; a channel serves {list(CHANNEL_OUTPUTS)}",
+                                fatal=True)  # fmt: skip
         rig = await self.hub.load_rig(hello.rig)
         channel = await self.hub.claim(self.name, self)  # raises CHANNEL_BUSY / OVERLOADED
         self.hello, self._rig, self.channel = hello, rig, channel

@@ -18,6 +18,8 @@ from prometheus_client import (
     multiprocess,
 )
 
+from .stages import StageCollector, StageTimes
+
 __all__ = ["CONTENT_TYPE_LATEST", "Metrics"]
 
 _LATENCY_BUCKETS = (
@@ -68,6 +70,9 @@ class Metrics:
         self.errors = Counter(
             "facecast_errors", "Protocol error messages sent, by code", ["code"], registry=r
         )
+        #: Per-stage time of stream frames (``stages``), exported on scrape.
+        self.stages = StageTimes()
+        r.register(StageCollector(self.stages))
         self.http_requests = Counter(
             "facecast_http_requests",
             "HTTP requests served",

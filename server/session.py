@@ -137,6 +137,8 @@ class Session:
         self.blender = blender if blender is not None else BlendBatcher(executor)
         self.principal = principal
         self.counters = SessionCounters()
+        #: Where stage times go (``stages``), with ``settings.stage_timing`` only.
+        self._stages = metrics.stages if settings.stage_timing else None
         self.protocol = ServerProtocol(
             Limits(max_message_bytes=settings.max_message_bytes),
         )
@@ -271,6 +273,7 @@ class Session:
     # -- reading -------------------------------------------------------------------------
     async def _read_loop(self) -> None:
         receive, clock, queued = self.ws.receive, self._loop.time, self._queued
+        stages = self._stages
         burst_start = 0.0
         while True:
             if queued is not None:
@@ -292,9 +295,13 @@ class Session:
             try:
                 if data is None:
                     self.protocol.receive_text(message.get("text") or "")
+                decoding = time.perf_counter()
                 decoded = self.protocol.receive(data)
                 if type(decoded) is Frame:
-                    self._on_frame(decoded, time.perf_counter() - burst_start < _BURST_SECONDS)
+                    decoded_at = time.perf_counter()
+                    if stages is not None:
+                        stages.add("decode", decoded_at - decoding)
+                    self._on_frame(decoded, decoded_at - burst_start < _BURST_SECONDS)
                 else:
                     self._flush()
                     await self._dispatch(decoded)
@@ -318,7 +325,10 @@ class Session:
         self._corked, self._corked_bytes = [], 0
         data = binary_frame(corked[0]) if len(corked) == 1 else b"".join(map(binary_frame, corked))
         direct = self._direct
+        writing = time.perf_counter()
         if direct is not None and not self._outbox and not self._control and direct(data):
+            if self._stages is not None:
+                self._stages.add("write", time.perf_counter() - writing, len(corked))
             self.counters.results_out += len(corked)
             self.metrics.frames_out.inc(len(corked))
             return
@@ -441,15 +451,23 @@ class Session:
             # The rig's weights() reads this flag; a shallow copy keeps the cached rig as is.
             rig = copy.copy(rig)
             rig.align_scale = True
+        # A scan of the basis the first time a rig is asked for it (~3 ms for ICT's).
+        moving = hello.output == "moving"
+        if moving and (await loop.run_in_executor(None, lambda: rig.moving_vertices)).size == 0:
+            raise ProtocolError(
+                ErrorCode.INVALID_FIELD,
+                f"rig {hello.rig!r} moves no vertex; ask for output vertices",
+                fatal=True,
+            )
         self.hello = hello
         self.rig_id = hello.rig
         self._base_rig = rig
         self._rig = rig
         self._calibrate_next = hello.calibration
-        self._outputs = Outputs(hello, rig.num_vertices)
+        self._outputs = outputs = Outputs(hello, rig)
         self._inline = (
             hello.output == "weights"
-            or blend_seconds(rig.num_vertices, rig.num_examples) <= INLINE_MAX_SECONDS
+            or blend_seconds(outputs.rows, rig.num_examples) <= INLINE_MAX_SECONDS
         )
         if hello.smoothing is not None:
             sm = hello.smoothing
@@ -497,6 +515,8 @@ class Session:
     # -- writing -------------------------------------------------------------------------
     async def _write_loop(self) -> None:
         ws_send, direct = self.ws.send_bytes, self._direct
+        # "write" includes waiting for a client that does not read (the ASGI send).
+        stages, clock = self._stages, time.perf_counter
 
         async def send(data: bytes) -> None:
             # Straight to the socket when it takes the frame at once (one copy of a large
@@ -511,7 +531,10 @@ class Session:
             if self._outbox:
                 data = self._outbox.popleft()
                 self._outbox_bytes -= len(data)
+                writing = clock()
                 await send(data)
+                if stages is not None:
+                    stages.add("write", clock() - writing)
                 self.counters.results_out += 1
                 self.metrics.frames_out.inc()
                 continue
@@ -536,7 +559,10 @@ class Session:
                 continue
             # Blocks while the client does not read; the reader keeps replacing the
             # pending frame meanwhile, so nothing piles up.
+            writing = clock()
             await send(data)
+            if stages is not None:
+                stages.add("write", clock() - writing)
             self.counters.results_out += 1
             self.metrics.frames_out.inc()
 
@@ -560,8 +586,11 @@ class Session:
         values = outputs.wire if outputs.wire is not None else outputs.vertices
         assert values is not None
         try:
+            started = time.perf_counter()
             weights = frame_weights(rig, frame, hello, self._smoother)
-            await self.blender.blend(rig, weights, values)
+            if self._stages is not None:
+                self._stages.add("weights", time.perf_counter() - started)
+            await self.blender.blend(rig, weights, values, moving=outputs.moving)
         except InputError as exc:
             self._refuse(frame, exc)
             return None
@@ -572,7 +601,7 @@ class Session:
         hello, outputs = self.hello, self._outputs
         assert hello is not None and outputs is not None
         try:
-            values = clone_frame(self._rig, frame, hello, self._smoother, outputs)
+            values = clone_frame(self._rig, frame, hello, self._smoother, outputs, self._stages)
         except InputError as exc:
             self._refuse(frame, exc)
             return None
@@ -583,7 +612,8 @@ class Session:
 
     def _encode(self, frame: Frame, arrived: float, values: np.ndarray) -> bytes | None:
         """The result's bytes, or None (error queued) when ``values`` are not finite."""
-        elapsed = time.perf_counter() - arrived
+        encoding = time.perf_counter()
+        elapsed = encoding - arrived
         outputs = self._outputs
         assert outputs is not None
         # Encoding copies ``values`` out of the session's reused buffers.
@@ -601,6 +631,8 @@ class Session:
             self._report(exc)
             return None
         self._rate.told(dropped)
+        if self._stages is not None:
+            self._stages.add("encode", time.perf_counter() - encoding)
         self.metrics.processing_seconds.observe(elapsed)
         return data
 
@@ -643,6 +675,7 @@ def ready_message(session_id: str, hello, rig, limits, settings) -> Ready:
         num_vertices=rig.num_vertices,
         output=hello.output,
         dtype=hello.dtype,
+        moving=rig.moving_vertices if hello.output == "moving" else None,
         limits={
             "max_points": int(limits.max_points),
             "max_fps": float(settings.max_fps),

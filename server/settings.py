@@ -141,6 +141,10 @@ class Settings:
     shutdown_timeout: float = 5.0
     log_level: str = "info"
     access_log: bool = True
+    #: Time each stage of every stream frame and count blend batch sizes for /metrics
+    #: (``facecast_stage_*``, ``facecast_blend_batches``; ~1 µs a frame). The
+    #: benchmarks turn it on to attribute their figures.
+    stage_timing: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "rigs_dir", Path(self.rigs_dir))

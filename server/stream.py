@@ -71,7 +71,9 @@ async def stream(websocket: WebSocket) -> None:
     if blender is None:
         # One per app, so frames of all its sessions on one rig blend together.
         blender = app.state.blend_batcher = BlendBatcher(
-            app.state.clone_executor, concurrency=settings.clone_threads
+            app.state.clone_executor,
+            concurrency=settings.clone_threads,
+            stages=app.state.metrics.stages if settings.stage_timing else None,
         )
     session = Session(
         websocket,

@@ -17,6 +17,14 @@ once and are measured in alternating rounds from one client process, so a busy m
 of the machine weighs on the baselines and facecast alike. The facecast
 client library's own round trip (encode, full decode and validation, its reader task)
 is measured too and printed apart, as client cost, not server cost.
+
+Every phase reports the server's and the load generator's CPU, and facecast's server
+time per result in each stage (decode, weights, blend, cast, encode, write, read off
+its ``/metrics``). Vertex streams (ICT with bounded weights, as tracked input is fitted)
+run beside their floors, measured in the same run: (d) a bare ``websockets`` server
+answering each frame with a result of the same bytes, driven by the same load
+generator, and a bare batched blend ``weights @ basis`` of the same rig. Both ramp the
+number of 60 fps streams to the most each holds.
 """
 
 from __future__ import annotations
@@ -25,6 +33,7 @@ import argparse
 import asyncio
 import contextlib
 import json
+import os
 import socket
 import subprocess
 import sys
@@ -62,6 +71,14 @@ ROUNDS = 10
 WARMUP = 50
 _SERVER_START_TIMEOUT = 60.0
 _BASELINES = ("websockets", "fastapi")
+#: A stream "holds" when every client gets >= 99 % of 60 fps at p99 below this.
+GOAL_P99_MS = 50.0
+#: Streams tried after ``--clients`` when ramping, in order, up to ``--max-streams``.
+RAMP_STEPS = (30, 40, 60, 80, 100, 140, 200)
+#: Seconds per ramp step (at most ``--duration``).
+RAMP_SECONDS = 5.0
+#: Frames per bare blend batch (the batcher's batches under load are of this order).
+FLOOR_BATCH = 16
 
 
 # -- servers (each runs in its own subprocess) -------------------------------------------
@@ -96,6 +113,31 @@ def _serve(kind: str, port: int, rigs_dir: str | None = None) -> None:
                     await websocket.send_bytes(await websocket.receive_bytes())
 
         uvicorn.run(app, host="127.0.0.1", port=port, log_level="warning", loop="uvloop")
+    elif kind == "bare-vertices":
+        import msgpack
+        import uvloop
+        from websockets.asyncio.server import serve
+
+        from facecast.protocol import SUBPROTOCOL, encode_result
+
+        with np.load(Path(rigs_dir or ".") / "bare.npz") as data:
+            ready, values = bytes(data["ready"]), np.ascontiguousarray(data["values"])
+
+        async def answer(ws) -> None:
+            # The floor of a vertex stream: read each frame's seq and ts, send a result
+            # of the same bytes facecast sends; no rig, no session, nothing else.
+            await ws.recv()  # hello
+            await ws.send(ready)
+            async for message in ws:
+                frame = msgpack.unpackb(message)
+                await ws.send(encode_result(frame["seq"], frame["ts"], "vertices", values, 0, 0))
+
+        async def main() -> None:
+            async with serve(answer, "127.0.0.1", port, compression=None, max_size=1 << 24,
+                             subprotocols=[SUBPROTOCOL]):  # fmt: skip
+                await asyncio.Future()
+
+        uvloop.run(main())
     elif kind == "facecast":
         from facecast.server.runner import serve as serve_facecast
         from facecast.server.settings import Settings
@@ -109,6 +151,8 @@ def _serve(kind: str, port: int, rigs_dir: str | None = None) -> None:
             rate_burst=1_000_000,
             log_level="warning",
             access_log=False,
+            # Attribute the figures: stage clocks on (~1 µs a frame, included in them).
+            stage_timing=True,
         )
         serve_facecast(settings)
     else:  # pragma: no cover - internal
@@ -122,8 +166,8 @@ def _free_port() -> int:
 
 
 @contextlib.contextmanager
-def _server(kind: str, rigs_dir: Path | None, log_dir: Path) -> Iterator[int]:
-    """Start server ``kind`` in a subprocess; yield its port once it accepts connections."""
+def _server(kind: str, rigs_dir: Path | None, log_dir: Path) -> Iterator[tuple[int, int]]:
+    """Start server ``kind`` in a subprocess; yield (port, pid) once it accepts connections."""
     port = _free_port()
     log = (log_dir / f"{kind}.log").open("wb")
     code = (
@@ -149,7 +193,7 @@ def _server(kind: str, rigs_dir: Path | None, log_dir: Path) -> Iterator[int]:
                         f"{kind} server did not listen within {_SERVER_START_TIMEOUT:g} s"
                     ) from None
                 time.sleep(0.05)
-        yield port
+        yield port, process.pid
     finally:
         process.terminate()
         try:
@@ -329,6 +373,7 @@ async def _interleaved_figures(targets: dict[str, Any], seconds: float) -> dict[
             "rtt_ms": latency_stats(rtts[name]).to_dict(),
             "throughput_msgs_per_s": counts[name] / times[name],
             "pipelined_dropped": targets[name].dropped,
+            "messages": len(rtts[name]) + counts[name],
         }
         for name in targets
     }
@@ -389,6 +434,8 @@ async def _client_task(spec: dict[str, Any]) -> dict[str, Any]:
         points = np.asarray(spec["points"], dtype=np.float32)
         targets["facecast"] = _Facecast(spec["url"], spec["rig"], points)
         return await _interleaved_figures(targets, spec["seconds"])
+    if kind == "blend-floor":
+        return _blend_floor(spec["rig_path"])
     if kind == "facecast-library":
         points = np.asarray(spec["points"], dtype=np.float32)
         return await _facecast_figures(spec["url"], spec["rig"], points, spec["seconds"])
@@ -414,7 +461,9 @@ def _client_main() -> None:
     import uvloop
 
     spec = json.loads(sys.stdin.read())
+    started = time.process_time()
     figures = uvloop.run(_client_task(spec))
+    figures["client_cpu_seconds"] = time.process_time() - started
     sys.stdout.write(json.dumps(figures) + "\n")
 
 
@@ -437,34 +486,49 @@ def _measure(spec: dict[str, Any], timeout: float) -> dict[str, Any]:
 # -- the run -------------------------------------------------------------------------------
 
 
-def _rigs(rigs_dir: Path) -> tuple[np.ndarray, np.ndarray, str]:
-    """Fit and store the demo rig (and ICT's, when its data is there).
+def _rigs(rigs_dir: Path) -> dict[str, Any]:
+    """Fit and store the demo rig, and the vertices rigs (ICT's when its data is there).
 
-    Returns the demo rig's source neutral (K, 3), the vertices rig's neutral, and the
-    vertices rig's id.
+    The vertices rigs: ``exact`` (the thesis's fit, dense weights) and ``bounded``
+    (``noise`` 0.1 mm, ``clamp`` nonneg: how tracked input is fitted; its weights are
+    mostly 0). Without ICT both are the demo rig's. Also writes ``bare.npz`` for the
+    bare vertices server: the ``ready`` and the f16 moving vertices a bounded session gets.
     """
+    from facecast.protocol import Ready, encode
     from facecast.rig import fit
     from facecast.rig.demo import demo_example_set
 
-    demo = fit(demo_example_set())
-    demo.save(rigs_dir / "demo.rig")
-    vertices_rig, vertices_id = demo, "demo"
-    try:
-        from facecast.rig.ict import ict_example_set, locate_ict
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # fitted on purpose as they are: no advice wanted
+        demo_set = demo_example_set()
+        demo = fit(demo_set)
+        example_set, name = demo_set, "demo"
+        try:
+            from facecast.rig.ict import ict_example_set, locate_ict
 
-        archive = locate_ict()
-    except ImportError:
-        archive = None
-    if archive is not None:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # the exact rig: its noise gain is beside the point
-            vertices_rig, vertices_id = fit(ict_example_set(archive)), "ict"
-        vertices_rig.save(rigs_dir / "ict.rig")
-    return (
-        np.asarray(demo.source_neutral, dtype=np.float32),
-        np.asarray(vertices_rig.source_neutral, dtype=np.float64),
-        vertices_id,
-    )
+            archive = locate_ict()
+        except ImportError:
+            archive = None
+        if archive is not None:
+            example_set, name = ict_example_set(archive), "ict"
+        exact = demo if archive is None else fit(example_set)
+        # 0.1 mm of landmark noise on ICT (cm); the demo's units are of the same size.
+        bounded = fit(example_set, noise=0.01, clamp="nonneg")
+    demo.save(rigs_dir / "demo.rig")
+    exact.save(rigs_dir / f"{name}.rig")
+    bounded.save(rigs_dir / f"{name}-bounded.rig")
+    moving = bounded.moving_vertices
+    ready = Ready(session="bare", rig=f"{name}-bounded", names=bounded.names,
+                  num_points=bounded.num_points, num_vertices=bounded.num_vertices,
+                  output="moving", dtype="f16", moving=moving)  # fmt: skip
+    values = bounded.blend(np.eye(1, bounded.num_examples)[0], moving=True).astype(np.float16)
+    np.savez(rigs_dir / "bare.npz", ready=np.frombuffer(encode(ready), np.uint8), values=values)
+    return {
+        "demo_neutral": np.asarray(demo.source_neutral, dtype=np.float32),
+        "name": name,
+        "exact": exact,
+        "bounded": bounded,
+    }
 
 
 def _ratio(a: float | None, b: float | None) -> float | None:
@@ -475,31 +539,175 @@ def _status(ok: bool | None) -> str:
     return "n/a" if ok is None else ("PASS" if ok else "FAIL")
 
 
+def _blend_floor(rig_path: str) -> dict[str, float]:
+    """Per-frame µs of a bare dense blend ``weights @ basis`` of a rig: alone and batched.
+
+    Runs in a client process, whose BLAS has the one thread the servers' have (``facecast``
+    limits it in the environment, too late for a process that imported numpy already).
+    """
+    from facecast.rig import load_rig
+    from facecast.rig.evaluate import median_call_seconds
+
+    rig = load_rig(rig_path)
+    basis = np.ascontiguousarray(rig.blend_basis)
+    rng = np.random.default_rng(0)
+    one = rng.random((1, rig.num_examples)).astype(np.float32)
+    batch = rng.random((FLOOR_BATCH, rig.num_examples)).astype(np.float32)
+    out_one = np.empty((1, basis.shape[1]), np.float32)
+    out_batch = np.empty((FLOOR_BATCH, basis.shape[1]), np.float32)
+    single = median_call_seconds(lambda: np.matmul(one, basis, out=out_one), repeat=5)
+    batched = median_call_seconds(lambda: np.matmul(batch, basis, out=out_batch), repeat=5)
+    return {"single_us": single * 1e6, f"batch{FLOOR_BATCH}_us": batched / FLOOR_BATCH * 1e6}
+
+
+class _Run:
+    """One benchmark run's servers and the way to load them (shared by the phases)."""
+
+    def __init__(self, say, timeout: float) -> None:
+        self.say = say
+        self.timeout = timeout
+
+    def load(
+        self, url: str, pids: list[int], rig: Any, rig_id: str, clients: int, seconds: float,
+        output: str, stages: bool,
+    ) -> dict[str, Any]:  # fmt: skip
+        """One load-generator run of ``clients`` f16 streams at 60 fps, with CPU and stages."""
+        from .measure import cpu_seconds, stage_delta, stage_snapshot
+
+        before = stage_snapshot(url) if stages else None
+        cpu0, wall0 = cpu_seconds(pids), time.perf_counter()
+        load = _measure(
+            {
+                "kind": "load", "url": url, "rig": rig_id, "clients": clients, "fps": TARGET_FPS,
+                "seconds": seconds, "neutral": np.asarray(rig.source_neutral).tolist(),
+                "output": output, "dtype": "f16",
+            },
+            self.timeout,
+        )  # fmt: skip
+        wall = time.perf_counter() - wall0
+        cpu = cpu_seconds(pids) - cpu0
+        received = max(1, load["received"])
+        floor_fps = TARGET_FPS * (1 - FPS_SLACK)
+        p99 = load["latency_ms"]["p99_ms"]
+        held = (
+            bool(load["per_client_fps"])
+            and min(load["per_client_fps"]) >= floor_fps
+            and p99 is not None
+            and p99 < GOAL_P99_MS
+            and not load["errors"]
+        )
+        figures = {
+            "clients": clients,
+            "output": output,
+            "min_client_fps": load["min_client_fps"],
+            "mb_per_s": load["payload_mb_per_s"],
+            "latency_ms": load["latency_ms"],
+            "received": load["received"],
+            "sent": load["sent"],
+            "dropped": load["dropped"],
+            "errors": load["errors"],
+            "held": held,
+            "server_cpu_cores": cpu / wall,
+            "server_cpu_us_per_result": cpu / received * 1e6,
+            "client_cpu_cores": load["client_cpu_seconds"] / wall,
+            "client_cpu_us_per_result": load["client_cpu_seconds"] / received * 1e6,
+        }
+        if before is not None:
+            figures["stages"] = stage_delta(before, stage_snapshot(url), load["received"])
+        return figures
+
+    def ramp(
+        self, url: str, pids: list[int], rig: Any, rig_id: str, steps: list[int], seconds: float,
+        label: str, stages: bool,
+    ) -> dict[str, Any]:  # fmt: skip
+        """Streams at 60 fps, more at each step, until a step does not hold."""
+        held = 0
+        runs = []
+        for clients in steps:
+            # A step that does not hold is measured once more: one busy moment of a
+            # shared machine must not end the ramp (both runs are kept in ``steps``).
+            for attempt in (1, 2):
+                figures = self.load(url, pids, rig, rig_id, clients, seconds, "moving", stages)
+                figures["attempt"] = attempt
+                runs.append(figures)
+                self.say("  " + _load_line(label, figures))
+                if figures["held"]:
+                    break
+            if not figures["held"]:
+                break
+            held = clients
+        return {"held": held, "steps": runs}
+
+
+def _load_line(label: str, f: dict[str, Any]) -> str:
+    lat = f["latency_ms"]
+    p99 = "-" if lat["p99_ms"] is None else f"{lat['p99_ms']:.1f}"
+    errors = f", errors {f['errors']}" if f["errors"] else ""
+    text = (
+        f"{label:<9}{f['clients']:>4} x 60 fps {f['output']:<8} min {f['min_client_fps']:5.1f} fps, "
+        f"p99 {p99:>6} ms, dropped {f['dropped']:>5}, server {f['server_cpu_cores']:.2f} cores "
+        f"({f['server_cpu_us_per_result']:.0f} us/result), load generator "
+        f"{f['client_cpu_cores']:.2f} cores ({f['client_cpu_us_per_result']:.0f} us/result)"
+        f"{errors}  "
+        f"{'held' if f['held'] else 'NOT held'}"
+    )
+    stages = f.get("stages")
+    if stages:
+        parts = ", ".join(
+            f"{k} {v:.0f}" for k, v in stages["per_result_us"].items() if v is not None
+        )
+        text += (
+            f"\n{'':13}server us/result by stage: {parts}; blend batches of "
+            f"{stages['mean_batch_frames'] if stages['mean_batch_frames'] is not None else '-'} "
+            "frames on average"
+        )
+    return text
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark (``args.duration`` s per phase, ``args.clients`` vertices clients)."""
     from facecast.protocol import Frame, encode
 
+    from .measure import cpu_seconds, stage_delta, stage_snapshot
+
     duration = float(getattr(args, "duration", None) or 10.0)
     clients = int(getattr(args, "clients", None) or 20)
+    max_streams = int(getattr(args, "max_streams", None) or RAMP_STEPS[-1])
     if not 0 < duration <= 3600:
         raise ValueError(f"--duration must be in (0, 3600] s, got {duration}")
     if not 1 <= clients <= 1000:
         raise ValueError(f"--clients must be in 1..1000, got {clients}")
+    if not clients <= max_streams <= 1000:
+        raise ValueError(f"--max-streams must be in {clients}..1000, got {max_streams}")
     timeout = 4 * duration + 120.0
     say = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
+    step_seconds = min(duration, RAMP_SECONDS)
+    steps = [clients, *(n for n in RAMP_STEPS if clients < n <= max_streams)]
+    if steps[-1] < max_streams and max_streams not in steps:
+        steps.append(max_streams)
+    bench = _Run(say, timeout)
+    load_start = list(os.getloadavg())
 
     with tempfile.TemporaryDirectory(prefix="facecast-bench-") as tmp:
         tmp_path = Path(tmp)
         rigs_dir = tmp_path / "rigs"
         rigs_dir.mkdir()
         say("bench transport: fitting rigs ...")
-        neutral, vertices_neutral, vertices_id = _rigs(rigs_dir)
+        rigs = _rigs(rigs_dir)
+        name = rigs["name"]
+        neutral = rigs["demo_neutral"]
         message = encode(Frame(seq=1, ts=0.0, points=neutral))
+        blend_floor = _measure(
+            {"kind": "blend-floor", "rig_path": str(rigs_dir / f"{name}-bounded.rig")}, timeout
+        )
+        blend_floor.pop("client_cpu_seconds", None)
         with contextlib.ExitStack() as servers:
-            ports = {
+            started = {
                 kind: servers.enter_context(_server(kind, None, tmp_path)) for kind in _BASELINES
             }
-            port = servers.enter_context(_server("facecast", rigs_dir, tmp_path))
+            ports = {kind: port for kind, (port, _) in started.items()}
+            port, pid = servers.enter_context(_server("facecast", rigs_dir, tmp_path))
+            pids = {kind: p for kind, (_, p) in started.items()} | {"facecast": pid}
             base = f"http://127.0.0.1:{port}"
             say(
                 f"bench transport: {', '.join(_BASELINES)} echo and facecast weights "
@@ -511,37 +719,93 @@ def run(args: argparse.Namespace) -> int:
                 kind: f"ws://127.0.0.1:{ports[kind]}{'/echo' if kind == 'fastapi' else '/'}"
                 for kind in _BASELINES
             }
+            before = stage_snapshot(base)
+            cpu0 = {kind: cpu_seconds([p]) for kind, p in pids.items()}
+            wall0 = time.perf_counter()
             results = _measure(
                 {**spec, "kind": "interleaved", "message": message.hex(), "echo_urls": echo_urls},
                 timeout * (len(_BASELINES) + 1),
             )
+            wall = time.perf_counter() - wall0
+            client_cpu = results.pop("client_cpu_seconds")
+            for kind, p in pids.items():
+                cpu = cpu_seconds([p]) - cpu0[kind]
+                results[kind]["server_cpu_cores"] = cpu / wall
+                results[kind]["server_cpu_us_per_message"] = (
+                    cpu / results[kind]["messages"] * 1e6 if results[kind]["messages"] else None
+                )
+            weights_stages = stage_delta(
+                before, after := stage_snapshot(base), int(
+                    after["items"]["encode"] - before["items"]["encode"])
+            )  # fmt: skip
             say(f"bench transport: facecast weights, library client ({duration:g} s) ...")
             library = _measure({**spec, "kind": "facecast-library"}, timeout)
+            library.pop("client_cpu_seconds", None)
             say(
-                f"bench transport: facecast vertices, {vertices_id} rig, {clients} clients x "
-                f"{TARGET_FPS:g} fps f16 ({duration:g} s) ..."
+                f"bench transport: facecast vertices f16, {name} rigs, {clients} clients x "
+                f"{TARGET_FPS:g} fps ({duration:g} s each): exact and bounded weights, "
+                "whole mesh ..."
             )
-            load = _measure(
-                {
-                    "kind": "load",
-                    "url": base,
-                    "rig": vertices_id,
-                    "clients": clients,
-                    "fps": TARGET_FPS,
-                    "seconds": duration,
-                    "neutral": vertices_neutral.tolist(),
-                    "output": "vertices",
-                    "dtype": "f16",
-                },
-                timeout,
+            full = {}
+            for kind, rig_id in (("exact", name), ("bounded", f"{name}-bounded")):
+                full[kind] = bench.load(base, [pid], rigs[kind], rig_id, clients, duration,
+                                        "vertices", True)  # fmt: skip
+                say("  " + _load_line(kind, full[kind]))
+            say(
+                f"bench transport: moving vertices f16, {name}-bounded rig: facecast and the "
+                f"bare floor, streams ramped {steps} ({step_seconds:g} s a step) ..."
             )
+            ramp = bench.ramp(base, [pid], rigs["bounded"], f"{name}-bounded", steps,
+                              step_seconds, "facecast", True)  # fmt: skip
+        with _server("bare-vertices", rigs_dir, tmp_path) as (bare_port, bare_pid):
+            floor = bench.ramp(f"http://127.0.0.1:{bare_port}", [bare_pid], rigs["bounded"],
+                               f"{name}-bounded", steps, step_seconds, "floor", False)  # fmt: skip
 
-    figures = _figures(results, load, duration, clients, len(message), vertices_id)
+    figures = _figures(results, full["exact"], duration, clients, len(message), name)
+    figures["machine"] = {"cpus": os.cpu_count(), "load_average_start": load_start,
+                          "load_average_end": list(os.getloadavg())}  # fmt: skip
     figures["library_client"] = library
+    figures["load_generator_cpu_cores"] = client_cpu / wall
+    figures["weights_stages"] = weights_stages
+    figures["whole_mesh"] = full
+    figures["moving"] = _moving_figures(ramp, floor, blend_floor, rigs["bounded"], clients)
     print(_format(figures))
     if getattr(args, "json", None):
         Path(args.json).write_text(json.dumps(figures, indent=2), encoding="utf-8")
     return 0
+
+
+def _first_step(ramp: dict[str, Any]) -> dict[str, Any]:
+    """The ramp's run at its first stream count that held, else its last attempt there."""
+    runs = [r for r in ramp["steps"] if r["clients"] == ramp["steps"][0]["clients"]]
+    return next((r for r in runs if r["held"]), runs[-1])
+
+
+def _moving_figures(ramp, floor, blend_floor, rig, clients) -> dict[str, Any]:
+    first = _first_step(ramp)
+    floor_first = _first_step(floor)
+    blend = (first.get("stages") or {}).get("per_item_us", {}).get("blend")
+    return {
+        "num_vertices": int(rig.num_vertices),
+        "moving_vertices": int(rig.moving_vertices.size),
+        "ramp": ramp,
+        "floor": floor,
+        "streams_held": ramp["held"],
+        "floor_streams_held": floor["held"],
+        "held_ratio": _ratio(ramp["held"], floor["held"]),
+        "server_cpu_ratio_at_first_step": _ratio(
+            first["server_cpu_us_per_result"], floor_first["server_cpu_us_per_result"]
+        ),
+        "blend_floor_us": blend_floor,
+        "blend_us_per_frame": blend,
+        "blend_ratio_to_batched_floor": _ratio(blend, blend_floor[f"batch{FLOOR_BATCH}_us"]),
+        "goal": {
+            "clients": clients,
+            "fps_min": TARGET_FPS * (1 - FPS_SLACK),
+            "p99_ms_max": GOAL_P99_MS,
+            "pass": first["held"],
+        },
+    }
 
 
 def _figures(
@@ -559,8 +823,11 @@ def _figures(
     rtt_ratio = _ratio(p50["facecast"], p50[rtt_base])
     tput_ratio = _ratio(tput["facecast"], tput[tput_base])
     floor = TARGET_FPS * (1 - FPS_SLACK)
-    per_client = load["per_client_fps"]
-    vertices_pass = bool(per_client) and min(per_client) >= floor and not load["errors"]
+    per_client_min = load["min_client_fps"]
+    vertices_pass = load["held"]
+    cpu_base = min(
+        _BASELINES, key=lambda n: results[n].get("server_cpu_us_per_message") or float("inf")
+    )
     return {
         "duration": duration,
         "clients": clients,
@@ -569,8 +836,15 @@ def _figures(
         "servers": results,
         "rtt_p50_ms": p50,
         "throughput_msgs_per_s": tput,
-        "baseline": {"rtt": rtt_base, "throughput": tput_base},
-        "ratios": {"rtt_p50": rtt_ratio, "throughput": tput_ratio},
+        "baseline": {"rtt": rtt_base, "throughput": tput_base, "cpu": cpu_base},
+        "ratios": {
+            "rtt_p50": rtt_ratio,
+            "throughput": tput_ratio,
+            "server_cpu_per_message": _ratio(
+                results["facecast"].get("server_cpu_us_per_message"),
+                results[cpu_base].get("server_cpu_us_per_message"),
+            ),
+        },
         "goals": {
             "rtt_p50_ratio_max": GOAL_RTT_RATIO,
             "throughput_ratio_min": GOAL_THROUGHPUT_RATIO,
@@ -582,9 +856,8 @@ def _figures(
         "vertices": {
             "rig": vertices_id,
             "target_fps": TARGET_FPS,
-            "min_client_fps": load["min_client_fps"],
-            "per_client_fps": per_client,
-            "mb_per_s": load["payload_mb_per_s"],
+            "min_client_fps": per_client_min,
+            "mb_per_s": load["mb_per_s"],
             "latency_ms": load["latency_ms"],
             "received": load["received"],
             "sent": load["sent"],
@@ -599,15 +872,21 @@ def _format(f: dict[str, Any]) -> str:
     def num(value: float | None, fmt: str) -> str:
         return "-" if value is None else format(value, fmt)
 
+    machine = f.get("machine") or {}
+    loads = [machine.get("load_average_start"), machine.get("load_average_end")]
+    load_text = " -> ".join("/".join(f"{x:.1f}" for x in v) for v in loads if v)
     lines = [
         f"transport benchmark: frame of {f['frame_bytes']} bytes, "
-        f"{f['duration']:g} s per phase, window {f['pipeline_window']}",
-        f"  {'server':<12}{'RTT p50 (ms)':>14}{'pipelined (msg/s)':>20}",
+        f"{f['duration']:g} s per phase, window {f['pipeline_window']}; "
+        f"{machine.get('cpus', '?')} CPUs, load average {load_text or '?'} (1/5/15 min: "
+        "other work on the machine disturbs every figure, the ratios least)",
+        f"  {'server':<12}{'RTT p50 (ms)':>14}{'pipelined (msg/s)':>20}{'server CPU (us/msg)':>22}",
     ]
     for name in (*_BASELINES, "facecast"):
         lines.append(
             f"  {name:<12}{num(f['rtt_p50_ms'][name], '.3f'):>14}"
             f"{num(f['throughput_msgs_per_s'][name], '.0f'):>20}"
+            f"{num(f['servers'][name].get('server_cpu_us_per_message'), '.1f'):>22}"
         )
     library = f.get("library_client")
     if library is not None:
@@ -619,22 +898,59 @@ def _format(f: dict[str, Any]) -> str:
     dropped = f["servers"]["facecast"].get("pipelined_dropped", 0)
     lines.append(
         f"  facecast: rate limit raised to {BENCH_MAX_FPS:g} fps; pipelined frames "
-        f"superseded (newest-only, not answered): {dropped}"
+        f"superseded (newest-only, not answered): {dropped}; load generator "
+        f"{num(f.get('load_generator_cpu_cores'), '.2f')} cores"
     )
+    stages = f.get("weights_stages")
+    if stages:
+        parts = ", ".join(
+            f"{k} {v:.1f}" for k, v in stages["per_result_us"].items() if v is not None
+        )
+        lines.append(f"  facecast weights, server us/result by stage: {parts}")
     goals, ratios, base = f["goals"], f["ratios"], f["baseline"]
     lines += [
         f"  RTT p50: facecast / {base['rtt']} = {num(ratios['rtt_p50'], '.2f')}x "
         f"(goal <= {goals['rtt_p50_ratio_max']}x)  {_status(goals['rtt_pass'])}",
         f"  throughput: facecast / {base['throughput']} = {num(ratios['throughput'], '.2f')}x "
         f"(goal >= {goals['throughput_ratio_min']}x)  {_status(goals['throughput_pass'])}",
+        f"  server CPU per message: facecast / {base['cpu']} = "
+        f"{num(ratios['server_cpu_per_message'], '.2f')}x",
     ]
+    for kind, figures in (f.get("whole_mesh") or {}).items():
+        lines.append("  " + _load_line(kind, figures))
     v = f["vertices"]
     lat = v["latency_ms"]
     lines.append(
-        f"  vertices f16, {v['rig']} rig, {f['clients']} clients x {v['target_fps']:g} fps: "
-        f"min {v['min_client_fps']:.1f} fps/client, {v['mb_per_s']:.1f} MB/s, "
-        f"p50 {num(lat['p50_ms'], '.2f')} ms p99 {num(lat['p99_ms'], '.2f')} ms, "
-        f"dropped {v['dropped']}, errors {v['errors'] or 'none'}  "
-        f"{_status(goals['vertices_pass'])} (goal >= {goals['vertices_fps_min']:.1f} fps each)"
+        f"  vertices f16, {v['rig']} rig (exact), {f['clients']} clients x "
+        f"{v['target_fps']:g} fps: min {v['min_client_fps']:.1f} fps/client, "
+        f"{v['mb_per_s']:.1f} MB/s, p50 {num(lat['p50_ms'], '.2f')} ms p99 "
+        f"{num(lat['p99_ms'], '.2f')} ms, dropped {v['dropped']}, errors "
+        f"{v['errors'] or 'none'}  {_status(goals['vertices_pass'])} "
+        f"(goal >= {goals['vertices_fps_min']:.1f} fps each, p99 < {GOAL_P99_MS:g} ms)"
     )
+    moving = f.get("moving")
+    if moving:
+        ramp, floor = moving["ramp"], moving["floor"]
+        lines.append(
+            f"  moving vertices: {moving['moving_vertices']} of {moving['num_vertices']}; "
+            "each step, facecast then its floor (bare websockets, same bytes):"
+        )
+        for step in ramp["steps"]:
+            lines.append("    " + _load_line("facecast", step).replace("\n", "\n    "))
+        for step in floor["steps"]:
+            lines.append("    " + _load_line("floor", step))
+        b = moving["blend_floor_us"]
+        lines += [
+            f"  streams held at 60 fps (p99 < {GOAL_P99_MS:g} ms): facecast {ramp['held']}, "
+            f"floor {floor['held']} ({num(moving['held_ratio'], '.2f')}x); server CPU per "
+            f"result at {moving['goal']['clients']} streams: "
+            f"{num(moving['server_cpu_ratio_at_first_step'], '.2f')}x the floor's",
+            f"  blend: facecast {num(moving['blend_us_per_frame'], '.0f')} us/frame (moving "
+            f"columns, non-zero rows) against a bare dense blend of the same rig, "
+            f"{b['single_us']:.0f} us alone, {b[f'batch{FLOOR_BATCH}_us']:.0f} us/frame in "
+            f"batches of {FLOOR_BATCH}: {num(moving['blend_ratio_to_batched_floor'], '.2f')}x",
+            f"  goal: {moving['goal']['clients']} moving f16 streams at >= "
+            f"{moving['goal']['fps_min']:.1f} fps each, p99 < {GOAL_P99_MS:g} ms  "
+            f"{_status(moving['goal']['pass'])}",
+        ]
     return "\n".join(lines)

@@ -51,6 +51,13 @@ def register(subparsers) -> None:
         metavar="N",
         help="concurrent vertices-mode connections at 60 fps (default 20)",
     )
+    transport.add_argument(
+        "--max-streams",
+        type=int,
+        default=200,
+        metavar="N",
+        help="most 60 fps moving-vertices streams the ramp tries (default 200)",
+    )
     transport.set_defaults(func=_runner("transport"))
 
     broadcast = sub.add_parser(

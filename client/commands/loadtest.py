@@ -26,7 +26,7 @@ def register(subparsers) -> None:
     parser.add_argument("--clients", type=int, default=10, help="concurrent sessions (default 10)")
     parser.add_argument("--fps", type=float, default=60.0, help="frames/s per client (default 60)")
     parser.add_argument("--duration", type=float, default=10.0, help="seconds (default 10)")
-    parser.add_argument("--output", choices=("weights", "vertices"), default="weights")
+    parser.add_argument("--output", choices=("weights", "vertices", "moving"), default="weights")
     parser.add_argument("--dtype", choices=("f32", "f16"), default="f32")
     parser.add_argument("--token", help="API token (default: FACECAST_TOKEN)")
     parser.add_argument("--json", metavar="FILE", help="write the report as JSON")

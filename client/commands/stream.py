@@ -37,7 +37,13 @@ def register(subparsers) -> None:
     parser.add_argument(
         "-o", "--out", required=True, metavar="OUT", help="output .npz, .glb or OBJ folder"
     )
-    parser.add_argument("--output", choices=("weights", "vertices"), default="weights")
+    parser.add_argument(
+        "--output",
+        choices=("weights", "vertices", "moving"),
+        default="weights",
+        help="moving: receive only the vertices the rig's examples move (fewer bytes), "
+        "written out as the whole mesh",
+    )
     parser.add_argument("--dtype", choices=("f32", "f16"), default="f32")
     parser.add_argument(
         "--realtime", action="store_true", help="pace frames at the animation's fps"
@@ -118,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
         feature_indices=lambda: rig.feature_indices,
         source_rig=args.source_rig,
     )
-    if args.output == "vertices":
+    if args.output != "weights":
         size = animation.num_frames * rig.num_vertices * 3 * 4
         if size > MAX_VERTEX_BYTES:
             raise CommandError(
@@ -138,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
             align=args.align,
             reconnect=args.reconnect,
         ) as session:
-            return await stream_frames(
+            outcome = await stream_frames(
                 session,
                 animation.points,
                 fps=animation.fps,
@@ -146,12 +152,16 @@ def run(args: argparse.Namespace) -> int:
                 window=args.window,
                 progress=line,
             )
+            if args.output == "moving":
+                outcome.values = session.full_vertices(outcome.values, rig.target_neutral)
+            return outcome
 
     try:
         outcome = asyncio.run(main())
     finally:
         line.finish()
-    path = write_results(args.out, rig, args.output, outcome.values, animation.fps)
+    output = "weights" if args.output == "weights" else "vertices"
+    path = write_results(args.out, rig, output, outcome.values, animation.fps)
     errors = ", ".join(f"{k} x{v}" for k, v in sorted(outcome.errors.items())) or "none"
     print(
         f"facecast stream: {animation.num_frames} frames -> {path}  "

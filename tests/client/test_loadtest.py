@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 
 from facecast.client.cli import main
 
@@ -63,7 +64,9 @@ def test_bench_transport_smoke_writes_its_json_keys(tmp_path):
 
     out = tmp_path / "transport.json"
 
-    status = transport.run(argparse.Namespace(json=str(out), duration=0.3, clients=2))
+    status = transport.run(
+        argparse.Namespace(json=str(out), duration=0.3, clients=2, max_streams=3)
+    )
 
     assert status == 0
     figures = json.loads(out.read_text())
@@ -74,6 +77,20 @@ def test_bench_transport_smoke_writes_its_json_keys(tmp_path):
     # The server path is driven by the bare client; the library's round trip is apart.
     assert figures["library_client"]["rtt_ms"]["count"] > 0
     assert figures["servers"]["facecast"]["pipelined_dropped"] >= 0
+    # Attributed: CPU of every server (in /proc's 10 ms ticks: 0 for a short run is
+    # possible), facecast's time by stage, floors of the same run.
+    for name in ("websockets", "fastapi", "facecast"):
+        assert math.isfinite(figures["servers"][name]["server_cpu_us_per_message"])
+        assert figures["servers"][name]["server_cpu_us_per_message"] >= 0
+    assert figures["weights_stages"]["per_result_us"]["weights"] > 0
+    assert set(figures["whole_mesh"]) == {"exact", "bounded"}
+    moving = figures["moving"]
+    assert [step["clients"] for step in moving["ramp"]["steps"]][:1] == [2]
+    assert moving["ramp"]["steps"][0]["stages"]["per_result_us"]["blend"] > 0
+    assert math.isfinite(moving["floor"]["steps"][0]["server_cpu_us_per_result"])
+    assert moving["floor"]["steps"][0]["received"] > 0
+    assert moving["blend_floor_us"]["single_us"] > 0
+    assert 0 < moving["moving_vertices"] <= moving["num_vertices"]
 
 
 def test_a_client_that_falls_behind_never_sends_a_catch_up_burst(rigs_dir, demo_rig):

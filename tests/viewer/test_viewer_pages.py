@@ -74,6 +74,17 @@ def test_vertices_mode_with_f16_results_animates(server, page):
     assert page.errors == []
 
 
+def test_moving_vertices_mode_with_f16_results_animates(server, page):
+    page.goto(f"{server}/overlay?rig=demo&output=moving&dtype=f16")
+    page.wait_for_function(FRAMES, arg=3)
+    first = pixels(page.screenshot(omit_background=True))
+    page.wait_for_function(FRAMES, arg=frames(page) + 10)
+    second = pixels(page.screenshot(omit_background=True))
+
+    assert changed_fraction(first, second) > 0.002
+    assert page.errors == []
+
+
 def test_viewer_reconnects_after_the_server_restarts_on_the_same_port(settings, page):
     with serving(settings) as base_url:
         page.goto(f"{base_url}/viewer?rig=demo")
@@ -133,4 +144,4 @@ def test_bad_page_parameter_is_explained_on_the_page(server, page):
     error = page.locator("#error")
     error.wait_for(state="visible")
 
-    assert "output must be weights or vertices" in error.inner_text()
+    assert "output must be weights, vertices or moving" in error.inner_text()

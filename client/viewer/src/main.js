@@ -115,6 +115,7 @@ async function main() {
   let latencyEma = null;
   let pendingWeights = null;
   let pendingVertices = null;
+  let moving = null; // output "moving": the indices of the vertices results carry
 
   const link = new Link(socketTarget(params), {
     onOpen(link) {
@@ -147,7 +148,8 @@ async function main() {
             link.fail(`rig ${rig.id} changed on the server (weights no longer match the model); reload the page`);
             return;
           }
-          if (msg.output === "vertices" && rig.v !== model.vertexCount) {
+          moving = rig.moving;
+          if ((msg.output === "vertices" || msg.output === "moving") && rig.v !== model.vertexCount) {
             link.fail(`rig ${rig.id} has ${rig.v} vertices but its model ${model.vertexCount}; reload the page`);
             return;
           }
@@ -218,7 +220,8 @@ async function main() {
   const tick = (now) => {
     try {
       if (pendingWeights) view.setWeights(pendingWeights);
-      if (pendingVertices) view.setVertices(pendingVertices);
+      if (pendingVertices && moving) view.setMovingVertices(moving, pendingVertices);
+      else if (pendingVertices) view.setVertices(pendingVertices);
       if (pendingWeights) hud.weights(pendingWeights);
     } catch (err) {
       link.fail(err.message);

@@ -1,7 +1,7 @@
 // The page's settings, read once from its URL; every value is checked here so the rest
 // of the viewer can trust them. No network, no DOM beyond the URL it is given.
 
-const OUTPUTS = new Set(["weights", "vertices"]);
+const OUTPUTS = new Set(["weights", "vertices", "moving"]);
 const DTYPES = new Set(["f32", "f16"]);
 // RFC 7230 tchar: what a token may hold to travel as a WebSocket subprotocol (§2.2).
 const TCHAR = /^[!#$%&'*+\-.^_`|~0-9A-Za-z]+$/;
@@ -14,7 +14,7 @@ export class ParamError extends Error {}
  * server: base URL of the facecast server (default: the page's origin)
  * channel: watch /v1/channels/{channel}/watch; otherwise the demo performance is
  *          streamed through /v1/stream (`demo` / `stream` force that mode)
- * rig, token, output (weights|vertices), dtype (f32|f16)
+ * rig, token, output (weights|vertices|moving), dtype (f32|f16)
  * width, height: canvas size in CSS pixels (default: the window)
  * start: seconds into the demo performance to start from; stats: show the HUD on /overlay
  */
@@ -34,7 +34,10 @@ export function readParams(href, page) {
     throw new ParamError("choose either channel=NAME or demo, not both");
   }
   const output = q.get("output") || "weights";
-  if (!OUTPUTS.has(output)) throw new ParamError(`output must be weights or vertices, got ${output}`);
+  if (!OUTPUTS.has(output)) throw new ParamError(`output must be weights, vertices or moving, got ${output}`);
+  if (output === "moving" && channel !== null) {
+    throw new ParamError("output moving is for the demo stream only; a channel serves weights or vertices");
+  }
   const dtype = q.get("dtype") || "f32";
   if (!DTYPES.has(dtype)) throw new ParamError(`dtype must be f32 or f16, got ${dtype}`);
   const rig = q.get("rig") || "demo";

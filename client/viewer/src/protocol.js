@@ -217,7 +217,11 @@ const PARSERS = {
       }
     }
     if (rig.m !== rig.names.length) throw new ProtocolError(ErrorCode.INVALID_FIELD, "ready: rig.m != len(names)");
-    return { ...m, limits: isMap(m.limits) ? m.limits : {} };
+    const moving = m.output === "moving" ? movingFromWire(rig.moving, rig.v) : null;
+    if (moving === null && rig.moving != null) {
+      throw new ProtocolError(ErrorCode.INVALID_FIELD, "ready: rig.moving is only sent with output moving");
+    }
+    return { ...m, rig: { ...rig, moving }, limits: isMap(m.limits) ? m.limits : {} };
   },
   result(m) {
     requireUint(m, "seq");
@@ -246,6 +250,42 @@ const PARSERS = {
     return m;
   },
 };
+
+/**
+ * ready.rig.moving (§5.2.1): a bin of N little-endian uint32, strictly increasing vertex
+ * indices below v, as a Uint32Array.
+ */
+export function movingFromWire(data, v) {
+  if (!(data instanceof Uint8Array) || data.byteLength === 0 || data.byteLength % 4) {
+    throw new ProtocolError(ErrorCode.INVALID_FIELD, "ready: rig.moving must be a bin of uint32");
+  }
+  const view = new DataView(data.buffer, data.byteOffset, data.byteLength);
+  const moving = new Uint32Array(data.byteLength / 4);
+  for (let i = 0; i < moving.length; i++) {
+    moving[i] = view.getUint32(4 * i, true);
+    if (moving[i] >= v || (i > 0 && moving[i] <= moving[i - 1])) {
+      throw new ProtocolError(ErrorCode.INVALID_FIELD, "ready: rig.moving must increase and stay below v");
+    }
+  }
+  return moving;
+}
+
+/**
+ * Write a "moving" result's vertices (Float32Array of 3N) into a mesh's positions
+ * (Float32Array of 3V) at the indices `moving`; the other vertices keep their values
+ * (the neutral's: no example moves them).
+ */
+export function applyMoving(positions, moving, vertices) {
+  if (vertices.length !== 3 * moving.length) {
+    throw new ProtocolError(ErrorCode.INVALID_FIELD, `result: ${vertices.length / 3} vertices for ${moving.length} moving`);
+  }
+  for (let i = 0; i < moving.length; i++) {
+    const at = 3 * moving[i];
+    positions[at] = vertices[3 * i];
+    positions[at + 1] = vertices[3 * i + 1];
+    positions[at + 2] = vertices[3 * i + 2];
+  }
+}
 
 function requireUint(m, key) {
   if (!Number.isInteger(m[key]) && typeof m[key] !== "bigint") {

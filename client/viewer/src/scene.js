@@ -5,6 +5,8 @@ import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 
+import { applyMoving } from "./protocol.js";
+
 export class FaceView {
   /** transparent: clear to alpha 0 (the overlay); controls: let the user orbit. */
   constructor(container, { transparent = false, controls = true, width = null, height = null } = {}) {
@@ -98,6 +100,22 @@ export class FaceView {
       throw new Error(`got ${weights.length} weights for a rig of ${this.weightCount ?? "unknown"}`);
     }
     for (let j = 0; j < order.length; j++) influences[j] = weights[order[j]];
+    this.dirty = true;
+  }
+
+  /**
+   * vertices: Float32Array of N*3, the vertices `moving` (Uint32Array) of an output
+   * "moving" result; the others keep the neutral's positions.
+   */
+  setMovingVertices(moving, vertices) {
+    const position = this.mesh.geometry.attributes.position;
+    if (moving.length && moving[moving.length - 1] >= position.count) {
+      throw new Error(`moving vertex ${moving[moving.length - 1]} is beyond a mesh of ${position.count}`);
+    }
+    this.mesh.morphTargetInfluences.fill(0);
+    applyMoving(position.array, moving, vertices);
+    position.needsUpdate = true;
+    this.mesh.geometry.computeVertexNormals();
     this.dirty = true;
   }
 

@@ -65,3 +65,8 @@ test("the performer page publishes to its channel; a performer's own rig id is a
   assert.throws(() => readPerformParams("http://h/perform?channel=c&backend=webgpu"), /backend must be/);
   assert.throws(() => readParams("http://h/viewer?rig=cat@", "viewer"), ParamError);
 });
+
+test("the demo stream may ask for the moving vertices only, a channel may not", () => {
+  assert.equal(readParams("https://example.org/viewer?output=moving&dtype=f16", "viewer").output, "moving");
+  assert.throws(() => readParams("https://example.org/viewer?channel=stage&output=moving", "viewer"), ParamError);
+});

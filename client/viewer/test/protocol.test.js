@@ -2,7 +2,16 @@
 import assert from "node:assert/strict";
 import { test } from "node:test";
 
-import { arrayFromWire, decodeServer, encodeFrame, encodePing, ErrorCode, halfToFloat, ProtocolError } from "../src/protocol.js";
+import {
+  applyMoving,
+  arrayFromWire,
+  decodeServer,
+  encodeFrame,
+  encodePing,
+  ErrorCode,
+  halfToFloat,
+  ProtocolError,
+} from "../src/protocol.js";
 
 const hex = (text) => Uint8Array.from(text.trim().split(/\s+/), (b) => parseInt(b, 16));
 
@@ -94,4 +103,46 @@ test("truncated bytes are refused with MALFORMED", () => {
     () => decodeServer(hex("84 a1 76 01 a4 74 79")),
     (err) => err instanceof ProtocolError && err.code === ErrorCode.MALFORMED,
   );
+});
+
+const READY_MOVING = `87 a1 76 01 a4 74 79 70 65 a5 72 65 61 64 79 a7
+  73 65 73 73 69 6f 6e a2 73 31 a3 72 69 67 86 a2
+  69 64 a4 64 65 6d 6f a1 6d 02 a5 6e 61 6d 65 73
+  92 a7 6e 65 75 74 72 61 6c a5 73 6d 69 6c 65 a1
+  6b 02 a1 76 04 a6 6d 6f 76 69 6e 67 c4 08 01 00
+  00 00 03 00 00 00 a6 6f 75 74 70 75 74 a6 6d 6f
+  76 69 6e 67 a5 64 74 79 70 65 a3 66 31 36 a6 6c
+  69 6d 69 74 73 80`;
+
+test("ready of PROTOCOL.md §10.12 decodes to the moving vertices' indices", () => {
+  const msg = decodeServer(hex(READY_MOVING));
+  assert.equal(msg.output, "moving");
+  assert.deepEqual(Array.from(msg.rig.moving), [1, 3]);
+});
+
+test("a moving result of PROTOCOL.md §10.12 lands on the moving vertices of the mesh", () => {
+  const ready = decodeServer(hex(READY_MOVING));
+  const result = decodeServer(
+    hex(`87 a1 76 01 a4 74 79 70 65 a6 72 65 73 75 6c 74
+      a3 73 65 71 07 a2 74 73 cb 40 29 00 00 00 00 00
+      00 a8 76 65 72 74 69 63 65 73 83 a5 64 74 79 70
+      65 a3 66 31 36 a5 73 68 61 70 65 92 02 03 a4 64
+      61 74 61 c4 0c 00 00 00 3c 00 40 00 b8 00 34 00
+      3e a7 70 72 6f 63 5f 75 73 cc b4 a7 64 72 6f 70
+      70 65 64 00`),
+  );
+  const positions = new Float32Array([9, 9, 9, 8, 8, 8, 7, 7, 7, 6, 6, 6]); // the neutral
+  applyMoving(positions, ready.rig.moving, result.vertices);
+  assert.deepEqual(Array.from(positions), [9, 9, 9, 0, 1, 2, 7, 7, 7, -0.5, 0.25, 1.5]);
+});
+
+test("ready refuses moving indices that do not increase", () => {
+  const bytes = hex(READY_MOVING);
+  bytes[bytes.indexOf(0x03, 80)] = 0x01; // moving [1, 1]
+  assert.throws(() => decodeServer(bytes), (err) => err instanceof ProtocolError && err.code === ErrorCode.INVALID_FIELD);
+});
+
+test("a moving result of the wrong length is refused", () => {
+  const moving = new Uint32Array([1, 3]);
+  assert.throws(() => applyMoving(new Float32Array(12), moving, new Float32Array(3)), ProtocolError);
 });
