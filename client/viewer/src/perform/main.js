@@ -122,6 +122,16 @@ async function main() {
   const view = new FaceView($("stage"), { controls: false });
   let names = [];
   let live = true; // the view follows the server's weights (else: showing a target example)
+  // The view takes weights in one named order (FaceView.bindWeights: the GLB leaves out the
+  // neutral): the rig's, from its `ready`, once both it and the model are here; until then
+  // the model's own target names, so the studio can pose the character before publishing.
+  let rigNames = null;
+  let weightNames = [];
+  const bindView = () => {
+    if (!view.mesh) return;
+    if (rigNames && view.bindWeights(rigNames)) weightNames = rigNames;
+    else if (view.bindWeights(names)) weightNames = names;
+  };
   const showWeights = (weights) => {
     view.setWeights(weights);
     view.dirty = true;
@@ -139,8 +149,8 @@ async function main() {
     },
     showExample(name) {
       live = false;
-      const weights = new Float32Array(names.length);
-      const i = names.indexOf(name);
+      const weights = new Float32Array(weightNames.length);
+      const i = weightNames.indexOf(name);
       if (i >= 0) weights[i] = 1;
       if (view.mesh) showWeights(weights);
     },
@@ -156,6 +166,7 @@ async function main() {
     .then((glb) => view.load(glb))
     .then((model) => {
       names = model.names;
+      bindView();
       studio.setNames(names);
       $("stage-label").textContent = `character · ${params.rig}`;
     })
@@ -203,6 +214,8 @@ async function main() {
           return;
         }
         l.healthy();
+        rigNames = msg.rig.names;
+        bindView();
         publishing = true;
         stats.rebased = false;
         setPublish("live", `live · ${params.channel}`, `rig ${msg.rig.id}, ${K} points a frame`);
@@ -216,7 +229,7 @@ async function main() {
           const rtt = Date.now() - msg.server_ts * 1000;
           latencyEma = latencyEma === null ? rtt : 0.9 * latencyEma + 0.1 * rtt;
         }
-        if (live && msg.weights && view.mesh && msg.weights.length === names.length) showWeights(msg.weights);
+        if (live && msg.weights && view.mesh && msg.weights.length === weightNames.length) showWeights(msg.weights);
       } else if (msg.type === "error") {
         const text = `${errorName(msg.code)}: ${msg.message}`;
         if (msg.code === ErrorCode.UNKNOWN_RIG) setPublish("failed", "not publishing", `unknown rig ${params.rig}: ${msg.message}`);
