@@ -259,7 +259,7 @@ class _FitJob:
 
     def __call__(self):
         from facecast.rig import fit
-        from facecast.rig.loaders import load_example_set
+        from facecast.rig.io.loaders import load_example_set
 
         with tempfile.TemporaryDirectory(prefix="upload-", dir=self.scratch) as tmp:
             dest = Path(tmp)

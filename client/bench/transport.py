@@ -450,7 +450,7 @@ def _rigs(rigs_dir: Path) -> tuple[np.ndarray, np.ndarray, str]:
     demo.save(rigs_dir / "demo.rig")
     vertices_rig, vertices_id = demo, "demo"
     try:
-        from facecast.rig.ict import ict_example_set, locate_ict
+        from facecast.rig.sources.ict import ict_example_set, locate_ict
 
         archive = locate_ict()
     except ImportError:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ExampleSetError
+from ..errors import ExampleSetError
 
 __all__ = [
     "format_faces",

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import ExampleSetError, InputError
+from ..examples import ExampleSet
 from .animation import SourceAnimation
-from .errors import ExampleSetError, InputError
-from .examples import ExampleSet
 from .synthetic import frame_count, smooth_bump
 
 __all__ = [

@@ -17,8 +17,8 @@ Public names
 Each expression is a set of facial "controls" (jaw, smile, brows, lids, ...); the source
 and the target give the same expression different control values, so the target's
 examples are characteristic of the cartoon and not a resampled copy of the source's.
-The heads' neutral geometry is built in ``demo_geometry`` and posed by the controls in
-``demo_controls``; this module holds the expressions, the performance and the public API.
+The heads' neutral geometry is built in ``geometry`` and posed by the controls in
+``controls``; this module holds the expressions, the performance and the public API.
 """
 
 from __future__ import annotations
@@ -27,11 +27,11 @@ import functools
 
 import numpy as np
 
-from .animation import SourceAnimation
-from .demo_controls import CONTROL_INDEX, CONTROLS, character_model, pose_vertices
-from .errors import InputError
-from .examples import ExampleSet
-from .synthetic import frame_count, smooth_bump
+from ..errors import InputError
+from ..examples import ExampleSet
+from ..sources.animation import SourceAnimation
+from ..sources.synthetic import frame_count, smooth_bump
+from .controls import CONTROL_INDEX, CONTROLS, character_model, pose_vertices
 
 __all__ = [
     "DEMO_EMOTIONS",
@@ -49,7 +49,7 @@ DEMO_EMOTIONS = ("happy", "sad", "surprise", "fear", "anger", "disgust")
 DEMO_VISEMES = ("aa", "oo", "ee", "mbp", "fv")
 DEMO_NAMES = ("neutral", *DEMO_EMOTIONS, *DEMO_VISEMES, "blink")
 
-# Each expression as values of the face controls (``demo_controls.CONTROLS``).
+# Each expression as values of the face controls (``controls.CONTROLS``).
 _SOURCE_POSES: dict[str, dict[str, float]] = {
     "happy": {"smile": 1.0, "cheek": 0.8, "squint": 0.45, "jaw": 0.12, "lid": -0.15},
     "sad": {"frown": 1.0, "brow_in_up": 1.0, "lid": -0.35, "press": 0.2},

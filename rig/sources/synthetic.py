@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 
 __all__ = ["frame_count", "smooth_bump"]
 

@@ -29,8 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ExampleSetError, InputError
-from .examples import ExampleSet
+from ..errors import ExampleSetError, InputError
+from ..examples import ExampleSet
+from ..io.loaders import load_example_set
+from .ict import ict_example_set
 
 __all__ = [
     "ARKIT_NAMES",
@@ -333,11 +335,7 @@ def load_source_rig(path: str | os.PathLike) -> SourceRig:
     ------
     ExampleSetError
     """
-    from .loaders import load_example_set
-
     path = Path(path)
     if _is_ict_archive(path):
-        from .ict import ict_example_set
-
         return SourceRig.from_example_set(ict_example_set(path))
     return SourceRig.from_example_set(load_example_set(path))

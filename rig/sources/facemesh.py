@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 from .layouts import Layout
 
 __all__ = ["face_frame", "image_to_mesh", "normalise_mesh"]

@@ -1,6 +1,6 @@
 """Landmark layouts: which of a tracker's mesh points are the rig's feature points, as data.
 
-Loads and validates the JSON tables in ``facecast/rig/layouts/`` (one per tracker; a new
+Loads and validates the JSON tables in ``facecast/rig/sources/layouts/`` (one per tracker; a new
 tracker is a new table, no code). It must not read frames, fit or touch the network.
 
 A layout file is one JSON object::
@@ -10,11 +10,11 @@ A layout file is one JSON object::
     features        K mesh indices: the feature points, in the order of the rig's points
     feature_names   K str
     multipie68      K int, optional: the Multi-PIE 68 position of each feature, so the
-                    table maps onto ``facecast.rig.ict.DEFAULT_LANDMARKS``
+                    table maps onto ``facecast.rig.sources.ict.DEFAULT_LANDMARKS``
     stable          mesh indices that expressions barely move (head-pose removal)
     eyes            {"left"|"right": {"upper", "lower", "outer", "inner": index}}
     frame           {"left", "right", "bottom", "top": [indices], "span": float}: the
-                    face-fixed frame of ``facecast.rig.facemesh`` (see there)
+                    face-fixed frame of ``facecast.rig.sources.facemesh`` (see there)
     source          str, optional: where the correspondences come from
 """
 
@@ -29,7 +29,7 @@ from importlib import resources
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 
 __all__ = ["DEFAULT_LAYOUT", "Layout", "layout_from_dict", "layout_names", "load_layout"]
 

@@ -11,9 +11,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .errors import InputError
-from .filters import KalmanFilter, OneEuroFilter
-from .rig import Rig
+from ..errors import InputError
+from ..filters import KalmanFilter, OneEuroFilter
+from ..rig import Rig
 
 __all__ = [
     "DEFAULT_KALMAN_ACCELERATIONS",

@@ -12,10 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
-from .examples import ExampleSet
-from .ict import ict_example_set
-from .source_rig import ARKIT_NAMES, ARKIT_TO_ICT
+from ..errors import InputError
+from ..examples import ExampleSet
+from ..sources.ict import ict_example_set
+from ..sources.source_rig import ARKIT_NAMES, ARKIT_TO_ICT
 
 __all__ = ["ARKIT_TARGET_IDENTITY", "TakeExperiment", "arkit_example_set", "take_experiment"]
 
