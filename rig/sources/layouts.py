@@ -26,6 +26,7 @@ import math
 import re
 from dataclasses import dataclass
 from importlib import resources
+from typing import Any
 
 import numpy as np
 
@@ -84,9 +85,9 @@ class Layout:
     def num_features(self) -> int:
         return int(self.features.size)
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """The layout as the JSON object it was read from."""
-        doc: dict = {
+        doc: dict[str, Any] = {
             "name": self.name,
             "tracker_points": self.tracker_points,
             "features": self.features.tolist(),
@@ -109,7 +110,7 @@ def _fail(where: str, message: str) -> InputError:
     return InputError(f"layout {where}: {message}", code="bad_layout")
 
 
-def _index(value, n: int, where: str, what: str) -> int:
+def _index(value: object, n: int, where: str, what: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int):
         raise _fail(where, f"{what} must be an integer, got {value!r}")
     if not 0 <= value < n:
@@ -117,7 +118,7 @@ def _index(value, n: int, where: str, what: str) -> int:
     return value
 
 
-def _indices(value, n: int, where: str, what: str, *, minimum: int = 1) -> np.ndarray:
+def _indices(value: object, n: int, where: str, what: str, *, minimum: int = 1) -> np.ndarray:
     if not isinstance(value, list) or len(value) < minimum:
         raise _fail(where, f"{what} must be a list of at least {minimum} mesh indices")
     out = [_index(v, n, where, f"{what}[{i}]") for i, v in enumerate(value)]
