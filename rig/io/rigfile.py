@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import zipfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -39,7 +41,7 @@ __all__ = [
 ]
 
 
-def load_rig(path, *, max_bytes: int = DEFAULT_MAX_BYTES) -> Rig:
+def load_rig(path: str | os.PathLike[str], *, max_bytes: int = DEFAULT_MAX_BYTES) -> Rig:
     """Read a rig file written by ``Rig.save``."""
     path = Path(path)
     try:
@@ -125,7 +127,7 @@ def _check_finite(arrays: dict[str, np.ndarray], source: str) -> None:
             )
 
 
-def _build(meta: dict, a: dict[str, np.ndarray]) -> Rig:
+def _build(meta: dict[str, Any], a: dict[str, np.ndarray]) -> Rig:
     names = tuple(str(n) for n in meta["names"])
     m = len(names)
     basis = a["blend_basis"]
@@ -140,9 +142,9 @@ def _build(meta: dict, a: dict[str, np.ndarray]) -> Rig:
     ):
         raise ValueError("target_faces out of range")
     models = [_build_model(meta, a, "", 0)]
-    regions = None
+    regions: tuple[tuple[str, np.ndarray], ...] | None = None
     if meta.get("regions"):
-        regions = []
+        named: list[tuple[str, np.ndarray]] = []
         for r, region in enumerate(meta["regions"]):
             columns = np.asarray(region["columns"], dtype=np.int64)
             if r:
@@ -151,8 +153,8 @@ def _build(meta: dict, a: dict[str, np.ndarray]) -> Rig:
                 raise ValueError(f"region {region['name']!r} has columns out of range")
             if columns.size != models[r].params.shape[0] - 1:
                 raise ValueError(f"region {region['name']!r} has {columns.size} columns")
-            regions.append((str(region["name"]), columns))
-        regions = tuple(regions)
+            named.append((str(region["name"]), columns))
+        regions = tuple(named)
     elif models[0].params.shape[0] != m:
         raise ValueError(f"{models[0].params.shape[0]} examples in the model for {m} names")
     preview = None
@@ -174,7 +176,9 @@ def _build(meta: dict, a: dict[str, np.ndarray]) -> Rig:
     )
 
 
-def _build_model(meta: dict, a: dict[str, np.ndarray], prefix: str, index: int) -> WeightModel:
+def _build_model(
+    meta: dict[str, Any], a: dict[str, np.ndarray], prefix: str, index: int
+) -> WeightModel:
     k = a[prefix + "source_neutral"].shape[0]
     n = a[prefix + "features"].shape[0]
     m = a[prefix + "params"].shape[0]
@@ -209,7 +213,7 @@ def _build_model(meta: dict, a: dict[str, np.ndarray], prefix: str, index: int) 
     )
 
 
-def _penalty(meta: dict, index: int) -> float:
+def _penalty(meta: dict[str, Any], index: int) -> float:
     penalty = float(meta.get("sparsity_penalty", [0.0] * (index + 1))[index])
     if not np.isfinite(penalty) or penalty < 0:
         raise ValueError(f"sparsity_penalty must be a finite number >= 0, got {penalty}")

@@ -13,7 +13,7 @@ import io
 import json
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -101,7 +101,7 @@ def _arrays(rig: Rig) -> dict[str, np.ndarray]:
     return {k: np.ascontiguousarray(v) for k, v in arrays.items()}
 
 
-def _meta(rig: Rig) -> dict:
+def _meta(rig: Rig) -> dict[str, Any]:
     meta = {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
@@ -123,7 +123,7 @@ def _meta(rig: Rig) -> dict:
     return meta
 
 
-def checksum_of(meta: dict, arrays: dict[str, np.ndarray]) -> str:
+def checksum_of(meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> str:
     h = hashlib.sha256()
     h.update(json.dumps(meta, sort_keys=True, allow_nan=True).encode())
     for name in sorted(arrays):
@@ -142,15 +142,16 @@ def rig_to_bytes(rig: Rig) -> bytes:
     arrays = _arrays(rig)
     meta_with_sum = dict(meta, checksum=checksum_of(meta, arrays))
     buffer = io.BytesIO()
+    # numpy's stub types **kwds as if one could be its allow_pickle flag.
     np.savez(
         buffer,
         meta=np.frombuffer(json.dumps(meta_with_sum).encode(), dtype=np.uint8),
-        **arrays,
+        **arrays,  # type: ignore[arg-type]
     )
     return buffer.getvalue()
 
 
-def save_rig(rig: Rig, path) -> None:
+def save_rig(rig: Rig, path: str | os.PathLike[str]) -> None:
     """Write atomically: a temporary file beside ``path``, fsynced, then renamed over it."""
     path = Path(path)
     data = rig_to_bytes(rig)
