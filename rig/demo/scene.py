@@ -26,6 +26,7 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import InputError
 from ..examples import ExampleSet
@@ -127,7 +128,7 @@ def _feature_indices() -> np.ndarray:
     marks = model.landmarks
     wanted = np.stack([marks[name] for name in DEMO_FEATURE_NAMES])
     distance = np.linalg.norm(model.neutral[None, :, :] - wanted[:, None, :], axis=2)
-    indices = distance.argmin(axis=1)
+    indices: np.ndarray = distance.argmin(axis=1)
     indices.flags.writeable = False
     return indices
 
@@ -225,7 +226,7 @@ def demo_activations(seconds: float = 12.0, fps: float = 60.0, *, seed: int = 7)
     return act
 
 
-def _sanitize_activations(activations) -> np.ndarray:
+def _sanitize_activations(activations: npt.ArrayLike) -> np.ndarray:
     try:
         act = np.asarray(activations, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -249,7 +250,7 @@ def _sanitize_activations(activations) -> np.ndarray:
     return act
 
 
-def demo_target_frames(activations) -> np.ndarray:
+def demo_target_frames(activations: npt.ArrayLike) -> np.ndarray:
     """The ideal clone: the target's own expressions driven by ``activations``.
 
     Parameters
