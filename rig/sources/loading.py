@@ -11,6 +11,7 @@ import re
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import ExampleSetError, InputError
 from ..io.meshio import read_obj_vertices
@@ -21,13 +22,13 @@ from .trackers import livelink_csv_animation, mediapipe_animation
 __all__ = ["load_source_animation"]
 
 
-def _natural_key(name: str) -> list:
+def _natural_key(name: str) -> list[tuple[int, int, str]]:
     return [
         (0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", name)
     ]
 
 
-def _select(vertices: np.ndarray, indices, where: str) -> np.ndarray:
+def _select(vertices: np.ndarray, indices: npt.ArrayLike | None, where: str) -> np.ndarray:
     if indices is None:
         raise InputError(
             f"{where}: holds full source meshes; pass feature_indices to select the points",
@@ -49,12 +50,12 @@ def _select(vertices: np.ndarray, indices, where: str) -> np.ndarray:
 
 
 def load_source_animation(
-    path: str | os.PathLike,
+    path: str | os.PathLike[str],
     *,
-    feature_indices=None,
+    feature_indices: npt.ArrayLike | None = None,
     num_points: int | None = None,
     keep_vertices: bool = False,
-    source_rig=None,
+    source_rig: SourceRig | str | os.PathLike[str] | None = None,
 ) -> SourceAnimation:
     """Load a source performance as feature points per frame.
 
@@ -115,7 +116,9 @@ def load_source_animation(
     return animation
 
 
-def _load_tracker_take(path: Path, source_rig) -> SourceAnimation:
+def _load_tracker_take(
+    path: Path, source_rig: SourceRig | str | os.PathLike[str] | None
+) -> SourceAnimation:
     if path.suffix.lower() != ".csv":
         return mediapipe_animation(path)
     if source_rig is None:
@@ -154,7 +157,9 @@ def _load_array(path: Path, key: str | None) -> np.ndarray:
     return array
 
 
-def _load_npz(path: Path, feature_indices, keep_vertices: bool) -> SourceAnimation:
+def _load_npz(
+    path: Path, feature_indices: npt.ArrayLike | None, keep_vertices: bool
+) -> SourceAnimation:
     try:
         with path.open("rb") as handle, np.load(handle, allow_pickle=False) as archive:
             keys = set(archive.files)
@@ -188,7 +193,9 @@ def _load_npz(path: Path, feature_indices, keep_vertices: bool) -> SourceAnimati
         raise InputError(f"{path}: {exc.message}", code=exc.code) from None
 
 
-def _load_obj_frames(folder: Path, feature_indices, keep_vertices: bool) -> SourceAnimation:
+def _load_obj_frames(
+    folder: Path, feature_indices: npt.ArrayLike | None, keep_vertices: bool
+) -> SourceAnimation:
     if feature_indices is None:
         _select(np.empty((1, 0, 3)), None, str(folder))  # raises: meshes need indices
     files = sorted(
@@ -203,9 +210,10 @@ def _load_obj_frames(folder: Path, feature_indices, keep_vertices: bool) -> Sour
         fps = check_fps(
             fps_file.read_text(encoding="utf-8", errors="replace").strip(), str(fps_file)
         )
-    points = None
-    vertices = None
-    idx = None
+    # Sized by the first frame, so empty until then (a folder has at least one, checked above).
+    points = np.empty((0, 0, 3))
+    vertices: np.ndarray | None = None
+    idx = np.empty(0, dtype=np.int64)
     vs = 0
     for i, file in enumerate(files):
         try:
