@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from facecast.rig.errors import InputError
-from facecast.rig.facemesh import image_to_mesh, normalise_mesh
-from facecast.rig.layouts import Layout, load_layout
+from facecast.rig.sources.facemesh import image_to_mesh, normalise_mesh
+from facecast.rig.sources.layouts import Layout, load_layout
 
 __all__ = ["FaceTracker", "Tracked", "TrackerUnavailable", "VideoSource"]
 

@@ -6,6 +6,7 @@ with the server's problem ``code``. It never streams and never writes files.
 
 from __future__ import annotations
 
+import json
 from typing import TYPE_CHECKING, Any
 
 import httpx
@@ -84,8 +85,6 @@ def fetch_summary(
     base_url: str, rig_id: str, *, token: str | None = None, timeout: float = 30.0
 ) -> dict[str, Any]:
     """``GET /v1/rigs/{id}``: the rig's ``summary()`` plus ``id`` (num_points, names, ...)."""
-    import json
-
     data = _get(rest_url(base_url, "rigs", rig_id), token, timeout=timeout, max_bytes=16 << 20)
     return json.loads(data)
 

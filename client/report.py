@@ -1,6 +1,6 @@
 """Presenting engine measurements: text tables, the JSON report file and PNG plots.
 
-Formats what ``facecast.rig.evaluate`` and the engine benchmark return; it must not
+Formats what ``facecast.rig.evaluation.evaluate`` and the engine benchmark return; it must not
 measure or compute anything itself (matplotlib only with the Agg backend, no windows).
 """
 

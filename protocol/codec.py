@@ -41,7 +41,9 @@ def encode(message: Message) -> bytes:
     packer = getattr(_local, "packer", None)
     if packer is None:
         packer = _local.packer = msgpack.Packer(use_bin_type=True, autoreset=True)
-    return packer.pack(message.serialize())
+    # msgpack is untyped; Packer.pack returns bytes.
+    data: bytes = packer.pack(message.serialize())
+    return data
 
 
 def encode_result(
@@ -58,7 +60,7 @@ def encode_result(
     packer = getattr(_local, "packer", None)
     if packer is None:
         packer = _local.packer = msgpack.Packer(use_bin_type=True, autoreset=True)
-    return packer.pack(
+    data: bytes = packer.pack(
         {
             "v": PROTOCOL_VERSION,
             "type": "result",
@@ -69,6 +71,7 @@ def encode_result(
             "dropped": dropped,
         }
     )
+    return data
 
 
 def _pairs_to_map(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:
@@ -182,12 +185,19 @@ def decode_client(data: bytes, limits: Limits = DEFAULT_LIMITS) -> ClientMessage
     frame = decode_frame(data, limits)
     if frame is not None:
         return frame
-    return _decode(data, limits.max_message_bytes, limits, CLIENT_MESSAGES, "client->server")
+    # The table holds client message classes only, so the message is a ClientMessage.
+    message: ClientMessage = _decode(
+        data, limits.max_message_bytes, limits, CLIENT_MESSAGES, "client->server"
+    )
+    return message
 
 
 def decode_server(data: bytes, limits: Limits = DEFAULT_LIMITS) -> ServerMessage:
     """Decode one server->client message (§5.2); like `decode_client` otherwise."""
-    return _decode(data, limits.max_server_message_bytes, limits, SERVER_MESSAGES, "server->client")
+    message: ServerMessage = _decode(
+        data, limits.max_server_message_bytes, limits, SERVER_MESSAGES, "server->client"
+    )
+    return message
 
 
 def reject_text(text: str | None = None) -> NoReturn:

@@ -628,7 +628,8 @@ class Result(_ArrayMessage):
     @property
     def values(self) -> np.ndarray:
         """The array this result carries: (M,) weights, (V, 3) vertices or (K, 3) points."""
-        return getattr(self, self.output)
+        values: np.ndarray = getattr(self, self.output)
+        return values
 
     @property
     def dtype(self) -> str:

@@ -24,7 +24,7 @@ SUBPROTOCOL: Final = "facecast.v1"
 #: cannot set an Authorization header on a WebSocket.
 BEARER_SUBPROTOCOL_PREFIX: Final = "facecast.bearer."
 
-_CLOSE_CODES: Final = {
+_CLOSE_CODES: Final[dict[ErrorCode | int, int]] = {
     ErrorCode.TEXT_NOT_SUPPORTED: 1003,
     ErrorCode.MESSAGE_TOO_LARGE: 1009,
     ErrorCode.INTERNAL: 1011,
@@ -114,4 +114,4 @@ def close_code(error: ProtocolError) -> int:
     1003 text not supported, 1009 too large, 1011 internal, 1013 overloaded, 1008 (policy
     violation) for everything else.
     """
-    return _CLOSE_CODES.get(error.code, 1008)  # type: ignore[call-overload]
+    return _CLOSE_CODES.get(error.code, 1008)

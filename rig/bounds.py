@@ -39,7 +39,8 @@ def weight_metric(params: np.ndarray, ridge: float) -> np.ndarray:
     displacement = params[1:] - params[0]
     gram = displacement @ displacement.T
     floor = 1e-12 * max(float(np.trace(gram)), 1e-300)
-    return gram + max(ridge, floor) * np.eye(len(gram))
+    metric: np.ndarray = gram + max(ridge, floor) * np.eye(len(gram))
+    return metric
 
 
 def sparsity_penalty(noise: float, sparsity: float, num_examples: int) -> float:
@@ -123,6 +124,8 @@ def project_box(
     tol = 1e-12 * (1.0 + np.abs(target))
     best = np.full(len(weights), n + 1)  # fewest infeasible variables seen, per frame
     chances = np.full(len(weights), _BACKUP_CHANCES)
+    # high is None exactly when upper is; the bound's value where high is used.
+    top = 0.0 if upper is None else upper
     for _ in range(max_iter):
         free = ~low if high is None else ~(low | high)
         both = free[:, :, None] & free[:, None, :]
@@ -130,7 +133,7 @@ def project_box(
         if high is None:
             rhs = np.where(free, target, 0.0)
         else:
-            fixed = np.where(high, upper, 0.0)
+            fixed = np.where(high, top, 0.0)
             rhs = np.where(free, target - fixed @ metric, fixed)
         x = np.linalg.solve(system, rhs[:, :, None])[:, :, 0]
         # Half the objective's gradient, H (x - w) + lambda / 2: >= 0 where x sits at 0,
@@ -141,7 +144,7 @@ def project_box(
         to_low = free & (x < 0.0)
         infeasible = to_low | (low & (gradient < -tol))
         if high is not None:
-            to_high = free & (x > upper)
+            to_high = free & (x > top)
             infeasible |= to_high | (high & (gradient > tol))
         count = infeasible.sum(axis=1)
         done = count == 0
@@ -172,7 +175,8 @@ def project_box(
             high = (high & ~infeasible) | (to_high & infeasible)
     else:
         out[rows] = x
-    return np.clip(out, 0.0, upper)
+    bounded: np.ndarray = np.clip(out, 0.0, upper)
+    return bounded
 
 
 class BoxProjection:

@@ -6,17 +6,21 @@ the fitting code can assume clean input. It does no file I/O; see ``loaders``.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from .errors import ExampleSetError
 
 __all__ = ["ExampleSet", "check_stable_points"]
 
 
-def _finite_array(name: str, value, dtype, ndim: int, where: str = "") -> np.ndarray:
+def _finite_array(
+    name: str, value: npt.ArrayLike, dtype: npt.DTypeLike, ndim: int, where: str = ""
+) -> np.ndarray:
     try:
         array = np.asarray(value, dtype=dtype)
     except (TypeError, ValueError) as exc:
@@ -39,7 +43,7 @@ def _check_finite(name: str, array: np.ndarray, names: Sequence[str] | None = No
     raise ExampleSetError(f"{name}: NaN or Inf coordinates", code="non_finite")
 
 
-def check_stable_points(value, num_points: int) -> np.ndarray:
+def check_stable_points(value: npt.ArrayLike, num_points: int) -> np.ndarray:
     """Stable points as distinct positions in [0, K), at least 3 of them, or an error."""
     try:
         stable = np.asarray(value)
@@ -189,13 +193,13 @@ class ExampleSet:
     def from_source_meshes(
         cls,
         names: Sequence[str],
-        source_vertices,
-        feature_indices,
-        target_vertices,
-        target_faces,
+        source_vertices: npt.ArrayLike,
+        feature_indices: npt.ArrayLike,
+        target_vertices: npt.ArrayLike,
+        target_faces: npt.ArrayLike,
         *,
-        source_faces=None,
-        stable_points=None,
+        source_faces: npt.ArrayLike | None = None,
+        stable_points: npt.ArrayLike | None = None,
     ) -> ExampleSet:
         """Build from full source meshes (M, Vs, 3) and 0-based feature vertex indices (K,)."""
         src = _finite_array("source_vertices", source_vertices, np.float64, 3)
@@ -235,12 +239,14 @@ class ExampleSet:
     @property
     def source_neutral(self) -> np.ndarray:
         """(K, 3) source base feature points S_B."""
-        return self.source_points[0]
+        neutral: np.ndarray = self.source_points[0]
+        return neutral
 
     @property
     def target_neutral(self) -> np.ndarray:
         """(V, 3) target base vertices T_B."""
-        return self.target_vertices[0]
+        neutral: np.ndarray = self.target_vertices[0]
+        return neutral
 
     def subset(self, names: Sequence[str]) -> ExampleSet:
         """A new set keeping the neutral and the named examples, in the given order."""
@@ -261,7 +267,7 @@ class ExampleSet:
             stable_points=self.stable_points,
         )
 
-    def save_npz(self, path) -> None:
+    def save_npz(self, path: str | os.PathLike[str]) -> None:
         """Write the set as one ``.npz`` (no pickles), readable by ``load_example_set``."""
         arrays = {
             "names": np.asarray(self.names, dtype=str),

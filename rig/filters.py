@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 
 from .errors import InputError
 
@@ -47,7 +48,9 @@ def _positive(name: str, value: float, *, allow_zero: bool = False) -> float:
     return number
 
 
-def _sanitize_sample(x, t, shape, last_t) -> tuple[np.ndarray, float]:
+def _sanitize_sample(
+    x: npt.ArrayLike, t: float, shape: tuple[int, ...] | None, last_t: float | None
+) -> tuple[np.ndarray, float]:
     """A sample (C,) and its time, checked against the channels and time before them."""
     try:
         sample = np.asarray(x, dtype=np.float64)
@@ -113,11 +116,11 @@ class OneEuroFilter:
         """C, once the first sample fixed it; None before."""
         return None if self._x is None else int(self._x.shape[0])
 
-    def _sanitize(self, x, t) -> tuple[np.ndarray, float]:
+    def _sanitize(self, x: npt.ArrayLike, t: float) -> tuple[np.ndarray, float]:
         shape = None if self._x is None else self._x.shape
         return _sanitize_sample(x, t, shape, self._t)
 
-    def __call__(self, x, t: float) -> np.ndarray:
+    def __call__(self, x: npt.ArrayLike, t: float) -> np.ndarray:
         """Filter one sample.
 
         Parameters
@@ -149,7 +152,7 @@ class OneEuroFilter:
         self._t = when
         return self._x.copy()
 
-    def filter_series(self, x, t) -> np.ndarray:
+    def filter_series(self, x: npt.ArrayLike, t: npt.ArrayLike) -> np.ndarray:
         """Filter a whole series, continuing from the current state.
 
         Parameters
@@ -211,7 +214,7 @@ class KalmanFilter:
         self._p = np.zeros((2, 2))
         self._t: float | None = None
 
-    def __call__(self, x, t: float) -> np.ndarray:
+    def __call__(self, x: npt.ArrayLike, t: float) -> np.ndarray:
         """Filter one sample (C,) at ``t`` seconds; returns the position estimate (C,)."""
         shape = None if self._x is None else self._x.shape
         sample, when = _sanitize_sample(x, t, shape, self._t)
@@ -238,7 +241,7 @@ class KalmanFilter:
         self._t = when
         return self._x.copy()
 
-    def filter_series(self, x, t) -> np.ndarray:
+    def filter_series(self, x: npt.ArrayLike, t: npt.ArrayLike) -> np.ndarray:
         """Filter a whole series (F, C) at times (F,), continuing from the current state."""
         series = np.asarray(x, dtype=np.float64)
         times = np.asarray(t, dtype=np.float64)

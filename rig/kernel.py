@@ -10,13 +10,14 @@ cast must give numpy's bits exactly; without F16C it is numpy's own cast.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 
 import numpy as np
 
 try:
     from . import _kernel
 except ImportError:  # not built (no C compiler at install time): numpy does the work
-    _kernel = None
+    _kernel = None  # type: ignore[assignment]
 
 __all__ = [
     "DISABLE_ENV",
@@ -40,7 +41,7 @@ def _disabled() -> bool:
     return os.environ.get(DISABLE_ENV, "") not in ("", "0")
 
 
-def box_kernel():
+def box_kernel() -> Callable[..., None] | None:
     """The compiled bounded-weights solver (``_kernel.project_box``), or None.
 
     None when the extension is not built or ``FACECAST_NO_KERNEL`` is set (read when a rig
@@ -97,7 +98,7 @@ def bspline_kernel(
     params: np.ndarray,
     alpha: np.ndarray,
     radial_coeffs: np.ndarray,
-):
+) -> _kernel.BsplineKernel | None:
     """A compiled B-spline weight kernel for one model, or None (not built, or disabled).
 
     Parameters
@@ -124,7 +125,7 @@ def bspline_kernel(
     if _kernel is None or _disabled():
         return None
 
-    def c(array):
+    def c(array: np.ndarray) -> np.ndarray:
         return np.ascontiguousarray(array, dtype=np.float64)
 
     return _kernel.BsplineKernel(

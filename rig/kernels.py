@@ -24,7 +24,8 @@ def bspline(t: np.ndarray) -> np.ndarray:
 
 
 def gaussian(t: np.ndarray) -> np.ndarray:
-    return np.exp(-(t * t))
+    out: np.ndarray = np.exp(-(t * t))
+    return out
 
 
 def thin_plate(t: np.ndarray) -> np.ndarray:
@@ -44,7 +45,8 @@ def bspline_slope(t: np.ndarray) -> np.ndarray:
 
 
 def gaussian_slope(t: np.ndarray) -> np.ndarray:
-    return -2.0 * t * np.exp(-(t * t))
+    out: np.ndarray = -2.0 * t * np.exp(-(t * t))
+    return out
 
 
 def thin_plate_slope(t: np.ndarray) -> np.ndarray:

@@ -8,13 +8,14 @@ numpy; it must not fit, filter or do I/O.
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 from .errors import InputError
 
 __all__ = ["estimate_noise", "still_segment"]
 
 
-def _sanitize_frames(frames, minimum: int) -> np.ndarray:
+def _sanitize_frames(frames: npt.ArrayLike, minimum: int) -> np.ndarray:
     try:
         x = np.asarray(frames, dtype=np.float64)
     except (TypeError, ValueError):
@@ -32,7 +33,7 @@ def _sanitize_frames(frames, minimum: int) -> np.ndarray:
     return x
 
 
-def estimate_noise(frames) -> float:
+def estimate_noise(frames: npt.ArrayLike) -> float:
     """The landmark noise sigma (std per coordinate) of frames of a held expression.
 
     Successive frames of a face held still differ by the tracker's noise only, twice its
@@ -60,7 +61,7 @@ def estimate_noise(frames) -> float:
     return float(np.sqrt(np.mean(steps * steps) / 2.0))
 
 
-def still_segment(frames, window: int) -> tuple[int, int]:
+def still_segment(frames: npt.ArrayLike, window: int) -> tuple[int, int]:
     """The ``window`` consecutive frames of a take that move least: [start, stop).
 
     Motion is the sum of squared frame-to-frame steps of every coordinate over the window;

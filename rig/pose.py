@@ -103,7 +103,7 @@ def align_points(
     rotation, scales, translation = similarity_transform(
         points[:, idx, :], reference[idx], scale=scale
     )
-    moved = np.einsum("bij,bkj->bki", rotation, points)
+    moved: np.ndarray = np.einsum("bij,bkj->bki", rotation, points)
     moved *= scales[:, None, None]
     moved += translation[:, None, :]
     return moved
@@ -161,7 +161,8 @@ def pose_jacobian(centred: np.ndarray, *, scale: bool = False) -> np.ndarray:
 
 def _outside(basis: np.ndarray, vectors: np.ndarray) -> np.ndarray:
     """The part of each column of (B, 3K, P) ``vectors`` outside the span of ``basis`` (R, 3K)."""
-    return vectors - basis.T @ (basis @ vectors)  # matmul broadcasts over B
+    outside: np.ndarray = vectors - basis.T @ (basis @ vectors)  # matmul broadcasts over B
+    return outside
 
 
 def pose_condition(basis: np.ndarray, reference: np.ndarray, *, scale: bool = False) -> float:
@@ -232,7 +233,9 @@ def _least_squares_step(projected: np.ndarray, residual: np.ndarray) -> np.ndarr
     """
     normal = np.einsum("bjp,bjq->bpq", projected, projected)
     rhs = -np.einsum("bjp,bj->bp", projected, residual)
+    step: np.ndarray
     try:
-        return np.linalg.solve(normal, rhs[:, :, None])[:, :, 0]
+        step = np.linalg.solve(normal, rhs[:, :, None])[:, :, 0]
     except np.linalg.LinAlgError:
-        return -np.einsum("bpj,bj->bp", np.linalg.pinv(projected, rcond=1e-12), residual)
+        step = -np.einsum("bpj,bj->bp", np.linalg.pinv(projected, rcond=1e-12), residual)
+    return step

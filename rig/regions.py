@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -55,7 +56,7 @@ def split_masks(
     return 1.0 - above, above
 
 
-def fit_regions(example_set: ExampleSet, regions: Sequence[Region], **fit_options) -> Rig:
+def fit_regions(example_set: ExampleSet, regions: Sequence[Region], **fit_options: Any) -> Rig:
     """Fit one weight model per region and blend with region-masked deltas.
 
     The output weights have one column per (region, example) pair after the shared neutral,

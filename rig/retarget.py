@@ -31,7 +31,8 @@ def target_examples(rig: Rig) -> np.ndarray:
     basis = rig.blend_basis.astype(np.float64)
     vertices = basis + basis[0]
     vertices[0] = basis[0]
-    return vertices.reshape(rig.num_examples, rig.num_vertices, 3)
+    examples: np.ndarray = vertices.reshape(rig.num_examples, rig.num_vertices, 3)
+    return examples
 
 
 def shared_names(rig: Rig, captured: Mapping[str, object]) -> tuple[str, ...]:
@@ -44,7 +45,9 @@ def shared_names(rig: Rig, captured: Mapping[str, object]) -> tuple[str, ...]:
     return (rig.names[0], *rest)
 
 
-def _sanitize(rig: Rig, points: Mapping[str, object], noise) -> tuple[dict, float | None]:
+def _sanitize(
+    rig: Rig, points: Mapping[str, object], noise: float | None
+) -> tuple[dict[str, np.ndarray], float | None]:
     if not isinstance(rig, Rig):
         raise TypeError(f"expected a Rig, got {type(rig).__name__}")
     k = rig.num_points

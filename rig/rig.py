@@ -13,6 +13,7 @@ import numpy as np
 from .blend import blend_into, moving_vertices
 from .bounds import BoxProjection, weight_metric
 from .errors import InputError
+from .io.rigformat import content_checksum, rig_to_bytes, save_rig
 from .kernel import bspline_kernel
 from .kernels import evaluate_kernel
 from .pose import (
@@ -657,8 +658,6 @@ class Rig:
     def checksum(self) -> str:
         """SHA-256 of the rig's content (the arrays and settings the rig file stores)."""
         if self._checksum is None:
-            from .rigfile import content_checksum
-
             self._checksum = content_checksum(self)
         return self._checksum
 
@@ -685,14 +684,10 @@ class Rig:
         }
 
     def save(self, path) -> None:
-        """Write the rig as one file (see ``facecast.rig.rigfile``)."""
-        from .rigfile import save_rig
-
+        """Write the rig as one file (see ``facecast.rig.io.rigformat``)."""
         save_rig(self, path)
 
     def to_bytes(self) -> bytes:
-        from .rigfile import rig_to_bytes
-
         return rig_to_bytes(self)
 
     def __repr__(self) -> str:

@@ -21,6 +21,8 @@ from typing import Any
 
 import msgpack
 
+from .settings import SettingsError
+
 __all__ = ["Bus", "BusUnavailable", "LocalBus", "RedisBus", "make_bus"]
 
 log = logging.getLogger("facecast.server.bus")
@@ -137,6 +139,8 @@ class RedisBus(Bus):
 
     def __init__(self, url: str) -> None:
         super().__init__()
+        # Imported here, not at the top: redis.asyncio takes ~0.2 s to import and a server
+        # without a Redis URL (the default) never needs it.
         import redis.asyncio as redis
 
         self.url = url
@@ -336,8 +340,6 @@ def make_bus(redis_url: str) -> Bus:
     if not redis_url:
         return LocalBus()
     if not redis_url.startswith(("redis://", "rediss://", "unix://")):
-        from .settings import SettingsError
-
         raise SettingsError(
             f"redis_url: expected redis://host:port[/db], rediss://... or unix://..., "
             f"got {redis_url[:60]!r}"

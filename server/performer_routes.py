@@ -16,8 +16,8 @@ from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import JSONResponse
 
 from facecast.rig import Rig
-from facecast.rig.layouts import load_layout
 from facecast.rig.retarget import NEUTRAL, fit_performer, shared_names
+from facecast.rig.sources.layouts import load_layout
 
 from .auth import Principal, requires
 from .errors import ApiError

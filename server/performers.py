@@ -18,7 +18,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 
-from facecast.rig.layouts import DEFAULT_LAYOUT, layout_names
+from facecast.rig.sources.layouts import DEFAULT_LAYOUT, layout_names
 
 from .errors import ApiError
 from .store import fsync_directory, valid_name, write_atomically

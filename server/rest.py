@@ -18,6 +18,9 @@ import anyio
 from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import JSONResponse
 
+from facecast.rig import fit
+from facecast.rig.io.loaders import load_example_set
+
 from .archive import ArchiveError, ArchiveLimits, extract_archive, find_example_root
 from .auth import READ_ROLES, Principal, requires
 from .errors import ApiError
@@ -258,9 +261,6 @@ class _FitJob:
         self.options = options
 
     def __call__(self):
-        from facecast.rig import fit
-        from facecast.rig.loaders import load_example_set
-
         with tempfile.TemporaryDirectory(prefix="upload-", dir=self.scratch) as tmp:
             dest = Path(tmp)
             extract_archive(self.data, dest, self.limits)

@@ -23,6 +23,8 @@ from typing import TYPE_CHECKING
 
 from facecast.protocol import Limits
 from facecast.rig.errors import RigFileError
+from facecast.rig.io.gltf import export_glb
+from facecast.rig.io.rigfile import rig_from_bytes
 
 if TYPE_CHECKING:
     from facecast.rig.rig import Rig
@@ -265,8 +267,6 @@ class RigStore:
         """The target mesh with every example as a morph target, built once per rig version."""
         entry = self._load(rig_id)
         if entry.glb is None:
-            from facecast.rig.gltf import export_glb
-
             rig = entry.rig
             m, v = rig.num_examples, rig.num_vertices
             entry.glb = export_glb(
@@ -284,8 +284,6 @@ class RigStore:
         Raises ``RigFileError`` (nothing written) when ``data`` is not a valid rig, or
         one the protocol cannot carry (``check_servable``).
         """
-        from facecast.rig.rigfile import rig_from_bytes
-
         rig = rig_from_bytes(data, source=f"rig {rig_id!r}", max_bytes=self.max_rig_bytes)
         check_servable(rig, self.limits, f"rig {rig_id!r}")
         created = self._write(rig_id, data)
@@ -320,8 +318,6 @@ class RigStore:
         return write_atomically(self.directory, f"{rig_id}{SUFFIX}", data, scratch=self.scratch)
 
     def _load(self, rig_id: str) -> _Entry:
-        from facecast.rig.rigfile import rig_from_bytes
-
         path = self._path(rig_id)
         try:
             fh = path.open("rb")

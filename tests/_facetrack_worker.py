@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from facecast.client.facetrack import FaceTracker, VideoSource
-from facecast.rig.layouts import load_layout
+from facecast.rig.sources.layouts import load_layout
 
 #: Mesh points of the legacy FaceMesh (no iris refinement).
 MESH_POINTS = 468

@@ -36,7 +36,7 @@ GOALS = {
 
 
 def _dataset(args: argparse.Namespace):
-    from facecast.rig.ict import ict_example_set, locate_ict
+    from facecast.rig.sources.ict import ict_example_set, locate_ict
 
     if not getattr(args, "demo", False):
         archive = locate_ict(args.ict) if args.ict else locate_ict()

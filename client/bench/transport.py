@@ -504,7 +504,7 @@ def _rigs(rigs_dir: Path) -> dict[str, Any]:
         demo = fit(demo_set)
         example_set, name = demo_set, "demo"
         try:
-            from facecast.rig.ict import ict_example_set, locate_ict
+            from facecast.rig.sources.ict import ict_example_set, locate_ict
 
             archive = locate_ict()
         except ImportError:

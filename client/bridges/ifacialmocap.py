@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facecast.rig.source_rig import ARKIT_NAMES, NUM_ARKIT
+from facecast.rig.sources.source_rig import ARKIT_NAMES, NUM_ARKIT
 
 from .tracker import DatagramReceiver, TrackerPacketError, open_receiver
 

@@ -45,7 +45,7 @@ total length (the subject name and the 261 bytes after it must fill it exactly).
 
 Units: the weights are 0..1. The app sends head and eye angles in radians; the
 PyLiveLinkFace encoder documents them as -1..1 and clamps them there. facecast reads
-both as radians (`facecast.rig.source_rig.head_rotation`), so such a sender's 1 is a
+both as radians (`facecast.rig.sources.source_rig.head_rotation`), so such a sender's 1 is a
 57° turn.
 
 Anything else — another version, a truncated packet, a string length out of
@@ -62,7 +62,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facecast.rig.source_rig import NUM_ARKIT, SourceRig
+from facecast.rig.sources.source_rig import NUM_ARKIT, SourceRig
 
 from .channel import FramePublisher
 from .tracker import (

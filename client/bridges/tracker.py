@@ -19,7 +19,7 @@ from typing import Generic, Protocol, TypeVar
 
 import numpy as np
 
-from facecast.rig.source_rig import SourceRig
+from facecast.rig.sources.source_rig import SourceRig
 
 from .channel import FramePublisher
 

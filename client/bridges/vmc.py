@@ -39,7 +39,7 @@ from pythonosc.osc_message_builder import OscMessageBuilder
 from scipy.spatial.transform import Rotation
 
 from facecast.protocol import ChannelIdle, ChannelLive, Error, FaceLost, Ready, Result
-from facecast.rig.source_rig import head_rotation
+from facecast.rig.sources.source_rig import head_rotation
 
 from .vmc_names import DEFAULT_CONVENTION, vmc_names
 
@@ -124,7 +124,7 @@ def head_bone_message(
     """``/VMC/Ext/Bone/Pos "Head"`` for head (yaw, pitch, roll) in radians.
 
     The rotation is the one ``--head-pose`` applies to the points
-    (`facecast.rig.source_rig.head_rotation`: face frame +x the subject's left, +y up,
+    (`facecast.rig.sources.source_rig.head_rotation`: face frame +x the subject's left, +y up,
     +z out of the face), re-expressed in Unity's left-handed frame, where a VRM avatar
     faces +z with its left at -x (so x is mirrored: ``R_unity = S R S``, S = diag(-1,
     1, 1)), as the quaternion (x, y, z, w) the spec asks for. ``position`` is the bone's

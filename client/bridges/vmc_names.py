@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
-from facecast.rig.source_rig import ARKIT_NAMES
+from facecast.rig.sources.source_rig import ARKIT_NAMES
 
 __all__ = [
     "DEFAULT_CONVENTION",

@@ -16,7 +16,7 @@ if TYPE_CHECKING:  # numpy and the rig load when a command runs, not for --help
     import numpy as np
 
     from facecast.rig import Rig
-    from facecast.rig.animation import SourceAnimation
+    from facecast.rig.sources.animation import SourceAnimation
 
 #: --source-rig's help in the commands that leave its full description to 'facecast clone'.
 SOURCE_RIG_HELP = "ARKit-named source shapes for a Live Link Face CSV take (see 'facecast clone')"
@@ -59,7 +59,7 @@ def load_animation(
 
         animation = demo_animation(seconds, with_vertices=False)
     else:
-        from facecast.rig.animation import load_source_animation
+        from facecast.rig.sources.loading import load_source_animation
 
         if not Path(spec).exists():
             raise CommandError(f"{spec}: no such file or folder (the source animation)")
@@ -80,7 +80,7 @@ def write_cloned(
     path: str | Path, rig: Rig, weights: np.ndarray, vertices: np.ndarray | None, fps: float
 ) -> Path:
     """Write weights (F, M) and optional vertices (F, V, 3) cloned onto ``rig``'s target."""
-    from facecast.rig.animation import write_clone_output
+    from facecast.rig.sources.animation import write_clone_output
 
     return write_clone_output(
         path,

@@ -237,7 +237,7 @@ def _run_tracker(args: argparse.Namespace, what: str, open_receiver, run_bridge,
     from facecast.client.cli import CommandError
     from facecast.client.connection import ConnectionFailed
     from facecast.protocol import Hello
-    from facecast.rig.source_rig import load_source_rig
+    from facecast.rig.sources.source_rig import load_source_rig
 
     source_rig = load_source_rig(args.source_rig)
     if source_rig.missing:

@@ -1,7 +1,7 @@
 """``facecast clone``: run a source animation through a rig and write the cloned animation.
 
 Batched, vectorised evaluation with a progress bar; the file formats belong to
-``facecast.rig.animation.write_clone_output``, and it must not fit anything.
+``facecast.rig.sources.animation.write_clone_output``, and it must not fit anything.
 """
 
 from __future__ import annotations

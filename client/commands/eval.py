@@ -1,7 +1,7 @@
 """``facecast eval``: reproduce the thesis's experiments (ch. 4) and compare with peers.
 
 Builds the data set (procedural demo, ICT-FaceKit, or files), calls
-``facecast.rig.evaluate.evaluate`` and presents its report; it must not compute errors itself.
+``facecast.rig.evaluation.evaluate.evaluate`` and presents its report; it must not compute errors itself.
 """
 
 from __future__ import annotations
@@ -114,7 +114,12 @@ def _demo(args) -> _Data:
 
 def _ict(args) -> _Data:
     from facecast.client.cli import CommandError
-    from facecast.rig.ict import ict_animation, ict_example_set, ict_target_frames, locate_ict
+    from facecast.rig.sources.ict import (
+        ict_animation,
+        ict_example_set,
+        ict_target_frames,
+        locate_ict,
+    )
 
     archive = locate_ict(args.ict or None)
     if archive is None:
@@ -140,10 +145,14 @@ def _ict(args) -> _Data:
 
 def _take(args) -> _Data:
     from facecast.client.cli import CommandError
-    from facecast.rig.animation import SourceAnimation
-    from facecast.rig.ict import locate_ict
-    from facecast.rig.takes import ARKIT_TARGET_IDENTITY, arkit_example_set, take_experiment
-    from facecast.rig.trackers import read_livelink_csv
+    from facecast.rig.evaluation.takes import (
+        ARKIT_TARGET_IDENTITY,
+        arkit_example_set,
+        take_experiment,
+    )
+    from facecast.rig.sources.animation import SourceAnimation
+    from facecast.rig.sources.ict import locate_ict
+    from facecast.rig.sources.trackers import read_livelink_csv
 
     archive = locate_ict(args.ict or None)
     if archive is None:
@@ -182,7 +191,7 @@ def _files(args) -> _Data:
 
     from facecast.client.cli import CommandError
     from facecast.client.commands.fit import load_examples
-    from facecast.rig.animation import load_source_animation
+    from facecast.rig.sources.loading import load_source_animation
 
     if args.examples is None or args.source is None:
         raise CommandError("give EXAMPLES and SOURCE, or --demo, or --ict")
@@ -253,7 +262,7 @@ def _smoothing(args, data: _Data, report: dict) -> dict:
 
     from facecast.client.cli import CommandError
     from facecast.rig import fit
-    from facecast.rig.evaluate import smoothing_report
+    from facecast.rig.evaluation.evaluate import smoothing_report
 
     try:
         min_cutoff, beta = (float(v) for v in args.smoothing.split(","))
@@ -292,7 +301,7 @@ def _temporal(args, data: _Data, plots: Path | None) -> dict:
 
     from facecast.client.report import plot_jitter_against_lag
     from facecast.rig import fit
-    from facecast.rig.temporal import best_under_one_frame, temporal_tradeoff
+    from facecast.rig.evaluation.temporal import best_under_one_frame, temporal_tradeoff
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the settings are chosen; fit's advice is printed
@@ -325,7 +334,7 @@ def _temporal(args, data: _Data, plots: Path | None) -> dict:
 def run(args: argparse.Namespace) -> int:
     from facecast.client.cli import CommandError
     from facecast.client.report import format_error_table, format_timing_table, write_json
-    from facecast.rig.evaluate import default_settings, evaluate
+    from facecast.rig.evaluation.evaluate import default_settings, evaluate
 
     if args.json is not None and not Path(args.json).parent.exists():
         raise CommandError(f"{Path(args.json).parent}: no such folder for --json")

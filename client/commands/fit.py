@@ -112,7 +112,7 @@ def load_examples(spec: str, source: str | None = None):
         from facecast.rig.demo import demo_example_set
 
         return demo_example_set()
-    from facecast.rig.loaders import load_example_set
+    from facecast.rig.io.loaders import load_example_set
 
     path = Path(spec)
     if not path.exists():

@@ -64,7 +64,7 @@ def register(subparsers) -> None:
         "--landmarks",
         metavar="LIST",
         help="comma-separated Multi-PIE 68 positions (0-67) to use as feature points "
-        "(default the 20 of facecast.rig.ict.DEFAULT_LANDMARKS)",
+        "(default the 20 of facecast.rig.sources.ict.DEFAULT_LANDMARKS)",
     )
     ict.add_argument(
         "--target",
@@ -78,7 +78,7 @@ def register(subparsers) -> None:
 
 def _landmarks(text: str | None):
     from facecast.client.cli import CommandError
-    from facecast.rig.ict import DEFAULT_LANDMARKS
+    from facecast.rig.sources.ict import DEFAULT_LANDMARKS
 
     if text is None:
         return tuple(DEFAULT_LANDMARKS)
@@ -109,7 +109,7 @@ def read_ict(path: Path):
             "FaceXModel folder has generic_neutral_mesh.obj and vertex_indices.json)",
             code="missing_file",
         )
-    from facecast.rig.meshio import read_obj, read_obj_vertices
+    from facecast.rig.io.meshio import read_obj, read_obj_vertices
 
     try:
         names = json.loads(index_file.read_text(encoding="utf-8"))["expressions"]
@@ -161,8 +161,8 @@ def arkit_example_set(path: Path, landmarks, target: str):
 
     from facecast.rig.errors import ExampleSetError
     from facecast.rig.examples import ExampleSet
-    from facecast.rig.ict import stable_positions
-    from facecast.rig.source_rig import ARKIT_NAMES, ARKIT_TO_ICT
+    from facecast.rig.sources.ict import stable_positions
+    from facecast.rig.sources.source_rig import ARKIT_NAMES, ARKIT_TO_ICT
 
     names, neutral, shapes, faces, landmarks68 = read_ict(path)
     index = {n: i for i, n in enumerate(names)}
@@ -202,7 +202,7 @@ def write_example_folder(example_set, folder: Path, comment: str) -> None:
     """``facecast.toml`` + ``source/*.npy`` points + ``target/*.obj`` meshes."""
     import numpy as np
 
-    from facecast.rig.meshio import write_obj
+    from facecast.rig.io.meshio import write_obj
 
     (folder / "source").mkdir(parents=True, exist_ok=True)
     (folder / "target").mkdir(exist_ok=True)
@@ -226,7 +226,7 @@ def write_example_folder(example_set, folder: Path, comment: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from facecast.client.cli import CommandError
-    from facecast.rig.ict import DEFAULT_STABLE_LANDMARKS
+    from facecast.rig.sources.ict import DEFAULT_STABLE_LANDMARKS
 
     out = Path(args.output)
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not args.force)):

@@ -115,8 +115,8 @@ async def perform(args: argparse.Namespace) -> PerformStats:
     from facecast.client.cli import CommandError
     from facecast.client.facetrack import FaceTracker, VideoSource
     from facecast.protocol import Hello
-    from facecast.rig.capture import robust_example
-    from facecast.rig.layouts import DEFAULT_LAYOUT, load_layout
+    from facecast.rig.sources.capture import robust_example
+    from facecast.rig.sources.layouts import DEFAULT_LAYOUT, load_layout
 
     say = _Say(args.quiet)
     layout = load_layout(DEFAULT_LAYOUT)

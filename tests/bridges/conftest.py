@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from facecast.rig import fit
-from facecast.rig.source_rig import SourceRig
+from facecast.rig.sources.source_rig import SourceRig
 
 from ._helpers import arkit_example_set
 

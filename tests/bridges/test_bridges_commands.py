@@ -9,8 +9,8 @@ import pytest
 
 from facecast.client.cli import CommandError
 from facecast.rig.errors import ExampleSetError
-from facecast.rig.loaders import load_example_set
-from facecast.rig.source_rig import ARKIT_NAMES, load_source_rig
+from facecast.rig.io.loaders import load_example_set
+from facecast.rig.sources.source_rig import ARKIT_NAMES, load_source_rig
 
 from ._helpers import run_command
 

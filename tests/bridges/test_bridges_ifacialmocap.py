@@ -24,7 +24,7 @@ from facecast.client.bridges.tracker import run_tracker_bridge
 from facecast.client.bridges.vmc import head_bone_message
 from facecast.client.urls import stream_url
 from facecast.protocol import Hello, Result
-from facecast.rig.source_rig import ARKIT_NAMES
+from facecast.rig.sources.source_rig import ARKIT_NAMES
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
 

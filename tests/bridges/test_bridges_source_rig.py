@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from facecast.rig.errors import ExampleSetError, InputError
-from facecast.rig.source_rig import (
+from facecast.rig.sources.source_rig import (
     ARKIT_NAMES,
     ARKIT_TO_ICT,
     NUM_ARKIT,

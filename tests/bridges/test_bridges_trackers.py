@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from facecast.rig.errors import InputError
-from facecast.rig.source_rig import ARKIT_NAMES, HEAD_POSE_NAMES, arkit_index
-from facecast.rig.trackers import (
+from facecast.rig.sources.source_rig import ARKIT_NAMES, HEAD_POSE_NAMES, arkit_index
+from facecast.rig.sources.trackers import (
     MEDIAPIPE_FEATURES,
     livelink_csv_animation,
     load_mediapipe_mapping,
@@ -181,8 +181,8 @@ def _turned(marks: np.ndarray, yaw: float, shift) -> np.ndarray:
 
 
 def test_mediapipe_face_frame_is_the_shared_normalisation_and_ignores_head_turns(tmp_path):
-    from facecast.rig.facemesh import image_to_mesh, normalise_mesh
-    from facecast.rig.layouts import load_layout
+    from facecast.rig.sources.facemesh import image_to_mesh, normalise_mesh
+    from facecast.rig.sources.layouts import load_layout
 
     marks = _landmarks(3, 478)
     turned = _turned(marks, 0.4, [0.05, -0.02, 0.0])
@@ -246,7 +246,7 @@ def test_bad_mapping_files_are_refused(tmp_path, text):
 
 # -- the takes wherever a source animation is read ------------------------------------
 def test_load_source_animation_reads_a_livelink_take_through_a_source_rig(take, source_rig):
-    from facecast.rig.animation import load_source_animation
+    from facecast.rig.sources.loading import load_source_animation
 
     path, _, _ = take
     loaded = load_source_animation(path, source_rig=source_rig)
@@ -255,7 +255,7 @@ def test_load_source_animation_reads_a_livelink_take_through_a_source_rig(take, 
 
 
 def test_load_source_animation_refuses_a_livelink_take_without_a_source_rig(take):
-    from facecast.rig.animation import load_source_animation
+    from facecast.rig.sources.loading import load_source_animation
 
     path, _, _ = take
     with pytest.raises(InputError, match="--source-rig") as info:
@@ -264,7 +264,7 @@ def test_load_source_animation_refuses_a_livelink_take_without_a_source_rig(take
 
 
 def test_load_source_animation_reads_a_mediapipe_take(tmp_path):
-    from facecast.rig.animation import load_source_animation
+    from facecast.rig.sources.loading import load_source_animation
 
     rng = np.random.default_rng(4)
     landmarks = rng.uniform(size=(2, 478, 3))
@@ -278,7 +278,7 @@ def test_load_source_animation_reads_a_mediapipe_take(tmp_path):
 def test_clone_command_clones_a_livelink_take_through_a_source_rig(take, tmp_path, example_set):
     from facecast.client.cli import main
     from facecast.rig import fit
-    from facecast.rig.source_rig import SourceRig
+    from facecast.rig.sources.source_rig import SourceRig
 
     path, _, _ = take
     example_set.save_npz(tmp_path / "source_rig.npz")

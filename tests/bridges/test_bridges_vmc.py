@@ -34,7 +34,7 @@ from facecast.client.bridges.vmc_names import vmc_names
 from facecast.client.cli import CommandError
 from facecast.client.connection import ConnectionFailed, Reconnect, connect
 from facecast.protocol import ChannelLive, FaceLost, Hello, Ready, Result
-from facecast.rig.source_rig import ARKIT_NAMES
+from facecast.rig.sources.source_rig import ARKIT_NAMES
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
 

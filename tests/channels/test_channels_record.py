@@ -29,7 +29,7 @@ from facecast.protocol import (
     decode_server,
     encode,
 )
-from facecast.rig.animation import load_source_animation
+from facecast.rig.sources.loading import load_source_animation
 from facecast.server.fanout import ChannelFrame
 from facecast.server.testing import run_server
 

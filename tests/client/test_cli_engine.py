@@ -12,7 +12,7 @@ import pytest
 from facecast.client import cli
 from facecast.client.commands.fit import KERNEL_CHOICES
 from facecast.rig import KERNELS, load_rig
-from facecast.rig.ict import locate_ict
+from facecast.rig.sources.ict import locate_ict
 
 
 def _importable(name: str) -> bool:
@@ -123,7 +123,7 @@ def test_fit_stable_points_flag_overrides_the_sets(tmp_path, capsys):
 
 @pytest.fixture(scope="module")
 def ict_npz(tmp_path_factory):
-    from facecast.rig.ict import ict_example_set
+    from facecast.rig.sources.ict import ict_example_set
 
     path = tmp_path_factory.mktemp("ict") / "ict.npz"
     ict_example_set(locate_ict()).save_npz(path)

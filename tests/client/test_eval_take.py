@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from facecast.client import cli
-from facecast.rig.ict import locate_ict
+from facecast.rig.sources.ict import locate_ict
 
 TAKE = Path(__file__).parents[1] / "data" / "livelink" / "llv_dao.csv"
 ARCHIVE = locate_ict()

@@ -22,7 +22,7 @@ from facecast.client.bridges.channel import channel_url, watch_channel
 from facecast.client.cli import main
 from facecast.protocol import ChannelIdle, Ready, Result
 from facecast.rig import ExampleSet, fit
-from facecast.rig.ict import locate_ict
+from facecast.rig.sources.ict import locate_ict
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
 
@@ -158,7 +158,7 @@ async def test_generic_ict_rig_calibrated_on_the_neutral_opens_the_jaw(
     tmp_path, perform_python, face_video
 ):
     from facecast.client.commands.import_ import arkit_example_set
-    from facecast.rig.ict import DEFAULT_LANDMARKS
+    from facecast.rig.sources.ict import DEFAULT_LANDMARKS
 
     example_set, _ = arkit_example_set(locate_ict(), DEFAULT_LANDMARKS, "face")
     rig = fit(example_set, noise=0.05, clamp="unit")

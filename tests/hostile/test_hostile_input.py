@@ -37,7 +37,7 @@ from facecast.protocol import (
     Result,
 )
 from facecast.rig import ExampleSet, fit
-from facecast.rig.meshio import write_obj
+from facecast.rig.io.meshio import write_obj
 from facecast.server.settings import Settings
 from facecast.server.store import SCRATCH_DIR
 from facecast.server.testing import free_port, run_server

@@ -21,7 +21,7 @@ from facecast.protocol import SUBPROTOCOL, decode_server
 from facecast.rig import fit
 from facecast.rig.demo import demo_example_set
 from facecast.rig.examples import ExampleSet
-from facecast.rig.layouts import load_layout
+from facecast.rig.sources.layouts import load_layout
 from facecast.server.perform_page import PERFORM_ASSETS
 from facecast.server.settings import Settings
 from facecast.server.viewer import viewer_dir

@@ -1,6 +1,6 @@
 """The page's face-frame normalisation (JavaScript) gives the numbers Python's gives.
 
-Both read rig/layouts/mediapipe_face_mesh.json; points published from /perform and from
+Both read rig/sources/layouts/mediapipe_face_mesh.json; points published from /perform and from
 a MediaPipe NDJSON file or ``facecast perform`` must agree for a performer's rig to work.
 """
 
@@ -13,14 +13,14 @@ import subprocess
 import numpy as np
 import pytest
 
-from facecast.rig.facemesh import normalise_mesh
-from facecast.rig.layouts import load_layout
+from facecast.rig.sources.facemesh import normalise_mesh
+from facecast.rig.sources.layouts import load_layout
 from facecast.server.viewer import viewer_dir
 
 _SCRIPT = """
 import { readFileSync } from "node:fs";
 import { checkLayout, normaliseMesh } from "./src/perform/facemesh.js";
-const layout = checkLayout(JSON.parse(readFileSync("../../rig/layouts/mediapipe_face_mesh.json")));
+const layout = checkLayout(JSON.parse(readFileSync("../../rig/sources/layouts/mediapipe_face_mesh.json")));
 const meshes = JSON.parse(readFileSync(0, "utf8"));
 const out = meshes.map((m) => Array.from(normaliseMesh(Float64Array.from(m.flat()), layout).points));
 process.stdout.write(JSON.stringify(out));

@@ -11,7 +11,7 @@ import httpx
 import numpy as np
 import pytest
 
-from facecast.rig.layouts import load_layout
+from facecast.rig.sources.layouts import load_layout
 
 from .conftest import CHARACTER, FacePose, open_page, watching
 

@@ -9,10 +9,11 @@ import pygltflib
 import pytest
 import trimesh
 
-from facecast.rig.animation import SourceAnimation, load_source_animation, write_clone_output
 from facecast.rig.errors import InputError
-from facecast.rig.gltf import read_glb_morph_targets
-from facecast.rig.meshio import read_obj, write_obj
+from facecast.rig.io.gltf import read_glb_morph_targets
+from facecast.rig.io.meshio import read_obj, write_obj
+from facecast.rig.sources.animation import SourceAnimation, write_clone_output
+from facecast.rig.sources.loading import load_source_animation
 
 FEATURES = [0, 3, 5]
 

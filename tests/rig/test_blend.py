@@ -9,7 +9,7 @@ import pytest
 
 from facecast.rig import ExampleSet, InputError, fit
 from facecast.rig.blend import blend_into, blend_plan
-from facecast.rig.ict import ict_animation, ict_example_set, locate_ict
+from facecast.rig.sources.ict import ict_animation, ict_example_set, locate_ict
 
 M, K, V = 9, 6, 50
 #: Vertices no example moves in the synthetic set (a head's back, say).

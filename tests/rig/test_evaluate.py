@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from facecast.rig import ExampleSet
 from facecast.rig.errors import InputError
-from facecast.rig.evaluate import (
+from facecast.rig.evaluation.evaluate import (
     cloning_error,
     default_settings,
     evaluate,
@@ -200,7 +200,7 @@ def test_evaluate_refuses_truth_of_the_wrong_frame_count():
 
 # -- jitter and the one-euro filter ------------------------------------------------------
 def test_jitter_is_zero_at_constant_speed_and_grows_with_noise():
-    from facecast.rig.evaluate import jitter
+    from facecast.rig.evaluation.evaluate import jitter
 
     ramp = np.linspace(0.0, 1.0, 50)[:, None] * np.ones((1, 6))
     assert jitter(ramp) == pytest.approx(0.0, abs=1e-15)
@@ -217,7 +217,7 @@ def test_one_euro_filter_reduces_the_jitter_of_a_noisy_clone():
         demo_example_set,
         demo_target_frames,
     )
-    from facecast.rig.evaluate import smoothing_report
+    from facecast.rig.evaluation.evaluate import smoothing_report
 
     rig = fit(demo_example_set())
     animation = demo_animation(3.0, with_vertices=False)

@@ -19,7 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from facecast.rig.errors import ExampleSetError, InputError
-from facecast.rig.gltf import export_glb, read_glb_morph_targets, vertex_normals
+from facecast.rig.io.gltf import export_glb, read_glb_morph_targets, vertex_normals
 
 NAMES = ["neutral", "smile", "frown"]
 

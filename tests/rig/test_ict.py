@@ -10,8 +10,8 @@ import pytest
 from facecast.rig import fit
 from facecast.rig.bounds import project_box, weight_metric
 from facecast.rig.errors import ExampleSetError
-from facecast.rig.evaluate import cloning_error, evaluate, least_squares_weights
-from facecast.rig.ict import (
+from facecast.rig.evaluation.evaluate import cloning_error, evaluate, least_squares_weights
+from facecast.rig.sources.ict import (
     DEFAULT_LANDMARKS,
     ict_animation,
     ict_example_set,

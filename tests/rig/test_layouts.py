@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from facecast.rig.errors import InputError
-from facecast.rig.facemesh import image_to_mesh, normalise_mesh
-from facecast.rig.ict import DEFAULT_LANDMARKS
-from facecast.rig.layouts import layout_from_dict, layout_names, load_layout
-from facecast.rig.trackers import MEDIAPIPE_FEATURES
+from facecast.rig.sources.facemesh import image_to_mesh, normalise_mesh
+from facecast.rig.sources.ict import DEFAULT_LANDMARKS
+from facecast.rig.sources.layouts import layout_from_dict, layout_names, load_layout
+from facecast.rig.sources.trackers import MEDIAPIPE_FEATURES
 
 from .._perform_venv import track_images
 
@@ -176,8 +176,8 @@ def test_layout_points_land_on_icts_landmarks_on_a_real_tracked_face(
     wrong index - the other lid, the other side - would be centimetres off)."""
     from skimage import data as skimage_data
 
-    from facecast.rig.ict import locate_ict
     from facecast.rig.pose import similarity_transform
+    from facecast.rig.sources.ict import locate_ict
 
     archive = locate_ict()
     if archive is None:

@@ -9,9 +9,9 @@ import pytest
 
 from facecast.rig.errors import ExampleSetError
 from facecast.rig.examples import ExampleSet
-from facecast.rig.gltf import export_glb
-from facecast.rig.loaders import load_example_set
-from facecast.rig.meshio import points_to_csv, write_obj
+from facecast.rig.io.gltf import export_glb
+from facecast.rig.io.loaders import load_example_set
+from facecast.rig.io.meshio import points_to_csv, write_obj
 
 EXAMPLES = ("happy", "sad", "surprise")
 FEATURES = [0, 4, 8, 2]

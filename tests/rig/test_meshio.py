@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from facecast.rig.errors import ExampleSetError
-from facecast.rig.meshio import points_to_csv, read_obj, read_points, write_obj
+from facecast.rig.io.meshio import points_to_csv, read_obj, read_points, write_obj
 
 QUAD_WITH_UVS = """\
 # a quad with texture coordinates and an unreferenced vertex in the middle

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from facecast.rig import ExampleSet, fit
-from facecast.rig.capture import robust_example
 from facecast.rig.errors import InputError
 from facecast.rig.retarget import fit_performer, target_examples
+from facecast.rig.sources.capture import robust_example
 
 NAMES = ("neutral", "smile", "frown", "jawOpen")
 

@@ -11,11 +11,11 @@ import pytest
 from facecast.protocol.messages import Smoothing
 from facecast.rig import fit
 from facecast.rig.errors import InputError
+from facecast.rig.evaluation.takes import arkit_example_set, take_experiment
+from facecast.rig.evaluation.temporal import best_under_one_frame, lag_frames, temporal_tradeoff
 from facecast.rig.filters import KalmanFilter, OneEuroFilter
-from facecast.rig.ict import locate_ict
-from facecast.rig.takes import arkit_example_set, take_experiment
-from facecast.rig.temporal import best_under_one_frame, lag_frames, temporal_tradeoff
-from facecast.rig.trackers import read_livelink_csv
+from facecast.rig.sources.ict import locate_ict
+from facecast.rig.sources.trackers import read_livelink_csv
 
 ARCHIVE = locate_ict()
 TAKE = Path(__file__).parents[1] / "data" / "livelink" / "llv_dao.csv"

@@ -23,7 +23,7 @@ import numpy as np
 
 from facecast.protocol import ClientProtocol, Error, Hello, Ready, decode_server, encode
 from facecast.rig import ExampleSet, fit
-from facecast.rig.meshio import write_obj
+from facecast.rig.io.meshio import write_obj
 
 NAMES = ("neutral", "smile", "frown", "jaw")
 

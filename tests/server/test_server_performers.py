@@ -13,7 +13,7 @@ from _server_helpers import open_session, tiny_rig
 
 from facecast.protocol import Frame, Result, decode_server, encode
 from facecast.rig import ExampleSet, fit
-from facecast.rig.capture import robust_example
+from facecast.rig.sources.capture import robust_example
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
 

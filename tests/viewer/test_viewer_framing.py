@@ -18,7 +18,7 @@ import pytest
 from facecast.client.snapshot import serving, write_demo_rig
 from facecast.rig import fit
 from facecast.rig.demo import demo_example_set
-from facecast.rig.ict import DEFAULT_LANDMARKS, locate_ict
+from facecast.rig.sources.ict import DEFAULT_LANDMARKS, locate_ict
 from facecast.server.settings import Settings
 
 from .test_viewer_pages import pixels

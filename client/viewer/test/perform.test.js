@@ -16,7 +16,7 @@ import {
   normaliseMesh,
 } from "../src/perform/facemesh.js";
 
-const layout = checkLayout(JSON.parse(readFileSync(new URL("../../../rig/layouts/mediapipe_face_mesh.json", import.meta.url))));
+const layout = checkLayout(JSON.parse(readFileSync(new URL("../../../rig/sources/layouts/mediapipe_face_mesh.json", import.meta.url))));
 const K = layout.features.length;
 
 /** A deterministic pseudo-random face-sized point cloud (pixels, image coordinates). */

@@ -2,7 +2,7 @@
 // and distance to the camera removed. Pure arithmetic, no DOM, no network.
 //
 // The same normalisation as facecast.rig.facemesh (Python), driven by the same layout
-// table (rig/layouts/*.json), so points published from this page and from
+// table (rig/sources/layouts/*.json), so points published from this page and from
 // `facecast perform` or a MediaPipe NDJSON file agree. The frame, per mesh:
 //   x: right eye centre (mean of frame.right) -> left eye centre (frame.left), the
 //      subject's own left;

@@ -2,7 +2,7 @@
 // and distance removed) -> published on the channel; the character's live pose beside
 // the camera; the calibration walk-through (studio.js). Publishes window.facecastStats.
 
-import layoutTable from "../../../../rig/layouts/mediapipe_face_mesh.json";
+import layoutTable from "../../../../rig/sources/layouts/mediapipe_face_mesh.json";
 import { Link } from "../link.js";
 import { authHeaders, socketTarget } from "../params.js";
 import { encodeCalibrate, encodeFrame, encodeHello, ErrorCode, errorName } from "../protocol.js";

@@ -1,6 +1,6 @@
 """Landmark layouts: which of a tracker's mesh points are the rig's feature points, as data.
 
-Loads and validates the JSON tables in ``facecast/rig/layouts/`` (one per tracker; a new
+Loads and validates the JSON tables in ``facecast/rig/sources/layouts/`` (one per tracker; a new
 tracker is a new table, no code). It must not read frames, fit or touch the network.
 
 A layout file is one JSON object::
@@ -10,11 +10,11 @@ A layout file is one JSON object::
     features        K mesh indices: the feature points, in the order of the rig's points
     feature_names   K str
     multipie68      K int, optional: the Multi-PIE 68 position of each feature, so the
-                    table maps onto ``facecast.rig.ict.DEFAULT_LANDMARKS``
+                    table maps onto ``facecast.rig.sources.ict.DEFAULT_LANDMARKS``
     stable          mesh indices that expressions barely move (head-pose removal)
     eyes            {"left"|"right": {"upper", "lower", "outer", "inner": index}}
     frame           {"left", "right", "bottom", "top": [indices], "span": float}: the
-                    face-fixed frame of ``facecast.rig.facemesh`` (see there)
+                    face-fixed frame of ``facecast.rig.sources.facemesh`` (see there)
     source          str, optional: where the correspondences come from
 """
 
@@ -26,10 +26,11 @@ import math
 import re
 from dataclasses import dataclass
 from importlib import resources
+from typing import Any
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 
 __all__ = ["DEFAULT_LAYOUT", "Layout", "layout_from_dict", "layout_names", "load_layout"]
 
@@ -84,9 +85,9 @@ class Layout:
     def num_features(self) -> int:
         return int(self.features.size)
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """The layout as the JSON object it was read from."""
-        doc: dict = {
+        doc: dict[str, Any] = {
             "name": self.name,
             "tracker_points": self.tracker_points,
             "features": self.features.tolist(),
@@ -109,7 +110,7 @@ def _fail(where: str, message: str) -> InputError:
     return InputError(f"layout {where}: {message}", code="bad_layout")
 
 
-def _index(value, n: int, where: str, what: str) -> int:
+def _index(value: object, n: int, where: str, what: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int):
         raise _fail(where, f"{what} must be an integer, got {value!r}")
     if not 0 <= value < n:
@@ -117,7 +118,7 @@ def _index(value, n: int, where: str, what: str) -> int:
     return value
 
 
-def _indices(value, n: int, where: str, what: str, *, minimum: int = 1) -> np.ndarray:
+def _indices(value: object, n: int, where: str, what: str, *, minimum: int = 1) -> np.ndarray:
     if not isinstance(value, list) or len(value) < minimum:
         raise _fail(where, f"{what} must be a list of at least {minimum} mesh indices")
     out = [_index(v, n, where, f"{what}[{i}]") for i, v in enumerate(value)]

@@ -10,12 +10,12 @@ import math
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 
 __all__ = ["frame_count", "smooth_bump"]
 
 
-def frame_count(seconds, fps, limit: int, *, code: str) -> int:
+def frame_count(seconds: float, fps: float, limit: int, *, code: str) -> int:
     """The number of frames of a performance ``seconds`` long at ``fps``, checked.
 
     Parameters

@@ -17,10 +17,11 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
+from ..errors import ExampleSetError, InputError
+from ..examples import ExampleSet
 from .animation import SourceAnimation
-from .errors import ExampleSetError, InputError
-from .examples import ExampleSet
 from .synthetic import frame_count, smooth_bump
 
 __all__ = [
@@ -61,7 +62,7 @@ _UNSEEN_CM = 1e-6
 _MAX_FRAMES = 36_000  # 10 min at 60 fps
 
 
-def _archive_path(path: str | os.PathLike) -> Path:
+def _archive_path(path: str | os.PathLike[str]) -> Path:
     path = Path(path)
     if path.is_dir():
         path = path / ICT_FILE
@@ -95,7 +96,8 @@ def _identity(path: Path, name: str) -> np.ndarray:
                 f"no ICT identity named {name!r}; expected one of {names[0]} ... {names[-1]}",
                 code="unknown_identity",
             )
-        return archive["identities"][names.index(name)].astype(np.float64)
+        identity: np.ndarray = archive["identities"][names.index(name)].astype(np.float64)
+        return identity
 
 
 def _landmark_vertices(landmarks68: np.ndarray, landmarks: Sequence[int]) -> np.ndarray:
@@ -110,7 +112,8 @@ def _landmark_vertices(landmarks68: np.ndarray, landmarks: Sequence[int]) -> np.
         )
     if np.unique(chosen).size != chosen.size:
         raise ExampleSetError("landmarks: a landmark is chosen twice")
-    return landmarks68[chosen].astype(np.int64)
+    indices: np.ndarray = landmarks68[chosen].astype(np.int64)
+    return indices
 
 
 def stable_positions(
@@ -123,7 +126,7 @@ def stable_positions(
 
 
 def ict_example_set(
-    path: str | os.PathLike,
+    path: str | os.PathLike[str],
     *,
     landmarks: Sequence[int] = DEFAULT_LANDMARKS,
     expressions: Sequence[str] | None = None,
@@ -257,7 +260,7 @@ def ict_animation(
 
 
 def ict_target_frames(
-    example_set: ExampleSet, activations: np.ndarray, *, dtype=np.float32
+    example_set: ExampleSet, activations: npt.ArrayLike, *, dtype: npt.DTypeLike = np.float32
 ) -> np.ndarray:
     """The ideal clone of an ``ict_animation``: the target's examples mixed the same way.
 
@@ -279,10 +282,11 @@ def ict_target_frames(
     deltas = (target[1:] - target[0]).reshape(m - 1, -1).astype(dtype)
     frames = act[:, 1:].astype(dtype) @ deltas
     frames += target[0].reshape(-1).astype(dtype)
-    return frames.reshape(act.shape[0], -1, 3)
+    out: np.ndarray = frames.reshape(act.shape[0], -1, 3)
+    return out
 
 
-def locate_ict(path: str | os.PathLike | None = None) -> Path | None:
+def locate_ict(path: str | os.PathLike[str] | None = None) -> Path | None:
     """The ICT-FaceKit archive: ``path``, else ``$FACECAST_ICT``, else the shared data folder.
 
     The shared folder is ``../shared/data/ict-facekit`` next to the repository (or to the

@@ -1,7 +1,7 @@
 """Neutral geometry of the demo's two heads: proportions, sphere meshes, surface formulas.
 
 Pure seeded formulas in a face-local frame (y up, +z out of the face, cm); it knows
-nothing of expressions or controls (see ``demo_controls``) and must not read files.
+nothing of expressions or controls (see ``controls``) and must not read files.
 """
 
 from __future__ import annotations

@@ -31,8 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError
 from .animation import SourceAnimation
-from .errors import InputError
 from .facemesh import image_to_mesh, normalise_mesh
 from .layouts import load_layout
 from .source_rig import ARKIT_NAMES, HEAD_POSE_NAMES, NUM_ARKIT, SourceRig
@@ -56,10 +56,10 @@ MAX_TAKE_FRAMES = 108_000
 MAX_LINE_CHARS = 1 << 20
 
 #: MediaPipe face-mesh landmark for each of the 20 standard feature points, in the order
-#: of ``facecast.rig.ict.DEFAULT_LANDMARKS`` (Multi-PIE 68 positions), so a MediaPipe take
+#: of ``facecast.rig.sources.ict.DEFAULT_LANDMARKS`` (Multi-PIE 68 positions), so a MediaPipe take
 #: drives a rig imported from ICT-FaceKit with the default landmarks: (feature, Multi-PIE
 #: 68 position, MediaPipe landmark), read from the one table the /perform page uses too,
-#: ``facecast/rig/layouts/mediapipe_face_mesh.json``; "right" is the subject's right.
+#: ``facecast/rig/sources/layouts/mediapipe_face_mesh.json``; "right" is the subject's right.
 _LAYOUT = load_layout("mediapipe_face_mesh")
 MEDIAPIPE_FEATURES: tuple[tuple[str, int, int], ...] = tuple(
     zip(_LAYOUT.feature_names, _LAYOUT.multipie68 or (), _LAYOUT.features.tolist(), strict=True)
@@ -399,7 +399,7 @@ def read_mediapipe_ndjson(
     face_frame : bool
         Remove head pose and distance to the camera as ``facecast perform`` and the
         /perform page do: each line's whole mesh goes through
-        ``facecast.rig.facemesh.normalise_mesh`` with the ``mediapipe_face_mesh`` layout
+        ``facecast.rig.sources.facemesh.normalise_mesh`` with the ``mediapipe_face_mesh`` layout
         (points about in cm, y up; ``mapping`` and ``y_up`` do not apply). Needs every
         line's mesh to be complete; a degenerate one is ``degenerate_face``.
     image_size : (width, height)

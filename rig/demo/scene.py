@@ -17,8 +17,8 @@ Public names
 Each expression is a set of facial "controls" (jaw, smile, brows, lids, ...); the source
 and the target give the same expression different control values, so the target's
 examples are characteristic of the cartoon and not a resampled copy of the source's.
-The heads' neutral geometry is built in ``demo_geometry`` and posed by the controls in
-``demo_controls``; this module holds the expressions, the performance and the public API.
+The heads' neutral geometry is built in ``geometry`` and posed by the controls in
+``controls``; this module holds the expressions, the performance and the public API.
 """
 
 from __future__ import annotations
@@ -26,12 +26,13 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+import numpy.typing as npt
 
-from .animation import SourceAnimation
-from .demo_controls import CONTROL_INDEX, CONTROLS, character_model, pose_vertices
-from .errors import InputError
-from .examples import ExampleSet
-from .synthetic import frame_count, smooth_bump
+from ..errors import InputError
+from ..examples import ExampleSet
+from ..sources.animation import SourceAnimation
+from ..sources.synthetic import frame_count, smooth_bump
+from .controls import CONTROL_INDEX, CONTROLS, character_model, pose_vertices
 
 __all__ = [
     "DEMO_EMOTIONS",
@@ -49,7 +50,7 @@ DEMO_EMOTIONS = ("happy", "sad", "surprise", "fear", "anger", "disgust")
 DEMO_VISEMES = ("aa", "oo", "ee", "mbp", "fv")
 DEMO_NAMES = ("neutral", *DEMO_EMOTIONS, *DEMO_VISEMES, "blink")
 
-# Each expression as values of the face controls (``demo_controls.CONTROLS``).
+# Each expression as values of the face controls (``controls.CONTROLS``).
 _SOURCE_POSES: dict[str, dict[str, float]] = {
     "happy": {"smile": 1.0, "cheek": 0.8, "squint": 0.45, "jaw": 0.12, "lid": -0.15},
     "sad": {"frown": 1.0, "brow_in_up": 1.0, "lid": -0.35, "press": 0.2},
@@ -127,7 +128,7 @@ def _feature_indices() -> np.ndarray:
     marks = model.landmarks
     wanted = np.stack([marks[name] for name in DEMO_FEATURE_NAMES])
     distance = np.linalg.norm(model.neutral[None, :, :] - wanted[:, None, :], axis=2)
-    indices = distance.argmin(axis=1)
+    indices: np.ndarray = distance.argmin(axis=1)
     indices.flags.writeable = False
     return indices
 
@@ -225,7 +226,7 @@ def demo_activations(seconds: float = 12.0, fps: float = 60.0, *, seed: int = 7)
     return act
 
 
-def _sanitize_activations(activations) -> np.ndarray:
+def _sanitize_activations(activations: npt.ArrayLike) -> np.ndarray:
     try:
         act = np.asarray(activations, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -249,7 +250,7 @@ def _sanitize_activations(activations) -> np.ndarray:
     return act
 
 
-def demo_target_frames(activations) -> np.ndarray:
+def demo_target_frames(activations: npt.ArrayLike) -> np.ndarray:
     """The ideal clone: the target's own expressions driven by ``activations``.
 
     Parameters

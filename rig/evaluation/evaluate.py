@@ -13,12 +13,13 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import scipy.optimize
 
-from .bounds import project_box, sparsity_penalty, stream_sparsity, weight_metric
-from .errors import FitError, InputError
-from .examples import ExampleSet
-from .fit import fit
-from .kernels import KERNELS
-from .rig import Rig
+from ..bounds import project_box, sparsity_penalty, stream_sparsity, weight_metric
+from ..errors import FitError, InputError
+from ..examples import ExampleSet
+from ..filters import OneEuroFilter
+from ..fit import fit
+from ..kernels import KERNELS
+from ..rig import Rig
 
 __all__ = [
     "cloning_error",
@@ -593,8 +594,6 @@ def smoothing_report(
     dict (JSON-able): ``settings``, and for ``truth``, ``clean``, ``noisy`` and ``filtered``
     the ``jitter`` (and ``rms_percent`` error for the cloned ones).
     """
-    from .filters import OneEuroFilter
-
     clean = np.asarray(clean_points, dtype=np.float64)
     noisy = np.asarray(noisy_points, dtype=np.float64)
     truth = _sanitize_frames("truth", truth_vertices, (len(clean), rig.num_vertices, 3))

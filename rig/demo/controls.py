@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .demo_geometry import (
+from .geometry import (
     CARTOON,
     HUMAN,
     Head,

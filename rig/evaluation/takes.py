@@ -11,11 +11,12 @@ import os
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
-from .errors import InputError
-from .examples import ExampleSet
-from .ict import ict_example_set
-from .source_rig import ARKIT_NAMES, ARKIT_TO_ICT
+from ..errors import InputError
+from ..examples import ExampleSet
+from ..sources.ict import ict_example_set
+from ..sources.source_rig import ARKIT_NAMES, ARKIT_TO_ICT
 
 __all__ = ["ARKIT_TARGET_IDENTITY", "TakeExperiment", "arkit_example_set", "take_experiment"]
 
@@ -27,7 +28,7 @@ _FACE_VERTICES = 9409
 
 
 def arkit_example_set(
-    path: str | os.PathLike, *, identity: str | None = ARKIT_TARGET_IDENTITY
+    path: str | os.PathLike[str], *, identity: str | None = ARKIT_TARGET_IDENTITY
 ) -> ExampleSet:
     """ICT-FaceKit's shapes under their ARKit names: the generic face -> ``identity``'s face.
 
@@ -93,7 +94,9 @@ class TakeExperiment:
     fps: float
 
 
-def take_experiment(examples: ExampleSet, arkit_weights, fps: float) -> TakeExperiment:
+def take_experiment(
+    examples: ExampleSet, arkit_weights: npt.ArrayLike, fps: float
+) -> TakeExperiment:
     """Drive ``examples`` (ARKit-named, e.g. ``arkit_example_set``) with a take's weights.
 
     Parameters

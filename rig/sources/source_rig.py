@@ -28,9 +28,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
-from .errors import ExampleSetError, InputError
-from .examples import ExampleSet
+from ..errors import ExampleSetError, InputError
+from ..examples import ExampleSet
+from ..io.loaders import load_example_set
+from .ict import ict_example_set
 
 __all__ = [
     "ARKIT_NAMES",
@@ -135,7 +138,7 @@ def arkit_index(name: str) -> int | None:
     return _ARKIT_LOWER.get(name.lower())
 
 
-def head_rotation(angles) -> np.ndarray:
+def head_rotation(angles: npt.ArrayLike) -> np.ndarray:
     """Rotation matrices of head (yaw, pitch, roll) angles in radians.
 
     ``R = R_y(yaw) @ R_x(pitch) @ R_z(roll)`` in the face's frame (+y up, +z forward,
@@ -273,7 +276,7 @@ class SourceRig:
         """ARKit names this rig has no shape for (their weights are ignored)."""
         return tuple(n for n, s in zip(ARKIT_NAMES, self.shapes, strict=True) if not s)
 
-    def points(self, weights, *, head=None) -> np.ndarray:
+    def points(self, weights: npt.ArrayLike, *, head: npt.ArrayLike | None = None) -> np.ndarray:
         """Feature points for ARKit weights, optionally turned by head angles.
 
         Parameters
@@ -298,7 +301,7 @@ class SourceRig:
             )
         if not np.isfinite(batch).all():
             raise InputError("ARKit weights: NaN or Inf values", code="non_finite")
-        out = (batch @ self._flat).reshape(batch.shape[0], -1, 3)  # type: ignore[attr-defined]
+        out: np.ndarray = (batch @ self._flat).reshape(batch.shape[0], -1, 3)  # type: ignore[attr-defined]
         out += self.neutral
         if head is not None:
             angles = np.asarray(head, dtype=np.float64).reshape(-1, 3)
@@ -319,7 +322,7 @@ def _is_ict_archive(path: Path) -> bool:
     return (path / "ict_facekit.npz").is_file() and not (path / "facecast.toml").exists()
 
 
-def load_source_rig(path: str | os.PathLike) -> SourceRig:
+def load_source_rig(path: str | os.PathLike[str]) -> SourceRig:
     """A source rig from an ARKit-named example set on disk.
 
     Parameters
@@ -333,11 +336,7 @@ def load_source_rig(path: str | os.PathLike) -> SourceRig:
     ------
     ExampleSetError
     """
-    from .loaders import load_example_set
-
     path = Path(path)
     if _is_ict_archive(path):
-        from .ict import ict_example_set
-
         return SourceRig.from_example_set(ict_example_set(path))
     return SourceRig.from_example_set(load_example_set(path))

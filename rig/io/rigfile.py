@@ -1,23 +1,35 @@
-"""The rig file: one ``.npz`` (no pickles) with a format version and a content checksum.
+"""The rig file read back: a ``Rig`` from bytes or a path, every record validated.
 
-Reads and writes only; a file that is truncated, tampered with or of an unknown version
-gives ``RigFileError``, never a crash or a silently wrong rig.
+A file that is truncated, tampered with or of an unknown version gives ``RigFileError``,
+never a crash or a silently wrong rig. The layout and the writer are
+``facecast.rig.io.rigformat``; its writing names are re-exported here.
 """
 
 from __future__ import annotations
 
-import hashlib
 import io
 import json
 import os
 import zipfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from .errors import RigFileError
-from .kernels import KERNELS
-from .rig import Rig, WeightModel
+from ..errors import RigFileError
+from ..kernels import KERNELS
+from ..rig import Rig, WeightModel
+from .rigformat import (
+    DEFAULT_MAX_BYTES,
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    MODEL_RECORDS,
+    OPTIONAL_RECORDS,
+    REQUIRED_RECORDS,
+    checksum_of,
+    rig_to_bytes,
+    save_rig,
+)
 
 __all__ = [
     "FORMAT_NAME",
@@ -28,144 +40,8 @@ __all__ = [
     "save_rig",
 ]
 
-FORMAT_NAME = "facecast-rig"
-FORMAT_VERSION = 1
-# A rig file larger than this once unpacked is refused before any array is read.
-DEFAULT_MAX_BYTES = 4 << 30
 
-_REQUIRED = (
-    "source_neutral",
-    "mean",
-    "features",
-    "params",
-    "linear_coeffs",
-    "radial_coeffs",
-    "alpha",
-    "blend_basis",
-    "target_faces",
-)
-_MODEL_KEYS = (
-    "source_neutral",
-    "mean",
-    "features",
-    "params",
-    "linear_coeffs",
-    "radial_coeffs",
-    "alpha",
-    "input_matrix",
-    "input_offset",
-)
-_OPTIONAL = (
-    "feature_indices",
-    "stable_points",
-    "preview_vertices",
-    "preview_faces",
-    "calibration",
-    "input_matrix",
-    "input_offset",
-)
-
-
-def _model_arrays(model: WeightModel, prefix: str) -> dict[str, np.ndarray]:
-    values = {key: getattr(model, key) for key in _MODEL_KEYS}
-    return {prefix + k: v for k, v in values.items() if v is not None}
-
-
-def _arrays(rig: Rig) -> dict[str, np.ndarray]:
-    model = rig.model
-    arrays = {
-        "source_neutral": model.source_neutral,
-        "mean": model.mean,
-        "features": model.features,
-        "params": model.params,
-        "linear_coeffs": model.linear_coeffs,
-        "radial_coeffs": model.radial_coeffs,
-        "alpha": model.alpha,
-        "blend_basis": rig.blend_basis,
-        "target_faces": rig.target_faces,
-    }
-    optional = {
-        "feature_indices": rig.feature_indices,
-        "stable_points": rig.stable_points,
-        "preview_vertices": None if rig.source_preview is None else rig.source_preview[0],
-        "preview_faces": None if rig.source_preview is None else rig.source_preview[1],
-        "calibration": rig.calibration,
-        "input_matrix": model.input_matrix,
-        "input_offset": model.input_offset,
-    }
-    arrays.update({k: v for k, v in optional.items() if v is not None})
-    # Region rigs: the models after the first, prefixed r1., r2., ...
-    for r, extra in enumerate(rig.models[1:], start=1):
-        arrays.update(_model_arrays(extra, f"r{r}."))
-    return {k: np.ascontiguousarray(v) for k, v in arrays.items()}
-
-
-def _meta(rig: Rig) -> dict:
-    meta = {
-        "format": FORMAT_NAME,
-        "format_version": FORMAT_VERSION,
-        "names": list(rig.names),
-        "kernel": rig.model.kernel,
-        "clamp": rig.model.clamp,
-        "ridge": [m.ridge for m in rig.models],
-        "align_scale": rig.align_scale,
-        "fit_report": rig.fit_report or {},
-        "regions": None
-        if rig.regions is None
-        else [{"name": name, "columns": columns.tolist()} for name, columns in rig.regions],
-    }
-    penalties = [m.sparsity_penalty for m in rig.models]
-    if any(penalties):
-        # Written only when set; files without it (all that older facecast wrote) read as
-        # 0, the plain projection they were made with, so the format version stays 1.
-        meta["sparsity_penalty"] = penalties
-    return meta
-
-
-def _checksum(meta: dict, arrays: dict[str, np.ndarray]) -> str:
-    h = hashlib.sha256()
-    h.update(json.dumps(meta, sort_keys=True, allow_nan=True).encode())
-    for name in sorted(arrays):
-        a = arrays[name]
-        h.update(f"|{name}|{a.dtype.str}|{a.shape}|".encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
-
-
-def content_checksum(rig: Rig) -> str:
-    return _checksum(_meta(rig), _arrays(rig))
-
-
-def rig_to_bytes(rig: Rig) -> bytes:
-    meta = _meta(rig)
-    arrays = _arrays(rig)
-    meta_with_sum = dict(meta, checksum=_checksum(meta, arrays))
-    buffer = io.BytesIO()
-    np.savez(
-        buffer,
-        meta=np.frombuffer(json.dumps(meta_with_sum).encode(), dtype=np.uint8),
-        **arrays,
-    )
-    return buffer.getvalue()
-
-
-def save_rig(rig: Rig, path) -> None:
-    """Write atomically: a temporary file beside ``path``, fsynced, then renamed over it."""
-    path = Path(path)
-    data = rig_to_bytes(rig)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-def load_rig(path, *, max_bytes: int = DEFAULT_MAX_BYTES) -> Rig:
+def load_rig(path: str | os.PathLike[str], *, max_bytes: int = DEFAULT_MAX_BYTES) -> Rig:
     """Read a rig file written by ``Rig.save``."""
     path = Path(path)
     try:
@@ -210,17 +86,21 @@ def rig_from_bytes(data: bytes, *, source: str = "rig", max_bytes: int = DEFAULT
             f"reads version {FORMAT_VERSION}); refit the rig or upgrade facecast",
             code="unsupported_version",
         )
-    missing = [k for k in _REQUIRED if k not in contents]
+    missing = [k for k in REQUIRED_RECORDS if k not in contents]
     if missing:
         raise RigFileError(f"{source}: rig file lacks {', '.join(missing)}")
-    unknown = {k for k in set(contents) - set(_REQUIRED) - set(_OPTIONAL) if not k.startswith("r")}
+    unknown = {
+        k
+        for k in set(contents) - set(REQUIRED_RECORDS) - set(OPTIONAL_RECORDS)
+        if not k.startswith("r")
+    }
     unknown |= {
-        k for k in contents if k[:1] == "r" and "." in k and k.split(".", 1)[1] not in _MODEL_KEYS
+        k for k in contents if k[:1] == "r" and "." in k and k.split(".", 1)[1] not in MODEL_RECORDS
     }
     if unknown:
         raise RigFileError(f"{source}: rig file has unknown records {sorted(unknown)}")
     stored = meta.pop("checksum", None)
-    if stored != _checksum(meta, contents):
+    if stored != checksum_of(meta, contents):
         raise RigFileError(
             f"{source}: checksum mismatch: the rig file was modified or corrupted",
             code="checksum_mismatch",
@@ -247,7 +127,7 @@ def _check_finite(arrays: dict[str, np.ndarray], source: str) -> None:
             )
 
 
-def _build(meta: dict, a: dict[str, np.ndarray]) -> Rig:
+def _build(meta: dict[str, Any], a: dict[str, np.ndarray]) -> Rig:
     names = tuple(str(n) for n in meta["names"])
     m = len(names)
     basis = a["blend_basis"]
@@ -262,9 +142,9 @@ def _build(meta: dict, a: dict[str, np.ndarray]) -> Rig:
     ):
         raise ValueError("target_faces out of range")
     models = [_build_model(meta, a, "", 0)]
-    regions = None
+    regions: tuple[tuple[str, np.ndarray], ...] | None = None
     if meta.get("regions"):
-        regions = []
+        named: list[tuple[str, np.ndarray]] = []
         for r, region in enumerate(meta["regions"]):
             columns = np.asarray(region["columns"], dtype=np.int64)
             if r:
@@ -273,8 +153,8 @@ def _build(meta: dict, a: dict[str, np.ndarray]) -> Rig:
                 raise ValueError(f"region {region['name']!r} has columns out of range")
             if columns.size != models[r].params.shape[0] - 1:
                 raise ValueError(f"region {region['name']!r} has {columns.size} columns")
-            regions.append((str(region["name"]), columns))
-        regions = tuple(regions)
+            named.append((str(region["name"]), columns))
+        regions = tuple(named)
     elif models[0].params.shape[0] != m:
         raise ValueError(f"{models[0].params.shape[0]} examples in the model for {m} names")
     preview = None
@@ -296,7 +176,9 @@ def _build(meta: dict, a: dict[str, np.ndarray]) -> Rig:
     )
 
 
-def _build_model(meta: dict, a: dict[str, np.ndarray], prefix: str, index: int) -> WeightModel:
+def _build_model(
+    meta: dict[str, Any], a: dict[str, np.ndarray], prefix: str, index: int
+) -> WeightModel:
     k = a[prefix + "source_neutral"].shape[0]
     n = a[prefix + "features"].shape[0]
     m = a[prefix + "params"].shape[0]
@@ -327,11 +209,11 @@ def _build_model(meta: dict, a: dict[str, np.ndarray], prefix: str, index: int) 
         clamp=clamp,
         ridge=ridge,
         sparsity_penalty=_penalty(meta, index),
-        **{key: a.get(prefix + key) for key in _MODEL_KEYS},
+        **{key: a.get(prefix + key) for key in MODEL_RECORDS},
     )
 
 
-def _penalty(meta: dict, index: int) -> float:
+def _penalty(meta: dict[str, Any], index: int) -> float:
     penalty = float(meta.get("sparsity_penalty", [0.0] * (index + 1))[index])
     if not np.isfinite(penalty) or penalty < 0:
         raise ValueError(f"sparsity_penalty must be a finite number >= 0, got {penalty}")

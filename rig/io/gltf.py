@@ -14,8 +14,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import pygltflib
 
-from .errors import ExampleSetError, InputError
+from ..errors import ExampleSetError, InputError
 
 __all__ = ["export_glb", "read_glb_morph_targets"]
 
@@ -280,8 +281,6 @@ def _pack_glb(doc: dict, blob: bytes) -> bytes:
 
 
 def _load_document(path_or_bytes, label: str):
-    import pygltflib  # deferred: only the loader needs it
-
     if isinstance(path_or_bytes, bytes | bytearray | memoryview):
         data = bytes(path_or_bytes)
     else:

@@ -12,8 +12,9 @@ import re
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
-from .errors import ExampleSetError
+from ..errors import ExampleSetError
 
 __all__ = [
     "format_faces",
@@ -50,7 +51,7 @@ def _read_text(path: Path) -> str:
         return data.decode("latin-1")
 
 
-def read_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+def read_obj(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     """Read vertices and faces of a Wavefront OBJ file, in the file's vertex order.
 
     Polygons are fan-triangulated ((a, b, c, d) -> (a, b, c), (a, c, d)); texture and
@@ -81,7 +82,7 @@ def read_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     return _parse_obj_checked(path, text)
 
 
-def read_obj_vertices(path: str | os.PathLike) -> np.ndarray:
+def read_obj_vertices(path: str | os.PathLike[str]) -> np.ndarray:
     """Only the (V, 3) float64 vertices of an OBJ, skipping the faces when it can.
 
     For animation frames and example meshes whose topology comes from elsewhere: about
@@ -199,8 +200,8 @@ def _parse_obj_checked(path: Path, text: str) -> tuple[np.ndarray, np.ndarray]:
         raise
     finite = np.isfinite(vertices).all(axis=1)
     if not finite.all():
-        line = vertex_lines[int(np.flatnonzero(~finite)[0])]
-        raise ExampleSetError(f"{path}, line {line}: NaN or Inf coordinate", code="non_finite")
+        bad_line = vertex_lines[int(np.flatnonzero(~finite)[0])]
+        raise ExampleSetError(f"{path}, line {bad_line}: NaN or Inf coordinate", code="non_finite")
     face_array = np.array(faces, dtype=np.int64).reshape(-1, 3)
     return vertices, face_array
 
@@ -221,7 +222,7 @@ def format_faces(faces: np.ndarray) -> str:
     return ("f %d %d %d\n" * f.shape[0]) % tuple(f.ravel().tolist())
 
 
-def write_obj(path: str | os.PathLike, vertices, faces) -> None:
+def write_obj(path: str | os.PathLike[str], vertices: npt.ArrayLike, faces: npt.ArrayLike) -> None:
     """Write an OBJ with one ``v`` line per vertex (in order) and one ``f`` per triangle.
 
     Parameters
@@ -244,7 +245,7 @@ def write_obj(path: str | os.PathLike, vertices, faces) -> None:
     Path(path).write_text(text, encoding="ascii")
 
 
-def read_points(path: str | os.PathLike) -> np.ndarray:
+def read_points(path: str | os.PathLike[str]) -> np.ndarray:
     """Read K x 3 feature points from ``.npy`` or ``.csv``.
 
     CSV: comma-separated, three numbers a line, an optional header line first, blank

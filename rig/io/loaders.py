@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ExampleSetError
-from .examples import ExampleSet
+from ..errors import ExampleSetError
+from ..examples import ExampleSet
 from .gltf import read_glb_morph_targets
 from .meshio import read_obj, read_obj_vertices, read_points
 

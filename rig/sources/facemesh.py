@@ -20,8 +20,9 @@ motion or a change of distance to the camera leaves the normalised points unchan
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
-from .errors import InputError
+from ..errors import InputError
 from .layouts import Layout
 
 __all__ = ["face_frame", "image_to_mesh", "normalise_mesh"]
@@ -45,10 +46,11 @@ def image_to_mesh(landmarks: np.ndarray, width: float, height: float) -> np.ndar
     Same shape, float64.
     """
     scale = np.array([float(width), -float(height), -float(width)])
-    return np.asarray(landmarks, dtype=np.float64) * scale
+    points: np.ndarray = np.asarray(landmarks, dtype=np.float64) * scale
+    return points
 
 
-def _sanitize(mesh, layout: Layout) -> tuple[np.ndarray, bool]:
+def _sanitize(mesh: npt.ArrayLike, layout: Layout) -> tuple[np.ndarray, bool]:
     x = np.asarray(mesh, dtype=np.float64)
     single = x.ndim == 2
     if single:
@@ -64,7 +66,7 @@ def _sanitize(mesh, layout: Layout) -> tuple[np.ndarray, bool]:
     return x, single
 
 
-def face_frame(mesh, layout: Layout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def face_frame(mesh: npt.ArrayLike, layout: Layout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The face-fixed frame of each mesh (see the module docstring).
 
     Parameters
@@ -111,7 +113,7 @@ def face_frame(mesh, layout: Layout) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return rotation, origin, layout.span / span
 
 
-def normalise_mesh(mesh, layout: Layout) -> np.ndarray:
+def normalise_mesh(mesh: npt.ArrayLike, layout: Layout) -> np.ndarray:
     """The layout's feature points of each mesh, in the face-fixed frame.
 
     Parameters
@@ -129,6 +131,6 @@ def normalise_mesh(mesh, layout: Layout) -> np.ndarray:
     x, single = _sanitize(mesh, layout)
     rotation, origin, scale = face_frame(x, layout)
     picked = x[:, layout.features] - origin[:, None, :]
-    out = np.einsum("bkj,bij->bki", picked, rotation)
+    out: np.ndarray = np.einsum("bkj,bij->bki", picked, rotation)
     out *= scale[:, None, None]
     return out[0] if single else out

@@ -7,8 +7,9 @@ frames; pure array code, no tracking, fitting or I/O.
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
-from .errors import InputError
+from ..errors import InputError
 
 __all__ = ["MAD_TO_SIGMA", "robust_example"]
 
@@ -19,7 +20,7 @@ MAD_TO_SIGMA = 1.4826
 OUTLIER_FACTOR = 3.0
 
 
-def robust_example(frames) -> tuple[np.ndarray, float, np.ndarray]:
+def robust_example(frames: npt.ArrayLike) -> tuple[np.ndarray, float, np.ndarray]:
     """The median frame of a held expression, outliers out, and the points' spread.
 
     Parameters

@@ -8,12 +8,14 @@ clone. Returns JSON-able numbers; it must not plot, print or do I/O.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
-from .errors import InputError
-from .filters import KalmanFilter, OneEuroFilter
-from .rig import Rig
+from ..errors import InputError
+from ..filters import KalmanFilter, OneEuroFilter
+from ..rig import Rig
 
 __all__ = [
     "DEFAULT_KALMAN_ACCELERATIONS",
@@ -53,7 +55,7 @@ _MAX_LEAD_FRAMES = 2
 _LAG_STRIDE = 16
 
 
-def lag_frames(truth, delayed, *, max_lag: int = MAX_LAG_FRAMES) -> float:
+def lag_frames(truth: np.ndarray, delayed: np.ndarray, *, max_lag: int = MAX_LAG_FRAMES) -> float:
     """How many frames ``delayed`` trails ``truth``: the shift that best aligns them.
 
     The RMS difference of delayed[t + s] and truth[t] over whole frames s in [-2, max_lag]
@@ -100,14 +102,14 @@ def _jitter(frames: np.ndarray) -> float:
 
 def temporal_tradeoff(
     rig: Rig,
-    noisy_points,
-    truth_vertices,
+    noisy_points: npt.ArrayLike,
+    truth_vertices: npt.ArrayLike,
     *,
     fps: float,
     noise: float,
     one_euro: Sequence[tuple[float, float]] = DEFAULT_ONE_EURO,
     kalman: Sequence[float] = DEFAULT_KALMAN_ACCELERATIONS,
-) -> dict:
+) -> dict[str, Any]:
     """Jitter and lag of a noisy take cloned raw, through one-euro filters and Kalman filters.
 
     Parameters
@@ -142,7 +144,9 @@ def temporal_tradeoff(
     scale = 100.0 / diagonal
     times = np.arange(len(points)) / float(fps)
     channels = points.reshape(len(points), -1)
-    candidates: list[tuple[str, str, dict, object]] = [("raw", "raw", {}, None)]
+    candidates: list[tuple[str, str, dict[str, float], OneEuroFilter | KalmanFilter | None]] = [
+        ("raw", "raw", {}, None)
+    ]
     for min_cutoff, beta in one_euro:
         candidates.append(
             (
@@ -179,9 +183,9 @@ def temporal_tradeoff(
     return {"truth_jitter": _jitter(truth) * scale, "fps": float(fps), "rows": rows}
 
 
-def best_under_one_frame(tradeoff: dict) -> dict[str, dict]:
+def best_under_one_frame(tradeoff: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Per filter family, the row of least jitter among those lagging less than one frame."""
-    best: dict[str, dict] = {}
+    best: dict[str, dict[str, Any]] = {}
     for row in tradeoff["rows"]:
         if row["family"] == "raw" or not row["lag_frames"] < 1.0:
             continue

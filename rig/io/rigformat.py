@@ -1,0 +1,167 @@
+"""The rig file's layout and writing: records, meta, content checksum, the atomic save.
+
+A rig file is one ``.npz`` (no pickles) with a format version and a content checksum.
+This module reads nothing and imports no engine class (a ``Rig`` is read by attribute),
+so ``Rig.save``, ``Rig.to_bytes`` and ``Rig.checksum`` use it without an import cycle;
+reading a file back into a ``Rig`` is ``facecast.rig.io.rigfile``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from ..rig import Rig, WeightModel
+
+__all__ = [
+    "DEFAULT_MAX_BYTES",
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "content_checksum",
+    "rig_to_bytes",
+    "save_rig",
+]
+
+FORMAT_NAME = "facecast-rig"
+FORMAT_VERSION = 1
+# A rig file larger than this once unpacked is refused before any array is read.
+DEFAULT_MAX_BYTES = 4 << 30
+
+REQUIRED_RECORDS = (
+    "source_neutral",
+    "mean",
+    "features",
+    "params",
+    "linear_coeffs",
+    "radial_coeffs",
+    "alpha",
+    "blend_basis",
+    "target_faces",
+)
+MODEL_RECORDS = (
+    "source_neutral",
+    "mean",
+    "features",
+    "params",
+    "linear_coeffs",
+    "radial_coeffs",
+    "alpha",
+    "input_matrix",
+    "input_offset",
+)
+OPTIONAL_RECORDS = (
+    "feature_indices",
+    "stable_points",
+    "preview_vertices",
+    "preview_faces",
+    "calibration",
+    "input_matrix",
+    "input_offset",
+)
+
+
+def _model_arrays(model: WeightModel, prefix: str) -> dict[str, np.ndarray]:
+    values = {key: getattr(model, key) for key in MODEL_RECORDS}
+    return {prefix + k: v for k, v in values.items() if v is not None}
+
+
+def _arrays(rig: Rig) -> dict[str, np.ndarray]:
+    model = rig.model
+    arrays = {
+        "source_neutral": model.source_neutral,
+        "mean": model.mean,
+        "features": model.features,
+        "params": model.params,
+        "linear_coeffs": model.linear_coeffs,
+        "radial_coeffs": model.radial_coeffs,
+        "alpha": model.alpha,
+        "blend_basis": rig.blend_basis,
+        "target_faces": rig.target_faces,
+    }
+    optional = {
+        "feature_indices": rig.feature_indices,
+        "stable_points": rig.stable_points,
+        "preview_vertices": None if rig.source_preview is None else rig.source_preview[0],
+        "preview_faces": None if rig.source_preview is None else rig.source_preview[1],
+        "calibration": rig.calibration,
+        "input_matrix": model.input_matrix,
+        "input_offset": model.input_offset,
+    }
+    arrays.update({k: v for k, v in optional.items() if v is not None})
+    # Region rigs: the models after the first, prefixed r1., r2., ...
+    for r, extra in enumerate(rig.models[1:], start=1):
+        arrays.update(_model_arrays(extra, f"r{r}."))
+    return {k: np.ascontiguousarray(v) for k, v in arrays.items()}
+
+
+def _meta(rig: Rig) -> dict[str, Any]:
+    meta = {
+        "format": FORMAT_NAME,
+        "format_version": FORMAT_VERSION,
+        "names": list(rig.names),
+        "kernel": rig.model.kernel,
+        "clamp": rig.model.clamp,
+        "ridge": [m.ridge for m in rig.models],
+        "align_scale": rig.align_scale,
+        "fit_report": rig.fit_report or {},
+        "regions": None
+        if rig.regions is None
+        else [{"name": name, "columns": columns.tolist()} for name, columns in rig.regions],
+    }
+    penalties = [m.sparsity_penalty for m in rig.models]
+    if any(penalties):
+        # Written only when set; files without it (all that older facecast wrote) read as
+        # 0, the plain projection they were made with, so the format version stays 1.
+        meta["sparsity_penalty"] = penalties
+    return meta
+
+
+def checksum_of(meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    h.update(json.dumps(meta, sort_keys=True, allow_nan=True).encode())
+    for name in sorted(arrays):
+        a = arrays[name]
+        h.update(f"|{name}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def content_checksum(rig: Rig) -> str:
+    return checksum_of(_meta(rig), _arrays(rig))
+
+
+def rig_to_bytes(rig: Rig) -> bytes:
+    meta = _meta(rig)
+    arrays = _arrays(rig)
+    meta_with_sum = dict(meta, checksum=checksum_of(meta, arrays))
+    buffer = io.BytesIO()
+    # numpy's stub types **kwds as if one could be its allow_pickle flag.
+    np.savez(
+        buffer,
+        meta=np.frombuffer(json.dumps(meta_with_sum).encode(), dtype=np.uint8),
+        **arrays,  # type: ignore[arg-type]
+    )
+    return buffer.getvalue()
+
+
+def save_rig(rig: Rig, path: str | os.PathLike[str]) -> None:
+    """Write atomically: a temporary file beside ``path``, fsynced, then renamed over it."""
+    path = Path(path)
+    data = rig_to_bytes(rig)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()

@@ -1,0 +1,225 @@
+"""The facecast packages import each other without cycles, and only at module level.
+
+The import graph is read from the source (AST), not by importing: an edge is an import at
+module level (``if TYPE_CHECKING:`` blocks excluded, they run only under a type checker).
+An import inside a function is allowed only where ``LAZY`` or ``CYCLE_DEBT`` below gives its
+reason; one that dodges a cycle is the design saying a module holds two concepts.
+"""
+
+from __future__ import annotations
+
+import ast
+import fnmatch
+import graphlib
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+_STARTUP_CLI = (
+    "start-up time: `facecast` loads only the command it runs, and a command imports "
+    "numpy, the rig engine (~0.7 s), the server or websockets when it runs"
+)
+_MATPLOTLIB = "start-up time: matplotlib (~0.5 s) loads only when a figure is drawn"
+
+#: (importing module, imported module) patterns (fnmatch) -> why the import is deferred.
+LAZY: dict[tuple[str, str], str] = {
+    ("facecast.client.cli", "facecast.*.errors"): _STARTUP_CLI,
+    ("facecast.client.commands.*", "*"): _STARTUP_CLI,
+    ("facecast.client.bench.*", "*"): _STARTUP_CLI,
+    ("facecast.client.snapshot", "*"): (
+        "start-up time: the snapshot tool starts a server and Chromium (playwright) only "
+        "when a command asks for a picture"
+    ),
+    ("facecast.client.fetch", "facecast.rig"): _STARTUP_CLI,
+    ("facecast.client.report", "matplotlib.*"): _MATPLOTLIB,
+    ("facecast.client.report", "facecast.client.render"): _MATPLOTLIB,
+    ("facecast.client.render", "matplotlib.*"): _MATPLOTLIB,
+    ("facecast.client.loadgen", "matplotlib.*"): _MATPLOTLIB,
+    ("facecast.client.facetrack", "cv2"): "optional dependency: the `perform` extra",
+    ("facecast.client.facetrack", "mediapipe.*"): "optional dependency: the `perform` extra",
+    ("facecast.server.bus", "redis.asyncio"): (
+        "start-up time: redis.asyncio (~0.2 s) only for a server given a Redis URL"
+    ),
+    ("facecast.server.ws_guard", "uvicorn.protocols.websockets.websockets_impl"): (
+        "chosen at run time: importing uvicorn's legacy implementation warns it is deprecated"
+    ),
+    ("facecast.server.direct", "uvicorn.protocols.websockets.websockets_sansio_impl"): (
+        "chosen at run time: the sans-I/O implementation only when uvicorn runs it "
+        "(issue #11 step 2 replaces this module)"
+    ),
+    ("facecast.server.direct", "websockets.protocol"): (
+        "chosen at run time: with the sans-I/O implementation only (issue #11 step 2)"
+    ),
+    ("facecast.server.viewer", "facecast.rig.demo"): (
+        "start-up time: the demo performance is generated only when /viewer asks for it"
+    ),
+}
+
+_COMMAND_ERROR = (
+    "cli loads the commands with importlib and they raise cli's CommandError: a cycle at "
+    "run time that the AST does not show; issue #11 step 3 (the client split) moves "
+    "CommandError into the client's exceptions module"
+)
+
+#: Function-local imports that dodge a cycle today; each names the step that removes it.
+#: The test fails when one of them is gone, so that this list shrinks with the code.
+CYCLE_DEBT: dict[tuple[str, str], str] = {
+    ("facecast.protocol.errors", "facecast.protocol.messages"): (
+        "messages raises ProtocolError and ProtocolError.to_message builds a messages.Error; "
+        "protocol/messages.py is being changed by another branch (issue #11 step 3: one "
+        "exceptions module per package)"
+    ),
+    ("facecast.client.commands.*", "facecast.client.cli"): _COMMAND_ERROR,
+    ("facecast.client.bench.*", "facecast.client.cli"): _COMMAND_ERROR,
+}
+
+
+@dataclass(frozen=True)
+class LocalImport:
+    module: str
+    target: str
+    line: int
+
+
+def _project_modules() -> dict[str, Path]:
+    """Every facecast module, by dotted name, from pyproject's package list."""
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    modules = {}
+    for package in config["packages"]:
+        folder = ROOT / config["package-dir"][package]
+        for path in sorted(folder.glob("*.py")):
+            name = package if path.stem == "__init__" else f"{package}.{path.stem}"
+            modules[name] = path
+    return modules
+
+
+def _extension_modules() -> set[str]:
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    return {ext["name"] for ext in config.get("ext-modules", [])}
+
+
+def _absolute(module: str, is_package: bool, node: ast.ImportFrom) -> str:
+    if not node.level:
+        return node.module or ""
+    parts = module.split(".")
+    if not is_package:
+        parts = parts[:-1]
+    if node.level > 1:
+        parts = parts[: -(node.level - 1)]
+    return ".".join(parts + ([node.module] if node.module else []))
+
+
+def _targets(module: str, is_package: bool, node: ast.Import | ast.ImportFrom, known) -> list:
+    if isinstance(node, ast.Import):
+        return [alias.name for alias in node.names]
+    base = _absolute(module, is_package, node)
+    # ``from pkg import name`` imports the submodule pkg.name when there is one.
+    return [f"{base}.{a.name}" if f"{base}.{a.name}" in known else base for a in node.names]
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    return "TYPE_CHECKING" in ast.unparse(node.test)
+
+
+def _walk(module: str, path: Path, known: set[str]):
+    """(module-level edges, function-local imports) of one module."""
+    is_package = path.stem == "__init__"
+    edges: set[str] = set()
+    local: list[LocalImport] = []
+
+    def visit(node: ast.AST, in_function: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.If) and not in_function and _is_type_checking(child):
+                continue
+            if isinstance(child, ast.Import | ast.ImportFrom):
+                for target in _targets(module, is_package, child, known):
+                    if in_function:
+                        local.append(LocalImport(module, target, child.lineno))
+                    elif target in known:
+                        edges.add(target)
+            function = isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda)
+            visit(child, in_function or function)
+
+    visit(ast.parse(path.read_text(), filename=str(path)), False)
+    return edges, local
+
+
+@pytest.fixture(scope="module")
+def graph():
+    modules = _project_modules()
+    known = set(modules) | _extension_modules()
+    edges, local = {}, []
+    for name, path in modules.items():
+        edges[name], found = _walk(name, path, known)
+        local.extend(found)
+    return edges, local
+
+
+def _reason(item: LocalImport, table: dict[tuple[str, str], str]) -> str | None:
+    for (module, target), reason in table.items():
+        if fnmatch.fnmatchcase(item.module, module) and fnmatch.fnmatchcase(item.target, target):
+            return reason
+    return None
+
+
+def test_the_graph_sees_every_package_and_its_edges(graph):
+    edges, _ = graph
+    # Guards the reader itself: a walker that found no modules or no edges proves nothing.
+    assert {"facecast.protocol", "facecast.rig", "facecast.server", "facecast.client"} <= set(edges)
+    assert "facecast.rig.rig" in edges["facecast.rig.fit"]
+    assert "facecast.rig.io.rigformat" in edges["facecast.rig.rig"]
+    assert "facecast.rig._kernel" in edges["facecast.rig.kernel"]
+
+
+def test_no_import_cycle_between_facecast_modules(graph):
+    edges, _ = graph
+    try:
+        graphlib.TopologicalSorter(edges).prepare()
+    except graphlib.CycleError as exc:
+        pytest.fail("import cycle: " + " -> ".join(exc.args[1]))
+
+
+def test_rig_imports_nothing_of_protocol_server_or_client(graph):
+    edges, local = graph
+    outside = ("facecast.protocol", "facecast.server", "facecast.client")
+    found = [
+        (module, target)
+        for module, targets in edges.items()
+        if module.startswith("facecast.rig")
+        for target in targets
+        if target.startswith(outside)
+    ]
+    found += [
+        (i.module, i.target)
+        for i in local
+        if i.module.startswith("facecast.rig") and i.target.startswith(outside)
+    ]
+    assert not found
+
+
+def test_every_function_local_import_has_a_reason(graph):
+    _, local = graph
+    unexplained = [
+        f"{i.module}:{i.line} imports {i.target}"
+        for i in local
+        if _reason(i, LAZY) is None and _reason(i, CYCLE_DEBT) is None
+    ]
+    assert not unexplained, (
+        "function-local imports without a reason (import at module level, or add the "
+        "reason to LAZY in tests/test_imports.py):\n" + "\n".join(unexplained)
+    )
+
+
+def test_the_rig_engine_has_no_function_local_import_of_its_own(graph):
+    _, local = graph
+    assert not [i for i in local if i.module.startswith("facecast.rig")]
+
+
+def test_every_cycle_debt_entry_is_still_owed(graph):
+    _, local = graph
+    owed = {key for key in CYCLE_DEBT if any(_reason(i, {key: ""}) is not None for i in local)}
+    assert owed == set(CYCLE_DEBT), f"paid off, remove from CYCLE_DEBT: {set(CYCLE_DEBT) - owed}"
