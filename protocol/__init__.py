@@ -13,6 +13,7 @@ from facecast.protocol.codec import (
 )
 from facecast.protocol.connection import ClientProtocol, ClientState, ServerProtocol, ServerState
 from facecast.protocol.errors import ErrorCode, ProtocolError
+from facecast.protocol.head import HEAD_NORM_TOLERANCE, MAX_HEAD_POSITION, Head
 from facecast.protocol.limits import Limits
 from facecast.protocol.messages import (
     MAX_ERROR_MESSAGE,
@@ -53,7 +54,9 @@ from facecast.protocol.transport import (
 
 __all__ = [
     "BEARER_SUBPROTOCOL_PREFIX",
+    "HEAD_NORM_TOLERANCE",
     "MAX_ERROR_MESSAGE",
+    "MAX_HEAD_POSITION",
     "OUTPUTS",
     "POINTS_DTYPES",
     "PROTOCOL_VERSION",
@@ -76,6 +79,7 @@ __all__ = [
     "ErrorCode",
     "FaceLost",
     "Frame",
+    "Head",
     "Hello",
     "Limits",
     "Message",
