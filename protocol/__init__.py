@@ -13,6 +13,7 @@ from facecast.protocol.codec import (
 )
 from facecast.protocol.connection import ClientProtocol, ClientState, ServerProtocol, ServerState
 from facecast.protocol.errors import ErrorCode, ProtocolError
+from facecast.protocol.head import HEAD_NORM_TOLERANCE, MAX_HEAD_POSITION, Head
 from facecast.protocol.limits import Limits
 from facecast.protocol.messages import (
     CHANNEL_OUTPUTS,
@@ -55,7 +56,9 @@ from facecast.protocol.transport import (
 __all__ = [
     "BEARER_SUBPROTOCOL_PREFIX",
     "CHANNEL_OUTPUTS",
+    "HEAD_NORM_TOLERANCE",
     "MAX_ERROR_MESSAGE",
+    "MAX_HEAD_POSITION",
     "OUTPUTS",
     "POINTS_DTYPES",
     "PROTOCOL_VERSION",
@@ -78,6 +81,7 @@ __all__ = [
     "ErrorCode",
     "FaceLost",
     "Frame",
+    "Head",
     "Hello",
     "Limits",
     "Message",

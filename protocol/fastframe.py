@@ -82,4 +82,4 @@ def decode_frame(data: bytes, limits: Limits) -> Frame | None:
     points = np.ndarray((rows, 3), dtype, data, offset=i)
     if not all_finite(points):
         return None
-    return _checked(Frame, seq=seq, ts=ts, points=points)
+    return _checked(Frame, seq=seq, ts=ts, points=points, head=None)

@@ -29,6 +29,7 @@ from facecast.protocol.fields import (
     read_str,
     read_uint,
 )
+from facecast.protocol.head import Head
 from facecast.protocol.limits import Limits
 
 PROTOCOL_VERSION: Final = 1
@@ -156,6 +157,16 @@ def _checked(cls: type[_M], **values: Any) -> _M:
 
 def _header(kind: str) -> dict[str, Any]:
     return {"v": PROTOCOL_VERSION, "type": kind}
+
+
+def _check_head(value: Any, where: str) -> None:
+    if value is not None and not isinstance(value, Head):
+        raise _fail(where, "nil or a Head", value)
+
+
+def _read_head(obj: Mapping[str, Any], where: str) -> Head | None:
+    value = obj.get("head")
+    return None if value is None else Head.parse(value, where)
 
 
 # --- client -> server -------------------------------------------------------------------
@@ -293,25 +304,32 @@ class Frame(_ArrayMessage):
         Source timestamp (seconds, sender's clock), echoed in the result.
     points : (K, 3) float16/32/64
         Feature points; decoded frames hold a read-only view of the message bytes.
+    head : Head or None
+        The performer's head pose (§5.3), relayed to a channel's watchers; None: not sent.
     """
 
     TYPE: ClassVar[str] = "frame"
     seq: int
     ts: float
     points: np.ndarray
+    head: Head | None = None
 
     def __post_init__(self) -> None:
         check_uint(self.seq, "frame.seq")
         object.__setattr__(self, "ts", check_float(self.ts, "frame.ts"))
         _check_array(self.points, "frame.points", (3,))
+        _check_head(self.head, "frame.head")
 
     def serialize(self) -> dict[str, Any]:
-        return {
+        out = {
             **_header(self.TYPE),
             "seq": self.seq,
             "ts": self.ts,
             "points": array_to_wire(self.points),
         }
+        if self.head is not None:  # absent otherwise: a frame without one keeps its bytes
+            out["head"] = self.head.serialize()
+        return out
 
     @classmethod
     def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Frame:
@@ -322,6 +340,7 @@ class Frame(_ArrayMessage):
             points=array_from_wire(
                 obj.get("points"), "frame.points", trailing=(3,), max_rows=limits.max_points
             ),
+            head=_read_head(obj, "frame.head"),
         )
 
 
@@ -592,6 +611,10 @@ class Result(_ArrayMessage):
         Server processing time for this frame, microseconds.
     dropped : int
         Frames this session has discarded unprocessed so far (§8).
+    server_ts : float or None
+        The server's wall clock when encoded (channel endpoints, §2.4).
+    head : Head or None
+        The frame's head pose as published, on channel endpoints (§5.3).
     """
 
     TYPE: ClassVar[str] = "result"
@@ -603,6 +626,7 @@ class Result(_ArrayMessage):
     proc_us: int = 0
     dropped: int = 0
     server_ts: float | None = None
+    head: Head | None = None
 
     def __post_init__(self) -> None:
         # On the server's per-frame path: a handful of type checks, no array scans.
@@ -610,6 +634,7 @@ class Result(_ArrayMessage):
         object.__setattr__(self, "ts", check_float(self.ts, "result.ts"))
         check_uint(self.proc_us, "result.proc_us")
         check_uint(self.dropped, "result.dropped")
+        _check_head(self.head, "result.head")
         if self.server_ts is not None:
             object.__setattr__(self, "server_ts", check_float(self.server_ts, "result.server_ts"))
         present = [name for name in _RESULT_ARRAYS if getattr(self, name) is not None]
@@ -644,6 +669,8 @@ class Result(_ArrayMessage):
         out["dropped"] = self.dropped
         if self.server_ts is not None:
             out["server_ts"] = self.server_ts
+        if self.head is not None:
+            out["head"] = self.head.serialize()
         return out
 
     @classmethod
@@ -670,6 +697,7 @@ class Result(_ArrayMessage):
             proc_us=read_uint(obj, "proc_us", "result.proc_us"),
             dropped=read_uint(obj, "dropped", "result.dropped"),
             server_ts=read_float(obj, "server_ts", "result.server_ts", None),
+            head=_read_head(obj, "result.head"),
         )
 
 

@@ -16,7 +16,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from facecast.protocol import Result, Smoothing, array_from_wire, array_to_wire, encode
+from facecast.protocol import Head, Result, Smoothing, array_from_wire, array_to_wire, encode
 from facecast.protocol.arrays import check_result_finite
 from facecast.rig.errors import InputError, RigError
 from facecast.rig.filters import OneEuroFilter
@@ -48,6 +48,7 @@ class ChannelFrame:
     smoothing : the publisher's weight smoothing (target "weights"), or None
     neutral : (K, 3) or None, the performer's calibrated neutral
     neutral_id : changes whenever ``neutral`` does (keys cache their calibrated rig by it)
+    head : the frame's head pose (PROTOCOL.md §5.3), relayed unchanged in every key's result
     """
 
     seq: int
@@ -60,6 +61,7 @@ class ChannelFrame:
     smoothing: Smoothing | None = None
     neutral: np.ndarray | None = None
     neutral_id: str = ""
+    head: Head | None = None
 
     def to_bytes(self) -> bytes:
         return msgpack.packb(
@@ -74,6 +76,7 @@ class ChannelFrame:
                 "smoothing": None if self.smoothing is None else self.smoothing.serialize(),
                 "neutral": None if self.neutral is None else array_to_wire(self.neutral),
                 "neutral_id": self.neutral_id,
+                "head": None if self.head is None else self.head.serialize(),
             },
             use_bin_type=True,
         )
@@ -87,6 +90,7 @@ class ChannelFrame:
         neutral = obj.get("neutral")
         raw = obj.get("raw_points")
         smoothing = obj.get("smoothing")
+        head = obj.get("head")
         return cls(
             seq=int(obj["seq"]),
             ts=float(obj["ts"]),
@@ -102,6 +106,7 @@ class ChannelFrame:
             if neutral is None
             else array_from_wire(neutral, "neutral", trailing=(3,), max_rows=max_points),
             neutral_id=str(obj.get("neutral_id", "")),
+            head=None if head is None else Head.parse(head, "head"),
         )
 
 
@@ -198,7 +203,9 @@ class KeyState(_Key):
             weights = np.asarray(rig.weights(frame.points, align=frame.align), dtype=np.float64)
             weights = self._smooth(weights, frame)
             self.last_weights = weights
-            data = self._encode(rig, weights, frame.seq, frame.ts, frame.dropped, arrived)
+            data = self._encode(
+                rig, weights, frame.seq, frame.ts, frame.dropped, arrived, frame.head
+            )
             self._keep(data, frame.seq, count)
             return data
 
@@ -220,7 +227,14 @@ class KeyState(_Key):
             return data
 
     def _encode(
-        self, rig: Any, weights: np.ndarray, seq: int, ts: float, dropped: int, arrived: float
+        self,
+        rig: Any,
+        weights: np.ndarray,
+        seq: int,
+        ts: float,
+        dropped: int,
+        arrived: float,
+        head: Head | None = None,
     ) -> bytes:
         dtype = _DTYPES[self.dtype]
         # An overflow to infinity is caught below, as RESULT_NOT_FINITE, not warned about.
@@ -239,6 +253,7 @@ class KeyState(_Key):
             proc_us=max(0, int((time.perf_counter() - arrived) * 1e6)),
             dropped=dropped,
             server_ts=time.time(),
+            head=head,  # eased results (no frame) carry none: the receiver keeps the last
         )
         return encode(result)
 
@@ -272,6 +287,7 @@ class PointsKeyState(_Key):
             proc_us=max(0, int((time.perf_counter() - arrived) * 1e6)),
             dropped=frame.dropped,
             server_ts=time.time(),
+            head=frame.head,
         )
         data = encode(result)
         with self._lock:

@@ -190,6 +190,7 @@ class PublisherMember(Member):
                 align=hello.align, scale=hello.align_scale, smoothing=smoothing,
                 neutral=self._neutral, neutral_id=self._neutral_id,
                 raw_points=frame.points if self._point_filter is not None else None,
+                head=frame.head,
             )
         )  # fmt: skip
         # Its result (the newest frame's is never superseded) carries this total.

@@ -546,7 +546,7 @@ def _blend_floor(rig_path: str) -> dict[str, float]:
     limits it in the environment, too late for a process that imported numpy already).
     """
     from facecast.rig import load_rig
-    from facecast.rig.evaluate import median_call_seconds
+    from facecast.rig.evaluation.evaluate import median_call_seconds
 
     rig = load_rig(rig_path)
     basis = np.ascontiguousarray(rig.blend_basis)

@@ -39,6 +39,7 @@ from facecast.protocol import (
     Error,
     ErrorCode,
     Frame,
+    Head,
     Hello,
     Limits,
     Pong,
@@ -321,8 +322,10 @@ class FramePublisher:
             return False
         return True
 
-    async def send(self, points: np.ndarray, ts: float) -> int | None:
+    async def send(self, points: np.ndarray, ts: float, head: Head | None = None) -> int | None:
         """Send one frame; its ``seq``, or None when it was dropped (reconnecting).
+
+        ``head``: the performer's head pose, relayed to the channel's watchers (§5.3).
 
         Raises
         ------
@@ -339,7 +342,7 @@ class FramePublisher:
             self.stats.dropped += 1
             return None
         seq = self._seq
-        data = protocol.send(Frame(seq=seq, ts=float(ts), points=points))
+        data = protocol.send(Frame(seq=seq, ts=float(ts), points=points, head=head))
         try:
             await ws.send(data)
         except ConnectionClosed:

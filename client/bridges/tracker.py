@@ -22,6 +22,7 @@ import numpy as np
 from facecast.rig.sources.source_rig import SourceRig
 
 from .channel import FramePublisher
+from .head_pose import head_pose as head_pose_of
 
 __all__ = [
     "BridgeStats",
@@ -171,7 +172,9 @@ async def run_tracker_bridge(
     ----------
     head_pose : bool
         Rotate the points by the frame's head yaw/pitch/roll (open the session with
-        ``align`` so the server removes it again); off: the head stays still.
+        ``align`` so the server removes it again); off: the head stays still. Either
+        way the head rotation goes out as the frame's ``head`` (PROTOCOL.md §5.3), for
+        the watchers' avatar apps.
     accept : callable, optional
         Frames for which it returns False are skipped (e.g. another subject).
     on_head : callable, optional
@@ -192,7 +195,9 @@ async def run_tracker_bridge(
         # ~52 x 3K multiply-adds: microseconds, fine on the event loop.
         points = source_rig.points(frame.weights, head=head if head_pose else None)
         stats.frames += 1
-        if await publisher.send(points.astype(np.float32), ts=frame.received) is not None:
+        pose = None if head is None else head_pose_of(head)
+        sent = await publisher.send(points.astype(np.float32), ts=frame.received, head=pose)
+        if sent is not None:
             stats.published += 1
         if on_head is not None and head is not None:
             on_head(head)

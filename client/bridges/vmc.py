@@ -17,7 +17,9 @@ the last carries ``Apply``, so a receiver applies whole frames.
 
 Tracking: ``OK``'s last int is 1 while the channel has a live face, 0 from
 ``face_lost`` or ``channel_idle`` until ``channel_live``; the eased results the server
-sends after ``face_lost`` (PROTOCOL.md §5.2.7) go out with tracking 0. Weights are
+sends after ``face_lost`` (PROTOCOL.md §5.2.7) go out with tracking 0. A result's
+``head`` (§5.3, the publisher's head pose) goes out as ``Bone/Pos "Head"`` with its
+frame; results without one send no bone, so the receiver keeps the last. Weights are
 clamped to [0, 1] (VRM expressions are 0..1; the cardinal weights may overshoot) unless
 ``clamp=False``; the neutral (example 0) is not sent. Names follow the receiver's
 convention (`vmc_names`: ``vrm0``, ``vrm1``, ``perfectsync``).
@@ -36,11 +38,10 @@ import numpy as np
 from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
 from pythonosc.osc_message import OscMessage
 from pythonosc.osc_message_builder import OscMessageBuilder
-from scipy.spatial.transform import Rotation
 
-from facecast.protocol import ChannelIdle, ChannelLive, Error, FaceLost, Ready, Result
-from facecast.rig.sources.source_rig import head_rotation
+from facecast.protocol import ChannelIdle, ChannelLive, Error, FaceLost, Head, Ready, Result
 
+from .head_pose import unity_quaternion
 from .vmc_names import DEFAULT_CONVENTION, vmc_names
 
 __all__ = [
@@ -51,6 +52,7 @@ __all__ = [
     "VmcFrameEncoder",
     "VmcSender",
     "head_bone_message",
+    "head_pose_message",
     "run_vmc_bridge",
     "vmc_frame_datagrams",
     "vmc_head_bundle",
@@ -123,17 +125,25 @@ def head_bone_message(
 ) -> OscMessage:
     """``/VMC/Ext/Bone/Pos "Head"`` for head (yaw, pitch, roll) in radians.
 
-    The rotation is the one ``--head-pose`` applies to the points
-    (`facecast.rig.sources.source_rig.head_rotation`: face frame +x the subject's left, +y up,
-    +z out of the face), re-expressed in Unity's left-handed frame, where a VRM avatar
-    faces +z with its left at -x (so x is mirrored: ``R_unity = S R S``, S = diag(-1,
-    1, 1)), as the quaternion (x, y, z, w) the spec asks for. ``position`` is the bone's
-    local position (metres, Unity frame); receivers that apply bone rotations only
-    ignore it.
+    The rotation is `unity_quaternion` of the angles (the one ``--head-pose`` applies
+    to the points, in Unity's frame), as the quaternion (x, y, z, w) the spec asks for.
+    ``position`` is the bone's local position (metres, Unity frame); receivers that
+    apply bone rotations only ignore it.
     """
-    mirror = np.diag([-1.0, 1.0, 1.0])
-    rotation = mirror @ head_rotation(np.asarray(angles, dtype=np.float64)) @ mirror
-    qx, qy, qz, qw = Rotation.from_matrix(rotation).as_quat().tolist()
+    return _bone_message(unity_quaternion(angles), position)
+
+
+def head_pose_message(head: Head) -> OscMessage:
+    """``/VMC/Ext/Bone/Pos "Head"`` for a result's head pose (PROTOCOL.md §5.3).
+
+    Its frame is VMC's, so rotation and position go out as they are; no position: 0, 0, 0.
+    """
+    position = (0.0, 0.0, 0.0) if head.position is None else head.position
+    return _bone_message(head.rotation, position)
+
+
+def _bone_message(quaternion: Sequence[float], position: Sequence[float]) -> OscMessage:
+    qx, qy, qz, qw = (float(v) for v in quaternion)
     px, py, pz = (float(v) for v in position)
     return _message("/VMC/Ext/Bone/Pos", "Head", px, py, pz, qx, qy, qz, qw).build()
 
@@ -380,7 +390,8 @@ async def run_vmc_bridge(
 
     Tracking (``/VMC/Ext/OK``) is on from ``ready`` until ``face_lost`` or
     ``channel_idle``, and on again at ``channel_live``; results in between (the
-    server's ease to the neutral) are sent with tracking off.
+    server's ease to the neutral) are sent with tracking off. A result's ``head``
+    goes out as the ``Head`` bone in its frame's first datagram (`head_pose_message`).
     """
     _check_max_datagram(max_datagram)
     vmc_names((), convention)  # an unknown convention fails before the first frame
@@ -397,7 +408,10 @@ async def run_vmc_bridge(
         elif isinstance(message, Result):
             if encoder is None or message.weights is None:
                 continue
-            datagrams = encoder.datagrams(message.weights[1:], clock(), tracking=tracking)
+            head = None if message.head is None else head_pose_message(message.head)
+            datagrams = encoder.datagrams(
+                message.weights[1:], clock(), tracking=tracking, head=head
+            )
             if not sender.send_all(datagrams):
                 stats.failed_frames += 1
             stats.frames += 1

@@ -55,7 +55,8 @@ def _add_tracker_arguments(parser: argparse.ArgumentParser, port: int, why: str)
         "--head-pose",
         action="store_true",
         help="apply the packets' head yaw/pitch/roll to the points (the session then "
-        "asks the server to align them away again)",
+        "asks the server to align them away again); the head rotation goes out as each "
+        "frame's head pose either way",
     )
     parser.add_argument(
         "--vmc-head",
@@ -181,7 +182,9 @@ def register(subparsers) -> None:
         help="watch a channel's weights and send them as VMC (OSC) blend shapes",
         description=(
             "Watch a channel on a rig and send every result as VMC protocol OSC "
-            "(/VMC/Ext/Blend/Val, /VMC/Ext/Blend/Apply, /VMC/Ext/OK) to an avatar app."
+            "(/VMC/Ext/Blend/Val, /VMC/Ext/Blend/Apply, /VMC/Ext/OK) to an avatar app, "
+            "and the publisher's head pose, when its frames carry one, as /VMC/Ext/Bone/Pos "
+            "Head."
         ),
         url_help="server base URL",
         channel_help="channel to watch",
