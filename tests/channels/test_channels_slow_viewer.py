@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+
 import httpx
 import pytest
 import websockets
@@ -36,11 +38,13 @@ async def test_a_viewer_that_never_reads_does_not_slow_the_others(settings, rigs
         for seq in range(FRAMES):
             await publisher.send(seq, points(rigs["alpha"], seq))
             await fast.result_with_seq(seq, timeout=10)
+            # At most 60 fps: unpaced, lockstep on a quiet machine outruns max_fps (240)
+            # once the bucket's rate_burst is spent, and a frame is RATE_LIMITED.
+            await asyncio.sleep(1 / 60)  # pacing the performer, not synchronisation
         async with httpx.AsyncClient(base_url=server.base_url) as http:
             info = (await http.get("/v1/channels/stage")).json()
         await stuck.close()
 
-    # Every frame, in order (a face_lost easing, were a step slow, repeats a seq).
-    assert list(dict.fromkeys(r.seq for r in fast.results)) == list(range(FRAMES))
+    assert [r.seq for r in fast.results] == list(range(FRAMES))
     assert info["skipped"] > FRAMES // 2  # the stuck viewer skipped most frames
     assert info["outbox_max"] <= MAX_OUTBOX
