@@ -9,7 +9,7 @@ from __future__ import annotations
 import asyncio
 import math
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,6 +55,9 @@ class ClientTally:
     reconnects: int = 0
     errors: Counter[str] = field(default_factory=Counter)
     rtts: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: The most frames sent within less than one frame period: 2 when the client never
+    #: catches up (a frame up to a period late, then the next one on time).
+    max_burst: int = 0
 
 
 @dataclass
@@ -101,6 +104,7 @@ class LoadReport:
             "received": received,
             "dropped": sum(t.dropped for t in self.tallies),
             "reconnects": sum(t.reconnects for t in self.tallies),
+            "max_burst": max((t.max_burst for t in self.tallies), default=0),
             "errors": dict(sorted(errors.items())),
             "throughput_fps": received / self.elapsed if self.elapsed > 0 else 0.0,
             "payload_mb_per_s": payload / 1e6 / self.duration,
@@ -152,16 +156,25 @@ async def _one_client(
         async def sender() -> None:
             nonlocal origin
             period = 1.0 / fps
+            recent: deque[float] = deque()  # send times within the last period
             try:
                 for i in range(count):
-                    delay = origin + i * period - time.perf_counter()
+                    now = time.perf_counter()
+                    delay = origin + i * period - now
                     if delay > 0:
                         await asyncio.sleep(delay)
-                    elif delay < -period:
-                        # More than a frame late (this process was busy): go on from
-                        # now at the same rate rather than send the missed frames in a
-                        # burst, which the server would rightly treat as superseded.
+                        # The sleep itself may end late (this process was busy).
+                        now = time.perf_counter()
+                        delay = origin + i * period - now
+                    if delay < -period:
+                        # More than a frame late: go on from now at the same rate
+                        # rather than send the missed frames in a burst, which the
+                        # server would rightly treat as superseded.
                         origin -= delay
+                    while recent and recent[0] <= now - period:
+                        recent.popleft()
+                    recent.append(now)
+                    tally.max_burst = max(tally.max_burst, len(recent))
                     await session.send(frames[i % len(frames)])
                     tally.sent += 1
             finally:

@@ -126,12 +126,14 @@ async def _connect(url: str, token: str | None):
 
 
 class Watcher:
-    """A channel watcher: every server message goes into ``messages`` as it arrives."""
+    """A channel watcher: every server message goes into ``queue`` (consumed by ``next``)
+    and, in arrival order and never consumed, into ``messages``."""
 
     def __init__(self, ws, protocol: ClientProtocol) -> None:
         self.ws = ws
         self.protocol = protocol
         self.queue: asyncio.Queue[Any] = asyncio.Queue()
+        self.messages: list[Any] = []
         self.results: list[Result] = []
         self.arrivals: list[float] = []
         self.closed = asyncio.Event()
@@ -148,6 +150,7 @@ class Watcher:
         try:
             async for data in self.ws:
                 message = self.protocol.receive(data)
+                self.messages.append(message)
                 if isinstance(message, Result):
                     self.results.append(message)
                     self.arrivals.append(time.time())

@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import asyncio
-import time
 
 import httpx
-import numpy as np
 import pytest
 import websockets
 
@@ -18,7 +16,7 @@ from ._helpers import Publisher, Watcher, points, tiny_rig, write_rigs
 
 pytestmark = pytest.mark.anyio
 
-FRAMES = 90  # 1.5 s at 60 fps
+FRAMES = 90
 
 
 async def test_a_viewer_that_never_reads_does_not_slow_the_others(settings, rigs):
@@ -34,19 +32,19 @@ async def test_a_viewer_that_never_reads_does_not_slow_the_others(settings, rigs
                                          max_size=2**26, compression=None)  # fmt: skip
         fast = await Watcher.open(server.ws_url, "stage", "alpha")
         publisher = await Publisher.open(server.ws_url, "stage", "alpha")
-        sent_at = {}
-        start = time.perf_counter()
+        # Lockstep with the fast viewer: each frame goes out once the fast viewer has the
+        # one before, so its outbox is empty at every frame and it may skip none. Were the
+        # fan-out waiting on the stuck viewer's full socket, a frame would not reach it.
         for seq in range(FRAMES):
-            await asyncio.sleep(max(0.0, start + seq / 60 - time.perf_counter()))  # 60 fps pacing
-            sent_at[seq] = time.time()
-            await publisher.send(seq, points(rigs["alpha"], seq), ts=sent_at[seq])
-        await fast.result_with_seq(FRAMES - 1)
+            await publisher.send(seq, points(rigs["alpha"], seq))
+            await fast.result_with_seq(seq, timeout=10)
+            # At most 60 fps: unpaced, lockstep on a quiet machine outruns max_fps (240)
+            # once the bucket's rate_burst is spent, and a frame is RATE_LIMITED.
+            await asyncio.sleep(1 / 60)  # pacing the performer, not synchronisation
         async with httpx.AsyncClient(base_url=server.base_url) as http:
             info = (await http.get("/v1/channels/stage")).json()
         await stuck.close()
 
-    latencies = np.array([t - r.ts for r, t in zip(fast.results, fast.arrivals, strict=True)])
-    assert len(fast.results) >= 0.9 * FRAMES
-    assert np.percentile(latencies, 99) < 0.1
+    assert [r.seq for r in fast.results] == list(range(FRAMES))
     assert info["skipped"] > FRAMES // 2  # the stuck viewer skipped most frames
     assert info["outbox_max"] <= MAX_OUTBOX

@@ -421,17 +421,19 @@ async def test_a_performer_rig_publishes_to_a_channel_watched_on_another_charact
     watch = channel_url(server.base_url, "stage", "watch", {"rig": "other"})
     publish = channel_url(server.base_url, "stage", "publish")
     seen: list = []
+    ready = asyncio.Event()
 
     async def watcher():
         async for message in watch_channel(watch):
             seen.append(message)
+            if isinstance(message, Ready):
+                ready.set()
             if isinstance(message, Result):
                 return
 
     task = asyncio.create_task(watcher())
     async with asyncio.timeout(20):
-        while not any(isinstance(m, Ready) for m in seen):
-            await asyncio.sleep(0.01)
+        await ready.wait()
         async with FramePublisher(publish, Hello(rig="hero@alice")) as publisher:
             assert publisher.ready.rig == "hero@alice"
             while not task.done():
