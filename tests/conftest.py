@@ -1,4 +1,5 @@
-"""Suite-wide set-up: one BLAS thread (as the CLI sets it) before numpy is imported, and the
+"""Suite-wide set-up: one BLAS thread (as the CLI sets it) before numpy is imported, the
+anyio backend and uvicorn's WebSocket implementations for the tests of real servers, and the
 perform venv's interpreter for the tests that run MediaPipe (``tests._perform_venv``)."""
 
 import os
@@ -10,7 +11,20 @@ from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
+from facecast.server.testing import WS_IMPLEMENTATIONS  # noqa: E402
+
 from ._perform_venv import require_perform_venv  # noqa: E402
+
+
+@pytest.fixture
+def anyio_backend() -> str:
+    return "asyncio"
+
+
+@pytest.fixture(params=WS_IMPLEMENTATIONS)
+def ws_impl(request) -> str:
+    """uvicorn's WebSocket implementation under test (every server test runs on each)."""
+    return request.param
 
 
 @pytest.fixture(scope="session")

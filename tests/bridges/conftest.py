@@ -10,11 +10,6 @@ from facecast.rig.sources.source_rig import SourceRig
 from ._helpers import arkit_example_set
 
 
-@pytest.fixture
-def anyio_backend() -> str:
-    return "asyncio"
-
-
 @pytest.fixture(scope="session")
 def example_set():
     return arkit_example_set()

@@ -16,11 +16,6 @@ TOKENS = {
 }
 
 
-@pytest.fixture
-def anyio_backend() -> str:
-    return "asyncio"
-
-
 @pytest.fixture(scope="session")
 def rigs():
     """Three different rigs with the same K: three characters for one performer."""

@@ -32,11 +32,6 @@ from .._perform_venv import run_facecast, run_worker, track_images
 pytestmark = pytest.mark.slow
 
 
-@pytest.fixture
-def anyio_backend() -> str:
-    return "asyncio"
-
-
 #: Head motions (degrees, scale, dx, dy in pixels) with a neutral face.
 MOTIONS = [(0, 1.0, 0, 0), (4, 1.03, 6, -4), (-5, 0.94, -6, 3), (6, 1.06, 4, 5),
            (-3, 0.97, -3, -5), (2, 1.0, 8, 0), (0, 1.0, 0, 0), (-6, 1.04, 0, 6)]  # fmt: skip

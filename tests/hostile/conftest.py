@@ -8,7 +8,6 @@ from __future__ import annotations
 import pytest
 
 from facecast.server.http_guard import HTTP_IMPLEMENTATIONS
-from facecast.server.testing import WS_IMPLEMENTATIONS
 from tests.channels._helpers import RIG_IDS, tiny_rig, write_rigs
 
 TOKENS = {
@@ -17,17 +16,6 @@ TOKENS = {
     "other-viewer-token": frozenset({"viewer"}),
     "publisher-token": frozenset({"publisher"}),
 }
-
-
-@pytest.fixture
-def anyio_backend() -> str:
-    return "asyncio"
-
-
-@pytest.fixture(params=WS_IMPLEMENTATIONS)
-def ws_impl(request) -> str:
-    """uvicorn's WebSocket implementation under test."""
-    return request.param
 
 
 @pytest.fixture(params=sorted(set(HTTP_IMPLEMENTATIONS) - {"auto"}))

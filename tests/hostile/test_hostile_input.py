@@ -49,11 +49,6 @@ NAMES = ("neutral", "smile", "frown", "jaw")
 FLOOD = 300
 
 
-@pytest.fixture
-def anyio_backend() -> str:
-    return "asyncio"
-
-
 def example_set(num_vertices: int = 16, k: int = 5, seed: int = 0) -> ExampleSet:
     rng = np.random.default_rng(seed)
     m = len(NAMES)

@@ -10,7 +10,7 @@ import pytest
 from _server_helpers import tiny_rig
 
 from facecast.server.settings import Settings
-from facecast.server.testing import WS_IMPLEMENTATIONS, run_server
+from facecast.server.testing import run_server
 
 __all__ = ["run_server"]
 
@@ -20,17 +20,6 @@ TOKENS = {
     "viewer-token": frozenset({"viewer"}),
     "publisher-token": frozenset({"publisher"}),
 }
-
-
-@pytest.fixture
-def anyio_backend() -> str:
-    return "asyncio"
-
-
-@pytest.fixture(params=WS_IMPLEMENTATIONS)
-def ws_impl(request) -> str:
-    """uvicorn's WebSocket implementation under test."""
-    return request.param
 
 
 @pytest.fixture(scope="session")
