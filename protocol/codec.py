@@ -6,6 +6,7 @@ escapes. No session state here (see connection.py) and no I/O.
 
 from __future__ import annotations
 
+import struct
 import threading
 from typing import Any, NoReturn
 
@@ -56,7 +57,52 @@ def encode_result(
     costs as much as the encoding. ``values`` must already be a valid array for ``output``
     ("weights" (M,), "vertices" (V, 3) or "points" (K, 3), float16/32/64); ints are
     unsigned, as a `Result` requires.
+
+    A large array's result is laid out here as msgpack lays it out (keys in §5.2.2's
+    order, the smallest int format, ``ts`` a float64) and joined with the array's bytes
+    in one copy: msgpack's Packer copies them twice (into its buffer, then into the
+    bytes), 6.6 µs instead of 4.3 for an ICT float16 result. Small arrays (weights), and
+    ints outside uint64, take the Packer, which is faster there (1.4 µs instead of 1.9).
     """
+    if not (
+        values.nbytes >= _JOIN_MIN_BYTES
+        and type(seq) is int
+        and type(proc_us) is int
+        and type(dropped) is int
+        and 0 <= seq <= _UINT64_MAX
+        and 0 <= proc_us <= _UINT64_MAX
+        and 0 <= dropped <= _UINT64_MAX
+    ):
+        return _pack_result(seq, ts, output, values, proc_us, dropped)
+    wire = array_to_wire(values)
+    data = wire["data"]
+    shape = wire["shape"]
+    size = data.nbytes
+    parts = (
+        _RESULT_HEAD,
+        _uint(seq),
+        _TS_KEY,
+        _F64.pack(0xCB, float(ts)),
+        _ARRAY_KEYS.get(output) or _key(output) + b"\x83" + _key("dtype"),
+        _key(wire["dtype"]),
+        _SHAPE_KEY,
+        bytes((0x90 | len(shape),)),
+        *map(_uint, shape),
+        _DATA_KEY,
+        _bin_header(size),
+        data,
+        _PROC_US_KEY,
+        _uint(proc_us),
+        _DROPPED_KEY,
+        _uint(dropped),
+    )
+    return b"".join(parts)
+
+
+def _pack_result(
+    seq: int, ts: float, output: str, values: Any, proc_us: int, dropped: int
+) -> bytes:
+    """``encode_result`` through msgpack's Packer (ints that the fast layout does not take)."""
     packer = getattr(_local, "packer", None)
     if packer is None:
         packer = _local.packer = msgpack.Packer(use_bin_type=True, autoreset=True)
@@ -72,6 +118,53 @@ def encode_result(
         }
     )
     return data
+
+
+def _key(name: str) -> bytes:
+    """A short map key as msgpack writes it (fixstr: at most 31 bytes)."""
+    raw = name.encode()
+    return bytes((0xA0 | len(raw),)) + raw
+
+
+def _uint(value: int) -> bytes:
+    """A non-negative int (at most uint64) in msgpack's smallest format."""
+    if value < 0x80:
+        return _FIXINT[value]
+    if value <= 0xFF:
+        return _UINT8.pack(0xCC, value)
+    if value <= 0xFFFF:
+        return _UINT16.pack(0xCD, value)
+    if value <= 0xFFFFFFFF:
+        return _UINT32.pack(0xCE, value)
+    return _UINT64.pack(0xCF, value)
+
+
+def _bin_header(size: int) -> bytes:
+    if size <= 0xFF:
+        return _UINT8.pack(0xC4, size)
+    if size <= 0xFFFF:
+        return _UINT16.pack(0xC5, size)
+    return _UINT32.pack(0xC6, size)
+
+
+#: Arrays of at least this many bytes are joined by ``encode_result`` itself.
+_JOIN_MIN_BYTES = 4096
+_UINT64_MAX = 2**64 - 1
+_FIXINT = tuple(bytes((i,)) for i in range(0x80))
+_UINT8 = struct.Struct(">BB")
+_UINT16 = struct.Struct(">BH")
+_UINT32 = struct.Struct(">BI")
+_UINT64 = struct.Struct(">BQ")
+_F64 = struct.Struct(">Bd")
+# A 7-key map: "v", "type", "seq", "ts", the array, "proc_us", "dropped" (§5.2.2).
+_RESULT_HEAD = b"\x87" + _key("v") + _uint(PROTOCOL_VERSION) + _key("type") + _key("result")
+_RESULT_HEAD += _key("seq")
+_TS_KEY = _key("ts")
+_ARRAY_KEYS = {name: _key(name) + b"\x83" + _key("dtype") for name in ("weights", "vertices")}
+_SHAPE_KEY = _key("shape")
+_DATA_KEY = _key("data")
+_PROC_US_KEY = _key("proc_us")
+_DROPPED_KEY = _key("dropped")
 
 
 def _pairs_to_map(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:

@@ -71,6 +71,11 @@ def blend_into(weights: np.ndarray, basis: np.ndarray, out: np.ndarray) -> np.nd
         # Gather the used rows once and let BLAS read them once for every frame.
         return np.matmul(weights[:, used], basis[used], out=out)
     # scipy's CSR product adds w_i * row_i for each frame's non-zero weights straight
-    # from the basis, with no gathered copy.
-    np.copyto(out, scipy.sparse.csr_array(weights) @ basis)
+    # from the basis, with no gathered copy. The CSR arrays are built here: scipy's own
+    # conversion of a dense array goes through COO (33 µs a frame against 10).
+    frames, examples = np.nonzero(weights)
+    indptr = np.zeros(weights.shape[0] + 1, np.int64)
+    np.cumsum(np.bincount(frames, minlength=weights.shape[0]), out=indptr[1:])
+    sparse = scipy.sparse.csr_array((weights[frames, examples], examples, indptr), weights.shape)
+    np.copyto(out, sparse @ basis)
     return out

@@ -8,7 +8,6 @@ batch at a time per blend basis. Arrays only: no sockets, no sessions, no math o
 from __future__ import annotations
 
 import asyncio
-import time
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Any
@@ -17,7 +16,7 @@ import numpy as np
 
 from facecast.rig.kernel import to_float16
 
-from .stages import StageTimes
+from .stages import CPU_CLOCK, StageTimes
 
 __all__ = ["MAX_BATCH", "MIN_BATCH", "BlendBatcher"]
 
@@ -58,9 +57,10 @@ class _Scratch:
     def blend(self, rig: Any, batch: list[_Request], moving: bool) -> tuple[float, float]:
         """Fill every request's ``out`` (worker thread; numpy releases the GIL in matmul).
 
-        Returns the seconds spent blending and casting to the wire dtype.
+        Returns the CPU seconds (this worker thread's) spent blending and casting to the
+        wire dtype.
         """
-        clock = time.perf_counter
+        clock = CPU_CLOCK
         started = clock()
         cast = 0.0
         rows = len(batch) if len(batch) >= MIN_BATCH else 1

@@ -6,7 +6,6 @@ estimate that decides where it runs; no sockets, no session state but the filter
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import numpy as np
@@ -16,7 +15,7 @@ from facecast.rig.errors import InputError
 from facecast.rig.filters import OneEuroFilter
 from facecast.rig.kernel import to_float16
 
-from .stages import StageTimes
+from .stages import CPU_CLOCK, StageTimes
 
 __all__ = [
     "Outputs",
@@ -124,7 +123,7 @@ def clone_frame(
             return weights.astype(outputs.dtype)
         vertices = rig.blend(weights, out=outputs.vertices, moving=outputs.moving)
         return vertices if outputs.wire is None else to_float16(vertices, outputs.wire)
-    clock = time.perf_counter
+    clock = CPU_CLOCK
     started = clock()
     weights = frame_weights(rig, frame, hello, smoother)
     if outputs.vertices is None:

@@ -54,6 +54,7 @@ from .direct import binary_frame, direct_writer, queued_messages
 from .frame_rate import FrameRateLimit
 from .metrics import Metrics
 from .settings import Settings
+from .stages import CPU_CLOCK
 from .store import RigNotFoundError, RigStore, valid_rig_id
 
 __all__ = ["INLINE_MAX_SECONDS", "Session", "SessionCounters", "ready_message"]
@@ -295,13 +296,13 @@ class Session:
             try:
                 if data is None:
                     self.protocol.receive_text(message.get("text") or "")
-                decoding = time.perf_counter()
+                decoding = CPU_CLOCK() if stages is not None else 0.0
                 decoded = self.protocol.receive(data)
                 if type(decoded) is Frame:
-                    decoded_at = time.perf_counter()
                     if stages is not None:
-                        stages.add("decode", decoded_at - decoding)
-                    self._on_frame(decoded, decoded_at - burst_start < _BURST_SECONDS)
+                        stages.add("decode", CPU_CLOCK() - decoding)
+                    in_burst = time.perf_counter() - burst_start < _BURST_SECONDS
+                    self._on_frame(decoded, in_burst)
                 else:
                     self._flush()
                     await self._dispatch(decoded)
@@ -324,11 +325,11 @@ class Session:
             return
         self._corked, self._corked_bytes = [], 0
         data = binary_frame(corked[0]) if len(corked) == 1 else b"".join(map(binary_frame, corked))
-        direct = self._direct
-        writing = time.perf_counter()
+        direct, stages = self._direct, self._stages
+        writing = CPU_CLOCK() if stages is not None else 0.0
         if direct is not None and not self._outbox and not self._control and direct(data):
-            if self._stages is not None:
-                self._stages.add("write", time.perf_counter() - writing, len(corked))
+            if stages is not None:
+                stages.add("write", CPU_CLOCK() - writing, len(corked))
             self.counters.results_out += len(corked)
             self.metrics.frames_out.inc(len(corked))
             return
@@ -516,7 +517,7 @@ class Session:
     async def _write_loop(self) -> None:
         ws_send, direct = self.ws.send_bytes, self._direct
         # "write" includes waiting for a client that does not read (the ASGI send).
-        stages, clock = self._stages, time.perf_counter
+        stages, clock = self._stages, CPU_CLOCK
 
         async def send(data: bytes) -> None:
             # Straight to the socket when it takes the frame at once (one copy of a large
@@ -531,7 +532,7 @@ class Session:
             if self._outbox:
                 data = self._outbox.popleft()
                 self._outbox_bytes -= len(data)
-                writing = clock()
+                writing = clock() if stages is not None else 0.0
                 await send(data)
                 if stages is not None:
                     stages.add("write", clock() - writing)
@@ -559,7 +560,7 @@ class Session:
                 continue
             # Blocks while the client does not read; the reader keeps replacing the
             # pending frame meanwhile, so nothing piles up.
-            writing = clock()
+            writing = clock() if stages is not None else 0.0
             await send(data)
             if stages is not None:
                 stages.add("write", clock() - writing)
@@ -585,11 +586,12 @@ class Session:
         # same rig; the weights before it are cheap.
         values = outputs.wire if outputs.wire is not None else outputs.vertices
         assert values is not None
+        stages = self._stages
         try:
-            started = time.perf_counter()
+            started = CPU_CLOCK() if stages is not None else 0.0
             weights = frame_weights(rig, frame, hello, self._smoother)
-            if self._stages is not None:
-                self._stages.add("weights", time.perf_counter() - started)
+            if stages is not None:
+                stages.add("weights", CPU_CLOCK() - started)
             await self.blender.blend(rig, weights, values, moving=outputs.moving)
         except InputError as exc:
             self._refuse(frame, exc)
@@ -612,8 +614,9 @@ class Session:
 
     def _encode(self, frame: Frame, arrived: float, values: np.ndarray) -> bytes | None:
         """The result's bytes, or None (error queued) when ``values`` are not finite."""
-        encoding = time.perf_counter()
-        elapsed = encoding - arrived
+        elapsed = time.perf_counter() - arrived
+        stages = self._stages
+        encoding = CPU_CLOCK() if stages is not None else 0.0
         outputs = self._outputs
         assert outputs is not None
         # Encoding copies ``values`` out of the session's reused buffers.
@@ -631,8 +634,8 @@ class Session:
             self._report(exc)
             return None
         self._rate.told(dropped)
-        if self._stages is not None:
-            self._stages.add("encode", time.perf_counter() - encoding)
+        if stages is not None:
+            stages.add("encode", CPU_CLOCK() - encoding)
         self.metrics.processing_seconds.observe(elapsed)
         return data
 

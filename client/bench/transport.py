@@ -121,12 +121,17 @@ def _serve(kind: str, port: int, rigs_dir: str | None = None) -> None:
         from facecast.protocol import SUBPROTOCOL, encode_result
 
         with np.load(Path(rigs_dir or ".") / "bare.npz") as data:
-            ready, values = bytes(data["ready"]), np.ascontiguousarray(data["values"])
+            answers = {
+                output: (bytes(data[f"ready_{output}"]), np.ascontiguousarray(data[output]))
+                for output in ("moving", "vertices")
+            }
 
         async def answer(ws) -> None:
             # The floor of a vertex stream: read each frame's seq and ts, send a result
-            # of the same bytes facecast sends; no rig, no session, nothing else.
-            await ws.recv()  # hello
+            # of the same bytes facecast sends (the moving or the whole mesh, as hello
+            # asks); no rig, no session, nothing else.
+            hello = msgpack.unpackb(await ws.recv())
+            ready, values = answers["vertices" if hello.get("output") == "vertices" else "moving"]
             await ws.send(ready)
             async for message in ws:
                 frame = msgpack.unpackb(message)
@@ -492,7 +497,8 @@ def _rigs(rigs_dir: Path) -> dict[str, Any]:
     The vertices rigs: ``exact`` (the thesis's fit, dense weights) and ``bounded``
     (``noise`` 0.1 mm, ``clamp`` nonneg: how tracked input is fitted; its weights are
     mostly 0). Without ICT both are the demo rig's. Also writes ``bare.npz`` for the
-    bare vertices server: the ``ready`` and the f16 moving vertices a bounded session gets.
+    bare vertices server: the ``ready`` and the f16 vertices a bounded session gets, for
+    output ``moving`` and for the whole mesh.
     """
     from facecast.protocol import Ready, encode
     from facecast.rig import fit
@@ -517,12 +523,15 @@ def _rigs(rigs_dir: Path) -> dict[str, Any]:
     demo.save(rigs_dir / "demo.rig")
     exact.save(rigs_dir / f"{name}.rig")
     bounded.save(rigs_dir / f"{name}-bounded.rig")
-    moving = bounded.moving_vertices
-    ready = Ready(session="bare", rig=f"{name}-bounded", names=bounded.names,
-                  num_points=bounded.num_points, num_vertices=bounded.num_vertices,
-                  output="moving", dtype="f16", moving=moving)  # fmt: skip
-    values = bounded.blend(np.eye(1, bounded.num_examples)[0], moving=True).astype(np.float16)
-    np.savez(rigs_dir / "bare.npz", ready=np.frombuffer(encode(ready), np.uint8), values=values)
+    bare = {}
+    for output, moving in (("moving", bounded.moving_vertices), ("vertices", None)):
+        ready = Ready(session="bare", rig=f"{name}-bounded", names=bounded.names,
+                      num_points=bounded.num_points, num_vertices=bounded.num_vertices,
+                      output=output, dtype="f16", moving=moving)  # fmt: skip
+        first = np.eye(1, bounded.num_examples)[0]
+        bare[output] = bounded.blend(first, moving=moving is not None).astype(np.float16)
+        bare[f"ready_{output}"] = np.frombuffer(encode(ready), np.uint8)
+    np.savez(rigs_dir / "bare.npz", **bare)
     return {
         "demo_neutral": np.asarray(demo.source_neutral, dtype=np.float32),
         "name": name,
@@ -760,6 +769,11 @@ def run(args: argparse.Namespace) -> int:
         with _server("bare-vertices", rigs_dir, tmp_path) as (bare_port, bare_pid):
             floor = bench.ramp(f"http://127.0.0.1:{bare_port}", [bare_pid], rigs["bounded"],
                                f"{name}-bounded", steps, step_seconds, "floor", False)  # fmt: skip
+            say(f"bench transport: the whole mesh's floor, {clients} clients ({duration:g} s) ...")
+            whole_floor = bench.load(f"http://127.0.0.1:{bare_port}", [bare_pid],
+                                     rigs["bounded"], f"{name}-bounded", clients, duration,
+                                     "vertices", False)  # fmt: skip
+            say("  " + _load_line("floor", whole_floor))
 
     figures = _figures(results, full["exact"], duration, clients, len(message), name)
     figures["machine"] = {"cpus": os.cpu_count(), "load_average_start": load_start,
@@ -768,6 +782,7 @@ def run(args: argparse.Namespace) -> int:
     figures["load_generator_cpu_cores"] = client_cpu / wall
     figures["weights_stages"] = weights_stages
     figures["whole_mesh"] = full
+    figures["whole_mesh_floor"] = whole_floor
     figures["moving"] = _moving_figures(ramp, floor, blend_floor, rigs["bounded"], clients)
     print(_format(figures))
     if getattr(args, "json", None):
@@ -918,6 +933,18 @@ def _format(f: dict[str, Any]) -> str:
     ]
     for kind, figures in (f.get("whole_mesh") or {}).items():
         lines.append("  " + _load_line(kind, figures))
+    whole_floor = f.get("whole_mesh_floor")
+    if whole_floor:
+        lines.append("  " + _load_line("floor", whole_floor))
+        bounded = (f.get("whole_mesh") or {}).get("bounded")
+        ratio = _ratio(
+            bounded and bounded["server_cpu_us_per_result"],
+            whole_floor["server_cpu_us_per_result"],
+        )
+        lines.append(
+            f"  whole mesh f16: server CPU per result, facecast (bounded) / its floor (bare "
+            f"websockets, same bytes) = {num(ratio, '.2f')}x"
+        )
     v = f["vertices"]
     lat = v["latency_ms"]
     lines.append(

@@ -89,6 +89,8 @@ def test_bench_transport_smoke_writes_its_json_keys(tmp_path):
     assert moving["ramp"]["steps"][0]["stages"]["per_result_us"]["blend"] > 0
     assert math.isfinite(moving["floor"]["steps"][0]["server_cpu_us_per_result"])
     assert moving["floor"]["steps"][0]["received"] > 0
+    whole_floor = figures["whole_mesh_floor"]  # the bare server answers the whole mesh
+    assert whole_floor["output"] == "vertices" and whole_floor["received"] > 0
     assert moving["blend_floor_us"]["single_us"] > 0
     assert 0 < moving["moving_vertices"] <= moving["num_vertices"]
 

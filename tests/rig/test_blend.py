@@ -6,6 +6,7 @@ import warnings
 
 import numpy as np
 import pytest
+import scipy.sparse
 
 from facecast.rig import ExampleSet, InputError, fit
 from facecast.rig.blend import blend_into, blend_plan
@@ -125,6 +126,18 @@ def test_every_blend_plan_equals_the_dense_product_within_rounding(plan):
     result = blend_into(weights, basis, np.empty((len(weights), 300), np.float32))
     expected = weights.astype(np.float64) @ basis.astype(np.float64)
     np.testing.assert_allclose(result, expected, rtol=1e-5, atol=1e-5)
+
+
+def test_sparse_plan_adds_each_frames_rows_as_scipys_csr_product_does():
+    # Frames 1 and 3 weigh only the neutral row: empty CSR rows between full ones.
+    weights = np.zeros((4, 12), np.float32)
+    weights[:, 0] = 1.0
+    weights[0, [3, 7]] = [0.25, 0.5]
+    weights[2, 11] = 0.75
+    basis = np.random.default_rng(5).normal(size=(12, 300)).astype(np.float32)
+    assert blend_plan(weights)[0] == "sparse"
+    result = blend_into(weights, basis, np.empty((4, 300), np.float32))
+    np.testing.assert_array_equal(result, scipy.sparse.csr_array(weights) @ basis)
 
 
 def test_a_sparse_frame_reads_only_its_rows():
