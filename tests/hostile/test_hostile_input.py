@@ -37,48 +37,24 @@ from facecast.protocol import (
     Result,
 )
 from facecast.rig import ExampleSet, fit
-from facecast.rig.io.meshio import write_obj
 from facecast.server.settings import Settings
 from facecast.server.store import SCRATCH_DIR
 from facecast.server.testing import free_port, run_server
+from tests.server._server_helpers import folder_members, tiny_example_set, write_example_folder
 
 pytestmark = pytest.mark.anyio
 
-NAMES = ("neutral", "smile", "frown", "jaw")
 #: Frames per flood; each waits for its answer, so the run is bounded by count, not time.
 FLOOD = 300
 
 
-def example_set(num_vertices: int = 16, k: int = 5, seed: int = 0) -> ExampleSet:
-    rng = np.random.default_rng(seed)
-    m = len(NAMES)
-    source = np.repeat(rng.normal(size=(1, k, 3)), m, axis=0)
-    source[1:] += rng.normal(scale=0.3, size=(m - 1, k, 3))
-    target = np.repeat(rng.normal(size=(1, num_vertices, 3)), m, axis=0)
-    target[1:] += rng.normal(scale=0.3, size=(m - 1, num_vertices, 3))
-    faces = np.array([[i, i + 1, i + 2] for i in range(num_vertices - 2)])
-    return ExampleSet(NAMES, source, target, faces)
-
-
 def example_archive(folder: Path, es: ExampleSet) -> bytes:
     """A stored (uncompressed) zip of a ``facecast.toml`` example folder."""
-    (folder / "source").mkdir(parents=True)
-    (folder / "target").mkdir()
-    lines = []
-    for i, name in enumerate(es.names):
-        np.save(folder / f"source/{name}.npy", es.source_points[i])
-        write_obj(folder / f"target/{name}.obj", es.target_vertices[i], es.target_faces)
-        if i:
-            lines.append(f'{name} = ["source/{name}.npy", "target/{name}.obj"]')
-    (folder / "facecast.toml").write_text(
-        '[source]\nneutral = "source/neutral.npy"\n[target]\nneutral = "target/neutral.obj"\n'
-        "[examples]\n" + "\n".join(lines) + "\n"
-    )
+    write_example_folder(folder, es)
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", zipfile.ZIP_STORED) as archive:
-        for path in sorted(folder.rglob("*")):
-            if path.is_file():
-                archive.write(path, path.relative_to(folder).as_posix())
+        for name, data in folder_members(folder).items():
+            archive.writestr(name, data)
     return buffer.getvalue()
 
 
@@ -104,7 +80,7 @@ async def test_a_flood_of_frames_in_absurd_units_gets_an_answer_each_and_none_no
     tmp_path, output
 ):
     # A target beyond f16 for a few frames' worth of displacement, and ordinary frames.
-    rig = fit(example_set(num_vertices=64))
+    rig = fit(tiny_example_set(num_vertices=64))
     rng = np.random.default_rng(13)
     settings = Settings(rigs_dir=tmp_path / "rigs", max_fps=1e6, rate_burst=FLOOD)
     answers: collections.Counter[str] = collections.Counter()
@@ -133,7 +109,7 @@ async def test_a_flood_of_frames_in_absurd_units_gets_an_answer_each_and_none_no
 
 
 async def test_a_publisher_flooding_absurd_frames_never_breaks_an_f16_watcher(tmp_path):
-    rig = fit(example_set(num_vertices=64))
+    rig = fit(tiny_example_set(num_vertices=64))
     rng = np.random.default_rng(14)
     settings = Settings(rigs_dir=tmp_path / "rigs", max_fps=1e6, rate_burst=FLOOD)
     async with run_server(settings) as server:
@@ -174,7 +150,7 @@ async def test_a_publisher_flooding_absurd_frames_never_breaks_an_f16_watcher(tm
 
 async def test_ten_uploads_at_once_hold_at_most_max_pending_fits(tmp_path):
     settings = Settings(rigs_dir=tmp_path / "rigs", max_pending_fits=2)
-    body = example_archive(tmp_path / "set", example_set())
+    body = example_archive(tmp_path / "set", tiny_example_set())
     release = asyncio.Event()
 
     async def held_body():
@@ -244,7 +220,7 @@ def _uploads_in_scratch(rigs: Path) -> list[Path]:
 @pytest.mark.slow
 def test_uploads_killed_mid_fit_leave_no_files_after_the_next_start(tmp_path):
     # A target large enough that unpacking and loading it takes a while (~1 s here).
-    body = example_archive(tmp_path / "set", example_set(num_vertices=60_000))
+    body = example_archive(tmp_path / "set", tiny_example_set(num_vertices=60_000))
     rigs, port = tmp_path / "rigs", free_port()
     server = _serve(port, rigs)
     try:
