@@ -49,15 +49,17 @@ def blend_plan(weights: np.ndarray) -> tuple[Plan, np.ndarray]:
     return min(costs, key=costs.__getitem__), used
 
 
-def blend_into(weights: np.ndarray, basis: np.ndarray, out: np.ndarray) -> np.ndarray:
-    """``out = weights @ basis``, reading only the basis rows the weights need.
+def blend_into(weights: np.ndarray, basis: np.ndarray, out: np.ndarray | None) -> np.ndarray:
+    """``weights @ basis``, reading only the basis rows the weights need.
 
     Parameters
     ----------
     weights : (B, M) float32
         Blend weights, column 0 set to 1 (it multiplies the neutral row).
     basis : (M, C) float32, C-contiguous
-    out : (B, C) float32, C-contiguous
+    out : (B, C) float32, C-contiguous, or None
+        Where to write the product; None returns a new array (for a caller that only
+        reads it: the sparse product is then not copied into a scratch buffer).
 
     Sparse, gathered and dense products of the same weights agree to float rounding
     (other summation orders), not bit for bit; so may products over different column
@@ -77,5 +79,8 @@ def blend_into(weights: np.ndarray, basis: np.ndarray, out: np.ndarray) -> np.nd
     indptr = np.zeros(weights.shape[0] + 1, np.int64)
     np.cumsum(np.bincount(frames, minlength=weights.shape[0]), out=indptr[1:])
     sparse = scipy.sparse.csr_array((weights[frames, examples], examples, indptr), weights.shape)
-    np.copyto(out, sparse @ basis)
+    product = sparse @ basis
+    if out is None:
+        return product
+    np.copyto(out, product)
     return out

@@ -564,7 +564,7 @@ class Rig:
         else:
             # Every vertex no example moves is T_B (row 0 of the basis); the others come
             # from the very product a moving blend makes, so both agree bit for bit.
-            moved = blend_into(w2, basis, np.empty((rows, columns.size), dtype=np.float32))
+            moved = blend_into(w2, basis, None)
             flat[:] = self._blend_basis[0]
             if rows == 1:  # numpy's 1-d scatter is ~1.5x its 2-d one
                 flat.reshape(-1)[columns] = moved.reshape(-1)

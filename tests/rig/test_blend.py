@@ -126,6 +126,10 @@ def test_every_blend_plan_equals_the_dense_product_within_rounding(plan):
     result = blend_into(weights, basis, np.empty((len(weights), 300), np.float32))
     expected = weights.astype(np.float64) @ basis.astype(np.float64)
     np.testing.assert_allclose(result, expected, rtol=1e-5, atol=1e-5)
+    # Without ``out`` the same product comes back as a new float32 array, bit for bit.
+    fresh = blend_into(weights, basis, None)
+    assert fresh.dtype == np.float32 and fresh.shape == result.shape
+    np.testing.assert_array_equal(fresh, result)
 
 
 def test_sparse_plan_adds_each_frames_rows_as_scipys_csr_product_does():
