@@ -79,7 +79,7 @@ def blend_into(weights: np.ndarray, basis: np.ndarray, out: np.ndarray | None) -
     indptr = np.zeros(weights.shape[0] + 1, np.int64)
     np.cumsum(np.bincount(frames, minlength=weights.shape[0]), out=indptr[1:])
     sparse = scipy.sparse.csr_array((weights[frames, examples], examples, indptr), weights.shape)
-    product = sparse @ basis
+    product: np.ndarray = sparse @ basis
     if out is None:
         return product
     np.copyto(out, product)
