@@ -223,8 +223,7 @@ class FramePublisher:
                 continue
             if isinstance(message, Result):
                 self.stats.results += 1
-                self._session_dropped = message.dropped
-                self.stats.server_dropped = self._dropped_before + message.dropped
+                self._count_dropped(message.dropped)
                 self.last_result = message
                 if message.seq > self._result_seq:
                     self._result_seq = message.seq
@@ -233,11 +232,16 @@ class FramePublisher:
                 if self.on_result is not None:
                     self.on_result(message)
             elif isinstance(message, Error):
+                if message.dropped is not None:
+                    # RATE_LIMITED carries the running total too: the only report of a
+                    # burst's tail, which no later result gives (PROTOCOL.md §8).
+                    self._count_dropped(message.dropped)
+                    self._answer.set()
                 error = message.to_exception()
                 if error.fatal:
                     return error
                 self.stats.errors += 1
-                # An over-rate frame is counted in result.dropped already (§6.1, §8).
+                # An over-rate frame is counted in that total, not refused (§6.1, §8).
                 if message.seq is not None and error.code != ErrorCode.RATE_LIMITED:
                     self.stats.refused += 1
                     if message.seq > self._result_seq:
@@ -247,6 +251,12 @@ class FramePublisher:
                     self._answer.set()
                 log.warning("publisher: server error %s", error)
         return None
+
+    def _count_dropped(self, total: int) -> None:
+        # The session's running total; an error may overtake results encoded before it,
+        # hence the max (as StreamSession counts it).
+        self._session_dropped = max(self._session_dropped, total)
+        self.stats.server_dropped = self._dropped_before + self._session_dropped
 
     async def _supervise(self) -> None:
         try:
@@ -296,7 +306,10 @@ class FramePublisher:
         return max(0, stats.sent - stats.results - stats.server_dropped - stats.refused)
 
     def _settled(self) -> bool:
-        """Whether the last frame that can still get a result has got it."""
+        """Whether every frame is answered: counted (§8), or the last that can still get a
+        result has got it."""
+        if self.stats.sent and not self.unaccounted:
+            return True
         target = self._seq - 1
         while target in self._refused_seqs:
             target -= 1
@@ -308,7 +321,8 @@ class FramePublisher:
         Results come in processing order (§8), so the result of the last frame not
         refused settles every frame before it; a refused (invalid) frame's error comes
         at once and may overtake earlier results, so refusals are skipped, not waited
-        for. An over-rate last frame gets no result; the timeout bounds that wait.
+        for. An over-rate last frame gets no result: it is settled once a `RATE_LIMITED`
+        total counts it (within about a second, §8), else the timeout bounds the wait.
         True at once when nothing was sent.
         """
         try:

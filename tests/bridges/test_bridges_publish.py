@@ -82,3 +82,28 @@ async def test_drain_counts_a_refused_last_frame_as_answered(tmp_path, cloning_r
             stats, last = publisher.stats, publisher.last_result
     assert (stats.sent, stats.refused) == (4, 1)
     assert last is not None and last.seq == 2
+
+
+@pytest.mark.anyio
+async def test_a_burst_over_the_rate_is_counted_from_the_rate_limited_total(
+    tmp_path, cloning_rig, source_rig
+):
+    rigs = tmp_path / "rigs"
+    rigs.mkdir()
+    cloning_rig.save(rigs / f"{RIG_ID}.rig")
+    good = source_rig.points(np.full(52, 0.2)).astype(np.float32)
+    # A bucket of 5: a burst of 30 leaves a tail that only RATE_LIMITED's total reports.
+    settings = Settings(rigs_dir=rigs, max_fps=1.0, rate_burst=5)
+    async with run_server(settings) as server:
+        url = channel_url(server.base_url, "stage", "publish")
+        async with FramePublisher(url, Hello(rig=RIG_ID)) as publisher:
+            for seq in range(30):
+                await publisher.send(good, ts=float(seq))
+            # Settled by the totals (within the server's once-a-second report), not the
+            # drain's timeout.
+            assert await publisher.drain(5.0)
+            stats = publisher.stats
+            unaccounted = publisher.unaccounted
+    assert stats.sent == 30 and stats.refused == 0
+    assert stats.server_dropped >= 30 - 5 - 1
+    assert stats.results + stats.server_dropped == 30 and unaccounted == 0
