@@ -15,6 +15,7 @@ import msgpack
 from facecast.protocol.arrays import array_to_wire
 from facecast.protocol.errors import ErrorCode, ProtocolError
 from facecast.protocol.fastframe import decode_frame
+from facecast.protocol.fields import MAX_UINT64
 from facecast.protocol.limits import Limits
 from facecast.protocol.messages import (
     CLIENT_MESSAGES,
@@ -69,9 +70,9 @@ def encode_result(
         and type(seq) is int
         and type(proc_us) is int
         and type(dropped) is int
-        and 0 <= seq <= _UINT64_MAX
-        and 0 <= proc_us <= _UINT64_MAX
-        and 0 <= dropped <= _UINT64_MAX
+        and 0 <= seq <= MAX_UINT64
+        and 0 <= proc_us <= MAX_UINT64
+        and 0 <= dropped <= MAX_UINT64
     ):
         return _pack_result(seq, ts, output, values, proc_us, dropped)
     wire = array_to_wire(values)
@@ -149,7 +150,6 @@ def _bin_header(size: int) -> bytes:
 
 #: Arrays of at least this many bytes are joined by ``encode_result`` itself.
 _JOIN_MIN_BYTES = 4096
-_UINT64_MAX = 2**64 - 1
 _FIXINT = tuple(bytes((i,)) for i in range(0x80))
 _UINT8 = struct.Struct(">BB")
 _UINT16 = struct.Struct(">BH")

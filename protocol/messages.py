@@ -223,11 +223,11 @@ class Smoothing:
     def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Smoothing:
         w = "hello.options.smoothing."
         return cls(
-            min_cutoff=read_float(obj, "min_cutoff", w + "min_cutoff", 3.0),
-            beta=read_float(obj, "beta", w + "beta", 2.0),
-            d_cutoff=read_float(obj, "d_cutoff", w + "d_cutoff", 1.0),
+            min_cutoff=read_float(obj, "min_cutoff", w + "min_cutoff", cls.min_cutoff),
+            beta=read_float(obj, "beta", w + "beta", cls.beta),
+            d_cutoff=read_float(obj, "d_cutoff", w + "d_cutoff", cls.d_cutoff),
             target=read_str(
-                obj, "target", w + "target", limits, "points", choices=SMOOTHING_TARGETS
+                obj, "target", w + "target", limits, cls.target, choices=SMOOTHING_TARGETS
             ),
         )
 

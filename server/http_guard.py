@@ -42,11 +42,6 @@ class PendingConnections:
         self.head_timeout = head_timeout
         self.max_pending = max_pending
         self._pending: dict[Any, None] = {}  # insertion order: the oldest first
-        self.evicted = 0
-        self.timed_out = 0
-
-    def __len__(self) -> int:
-        return len(self._pending)
 
     def add(self, connection: Any) -> None:
         self._pending.pop(connection, None)
@@ -54,7 +49,6 @@ class PendingConnections:
         while len(self._pending) > self.max_pending:
             oldest = next(iter(self._pending))
             del self._pending[oldest]
-            self.evicted += 1
             oldest.cut("evicted: too many connections without a request")
 
     def discard(self, connection: Any) -> None:
@@ -94,7 +88,6 @@ class _Guarded:
     def _expired(self, why: str) -> None:
         self._deadline = None
         self.pending.discard(self)
-        self.pending.timed_out += 1
         self.cut(why)
 
     def cut(self, why: str) -> None:

@@ -11,7 +11,6 @@ Starlette's CORS middleware for ``allowed_origins``).
 
 from __future__ import annotations
 
-import ipaddress
 import logging
 from urllib.parse import urlsplit
 
@@ -39,12 +38,8 @@ def host_name(host_header: str) -> str:
 
 
 def _is_loopback_name(name: str) -> bool:
-    if name == "localhost" or name.endswith(".localhost"):  # RFC 6761: never the network's
-        return True
-    try:
-        return ipaddress.ip_address(name).is_loopback
-    except ValueError:
-        return False
+    # RFC 6761: *.localhost never resolves to the network.
+    return name.endswith(".localhost") or is_loopback(name)
 
 
 class OriginGuard:
@@ -53,7 +48,9 @@ class OriginGuard:
     def __init__(self, app: ASGIApp, *, settings: Settings) -> None:
         self.app = app
         self.check_host = is_loopback(settings.host) and "*" not in settings.allowed_hosts
-        self.hosts = frozenset({host_name(settings.host), *map(str.lower, settings.allowed_hosts)})
+        self.hosts = frozenset(
+            {host_name(settings.host), *settings.allowed_hosts}
+        )  # lower-cased by Settings
         self.any_origin = "*" in settings.allowed_origins
         self.origins = frozenset(o for o in settings.allowed_origins if o != "*")
 

@@ -28,7 +28,7 @@ log = logging.getLogger("facecast.server.ws")
 
 
 class _AbortLingering:
-    """After the app has ended, a connection is dropped ``ws_close_timeout`` s later at most.
+    """After the app has ended, a connection is dropped ``2 x ws_close_timeout`` s later at most.
 
     uvicorn ends both protocols with ``transport.close()``, which waits for the peer to
     read everything buffered: a peer that reads nothing would hold the connection (and

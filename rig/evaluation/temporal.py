@@ -16,6 +16,7 @@ import numpy.typing as npt
 from ..errors import InputError
 from ..filters import KalmanFilter, OneEuroFilter
 from ..rig import Rig
+from .evaluate import jitter
 
 __all__ = [
     "DEFAULT_KALMAN_ACCELERATIONS",
@@ -94,12 +95,6 @@ def lag_frames(truth: np.ndarray, delayed: np.ndarray, *, max_lag: int = MAX_LAG
     return float(shifts[best])
 
 
-def _jitter(frames: np.ndarray) -> float:
-    x = frames.reshape(len(frames), -1).astype(np.float64)
-    second = x[2:] - 2.0 * x[1:-1] + x[:-2]
-    return float(np.sqrt(np.mean(second * second)))
-
-
 def temporal_tradeoff(
     rig: Rig,
     noisy_points: npt.ArrayLike,
@@ -175,12 +170,12 @@ def temporal_tradeoff(
                 "family": family,
                 "label": label,
                 "settings": settings,
-                "jitter": _jitter(vertices) * scale,
+                "jitter": jitter(vertices) * scale,
                 "lag_frames": lag_frames(truth[:, ::_LAG_STRIDE], vertices[:, ::_LAG_STRIDE]),
                 "rms_percent": float(np.sqrt(np.mean(np.sum(diff * diff, axis=-1))) * scale),
             }
         )
-    return {"truth_jitter": _jitter(truth) * scale, "fps": float(fps), "rows": rows}
+    return {"truth_jitter": jitter(truth) * scale, "fps": float(fps), "rows": rows}
 
 
 def best_under_one_frame(tradeoff: dict[str, Any]) -> dict[str, dict[str, Any]]:
