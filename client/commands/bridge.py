@@ -62,8 +62,9 @@ def _add_tracker_arguments(parser: argparse.ArgumentParser, port: int, why: str)
         "--vmc-head",
         type=_send,
         metavar="HOST:PORT",
-        help="also send each frame's head rotation as VMC /VMC/Ext/Bone/Pos Head to this "
-        "receiver (the avatar app 'bridge vmc' sends the expressions to)",
+        help="also send each frame's head rotation as VMC /VMC/Ext/Bone/Pos Head straight "
+        "to this receiver; not to one that 'bridge vmc' feeds, which gets the head "
+        "through the channel already",
     )
     parser.add_argument(
         "--vmc-head-position",
