@@ -19,6 +19,7 @@ from facecast.rig.errors import InputError
 
 from .cloning import frame_error
 from .fanout import ChannelFrame, Key, KeyState, PointsKeyState, key_state
+from .stages import CPU_CLOCK
 
 if TYPE_CHECKING:
     from .hub import ChannelHub
@@ -299,11 +300,11 @@ class Channel:
                 continue
             state.failing = False
             members = self.members.get(state.key, ())
-            writing = time.perf_counter()
+            writing = CPU_CLOCK() if stages is not None else 0.0
             for member in members:
                 member.offer_result(data)
             if stages is not None:
-                stages.add("write", time.perf_counter() - writing, len(members))
+                stages.add("write", CPU_CLOCK() - writing, len(members))
             self.results_out += len(members)
             self.hub.results_counter.inc(len(members))
         # ``output=points`` keys only encode the frame: not clones (PROTOCOL.md §2.4).
@@ -395,7 +396,7 @@ def _clone_call(
 def _timed_clone_call(
     state: KeyState | PointsKeyState, frame: ChannelFrame, arrived: float, count: bool
 ) -> tuple[bytes, float]:
-    """``_clone_call`` and its seconds (in the clone thread: the loop adds them up)."""
-    started = time.perf_counter()
+    """``_clone_call`` and its CPU seconds (the clone thread's: the loop adds them up)."""
+    started = CPU_CLOCK()
     data = state.clone(frame, arrived, count=count)
-    return data, time.perf_counter() - started
+    return data, CPU_CLOCK() - started
