@@ -514,7 +514,7 @@ class Ready(_ArrayMessage):
             "v": self.num_vertices,
         }
         if self.moving is not None:
-            rig["moving"] = self.moving.astype(MOVING_DTYPE, copy=False).data
+            rig["moving"] = self.moving.data  # stored as MOVING_DTYPE by __post_init__
         return {
             **_header(self.TYPE),
             "session": self.session,

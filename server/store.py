@@ -44,12 +44,13 @@ __all__ = [
     "write_atomically",
 ]
 
+_NAME_BODY = r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}"
 #: A plain rig id, and a performer's name.
-NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+NAME_PATTERN = f"^{_NAME_BODY}$"
 #: Joins a character's rig id and a performer's name into the id of the rig fitted on that
 #: performer's own expressions (``ict@alice``; see server/SERVER.md, "Performers").
 PERFORMER_SEPARATOR = "@"
-RIG_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}(@[A-Za-z0-9][A-Za-z0-9._-]{0,63})?$"
+RIG_ID_PATTERN = f"^{_NAME_BODY}({PERFORMER_SEPARATOR}{_NAME_BODY})?$"
 _RIG_ID = re.compile(RIG_ID_PATTERN)
 _NAME = re.compile(NAME_PATTERN)
 SUFFIX = ".rig"
