@@ -79,6 +79,10 @@ def uvicorn_config(
         log_config=uvicorn_log_config(settings.log_level),
         access_log=False,
         server_header=False,
+        # X-Forwarded-For names the client only when a trusted proxy sent it (the per-
+        # address quota counts that address); uvicorn alone would believe 127.0.0.1.
+        proxy_headers=bool(settings.trusted_proxies),
+        forwarded_allow_ips=list(settings.trusted_proxies) or None,
         # Results are float arrays that deflate barely shrinks, and per-connection
         # compression would cost every viewer its own pass over each result.
         ws_per_message_deflate=False,

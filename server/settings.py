@@ -111,9 +111,14 @@ class Settings:
     #: auth on); 0: no per-token limit.
     max_connections_per_token: int = 100
     #: WebSocket connections one client address may hold at once; 0: no limit. Behind
-    #: a reverse proxy every client has the proxy's address unless uvicorn's
-    #: ``forwarded_allow_ips`` names it.
+    #: a reverse proxy every client has the proxy's address unless ``trusted_proxies``
+    #: names it.
     max_connections_per_address: int = 100
+    #: Addresses or networks (``10.0.0.0/8``) of reverse proxies whose ``X-Forwarded-For``
+    #: and ``X-Forwarded-Proto`` are believed (uvicorn's ``forwarded_allow_ips``); ``"*"``:
+    #: any peer. Empty (the default): none, so a client cannot name its own address and
+    #: dodge ``max_connections_per_address`` (uvicorn alone trusts 127.0.0.1).
+    trusted_proxies: tuple[str, ...] = ()
     #: Connections beyond ``max_connections`` that only channel publishers may take,
     #: so watchers (or streams) filling the server cannot lock the performer out.
     publisher_slots: int = 4
@@ -213,6 +218,14 @@ class Settings:
                     f"allowed_hosts: expected host names without port, got {name[:80]!r}"
                 )
         object.__setattr__(self, "allowed_hosts", tuple(n.lower() for n in self.allowed_hosts))
+        for proxy in self.trusted_proxies:
+            try:
+                if proxy != "*":
+                    ipaddress.ip_network(proxy, strict=False)
+            except ValueError:
+                raise SettingsError(
+                    f"trusted_proxies: expected IP addresses or networks, got {proxy[:80]!r}"
+                ) from None
         if self.redis_url and not self.redis_url.startswith(("redis://", "rediss://", "unix://")):
             raise SettingsError(
                 "redis_url: expected redis://host:port[/db], rediss://... or unix://...; "

@@ -45,6 +45,8 @@ def test_compose_runs_redis_two_replicas_and_a_proxy(compose):
     assert facecast["environment"]["FACECAST_REDIS_URL"].startswith("redis://redis:")
     assert "rigs:/data/rigs" in facecast["volumes"] and "rigs" in compose["volumes"]
     assert "ports" not in facecast  # scalable: only the proxy publishes a port
+    # ... so only nginx reaches it: its X-Forwarded-For names each viewer for the quota.
+    assert facecast["environment"]["FACECAST_TRUSTED_PROXIES"] == "*"
     assert "container_name" not in facecast
     assert facecast["depends_on"]["redis"]["condition"] == "service_healthy"
     assert "./nginx.conf:/etc/nginx/nginx.conf:ro" in services["proxy"]["volumes"]

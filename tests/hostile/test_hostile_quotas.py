@@ -11,8 +11,16 @@ import pytest
 import websockets
 
 from facecast.client.bridges.channel import channel_url
-from facecast.protocol import SUBPROTOCOL, ClientProtocol, ErrorCode, Hello, ProtocolError, Ready
-from facecast.server.settings import Settings
+from facecast.protocol import (
+    SUBPROTOCOL,
+    ClientProtocol,
+    Error,
+    ErrorCode,
+    Hello,
+    ProtocolError,
+    Ready,
+)
+from facecast.server.settings import Settings, SettingsError
 from facecast.server.testing import run_server
 from tests.channels._helpers import Publisher, Watcher, refused, wait_for
 
@@ -119,3 +127,40 @@ async def test_watchers_filling_the_server_cannot_lock_out_the_publisher(rigs_di
     assert publisher.ready.rig == "alpha"
     # The slots are for publishers only as far as publisher_slots goes.
     assert second_refused == ErrorCode.OVERLOADED
+
+
+async def watch_as(server, forwarded_for: str) -> tuple[websockets.ClientConnection, object]:
+    """A watcher connection saying ``X-Forwarded-For: forwarded_for``, and its first message."""
+    url = channel_url(server.ws_url, "stage", "watch", {"rig": "alpha"})
+    ws = await websockets.connect(
+        url, subprotocols=[SUBPROTOCOL], additional_headers={"X-Forwarded-For": forwarded_for}
+    )
+    return ws, ClientProtocol(watching=True).receive(await asyncio.wait_for(ws.recv(), 5))
+
+
+@pytest.mark.parametrize(("trusted", "second_admitted"), [((), False), (("127.0.0.1",), True)])
+async def test_forwarded_for_counts_only_from_a_trusted_proxy(
+    rigs_dir, ws_impl, trusted, second_admitted
+):
+    # By default nobody may name its own address: two connections from 127.0.0.1 that
+    # claim two addresses are one address's; behind a trusted proxy they are two clients.
+    settings = Settings(rigs_dir=rigs_dir, max_connections_per_address=1, trusted_proxies=trusted)
+    async with run_server(settings, ws=ws_impl) as server:
+        first, first_message = await watch_as(server, "203.0.113.1")
+        second, second_message = await watch_as(server, "203.0.113.2")
+        await first.close()
+        await second.close()
+
+    assert isinstance(first_message, Ready)
+    if second_admitted:
+        assert isinstance(second_message, Ready)
+    else:
+        assert isinstance(second_message, Error)
+        assert (second_message.code, second_message.fatal) == (ErrorCode.OVERLOADED, True)
+        assert "address" in second_message.message
+
+
+def test_trusted_proxies_must_be_addresses(rigs_dir):
+    assert Settings(rigs_dir=rigs_dir, trusted_proxies=("10.0.0.0/8", "::1", "*")).trusted_proxies
+    with pytest.raises(SettingsError, match="trusted_proxies"):
+        Settings(rigs_dir=rigs_dir, trusted_proxies=("proxy.example",))
