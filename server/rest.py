@@ -69,8 +69,20 @@ async def read_body(request: Request, limit: int) -> bytes:
     """The request body, refused with 413 as soon as it is known to exceed ``limit``.
 
     Checks ``Content-Length`` first, then counts while streaming, so an oversized or
-    unannounced (chunked) body is never buffered beyond ``limit`` bytes.
+    unannounced (chunked) body is never buffered beyond ``limit`` bytes; one that takes
+    longer than ``body_timeout`` to arrive is 408 ``body_timeout``.
     """
+    timeout = _settings(request).body_timeout
+    try:
+        async with asyncio.timeout(timeout):
+            return await _read_body(request, limit)
+    except TimeoutError:
+        raise ApiError(
+            408, "body_timeout", f"the request body took longer than {timeout:g} s to arrive"
+        ) from None
+
+
+async def _read_body(request: Request, limit: int) -> bytes:
     declared = request.headers.get("content-length")
     if declared is not None:
         try:
@@ -152,8 +164,10 @@ async def get_rig(request: Request, rig_id: str, _: Reader) -> dict[str, Any]:
 )
 async def put_rig(request: Request, rig_id: str, principal: Admin) -> JSONResponse:
     _check_id(rig_id)
-    data = await read_body(request, _settings(request).max_upload_bytes)
-    rig, created = await anyio.to_thread.run_sync(_store(request).put_bytes, rig_id, data)
+    # A fit slot as for examples: at most that many upload bodies are held at once.
+    with fit_slot(request):
+        data = await read_body(request, _settings(request).max_upload_bytes)
+        rig, created = await anyio.to_thread.run_sync(_store(request).put_bytes, rig_id, data)
     log.info(
         "rig stored",
         extra={"event": "rig.stored", "rig": rig_id, "bytes": len(data), "by": principal.name},

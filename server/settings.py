@@ -63,8 +63,11 @@ class Settings:
     max_archive_members: int = 2000
     #: Largest allowed (total uncompressed size / archive size): zip-bomb guard.
     max_compression_ratio: float = 200.0
-    #: Fits waiting or running at once; more get 503 ``server_busy``.
+    #: Fits (and rig uploads) waiting or running at once; more get 503 ``server_busy``.
     max_pending_fits: int = 4
+    #: Seconds a request body (upload, capture) may take to arrive in all; a slower one
+    #: is 408 ``body_timeout``, so a trickled body cannot hold an upload slot for long.
+    body_timeout: float = 120.0
     fit_threads: int = 1
 
     # -- performers (server/performer_routes.py) -------------------------------------------
@@ -174,6 +177,7 @@ class Settings:
             "max_archive_members",
             "max_compression_ratio",
             "max_pending_fits",
+            "body_timeout",
             "fit_threads",
             "max_capture_bytes",
             "max_connections",

@@ -247,6 +247,51 @@ async def test_max_pending_fits_counts_an_upload_from_before_its_body_is_read(tm
     assert first_response.status_code == third.status_code == 201
 
 
+async def test_a_trickled_body_is_cut_with_408_and_gives_its_slot_back(tmp_path):
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_pending_fits=1, body_timeout=0.5)
+    write_example_folder(tmp_path / "set")
+    body = zip_bytes(folder_members(tmp_path / "set"))
+
+    async with run_server(settings) as server, client(server) as http:
+        # A raw client: httpx would not read the answer before its body is sent.
+        reader, writer = await asyncio.open_connection(server.host, server.port)
+        head = (
+            f"PUT /v1/rigs/slow/examples HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+            f"Content-Type: application/zip\r\nContent-Length: {len(body)}\r\n\r\n"
+        )
+        writer.write(head.encode() + body[:100])  # the rest never comes
+        status_line = await asyncio.wait_for(reader.readline(), 10)
+        answer = await asyncio.wait_for(reader.read(), 10)  # to the close
+        writer.close()
+        await wait_until(lambda: server.app.state.pending_fits == 0)
+        after = await http.put("/v1/rigs/next/examples", content=body)
+
+    assert status_line.split()[1] == b"408"
+    assert b'"body_timeout"' in answer
+    assert after.status_code == 201
+
+
+async def test_a_raw_rig_upload_takes_a_fit_slot_before_its_body(tmp_path, rig):
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_pending_fits=1)
+    rig_bytes = rig.to_bytes()
+    release = asyncio.Event()
+
+    async def slow_body():
+        yield rig_bytes[:100]
+        await release.wait()
+        yield rig_bytes[100:]
+
+    async with run_server(settings) as server, client(server) as http:
+        first = asyncio.create_task(http.put("/v1/rigs/first", content=slow_body()))
+        await wait_until(lambda: server.app.state.pending_fits == 1)
+        second = await http.put("/v1/rigs/second", content=rig_bytes)
+        release.set()
+        first_response = await first
+
+    assert (second.status_code, second.json()["code"]) == (503, "server_busy")
+    assert first_response.status_code == 201
+
+
 # -- bad uploads --------------------------------------------------------------------------
 
 
