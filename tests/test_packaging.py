@@ -46,10 +46,12 @@ def test_wheel_holds_every_package_and_the_protocol_spec(wheel):
         "facecast/rig/sources/layouts/mediapipe_face_mesh.json",
         "facecast/rig/demo/scene.py",
         "facecast/server/app.py",
-        "facecast/client/cli.py",
-        "facecast/client/commands/demo.py",
-        "facecast/client/bench/engine.py",
-        "facecast/client/bridges/vmc.py",
+        "facecast/client/connection.py",
+        "facecast/client/channel.py",
+        "facecast/cli/main.py",
+        "facecast/cli/commands/demo.py",
+        "facecast/cli/bench/engine.py",
+        "facecast/cli/bridges/vmc.py",
     ]:
         assert member in names, member
 
@@ -57,7 +59,7 @@ def test_wheel_holds_every_package_and_the_protocol_spec(wheel):
 def test_wheel_declares_the_facecast_console_script(wheel):
     archive = zipfile.ZipFile(wheel)
     (entry_points,) = [n for n in archive.namelist() if n.endswith("entry_points.txt")]
-    assert "facecast = facecast.client.cli:main" in archive.read(entry_points).decode()
+    assert "facecast = facecast.cli.main:main" in archive.read(entry_points).decode()
 
 
 def test_installed_wheel_imports_and_fits_the_demo(wheel, tmp_path):

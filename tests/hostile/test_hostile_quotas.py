@@ -10,7 +10,7 @@ import asyncio
 import pytest
 import websockets
 
-from facecast.client.bridges.channel import channel_url
+from facecast.client.channel import channel_url
 from facecast.protocol import SUBPROTOCOL, ClientProtocol, ErrorCode, Hello, ProtocolError, Ready
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server

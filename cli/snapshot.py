@@ -1,4 +1,4 @@
-"""Screenshot the web viewer playing the demo: ``python -m facecast.client.snapshot --out docs/viewer.png``.
+"""Screenshot the web viewer playing the demo: ``python -m facecast.cli.snapshot --out docs/viewer.png``.
 
 Starts a local server with the demo rig and drives Debian's Chromium through Playwright;
 it never downloads a browser. Also the harness of the viewer tests (``serving``, ``launch``).
@@ -106,7 +106,7 @@ def serving(settings: Any, *, port: int = 0, startup_timeout: float = 10.0) -> I
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python -m facecast.client.snapshot",
+        prog="python -m facecast.cli.snapshot",
         description="Screenshot the web viewer (or overlay) playing the demo performance.",
     )
     parser.add_argument("--out", type=Path, default=Path("docs/viewer.png"), help="PNG to write")

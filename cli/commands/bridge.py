@@ -2,7 +2,7 @@
 
 ``bridge livelink`` receives Live Link Face UDP and publishes points to a channel,
 ``bridge ifacialmocap`` the same for iFacialMocap / Facemotion3D; ``bridge vmc``
-watches a channel's weights and sends VMC OSC. Only argument parsing and wiring here; the loops live in facecast.client.bridges, imported when a command runs.
+watches a channel's weights and sends VMC OSC. Only argument parsing and wiring here; the loops live in facecast.cli.bridges, imported when a command runs.
 """
 
 from __future__ import annotations
@@ -113,8 +113,8 @@ def _add_run_arguments(parser: argparse.ArgumentParser, run) -> None:
 
 def _bridge_url(args: argparse.Namespace, kind: str, query: dict[str, str] | None = None) -> str:
     """The channel's ``publish`` or ``watch`` URL; a malformed URL or name is a CommandError."""
-    from facecast.client.bridges.channel import channel_url
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
+    from facecast.client.channel import channel_url
 
     try:
         return channel_url(args.url, args.channel, kind, query)
@@ -236,9 +236,9 @@ def _run_tracker(args: argparse.Namespace, what: str, open_receiver, run_bridge,
     import asyncio
     import contextlib
 
-    from facecast.client.bridges.channel import FramePublisher
-    from facecast.client.bridges.vmc import VmcSender, vmc_head_bundle
-    from facecast.client.cli import CommandError
+    from facecast.cli.bridges.vmc import VmcSender, vmc_head_bundle
+    from facecast.cli.main import CommandError
+    from facecast.client.channel import FramePublisher
     from facecast.client.connection import ConnectionFailed
     from facecast.protocol import Hello
     from facecast.rig.sources.source_rig import load_source_rig
@@ -308,7 +308,7 @@ def _run_tracker(args: argparse.Namespace, what: str, open_receiver, run_bridge,
 
 
 def run_livelink(args: argparse.Namespace) -> int:
-    from facecast.client.bridges.livelink import open_livelink_receiver, run_livelink_bridge
+    from facecast.cli.bridges.livelink import open_livelink_receiver, run_livelink_bridge
 
     def run_bridge(receiver, source_rig, publisher, on_head):
         return run_livelink_bridge(
@@ -328,8 +328,8 @@ def run_ifacialmocap(args: argparse.Namespace) -> int:
     import asyncio
     import time
 
-    from facecast.client.bridges.ifacialmocap import open_ifacialmocap_receiver, request_stream
-    from facecast.client.bridges.tracker import run_tracker_bridge
+    from facecast.cli.bridges.ifacialmocap import open_ifacialmocap_receiver, request_stream
+    from facecast.cli.bridges.tracker import run_tracker_bridge
 
     def run_bridge(receiver, source_rig, publisher, on_head):
         return run_tracker_bridge(
@@ -364,9 +364,9 @@ def run_ifacialmocap(args: argparse.Namespace) -> int:
 def run_vmc(args: argparse.Namespace) -> int:
     import asyncio
 
-    from facecast.client.bridges.channel import watch_channel
-    from facecast.client.bridges.vmc import MIN_DATAGRAM, VmcSender, run_vmc_bridge
-    from facecast.client.cli import CommandError
+    from facecast.cli.bridges.vmc import MIN_DATAGRAM, VmcSender, run_vmc_bridge
+    from facecast.cli.main import CommandError
+    from facecast.client.channel import watch_channel
     from facecast.client.connection import ConnectionFailed
 
     if not MIN_DATAGRAM <= args.max_datagram <= 65507:

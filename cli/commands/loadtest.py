@@ -1,6 +1,6 @@
 """``facecast loadtest``: N WebSocket clients at F fps for S seconds against one server.
 
-Maps flags onto ``facecast.client.loadgen`` and prints / writes its report; bounded in
+Maps flags onto ``facecast.cli.loadgen`` and prints / writes its report; bounded in
 clients, rate and time, and only ever connects to the URL given.
 """
 
@@ -81,14 +81,14 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
     import json
 
-    from facecast.client.cli import CommandError
-    from facecast.client.loadgen import (
+    from facecast.cli.loadgen import (
         MAX_CLIENTS,
         MAX_DURATION,
         MAX_FPS,
         run_load,
         write_histogram,
     )
+    from facecast.cli.main import CommandError
 
     if not 1 <= args.clients <= MAX_CLIENTS:
         raise CommandError(f"--clients must be in 1..{MAX_CLIENTS}, got {args.clients}")

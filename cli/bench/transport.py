@@ -176,7 +176,7 @@ def _server(kind: str, rigs_dir: Path | None, log_dir: Path) -> Iterator[tuple[i
     port = _free_port()
     log = (log_dir / f"{kind}.log").open("wb")
     code = (
-        "from facecast.client.bench.transport import _serve; "
+        "from facecast.cli.bench.transport import _serve; "
         f"_serve({kind!r}, {port}, {str(rigs_dir) if rigs_dir else None!r})"
     )
     process = subprocess.Popen(
@@ -445,7 +445,7 @@ async def _client_task(spec: dict[str, Any]) -> dict[str, Any]:
         points = np.asarray(spec["points"], dtype=np.float32)
         return await _facecast_figures(spec["url"], spec["rig"], points, spec["seconds"])
     if kind == "load":
-        from facecast.client.loadgen import run_load
+        from facecast.cli.loadgen import run_load
 
         report = await run_load(
             spec["url"],
@@ -474,7 +474,7 @@ def _client_main() -> None:
 
 def _measure(spec: dict[str, Any], timeout: float) -> dict[str, Any]:
     """Run one client task in a fresh process (never in the servers' processes)."""
-    code = "from facecast.client.bench.transport import _client_main; _client_main()"
+    code = "from facecast.cli.bench.transport import _client_main; _client_main()"
     done = subprocess.run(
         [sys.executable, "-c", code],
         input=json.dumps(spec),

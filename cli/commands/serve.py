@@ -77,7 +77,7 @@ def settings_from_args(args: argparse.Namespace, env=None):
 
 
 def run(args: argparse.Namespace) -> int:
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
     from facecast.server.runner import serve
     from facecast.server.settings import SettingsError
 

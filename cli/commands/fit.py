@@ -89,7 +89,7 @@ def register(subparsers) -> None:
 
 
 def _stable_points(text: str | None):
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
 
     if text is None:
         return None
@@ -106,7 +106,7 @@ def _stable_points(text: str | None):
 
 def load_examples(spec: str, source: str | None = None):
     """The example set named on the command line: a path, or ``demo``."""
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
 
     if spec == "demo":
         from facecast.rig.demo import demo_example_set
@@ -219,7 +219,7 @@ def _bounds_line(report: dict) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     import warnings
 
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
     from facecast.rig import fit
 
     output = Path(args.output)
@@ -242,7 +242,7 @@ def run(args: argparse.Namespace) -> int:
     rig.save(output)
     report = rig.fit_report
     if args.json:
-        from facecast.client.report import json_safe
+        from facecast.cli.report import json_safe
 
         payload = {"rig": str(output), "checksum": rig.checksum, "fit_report": report}
         print(json.dumps(json_safe(payload), indent=1))

@@ -113,7 +113,7 @@ def _demo(args) -> _Data:
 
 
 def _ict(args) -> _Data:
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
     from facecast.rig.sources.ict import (
         ict_animation,
         ict_example_set,
@@ -144,7 +144,7 @@ def _ict(args) -> _Data:
 
 
 def _take(args) -> _Data:
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
     from facecast.rig.evaluation.takes import (
         ARKIT_TARGET_IDENTITY,
         arkit_example_set,
@@ -189,8 +189,8 @@ def _estimated_noise(args, data: _Data) -> tuple[float, tuple[int, int]]:
 def _files(args) -> _Data:
     import numpy as np
 
-    from facecast.client.cli import CommandError
-    from facecast.client.commands.fit import load_examples
+    from facecast.cli.commands.fit import load_examples
+    from facecast.cli.main import CommandError
     from facecast.rig.sources.loading import load_source_animation
 
     if args.examples is None or args.source is None:
@@ -221,7 +221,7 @@ def _write_plots(folder: Path, data: _Data, report: dict, fps: float) -> list[Pa
 
     import numpy as np
 
-    from facecast.client.report import plot_error_over_time, save_frames_picture
+    from facecast.cli.report import plot_error_over_time, save_frames_picture
     from facecast.rig import fit
 
     written = []
@@ -260,7 +260,7 @@ def _smoothing(args, data: _Data, report: dict) -> dict:
     """Jitter of the noisy take cloned raw and through the one-euro filter (a table, printed)."""
     import numpy as np
 
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
     from facecast.rig import fit
     from facecast.rig.evaluation.evaluate import smoothing_report
 
@@ -299,7 +299,7 @@ def _temporal(args, data: _Data, plots: Path | None) -> dict:
     """Jitter against lag of filtered noisy input, cloned by the default bounded noise rig."""
     import numpy as np
 
-    from facecast.client.report import plot_jitter_against_lag
+    from facecast.cli.report import plot_jitter_against_lag
     from facecast.rig import fit
     from facecast.rig.evaluation.temporal import best_under_one_frame, temporal_tradeoff
 
@@ -332,8 +332,8 @@ def _temporal(args, data: _Data, plots: Path | None) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from facecast.client.cli import CommandError
-    from facecast.client.report import format_error_table, format_timing_table, write_json
+    from facecast.cli.main import CommandError
+    from facecast.cli.report import format_error_table, format_timing_table, write_json
     from facecast.rig.evaluation.evaluate import default_settings, evaluate
 
     if args.json is not None and not Path(args.json).parent.exists():

@@ -96,7 +96,7 @@ def _start_floor(rig) -> tuple[subprocess.Popen, int]:
                          output="weights", dtype="f32"))  # fmt: skip
     weights = np.full(rig.num_examples, 1.0 / rig.num_examples, np.float32).tobytes()
     code = (
-        "from facecast.client.bench.broadcast import _serve_floor; "
+        "from facecast.cli.bench.broadcast import _serve_floor; "
         f"_serve_floor({port}, bytes.fromhex({ready.hex()!r}), bytes.fromhex({weights.hex()!r}))"
     )
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
@@ -343,7 +343,7 @@ def _start_server(rigs: Path, redis_url: str | None) -> tuple[subprocess.Popen, 
            "FACECAST_MAX_CONNECTIONS_PER_ADDRESS": "0",  # every viewer is on 127.0.0.1
            "FACECAST_LOG_LEVEL": "warning", "OPENBLAS_NUM_THREADS": "1",
            "FACECAST_STAGE_TIMING": "true"}  # fmt: skip
-    command = [sys.executable, "-m", "facecast.client.cli", "serve", "--port", str(port),
+    command = [sys.executable, "-m", "facecast.cli", "serve", "--port", str(port),
                "--rigs", str(rigs)]  # fmt: skip
     if redis_url:
         command += ["--redis", redis_url]
@@ -379,7 +379,7 @@ def _stop(process: subprocess.Popen) -> None:
 
 # -- the scenarios ---------------------------------------------------------------------
 async def _publish(port: int, frames: np.ndarray, counter: list[int], stop: asyncio.Event) -> None:
-    from facecast.client.bridges.channel import FramePublisher, channel_url
+    from facecast.client.channel import FramePublisher, channel_url
     from facecast.protocol import Hello
 
     url = channel_url(f"http://127.0.0.1:{port}", "bench", "publish")

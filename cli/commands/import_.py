@@ -77,7 +77,7 @@ def register(subparsers) -> None:
 
 
 def _landmarks(text: str | None):
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
     from facecast.rig.sources.ict import DEFAULT_LANDMARKS
 
     if text is None:
@@ -225,7 +225,7 @@ def write_example_folder(example_set, folder: Path, comment: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
     from facecast.rig.sources.ict import DEFAULT_STABLE_LANDMARKS
 
     out = Path(args.output)

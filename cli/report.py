@@ -177,11 +177,11 @@ def plot_error_over_time(path, report: dict, *, fps: float, labels: Sequence[str
 def save_frames_picture(path, panels: Sequence[Sequence[tuple]], *, title: str | None = None):
     """PNG grid of meshes, one row per time: ``panels[row] = [(label, vertices, faces), ...]``.
 
-    Uses ``facecast.client.render.save_side_by_side`` when available; otherwise plain
+    Uses ``facecast.cli.render.save_side_by_side`` when available; otherwise plain
     matplotlib triangle plots seen from the front (+z).
     """
     try:
-        from facecast.client.render import save_side_by_side
+        from facecast.cli.render import save_side_by_side
     except ImportError:
         save_side_by_side = None
     if save_side_by_side is not None:

@@ -1,6 +1,6 @@
 """``facecast bench``: the benchmarks (engine, transport, broadcast) as sub-commands.
 
-Only parses arguments and hands over to ``facecast.client.bench.<name>.run(args)``; it must
+Only parses arguments and hands over to ``facecast.cli.bench.<name>.run(args)``; it must
 not measure anything itself.
 """
 
@@ -71,9 +71,9 @@ def register(subparsers) -> None:
 
 def _runner(name: str):
     def run(args: argparse.Namespace) -> int:
-        from facecast.client.cli import CommandError
+        from facecast.cli.main import CommandError
 
-        module_name = f"facecast.client.bench.{name}"
+        module_name = f"facecast.cli.bench.{name}"
         try:
             module = importlib.import_module(module_name)
         except ModuleNotFoundError as exc:

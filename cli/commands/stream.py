@@ -10,7 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from facecast.client.commands._animation import add_source_arguments
+from facecast.cli.commands._animation import add_source_arguments
 
 #: Largest (frames x vertices) result kept in memory for --output vertices, bytes.
 MAX_VERTEX_BYTES = 2 << 30
@@ -102,8 +102,8 @@ class _ProgressLine:
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
-    from facecast.client.cli import CommandError
-    from facecast.client.commands._animation import load_animation, write_results
+    from facecast.cli.commands._animation import load_animation, write_results
+    from facecast.cli.main import CommandError
     from facecast.client.connection import connect
     from facecast.client.fetch import fetch_rig
     from facecast.client.streaming import stream_frames

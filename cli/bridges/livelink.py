@@ -62,9 +62,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from facecast.client.channel import FramePublisher
 from facecast.rig.sources.source_rig import NUM_ARKIT, SourceRig
 
-from .channel import FramePublisher
 from .tracker import (
     BridgeStats,
     DatagramReceiver,

@@ -51,8 +51,8 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from facecast.client.cli import CommandError
-    from facecast.client.snapshot import DEMO_RIG_ID, serving, write_demo_rig
+    from facecast.cli.main import CommandError
+    from facecast.cli.snapshot import DEMO_RIG_ID, serving, write_demo_rig
     from facecast.rig import load_rig
     from facecast.rig.demo import demo_animation
     from facecast.server.settings import Settings

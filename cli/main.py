@@ -1,6 +1,6 @@
 """The ``facecast`` command line: one argparse tree, one module per command.
 
-Each module in ``facecast.client.commands`` registers its own sub-parser and imports
+Each module in ``facecast.cli.commands`` registers its own sub-parser and imports
 its heavy dependencies only when run, so ``facecast --help`` stays fast.
 """
 
@@ -46,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"facecast {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
-        module = importlib.import_module(f"facecast.client.commands.{name}")
+        module = importlib.import_module(f"facecast.cli.commands.{name}")
         module.register(sub)
     return parser
 

@@ -111,9 +111,9 @@ async def perform(args: argparse.Namespace) -> PerformStats:
 
     import numpy as np
 
-    from facecast.client.bridges.channel import FramePublisher, channel_url
-    from facecast.client.cli import CommandError
-    from facecast.client.facetrack import FaceTracker, VideoSource
+    from facecast.cli.facetrack import FaceTracker, VideoSource
+    from facecast.cli.main import CommandError
+    from facecast.client.channel import FramePublisher, channel_url
     from facecast.protocol import Hello
     from facecast.rig.sources.capture import robust_example
     from facecast.rig.sources.layouts import DEFAULT_LAYOUT, load_layout
@@ -181,9 +181,9 @@ async def perform(args: argparse.Namespace) -> PerformStats:
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
-    from facecast.client.cli import CommandError
+    from facecast.cli.facetrack import TrackerUnavailable
+    from facecast.cli.main import CommandError
     from facecast.client.connection import ConnectionFailed
-    from facecast.client.facetrack import TrackerUnavailable
     from facecast.protocol import ProtocolError
     from facecast.rig.errors import InputError
 

@@ -100,7 +100,7 @@ def _zip_folder(folder: Path) -> bytes:
 def run(args: argparse.Namespace) -> int:
     import httpx
 
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
 
     base = args.url.rstrip("/")
     if not base.startswith(("http://", "https://")):

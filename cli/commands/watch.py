@@ -39,7 +39,7 @@ async def record(args: argparse.Namespace) -> dict:
     import asyncio
     import contextlib
 
-    from facecast.client.bridges.channel import channel_url, watch_channel
+    from facecast.client.channel import channel_url, watch_channel
     from facecast.protocol import ChannelIdle, ChannelLive, Ready, Result
 
     query = {"rig": args.rig, "output": args.output, "dtype": args.dtype}
@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
     from facecast.client.connection import ConnectionFailed
 
     out = Path(args.out)
@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
         arrays["weights" if args.output == "weights" else "vertices"] = values
         np.savez(out, **arrays)
     else:
-        from facecast.client.commands._animation import write_results
+        from facecast.cli.commands._animation import write_results
         from facecast.client.fetch import fetch_rig
 
         rig = fetch_rig(args.url, args.rig, token=args.token)

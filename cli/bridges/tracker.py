@@ -19,9 +19,9 @@ from typing import Generic, Protocol, TypeVar
 
 import numpy as np
 
+from facecast.client.channel import FramePublisher
 from facecast.rig.sources.source_rig import SourceRig
 
-from .channel import FramePublisher
 from .head_pose import head_pose as head_pose_of
 
 __all__ = [

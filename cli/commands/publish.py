@@ -10,12 +10,12 @@ import argparse
 import sys
 from typing import TYPE_CHECKING
 
-from facecast.client.commands._animation import add_source_arguments
+from facecast.cli.commands._animation import add_source_arguments
 
 if TYPE_CHECKING:  # numpy loads when the command runs, not for --help
     import numpy as np
 
-    from facecast.client.bridges.channel import PublisherStats
+    from facecast.client.channel import PublisherStats
 
 
 def register(subparsers) -> None:
@@ -65,7 +65,7 @@ def register(subparsers) -> None:
 
 def _animation(args: argparse.Namespace, num_points: int):
     """The source animation, checked against the channel rig's K."""
-    from facecast.client.commands._animation import load_animation
+    from facecast.cli.commands._animation import load_animation
 
     def feature_indices():
         import contextlib
@@ -116,7 +116,7 @@ async def publish(args: argparse.Namespace) -> tuple[int, PublisherStats, bool, 
     import asyncio
     import time
 
-    from facecast.client.bridges.channel import FramePublisher, channel_url
+    from facecast.client.channel import FramePublisher, channel_url
     from facecast.protocol import Hello
 
     url = channel_url(args.url, args.channel, "publish")
@@ -150,7 +150,7 @@ async def publish(args: argparse.Namespace) -> tuple[int, PublisherStats, bool, 
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
     from facecast.client.connection import ConnectionFailed
 
     if not 0 <= args.drain_timeout <= 600:  # also refuses NaN

@@ -52,7 +52,7 @@ def load_animation(
     expected_by : str
         Who wants ``num_points``, as the error for a mismatch says it.
     """
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
 
     if spec == "demo":
         from facecast.rig.demo import demo_animation

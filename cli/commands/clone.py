@@ -10,7 +10,7 @@ import argparse
 import time
 from pathlib import Path
 
-from facecast.client.commands._animation import add_source_arguments
+from facecast.cli.commands._animation import add_source_arguments
 
 BATCH = 256
 # Above this many bytes of cloned vertices an .npz keeps only the weights (the rig and
@@ -72,8 +72,8 @@ def clone_frames(rig, points, *, align: bool = False, with_vertices: bool = True
 
 
 def run(args: argparse.Namespace) -> int:
-    from facecast.client.cli import CommandError
-    from facecast.client.commands._animation import load_animation, write_cloned
+    from facecast.cli.commands._animation import load_animation, write_cloned
+    from facecast.cli.main import CommandError
     from facecast.rig import load_rig
 
     if not Path(args.rig).exists():

@@ -17,10 +17,9 @@ from typing import Any
 
 import numpy as np
 
+from facecast.client.connection import ConnectionFailed, StreamSession, connect
+from facecast.client.latency import latency_stats
 from facecast.protocol import ErrorCode, ProtocolError, Result
-
-from .connection import ConnectionFailed, StreamSession, connect
-from .latency import latency_stats
 
 __all__ = [
     "MAX_CLIENTS",

@@ -108,7 +108,7 @@ class Take:
 
 def _fail_on(message: Any, args: argparse.Namespace) -> None:
     """Raise the CommandError an ``error`` from the server calls for (None if it is benign)."""
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
     from facecast.protocol import ErrorCode
 
     if message.fatal:
@@ -129,8 +129,8 @@ async def record(args: argparse.Namespace, take: Take) -> None:
     from websockets.asyncio.client import connect
     from websockets.exceptions import ConnectionClosed, WebSocketException
 
-    from facecast.client.bridges.channel import channel_url
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
+    from facecast.client.channel import channel_url
     from facecast.client.connection import ConnectionFailed
     from facecast.client.urls import auth_headers, resolve_token
     from facecast.protocol import (
@@ -228,7 +228,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from facecast.client.cli import CommandError
+    from facecast.cli.main import CommandError
     from facecast.client.connection import ConnectionFailed
 
     out = Path(args.out)

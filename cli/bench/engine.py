@@ -206,8 +206,8 @@ def format_figures(figures: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     import scipy
 
-    from facecast.client.cli import CommandError
-    from facecast.client.report import write_json
+    from facecast.cli.main import CommandError
+    from facecast.cli.report import write_json
     from facecast.rig.kernel import description as kernel_description
 
     if args.repeat < 1:
