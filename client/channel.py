@@ -19,21 +19,11 @@ from urllib.parse import quote, urlencode
 
 import numpy as np
 from websockets.asyncio.client import ClientConnection
-from websockets.asyncio.client import connect as ws_connect
-from websockets.exceptions import ConnectionClosed, WebSocketException
+from websockets.exceptions import ConnectionClosed
 
-from facecast.client.connection import (
-    RETRYABLE_CODES,
-    ConnectionFailed,
-    Reconnect,
-    await_ready,
-    reopen_with_backoff,
-)
-from facecast.client.urls import auth_headers, resolve_token, stream_url
 from facecast.protocol import (
     PUBLISH_PATH,
     STREAM_PATH,
-    SUBPROTOCOL,
     WATCH_PATH,
     ClientProtocol,
     Error,
@@ -49,6 +39,11 @@ from facecast.protocol import (
     ServerMessage,
 )
 
+from .errors import ConnectionFailed
+from .handshake import await_ready, open_websocket
+from .reconnect import OPEN_ERRORS, RETRYABLE_CODES, Reconnect, describe, reopen_with_backoff
+from .urls import auth_headers, resolve_token, stream_url
+
 __all__ = [
     "FramePublisher",
     "PublisherStats",
@@ -58,7 +53,6 @@ __all__ = [
 
 log = logging.getLogger("facecast.bridges")
 
-_OPEN_ERRORS = (OSError, TimeoutError, WebSocketException)
 #: Refused ``seq``s a publisher remembers above its newest result (bounded memory).
 _MAX_REFUSED_KEPT = 1024
 _DEFAULT_RECONNECT = Reconnect()
@@ -82,15 +76,10 @@ def channel_url(
     return f"{url}?{urlencode(dict(query))}" if query else url
 
 
-async def _open(url: str, token: str | None, limits: Limits, open_timeout: float):
-    return await ws_connect(
-        url,
-        additional_headers=auth_headers(resolve_token(token)),
-        subprotocols=[SUBPROTOCOL],  # type: ignore[list-item]
-        max_size=limits.max_server_message_bytes,
-        open_timeout=open_timeout,
-        compression=None,  # float arrays: deflate costs latency and gains little
-    )
+async def _open(
+    url: str, token: str | None, limits: Limits, open_timeout: float
+) -> ClientConnection:
+    return await open_websocket(url, auth_headers(resolve_token(token)), limits, open_timeout)
 
 
 @dataclass
@@ -205,8 +194,8 @@ class FramePublisher:
         """
         try:
             await self._connect()
-        except _OPEN_ERRORS as exc:
-            raise ConnectionFailed(f"cannot publish to {self.url}: {_describe(exc)}") from exc
+        except OPEN_ERRORS as exc:
+            raise ConnectionFailed(f"cannot publish to {self.url}: {describe(exc)}") from exc
         self._supervisor = asyncio.create_task(self._supervise(), name="facecast-publisher")
         return self
 
@@ -281,14 +270,14 @@ class FramePublisher:
             self._answer.set()  # a drain() waiting on an answer learns there is none
 
     async def _reconnect(self, reason: BaseException | None) -> None:
-        reopened, last = await reopen_with_backoff(self._connect, self.reconnect, reason)
-        if reopened:
-            self.stats.reconnects += 1
-            log.info("publisher: reconnected to %s", self.url)
-            return
-        raise ConnectionFailed(
+        await reopen_with_backoff(self._connect, self.reconnect, reason, gave_up=self._gave_up)
+        self.stats.reconnects += 1
+        log.info("publisher: reconnected to %s", self.url)
+
+    def _gave_up(self, last: BaseException | None) -> str:
+        return (
             f"lost {self.url} and gave up after {self.reconnect.attempts} attempt(s): "
-            f"{'closed' if last is None else _describe(last)}"
+            f"{'closed' if last is None else describe(last)}"
         )
 
     @property
@@ -412,21 +401,39 @@ async def watch_channel(
         A fatal server error that reconnecting cannot cure (unknown rig, bad token).
     """
     limits = limits or Limits()
-    attempt = 0
-    first = True
-    while True:
-        try:
-            ws = await _open(url, token, limits, open_timeout)
-        except _OPEN_ERRORS as exc:
-            if first or attempt >= reconnect.attempts:
-                raise ConnectionFailed(f"cannot watch {url}: {_describe(exc)}") from exc
-            await asyncio.sleep(reconnect.delay(attempt))
-            attempt += 1
-            continue
-        first = False
-        fatal: ProtocolError | None = None
+
+    async def open_once() -> tuple[ClientConnection, ClientProtocol, Ready]:
+        ws = await _open(url, token, limits, open_timeout)
         try:
             protocol = ClientProtocol(limits, watching=True)
+            async with asyncio.timeout(open_timeout):
+                ready = await await_ready(ws, protocol)
+        except BaseException:
+            await ws.close()
+            raise
+        return ws, protocol, ready
+
+    def gave_up(last: BaseException | None) -> str:
+        return f"lost {url} and gave up after {reconnect.attempts} attempt(s)"
+
+    reason: BaseException | None = None
+    try:
+        ws, protocol, ready = await open_once()
+    except OPEN_ERRORS as exc:
+        raise ConnectionFailed(f"cannot watch {url}: {describe(exc)}") from exc
+    except ProtocolError as exc:
+        # Refused once the WebSocket was open: a refusal retrying may cure is a lost
+        # connection like any other; the first *connection* is never retried.
+        if exc.code not in RETRYABLE_CODES:
+            raise
+        reason = exc
+        ws, protocol, ready = await reopen_with_backoff(
+            open_once, reconnect, reason, gave_up=gave_up
+        )
+    while True:
+        fatal: ProtocolError | None = None
+        try:
+            yield ready
             async for data in ws:
                 if isinstance(data, str):
                     continue
@@ -437,8 +444,6 @@ async def watch_channel(
                     continue
                 if isinstance(message, Pong):
                     continue
-                if isinstance(message, Ready):
-                    attempt = 0
                 if isinstance(message, Error) and message.fatal:
                     fatal = message.to_exception()
                     break
@@ -449,12 +454,6 @@ async def watch_channel(
             await ws.close()
         if fatal is not None and fatal.code not in RETRYABLE_CODES:
             raise fatal
-        if attempt >= reconnect.attempts:
-            raise ConnectionFailed(f"lost {url} and gave up after {attempt} attempt(s)")
-        await asyncio.sleep(reconnect.delay(attempt))
-        attempt += 1
-
-
-def _describe(exc: BaseException) -> str:
-    text = str(exc) or type(exc).__name__
-    return text if isinstance(exc, ProtocolError) else f"{type(exc).__name__}: {text}"
+        ws, protocol, ready = await reopen_with_backoff(
+            open_once, reconnect, fatal, gave_up=gave_up
+        )
