@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from facecast.cli.errors import TrackerUnavailable
 from facecast.rig.errors import InputError
 from facecast.rig.sources.facemesh import image_to_mesh, normalise_mesh
 from facecast.rig.sources.layouts import Layout, load_layout
@@ -22,10 +23,6 @@ __all__ = ["FaceTracker", "Tracked", "TrackerUnavailable", "VideoSource"]
 
 #: The extra that brings the tracker, for messages.
 EXTRA = "facecast[perform]"
-
-
-class TrackerUnavailable(RuntimeError):
-    """mediapipe or OpenCV is not installed (the ``facecast[perform]`` extra)."""
 
 
 def _modules():

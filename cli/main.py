@@ -13,6 +13,9 @@ import sys
 from collections.abc import Sequence
 
 from facecast import __version__
+from facecast.cli.errors import CommandError
+
+__all__ = ["COMMAND_MODULES", "CommandError", "build_parser", "limit_blas_threads", "main"]
 
 # Order is the order shown by --help.
 COMMAND_MODULES = (
@@ -32,10 +35,6 @@ COMMAND_MODULES = (
     "bridge",
     "import_",
 )
-
-
-class CommandError(Exception):
-    """A user-facing failure of a command: printed as ``facecast: error: ...``, exit 2."""
 
 
 def build_parser() -> argparse.ArgumentParser:

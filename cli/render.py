@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from facecast.cli.errors import RenderError
+
 __all__ = ["VIEWS", "RenderError", "render_mesh", "save_side_by_side"]
 
 #: Names accepted by ``render_mesh(view=...)``.
@@ -24,14 +26,6 @@ _AMBIENT = 0.22
 _DIFFUSE = 0.78
 _MAX_PIXELS = 8192
 _DPI = 100.0
-
-
-class RenderError(ValueError):
-    """Bad input to the renderer; ``code`` is a stable machine-readable string."""
-
-    def __init__(self, message: str, *, code: str = "bad_render_input") -> None:
-        super().__init__(message)
-        self.code = code
 
 
 def _view_rotation(view: str) -> np.ndarray:

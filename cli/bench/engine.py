@@ -17,6 +17,8 @@ import warnings
 
 import numpy as np
 
+from facecast.cli.errors import CommandError
+
 BATCH = 1024
 # Goals, in seconds or as ratios; a figure passes when its test holds.
 GOALS = {
@@ -206,7 +208,6 @@ def format_figures(figures: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     import scipy
 
-    from facecast.cli.main import CommandError
     from facecast.cli.report import write_json
     from facecast.rig.kernel import description as kernel_description
 

@@ -73,6 +73,8 @@ class FacialMocapPacketError(TrackerPacketError):
     ``duplicate_name``, ``bad_pose``, ``non_finite``.
     """
 
+    code: str = "bad_ifacialmocap_packet"
+
 
 @dataclass(frozen=True, eq=False)
 class FacialMocapFrame:

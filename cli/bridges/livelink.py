@@ -113,6 +113,8 @@ class LiveLinkPacketError(TrackerPacketError):
     fits, the code is the app layout's and the message adds PyLiveLinkFace's reason.
     """
 
+    code: str = "bad_livelink_packet"
+
 
 @dataclass(frozen=True, eq=False)
 class LiveLinkFrame:

@@ -20,6 +20,7 @@ from typing import Generic, Protocol, TypeVar
 import numpy as np
 
 from facecast.client.channel import FramePublisher
+from facecast.errors import FacecastError
 from facecast.rig.sources.source_rig import SourceRig
 
 from .head_pose import head_pose as head_pose_of
@@ -37,8 +38,10 @@ __all__ = [
 log = logging.getLogger("facecast.bridges")
 
 
-class TrackerPacketError(ValueError):
+class TrackerPacketError(FacecastError, ValueError):
     """A datagram that is not a valid packet of its tracker; ``code`` says why."""
+
+    code: str = "bad_tracker_packet"
 
     def __init__(self, code: str, message: str) -> None:
         super().__init__(message)

@@ -12,6 +12,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from facecast.cli.errors import CommandError
+
 if TYPE_CHECKING:  # numpy and the rig load when a command runs, not for --help
     import numpy as np
 
@@ -52,7 +54,6 @@ def load_animation(
     expected_by : str
         Who wants ``num_points``, as the error for a mismatch says it.
     """
-    from facecast.cli.main import CommandError
 
     if spec == "demo":
         from facecast.rig.demo import demo_animation

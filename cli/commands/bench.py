@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import importlib
 
+from facecast.cli.errors import CommandError
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -71,7 +73,6 @@ def register(subparsers) -> None:
 
 def _runner(name: str):
     def run(args: argparse.Namespace) -> int:
-        from facecast.cli.main import CommandError
 
         module_name = f"facecast.cli.bench.{name}"
         try:

@@ -11,6 +11,8 @@ import argparse
 import math
 import sys
 
+from facecast.cli.errors import CommandError
+
 
 def _host_port(text: str, default_port: int | None = None) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
@@ -113,7 +115,6 @@ def _add_run_arguments(parser: argparse.ArgumentParser, run) -> None:
 
 def _bridge_url(args: argparse.Namespace, kind: str, query: dict[str, str] | None = None) -> str:
     """The channel's ``publish`` or ``watch`` URL; a malformed URL or name is a CommandError."""
-    from facecast.cli.main import CommandError
     from facecast.client.channel import channel_url
 
     try:
@@ -237,7 +238,6 @@ def _run_tracker(args: argparse.Namespace, what: str, open_receiver, run_bridge,
     import contextlib
 
     from facecast.cli.bridges.vmc import VmcSender, vmc_head_bundle
-    from facecast.cli.main import CommandError
     from facecast.client.channel import FramePublisher
     from facecast.client.connection import ConnectionFailed
     from facecast.protocol import Hello
@@ -365,7 +365,6 @@ def run_vmc(args: argparse.Namespace) -> int:
     import asyncio
 
     from facecast.cli.bridges.vmc import MIN_DATAGRAM, VmcSender, run_vmc_bridge
-    from facecast.cli.main import CommandError
     from facecast.client.channel import watch_channel
     from facecast.client.connection import ConnectionFailed
 

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 from facecast.cli.commands._animation import add_source_arguments
+from facecast.cli.errors import CommandError
 
 BATCH = 256
 # Above this many bytes of cloned vertices an .npz keeps only the weights (the rig and
@@ -73,7 +74,6 @@ def clone_frames(rig, points, *, align: bool = False, with_vertices: bool = True
 
 def run(args: argparse.Namespace) -> int:
     from facecast.cli.commands._animation import load_animation, write_cloned
-    from facecast.cli.main import CommandError
     from facecast.rig import load_rig
 
     if not Path(args.rig).exists():

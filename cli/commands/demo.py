@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 
+from facecast.cli.errors import CommandError
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -51,7 +53,6 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from facecast.cli.main import CommandError
     from facecast.cli.snapshot import DEMO_RIG_ID, serving, write_demo_rig
     from facecast.rig import load_rig
     from facecast.rig.demo import demo_animation

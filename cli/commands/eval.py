@@ -11,6 +11,8 @@ import sys
 import warnings
 from pathlib import Path
 
+from facecast.cli.errors import CommandError
+
 from .fit import KERNEL_CHOICES
 
 DEFAULT_NOISE = 0.01  # cm: about a tenth of a millimetre of landmark jitter
@@ -113,7 +115,6 @@ def _demo(args) -> _Data:
 
 
 def _ict(args) -> _Data:
-    from facecast.cli.main import CommandError
     from facecast.rig.sources.ict import (
         ict_animation,
         ict_example_set,
@@ -144,7 +145,6 @@ def _ict(args) -> _Data:
 
 
 def _take(args) -> _Data:
-    from facecast.cli.main import CommandError
     from facecast.rig.evaluation.takes import (
         ARKIT_TARGET_IDENTITY,
         arkit_example_set,
@@ -190,7 +190,6 @@ def _files(args) -> _Data:
     import numpy as np
 
     from facecast.cli.commands.fit import load_examples
-    from facecast.cli.main import CommandError
     from facecast.rig.sources.loading import load_source_animation
 
     if args.examples is None or args.source is None:
@@ -260,7 +259,6 @@ def _smoothing(args, data: _Data, report: dict) -> dict:
     """Jitter of the noisy take cloned raw and through the one-euro filter (a table, printed)."""
     import numpy as np
 
-    from facecast.cli.main import CommandError
     from facecast.rig import fit
     from facecast.rig.evaluation.evaluate import smoothing_report
 
@@ -332,7 +330,6 @@ def _temporal(args, data: _Data, plots: Path | None) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from facecast.cli.main import CommandError
     from facecast.cli.report import format_error_table, format_timing_table, write_json
     from facecast.rig.evaluation.evaluate import default_settings, evaluate
 

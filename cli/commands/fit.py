@@ -11,6 +11,8 @@ import json
 import sys
 from pathlib import Path
 
+from facecast.cli.errors import CommandError
+
 # The engine's kernel names (facecast.rig.kernels.KERNELS), spelled out so --help does
 # not import numpy; a test keeps the two equal.
 KERNEL_CHOICES = ("bspline", "gaussian", "thin_plate", "linear")
@@ -89,7 +91,6 @@ def register(subparsers) -> None:
 
 
 def _stable_points(text: str | None):
-    from facecast.cli.main import CommandError
 
     if text is None:
         return None
@@ -106,7 +107,6 @@ def _stable_points(text: str | None):
 
 def load_examples(spec: str, source: str | None = None):
     """The example set named on the command line: a path, or ``demo``."""
-    from facecast.cli.main import CommandError
 
     if spec == "demo":
         from facecast.rig.demo import demo_example_set
@@ -219,7 +219,6 @@ def _bounds_line(report: dict) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     import warnings
 
-    from facecast.cli.main import CommandError
     from facecast.rig import fit
 
     output = Path(args.output)

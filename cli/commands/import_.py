@@ -25,6 +25,8 @@ import json
 import sys
 from pathlib import Path
 
+from facecast.cli.errors import CommandError
+
 #: ICT-FaceKit vertex of each Multi-PIE 68 landmark (the topology of the public
 #: repository's FaceXModel meshes; the same list as ``landmarks68`` in ict_facekit.npz).
 ICT_LANDMARKS68 = (
@@ -77,7 +79,6 @@ def register(subparsers) -> None:
 
 
 def _landmarks(text: str | None):
-    from facecast.cli.main import CommandError
     from facecast.rig.sources.ict import DEFAULT_LANDMARKS
 
     if text is None:
@@ -225,7 +226,6 @@ def write_example_folder(example_set, folder: Path, comment: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from facecast.cli.main import CommandError
     from facecast.rig.sources.ict import DEFAULT_STABLE_LANDMARKS
 
     out = Path(args.output)

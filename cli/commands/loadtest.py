@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from facecast.cli.errors import CommandError
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -88,7 +90,6 @@ def run(args: argparse.Namespace) -> int:
         run_load,
         write_histogram,
     )
-    from facecast.cli.main import CommandError
 
     if not 1 <= args.clients <= MAX_CLIENTS:
         raise CommandError(f"--clients must be in 1..{MAX_CLIENTS}, got {args.clients}")

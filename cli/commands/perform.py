@@ -12,6 +12,8 @@ import sys
 import time
 from dataclasses import dataclass, field
 
+from facecast.cli.errors import CommandError, TrackerUnavailable
+
 #: Frames of the held neutral face whose robust average starts a calibrated performance.
 NEUTRAL_FRAMES = 15
 
@@ -112,7 +114,6 @@ async def perform(args: argparse.Namespace) -> PerformStats:
     import numpy as np
 
     from facecast.cli.facetrack import FaceTracker, VideoSource
-    from facecast.cli.main import CommandError
     from facecast.client.channel import FramePublisher, channel_url
     from facecast.protocol import Hello
     from facecast.rig.sources.capture import robust_example
@@ -181,8 +182,6 @@ async def perform(args: argparse.Namespace) -> PerformStats:
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
-    from facecast.cli.facetrack import TrackerUnavailable
-    from facecast.cli.main import CommandError
     from facecast.client.connection import ConnectionFailed
     from facecast.protocol import ProtocolError
     from facecast.rig.errors import InputError

@@ -11,6 +11,7 @@ import sys
 from typing import TYPE_CHECKING
 
 from facecast.cli.commands._animation import add_source_arguments
+from facecast.cli.errors import CommandError
 
 if TYPE_CHECKING:  # numpy loads when the command runs, not for --help
     import numpy as np
@@ -150,7 +151,6 @@ async def publish(args: argparse.Namespace) -> tuple[int, PublisherStats, bool, 
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
-    from facecast.cli.main import CommandError
     from facecast.client.connection import ConnectionFailed
 
     if not 0 <= args.drain_timeout <= 600:  # also refuses NaN

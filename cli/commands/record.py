@@ -12,6 +12,8 @@ import sys
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from facecast.cli.errors import CommandError
+
 if TYPE_CHECKING:  # numpy loads when the command runs, not for --help
     import numpy as np
 
@@ -108,7 +110,6 @@ class Take:
 
 def _fail_on(message: Any, args: argparse.Namespace) -> None:
     """Raise the CommandError an ``error`` from the server calls for (None if it is benign)."""
-    from facecast.cli.main import CommandError
     from facecast.protocol import ErrorCode
 
     if message.fatal:
@@ -129,7 +130,6 @@ async def record(args: argparse.Namespace, take: Take) -> None:
     from websockets.asyncio.client import connect
     from websockets.exceptions import ConnectionClosed, WebSocketException
 
-    from facecast.cli.main import CommandError
     from facecast.client.channel import channel_url
     from facecast.client.connection import ConnectionFailed
     from facecast.client.urls import auth_headers, resolve_token
@@ -228,7 +228,6 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from facecast.cli.main import CommandError
     from facecast.client.connection import ConnectionFailed
 
     out = Path(args.out)

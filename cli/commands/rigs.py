@@ -14,6 +14,8 @@ import sys
 import zipfile
 from pathlib import Path
 
+from facecast.cli.errors import CommandError
+
 ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz")
 
 
@@ -99,8 +101,6 @@ def _zip_folder(folder: Path) -> bytes:
 
 def run(args: argparse.Namespace) -> int:
     import httpx
-
-    from facecast.cli.main import CommandError
 
     base = args.url.rstrip("/")
     if not base.startswith(("http://", "https://")):

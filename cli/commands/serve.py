@@ -10,6 +10,8 @@ import argparse
 import dataclasses
 import sys
 
+from facecast.cli.errors import CommandError
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -77,7 +79,6 @@ def settings_from_args(args: argparse.Namespace, env=None):
 
 
 def run(args: argparse.Namespace) -> int:
-    from facecast.cli.main import CommandError
     from facecast.server.runner import serve
     from facecast.server.settings import SettingsError
 

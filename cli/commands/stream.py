@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 from facecast.cli.commands._animation import add_source_arguments
+from facecast.cli.errors import CommandError
 
 #: Largest (frames x vertices) result kept in memory for --output vertices, bytes.
 MAX_VERTEX_BYTES = 2 << 30
@@ -103,7 +104,6 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
 
     from facecast.cli.commands._animation import load_animation, write_results
-    from facecast.cli.main import CommandError
     from facecast.client.connection import connect
     from facecast.client.fetch import fetch_rig
     from facecast.client.streaming import stream_frames

@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from facecast.cli.errors import CommandError
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -79,7 +81,6 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from facecast.cli.main import CommandError
     from facecast.client.connection import ConnectionFailed
 
     out = Path(args.out)

@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 
-from facecast.cli.main import CommandError
+from facecast.cli.errors import CommandError
 from facecast.client.channel import FramePublisher, channel_url
 from facecast.protocol import Hello
 from facecast.server.settings import Settings

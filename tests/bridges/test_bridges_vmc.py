@@ -30,7 +30,7 @@ from facecast.cli.bridges.vmc import (
     vmc_status_bundle,
 )
 from facecast.cli.bridges.vmc_names import vmc_names
-from facecast.cli.main import CommandError
+from facecast.cli.errors import CommandError
 from facecast.client.channel import FramePublisher, channel_url, watch_channel
 from facecast.client.connection import ConnectionFailed, Reconnect, connect
 from facecast.protocol import ChannelLive, FaceLost, Hello, Ready, Result

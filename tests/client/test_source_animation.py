@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from facecast.cli.commands._animation import load_animation
-from facecast.cli.main import CommandError
+from facecast.cli.errors import CommandError
 
 
 def _no_indices():

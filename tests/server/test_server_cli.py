@@ -9,7 +9,7 @@ import pytest
 from _server_helpers import write_example_folder
 
 from facecast.cli.commands import rigs, serve
-from facecast.cli.main import CommandError
+from facecast.cli.errors import CommandError
 from facecast.rig import load_rig
 from facecast.server.testing import run_server
 

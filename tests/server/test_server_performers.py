@@ -403,7 +403,7 @@ async def test_rigs_capture_and_refit_commands_drive_the_endpoints(server, tmp_p
 
 
 async def test_rigs_refit_shows_the_servers_code(server, capsys):
-    from facecast.cli.main import CommandError
+    from facecast.cli.errors import CommandError
 
     with pytest.raises(CommandError, match="performer_not_found"):
         _rigs_cli("refit", server.base_url, "--performer", "nobody", "--rig", "other")
