@@ -127,14 +127,14 @@ async def record(args: argparse.Namespace, take: Take) -> None:
     import asyncio
 
     import numpy as np
-    from websockets.asyncio.client import connect
-    from websockets.exceptions import ConnectionClosed, WebSocketException
+    from websockets.exceptions import ConnectionClosed
 
     from facecast.client.channel import channel_url
-    from facecast.client.connection import ConnectionFailed
+    from facecast.client.errors import ConnectionFailed
+    from facecast.client.handshake import open_websocket
+    from facecast.client.reconnect import OPEN_ERRORS, describe
     from facecast.client.urls import auth_headers, resolve_token
     from facecast.protocol import (
-        SUBPROTOCOL,
         ChannelIdle,
         ChannelLive,
         Error,
@@ -151,13 +151,9 @@ async def record(args: argparse.Namespace, take: Take) -> None:
     url = channel_url(args.url, args.channel, "watch", query)
     loop = asyncio.get_running_loop()
     try:
-        ws = await connect(
-            url, additional_headers=auth_headers(resolve_token(args.token)),
-            subprotocols=[SUBPROTOCOL], max_size=limits.max_server_message_bytes,
-            open_timeout=10.0, compression=None,
-        )  # fmt: skip
-    except (OSError, TimeoutError, WebSocketException) as exc:
-        raise ConnectionFailed(f"cannot watch {url}: {type(exc).__name__}: {exc}") from None
+        ws = await open_websocket(url, auth_headers(resolve_token(args.token)), limits, 10.0)
+    except OPEN_ERRORS as exc:
+        raise ConnectionFailed(f"cannot watch {url}: {describe(exc)}") from None
     ready: Ready | None = None
     live = False
     started = loop.time()
