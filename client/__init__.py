@@ -1,7 +1,8 @@
-"""facecast.client: the Python client library, the ``facecast`` CLI, load generator and viewer.
+"""facecast.client: the Python client library of a facecast server, and the viewer's pages.
 
-It talks to a server through ``facecast.protocol`` and HTTP only; the ``demo`` command and
-the snapshot tool are the exceptions that also start a server in-process.
+Stream sessions, channel publish/watch sessions, reconnection, URLs and rig look-ups,
+through ``facecast.protocol`` and HTTP only; the ``facecast`` command and the tools built
+on this library live in ``facecast.cli``, which this package never imports.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ if TYPE_CHECKING:
 
 
 def __getattr__(name: str):
-    # Loaded on first use (PEP 562), not on import: the CLI (facecast.client.cli) must set
+    # Loaded on first use (PEP 562), not on import: the CLI (facecast.cli.main) must set
     # its BLAS thread count before anything imports numpy, and the connection does.
     if name in __all__:
         return getattr(importlib.import_module("facecast.client.connection"), name)

@@ -31,16 +31,13 @@ import contextlib
 import itertools
 import time
 from collections.abc import AsyncIterator, Generator
-from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
 from websockets.asyncio.client import ClientConnection
-from websockets.asyncio.client import connect as ws_connect
-from websockets.exceptions import ConnectionClosed, WebSocketException
+from websockets.exceptions import ConnectionClosed
 
 from facecast.protocol import (
-    SUBPROTOCOL,
     Calibrate,
     Calibrated,
     ClientProtocol,
@@ -56,7 +53,10 @@ from facecast.protocol import (
     Result,
 )
 
+from .errors import ConnectionFailed
+from .handshake import await_ready, open_websocket
 from .latency import LatencyTracker
+from .reconnect import OPEN_ERRORS, RETRYABLE_CODES, Reconnect, describe, reopen_with_backoff
 from .urls import auth_headers, resolve_token, stream_url
 
 __all__ = [
@@ -67,89 +67,11 @@ __all__ = [
     "connect",
 ]
 
-#: Fatal server errors after which reconnecting may succeed; any other fatal error is final.
-RETRYABLE_CODES = frozenset({ErrorCode.OVERLOADED, ErrorCode.IDLE_TIMEOUT, ErrorCode.INTERNAL})
-
 #: Server results kept waiting for the application; the reader stops reading beyond
 #: this, so TCP pushes back and the server's newest-frame policy drops, not our memory.
 DEFAULT_MAX_QUEUE = 256
 
-
-class ConnectionFailed(ConnectionError):
-    """No session could be opened, or a lost one could not be re-opened.
-
-    Attributes
-    ----------
-    attempts : int
-        Connection attempts made before giving up.
-    last_error : BaseException or None
-        Why the last attempt failed.
-    """
-
-    def __init__(
-        self, message: str, *, attempts: int = 1, last_error: BaseException | None = None
-    ) -> None:
-        super().__init__(message)
-        self.attempts = attempts
-        self.last_error = last_error
-
-
-@dataclass(frozen=True)
-class Reconnect:
-    """How hard to try to re-open a lost session.
-
-    Attempt ``n`` (from 0) waits ``min(max_delay, initial_delay * factor**n)`` seconds
-    first; after ``attempts`` failures in a row the session fails. ``attempts=0`` turns
-    reconnection off.
-    """
-
-    attempts: int = 5
-    initial_delay: float = 0.1
-    max_delay: float = 5.0
-    factor: float = 2.0
-
-    def __post_init__(self) -> None:
-        if self.attempts < 0 or self.initial_delay < 0 or self.max_delay < 0 or self.factor < 1:
-            raise ValueError(f"invalid reconnection policy {self!r}")
-
-    def delay(self, attempt: int) -> float:
-        return min(self.max_delay, self.initial_delay * self.factor**attempt)
-
-
-async def await_ready(ws: ClientConnection, protocol: ClientProtocol) -> Ready:
-    """Read until the server's ``ready`` (returned) or ``error`` (raised as ProtocolError)."""
-    while True:
-        data = await ws.recv()
-        if isinstance(data, str):
-            raise ProtocolError(ErrorCode.TEXT_NOT_SUPPORTED, "server sent a text message")
-        message = protocol.receive(data)
-        if isinstance(message, Ready):
-            return message
-        if isinstance(message, Error):
-            raise message.to_exception()
-
-
-async def reopen_with_backoff(
-    open_once, reconnect: Reconnect, last: BaseException | None
-) -> tuple[bool, BaseException | None]:
-    """Call ``open_once()`` after each backoff delay until it succeeds or the attempts run out.
-
-    Returns (True, None) once open, or (False, the last error or ``last``). A protocol
-    error that retrying cannot cure (not in RETRYABLE_CODES) is raised at once.
-    """
-    for attempt in range(reconnect.attempts):
-        await asyncio.sleep(reconnect.delay(attempt))
-        try:
-            await open_once()
-        except ProtocolError as exc:
-            if exc.code not in RETRYABLE_CODES:
-                raise
-            last = exc
-        except _OPEN_ERRORS as exc:
-            last = exc
-        else:
-            return True, None
-    return False, last
+_DEFAULT_RECONNECT = Reconnect()
 
 
 class _Marker:
@@ -163,8 +85,6 @@ class _Marker:
 #: Queue items that are not results: the session ended; a new connection was opened.
 _END = _Marker("end")
 _RECONNECTED = _Marker("reconnected")
-
-_OPEN_ERRORS = (OSError, TimeoutError, WebSocketException)
 
 
 class StreamSession:
@@ -229,23 +149,15 @@ class StreamSession:
     async def _start(self) -> None:
         try:
             await self._open()
-        except _OPEN_ERRORS as exc:
+        except OPEN_ERRORS as exc:
             raise ConnectionFailed(
-                f"cannot open a session at {self.url}: {_describe(exc)}", last_error=exc
+                f"cannot open a session at {self.url}: {describe(exc)}", last_error=exc
             ) from exc
         self._supervisor = asyncio.create_task(self._supervise(), name="facecast-client")
 
     async def _open(self) -> None:
         """Connect, send ``hello``, wait for ``ready``; raises on any failure."""
-        ws = await ws_connect(
-            self.url,
-            additional_headers=self._headers,
-            subprotocols=[SUBPROTOCOL],  # type: ignore[list-item]
-            max_size=self.limits.max_server_message_bytes,
-            open_timeout=self.open_timeout,
-            # Frames are float arrays: deflate costs CPU and latency and gains little.
-            compression=None,
-        )
+        ws = await open_websocket(self.url, self._headers, self.limits, self.open_timeout)
         try:
             protocol = ClientProtocol(self.limits)
             # A refusing server sends its error and closes at once: still read that error.
@@ -353,17 +265,15 @@ class StreamSession:
             self._protocol.close()
 
     async def _reconnect(self, reason: BaseException | None) -> None:
-        reopened, last = await reopen_with_backoff(self._open, self.reconnect, reason)
-        if reopened:
-            self.reconnects += 1
-            self._queue.put_nowait(_RECONNECTED)
-            return
-        why = "the connection closed" if last is None else _describe(last)
-        raise ConnectionFailed(
+        await reopen_with_backoff(self._open, self.reconnect, reason, gave_up=self._gave_up)
+        self.reconnects += 1
+        self._queue.put_nowait(_RECONNECTED)
+
+    def _gave_up(self, last: BaseException | None) -> str:
+        why = "the connection closed" if last is None else describe(last)
+        return (
             f"lost the session at {self.url} and gave up after "
-            f"{self.reconnect.attempts} reconnection attempt(s); last error: {why}",
-            attempts=self.reconnect.attempts,
-            last_error=last,
+            f"{self.reconnect.attempts} reconnection attempt(s); last error: {why}"
         )
 
     async def _deliver(self, item: Any) -> None:
@@ -664,11 +574,6 @@ class StreamSession:
         await self.close()
 
 
-def _describe(exc: BaseException) -> str:
-    text = str(exc) or type(exc).__name__
-    return text if isinstance(exc, ProtocolError) else f"{type(exc).__name__}: {text}"
-
-
 class _Connecting:
     """What `connect` returns: await it for a session, or use it as ``async with``."""
 
@@ -699,7 +604,7 @@ def connect(
     align: bool = False,
     align_scale: bool = False,
     calibration: bool = False,
-    reconnect: Reconnect | int = Reconnect(),
+    reconnect: Reconnect | int = _DEFAULT_RECONNECT,
     open_timeout: float = 10.0,
     max_queue: int = DEFAULT_MAX_QUEUE,
     limits: Limits | None = None,

@@ -11,32 +11,16 @@ from typing import TYPE_CHECKING, Any
 
 import httpx
 
+from .errors import RigNotFound, ServerRequestError
 from .urls import auth_headers, resolve_token, rest_url
 
 if TYPE_CHECKING:
     from facecast.rig import Rig
 
-__all__ = ["ServerRequestError", "fetch_rig", "fetch_rig_bytes", "fetch_summary"]
+__all__ = ["RigNotFound", "ServerRequestError", "fetch_rig", "fetch_rig_bytes", "fetch_summary"]
 
 #: Largest rig file downloaded (bytes); a bigger answer is refused, not buffered.
 MAX_RIG_BYTES = 512 * 1024 * 1024
-
-
-class ServerRequestError(ConnectionError):
-    """A REST request failed: unreachable server, or an HTTP problem response.
-
-    Attributes
-    ----------
-    status : int or None
-        HTTP status, None when no response arrived.
-    code : str
-        The problem's stable ``code`` (e.g. ``rig_not_found``), or ``unreachable``.
-    """
-
-    def __init__(self, message: str, *, status: int | None, code: str) -> None:
-        super().__init__(message)
-        self.status = status
-        self.code = code
 
 
 def _get(url: str, token: str | None, *, timeout: float, max_bytes: int) -> bytes:
@@ -74,7 +58,13 @@ def _problem(url: str, response: httpx.Response) -> ServerRequestError:
         detail = str(body.get("detail", detail))
     except ValueError:
         pass
-    return ServerRequestError(
+    # The one refusal a caller may handle apart: the rig asked for is not there.
+    kind = (
+        RigNotFound
+        if response.status_code == 404 and code == "rig_not_found"
+        else ServerRequestError
+    )
+    return kind(
         f"GET {url}: {response.status_code} {code}: {detail}",
         status=response.status_code,
         code=code,

@@ -2,22 +2,28 @@
 
 Only codes and the exception live here; no decoding, no I/O. The tree::
 
-    ValueError
+    facecast.errors.FacecastError, ValueError
     └── ProtocolError(code, message, *, seq=None, fatal=False)
             code: ErrorCode   1xxx malformed or unacceptable message (client's fault)
                               2xxx refused by the service (rig, auth, rate, capacity)
                               3000 INTERNAL (server's fault)
+
+Unlike the other FacecastErrors, whose ``code`` is a string per class, a ProtocolError's
+``code`` is the number the wire carries: one class, every code of §6.
 """
 
 from __future__ import annotations
 
-from enum import IntEnum
+from enum import IntEnum, unique
 from typing import TYPE_CHECKING
+
+from facecast.errors import FacecastError
 
 if TYPE_CHECKING:
     from facecast.protocol.messages import Error
 
 
+@unique
 class ErrorCode(IntEnum):
     """Stable numeric error codes; a number, once published, never changes meaning."""
 
@@ -56,7 +62,7 @@ def error_code(value: int) -> ErrorCode | int:
         return value
 
 
-class ProtocolError(ValueError):
+class ProtocolError(FacecastError, ValueError):
     """A message that cannot be accepted, or a refusal, with a stable code.
 
     Parameters

@@ -1,6 +1,6 @@
 """Exceptions of the numeric engine; every one carries a stable code.
 
-The tree::
+The tree (the root is ``facecast.errors.FacecastError``)::
 
     RigError(code, message)            any failure of the engine
     ├── ExampleSetError(RigError, ValueError)   bad example data (files, shapes, NaN, pairing)
@@ -11,11 +11,13 @@ The tree::
 
 from __future__ import annotations
 
+from facecast.errors import FacecastError
 
-class RigError(Exception):
+
+class RigError(FacecastError):
     """Base of the engine's errors; ``code`` is a stable machine-readable string."""
 
-    code = "rig_error"
+    code: str = "rig_error"
 
     def __init__(self, message: str, *, code: str | None = None) -> None:
         super().__init__(message)

@@ -39,7 +39,7 @@ def start(ws: str, rigs: Path, *env_pairs: str) -> tuple[subprocess.Popen, int]:
            "FACECAST_AUTH": "true", "FACECAST_TOKENS": "secret:admin"}  # fmt: skip
     env.update(pair.split("=", 1) for pair in env_pairs)
     process = subprocess.Popen(
-        [sys.executable, "-m", "facecast.client.cli", "serve", "--port", str(port),
+        [sys.executable, "-m", "facecast.cli", "serve", "--port", str(port),
          "--rigs", str(rigs), "--ws", ws],
         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip

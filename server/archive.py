@@ -15,6 +15,8 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
+from facecast.errors import FacecastError
+
 __all__ = ["ArchiveError", "ArchiveLimits", "extract_archive", "find_example_root"]
 
 _CHUNK = 1 << 16
@@ -28,8 +30,10 @@ MAX_PATH_BYTES = 1024
 _RATIO_FLOOR = 1 << 20
 
 
-class ArchiveError(ValueError):
+class ArchiveError(FacecastError, ValueError):
     """A rejected archive; ``status`` and ``code`` are the HTTP answer."""
+
+    code: str = "bad_archive"
 
     def __init__(self, status: int, code: str, message: str) -> None:
         super().__init__(message)

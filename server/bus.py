@@ -21,6 +21,8 @@ from typing import Any
 
 import msgpack
 
+from facecast.errors import FacecastError
+
 from .settings import SettingsError
 
 __all__ = ["Bus", "BusUnavailable", "LocalBus", "RedisBus", "make_bus"]
@@ -54,8 +56,10 @@ return 0
 OnMessage = Callable[[str, str, str, bytes | None], None]
 
 
-class BusUnavailable(ConnectionError):
+class BusUnavailable(FacecastError, ConnectionError):
     """The shared registry (Redis) cannot be reached right now."""
+
+    code: str = "bus_unavailable"
 
 
 def frames_channel(name: str) -> str:

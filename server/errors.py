@@ -2,6 +2,16 @@
 
 Route code raises ``ApiError`` (or lets a ``RigError`` through); the handlers here turn
 them into one JSON shape, once, at the boundary. No route logic lives here.
+
+The server's exceptions (the root is ``facecast.errors.FacecastError``; each is defined
+beside the one object that raises it, and its class ``code`` is its default)::
+
+    ApiError(status, code, detail)                 "api_error"   here; code: the problem's
+    SettingsError(ValueError)                      "bad_setting"        settings.py
+    RigNotFoundError(LookupError)                  "rig_not_found"      store.py
+    ProfileNotFoundError(LookupError)              "profile_not_found"  performers.py
+    ArchiveError(ValueError)(status, code, ...)    "bad_archive"        archive.py
+    BusUnavailable(ConnectionError)                "bus_unavailable"    bus.py
 """
 
 from __future__ import annotations
@@ -15,6 +25,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
+from facecast.errors import FacecastError
 from facecast.rig.errors import RigError
 
 __all__ = ["ApiError", "install_error_handlers", "problem"]
@@ -38,8 +49,10 @@ _STATUS_CODES = {
 }
 
 
-class ApiError(Exception):
+class ApiError(FacecastError):
     """An HTTP failure with a stable machine-readable ``code`` and a human ``detail``."""
+
+    code: str = "api_error"
 
     def __init__(
         self, status: int, code: str, detail: str, *, headers: dict[str, str] | None = None

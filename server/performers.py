@@ -18,6 +18,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 
+from facecast.errors import FacecastError
 from facecast.rig.sources.layouts import DEFAULT_LAYOUT, layout_names
 
 from .errors import ApiError
@@ -246,7 +247,9 @@ def _points_array(name: str, value: object) -> np.ndarray:
     return array
 
 
-class ProfileNotFoundError(LookupError):
+class ProfileNotFoundError(FacecastError, LookupError):
+    code: str = "profile_not_found"
+
     def __init__(self, performer: str) -> None:
         super().__init__(f"no performer profile named {performer!r}")
         self.performer = performer

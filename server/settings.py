@@ -19,6 +19,8 @@ from types import MappingProxyType
 from typing import Any
 from urllib.parse import urlsplit
 
+from facecast.errors import FacecastError
+
 __all__ = ["ROLES", "Settings", "SettingsError", "normalise_origin", "parse_tokens"]
 
 #: The roles a token can hold; ``admin`` implies all others (see ``auth``). ``performer``
@@ -29,8 +31,10 @@ ENV_PREFIX = "FACECAST_"
 MiB = 1024 * 1024
 
 
-class SettingsError(ValueError):
+class SettingsError(FacecastError, ValueError):
     """A configuration value that cannot be used; the message names the setting."""
+
+    code: str = "bad_setting"
 
 
 @dataclass(frozen=True)

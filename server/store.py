@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from facecast.errors import FacecastError
 from facecast.protocol import Limits
 from facecast.rig.errors import RigFileError
 from facecast.rig.io.gltf import export_glb
@@ -95,7 +96,9 @@ def check_servable(rig: Rig, limits: Limits, source: str) -> None:
         )
 
 
-class RigNotFoundError(LookupError):
+class RigNotFoundError(FacecastError, LookupError):
+    code: str = "rig_not_found"
+
     def __init__(self, rig_id: str) -> None:
         super().__init__(f"no rig with id {rig_id!r}")
         self.rig_id = rig_id

@@ -21,7 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from facecast.client.facetrack import FaceTracker, VideoSource
+from facecast.cli.facetrack import FaceTracker, VideoSource
 from facecast.rig.sources.layouts import load_layout
 
 #: Mesh points of the legacy FaceMesh (no iris refinement).

@@ -29,7 +29,7 @@ RUN_TIMEOUT = 240.0
 #: Imports the perform venv must manage, and where its facecast lives (it must be this
 #: checkout's, installed editable, or the tests would test other code).
 _PROBE = (
-    "import cv2, mediapipe.python.solutions.face_mesh, facecast.client.facetrack as f; "
+    "import cv2, mediapipe.python.solutions.face_mesh, facecast.cli.facetrack as f; "
     "print(f.__file__)"
 )
 
@@ -102,8 +102,7 @@ async def run_facecast(python: Path, *argv: str) -> Finished:
     """The perform venv's installed ``facecast ARGV...`` (beside ``python``) as a
     subprocess, without blocking the loop (the test's server and watchers run on it);
     killed if it outlives RUN_TIMEOUT."""
-    # The console script, not `python -m facecast.client.cli`: run as __main__, cli.py
-    # would be a second module whose CommandError the commands' errors are not.
+    # The console script: the entry point the perform venv installed, as a user runs it.
     process = await asyncio.create_subprocess_exec(
         str(python.parent / "facecast"),
         *argv,

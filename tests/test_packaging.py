@@ -13,9 +13,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def wheel(tmp_path_factory) -> Path:
+def built(tmp_path_factory) -> tuple[Path, str]:
+    """The wheel, and what building it printed (setuptools' warnings included)."""
     out = tmp_path_factory.mktemp("wheel")
-    subprocess.run(
+    result = subprocess.run(
         [
             sys.executable,
             "-m",
@@ -23,17 +24,43 @@ def wheel(tmp_path_factory) -> Path:
             "wheel",
             "--no-deps",
             "--no-build-isolation",
-            "-q",
             "-w",
             str(out),
             str(ROOT),
         ],
         check=True,
         capture_output=True,
+        text=True,
         timeout=300,
     )
     (path,) = out.glob("facecast-*.whl")
-    return path
+    return path, result.stdout + result.stderr
+
+
+@pytest.fixture(scope="module")
+def wheel(built) -> Path:
+    return built[0]
+
+
+def test_building_the_wheel_leaves_no_data_folder_unlisted(built):
+    # setuptools warns (pip shows the backend's output, no -q) when package data sits in
+    # a folder it would import as a package it was not told about.
+    _, log = built
+    assert "Building wheel for facecast" in log
+    assert "is absent from the `packages` configuration" not in log
+
+
+def test_wheel_holds_the_viewer_pages_and_every_built_viewer_file(wheel):
+    names = set(zipfile.ZipFile(wheel).namelist())
+    viewer = ROOT / "client" / "viewer"
+    for page in ("viewer.html", "overlay.html", "perform.html"):
+        assert f"facecast/client/viewer/{page}" in names
+    dist = viewer / "dist"
+    if not (dist / "viewer.js").is_file():
+        pytest.skip("the viewer is not built here (scripts/setup builds it with npm)")
+    built_files = [p.relative_to(viewer).as_posix() for p in dist.rglob("*") if p.is_file()]
+    missing = [f for f in built_files if f"facecast/client/viewer/{f}" not in names]
+    assert "dist/perform/facemesh.bin" in built_files and not missing
 
 
 def test_wheel_holds_every_package_and_the_protocol_spec(wheel):
@@ -46,10 +73,12 @@ def test_wheel_holds_every_package_and_the_protocol_spec(wheel):
         "facecast/rig/sources/layouts/mediapipe_face_mesh.json",
         "facecast/rig/demo/scene.py",
         "facecast/server/app.py",
-        "facecast/client/cli.py",
-        "facecast/client/commands/demo.py",
-        "facecast/client/bench/engine.py",
-        "facecast/client/bridges/vmc.py",
+        "facecast/client/connection.py",
+        "facecast/client/channel.py",
+        "facecast/cli/main.py",
+        "facecast/cli/commands/demo.py",
+        "facecast/cli/bench/engine.py",
+        "facecast/cli/bridges/vmc.py",
     ]:
         assert member in names, member
 
@@ -57,7 +86,7 @@ def test_wheel_holds_every_package_and_the_protocol_spec(wheel):
 def test_wheel_declares_the_facecast_console_script(wheel):
     archive = zipfile.ZipFile(wheel)
     (entry_points,) = [n for n in archive.namelist() if n.endswith("entry_points.txt")]
-    assert "facecast = facecast.client.cli:main" in archive.read(entry_points).decode()
+    assert "facecast = facecast.cli.main:main" in archive.read(entry_points).decode()
 
 
 def test_installed_wheel_imports_and_fits_the_demo(wheel, tmp_path):

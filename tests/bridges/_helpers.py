@@ -83,12 +83,12 @@ def pylivelinkface_packet(
 def run_command(module: str, argv: list[str]) -> int:
     """Run one command module's parser and ``func`` as ``facecast`` main does (errors raised).
 
-    ``facecast.client.cli`` lists every command module; these run alone so the tests do
+    ``facecast.cli.main`` lists every command module; these run alone so the tests do
     not depend on the other commands being importable.
     """
     parser = argparse.ArgumentParser(prog="facecast")
     sub = parser.add_subparsers(dest="command", required=True)
-    importlib.import_module(f"facecast.client.commands.{module}").register(sub)
+    importlib.import_module(f"facecast.cli.commands.{module}").register(sub)
     args = parser.parse_args(argv)
     return int(args.func(args) or 0)
 

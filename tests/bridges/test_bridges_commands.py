@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from facecast.client.cli import CommandError
+from facecast.cli.errors import CommandError
 from facecast.rig.errors import ExampleSetError
 from facecast.rig.io.loaders import load_example_set
 from facecast.rig.sources.source_rig import ARKIT_NAMES, load_source_rig

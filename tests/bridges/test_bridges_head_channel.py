@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from facecast.client.bridges.channel import FramePublisher, channel_url
-from facecast.client.bridges.ifacialmocap import open_ifacialmocap_receiver
-from facecast.client.bridges.tracker import run_tracker_bridge
-from facecast.client.bridges.vmc import VmcSender, run_vmc_bridge
+from facecast.cli.bridges.ifacialmocap import open_ifacialmocap_receiver
+from facecast.cli.bridges.tracker import run_tracker_bridge
+from facecast.cli.bridges.vmc import VmcSender, run_vmc_bridge
+from facecast.client.channel import FramePublisher, channel_url
 from facecast.protocol import Head, Hello, Ready, Result
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
@@ -86,7 +86,7 @@ async def _viewers(base_url: str, timeout: float = 30.0) -> None:
 async def _livelink_process(base_url: str, source: Path, port: int, *options: str):
     """``facecast bridge livelink ... --frames 1`` as its own process, once it listens."""
     process = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "facecast.client.cli", "bridge", "livelink", base_url,
+        sys.executable, "-m", "facecast.cli", "bridge", "livelink", base_url,
         "--channel", "stage", "--rig", RIG_ID, "--source-rig", str(source),
         "--listen", f"127.0.0.1:{port}", "--frames", "1", *options,
         stderr=asyncio.subprocess.PIPE,

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from facecast.client.bridges.channel import channel_url, watch_channel
+from facecast.client.channel import channel_url, watch_channel
 from facecast.client.connection import Reconnect
 from facecast.protocol import Result
 from facecast.rig import fit, load_rig
@@ -165,7 +165,7 @@ def _free_udp_port() -> int:
 async def _bridge_process(base_url: str, imported: Path, port: int):
     """``facecast bridge livelink --head-pose`` as its own process, once it listens."""
     process = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "facecast.client.cli", "bridge", "livelink", base_url,
+        sys.executable, "-m", "facecast.cli", "bridge", "livelink", base_url,
         "--channel", "stage", "--rig", "ict", "--source-rig", str(imported),
         "--listen", f"127.0.0.1:{port}", "--head-pose", "--frames", "1",
         stderr=asyncio.subprocess.PIPE,

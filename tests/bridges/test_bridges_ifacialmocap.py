@@ -11,8 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from facecast.client.bridges.channel import FramePublisher
-from facecast.client.bridges.ifacialmocap import (
+from facecast.cli.bridges.ifacialmocap import (
     APPS,
     MAX_PACKET_BYTES,
     FacialMocapPacketError,
@@ -20,8 +19,9 @@ from facecast.client.bridges.ifacialmocap import (
     parse_ifacialmocap_packet,
     request_stream,
 )
-from facecast.client.bridges.tracker import run_tracker_bridge
-from facecast.client.bridges.vmc import head_bone_message
+from facecast.cli.bridges.tracker import run_tracker_bridge
+from facecast.cli.bridges.vmc import head_bone_message
+from facecast.client.channel import FramePublisher
 from facecast.client.urls import stream_url
 from facecast.protocol import Hello, Result
 from facecast.rig.sources.source_rig import ARKIT_NAMES

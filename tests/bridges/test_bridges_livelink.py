@@ -15,15 +15,15 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from websockets.exceptions import InvalidStatus
 
-from facecast.client.bridges.channel import FramePublisher, channel_url, watch_channel
-from facecast.client.bridges.livelink import (
+from facecast.cli.bridges.livelink import (
     MAX_PACKET_BYTES,
     LiveLinkPacketError,
     open_livelink_receiver,
     parse_livelink_packet,
     run_livelink_bridge,
 )
-from facecast.client.bridges.vmc import head_bone_message
+from facecast.cli.bridges.vmc import head_bone_message
+from facecast.client.channel import FramePublisher, channel_url, watch_channel
 from facecast.client.connection import ConnectionFailed, Reconnect
 from facecast.client.urls import stream_url
 from facecast.protocol import ChannelLive, Hello, Ready, Result

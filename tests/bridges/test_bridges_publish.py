@@ -8,8 +8,8 @@ import re
 import numpy as np
 import pytest
 
-from facecast.client.bridges.channel import FramePublisher, channel_url
-from facecast.client.cli import CommandError
+from facecast.cli.errors import CommandError
+from facecast.client.channel import FramePublisher, channel_url
 from facecast.protocol import Hello
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server

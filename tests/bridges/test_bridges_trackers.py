@@ -276,7 +276,7 @@ def test_load_source_animation_reads_a_mediapipe_take(tmp_path):
 
 
 def test_clone_command_clones_a_livelink_take_through_a_source_rig(take, tmp_path, example_set):
-    from facecast.client.cli import main
+    from facecast.cli.main import main
     from facecast.rig import fit
     from facecast.rig.sources.source_rig import SourceRig
 

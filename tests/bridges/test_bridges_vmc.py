@@ -19,8 +19,7 @@ from pythonosc.osc_message_builder import OscMessageBuilder
 from pythonosc.osc_packet import OscPacket
 from websockets.exceptions import InvalidStatus
 
-from facecast.client.bridges.channel import FramePublisher, channel_url, watch_channel
-from facecast.client.bridges.vmc import (
+from facecast.cli.bridges.vmc import (
     SAFE_DATAGRAM,
     VmcFrameEncoder,
     VmcSender,
@@ -30,8 +29,9 @@ from facecast.client.bridges.vmc import (
     vmc_head_bundle,
     vmc_status_bundle,
 )
-from facecast.client.bridges.vmc_names import vmc_names
-from facecast.client.cli import CommandError
+from facecast.cli.bridges.vmc_names import vmc_names
+from facecast.cli.errors import CommandError
+from facecast.client.channel import FramePublisher, channel_url, watch_channel
 from facecast.client.connection import ConnectionFailed, Reconnect, connect
 from facecast.protocol import ChannelLive, FaceLost, Hello, Ready, Result
 from facecast.rig.sources.source_rig import ARKIT_NAMES

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import websockets
 
-from facecast.client.bridges.channel import channel_url
+from facecast.client.channel import channel_url
 from facecast.protocol import (
     SUBPROTOCOL,
     ClientProtocol,

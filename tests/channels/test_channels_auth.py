@@ -7,7 +7,7 @@ import dataclasses
 import httpx
 import pytest
 
-from facecast.client.bridges.channel import channel_url
+from facecast.client.channel import channel_url
 from facecast.protocol import ErrorCode, Hello
 from facecast.server.testing import run_server
 

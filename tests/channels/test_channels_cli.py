@@ -12,7 +12,7 @@ import httpx
 import numpy as np
 import pytest
 
-from facecast.client.cli import main
+from facecast.cli.main import main
 from facecast.server.testing import free_port, run_server
 
 from ._helpers import RIG_IDS, Publisher, Watcher, points, wait_for
@@ -53,7 +53,7 @@ async def test_serve_with_workers_and_redis_fans_out_across_workers(rigs_dir, ri
     port = free_port()
     env = {**os.environ, "FACECAST_LOG_LEVEL": "warning"}
     server = subprocess.Popen(
-        [sys.executable, "-m", "facecast.client.cli", "serve", "--port", str(port), "--rigs",
+        [sys.executable, "-m", "facecast.cli", "serve", "--port", str(port), "--rigs",
          str(rigs_dir), "--workers", "2", "--redis", redis_server.url],
         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
     )  # fmt: skip
@@ -89,8 +89,8 @@ async def test_serve_with_workers_and_redis_fans_out_across_workers(rigs_dir, ri
 
 
 def test_serve_takes_redis_from_the_flag_or_the_environment():
-    from facecast.client.cli import build_parser
-    from facecast.client.commands.serve import settings_from_args
+    from facecast.cli.commands.serve import settings_from_args
+    from facecast.cli.main import build_parser
 
     flag = build_parser().parse_args(["serve", "--redis", "redis://r:6379/0"])
     env = build_parser().parse_args(["serve"])

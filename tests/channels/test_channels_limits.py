@@ -10,7 +10,7 @@ import httpx
 import numpy as np
 import pytest
 
-from facecast.client.bridges.channel import channel_url
+from facecast.client.channel import channel_url
 from facecast.protocol import Error, ErrorCode, Ready, Result
 from facecast.server.testing import run_server
 

@@ -43,7 +43,7 @@ class FacecastProcess:
         env = {**os.environ, "FACECAST_LOG_LEVEL": "warning", "FACECAST_FACE_LOST_AFTER": "30"}
         with self.log_path.open("wb") as log:
             self.process = subprocess.Popen(
-                [sys.executable, "-m", "facecast.client.cli", "serve", "--port", str(self.port),
+                [sys.executable, "-m", "facecast.cli", "serve", "--port", str(self.port),
                  "--rigs", str(rigs_dir), "--redis", redis_url],
                 env=env, stdout=subprocess.DEVNULL, stderr=log,
             )  # fmt: skip

@@ -16,9 +16,9 @@ import websockets
 from hypothesis import given
 from hypothesis import strategies as st
 
-from facecast.client.bridges.channel import channel_url
-from facecast.client.cli import main
-from facecast.client.commands.record import Take
+from facecast.cli.commands.record import Take
+from facecast.cli.main import main
+from facecast.client.channel import channel_url
 from facecast.protocol import (
     SUBPROTOCOL,
     ChannelLive,

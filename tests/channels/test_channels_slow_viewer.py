@@ -8,7 +8,7 @@ import httpx
 import pytest
 import websockets
 
-from facecast.client.bridges.channel import channel_url
+from facecast.client.channel import channel_url
 from facecast.server.outbox import MAX_OUTBOX
 from facecast.server.testing import run_server
 

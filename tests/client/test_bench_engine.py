@@ -7,12 +7,12 @@ import json
 
 import pytest
 
-from facecast.client import cli
+from facecast.cli import main as cli
 
 
 def _importable(name: str) -> bool:
     try:
-        importlib.import_module(f"facecast.client.commands.{name}")
+        importlib.import_module(f"facecast.cli.commands.{name}")
     except ModuleNotFoundError:
         return False
     return True

@@ -9,15 +9,15 @@ import json
 import numpy as np
 import pytest
 
-from facecast.client import cli
-from facecast.client.commands.fit import KERNEL_CHOICES
+from facecast.cli import main as cli
+from facecast.cli.commands.fit import KERNEL_CHOICES
 from facecast.rig import KERNELS, load_rig
 from facecast.rig.sources.ict import locate_ict
 
 
 def _importable(name: str) -> bool:
     try:
-        importlib.import_module(f"facecast.client.commands.{name}")
+        importlib.import_module(f"facecast.cli.commands.{name}")
     except ModuleNotFoundError:
         return False
     return True

@@ -8,7 +8,7 @@ import sys
 
 PROBE = """
 import sys
-from facecast.client import cli
+from facecast.cli import main as cli
 assert "numpy" not in sys.modules, "importing the CLI loaded numpy"
 cli.limit_blas_threads()
 import numpy, os

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 
-from facecast.client.cli import main
+from facecast.cli.main import main
 
 
 def test_demo_streams_the_performance_and_matches_offline_cloning(capsys):

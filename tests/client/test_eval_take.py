@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from facecast.client import cli
+from facecast.cli import main as cli
 from facecast.rig.sources.ict import locate_ict
 
 TAKE = Path(__file__).parents[1] / "data" / "livelink" / "llv_dao.csv"

@@ -6,7 +6,7 @@ import argparse
 import json
 import math
 
-from facecast.client.cli import main
+from facecast.cli.main import main
 
 from ._stream_fixtures import RIG_ID, demo_rig, live_server, rigs_dir
 
@@ -60,7 +60,7 @@ def test_loadtest_against_an_unreachable_server_exits_2(capsys):
 
 
 def test_bench_transport_smoke_writes_its_json_keys(tmp_path):
-    from facecast.client.bench import transport
+    from facecast.cli.bench import transport
 
     out = tmp_path / "transport.json"
 
@@ -104,7 +104,7 @@ def test_a_client_that_falls_behind_never_sends_a_catch_up_burst(rigs_dir, demo_
     import asyncio
     import time
 
-    from facecast.client.loadgen import run_load
+    from facecast.cli.loadgen import run_load
 
     from ._stream_fixtures import LiveServer, server_settings
 

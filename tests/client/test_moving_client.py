@@ -7,7 +7,7 @@ import asyncio
 import numpy as np
 import pytest
 
-from facecast.client.cli import main
+from facecast.cli.main import main
 from facecast.client.connection import connect
 from facecast.rig.demo import demo_animation
 

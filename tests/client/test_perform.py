@@ -19,8 +19,8 @@ import pytest
 from skimage import data as skimage_data
 from skimage.transform import rescale
 
-from facecast.client.bridges.channel import channel_url, watch_channel
-from facecast.client.cli import main
+from facecast.cli.main import main
+from facecast.client.channel import channel_url, watch_channel
 from facecast.protocol import FaceLost, Ready, Result
 from facecast.rig import ExampleSet, fit
 from facecast.rig.sources.ict import locate_ict
@@ -187,7 +187,7 @@ async def test_perform_publishes_the_tracked_points_and_viewers_see_them(
 async def test_generic_ict_rig_calibrated_on_the_neutral_opens_the_jaw(
     tmp_path, perform_python, face_video
 ):
-    from facecast.client.commands.import_ import arkit_example_set
+    from facecast.cli.commands.import_ import arkit_example_set
     from facecast.rig.sources.ict import DEFAULT_LANDMARKS
 
     example_set, _ = arkit_example_set(locate_ict(), DEFAULT_LANDMARKS, "face")

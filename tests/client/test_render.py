@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from facecast.client.render import RenderError, render_mesh, save_side_by_side
+from facecast.cli.render import RenderError, render_mesh, save_side_by_side
 
 ICT = Path(__file__).resolve().parents[3] / "shared" / "data" / "ict-facekit" / "ict_facekit.npz"
 WHITE = np.array([255, 255, 255])

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from facecast.client.cli import CommandError
-from facecast.client.commands._animation import load_animation
+from facecast.cli.commands._animation import load_animation
+from facecast.cli.errors import CommandError
 
 
 def _no_indices():

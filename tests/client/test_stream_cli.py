@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from facecast.client.cli import main
+from facecast.cli.main import main
 from facecast.rig.demo import demo_animation
 
 from ._stream_fixtures import RIG_ID, demo_rig, live_server, rigs_dir

@@ -15,7 +15,7 @@ import pytest
 import websockets
 
 from facecast.client import connect
-from facecast.client.bridges.channel import channel_url
+from facecast.client.channel import channel_url
 from facecast.protocol import (
     SUBPROTOCOL,
     ClientProtocol,

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 import websockets
 
-from facecast.client.bridges.channel import channel_url
+from facecast.client.channel import channel_url
 from facecast.protocol import (
     SUBPROTOCOL,
     ClientProtocol,
@@ -194,7 +194,7 @@ async def test_ten_uploads_at_once_hold_at_most_max_pending_fits(tmp_path):
 
 def _serve(port: int, rigs: Path) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "facecast.client.cli", "serve", "--host", "127.0.0.1",
+        [sys.executable, "-m", "facecast.cli", "serve", "--host", "127.0.0.1",
          "--port", str(port), "--rigs", str(rigs), "--log-level", "warning"],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip

@@ -10,7 +10,7 @@ import asyncio
 import pytest
 import websockets
 
-from facecast.client.bridges.channel import channel_url
+from facecast.client.channel import channel_url
 from facecast.protocol import (
     SUBPROTOCOL,
     ClientProtocol,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from facecast.client.cli import main
+from facecast.cli.main import main
 from facecast.server.runner import uvicorn_config
 from facecast.server.settings import Settings, SettingsError
 

@@ -17,7 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from facecast.client.snapshot import CHROMIUM_ARGS, chromium_path, serving, write_demo_rig
+from facecast.cli.snapshot import CHROMIUM_ARGS, chromium_path, serving, write_demo_rig
 from facecast.server.settings import Settings
 from facecast.server.viewer import viewer_dir
 

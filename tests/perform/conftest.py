@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from facecast.client.snapshot import CHROMIUM_ARGS, chromium_path, serving, write_demo_rig
+from facecast.cli.snapshot import CHROMIUM_ARGS, chromium_path, serving, write_demo_rig
 from facecast.protocol import SUBPROTOCOL, decode_server
 from facecast.rig import fit
 from facecast.rig.demo import demo_example_set

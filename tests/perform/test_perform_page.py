@@ -309,7 +309,7 @@ def test_a_lost_face_stops_publishing_and_watchers_get_face_lost(browser, server
 def test_the_page_reconnects_when_the_server_comes_back_and_keeps_tracking(
     browser, rigs_dir, camera, pages
 ):
-    from facecast.client.snapshot import serving
+    from facecast.cli.snapshot import serving
     from facecast.server.settings import Settings
 
     settings = Settings(rigs_dir=rigs_dir, access_log=False, log_level="warning")
@@ -332,7 +332,7 @@ def test_the_page_reconnects_when_the_server_comes_back_and_keeps_tracking(
 
 @pytest.fixture(scope="module")
 def auth_server(rigs_dir) -> Iterator[str]:
-    from facecast.client.snapshot import serving
+    from facecast.cli.snapshot import serving
     from facecast.server.settings import Settings
 
     tokens = {

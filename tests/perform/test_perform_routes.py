@@ -5,7 +5,7 @@ from __future__ import annotations
 import httpx
 import pytest
 
-from facecast.client.snapshot import serving
+from facecast.cli.snapshot import serving
 from facecast.server.perform_page import PERFORM_ASSETS
 from facecast.server.settings import Settings
 from facecast.server.viewer import viewer_dir

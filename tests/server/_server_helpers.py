@@ -197,7 +197,7 @@ def client_protocol() -> ClientProtocol:
 
 _SERVE_ONLY = (
     "import argparse, sys\n"
-    "from facecast.client.commands import serve\n"
+    "from facecast.cli.commands import serve\n"
     "parser = argparse.ArgumentParser(prog='facecast')\n"
     "serve.register(parser.add_subparsers(dest='command', required=True))\n"
     "args = parser.parse_args(sys.argv[1:])\n"
@@ -211,12 +211,10 @@ def serve_argv(*args: str) -> list[str]:
     The full CLI imports every command module; while some are still missing from the
     tree, the serve command is driven on its own (same parser, same ``run``).
     """
-    from facecast.client.cli import COMMAND_MODULES
+    from facecast.cli.main import COMMAND_MODULES
 
-    if all(
-        importlib.util.find_spec(f"facecast.client.commands.{name}") for name in COMMAND_MODULES
-    ):
-        return [sys.executable, "-m", "facecast.client.cli", "serve", *args]
+    if all(importlib.util.find_spec(f"facecast.cli.commands.{name}") for name in COMMAND_MODULES):
+        return [sys.executable, "-m", "facecast.cli", "serve", *args]
     return [sys.executable, "-c", _SERVE_ONLY, "serve", *args]
 
 

@@ -8,8 +8,8 @@ import json
 import pytest
 from _server_helpers import write_example_folder
 
-from facecast.client.cli import CommandError
-from facecast.client.commands import rigs, serve
+from facecast.cli.commands import rigs, serve
+from facecast.cli.errors import CommandError
 from facecast.rig import load_rig
 from facecast.server.testing import run_server
 

@@ -381,7 +381,7 @@ async def test_capture_needs_the_performer_or_admin_role(tmp_path, token, status
 def _rigs_cli(*argv: str) -> int:
     import argparse
 
-    from facecast.client.commands import rigs
+    from facecast.cli.commands import rigs
 
     parser = argparse.ArgumentParser(prog="facecast")
     rigs.register(parser.add_subparsers(dest="command", required=True))
@@ -403,7 +403,7 @@ async def test_rigs_capture_and_refit_commands_drive_the_endpoints(server, tmp_p
 
 
 async def test_rigs_refit_shows_the_servers_code(server, capsys):
-    from facecast.client.cli import CommandError
+    from facecast.cli.errors import CommandError
 
     with pytest.raises(CommandError, match="performer_not_found"):
         _rigs_cli("refit", server.base_url, "--performer", "nobody", "--rig", "other")
@@ -412,7 +412,7 @@ async def test_rigs_refit_shows_the_servers_code(server, capsys):
 async def test_a_performer_rig_publishes_to_a_channel_watched_on_another_character(server):
     import asyncio
 
-    from facecast.client.bridges.channel import FramePublisher, channel_url, watch_channel
+    from facecast.client.channel import FramePublisher, channel_url, watch_channel
     from facecast.protocol import Hello, Ready
 
     points = performer_points()

@@ -7,7 +7,7 @@ from importlib import resources
 
 import pytest
 
-from facecast.client.bridges.channel import FramePublisher, channel_url
+from facecast.client.channel import FramePublisher, channel_url
 from facecast.client.connection import connect
 from facecast.protocol import ErrorCode, Hello, ProtocolError, decode_server
 from facecast.server.settings import Settings

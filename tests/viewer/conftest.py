@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from facecast.client.snapshot import chromium_path, launch, serving, write_demo_rig
+from facecast.cli.snapshot import chromium_path, launch, serving, write_demo_rig
 from facecast.server.settings import Settings
 from facecast.server.viewer import viewer_dir
 

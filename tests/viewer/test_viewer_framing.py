@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from facecast.client.snapshot import serving, write_demo_rig
+from facecast.cli.snapshot import serving, write_demo_rig
 from facecast.rig import fit
 from facecast.rig.demo import demo_example_set
 from facecast.rig.sources.ict import DEFAULT_LANDMARKS, locate_ict
@@ -44,7 +44,7 @@ def framing_rigs(tmp_path_factory) -> Path:
     write_demo_rig(rigs)
     fit(dataclasses.replace(demo_example_set(), names=LONG_NAMES)).save(rigs / "long.rig")
     if ARCHIVE is not None:
-        from facecast.client.commands.import_ import arkit_example_set
+        from facecast.cli.commands.import_ import arkit_example_set
 
         example_set, _ = arkit_example_set(ARCHIVE, DEFAULT_LANDMARKS, "face")
         with warnings.catch_warnings():

@@ -10,7 +10,7 @@ import io
 import numpy as np
 from PIL import Image
 
-from facecast.client.snapshot import serving
+from facecast.cli.snapshot import serving
 
 FRAMES = "n => window.facecastStats.frames > n"
 

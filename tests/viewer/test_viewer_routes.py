@@ -7,7 +7,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from facecast.client.snapshot import serving
+from facecast.cli.snapshot import serving
 from facecast.rig.demo import demo_animation
 from facecast.server.viewer import viewer_dir
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from facecast.client.snapshot import serving
+from facecast.cli.snapshot import serving
 
 # Opens a WebSocket with the given subprotocols; resolves with what happened first.
 _OPEN = """async ([url, protocols]) => await new Promise((resolve) => {

@@ -11,7 +11,7 @@ from contextlib import contextmanager
 
 from websockets.sync.client import connect
 
-from facecast.client.snapshot import serving
+from facecast.cli.snapshot import serving
 from facecast.protocol import (
     PUBLISH_PATH,
     SUBPROTOCOL,

@@ -1,0 +1,88 @@
+"""``facecast bench``: the benchmarks (engine, transport, broadcast) as sub-commands.
+
+Only parses arguments and hands over to ``facecast.cli.bench.<name>.run(args)``; it must
+not measure anything itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+from facecast.cli.errors import CommandError
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "bench",
+        help="benchmarks of the engine, the transport and the broadcast path",
+        description="Measure against a baseline from the same run and print PASS/FAIL per goal.",
+    )
+    sub = parser.add_subparsers(dest="bench", metavar="BENCH", required=True)
+
+    engine = sub.add_parser(
+        "engine",
+        help="weights, blending and fit times on the ICT rig, against baselines",
+        description=(
+            "On the ICT-FaceKit target (its expressions as examples, K = 20 landmarks) time "
+            "single-frame and batched weights, blending against a bare weights @ deltas "
+            "product, the fit, and weights against scipy's RBFInterpolator; median of "
+            "--repeat runs. Falls back to the procedural demo when ICT is absent."
+        ),
+    )
+    engine.add_argument(
+        "--ict", metavar="PATH",
+        help="ICT-FaceKit folder or .npz (default: $FACECAST_ICT or ../shared/data/ict-facekit)",
+    )  # fmt: skip
+    engine.add_argument("--json", metavar="FILE", help="write every figure as JSON")
+    engine.add_argument(
+        "--repeat", type=int, default=7, metavar="N", help="timed runs per figure (median)"
+    )
+    engine.add_argument("--demo", action="store_true", help="use the procedural demo rig")
+    engine.set_defaults(func=_runner("engine"))
+
+    transport = sub.add_parser(
+        "transport", help="frame round trips through a real server (latency, throughput)"
+    )
+    transport.add_argument("--json", metavar="FILE", help="write the figures as JSON")
+    transport.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds")
+    transport.add_argument(
+        "--clients",
+        type=int,
+        default=20,
+        metavar="N",
+        help="concurrent vertices-mode connections at 60 fps (default 20)",
+    )
+    transport.add_argument(
+        "--max-streams",
+        type=int,
+        default=200,
+        metavar="N",
+        help="most 60 fps moving-vertices streams the ramp tries (default 200)",
+    )
+    transport.set_defaults(func=_runner("transport"))
+
+    broadcast = sub.add_parser(
+        "broadcast", help="fan-out of results to viewers (optionally through Redis)"
+    )
+    broadcast.add_argument("--json", metavar="FILE", help="write the figures as JSON")
+    broadcast.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds")
+    broadcast.add_argument("--redis", metavar="URL", help="Redis URL (default: in-process)")
+    broadcast.set_defaults(func=_runner("broadcast"))
+
+
+def _runner(name: str):
+    def run(args: argparse.Namespace) -> int:
+
+        module_name = f"facecast.cli.bench.{name}"
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name != module_name:
+                raise
+            raise CommandError(
+                f"bench {name} is not available in this installation ({module_name} is missing)"
+            ) from None
+        return module.run(args)
+
+    return run

@@ -1,0 +1,194 @@
+"""``facecast rigs``: manage the rigs on a server through its REST API (/v1/rigs).
+
+Talks HTTP only (httpx, imported when run); never imports facecast.server. Server errors
+are shown with their stable ``code`` and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import os
+import sys
+import zipfile
+from pathlib import Path
+
+from facecast.cli.errors import CommandError
+
+ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz")
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "rigs",
+        help="put, list, show, get and remove rigs on a server",
+        description="Manage rigs on a facecast server (REST API under /v1/rigs). URL is the "
+        "server's base URL, e.g. http://127.0.0.1:8000.",
+    )
+    sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+
+    def action(name: str, help: str, *names: str) -> argparse.ArgumentParser:
+        command = sub.add_parser(name, help=help)
+        command.add_argument("url", metavar="URL", help="server base URL")
+        for arg in names:
+            command.add_argument(arg, metavar=arg.upper())
+        command.add_argument("--token", default=None, help="API token (default $FACECAST_TOKEN)")
+        return command
+
+    action("list", "list the rigs")
+    action("show", "print a rig's summary as JSON", "name")
+    put = action(
+        "put",
+        "store a rig: an example-set folder or archive (fitted on the server) or a rig file",
+        "name",
+        "path",
+    )
+    put.add_argument("--noise", type=float, default=None, help="fit: expected landmark noise")
+    put.add_argument("--pca-threshold", type=float, default=None, help="fit: PCA threshold")
+    put.add_argument("--kernel", default=None, help="fit: radial kernel")
+    put.add_argument(
+        "--clamp",
+        choices=("nonneg", "unit"),
+        default=None,
+        help="fit: bound the non-neutral weights to >= 0 or [0, 1]",
+    )
+    put.add_argument(
+        "--sparsity",
+        type=float,
+        default=None,
+        metavar="S",
+        help="fit, with --clamp: the sparsity prior (default 0, the plain projection)",
+    )
+    get = action("get", "save a rig's file (or with --glb its target mesh)", "name", "out")
+    get.add_argument(
+        "--glb", action="store_true", help="save the target mesh with morph targets instead"
+    )
+    action("rm", "remove a rig", "name")
+    capture = action(
+        "capture",
+        "fit NAME@PERFORMER from a performer's captured expressions (a JSON capture file)",
+        "name",
+        "performer",
+        "path",
+    )
+    capture.add_argument(
+        "--noise", type=float, default=None, help="measured landmark spread (overrides the file's)"
+    )
+    refit = action("refit", "fit OTHER@PERFORMER from a performer's stored profile")
+    refit.add_argument("--performer", required=True, metavar="NAME", help="the performer")
+    refit.add_argument("--rig", required=True, metavar="OTHER", help="the character to refit onto")
+    parser.set_defaults(func=run)
+
+
+def _print_performer_fit(summary: dict) -> None:
+    print(
+        f"fitted {summary['id']}: M={summary['num_examples']} K={summary['num_points']} "
+        f"(skipped: {', '.join(summary['skipped']) or 'none'})"
+    )
+    for message in summary.get("warnings", []):
+        print(f"warning: {message}", file=sys.stderr)
+
+
+def _zip_folder(folder: Path) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+        for path in sorted(folder.rglob("*")):
+            if path.is_file() and not path.is_symlink():
+                archive.write(path, path.relative_to(folder).as_posix())
+    return buffer.getvalue()
+
+
+def run(args: argparse.Namespace) -> int:
+    import httpx
+
+    base = args.url.rstrip("/")
+    if not base.startswith(("http://", "https://")):
+        raise CommandError(f"URL must start with http:// or https://, got {args.url!r}")
+    token = args.token or os.environ.get("FACECAST_TOKEN")
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+
+    def call(method: str, path: str, **kwargs) -> httpx.Response:
+        try:
+            with httpx.Client(base_url=base, headers=headers, timeout=600) as http:
+                response = http.request(method, path, **kwargs)
+        except httpx.HTTPError as exc:
+            raise CommandError(f"cannot reach {base}: {exc}") from None
+        if response.status_code >= 400:
+            try:
+                problem = response.json()
+                what = f"{problem.get('code', 'error')}: {problem.get('detail', '')}"
+            except ValueError:
+                what = response.text[:200]
+            raise CommandError(f"{method} {path} -> {response.status_code} {what}")
+        return response
+
+    rig_path = f"/v1/rigs/{args.name}" if hasattr(args, "name") else ""
+    if args.action == "list":
+        rigs = call("GET", "/v1/rigs").json()["rigs"]
+        for rig in rigs:
+            print(f"{rig['id']}\t{rig['size']} bytes")
+        if not rigs:
+            print("(no rigs)", file=sys.stderr)
+    elif args.action == "show":
+        print(json.dumps(call("GET", rig_path).json(), indent=2))
+    elif args.action == "put":
+        path = Path(args.path)
+        if not path.exists():
+            raise CommandError(f"{path}: no such file or folder")
+        params = {
+            k: v
+            for k, v in (
+                ("noise", args.noise),
+                ("pca_threshold", args.pca_threshold),
+                ("kernel", args.kernel),
+                ("clamp", args.clamp),
+                ("sparsity", args.sparsity),
+            )
+            if v is not None
+        }
+        if path.is_dir() or path.name.lower().endswith(ARCHIVE_SUFFIXES):
+            body = _zip_folder(path) if path.is_dir() else path.read_bytes()
+            summary = call("PUT", f"{rig_path}/examples", content=body, params=params).json()
+            print(
+                f"fitted {args.name}: M={summary['num_examples']} K={summary['num_points']} "
+                f"V={summary['num_vertices']}"
+                + (f", clamp {summary['clamp']}" if summary.get("clamp") else "")
+            )
+            for message in summary.get("warnings", []):
+                print(f"warning: {message}", file=sys.stderr)
+        else:
+            if params:
+                flags = ", ".join("--" + k.replace("_", "-") for k in params)
+                raise CommandError(
+                    f"{flags}: fit options apply to an example-set folder or archive, but "
+                    f"{path} is a fitted rig file; refit it with facecast fit, or upload the "
+                    "example set"
+                )
+            response = call("PUT", rig_path, content=path.read_bytes())
+            print(f"{'created' if response.status_code == 201 else 'replaced'} {args.name}")
+    elif args.action == "get":
+        suffix = "model.glb" if args.glb else "rig"
+        Path(args.out).write_bytes(call("GET", f"{rig_path}/{suffix}").content)
+        print(f"wrote {args.out}")
+    elif args.action == "rm":
+        call("DELETE", rig_path)
+        print(f"removed {args.name}")
+    elif args.action == "capture":
+        path = Path(args.path)
+        try:
+            body = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise CommandError(f"{path}: no such file") from None
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise CommandError(f"{path}: not a JSON capture ({exc})") from None
+        if args.noise is not None and isinstance(body, dict):
+            body["noise"] = args.noise
+        _print_performer_fit(
+            call("PUT", f"{rig_path}/performer/{args.performer}", json=body).json()
+        )
+    elif args.action == "refit":
+        _print_performer_fit(
+            call("POST", f"/v1/performers/{args.performer}/refit", params={"rig": args.rig}).json()
+        )
+    return 0

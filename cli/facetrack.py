@@ -1,0 +1,174 @@
+"""Camera or video frames -> feature points, through MediaPipe's legacy FaceMesh and a layout.
+
+Needs the optional extra ``facecast[perform]``: mediapipe 0.10.21, whose wheel ships the
+FaceMesh models (later versions do not), and OpenCV. It reads and tracks frames; it never
+publishes and never fetches anything (the models load from the installed wheel).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from facecast.cli.errors import TrackerUnavailable
+from facecast.rig.errors import InputError
+from facecast.rig.sources.facemesh import image_to_mesh, normalise_mesh
+from facecast.rig.sources.layouts import Layout, load_layout
+
+__all__ = ["FaceTracker", "Tracked", "TrackerUnavailable", "VideoSource"]
+
+#: The extra that brings the tracker, for messages.
+EXTRA = "facecast[perform]"
+
+
+def _modules():
+    try:
+        import cv2
+        from mediapipe.python.solutions import face_mesh
+    except ImportError as exc:
+        raise TrackerUnavailable(
+            f"facecast perform needs mediapipe 0.10.21 and OpenCV: pip install '{EXTRA}' ({exc})"
+        ) from None
+    return cv2, face_mesh
+
+
+@dataclass(frozen=True, eq=False)
+class Tracked:
+    """One frame's tracking.
+
+    Attributes
+    ----------
+    points : (K, 3) float64 or None
+        The layout's feature points in the face-fixed frame (``normalise_mesh``); None
+        when no face was found.
+    faces : int
+        Faces found (the largest is tracked).
+    mesh : (N, 3) float64 or None
+        The tracked face's whole mesh in pixels, y up (``image_to_mesh``).
+    seconds : float
+        Time the model and the normalisation took.
+    """
+
+    points: np.ndarray | None
+    faces: int
+    mesh: np.ndarray | None
+    seconds: float
+
+
+class FaceTracker:
+    """MediaPipe FaceMesh on RGB frames, the largest face normalised through ``layout``.
+
+    Parameters
+    ----------
+    layout : Layout, optional
+        Default the ``mediapipe_face_mesh`` table.
+    max_faces : int
+        Faces the model looks for; more than one lets it say there were two.
+    static : bool
+        Detect the face afresh in every frame (MediaPipe's ``static_image_mode``), the
+        default. False lets MediaPipe crop each frame from the previous frame's landmarks
+        instead (faster, but measured on the test video: landmarks drifted ~1 cm over five
+        identical frames of an open jaw, while detecting each frame held them still).
+    min_confidence : float
+        Detection and tracking confidence in (0, 1].
+    """
+
+    def __init__(
+        self,
+        layout: Layout | None = None,
+        *,
+        max_faces: int = 2,
+        static: bool = True,
+        min_confidence: float = 0.5,
+    ) -> None:
+        _, face_mesh = _modules()
+        self.layout = layout or load_layout("mediapipe_face_mesh")
+        if not (isinstance(max_faces, int) and 1 <= max_faces <= 8):
+            raise InputError(f"max_faces must be 1-8, got {max_faces!r}")
+        if not 0 < min_confidence <= 1:
+            raise InputError(f"min_confidence must be in (0, 1], got {min_confidence!r}")
+        self._model = face_mesh.FaceMesh(
+            static_image_mode=static,
+            max_num_faces=max_faces,
+            refine_landmarks=False,
+            min_detection_confidence=min_confidence,
+            min_tracking_confidence=min_confidence,
+        )
+
+    def track(self, rgb: np.ndarray) -> Tracked:
+        """Track one (H, W, 3) uint8 RGB frame."""
+        if not (isinstance(rgb, np.ndarray) and rgb.ndim == 3 and rgb.shape[2] == 3):
+            raise InputError(f"expected an (H, W, 3) RGB frame, got {np.shape(rgb)}")
+        started = time.perf_counter()
+        height, width = rgb.shape[:2]
+        found = self._model.process(np.ascontiguousarray(rgb, dtype=np.uint8))
+        faces = found.multi_face_landmarks or []
+        if not faces:
+            return Tracked(None, 0, None, time.perf_counter() - started)
+        meshes = [
+            np.array([(p.x, p.y, p.z) for p in face.landmark], dtype=np.float64) for face in faces
+        ]
+        # Two faces: follow the one nearest the camera, i.e. largest in the image.
+        areas = [np.ptp(m[:, 0]) * width * np.ptp(m[:, 1]) * height for m in meshes]
+        mesh = image_to_mesh(meshes[int(np.argmax(areas))], width, height)
+        try:
+            points = normalise_mesh(mesh, self.layout)
+        except InputError:  # a degenerate mesh is no face
+            return Tracked(None, len(faces), None, time.perf_counter() - started)
+        return Tracked(points, len(faces), mesh, time.perf_counter() - started)
+
+    def close(self) -> None:
+        self._model.close()
+
+    def __enter__(self) -> FaceTracker:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class VideoSource:
+    """Frames of a camera (an integer index) or a video file, as RGB arrays.
+
+    Raises
+    ------
+    InputError
+        ``no_camera`` when the camera or file cannot be opened.
+    """
+
+    def __init__(self, source: str | int) -> None:
+        cv2, _ = _modules()
+        self._cv2 = cv2
+        self.is_camera = isinstance(source, int) or str(source).isdigit()
+        self.source = int(source) if self.is_camera else str(source)
+        self._capture = cv2.VideoCapture(self.source)
+        if not self._capture.isOpened():
+            what = f"camera {self.source}" if self.is_camera else f"video file {self.source}"
+            raise InputError(
+                f"cannot open {what} (absent, busy, or access denied)", code="no_camera"
+            )
+        fps = float(self._capture.get(cv2.CAP_PROP_FPS) or 0.0)
+        self.fps = fps if math.isfinite(fps) and fps > 0 else 30.0
+
+    def frames(self, max_frames: int | None = None) -> Iterator[np.ndarray]:
+        """RGB frames until the file ends (a camera: until ``max_frames``)."""
+        count = 0
+        while max_frames is None or count < max_frames:
+            ok, bgr = self._capture.read()
+            if not ok:
+                return
+            count += 1
+            yield self._cv2.cvtColor(bgr, self._cv2.COLOR_BGR2RGB)
+
+    def close(self) -> None:
+        self._capture.release()
+
+    def __enter__(self) -> VideoSource:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
