@@ -7,6 +7,7 @@ them into one JSON shape, once, at the boundary. No route logic lives here.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from http import HTTPStatus
 
 from fastapi import FastAPI, Request
@@ -52,7 +53,7 @@ class ApiError(Exception):
 
 
 def problem(
-    status: int, code: str, detail: str, *, headers: dict[str, str] | None = None
+    status: int, code: str, detail: str, *, headers: Mapping[str, str] | None = None
 ) -> JSONResponse:
     """An RFC 9457 problem response extended with our ``code``."""
     body = {

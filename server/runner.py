@@ -59,7 +59,7 @@ def _ws_protocol(settings: Settings, ws: str) -> type:
 
 def uvicorn_config(
     settings: Settings, app: Any, *, ws: str = "auto", http: str = "auto", **overrides: Any
-):
+) -> uvicorn.Config:
     """The ``uvicorn.Config`` for ``settings`` (``app`` an ASGI app or an import string).
 
     ``http``: uvicorn's HTTP implementation, a key of ``http_guard.HTTP_IMPLEMENTATIONS``.
@@ -243,7 +243,8 @@ def _serve_workers(settings: Settings, ws: str) -> int:
                     )
                     # Its live gauges (open connections) would otherwise count for ever.
                     if process.pid is not None:
-                        mark_process_dead(process.pid, metrics_dir.name)
+                        # prometheus_client leaves this function unannotated.
+                        mark_process_dead(process.pid, metrics_dir.name)  # type: ignore[no-untyped-call]
                     processes[i] = start()
             time.sleep(0.2)
     finally:
