@@ -16,9 +16,11 @@ import tempfile
 import threading
 import time
 from collections.abc import Iterator
+from types import FrameType
 from typing import Any
 
 import uvicorn
+from fastapi import FastAPI
 from prometheus_client.multiprocess import mark_process_dead
 
 from .app import SESSIONS_STATE_KEY, SETTINGS_ENV, create_app
@@ -58,7 +60,12 @@ def _ws_protocol(settings: Settings, ws: str) -> type:
 
 
 def uvicorn_config(
-    settings: Settings, app: Any, *, ws: str = "auto", http: str = "auto", **overrides: Any
+    settings: Settings,
+    app: FastAPI | str,
+    *,
+    ws: str = "auto",
+    http: str = "auto",
+    **overrides: Any,
 ) -> uvicorn.Config:
     """The ``uvicorn.Config`` for ``settings`` (``app`` an ASGI app or an import string).
 
@@ -187,7 +194,7 @@ def _signals_end_in_status() -> Iterator[None]:
             signal.signal(s, handler)
 
 
-def _ignore(signum: int, frame: Any) -> None:
+def _ignore(signum: int, frame: FrameType | None) -> None:
     """A handler that only marks the signal as handled (uvicorn's own runs meanwhile)."""
 
 
@@ -223,7 +230,7 @@ def _serve_workers(settings: Settings, ws: str) -> int:
 
     stopping = False
 
-    def on_signal(signum: int, frame: Any) -> None:
+    def on_signal(signum: int, frame: FrameType | None) -> None:
         nonlocal stopping
         stopping = True
 
