@@ -477,7 +477,8 @@ def read_mediapipe_ndjson(
     if all(s is not None for s in stamps):
         times = np.asarray(stamps, dtype=np.float64)
         times -= times[0]
-    mats = np.stack(transforms) if all(m is not None for m in transforms) else None  # type: ignore[arg-type]
+    given = [m for m in transforms if m is not None]
+    mats = np.stack(given) if len(given) == len(transforms) else None
     return MediaPipeTake(points=points, timestamps=times, transforms=mats)
 
 
