@@ -212,15 +212,21 @@ class ExampleSet:
                 f"of {src.shape[1]} vertices, got [{idx.min()}, {idx.max()}]",
                 code="index_out_of_range",
             )
+        # Converted as __post_init__ would (it checks them again, cheaply): the fields are
+        # arrays.
         return cls(
             names=tuple(names),
             source_points=src[:, idx, :],
-            target_vertices=target_vertices,
-            target_faces=target_faces,
+            target_vertices=_finite_array("target_vertices", target_vertices, np.float64, 3),
+            target_faces=_finite_array("target_faces", target_faces, np.int64, 2),
             source_vertices=src,
-            source_faces=source_faces,
+            source_faces=None
+            if source_faces is None
+            else _finite_array("source_faces", source_faces, np.int64, 2),
             feature_indices=idx,
-            stable_points=stable_points,
+            stable_points=None
+            if stable_points is None
+            else check_stable_points(stable_points, idx.size),
         )
 
     # -- derived views -----------------------------------------------------------------
@@ -283,4 +289,6 @@ class ExampleSet:
             arrays["feature_indices"] = self.feature_indices.astype(np.int64)
         if self.stable_points is not None:
             arrays["stable_points"] = self.stable_points.astype(np.int64)
-        np.savez_compressed(path, **arrays)
+        # allow_pickle=False: none of these is an object array (and saying so lets mypy see
+        # that ``arrays`` cannot hold the flag).
+        np.savez_compressed(path, allow_pickle=False, **arrays)

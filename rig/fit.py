@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import scipy.linalg
 
 from .bounds import sparsity_penalty
@@ -123,11 +126,21 @@ class FitReport:
     # proportional to the target's vertices); the rest is the math of this module.
     basis_seconds: float = 0.0
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
 
 
-def _sanitize(example_set, kernel, noise, pca_threshold, ridge, clamp, sparsity):
+def _sanitize(
+    example_set: object,
+    kernel: str,
+    noise: float,
+    pca_threshold: float | None,
+    ridge: float | None,
+    clamp: str | None,
+    sparsity: float | None,
+) -> tuple[str, float, float | None, float | None, str | None, float]:
+    """Checked and normalised ``fit`` options: kernel, noise, pca_threshold, ridge, clamp
+    (None or a bound), sparsity."""
     if not isinstance(example_set, ExampleSet):
         raise TypeError(f"expected an ExampleSet, got {type(example_set).__name__}")
     if kernel not in KERNELS:
@@ -193,10 +206,12 @@ def resolution_threshold(source_points: np.ndarray) -> float:
     """
     m, k, _ = source_points.shape
     step = POINT_PRECISION * float(np.abs(source_points).max())
-    return step * (np.sqrt(m) + np.sqrt(3 * k))
+    return step * float(np.sqrt(m) + np.sqrt(3 * k))
 
 
-def _pca(displacements: np.ndarray, relative_threshold: float | None, resolution: float):
+def _pca(
+    displacements: np.ndarray, relative_threshold: float | None, resolution: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Eq. 3.2-3.7: centre, eigen-decompose the covariance, keep the significant axes.
 
     ``relative_threshold`` None keeps every axis whose singular value is above
@@ -229,7 +244,9 @@ def _nearest(params: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return dist, masked[np.arange(len(params)), nearest], nearest
 
 
-def _check_separation(names, nearest_distance, nearest, spread) -> None:
+def _check_separation(
+    names: Sequence[str], nearest_distance: np.ndarray, nearest: np.ndarray, spread: float
+) -> None:
     tol = COINCIDE_RELATIVE * spread
     bad = np.flatnonzero(nearest_distance <= tol)
     if bad.size:
@@ -292,7 +309,7 @@ def fit(
     ridge: float | None = None,
     clamp: str | None = None,
     sparsity: float | None = None,
-    stable_points=None,
+    stable_points: npt.ArrayLike | None = None,
     align_scale: bool = False,
 ) -> Rig:
     """Fit the cardinal-basis weight functions of an example set (thesis section 3).
@@ -405,7 +422,7 @@ def fit(
         # let evaluation skip them.
         radial_coeffs = np.zeros_like(radial_coeffs)
 
-    model = WeightModel.build(
+    model = WeightModel(
         kernel=kernel,
         source_neutral=source_neutral,
         mean=mean,
@@ -469,7 +486,7 @@ def fit(
     return rig
 
 
-def _warn_collapsing(report: FitReport, names, noise: float) -> None:
+def _warn_collapsing(report: FitReport, names: Sequence[str], noise: float) -> None:
     nearest = np.asarray(report.nearest_distance)
     median = float(np.median(nearest))
     for i, d in enumerate(nearest):
@@ -502,7 +519,9 @@ def _extent(source_points: np.ndarray) -> float:
     return float(np.linalg.norm(flat.max(axis=0) - flat.min(axis=0)))
 
 
-def _warn_noise_gain(report: FitReport, source_points: np.ndarray, noise: float, clamp) -> None:
+def _warn_noise_gain(
+    report: FitReport, source_points: np.ndarray, noise: float, clamp: str | None
+) -> None:
     """Warn when landmark noise far below any tracker's already moves the weights.
 
     Judged on the rig as fitted, whatever ``noise`` was: at 0 (exact interpolation) this is

@@ -17,7 +17,7 @@ import numpy as np
 try:
     from . import _kernel
 except ImportError:  # not built (no C compiler at install time): numpy does the work
-    _kernel = None  # type: ignore[assignment]
+    _kernel = None  # type: ignore[assignment]  # mypy types the name as the module only
 
 __all__ = [
     "DISABLE_ENV",

@@ -6,13 +6,17 @@ frame-independent product is folded into matrices at construction. No fitting, n
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import os
+from dataclasses import dataclass, field, fields, replace
+from typing import TYPE_CHECKING, Any, TypedDict
 
 import numpy as np
+import numpy.typing as npt
 
 from .blend import blend_into, moving_vertices
 from .bounds import BoxProjection, weight_metric
 from .errors import InputError
+from .examples import check_stable_points
 from .io.rigformat import content_checksum, rig_to_bytes, save_rig
 from .kernel import bspline_kernel
 from .kernels import evaluate_kernel
@@ -25,7 +29,13 @@ from .pose import (
     similarity_transform,
 )
 
-__all__ = ["CALIBRATION_RANGE", "POINT_RANGE", "Rig", "WeightModel"]
+if TYPE_CHECKING:
+    from ._kernel import BsplineKernel
+
+__all__ = ["CALIBRATION_RANGE", "POINT_RANGE", "Rig", "RigSummary", "WeightModel"]
+
+#: float64 arrays: what a weight model holds (its constructor converts to them).
+Floats = npt.NDArray[np.float64]
 
 #: A frame's feature points are refused (``InputError`` code ``out_of_range``) when their
 #: root-mean-square distance from the reference neutral's centroid is more than this many
@@ -41,6 +51,25 @@ POINT_RANGE = 100.0
 CALIBRATION_RANGE = 1e4
 
 
+class RigSummary(TypedDict):
+    """``Rig.summary()``: what the REST API and ``facecast info`` show of a rig."""
+
+    names: list[str]
+    num_examples: int
+    num_points: int
+    num_vertices: int
+    num_faces: int
+    kernel: str
+    clamp: str | None
+    sparsity_penalty: float
+    components: int
+    regions: list[str] | None
+    noise: float
+    condition_number: float | None
+    feature_indices: list[int] | None
+    checksum: str
+
+
 @dataclass(frozen=True, eq=False)
 class WeightModel:
     """The M cardinal weight functions w_i(p) of eq. 3.8, with p computed from raw points.
@@ -50,13 +79,13 @@ class WeightModel:
     """
 
     kernel: str
-    source_neutral: np.ndarray  # (K, 3) S_B
-    mean: np.ndarray  # (3K,) mean displacement, eq. 3.4
-    features: np.ndarray  # (n, 3K) feature matrix F, eq. 3.6
-    params: np.ndarray  # (M, n) example parameters p_j, eq. 3.7
-    linear_coeffs: np.ndarray  # (n + 1, M) a_il, eq. 3.10
-    radial_coeffs: np.ndarray  # (M, M) r_ji, eq. 3.13
-    alpha: np.ndarray  # (M,) dilation factors
+    source_neutral: Floats  # (K, 3) S_B
+    mean: Floats  # (3K,) mean displacement, eq. 3.4
+    features: Floats  # (n, 3K) feature matrix F, eq. 3.6
+    params: Floats  # (M, n) example parameters p_j, eq. 3.7
+    linear_coeffs: Floats  # (n + 1, M) a_il, eq. 3.10
+    radial_coeffs: Floats  # (M, M) r_ji, eq. 3.13
+    alpha: Floats  # (M,) dilation factors
     clamp: str | None
     # Noise prior (ridge) of the fit; sets the metric bounded weights are projected in.
     ridge: float = 0.0
@@ -65,31 +94,30 @@ class WeightModel:
     sparsity_penalty: float = 0.0
     # Input map x' = x @ input_matrix + input_offset on flattened points (calibration);
     # identity when not calibrated.
-    input_matrix: np.ndarray | None = None
-    input_offset: np.ndarray | None = None
-    # Folded evaluation matrices (see build).
-    _project: np.ndarray | None = None  # (3K, M + n + 2M)
-    _offset: np.ndarray | None = None  # (M + n + 2M,)
-    _inv_alpha2: np.ndarray | None = None  # (2M,)
-    _knots: np.ndarray | None = None  # (2M,) 2 then 1
-    _radial2: np.ndarray | None = None  # (2M, M)
-    _metric: np.ndarray | None = None  # (M-1, M-1) for bounded weights
-    _box: BoxProjection | None = None  # the bounded-weights step (clamp set)
-    _has_radial: bool = True
-    _project_linear: np.ndarray | None = None  # (3K, M): the hyperplanes on raw points
+    input_matrix: Floats | None = None
+    input_offset: Floats | None = None
+    # Folded evaluation matrices, made by __post_init__ (see _fold).
+    _project: Floats = field(init=False, repr=False)  # (3K, M + n + 2M)
+    _offset: Floats = field(init=False, repr=False)  # (M + n + 2M,)
+    _inv_alpha2: Floats = field(init=False, repr=False)  # (2M,)
+    _knots: Floats = field(init=False, repr=False)  # (2M,) 2 then 1
+    _radial2: Floats = field(init=False, repr=False)  # (2M, M)
+    _metric: Floats = field(init=False, repr=False)  # (M-1, M-1) for bounded weights
+    # The bounded-weights step; None without clamp.
+    _box: BoxProjection | None = field(init=False, repr=False)
+    _has_radial: bool = field(init=False, repr=False)
+    _project_linear: Floats = field(init=False, repr=False)  # (3K, M): hyperplanes on raw points
     # Compiled single-frame evaluator (facecast.rig.kernel); None: numpy does every frame.
-    _kernel: object | None = None
+    _kernel: BsplineKernel | None = field(init=False, repr=False)
 
-    @classmethod
-    def build(cls, **fields) -> WeightModel:
+    def __post_init__(self) -> None:
         # C-contiguous float64 everywhere, so a rig and its reloaded copy take the same BLAS
         # paths and give bit-identical weights.
-        for name, value in fields.items():
+        for f in fields(self):
+            value = getattr(self, f.name) if f.init else None
             if isinstance(value, np.ndarray):
-                fields[name] = np.ascontiguousarray(value, dtype=np.float64)
-        model = cls(**fields)
-        model._fold()
-        return model
+                object.__setattr__(self, f.name, np.ascontiguousarray(value, dtype=np.float64))
+        self._fold()
 
     @property
     def num_examples(self) -> int:
@@ -115,6 +143,8 @@ class WeightModel:
         project = np.hstack([ft @ a1, ft, ft @ cross, ft @ cross])
         offset = np.concatenate([a0 - c @ a1, -c, pp - c @ cross, pp - c @ cross])
         if self.input_matrix is not None:
+            if self.input_offset is None:
+                raise ValueError("a weight model's input_matrix needs its input_offset")
             offset = self.input_offset @ project + offset
             project = self.input_matrix @ project
         inv_alpha = 1.0 / self.alpha
@@ -137,22 +167,20 @@ class WeightModel:
             "_radial2",
             np.vstack([self.radial_coeffs / 6.0, self.radial_coeffs * (-4.0 / 6.0)]),
         )
+        kernel = None
         if self.kernel == "bspline":
             # One frame through numpy is ~13 calls of ~1 us overhead each; the compiled kernel
             # does the same sums in ~1 us. It agrees with the numpy path to rounding.
             n = self.params.shape[1]
-            set_(
-                self,
-                "_kernel",
-                bspline_kernel(
-                    project[:, m : m + n],
-                    offset[m : m + n],
-                    self.linear_coeffs,
-                    self.params,
-                    self.alpha,
-                    self.radial_coeffs,
-                ),
+            kernel = bspline_kernel(
+                project[:, m : m + n],
+                offset[m : m + n],
+                self.linear_coeffs,
+                self.params,
+                self.alpha,
+                self.radial_coeffs,
             )
+        set_(self, "_kernel", kernel)
 
     # -- evaluation ---------------------------------------------------------------------
     def evaluate(self, flat: np.ndarray) -> np.ndarray:
@@ -209,23 +237,20 @@ class WeightModel:
         lin = self.linear_coeffs[0] + params @ self.linear_coeffs[1:]
         diff = params[:, None, :] - self.params[None, :, :]
         t = np.sqrt(np.einsum("bjk,bjk->bj", diff, diff)) / self.alpha
-        return lin + evaluate_kernel(self.kernel, t) @ self.radial_coeffs
+        weights: np.ndarray = lin + evaluate_kernel(self.kernel, t) @ self.radial_coeffs
+        return weights
 
     def project(self, flat: np.ndarray) -> np.ndarray:
         """Reduced parameters p (B, n) of flattened points (B, 3K) (eq. 3.7)."""
         m, n = self.num_examples, self.params.shape[1]
         return (flat @ self._project[:, m : m + n]) + self._offset[m : m + n]
 
-    def with_input_map(self, matrix: np.ndarray, offset: np.ndarray) -> WeightModel:
-        return self._rebuild(input_matrix=matrix, input_offset=offset)
+    def with_input_map(self, matrix: Floats, offset: Floats) -> WeightModel:
+        # replace() builds a new model, so __post_init__ folds the map in afresh.
+        return replace(self, input_matrix=matrix, input_offset=offset)
 
     def with_clamp(self, clamp: str | None) -> WeightModel:
-        return self._rebuild(clamp=clamp)
-
-    def _rebuild(self, **changes) -> WeightModel:
-        fields = {f: getattr(self, f) for f in self.__dataclass_fields__ if not f.startswith("_")}
-        fields.update(changes)
-        return WeightModel.build(**fields)
+        return replace(self, clamp=clamp)
 
 
 class Rig:
@@ -248,7 +273,7 @@ class Rig:
         source_preview: tuple[np.ndarray, np.ndarray] | None,
         stable_points: np.ndarray | None,
         align_scale: bool,
-        report: dict,
+        report: dict[str, Any],
         calibration: np.ndarray | None = None,
         regions: tuple[tuple[str, np.ndarray], ...] | None = None,
         _moving: dict[str, np.ndarray] | None = None,
@@ -291,16 +316,21 @@ class Rig:
     def from_fit(
         cls,
         *,
-        names,
-        model,
-        target_vertices,
-        target_faces,
-        feature_indices,
-        source_preview,
-        stable_points,
-        align_scale,
-        report,
+        names: tuple[str, ...],
+        model: WeightModel,
+        target_vertices: np.ndarray,
+        target_faces: np.ndarray,
+        feature_indices: np.ndarray | None,
+        source_preview: tuple[np.ndarray, np.ndarray] | None,
+        stable_points: npt.ArrayLike | None,
+        align_scale: bool,
+        report: dict[str, Any],
     ) -> Rig:
+        """A rig from a fitted weight model and the example set's targets (M, V, 3).
+
+        ``stable_points`` are checked as an example set's are (``check_stable_points``):
+        ``fit`` takes them from its caller as well as from the example set.
+        """
         m, v, _ = target_vertices.shape
         neutral = np.ascontiguousarray(target_vertices[0], dtype=np.float32)
         basis = np.empty((m, 3 * v), dtype=np.float32)
@@ -314,13 +344,9 @@ class Rig:
         for i in range(1, m):
             np.subtract(flat[i], flat[0], out=scratch)
             basis[i] = scratch
-        if stable_points is not None:
-            stable_points = np.asarray(stable_points, dtype=np.int64)
-            k = model.num_points
-            if stable_points.ndim != 1 or stable_points.size < 3:
-                raise InputError("stable_points: need at least 3 feature-point indices")
-            if stable_points.min() < 0 or stable_points.max() >= k:
-                raise InputError(f"stable_points: indices must lie in [0, {k})")
+        stable = (
+            None if stable_points is None else check_stable_points(stable_points, model.num_points)
+        )
         return cls(
             names=names,
             model=model,
@@ -329,7 +355,7 @@ class Rig:
             target_faces=np.ascontiguousarray(target_faces, dtype=np.int32),
             feature_indices=feature_indices,
             source_preview=source_preview,
-            stable_points=stable_points,
+            stable_points=stable,
             align_scale=align_scale,
             report=report,
         )
@@ -394,7 +420,7 @@ class Rig:
         return moving["basis"], moving["vertices"], moving["columns"]
 
     # -- evaluation ----------------------------------------------------------------------
-    def _points(self, points) -> tuple[np.ndarray, bool]:
+    def _points(self, points: npt.ArrayLike) -> tuple[np.ndarray, bool]:
         x = np.asarray(points, dtype=np.float64)
         single = x.ndim == 2
         k = self.model.num_points
@@ -405,7 +431,7 @@ class Rig:
             )
         return (x[None] if single else x), single
 
-    def weights(self, points, *, align: bool = False) -> np.ndarray:
+    def weights(self, points: npt.ArrayLike, *, align: bool = False) -> np.ndarray:
         """Blend weights of source frames (eq. 3.8).
 
         Parameters
@@ -421,11 +447,18 @@ class Rig:
         (M,) or (B, M) float64; the weights sum to 1.
         """
         kernel = self.models[0]._kernel
-        if kernel is not None and not align and self.regions is None and self.model._box is None:
+        if (
+            kernel is not None
+            and isinstance(points, np.ndarray)
+            and not align
+            and self.regions is None
+            and self.model._box is None
+        ):
             # One frame straight to the compiled kernel: the general path's conversions and
             # checks alone cost more than the kernel. The kernel takes only a C-contiguous
             # (K, 3) float array and returns None for non-finite weights; anything else
             # (batches, lists, NaN) goes the general way, which converts or reports it.
+            w: np.ndarray | None
             try:
                 w = kernel.weights(points)
             except (TypeError, ValueError):
@@ -453,12 +486,19 @@ class Rig:
                 w[:, columns] = model.evaluate(flat)[:, 1:]
             w[:, 0] = 1.0 - w[:, 1:].sum(axis=1)
         if not np.isfinite(w.sum()):
-            bad = np.flatnonzero(~np.isfinite(x.reshape(x.shape[0], -1)).all(axis=1))
-            where = f" (frame {int(bad[0])})" if bad.size and not single else ""
-            raise InputError(f"feature points hold NaN or Inf{where}", code="non_finite")
+            # _check_range refused every non-finite frame, so the points are finite here: the
+            # weights overflowed (a rig file's finite but huge coefficients, or an alignment
+            # scaling a frame up by ~1e150).
+            bad = np.flatnonzero(~np.isfinite(w).all(axis=1))
+            where = "" if single else f" (frame {int(bad[0])})"
+            raise InputError(
+                f"the weights of finite feature points{where} are not finite: the rig's "
+                "coefficients or the head-pose alignment overflow float64",
+                code="non_finite",
+            )
         return w[0] if single else w
 
-    def check_range(self, points) -> None:
+    def check_range(self, points: npt.ArrayLike) -> None:
         """Raise ``InputError`` unless frames (K, 3) or (B, K, 3) are within POINT_RANGE.
 
         ``weights`` checks this itself; for callers that pass frames on unevaluated.
@@ -522,7 +562,9 @@ class Rig:
         self.pose_refinement(scale=scale)
         return self._pose_bases[scale][1]
 
-    def blend(self, weights, *, out: np.ndarray | None = None, moving: bool = False) -> np.ndarray:
+    def blend(
+        self, weights: npt.ArrayLike, *, out: np.ndarray | None = None, moving: bool = False
+    ) -> np.ndarray:
         """Target vertices for blend weights (eq. 3.14): T_B + sum_i w_i (T_i - T_B).
 
         Only the basis columns of the ``moving_vertices`` are blended (the others are
@@ -574,12 +616,12 @@ class Rig:
             return out
         return flat.reshape(size // 3, 3) if single else flat.reshape(-1, size // 3, 3)
 
-    def clone(self, points, *, align: bool = False) -> np.ndarray:
+    def clone(self, points: npt.ArrayLike, *, align: bool = False) -> np.ndarray:
         """Target vertices for source feature points: ``blend(weights(points))``."""
         return self.blend(self.weights(points, align=align))
 
     # -- derived rigs --------------------------------------------------------------------
-    def calibrated(self, neutral_points, *, scale: bool = True) -> Rig:
+    def calibrated(self, neutral_points: npt.ArrayLike, *, scale: bool = True) -> Rig:
         """A rig re-based on another performer's captured neutral (K, 3).
 
         Frames are read as displacements from that neutral, rotated (and scaled, with
@@ -603,8 +645,9 @@ class Rig:
         offset = (self.source_neutral - neutral @ sr.T).reshape(-1)
         # Replacing the input map (not composing it) re-calibrates from the original rig.
         return self._derive(
-            model=tuple(m.with_input_map(matrix, offset) for m in self.models),
+            tuple(m.with_input_map(matrix, offset) for m in self.models),
             calibration=neutral,
+            align_scale=self.align_scale,
         )
 
     def _check_calibration_range(self, neutral: np.ndarray) -> None:
@@ -626,24 +669,29 @@ class Rig:
             code="out_of_range",
         )
 
-    def _derive(self, **changes) -> Rig:
-        fields = dict(
+    def _derive(
+        self,
+        models: tuple[WeightModel, ...],
+        *,
+        calibration: np.ndarray | None,
+        align_scale: bool,
+    ) -> Rig:
+        """This rig with other weight models, calibration or scale removal; shared arrays."""
+        return Rig(
             names=self.names,
-            model=self.models,
+            model=models,
             target_neutral=self.target_neutral,
             blend_basis=self._blend_basis,
             target_faces=self.target_faces,
             feature_indices=self.feature_indices,
             source_preview=self.source_preview,
             stable_points=self.stable_points,
-            align_scale=self.align_scale,
+            align_scale=align_scale,
             report=self.fit_report,
-            calibration=self.calibration,
+            calibration=calibration,
             regions=self.regions,
             _moving=self._moving,
         )
-        fields.update(changes)
-        return Rig(**fields)
 
     def with_clamp(self, clamp: str | None) -> Rig:
         """The same rig with another weight-clamping mode (None, "nonneg", "unit").
@@ -651,7 +699,21 @@ class Rig:
         The sparsity penalty fit derived from its noise (``bounds.sparsity_penalty``) comes
         along: bounding an unbounded noise rig gives what ``fit(..., clamp=...)`` would.
         """
-        return self._derive(model=tuple(m.with_clamp(clamp) for m in self.models))
+        return self._derive(
+            tuple(m.with_clamp(clamp) for m in self.models),
+            calibration=self.calibration,
+            align_scale=self.align_scale,
+        )
+
+    def with_align_scale(self, align_scale: bool) -> Rig:
+        """The same rig, removing (or not) uniform scale with the head pose (``align``).
+
+        A new rig sharing this one's arrays: a caller serving a client that asks for scale
+        removal takes this rather than setting ``align_scale`` on a rig others share.
+        """
+        if bool(align_scale) == self.align_scale:
+            return self
+        return self._derive(self.models, calibration=self.calibration, align_scale=align_scale)
 
     # -- description -----------------------------------------------------------------------
     @property
@@ -661,7 +723,7 @@ class Rig:
             self._checksum = content_checksum(self)
         return self._checksum
 
-    def summary(self) -> dict:
+    def summary(self) -> RigSummary:
         """A JSON-able description: sizes, names, fit settings, checksum."""
         report = self.fit_report or {}
         return {
@@ -683,7 +745,7 @@ class Rig:
             "checksum": self.checksum,
         }
 
-    def save(self, path) -> None:
+    def save(self, path: str | os.PathLike[str]) -> None:
         """Write the rig as one file (see ``facecast.rig.io.rigformat``)."""
         save_rig(self, path)
 

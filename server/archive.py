@@ -14,6 +14,10 @@ import zipfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
+from typing import IO, TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from _typeshed import WriteableBuffer
 
 from facecast.errors import FacecastError
 
@@ -129,7 +133,7 @@ def _make_dir(dest: Path, relative: PurePosixPath) -> None:
         raise _conflict(relative) from None
 
 
-def _write_member(dest: Path, relative: PurePosixPath, source, budget: _Budget) -> None:
+def _write_member(dest: Path, relative: PurePosixPath, source: IO[bytes], budget: _Budget) -> None:
     if relative.parent.parts:
         _make_dir(dest, relative.parent)
     target = dest.joinpath(*relative.parts)
@@ -191,7 +195,7 @@ class _LimitedReader(io.RawIOBase):
     itself must be bounded, not only the bytes we write.
     """
 
-    def __init__(self, raw, budget: _Budget, slack: int) -> None:
+    def __init__(self, raw: io.BufferedIOBase, budget: _Budget, slack: int) -> None:
         self.raw = raw
         self.budget = budget
         self.read_total = 0
@@ -200,8 +204,9 @@ class _LimitedReader(io.RawIOBase):
     def readable(self) -> bool:
         return True
 
-    def readinto(self, buffer) -> int:
-        data = self.raw.read(min(len(buffer), _CHUNK))
+    def readinto(self, buffer: WriteableBuffer) -> int:
+        view = memoryview(buffer).cast("B")
+        data = self.raw.read(min(len(view), _CHUNK))
         self.read_total += len(data)
         if self.read_total > self.limit:
             raise ArchiveError(
@@ -217,7 +222,7 @@ class _LimitedReader(io.RawIOBase):
                 f"archive expands more than {self.budget.limits.max_compression_ratio:g}x "
                 "(a compression bomb?)",
             )
-        buffer[: len(data)] = data
+        view[: len(data)] = data
         return len(data)
 
 

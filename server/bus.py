@@ -16,8 +16,8 @@ import secrets
 import socket
 import time
 from collections import deque
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Awaitable, Callable
+from typing import Any, TypeVar
 
 import msgpack
 
@@ -26,6 +26,8 @@ from facecast.errors import FacecastError
 from .settings import SettingsError
 
 __all__ = ["Bus", "BusUnavailable", "LocalBus", "RedisBus", "make_bus"]
+
+T = TypeVar("T")
 
 log = logging.getLogger("facecast.server.bus")
 
@@ -240,12 +242,12 @@ class RedisBus(Bus):
                         self._deliver(message["channel"], message["data"])
             except asyncio.CancelledError:
                 with contextlib.suppress(Exception):
-                    await pubsub.aclose()
+                    await pubsub.aclose()  # type: ignore[no-untyped-call]  # redis-py: unannotated
                 raise
             except Exception as exc:  # connection refused/reset, timeouts: heal below
                 self._down(exc)
                 with contextlib.suppress(Exception):
-                    await pubsub.aclose()
+                    await pubsub.aclose()  # type: ignore[no-untyped-call]  # redis-py: unannotated
                 # Re-subscribe everything on the next connection.
                 self._dirty.set()
                 await asyncio.sleep(backoff)
@@ -289,7 +291,7 @@ class RedisBus(Bus):
                     self._outbox.clear()
 
     # -- presence -------------------------------------------------------------------------
-    async def _call(self, fn: Callable[[], Any]) -> Any:
+    async def _call(self, fn: Callable[[], Awaitable[T]]) -> T:
         try:
             async with asyncio.timeout(_CALL_TIMEOUT):
                 return await fn()

@@ -22,8 +22,11 @@ from .fanout import ChannelFrame, Key, KeyState, PointsKeyState, key_state
 from .stages import CPU_CLOCK
 
 if TYPE_CHECKING:
+    from facecast.rig import Rig
+
     from .hub import ChannelHub
-    from .members import Member, PublisherMember
+    from .members import PublisherMember
+    from .outbox import Member
 
 __all__ = ["Channel"]
 
@@ -84,7 +87,7 @@ class Channel:
         groups = self.members.values() if key is None else [self.members.get(key, set())]
         return [m for group in groups for m in group if m.watcher]
 
-    def _join(self, member: Member, rig: Any) -> KeyState:
+    def _join(self, member: Member, rig: Rig) -> KeyState | PointsKeyState:
         state = self.states.get(member.key)
         if state is None:
             state = self.states[member.key] = key_state(member.key, rig)
@@ -92,7 +95,7 @@ class Channel:
         self.hub.members_gauge.labels("publisher" if not member.watcher else "viewer").inc()
         return state
 
-    def add_watcher(self, member: Member, rig: Any) -> None:
+    def add_watcher(self, member: Member, rig: Rig) -> None:
         """Register a watcher whose ``ready`` is already queued; it gets the state at once."""
         state = self._join(member, rig)
         event = ChannelLive if self.live else ChannelIdle
@@ -117,7 +120,7 @@ class Channel:
             self.states.pop(member.key, None)
         self.hub.maybe_drop(self)
 
-    async def add_publisher(self, publisher: PublisherMember, rig: Any) -> None:
+    async def add_publisher(self, publisher: PublisherMember, rig: Rig) -> None:
         self.claimed_by = None
         self.publisher = publisher
         self._join(publisher, rig)
@@ -279,17 +282,19 @@ class Channel:
             return
         stages = self.hub.metrics.stages if self.hub.settings.stage_timing else None
         call = _clone_call if stages is None else _timed_clone_call
-        futures = [
+        futures: list[asyncio.Future[bytes | tuple[bytes, float]]] = [
             self._loop.run_in_executor(self.hub.executor, call, s, frame, arrived, count)
             for s in states
         ]
-        results = await asyncio.gather(*futures, return_exceptions=True)
-        if stages is not None:
-            # A key's clone (its weights, any blend, and its encode) counts as "weights".
-            for i, outcome in enumerate(results):
-                if isinstance(outcome, tuple):
-                    results[i], seconds = outcome
+        results: list[bytes | BaseException] = []
+        for outcome in await asyncio.gather(*futures, return_exceptions=True):
+            if isinstance(outcome, tuple):  # _timed_clone_call's, so stages is set
+                encoded, seconds = outcome
+                if stages is not None:
+                    # A key's clone (its weights, any blend, and its encode) counts as "weights".
                     stages.add("weights", seconds)
+                outcome = encoded
+            results.append(outcome)
         for state, data in zip(states, results, strict=True):
             if isinstance(data, InputError | ProtocolError):
                 self._clone_refused(state, frame, data)

@@ -17,6 +17,7 @@ beside the one object that raises it, and its class ``code`` is its default)::
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from http import HTTPStatus
 
 from fastapi import FastAPI, Request
@@ -65,7 +66,7 @@ class ApiError(FacecastError):
 
 
 def problem(
-    status: int, code: str, detail: str, *, headers: dict[str, str] | None = None
+    status: int, code: str, detail: str, *, headers: Mapping[str, str] | None = None
 ) -> JSONResponse:
     """An RFC 9457 problem response extended with our ``code``."""
     body = {

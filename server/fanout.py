@@ -6,12 +6,11 @@ It holds no sockets, never touches the event loop and knows nothing of who recei
 
 from __future__ import annotations
 
-import copy
 import logging
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import msgpack
 import numpy as np
@@ -20,6 +19,9 @@ from facecast.protocol import Head, Result, Smoothing, array_from_wire, array_to
 from facecast.protocol.arrays import check_result_finite
 from facecast.rig.errors import InputError, RigError
 from facecast.rig.filters import OneEuroFilter
+
+if TYPE_CHECKING:
+    from facecast.rig import Rig
 
 __all__ = ["ChannelFrame", "Key", "KeyState", "PointsKeyState", "key_state"]
 
@@ -64,7 +66,7 @@ class ChannelFrame:
     head: Head | None = None
 
     def to_bytes(self) -> bytes:
-        return msgpack.packb(
+        data: bytes = msgpack.packb(
             {
                 "seq": self.seq,
                 "ts": self.ts,
@@ -80,6 +82,7 @@ class ChannelFrame:
             },
             use_bin_type=True,
         )
+        return data
 
     @classmethod
     def from_bytes(cls, data: bytes, max_points: int) -> ChannelFrame:
@@ -116,7 +119,7 @@ class _Key:
     #: Whether ``clone`` evaluates a rig (counted in the channel's ``clones``).
     CLONES = True
 
-    def __init__(self, key: Key, rig: Any) -> None:
+    def __init__(self, key: Key, rig: Rig) -> None:
         self.key = key
         self.rig = rig
         self.rig_id, self.output, self.dtype = key
@@ -145,7 +148,7 @@ class KeyState(_Key):
     at a time per key (the filter and the last pose are per key state).
     """
 
-    def __init__(self, key: Key, rig: Any) -> None:
+    def __init__(self, key: Key, rig: Rig) -> None:
         super().__init__(key, rig)
         self._rig_for: tuple[str, bool] = ("", False)
         self._effective = rig
@@ -153,7 +156,7 @@ class KeyState(_Key):
         self._filter: OneEuroFilter | None = None
         self._filter_ts: float | None = None
 
-    def _rig(self, frame: ChannelFrame) -> Any:
+    def _rig(self, frame: ChannelFrame) -> Rig:
         wanted = (frame.neutral_id if frame.neutral is not None else "", frame.scale)
         if wanted != self._rig_for:
             rig = self.rig
@@ -168,9 +171,10 @@ class KeyState(_Key):
                         extra={"event": "channel.calibration_skipped", "rig": self.rig_id,
                                "error": str(exc)},
                     )  # fmt: skip
-            if frame.scale and not rig.align_scale:
-                rig = copy.copy(rig)  # the cached rig stays as it is
-                rig.align_scale = True
+            if frame.scale:
+                # A rig of its own: the store's cached rig, shared by every key and session,
+                # stays as it is.
+                rig = rig.with_align_scale(True)
             self._effective, self._rig_for = rig, wanted
         return self._effective
 
@@ -228,7 +232,7 @@ class KeyState(_Key):
 
     def _encode(
         self,
-        rig: Any,
+        rig: Rig,
         weights: np.ndarray,
         seq: int,
         ts: float,
@@ -298,6 +302,6 @@ class PointsKeyState(_Key):
         return None
 
 
-def key_state(key: Key, rig: Any) -> KeyState | PointsKeyState:
+def key_state(key: Key, rig: Rig) -> KeyState | PointsKeyState:
     """The pipeline of a watched ``key``: a clone on ``rig``, or the frames themselves."""
     return PointsKeyState(key, rig) if key[1] == "points" else KeyState(key, rig)

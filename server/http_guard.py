@@ -63,7 +63,8 @@ class _Guarded:
     cycle: Any
     loop: asyncio.AbstractEventLoop
 
-    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+    def connection_made(self, transport: asyncio.Transport) -> None:
+        # A mixin: the uvicorn protocol class it is mixed into has the method.
         super().connection_made(transport)  # type: ignore[misc]
         self._deadline: asyncio.TimerHandle | None = None
         self._request: Any = None  # the cycle whose head completed last
@@ -102,7 +103,8 @@ class _Guarded:
             self._head_started = True
             self._arm(self.pending.head_timeout, "request head too slow")
         super().data_received(data)  # type: ignore[misc]
-        if self.transport.get_protocol() is not self:
+        protocol: object = self.transport.get_protocol()
+        if protocol is not self:
             self._disarm()  # upgraded to WebSocket: its own limits apply from here
         elif self.cycle is not None and self.cycle is not self._request:
             self._request = self.cycle

@@ -23,6 +23,8 @@ from .settings import Settings
 from .store import RigNotFoundError, RigStore, valid_rig_id
 
 if TYPE_CHECKING:
+    from facecast.rig import Rig
+
     from .members import PublisherMember
     from .metrics import Metrics
 
@@ -124,7 +126,7 @@ class ChannelHub:
             self._stopping.add(task)
             task.add_done_callback(self._stopping.discard)
 
-    async def load_rig(self, rig_id: str) -> Any:
+    async def load_rig(self, rig_id: str) -> Rig:
         """The rig ``rig_id`` (file I/O in a thread); fatal UNKNOWN_RIG if there is none."""
         if not valid_rig_id(rig_id):
             raise ProtocolError(

@@ -48,7 +48,8 @@ def profile_store(settings: Settings, rigs: RigStore) -> ProfileStore:
 
 
 def _profiles(request: Request) -> ProfileStore:
-    return request.app.state.profiles
+    profiles: ProfileStore = request.app.state.profiles
+    return profiles
 
 
 def _check_rig_id(rig_id: str) -> str:

@@ -14,6 +14,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, NoReturn, TypeGuard
 
 import msgpack
 import numpy as np
@@ -88,7 +89,7 @@ class PerformerProfile:
         }
         return json.dumps(doc, separators=(",", ":")).encode()
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         return {
             "performer": self.performer,
             "rig": self.rig,
@@ -129,12 +130,12 @@ class _NonFinite(ValueError):
     pass
 
 
-def _refuse_constant(name: str):
+def _refuse_constant(name: str) -> NoReturn:
     # NaN/Infinity literals are not JSON; refuse them as non-finite, by name.
     raise _NonFinite(f"{name} is not a finite number")
 
 
-def _is_number(value) -> bool:
+def _is_number(value: object) -> TypeGuard[int | float]:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
@@ -233,7 +234,7 @@ def _points_array(name: str, value: object) -> np.ndarray:
             for row in value
         )
     )
-    if not rows_ok:
+    if not rows_ok or not isinstance(value, list):  # (rows_ok means a list: for mypy)
         raise _bad(
             "wrong_point_count",
             f"points[{name!r}] must be a list of 1-{MAX_POINTS} [x, y, z] numbers",

@@ -11,8 +11,9 @@ import contextlib
 import logging
 import tempfile
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar
 
 import anyio
 from fastapi import APIRouter, Depends, Query, Request, Response
@@ -27,6 +28,11 @@ from .errors import ApiError
 from .settings import Settings
 from .store import RIG_ID_PATTERN, RigNotFoundError, RigStore, valid_rig_id
 
+if TYPE_CHECKING:
+    from facecast.rig import Rig
+
+T = TypeVar("T")
+
 __all__ = ["fit_slot", "read_body", "router", "run_fit"]
 
 log = logging.getLogger("facecast.server.rest")
@@ -40,11 +46,13 @@ Downloader = Annotated[Principal, Depends(requires("stream"))]
 
 
 def _store(request: Request) -> RigStore:
-    return request.app.state.store
+    store: RigStore = request.app.state.store
+    return store
 
 
 def _settings(request: Request) -> Settings:
-    return request.app.state.settings
+    settings: Settings = request.app.state.settings
+    return settings
 
 
 def _scratch(request: Request) -> Path:
@@ -129,14 +137,15 @@ def fit_slot(request: Request) -> Iterator[None]:
         state.pending_fits -= 1
 
 
-async def run_fit(request: Request, job: Callable[[], Any]) -> Any:
+async def run_fit(request: Request, job: Callable[[], T]) -> T:
     """Run ``job`` (a fit) in the app's fit executor; the caller holds a ``fit_slot``."""
     # Fitting is seconds of numpy: it runs in the dedicated fit executor, never on the
     # event loop and never in the pool that clones frames.
-    return await asyncio.wrap_future(request.app.state.fit_executor.submit(job))
+    executor: ThreadPoolExecutor = request.app.state.fit_executor
+    return await asyncio.wrap_future(executor.submit(job))
 
 
-def _described(rig_id: str, rig: Any) -> dict[str, Any]:
+def _described(rig_id: str, rig: Rig) -> dict[str, Any]:
     return {"id": rig_id, **rig.summary()}
 
 
@@ -274,7 +283,7 @@ class _FitJob:
         # Keyword arguments of facecast.rig.fit: noise, pca_threshold, kernel, clamp, sparsity.
         self.options = options
 
-    def __call__(self):
+    def __call__(self) -> Rig:
         with tempfile.TemporaryDirectory(prefix="upload-", dir=self.scratch) as tmp:
             dest = Path(tmp)
             extract_archive(self.data, dest, self.limits)

@@ -16,9 +16,11 @@ import tempfile
 import threading
 import time
 from collections.abc import Iterator
+from types import FrameType
 from typing import Any
 
 import uvicorn
+from fastapi import FastAPI
 from prometheus_client.multiprocess import mark_process_dead
 
 from .app import SESSIONS_STATE_KEY, SETTINGS_ENV, create_app
@@ -58,8 +60,13 @@ def _ws_protocol(settings: Settings, ws: str) -> type:
 
 
 def uvicorn_config(
-    settings: Settings, app: Any, *, ws: str = "auto", http: str = "auto", **overrides: Any
-):
+    settings: Settings,
+    app: FastAPI | str,
+    *,
+    ws: str = "auto",
+    http: str = "auto",
+    **overrides: Any,
+) -> uvicorn.Config:
     """The ``uvicorn.Config`` for ``settings`` (``app`` an ASGI app or an import string).
 
     ``http``: uvicorn's HTTP implementation, a key of ``http_guard.HTTP_IMPLEMENTATIONS``.
@@ -191,7 +198,7 @@ def _signals_end_in_status() -> Iterator[None]:
             signal.signal(s, handler)
 
 
-def _ignore(signum: int, frame: Any) -> None:
+def _ignore(signum: int, frame: FrameType | None) -> None:
     """A handler that only marks the signal as handled (uvicorn's own runs meanwhile)."""
 
 
@@ -227,7 +234,7 @@ def _serve_workers(settings: Settings, ws: str) -> int:
 
     stopping = False
 
-    def on_signal(signum: int, frame: Any) -> None:
+    def on_signal(signum: int, frame: FrameType | None) -> None:
         nonlocal stopping
         stopping = True
 
@@ -247,7 +254,8 @@ def _serve_workers(settings: Settings, ws: str) -> int:
                     )
                     # Its live gauges (open connections) would otherwise count for ever.
                     if process.pid is not None:
-                        mark_process_dead(process.pid, metrics_dir.name)
+                        # prometheus_client leaves this function unannotated.
+                        mark_process_dead(process.pid, metrics_dir.name)  # type: ignore[no-untyped-call]
                     processes[i] = start()
             time.sleep(0.2)
     finally:

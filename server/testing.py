@@ -45,7 +45,8 @@ def free_port(host: str = "127.0.0.1") -> int:
     """A port free right now (for subprocess servers that must bind it themselves)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind((host, 0))
-        return sock.getsockname()[1]
+        port: int = sock.getsockname()[1]
+        return port
 
 
 @asynccontextmanager

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import importlib.util
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 import anyio
@@ -57,9 +58,10 @@ def demo_animation_bytes() -> bytes:
 
     animation = demo_animation(with_vertices=False)
     points = animation.points.astype("<f4")
-    return msgpack.packb(
+    data: bytes = msgpack.packb(
         {"v": 1, "type": "animation", "fps": float(animation.fps), "points": array_to_wire(points)}
     )
+    return data
 
 
 def mount_viewer(app: FastAPI, settings: Settings) -> None:
@@ -72,7 +74,7 @@ def mount_viewer(app: FastAPI, settings: Settings) -> None:
     dist = root / "dist"
     router = APIRouter(include_in_schema=False)
 
-    def page(name: str):
+    def page(name: str) -> Callable[[], Awaitable[Response]]:
         async def handler() -> Response:
             if not (dist / "viewer.js").is_file():
                 return HTMLResponse(_NOT_BUILT, status_code=503)

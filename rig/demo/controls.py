@@ -10,6 +10,7 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from .geometry import (
     CARTOON,
@@ -50,7 +51,7 @@ class CharacterModel:
     jaw_weight: np.ndarray  # (V,)
     cavity: np.ndarray  # (V,) depth of the mouth opening per unit jaw
     eye_index: np.ndarray  # (E,) vertices near the eyes, moved by the lids
-    landmarks: dict
+    landmarks: dict[str, np.ndarray]
 
 
 def _control_fields(head: Head, neutral: np.ndarray, ear: np.ndarray) -> np.ndarray:
@@ -63,7 +64,7 @@ def _control_fields(head: Head, neutral: np.ndarray, ear: np.ndarray) -> np.ndar
     front = front_mask(head, ellipsoid_z(head, x, y))
     fields = np.zeros((len(CONTROLS), len(x), 3))
 
-    def add(control: str, weight, vector) -> None:
+    def add(control: str, weight: np.ndarray, vector: list[float]) -> None:
         fields[CONTROL_INDEX[control]] += (weight * front)[:, None] * np.asarray(vector, float)
 
     sc = 0.5 * hw + 0.2  # reach of a mouth corner's pull
@@ -165,11 +166,13 @@ def character_model(character: str) -> CharacterModel:
     )
 
 
-def _lid_margins(head: Head, lid, squint):
+def _lid_margins(
+    head: Head, lid: npt.ArrayLike, squint: npt.ArrayLike
+) -> tuple[np.ndarray, np.ndarray]:
     """Upper and lower lid margins, in eye radii from the eye centre, per frame."""
-    lid = np.asarray(lid, float)
-    upper = 0.55 + head.lid_travel * np.clip(lid, 0.0, 1.6) + 1.1 * np.clip(lid, -1.2, 0.0)
-    lower = -0.55 + 0.3 * np.clip(squint, 0.0, 1.2)
+    lids = np.asarray(lid, float)
+    upper = 0.55 + head.lid_travel * np.clip(lids, 0.0, 1.6) + 1.1 * np.clip(lids, -1.2, 0.0)
+    lower = -0.55 + 0.3 * np.clip(np.asarray(squint, float), 0.0, 1.2)
     # Closed lids meet, they do not cross; a smooth maximum keeps the lid's motion C1.
     upper = (upper + lower + np.sqrt((upper - lower) ** 2 + 0.15**2)) / 2.0
     return upper, lower
@@ -191,7 +194,7 @@ def pose_vertices(model: CharacterModel, controls: np.ndarray) -> np.ndarray:
     """
     head, neutral = model.head, model.neutral
     t_count, v_count = controls.shape[0], neutral.shape[0]
-    out = (controls @ model.fields).reshape(t_count, v_count, 3)
+    out: np.ndarray = (controls @ model.fields).reshape(t_count, v_count, 3)
     out += neutral
     # The jaw turns about a hinge in front of the ears; the lips part into a cavity.
     jaw = np.clip(controls[:, CONTROL_INDEX["jaw"]], -0.2, 1.6)

@@ -10,6 +10,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 __all__ = [
     "CARTOON",
@@ -69,7 +70,9 @@ CARTOON = Head(
 
 
 # -- meshes ------------------------------------------------------------------------------
-def _warped_angles(count: int, lo: float, hi: float, peak: float, width: float, boost: float):
+def _warped_angles(
+    count: int, lo: float, hi: float, peak: float, width: float, boost: float
+) -> np.ndarray:
     """``count`` angles in [lo, hi], denser (by 1 + boost) around ``peak``."""
     fine = np.linspace(lo, hi, 4096)
     density = 1.0 + boost * np.exp(-(((fine - peak) / width) ** 2))
@@ -123,28 +126,34 @@ def icosphere(levels: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 # -- geometry of a head ----------------------------------------------------------------------
-def gauss(x, y, cx, cy, sx, sy):
+#: float64 coordinates and fields over them.
+F64 = npt.NDArray[np.float64]
+#: A lid margin in eye radii: one for every vertex, or per frame and vertex (T, E).
+Margin = F64 | float
+
+
+def gauss(x: F64, y: F64, cx: float, cy: float, sx: float, sy: float) -> F64:
     """Axis-aligned Gaussian bump at (cx, cy) with widths (sx, sy); 1 at its centre."""
     return np.exp(-(((x - cx) / sx) ** 2) - ((y - cy) / sy) ** 2)
 
 
-def smoothstep(t):
+def smoothstep(t: F64) -> F64:
     """0 below 0, 1 above 1, and the C1 cubic ``3t² - 2t³`` in between."""
-    t = np.clip(t, 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
+    c: F64 = np.clip(t, 0.0, 1.0)
+    return c * c * (3.0 - 2.0 * c)
 
 
-def _narrowing(head: Head, y):
+def _narrowing(head: Head, y: F64) -> F64:
     return 1.0 - head.narrow * smoothstep(-y / head.radii[1])
 
 
-def lip_envelope(head: Head, x, extra=1.0):
+def lip_envelope(head: Head, x: F64, extra: float = 1.0) -> F64:
     """Across the mouth: 1 at the middle, 0 beyond ``extra`` mouth half-widths."""
     hw = head.mouth[1] * extra
     return np.clip(1.0 - (x / hw) ** 2, 0.0, 1.0) ** 0.6
 
 
-def lip_height(head: Head, x, y):
+def lip_height(head: Head, x: F64, y: F64) -> F64:
     """Height of the lips and the mouth line (a groove) around the mouth."""
     my, _, lt = head.mouth
     env = lip_envelope(head, x)
@@ -154,14 +163,15 @@ def lip_height(head: Head, x, y):
     return head.lips * env * (upper + 1.1 * lower) - 0.35 * groove
 
 
-def eye_curve(head: Head, x):
+def eye_curve(head: Head, x: F64) -> F64:
     """(…) factor in [0, 1] shaping lid margins into an almond: 1 mid-eye, 0 at the corners."""
     ex, _, er = head.eye
     xr = (np.abs(x) - ex) / (1.2 * er)
-    return np.clip(1.0 - xr**2, 0.0, 1.0)
+    curve: F64 = np.clip(1.0 - xr**2, 0.0, 1.0)
+    return curve
 
 
-def _eye_height(head: Head, x, y, upper, lower):
+def _eye_height(head: Head, x: F64, y: F64, upper: Margin, lower: Margin) -> F64:
     """Eyeball with sliding lids; ``upper``/``lower`` are the lid margins in eye radii."""
     ex, ey, er = head.eye
     r2 = ((np.abs(x) - ex) ** 2 + (y - ey) ** 2) / er**2
@@ -176,7 +186,7 @@ def _eye_height(head: Head, x, y, upper, lower):
     return ball + lid + crease - head.socket * np.exp(-r2 / 1.8)
 
 
-def front_height(head: Head, x, y, upper=0.55, lower=-0.55):
+def front_height(head: Head, x: F64, y: F64, upper: Margin = 0.55, lower: Margin = -0.55) -> F64:
     """Height of the facial features above the ellipsoid, along +z, at (x, y)."""
     ex, ey, _ = head.eye
     by, bh, bt = head.brow
@@ -201,21 +211,24 @@ def front_height(head: Head, x, y, upper=0.55, lower=-0.55):
     return h + lip_height(head, x, y) + _eye_height(head, x, y, upper, lower)
 
 
-def ellipsoid_z(head: Head, x, y):
+def ellipsoid_z(head: Head, x: F64, y: F64) -> F64:
     """Depth (+z) of the head's narrowed ellipsoid at (x, y), before any features."""
     rx, ry, rz = head.radii
     x0 = x / _narrowing(head, y)
-    return rz * np.sqrt(np.clip(1.0 - (x0 / rx) ** 2 - (y / ry) ** 2, 0.0, None))
+    inside: F64 = np.clip(1.0 - (x0 / rx) ** 2 - (y / ry) ** 2, 0.0, None)
+    return rz * np.sqrt(inside)
 
 
-def front_mask(head: Head, base_z):
+def front_mask(head: Head, base_z: F64) -> F64:
     """How much of the face (0 to 1) a point of ellipsoid depth ``base_z`` belongs to."""
     return smoothstep((base_z / head.radii[2] - 0.15) / 0.35)
 
 
 def _surface_point(head: Head, x: float, y: float) -> np.ndarray:
-    z = ellipsoid_z(head, x, y)
-    return np.array([x, y, z + front_mask(head, z) * front_height(head, x, y)])
+    # 0-d arrays: the surface functions take arrays of points.
+    xs, ys = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    z = ellipsoid_z(head, xs, ys)
+    return np.array([x, y, z + front_mask(head, z) * front_height(head, xs, ys)])
 
 
 def head_landmarks(head: Head) -> dict[str, np.ndarray]:

@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 import scipy.optimize
 
 from ..bounds import project_box, sparsity_penalty, stream_sparsity, weight_metric
@@ -20,6 +22,9 @@ from ..filters import OneEuroFilter
 from ..fit import fit
 from ..kernels import KERNELS
 from ..rig import Rig
+
+if TYPE_CHECKING:
+    from ..sources.animation import SourceAnimation
 
 __all__ = [
     "cloning_error",
@@ -43,7 +48,9 @@ _CHUNK = 256
 
 
 # -- errors -------------------------------------------------------------------------------
-def _sanitize_frames(name: str, frames, shape=None) -> np.ndarray:
+def _sanitize_frames(
+    name: str, frames: npt.ArrayLike, shape: tuple[int, ...] | None = None
+) -> np.ndarray:
     array = np.asarray(frames)
     if array.dtype.kind not in "fiu":
         raise InputError(f"{name}: not a numeric array", code="bad_evaluation_input")
@@ -95,7 +102,9 @@ class _ErrorSums:
             self._second_count += second.size
         self._tail = run[-2:].copy()
 
-    def result(self, eq41_denominator: np.ndarray, diagonal: float, *, series: bool = True) -> dict:
+    def result(
+        self, eq41_denominator: np.ndarray, diagonal: float, *, series: bool = True
+    ) -> dict[str, Any]:
         with np.errstate(divide="ignore", invalid="ignore"):
             per_axis = 100.0 * self.eq41_numerator / eq41_denominator  # eq. 4.1, (F, 3)
         scale = 100.0 / diagonal if diagonal > 0 else float("nan")
@@ -121,9 +130,10 @@ class _ErrorSums:
         return out
 
 
-def _rounded(array: np.ndarray) -> list:
+def _rounded(array: np.ndarray) -> list[Any]:
     """A list of floats with 6 significant digits (a compact JSON series)."""
-    return np.vectorize(lambda x: float(f"{x:.6g}"), otypes=[float])(array).tolist()
+    rounded: list[Any] = np.vectorize(lambda x: float(f"{x:.6g}"), otypes=[float])(array).tolist()
+    return rounded
 
 
 def _truth_terms(truth: np.ndarray) -> tuple[np.ndarray, float]:
@@ -139,7 +149,7 @@ def _truth_terms(truth: np.ndarray) -> tuple[np.ndarray, float]:
     return denominator, float(np.linalg.norm(high - low))
 
 
-def cloning_error(truth, pred) -> dict:
+def cloning_error(truth: npt.ArrayLike, pred: npt.ArrayLike) -> dict[str, Any]:
     """Errors of a cloned animation against the ideal one.
 
     Parameters
@@ -166,7 +176,9 @@ def cloning_error(truth, pred) -> dict:
 
 
 # -- peers ----------------------------------------------------------------------------------
-def _peer_system(example_set: ExampleSet, points) -> tuple[np.ndarray, np.ndarray, bool]:
+def _peer_system(
+    example_set: ExampleSet, points: npt.ArrayLike
+) -> tuple[np.ndarray, np.ndarray, bool]:
     """The example displacements D (M-1, 3K) and the frames' displacements (B, 3K)."""
     if not isinstance(example_set, ExampleSet):
         raise TypeError(f"expected an ExampleSet, got {type(example_set).__name__}")
@@ -194,7 +206,7 @@ def _with_neutral(rest: np.ndarray, single: bool) -> np.ndarray:
     return weights[0] if single else weights
 
 
-def least_squares_weights(example_set: ExampleSet, points) -> np.ndarray:
+def least_squares_weights(example_set: ExampleSet, points: npt.ArrayLike) -> np.ndarray:
     """Plain least-squares blend weights read off the feature points (the simplest peer).
 
     Minimises |sum_i w_i (S_i - S_B) - (x - S_B)| over w_1..w_{M-1}; w_0 = 1 - sum.
@@ -214,7 +226,7 @@ def least_squares_weights(example_set: ExampleSet, points) -> np.ndarray:
     return _with_neutral(rest, single)
 
 
-def nnls_weights(example_set: ExampleSet, points) -> np.ndarray:
+def nnls_weights(example_set: ExampleSet, points: npt.ArrayLike) -> np.ndarray:
     """Non-negative least-squares blend weights: as ``least_squares_weights`` with w_i >= 0.
 
     Solved frame by frame with ``scipy.optimize.nnls`` (a reference, not a hot path).
@@ -265,8 +277,8 @@ def timing_table(
     points: np.ndarray,
     *,
     repeat: int = 3,
-    fit_kwargs: dict | None = None,
-) -> dict:
+    fit_kwargs: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     """The thesis's Table 4.4 for one rig on one animation's points (F, K, 3).
 
     Returns
@@ -310,7 +322,7 @@ def timing_table(
 
 
 # -- the comparison -------------------------------------------------------------------------
-def _label(setting: dict) -> str:
+def _label(setting: dict[str, Any]) -> str:
     if "label" in setting:
         return str(setting["label"])
     parts = ["rig"]
@@ -328,7 +340,7 @@ def _label(setting: dict) -> str:
     return " ".join(parts)
 
 
-def default_settings(noise: float = 0.0, kernels: Sequence[str] = KERNELS) -> list[dict]:
+def default_settings(noise: float = 0.0, kernels: Sequence[str] = KERNELS) -> list[dict[str, Any]]:
     """Rig settings worth comparing at input noise ``noise`` (std, source units).
 
     The thesis's rig (B-spline, no regularisation); with noise, the regularised unbounded
@@ -339,7 +351,7 @@ def default_settings(noise: float = 0.0, kernels: Sequence[str] = KERNELS) -> li
     its rate estimated from the stream (``sparsity`` "stream"), to show what a prior adds.
     """
     noise = float(noise)
-    settings: list[dict] = [{"noise": 0.0}]
+    settings: list[dict[str, Any]] = [{"noise": 0.0}]
     if noise > 0:
         settings += [{"clamp": "none", "noise": s * noise} for s in (0.5, 1.0, 2.0)]
     for kernel in kernels:
@@ -355,7 +367,7 @@ def default_settings(noise: float = 0.0, kernels: Sequence[str] = KERNELS) -> li
     return settings
 
 
-def _sanitize_settings(settings) -> list[tuple[str, dict]]:
+def _sanitize_settings(settings: Iterable[object]) -> list[tuple[str, dict[str, Any]]]:
     allowed = {"noise", "kernel", "clamp", "sparsity", "pca_threshold", "ridge", "label"}
     out = []
     seen = set()
@@ -376,8 +388,10 @@ def _sanitize_settings(settings) -> list[tuple[str, dict]]:
     return out
 
 
-def _fit_setting(example_set: ExampleSet, kwargs: dict) -> tuple[Rig | None, dict]:
-    entry: dict = {"kind": "rig", "settings": dict(kwargs), "failed": None}
+def _fit_setting(
+    example_set: ExampleSet, kwargs: dict[str, Any]
+) -> tuple[Rig | None, dict[str, Any]]:
+    entry: dict[str, Any] = {"kind": "rig", "settings": dict(kwargs), "failed": None}
     if kwargs.get("sparsity") == STREAM:
         kwargs = {**kwargs, "sparsity": 0.0}
     try:
@@ -398,7 +412,7 @@ def _fit_setting(example_set: ExampleSet, kwargs: dict) -> tuple[Rig | None, dic
     return rig, entry
 
 
-def _rig_weights(rig: Rig, points: np.ndarray, setting: dict) -> np.ndarray:
+def _rig_weights(rig: Rig, points: np.ndarray, setting: dict[str, Any]) -> np.ndarray:
     """The rig's weights; with ``sparsity`` "stream", the MAP weights under a prior whose
     rate is re-estimated for every frame from the frames before it (bounds.stream_sparsity).
 
@@ -430,15 +444,15 @@ def _blend_with(rig: Rig) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
 
 def evaluate(
     example_set: ExampleSet,
-    animation,
-    truth_vertices,
+    animation: SourceAnimation | npt.ArrayLike,
+    truth_vertices: npt.ArrayLike | None,
     *,
-    settings: Sequence[dict] | None = None,
+    settings: Sequence[dict[str, Any]] | None = None,
     noise: float = 0.0,
     seed: int = 0,
     timing: bool = True,
     series: bool = True,
-) -> dict:
+) -> dict[str, Any]:
     """Clone an animation with rigs of several settings and with the peers; measure each.
 
     Parameters
@@ -489,7 +503,7 @@ def evaluate(
     chosen = _sanitize_settings(default_settings(noise) if settings is None else settings)
     settings_by_label = dict(chosen)
 
-    methods: dict[str, dict] = {}
+    methods: dict[str, dict[str, Any]] = {}
     rigs: dict[str, Rig] = {}
     for label, kwargs in chosen:
         rig, entry = _fit_setting(example_set, kwargs)
@@ -553,7 +567,7 @@ def evaluate(
     }
 
 
-def jitter(frames) -> float:
+def jitter(frames: np.ndarray | Sequence[Any]) -> float:
     """RMS second difference between consecutive frames: how much a series shakes.
 
     Parameters
@@ -574,15 +588,15 @@ def jitter(frames) -> float:
 
 def smoothing_report(
     rig: Rig,
-    clean_points,
-    noisy_points,
-    truth_vertices,
+    clean_points: npt.ArrayLike,
+    noisy_points: npt.ArrayLike,
+    truth_vertices: npt.ArrayLike,
     *,
     fps: float,
     min_cutoff: float = 3.0,
     beta: float = 2.0,
     d_cutoff: float = 1.0,
-) -> dict:
+) -> dict[str, Any]:
     """Jitter and error of a noisy take cloned raw and through the one-euro filter.
 
     The filter runs on the source feature points, as a streaming session does with

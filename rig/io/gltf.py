@@ -9,11 +9,14 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import struct
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import pygltflib
 
 from ..errors import ExampleSetError, InputError
@@ -78,45 +81,54 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return normals.astype(np.float32)
 
 
-def _sanitize_export(neutral, faces, deltas, names, weights, fps):
-    neutral = np.asarray(neutral, dtype=np.float64)
-    if neutral.ndim != 2 or neutral.shape[1] != 3 or neutral.shape[0] < 1:
-        raise InputError(f"export_glb: expected neutral of shape (V, 3), got {neutral.shape}")
-    v = neutral.shape[0]
-    faces = np.asarray(faces)
-    if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] < 1:
-        raise InputError(f"export_glb: expected faces of shape (F, 3), got {faces.shape}")
-    if not np.issubdtype(faces.dtype, np.integer):
-        raise InputError(f"export_glb: faces must be integers, got {faces.dtype}")
-    if faces.min() < 0 or faces.max() >= v:
+def _sanitize_export(
+    neutral: npt.ArrayLike,
+    faces: npt.ArrayLike,
+    deltas: npt.ArrayLike,
+    names: Sequence[str],
+    weights: npt.ArrayLike | None,
+    fps: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str], np.ndarray | None, float]:
+    """``export_glb``'s arguments as checked arrays, in the same order."""
+    base = np.asarray(neutral, dtype=np.float64)
+    if base.ndim != 2 or base.shape[1] != 3 or base.shape[0] < 1:
+        raise InputError(f"export_glb: expected neutral of shape (V, 3), got {base.shape}")
+    v = base.shape[0]
+    tri = np.asarray(faces)
+    if tri.ndim != 2 or tri.shape[1] != 3 or tri.shape[0] < 1:
+        raise InputError(f"export_glb: expected faces of shape (F, 3), got {tri.shape}")
+    if not np.issubdtype(tri.dtype, np.integer):
+        raise InputError(f"export_glb: faces must be integers, got {tri.dtype}")
+    if tri.min() < 0 or tri.max() >= v:
         raise InputError(f"export_glb: face indices must lie in [0, {v})")
-    deltas = np.asarray(deltas, dtype=np.float64)
-    if deltas.ndim == 2 and deltas.shape[1] == 3 * v:
-        deltas = deltas.reshape(deltas.shape[0], v, 3)
-    if deltas.ndim != 3 or deltas.shape[1:] != (v, 3):
-        raise InputError(f"export_glb: expected deltas of shape (M, {v}, 3), got {deltas.shape}")
-    m = deltas.shape[0]
-    names = [str(n) for n in names]
-    if len(names) != m:
-        raise InputError(f"export_glb: {len(names)} names for {m} morph targets")
-    if not (np.isfinite(neutral).all() and np.isfinite(deltas).all()):
+    offsets = np.asarray(deltas, dtype=np.float64)
+    if offsets.ndim == 2 and offsets.shape[1] == 3 * v:
+        offsets = offsets.reshape(offsets.shape[0], v, 3)
+    if offsets.ndim != 3 or offsets.shape[1:] != (v, 3):
+        raise InputError(f"export_glb: expected deltas of shape (M, {v}, 3), got {offsets.shape}")
+    m = offsets.shape[0]
+    labels = [str(n) for n in names]
+    if len(labels) != m:
+        raise InputError(f"export_glb: {len(labels)} names for {m} morph targets")
+    if not (np.isfinite(base).all() and np.isfinite(offsets).all()):
         raise InputError("export_glb: NaN or Inf in neutral or deltas")
-    fps = float(fps)
-    if not (np.isfinite(fps) and fps > 0):
-        raise InputError(f"export_glb: fps must be positive, got {fps}")
+    rate = float(fps)
+    if not (np.isfinite(rate) and rate > 0):
+        raise InputError(f"export_glb: fps must be positive, got {rate}")
+    frames = None
     if weights is not None:
-        weights = np.asarray(weights, dtype=np.float64)
-        if weights.ndim != 2 or weights.shape[1] != m or weights.shape[0] < 1:
-            raise InputError(f"export_glb: expected weights of shape (F, {m}), got {weights.shape}")
-        if not np.isfinite(weights).all():
+        frames = np.asarray(weights, dtype=np.float64)
+        if frames.ndim != 2 or frames.shape[1] != m or frames.shape[0] < 1:
+            raise InputError(f"export_glb: expected weights of shape (F, {m}), got {frames.shape}")
+        if not np.isfinite(frames).all():
             raise InputError("export_glb: NaN or Inf in weights")
-    return neutral, faces.astype(np.uint32), deltas, names, weights, fps
+    return base, tri.astype(np.uint32), offsets, labels, frames, rate
 
 
 class _BlobWriter:
     """Appends 4-byte-aligned buffer views and their accessors to a glTF document."""
 
-    def __init__(self, doc: dict) -> None:
+    def __init__(self, doc: dict[str, Any]) -> None:
         self.doc = doc
         self.parts: list[bytes] = []
         self.size = 0
@@ -124,7 +136,7 @@ class _BlobWriter:
     def add(self, array: np.ndarray, *, type_: str, target: int | None, minmax: bool) -> int:
         data = np.ascontiguousarray(array)
         raw = data.tobytes()
-        view = {"buffer": 0, "byteOffset": self.size, "byteLength": len(raw)}
+        view: dict[str, int] = {"buffer": 0, "byteOffset": self.size, "byteLength": len(raw)}
         if target is not None:
             view["target"] = target
         self.parts.append(raw)
@@ -136,7 +148,7 @@ class _BlobWriter:
         self.doc["bufferViews"].append(view)
         component = _FLOAT if data.dtype == np.float32 else _UNSIGNED_INT
         count = data.size // _TYPE_SIZES[type_]
-        accessor = {
+        accessor: dict[str, Any] = {
             "bufferView": len(self.doc["bufferViews"]) - 1,
             "componentType": component,
             "count": int(count),
@@ -154,12 +166,12 @@ class _BlobWriter:
 
 
 def export_glb(
-    neutral,
-    faces,
-    deltas,
+    neutral: npt.ArrayLike,
+    faces: npt.ArrayLike,
+    deltas: npt.ArrayLike,
     names: Sequence[str],
     *,
-    weights=None,
+    weights: npt.ArrayLike | None = None,
     fps: float = 60.0,
     normals: bool = True,
 ) -> bytes:
@@ -191,14 +203,14 @@ def export_glb(
     bytes
         A glTF 2.0 binary file.
     """
-    neutral, faces, deltas, names, weights, fps = _sanitize_export(
+    base, tri, offsets, labels, frames, rate = _sanitize_export(
         neutral, faces, deltas, names, weights, fps
     )
     # Targets that move nothing (exact zeros: a rig's neutral row) are not written.
-    kept = np.flatnonzero(np.abs(deltas).reshape(deltas.shape[0], -1).max(axis=1, initial=0) > 0)
-    names = [names[i] for i in kept]
-    m = len(names)
-    doc: dict = {
+    kept = np.flatnonzero(np.abs(offsets).reshape(offsets.shape[0], -1).max(axis=1, initial=0) > 0)
+    kept_names = [labels[int(i)] for i in kept]
+    m = len(kept_names)
+    doc: dict[str, Any] = {
         "asset": {"version": "2.0", "generator": "facecast"},
         "scene": 0,
         "scenes": [{"nodes": [0]}],
@@ -208,16 +220,16 @@ def export_glb(
     }
     writer = _BlobWriter(doc)
     indices = writer.add(
-        faces.reshape(-1), type_="SCALAR", target=_ELEMENT_ARRAY_BUFFER, minmax=False
+        tri.reshape(-1), type_="SCALAR", target=_ELEMENT_ARRAY_BUFFER, minmax=False
     )
     attributes = {
         "POSITION": writer.add(
-            neutral.astype(np.float32), type_="VEC3", target=_ARRAY_BUFFER, minmax=True
+            base.astype(np.float32), type_="VEC3", target=_ARRAY_BUFFER, minmax=True
         )
     }
-    int_faces = faces.astype(np.int64)
+    int_faces = tri.astype(np.int64)
     if normals:
-        base_normals = vertex_normals(neutral, int_faces)
+        base_normals = vertex_normals(base, int_faces)
         attributes["NORMAL"] = writer.add(
             base_normals, type_="VEC3", target=_ARRAY_BUFFER, minmax=False
         )
@@ -225,29 +237,33 @@ def export_glb(
     for i in kept:
         target = {
             "POSITION": writer.add(
-                deltas[i].astype(np.float32), type_="VEC3", target=_ARRAY_BUFFER, minmax=True
+                offsets[i].astype(np.float32), type_="VEC3", target=_ARRAY_BUFFER, minmax=True
             )
         }
         if normals:
             # glTF blends normal offsets with the same weights as positions (and the player
             # renormalises), so a weight of 1 shades as the example's own normals.
-            posed = vertex_normals(neutral + deltas[i], int_faces)
+            posed = vertex_normals(base + offsets[i], int_faces)
             target["NORMAL"] = writer.add(
                 posed - base_normals, type_="VEC3", target=_ARRAY_BUFFER, minmax=False
             )
         targets.append(target)
-    primitive = {"attributes": attributes, "indices": indices, "mode": _TRIANGLES}
-    mesh = {"name": "face", "primitives": [primitive], "extras": {"targetNames": names}}
+    primitive: dict[str, Any] = {"attributes": attributes, "indices": indices, "mode": _TRIANGLES}
+    mesh: dict[str, Any] = {
+        "name": "face",
+        "primitives": [primitive],
+        "extras": {"targetNames": kept_names},
+    }
     if m:  # glTF wants at least one target where there is a targets array
         primitive["targets"] = targets
         mesh["weights"] = [0.0] * m
     doc["meshes"] = [mesh]
-    if weights is not None and m:
-        weights = weights[:, kept]
-        times = (np.arange(weights.shape[0], dtype=np.float64) / fps).astype(np.float32)
+    if frames is not None and m:
+        kept_weights = frames[:, kept]
+        times = (np.arange(kept_weights.shape[0], dtype=np.float64) / rate).astype(np.float32)
         t_in = writer.add(times, type_="SCALAR", target=None, minmax=True)
         w_out = writer.add(
-            weights.astype(np.float32).reshape(-1), type_="SCALAR", target=None, minmax=False
+            kept_weights.astype(np.float32).reshape(-1), type_="SCALAR", target=None, minmax=False
         )
         doc["animations"] = [
             {
@@ -261,7 +277,7 @@ def export_glb(
     return _pack_glb(doc, blob)
 
 
-def _pack_glb(doc: dict, blob: bytes) -> bytes:
+def _pack_glb(doc: dict[str, Any], blob: bytes) -> bytes:
     json_bytes = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     json_bytes += b" " * ((-len(json_bytes)) % 4)
     blob += b"\0" * ((-len(blob)) % 4)
@@ -280,7 +296,11 @@ def _pack_glb(doc: dict, blob: bytes) -> bytes:
 # -- import ----------------------------------------------------------------------------
 
 
-def _load_document(path_or_bytes, label: str):
+#: What the reader takes: a file's path or its bytes.
+GltfSource = str | os.PathLike[str] | bytes | bytearray | memoryview
+
+
+def _load_document(path_or_bytes: GltfSource, label: str) -> pygltflib.GLTF2:
     if isinstance(path_or_bytes, bytes | bytearray | memoryview):
         data = bytes(path_or_bytes)
     else:
@@ -310,7 +330,7 @@ def _load_document(path_or_bytes, label: str):
 
 
 class _BufferReader:
-    def __init__(self, gltf, base: Path | None, label: str) -> None:
+    def __init__(self, gltf: pygltflib.GLTF2, base: Path | None, label: str) -> None:
         self.gltf = gltf
         self.base = base
         self.label = label
@@ -326,6 +346,7 @@ class _BufferReader:
                 f"{self.label}: buffer {index} does not exist", code="bad_gltf"
             ) from None
         uri = buf.uri
+        data: bytes | None
         if uri is None:
             data = self.gltf.binary_blob()
             if data is None:
@@ -356,7 +377,9 @@ class _BufferReader:
         self.cache[index] = data
         return data
 
-    def _view(self, view_index: int, offset: int, count: int, dtype, ncomp: int) -> np.ndarray:
+    def _view(
+        self, view_index: int, offset: int, count: int, dtype: npt.DTypeLike, ncomp: int
+    ) -> np.ndarray:
         view = self.gltf.bufferViews[view_index]
         data = self.buffer(view.buffer)
         itemsize = np.dtype(dtype).itemsize
@@ -412,12 +435,14 @@ class _BufferReader:
             return out.astype(np.float64)
         if acc.normalized:
             # glTF 2.0 §3.11: normalized integers map to [0, 1] or [-1, 1].
-            info = np.iinfo(dtype)
+            info = np.iinfo(out.dtype)
             return np.maximum(out.astype(np.float64) / info.max, -1.0)
         return out.astype(np.int64)
 
 
-def read_glb_morph_targets(path_or_bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+def read_glb_morph_targets(
+    path_or_bytes: GltfSource,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
     """Read the first mesh that has morph targets from a glTF/GLB file.
 
     All triangle primitives of that mesh are concatenated (primitives that share one
@@ -448,7 +473,11 @@ def read_glb_morph_targets(path_or_bytes) -> tuple[np.ndarray, np.ndarray, np.nd
     is_bytes = isinstance(path_or_bytes, bytes | bytearray | memoryview)
     label = "<glTF bytes>" if is_bytes else str(path_or_bytes)
     gltf = _load_document(path_or_bytes, label)
-    base = None if is_bytes else Path(path_or_bytes).parent
+    base = (
+        None
+        if isinstance(path_or_bytes, bytes | bytearray | memoryview)
+        else Path(path_or_bytes).parent
+    )
     reader = _BufferReader(gltf, base, label)
     try:
         return _read_morph_mesh(gltf, reader, label)
@@ -461,7 +490,9 @@ def read_glb_morph_targets(path_or_bytes) -> tuple[np.ndarray, np.ndarray, np.nd
         ) from None
 
 
-def _read_morph_mesh(gltf, reader: _BufferReader, label: str):
+def _read_morph_mesh(
+    gltf: pygltflib.GLTF2, reader: _BufferReader, label: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
     mesh = next((m for m in gltf.meshes or [] if any(p.targets for p in m.primitives or [])), None)
     if mesh is None:
         raise ExampleSetError(f"{label}: no mesh with morph targets", code="no_morph_targets")
@@ -536,7 +567,7 @@ def _read_morph_mesh(gltf, reader: _BufferReader, label: str):
     return neutral, all_faces, np.concatenate(deltas, axis=1), names
 
 
-def _target_names(mesh, m: int) -> list[str]:
+def _target_names(mesh: pygltflib.Mesh, m: int) -> list[str]:
     for extras in (mesh.extras, mesh.primitives[0].extras):
         if isinstance(extras, dict) and isinstance(extras.get("targetNames"), list):
             names = extras["targetNames"]

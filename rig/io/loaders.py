@@ -11,7 +11,9 @@ import os
 import re
 import tomllib
 import warnings
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -28,14 +30,16 @@ _MESH_SUFFIXES = (".obj",)
 _POINT_SUFFIXES = (".npy", ".csv")
 _SOURCE_SUFFIXES = _MESH_SUFFIXES + _POINT_SUFFIXES
 _GLTF_SUFFIXES = (".glb", ".gltf")
+
+T = TypeVar("T")
 _NPZ_REQUIRED = ("names", "source_points", "target_vertices", "target_faces")
 _NPZ_OPTIONAL = ("source_vertices", "source_faces", "feature_indices", "stable_points")
 
 
 def load_example_set(
-    path: str | os.PathLike,
+    path: str | os.PathLike[str],
     *,
-    source: str | os.PathLike | None = None,
+    source: str | os.PathLike[str] | None = None,
     allow_unpaired: bool = False,
 ) -> ExampleSet:
     """Load an example set from a folder, an ``.npz`` or a glTF/GLB target.
@@ -95,7 +99,7 @@ def load_example_set(
 # -- (a) folder with facecast.toml -----------------------------------------------------
 
 
-def _inside(folder: Path, relative, where: str) -> Path:
+def _inside(folder: Path, relative: object, where: str) -> Path:
     """Resolve ``relative`` against ``folder``; refuse anything that leaves it."""
     if not isinstance(relative, str) or not relative:
         raise ExampleSetError(f"{where}: expected a relative file path, got {relative!r}")
@@ -109,7 +113,9 @@ def _inside(folder: Path, relative, where: str) -> Path:
     return resolved
 
 
-def _table(doc: dict, key: str, manifest: Path, *, required: bool = True) -> dict:
+def _table(
+    doc: dict[str, Any], key: str, manifest: Path, *, required: bool = True
+) -> dict[str, Any]:
     value = doc.get(key)
     if value is None and not required:
         return {}
@@ -118,7 +124,7 @@ def _table(doc: dict, key: str, manifest: Path, *, required: bool = True) -> dic
     return value
 
 
-def _read_manifest(manifest: Path) -> dict:
+def _read_manifest(manifest: Path) -> dict[str, Any]:
     try:
         with manifest.open("rb") as handle:
             return tomllib.load(handle)
@@ -186,12 +192,12 @@ def _load_manifest(folder: Path, allow_unpaired: bool) -> ExampleSet:
         )
 
     target_vertices, target_faces = _read_targets(names, [t for _, t in pairs])
-    source_kw = _read_sources(names, [s for s, _ in pairs], indices, manifest)
-    example_set = _build(names, source_kw, target_vertices, target_faces)
+    sources = _read_sources(names, [s for s, _ in pairs], indices, manifest)
+    example_set = _build(names, sources, target_vertices, target_faces)
     return _with_stable_points(example_set, stable, manifest)
 
 
-def _with_stable_points(example_set: ExampleSet, value, manifest: Path) -> ExampleSet:
+def _with_stable_points(example_set: ExampleSet, value: object, manifest: Path) -> ExampleSet:
     """The set with ``[source] stable_points`` (positions among the feature points)."""
     if value is None:
         return example_set
@@ -210,7 +216,7 @@ def _with_stable_points(example_set: ExampleSet, value, manifest: Path) -> Examp
         raise ExampleSetError(f"{manifest}: [source] {exc.message}", code=exc.code) from None
 
 
-def _feature_indices(value, folder: Path, manifest: Path | str) -> np.ndarray | None:
+def _feature_indices(value: object, folder: Path, manifest: Path | str) -> np.ndarray | None:
     if value is None:
         return None
     if isinstance(value, str):
@@ -249,7 +255,7 @@ def _read_index_file(path: Path) -> np.ndarray:
     return indices
 
 
-def _read(name: str, reader, path: Path):
+def _read(name: str, reader: Callable[[Path], T], path: Path) -> T:
     """``reader(path)``, with the example's name added to any error."""
     try:
         return reader(path)
@@ -258,7 +264,12 @@ def _read(name: str, reader, path: Path):
 
 
 def _stack_examples(
-    names: list[str], files: list[Path], neutral: np.ndarray, reader, role: str, unit: str
+    names: list[str],
+    files: list[Path],
+    neutral: np.ndarray,
+    reader: Callable[[Path], np.ndarray],
+    role: str,
+    unit: str,
 ) -> np.ndarray:
     """Stack the neutral, already read from ``files[0]``, with every other example's file.
 
@@ -305,7 +316,7 @@ def _read_targets(names: list[str], files: list[Path]) -> tuple[np.ndarray, np.n
 
 def _read_sources(
     names: list[str], files: list[Path], indices: np.ndarray | None, manifest: Path | str
-) -> dict:
+) -> _Sources:
     """Source points (and meshes) for each example: all meshes or all point files."""
     kinds = {f.suffix.lower() in _MESH_SUFFIXES for f in files}
     for name, f in zip(names, files, strict=True):
@@ -336,12 +347,7 @@ def _read_sources(
                 code="index_out_of_range",
             )
         vertices = _stack_examples(names, files, neutral, read_obj_vertices, "source", "vertices")
-        return {
-            "source_points": vertices[:, indices],
-            "source_vertices": vertices,
-            "source_faces": faces,
-            "feature_indices": indices,
-        }
+        return _Sources(vertices[:, indices], vertices, faces, indices)
     if indices is not None:
         raise ExampleSetError(
             f"{manifest}: feature_points given but the source files are point files "
@@ -350,15 +356,30 @@ def _read_sources(
         )
     neutral = _read(names[0], read_points, files[0])
     points = _stack_examples(names, files, neutral, read_points, "source", "points")
-    return {"source_points": points}
+    return _Sources(points)
 
 
-def _build(names, source_kw: dict, target_vertices, target_faces) -> ExampleSet:
+@dataclasses.dataclass(frozen=True)
+class _Sources:
+    """What an example set's source files give: the feature points, and any meshes."""
+
+    source_points: np.ndarray  # (M, K, 3)
+    source_vertices: np.ndarray | None = None  # (M, Vs, 3)
+    source_faces: np.ndarray | None = None  # (Fs, 3)
+    feature_indices: np.ndarray | None = None  # (K,)
+
+
+def _build(
+    names: list[str], sources: _Sources, target_vertices: np.ndarray, target_faces: np.ndarray
+) -> ExampleSet:
     return ExampleSet(
         names=tuple(names),
+        source_points=sources.source_points,
         target_vertices=target_vertices,
         target_faces=target_faces,
-        **source_kw,
+        source_vertices=sources.source_vertices,
+        source_faces=sources.source_faces,
+        feature_indices=sources.feature_indices,
     )
 
 
@@ -462,8 +483,8 @@ def _load_gltf_pair(
     files = [by_name[n] for n in names]
     if feature_points is None and files[0].suffix.lower() in _MESH_SUFFIXES:
         feature_points = _folder_feature_points(folder)
-    source_kw = _read_sources(names, files, feature_points, folder)
-    return _build(names, source_kw, np.stack(target_vertices), faces)
+    sources = _read_sources(names, files, feature_points, folder)
+    return _build(names, sources, np.stack(target_vertices), faces)
 
 
 def _folder_feature_points(folder: Path) -> np.ndarray | None:

@@ -204,12 +204,20 @@ def _build_model(
         raise ValueError(f"unknown clamp mode {clamp!r}")
     if str(meta["kernel"]) not in KERNELS:
         raise ValueError(f"unknown kernel {meta['kernel']!r}")
-    return WeightModel.build(
+    return WeightModel(
         kernel=str(meta["kernel"]),
+        source_neutral=a[prefix + "source_neutral"],
+        mean=a[prefix + "mean"],
+        features=a[prefix + "features"],
+        params=a[prefix + "params"],
+        linear_coeffs=a[prefix + "linear_coeffs"],
+        radial_coeffs=a[prefix + "radial_coeffs"],
+        alpha=a[prefix + "alpha"],
         clamp=clamp,
         ridge=ridge,
         sparsity_penalty=_penalty(meta, index),
-        **{key: a.get(prefix + key) for key in MODEL_RECORDS},
+        input_matrix=a.get(prefix + "input_matrix"),
+        input_offset=a.get(prefix + "input_offset"),
     )
 
 

@@ -142,11 +142,13 @@ def rig_to_bytes(rig: Rig) -> bytes:
     arrays = _arrays(rig)
     meta_with_sum = dict(meta, checksum=checksum_of(meta, arrays))
     buffer = io.BytesIO()
-    # numpy's stub types **kwds as if one could be its allow_pickle flag.
+    # allow_pickle=False: no record is an object array (and given, the flag cannot be taken
+    # for one of ``arrays`` by mypy, as numpy's stub types **kwds).
     np.savez(
         buffer,
+        allow_pickle=False,
         meta=np.frombuffer(json.dumps(meta_with_sum).encode(), dtype=np.uint8),
-        **arrays,  # type: ignore[arg-type]
+        **arrays,
     )
     return buffer.getvalue()
 

@@ -11,8 +11,10 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import SupportsFloat
 
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import InputError
 from ..io.gltf import export_glb
@@ -25,8 +27,10 @@ DEFAULT_FPS = 60.0
 _FRAME_CHUNK = 64  # frames blended at once when vertices must be computed for OBJ output
 
 
-def check_fps(fps, where: str) -> float:
+def check_fps(fps: object, where: str) -> float:
     try:
+        if not isinstance(fps, str | SupportsFloat):
+            raise TypeError
         value = float(fps)
     except (TypeError, ValueError):
         raise InputError(
@@ -117,42 +121,52 @@ def check_frames_finite(where: str, frames: np.ndarray) -> None:
     raise InputError(f"{where}: frame {bad} has NaN or Inf coordinates", code="non_finite")
 
 
-def _sanitize_output(weights, vertices, names, neutral, faces, deltas, fps):
-    weights = np.asarray(weights, dtype=np.float64)
-    if weights.ndim != 2 or weights.shape[0] < 1:
-        raise InputError(f"weights: expected shape (F, M), got {weights.shape}", code="bad_output")
-    f, m = weights.shape
-    names = [str(n) for n in names]
-    if len(names) != m:
-        raise InputError(f"names: {len(names)} names for {m} weight columns", code="bad_output")
-    neutral = np.asarray(neutral, dtype=np.float64)
-    if neutral.ndim != 2 or neutral.shape[1] != 3:
-        raise InputError(f"neutral: expected shape (V, 3), got {neutral.shape}", code="bad_output")
-    v = neutral.shape[0]
-    deltas = np.asarray(deltas)
-    if deltas.shape not in ((m, v, 3), (m, 3 * v)):
+def _sanitize_output(
+    weights: npt.ArrayLike,
+    vertices: npt.ArrayLike | None,
+    names: Sequence[str],
+    neutral: npt.ArrayLike,
+    faces: npt.ArrayLike,
+    deltas: npt.ArrayLike,
+    fps: float,
+) -> tuple[np.ndarray, np.ndarray | None, list[str], np.ndarray, np.ndarray, np.ndarray, float]:
+    """``write_clone_output``'s arguments as checked arrays, in the same order."""
+    w = np.asarray(weights, dtype=np.float64)
+    if w.ndim != 2 or w.shape[0] < 1:
+        raise InputError(f"weights: expected shape (F, M), got {w.shape}", code="bad_output")
+    f, m = w.shape
+    labels = [str(n) for n in names]
+    if len(labels) != m:
+        raise InputError(f"names: {len(labels)} names for {m} weight columns", code="bad_output")
+    base = np.asarray(neutral, dtype=np.float64)
+    if base.ndim != 2 or base.shape[1] != 3:
+        raise InputError(f"neutral: expected shape (V, 3), got {base.shape}", code="bad_output")
+    v = base.shape[0]
+    d = np.asarray(deltas)
+    if d.shape not in ((m, v, 3), (m, 3 * v)):
         raise InputError(
-            f"deltas: expected shape ({m}, {v}, 3) or ({m}, {3 * v}), got {deltas.shape}",
+            f"deltas: expected shape ({m}, {v}, 3) or ({m}, {3 * v}), got {d.shape}",
             code="bad_output",
         )
+    frames = None
     if vertices is not None:
-        vertices = np.asarray(vertices)
-        if vertices.shape != (f, v, 3):
+        frames = np.asarray(vertices)
+        if frames.shape != (f, v, 3):
             raise InputError(
-                f"vertices: expected shape ({f}, {v}, 3), got {vertices.shape}", code="bad_output"
+                f"vertices: expected shape ({f}, {v}, 3), got {frames.shape}", code="bad_output"
             )
-    return weights, vertices, names, neutral, np.asarray(faces), deltas, check_fps(fps, "output")
+    return w, frames, labels, base, np.asarray(faces), d, check_fps(fps, "output")
 
 
 def write_clone_output(
-    path: str | os.PathLike,
+    path: str | os.PathLike[str],
     *,
-    weights,
-    vertices,
+    weights: npt.ArrayLike,
+    vertices: npt.ArrayLike | None,
     names: Sequence[str],
-    neutral,
-    faces,
-    deltas,
+    neutral: npt.ArrayLike,
+    faces: npt.ArrayLike,
+    deltas: npt.ArrayLike,
     fps: float,
 ) -> Path:
     """Write a cloned animation; the format follows the path's extension.
@@ -178,32 +192,39 @@ def write_clone_output(
     Path
         What was written.
     """
-    weights, vertices, names, neutral, faces, deltas, fps = _sanitize_output(
+    w, frames, labels, base, mesh_faces, d, rate = _sanitize_output(
         weights, vertices, names, neutral, faces, deltas, fps
     )
-    path = Path(path)
-    suffix = path.suffix.lower()
+    out = Path(path)
+    suffix = out.suffix.lower()
     if suffix == ".npz":
         arrays = {
-            "weights": weights.astype(np.float32),
-            "names": np.asarray(names, dtype=str),
-            "fps": np.float64(fps),
+            "weights": w.astype(np.float32),
+            "names": np.asarray(labels, dtype=str),
+            "fps": np.asarray(rate, dtype=np.float64),
         }
-        if vertices is not None:
-            arrays["vertices"] = vertices.astype(np.float32, copy=False)
-        np.savez(path, **arrays)
+        if frames is not None:
+            arrays["vertices"] = frames.astype(np.float32, copy=False)
+        # allow_pickle=False: no object arrays here (and given, mypy sees it is no array).
+        np.savez(out, allow_pickle=False, **arrays)
     elif suffix == ".glb":
-        path.write_bytes(
-            export_glb(
-                neutral, faces, deltas.reshape(len(names), -1, 3), names, weights=weights, fps=fps
-            )
+        out.write_bytes(
+            export_glb(base, mesh_faces, d.reshape(len(labels), -1, 3), labels, weights=w, fps=rate)
         )
     else:
-        _write_obj_frames(path, weights, vertices, neutral, faces, deltas, fps)
-    return path
+        _write_obj_frames(out, w, frames, base, mesh_faces, d, rate)
+    return out
 
 
-def _write_obj_frames(folder: Path, weights, vertices, neutral, faces, deltas, fps) -> None:
+def _write_obj_frames(
+    folder: Path,
+    weights: np.ndarray,
+    vertices: np.ndarray | None,
+    neutral: np.ndarray,
+    faces: np.ndarray,
+    deltas: np.ndarray,
+    fps: float,
+) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     faces_text = format_faces(faces)
     flat_deltas = deltas.reshape(deltas.shape[0], -1).astype(np.float32, copy=False)

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -217,6 +217,9 @@ class SourceRig:
     deltas: np.ndarray
     shapes: tuple[tuple[str, ...], ...]
     unused: tuple[str, ...] = ()
+    # Made by __post_init__: the deltas as (52, 3K) and the neutral's centroid (3,).
+    _flat: np.ndarray = field(init=False, repr=False)
+    _centroid: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         neutral = np.asarray(self.neutral, dtype=np.float64)
@@ -301,7 +304,7 @@ class SourceRig:
             )
         if not np.isfinite(batch).all():
             raise InputError("ARKit weights: NaN or Inf values", code="non_finite")
-        out: np.ndarray = (batch @ self._flat).reshape(batch.shape[0], -1, 3)  # type: ignore[attr-defined]
+        out: np.ndarray = (batch @ self._flat).reshape(batch.shape[0], -1, 3)
         out += self.neutral
         if head is not None:
             angles = np.asarray(head, dtype=np.float64).reshape(-1, 3)
@@ -311,7 +314,7 @@ class SourceRig:
                     f"triples, got shape {np.shape(head)}",
                     code="bad_head_pose",
                 )
-            centroid = self._centroid  # type: ignore[attr-defined]
+            centroid = self._centroid
             out = np.einsum("fij,fkj->fki", head_rotation(angles), out - centroid) + centroid
         return out[0] if single else out
 

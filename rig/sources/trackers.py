@@ -28,6 +28,7 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 
@@ -162,7 +163,7 @@ def _csv_columns(header: list[str], where: str) -> tuple[int, list[int], list[in
 
 
 def read_livelink_csv(
-    path: str | os.PathLike, *, fps: float = 60.0, max_frames: int = MAX_TAKE_FRAMES
+    path: str | os.PathLike[str], *, fps: float = 60.0, max_frames: int = MAX_TAKE_FRAMES
 ) -> LiveLinkTake:
     """Read a Live Link Face CSV take.
 
@@ -243,7 +244,9 @@ def read_livelink_csv(
     )
 
 
-def _row_numbers(row: list[str], columns: np.ndarray, header, path: Path, line: int) -> np.ndarray:
+def _row_numbers(
+    row: list[str], columns: np.ndarray, header: list[str], path: Path, line: int
+) -> np.ndarray:
     out = np.empty(columns.size)
     for j, col in enumerate(columns):
         cell = row[col].strip()
@@ -262,7 +265,7 @@ def _row_numbers(row: list[str], columns: np.ndarray, header, path: Path, line: 
 
 
 def livelink_csv_animation(
-    path: str | os.PathLike,
+    path: str | os.PathLike[str],
     source_rig: SourceRig,
     *,
     fps: float = 60.0,
@@ -299,7 +302,7 @@ def livelink_csv_animation(
 # -- MediaPipe -----------------------------------------------------------------------
 
 
-def load_mediapipe_mapping(path: str | os.PathLike) -> tuple[int, ...]:
+def load_mediapipe_mapping(path: str | os.PathLike[str]) -> tuple[int, ...]:
     """A custom MediaPipe landmark index per feature point, from a file.
 
     JSON (a list of ints, or ``{"indices": [...]}``) or plain text (integers separated
@@ -337,7 +340,7 @@ def load_mediapipe_mapping(path: str | os.PathLike) -> tuple[int, ...]:
     return _check_mapping(indices, str(path))
 
 
-def _mapping_int(item) -> int:
+def _mapping_int(item: object) -> int:
     if isinstance(item, bool) or not isinstance(item, int | str):
         raise ValueError(f"{item!r} is not an integer")
     return int(item)  # a non-integer string raises ValueError, reported by the caller
@@ -377,7 +380,7 @@ class MediaPipeTake:
 
 
 def read_mediapipe_ndjson(
-    path: str | os.PathLike,
+    path: str | os.PathLike[str],
     *,
     mapping: Sequence[int] | None = None,
     y_up: bool = True,
@@ -474,7 +477,8 @@ def read_mediapipe_ndjson(
     if all(s is not None for s in stamps):
         times = np.asarray(stamps, dtype=np.float64)
         times -= times[0]
-    mats = np.stack(transforms) if all(m is not None for m in transforms) else None  # type: ignore[arg-type]
+    given = [m for m in transforms if m is not None]
+    mats = np.stack(given) if len(given) == len(transforms) else None
     return MediaPipeTake(points=points, timestamps=times, transforms=mats)
 
 
@@ -530,11 +534,11 @@ def _parse_mediapipe_line(
     return picked, stamp, transform
 
 
-def _is_number(value) -> bool:
+def _is_number(value: object) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
-def _triple(value, where: str) -> tuple[float, float, float]:
+def _triple(value: object, where: str) -> tuple[float, float, float]:
     """``[x, y, z]`` (or ``{"x":, "y":, "z":}``, as some exporters write) as three floats."""
     if isinstance(value, dict):
         value = [value.get("x"), value.get("y"), value.get("z")]
@@ -547,12 +551,12 @@ class _NonFinite(ValueError):
     pass
 
 
-def _refuse_constant(name: str):
+def _refuse_constant(name: str) -> NoReturn:
     raise _NonFinite(name)
 
 
 def mediapipe_animation(
-    path: str | os.PathLike,
+    path: str | os.PathLike[str],
     *,
     mapping: Sequence[int] | None = None,
     fps: float = 30.0,

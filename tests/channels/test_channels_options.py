@@ -57,6 +57,30 @@ async def test_align_applies_to_every_watched_rig(settings, rigs):
     np.testing.assert_array_equal(result.weights, expected)
 
 
+async def test_align_scale_leaves_the_stores_cached_rigs_unchanged(settings, rigs):
+    # Each key removes scale on a rig of its own: the store's cached rig, which every other
+    # key and session shares, keeps align_scale off.
+    pts = points(rigs["alpha"], 8) * 1.3
+    async with run_server(settings) as server:
+        store = server.app.state.store
+        cached = store.get("beta")
+        assert not cached.align_scale
+        watcher = await Watcher.open(server.ws_url, "stage", "beta")
+        publisher = await Publisher.open(
+            server.ws_url, "stage", "alpha", align=True, align_scale=True
+        )
+        await publisher.send(0, pts)
+        result = await watcher.result_with_seq(0)
+        after = store.get("beta"), store.get("alpha")
+
+    assert after[0] is cached
+    assert not after[0].align_scale and not after[1].align_scale
+    expected = rigs["beta"].with_align_scale(True).weights(pts, align=True).astype(np.float32)
+    np.testing.assert_array_equal(result.weights, expected)
+    unscaled = rigs["beta"].weights(pts, align=True).astype(np.float32)
+    assert not np.array_equal(result.weights, unscaled)
+
+
 async def test_a_watcher_may_ping_but_not_send_frames(settings, rigs):
     async with run_server(settings) as server:
         watcher = await Watcher.open(server.ws_url, "stage", "beta")

@@ -18,6 +18,7 @@ from facecast.rig import (
     FitError,
     IdentifiabilityWarning,
     InputError,
+    Rig,
     align_points,
     fit,
     rig_from_bytes,
@@ -199,6 +200,60 @@ def test_example_set_refuses_bad_stable_points(example_set, stable):
     with pytest.raises(ExampleSetError) as info:
         dataclasses.replace(example_set, stable_points=np.array(stable))
     assert info.value.code == "bad_stable_points"
+
+
+@pytest.mark.parametrize("stable", [[0, 1], [0, 1, K], [0, 0, 1], [0.5, 1, 2]])
+def test_fit_refuses_the_bad_stable_points_an_example_set_refuses(example_set, stable):
+    # One check for both ways stable points reach a rig (examples.check_stable_points).
+    with pytest.raises(ExampleSetError) as info:
+        fit(example_set, stable_points=stable)
+    assert info.value.code == "bad_stable_points"
+
+
+def test_weights_that_overflow_for_finite_points_are_an_input_error(example_set, rig):
+    # A rig file need only be finite: hyperplane coefficients at float64's largest load,
+    # and take finite, in-range points to infinite weights, refused rather than returned.
+    coeffs = rig.model.linear_coeffs
+    huge_coeffs = coeffs / np.abs(coeffs).max() * np.finfo(np.float64).max
+    assert np.isfinite(huge_coeffs).all()
+    with np.errstate(over="ignore", invalid="ignore"):
+        huge = Rig(
+            names=rig.names,
+            model=dataclasses.replace(rig.model, linear_coeffs=huge_coeffs),
+            target_neutral=rig.target_neutral,
+            blend_basis=rig.blend_basis.copy(),
+            target_faces=rig.target_faces,
+            feature_indices=None,
+            source_preview=None,
+            stable_points=None,
+            align_scale=False,
+            report={},
+        )
+        loaded = rig_from_bytes(huge.to_bytes())
+        frames = example_set.source_points[[0, 3]] * 1.5
+        with pytest.raises(
+            InputError, match=r"weights of finite feature points \(frame 0\)"
+        ) as batch:
+            loaded.weights(frames)
+        with pytest.raises(InputError, match="not finite") as single:
+            loaded.weights(frames[1])
+    assert batch.value.code == single.value.code == "non_finite"
+
+
+def test_with_align_scale_leaves_the_rig_it_came_from_unchanged(example_set):
+    rig = fit(example_set, stable_points=[0, 1, 2, 3])
+    frame = example_set.source_points[2] * 1.7 + 0.3
+
+    scaled = rig.with_align_scale(True)
+
+    assert scaled.align_scale and not rig.align_scale
+    assert rig.with_align_scale(False) is rig
+    np.testing.assert_allclose(
+        scaled.weights(frame, align=True),
+        scaled.weights(example_set.source_points[2], align=True),
+        atol=1e-8,
+    )
+    assert not np.allclose(rig.weights(frame, align=True), scaled.weights(frame, align=True))
 
 
 def test_aligned_non_finite_points_are_an_input_error(example_set):
