@@ -190,7 +190,7 @@ class Smoothing:
 
     # Defaults: the one-euro setting with the least jitter at under a frame of lag on real
     # Live Link takes (README "Temporal coherence"; beta per source unit, centimetres there).
-    min_cutoff: float = 3.0
+    min_cutoff: float = 2.0
     beta: float = 2.0
     d_cutoff: float = 1.0
     target: str = "points"

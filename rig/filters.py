@@ -85,7 +85,7 @@ class OneEuroFilter:
     Parameters
     ----------
     min_cutoff : float
-        Cutoff frequency (Hz) at rest; lower is smoother and laggier. > 0. Default 3 and
+        Cutoff frequency (Hz) at rest; lower is smoother and laggier. > 0. Default 2 and
         ``beta`` 2: the least jitter at a lag under one frame on real takes (centimetres;
         ``rig.temporal``), as the protocol's ``smoothing`` defaults.
     beta : float
@@ -95,11 +95,11 @@ class OneEuroFilter:
 
     Examples
     --------
-    >>> f = OneEuroFilter(min_cutoff=3.0, beta=2.0)
+    >>> f = OneEuroFilter(min_cutoff=2.0, beta=2.0)
     >>> y = f(np.zeros(3), t=0.0)
     """
 
-    def __init__(self, min_cutoff: float = 3.0, beta: float = 2.0, d_cutoff: float = 1.0) -> None:
+    def __init__(self, min_cutoff: float = 2.0, beta: float = 2.0, d_cutoff: float = 1.0) -> None:
         self.min_cutoff = _positive("min_cutoff", min_cutoff)
         self.beta = _positive("beta", beta, allow_zero=True)
         self.d_cutoff = _positive("d_cutoff", d_cutoff)
