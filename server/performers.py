@@ -43,6 +43,10 @@ MAX_NAME_CHARS = 256
 #: (a frame-to-frame step needs two).
 MAX_HELD_FRAMES = 600
 MIN_HELD_FRAMES = 2
+#: The least landmark noise held frames measure (layout units: 0.1 mm in the mediapipe
+#: layout's centimetres). Below it a spread measures the tracker's stillness, not the noise
+#: of a performance: a still image tracks identically frame after frame.
+HELD_NOISE_FLOOR = 0.01
 _SUFFIX = ".json"
 _JSON_TYPES = ("application/json",)
 _MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vnd.msgpack")
@@ -219,7 +223,7 @@ def held_noise(held: dict[str, np.ndarray]) -> tuple[float, int]:
     ``rig.estimate_noise`` on each expression's held frames (half the mean squared
     frame-to-frame step, so a slow drift of the held face does not count), pooled over the
     expressions by their frame-to-frame steps: sigma^2 = sum_e (F_e - 1) sigma_e^2 /
-    sum_e (F_e - 1).
+    sum_e (F_e - 1); at least ``HELD_NOISE_FLOOR``.
 
     Parameters
     ----------
@@ -227,7 +231,7 @@ def held_noise(held: dict[str, np.ndarray]) -> tuple[float, int]:
     """
     steps = np.array([len(frames) - 1 for frames in held.values()], dtype=np.float64)
     variances = np.array([estimate_noise(frames) ** 2 for frames in held.values()])
-    sigma = float(np.sqrt(np.dot(steps, variances) / steps.sum()))
+    sigma = max(HELD_NOISE_FLOOR, float(np.sqrt(np.dot(steps, variances) / steps.sum())))
     return sigma, int(sum(len(frames) for frames in held.values()))
 
 

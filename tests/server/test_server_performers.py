@@ -14,7 +14,7 @@ from _server_helpers import open_session, tiny_rig
 from facecast.protocol import Frame, Result, decode_server, encode
 from facecast.rig import ExampleSet, fit
 from facecast.rig.sources.capture import robust_example
-from facecast.server.performers import MAX_HELD_FRAMES
+from facecast.server.performers import HELD_NOISE_FLOOR, MAX_HELD_FRAMES
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
 
@@ -165,6 +165,19 @@ async def test_noise_is_measured_from_the_held_frames_and_the_rig_fitted_with_it
     assert fitted["noise"] == answer["noise"] and fitted["clamp"] == "unit"
     assert profile.json()["noise"] == answer["noise"]
     assert profile.json()["noise_source"] == "held_frames"
+
+
+async def test_held_frames_of_a_still_image_measure_the_noise_floor(server):
+    points = performer_points()
+    held = {n: [p.tolist()] * 10 for n, p in points.items()}  # identical frames
+    async with http(server) as client:
+        response = await client.put(
+            "/v1/rigs/hero/performer/carol", json=capture_body(points, held=held)
+        )
+
+    answer = response.json()
+    assert response.status_code == 201, answer
+    assert (answer["noise"], answer["noise_source"]) == (HELD_NOISE_FLOOR, "held_frames")
 
 
 async def test_a_noise_given_with_held_frames_wins(server):
