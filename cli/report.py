@@ -226,6 +226,7 @@ def plot_jitter_against_lag(path, tradeoff: dict, *, title: str | None = None):
                   label=family)  # fmt: skip
         for lag, jitter, label in points:
             short = label.replace("one-euro ", "").replace("Kalman, acceleration ", "a=")
+            short = short.replace(" noise/s^2", "σ")
             axes.annotate(short, (lag, jitter), fontsize=6, xytext=(3, 3),
                           textcoords="offset points")  # fmt: skip
     raw = [r for r in rows if r["family"] == "raw"]

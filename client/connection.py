@@ -51,6 +51,7 @@ from facecast.protocol import (
     ProtocolError,
     Ready,
     Result,
+    Smoothing,
 )
 
 from .errors import ConnectionFailed
@@ -604,6 +605,7 @@ def connect(
     align: bool = False,
     align_scale: bool = False,
     calibration: bool = False,
+    smoothing: Smoothing | None = None,
     reconnect: Reconnect | int = _DEFAULT_RECONNECT,
     open_timeout: float = 10.0,
     max_queue: int = DEFAULT_MAX_QUEUE,
@@ -629,6 +631,10 @@ def connect(
         ``Authorization`` header.
     align, align_scale, calibration : bool
         Session options of ``hello`` (PROTOCOL.md §5.1.1).
+    smoothing : Smoothing, optional
+        The session's smoothing filter (PROTOCOL.md §5.1.1): ``Smoothing()`` is one-euro at
+        its defaults, ``Smoothing(filter="kalman")`` a Kalman filter with the rig's noise.
+        Default None: no smoothing.
     reconnect : Reconnect or int
         Reconnection policy, or just the number of attempts (0: never reconnect).
     open_timeout : float
@@ -659,6 +665,7 @@ def connect(
         align=align,
         align_scale=align_scale,
         calibration=calibration,
+        smoothing=smoothing,
     )
     session = StreamSession(
         stream_url(url),

@@ -51,6 +51,8 @@ MOVING_DTYPE: Final = np.dtype("<u4")
 POINTS_DTYPES: Final = ("f32", "f64")
 #: What the one-euro filter smooths: the incoming points or the outgoing weights.
 SMOOTHING_TARGETS: Final = ("points", "weights")
+#: The smoothing filters (§5.1.1): one-euro (the default) or a constant-velocity Kalman.
+SMOOTHING_FILTERS: Final = ("one-euro", "kalman")
 #: Longest error message a server sends; longer ones are cut, so they always decode.
 MAX_ERROR_MESSAGE: Final = 256
 
@@ -174,10 +176,12 @@ def _read_head(obj: Mapping[str, Any], where: str) -> Head | None:
 
 @dataclass(frozen=True, kw_only=True)
 class Smoothing:
-    """One-euro filter parameters (Casiez et al. 2012), §5.1.1.
+    """Smoothing filter parameters, §5.1.1: one-euro (Casiez et al. 2012) or Kalman.
 
     Attributes
     ----------
+    filter : {"one-euro", "kalman"}
+        The filter; the keys below it say which apply.
     min_cutoff : float
         Minimum cutoff frequency in Hz, > 0; lower means smoother at rest.
     beta : float
@@ -185,22 +189,34 @@ class Smoothing:
     d_cutoff : float
         Cutoff frequency in Hz for the derivative, > 0.
     target : {"points", "weights"}
-        Smooth the incoming feature points or the outgoing weights.
+        Smooth the incoming feature points or the outgoing weights (Kalman: points only).
+    acceleration : float
+        Kalman: how hard the face may accelerate, in landmark-noise units per s^2 (the
+        filter's process noise is acceleration * noise), > 0.
+    noise : float or None
+        Kalman: the landmark noise std in source units, > 0; None (the default) is the
+        noise the session's rig was fitted with (the server refuses a rig without one).
     """
 
     # Defaults: the one-euro setting with the least jitter at under a frame of lag on real
     # Live Link takes (README "Temporal coherence"; beta per source unit, centimetres there).
-    min_cutoff: float = 3.0
+    min_cutoff: float = 2.0
     beta: float = 2.0
     d_cutoff: float = 1.0
     target: str = "points"
+    # Kalman: acceleration 480 noise units / s^2, less jitter and less lag than the
+    # one-euro defaults on both real takes at 0.1-0.5 mm of noise (README "Temporal
+    # coherence").
+    filter: str = "one-euro"
+    acceleration: float = 480.0
+    noise: float | None = None
 
     def __post_init__(self) -> None:
-        for name, low, strict in (
-            ("min_cutoff", 0.0, True),
-            ("beta", 0.0, False),
-            ("d_cutoff", 0.0, True),
-        ):
+        checks = [("min_cutoff", 0.0, True), ("beta", 0.0, False), ("d_cutoff", 0.0, True)]
+        checks.append(("acceleration", 0.0, True))
+        if self.noise is not None:
+            checks.append(("noise", 0.0, True))
+        for name, low, strict in checks:
             where = f"hello.options.smoothing.{name}"
             value = check_float(getattr(self, name), where)
             if value < low or (strict and value == low):
@@ -210,14 +226,28 @@ class Smoothing:
                 )
             object.__setattr__(self, name, value)
         _check_choice(self.target, "hello.options.smoothing.target", SMOOTHING_TARGETS)
+        _check_choice(self.filter, "hello.options.smoothing.filter", SMOOTHING_FILTERS)
+        if self.filter == "kalman" and self.target != "points":
+            raise ProtocolError(
+                ErrorCode.INVALID_FIELD,
+                "hello.options.smoothing.target must be 'points' with filter 'kalman' (its "
+                "noise model is the landmarks')",
+            )
 
     def serialize(self) -> dict[str, Any]:
-        return {
+        out: dict[str, Any] = {
             "min_cutoff": self.min_cutoff,
             "beta": self.beta,
             "d_cutoff": self.d_cutoff,
             "target": self.target,
         }
+        # One-euro smoothing keeps its four keys (and bytes); the Kalman's travel with it.
+        if self.filter != "one-euro":
+            out["filter"] = self.filter
+            out["acceleration"] = self.acceleration
+            if self.noise is not None:
+                out["noise"] = self.noise
+        return out
 
     @classmethod
     def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Smoothing:
@@ -229,6 +259,11 @@ class Smoothing:
             target=read_str(
                 obj, "target", w + "target", limits, cls.target, choices=SMOOTHING_TARGETS
             ),
+            filter=read_str(
+                obj, "filter", w + "filter", limits, cls.filter, choices=SMOOTHING_FILTERS
+            ),
+            acceleration=read_float(obj, "acceleration", w + "acceleration", cls.acceleration),
+            noise=read_float(obj, "noise", w + "noise", None),
         )
 
 

@@ -27,7 +27,13 @@ import numpy.typing as npt
 
 from .errors import InputError
 
-__all__ = ["KalmanFilter", "OneEuroFilter", "smoothing_alpha"]
+__all__ = ["KALMAN_ACCELERATION", "KalmanFilter", "OneEuroFilter", "smoothing_alpha"]
+
+#: The Kalman filter's default process noise as ``hello.smoothing`` gives it: the std of the
+#: face's acceleration in units of the landmark noise per s^2 (acceleration = this x noise).
+#: Less jitter and less lag than the one-euro defaults on both real takes at 0.1-0.5 mm of
+#: noise (README "Temporal coherence").
+KALMAN_ACCELERATION = 480.0
 
 
 def smoothing_alpha(cutoff: np.ndarray | float, dt: float) -> np.ndarray:
@@ -85,7 +91,7 @@ class OneEuroFilter:
     Parameters
     ----------
     min_cutoff : float
-        Cutoff frequency (Hz) at rest; lower is smoother and laggier. > 0. Default 3 and
+        Cutoff frequency (Hz) at rest; lower is smoother and laggier. > 0. Default 2 and
         ``beta`` 2: the least jitter at a lag under one frame on real takes (centimetres;
         ``rig.temporal``), as the protocol's ``smoothing`` defaults.
     beta : float
@@ -95,11 +101,11 @@ class OneEuroFilter:
 
     Examples
     --------
-    >>> f = OneEuroFilter(min_cutoff=3.0, beta=2.0)
+    >>> f = OneEuroFilter(min_cutoff=2.0, beta=2.0)
     >>> y = f(np.zeros(3), t=0.0)
     """
 
-    def __init__(self, min_cutoff: float = 3.0, beta: float = 2.0, d_cutoff: float = 1.0) -> None:
+    def __init__(self, min_cutoff: float = 2.0, beta: float = 2.0, d_cutoff: float = 1.0) -> None:
         self.min_cutoff = _positive("min_cutoff", min_cutoff)
         self.beta = _positive("beta", beta, allow_zero=True)
         self.d_cutoff = _positive("d_cutoff", d_cutoff)

@@ -263,41 +263,57 @@ def _check_separation(
 
 def _fit_hyperplanes(
     params: np.ndarray, lam: float, largest_singular: float
-) -> tuple[np.ndarray, float]:
+) -> tuple[np.ndarray, float, bool]:
     """Eq. 3.10: least-squares hyperplanes over [1, p] with w_i(p_j) = delta_ij, ridge ``lam``.
 
-    Returns the coefficients (n + 1, M) and the system's condition number. The parameters
-    are scaled by one factor so that their largest singular value (``largest_singular``,
-    the PCA's) equals the constant column's norm: the solution is the same, but the
-    condition number (and the solver's accuracy) no longer depends on the source's length
-    unit. Refused when near-singular without a ridge, as the radial system is. One SVD of
-    the design gives both the condition number and, without a ridge, the solution.
+    Returns the coefficients (n + 1, M), the system's condition number, and whether the
+    unregularised hyperplanes interpolate every example (the design [1, p] has full row
+    rank M and is not near-singular). The parameters are scaled by one factor so that their
+    largest singular value (``largest_singular``, the PCA's) equals the constant column's
+    norm: the solution is the same, but the condition number (and the solver's accuracy) no
+    longer depends on the source's length unit. Refused when near-singular without a
+    ridge, as the radial system is. One SVD of the design gives both the condition number
+    and, without a ridge, the solution.
+
+    With a ridge the hyperplanes are anchored at the neutral, w(p) = e_0 + (p - p_0) C with
+    lam |C|^2: the prior the ridge stands for is then "the face at rest" (weights near 0,
+    the neutral's near 1), not "the average example" (every weight 1 / M) that an
+    intercept left free shrinks towards. On linear data this is the MAP weights under
+    landmark noise and a Gaussian prior on the weights (ridge regression on the example
+    displacements), which the bounded projection's metric (``bounds.weight_metric``, the
+    same ridge) then bounds exactly. The weights still sum to 1: C 1 = 0.
     """
     m, n = params.shape
     scale = np.sqrt(m) / largest_singular
     design = np.hstack([np.ones((m, 1)), params * scale])
     u, singular, vt = np.linalg.svd(design, full_matrices=False)
     condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else float("inf")
+    well_posed = bool(np.isfinite(condition) and condition <= MAX_CONDITION)
+    exact = well_posed and m <= n + 1
     identity = np.eye(m)
     if lam > 0:
-        # lam |c|^2 on the unscaled coefficients c = scale * c_scaled.
-        reg = np.sqrt(lam) * scale * np.hstack([np.zeros((n, 1)), np.eye(n)])
-        coeffs = scipy.linalg.lstsq(
-            np.vstack([design, reg]), np.vstack([identity, np.zeros((n, m))])
+        # lam |C|^2 on the unscaled slopes C = scale * C_scaled, fitted to e_j - e_0 at the
+        # examples' displacements from the neutral (the neutral's own row is exact).
+        displacement = (params[1:] - params[0]) * scale
+        reg = np.sqrt(lam) * scale * np.eye(n)
+        steps = identity[1:] - identity[0]
+        slopes = scipy.linalg.lstsq(
+            np.vstack([displacement, reg]), np.vstack([steps, np.zeros((n, m))])
         )[0]
-    else:
-        if not np.isfinite(condition) or condition > MAX_CONDITION:
-            raise FitError(
-                f"the hyperplane system [1, p] is near-singular (condition number "
-                f"{condition:.3g} > {MAX_CONDITION:.0e}): the examples barely span some kept "
-                "principal axis, so exact interpolation along it divides by almost nothing. "
-                "Raise --pca-threshold (e.g. 1e-10), set --noise to regularise, or add "
-                "feature points",
-                code="singular_system",
-            )
-        coeffs = vt.T @ (u.T / singular[:, None])  # the least-squares solution for I
+        slopes *= scale
+        return np.vstack([identity[0] - params[0] @ slopes, slopes]), condition, exact
+    if not well_posed:
+        raise FitError(
+            f"the hyperplane system [1, p] is near-singular (condition number "
+            f"{condition:.3g} > {MAX_CONDITION:.0e}): the examples barely span some kept "
+            "principal axis, so exact interpolation along it divides by almost nothing. "
+            "Raise --pca-threshold (e.g. 1e-10), set --noise to regularise, or add "
+            "feature points",
+            code="singular_system",
+        )
+    coeffs = vt.T @ (u.T / singular[:, None])  # the least-squares solution for I
     coeffs[1:] *= scale
-    return coeffs, condition
+    return coeffs, condition, exact
 
 
 def fit(
@@ -390,7 +406,9 @@ def fit(
     # Linear approximation, eq. 3.10: hyperplanes over [1, p] fitted to w_i(p_j) = delta_ij.
     # The ridge leaves the constant column free, so the hyperplanes still sum to 1.
     largest_singular = float(np.sqrt(eigenvalues[0] * max(m - 1, 1)))
-    linear_coeffs, hyperplane_condition = _fit_hyperplanes(params, lam, largest_singular)
+    linear_coeffs, hyperplane_condition, linear_exact = _fit_hyperplanes(
+        params, lam, largest_singular
+    )
     identity = np.eye(m)
     design = np.hstack([np.ones((m, 1)), params])
     residuals = identity - design @ linear_coeffs  # eq. 3.11, residuals[j, i] at example j
@@ -416,10 +434,12 @@ def fit(
                 code="singular_system",
             )
         radial_coeffs = scipy.linalg.solve(basis, residuals)
-    if np.abs(residuals).max() <= EXACT_LINEAR:
+    if np.abs(residuals).max() <= EXACT_LINEAR or (lam > 0 and linear_exact):
         # The hyperplanes already interpolate every example (M - 1 <= n and the examples are
-        # affinely independent): the radial terms would only fit rounding noise. Exact zeros
-        # let evaluation skip them.
+        # affinely independent): the radial terms would only fit rounding noise, and with a
+        # ridge the residuals are its deliberate shrinkage, which radial terms fitted to them
+        # would undo near each example (they cloned every real take and ICT's mixes worse,
+        # README "Real takes"). Exact zeros let evaluation skip them.
         radial_coeffs = np.zeros_like(radial_coeffs)
 
     model = WeightModel(

@@ -10,9 +10,9 @@ from typing import Any
 
 import numpy as np
 
-from facecast.protocol import ErrorCode, Frame, Hello, ProtocolError
+from facecast.protocol import ErrorCode, Frame, Hello, ProtocolError, Smoothing
 from facecast.rig.errors import InputError
-from facecast.rig.filters import OneEuroFilter
+from facecast.rig.filters import KalmanFilter, OneEuroFilter
 from facecast.rig.kernel import to_float16
 
 from .stages import CPU_CLOCK, StageTimes
@@ -24,6 +24,7 @@ __all__ = [
     "clone_frame",
     "frame_error",
     "frame_weights",
+    "smoothing_filter",
 ]
 
 _RESULT_DTYPES = {"f32": np.float32, "f16": np.float16}
@@ -40,14 +41,41 @@ _INPUT_ERRORS = {
 }
 
 
+def smoothing_filter(smoothing: Smoothing, rig: Any) -> OneEuroFilter | KalmanFilter:
+    """The filter a ``hello.smoothing`` asks for (PROTOCOL.md §5.1.1), for the session's rig.
+
+    Kalman: measurement noise ``smoothing.noise``, else the noise ``rig`` was fitted with;
+    process noise ``smoothing.acceleration`` of those noise units per s^2.
+
+    Raises
+    ------
+    ProtocolError
+        INVALID_FIELD (fatal, as every refused ``hello``) for a Kalman filter without a
+        noise: no ``smoothing.noise`` and a rig fitted without one.
+    """
+    if smoothing.filter != "kalman":
+        return OneEuroFilter(smoothing.min_cutoff, smoothing.beta, smoothing.d_cutoff)
+    noise = smoothing.noise
+    if noise is None:
+        noise = float((getattr(rig, "fit_report", None) or {}).get("noise", 0.0))
+    if not noise > 0:
+        raise ProtocolError(
+            ErrorCode.INVALID_FIELD,
+            "hello.options.smoothing.noise is needed for filter 'kalman': the rig was fitted "
+            "without landmark noise",
+            fatal=True,
+        )
+    return KalmanFilter(noise=noise, acceleration=smoothing.acceleration * noise)
+
+
 class Smoother:
-    """A session's one-euro filter (PROTOCOL.md §5.1.1 ``smoothing``), clocked by ``frame.ts``.
+    """A session's smoothing filter (PROTOCOL.md §5.1.1 ``smoothing``), clocked by ``frame.ts``.
 
     Used only on the event loop, one frame at a time and in frame order (weights are
     always computed there), so needs no lock.
     """
 
-    def __init__(self, one_euro: OneEuroFilter, target: str) -> None:
+    def __init__(self, one_euro: OneEuroFilter | KalmanFilter, target: str) -> None:
         self.filter = one_euro
         self.target = target
         self.last_ts: float | None = None

@@ -30,9 +30,9 @@ from facecast.protocol import (
     close_code,
 )
 from facecast.rig.errors import InputError, RigError
-from facecast.rig.filters import OneEuroFilter
+from facecast.rig.filters import KalmanFilter, OneEuroFilter
 
-from .cloning import frame_error
+from .cloning import frame_error, smoothing_filter
 from .fanout import ChannelFrame
 from .frame_rate import FrameRateLimit
 from .outbox import Closing, Member
@@ -103,7 +103,7 @@ class PublisherMember(Member):
             total=self._dropped_total,
             tell=lambda error: self.offer(self.protocol.send(error)),
         )
-        self._point_filter: OneEuroFilter | None = None
+        self._point_filter: OneEuroFilter | KalmanFilter | None = None
         self._neutral: np.ndarray | None = None
         self._neutral_id = ""
         #: The layout rig as the frames see it (calibrated once a neutral is captured):
@@ -142,13 +142,14 @@ class PublisherMember(Member):
                                 f"for /v1/stream only; a channel serves {list(CHANNEL_OUTPUTS)}",
                                 fatal=True)  # fmt: skip
         rig = await self.hub.load_rig(hello.rig)
+        # Built before the claim, so a refused smoothing (a Kalman without noise) claims nothing.
+        sm = hello.smoothing
+        point_filter = smoothing_filter(sm, rig) if sm and sm.target == "points" else None
         channel = await self.hub.claim(self.name, self)  # raises CHANNEL_BUSY / OVERLOADED
         self.hello, self._rig, self.channel = hello, rig, channel
         self._range_rig = rig
         self.key = (hello.rig, hello.output, hello.dtype)
-        if hello.smoothing is not None and hello.smoothing.target == "points":
-            sm = hello.smoothing
-            self._point_filter = OneEuroFilter(sm.min_cutoff, sm.beta, sm.d_cutoff)
+        self._point_filter = point_filter
         self._calibrate_next = hello.calibration
         s = self.hub.settings
         self.offer(self.protocol.send(ready_message(self.id, hello, rig, self.protocol.limits, s)))

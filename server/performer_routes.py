@@ -134,6 +134,7 @@ async def _fit_and_store(
             "rig": new_id,
             "examples": rig.num_examples,
             "noise": capture.noise,
+            "noise_source": capture.noise_source,
             "by": by,
         },
     )
@@ -143,6 +144,10 @@ async def _fit_and_store(
         "performer": performer,
         "character": rig_id,
         "skipped": skipped,
+        # The landmark noise the rig was fitted with ("noise", from rig.summary) and where
+        # it came from: the capture's own, or measured from its held frames (how many).
+        "noise_source": capture.noise_source,
+        "held_frames": capture.held_frames,
         # The fit's warnings (nearly coinciding expressions) go to the performer, who can
         # redo one of them.
         "warnings": list(rig.fit_report.get("warnings", [])),

@@ -20,6 +20,7 @@ import msgpack
 import numpy as np
 
 from facecast.errors import FacecastError
+from facecast.rig import estimate_noise
 from facecast.rig.sources.layouts import DEFAULT_LAYOUT, layout_names
 
 from .errors import ApiError
@@ -40,6 +41,14 @@ PROFILE_VERSION = 1
 MAX_EXPRESSIONS = 4096
 MAX_POINTS = 4096
 MAX_NAME_CHARS = 256
+#: Most held frames a capture may give per expression (20 s at 30 fps), and the fewest
+#: (a frame-to-frame step needs two).
+MAX_HELD_FRAMES = 600
+MIN_HELD_FRAMES = 2
+#: The least landmark noise held frames measure (layout units: 0.1 mm in the mediapipe
+#: layout's centimetres). Below it a spread measures the tracker's stillness, not the noise
+#: of a performance: a still image tracks identically frame after frame.
+HELD_NOISE_FLOOR = 0.01
 _SUFFIX = ".json"
 _JSON_TYPES = ("application/json",)
 _MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vnd.msgpack")
@@ -55,12 +64,19 @@ class Capture:
         Every entry has the same K; shapes and finiteness are checked, names against a
         rig are not (``facecast.rig.retarget`` does that).
     noise : float or None
-        The measured landmark spread, when the capture gives one.
+        The landmark noise the fit uses: the capture's own ``noise`` when it gives one,
+        else the one measured from its ``held`` frames (``held_noise``), else None.
+    noise_source : {"capture", "held_frames", None}
+        Where ``noise`` came from.
+    held_frames : int
+        How many held frames measured it (0 unless ``noise_source`` is "held_frames").
     """
 
     layout: str
     points: dict[str, np.ndarray]
     noise: float | None
+    noise_source: str | None = None
+    held_frames: int = 0
 
     @property
     def num_points(self) -> int:
@@ -85,6 +101,8 @@ class PerformerProfile:
             "captured": self.captured,
             "layout": self.capture.layout,
             "noise": self.capture.noise,
+            "noise_source": self.capture.noise_source,
+            "held_frames": self.capture.held_frames,
             "points": {name: p.tolist() for name, p in self.capture.points.items()},
         }
         return json.dumps(doc, separators=(",", ":")).encode()
@@ -96,6 +114,7 @@ class PerformerProfile:
             "captured": self.captured,
             "layout": self.capture.layout,
             "noise": self.capture.noise,
+            "noise_source": self.capture.noise_source,
             "num_points": self.capture.num_points,
             "expressions": list(self.capture.points),
         }
@@ -123,6 +142,13 @@ class PerformerProfile:
             capture = _capture_from_doc(body)
         except ApiError as exc:
             raise ValueError(f"{where}: {exc.detail}") from None
+        # A profile keeps the noise its capture was fitted with, and where it came from
+        # (profiles written before these fields read as the capture's own noise).
+        source, frames = doc.get("noise_source"), doc.get("held_frames", 0)
+        if capture.noise is not None and source in ("capture", "held_frames"):
+            if not (isinstance(frames, int) and not isinstance(frames, bool) and frames >= 0):
+                raise ValueError(f"{where}: bad held_frames")
+            capture = Capture(capture.layout, capture.points, capture.noise, source, frames)
         return cls(performer=performer, rig=rig, capture=capture, captured=float(captured))
 
 
@@ -146,8 +172,12 @@ def _bad(code: str, detail: str, status: int = 422) -> ApiError:
 def parse_capture(data: bytes, content_type: str | None) -> Capture:
     """Decode and validate a capture body (JSON, or msgpack by its content type).
 
-    The body is ``{"layout": str, "points": {name: [[x, y, z] x K]}, "noise": float}``
-    (``layout`` defaults to ``mediapipe_face_mesh``; ``noise`` is optional).
+    The body is ``{"layout": str, "points": {name: [[x, y, z] x K]}, "noise": float,
+    "held": {name: [[[x, y, z] x K] x F]}}`` (``layout`` defaults to
+    ``mediapipe_face_mesh``; ``noise`` and ``held`` are optional). ``held`` gives, for some
+    or all expressions, the F frames (2 to ``MAX_HELD_FRAMES``, in capture order) over which
+    the expression was held; without ``noise`` the landmark noise is measured from them
+    (``held_noise``). A ``noise`` given wins: it is the caller's say.
 
     Raises
     ------
@@ -155,7 +185,9 @@ def parse_capture(data: bytes, content_type: str | None) -> Capture:
         415 ``unsupported_media_type``; 400 ``bad_capture`` for bytes that do not decode;
         422 ``bad_capture`` (wrong types, empty, too many names), ``wrong_point_count``
         (not K x 3, or K differing between expressions), ``non_finite``, ``bad_noise``,
-        ``unknown_layout``.
+        ``unknown_layout``, ``bad_held_frames`` (held frames of an expression not in
+        ``points``, fewer than 2 or more than ``MAX_HELD_FRAMES``, or of another K; a frame
+        that is not K x 3 numbers is ``wrong_point_count``, one with NaN ``non_finite``).
     """
     kind = (content_type or "application/json").split(";", 1)[0].strip().lower()
     try:
@@ -168,7 +200,7 @@ def parse_capture(data: bytes, content_type: str | None) -> Capture:
                 strict_map_key=True,
                 max_str_len=4 * MAX_NAME_CHARS,
                 max_bin_len=0,
-                max_array_len=MAX_POINTS * 3,
+                max_array_len=max(MAX_POINTS * 3, MAX_HELD_FRAMES),
                 max_map_len=MAX_EXPRESSIONS,
                 max_ext_len=0,
             )
@@ -184,13 +216,32 @@ def parse_capture(data: bytes, content_type: str | None) -> Capture:
         raise _bad("non_finite", f"the capture holds {exc}") from None
     except (ValueError, RecursionError, msgpack.UnpackException, TypeError) as exc:
         raise _bad("bad_capture", f"the body is not valid {kind} ({exc})", 400) from None
-    return _capture_from_doc(doc)
+    return _capture_from_doc(doc, allow_held=True)
 
 
-def _capture_from_doc(doc: object) -> Capture:
+def held_noise(held: dict[str, np.ndarray]) -> tuple[float, int]:
+    """The landmark noise sigma of held expressions, and the frames that measured it.
+
+    ``rig.estimate_noise`` on each expression's held frames (half the mean squared
+    frame-to-frame step, so a slow drift of the held face does not count), pooled over the
+    expressions by their frame-to-frame steps: sigma^2 = sum_e (F_e - 1) sigma_e^2 /
+    sum_e (F_e - 1); at least ``HELD_NOISE_FLOOR``.
+
+    Parameters
+    ----------
+    held : {name: (F, K, 3) float}, each F >= 2
+    """
+    steps = np.array([len(frames) - 1 for frames in held.values()], dtype=np.float64)
+    variances = np.array([estimate_noise(frames) ** 2 for frames in held.values()])
+    sigma = max(HELD_NOISE_FLOOR, float(np.sqrt(np.dot(steps, variances) / steps.sum())))
+    return sigma, int(sum(len(frames) for frames in held.values()))
+
+
+def _capture_from_doc(doc: object, *, allow_held: bool = False) -> Capture:
+    fields = ("layout", "points", "noise", "held") if allow_held else ("layout", "points", "noise")
     if not isinstance(doc, dict):
         raise _bad("bad_capture", 'a capture is an object {"layout", "points", "noise"}')
-    unknown = sorted(str(k) for k in doc if k not in ("layout", "points", "noise"))
+    unknown = sorted(str(k) for k in doc if k not in fields)
     if unknown:
         raise _bad("bad_capture", f"unknown capture field {unknown[0][:40]!r}")
     layout = doc.get("layout") or DEFAULT_LAYOUT
@@ -222,7 +273,40 @@ def _capture_from_doc(doc: object) -> Capture:
                 f"points[{name!r}] has {array.shape[0]} points, the first expression {k}",
             )
         points[name] = array
-    return Capture(layout=layout, points=points, noise=None if noise is None else float(noise))
+    held = _held_frames(doc.get("held"), points, k) if allow_held else None
+    if noise is not None:
+        return Capture(layout, points, float(noise), "capture")
+    if held:
+        sigma, frames = held_noise(held)
+        return Capture(layout, points, sigma, "held_frames", frames)
+    return Capture(layout=layout, points=points, noise=None)
+
+
+def _held_frames(
+    value: object, points: dict[str, np.ndarray], k: int | None
+) -> dict[str, np.ndarray] | None:
+    """Validate ``held``: {name of a captured expression: F x K x 3 frames}."""
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        raise _bad("bad_held_frames", 'held must be an object {"neutral": [frame, ...], ...}')
+    held: dict[str, np.ndarray] = {}
+    for name, frames in value.items():
+        if not isinstance(name, str) or name not in points:
+            raise _bad(
+                "bad_held_frames",
+                f"held frames of {str(name)[:64]!r}, which points does not capture",
+            )
+        if not (isinstance(frames, list) and MIN_HELD_FRAMES <= len(frames) <= MAX_HELD_FRAMES):
+            raise _bad(
+                "bad_held_frames",
+                f"held[{name!r}] must be a list of {MIN_HELD_FRAMES}-{MAX_HELD_FRAMES} frames",
+            )
+        stack = [_points_array(f"held {name!r} frame {i}", f) for i, f in enumerate(frames)]
+        if any(frame.shape[0] != k for frame in stack):
+            raise _bad("bad_held_frames", f"held[{name!r}]: every frame has {k} points")
+        held[name] = np.stack(stack)
+    return held
 
 
 def _points_array(name: str, value: object) -> np.ndarray:

@@ -39,7 +39,6 @@ from facecast.protocol import (
     close_code,
 )
 from facecast.rig.errors import InputError, RigError
-from facecast.rig.filters import OneEuroFilter
 
 from .blending import BlendBatcher
 from .cloning import (
@@ -49,6 +48,7 @@ from .cloning import (
     clone_frame,
     frame_error,
     frame_weights,
+    smoothing_filter,
 )
 from .direct import binary_frame, direct_writer, queued_messages
 from .frame_rate import FrameRateLimit
@@ -472,10 +472,7 @@ class Session:
         )
         if hello.smoothing is not None:
             sm = hello.smoothing
-            self._smoother = Smoother(
-                OneEuroFilter(min_cutoff=sm.min_cutoff, beta=sm.beta, d_cutoff=sm.d_cutoff),
-                sm.target,
-            )
+            self._smoother = Smoother(smoothing_filter(sm, rig), sm.target)
         s = self.settings
         self._queue_control(ready_message(self.id, hello, rig, self.protocol.limits, s))
         log.info(

@@ -69,8 +69,8 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--smoothing",
         metavar="MIN_CUTOFF,BETA",
-        default="3.0,2.0",
-        help="one-euro filter settings for the jitter table shown with --noise (default 3,2, "
+        default="2.0,2.0",
+        help="one-euro filter settings for the jitter table shown with --noise (default 2,2, "
         "the protocol's smoothing defaults)",
     )
     parser.add_argument(

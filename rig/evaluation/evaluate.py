@@ -593,7 +593,7 @@ def smoothing_report(
     truth_vertices: npt.ArrayLike,
     *,
     fps: float,
-    min_cutoff: float = 3.0,
+    min_cutoff: float = 2.0,
     beta: float = 2.0,
     d_cutoff: float = 1.0,
 ) -> dict[str, Any]:

@@ -34,19 +34,13 @@ DEFAULT_ONE_EURO: tuple[tuple[float, float], ...] = (
     (1.0, 1.0), (1.0, 2.0), (1.0, 4.0), (1.0, 8.0),
     (2.0, 1.0), (2.0, 2.0), (2.0, 4.0), (3.0, 1.0), (3.0, 2.0), (4.0, 1.0), (4.0, 2.0),
 )  # fmt: skip
-#: Kalman process noise (std of the acceleration, source units / s^2) compared.
+#: Kalman process noise compared: the std of the acceleration in units of the landmark noise
+#: per s^2 (the filter's acceleration is this times the noise), as ``hello.smoothing``'s
+#: ``acceleration``; 480 is its default (rig.filters.KALMAN_ACCELERATION).
 DEFAULT_KALMAN_ACCELERATIONS: tuple[float, ...] = (
-    5.0,
-    10.0,
-    15.0,
-    20.0,
-    30.0,
-    45.0,
-    70.0,
-    100.0,
-    300.0,
-    1000.0,
-)
+    100.0, 200.0, 300.0, 360.0, 400.0, 440.0, 480.0, 500.0, 600.0, 900.0, 1400.0, 2000.0,
+    6000.0, 20000.0,
+)  # fmt: skip
 #: Lags searched, in frames.
 MAX_LAG_FRAMES = 20
 # Leads searched (frames): a constant-velocity filter can run slightly ahead.
@@ -119,7 +113,8 @@ def temporal_tradeoff(
         Landmark noise std (the Kalman filters' measurement noise), > 0.
     one_euro : sequence of (min_cutoff, beta)
     kalman : sequence of float
-        Accelerations (source units / s^2).
+        Accelerations in landmark-noise units per s^2 (each filter's acceleration is this
+        times ``noise``).
 
     Returns
     -------
@@ -155,9 +150,9 @@ def temporal_tradeoff(
         candidates.append(
             (
                 "kalman",
-                f"Kalman, acceleration {acceleration:g}",
+                f"Kalman, acceleration {acceleration:g} noise/s^2",
                 {"noise": float(noise), "acceleration": float(acceleration)},
-                KalmanFilter(noise=noise, acceleration=acceleration),
+                KalmanFilter(noise=noise, acceleration=acceleration * noise),
             )
         )
     rows = []

@@ -13,8 +13,9 @@ from facecast.client.connection import ConnectionFailed, Reconnect, connect
 from facecast.client.latency import LatencyTracker
 from facecast.client.streaming import stream_frames
 from facecast.client.urls import resolve_token, rest_url, stream_url
-from facecast.protocol import ErrorCode, ProtocolError, Result
+from facecast.protocol import ErrorCode, ProtocolError, Result, Smoothing
 from facecast.rig.demo import demo_animation
+from facecast.rig.filters import KalmanFilter
 
 from ._stream_fixtures import RIG_ID, LiveServer, demo_rig, live_server, rigs_dir, server_settings
 
@@ -37,6 +38,27 @@ def test_clone_returns_the_offline_weights_exactly_in_f32(live_server, demo_rig,
 
     for points, result in zip(frames[:20], results, strict=True):
         np.testing.assert_array_equal(result.weights, demo_rig.weights(points).astype(np.float32))
+
+
+def test_kalman_smoothing_asked_for_in_connect_filters_the_points(live_server, demo_rig, frames):
+    smoothing = Smoothing(filter="kalman", acceleration=480.0, noise=0.01)
+    times = np.arange(10) / 60.0
+
+    async def run() -> list[Result]:
+        results = []
+        async with connect(live_server.base_url, RIG_ID, smoothing=smoothing) as session:
+            for points, t in zip(frames[:10], times, strict=True):
+                await session.send(points, t=float(t))
+                results.append(await session.receive())
+        return results
+
+    results = asyncio.run(run())
+
+    reference = KalmanFilter(noise=0.01, acceleration=480.0 * 0.01)
+    for points, t, result in zip(frames[:10], times, results, strict=True):
+        smoothed = reference(points.reshape(-1), float(t)).reshape(points.shape)  # f64 frames
+        np.testing.assert_allclose(result.weights, demo_rig.weights(smoothed), atol=1e-6)
+    assert not np.allclose(results[-1].weights, demo_rig.weights(frames[9]), atol=1e-4)
 
 
 def test_pipelined_frames_come_back_in_order_with_their_seq(live_server, frames):

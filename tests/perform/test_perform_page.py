@@ -222,9 +222,11 @@ def performer_rig(browser, server, camera_file):
         )
         calibration = page.evaluate("window.facecastStats.calibration")
         link = page.get_attribute("#perform-link", "href") if calibration["fit"] else None
+        verdict = page.inner_text("#verdict")
     finally:
         page.context.close()
-    return {"calibration": calibration, "neutral": neutral, "aa": aa, "link": link}
+    return {"calibration": calibration, "neutral": neutral, "aa": aa, "link": link,
+            "verdict": verdict}  # fmt: skip
 
 
 def test_a_scripted_calibration_fits_the_performers_rig(server, performer_rig):
@@ -237,8 +239,17 @@ def test_a_scripted_calibration_fits_the_performers_rig(server, performer_rig):
     assert rig["num_points"] == len(NAMES)
     assert rig["names"][:2] == ["neutral", "aa"]  # what was captured, in the rig's order
     assert "happy" not in calibration["captures"]  # skipped
-    assert 0 < calibration["noise"] < 0.1  # the measured spread, about cm
+    assert 0 < calibration["noise"] < 0.1  # measured by the server, about cm
     assert f"rig={CHARACTER}%40tester" in performer_rig["link"]
+
+
+def test_the_calibration_noise_is_measured_from_the_held_frames_and_said(performer_rig):
+    fit = performer_rig["calibration"]["fit"]
+    kept = performer_rig["neutral"]["kept"] + performer_rig["aa"]["kept"]
+    assert (fit["noise_source"], fit["held_frames"]) == ("held_frames", kept)
+    assert performer_rig["calibration"]["noise"] == fit["noise"]
+    shown = f"landmark noise σ = {fit['noise'] * 10:.2f} mm measured from {kept} held frames"
+    assert shown in performer_rig["verdict"]
 
 
 def test_on_the_performers_rig_the_open_mouth_weighs_clearly_more(

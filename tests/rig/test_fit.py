@@ -9,6 +9,7 @@ import warnings
 
 import numpy as np
 import pytest
+import scipy.optimize
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -133,6 +134,46 @@ def test_noise_regularisation_keeps_unity_and_lowers_noise_gain(example_set):
     points = np.random.default_rng(5).normal(size=(20, K, 3))
     np.testing.assert_allclose(smooth.weights(points).sum(axis=1), 1.0, atol=1e-9)
     assert smooth.fit_report["noise_gain"] < exact.fit_report["noise_gain"]
+
+
+def _ridge_system(example_set, points, noise):
+    """Example displacements D (M-1, 3K), frame displacements (B, 3K), ridge M noise^2."""
+    m = example_set.num_examples
+    neutral = example_set.source_neutral
+    displacements = (example_set.source_points[1:] - neutral).reshape(m - 1, -1)
+    frames = (points - neutral).reshape(len(points), -1)
+    return displacements, frames, m * noise * noise
+
+
+def test_noise_rig_maps_the_neutral_to_the_neutral(example_set):
+    # The ridge is a prior centred on the face at rest, not on the average example.
+    rig = fit(example_set, noise=0.5, clamp="none")
+    expected = np.eye(example_set.num_examples)[0]
+    np.testing.assert_allclose(rig.weights(example_set.source_neutral), expected, atol=1e-12)
+
+
+def test_noise_rig_weights_are_ridge_regression_on_the_example_displacements(example_set):
+    noise = 0.5
+    rig = fit(example_set, noise=noise, clamp="none")
+    points = np.random.default_rng(6).normal(size=(12, K, 3))
+    displacements, frames, ridge = _ridge_system(example_set, points, noise)
+    gram = displacements @ displacements.T + ridge * np.eye(len(displacements))
+    expected = np.linalg.solve(gram, displacements @ frames.T).T  # eq. of the MAP weights
+    np.testing.assert_allclose(rig.weights(points)[:, 1:], expected, atol=1e-9)
+
+
+def test_bounded_noise_rig_is_nonnegative_ridge_regression(example_set):
+    noise = 0.5
+    rig = fit(example_set, noise=noise)  # nonneg by default
+    points = np.random.default_rng(7).normal(size=(12, K, 3))
+    displacements, frames, ridge = _ridge_system(example_set, points, noise)
+    n = len(displacements)
+    system = np.vstack([displacements.T, np.sqrt(ridge) * np.eye(n)])
+    expected = np.array(
+        [scipy.optimize.nnls(system, np.concatenate([f, np.zeros(n)]))[0] for f in frames]
+    )
+    assert (expected == 0).any()  # the bounds are active somewhere
+    np.testing.assert_allclose(rig.weights(points)[:, 1:], expected, atol=1e-8)
 
 
 @pytest.mark.parametrize("mode,low,high", [("nonneg", 0.0, np.inf), ("unit", 0.0, 1.0)])

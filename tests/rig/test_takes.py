@@ -139,28 +139,29 @@ def test_real_take_clean_defaults_within_one_percent_of_least_squares(take):
 @pytest.mark.ict
 @pytest.mark.skipif(ARCHIVE is None, reason=SKIP_REASON)
 @pytest.mark.parametrize("sigma", [0.01, 0.05])  # cm: 0.1 mm and 0.5 mm
-def test_real_take_noise_rig_with_its_defaults_beats_nnls_and_one_percent(take, sigma):
+def test_real_take_noise_rig_with_its_defaults_beats_nnls_on_every_axis(take, sigma):
     noisy = take.points + np.random.default_rng(0).normal(0.0, sigma, take.points.shape)
     rig = _quiet_fit(take.examples, noise=sigma)  # bounded (nonneg) by default, no prior
     assert rig.model.clamp == "nonneg" and rig.model.sparsity_penalty == 0.0
-    ours = _max_axis(take.truth, rig.clone(noisy))
-    nnls = _max_axis(take.truth, rig.blend(nnls_weights(take.examples, noisy)))
-    assert ours < nnls
-    assert ours <= 1.0
+    ours = cloning_error(take.truth, rig.clone(noisy))["eq41_percent"]
+    nnls = cloning_error(take.truth, rig.blend(nnls_weights(take.examples, noisy)))["eq41_percent"]
+    for axis in ("x", "y", "z"):
+        assert ours[axis] < nnls[axis], axis
+    assert max(ours.values()) <= 1.0
 
 
 @pytest.mark.ict
 @pytest.mark.skipif(ARCHIVE is None, reason=SKIP_REASON)
-def test_real_take_unbounded_noise_rig_is_worse_than_the_bounded_default(take):
-    # Why the default bounds a noise rig: unbounded, it clones this take worse than NNLS.
+def test_real_take_bounded_noise_rig_beats_the_unbounded_one(take):
+    # Why the default bounds a noise rig: the bounds are part of the prior (w >= 0).
     sigma = 0.05
     noisy = take.points + np.random.default_rng(0).normal(0.0, sigma, take.points.shape)
     unbounded = _quiet_fit(take.examples, noise=sigma, clamp="none")
     bounded = _quiet_fit(take.examples, noise=sigma)
-    nnls = _max_axis(take.truth, bounded.blend(nnls_weights(take.examples, noisy)))
     assert unbounded.model.clamp is None
-    assert _max_axis(take.truth, unbounded.clone(noisy)) > nnls
-    assert _max_axis(take.truth, bounded.clone(noisy)) < nnls
+    assert _max_axis(take.truth, bounded.clone(noisy)) < _max_axis(
+        take.truth, unbounded.clone(noisy)
+    )
 
 
 def test_fit_report_splits_its_time_into_math_and_the_blend_basis():

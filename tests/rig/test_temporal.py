@@ -13,7 +13,7 @@ from facecast.rig import fit
 from facecast.rig.errors import InputError
 from facecast.rig.evaluation.takes import arkit_example_set, take_experiment
 from facecast.rig.evaluation.temporal import best_under_one_frame, lag_frames, temporal_tradeoff
-from facecast.rig.filters import KalmanFilter, OneEuroFilter
+from facecast.rig.filters import KALMAN_ACCELERATION, KalmanFilter, OneEuroFilter
 from facecast.rig.sources.ict import locate_ict
 from facecast.rig.sources.trackers import read_livelink_csv
 
@@ -70,6 +70,31 @@ def test_protocol_and_filter_defaults_agree():
     smoothing = Smoothing()
     one_euro = OneEuroFilter()
     assert (smoothing.min_cutoff, smoothing.beta) == (one_euro.min_cutoff, one_euro.beta)
+    assert smoothing.acceleration == KALMAN_ACCELERATION
+
+
+@pytest.mark.ict
+@pytest.mark.slow
+@pytest.mark.skipif(ARCHIVE is None, reason="ICT-FaceKit not found")
+@pytest.mark.parametrize("sigma", [0.01, 0.05])  # cm: 0.1 and 0.5 mm
+def test_default_kalman_has_less_jitter_and_lag_than_the_default_one_euro_on_a_real_take(sigma):
+    examples = arkit_example_set(ARCHIVE)
+    livelink = read_livelink_csv(TAKE)
+    take = take_experiment(examples, livelink.weights, livelink.fps)
+    noisy = take.points + np.random.default_rng(0).normal(0.0, sigma, take.points.shape)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rig = fit(examples, noise=sigma)
+    one_euro = OneEuroFilter()
+    table = temporal_tradeoff(
+        rig, noisy, take.truth, fps=livelink.fps, noise=sigma,
+        one_euro=[(one_euro.min_cutoff, one_euro.beta)], kalman=[KALMAN_ACCELERATION],
+    )  # fmt: skip
+    euro, kalman = (
+        next(r for r in table["rows"] if r["family"] == f) for f in ("one-euro", "kalman")
+    )
+    assert kalman["lag_frames"] < euro["lag_frames"] < 1.0
+    assert kalman["jitter"] < euro["jitter"]
 
 
 @pytest.mark.ict

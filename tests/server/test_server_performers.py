@@ -14,6 +14,7 @@ from _server_helpers import open_session, tiny_rig
 from facecast.protocol import Frame, Result, decode_server, encode
 from facecast.rig import ExampleSet, fit
 from facecast.rig.sources.capture import robust_example
+from facecast.server.performers import HELD_NOISE_FLOOR, MAX_HELD_FRAMES
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
 
@@ -138,6 +139,74 @@ async def test_the_capture_spread_becomes_the_fit_noise_with_bounded_weights(ser
     assert body["noise"] == noise and body["clamp"] == "unit"
 
 
+def _held(points, sigma: float, frames: int = 30, seed: int = 4) -> dict[str, np.ndarray]:
+    """Frames of each expression held still under tracker noise of std ``sigma``."""
+    rng = np.random.default_rng(seed)
+    return {n: p + rng.normal(scale=sigma, size=(frames, K, 3)) for n, p in points.items()}
+
+
+async def test_noise_is_measured_from_the_held_frames_and_the_rig_fitted_with_it(server):
+    sigma = 0.05
+    points = performer_points()
+    held = _held(points, sigma)
+    body = capture_body(points, held={n: f.tolist() for n, f in held.items()})
+    async with http(server) as client:
+        response = await client.put("/v1/rigs/hero/performer/carol", json=body)
+        profile = await client.get("/v1/performers/carol")
+
+    answer = response.json()
+    assert response.status_code == 201, answer
+    steps = np.concatenate([np.diff(f, axis=0).ravel() for f in held.values()])
+    expected = float(np.sqrt(np.mean(steps * steps) / 2.0))  # pooled over every step
+    assert answer["noise"] == pytest.approx(expected, rel=1e-12)
+    assert abs(answer["noise"] - sigma) < 0.05 * sigma
+    assert (answer["noise_source"], answer["held_frames"]) == ("held_frames", 30 * len(points))
+    fitted = server.app.state.store.get("hero@carol").fit_report
+    assert fitted["noise"] == answer["noise"] and fitted["clamp"] == "unit"
+    assert profile.json()["noise"] == answer["noise"]
+    assert profile.json()["noise_source"] == "held_frames"
+
+
+async def test_held_frames_of_a_still_image_measure_the_noise_floor(server):
+    points = performer_points()
+    held = {n: [p.tolist()] * 10 for n, p in points.items()}  # identical frames
+    async with http(server) as client:
+        response = await client.put(
+            "/v1/rigs/hero/performer/carol", json=capture_body(points, held=held)
+        )
+
+    answer = response.json()
+    assert response.status_code == 201, answer
+    assert (answer["noise"], answer["noise_source"]) == (HELD_NOISE_FLOOR, "held_frames")
+
+
+async def test_a_noise_given_with_held_frames_wins(server):
+    points = performer_points()
+    held = {n: f.tolist() for n, f in _held(points, 0.05).items()}
+    async with http(server) as client:
+        response = await client.put(
+            "/v1/rigs/hero/performer/carol", json=capture_body(points, noise=0.02, held=held)
+        )
+
+    answer = response.json()
+    assert response.status_code == 201, answer
+    assert (answer["noise"], answer["noise_source"], answer["held_frames"]) == (0.02, "capture", 0)
+
+
+@pytest.mark.parametrize("frames,status", [(MAX_HELD_FRAMES, 201), (MAX_HELD_FRAMES + 1, 422)])
+async def test_held_frames_at_the_limit_are_taken_and_past_it_refused(server, frames, status):
+    points = performer_points()
+    held = {"neutral": _held({"neutral": points["neutral"]}, 0.05, frames)["neutral"].tolist()}
+    async with http(server) as client:
+        response = await client.put(
+            "/v1/rigs/hero/performer/carol", json=capture_body(points, held=held)
+        )
+
+    assert response.status_code == status, response.text
+    if status == 422:
+        assert response.json()["code"] == "bad_held_frames"
+
+
 def _nan_json(points) -> bytes:
     text = json.dumps(capture_body(points))
     return text.replace(str(points["smile"][0][0].tolist()), "NaN", 1).encode()
@@ -149,6 +218,7 @@ def _bad_cases():
     coincide = dict(points, frown=points["smile"])
     short = dict(points, smile=points["smile"][:19])
     only_neutral = {"neutral": points["neutral"]}
+    held = {n: f.tolist() for n, f in _held(points, 0.05, frames=3).items()}
     return {
         "no-neutral": (capture_body(no_neutral), None, 422, "no_neutral"),
         "unknown-expression": (capture_body(dict(points, wink=points["smile"])), None, 422,
@@ -165,6 +235,13 @@ def _bad_cases():
                            "unknown_layout"),
         "unknown-field": (dict(capture_body(points), extra=1), None, 422, "bad_capture"),
         "coinciding": (capture_body(coincide), None, 422, "examples_coincide"),
+        "held-unknown": (capture_body(points, held={"wink": held["smile"]}), None, 422,
+                         "bad_held_frames"),
+        "held-one-frame": (capture_body(points, held={"smile": held["smile"][:1]}), None, 422,
+                           "bad_held_frames"),
+        "held-wrong-k": (capture_body(points, held={"smile": [f[:19] for f in held["smile"]]}),
+                         None, 422, "bad_held_frames"),
+        "held-not-a-map": (capture_body(points, held=[1, 2]), None, 422, "bad_held_frames"),
         "nan-literal": (_nan_json(points), "application/json", 422, "non_finite"),
         "not-json": (b"{not json", "application/json", 400, "bad_capture"),
         "not-msgpack": (b"\xc1\xc1", "application/msgpack", 400, "bad_capture"),

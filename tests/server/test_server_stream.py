@@ -283,6 +283,41 @@ async def test_smoothing_applies_a_one_euro_filter_clocked_by_frame_ts(served, r
     assert not np.allclose(results[-1].weights, rig.weights(frames[-1][0]), atol=1e-4)
 
 
+@pytest.mark.parametrize("given", [None, 0.02])
+async def test_kalman_smoothing_filters_the_points_with_the_rigs_noise(served, given):
+    from facecast.rig.filters import KalmanFilter
+
+    noisy_rig = fit(tiny_example_set(), noise=0.05)  # the rig's noise unless one is given
+    served.app.state.store.put_rig("noisy", noisy_rig)
+    smoothing = Smoothing(filter="kalman", acceleration=300.0, noise=given)
+    sigma = 0.05 if given is None else given
+    frames = [(frame_points(noisy_rig, i), 0.1 * i) for i in range(4)]
+    reference = KalmanFilter(noise=sigma, acceleration=300.0 * sigma)
+    expected = [
+        noisy_rig.weights(reference(p.astype(np.float64).reshape(-1), ts).reshape(p.shape))
+        for p, ts in frames
+    ]
+    async with connect(served) as ws:
+        await open_session(ws, "noisy", smoothing=smoothing)
+        results = []
+        for seq, (p, ts) in enumerate(frames):
+            await ws.send(frame(seq, p, ts=ts))
+            results.append(await next_result(ws))
+
+    for result, want in zip(results, expected, strict=True):
+        np.testing.assert_allclose(result.weights, want.astype(np.float32), atol=1e-6)
+    assert not np.allclose(results[-1].weights, noisy_rig.weights(frames[-1][0]), atol=1e-4)
+
+
+async def test_kalman_smoothing_on_a_rig_fitted_without_noise_needs_a_noise(served):
+    async with connect(served) as ws:  # "face" is fitted exactly
+        await ws.send(encode(Hello(rig="face", smoothing=Smoothing(filter="kalman"))))
+        error = await recv_error(ws)
+
+    assert (error.code, error.fatal) == (ErrorCode.INVALID_FIELD, True)
+    assert "smoothing.noise" in error.message
+
+
 # -- bad input: each gets its code, and the server keeps serving ---------------------------
 
 

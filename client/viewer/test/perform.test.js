@@ -4,7 +4,7 @@ import assert from "node:assert/strict";
 import { readFileSync } from "node:fs";
 import { test } from "node:test";
 
-import { expectsEyesShut, measuredNoise, summariseCapture } from "../src/perform/capture.js";
+import { expectsEyesShut, heldFrames, HELD_CAPTURES, noiseText, summariseCapture } from "../src/perform/capture.js";
 import {
   checkLayout,
   eyeOpenness,
@@ -122,16 +122,35 @@ function frames(n, { sigma = 0.02, eyes = 0.3, head = HEAD, seed = 11 } = {}) {
   }));
 }
 
-test("a held expression gives its median and its spread as the noise", () => {
-  const summary = summariseCapture(frames(40, { sigma: 0.02 }), 40, "neutral");
+test("a held expression gives its median, its spread and its kept frames", () => {
+  const samples = frames(40, { sigma: 0.02 });
+  const summary = summariseCapture(samples, 40, "neutral");
   assert.ok(summary.ok, summary.reason);
   assert.equal(summary.points.length, K);
   assert.ok(Math.abs(summary.points[3][1] - 1.0) < 0.02);
   assert.ok(summary.spread > 0.012 && summary.spread < 0.03, `spread ${summary.spread}`);
-  assert.equal(measuredNoise([summary]), summary.spread);
+  assert.equal(summary.held.length, summary.kept);
+  assert.equal(summary.held[0].length, K);
+  assert.equal(summary.held[0][3][1], samples[0].points[10]); // frame 0, point 3, y
   const still = summariseCapture(frames(20, { sigma: 0 }), 20, "neutral");
   assert.equal(still.spread, 0);
-  assert.equal(measuredNoise([still]), 0.01); // a still image measures no noise: the floor
+});
+
+test("the fit sends the held frames of at most HELD_CAPTURES captures, rounded", () => {
+  const summary = summariseCapture(frames(12, { sigma: 0.02 }), 12, "neutral");
+  const accepted = Array.from({ length: HELD_CAPTURES + 3 }, (_, i) => ({ name: `e${i}`, result: summary }));
+  const held = heldFrames(accepted);
+  assert.deepEqual(Object.keys(held), accepted.slice(0, HELD_CAPTURES).map((c) => c.name));
+  const value = held.e0[0][3][1];
+  assert.equal(value, Math.round(summary.held[0][3][1] * 1e4) / 1e4);
+  assert.deepEqual(heldFrames([{ name: "x", result: { ok: false } }]), {});
+});
+
+test("the page says the fit's noise and where it came from", () => {
+  const text = noiseText({ noise: 0.0123, noise_source: "held_frames", held_frames: 60 });
+  assert.equal(text, ", landmark noise σ = 0.12 mm measured from 60 held frames");
+  assert.equal(noiseText({ noise: 0.02, noise_source: "capture" }), ", landmark noise σ = 0.20 mm");
+  assert.equal(noiseText({ noise: null }), "");
 });
 
 test("blink frames and outlier frames are left out of the average", () => {

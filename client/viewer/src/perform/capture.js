@@ -66,7 +66,9 @@ function headTurnReason(head, reference, limits) {
  * reference: the neutral capture's {head, eyes} (null for the neutral itself)
  *
  * Returns {ok, reason, points: K×3 arrays (the robust average), spread (RMS per-coordinate
- * σ of the kept frames, layout units), kept, blinks, outliers, head, headMotion, eyes}.
+ * σ of the kept frames, layout units), held (the kept frames, in order, each K×3 arrays: the
+ * server measures the landmark noise from them), kept, blinks, outliers, head, headMotion,
+ * eyes}.
  */
 export function summariseCapture(samples, seen, name, reference = null, limits = CAPTURE_LIMITS) {
   const result = { ok: false, reason: null, points: null, spread: null, kept: 0, blinks: 0, outliers: 0 };
@@ -140,18 +142,38 @@ export function summariseCapture(samples, seen, name, reference = null, limits =
     result.points = null;
     return result;
   }
+  result.held = kept.map((s) => {
+    const frame = [];
+    for (let k = 0; k < k3 / 3; k++) frame.push([s.points[3 * k], s.points[3 * k + 1], s.points[3 * k + 2]]);
+    return frame;
+  });
   result.ok = true;
   return result;
 }
 
-/**
- * Below this (layout units: 0.1 mm) a spread measures the tracker's stillness, not the
- * landmark noise of a performance: a still image tracks identically frame after frame.
- */
-export const NOISE_FLOOR = 0.01;
+/** Most captures whose held frames a fit sends (the neutral first): enough frames to
+ * measure the noise, and the body well inside the server's 1 MiB capture limit. */
+export const HELD_CAPTURES = 12;
 
-/** The landmark noise σ the fit gets from the accepted captures: their median spread. */
-export function measuredNoise(captures) {
-  const spreads = captures.filter((c) => c.ok).map((c) => c.spread);
-  return spreads.length ? Math.max(NOISE_FLOOR, median(spreads)) : null;
+/**
+ * The capture body's `held` for the accepted captures [{name, result}]: each one's kept
+ * frames, rounded to 1e-4 layout units (1 µm, far below any tracker's noise), for at most
+ * HELD_CAPTURES of them. The server measures σ from them (SERVER.md, "Performers").
+ */
+export function heldFrames(accepted) {
+  const round = (v) => Math.round(v * 1e4) / 1e4;
+  return Object.fromEntries(
+    accepted
+      .filter((c) => c.result && c.result.ok && c.result.held && c.result.held.length >= 2)
+      .slice(0, HELD_CAPTURES)
+      .map((c) => [c.name, c.result.held.map((frame) => frame.map((p) => p.map(round)))]),
+  );
+}
+
+/** How the fit's landmark noise was found, for the performer (layout units ≈ cm, shown in mm). */
+export function noiseText(answer) {
+  if (typeof answer.noise !== "number") return "";
+  const mm = `${(answer.noise * 10).toFixed(2)} mm`;
+  if (answer.noise_source === "held_frames") return `, landmark noise σ = ${mm} measured from ${answer.held_frames} held frames`;
+  return `, landmark noise σ = ${mm}`;
 }

@@ -2,7 +2,7 @@
 // examples shown posed on the character; capture ~1 s of each, redo or skip any, then
 // fit the performer's own rig on the server. DOM and fetch; the math is in capture.js.
 
-import { measuredNoise, summariseCapture } from "./capture.js";
+import { heldFrames, noiseText, summariseCapture } from "./capture.js";
 
 export const CAPTURE_MS = 1000;
 
@@ -148,18 +148,18 @@ export class Studio {
       this.verdict("capture the neutral first", true);
       return;
     }
-    const captures = accepted.map((s) => s.result);
-    const noise = measuredNoise(captures);
-    this.stats.noise = noise;
+    // The server measures the landmark noise from the held frames and fits with it.
+    const held = heldFrames(accepted);
     const body = {
       layout: this.host.layoutName,
       points: Object.fromEntries(accepted.map((s) => [s.name, s.result.points])),
-      noise,
+      held,
     };
     const { params } = this.host;
     const url = `${params.server}/v1/rigs/${encodeURIComponent(params.character)}/performer/${encodeURIComponent(params.performer)}`;
     this.el.fit.disabled = true;
-    this.verdict(`fitting ${params.character}@${params.performer} from ${accepted.length} expressions (noise ${noise.toFixed(4)})…`);
+    const frames = Object.values(held).reduce((n, f) => n + f.length, 0);
+    this.verdict(`fitting ${params.character}@${params.performer} from ${accepted.length} expressions (noise from ${frames} held frames)…`);
     let response;
     try {
       response = await fetch(url, {
@@ -177,6 +177,7 @@ export class Studio {
       return;
     }
     this.stats.fit = answer;
+    this.stats.noise = answer.noise;
     this.stats.fitError = null;
     this.showReport(answer);
     this.el.fit.disabled = false;
@@ -212,7 +213,10 @@ export class Studio {
     const pre = this.doc.createElement("div");
     pre.textContent = JSON.stringify(summary, null, 1);
     report.append(pre);
-    this.verdict(`rig ${answer.id} fitted${warnings.length ? ` with ${warnings.length} warning(s)` : ""}`);
+    this.verdict(
+      `rig ${answer.id} fitted${warnings.length ? ` with ${warnings.length} warning(s)` : ""}` +
+        noiseText(answer),
+    );
   }
 
   verdict(text, refused = false) {
