@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from facecast.client.bridges.channel import channel_url
+from facecast.client.channel import channel_url
 from facecast.protocol import ChannelLive, ErrorCode, Hello, Smoothing
 from facecast.rig.filters import KalmanFilter
 from facecast.server.testing import run_server
