@@ -8,7 +8,7 @@ on this library live in ``facecast.cli``, which this package never imports.
 from __future__ import annotations
 
 import importlib
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 __all__ = ["ConnectionFailed", "Reconnect", "StreamSession", "connect"]
 
@@ -16,7 +16,7 @@ if TYPE_CHECKING:
     from facecast.client.connection import ConnectionFailed, Reconnect, StreamSession, connect
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> Any:
     # Loaded on first use (PEP 562), not on import: the CLI (facecast.cli.main) must set
     # its BLAS thread count before anything imports numpy, and the connection does.
     if name in __all__:

@@ -186,7 +186,10 @@ class StreamSession:
             old.num_points,
             old.num_vertices,
             old.result_vertices,
-        ) or (ready.moving is not None and not np.array_equal(ready.moving, old.moving)):
+        ) or (
+            ready.moving is not None
+            and (old.moving is None or not np.array_equal(ready.moving, old.moving))
+        ):
             raise ProtocolError(
                 ErrorCode.INVALID_FIELD,
                 f"rig {ready.rig!r} changed on the server while reconnecting "
@@ -246,14 +249,14 @@ class StreamSession:
                     return error
                 await self._deliver(error)
             elif isinstance(message, Pong):
-                waiter = self._pings.pop(message.id, None)
-                if waiter is not None and not waiter.done():
-                    waiter.set_result(time.perf_counter() - message.ts)
+                pinged = self._pings.pop(message.id, None)
+                if pinged is not None and not pinged.done():
+                    pinged.set_result(time.perf_counter() - message.ts)
             elif isinstance(message, Calibrated):
                 while self._calibrations:
-                    waiter = self._calibrations.pop(0)
-                    if not waiter.done():
-                        waiter.set_result(message)
+                    calibrating = self._calibrations.pop(0)
+                    if not calibrating.done():
+                        calibrating.set_result(message)
                         break
         return None
 
@@ -287,7 +290,8 @@ class StreamSession:
         self._failure = exc
         self._failed.set()
         self._queue.put_nowait(_END)
-        for future in [*self._pings.values(), *self._calibrations]:
+        waiters: list[asyncio.Future[Any]] = [*self._pings.values(), *self._calibrations]
+        for future in waiters:
             if not future.done():
                 future.set_exception(exc)
         self._pings.clear()
@@ -348,18 +352,18 @@ class StreamSession:
         (V, 3) or (F, V, 3) float32: equal to a "vertices" result of the same frames
         (bit for bit in f32: the vertices not sent are the neutral's in every blend).
         """
-        moving = self.moving
-        if moving is None:
+        moving, ready = self.moving, self.ready
+        if moving is None or ready is None:
             raise ValueError("full_vertices needs a session whose output is moving")
         vertices = np.asarray(vertices)
         neutral = np.asarray(neutral, dtype=np.float32)
-        if neutral.shape != (self.ready.num_vertices, 3) or vertices.shape[-2:] != (
+        if neutral.shape != (ready.num_vertices, 3) or vertices.shape[-2:] != (
             moving.size,
             3,
         ):
             raise ValueError(
                 f"expected vertices (..., {moving.size}, 3) and a neutral "
-                f"({self.ready.num_vertices}, 3), got {vertices.shape} and {neutral.shape}"
+                f"({ready.num_vertices}, 3), got {vertices.shape} and {neutral.shape}"
             )
         full = np.array(np.broadcast_to(neutral, (*vertices.shape[:-2], *neutral.shape)))
         full[..., moving, :] = vertices
@@ -469,6 +473,7 @@ class StreamSession:
                     self._raise_if_done()
                 if isinstance(item, ProtocolError) and errors == "raise":
                     raise item
+                assert isinstance(item, Result | ProtocolError), item
                 return item
 
     async def results(
@@ -526,7 +531,7 @@ class StreamSession:
         await self._wait_connected()
         assert self._ws is not None and self._protocol is not None
         probe_id = next(self._ping_ids)
-        waiter = asyncio.get_running_loop().create_future()
+        waiter: asyncio.Future[float] = asyncio.get_running_loop().create_future()
         self._pings[probe_id] = waiter
         try:
             await self._ws.send(self._protocol.send(Ping(id=probe_id, ts=time.perf_counter())))
@@ -545,7 +550,7 @@ class StreamSession:
         array = None if points is None else self._frame_points(points)
         await self._wait_connected()
         assert self._ws is not None and self._protocol is not None
-        waiter = asyncio.get_running_loop().create_future()
+        waiter: asyncio.Future[Calibrated] = asyncio.get_running_loop().create_future()
         self._calibrations.append(waiter)
         await self._ws.send(self._protocol.send(Calibrate(points=array, reset=reset)))
         async with asyncio.timeout(timeout):

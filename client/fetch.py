@@ -76,7 +76,8 @@ def fetch_summary(
 ) -> dict[str, Any]:
     """``GET /v1/rigs/{id}``: the rig's ``summary()`` plus ``id`` (num_points, names, ...)."""
     data = _get(rest_url(base_url, "rigs", rig_id), token, timeout=timeout, max_bytes=16 << 20)
-    return json.loads(data)
+    summary: dict[str, Any] = json.loads(data)
+    return summary
 
 
 def fetch_rig_bytes(

@@ -242,9 +242,9 @@ async def stream_frames(
     report(time.perf_counter())
     latency = session.latency.stats()
     dropped = session.dropped - dropped_at_start
-    for index in np.flatnonzero(~have):
-        result = await session.clone(points[index])
-        values[index] = result.values
+    for missing in np.flatnonzero(~have):
+        result = await session.clone(points[missing])
+        values[missing] = result.values
     return StreamOutcome(
         values=values,
         live=live,
