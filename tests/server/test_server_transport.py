@@ -7,6 +7,7 @@ behind `TransportSeam`, or the real app, and a real websockets client.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import socket
 
 import numpy as np
@@ -176,6 +177,49 @@ def _send_two_messages_at_once(port: int, path: str) -> None:
             if not data:
                 break
             conn.receive_data(data)
+
+
+async def test_a_client_that_does_not_read_makes_write_refuse_with_bytes_buffered(settings):
+    seen: list = []
+    refused = asyncio.Event()
+    frame = binary_frame(bytes(64 * 1024))
+
+    async def probe(websocket: WebSocket) -> None:
+        await websocket.accept()
+        transport = transport_for(websocket)
+        written = 0
+        while written < 2000 and transport.write(frame):  # bounded: 128 MB at most
+            written += 1
+        seen.append((written, transport.buffered_bytes(), transport.closed))
+        refused.set()
+        with contextlib.suppress(Exception):  # the client leaves without reading
+            await websocket.close(1000)
+
+    app = TransportSeam(Starlette(routes=[WebSocketRoute("/probe", probe)]))
+    async with run_server(settings, app=app) as server:
+        sock = await asyncio.to_thread(_handshake_without_reading, server.port, "/probe")
+        try:
+            await asyncio.wait_for(refused.wait(), _WAIT)
+        finally:
+            sock.close()
+
+    written, buffered, closed = seen[0]
+    assert 0 < written < 2000  # back-pressure stopped the direct writes
+    assert buffered > 0  # what the socket has not taken waits in uvicorn's transport
+    assert closed is False  # paused, not closed: the ASGI send would wait
+
+
+def _handshake_without_reading(port: int, path: str) -> socket.socket:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.settimeout(_WAIT)
+    sock.connect(("127.0.0.1", port))
+    conn = ClientProtocol(parse_uri(f"ws://127.0.0.1:{port}{path}"))
+    conn.send_request(conn.connect())
+    sock.sendall(b"".join(conn.data_to_send()))
+    while not any(isinstance(e, Response) for e in conn.events_received()):
+        conn.receive_data(sock.recv(1))  # byte by byte: nothing of the frames is read
+    return sock
 
 
 async def _stream_results(server, rig, frames: int) -> list[Result]:
