@@ -114,30 +114,14 @@ class SansIOTransport(Transport):
     def __init__(self, websocket: WebSocket, protocol: Any, receive: Receive) -> None:
         self._websocket = websocket
         self._protocol = protocol
-        self._conn = protocol.conn
         self._transport = protocol.transport
-        self._writable = protocol.writable
-        self._open = State.OPEN
         #: uvicorn's own receive: the next message without Starlette's per-message checks.
         self.receive: Callable[[], Awaitable[Message]] = receive
         #: Received messages waiting for the app (a bound method: no wrapper on the hot path).
         self.messages_waiting = protocol.queue.qsize  # type: ignore[method-assign]
         self.buffered_bytes = protocol.transport.get_write_buffer_size  # type: ignore[method-assign]
-
-    def write(self, frame: bytes) -> bool:
-        protocol = self._protocol
-        if (
-            self._websocket.application_state is not WebSocketState.CONNECTED
-            or protocol.close_sent
-            or protocol.disconnected
-            or not self._writable.is_set()
-            or self._conn.state is not self._open
-            or self._conn.writes
-            or self._transport.is_closing()
-        ):
-            return False
-        self._transport.write(frame)
-        return True
+        # A closure per connection: the fan-out calls it once per viewer and result.
+        self.write = _direct_write(websocket, protocol)  # type: ignore[method-assign,assignment]
 
     @property
     def closed(self) -> bool:
@@ -148,6 +132,32 @@ class SansIOTransport(Transport):
             or protocol.disconnected
             or self._transport.is_closing()
         )
+
+
+def _direct_write(websocket: WebSocket, protocol: Any) -> Callable[[bytes], bool]:
+    """`SansIOTransport.write` for one connection, as a closure.
+
+    The fan-out calls it once per viewer and result: what it reads is bound here (cell
+    reads), not looked up on ``self`` on every call.
+    """
+    conn, writable, transport = protocol.conn, protocol.writable, protocol.transport
+    opened, connected = State.OPEN, WebSocketState.CONNECTED
+
+    def write(frame: bytes) -> bool:
+        if (
+            websocket.application_state is not connected
+            or protocol.close_sent
+            or protocol.disconnected
+            or not writable.is_set()
+            or conn.state is not opened
+            or conn.writes
+            or transport.is_closing()
+        ):
+            return False
+        transport.write(frame)
+        return True
+
+    return write
 
 
 def transport_for(websocket: WebSocket) -> Transport:
