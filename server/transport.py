@@ -45,6 +45,9 @@ class TransportSeam:
     Must be the outermost middleware of the app (``create_app`` adds it last): a send that
     something else has wrapped is not uvicorn's, and `transport_for` then refuses the
     direct path. Everything is passed on unchanged; HTTP scopes are not touched.
+    Middlewares inside it (between it and the routes) must not need to see a WebSocket's
+    data frames, which the direct path writes past them: facecast's own (access log,
+    Host/Origin checks, CORS) look at HTTP requests and the handshake only.
     """
 
     def __init__(self, app: ASGIApp) -> None:
