@@ -279,11 +279,25 @@ class Channel:
             return
         stages = self.hub.metrics.stages if self.hub.settings.stage_timing else None
         call = _clone_call if stages is None else _timed_clone_call
-        futures = [
-            self._loop.run_in_executor(self.hub.executor, call, s, frame, arrived, count)
-            for s in states
-        ]
-        results = await asyncio.gather(*futures, return_exceptions=True)
+        results: list[Any] = [None] * len(states)
+        threaded: list[tuple[int, asyncio.Future[Any]]] = []
+        for i, s in enumerate(states):
+            if s.inline(frame):
+                # Microseconds (weights, points): here, not through a clone thread,
+                # whose round trip costs the loop more than the clone.
+                try:
+                    results[i] = call(s, frame, arrived, count)
+                except Exception as exc:
+                    results[i] = exc
+            else:
+                future = self._loop.run_in_executor(
+                    self.hub.executor, call, s, frame, arrived, count
+                )
+                threaded.append((i, future))
+        if threaded:
+            outcomes = await asyncio.gather(*(f for _, f in threaded), return_exceptions=True)
+            for (i, _), outcome in zip(threaded, outcomes, strict=True):
+                results[i] = outcome
         if stages is not None:
             # A key's clone (its weights, any blend, and its encode) counts as "weights".
             for i, outcome in enumerate(results):

@@ -10,9 +10,10 @@ import pytest
 
 from facecast.client.bridges.channel import channel_url
 from facecast.protocol import ChannelIdle, ChannelLive, ErrorCode, Hello, Ready, Result
+from facecast.server.fanout import ChannelFrame, key_state
 from facecast.server.testing import run_server
 
-from ._helpers import RIG_IDS, Publisher, Watcher, points, refused
+from ._helpers import RIG_IDS, Publisher, Watcher, points, refused, wait_for
 
 pytestmark = pytest.mark.anyio
 
@@ -134,6 +135,11 @@ async def test_watchers_see_the_publisher_leave_and_return(settings, rigs, ws_im
     assert not watcher.closed.is_set() or watcher.close_code in (1000, 1001, None)
 
 
+def _publisher_gone(server, name: str) -> bool:
+    channel = server.app.state.channels.channels.get(name)
+    return channel is None or (channel.publisher is None and channel.claimed_by is None)
+
+
 async def test_second_publisher_is_refused_with_channel_busy(settings, ws_impl):
     async with run_server(settings, ws=ws_impl) as server:
         first = await Publisher.open(server.ws_url, "stage", "alpha")
@@ -141,6 +147,9 @@ async def test_second_publisher_is_refused_with_channel_busy(settings, ws_impl):
             channel_url(server.ws_url, "stage", "publish"), hello=Hello(rig="alpha")
         )
         await first.close()
+        # The client's close returns before the server has let the publisher go (the
+        # legacy websockets stack takes longer): wait for it, not for a fixed time.
+        await wait_for(lambda: _publisher_gone(server, "stage"), what="first publisher gone")
         second = await Publisher.open(server.ws_url, "stage", "alpha")
 
     assert error.code == ErrorCode.CHANNEL_BUSY and error.fatal
@@ -164,3 +173,18 @@ async def test_watching_an_unknown_rig_is_refused(settings, ws_impl):
         error, _ = await refused(channel_url(server.ws_url, "stage", "watch", {"rig": "nobody"}))
 
     assert error.code == ErrorCode.UNKNOWN_RIG
+
+
+def test_weights_clones_run_inline_until_a_new_calibration_needs_a_refit(rigs):
+    rig = rigs["alpha"]
+    pts = points(rig, 3)
+    weights = key_state(("alpha", "weights", "f32"), rig)
+    vertices = key_state(("alpha", "vertices", "f32"), rig)
+    calibrated = ChannelFrame(seq=2, ts=0.1, points=pts, neutral=pts, neutral_id="n1")
+
+    plain = ChannelFrame(seq=1, ts=0.0, points=pts)
+    before = (weights.inline(plain), vertices.inline(plain), weights.inline(calibrated))
+    weights.clone(calibrated, 0.0)  # the refit happens once, in whichever thread clones
+
+    assert before == (True, False, False)
+    assert weights.inline(calibrated) is True
