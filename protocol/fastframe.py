@@ -9,6 +9,7 @@ disagree. It never raises.
 from __future__ import annotations
 
 import math
+import re
 import struct
 from typing import Final
 
@@ -20,30 +21,22 @@ from facecast.protocol.messages import Frame, _checked
 
 __all__ = ["decode_frame"]
 
-# The fixed parts of the layout, in msgpack bytes: a 5-key map {"v": 1, "type": "frame",
-# "seq": <uint>, "ts": <float64>, "points": {"dtype": "f..", "shape": [K, 3], "data": <bin>}}.
-_HEAD: Final = b"\x85\xa1v\x01\xa4type\xa5frame\xa3seq"
-_TS: Final = b"\xa2ts\xcb"
-_POINTS: Final = b"\xa6points\x83\xa5dtype\xa3f"
-_SHAPE: Final = b"\xa5shape\x92"
-_DATA: Final = b"\x03\xa4data"
+# The layout, in msgpack bytes: a 5-key map {"v": 1, "type": "frame", "seq": <uint>,
+# "ts": <float64>, "points": {"dtype": "f..", "shape": [K, 3], "data": <bin>}}. One
+# regular expression reads it (~0.4 µs; slicing and comparing each part cost 2 µs more).
+# Groups: seq as fixint/uint8/16/32/64, ts, the dtype's digits, K as fixint/uint8/16 (a
+# larger K is past any limit), the bin8/16/32 length; the array's bytes follow the match.
+_LAYOUT: Final = re.compile(
+    rb"\x85\xa1v\x01\xa4type\xa5frame\xa3seq"
+    rb"(?:([\x00-\x7f])|\xcc(.)|\xcd(..)|\xce(.{4})|\xcf(.{8}))"
+    rb"\xa2ts\xcb(.{8})"
+    rb"\xa6points\x83\xa5dtype\xa3f(16|32|64)\xa5shape\x92"
+    rb"(?:([\x00-\x7f])|\xcc(.)|\xcd(..))\x03\xa4data"
+    rb"(?:\xc4(.)|\xc5(..)|\xc6(.{4}))",
+    re.DOTALL,
+)
 _F64: Final = struct.Struct(">d")
 _DTYPES: Final = {name[1:].encode(): dtype for name, dtype in WIRE_DTYPES.items()}
-#: msgpack's uint8/16/32/64 markers and their payload sizes.
-_UINT: Final = {0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8}
-#: bin8/16/32 markers and the sizes of their length fields.
-_BIN: Final = {0xC4: 1, 0xC5: 2, 0xC6: 4}
-
-
-def _uint(data: bytes, i: int, sizes: dict[int, int]) -> tuple[int, int]:
-    """The unsigned int whose marker is at ``data[i]`` and the index after it; (-1, i) if none."""
-    marker = data[i]
-    if marker < 0x80 and sizes is _UINT:
-        return marker, i + 1
-    size = sizes.get(marker)
-    if size is None or i + 1 + size > len(data):
-        return -1, i
-    return int.from_bytes(data[i + 1 : i + 1 + size], "big"), i + 1 + size
 
 
 def decode_frame(data: bytes, limits: Limits) -> Frame | None:
@@ -53,33 +46,29 @@ def decode_frame(data: bytes, limits: Limits) -> Frame | None:
     decoder, which accepts or rejects the bytes with the right error. The points are a
     read-only view of ``data``, as the generic decoder's are of their bin value.
     """
-    if type(data) is not bytes or not data.startswith(_HEAD):
+    if type(data) is not bytes or len(data) > limits.max_message_bytes:
         return None
-    end = len(data)
-    if end > limits.max_message_bytes:
+    match = _LAYOUT.match(data)
+    if match is None:
         return None
-    try:
-        seq, i = _uint(data, len(_HEAD), _UINT)
-        if seq < 0 or data[i : i + 4] != _TS:
-            return None
-        (ts,) = _F64.unpack_from(data, i + 4)
-        i += 12
-        if not math.isfinite(ts) or data[i : i + len(_POINTS)] != _POINTS:
-            return None
-        i += len(_POINTS)
-        dtype = _DTYPES.get(data[i : i + 2])
-        i += 2
-        if dtype is None or data[i : i + len(_SHAPE)] != _SHAPE:
-            return None
-        rows, i = _uint(data, i + len(_SHAPE), _UINT)
-        if data[i : i + len(_DATA)] != _DATA:
-            return None
-        size, i = _uint(data, i + len(_DATA), _BIN)
-    except (IndexError, struct.error):
+    seq8, seq16, seq32, seq64, seq_fix, ts, digits, rows8, rows16, rows_fix, n8, n16, n32 = (
+        match.group(2, 3, 4, 5, 1, 6, 7, 9, 10, 8, 11, 12, 13)
+    )
+    seq = int.from_bytes(seq_fix or seq8 or seq16 or seq32 or seq64, "big")
+    rows = int.from_bytes(rows_fix or rows8 or rows16, "big")
+    size = int.from_bytes(n8 or n16 or n32, "big")
+    dtype = _DTYPES.get(digits)
+    (stamp,) = _F64.unpack(ts)
+    start = match.end()
+    if (
+        dtype is None
+        or not math.isfinite(stamp)
+        or not 0 < rows <= limits.max_points
+        or size != rows * 3 * dtype.itemsize
+        or start + size != len(data)
+    ):
         return None
-    if not 0 < rows <= limits.max_points or size != rows * 3 * dtype.itemsize or i + size != end:
-        return None
-    points = np.ndarray((rows, 3), dtype, data, offset=i)
+    points = np.ndarray((rows, 3), dtype, data, offset=start)
     if not all_finite(points):
         return None
-    return _checked(Frame, seq=seq, ts=ts, points=points, head=None)
+    return _checked(Frame, seq=seq, ts=stamp, points=points, head=None)

@@ -38,6 +38,7 @@ from .sessions import SessionRegistry
 from .settings import ROLES, Settings
 from .store import RigStore
 from .stream import router as stream_router
+from .transport import TransportSeam
 from .viewer import mount_viewer
 
 __all__ = ["SESSIONS_STATE_KEY", "SETTINGS_ENV", "app_from_env", "create_app"]
@@ -119,7 +120,8 @@ def create_app(settings: Settings) -> FastAPI:
     _add_docs_routes(app)
     mount_viewer(app, settings)
     mount_perform(app)
-    # Added innermost first: access log > Host/Origin checks > CORS > routes.
+    # Added innermost first: transport seam > access log > Host/Origin checks > CORS >
+    # routes.
     if settings.allowed_origins:
         # Pages of these origins (a viewer pointed here with server=) may read the API.
         app.add_middleware(
@@ -131,6 +133,9 @@ def create_app(settings: Settings) -> FastAPI:
         )
     app.add_middleware(OriginGuard, settings=settings)
     app.add_middleware(_AccessLog, metrics=app.state.metrics, enabled=settings.access_log)
+    # Outermost (inside only Starlette's ServerErrorMiddleware, which hands a WebSocket's
+    # send on untouched): it must see uvicorn's own send (server/transport.py).
+    app.add_middleware(TransportSeam)
     return app
 
 

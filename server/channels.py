@@ -12,6 +12,7 @@ import dataclasses
 import logging
 import time
 from collections import deque
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from facecast.protocol import ChannelIdle, ChannelLive, FaceLost, ProtocolError, encode
@@ -281,20 +282,37 @@ class Channel:
         if not states:
             return
         stages = self.hub.metrics.stages if self.hub.settings.stage_timing else None
-        call = _clone_call if stages is None else _timed_clone_call
-        futures: list[asyncio.Future[bytes | tuple[bytes, float]]] = [
-            self._loop.run_in_executor(self.hub.executor, call, s, frame, arrived, count)
-            for s in states
-        ]
+        call: _CloneCall = _clone_call if stages is None else _timed_clone_call
+        outcomes: list[bytes | tuple[bytes, float] | BaseException | None] = [None] * len(states)
+        threaded: list[tuple[int, asyncio.Future[bytes | tuple[bytes, float]]]] = []
+        for i, s in enumerate(states):
+            if s.inline(frame):
+                # Microseconds (weights, points): here, not through a clone thread,
+                # whose round trip costs the loop more than the clone.
+                try:
+                    outcomes[i] = call(s, frame, arrived, count)
+                except Exception as exc:
+                    outcomes[i] = exc
+            else:
+                future = self._loop.run_in_executor(
+                    self.hub.executor, call, s, frame, arrived, count
+                )
+                threaded.append((i, future))
+        if threaded:
+            done = await asyncio.gather(*(f for _, f in threaded), return_exceptions=True)
+            for (i, _), got in zip(threaded, done, strict=True):
+                outcomes[i] = got
         results: list[bytes | BaseException] = []
-        for outcome in await asyncio.gather(*futures, return_exceptions=True):
+        for outcome in outcomes:
+            assert outcome is not None  # every state got one above
             if isinstance(outcome, tuple):  # _timed_clone_call's, so stages is set
                 encoded, seconds = outcome
                 if stages is not None:
                     # A key's clone (its weights, any blend, and its encode) counts as "weights".
                     stages.add("weights", seconds)
-                outcome = encoded
-            results.append(outcome)
+                results.append(encoded)
+            else:
+                results.append(outcome)
         for state, data in zip(states, results, strict=True):
             if isinstance(data, InputError | ProtocolError):
                 self._clone_refused(state, frame, data)
@@ -390,6 +408,12 @@ class Channel:
             if task is not None:
                 task.cancel()
         await asyncio.gather(*(t for t in (self._pump, self._face) if t), return_exceptions=True)
+
+
+#: A key's clone in a thread or here: its result's bytes (with its seconds when timed).
+_CloneCall = Callable[
+    [KeyState | PointsKeyState, ChannelFrame, float, bool], bytes | tuple[bytes, float]
+]
 
 
 def _clone_call(

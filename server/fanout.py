@@ -133,6 +133,14 @@ class _Key:
         self.failing = False
         self._lock = threading.Lock()
 
+    def inline(self, frame: ChannelFrame) -> bool:
+        """Whether ``clone(frame)`` costs microseconds, so runs on the event loop itself.
+
+        Weights (no blend) from a rig already derived for the frame's calibration: a
+        clone thread's round trip costs the loop more (~30 µs) than such a clone.
+        """
+        return False
+
     def _keep(self, data: bytes, seq: int, count: bool) -> None:
         """Count a clone and keep ``data`` as the newest result (the lock held)."""
         if count:
@@ -155,6 +163,11 @@ class KeyState(_Key):
         self._smoothing: Smoothing | None = None
         self._filter: OneEuroFilter | None = None
         self._filter_ts: float | None = None
+
+    def inline(self, frame: ChannelFrame) -> bool:
+        # A new calibration neutral refits the projection (ms): that goes to a thread.
+        wanted = (frame.neutral_id if frame.neutral is not None else "", frame.scale)
+        return self.output == "weights" and wanted == self._rig_for
 
     def _rig(self, frame: ChannelFrame) -> Rig:
         wanted = (frame.neutral_id if frame.neutral is not None else "", frame.scale)
@@ -272,6 +285,9 @@ class PointsKeyState(_Key):
     """
 
     CLONES = False
+
+    def inline(self, frame: ChannelFrame) -> bool:
+        return True  # K points cast and encoded: microseconds
 
     def clone(self, frame: ChannelFrame, arrived: float, *, count: bool = True) -> bytes:
         """The encoded ``points`` result of ``frame``: its raw points in this key's dtype."""

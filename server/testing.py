@@ -55,6 +55,7 @@ async def run_server(
     *,
     ws: str = "websockets-sansio",
     startup_timeout: float = 10.0,
+    app: Any = None,
     **config: Any,
 ) -> AsyncIterator[RunningServer]:
     """Serve ``create_app(settings)`` with a real uvicorn on 127.0.0.1 until the block exits.
@@ -62,11 +63,13 @@ async def run_server(
     The server runs its own event loop in a thread, so the test's loop (and any
     blocking call in the test) cannot stall it. The listening socket is bound here, on a
     free port, before uvicorn starts: no race for the port. ``ws`` picks uvicorn's
-    WebSocket implementation (see ``WS_IMPLEMENTATIONS``); extra keywords go to
-    ``uvicorn.Config``.
+    WebSocket implementation (see ``WS_IMPLEMENTATIONS``); ``app`` serves another ASGI
+    app than ``create_app(settings)`` (e.g. one wrapped in a middleware of the test's);
+    extra keywords go to ``uvicorn.Config``.
     """
     settings = settings or Settings()
-    app = create_app(settings)
+    if app is None:
+        app = create_app(settings)
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.bind(("127.0.0.1", 0))

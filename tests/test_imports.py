@@ -47,12 +47,8 @@ LAZY: dict[tuple[str, str], str] = {
     ("facecast.server.ws_guard", "uvicorn.protocols.websockets.websockets_impl"): (
         "chosen at run time: importing uvicorn's legacy implementation warns it is deprecated"
     ),
-    ("facecast.server.direct", "uvicorn.protocols.websockets.websockets_sansio_impl"): (
-        "chosen at run time: the sans-I/O implementation only when uvicorn runs it "
-        "(issue #11 step 2 replaces this module)"
-    ),
-    ("facecast.server.direct", "websockets.protocol"): (
-        "chosen at run time: with the sans-I/O implementation only (issue #11 step 2)"
+    ("facecast.server.transport", "uvicorn.protocols.websockets.websockets_sansio_impl"): (
+        "chosen at run time: the sans-I/O implementation only when uvicorn runs it"
     ),
     ("facecast.server.viewer", "facecast.rig.demo"): (
         "start-up time: the demo performance is generated only when /viewer asks for it"

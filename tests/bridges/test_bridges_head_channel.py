@@ -110,7 +110,7 @@ def _head_bone(messages: list[tuple[str, list]]) -> tuple[list[float], np.ndarra
 @pytest.mark.anyio
 @pytest.mark.parametrize("head_pose", [False, True], ids=["still-points", "head-pose"])
 async def test_a_livelink_head_reaches_the_viewers_avatar_app_as_the_head_bone(
-    server_settings, source_path, osc_receivers, head_pose
+    server_settings, source_path, osc_receivers, head_pose, ws_impl
 ):
     viewer_app, performer_app = osc_receivers
     values = np.zeros(61, dtype=np.float32)
@@ -121,7 +121,7 @@ async def test_a_livelink_head_reaches_the_viewers_avatar_app_as_the_head_bone(
                 "--send", f"{host}:{port}", "--frames", "1"]  # fmt: skip
     direct = "{}:{}".format(*performer_app.address)
 
-    async with run_server(server_settings) as server:
+    async with run_server(server_settings, ws=ws_impl) as server:
         vmc_argv[2] = server.base_url
         viewer = asyncio.create_task(asyncio.to_thread(run_command, "bridge", vmc_argv))
         await _viewers(server.base_url)
@@ -162,7 +162,9 @@ def test_the_unity_expectation_agrees_with_one_axis_turns():
 
 
 @pytest.mark.anyio
-async def test_an_ifacialmocap_head_goes_out_in_the_channel_frames(server_settings, source_rig):
+async def test_an_ifacialmocap_head_goes_out_in_the_channel_frames(
+    server_settings, source_rig, ws_impl
+):
     # The app's X, Y, Z degrees are pitch, yaw, roll (ifacialmocap.py's docstring).
     text = b"eyeBlink_L-50|jawOpen-20|=head#-10.0,20.0,5.0,-0.03,-0.1,-0.66|"
     results: list[Result] = []
@@ -172,7 +174,7 @@ async def test_an_ifacialmocap_head_goes_out_in_the_channel_frames(server_settin
         results.append(result)
         arrived.set()
 
-    async with run_server(server_settings) as server:
+    async with run_server(server_settings, ws=ws_impl) as server:
         receiver = await open_ifacialmocap_receiver("127.0.0.1", 0)
         publisher = FramePublisher(
             channel_url(server.base_url, "stage", "publish"), Hello(rig=RIG_ID),

@@ -189,7 +189,7 @@ async def _first_result(messages) -> Result:
 
 @pytest.mark.anyio
 async def test_livelink_head_pose_reaches_the_viewer_as_the_unmoved_weights(
-    fitted, noise_rig, imported, tmp_path
+    fitted, noise_rig, imported, tmp_path, ws_impl
 ):
     rig, _ = fitted
     rig.save(tmp_path / "ict.rig")
@@ -202,7 +202,7 @@ async def test_livelink_head_pose_reaches_the_viewer_as_the_unmoved_weights(
     # What the bridge sends: the packet's float32 values turned into float32 points.
     sent = source_rig.points(values[:52].astype(np.float64), head=values[52:55].astype(np.float64))
 
-    async with run_server(Settings(rigs_dir=tmp_path)) as server:
+    async with run_server(Settings(rigs_dir=tmp_path), ws=ws_impl) as server:
         watchers = {
             name: watch_channel(
                 channel_url(server.base_url, "stage", "watch", {"rig": name}),

@@ -194,7 +194,7 @@ def server_settings(tmp_path, cloning_rig):
 
 @pytest.mark.anyio
 async def test_bridged_output_equals_offline_cloning_of_the_percent_weights(
-    server_settings, source_rig, cloning_rig
+    server_settings, source_rig, cloning_rig, ws_impl
 ):
     results: list[np.ndarray] = []
     arrived = asyncio.Event()
@@ -204,7 +204,7 @@ async def test_bridged_output_equals_offline_cloning_of_the_percent_weights(
         arrived.set()
 
     sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    async with run_server(server_settings) as server:
+    async with run_server(server_settings, ws=ws_impl) as server:
         receiver = await open_ifacialmocap_receiver("127.0.0.1", 0)
         publisher = FramePublisher(
             stream_url(server.base_url), Hello(rig=RIG_ID), on_result=on_result
@@ -232,7 +232,7 @@ async def test_bridged_output_equals_offline_cloning_of_the_percent_weights(
 
 @pytest.mark.anyio
 async def test_bridge_command_asks_the_phone_then_publishes_and_sends_the_head_as_vmc(
-    server_settings, example_set, tmp_path, capsys
+    server_settings, example_set, tmp_path, capsys, ws_impl
 ):
     example_set.save_npz(tmp_path / "source.npz")
     head_degrees = (-10.0, 20.0, 5.0)  # X pitch, Y yaw, Z roll
@@ -240,7 +240,7 @@ async def test_bridge_command_asks_the_phone_then_publishes_and_sends_the_head_a
     phone = FakePhone(frames, APPS["ifacialmocap"][1])
     avatar = OscReceiver()
     try:
-        async with run_server(server_settings) as server:
+        async with run_server(server_settings, ws=ws_impl) as server:
             argv = [
                 "bridge", "ifacialmocap", server.base_url, "--channel", "stage", "--rig", RIG_ID,
                 "--source-rig", str(tmp_path / "source.npz"), "--listen", "127.0.0.1:0",

@@ -305,7 +305,7 @@ async def _bridge_and_compare(receiver, publisher, results, arrived, udp_sender,
 
 @pytest.mark.anyio
 async def test_bridged_stream_output_equals_offline_cloning(
-    server_settings, udp_sender, source_rig, cloning_rig
+    server_settings, udp_sender, source_rig, cloning_rig, ws_impl
 ):
     results: list[np.ndarray] = []
     arrived = asyncio.Event()
@@ -314,7 +314,7 @@ async def test_bridged_stream_output_equals_offline_cloning(
         results.append(np.asarray(result.weights, dtype=np.float64))
         arrived.set()
 
-    async with run_server(server_settings) as server:
+    async with run_server(server_settings, ws=ws_impl) as server:
         receiver = await open_livelink_receiver("127.0.0.1", 0)
         # The publish endpoint speaks /v1/stream's protocol, so the stream stands in for it.
         publisher = FramePublisher(
@@ -331,10 +331,10 @@ async def test_bridged_stream_output_equals_offline_cloning(
 
 
 @pytest.mark.anyio
-async def test_publisher_reports_an_unknown_rig(server_settings):
+async def test_publisher_reports_an_unknown_rig(server_settings, ws_impl):
     from facecast.protocol import ErrorCode, ProtocolError
 
-    async with run_server(server_settings) as server:
+    async with run_server(server_settings, ws=ws_impl) as server:
         publisher = FramePublisher(stream_url(server.base_url), Hello(rig="nope"))
         with pytest.raises(ProtocolError) as info:
             await publisher.start()
@@ -343,11 +343,11 @@ async def test_publisher_reports_an_unknown_rig(server_settings):
 
 @pytest.mark.anyio
 async def test_bridged_channel_output_equals_offline_cloning(
-    server_settings, udp_sender, source_rig, cloning_rig
+    server_settings, udp_sender, source_rig, cloning_rig, ws_impl
 ):
     results: list[np.ndarray] = []
     arrived = asyncio.Event()
-    async with run_server(server_settings) as server:
+    async with run_server(server_settings, ws=ws_impl) as server:
         watch_url = channel_url(server.base_url, "stage", "watch", {"rig": RIG_ID})
         messages = watch_channel(watch_url, reconnect=Reconnect(attempts=0))
         try:
@@ -387,12 +387,12 @@ async def test_bridged_channel_output_equals_offline_cloning(
 
 @pytest.mark.anyio
 async def test_bridge_livelink_command_sends_the_head_pose_as_vmc(
-    server_settings, udp_sender, example_set, tmp_path, capsys
+    server_settings, udp_sender, example_set, tmp_path, capsys, ws_impl
 ):
     example_set.save_npz(tmp_path / "source.npz")
     avatar = OscReceiver()
     try:
-        async with run_server(server_settings) as server:
+        async with run_server(server_settings, ws=ws_impl) as server:
             # The bridge binds the port the test then sends to, so it has to be chosen
             # first: a free port from the OS, released just before the bridge binds it.
             probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

@@ -34,11 +34,13 @@ def take(tmp_path, source_rig):
 
 
 @pytest.mark.anyio
-async def test_publish_summary_accounts_for_the_last_frame(tmp_path, cloning_rig, take, capsys):
+async def test_publish_summary_accounts_for_the_last_frame(
+    tmp_path, cloning_rig, take, capsys, ws_impl
+):
     rigs = tmp_path / "rigs"
     rigs.mkdir()
     cloning_rig.save(rigs / f"{RIG_ID}.rig")
-    async with run_server(Settings(rigs_dir=rigs)) as server:
+    async with run_server(Settings(rigs_dir=rigs), ws=ws_impl) as server:
         code = await asyncio.to_thread(
             run_command,
             "publish",
@@ -66,12 +68,14 @@ def test_publish_refuses_an_unbounded_or_negative_drain_timeout(take, timeout):
 
 
 @pytest.mark.anyio
-async def test_drain_counts_a_refused_last_frame_as_answered(tmp_path, cloning_rig, source_rig):
+async def test_drain_counts_a_refused_last_frame_as_answered(
+    tmp_path, cloning_rig, source_rig, ws_impl
+):
     rigs = tmp_path / "rigs"
     rigs.mkdir()
     cloning_rig.save(rigs / f"{RIG_ID}.rig")
     good = source_rig.points(np.full(52, 0.2)).astype(np.float32)
-    async with run_server(Settings(rigs_dir=rigs)) as server:
+    async with run_server(Settings(rigs_dir=rigs), ws=ws_impl) as server:
         url = channel_url(server.base_url, "stage", "publish")
         async with FramePublisher(url, Hello(rig=RIG_ID)) as publisher:
             for seq in range(3):
@@ -86,7 +90,7 @@ async def test_drain_counts_a_refused_last_frame_as_answered(tmp_path, cloning_r
 
 @pytest.mark.anyio
 async def test_a_burst_over_the_rate_is_counted_from_the_rate_limited_total(
-    tmp_path, cloning_rig, source_rig
+    tmp_path, cloning_rig, source_rig, ws_impl
 ):
     rigs = tmp_path / "rigs"
     rigs.mkdir()
@@ -94,7 +98,7 @@ async def test_a_burst_over_the_rate_is_counted_from_the_rate_limited_total(
     good = source_rig.points(np.full(52, 0.2)).astype(np.float32)
     # A bucket of 5: a burst of 30 leaves a tail that only RATE_LIMITED's total reports.
     settings = Settings(rigs_dir=rigs, max_fps=1.0, rate_burst=5)
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         url = channel_url(server.base_url, "stage", "publish")
         async with FramePublisher(url, Hello(rig=RIG_ID)) as publisher:
             for seq in range(30):

@@ -328,14 +328,14 @@ def server_settings(tmp_path, cloning_rig):
 
 @pytest.mark.anyio
 async def test_server_weights_reach_the_avatar_app_as_vmc(
-    server_settings, osc_receiver, source_rig, cloning_rig
+    server_settings, osc_receiver, source_rig, cloning_rig, ws_impl
 ):
     rng = np.random.default_rng(5)
     frames = source_rig.points(rng.uniform(0, 1, size=(3, 52)))
     received: list[Result] = []
 
     async with (
-        run_server(server_settings) as server,
+        run_server(server_settings, ws=ws_impl) as server,
         connect(server.base_url, RIG_ID) as session,
     ):
 
@@ -362,9 +362,9 @@ async def test_server_weights_reach_the_avatar_app_as_vmc(
 
 @pytest.mark.anyio
 async def test_channel_weights_reach_the_avatar_app_as_vmc(
-    server_settings, osc_receiver, source_rig, cloning_rig
+    server_settings, osc_receiver, source_rig, cloning_rig, ws_impl
 ):
-    async with run_server(server_settings) as server:
+    async with run_server(server_settings, ws=ws_impl) as server:
         url = channel_url(server.base_url, "stage", "watch", {"rig": RIG_ID})
         messages = watch_channel(url, reconnect=Reconnect(attempts=0))
         try:
@@ -440,10 +440,10 @@ async def _run_vmc_command(server, source_rig, *options: str) -> int:
 
 @pytest.mark.anyio
 async def test_bridge_vmc_command_sends_perfect_sync_names_and_reports_datagrams(
-    server_settings, osc_receiver, source_rig, cloning_rig, capsys
+    server_settings, osc_receiver, source_rig, cloning_rig, capsys, ws_impl
 ):
     host, port = osc_receiver.address
-    async with run_server(server_settings) as server:
+    async with run_server(server_settings, ws=ws_impl) as server:
         code = await _run_vmc_command(
             server, source_rig, "--send", f"{host}:{port}", "--names", "perfectsync"
         )
@@ -456,8 +456,10 @@ async def test_bridge_vmc_command_sends_perfect_sync_names_and_reports_datagrams
 
 
 @pytest.mark.anyio
-async def test_bridge_vmc_command_reports_its_send_failures(server_settings, source_rig, capsys):
-    async with run_server(server_settings) as server:
+async def test_bridge_vmc_command_reports_its_send_failures(
+    server_settings, source_rig, capsys, ws_impl
+):
+    async with run_server(server_settings, ws=ws_impl) as server:
         code = await _run_vmc_command(server, source_rig, "--send", "255.255.255.255:9")
     assert code == 0
     err = capsys.readouterr().err

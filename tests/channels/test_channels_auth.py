@@ -27,8 +27,8 @@ def auth_settings(settings):
     [(None, ErrorCode.UNAUTHORIZED), ("wrong", ErrorCode.UNAUTHORIZED),
      ("viewer-token", ErrorCode.FORBIDDEN), ("stream-token", ErrorCode.FORBIDDEN)],
 )  # fmt: skip
-async def test_publish_needs_the_publisher_role(auth_settings, token, code):
-    async with run_server(auth_settings) as server:
+async def test_publish_needs_the_publisher_role(auth_settings, token, code, ws_impl):
+    async with run_server(auth_settings, ws=ws_impl) as server:
         error, close = await refused(channel_url(server.ws_url, "stage", "publish"),
                                      token=token, hello=Hello(rig="alpha"))  # fmt: skip
 
@@ -40,8 +40,8 @@ async def test_publish_needs_the_publisher_role(auth_settings, token, code):
     [(None, ErrorCode.UNAUTHORIZED), ("wrong", ErrorCode.UNAUTHORIZED),
      ("publisher-token", ErrorCode.FORBIDDEN), ("stream-token", ErrorCode.FORBIDDEN)],
 )  # fmt: skip
-async def test_watch_needs_the_viewer_role(auth_settings, token, code):
-    async with run_server(auth_settings) as server:
+async def test_watch_needs_the_viewer_role(auth_settings, token, code, ws_impl):
+    async with run_server(auth_settings, ws=ws_impl) as server:
         url = channel_url(server.ws_url, "stage", "watch", {"rig": "alpha"})
         error, close = await refused(url, token=token)
 
@@ -54,8 +54,8 @@ async def test_watch_needs_the_viewer_role(auth_settings, token, code):
      ("viewer-token", 200), ("admin-token", 200)],
 )  # fmt: skip
 @pytest.mark.parametrize("path", ["/v1/channels", "/v1/channels/stage"])
-async def test_channel_info_needs_the_viewer_role(auth_settings, token, status, path):
-    async with run_server(auth_settings) as server:
+async def test_channel_info_needs_the_viewer_role(auth_settings, token, status, path, ws_impl):
+    async with run_server(auth_settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "stage", "alpha", token="viewer-token")
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         async with httpx.AsyncClient(base_url=server.base_url) as http:
@@ -65,8 +65,8 @@ async def test_channel_info_needs_the_viewer_role(auth_settings, token, status, 
     assert response.status_code == status
 
 
-async def test_the_right_roles_publish_and_watch(auth_settings):
-    async with run_server(auth_settings) as server:
+async def test_the_right_roles_publish_and_watch(auth_settings, ws_impl):
+    async with run_server(auth_settings, ws=ws_impl) as server:
         publisher = await Publisher.open(server.ws_url, "stage", "alpha", token="publisher-token")
         watcher = await Watcher.open(server.ws_url, "stage", "beta", token="viewer-token")
         admin = await Watcher.open(server.ws_url, "stage", "beta", token="admin-token")

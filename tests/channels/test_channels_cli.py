@@ -20,11 +20,16 @@ from ._helpers import RIG_IDS, Publisher, Watcher, points, wait_for
 pytestmark = pytest.mark.anyio
 
 
-async def test_publish_and_watch_commands_round_trip_an_animation(settings, rigs, tmp_path):
+async def test_publish_and_watch_commands_round_trip_an_animation(
+    settings, rigs, tmp_path, ws_impl
+):
     source = np.stack([points(rigs["alpha"], seed) for seed in range(30)])
     np.save(tmp_path / "performance.npy", source)
     out = tmp_path / "seen.npz"
-    async with run_server(settings) as server, httpx.AsyncClient(base_url=server.base_url) as http:
+    async with (
+        run_server(settings, ws=ws_impl) as server,
+        httpx.AsyncClient(base_url=server.base_url) as http,
+    ):
         watch = asyncio.create_task(asyncio.to_thread(
             main, ["watch", server.base_url, "stage", "--rig", "beta", "-o", str(out),
                    "--frames", "10", "--timeout", "20"],

@@ -113,7 +113,9 @@ def _nginx(upstream_port: int, tmp_path: Path):
 
 
 @pytest.mark.skipif(shutil.which("nginx") is None, reason="nginx is not installed here")
-def test_the_proxy_config_passes_rest_and_channel_websockets_with_auth(settings, rigs, tmp_path):
+def test_the_proxy_config_passes_rest_and_channel_websockets_with_auth(
+    settings, rigs, tmp_path, ws_impl
+):
     settings = dataclasses.replace(settings, auth=True, tokens=TOKENS)
     frame = points(rigs["alpha"], 3)
 
@@ -133,7 +135,7 @@ def test_the_proxy_config_passes_rest_and_channel_websockets_with_auth(settings,
         return listed, denied, result
 
     async def main():
-        async with run_server(settings) as server:
+        async with run_server(settings, ws=ws_impl) as server:
             with _nginx(server.port, tmp_path) as base:
                 return await scenario(base)
 

@@ -31,9 +31,9 @@ async def _until_neutral(watcher: Watcher, neutral: np.ndarray) -> list[Result]:
             return eased
 
 
-async def test_face_lost_eases_weights_to_the_neutral_then_recovers(face_settings, rigs):
+async def test_face_lost_eases_weights_to_the_neutral_then_recovers(face_settings, rigs, ws_impl):
     neutral = np.eye(len(rigs["beta"].names), dtype=np.float32)[0]
-    async with run_server(face_settings) as server:
+    async with run_server(face_settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "stage", "beta")
         publisher = await Publisher.open(server.ws_url, "stage", "alpha")
         await publisher.send(0, points(rigs["alpha"], 0), ts=100.0)
@@ -54,9 +54,9 @@ async def test_face_lost_eases_weights_to_the_neutral_then_recovers(face_setting
     )
 
 
-async def test_face_lost_eases_vertices_to_the_target_neutral(face_settings, rigs):
+async def test_face_lost_eases_vertices_to_the_target_neutral(face_settings, rigs, ws_impl):
     rig = rigs["gamma"]
-    async with run_server(face_settings) as server:
+    async with run_server(face_settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "stage", "gamma", output="vertices")
         publisher = await Publisher.open(server.ws_url, "stage", "alpha")
         await publisher.send(0, points(rigs["alpha"], 0))
@@ -72,7 +72,7 @@ async def test_face_lost_eases_vertices_to_the_target_neutral(face_settings, rig
     np.testing.assert_allclose(last.vertices, rig.target_neutral, atol=1e-5)
 
 
-async def test_no_face_lost_while_frames_keep_coming(face_settings, rigs):
+async def test_no_face_lost_while_frames_keep_coming(face_settings, rigs, ws_impl):
     # The server's face-lost clock runs on frame arrivals, which a client under CPU load
     # does not control: a frame may reach the server more than face_lost_after after the
     # previous one, and then face_lost is right. What the client does know is a bound on
@@ -82,7 +82,7 @@ async def test_no_face_lost_while_frames_keep_coming(face_settings, rigs):
     after = face_settings.face_lost_after
     sent: list[float] = []
     returned: list[float] = []
-    async with run_server(face_settings) as server:
+    async with run_server(face_settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "stage", "beta")
         publisher = await Publisher.open(server.ws_url, "stage", "alpha")
         start = time.monotonic()

@@ -62,8 +62,8 @@ def _assert_same_head(result: Result, head: Head) -> None:
     assert result.head.position.tobytes() == head.position.tobytes()
 
 
-async def test_every_watcher_gets_the_published_head_bit_for_bit(settings, rigs):
-    async with run_server(settings) as server:
+async def test_every_watcher_gets_the_published_head_bit_for_bit(settings, rigs, ws_impl):
+    async with run_server(settings, ws=ws_impl) as server:
         watchers = [
             await Watcher.open(server.ws_url, "stage", "alpha"),
             await Watcher.open(server.ws_url, "stage", "beta", output="vertices", dtype="f16"),
@@ -77,8 +77,8 @@ async def test_every_watcher_gets_the_published_head_bit_for_bit(settings, rigs)
         _assert_same_head(result, HEAD)
 
 
-async def test_a_frame_without_a_head_gives_results_without_one(settings, rigs):
-    async with run_server(settings) as server:
+async def test_a_frame_without_a_head_gives_results_without_one(settings, rigs, ws_impl):
+    async with run_server(settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "stage", "beta")
         publisher = await Publisher.open(server.ws_url, "stage", "alpha")
         await _send(publisher, 0, points(rigs["alpha"], 0), HEAD)
@@ -89,8 +89,8 @@ async def test_a_frame_without_a_head_gives_results_without_one(settings, rigs):
     assert with_head.head is not None and without.head is None
 
 
-async def test_a_late_joiner_gets_the_newest_result_with_its_head(settings, rigs):
-    async with run_server(settings) as server:
+async def test_a_late_joiner_gets_the_newest_result_with_its_head(settings, rigs, ws_impl):
+    async with run_server(settings, ws=ws_impl) as server:
         first = await Watcher.open(server.ws_url, "stage", "beta")
         publisher = await Publisher.open(server.ws_url, "stage", "alpha")
         await _send(publisher, 4, points(rigs["alpha"], 4), HEAD)
@@ -107,8 +107,8 @@ def _bad_frame(seq: int, pts: np.ndarray) -> bytes:
     return msgpack.packb(wire, use_bin_type=True)
 
 
-async def test_a_bad_head_is_refused_and_the_channel_goes_on(settings, rigs):
-    async with run_server(settings) as server:
+async def test_a_bad_head_is_refused_and_the_channel_goes_on(settings, rigs, ws_impl):
+    async with run_server(settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "stage", "beta")
         publisher = await Publisher.open(server.ws_url, "stage", "alpha")
         await publisher.ws.send(_bad_frame(0, points(rigs["alpha"], 0)))
@@ -123,9 +123,12 @@ async def test_a_bad_head_is_refused_and_the_channel_goes_on(settings, rigs):
     assert result.seq == 1  # frame 0 never reached the watchers
 
 
-async def test_a_head_crosses_processes_through_redis(settings, redis_server, rigs):
+async def test_a_head_crosses_processes_through_redis(settings, redis_server, rigs, ws_impl):
     redis_settings = dataclasses.replace(settings, redis_url=redis_server.url)
-    async with run_server(redis_settings) as a, run_server(redis_settings) as b:
+    async with (
+        run_server(redis_settings, ws=ws_impl) as a,
+        run_server(redis_settings, ws=ws_impl) as b,
+    ):
         watcher = await Watcher.open(b.ws_url, "stage", "beta")
         publisher = await Publisher.open(a.ws_url, "stage", "alpha")
         while not isinstance(await watcher.next(ChannelLive, timeout=10), ChannelLive):
@@ -135,9 +138,9 @@ async def test_a_head_crosses_processes_through_redis(settings, redis_server, ri
     _assert_same_head(result, HEAD)
 
 
-async def test_eased_results_after_a_lost_face_carry_no_head(settings, rigs):
+async def test_eased_results_after_a_lost_face_carry_no_head(settings, rigs, ws_impl):
     face_settings = dataclasses.replace(settings, face_lost_after=0.2, face_lost_ease=0.2)
-    async with run_server(face_settings) as server:
+    async with run_server(face_settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "stage", "beta")
         publisher = await Publisher.open(server.ws_url, "stage", "alpha")
         await _send(publisher, 0, points(rigs["alpha"], 0), HEAD)
@@ -160,9 +163,9 @@ async def _stream(server, frame_bytes: bytes) -> object:
         return protocol.receive(await ws.recv())
 
 
-async def test_stream_checks_a_head_but_does_not_echo_it(settings, rigs):
+async def test_stream_checks_a_head_but_does_not_echo_it(settings, rigs, ws_impl):
     pts = points(rigs["alpha"], 2)
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         result = await _stream(server, encode(Frame(seq=0, ts=0.0, points=pts, head=HEAD)))
         refusal = await _stream(server, _bad_frame(0, pts))
     assert isinstance(result, Result) and result.seq == 0 and result.head is None

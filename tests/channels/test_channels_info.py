@@ -12,8 +12,8 @@ from ._helpers import Publisher, Watcher, points
 pytestmark = pytest.mark.anyio
 
 
-async def test_channel_info_reports_presence_viewers_and_rates(settings, rigs):
-    async with run_server(settings) as server:
+async def test_channel_info_reports_presence_viewers_and_rates(settings, rigs, ws_impl):
+    async with run_server(settings, ws=ws_impl) as server:
         watchers = [
             await Watcher.open(server.ws_url, "stage", rig) for rig in ("alpha", "beta", "beta")
         ]
@@ -38,8 +38,8 @@ async def test_channel_info_reports_presence_viewers_and_rates(settings, rigs):
     assert missing.status_code == 404 and missing.json()["code"] == "channel_not_found"
 
 
-async def test_a_channel_disappears_when_its_last_member_leaves(settings):
-    async with run_server(settings) as server:
+async def test_a_channel_disappears_when_its_last_member_leaves(settings, ws_impl):
+    async with run_server(settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "stage", "alpha")
         await watcher.next()
         await watcher.close()
@@ -52,8 +52,8 @@ async def test_a_channel_disappears_when_its_last_member_leaves(settings):
     assert listing == {"channels": []}
 
 
-async def test_metrics_count_channel_clones_and_members(settings, rigs):
-    async with run_server(settings) as server:
+async def test_metrics_count_channel_clones_and_members(settings, rigs, ws_impl):
+    async with run_server(settings, ws=ws_impl) as server:
         watchers = [await Watcher.open(server.ws_url, "stage", rig) for rig in ("alpha", "beta")]
         publisher = await Publisher.open(server.ws_url, "stage", "alpha")
         for seq in range(4):

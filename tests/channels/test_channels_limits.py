@@ -19,8 +19,8 @@ from ._helpers import Publisher, Watcher, points, refused, tiny_rig, write_rigs
 pytestmark = pytest.mark.anyio
 
 
-async def test_a_name_of_256_characters_is_accepted_and_257_refused(settings):
-    async with run_server(settings) as server:
+async def test_a_name_of_256_characters_is_accepted_and_257_refused(settings, ws_impl):
+    async with run_server(settings, ws=ws_impl) as server:
         ok = await Watcher.open(server.ws_url, "n" * 256, "alpha")
         ready = await ok.next()
         url = channel_url(server.ws_url, "n" * 256, "watch", {"rig": "alpha"})
@@ -30,8 +30,8 @@ async def test_a_name_of_256_characters_is_accepted_and_257_refused(settings):
     assert (error.code, code) == (ErrorCode.INVALID_FIELD, 1008)
 
 
-async def test_names_with_slashes_and_spaces_are_channels_too(settings, rigs):
-    async with run_server(settings) as server:
+async def test_names_with_slashes_and_spaces_are_channels_too(settings, rigs, ws_impl):
+    async with run_server(settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "studio/a b", "beta")
         publisher = await Publisher.open(server.ws_url, "studio/a b", "alpha")
         await publisher.send(0, points(rigs["alpha"], 0))
@@ -41,9 +41,9 @@ async def test_names_with_slashes_and_spaces_are_channels_too(settings, rigs):
 
 
 @pytest.mark.parametrize("name", ["a\r\nb", "line\nbreak", "\n", "tab\tand\x7f"])
-async def test_names_with_line_breaks_and_controls_are_channels_too(settings, rigs, name):
+async def test_names_with_line_breaks_and_controls_are_channels_too(settings, rigs, name, ws_impl):
     # Issue 13, item 9: CR/LF got a bare HTTP 403 where §2.1 promises any character.
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, name, "beta")
         ready = await watcher.next(Ready)
         publisher = await Publisher.open(server.ws_url, name, "alpha")
@@ -62,17 +62,17 @@ async def test_names_with_line_breaks_and_controls_are_channels_too(settings, ri
     "query",
     [{}, {"rig": "alpha", "output": "mesh"}, {"rig": "alpha", "dtype": "f64"}, {"rig": "../x"}],
 )
-async def test_a_bad_watch_query_is_refused_with_a_code(settings, query):
-    async with run_server(settings) as server:
+async def test_a_bad_watch_query_is_refused_with_a_code(settings, query, ws_impl):
+    async with run_server(settings, ws=ws_impl) as server:
         error, code = await refused(channel_url(server.ws_url, "stage", "watch", query))
 
     assert error.code in (ErrorCode.INVALID_FIELD, ErrorCode.UNKNOWN_RIG)
     assert error.fatal and code == 1008
 
 
-async def test_watchers_beyond_max_connections_are_refused_overloaded(settings):
+async def test_watchers_beyond_max_connections_are_refused_overloaded(settings, ws_impl):
     limited = dataclasses.replace(settings, max_connections=3)
-    async with run_server(limited) as server:
+    async with run_server(limited, ws=ws_impl) as server:
         admitted = [await Watcher.open(server.ws_url, "stage", "alpha") for _ in range(3)]
         for watcher in admitted:
             await watcher.next(Ready)
@@ -81,9 +81,9 @@ async def test_watchers_beyond_max_connections_are_refused_overloaded(settings):
     assert (error.code, code) == (ErrorCode.OVERLOADED, 1013)
 
 
-async def test_a_publisher_over_max_fps_gets_rate_limited_not_closed(settings, rigs):
+async def test_a_publisher_over_max_fps_gets_rate_limited_not_closed(settings, rigs, ws_impl):
     limited = dataclasses.replace(settings, max_fps=5.0, rate_burst=2)
-    async with run_server(limited) as server:
+    async with run_server(limited, ws=ws_impl) as server:
         publisher = await Publisher.open(server.ws_url, "stage", "alpha")
         for seq in range(10):
             await publisher.send(seq, points(rigs["alpha"], seq))
@@ -95,9 +95,11 @@ async def test_a_publisher_over_max_fps_gets_rate_limited_not_closed(settings, r
     assert latency >= 0
 
 
-async def test_watchers_of_a_rig_that_does_not_fit_are_told_and_others_unaffected(settings, rigs):
+async def test_watchers_of_a_rig_that_does_not_fit_are_told_and_others_unaffected(
+    settings, rigs, ws_impl
+):
     write_rigs(settings.rigs_dir, {"wide": tiny_rig(3, k=6)})
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         misfit = await Watcher.open(server.ws_url, "stage", "wide")
         fine = await Watcher.open(server.ws_url, "stage", "beta")
         publisher = await Publisher.open(server.ws_url, "stage", "alpha")
@@ -115,8 +117,10 @@ async def test_watchers_of_a_rig_that_does_not_fit_are_told_and_others_unaffecte
 # -- results that would not be finite (issue 13, item 3) -----------------------------------
 
 
-async def test_a_published_frame_in_other_units_is_refused_before_any_watcher(settings, rigs):
-    async with run_server(settings) as server:
+async def test_a_published_frame_in_other_units_is_refused_before_any_watcher(
+    settings, rigs, ws_impl
+):
+    async with run_server(settings, ws=ws_impl) as server:
         watchers = [
             await Watcher.open(server.ws_url, "stage", "beta", output=output, dtype="f16")
             for output in ("weights", "vertices")
@@ -133,10 +137,10 @@ async def test_a_published_frame_in_other_units_is_refused_before_any_watcher(se
 
 
 async def test_a_watched_rig_overflowing_f16_tells_its_watchers_and_spares_the_others(
-    settings, rigs
+    settings, rigs, ws_impl
 ):
     write_rigs(settings.rigs_dir, {"huge": tiny_rig(1, target_scale=1e5)})
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         f16 = await Watcher.open(server.ws_url, "stage", "huge", output="vertices", dtype="f16")
         f32 = await Watcher.open(server.ws_url, "stage", "huge", output="vertices", dtype="f32")
         publisher = await Publisher.open(server.ws_url, "stage", "alpha")

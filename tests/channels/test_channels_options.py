@@ -29,10 +29,10 @@ from ._helpers import Publisher, Watcher, points
 pytestmark = pytest.mark.anyio
 
 
-async def test_calibration_rebases_every_watched_rig(settings, rigs):
+async def test_calibration_rebases_every_watched_rig(settings, rigs, ws_impl):
     neutral = points(rigs["alpha"], 99)
     pts = points(rigs["alpha"], 5)
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "stage", "gamma")
         publisher = await Publisher.open(server.ws_url, "stage", "alpha")
         await publisher.ws.send(publisher.protocol.send(Calibrate(points=neutral)))
@@ -45,9 +45,9 @@ async def test_calibration_rebases_every_watched_rig(settings, rigs):
     np.testing.assert_array_equal(result.weights, expected)
 
 
-async def test_align_applies_to_every_watched_rig(settings, rigs):
+async def test_align_applies_to_every_watched_rig(settings, rigs, ws_impl):
     pts = points(rigs["alpha"], 8)
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "stage", "beta")
         publisher = await Publisher.open(server.ws_url, "stage", "alpha", align=True)
         await publisher.send(0, pts)
@@ -57,11 +57,11 @@ async def test_align_applies_to_every_watched_rig(settings, rigs):
     np.testing.assert_array_equal(result.weights, expected)
 
 
-async def test_align_scale_leaves_the_stores_cached_rigs_unchanged(settings, rigs):
+async def test_align_scale_leaves_the_stores_cached_rigs_unchanged(settings, rigs, ws_impl):
     # Each key removes scale on a rig of its own: the store's cached rig, which every other
     # key and session shares, keeps align_scale off.
     pts = points(rigs["alpha"], 8) * 1.3
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         store = server.app.state.store
         cached = store.get("beta")
         assert not cached.align_scale
@@ -81,8 +81,8 @@ async def test_align_scale_leaves_the_stores_cached_rigs_unchanged(settings, rig
     assert not np.array_equal(result.weights, unscaled)
 
 
-async def test_a_watcher_may_ping_but_not_send_frames(settings, rigs):
-    async with run_server(settings) as server:
+async def test_a_watcher_may_ping_but_not_send_frames(settings, rigs, ws_impl):
+    async with run_server(settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "stage", "beta")
         await watcher.ws.send(watcher.protocol.send(Ping(id=4, ts=1.5)))
         pong = await watcher.next(Pong)

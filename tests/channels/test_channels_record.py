@@ -150,9 +150,11 @@ def test_take_ends_when_the_clock_goes_back():
 
 
 @pytest.mark.parametrize(("dtype", "wire"), [("f32", np.float32), ("f64", np.float64)])
-async def test_points_watcher_receives_the_published_points_exactly(settings, rigs, dtype, wire):
+async def test_points_watcher_receives_the_published_points_exactly(
+    settings, rigs, dtype, wire, ws_impl
+):
     sent = points(rigs["alpha"], 1).astype(np.float64) + 1e-9  # f64-only digits
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         watcher = await _PointsWatcher.open(server.ws_url,
                                             {"rig": "beta", "output": "points", "dtype": dtype})  # fmt: skip
         ready = await watcher.next(Ready)
@@ -168,11 +170,11 @@ async def test_points_watcher_receives_the_published_points_exactly(settings, ri
     np.testing.assert_array_equal(result.points, sent.astype(wire))
 
 
-async def test_points_watcher_gets_raw_points_not_the_publishers_smoothing(settings, rigs):
+async def test_points_watcher_gets_raw_points_not_the_publishers_smoothing(settings, rigs, ws_impl):
     from facecast.protocol import Smoothing
 
     frames = [points(rigs["alpha"], seed) for seed in range(3)]
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         watcher = await _PointsWatcher.open(server.ws_url, {"rig": "alpha", "output": "points"})
         publisher = await Publisher.open(server.ws_url, "stage", "alpha",
                                          smoothing=Smoothing(min_cutoff=0.01))  # fmt: skip
@@ -189,8 +191,11 @@ async def test_points_watcher_gets_raw_points_not_the_publishers_smoothing(setti
     np.testing.assert_array_equal(result.points, frames[2])
 
 
-async def test_points_watchers_are_not_counted_as_clones(settings, rigs):
-    async with run_server(settings) as server, httpx.AsyncClient(base_url=server.base_url) as http:
+async def test_points_watchers_are_not_counted_as_clones(settings, rigs, ws_impl):
+    async with (
+        run_server(settings, ws=ws_impl) as server,
+        httpx.AsyncClient(base_url=server.base_url) as http,
+    ):
         watcher = await _PointsWatcher.open(server.ws_url, {"rig": "alpha", "output": "points"})
         publisher = await Publisher.open(server.ws_url, "stage", "alpha", output="vertices")
         await watcher.next(ChannelLive)
@@ -211,8 +216,8 @@ async def test_points_watchers_are_not_counted_as_clones(settings, rigs):
      ({"rig": "alpha", "output": "points", "dtype": "f16"}, "f64"),
      ({"output": "points"}, "rig")],
 )  # fmt: skip
-async def test_bad_watch_query_is_refused_with_invalid_field(settings, query, word):
-    async with run_server(settings) as server:
+async def test_bad_watch_query_is_refused_with_invalid_field(settings, query, word, ws_impl):
+    async with run_server(settings, ws=ws_impl) as server:
         error, close = await refused(channel_url(server.ws_url, "stage", "watch", query))
 
     assert (error.code, close) == (ErrorCode.INVALID_FIELD, 1008)
@@ -224,19 +229,19 @@ async def test_bad_watch_query_is_refused_with_invalid_field(settings, query, wo
     [(None, ErrorCode.UNAUTHORIZED), ("publisher-token", ErrorCode.FORBIDDEN),
      ("stream-token", ErrorCode.FORBIDDEN)],
 )  # fmt: skip
-async def test_points_watch_needs_the_viewer_role(settings, token, code):
+async def test_points_watch_needs_the_viewer_role(settings, token, code, ws_impl):
     auth = dataclasses.replace(settings, auth=True, tokens=TOKENS)
-    async with run_server(auth) as server:
+    async with run_server(auth, ws=ws_impl) as server:
         url = channel_url(server.ws_url, "stage", "watch", {"rig": "alpha", "output": "points"})
         error, close = await refused(url, token=token)
 
     assert (error.code, close) == (code, 1008)
 
 
-async def test_record_with_a_viewer_token_records(settings, rigs, tmp_path):
+async def test_record_with_a_viewer_token_records(settings, rigs, tmp_path, ws_impl):
     auth = dataclasses.replace(settings, auth=True, tokens=TOKENS)
     async with (
-        run_server(auth) as server,
+        run_server(auth, ws=ws_impl) as server,
         httpx.AsyncClient(
             base_url=server.base_url, headers={"Authorization": "Bearer viewer-token"}
         ) as http,
@@ -256,12 +261,17 @@ async def test_record_with_a_viewer_token_records(settings, rigs, tmp_path):
 # --- the CLI: record, then replay with the original timing --------------------------------
 
 
-async def test_record_saves_published_points_and_their_timestamps(settings, rigs, tmp_path):
+async def test_record_saves_published_points_and_their_timestamps(
+    settings, rigs, tmp_path, ws_impl
+):
     stamps = [100.0, 100.03, 100.05, 100.12, 100.13, 100.2, 100.31, 100.33, 100.4, 100.47]
     frames, times = performance(rigs["alpha"], stamps)
     np.savez(tmp_path / "source.npz", points=frames, timestamps=times, fps=30.0)
     out = tmp_path / "take.npz"
-    async with run_server(settings) as server, httpx.AsyncClient(base_url=server.base_url) as http:
+    async with (
+        run_server(settings, ws=ws_impl) as server,
+        httpx.AsyncClient(base_url=server.base_url) as http,
+    ):
         record = await _record(server.base_url, http, out)
         published = await _publish(server.base_url, tmp_path / "source.npz", "--realtime")
         recorded = await record
@@ -277,13 +287,16 @@ async def test_record_saves_published_points_and_their_timestamps(settings, rigs
     np.testing.assert_array_equal(animation.timestamps, take["timestamps"])
 
 
-async def test_replaying_a_take_realtime_keeps_its_pause(settings, rigs, tmp_path):
+async def test_replaying_a_take_realtime_keeps_its_pause(settings, rigs, tmp_path, ws_impl):
     # 8 frames 20 ms apart, a 0.3 s pause, 8 more: the replay must show the pause.
     stamps = [0.02 * i for i in range(8)] + [0.44 + 0.02 * i for i in range(8)]
     frames, times = performance(rigs["alpha"], stamps)
     np.savez(tmp_path / "take.npz", points=frames, timestamps=times, fps=50.0)
     out = tmp_path / "replayed.npz"
-    async with run_server(settings) as server, httpx.AsyncClient(base_url=server.base_url) as http:
+    async with (
+        run_server(settings, ws=ws_impl) as server,
+        httpx.AsyncClient(base_url=server.base_url) as http,
+    ):
         clock = await Watcher.open(server.ws_url, "stage", "beta")
         record = await _record(server.base_url, http, out, viewers=2)
         published = await _publish(server.base_url, tmp_path / "take.npz", "--realtime")
@@ -301,11 +314,14 @@ async def test_replaying_a_take_realtime_keeps_its_pause(settings, rigs, tmp_pat
     assert abs((arrived[after] - arrived[before]) - expected) < 0.1, (arrived, expected)
 
 
-async def test_publish_without_realtime_does_not_keep_the_pause(settings, rigs, tmp_path):
+async def test_publish_without_realtime_does_not_keep_the_pause(settings, rigs, tmp_path, ws_impl):
     stamps = [0.0, 0.02, 0.32, 0.34]
     frames, times = performance(rigs["alpha"], stamps)
     np.savez(tmp_path / "take.npz", points=frames, timestamps=times, fps=50.0)
-    async with run_server(settings) as server, httpx.AsyncClient(base_url=server.base_url) as http:
+    async with (
+        run_server(settings, ws=ws_impl) as server,
+        httpx.AsyncClient(base_url=server.base_url) as http,
+    ):
         clock = await Watcher.open(server.ws_url, "stage", "beta")
         await _viewers(http, "stage", 1)
         published = await _publish(server.base_url, tmp_path / "take.npz")
@@ -318,10 +334,10 @@ async def test_publish_without_realtime_does_not_keep_the_pause(settings, rigs, 
 
 
 async def test_record_without_a_publisher_times_out_with_a_clear_message(
-    settings, tmp_path, capsys
+    settings, tmp_path, capsys, ws_impl
 ):
     out = tmp_path / "take.npz"
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         status = await asyncio.to_thread(
             main, ["record", server.base_url, "stage", "-o", str(out), "--rig", "alpha",
                    "--idle-timeout", "0.5"],
@@ -331,8 +347,8 @@ async def test_record_without_a_publisher_times_out_with_a_clear_message(
     assert "no frames from channel 'stage' (no frame for 0.5 s)" in capsys.readouterr().err
 
 
-async def test_record_with_an_unknown_rig_fails_clearly(settings, tmp_path, capsys):
-    async with run_server(settings) as server:
+async def test_record_with_an_unknown_rig_fails_clearly(settings, tmp_path, capsys, ws_impl):
+    async with run_server(settings, ws=ws_impl) as server:
         status = await asyncio.to_thread(
             main, ["record", server.base_url, "stage", "-o", str(tmp_path / "t.npz"),
                    "--rig", "nope"],

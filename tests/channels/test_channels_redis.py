@@ -31,8 +31,11 @@ async def _live(watcher: Watcher) -> None:
         pass
 
 
-async def test_a_publisher_on_one_process_reaches_viewers_on_another(redis_settings, rigs):
-    async with run_server(redis_settings) as a, run_server(redis_settings) as b:
+async def test_a_publisher_on_one_process_reaches_viewers_on_another(redis_settings, rigs, ws_impl):
+    async with (
+        run_server(redis_settings, ws=ws_impl) as a,
+        run_server(redis_settings, ws=ws_impl) as b,
+    ):
         watchers = {rig_id: await Watcher.open(b.ws_url, "stage", rig_id) for rig_id in RIG_IDS}
         publisher = await Publisher.open(a.ws_url, "stage", "alpha")
         for watcher in watchers.values():
@@ -63,8 +66,11 @@ async def test_a_publisher_on_one_process_reaches_viewers_on_another(redis_setti
     assert len(info["processes"]) == 2
 
 
-async def test_a_second_publisher_on_another_process_is_refused(redis_settings):
-    async with run_server(redis_settings) as a, run_server(redis_settings) as b:
+async def test_a_second_publisher_on_another_process_is_refused(redis_settings, ws_impl):
+    async with (
+        run_server(redis_settings, ws=ws_impl) as a,
+        run_server(redis_settings, ws=ws_impl) as b,
+    ):
         first = await Publisher.open(a.ws_url, "stage", "alpha")
         error, _ = await refused(
             channel_url(b.ws_url, "stage", "publish"), hello=Hello(rig="alpha")
@@ -76,8 +82,11 @@ async def test_a_second_publisher_on_another_process_is_refused(redis_settings):
     assert second.ready.rig == "alpha"
 
 
-async def test_remote_viewers_see_the_publisher_leave_and_return(redis_settings, rigs):
-    async with run_server(redis_settings) as a, run_server(redis_settings) as b:
+async def test_remote_viewers_see_the_publisher_leave_and_return(redis_settings, rigs, ws_impl):
+    async with (
+        run_server(redis_settings, ws=ws_impl) as a,
+        run_server(redis_settings, ws=ws_impl) as b,
+    ):
         watcher = await Watcher.open(b.ws_url, "stage", "beta")
         publisher = await Publisher.open(a.ws_url, "stage", "alpha")
         await _live(watcher)
@@ -93,11 +102,11 @@ async def test_remote_viewers_see_the_publisher_leave_and_return(redis_settings,
 
 
 async def test_channels_recover_when_redis_is_killed_and_restarted(
-    redis_settings, redis_server, rigs
+    redis_settings, redis_server, rigs, ws_impl
 ):
     async with (
-        run_server(redis_settings) as a,
-        run_server(redis_settings) as b,
+        run_server(redis_settings, ws=ws_impl) as a,
+        run_server(redis_settings, ws=ws_impl) as b,
         httpx.AsyncClient() as http,
     ):
 
@@ -137,8 +146,13 @@ async def _both(ready, a, b, status: int) -> bool:
     return await ready(a) == status and await ready(b) == status
 
 
-async def test_a_watcher_joining_on_another_process_sees_the_channel_live_at_once(redis_settings):
-    async with run_server(redis_settings) as a, run_server(redis_settings) as b:
+async def test_a_watcher_joining_on_another_process_sees_the_channel_live_at_once(
+    redis_settings, ws_impl
+):
+    async with (
+        run_server(redis_settings, ws=ws_impl) as a,
+        run_server(redis_settings, ws=ws_impl) as b,
+    ):
         publisher = await Publisher.open(a.ws_url, "stage", "alpha")
         watcher = await Watcher.open(b.ws_url, "stage", "beta")
         first = await watcher.next(ChannelIdle, ChannelLive)

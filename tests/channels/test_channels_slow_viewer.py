@@ -19,11 +19,11 @@ pytestmark = pytest.mark.anyio
 FRAMES = 90
 
 
-async def test_a_viewer_that_never_reads_does_not_slow_the_others(settings, rigs):
+async def test_a_viewer_that_never_reads_does_not_slow_the_others(settings, rigs, ws_impl):
     # A large target: each vertices result is ~240 KB, so the stuck viewer's socket
     # buffers fill after a few frames and the server must skip, not queue.
     write_rigs(settings.rigs_dir, {"big": tiny_rig(7, num_vertices=20_000)})
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         stuck_url = channel_url(
             server.ws_url, "stage", "watch", {"rig": "big", "output": "vertices"}
         )

@@ -18,7 +18,7 @@ from facecast.rig.demo import demo_example_set
 from facecast.server.app import create_app
 from facecast.server.runner import FacecastServer, uvicorn_config
 from facecast.server.settings import Settings
-from facecast.server.testing import free_port
+from facecast.server.testing import WS_IMPLEMENTATIONS, free_port
 
 RIG_ID = "demo"
 
@@ -26,8 +26,11 @@ RIG_ID = "demo"
 class LiveServer:
     """facecast on 127.0.0.1:``port``; `start` and `stop` may alternate."""
 
-    def __init__(self, settings: Settings, port: int | None = None) -> None:
+    def __init__(
+        self, settings: Settings, port: int | None = None, ws: str = "websockets-sansio"
+    ) -> None:
         self.settings = settings
+        self.ws = ws
         self.port = port or free_port()
         self._server: FacecastServer | None = None
         self._thread: threading.Thread | None = None
@@ -43,7 +46,7 @@ class LiveServer:
         config = uvicorn_config(
             self.settings,
             create_app(self.settings),
-            ws="websockets-sansio",
+            ws=self.ws,
             host="127.0.0.1",
             port=self.port,
         )
@@ -95,8 +98,9 @@ def rigs_dir(tmp_path_factory, demo_rig) -> Path:
     return folder
 
 
-@pytest.fixture(scope="module")
-def live_server(rigs_dir):
-    server = LiveServer(server_settings(rigs_dir)).start()
+@pytest.fixture(scope="module", params=WS_IMPLEMENTATIONS)
+def live_server(request, rigs_dir):
+    """A server per module and uvicorn WebSocket implementation (the client works on both)."""
+    server = LiveServer(server_settings(rigs_dir), ws=request.param).start()
     yield server
     server.stop()

@@ -77,14 +77,14 @@ async def connect(url: str):
 
 @pytest.mark.parametrize("output", ["weights", "vertices"])
 async def test_a_flood_of_frames_in_absurd_units_gets_an_answer_each_and_none_non_finite(
-    tmp_path, output
+    tmp_path, output, ws_impl
 ):
     # A target beyond f16 for a few frames' worth of displacement, and ordinary frames.
     rig = fit(tiny_example_set(num_vertices=64))
     rng = np.random.default_rng(13)
     settings = Settings(rigs_dir=tmp_path / "rigs", max_fps=1e6, rate_burst=FLOOD)
     answers: collections.Counter[str] = collections.Counter()
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         server.app.state.store.put_rig("face", rig)
         ws = await connect(f"{server.ws_url}/v1/stream")
         protocol = ClientProtocol()  # refuses any non-finite array it is sent (§4)
@@ -108,11 +108,11 @@ async def test_a_flood_of_frames_in_absurd_units_gets_an_answer_each_and_none_no
     assert set(answers) <= {"result", "POINTS_OUT_OF_RANGE", "RESULT_NOT_FINITE"}
 
 
-async def test_a_publisher_flooding_absurd_frames_never_breaks_an_f16_watcher(tmp_path):
+async def test_a_publisher_flooding_absurd_frames_never_breaks_an_f16_watcher(tmp_path, ws_impl):
     rig = fit(tiny_example_set(num_vertices=64))
     rng = np.random.default_rng(14)
     settings = Settings(rigs_dir=tmp_path / "rigs", max_fps=1e6, rate_burst=FLOOD)
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         server.app.state.store.put_rig("face", rig)
         watch = channel_url(server.ws_url, "stage", "watch",
                             {"rig": "face", "output": "vertices", "dtype": "f16"})  # fmt: skip
