@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 from prometheus_client import Counter, Gauge
 
 from facecast.protocol import ErrorCode, ProtocolError
+from facecast.rig import Rig
 from facecast.rig.errors import RigError
 
 from .bus import Bus, BusUnavailable, make_bus
@@ -125,14 +126,17 @@ class ChannelHub:
             self._stopping.add(task)
             task.add_done_callback(self._stopping.discard)
 
-    async def load_rig(self, rig_id: str) -> Any:
+    async def load_rig(self, rig_id: str) -> Rig:
         """The rig ``rig_id`` (file I/O in a thread); fatal UNKNOWN_RIG if there is none."""
         if not valid_rig_id(rig_id):
             raise ProtocolError(
                 ErrorCode.UNKNOWN_RIG, f"no rig with id {rig_id[:64]!r}", fatal=True
             )
         try:
-            return await asyncio.get_running_loop().run_in_executor(None, self.store.get, rig_id)
+            rig: Rig = await asyncio.get_running_loop().run_in_executor(
+                None, self.store.get, rig_id
+            )
+            return rig
         except (RigNotFoundError, RigError) as exc:
             raise rig_unavailable(rig_id, exc) from None
 
