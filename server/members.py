@@ -112,6 +112,7 @@ class PublisherMember(Member):
         elif work is not None:
             await self._calibrate(work, None)
         self._deliver()
+        self.arm()  # a wait for the rig or a neutral suspended the idle deadline
 
     async def _on_hello(self, hello: Hello) -> None:
         core = self.core
@@ -128,7 +129,6 @@ class PublisherMember(Member):
             self._point_filter = OneEuroFilter(sm.min_cutoff, sm.beta, sm.d_cutoff)
         core.open(rig, time.monotonic(), self.id)
         self._deliver()
-        self.arm()
         await channel.add_publisher(self, rig)
         log.info("publisher joined",
                  extra={"event": "channel.publish", "channel": self.name, "rig": hello.rig,

@@ -266,6 +266,7 @@ class Session(Driver):
         elif work is not None:
             await self._calibrate(work)
         self._deliver()
+        self.arm()  # a wait for the rig or a neutral suspended the idle deadline
 
     def _on_frame(self, frame: Frame, in_burst: bool, now: float) -> None:
         """Clone a cheap frame at once, or put it in the writer's hands or the mailbox.
@@ -346,7 +347,6 @@ class Session(Driver):
         except ProtocolError:
             core.failed(time.monotonic())
             raise
-        self.arm()
         self.rig_id = hello.rig
         self._outputs = outputs = Outputs(hello, rig)
         self._inline = (
