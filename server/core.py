@@ -32,11 +32,14 @@ from facecast.protocol import (
     Ready,
     ServerMessage,
     ServerProtocol,
+    Smoothing,
     close_code,
 )
 from facecast.rig import Rig
 from facecast.rig.errors import RigError
+from facecast.rig.filters import OneEuroFilter
 
+from .cloning import Smoother
 from .frame_rate import FrameRateLimit
 from .settings import Settings
 from .store import RigNotFoundError, valid_rig_id
@@ -242,6 +245,14 @@ class ConnectionCore:
         """The work asked for ended without an answer (the driver reports why)."""
         self._done_waiting(now)
 
+    def one_euro(self) -> OneEuroFilter | None:
+        """A new filter with ``hello``'s smoothing options (§5.1.1), or None: no smoothing."""
+        hello = self.hello
+        sm = None if hello is None else hello.smoothing
+        if sm is None:
+            return None
+        return OneEuroFilter(min_cutoff=sm.min_cutoff, beta=sm.beta, d_cutoff=sm.d_cutoff)
+
     # -- frames --------------------------------------------------------------------------
     def frame_allowed(self, frame: Frame, now: float) -> bool:
         """Count ``frame``; False when it is over the rate (dropped, counted, maybe told)."""
@@ -389,6 +400,13 @@ class StreamCore(ConnectionCore):
             )
         super().open(rig, now, session_id)
 
+    def smoother(self) -> Smoother | None:
+        """The session's smoothing of points or weights, as ``hello`` asks (None: none)."""
+        one_euro, hello = self.one_euro(), self.hello
+        if one_euro is None or hello is None or hello.smoothing is None:
+            return None
+        return Smoother(one_euro, hello.smoothing.target)
+
 
 class PublisherCore(ConnectionCore):
     """A channel's publisher (§5.1): channel outputs only; its neutral goes to the channel.
@@ -420,6 +438,21 @@ class PublisherCore(ConnectionCore):
 
     def dropped_total(self) -> int:
         return self.counters.dropped_rate + self.superseded()
+
+    def point_filter(self) -> OneEuroFilter | None:
+        """Smoothing of the points, done once here for every key (``target: points``)."""
+        hello = self.hello
+        if hello is None or hello.smoothing is None or hello.smoothing.target != "points":
+            return None
+        return self.one_euro()
+
+    @property
+    def channel_smoothing(self) -> Smoothing | None:
+        """Smoothing of the weights, done by each key for its own rig (``target: weights``)."""
+        hello = self.hello
+        if hello is None or hello.smoothing is None or hello.smoothing.target != "weights":
+            return None
+        return hello.smoothing
 
     def calibrated(
         self, rig: Rig, now: float, seq: int | None = None, *, points: np.ndarray | None = None

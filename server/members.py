@@ -124,9 +124,7 @@ class PublisherMember(Member):
             raise
         self.hello, self.channel = hello, channel
         self.key = (hello.rig, hello.output, hello.dtype)
-        if hello.smoothing is not None and hello.smoothing.target == "points":
-            sm = hello.smoothing
-            self._point_filter = OneEuroFilter(sm.min_cutoff, sm.beta, sm.d_cutoff)
+        self._point_filter = core.point_filter()
         core.open(rig, time.monotonic(), self.id)
         self._deliver()
         await channel.add_publisher(self, rig)
@@ -157,10 +155,7 @@ class PublisherMember(Member):
         if self._point_filter is not None:
             points = self._point_filter(np.asarray(points, dtype=np.float64).reshape(-1), frame.ts)
             points = points.reshape(frame.points.shape)
-        hello = self.hello
-        smoothing = (
-            hello.smoothing if hello.smoothing and hello.smoothing.target == "weights" else None
-        )
+        hello, smoothing = self.hello, core.channel_smoothing
         submitted = self.channel.submit(
             ChannelFrame(
                 seq=frame.seq, ts=frame.ts, points=points, dropped=core.dropped_total(),

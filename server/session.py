@@ -29,7 +29,6 @@ from facecast.protocol import (
 )
 from facecast.rig import Rig
 from facecast.rig.errors import InputError, RigError
-from facecast.rig.filters import OneEuroFilter
 
 from .blending import BlendBatcher
 from .cloning import (
@@ -353,12 +352,7 @@ class Session(Driver):
             hello.output == "weights"
             or blend_seconds(outputs.rows, rig.num_examples) <= INLINE_MAX_SECONDS
         )
-        if hello.smoothing is not None:
-            sm = hello.smoothing
-            self._smoother = Smoother(
-                OneEuroFilter(min_cutoff=sm.min_cutoff, beta=sm.beta, d_cutoff=sm.d_cutoff),
-                sm.target,
-            )
+        self._smoother = core.smoother()
         log.info(
             "session open",
             extra={

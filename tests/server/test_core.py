@@ -24,6 +24,7 @@ from facecast.protocol import (
     ProtocolError,
     Ready,
     ServerProtocol,
+    Smoothing,
     decode_server,
     encode,
 )
@@ -407,3 +408,27 @@ def test_publisher_neutral_is_captured_renamed_and_reset(rig):
     assert np.array_equal(core.neutral, points) and first and core.neutral_id != first
     core.handle(core.receive(encode(Calibrate(reset=True)), 1.0))
     assert core.neutral is None and core.neutral_id == "" and core.rig is rig
+
+
+def test_smoothing_options_go_to_the_filter_of_their_target(rig):
+    points = Smoothing(target="points", min_cutoff=1.0, beta=0.5)
+    weights = Smoothing(target="weights")
+    stream = stream_core()
+    opened(stream, rig, smoothing=weights)
+
+    smoother = stream.smoother()
+    assert smoother is not None and smoother.target == "weights"
+    assert smoother.filter.min_cutoff == weights.min_cutoff
+    publisher = publisher_core()
+    publisher.handle(publisher.receive(encode(Hello(rig="face", smoothing=points)), 0.0))
+    assert publisher.point_filter() is not None and publisher.channel_smoothing is None
+    publisher = publisher_core()
+    publisher.handle(publisher.receive(encode(Hello(rig="face", smoothing=weights)), 0.0))
+    assert publisher.point_filter() is None and publisher.channel_smoothing == weights
+
+
+def test_no_smoothing_without_the_option(rig):
+    core = stream_core()
+    opened(core, rig)
+
+    assert core.smoother() is None and core.one_euro() is None
