@@ -174,7 +174,7 @@ class BlendBatcher:
                             request.done.set_result(None)
                 batch = []
         finally:
-            group.runners.discard(asyncio.current_task())  # type: ignore[arg-type]
+            group.runners.discard(asyncio.current_task())
             for request in batch:  # only when cancelled mid-batch (the loop is closing)
                 if not request.done.done():
                     request.done.cancel()

@@ -22,20 +22,19 @@ from facecast.protocol import (
     Limits,
     ProtocolError,
     Ready,
-    bearer_token,
     select_subprotocol,
     watch_hello,
 )
 from facecast.protocol.fields import check_str
 from facecast.protocol.messages import POINTS_DTYPES, WATCH_OUTPUTS
 
-from .auth import Principal, authorize, requires
+from .admission import authorize_websocket, serve
+from .auth import Principal, requires
+from .core import code_name
 from .errors import ApiError
 from .hub import ChannelHub
 from .members import PublisherMember, WatcherMember
-from .outbox import Member
 from .refusal import refuse
-from .sessions import Owner, Quotas
 from .settings import Settings
 
 __all__ = ["router"]
@@ -68,21 +67,6 @@ class _ChannelName(Convertor[str]):
 register_url_convertor("channel", _ChannelName())
 
 
-def _authorize(websocket: WebSocket, role: str) -> Principal:
-    """The caller, or a fatal UNAUTHORIZED / FORBIDDEN ProtocolError."""
-    settings: Settings = websocket.app.state.settings
-    token = bearer_token(
-        authorization=websocket.headers.get("authorization"),
-        subprotocols=list(websocket.scope.get("subprotocols") or ()),
-        query_token=websocket.query_params.get("token"),
-    )
-    try:
-        return authorize(settings, token, (role,))
-    except ApiError as exc:
-        code = ErrorCode.UNAUTHORIZED if exc.status == 401 else ErrorCode.FORBIDDEN
-        raise ProtocolError(code, exc.detail, fatal=True) from None
-
-
 def _check_name(name: str) -> None:
     if not 1 <= len(name) <= MAX_NAME:
         raise ProtocolError(
@@ -113,47 +97,21 @@ def _watch_query(query: Mapping[str, str], limits: Limits) -> tuple[Hello, str, 
         raise exc.evolve(fatal=True) from None
 
 
-async def _serve(
-    websocket: WebSocket, member: Member, subprotocol: str | None, principal: Principal
-) -> None:
-    """Admit ``member`` (connection limits and quotas), accept, and run it until it ends."""
-    app = websocket.app
-    registry = app.state.sessions
-    settings: Settings = app.state.settings
-    publisher = isinstance(member, PublisherMember)
-    owner = Owner.of(settings, principal.name, websocket.client)
-    why = registry.admit(member, Quotas.from_settings(settings), owner, publisher=publisher)
-    if why is not None:
-        app.state.metrics.errors.labels(ErrorCode.OVERLOADED.name).inc()
-        await refuse(websocket, ProtocolError(ErrorCode.OVERLOADED, why, fatal=True), subprotocol,
-                     timeout=settings.refuse_timeout, wait_first=publisher)  # fmt: skip
-        await member.leave()
-        return
-    app.state.metrics.connections.inc()
-    try:
-        await websocket.accept(subprotocol=subprotocol)
-        await member.run()
-    finally:
-        registry.remove(member)
-        app.state.metrics.connections.dec()
-        await member.leave()  # idempotent; covers a failed accept
-
-
 @router.websocket(PUBLISH_PATH.replace("{name}", "{name:channel}"))
 async def publish(websocket: WebSocket, name: str) -> None:
     """The channel's one publisher: ``hello`` then frames (PROTOCOL.md §2.1, §5.1)."""
     hub: ChannelHub = websocket.app.state.channels
     subprotocol = select_subprotocol(list(websocket.scope.get("subprotocols") or ()))
     try:
-        principal = _authorize(websocket, "publisher")
+        principal = authorize_websocket(websocket, hub.settings, "publisher")
         _check_name(name)
     except ProtocolError as exc:
-        websocket.app.state.metrics.errors.labels(exc.code.name).inc()
+        websocket.app.state.metrics.errors.labels(code_name(exc)).inc()
         await refuse(websocket, exc.evolve(fatal=True), subprotocol,
                      timeout=hub.settings.refuse_timeout)  # fmt: skip
         return
     member = PublisherMember(websocket, hub, name, principal.name)
-    await _serve(websocket, member, subprotocol, principal)
+    await serve(websocket, member, subprotocol, principal, publisher=True)
 
 
 @router.websocket(WATCH_PATH.replace("{name}", "{name:channel}"))
@@ -167,17 +125,17 @@ async def watch(websocket: WebSocket, name: str) -> None:
     subprotocol = select_subprotocol(list(websocket.scope.get("subprotocols") or ()))
     limits = Limits(max_message_bytes=settings.max_message_bytes)
     try:
-        principal = _authorize(websocket, "viewer")
+        principal = authorize_websocket(websocket, settings, "viewer")
         _check_name(name)
         hello, output, dtype = _watch_query(websocket.query_params, limits)
         rig = await hub.load_rig(hello.rig)
     except ProtocolError as exc:
-        websocket.app.state.metrics.errors.labels(exc.code.name).inc()
+        websocket.app.state.metrics.errors.labels(code_name(exc)).inc()
         await refuse(websocket, exc.evolve(fatal=True), subprotocol,
                      timeout=settings.refuse_timeout, wait_first=False)  # fmt: skip
         return
     channel = await hub.open_channel(name)
-    member = WatcherMember(websocket, channel, hello, limits)
+    member = WatcherMember(websocket, channel, hello, limits, settings)
     member.key = (hello.rig, output, dtype)  # what it receives; a points key clones nothing
     member.offer(
         member.protocol.send(
@@ -197,7 +155,7 @@ async def watch(websocket: WebSocket, name: str) -> None:
     log.info("watcher joined", extra={"event": "channel.watch", "channel": name,
                                       "rig": hello.rig, "output": output,
                                       "by": principal.name})  # fmt: skip
-    await _serve(websocket, member, subprotocol, principal)
+    await serve(websocket, member, subprotocol, principal, wait_first=False)
 
 
 @router.get("/v1/channels", summary="Channels with a publisher or viewers")

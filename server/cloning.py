@@ -6,11 +6,10 @@ estimate that decides where it runs; no sockets, no session state but the filter
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from facecast.protocol import ErrorCode, Frame, Hello, ProtocolError, Smoothing
+from facecast.rig import Rig
 from facecast.rig.errors import InputError
 from facecast.rig.filters import KalmanFilter, OneEuroFilter
 from facecast.rig.kernel import to_float16
@@ -41,7 +40,7 @@ _INPUT_ERRORS = {
 }
 
 
-def smoothing_filter(smoothing: Smoothing, rig: Any) -> OneEuroFilter | KalmanFilter:
+def smoothing_filter(smoothing: Smoothing, rig: Rig) -> OneEuroFilter | KalmanFilter:
     """The filter a ``hello.smoothing`` asks for (PROTOCOL.md §5.1.1), for the session's rig.
 
     Kalman: measurement noise ``smoothing.noise``, else the noise ``rig`` was fitted with;
@@ -97,7 +96,7 @@ class Outputs:
     is encoded (copied) before the next clone starts, so reuse is safe.
     """
 
-    def __init__(self, hello: Hello, rig: Any) -> None:
+    def __init__(self, hello: Hello, rig: Rig) -> None:
         self.dtype = _RESULT_DTYPES[hello.dtype]
         self.moving = hello.output == "moving"
         vertices = hello.output != "weights"
@@ -121,7 +120,7 @@ def blend_seconds(num_vertices: int, num_examples: int) -> float:
     return coordinates * (num_examples * _SECONDS_PER_MAC + _SECONDS_PER_COORDINATE)
 
 
-def frame_weights(rig: Any, frame: Frame, hello: Hello, smoother: Smoother | None) -> np.ndarray:
+def frame_weights(rig: Rig, frame: Frame, hello: Hello, smoother: Smoother | None) -> np.ndarray:
     """The (M,) float64 weights of one frame, smoothed as the session asked."""
     points = frame.points
     if smoother is not None and smoother.target == "points":
@@ -133,7 +132,7 @@ def frame_weights(rig: Any, frame: Frame, hello: Hello, smoother: Smoother | Non
 
 
 def clone_frame(
-    rig: Any,
+    rig: Rig,
     frame: Frame,
     hello: Hello,
     smoother: Smoother | None,

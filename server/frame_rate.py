@@ -5,14 +5,13 @@ over ``max_fps`` (beyond ``rate_burst``) is discarded and counted; the client ge
 RATE_LIMITED error at most once per ``ERROR_INTERVAL``, carrying the total of discarded
 frames. Frames discarded after the last total the client was sent (in a result or an
 error) are reported when the interval is over, so a burst's tail is never lost without
-a trace. No I/O here: the caller says how to send the error and what the total is.
+a trace. Sans-I/O: the caller passes the clock in, sends the errors it is handed, and
+calls ``due`` at the ``deadline`` it is told; no timer here.
 """
 
 from __future__ import annotations
 
-import asyncio
 import math
-from collections.abc import Callable
 
 from facecast.protocol import Error, ErrorCode
 
@@ -30,65 +29,49 @@ class FrameRateLimit:
     Parameters
     ----------
     max_fps, burst : the bucket's refill rate and depth
-    total : the connection's dropped total now (what ``result.dropped`` would say)
-    tell : queues an `Error` for the client
+    now : the clock (``time.monotonic()``) at the start
     """
 
-    def __init__(
-        self,
-        max_fps: float,
-        burst: int,
-        *,
-        total: Callable[[], int],
-        tell: Callable[[Error], None],
-    ) -> None:
+    def __init__(self, max_fps: float, burst: int, now: float) -> None:
         self.max_fps = max_fps
-        self._bucket = TokenBucket(max_fps, burst)
-        self._total = total
-        self._tell = tell
-        self._loop = asyncio.get_running_loop()
+        self._bucket = TokenBucket(max_fps, burst, now)
         self._told = 0
         self._last_error = -math.inf
         self._last_seq = 0
-        self._late: asyncio.TimerHandle | None = None
+        #: When the errors owed for frames discarded since the last one are due, or None.
+        self.deadline: float | None = None
 
-    def allow(self) -> bool:
+    def allow(self, now: float) -> bool:
         """Whether the next frame is within the rate (takes a token if so)."""
-        return self._bucket.take()
+        return self._bucket.take(now)
 
-    def discarded(self, seq: int) -> None:
-        """Frame ``seq`` was over the rate and the caller has counted it in its total."""
+    def discarded(self, seq: int, now: float, total: int) -> Error | None:
+        """Frame ``seq`` was over the rate; ``total`` counts it. The error to send now, if any."""
         self._last_seq = seq
-        now = self._loop.time()
         if now - self._last_error >= ERROR_INTERVAL:
-            self._send(now)
-        elif self._late is None:
-            self._late = self._loop.call_at(self._last_error + ERROR_INTERVAL, self._report_late)
+            return self._error(now, total)
+        if self.deadline is None:
+            self.deadline = self._last_error + ERROR_INTERVAL
+        return None
+
+    def due(self, now: float, total: int) -> Error | None:
+        """At or after ``deadline``: the error reporting frames not yet told, if any."""
+        if self.deadline is None or now < self.deadline:
+            return None
+        self.deadline = None
+        return self._error(now, total) if total > self._told else None
 
     def told(self, dropped: int) -> None:
         """The client is sent ``dropped`` as its total (a result carries it)."""
         self._told = max(self._told, dropped)
 
-    def close(self) -> None:
-        if self._late is not None:
-            self._late.cancel()
-            self._late = None
-
-    def _report_late(self) -> None:
-        self._late = None
-        if self._total() > self._told:
-            self._send(self._loop.time())
-
-    def _send(self, now: float) -> None:
+    def _error(self, now: float, total: int) -> Error:
         self._last_error = now
-        total = self._total()
         self._told = max(self._told, total)
-        self._tell(
-            Error(
-                code=ErrorCode.RATE_LIMITED,
-                message=f"more than {self.max_fps:g} frames/s; frames over the rate are "
-                f"discarded ({total} so far, in dropped)",
-                seq=self._last_seq,
-                dropped=total,
-            )
+        return Error(
+            code=ErrorCode.RATE_LIMITED,
+            message=f"more than {self.max_fps:g} frames/s; frames over the rate are "
+            f"discarded ({total} so far, in dropped)",
+            seq=self._last_seq,
+            dropped=total,
         )

@@ -15,10 +15,12 @@ from typing import TYPE_CHECKING, Any
 from prometheus_client import Counter, Gauge
 
 from facecast.protocol import ErrorCode, ProtocolError
+from facecast.rig import Rig
 from facecast.rig.errors import RigError
 
 from .bus import Bus, BusUnavailable, make_bus
 from .channels import Channel
+from .core import rig_unavailable
 from .settings import Settings
 from .store import RigNotFoundError, RigStore, valid_rig_id
 
@@ -133,14 +135,12 @@ class ChannelHub:
                 ErrorCode.UNKNOWN_RIG, f"no rig with id {rig_id[:64]!r}", fatal=True
             )
         try:
-            return await asyncio.get_running_loop().run_in_executor(None, self.store.get, rig_id)
-        except RigNotFoundError:
-            raise ProtocolError(
-                ErrorCode.UNKNOWN_RIG, f"no rig with id {rig_id!r}", fatal=True
-            ) from None
-        except RigError as exc:
-            raise ProtocolError(ErrorCode.UNKNOWN_RIG, f"rig {rig_id!r} cannot be loaded: {exc}",
-                                fatal=True) from None  # fmt: skip
+            rig: Rig = await asyncio.get_running_loop().run_in_executor(
+                None, self.store.get, rig_id
+            )
+            return rig
+        except (RigNotFoundError, RigError) as exc:
+            raise rig_unavailable(rig_id, exc) from None
 
     async def claim(self, name: str, publisher: PublisherMember) -> Channel:
         """Make ``publisher`` the channel's only one, here and (with Redis) everywhere.

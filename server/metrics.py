@@ -96,7 +96,8 @@ class Metrics:
         self.frames_out.push()
         if self.multiprocess:
             combined = CollectorRegistry()
-            multiprocess.MultiProcessCollector(combined)
+            # prometheus_client leaves MultiProcessCollector unannotated.
+            multiprocess.MultiProcessCollector(combined)  # type: ignore[no-untyped-call]
             return generate_latest(combined)
         return generate_latest(self.registry)
 

@@ -8,53 +8,51 @@ through the writer task; a slow client only ever slows itself. No protocol decis
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
-import secrets
+import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine, Generator
 from typing import Any
 
-from starlette.websockets import WebSocket, WebSocketDisconnect
+from starlette.websockets import WebSocket
 
-from facecast.protocol import ErrorCode, ProtocolError, ServerProtocol, close_code
+from facecast.protocol import ClientMessage, ProtocolError
 
+from .core import ConnectionCore
 from .direct import binary_frame, direct_writer
+from .driver import Driver
 from .fanout import Key
 
-__all__ = ["MAX_OUTBOX", "Closing", "Member"]
+__all__ = ["MAX_OUTBOX", "Member"]
 
 log = logging.getLogger("facecast.server.channels")
 
 #: Messages waiting in one member's outbox. Consecutive results collapse into the newest,
 #: so this bounds control messages (events, pongs, errors); beyond it the oldest go.
 MAX_OUTBOX = 32
-_CLOSE_GRACE = 1.0
 
 
-class Closing(Exception):
-    """Raised in a member's tasks to end it with a close code (and maybe an error first)."""
-
-    def __init__(self, code: int, reason: str, error: ProtocolError | None = None) -> None:
-        super().__init__(reason)
-        self.code, self.reason, self.error = code, reason, error
-
-
-class Member:
+class Member(Driver):
     """One accepted WebSocket in a channel: an outbox of encoded messages and a writer.
 
     ``offer_result`` replaces a result still waiting (the viewer skips to the newest
     frame; ``skipped`` counts it); ``offer`` queues a control message. Memory per member
-    is at most ``MAX_OUTBOX`` references to bytes shared with other members.
+    is at most ``MAX_OUTBOX`` references to bytes shared with other members. What it
+    reads goes to its ``core`` (the rules); the subclasses say what to do with frames
+    and hellos.
     """
 
     watcher = True
+    crash_event = "channel.crash"
+    log = log
 
-    def __init__(self, websocket: WebSocket, key: Key, protocol: ServerProtocol) -> None:
-        self.id = secrets.token_hex(8)
-        self.ws = websocket
+    def __init__(
+        self, websocket: WebSocket, key: Key, core: ConnectionCore, member_id: str
+    ) -> None:
+        super().__init__(websocket, core, f"member-{member_id}")
+        self.id = member_id
         self.key = key
-        self.protocol = protocol
+        self.protocol = core.protocol
         self.sent = 0
         self.skipped = 0
         self._items: deque[list[Any]] = deque()
@@ -63,8 +61,6 @@ class Member:
         self._open = False
         self._writing = False
         self._inflight: asyncio.Task[None] | None = None
-        self._stop: asyncio.Future[Closing] = asyncio.get_running_loop().create_future()
-        self._done = asyncio.Event()
         #: Writes a whole frame straight to the socket, or False; found once accepted.
         self._direct: Callable[[bytes], bool] | None = None
 
@@ -147,18 +143,34 @@ class Member:
         self.sent += 1
         self._wake.set()  # the writer flushes what queued up meanwhile
 
-    def decode(self, message: dict[str, Any]) -> Any:
-        """The protocol message in an ASGI ``websocket.receive`` event (ProtocolError if bad)."""
-        data = message.get("bytes")
-        if data is None:
-            self.protocol.receive_text(message.get("text") or "")
-        return self.protocol.receive(data)
+    def _deliver(self) -> None:
+        for data in self.core.data_to_send():
+            self.offer(data)
 
     def report(self, error: ProtocolError) -> None:
         """Queue an error; a fatal one ends the connection after it is sent."""
-        if error.fatal:
-            raise Closing(close_code(error), error.code.name.lower(), error)
-        self.offer(self.protocol.send(error.to_message()))
+        self.core.report(error)  # raises Closing when fatal
+        self._deliver()
+
+    async def _read_loop(self) -> None:
+        receive, clock, core = self.ws.receive, time.monotonic, self.core
+        while True:
+            message = await receive()
+            if message["type"] == "websocket.disconnect":
+                return
+            now = clock()
+            data = message.get("bytes")
+            try:
+                if data is None:
+                    core.receive_text(message.get("text") or "", now)
+                await self._on_message(core.receive(data, now), now)
+            except ProtocolError as exc:
+                self.report(exc)
+
+    async def _on_message(self, message: ClientMessage, now: float) -> None:
+        """A decoded message: by default, the core's answer (a watcher's pong)."""
+        self.core.handle(message)
+        self._deliver()
 
     async def _write_loop(self) -> None:
         self._direct = direct_writer(self.ws)
@@ -179,66 +191,11 @@ class Member:
             finally:
                 self._writing = False
 
-    async def _read_loop(self) -> None:  # pragma: no cover - overridden
-        raise NotImplementedError
+    def _stopping(self) -> None:
+        self._open = False
 
-    async def run(self) -> None:
-        """Serve until the client leaves, a fatal error, or ``close``."""
-        reader = asyncio.create_task(self._read_loop(), name=f"member-{self.id}-reader")
-        writer = asyncio.create_task(self._write_loop(), name=f"member-{self.id}-writer")
-        ending: Closing | None = None
-        try:
-            done, _ = await asyncio.wait(
-                {reader, writer, self._stop}, return_when=asyncio.FIRST_COMPLETED
-            )
-            for task in (self._stop, reader, writer):
-                if task not in done or task.cancelled():
-                    continue
-                exc = task.exception()
-                if isinstance(exc, Closing):
-                    ending = exc
-                elif isinstance(exc, WebSocketDisconnect | OSError):
-                    pass
-                elif exc is not None:
-                    log.error("channel member failed", exc_info=exc,
-                              extra={"event": "channel.crash", "member": self.id})  # fmt: skip
-                    error = ProtocolError(ErrorCode.INTERNAL, "internal server error", fatal=True)
-                    ending = Closing(1011, "internal error", error)
-                elif task is self._stop:
-                    ending = task.result()
-                break
-        finally:
-            self._open = False
-            tasks = [t for t in (reader, writer, self._inflight) if t is not None]
-            for task in tasks:
-                task.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
-            await self.leave()
-            if ending is not None:
-                await self._send_close(ending)
-            self._done.set()
-
-    async def leave(self) -> None:
-        """Called once when the connection ends (unregister from the channel)."""
-
-    async def close(self, code: int, reason: str) -> None:
-        if not self._stop.done():
-            self._stop.set_result(Closing(code, reason))
-        await self._done.wait()
-
-    def end(self, error: ProtocolError) -> None:
-        """End the connection with a fatal ``error`` (from outside its tasks)."""
-        if not self._stop.done():
-            self._stop.set_result(Closing(close_code(error), error.code.name.lower(), error))
-
-    async def _send_close(self, ending: Closing) -> None:
-        with contextlib.suppress(Exception):
-            async with asyncio.timeout(_CLOSE_GRACE):
-                if ending.error is not None:
-                    await self.ws.send_bytes(self.protocol.fail(ending.error))
-        with contextlib.suppress(Exception):
-            async with asyncio.timeout(_CLOSE_GRACE):
-                await self.ws.close(ending.code, ending.reason[:120])
+    def _extra_tasks(self) -> list[asyncio.Task[None]]:
+        return [] if self._inflight is None else [self._inflight]
 
 
 class _Resume:
@@ -249,11 +206,11 @@ class _Resume:
     def __init__(self, future: Any) -> None:
         self.future = future
 
-    def __await__(self):
+    def __await__(self) -> Generator[Any, None, Any]:
         return (yield self.future)
 
 
-async def _finish(coro: Any, yielded: Any) -> None:
+async def _finish(coro: Coroutine[Any, Any, None], yielded: Any) -> None:
     """Drive a coroutine started by hand (``coro.send(None)`` gave ``yielded``) to its end."""
     try:
         while True:

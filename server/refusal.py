@@ -12,7 +12,9 @@ import contextlib
 
 from starlette.websockets import WebSocket
 
-from facecast.protocol import ProtocolError, ServerProtocol, close_code
+from facecast.protocol import ProtocolError, ServerProtocol
+
+from .core import Closing
 
 __all__ = ["FIRST_MESSAGE_WAIT", "refuse"]
 
@@ -45,5 +47,6 @@ async def refuse(
                         message = await websocket.receive()
                         if message["type"] == "websocket.disconnect":
                             return
+            ending = Closing.for_error(error)
             await websocket.send_bytes(ServerProtocol().fail(error))
-            await websocket.close(close_code(error), error.code.name.lower())
+            await websocket.close(ending.code, ending.reason)

@@ -9,35 +9,25 @@ bounded whatever the client does. No auth and no admission here.
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import copy
 import logging
 import secrets
 import time
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Executor
-from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
-from starlette.websockets import WebSocket, WebSocketDisconnect
+from starlette.websockets import WebSocket
 
 from facecast.protocol import (
-    Calibrate,
-    Calibrated,
-    Error,
-    ErrorCode,
+    ClientMessage,
     Frame,
     Hello,
     Limits,
-    Ping,
-    Pong,
     ProtocolError,
-    Ready,
     ServerProtocol,
-    close_code,
 )
+from facecast.rig import Rig
 from facecast.rig.errors import InputError, RigError
 
 from .blending import BlendBatcher
@@ -48,14 +38,14 @@ from .cloning import (
     clone_frame,
     frame_error,
     frame_weights,
-    smoothing_filter,
 )
+from .core import Closing, Counters, StreamCore, ready_message, rig_unavailable
 from .direct import binary_frame, direct_writer, queued_messages
-from .frame_rate import FrameRateLimit
+from .driver import Driver
 from .metrics import Metrics
 from .settings import Settings
 from .stages import CPU_CLOCK
-from .store import RigNotFoundError, RigStore, valid_rig_id
+from .store import RigNotFoundError, RigStore
 
 __all__ = ["INLINE_MAX_SECONDS", "Session", "SessionCounters", "ready_message"]
 
@@ -64,8 +54,6 @@ log = logging.getLogger("facecast.server.session")
 #: Control messages (pongs, errors, acks) waiting for the writer; beyond this the oldest
 #: are dropped: a client that floods pings but never reads must not grow memory.
 _MAX_CONTROL = 32
-#: How long a closing session waits to hand its last error / close frame to the socket.
-_CLOSE_GRACE = 1.0
 #: A vertices frame whose clone is estimated (``blend_seconds``) to take at most this
 #: long is cloned on the event loop; costlier ones go to the clone pool, batched with
 #: other sessions' frames (``blending``). Weights-only frames always run on the loop
@@ -82,33 +70,15 @@ _CORK_BYTES = 64 * 1024
 _MAX_OUTBOX_BYTES = 256 * 1024
 
 
-@dataclass
-class SessionCounters:
-    """What a session has done; read by tests and logged when it ends."""
-
-    frames_in: int = 0
-    results_out: int = 0
-    dropped_superseded: int = 0
-    dropped_rate: int = 0
-    errors: int = 0
-
-    @property
-    def dropped(self) -> int:
-        return self.dropped_superseded + self.dropped_rate
+#: What a session has done (the core's counters), read by tests and logged at the end.
+SessionCounters = Counters
 
 
-class _Closing(Exception):
-    """Raised inside the session's tasks to end it with a close code (and maybe an error)."""
-
-    def __init__(self, code: int, reason: str, error: ProtocolError | None = None) -> None:
-        super().__init__(reason)
-        self.code = code
-        self.reason = reason
-        self.error = error
-
-
-class Session:
+class Session(Driver):
     """Serve one accepted WebSocket until either side ends it.
+
+    The rules (hello, rate, calibration, idle, close) are the `StreamCore`'s; this
+    object schedules the clone work and writes.
 
     Parameters
     ----------
@@ -117,6 +87,10 @@ class Session:
     executor : the app's clone thread pool, shared by all sessions of this worker
     blender : the app's blend batcher (over ``executor``); default: one of this session's
     """
+
+    crash_event = "session.crash"
+    log = log
+    core: StreamCore
 
     def __init__(
         self,
@@ -130,33 +104,27 @@ class Session:
         principal: str = "anonymous",
     ) -> None:
         self.id = secrets.token_hex(8)
-        self.ws = websocket
+        core = StreamCore(
+            ServerProtocol(Limits(max_message_bytes=settings.max_message_bytes)),
+            settings,
+            time.monotonic(),
+            idle_timeout=settings.idle_timeout,
+        )
+        core.on_error = self._count_error
+        super().__init__(websocket, core, f"session-{self.id}")
         self.settings = settings
         self.store = store
         self.metrics = metrics
         self.executor = executor
         self.blender = blender if blender is not None else BlendBatcher(executor)
         self.principal = principal
-        self.counters = SessionCounters()
+        self.protocol = core.protocol
         #: Where stage times go (``stages``), with ``settings.stage_timing`` only.
         self._stages = metrics.stages if settings.stage_timing else None
-        self.protocol = ServerProtocol(
-            Limits(max_message_bytes=settings.max_message_bytes),
-        )
-        self.hello: Hello | None = None
         self.rig_id: str | None = None
-        self._base_rig: Any = None  # as loaded; calibration derives ``_rig`` from it
-        self._rig: Any = None
-        self._calibrate_next = False
         self._smoother: Smoother | None = None
         self._outputs: Outputs | None = None
         self._inline = True  # whether frames are cloned on the loop (set by hello)
-        self._rate = FrameRateLimit(
-            settings.max_fps,
-            settings.rate_burst,
-            total=lambda: self.counters.dropped,
-            tell=self._tell_rate_limited,
-        )
         # Frames as (frame, arrival perf_counter). ``_held`` is the one the writer clones
         # next (or is cloning); ``_pending`` is the one-slot mailbox behind it, where a
         # newer frame replaces an older one (§8). So at most two frames per session.
@@ -178,14 +146,17 @@ class Session:
         self._corked_bytes = 0
         self._queued: Callable[[], int] | None = None
         self._reader_waited = False
-        self._loop = asyncio.get_running_loop()
-        self._stop: asyncio.Future[_Closing] = self._loop.create_future()
-        self._last_message = self._loop.time()
-        self._idle_timer: asyncio.TimerHandle | None = None
         self._started = time.monotonic()
-        self._done = asyncio.Event()
 
     # -- public --------------------------------------------------------------------------
+    @property
+    def counters(self) -> Counters:
+        return self.core.counters
+
+    @property
+    def hello(self) -> Hello | None:
+        return self.core.hello if self.core.rig is not None else None
+
     @property
     def pending(self) -> int:
         """Frames waiting in the mailbox (not yet in the writer's hands): 0 or 1."""
@@ -200,82 +171,17 @@ class Session:
         """Run until the client leaves, a fatal error, the idle timeout or ``close``."""
         self._direct = direct_writer(self.ws)
         self._queued = queued_messages(self.ws) if self._direct is not None else None
-        reader = asyncio.create_task(self._read_loop(), name=f"session-{self.id}-reader")
-        writer = asyncio.create_task(self._write_loop(), name=f"session-{self.id}-writer")
-        self._arm_idle_timer()
-        ending: _Closing | None = None
-        try:
-            done, _ = await asyncio.wait(
-                {reader, writer, self._stop}, return_when=asyncio.FIRST_COMPLETED
-            )
-            for task in (self._stop, reader, writer):
-                if task in done and not task.cancelled():
-                    exc = task.exception()
-                    if isinstance(exc, _Closing):
-                        ending = exc
-                        break
-                    if isinstance(exc, WebSocketDisconnect):
-                        break  # the client went away mid-send: a normal end
-                    if exc is not None:
-                        log.error(
-                            "session failed",
-                            exc_info=exc,
-                            extra={"event": "session.crash", "session": self.id},
-                        )
-                        ending = _Closing(
-                            1011,
-                            "internal error",
-                            ProtocolError(ErrorCode.INTERNAL, "internal server error", fatal=True),
-                        )
-                        break
-                    if task is self._stop:
-                        ending = task.result()
-                        break
-        finally:
-            if self._idle_timer is not None:
-                self._idle_timer.cancel()
-            self._rate.close()
-            for task in (reader, writer):
-                task.cancel()
-            await asyncio.gather(reader, writer, return_exceptions=True)
-            if ending is not None:
-                await self._send_close(ending)
-            self._log_end(ending)
-            self._done.set()
+        await super().run()
 
-    async def close(self, code: int, reason: str) -> None:
-        """Ask the session to end with ``code`` (e.g. 1001 at shutdown) and wait for it."""
-        if not self._stop.done():
-            self._stop.set_result(_Closing(code, reason))
-        await self._done.wait()
-
-    # -- idle timeout --------------------------------------------------------------------
-    def _arm_idle_timer(self) -> None:
-        # One timer per idle period, re-armed from the last message's time when it fires,
-        # instead of a timeout scope around every receive (a timer per message).
-        when = self._last_message + self.settings.idle_timeout
-        self._idle_timer = self._loop.call_at(when, self._check_idle)
-
-    def _check_idle(self) -> None:
-        if self._stop.done():
-            return
-        if self._loop.time() < self._last_message + self.settings.idle_timeout:
-            self._arm_idle_timer()
-            return
-        error = ProtocolError(
-            ErrorCode.IDLE_TIMEOUT,
-            f"no message for {self.settings.idle_timeout:g} s; closing",
-            fatal=True,
-        )
-        self.counters.errors += 1
-        self.metrics.errors.labels(ErrorCode.IDLE_TIMEOUT.name).inc()
-        self._stop.set_result(_Closing(close_code(error), "idle timeout", error))
+    def _count_error(self, name: str) -> None:
+        self.metrics.errors.labels(name).inc()
 
     # -- reading -------------------------------------------------------------------------
     async def _read_loop(self) -> None:
-        receive, clock, queued = self.ws.receive, self._loop.time, self._queued
-        stages = self._stages
+        receive, clock, queued = self.ws.receive, time.monotonic, self._queued
+        core, stages = self.core, self._stages
         burst_start = 0.0
+        waits = False
         while True:
             if queued is not None:
                 waits = not queued()
@@ -285,7 +191,7 @@ class Session:
                 self._reader_waited = False
                 self._loop.call_soon(self._mark_reader_waited)
             message = await receive()
-            self._last_message = clock()
+            now = clock()
             if waits if queued is not None else self._reader_waited:
                 # The receive had to wait: this message starts a new burst (messages
                 # that were already queued when the reader got to them belong to one).
@@ -295,14 +201,14 @@ class Session:
             data = message.get("bytes")
             try:
                 if data is None:
-                    self.protocol.receive_text(message.get("text") or "")
+                    core.receive_text(message.get("text") or "", now)
                 decoding = CPU_CLOCK() if stages is not None else 0.0
-                decoded = self.protocol.receive(data)
+                decoded = core.receive(data, now)
                 if type(decoded) is Frame:
                     if stages is not None:
                         stages.add("decode", CPU_CLOCK() - decoding)
                     in_burst = time.perf_counter() - burst_start < _BURST_SECONDS
-                    self._on_frame(decoded, in_burst)
+                    self._on_frame(decoded, in_burst, now)
                 else:
                     self._flush()
                     await self._dispatch(decoded)
@@ -330,7 +236,7 @@ class Session:
         if direct is not None and not self._outbox and not self._control and direct(data):
             if stages is not None:
                 stages.add("write", CPU_CLOCK() - writing, len(corked))
-            self.counters.results_out += len(corked)
+            self.core.counters.results_out += len(corked)
             self.metrics.frames_out.inc(len(corked))
             return
         # The socket cannot take them at once (back-pressure): the writer sends them.
@@ -341,47 +247,39 @@ class Session:
     def _report(self, error: ProtocolError) -> None:
         """Queue an error for the client; a fatal one ends the session after it is sent."""
         self._flush()
-        self.counters.errors += 1
-        name = error.code.name if isinstance(error.code, ErrorCode) else str(error.code)
-        self.metrics.errors.labels(name).inc()
-        if error.fatal:
-            raise _Closing(close_code(error), name.lower(), error)
-        self._queue_control(error.to_message())
+        self.core.report(error)  # raises Closing when fatal
+        self._deliver()
 
-    def _tell_rate_limited(self, error: Error) -> None:
-        self.counters.errors += 1
-        self.metrics.errors.labels(ErrorCode.RATE_LIMITED.name).inc()
-        self._queue_control(error)
+    def _deliver(self) -> None:
+        """Queue what the core has to send (pongs, errors, acks) for the writer."""
+        out = self.core.data_to_send()
+        if out:
+            self._flush()
+            self._control.extend(out)
+            self._wake.set()
 
-    def _queue_control(self, message: Any) -> None:
-        self._flush()
-        self._control.append(self.protocol.send(message))
-        self._wake.set()
+    async def _dispatch(self, message: ClientMessage) -> None:
+        work = self.core.handle(message)
+        if isinstance(work, Hello):
+            await self._open(work)
+        elif work is not None:
+            await self._calibrate(work)
+        self._deliver()
+        self.arm()  # a wait for the rig or a neutral suspended the idle deadline
 
-    async def _dispatch(self, message: Any) -> None:
-        if isinstance(message, Ping):
-            self._queue_control(Pong(id=message.id, ts=message.ts))
-        elif isinstance(message, Hello):
-            await self._on_hello(message)
-        elif isinstance(message, Calibrate):
-            await self._on_calibrate(message)
-
-    def _on_frame(self, frame: Frame, in_burst: bool) -> None:
+    def _on_frame(self, frame: Frame, in_burst: bool, now: float) -> None:
         """Clone a cheap frame at once, or put it in the writer's hands or the mailbox.
 
         ``in_burst``: the frame was read within ``_BURST_SECONDS`` of the first message
         of its burst (the messages that were already waiting when the reader got to them).
         """
-        self.counters.frames_in += 1
         self.metrics.frames_in.inc()
-        if self._rig is None:  # hello accepted but ready not sent: cannot happen after await
-            raise ProtocolError(ErrorCode.WRONG_STATE, "frame before ready", seq=frame.seq)
-        if not self._rate.allow():
-            # Over the rate: drop this frame (not the pending one, which is older but
-            # within the rate); the client is told the total (``frame_rate``).
-            self.counters.dropped_rate += 1
+        if not self.core.frame_allowed(frame, now):
+            # Over the rate: this frame is dropped (not the pending one, which is older
+            # but within the rate); the core tells the client the total (``frame_rate``).
             self.metrics.frames_dropped.labels("rate_limited").inc()
-            self._rate.discarded(frame.seq)
+            self._deliver()
+            self.arm()
             return
         arrived = time.perf_counter()
         if (
@@ -389,7 +287,7 @@ class Session:
             and in_burst
             and self._held is None
             and self._pending is None
-            and not self._calibrate_next
+            and not self.core.calibrate_next
             and (not self._outbox or self._outbox_bytes < _MAX_OUTBOX_BYTES)
         ):
             # Cheap and nothing older waits: clone it right here, no hand-over to the
@@ -425,56 +323,37 @@ class Session:
             self._held = item
         else:
             if self._pending is not None:
-                self.counters.dropped_superseded += 1
+                self.core.counters.dropped_superseded += 1
                 self.metrics.frames_dropped.labels("superseded").inc()
             self._pending = item
         if self._writer_idle:
             self._wake.set()
 
-    async def _on_hello(self, hello: Hello) -> None:
-        if not valid_rig_id(hello.rig):
-            raise ProtocolError(
-                ErrorCode.UNKNOWN_RIG, f"no rig with id {hello.rig[:64]!r}", fatal=True
-            )
-        loop = asyncio.get_running_loop()
+    async def _open(self, hello: Hello) -> None:
+        """Load, bind and warm the rig ``hello`` names (off the loop), then open the core."""
+        core, loop = self.core, self._loop
         try:
-            # File I/O and parsing: never on the loop.
-            rig = await loop.run_in_executor(None, self.store.get, hello.rig)
-        except RigNotFoundError:
-            raise ProtocolError(
-                ErrorCode.UNKNOWN_RIG, f"no rig with id {hello.rig!r}", fatal=True
-            ) from None
-        except RigError as exc:
-            raise ProtocolError(
-                ErrorCode.UNKNOWN_RIG, f"rig {hello.rig!r} cannot be loaded: {exc}", fatal=True
-            ) from None
-        if hello.align_scale and not rig.align_scale:
-            # The rig's weights() reads this flag; a shallow copy keeps the cached rig as is.
-            rig = copy.copy(rig)
-            rig.align_scale = True
-        # A scan of the basis the first time a rig is asked for it (~3 ms for ICT's).
-        moving = hello.output == "moving"
-        if moving and (await loop.run_in_executor(None, lambda: rig.moving_vertices)).size == 0:
-            raise ProtocolError(
-                ErrorCode.INVALID_FIELD,
-                f"rig {hello.rig!r} moves no vertex; ask for output vertices",
-                fatal=True,
-            )
-        self.hello = hello
+            try:
+                # File I/O and parsing: never on the loop.
+                loaded: Rig = await loop.run_in_executor(None, self.store.get, hello.rig)
+            except (RigNotFoundError, RigError) as exc:
+                raise rig_unavailable(hello.rig, exc) from None
+            rig = core.bind(loaded)
+            smoother = core.smoother(rig)  # a refused smoothing comes instead of ready
+            if hello.output == "moving":
+                # A scan of the basis the first time a rig is asked for it (~3 ms for ICT's).
+                await loop.run_in_executor(None, lambda: rig.moving_vertices)
+            core.open(rig, time.monotonic(), self.id)
+        except ProtocolError:
+            core.failed(time.monotonic())
+            raise
         self.rig_id = hello.rig
-        self._base_rig = rig
-        self._rig = rig
-        self._calibrate_next = hello.calibration
         self._outputs = outputs = Outputs(hello, rig)
         self._inline = (
             hello.output == "weights"
             or blend_seconds(outputs.rows, rig.num_examples) <= INLINE_MAX_SECONDS
         )
-        if hello.smoothing is not None:
-            sm = hello.smoothing
-            self._smoother = Smoother(smoothing_filter(sm, rig), sm.target)
-        s = self.settings
-        self._queue_control(ready_message(self.id, hello, rig, self.protocol.limits, s))
+        self._smoother = smoother
         log.info(
             "session open",
             extra={
@@ -488,33 +367,28 @@ class Session:
             },
         )
 
-    async def _on_calibrate(self, message: Calibrate) -> None:
-        if message.reset:
-            self._calibrate_next = False
-            self._rig = self._base_rig
-            self._queue_control(Calibrated(active=False))
-        elif message.points is None:
-            # The next frame the writer clones becomes the neutral.
-            self._calibrate_next = True
-        else:
-            self._rig = await self._calibrated(message.points)
-            self._queue_control(Calibrated(active=True))
+    async def _calibrate(self, points: np.ndarray, seq: int | None = None) -> bool:
+        """Fit the neutral ``points`` (a ``calibrate`` message's, or frame ``seq``'s).
 
-    async def _calibrated(self, points: np.ndarray, seq: int | None = None) -> Any:
-        loop = asyncio.get_running_loop()
+        The core queues its ``calibrated`` or its CALIBRATION_FAILED error; False if failed.
+        """
+        base = self.core.base_rig
+        assert base is not None
         try:
             # Re-fitting the projection is milliseconds for large K: in the clone pool.
-            return await loop.run_in_executor(self.executor, self._base_rig.calibrated, points)
+            rig = await self._loop.run_in_executor(self.executor, base.calibrated, points)
         except RigError as exc:
-            raise ProtocolError(
-                ErrorCode.CALIBRATION_FAILED, f"calibration failed: {exc}", seq=seq
-            ) from None
+            self.core.calibration_failed(exc, time.monotonic(), seq)
+            return False
+        self.core.calibrated(rig, time.monotonic(), seq)
+        return True
 
     # -- writing -------------------------------------------------------------------------
     async def _write_loop(self) -> None:
         ws_send, direct = self.ws.send_bytes, self._direct
         # "write" includes waiting for a client that does not read (the ASGI send).
         stages, clock = self._stages, CPU_CLOCK
+        counters, frames_out = self.core.counters, self.metrics.frames_out
 
         async def send(data: bytes) -> None:
             # Straight to the socket when it takes the frame at once (one copy of a large
@@ -529,55 +403,49 @@ class Session:
             if self._outbox:
                 data = self._outbox.popleft()
                 self._outbox_bytes -= len(data)
-                writing = clock() if stages is not None else 0.0
-                await send(data)
-                if stages is not None:
-                    stages.add("write", clock() - writing)
-                self.counters.results_out += 1
-                self.metrics.frames_out.inc()
-                continue
-            if self._held is None:
-                # Normally empty here (a pending frame is promoted before each send).
+            else:
+                if self._held is None:
+                    # Normally empty here (a pending frame is promoted before each send).
+                    self._held, self._pending = self._pending, None
+                if self._held is None:
+                    self._wake.clear()
+                    self._writer_idle = True
+                    try:
+                        await self._wake.wait()
+                    finally:
+                        self._writer_idle = False
+                    continue
+                frame, arrived = self._held
+                result = await self._result_bytes(frame, arrived)
+                # Hand the waiting frame to the writer before a send that may block: a
+                # frame arriving meanwhile then waits in the empty mailbox instead of
+                # replacing it, so a client keeping two frames in flight never loses one.
                 self._held, self._pending = self._pending, None
-            if self._held is None:
-                self._wake.clear()
-                self._writer_idle = True
-                try:
-                    await self._wake.wait()
-                finally:
-                    self._writer_idle = False
-                continue
-            frame, arrived = self._held
-            data = await self._result_bytes(frame, arrived)
-            # Hand the waiting frame to the writer before a send that may block: a frame
-            # arriving meanwhile then waits in the empty mailbox instead of replacing it,
-            # so a client keeping two frames in flight never loses one (§8).
-            self._held, self._pending = self._pending, None
-            if data is None:
-                continue
+                if result is None:
+                    continue
+                data = result
             # Blocks while the client does not read; the reader keeps replacing the
             # pending frame meanwhile, so nothing piles up.
             writing = clock() if stages is not None else 0.0
             await send(data)
             if stages is not None:
                 stages.add("write", clock() - writing)
-            self.counters.results_out += 1
-            self.metrics.frames_out.inc()
+            counters.results_out += 1
+            frames_out.inc()
 
     async def _result_bytes(self, frame: Frame, arrived: float) -> bytes | None:
         """The encoded result of ``frame``, or None when it was refused (error queued)."""
-        if self._calibrate_next:
-            self._calibrate_next = False
-            try:
-                self._rig = await self._calibrated(frame.points, frame.seq)
-            except ProtocolError as exc:
-                self._report(exc)
+        core = self.core
+        if core.take_neutral():
+            if not await self._calibrate(frame.points, frame.seq):
+                self._deliver()  # the CALIBRATION_FAILED error, instead of a result
                 return None
-            await self.ws.send_bytes(self.protocol.send(Calibrated(active=True, seq=frame.seq)))
+            for data in core.data_to_send():  # its ``calibrated``, before its result
+                await self.ws.send_bytes(data)
         if self._inline:
             return self._clone_inline(frame, arrived)
-        rig, hello, outputs = self._rig, self.hello, self._outputs
-        assert hello is not None and outputs is not None
+        rig, hello, outputs = core.rig, core.hello, self._outputs
+        assert rig is not None and hello is not None and outputs is not None
         # A large blend (ICT: 27k vertices x 56 examples, 0.3-0.8 ms plus 0.2 ms for the
         # f16 cast) goes to the clone pool, batched with other sessions' frames on the
         # same rig; the weights before it are cheap.
@@ -597,10 +465,11 @@ class Session:
 
     def _clone_inline(self, frame: Frame, arrived: float) -> bytes | None:
         """Clone on the loop (weights: µs; small blends: < INLINE_MAX_SECONDS) and encode."""
-        hello, outputs = self.hello, self._outputs
-        assert hello is not None and outputs is not None
+        core, outputs = self.core, self._outputs
+        rig, hello = core.rig, core.hello
+        assert rig is not None and hello is not None and outputs is not None
         try:
-            values = clone_frame(self._rig, frame, hello, self._smoother, outputs, self._stages)
+            values = clone_frame(rig, frame, hello, self._smoother, outputs, self._stages)
         except InputError as exc:
             self._refuse(frame, exc)
             return None
@@ -617,36 +486,18 @@ class Session:
         outputs = self._outputs
         assert outputs is not None
         # Encoding copies ``values`` out of the session's reused buffers.
-        dropped = self.counters.dropped
         try:
-            data = self.protocol.send_result(
-                frame.seq,
-                frame.ts,
-                values,
-                output=outputs.name,
-                proc_us=int(elapsed * 1e6),
-                dropped=dropped,
-            )
+            data = self.core.result(frame, values, outputs.name, int(elapsed * 1e6))
         except ProtocolError as exc:  # RESULT_NOT_FINITE: this frame only
             self._report(exc)
             return None
-        self._rate.told(dropped)
         if stages is not None:
             stages.add("encode", CPU_CLOCK() - encoding)
         self.metrics.processing_seconds.observe(elapsed)
         return data
 
-    async def _send_close(self, ending: _Closing) -> None:
-        with contextlib.suppress(Exception):
-            async with asyncio.timeout(_CLOSE_GRACE):
-                if ending.error is not None and self.ws.application_state.name == "CONNECTED":
-                    await self.ws.send_bytes(self.protocol.fail(ending.error))
-        with contextlib.suppress(Exception):
-            async with asyncio.timeout(_CLOSE_GRACE):
-                await self.ws.close(ending.code, ending.reason[:120])
-
-    def _log_end(self, ending: _Closing | None) -> None:
-        c = self.counters
+    def _log_end(self, ending: Closing | None) -> None:
+        c = self.core.counters
         log.info(
             "session closed",
             extra={
@@ -663,24 +514,3 @@ class Session:
                 "errors": c.errors,
             },
         )
-
-
-def ready_message(session_id: str, hello, rig, limits, settings) -> Ready:
-    """The ``ready`` answering ``hello`` for ``rig``, with the limits the server enforces."""
-    return Ready(
-        session=session_id,
-        rig=hello.rig,
-        names=rig.names,
-        num_points=rig.num_points,
-        num_vertices=rig.num_vertices,
-        output=hello.output,
-        dtype=hello.dtype,
-        moving=rig.moving_vertices if hello.output == "moving" else None,
-        limits={
-            "max_points": int(limits.max_points),
-            "max_fps": float(settings.max_fps),
-            "rate_burst": int(settings.rate_burst),
-            "max_message_bytes": int(settings.max_message_bytes),
-            "idle_timeout": float(settings.idle_timeout),
-        },
-    )

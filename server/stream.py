@@ -10,20 +10,13 @@ import logging
 
 from fastapi import APIRouter, WebSocket
 
-from facecast.protocol import (
-    STREAM_PATH,
-    ErrorCode,
-    ProtocolError,
-    bearer_token,
-    select_subprotocol,
-)
+from facecast.protocol import STREAM_PATH, ProtocolError, select_subprotocol
 
-from .auth import authorize
+from .admission import authorize_websocket, serve
 from .blending import BlendBatcher
-from .errors import ApiError
+from .core import code_name
 from .refusal import refuse
 from .session import Session
-from .sessions import Owner, Quotas
 from .settings import Settings
 
 __all__ = ["router"]
@@ -38,35 +31,14 @@ async def stream(websocket: WebSocket) -> None:
     """One streaming session per connection (protocol: facecast.protocol, PROTOCOL.md)."""
     app = websocket.app
     settings: Settings = app.state.settings
-    offered = list(websocket.scope.get("subprotocols") or ())
-    subprotocol = select_subprotocol(offered)
+    subprotocol = select_subprotocol(list(websocket.scope.get("subprotocols") or ()))
     try:
-        token = bearer_token(
-            authorization=websocket.headers.get("authorization"),
-            subprotocols=offered,
-            query_token=websocket.query_params.get("token"),
-        )
-        principal = authorize(settings, token, ("stream",))
+        principal = authorize_websocket(websocket, settings, "stream")
     except ProtocolError as exc:
-        await refuse(
-            websocket, exc.evolve(fatal=True), subprotocol, timeout=settings.refuse_timeout
-        )
+        log.info("stream refused", extra={"event": "stream.refused", "code": code_name(exc)})
+        app.state.metrics.errors.labels(code_name(exc)).inc()
+        await refuse(websocket, exc, subprotocol, timeout=settings.refuse_timeout)
         return
-    except ApiError as exc:
-        code = ErrorCode.UNAUTHORIZED if exc.status == 401 else ErrorCode.FORBIDDEN
-        log.info(
-            "stream refused",
-            extra={"event": "stream.refused", "code": code.name, "status": exc.status},
-        )
-        app.state.metrics.errors.labels(code.name).inc()
-        await refuse(
-            websocket,
-            ProtocolError(code, exc.detail, fatal=True),
-            subprotocol,
-            timeout=settings.refuse_timeout,
-        )
-        return
-
     blender = getattr(app.state, "blend_batcher", None)
     if blender is None:
         # One per app, so frames of all its sessions on one rig blend together.
@@ -84,22 +56,4 @@ async def stream(websocket: WebSocket) -> None:
         blender=blender,
         principal=principal.name,
     )
-    registry = app.state.sessions
-    owner = Owner.of(settings, principal.name, websocket.client)
-    why = registry.admit(session, Quotas.from_settings(settings), owner)
-    if why is not None:
-        app.state.metrics.errors.labels(ErrorCode.OVERLOADED.name).inc()
-        await refuse(
-            websocket,
-            ProtocolError(ErrorCode.OVERLOADED, why, fatal=True),
-            subprotocol,
-            timeout=settings.refuse_timeout,
-        )
-        return
-    app.state.metrics.connections.inc()
-    try:
-        await websocket.accept(subprotocol=subprotocol)
-        await session.run()
-    finally:
-        registry.remove(session)
-        app.state.metrics.connections.dec()
+    await serve(websocket, session, subprotocol, principal)

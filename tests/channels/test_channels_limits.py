@@ -155,3 +155,22 @@ async def test_a_watched_rig_overflowing_f16_tells_its_watchers_and_spares_the_o
     assert f16.results == []  # nothing non-finite, and nothing else, was sent to it
     assert f16.queue.empty()  # one error per streak, not one per frame
     assert np.isfinite(f32.results[-1].vertices).all()
+
+
+async def test_an_idle_publisher_gets_idle_timeout_and_its_watchers_stay(settings):
+    quiet = dataclasses.replace(settings, idle_timeout=0.3)
+    async with run_server(quiet) as server:
+        watcher = await Watcher.open(server.ws_url, "quiet", "alpha")
+        publisher = await Publisher.open(server.ws_url, "quiet", "alpha")
+        async with asyncio.timeout(5):
+            error = await publisher.queue.get()
+            while not isinstance(error, Error):  # events of the channel may come first
+                error = await publisher.queue.get()
+            await publisher.ws.wait_closed()
+        watcher_open = not watcher.closed.is_set()
+        await watcher.close()
+
+    assert isinstance(error, Error)
+    assert (error.code, error.fatal) == (ErrorCode.IDLE_TIMEOUT, True)
+    assert publisher.ws.close_code == 1008
+    assert watcher_open  # a watcher only listens: no idle rule for it
