@@ -49,6 +49,7 @@ from .cloning import (
     frame_error,
     frame_weights,
     smoothing_filter,
+    smoothing_name,
 )
 from .direct import binary_frame, direct_writer, queued_messages
 from .frame_rate import FrameRateLimit
@@ -676,6 +677,7 @@ def ready_message(session_id: str, hello, rig, limits, settings) -> Ready:
         output=hello.output,
         dtype=hello.dtype,
         moving=rig.moving_vertices if hello.output == "moving" else None,
+        smoothing=None if hello.smoothing is None else smoothing_name(hello.smoothing, rig),
         limits={
             "max_points": int(limits.max_points),
             "max_fps": float(settings.max_fps),
