@@ -637,9 +637,10 @@ def connect(
     align, align_scale, calibration : bool
         Session options of ``hello`` (PROTOCOL.md §5.1.1).
     smoothing : Smoothing, optional
-        The session's smoothing filter (PROTOCOL.md §5.1.1): ``Smoothing()`` is one-euro at
-        its defaults, ``Smoothing(filter="kalman")`` a Kalman filter with the rig's noise.
-        Default None: no smoothing.
+        The session's smoothing filter (PROTOCOL.md §5.1.1): ``Smoothing()`` is auto (the
+        Kalman filter with the rig's noise where the rig was fitted with one, else one-euro
+        at its defaults; ``ready.smoothing`` says which runs), ``Smoothing(filter=
+        "one-euro")`` or ``Smoothing(filter="kalman")`` names one. Default None: none.
     reconnect : Reconnect or int
         Reconnection policy, or just the number of attempts (0: never reconnect).
     open_timeout : float

@@ -51,8 +51,12 @@ MOVING_DTYPE: Final = np.dtype("<u4")
 POINTS_DTYPES: Final = ("f32", "f64")
 #: What the one-euro filter smooths: the incoming points or the outgoing weights.
 SMOOTHING_TARGETS: Final = ("points", "weights")
-#: The smoothing filters (§5.1.1): one-euro (the default) or a constant-velocity Kalman.
+#: The smoothing filters (§5.1.1): one-euro or a constant-velocity Kalman; a smoothing that
+#: names neither is "auto" (the Kalman where it can run, else the one-euro).
 SMOOTHING_FILTERS: Final = ("one-euro", "kalman")
+#: The Kalman filter's default acceleration, landmark-noise units per s^2 (§5.1.1; the same
+#: figure as ``facecast.rig.filters.KALMAN_ACCELERATION``, which protocol/ cannot import).
+KALMAN_ACCELERATION: Final = 480.0
 #: Longest error message a server sends; longer ones are cut, so they always decode.
 MAX_ERROR_MESSAGE: Final = 256
 
@@ -180,8 +184,10 @@ class Smoothing:
 
     Attributes
     ----------
-    filter : {"one-euro", "kalman"}
-        The filter; the keys below it say which apply.
+    filter : {"one-euro", "kalman"} or None
+        The filter; the keys below it say which apply. None (the default, "auto") leaves
+        it to the server: the Kalman filter where it can run (target "points" and a noise
+        known, from ``noise`` or the rig's fit), else the one-euro filter.
     min_cutoff : float
         Minimum cutoff frequency in Hz, > 0; lower means smoother at rest.
     beta : float
@@ -206,9 +212,9 @@ class Smoothing:
     target: str = "points"
     # Kalman: acceleration 480 noise units / s^2, less jitter and less lag than the
     # one-euro defaults on both real takes at 0.1-0.5 mm of noise (README "Temporal
-    # coherence").
-    filter: str = "one-euro"
-    acceleration: float = 480.0
+    # coherence"), hence the auto default (None) runs it wherever it can.
+    filter: str | None = None
+    acceleration: float = KALMAN_ACCELERATION
     noise: float | None = None
 
     def __post_init__(self) -> None:
@@ -226,7 +232,8 @@ class Smoothing:
                 )
             object.__setattr__(self, name, value)
         _check_choice(self.target, "hello.options.smoothing.target", SMOOTHING_TARGETS)
-        _check_choice(self.filter, "hello.options.smoothing.filter", SMOOTHING_FILTERS)
+        if self.filter is not None:
+            _check_choice(self.filter, "hello.options.smoothing.filter", SMOOTHING_FILTERS)
         if self.filter == "kalman" and self.target != "points":
             raise ProtocolError(
                 ErrorCode.INVALID_FIELD,
@@ -241,12 +248,14 @@ class Smoothing:
             "d_cutoff": self.d_cutoff,
             "target": self.target,
         }
-        # One-euro smoothing keeps its four keys (and bytes); the Kalman's travel with it.
-        if self.filter != "one-euro":
+        # Default smoothing keeps its four keys (and bytes, §10.1): "filter" travels only
+        # when named, "acceleration" with a Kalman (§10.14) or when not the default.
+        if self.filter is not None:
             out["filter"] = self.filter
+        if self.filter == "kalman" or self.acceleration != KALMAN_ACCELERATION:
             out["acceleration"] = self.acceleration
-            if self.noise is not None:
-                out["noise"] = self.noise
+        if self.noise is not None:
+            out["noise"] = self.noise
         return out
 
     @classmethod
@@ -259,9 +268,7 @@ class Smoothing:
             target=read_str(
                 obj, "target", w + "target", limits, cls.target, choices=SMOOTHING_TARGETS
             ),
-            filter=read_str(
-                obj, "filter", w + "filter", limits, cls.filter, choices=SMOOTHING_FILTERS
-            ),
+            filter=read_str(obj, "filter", w + "filter", limits, None, choices=SMOOTHING_FILTERS),
             acceleration=read_float(obj, "acceleration", w + "acceleration", cls.acceleration),
             noise=read_float(obj, "noise", w + "noise", None),
         )
@@ -488,6 +495,10 @@ class Ready(_ArrayMessage):
     moving : (N,) uint32 or None
         With output "moving" (and only then): the indices, strictly increasing and
         below V, of the vertices each result carries, in that order.
+    smoothing : str or None
+        The filter the session's ``hello.smoothing`` runs ("kalman" or "one-euro"; a
+        client accepts any other name), None when it smooths nothing or the server does
+        not say.
     """
 
     TYPE: ClassVar[str] = "ready"
@@ -500,9 +511,12 @@ class Ready(_ArrayMessage):
     dtype: str
     limits: Mapping[str, int | float] = field(default_factory=dict)
     moving: np.ndarray | None = None
+    smoothing: str | None = None
 
     def __post_init__(self) -> None:
         check_str(self.session, "ready.session", None)
+        if self.smoothing is not None:
+            check_str(self.smoothing, "ready.smoothing", None)
         check_str(self.rig, "ready.rig.id", None)
         object.__setattr__(self, "names", tuple(self.names))
         for name in self.names:
@@ -550,7 +564,7 @@ class Ready(_ArrayMessage):
         }
         if self.moving is not None:
             rig["moving"] = self.moving.data  # stored as MOVING_DTYPE by __post_init__
-        return {
+        out: dict[str, Any] = {
             **_header(self.TYPE),
             "session": self.session,
             "rig": rig,
@@ -558,6 +572,9 @@ class Ready(_ArrayMessage):
             "dtype": self.dtype,
             "limits": dict(self.limits),
         }
+        if self.smoothing is not None:  # absent without smoothing: §10.6's bytes stay
+            out["smoothing"] = self.smoothing
+        return out
 
     @classmethod
     def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Ready:
@@ -618,6 +635,7 @@ class Ready(_ArrayMessage):
             dtype=read_str(obj, "dtype", "ready.dtype", limits, choices=_result_dtypes(output)),
             limits=server_limits,
             moving=moving,
+            smoothing=read_str(obj, "smoothing", "ready.smoothing", limits, None),
         )
 
 

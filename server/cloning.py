@@ -24,6 +24,7 @@ __all__ = [
     "frame_error",
     "frame_weights",
     "smoothing_filter",
+    "smoothing_name",
 ]
 
 _RESULT_DTYPES = {"f32": np.float32, "f16": np.float16}
@@ -40,23 +41,34 @@ _INPUT_ERRORS = {
 }
 
 
+def smoothing_name(smoothing: Smoothing, rig: Rig) -> str:
+    """The filter ``smoothing`` runs on ``rig``, "kalman" or "one-euro" (``ready.smoothing``).
+
+    ``smoothing.filter`` None is "auto" (PROTOCOL.md §5.1.1): the Kalman filter, which
+    measured best (README "Temporal coherence"), where it can run (target "points" and a
+    noise known, from ``smoothing.noise`` or ``rig``'s fit), else the one-euro filter.
+    """
+    if smoothing.filter is not None:
+        return smoothing.filter
+    return "kalman" if smoothing.target == "points" and _noise(smoothing, rig) > 0 else "one-euro"
+
+
 def smoothing_filter(smoothing: Smoothing, rig: Rig) -> OneEuroFilter | KalmanFilter:
     """The filter a ``hello.smoothing`` asks for (PROTOCOL.md §5.1.1), for the session's rig.
 
-    Kalman: measurement noise ``smoothing.noise``, else the noise ``rig`` was fitted with;
-    process noise ``smoothing.acceleration`` of those noise units per s^2.
+    The filter is ``smoothing_name``'s. One-euro: the map's one-euro keys. Kalman:
+    measurement noise ``smoothing.noise``, else the noise ``rig`` was fitted with; process
+    noise ``smoothing.acceleration`` of those noise units per s^2.
 
     Raises
     ------
     ProtocolError
-        INVALID_FIELD (fatal, as every refused ``hello``) for a Kalman filter without a
-        noise: no ``smoothing.noise`` and a rig fitted without one.
+        INVALID_FIELD (fatal, as every refused ``hello``) for a Kalman filter named
+        without a noise: no ``smoothing.noise`` and a rig fitted without one.
     """
-    if smoothing.filter != "kalman":
+    if smoothing_name(smoothing, rig) != "kalman":
         return OneEuroFilter(smoothing.min_cutoff, smoothing.beta, smoothing.d_cutoff)
-    noise = smoothing.noise
-    if noise is None:
-        noise = float((getattr(rig, "fit_report", None) or {}).get("noise", 0.0))
+    noise = _noise(smoothing, rig)
     if not noise > 0:
         raise ProtocolError(
             ErrorCode.INVALID_FIELD,
@@ -65,6 +77,13 @@ def smoothing_filter(smoothing: Smoothing, rig: Rig) -> OneEuroFilter | KalmanFi
             fatal=True,
         )
     return KalmanFilter(noise=noise, acceleration=smoothing.acceleration * noise)
+
+
+def _noise(smoothing: Smoothing, rig: Rig) -> float:
+    """The Kalman's landmark noise: ``smoothing.noise``, else ``rig``'s fitted one (0: none)."""
+    if smoothing.noise is not None:
+        return smoothing.noise
+    return float((getattr(rig, "fit_report", None) or {}).get("noise", 0.0))
 
 
 class Smoother:

@@ -39,7 +39,7 @@ from facecast.rig import Rig
 from facecast.rig.errors import RigError
 from facecast.rig.filters import KalmanFilter, OneEuroFilter
 
-from .cloning import Smoother, smoothing_filter
+from .cloning import Smoother, smoothing_filter, smoothing_name
 from .frame_rate import FrameRateLimit
 from .settings import Settings
 from .store import RigNotFoundError, valid_rig_id
@@ -120,6 +120,7 @@ def ready_message(
         output=hello.output,
         dtype=hello.dtype,
         moving=rig.moving_vertices if hello.output == "moving" else None,
+        smoothing=None if hello.smoothing is None else smoothing_name(hello.smoothing, rig),
         limits={
             "max_points": int(limits.max_points),
             "max_fps": float(settings.max_fps),

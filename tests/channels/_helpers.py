@@ -36,8 +36,11 @@ K = 5
 RIG_IDS = ("alpha", "beta", "gamma")
 
 
-def tiny_rig(seed: int, num_vertices: int = 12, k: int = K, target_scale: float = 1.0):
-    """4 examples, ``k`` feature points, a small target (times ``target_scale``)."""
+def tiny_rig(
+    seed: int, num_vertices: int = 12, k: int = K, target_scale: float = 1.0, noise: float = 0.0
+):
+    """4 examples, ``k`` feature points, a small target (times ``target_scale``), fitted
+    with landmark ``noise``."""
     rng = np.random.default_rng(seed)
     m = len(NAMES)
     source = np.repeat(rng.normal(size=(1, k, 3)), m, axis=0)
@@ -45,7 +48,7 @@ def tiny_rig(seed: int, num_vertices: int = 12, k: int = K, target_scale: float 
     target = np.repeat(rng.normal(size=(1, num_vertices, 3)), m, axis=0)
     target[1:] += rng.normal(scale=0.3, size=(m - 1, num_vertices, 3))
     faces = np.array([[i, i + 1, i + 2] for i in range(num_vertices - 2)])
-    return fit(ExampleSet(NAMES, source, target * target_scale, faces))
+    return fit(ExampleSet(NAMES, source, target * target_scale, faces), noise=noise)
 
 
 def write_rigs(directory: Path, rigs: dict[str, Any]) -> None:

@@ -1,4 +1,4 @@
-"""A publisher's Kalman smoothing (PROTOCOL.md §5.1.1) through a real channel, and its refusal."""
+"""A publisher's smoothing (PROTOCOL.md §5.1.1) through a real channel: Kalman, auto, refusal."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import pytest
 
 from facecast.client.channel import channel_url
 from facecast.protocol import ChannelLive, ErrorCode, Hello, Smoothing
-from facecast.rig.filters import KalmanFilter
+from facecast.rig.filters import KALMAN_ACCELERATION, KalmanFilter, OneEuroFilter
 from facecast.server.testing import run_server
 
-from ._helpers import Publisher, Watcher, points, refused
+from ._helpers import Publisher, Watcher, points, refused, tiny_rig, write_rigs
 
 pytestmark = pytest.mark.anyio
 
@@ -47,3 +47,47 @@ async def test_a_kalman_publisher_on_a_rig_fitted_without_noise_is_refused(setti
         await publisher.close()
 
     assert error.code == ErrorCode.INVALID_FIELD and "smoothing.noise" in error.message
+
+
+async def _published(settings, rig_id: str, frames, smoothing: Smoothing):
+    """The publisher's ready and a watcher's result for the last of ``frames``."""
+    async with run_server(settings) as server:
+        watcher = await Watcher.open(server.ws_url, "stage", rig_id)
+        publisher = await Publisher.open(server.ws_url, "stage", rig_id, smoothing=smoothing)
+        await watcher.next(ChannelLive)
+        for seq, (p, ts) in enumerate(frames):
+            await publisher.send(seq, p, ts=ts)
+        result = await watcher.result_with_seq(len(frames) - 1)
+        await publisher.close()
+        await watcher.close()
+    return publisher.ready, result
+
+
+def _filtered_weights(rig, frames, point_filter) -> np.ndarray:
+    """The weights of the last of ``frames`` after ``point_filter`` ran over them all."""
+    smoothed = [point_filter(p.astype(np.float64).reshape(-1), ts) for p, ts in frames]
+    return rig.weights(smoothed[-1].reshape(frames[-1][0].shape))
+
+
+async def test_a_publishers_auto_smoothing_on_a_noise_rig_runs_the_kalman_filter(settings):
+    rig = tiny_rig(7, noise=0.05)
+    write_rigs(settings.rigs_dir, {"noisy": rig})
+    frames = [(points(rig, seed), 0.1 * seed) for seed in range(4)]
+    kalman = KalmanFilter(noise=0.05, acceleration=KALMAN_ACCELERATION * 0.05)
+    expected = _filtered_weights(rig, frames, kalman)
+
+    ready, result = await _published(settings, "noisy", frames, Smoothing())
+
+    assert ready.smoothing == "kalman"
+    np.testing.assert_allclose(result.weights, expected.astype(np.float32), atol=1e-6)
+
+
+async def test_a_publishers_auto_smoothing_on_an_exact_rig_runs_the_one_euro_filter(settings, rigs):
+    rig = rigs["alpha"]  # fitted exactly
+    frames = [(points(rig, seed), 0.1 * seed) for seed in range(4)]
+    expected = _filtered_weights(rig, frames, OneEuroFilter(min_cutoff=2.0, beta=0.5))
+
+    ready, result = await _published(settings, "alpha", frames, Smoothing(beta=0.5))
+
+    assert ready.smoothing == "one-euro"
+    np.testing.assert_allclose(result.weights, expected.astype(np.float32), atol=1e-6)

@@ -50,6 +50,9 @@ smoothing = st.builds(
     beta=st.floats(min_value=0.0, max_value=1e6),
     d_cutoff=positive,
     target=st.sampled_from(["points", "weights"]),
+    filter=st.sampled_from([None, "one-euro"]),  # auto or named ("kalman": points only)
+    acceleration=positive,
+    noise=st.none() | positive,
 )
 
 

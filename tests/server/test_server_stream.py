@@ -300,7 +300,7 @@ async def test_kalman_smoothing_filters_the_points_with_the_rigs_noise(served, g
         for p, ts in frames
     ]
     async with connect(served) as ws:
-        await open_session(ws, "noisy", smoothing=smoothing)
+        ready = await open_session(ws, "noisy", smoothing=smoothing)
         results = []
         for seq, (p, ts) in enumerate(frames):
             await ws.send(frame(seq, p, ts=ts))
@@ -309,6 +309,105 @@ async def test_kalman_smoothing_filters_the_points_with_the_rigs_noise(served, g
     for result, want in zip(results, expected, strict=True):
         np.testing.assert_allclose(result.weights, want.astype(np.float32), atol=1e-6)
     assert not np.allclose(results[-1].weights, noisy_rig.weights(frames[-1][0]), atol=1e-4)
+    assert ready.smoothing == "kalman"
+
+
+async def _smoothed_weights(served, rig_id: str, frames, smoothing: Smoothing):
+    """The ready and the results of ``frames`` (points, ts) sent with ``smoothing``."""
+    async with connect(served) as ws:
+        ready = await open_session(ws, rig_id, smoothing=smoothing)
+        results = []
+        for seq, (p, ts) in enumerate(frames):
+            await ws.send(frame(seq, p, ts=ts))
+            results.append(await next_result(ws))
+    return ready, [r.weights for r in results]
+
+
+def _offline_point_filter(rig, frames, point_filter):
+    """The weights of ``frames`` whose points went through ``point_filter`` first."""
+    return [
+        rig.weights(point_filter(p.astype(np.float64).reshape(-1), ts).reshape(p.shape))
+        for p, ts in frames
+    ]
+
+
+async def test_auto_smoothing_on_a_rig_fitted_with_noise_runs_the_kalman_filter(served):
+    from facecast.rig.filters import KALMAN_ACCELERATION, KalmanFilter
+
+    noisy_rig = fit(tiny_example_set(), noise=0.05)
+    served.app.state.store.put_rig("noisy", noisy_rig)
+    frames = [(frame_points(noisy_rig, i), 0.1 * i) for i in range(4)]
+    kalman = KalmanFilter(noise=0.05, acceleration=KALMAN_ACCELERATION * 0.05)
+    expected = _offline_point_filter(noisy_rig, frames, kalman)
+
+    ready, weights = await _smoothed_weights(served, "noisy", frames, Smoothing())
+
+    assert ready.smoothing == "kalman"
+    for got, want in zip(weights, expected, strict=True):
+        np.testing.assert_allclose(got, want.astype(np.float32), atol=1e-6)
+
+
+async def test_auto_smoothing_with_a_noise_given_runs_the_kalman_filter_on_an_exact_rig(
+    served, rig
+):
+    from facecast.rig.filters import KalmanFilter
+
+    frames = [(frame_points(rig, i), 0.1 * i) for i in range(4)]
+    expected = _offline_point_filter(rig, frames, KalmanFilter(noise=0.02, acceleration=6.0))
+
+    ready, weights = await _smoothed_weights(
+        served, "face", frames, Smoothing(noise=0.02, acceleration=300.0)
+    )
+
+    assert ready.smoothing == "kalman"
+    for got, want in zip(weights, expected, strict=True):
+        np.testing.assert_allclose(got, want.astype(np.float32), atol=1e-6)
+
+
+async def test_auto_smoothing_on_a_rig_fitted_exactly_runs_the_one_euro_filter(served, rig):
+    from facecast.rig.filters import OneEuroFilter
+
+    frames = [(frame_points(rig, i), 0.1 * i) for i in range(4)]
+    expected = _offline_point_filter(rig, frames, OneEuroFilter(min_cutoff=2.0, beta=0.5))
+
+    ready, weights = await _smoothed_weights(
+        served, "face", frames, Smoothing(min_cutoff=2.0, beta=0.5)
+    )
+
+    assert ready.smoothing == "one-euro"
+    for got, want in zip(weights, expected, strict=True):
+        np.testing.assert_allclose(got, want.astype(np.float32), atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "smoothing",
+    [Smoothing(filter="one-euro", beta=0.5), Smoothing(beta=0.5, target="weights")],
+    ids=["named-one-euro", "auto-weights"],
+)
+async def test_one_euro_runs_on_a_noise_rig_when_named_or_smoothing_weights(served, smoothing):
+    from facecast.rig.filters import OneEuroFilter
+
+    noisy_rig = fit(tiny_example_set(), noise=0.05)
+    served.app.state.store.put_rig("noisy", noisy_rig)
+    frames = [(frame_points(noisy_rig, i), 0.1 * i) for i in range(4)]
+    reference = OneEuroFilter(min_cutoff=2.0, beta=0.5)
+    if smoothing.target == "points":
+        expected = _offline_point_filter(noisy_rig, frames, reference)
+    else:
+        expected = [reference(noisy_rig.weights(p), ts) for p, ts in frames]
+
+    ready, weights = await _smoothed_weights(served, "noisy", frames, smoothing)
+
+    assert ready.smoothing == "one-euro"
+    for got, want in zip(weights, expected, strict=True):
+        np.testing.assert_allclose(got, want.astype(np.float32), atol=1e-6)
+
+
+async def test_a_session_without_smoothing_says_no_filter(served):
+    async with connect(served) as ws:
+        ready = await open_session(ws, "face")
+
+    assert ready.smoothing is None
 
 
 async def test_kalman_smoothing_on_a_rig_fitted_without_noise_needs_a_noise(served):
