@@ -1,7 +1,8 @@
 """One channel frame cloned once per (rig, output, dtype) key and encoded once for all its watchers.
 
-Runs in the clone worker threads: pure computation on a rig and a frame, returning bytes.
-It holds no sockets, never touches the event loop and knows nothing of who receives.
+Runs in the clone worker threads, or on the loop for the microsecond keys (weights):
+pure computation on a rig and a frame, returning bytes.
+It holds no sockets, schedules nothing and knows nothing of who receives.
 """
 
 from __future__ import annotations
