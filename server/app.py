@@ -26,7 +26,7 @@ from facecast import __version__
 
 from .auth import authorize_page, authorize_request
 from .channel_routes import router as channel_router
-from .errors import install_error_handlers, problem
+from .errors import LogOnce, install_error_handlers, problem
 from .hub import ChannelHub
 from .metrics import CONTENT_TYPE_LATEST, Metrics
 from .origins import OriginGuard
@@ -90,7 +90,7 @@ def create_app(settings: Settings) -> FastAPI:
             await anyio.to_thread.run_sync(app.state.store.close)
             log.info("server stopped", extra={"event": "server.stop", "pid": os.getpid()})
 
-    app = FastAPI(
+    app = _FacecastAPI(
         title="facecast",
         version=__version__,
         summary="Real-time example-based facial expression cloning",
@@ -200,6 +200,15 @@ def _add_docs_routes(app: FastAPI) -> None:
         page = get_swagger_ui_html(openapi_url=schema, title="facecast API")
         page.headers.update(_TOKEN_PAGE_HEADERS)
         return page
+
+
+class _FacecastAPI(FastAPI):
+    """FastAPI whose unexpected failures are logged once (``errors.LogOnce``)."""
+
+    def build_middleware_stack(self) -> ASGIApp:
+        # Starlette's own hook (pinned, pyproject): its stack starts with the
+        # ServerErrorMiddleware, which LogOnce must wrap.
+        return LogOnce(super().build_middleware_stack())
 
 
 class _AccessLog:

@@ -25,11 +25,12 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 from facecast.errors import FacecastError
 from facecast.rig.errors import RigError
 
-__all__ = ["ApiError", "install_error_handlers", "problem"]
+__all__ = ["ApiError", "LogOnce", "install_error_handlers", "problem"]
 
 log = logging.getLogger("facecast.server")
 
@@ -63,6 +64,29 @@ class ApiError(FacecastError):
         self.code = code
         self.detail = detail
         self.headers = headers
+
+
+#: Set in a request's scope by the 500 handler once it has logged the failure.
+_LOGGED = "facecast.error_logged"
+
+
+class LogOnce:
+    """Pure ASGI, around Starlette's ServerErrorMiddleware: a failure logged once.
+
+    That middleware answers an unexpected exception with the 500 handler's response, then
+    raises it again "so that servers can log it", and uvicorn logs its traceback a second
+    time. Here a failure the handler has already logged ends the request instead.
+    """
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        try:
+            await self.app(scope, receive, send)
+        except Exception:
+            if not scope.get(_LOGGED):
+                raise
 
 
 def problem(
@@ -120,8 +144,10 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
-        # The one place an unexpected failure is logged with its traceback.
+        # The one place an unexpected failure is logged with its traceback (``LogOnce``
+        # keeps uvicorn from logging it again).
         log.exception(
             "unhandled error", extra={"event": "http.unhandled", "path": request.url.path}
         )
+        request.scope[_LOGGED] = True
         return problem(500, "internal_error", "internal server error")

@@ -23,6 +23,7 @@ from _server_helpers import (
 )
 
 from facecast.rig import fit, rig_from_bytes
+from facecast.server.app import create_app
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
 
@@ -398,6 +399,25 @@ async def test_a_client_leaving_mid_body_is_logged_once_without_a_traceback(sett
 
     assert errors_logged(records) == []
     assert [getattr(r, "event", None) for r in records].count("http.client_disconnect") == 1
+    assert after.status_code == 200
+
+
+async def test_an_unexpected_failure_is_a_500_logged_once_with_its_traceback(settings):
+    app = create_app(settings)
+
+    @app.get("/v1/boom")
+    async def boom() -> None:
+        raise RuntimeError("a bug")
+
+    async with run_server(settings, app=app) as server, client(server) as http:
+        with server_logs() as records:
+            response = await http.get("/v1/boom")
+            await wait_for_record(records, "http.request")
+        after = await http.get("/healthz")
+
+    assert (response.status_code, response.json()["code"]) == (500, "internal_error")
+    # Once by facecast's handler; before, uvicorn logged the same traceback again.
+    assert errors_logged(records) == ["unhandled error"]
     assert after.status_code == 200
 
 
