@@ -187,7 +187,7 @@ class ServerProtocol:
 
     def fail(self, error: ProtocolError) -> bytes:
         """Bytes of the `Error` reporting ``error``; closes the session when it is fatal."""
-        return self.send(error.to_message())
+        return self.send(Error.of(error))
 
     def close(self) -> None:
         """Mark the session closed (the socket went away)."""

@@ -15,12 +15,8 @@ Unlike the other FacecastErrors, whose ``code`` is a string per class, a Protoco
 from __future__ import annotations
 
 from enum import IntEnum, unique
-from typing import TYPE_CHECKING
 
 from facecast.errors import FacecastError
-
-if TYPE_CHECKING:
-    from facecast.protocol.messages import Error
 
 
 @unique
@@ -104,9 +100,3 @@ class ProtocolError(FacecastError, ValueError):
             seq=self.seq if self.seq is not None else seq,
             fatal=self.fatal if fatal is None else fatal,
         )
-
-    def to_message(self) -> Error:
-        """The `Error` message that reports this error to the peer."""
-        from facecast.protocol.messages import Error
-
-        return Error(code=self.code, message=self.message, seq=self.seq, fatal=self.fatal)

@@ -815,6 +815,11 @@ class Error(Message):
         """This error as a `ProtocolError` a client can raise."""
         return ProtocolError(self.code, self.message, seq=self.seq, fatal=self.fatal)
 
+    @classmethod
+    def of(cls, error: ProtocolError) -> Error:
+        """The `Error` message that reports ``error`` to the peer."""
+        return cls(code=error.code, message=error.message, seq=error.seq, fatal=error.fatal)
+
 
 @dataclass(frozen=True, kw_only=True)
 class Pong(_Probe):

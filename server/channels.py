@@ -15,7 +15,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from facecast.protocol import ChannelIdle, ChannelLive, FaceLost, ProtocolError, encode
+from facecast.protocol import ChannelIdle, ChannelLive, Error, FaceLost, ProtocolError, encode
 from facecast.rig.errors import InputError
 
 from .cloning import frame_error
@@ -360,7 +360,7 @@ class Channel:
                 message = f"rig {state.rig_id!r}: {exc.message}"
             notice = ProtocolError(error.code, message, seq=frame.seq)
             for member in self.watchers(state.key):
-                member.offer(encode(notice.to_message()))
+                member.offer(encode(Error.of(notice)))
         state.failing = True
 
     # -- figures -------------------------------------------------------------------------

@@ -22,6 +22,7 @@ from facecast.protocol import (
     Calibrate,
     Calibrated,
     ClientMessage,
+    Error,
     ErrorCode,
     Frame,
     Hello,
@@ -321,7 +322,7 @@ class ConnectionCore:
         self._count(code_name(error))
         if error.fatal:
             raise Closing.for_error(error)
-        self.send(error.to_message())
+        self.send(Error.of(error))
 
     def deadline(self) -> float | None:
         """When `tick` is due next (idle timeout, a rate error owed), or None."""

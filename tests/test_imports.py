@@ -57,13 +57,7 @@ LAZY: dict[tuple[str, str], str] = {
 
 #: Function-local imports that dodge a cycle today; each names the step that removes it.
 #: The test fails when one of them is gone, so that this list shrinks with the code.
-CYCLE_DEBT: dict[tuple[str, str], str] = {
-    ("facecast.protocol.errors", "facecast.protocol.messages"): (
-        "messages raises ProtocolError and ProtocolError.to_message builds a messages.Error; "
-        "protocol/messages.py is being changed by another branch (issue #11 step 3: one "
-        "exceptions module per package)"
-    ),
-}
+CYCLE_DEBT: dict[tuple[str, str], str] = {}
 
 
 @dataclass(frozen=True)

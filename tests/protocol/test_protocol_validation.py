@@ -364,7 +364,7 @@ def test_long_error_message_is_cut_so_it_always_decodes() -> None:
 
 def test_protocol_error_round_trips_through_error_message() -> None:
     error = ProtocolError(ErrorCode.NON_FINITE, "bad", seq=3, fatal=True)
-    decoded = decode_server(encode(error.to_message()))
+    decoded = decode_server(encode(Error.of(error)))
     back = decoded.to_exception()
     assert (back.code, back.message, back.seq, back.fatal) == (ErrorCode.NON_FINITE, "bad", 3, True)
 
