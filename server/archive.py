@@ -19,7 +19,8 @@ from typing import IO, TYPE_CHECKING
 if TYPE_CHECKING:
     from _typeshed import WriteableBuffer
 
-from facecast.errors import FacecastError
+
+from .errors import ArchiveError
 
 __all__ = ["ArchiveError", "ArchiveLimits", "extract_archive", "find_example_root"]
 
@@ -32,17 +33,6 @@ MAX_PATH_BYTES = 1024
 #: Below this many extracted bytes the ratio check is off: tar's block padding alone
 #: makes small, legitimate archives compress far beyond any sane bomb threshold.
 _RATIO_FLOOR = 1 << 20
-
-
-class ArchiveError(FacecastError, ValueError):
-    """A rejected archive; ``status`` and ``code`` are the HTTP answer."""
-
-    code: str = "bad_archive"
-
-    def __init__(self, status: int, code: str, message: str) -> None:
-        super().__init__(message)
-        self.status = status
-        self.code = code
 
 
 @dataclass(frozen=True)

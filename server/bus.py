@@ -21,8 +21,7 @@ from typing import Any, TypeVar
 
 import msgpack
 
-from facecast.errors import FacecastError
-
+from .errors import BusUnavailable
 from .settings import SettingsError
 
 __all__ = ["Bus", "BusUnavailable", "LocalBus", "RedisBus", "make_bus"]
@@ -56,12 +55,6 @@ return 0
 
 #: on_message(channel name, origin process, kind, payload)
 OnMessage = Callable[[str, str, str, bytes | None], None]
-
-
-class BusUnavailable(FacecastError, ConnectionError):
-    """The shared registry (Redis) cannot be reached right now."""
-
-    code: str = "bus_unavailable"
 
 
 def frames_channel(name: str) -> str:

@@ -3,11 +3,11 @@
 Route code raises ``ApiError`` (or lets a ``RigError`` through); the handlers here turn
 them into one JSON shape, once, at the boundary. No route logic lives here.
 
-The server's exceptions (the root is ``facecast.errors.FacecastError``; each is defined
-beside the one object that raises it, and its class ``code`` is its default)::
+The server's exceptions, all here (the root is ``facecast.errors.FacecastError``; a
+class's ``code`` is its default, and the module that raises each re-exports it)::
 
-    ApiError(status, code, detail)                 "api_error"   here; code: the problem's
-    SettingsError(ValueError)                      "bad_setting"        settings.py
+    ApiError(status, code, detail)                 "api_error"          code: the problem's
+    SettingsError(ValueError)                      "bad_setting"        raised by settings.py
     RigNotFoundError(LookupError)                  "rig_not_found"      store.py
     ProfileNotFoundError(LookupError)              "profile_not_found"  performers.py
     ArchiveError(ValueError)(status, code, ...)    "bad_archive"        archive.py
@@ -30,7 +30,17 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from facecast.errors import FacecastError
 from facecast.rig.errors import RigError
 
-__all__ = ["ApiError", "LogOnce", "install_error_handlers", "problem"]
+__all__ = [
+    "ApiError",
+    "ArchiveError",
+    "BusUnavailable",
+    "LogOnce",
+    "ProfileNotFoundError",
+    "RigNotFoundError",
+    "SettingsError",
+    "install_error_handlers",
+    "problem",
+]
 
 log = logging.getLogger("facecast.server")
 
@@ -64,6 +74,45 @@ class ApiError(FacecastError):
         self.code = code
         self.detail = detail
         self.headers = headers
+
+
+class ArchiveError(FacecastError, ValueError):
+    """A rejected archive; ``status`` and ``code`` are the HTTP answer."""
+
+    code: str = "bad_archive"
+
+    def __init__(self, status: int, code: str, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+        self.code = code
+
+
+class BusUnavailable(FacecastError, ConnectionError):
+    """The shared registry (Redis) cannot be reached right now."""
+
+    code: str = "bus_unavailable"
+
+
+class ProfileNotFoundError(FacecastError, LookupError):
+    code: str = "profile_not_found"
+
+    def __init__(self, performer: str) -> None:
+        super().__init__(f"no performer profile named {performer!r}")
+        self.performer = performer
+
+
+class SettingsError(FacecastError, ValueError):
+    """A configuration value that cannot be used; the message names the setting."""
+
+    code: str = "bad_setting"
+
+
+class RigNotFoundError(FacecastError, LookupError):
+    code: str = "rig_not_found"
+
+    def __init__(self, rig_id: str) -> None:
+        super().__init__(f"no rig with id {rig_id!r}")
+        self.rig_id = rig_id
 
 
 #: Set in a request's scope by the 500 handler once it has logged the failure.

@@ -19,11 +19,10 @@ from typing import Any, NoReturn, TypeGuard
 import msgpack
 import numpy as np
 
-from facecast.errors import FacecastError
 from facecast.rig import estimate_noise
 from facecast.rig.sources.layouts import DEFAULT_LAYOUT, layout_names
 
-from .errors import ApiError
+from .errors import ApiError, ProfileNotFoundError
 from .store import fsync_directory, valid_name, write_atomically
 
 __all__ = [
@@ -330,14 +329,6 @@ def _points_array(name: str, value: object) -> np.ndarray:
     if not np.isfinite(array).all():
         raise _bad("non_finite", f"points[{name!r}] holds NaN or Inf")
     return array
-
-
-class ProfileNotFoundError(FacecastError, LookupError):
-    code: str = "profile_not_found"
-
-    def __init__(self, performer: str) -> None:
-        super().__init__(f"no performer profile named {performer!r}")
-        self.performer = performer
 
 
 class ProfileStore:

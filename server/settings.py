@@ -19,7 +19,7 @@ from types import MappingProxyType
 from typing import Any
 from urllib.parse import urlsplit
 
-from facecast.errors import FacecastError
+from .errors import SettingsError
 
 __all__ = ["ROLES", "Settings", "SettingsError", "normalise_origin", "parse_tokens"]
 
@@ -29,12 +29,6 @@ ROLES = frozenset({"admin", "stream", "publisher", "viewer", "performer"})
 
 ENV_PREFIX = "FACECAST_"
 MiB = 1024 * 1024
-
-
-class SettingsError(FacecastError, ValueError):
-    """A configuration value that cannot be used; the message names the setting."""
-
-    code: str = "bad_setting"
 
 
 @dataclass(frozen=True)

@@ -21,11 +21,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from facecast.errors import FacecastError
 from facecast.protocol import Limits
 from facecast.rig.errors import RigFileError
 from facecast.rig.io.gltf import export_glb
 from facecast.rig.io.rigfile import rig_from_bytes
+
+from .errors import RigNotFoundError
 
 if TYPE_CHECKING:
     from facecast.rig.rig import Rig
@@ -94,14 +95,6 @@ def check_servable(rig: Rig, limits: Limits, source: str) -> None:
             f"{source} cannot be streamed: " + "; ".join(problems) + " (PROTOCOL.md §7)",
             code="rig_exceeds_limits",
         )
-
-
-class RigNotFoundError(FacecastError, LookupError):
-    code: str = "rig_not_found"
-
-    def __init__(self, rig_id: str) -> None:
-        super().__init__(f"no rig with id {rig_id!r}")
-        self.rig_id = rig_id
 
 
 def valid_rig_id(rig_id: str) -> bool:
