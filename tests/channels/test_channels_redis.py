@@ -76,6 +76,9 @@ async def test_a_second_publisher_on_another_process_is_refused(redis_settings, 
             channel_url(b.ws_url, "stage", "publish"), hello=Hello(rig="alpha")
         )
         await first.close()
+        # The client's close returns before process a has released the channel's lock in
+        # Redis; a drops the channel after that release.
+        await wait_for(lambda: "stage" not in a.app.state.channels.channels, what="lock released")
         second = await Publisher.open(b.ws_url, "stage", "alpha")
 
     assert error.code == ErrorCode.CHANNEL_BUSY
