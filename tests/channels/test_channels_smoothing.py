@@ -15,7 +15,7 @@ from ._helpers import Publisher, Watcher, points, refused, tiny_rig, write_rigs
 pytestmark = pytest.mark.anyio
 
 
-async def test_a_publishers_kalman_smoothing_reaches_the_watchers(settings, rigs):
+async def test_a_publishers_kalman_smoothing_reaches_the_watchers(settings, rigs, ws_impl):
     rig = rigs["alpha"]
     frames = [(points(rig, seed), 0.1 * seed) for seed in range(4)]
     reference = KalmanFilter(noise=0.05, acceleration=300.0 * 0.05)
@@ -24,7 +24,7 @@ async def test_a_publishers_kalman_smoothing_reaches_the_watchers(settings, rigs
         for p, ts in frames
     ]
     smoothing = Smoothing(filter="kalman", acceleration=300.0, noise=0.05)
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "stage", "alpha")
         publisher = await Publisher.open(server.ws_url, "stage", "alpha", smoothing=smoothing)
         await watcher.next(ChannelLive)
@@ -38,9 +38,9 @@ async def test_a_publishers_kalman_smoothing_reaches_the_watchers(settings, rigs
     assert not np.allclose(result.weights, rig.weights(frames[3][0]), atol=1e-4)
 
 
-async def test_a_kalman_publisher_on_a_rig_fitted_without_noise_is_refused(settings):
+async def test_a_kalman_publisher_on_a_rig_fitted_without_noise_is_refused(settings, ws_impl):
     hello = Hello(rig="alpha", smoothing=Smoothing(filter="kalman"))  # alpha: fitted exactly
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         error, _ = await refused(channel_url(server.ws_url, "stage", "publish"), hello=hello)
         # The refusal claimed nothing: another publisher takes the channel at once.
         publisher = await Publisher.open(server.ws_url, "stage", "alpha")
@@ -49,9 +49,9 @@ async def test_a_kalman_publisher_on_a_rig_fitted_without_noise_is_refused(setti
     assert error.code == ErrorCode.INVALID_FIELD and "smoothing.noise" in error.message
 
 
-async def _published(settings, rig_id: str, frames, smoothing: Smoothing):
+async def _published(settings, ws_impl: str, rig_id: str, frames, smoothing: Smoothing):
     """The publisher's ready and a watcher's result for the last of ``frames``."""
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "stage", rig_id)
         publisher = await Publisher.open(server.ws_url, "stage", rig_id, smoothing=smoothing)
         await watcher.next(ChannelLive)
@@ -69,25 +69,27 @@ def _filtered_weights(rig, frames, point_filter) -> np.ndarray:
     return rig.weights(smoothed[-1].reshape(frames[-1][0].shape))
 
 
-async def test_a_publishers_auto_smoothing_on_a_noise_rig_runs_the_kalman_filter(settings):
+async def test_a_publishers_auto_smoothing_on_a_noise_rig_runs_the_kalman_filter(settings, ws_impl):
     rig = tiny_rig(7, noise=0.05)
     write_rigs(settings.rigs_dir, {"noisy": rig})
     frames = [(points(rig, seed), 0.1 * seed) for seed in range(4)]
     kalman = KalmanFilter(noise=0.05, acceleration=KALMAN_ACCELERATION * 0.05)
     expected = _filtered_weights(rig, frames, kalman)
 
-    ready, result = await _published(settings, "noisy", frames, Smoothing())
+    ready, result = await _published(settings, ws_impl, "noisy", frames, Smoothing())
 
     assert ready.smoothing == "kalman"
     np.testing.assert_allclose(result.weights, expected.astype(np.float32), atol=1e-6)
 
 
-async def test_a_publishers_auto_smoothing_on_an_exact_rig_runs_the_one_euro_filter(settings, rigs):
+async def test_a_publishers_auto_smoothing_on_an_exact_rig_runs_the_one_euro_filter(
+    settings, rigs, ws_impl
+):
     rig = rigs["alpha"]  # fitted exactly
     frames = [(points(rig, seed), 0.1 * seed) for seed in range(4)]
     expected = _filtered_weights(rig, frames, OneEuroFilter(min_cutoff=2.0, beta=0.5))
 
-    ready, result = await _published(settings, "alpha", frames, Smoothing(beta=0.5))
+    ready, result = await _published(settings, ws_impl, "alpha", frames, Smoothing(beta=0.5))
 
     assert ready.smoothing == "one-euro"
     np.testing.assert_allclose(result.weights, expected.astype(np.float32), atol=1e-6)

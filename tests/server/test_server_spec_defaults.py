@@ -34,14 +34,14 @@ def test_section_7_states_the_servers_default(key):
     assert _table_default(key) == getattr(Settings(), key)
 
 
-async def test_section_10_6_shows_the_limits_a_default_server_sends(tmp_path, rig):
+async def test_section_10_6_shows_the_limits_a_default_server_sends(tmp_path, rig, ws_impl):
     rigs = tmp_path / "rigs"
     rigs.mkdir()
     rig.save(rigs / "demo.rig")
     block = re.search(r"<!-- example: ready -->\s*```text\n(.*?)```", _SPEC, re.DOTALL)
     assert block is not None
     example = decode_server(bytes.fromhex(re.sub(r"\s", "", block.group(1))))
-    async with run_server(Settings(rigs_dir=rigs)) as server:
+    async with run_server(Settings(rigs_dir=rigs), ws=ws_impl) as server:
         async with connect(server.base_url, "demo") as session:
             streamed = dict(session.ready.limits)
         publish = channel_url(server.base_url, "stage", "publish")
@@ -51,7 +51,7 @@ async def test_section_10_6_shows_the_limits_a_default_server_sends(tmp_path, ri
     assert dict(example.limits) == streamed == published
 
 
-async def test_the_stream_needs_the_stream_role_as_section_2_1_says(tmp_path, rig):
+async def test_the_stream_needs_the_stream_role_as_section_2_1_says(tmp_path, rig, ws_impl):
     rigs = tmp_path / "rigs"
     rigs.mkdir()
     rig.save(rigs / "demo.rig")
@@ -59,7 +59,7 @@ async def test_the_stream_needs_the_stream_role_as_section_2_1_says(tmp_path, ri
     settings = Settings(rigs_dir=rigs, auth=True, tokens=tokens)
     assert "`/v1/stream` | One performer, one session" in _section("2")
     assert "Token role `stream`." in _section("2")
-    async with run_server(settings) as server:
+    async with run_server(settings, ws=ws_impl) as server:
         with pytest.raises(ProtocolError) as info:
             async with connect(server.base_url, "demo", token="v"):
                 pass
