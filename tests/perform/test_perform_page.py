@@ -296,11 +296,14 @@ def test_on_the_performers_rig_the_open_mouth_weighs_clearly_more(
 # -- faults: face lost, server gone, wrong token ------------------------------------------
 
 
-def test_a_lost_face_stops_publishing_and_watchers_get_face_lost(browser, server, camera, pages):
+def test_a_lost_face_stops_publishing_and_watchers_get_face_lost(
+    browser, server, camera, pages, performer_rig
+):
+    # The performer's own rig: published at once (a generic one waits for a neutral).
     camera.show([FacePose()] * 25 + [FacePose(shift=(400.0, 0.0))] * 50)  # then out of view
-    recorder, _ = watching(server, "lost", CHARACTER, "points")
+    recorder, _ = watching(server, "lost", RIG, "points")
     try:
-        page = open_page(browser, perform_url(server, "lost", CHARACTER))
+        page = open_page(browser, perform_url(server, "lost", RIG))
         pages.append(page)
         page.wait_for_function("window.facecastStats.publish === 'live'")
         page.wait_for_function("window.facecastStats.published > 0")
@@ -318,7 +321,7 @@ def test_a_lost_face_stops_publishing_and_watchers_get_face_lost(browser, server
 
 
 def test_the_page_reconnects_when_the_server_comes_back_and_keeps_tracking(
-    browser, rigs_dir, camera, pages
+    browser, rigs_dir, camera, pages, performer_rig
 ):
     from facecast.cli.snapshot import serving
     from facecast.server.settings import Settings
@@ -327,7 +330,7 @@ def test_the_page_reconnects_when_the_server_comes_back_and_keeps_tracking(
     camera.show([FacePose()] * 5)
     with serving(settings) as base_url:
         port = int(base_url.rsplit(":", 1)[1])
-        page = open_page(browser, perform_url(base_url, "again", CHARACTER))
+        page = open_page(browser, perform_url(base_url, "again", RIG))
         pages.append(page)
         page.wait_for_function("window.facecastStats.publish === 'live'")
         tracking(page)  # the face model came from this server too
@@ -396,17 +399,26 @@ def test_a_token_without_the_performer_role_cannot_fit_and_is_told(
     assert "the token lacks the role performer" in page.text_content("#verdict")
 
 
-def test_a_generic_rig_is_rebased_on_the_captured_neutral(browser, server, camera, pages):
+def test_a_generic_rig_gets_no_frame_until_it_is_rebased_on_the_captured_neutral(
+    browser, server, camera, pages
+):
     camera.show([FacePose()] * 5)
     page = open_page(browser, perform_url(server, "generic", CHARACTER))
     pages.append(page)
-    page.wait_for_function("window.facecastStats.publish === 'live'")
+    page.wait_for_function("window.facecastStats.publish === 'waiting'")
     page.wait_for_selector('#steps button[data-name="aa"]')
     tracking(page)
-    assert page.evaluate("window.facecastStats.rebased") is False
+    page.wait_for_function("window.facecastStats.heldForNeutral > 0")
+    before = page.evaluate("window.facecastStats")
+    assert "capture your neutral first" in page.text_content("#publish-detail")
 
     page.click("#calibrate")
     page.click("#capture")
-    # The server answers the page's calibrate (PROTOCOL.md §5.1.3) with calibrated.
+    # The server answers the page's calibrate (PROTOCOL.md §5.1.3) with calibrated; only
+    # then do frames go out.
     page.wait_for_function("window.facecastStats.rebased === true")
+    page.wait_for_function("window.facecastStats.published > 5")
+
+    assert (before["rebased"], before["published"]) == (False, 0)
+    assert page.evaluate("window.facecastStats.publish") == "live"
     assert "re-based on your neutral" in page.text_content("#publish-detail")

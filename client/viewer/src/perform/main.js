@@ -38,6 +38,7 @@ const stats = {
   modelMs: null, // model time per frame (mean over the window)
   firstModelMs: null, // the first frame's model time (WebGL: shader compilation)
   published: 0, // frames sent
+  heldForNeutral: 0, // frames not sent: a generic rig waits for the performer's neutral
   skipped: 0, // frames not sent: socket backed up
   publishFps: 0,
   seq: null,
@@ -178,10 +179,15 @@ async function main() {
   // Publishing: the channel's publisher session; tracking goes on whatever happens here.
   let publishing = false;
   // Generic first: a rig that is not the performer's own (no "@performer") is re-based on
-  // the performer's captured neutral (PROTOCOL.md §5.1.3), on every connection.
+  // the performer's captured neutral (PROTOCOL.md §5.1.3), on every connection, and gets
+  // no frame until it is (``heldForNeutral`` counts the frames held back).
+  const generic = !params.rig.includes("@");
+  const NEUTRAL_FIRST =
+    `rig ${params.rig} is not fitted on your face: press Calibrate and capture your neutral ` +
+    "first; until then no frame is published (the character would be distorted)";
   let neutral = null;
   const rebase = (l) => {
-    if (neutral && publishing && !params.rig.includes("@")) l.send(encodeCalibrate(neutral));
+    if (neutral && publishing && generic) l.send(encodeCalibrate(neutral));
   };
   let latencyEma = null;
   const link = new Link(socketTarget(params), {
@@ -218,7 +224,11 @@ async function main() {
         bindView();
         publishing = true;
         stats.rebased = false;
-        setPublish("live", `live · ${params.channel}`, `rig ${msg.rig.id}, ${K} points a frame`);
+        if (generic && !neutral) {
+          // Uncalibrated points far from the rig's neutral make its exact weights
+          // extrapolate: every viewer would see a distorted character. Hold the frames.
+          setPublish("waiting", "waiting for your neutral", NEUTRAL_FIRST);
+        } else setPublish("live", `live · ${params.channel}`, `rig ${msg.rig.id}, ${K} points a frame`);
         rebase(l);
       } else if (msg.type === "calibrated") {
         stats.rebased = msg.active === true;
@@ -307,7 +317,8 @@ async function main() {
       const { frame } = normaliseMesh(mesh, layout, points);
       const head = headAngles(frame);
       const eyes = eyeOpenness(mesh, layout);
-      if (publishing && link.bufferedAmount < MAX_BUFFERED_BYTES) {
+      if (publishing && generic && !stats.rebased) stats.heldForNeutral += 1;
+      else if (publishing && link.bufferedAmount < MAX_BUFFERED_BYTES) {
         if (link.send(encodeFrame(seq, performance.now() / 1000, points))) {
           stats.seq = seq;
           seq += 1;
