@@ -40,6 +40,7 @@ from facecast.protocol import (
     encode,
 )
 from facecast.rig import fit
+from facecast.rig.filters import KALMAN_ACCELERATION, KalmanFilter, OneEuroFilter
 from facecast.server.cloning import blend_seconds
 from facecast.server.session import INLINE_MAX_SECONDS
 from facecast.server.settings import Settings
@@ -261,8 +262,6 @@ async def test_invalid_utf8_in_a_text_frame_closes_1007_without_an_error_log(ser
 
 @pytest.mark.parametrize("target", ["points", "weights"])
 async def test_smoothing_applies_a_one_euro_filter_clocked_by_frame_ts(served, rig, target):
-    from facecast.rig.filters import OneEuroFilter
-
     smoothing = Smoothing(min_cutoff=2.0, beta=0.5, target=target)
     frames = [(frame_points(rig, i), 0.1 * i) for i in range(4)]
     reference = OneEuroFilter(min_cutoff=2.0, beta=0.5)
@@ -287,8 +286,6 @@ async def test_smoothing_applies_a_one_euro_filter_clocked_by_frame_ts(served, r
 
 @pytest.mark.parametrize("given", [None, 0.02])
 async def test_kalman_smoothing_filters_the_points_with_the_rigs_noise(served, given):
-    from facecast.rig.filters import KalmanFilter
-
     noisy_rig = fit(tiny_example_set(), noise=0.05)  # the rig's noise unless one is given
     served.app.state.store.put_rig("noisy", noisy_rig)
     smoothing = Smoothing(filter="kalman", acceleration=300.0, noise=given)
@@ -332,8 +329,6 @@ def _offline_point_filter(rig, frames, point_filter):
 
 
 async def test_auto_smoothing_on_a_rig_fitted_with_noise_runs_the_kalman_filter(served):
-    from facecast.rig.filters import KALMAN_ACCELERATION, KalmanFilter
-
     noisy_rig = fit(tiny_example_set(), noise=0.05)
     served.app.state.store.put_rig("noisy", noisy_rig)
     frames = [(frame_points(noisy_rig, i), 0.1 * i) for i in range(4)]
@@ -347,34 +342,26 @@ async def test_auto_smoothing_on_a_rig_fitted_with_noise_runs_the_kalman_filter(
         np.testing.assert_allclose(got, want.astype(np.float32), atol=1e-6)
 
 
-async def test_auto_smoothing_with_a_noise_given_runs_the_kalman_filter_on_an_exact_rig(
-    served, rig
-):
-    from facecast.rig.filters import KalmanFilter
-
+@pytest.mark.parametrize(
+    ("smoothing", "offline", "runs"),
+    [
+        # A noise given makes the Kalman filter possible on a rig fitted exactly.
+        (
+            Smoothing(noise=0.02, acceleration=300.0),
+            lambda: KalmanFilter(noise=0.02, acceleration=6.0),
+            "kalman",
+        ),
+        (Smoothing(min_cutoff=2.0, beta=0.5), lambda: OneEuroFilter(2.0, 0.5), "one-euro"),
+    ],
+    ids=["noise-given", "no-noise"],
+)
+async def test_auto_smoothing_on_a_rig_fitted_exactly(served, rig, smoothing, offline, runs):
     frames = [(frame_points(rig, i), 0.1 * i) for i in range(4)]
-    expected = _offline_point_filter(rig, frames, KalmanFilter(noise=0.02, acceleration=6.0))
+    expected = _offline_point_filter(rig, frames, offline())
 
-    ready, weights = await _smoothed_weights(
-        served, "face", frames, Smoothing(noise=0.02, acceleration=300.0)
-    )
+    ready, weights = await _smoothed_weights(served, "face", frames, smoothing)
 
-    assert ready.smoothing == "kalman"
-    for got, want in zip(weights, expected, strict=True):
-        np.testing.assert_allclose(got, want.astype(np.float32), atol=1e-6)
-
-
-async def test_auto_smoothing_on_a_rig_fitted_exactly_runs_the_one_euro_filter(served, rig):
-    from facecast.rig.filters import OneEuroFilter
-
-    frames = [(frame_points(rig, i), 0.1 * i) for i in range(4)]
-    expected = _offline_point_filter(rig, frames, OneEuroFilter(min_cutoff=2.0, beta=0.5))
-
-    ready, weights = await _smoothed_weights(
-        served, "face", frames, Smoothing(min_cutoff=2.0, beta=0.5)
-    )
-
-    assert ready.smoothing == "one-euro"
+    assert ready.smoothing == runs
     for got, want in zip(weights, expected, strict=True):
         np.testing.assert_allclose(got, want.astype(np.float32), atol=1e-6)
 
@@ -385,8 +372,6 @@ async def test_auto_smoothing_on_a_rig_fitted_exactly_runs_the_one_euro_filter(s
     ids=["named-one-euro", "auto-weights"],
 )
 async def test_one_euro_runs_on_a_noise_rig_when_named_or_smoothing_weights(served, smoothing):
-    from facecast.rig.filters import OneEuroFilter
-
     noisy_rig = fit(tiny_example_set(), noise=0.05)
     served.app.state.store.put_rig("noisy", noisy_rig)
     frames = [(frame_points(noisy_rig, i), 0.1 * i) for i in range(4)]
