@@ -7,8 +7,9 @@ example set. Reads and writes files only; it must not fit or serve anything.
 Input: a checkout of the public ICT-VGL/ICT-FaceKit repository (its ``FaceXModel``
 folder: ``generic_neutral_mesh.obj``, one OBJ per expression, ``vertex_indices.json``)
 or the converted ``ict_facekit.npz`` / its folder. Shapes are renamed by
-``ARKIT_TO_ICT``: ICT's left/right ``browInnerUp`` and ``cheekPuff`` halves are summed
-into ARKit's single shapes; ICT has no ``tongueOut``, so the set has 51 ARKit shapes.
+``source_rig.arkit_from_ict`` (as ``rig.evaluation.takes`` does): ICT's left/right
+``browInnerUp`` and ``cheekPuff`` halves are summed into ARKit's single shapes; ICT has no
+``tongueOut``, so the set has 51 ARKit shapes.
 
 Output::
 
@@ -163,25 +164,14 @@ def arkit_example_set(path: Path, landmarks, target: str):
     from facecast.rig.errors import ExampleSetError
     from facecast.rig.examples import ExampleSet
     from facecast.rig.sources.ict import stable_positions
-    from facecast.rig.sources.source_rig import ARKIT_NAMES, ARKIT_TO_ICT
+    from facecast.rig.sources.source_rig import arkit_from_ict
 
     names, neutral, shapes, faces, landmarks68 = read_ict(path)
-    index = {n: i for i, n in enumerate(names)}
     feature = np.asarray(landmarks68)[np.asarray(landmarks)].astype(np.int64)
-    out_names = ["neutral"]
-    meshes = [neutral]
-    for arkit in ARKIT_NAMES:
-        parts = ARKIT_TO_ICT[arkit]
-        if not parts:
-            continue
-        missing = [p for p in parts if p not in index]
-        if missing:
-            raise ExampleSetError(f"{path}: no ICT shape {missing[0]!r} (for {arkit})")
-        # ICT splits some ARKit shapes into halves; their deltas add up to the whole.
-        mesh = neutral + sum(shapes[index[p]] - neutral for p in parts)
-        out_names.append(arkit)
-        meshes.append(mesh)
-    vertices = np.stack(meshes)
+    try:
+        out_names, vertices = arkit_from_ict(names, neutral, shapes, strict=True)
+    except ExampleSetError as exc:
+        raise ExampleSetError(f"{path}: {exc}") from None
     faces = np.asarray(faces, dtype=np.int64)
     if target == "face":
         count = min(ICT_FACE_VERTEX_COUNT, vertices.shape[1])
@@ -190,7 +180,7 @@ def arkit_example_set(path: Path, landmarks, target: str):
     else:
         target_vertices = vertices
     example_set = ExampleSet(
-        names=tuple(out_names),
+        names=out_names,
         source_points=vertices[:, feature],
         target_vertices=target_vertices,
         target_faces=faces,

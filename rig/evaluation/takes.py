@@ -16,7 +16,7 @@ import numpy.typing as npt
 from ..errors import InputError
 from ..examples import ExampleSet
 from ..sources.ict import ict_example_set
-from ..sources.source_rig import ARKIT_NAMES, ARKIT_TO_ICT
+from ..sources.source_rig import ARKIT_NAMES, arkit_from_ict
 
 __all__ = ["ARKIT_TARGET_IDENTITY", "TakeExperiment", "arkit_example_set", "take_experiment"]
 
@@ -43,29 +43,15 @@ def arkit_example_set(
         ``names`` ("neutral", ARKit names in ``ARKIT_NAMES`` order).
     """
     ict = ict_example_set(path, identity=identity)
-    index = {name: i for i, name in enumerate(ict.names)}
-    names = ["neutral"]
-    rows = [[0]]
-    for arkit in ARKIT_NAMES:
-        parts = ARKIT_TO_ICT[arkit]
-        if parts and all(p in index for p in parts):
-            names.append(arkit)
-            rows.append([index[p] for p in parts])
-
-    def combined(examples: np.ndarray) -> np.ndarray:
-        neutral = examples[0]
-        out = np.empty((len(rows), *neutral.shape))
-        out[0] = neutral
-        for i, parts in enumerate(rows[1:], start=1):
-            out[i] = neutral + (examples[parts] - neutral).sum(axis=0)
-        return out
-
     count = min(_FACE_VERTICES, ict.num_vertices)
+    points, vertices = ict.source_points, ict.target_vertices[:, :count]
+    names, source_points = arkit_from_ict(ict.names[1:], points[0], points[1:])
+    _, target_vertices = arkit_from_ict(ict.names[1:], vertices[0], vertices[1:])
     faces = ict.target_faces[(ict.target_faces < count).all(axis=1)]
     return ExampleSet(
-        names=tuple(names),
-        source_points=combined(ict.source_points),
-        target_vertices=combined(ict.target_vertices[:, :count]),
+        names=names,
+        source_points=source_points,
+        target_vertices=target_vertices,
         target_faces=faces,
     )
 

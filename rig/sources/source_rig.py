@@ -41,6 +41,7 @@ __all__ = [
     "HEAD_POSE_NAMES",
     "NUM_ARKIT",
     "SourceRig",
+    "arkit_from_ict",
     "arkit_index",
     "head_rotation",
     "load_source_rig",
@@ -163,6 +164,33 @@ def head_rotation(angles: npt.ArrayLike) -> np.ndarray:
     rz = np.stack([cr, -sr, zero, sr, cr, zero, zero, zero, one], axis=-1)
     shape = (*a.shape[:-1], 3, 3)
     return ry.reshape(shape) @ rx.reshape(shape) @ rz.reshape(shape)
+
+
+def arkit_from_ict(
+    ict_names: Sequence[str], neutral: np.ndarray, shapes: np.ndarray, *, strict: bool = False
+) -> tuple[tuple[str, ...], np.ndarray]:
+    """ICT-FaceKit's shapes under their ARKit names: ``(names, meshes)``, neutral first.
+
+    ``shapes[i]`` is the shape ``ict_names[i]`` (any trailing dimensions: meshes, feature
+    points). Each ARKit shape in ``ARKIT_NAMES`` order is its ICT parts' deltas added to
+    ``neutral`` (ICT splits ``browInnerUp`` and ``cheekPuff`` into halves); one with no ICT
+    part (``tongueOut``) is left out, as is one whose parts are missing unless ``strict``,
+    which raises ``ExampleSetError`` naming the first missing part.
+    """
+    index = {name: i for i, name in enumerate(ict_names)}
+    names, meshes = ["neutral"], [neutral]
+    for arkit in ARKIT_NAMES:
+        parts = ARKIT_TO_ICT[arkit]
+        if not parts:
+            continue
+        missing = [p for p in parts if p not in index]
+        if missing:
+            if strict:
+                raise ExampleSetError(f"no ICT shape {missing[0]!r} (for {arkit})")
+            continue
+        names.append(arkit)
+        meshes.append(neutral + sum(shapes[index[p]] - neutral for p in parts))
+    return tuple(names), np.stack(meshes)
 
 
 def _match(names: Sequence[str]) -> tuple[tuple[tuple[int, ...], ...], tuple[str, ...]]:

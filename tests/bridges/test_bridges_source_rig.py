@@ -14,6 +14,7 @@ from facecast.rig.sources.source_rig import (
     ARKIT_TO_ICT,
     NUM_ARKIT,
     SourceRig,
+    arkit_from_ict,
     arkit_index,
     head_rotation,
 )
@@ -24,6 +25,30 @@ from ._helpers import arkit_example_set
 def test_arkit_table_lists_the_52_shapes_once_each():
     assert len(ARKIT_NAMES) == NUM_ARKIT == 52 == len(set(ARKIT_NAMES))
     assert set(ARKIT_TO_ICT) == set(ARKIT_NAMES)
+
+
+def test_ict_halves_are_summed_into_one_arkit_shape_and_missing_parts_are_told():
+    ict_names = sorted({part for parts in ARKIT_TO_ICT.values() for part in parts})
+    rng = np.random.default_rng(3)
+    neutral = rng.normal(size=(4, 3))
+    shapes = neutral + rng.normal(size=(len(ict_names), 4, 3))
+    at = {name: i for i, name in enumerate(ict_names)}
+
+    names, meshes = arkit_from_ict(ict_names, neutral, shapes)
+
+    assert names[0] == "neutral" and "tongueOut" not in names  # no ICT shape for it
+    assert names[1:] == tuple(n for n in ARKIT_NAMES if ARKIT_TO_ICT[n])
+    halves = ARKIT_TO_ICT["cheekPuff"]
+    assert len(halves) == 2
+    expected = neutral + sum(shapes[at[p]] - neutral for p in halves)
+    np.testing.assert_array_equal(meshes[names.index("cheekPuff")], expected)
+    np.testing.assert_array_equal(meshes[names.index("jawOpen")], shapes[at["jawOpen"]])
+    without = [n for n in ict_names if n != halves[0]]
+    kept = [at[n] for n in without]
+    lenient, _ = arkit_from_ict(without, neutral, shapes[kept])
+    assert "cheekPuff" not in lenient and "jawOpen" in lenient
+    with pytest.raises(ExampleSetError, match=f"no ICT shape '{halves[0]}' \\(for cheekPuff\\)"):
+        arkit_from_ict(without, neutral, shapes[kept], strict=True)
 
 
 def test_names_match_case_insensitively_and_through_ict_spelling(source_rig):
