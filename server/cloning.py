@@ -83,7 +83,7 @@ def _noise(smoothing: Smoothing, rig: Rig) -> float:
     """The Kalman's landmark noise: ``smoothing.noise``, else ``rig``'s fitted one (0: none)."""
     if smoothing.noise is not None:
         return smoothing.noise
-    return float((getattr(rig, "fit_report", None) or {}).get("noise", 0.0))
+    return float(rig.fit_report.get("noise", 0.0))
 
 
 class Smoother:
