@@ -19,6 +19,7 @@ from facecast.protocol.codec import (
     reject_text,
 )
 from facecast.protocol.errors import ErrorCode, ProtocolError
+from facecast.protocol.fastframe import decode_frame
 from facecast.protocol.limits import Limits
 from facecast.protocol.messages import (
     Calibrate,
@@ -124,6 +125,20 @@ class ServerProtocol:
         if isinstance(message, Frame | Calibrate) and message.points is not None:
             self._check_point_count(message)
         return message
+
+    def receive_frame(self, data: bytes) -> Frame | None:
+        """``data`` as a `Frame` the open session takes as is, or None: `receive` decides.
+
+        The per-frame fast path: only a frame in the canonical layout (`fastframe`), with
+        the rig's point count, on a streaming session that is not a watcher's. None says
+        nothing about validity; it never raises and changes no state.
+        """
+        if self.state is not ServerState.STREAMING or self.watching or self.ready is None:
+            return None
+        frame = decode_frame(data, self.limits)
+        if frame is None or frame.points.shape[0] != self.ready.num_points:
+            return None
+        return frame
 
     def receive_text(self, text: str) -> NoReturn:
         """Reject a text WebSocket message: TEXT_NOT_SUPPORTED (fatal before hello)."""

@@ -46,6 +46,7 @@ from .metrics import Metrics
 from .settings import Settings
 from .stages import CPU_CLOCK
 from .store import RigNotFoundError, RigStore
+from .transport import Transport, transport_for
 
 __all__ = ["INLINE_MAX_SECONDS", "Session", "SessionCounters", "ready_message"]
 
@@ -146,6 +147,16 @@ class Session(Driver):
         self._corked_bytes = 0
         self._queued: Callable[[], int] | None = None
         self._reader_waited = False
+        #: The reader waits in its receive with nothing of its own in flight: frames may
+        #: then be taken on the protocol's stack (``_take``), ahead of the receive.
+        self._parked = False
+        #: When the first frame ``_take`` took since the last flush was read, and whether
+        #: a flush is due when the protocol's read is done (``_read_done``).
+        self._taken_burst = 0.0
+        self._flush_due = False
+        self._transport: Transport | None = None
+        #: Frames handled on the protocol's stack (``_take``) rather than by the reader.
+        self.frames_taken = 0
         self._started = time.monotonic()
 
     # -- public --------------------------------------------------------------------------
@@ -171,7 +182,16 @@ class Session(Driver):
         """Run until the client leaves, a fatal error, the idle timeout or ``close``."""
         self._direct = direct_writer(self.ws)
         self._queued = queued_messages(self.ws) if self._direct is not None else None
+        if self._direct is not None:
+            transport = transport_for(self.ws)
+            if transport.take_messages(self._take, self._read_done):
+                self._transport = transport
         await super().run()
+
+    def _stopping(self) -> None:
+        self._parked = False
+        if self._transport is not None:
+            self._transport.take_messages(None)
 
     def _count_error(self, name: str) -> None:
         self.metrics.errors.labels(name).inc()
@@ -190,7 +210,11 @@ class Session(Driver):
             else:
                 self._reader_waited = False
                 self._loop.call_soon(self._mark_reader_waited)
-            message = await receive()
+            self._parked = True
+            try:
+                message = await receive()
+            finally:
+                self._parked = False
             now = clock()
             if waits if queued is not None else self._reader_waited:
                 # The receive had to wait: this message starts a new burst (messages
@@ -214,6 +238,58 @@ class Session(Driver):
                     await self._dispatch(decoded)
             except ProtocolError as exc:
                 self._report(exc)
+
+    def _take(self, data: bytes) -> bool:
+        """Take a received frame on the protocol's ``data_received`` stack; False: not here.
+
+        The transport offers each binary message here first while nothing waits for the
+        reader's receive (``Transport.take_messages``). While the reader is parked in it,
+        a frame the session may take as is (``ServerProtocol.receive_frame``) is handled
+        exactly as the reader would (``_on_frame``) without the queue, the task switch
+        and uvicorn's read pause of each message, and the results of one read are
+        written together once the protocol has parsed all of it (``_read_done``).
+        Anything else goes to the reader, in order. Never raises: an error ends the
+        session as the reader's would.
+        """
+        if not self._parked or self._stop.done():
+            return False
+        stages = self._stages
+        decoding = CPU_CLOCK() if stages is not None else 0.0
+        frame = self.protocol.receive_frame(data)
+        if frame is None:
+            return False
+        now = time.monotonic()
+        self.frames_taken += 1
+        self.core.last_message = now
+        if stages is not None:
+            stages.add("decode", CPU_CLOCK() - decoding)
+        if not self._flush_due:
+            self._flush_due = True
+            self._taken_burst = time.perf_counter()
+        in_burst = time.perf_counter() - self._taken_burst < _BURST_SECONDS
+        self._guarded(self._on_frame, frame, in_burst, now)
+        return True
+
+    def _read_done(self) -> None:
+        """The protocol has offered every message of one read: write the burst's results."""
+        if self._flush_due:
+            self._flush_due = False
+            if not self._stop.done():
+                self._guarded(self._flush)
+
+    def _guarded(self, work: Callable[..., None], *args: object) -> None:
+        """Run the reader's ``work`` on the protocol's stack: what it raises ends the session."""
+        try:
+            try:
+                work(*args)
+            except ProtocolError as exc:
+                self._report(exc)
+        except Closing as ending:
+            self.stop(ending)
+        except Exception as exc:  # a bug: end the session as a crashed reader would
+            log.error("session failed", exc_info=exc,
+                      extra={"event": self.crash_event, "session": self.id})  # fmt: skip
+            self.stop(Closing.internal())
 
     def _mark_reader_waited(self) -> None:
         # Scheduled before each receive: it runs before the receive returns only if the
@@ -508,6 +584,7 @@ class Session(Driver):
                 "reason": "client left" if ending is None else ending.reason,
                 "seconds": round(time.monotonic() - self._started, 3),
                 "frames_in": c.frames_in,
+                "frames_taken": self.frames_taken,
                 "results_out": c.results_out,
                 "dropped_superseded": c.dropped_superseded,
                 "dropped_rate": c.dropped_rate,

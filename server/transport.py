@@ -31,6 +31,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from starlette.websockets import WebSocket, WebSocketState
 from websockets.protocol import State
 
+from .ws_guard import BoundedSansIO
+
 __all__ = ["AsgiTransport", "SansIOTransport", "Transport", "TransportSeam", "transport_for"]
 
 #: Scope keys set by `TransportSeam` (uvicorn's own callables) and by `transport_for`.
@@ -84,6 +86,19 @@ class Transport:
         """Received messages the app has not read yet (0 where not known)."""
         return 0
 
+    def take_messages(
+        self, hook: Callable[[bytes], bool] | None, done: Callable[[], None] | None = None
+    ) -> bool:
+        """Offer each received binary message to ``hook`` first (None: stop); False if not.
+
+        ``hook`` runs on the protocol's ``data_received`` stack, only while no received
+        message waits for the app's receive; returning True takes the message (the app's
+        receive never sees it), False leaves it to the receive, in order. ``done`` is
+        called once the messages of each read from the socket have all been offered
+        (write what they produced together). Neither may raise or block.
+        """
+        return False
+
     @property
     def closed(self) -> bool:
         """Whether no more frames can be written (closed, closing or never accepted)."""
@@ -125,6 +140,15 @@ class SansIOTransport(Transport):
         self.buffered_bytes = protocol.transport.get_write_buffer_size  # type: ignore[method-assign]
         # A closure per connection: the fan-out calls it once per viewer and result.
         self.write = _direct_write(websocket, protocol)  # type: ignore[method-assign,assignment]
+
+    def take_messages(
+        self, hook: Callable[[bytes], bool] | None, done: Callable[[], None] | None = None
+    ) -> bool:
+        protocol = self._protocol
+        if not isinstance(protocol, BoundedSansIO):
+            return False  # uvicorn's own class (not facecast's runner): no hook
+        protocol.message_hook, protocol.read_hook = hook, done if hook is not None else None
+        return True
 
     @property
     def closed(self) -> bool:

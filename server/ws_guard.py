@@ -8,21 +8,26 @@ paused (its buffer above the high-water mark) are counted, and past
 ``ws_close_timeout`` for the peer's part of the closing handshake (uvicorn: 10 s), and
 a connection whose app has ended is dropped ``2 x ws_close_timeout`` later whatever the
 peer does (uvicorn's ``transport.close()`` waits for the peer to read everything
-buffered). Nothing else of uvicorn's protocols changes.
+buffered). On the sans-I/O one, the app may take binary messages as they are parsed
+(``message_hook``, for the per-frame path: no queue, task switch or read pause per
+message); whatever it declines goes to the app's receive as before. Nothing else of
+uvicorn's protocols changes.
 
 Subclasses uvicorn's classes (pinned in pyproject.toml); relies on both having
 ``run_asgi``, ``loop``, ``transport`` and ``close_timeout`` (read when closing), and on the
-sans-I/O one's ``handle_ping``, ``conn`` and ``writable``.
+sans-I/O one's ``handle_ping``, ``conn``, ``writable``, and ``send_receive_event_to_app``
+with ``frames``, ``curr_msg_data_type``, ``close_sent`` and ``queue`` (the message hook).
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import Any
 
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
-__all__ = ["guarded_ws_protocol"]
+__all__ = ["BoundedSansIO", "guarded_ws_protocol"]
 
 log = logging.getLogger("facecast.server.ws")
 
@@ -51,9 +56,40 @@ class _AbortLingering:
             self.loop.call_later(2 * self.ws_close_timeout, self.transport.abort)
 
 
-class _BoundedSansIO(_AbortLingering, WebSocketsSansIOProtocol):
+class BoundedSansIO(_AbortLingering, WebSocketsSansIOProtocol):
+    """uvicorn's ``websockets-sansio`` protocol with bounded pongs and the message hook."""
+
     max_pong_backlog = 64 * 1024
     _pong_backlog = 0
+    #: Set by the app through the transport seam (``transport.SansIOTransport.take_messages``):
+    #: offered each whole binary message first, on ``data_received``'s stack, while
+    #: nothing received waits for the app; True means it took the message. ``read_hook``
+    #: is called after each read's messages have all been parsed.
+    message_hook: Callable[[bytes], bool] | None = None
+    read_hook: Callable[[], None] | None = None
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        done = self.read_hook
+        if done is not None:
+            done()
+
+    def send_receive_event_to_app(self) -> None:
+        hook = self.message_hook
+        if (
+            hook is not None
+            and self.curr_msg_data_type == "bytes"
+            and not self.close_sent
+            and self.queue.empty()
+        ):
+            frames = self.frames
+            data = frames[0] if len(frames) == 1 else b"".join(frames)
+            if hook(data):
+                # Taken: not queued for the app's receive, so reading is not paused
+                # for it either (uvicorn pauses after each queued message).
+                self.frames = []
+                return
+        super().send_receive_event_to_app()
 
     def handle_ping(self) -> None:
         if self.writable.is_set():  # the client reads: pongs go out as uvicorn writes them
@@ -81,7 +117,7 @@ class _BoundedSansIO(_AbortLingering, WebSocketsSansIOProtocol):
 def guarded_ws_protocol(ws: str, *, max_pong_backlog: int, close_timeout: float) -> type:
     """uvicorn's WebSocket protocol class ``ws`` ("websockets-sansio" or "websockets"), bounded."""
     if ws == "websockets-sansio":
-        return type("GuardedWebSocketsSansIOProtocol", (_BoundedSansIO,),
+        return type("GuardedWebSocketsSansIOProtocol", (BoundedSansIO,),
                     {"max_pong_backlog": max_pong_backlog,
                      "ws_close_timeout": close_timeout})  # fmt: skip
     if ws == "websockets":

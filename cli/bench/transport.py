@@ -143,7 +143,7 @@ def _serve(kind: str, port: int, rigs_dir: str | None = None) -> None:
                 await asyncio.Future()
 
         uvloop.run(main())
-    elif kind == "facecast":
+    elif kind in ("facecast", "facecast-staged"):
         from facecast.server.runner import serve as serve_facecast
         from facecast.server.settings import Settings
 
@@ -156,8 +156,9 @@ def _serve(kind: str, port: int, rigs_dir: str | None = None) -> None:
             rate_burst=1_000_000,
             log_level="warning",
             access_log=False,
-            # Attribute the figures: stage clocks on (~1 µs a frame, included in them).
-            stage_timing=True,
+            # The stage clocks (a thread-CPU clock read, a system call, ~8 a frame) only
+            # where the figures are attributed; the judged figures run as deployed.
+            stage_timing=kind == "facecast-staged",
         )
         serve_facecast(settings)
     else:  # pragma: no cover - internal
@@ -728,7 +729,6 @@ def run(args: argparse.Namespace) -> int:
                 kind: f"ws://127.0.0.1:{ports[kind]}{'/echo' if kind == 'fastapi' else '/'}"
                 for kind in _BASELINES
             }
-            before = stage_snapshot(base)
             cpu0 = {kind: cpu_seconds([p]) for kind, p in pids.items()}
             wall0 = time.perf_counter()
             results = _measure(
@@ -743,13 +743,29 @@ def run(args: argparse.Namespace) -> int:
                 results[kind]["server_cpu_us_per_message"] = (
                     cpu / results[kind]["messages"] * 1e6 if results[kind]["messages"] else None
                 )
-            weights_stages = stage_delta(
-                before, after := stage_snapshot(base), int(
-                    after["items"]["encode"] - before["items"]["encode"])
-            )  # fmt: skip
             say(f"bench transport: facecast weights, library client ({duration:g} s) ...")
             library = _measure({**spec, "kind": "facecast-library"}, timeout)
             library.pop("client_cpu_seconds", None)
+            # The rest is attributed by stage: a server with the stage clocks on (their
+            # cost is in its figures, not in the judged ones above).
+            port, pid = servers.enter_context(_server("facecast-staged", rigs_dir, tmp_path))
+            base = f"http://127.0.0.1:{port}"
+            say(
+                f"bench transport: facecast weights by stage, stage clocks on "
+                f"({duration / 2:g} s) ..."
+            )
+            before = stage_snapshot(base)
+            staged = _measure(
+                {**spec, "url": base, "seconds": duration / 2, "kind": "interleaved",
+                 "message": message.hex(), "echo_urls": {}},
+                timeout,
+            )  # fmt: skip
+            after = stage_snapshot(base)
+            weights_stages = stage_delta(
+                before, after, int(after["items"]["encode"] - before["items"]["encode"])
+            )
+            weights_stages["rtt_p50_ms"] = staged["facecast"]["rtt_ms"]["p50_ms"]
+            weights_stages["throughput_msgs_per_s"] = staged["facecast"]["throughput_msgs_per_s"]
             say(
                 f"bench transport: facecast vertices f16, {name} rigs, {clients} clients x "
                 f"{TARGET_FPS:g} fps ({duration:g} s each): exact and bounded weights, "
@@ -921,7 +937,11 @@ def _format(f: dict[str, Any]) -> str:
         parts = ", ".join(
             f"{k} {v:.1f}" for k, v in stages["per_result_us"].items() if v is not None
         )
-        lines.append(f"  facecast weights, server us/result by stage: {parts}")
+        lines.append(
+            f"  facecast weights, server us/result by stage: {parts} (a second server with "
+            f"the stage clocks on: RTT p50 {num(stages.get('rtt_p50_ms'), '.3f')} ms, "
+            f"{num(stages.get('throughput_msgs_per_s'), '.0f')} msg/s)"
+        )
     goals, ratios, base = f["goals"], f["ratios"], f["baseline"]
     lines += [
         f"  RTT p50: facecast / {base['rtt']} = {num(ratios['rtt_p50'], '.2f')}x "

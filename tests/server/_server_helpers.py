@@ -260,3 +260,12 @@ def wait_ready(base_url: str, process: subprocess.Popen, timeout: float = 20.0) 
 def stop(process: subprocess.Popen, sig: int = signal.SIGTERM, timeout: float = 15.0) -> int:
     process.send_signal(sig)
     return process.wait(timeout)
+
+
+async def wait_until(predicate, timeout: float = 10.0) -> None:
+    """Wait for a condition on the server's state (it runs in its own thread: no event to
+    await across threads)."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        await asyncio.sleep(0.01)

@@ -18,6 +18,7 @@ from _server_helpers import (
     server_logs,
     tar_bytes,
     tiny_example_set,
+    wait_until,
     write_example_folder,
     zip_bytes,
 )
@@ -32,14 +33,6 @@ pytestmark = pytest.mark.anyio
 
 def client(server) -> httpx.AsyncClient:
     return httpx.AsyncClient(base_url=server.base_url, timeout=30)
-
-
-async def wait_until(predicate, timeout: float = 10.0) -> None:
-    """Wait for a condition on the server's state (it runs in its own thread)."""
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        await asyncio.sleep(0.01)
 
 
 async def wait_for_record(records, event: str, timeout: float = 10.0) -> None:

@@ -24,6 +24,7 @@ from _server_helpers import (
     server_logs,
     tiny_example_set,
     tiny_rig,
+    wait_until,
 )
 
 from facecast.protocol import (
@@ -61,14 +62,6 @@ async def next_result(ws) -> Result:
     message = await recv_message(ws)
     assert isinstance(message, Result), message
     return message
-
-
-async def wait_until(predicate, timeout: float = 10.0) -> None:
-    """Wait for a condition on the server's state (no event to await across threads)."""
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        await asyncio.sleep(0.01)
 
 
 @pytest.fixture

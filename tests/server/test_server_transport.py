@@ -13,6 +13,7 @@ import socket
 import numpy as np
 import pytest
 import websockets
+from _server_helpers import server_logs, wait_until
 from starlette.applications import Starlette
 from starlette.routing import WebSocketRoute
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -21,7 +22,17 @@ from websockets.client import ClientProtocol
 from websockets.http11 import Response
 from websockets.uri import parse_uri
 
-from facecast.protocol import SUBPROTOCOL, Frame, Hello, Ready, Result
+from facecast.protocol import (
+    SUBPROTOCOL,
+    Frame,
+    Hello,
+    Ping,
+    Pong,
+    Ready,
+    Result,
+    decode_server,
+    encode,
+)
 from facecast.protocol import ClientProtocol as FacecastClient
 from facecast.server.app import create_app
 from facecast.server.direct import binary_frame, direct_writer, queued_messages
@@ -259,3 +270,123 @@ def test_create_app_puts_the_seam_outermost(settings):
     app = create_app(settings)
 
     assert app.user_middleware[0].cls is TransportSeam
+
+
+# -- frames taken on the protocol's stack (``Transport.take_messages``) -------------------
+
+
+def _stream_burst(port: int, hello: bytes, burst: list[bytes], replies: int) -> list[bytes]:
+    """Open a stream, send ``hello``, then every message of ``burst`` in one TCP write.
+
+    Returns the server's first ``replies`` messages after ``ready``, in order.
+    """
+    from websockets.frames import Frame as WsFrame
+    from websockets.frames import Opcode
+
+    with socket.create_connection(("127.0.0.1", port), timeout=_WAIT) as sock:
+        conn = ClientProtocol(
+            parse_uri(f"ws://127.0.0.1:{port}/v1/stream"), subprotocols=[SUBPROTOCOL]
+        )
+        conn.send_request(conn.connect())
+        sock.sendall(b"".join(conn.data_to_send()))
+        received: list[bytes] = []
+        opened = False
+
+        def read_until(count: int) -> None:
+            nonlocal opened
+            while not opened or len(received) < count:
+                for event in conn.events_received():
+                    opened = opened or isinstance(event, Response)
+                    if isinstance(event, WsFrame) and event.opcode is Opcode.BINARY:
+                        received.append(bytes(event.data))
+                if not opened or len(received) < count:
+                    conn.receive_data(sock.recv(65536))
+
+        read_until(0)  # the handshake's response
+        conn.send_binary(hello)
+        sock.sendall(b"".join(conn.data_to_send()))
+        read_until(1)  # ready
+        for message in burst:
+            conn.send_binary(message)
+        sock.sendall(b"".join(conn.data_to_send()))  # one write: one read on the server
+        read_until(1 + replies)
+        conn.send_close(1000)
+        sock.sendall(b"".join(conn.data_to_send()))
+    return received[1:]
+
+
+def _closed_sessions(records) -> list[dict]:
+    return [vars(r) for r in records if getattr(r, "event", None) == "session.close"]
+
+
+async def test_frames_are_taken_on_the_protocol_stack_only_under_the_sansio_protocol(
+    tmp_path, rig, ws_impl
+):
+    settings = Settings(rigs_dir=tmp_path / "rigs")
+    settings.rigs_dir.mkdir(parents=True)
+    rig.save(settings.rigs_dir / "tiny.rig")
+    async with run_server(settings, ws=ws_impl) as server:
+        with server_logs() as records:
+            results = await _stream_results(server, rig, 5)
+            await wait_until(lambda: _closed_sessions(records))
+
+    assert [r.seq for r in results] == list(range(5))
+    (closed,) = _closed_sessions(records)
+    assert closed["frames_in"] == 5
+    # Under the sans-I/O protocol every frame (each sent after the previous result came
+    # back, so the reader was parked) skipped the queue; under the legacy one none did.
+    assert closed["frames_taken"] == (5 if ws_impl == "websockets-sansio" else 0)
+
+
+async def test_a_burst_mixing_frames_and_pings_keeps_frames_behind_what_waits(
+    tmp_path, rig, ws_impl
+):
+    # frame, ping, frame, frame, ping in one TCP write: only the first frame is taken on
+    # the protocol's stack; the ping goes to the reader's queue, and every frame after it
+    # waits there behind it, so the reader processes them all in arrival order.
+    settings = Settings(rigs_dir=tmp_path / "rigs")
+    settings.rigs_dir.mkdir(parents=True)
+    rig.save(settings.rigs_dir / "tiny.rig")
+    protocol = FacecastClient()
+    hello = protocol.send(Hello(rig="tiny", output="weights"))
+    points = rig.source_neutral.astype(np.float32)
+    frame = lambda seq: encode(Frame(seq=seq, ts=seq * 10.0, points=points))  # noqa: E731
+    burst = [frame(0), encode(Ping(id=1, ts=1.0)), frame(1), frame(2), encode(Ping(id=2, ts=2.0))]
+    async with run_server(settings, ws=ws_impl) as server:
+        with server_logs() as records:
+            replies = await asyncio.to_thread(_stream_burst, server.port, hello, burst, 5)
+            await wait_until(lambda: _closed_sessions(records))
+
+    decoded = [decode_server(data) for data in replies]
+    assert [m.seq for m in decoded if isinstance(m, Result)] == [0, 1, 2]
+    assert [m.id for m in decoded if isinstance(m, Pong)] == [1, 2]
+    (closed,) = _closed_sessions(records)
+    if ws_impl == "websockets-sansio":
+        assert closed["frames_taken"] == 1
+        assert isinstance(decoded[0], Result)  # the taken frame's result left with its read
+    else:  # no hook: the reader had every message (and a pong may pass a queued result)
+        assert closed["frames_taken"] == 0
+
+
+async def test_a_burst_of_frames_taken_together_is_answered_in_order(tmp_path, rig):
+    settings = Settings(rigs_dir=tmp_path / "rigs")
+    settings.rigs_dir.mkdir(parents=True)
+    rig.save(settings.rigs_dir / "tiny.rig")
+    protocol = FacecastClient()
+    hello = protocol.send(Hello(rig="tiny", output="weights"))
+    frames = [
+        encode(Frame(seq=seq, ts=seq * 10.0, points=(rig.source_neutral + 0.01 * seq)))
+        for seq in range(20)
+    ]
+    async with run_server(settings) as server:
+        with server_logs() as records:
+            replies = await asyncio.to_thread(_stream_burst, server.port, hello, frames, 20)
+            await wait_until(lambda: _closed_sessions(records))
+
+    results = [decode_server(data) for data in replies]
+    assert [r.seq for r in results] == list(range(20))
+    (closed,) = _closed_sessions(records)
+    assert closed["frames_taken"] == 20  # all in one read, none through the queue
+    for seq, result in enumerate(results):
+        expected = rig.weights(rig.source_neutral + 0.01 * seq)
+        np.testing.assert_allclose(result.weights, expected, rtol=1e-5, atol=1e-6)
