@@ -1,12 +1,12 @@
-"""Batched stream counters: exact on every scrape, no count lost to a scrape racing them."""
+"""Batched stream counters and the loop histogram: exact on every scrape, as prometheus-client's."""
 
 from __future__ import annotations
 
 import threading
 
-from prometheus_client import CollectorRegistry, Counter
+from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
 
-from facecast.server.metrics import LoopCounter, Metrics
+from facecast.server.metrics import LoopCounter, LoopHistogram, Metrics
 
 
 def _total(metrics: Metrics, name: str) -> float:
@@ -58,3 +58,25 @@ def test_pushes_from_another_thread_lose_no_count():
     batched.push()
 
     assert registry.get_sample_value("c_total") == 200_000
+
+
+def test_the_loop_histogram_exposes_what_prometheus_clients_histogram_does():
+    buckets = (0.0001, 0.001, 0.01, 1.0)
+    theirs_registry, ours_registry = CollectorRegistry(), CollectorRegistry()
+    theirs = Histogram("h_seconds", "doc", buckets=buckets, registry=theirs_registry)
+    ours = LoopHistogram("h_seconds", "doc", buckets)
+    ours_registry.register(ours)
+    # Values on the bounds (a bucket counts values <= its bound), between and above them.
+    for value in (0.0, 0.00005, 0.0001, 0.0005, 0.001, 0.01, 0.5, 1.0, 3.0, 0.001):
+        theirs.observe(value)
+        ours.observe(value)
+
+    def samples(registry: CollectorRegistry) -> list[str]:
+        return [
+            line
+            for line in generate_latest(registry).decode().splitlines()
+            if line.startswith("h_seconds") and "_created" not in line
+        ]
+
+    assert samples(ours_registry) == samples(theirs_registry)
+    assert ours_registry.get_sample_value("h_seconds_count") == 10.0
