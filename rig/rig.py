@@ -32,7 +32,14 @@ from .pose import (
 if TYPE_CHECKING:
     from ._kernel import BsplineKernel
 
-__all__ = ["CALIBRATION_RANGE", "POINT_RANGE", "Rig", "RigSummary", "WeightModel"]
+__all__ = [
+    "CALIBRATION_RANGE",
+    "POINT_RANGE",
+    "Rig",
+    "RigSummary",
+    "WeightModel",
+    "build_blend_basis",
+]
 
 #: float64 arrays: what a weight model holds (its constructor converts to them).
 Floats = npt.NDArray[np.float64]
@@ -49,6 +56,32 @@ POINT_RANGE = 100.0
 #: own radius is more than this factor larger or smaller: calibration absorbs a performer's
 #: position and units, not an absurd scale (a 1e300 neutral makes every later frame NaN).
 CALIBRATION_RANGE = 1e4
+
+
+def build_blend_basis(target_vertices: np.ndarray) -> np.ndarray:
+    """The blend basis of target examples: row 0 T_B, rows i > 0 T_i - T_B (eq. 3.14).
+
+    Parameters
+    ----------
+    target_vertices : (M, V, 3) float64
+        The target examples, the neutral T_B first.
+
+    Returns
+    -------
+    (M, 3V) float32, each row equal to ``(T_i - T_B).astype(np.float32)`` bit for bit.
+    """
+    m, v, _ = target_vertices.shape
+    flat = target_vertices.reshape(m, 3 * v)
+    basis = np.empty((m, 3 * v), dtype=np.float32)
+    basis[0] = flat[0]
+    # Subtracted in float64 and rounded once into float32 (as (T_i - T_B).astype would),
+    # in one ufunc call whose buffered cast goes through a few kB of float64 at a time:
+    # no (M - 1, 3V) float64 temporary. This is most of a fit's time (bench engine's
+    # fit_blend_basis); measured on ICT, 4.4 ms against 5.7 for a float64 row of
+    # scratch per example and 2.5 for the bare cast of the examples. Pure array code that
+    # releases the GIL: ``fit`` runs it in a worker thread beside its math.
+    np.subtract(flat[1:], flat[0], out=basis[1:], casting="same_kind")
+    return basis
 
 
 class RigSummary(TypedDict):
@@ -325,23 +358,22 @@ class Rig:
         stable_points: npt.ArrayLike | None,
         align_scale: bool,
         report: dict[str, Any],
+        blend_basis: np.ndarray | None = None,
     ) -> Rig:
         """A rig from a fitted weight model and the example set's targets (M, V, 3).
 
         ``stable_points`` are checked as an example set's are (``check_stable_points``):
-        ``fit`` takes them from its caller as well as from the example set.
+        ``fit`` takes them from its caller as well as from the example set. ``blend_basis``
+        is ``build_blend_basis(target_vertices)`` when the caller has built it already
+        (``fit`` builds it beside its math); None builds it here.
         """
         m, v, _ = target_vertices.shape
+        if blend_basis is not None and blend_basis.shape != (m, 3 * v):
+            raise ValueError(
+                f"Expected a blend basis of shape {(m, 3 * v)}, got {blend_basis.shape}"
+            )
         neutral = np.ascontiguousarray(target_vertices[0], dtype=np.float32)
-        basis = np.empty((m, 3 * v), dtype=np.float32)
-        basis[0] = neutral.reshape(-1)
-        # Subtracted in float64 and rounded once into float32 (as (T_i - T_B).astype would),
-        # in one ufunc call whose buffered cast goes through a few kB of float64 at a time:
-        # no (M - 1, 3V) float64 temporary. This is most of a fit's time (bench engine's
-        # fit_blend_basis); measured on ICT, 4.4 ms against 5.7 for a float64 row of
-        # scratch per example and 2.5 for the bare cast of the examples.
-        flat = target_vertices.reshape(m, 3 * v)
-        np.subtract(flat[1:], flat[0], out=basis[1:], casting="same_kind")
+        basis = build_blend_basis(target_vertices) if blend_basis is None else blend_basis
         stable = (
             None if stable_points is None else check_stable_points(stable_points, model.num_points)
         )
