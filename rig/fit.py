@@ -590,7 +590,7 @@ def _fit_weights(
         separation_snr=[float(d / noise) if noise > 0 else float("inf") for d in nearest_distance],
     )
     _warn_collapsing(report, names, noise)
-    report.noise_gain = _noise_gain(model, params)
+    report.noise_gain = _noise_gain(model, dist)
     _warn_noise_gain(report, example_set.source_points, noise, clamp)
     return model, report
 
@@ -655,19 +655,28 @@ def _warn_noise_gain(
     )
 
 
-def _noise_gain(model: WeightModel, params: np.ndarray) -> float:
+def _noise_gain(model: WeightModel, dist: np.ndarray) -> float:
     """RMS over the examples of |dw/dp|_F: how far unit landmark noise moves the weights.
 
     F has orthonormal rows, so isotropic noise of standard deviation s on the points is
     isotropic noise s on p, and the weights move by s |dw/dp|_F to first order.
+    ``dist`` (M, M) holds |p_k - p_j| between the model's examples (``_nearest``'s).
     """
-    diff = params[:, None, :] - model.params[None, :, :]  # (M, M, n): p_k - p_j
-    dist = np.sqrt(np.einsum("kjn,kjn->kj", diff, diff))
+    slopes = model.linear_coeffs[1:]  # (n, M): the hyperplanes' part of every Jacobian
+    if not np.any(model.radial_coeffs):
+        # No radial terms (the hyperplanes interpolate): the Jacobian is the slopes at every
+        # example, and its RMS over them the slopes' norm.
+        return float(np.sqrt(np.vdot(slopes, slopes)))
+    params = model.params
+    m = len(params)
+    # diff[k, :, j] = p_k - p_j, laid out (M, n, M) so the radial part below is one product.
+    diff = params[:, :, None] - params.T[None, :, :]
     t = dist / model.alpha[None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         scale = np.where(dist > 0, kernel_derivative(model.kernel, t) / (model.alpha * dist), 0.0)
-    # d R_j / d p at p_k = B'(t_kj) (p_k - p_j) / (alpha_j |p_k - p_j|); one batched
-    # product over k (an einsum over the three indices at once is ~20x slower).
-    radial = np.matmul((scale[:, :, None] * diff).transpose(0, 2, 1), model.radial_coeffs)
-    jacobian = model.linear_coeffs[1:][None, :, :] + radial  # (M, n, M)
-    return float(np.sqrt(np.einsum("kni,kni->", jacobian, jacobian) / len(params)))
+    # d R_j / d p at p_k = B'(t_kj) (p_k - p_j) / (alpha_j |p_k - p_j|), summed over j
+    # against the radial coefficients for every k at once: one (M n, M) @ (M, M) product.
+    diff *= scale[:, None, :]
+    jacobian = (diff.reshape(-1, m) @ model.radial_coeffs).reshape(m, -1, m)
+    jacobian += slopes[None, :, :]  # (M, n, M)
+    return float(np.sqrt(np.vdot(jacobian, jacobian) / m))

@@ -126,3 +126,35 @@ def test_identifiability_warnings_point_at_the_line_that_called_fit():
     with pytest.warns(IdentifiabilityWarning, match="nearly collapse") as caught:
         fit(close)
     assert {w.filename for w in caught} == {__file__}
+
+
+def _jacobian_rms(rig, step: float) -> float:
+    """RMS over the examples of |dw/dp|_F by central differences of eq. 3.8."""
+    model = rig.model
+    params = model.params
+    m, n = params.shape
+    total = 0.0
+    for k in range(m):
+        shifts = step * np.eye(n)
+        ahead = model.weights_from_params(params[k] + shifts)
+        behind = model.weights_from_params(params[k] - shifts)
+        total += float(np.sum(((ahead - behind) / (2 * step)) ** 2))
+    return float(np.sqrt(total / m))
+
+
+@pytest.mark.parametrize(
+    ("example_set", "options"),
+    [
+        (make_set(), {}),  # the hyperplanes interpolate: no radial terms
+        (make_set(m=20, k=2, seed=3), {}),
+        (make_set(m=20, k=2, seed=3), {"noise": 0.1}),
+        (make_set(m=20, k=2, seed=3), {"noise": 0.1, "kernel": "gaussian"}),
+    ],
+)
+def test_noise_gain_is_the_rms_jacobian_of_the_weights_over_the_examples(example_set, options):
+    rig = fit(example_set, **options)
+    spread = float(np.abs(rig.model.params).max())
+
+    expected = _jacobian_rms(rig, 1e-6 * spread)
+
+    assert rig.fit_report["noise_gain"] == pytest.approx(expected, rel=1e-6)
