@@ -54,6 +54,12 @@ def test_blend_basis_is_each_target_difference_rounded_once_to_float32():
     assert np.any(basis[1:] != rounded[1:] - rounded[0])
 
 
+def test_blend_basis_leaves_the_callers_ufunc_buffer_size_alone():
+    before = np.getbufsize()
+    build_blend_basis(make_set().target_vertices)
+    assert np.getbufsize() == before
+
+
 @pytest.mark.parametrize("options", [{}, {"noise": 0.1}, {"noise": 0.1, "kernel": "gaussian"}])
 def test_fit_with_the_basis_thread_equals_fit_without_bit_for_bit(options):
     example_set = make_set(m=20, k=2, seed=3)  # radial terms too
