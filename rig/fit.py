@@ -6,7 +6,6 @@ Everything that does not depend on a frame is computed here, once; evaluation li
 
 from __future__ import annotations
 
-import threading
 import time
 import warnings
 from collections.abc import Sequence
@@ -17,11 +16,12 @@ import numpy as np
 import numpy.typing as npt
 import scipy.linalg
 
+from .basis import BasisBuild
 from .bounds import sparsity_penalty
 from .errors import FitError
 from .examples import ExampleSet
 from .kernels import KERNELS, evaluate_kernel, kernel_derivative, kernel_slope
-from .rig import Rig, WeightModel, build_blend_basis
+from .rig import Rig, WeightModel
 
 __all__ = [
     "CLAMP_MODES",
@@ -124,9 +124,10 @@ class FitReport:
     stable_points: list[int] | None = None
     pose_condition: float = float("inf")
     # The fit's two parts by their own clocks: the math of this module, and building the
-    # (M, 3V) float32 blend basis (memory-bound, proportional to the target's vertices).
-    # With basis_overlapped the basis was built in a worker thread beside the math, so
-    # fit_seconds (wall) is about the longer of the two; without, about their sum.
+    # (M, 3V) float32 blend basis (memory-bound, proportional to the target's vertices;
+    # summed over the threads that built it). With basis_overlapped a worker thread built
+    # the basis beside the math, the caller finishing it after, so fit_seconds (wall) is
+    # about the longer of the two or half their sum; without, about their sum.
     math_seconds: float = 0.0
     basis_seconds: float = 0.0
     basis_overlapped: bool = False
@@ -388,15 +389,17 @@ def fit(
     basis_thread : bool
         Build the blend basis in a worker thread while the math runs (the basis depends
         only on the target examples, the math only on the sources, and both release the
-        GIL in their array code), so that on two cores the fit takes about the longer of
-        the two. False builds it after the math in the caller's thread. The rig is the same
-        bit for bit either way; an exception from either part reaches the caller.
+        GIL in their array code); the caller, done with the math, builds the rows the
+        worker has not reached (``basis.BasisBuild``). On two cores the fit then takes
+        about the longer of the two, or half their sum. False builds it after the math in
+        the caller's thread. The rig is the same bit for bit either way; an exception from
+        either part reaches the caller.
     """
     started = time.perf_counter()
     kernel, noise, pca_threshold, ridge, clamp, sparsity = _sanitize(
         example_set, kernel, noise, pca_threshold, ridge, clamp, sparsity
     )
-    building = _BasisBuild(example_set.target_vertices, thread=basis_thread)
+    building = BasisBuild(example_set.target_vertices, thread=basis_thread)
     try:
         model, report = _fit_weights(
             example_set,
@@ -408,6 +411,7 @@ def fit(
             sparsity=sparsity,
         )
         report.math_seconds = time.perf_counter() - started
+        building.help()  # the rows the worker has not reached yet, from the other end
     finally:
         # Joined whatever happened: no fit leaves a thread behind.
         building.wait()
@@ -441,49 +445,6 @@ def fit(
     report.fit_seconds = finished - started
     rig.fit_report = report.to_dict()
     return rig
-
-
-class _BasisBuild:
-    """``build_blend_basis`` in a worker thread beside the fit's math, or in the caller's.
-
-    ``wait`` never raises, so a ``finally`` can always join the thread; ``result`` then
-    returns the basis or raises what building it raised (without a thread it builds the
-    basis there and then). One thread per fit, started and
-    joined by it: concurrent fits (the server's fit pool) share nothing.
-    """
-
-    def __init__(self, target_vertices: np.ndarray, *, thread: bool) -> None:
-        self._target_vertices = target_vertices
-        self._basis: np.ndarray | None = None
-        self._error: BaseException | None = None
-        self.seconds = 0.0
-        self._thread: threading.Thread | None = None
-        if thread:
-            self._thread = threading.Thread(
-                target=self._build, name="facecast-fit-basis", daemon=True
-            )
-            self._thread.start()
-
-    def _build(self) -> None:
-        started = time.perf_counter()
-        try:
-            self._basis = build_blend_basis(self._target_vertices)
-        except BaseException as error:  # handed to the fitting thread by result()
-            self._error = error
-        self.seconds = time.perf_counter() - started
-
-    def wait(self) -> None:
-        if self._thread is not None:
-            self._thread.join()
-
-    def result(self) -> np.ndarray:
-        if self._thread is None and self._basis is None and self._error is None:
-            self._build()  # not overlapped: built now, after the math
-        if self._error is not None:
-            raise self._error
-        if self._basis is None:
-            raise RuntimeError("the blend basis was read before it was built")
-        return self._basis
 
 
 def _fit_weights(

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any, TypedDict
 import numpy as np
 import numpy.typing as npt
 
+from .basis import build_blend_basis
 from .blend import blend_into, moving_vertices
 from .bounds import BoxProjection, weight_metric
 from .errors import InputError
@@ -32,14 +33,7 @@ from .pose import (
 if TYPE_CHECKING:
     from ._kernel import BsplineKernel
 
-__all__ = [
-    "CALIBRATION_RANGE",
-    "POINT_RANGE",
-    "Rig",
-    "RigSummary",
-    "WeightModel",
-    "build_blend_basis",
-]
+__all__ = ["CALIBRATION_RANGE", "POINT_RANGE", "Rig", "RigSummary", "WeightModel"]
 
 #: float64 arrays: what a weight model holds (its constructor converts to them).
 Floats = npt.NDArray[np.float64]
@@ -56,42 +50,6 @@ POINT_RANGE = 100.0
 #: own radius is more than this factor larger or smaller: calibration absorbs a performer's
 #: position and units, not an absurd scale (a 1e300 neutral makes every later frame NaN).
 CALIBRATION_RANGE = 1e4
-
-
-#: Values in each chunk of ``build_blend_basis``'s buffered cast: 16 kB of float64, which
-#: stays in a core's L1 data cache beside the chunk of float32 it is rounded into.
-BASIS_BUFFER = 2048
-
-
-def build_blend_basis(target_vertices: np.ndarray) -> np.ndarray:
-    """The blend basis of target examples: row 0 T_B, rows i > 0 T_i - T_B (eq. 3.14).
-
-    Parameters
-    ----------
-    target_vertices : (M, V, 3) float64
-        The target examples, the neutral T_B first.
-
-    Returns
-    -------
-    (M, 3V) float32, each row equal to ``(T_i - T_B).astype(np.float32)`` bit for bit.
-    """
-    m, v, _ = target_vertices.shape
-    flat = target_vertices.reshape(m, 3 * v)
-    basis = np.empty((m, 3 * v), dtype=np.float32)
-    basis[0] = flat[0]
-    # Subtracted in float64 and rounded once into float32 (as (T_i - T_B).astype would),
-    # in one ufunc call whose buffered cast goes through BASIS_BUFFER float64 at a time:
-    # no (M - 1, 3V) float64 temporary. Measured on ICT, 4.4 ms against 5.7 for a float64
-    # row of scratch per example and 2.5 for the bare cast of the examples; a buffer that
-    # stays in L1 (numpy's default, 8192 values, is 64 kB) took it from 3.5 ms to 2.7. Pure
-    # array code that releases the GIL: ``fit`` runs it in a worker thread beside its math.
-    # The buffer size is the calling thread's numpy setting (a context variable), restored.
-    default_buffer = np.setbufsize(BASIS_BUFFER)
-    try:
-        np.subtract(flat[1:], flat[0], out=basis[1:], casting="same_kind")
-    finally:
-        np.setbufsize(default_buffer)
-    return basis
 
 
 class RigSummary(TypedDict):

@@ -216,7 +216,10 @@ def format_split(split: dict) -> str:
     """How the fit's wall time splits between its math and building the blend basis."""
     wall, math, basis = (_duration(split[k]).strip() for k in ("wall_s", "math_s", "basis_s"))
     if split["overlapped"]:
-        how = f"math {math} beside basis {basis}, overlapped in two threads"
+        how = (
+            f"math {math} beside basis {basis}, overlapped in two threads (the basis summed "
+            "over both: the caller builds what the worker has not reached after its math)"
+        )
     else:
         how = f"math {math} + basis {basis}, one after the other"
     return f"fit {wall} wall (the fit's own clocks, median) = {how}"

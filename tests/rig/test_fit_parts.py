@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from facecast.rig import ExampleSet, FitError, IdentifiabilityWarning, fit
-from facecast.rig.rig import build_blend_basis
+from facecast.rig.basis import build_blend_basis
 
-fit_module = importlib.import_module("facecast.rig.fit")
+basis_module = importlib.import_module("facecast.rig.basis")
 
 # Report entries that are clocks, or say how the fit ran rather than what it found.
 HOW_IT_RAN = {"fit_seconds", "math_seconds", "basis_seconds", "basis_overlapped"}
@@ -60,6 +60,24 @@ def test_blend_basis_leaves_the_callers_ufunc_buffer_size_alone():
     assert np.getbufsize() == before
 
 
+@pytest.mark.parametrize("share_bytes", [1, 3 * 40 * 8 * 3, 10 << 20])
+@pytest.mark.parametrize("thread", [True, False])
+def test_a_basis_built_in_shares_by_two_threads_equals_the_whole_one(
+    monkeypatch, share_bytes, thread
+):
+    # Shares of one row, of three and of the whole basis; the caller helps at once.
+    monkeypatch.setattr(basis_module, "BASIS_CHUNK_BYTES", share_bytes)
+    target = make_set(m=20, v=40).target_vertices
+    building = basis_module.BasisBuild(target, thread=thread)
+
+    building.help()
+    building.wait()
+
+    np.testing.assert_array_equal(_bits(building.result()), _bits(build_blend_basis(target)))
+    assert building.seconds > 0
+    assert _basis_threads() == []
+
+
 @pytest.mark.parametrize("options", [{}, {"noise": 0.1}, {"noise": 0.1, "kernel": "gaussian"}])
 def test_fit_with_the_basis_thread_equals_fit_without_bit_for_bit(options):
     example_set = make_set(m=20, k=2, seed=3)  # radial terms too
@@ -84,10 +102,10 @@ def test_fit_report_times_the_math_and_the_basis_within_the_wall_time():
 
 @pytest.mark.parametrize("basis_thread", [True, False])
 def test_an_error_building_the_basis_reaches_the_caller(monkeypatch, basis_thread):
-    def fail(target_vertices):
+    def fail(target_vertices, basis, start, stop):
         raise MemoryError("no room for the blend basis")
 
-    monkeypatch.setattr(fit_module, "build_blend_basis", fail)
+    monkeypatch.setattr(basis_module, "_fill_rows", fail)
 
     with pytest.raises(MemoryError, match="no room for the blend basis"):
         fit(make_set(), basis_thread=basis_thread)
