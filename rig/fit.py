@@ -125,7 +125,7 @@ class FitReport:
     pose_condition: float = float("inf")
     # The fit's two parts by their own clocks: the math of this module, and building the
     # (M, 3V) float32 blend basis (memory-bound, proportional to the target's vertices;
-    # summed over the threads that built it). With basis_overlapped a worker thread built
+    # the CPU time of the threads that built it, summed: BasisBuild.seconds). With basis_overlapped a worker thread built
     # the basis beside the math, the caller finishing it after, so fit_seconds (wall) is
     # about the longer of the two or half their sum; without, about their sum.
     math_seconds: float = 0.0
