@@ -123,11 +123,12 @@ class FitReport:
     # stable-point alignment stands alone).
     stable_points: list[int] | None = None
     pose_condition: float = float("inf")
-    # The fit's two parts by their own clocks: the math of this module, and building the
-    # (M, 3V) float32 blend basis (memory-bound, proportional to the target's vertices;
-    # the CPU time of the threads that built it, summed: BasisBuild.seconds). With basis_overlapped a worker thread built
-    # the basis beside the math, the caller finishing it after, so fit_seconds (wall) is
-    # about the longer of the two or half their sum; without, about their sum.
+    # The fit's two parts by their own clocks: the math of this module (wall time of the
+    # fitting thread), and building the (M, 3V) float32 blend basis (memory-bound,
+    # proportional to the target's vertices; the CPU time of the threads that built it,
+    # summed: BasisBuild.seconds). With basis_overlapped a worker thread built the basis
+    # beside the math and the caller finished it, so fit_seconds (wall) is about the longer
+    # of the math and half the two parts' sum; without, about their sum.
     math_seconds: float = 0.0
     basis_seconds: float = 0.0
     basis_overlapped: bool = False
@@ -390,9 +391,9 @@ def fit(
         Build the blend basis in a worker thread while the math runs (the basis depends
         only on the target examples, the math only on the sources, and both release the
         GIL in their array code); the caller, done with the math, builds the rows the
-        worker has not reached (``basis.BasisBuild``). On two cores the fit then takes
-        about the longer of the two, or half their sum. False builds it after the math in
-        the caller's thread. The rig is the same bit for bit either way; an exception from
+        worker has not reached (``basis.BasisBuild``). On two free cores the fit then takes
+        about the longer of the math and half the two parts' sum. False builds it after the
+        math in the caller's thread. The rig is the same bit for bit either way; an exception from
         either part reaches the caller.
     """
     started = time.perf_counter()
