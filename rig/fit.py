@@ -16,6 +16,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.linalg
 
+from .basis import BasisBuild
 from .bounds import sparsity_penalty
 from .errors import FitError
 from .examples import ExampleSet
@@ -122,9 +123,15 @@ class FitReport:
     # stable-point alignment stands alone).
     stable_points: list[int] | None = None
     pose_condition: float = float("inf")
-    # Of fit_seconds, the time spent building the (M, 3V) float32 blend basis (memory-bound,
-    # proportional to the target's vertices); the rest is the math of this module.
+    # The fit's two parts by their own clocks: the math of this module (wall time of the
+    # fitting thread), and building the (M, 3V) float32 blend basis (memory-bound,
+    # proportional to the target's vertices; the CPU time of the threads that built it,
+    # summed: BasisBuild.seconds). With basis_overlapped a worker thread built the basis
+    # beside the math and the caller finished it, so fit_seconds (wall) is about the longer
+    # of the math and half the two parts' sum; without, about their sum.
+    math_seconds: float = 0.0
     basis_seconds: float = 0.0
+    basis_overlapped: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -327,6 +334,7 @@ def fit(
     sparsity: float | None = None,
     stable_points: npt.ArrayLike | None = None,
     align_scale: bool = False,
+    basis_thread: bool = True,
 ) -> Rig:
     """Fit the cardinal-basis weight functions of an example set (thesis section 3).
 
@@ -379,11 +387,78 @@ def fit(
         that follows is possible (``pose_condition``).
     align_scale : bool
         Whether head-pose alignment also removes uniform scale.
+    basis_thread : bool
+        Build the blend basis in a worker thread while the math runs (the basis depends
+        only on the target examples, the math only on the sources, and both release the
+        GIL in their array code); the caller, done with the math, builds the rows the
+        worker has not reached (``basis.BasisBuild``). On two free cores the fit then takes
+        about the longer of the math and half the two parts' sum. False builds it after the
+        math in the caller's thread. The rig is the same bit for bit either way; an exception from
+        either part reaches the caller.
     """
     started = time.perf_counter()
     kernel, noise, pca_threshold, ridge, clamp, sparsity = _sanitize(
         example_set, kernel, noise, pca_threshold, ridge, clamp, sparsity
     )
+    building = BasisBuild(example_set.target_vertices, thread=basis_thread)
+    try:
+        model, report = _fit_weights(
+            example_set,
+            kernel=kernel,
+            noise=noise,
+            pca_threshold=pca_threshold,
+            ridge=ridge,
+            clamp=clamp,
+            sparsity=sparsity,
+        )
+        report.math_seconds = time.perf_counter() - started
+        building.help()  # the rows the worker has not reached yet, from the other end
+    finally:
+        # Joined whatever happened: no fit leaves a thread behind.
+        building.wait()
+    blend_basis = building.result()
+    report.basis_seconds = building.seconds
+    report.basis_overlapped = basis_thread
+
+    tail_started = time.perf_counter()
+    rig = Rig.from_fit(
+        names=example_set.names,
+        model=model,
+        target_vertices=example_set.target_vertices,
+        target_faces=example_set.target_faces,
+        feature_indices=example_set.feature_indices,
+        source_preview=(
+            None
+            if example_set.source_vertices is None or example_set.source_faces is None
+            else (example_set.source_vertices[0], example_set.source_faces)
+        ),
+        stable_points=example_set.stable_points if stable_points is None else stable_points,
+        align_scale=align_scale,
+        report={},
+        blend_basis=blend_basis,
+    )
+    if rig.stable_points is not None:
+        report.stable_points = [int(i) for i in rig.stable_points]
+    # The head-pose refinement's span and condition number: math of the fit, not basis.
+    report.pose_condition = rig.pose_condition(scale=align_scale)
+    finished = time.perf_counter()
+    report.math_seconds += finished - tail_started
+    report.fit_seconds = finished - started
+    rig.fit_report = report.to_dict()
+    return rig
+
+
+def _fit_weights(
+    example_set: ExampleSet,
+    *,
+    kernel: str,
+    noise: float,
+    pca_threshold: float | None,
+    ridge: float | None,
+    clamp: str | None,
+    sparsity: float,
+) -> tuple[WeightModel, FitReport]:
+    """The fit's math on sanitised options: the weight model and its report (no basis)."""
     names = example_set.names
     m = example_set.num_examples
     k = example_set.num_points
@@ -477,33 +552,9 @@ def fit(
         separation_snr=[float(d / noise) if noise > 0 else float("inf") for d in nearest_distance],
     )
     _warn_collapsing(report, names, noise)
-    report.noise_gain = _noise_gain(model, params)
+    report.noise_gain = _noise_gain(model, dist)
     _warn_noise_gain(report, example_set.source_points, noise, clamp)
-
-    basis_started = time.perf_counter()
-    rig = Rig.from_fit(
-        names=names,
-        model=model,
-        target_vertices=example_set.target_vertices,
-        target_faces=example_set.target_faces,
-        feature_indices=example_set.feature_indices,
-        source_preview=(
-            None
-            if example_set.source_vertices is None or example_set.source_faces is None
-            else (example_set.source_vertices[0], example_set.source_faces)
-        ),
-        stable_points=example_set.stable_points if stable_points is None else stable_points,
-        align_scale=align_scale,
-        report={},
-    )
-    report.basis_seconds = time.perf_counter() - basis_started
-    if rig.stable_points is not None:
-        report.stable_points = [int(i) for i in rig.stable_points]
-    # The head-pose refinement's span and condition number: math of the fit, not basis.
-    report.pose_condition = rig.pose_condition(scale=align_scale)
-    report.fit_seconds = time.perf_counter() - started
-    rig.fit_report = report.to_dict()
-    return rig
+    return model, report
 
 
 def _warn_collapsing(report: FitReport, names: Sequence[str], noise: float) -> None:
@@ -530,7 +581,8 @@ def _warn_collapsing(report: FitReport, names: Sequence[str], noise: float) -> N
 def _warn(report: FitReport, message: str) -> None:
     if message not in report.warnings:
         report.warnings.append(message)
-        warnings.warn(message, IdentifiabilityWarning, stacklevel=4)
+        # Past _warn, its check, _fit_weights and fit: the line that called fit.
+        warnings.warn(message, IdentifiabilityWarning, stacklevel=5)
 
 
 def _extent(source_points: np.ndarray) -> float:
@@ -565,19 +617,28 @@ def _warn_noise_gain(
     )
 
 
-def _noise_gain(model: WeightModel, params: np.ndarray) -> float:
+def _noise_gain(model: WeightModel, dist: np.ndarray) -> float:
     """RMS over the examples of |dw/dp|_F: how far unit landmark noise moves the weights.
 
     F has orthonormal rows, so isotropic noise of standard deviation s on the points is
     isotropic noise s on p, and the weights move by s |dw/dp|_F to first order.
+    ``dist`` (M, M) holds |p_k - p_j| between the model's examples (``_nearest``'s).
     """
-    diff = params[:, None, :] - model.params[None, :, :]  # (M, M, n): p_k - p_j
-    dist = np.sqrt(np.einsum("kjn,kjn->kj", diff, diff))
+    slopes = model.linear_coeffs[1:]  # (n, M): the hyperplanes' part of every Jacobian
+    if not np.any(model.radial_coeffs):
+        # No radial terms (the hyperplanes interpolate): the Jacobian is the slopes at every
+        # example, and its RMS over them the slopes' norm.
+        return float(np.sqrt(np.vdot(slopes, slopes)))
+    params = model.params
+    m = len(params)
+    # diff[k, :, j] = p_k - p_j, laid out (M, n, M) so the radial part below is one product.
+    diff = params[:, :, None] - params.T[None, :, :]
     t = dist / model.alpha[None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         scale = np.where(dist > 0, kernel_derivative(model.kernel, t) / (model.alpha * dist), 0.0)
-    # d R_j / d p at p_k = B'(t_kj) (p_k - p_j) / (alpha_j |p_k - p_j|); one batched
-    # product over k (an einsum over the three indices at once is ~20x slower).
-    radial = np.matmul((scale[:, :, None] * diff).transpose(0, 2, 1), model.radial_coeffs)
-    jacobian = model.linear_coeffs[1:][None, :, :] + radial  # (M, n, M)
-    return float(np.sqrt(np.einsum("kni,kni->", jacobian, jacobian) / len(params)))
+    # d R_j / d p at p_k = B'(t_kj) (p_k - p_j) / (alpha_j |p_k - p_j|), summed over j
+    # against the radial coefficients for every k at once: one (M n, M) @ (M, M) product.
+    diff *= scale[:, None, :]
+    jacobian = (diff.reshape(-1, m) @ model.radial_coeffs).reshape(m, -1, m)
+    jacobian += slopes[None, :, :]  # (M, n, M)
+    return float(np.sqrt(np.vdot(jacobian, jacobian) / m))

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any, TypedDict
 import numpy as np
 import numpy.typing as npt
 
+from .basis import build_blend_basis
 from .blend import blend_into, moving_vertices
 from .bounds import BoxProjection, weight_metric
 from .errors import InputError
@@ -325,23 +326,22 @@ class Rig:
         stable_points: npt.ArrayLike | None,
         align_scale: bool,
         report: dict[str, Any],
+        blend_basis: np.ndarray | None = None,
     ) -> Rig:
         """A rig from a fitted weight model and the example set's targets (M, V, 3).
 
         ``stable_points`` are checked as an example set's are (``check_stable_points``):
-        ``fit`` takes them from its caller as well as from the example set.
+        ``fit`` takes them from its caller as well as from the example set. ``blend_basis``
+        is ``build_blend_basis(target_vertices)`` when the caller has built it already
+        (``fit`` builds it beside its math); None builds it here.
         """
         m, v, _ = target_vertices.shape
+        if blend_basis is not None and blend_basis.shape != (m, 3 * v):
+            raise ValueError(
+                f"Expected a blend basis of shape {(m, 3 * v)}, got {blend_basis.shape}"
+            )
         neutral = np.ascontiguousarray(target_vertices[0], dtype=np.float32)
-        basis = np.empty((m, 3 * v), dtype=np.float32)
-        basis[0] = neutral.reshape(-1)
-        # Subtracted in float64 and rounded once into float32 (as (T_i - T_B).astype would),
-        # in one ufunc call whose buffered cast goes through a few kB of float64 at a time:
-        # no (M - 1, 3V) float64 temporary. This is most of a fit's time (bench engine's
-        # fit_blend_basis); measured on ICT, 4.4 ms against 5.7 for a float64 row of
-        # scratch per example and 2.5 for the bare cast of the examples.
-        flat = target_vertices.reshape(m, 3 * v)
-        np.subtract(flat[1:], flat[0], out=basis[1:], casting="same_kind")
+        basis = build_blend_basis(target_vertices) if blend_basis is None else blend_basis
         stable = (
             None if stable_points is None else check_stable_points(stable_points, model.num_points)
         )

@@ -30,7 +30,9 @@ def test_bench_engine_writes_every_figure_with_baseline_and_verdict(tmp_path, ca
     code = cli.main(["bench", "engine", "--demo", "--repeat", "1", "--json", str(out)])
 
     assert code == 0
-    assert "goals met" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "goals met" in printed
+    assert "beside basis" in printed and "overlapped in two threads" in printed
     report = json.loads(out.read_text())
     assert report["dataset"] == "demo" and report["num_examples"] == 13
     assert set(report["figures"]) == {
@@ -44,6 +46,10 @@ def test_bench_engine_writes_every_figure_with_baseline_and_verdict(tmp_path, ca
     # The fit's two parts stand beside their own floors.
     assert "RBFInterpolator" in figures["fit_math"]["baseline"]
     assert "copy" in figures["fit_blend_basis"]["baseline"]
+    # And how the fit's wall time splits between them, built beside each other.
+    split = report["fit_split"]
+    assert split["overlapped"] is True
+    assert 0 < split["math_s"] <= split["wall_s"] and 0 < split["basis_s"] <= split["wall_s"]
 
 
 def test_bench_engine_refuses_a_zero_repeat(capsys):
