@@ -63,6 +63,9 @@ INLINE_MAX_SECONDS = 0.0005
 #: Frames that arrived together are cloned in order for at most this long after the
 #: first of them was read; later ones in the same burst replace one another (§8).
 _BURST_SECONDS = 0.005
+#: Frames of one read from the socket are taken on the protocol's stack (``_take``) for
+#: at most this long; later ones go to the reader, so a flood shares the loop.
+_TAKE_SECONDS = 0.001
 #: Results of one burst written to the socket together (one syscall) at the burst's end,
 #: or as soon as they reach this many bytes.
 _CORK_BYTES = 64 * 1024
@@ -252,6 +255,10 @@ class Session(Driver):
         session as the reader's would.
         """
         if not self._parked or self._stop.done():
+            return False
+        if self._flush_due and time.perf_counter() - self._taken_burst > _TAKE_SECONDS:
+            # This read has had its share of the loop: the rest goes to the reader, one
+            # message per turn of the loop (uvicorn pauses reading behind it).
             return False
         stages = self._stages
         decoding = CPU_CLOCK() if stages is not None else 0.0

@@ -390,3 +390,26 @@ async def test_a_burst_of_frames_taken_together_is_answered_in_order(tmp_path, r
     for seq, result in enumerate(results):
         expected = rig.weights(rig.source_neutral + 0.01 * seq)
         np.testing.assert_allclose(result.weights, expected, rtol=1e-5, atol=1e-6)
+
+
+async def test_a_read_takes_frames_for_its_share_of_the_loop_then_hands_the_rest_on(
+    tmp_path, rig, monkeypatch
+):
+    # With no time to spare per read, only the first frame of each read is taken on the
+    # protocol's stack; the rest go through the reader, and every frame is still answered
+    # in order (they arrived together, within one burst).
+    monkeypatch.setattr("facecast.server.session._TAKE_SECONDS", 0.0)
+    settings = Settings(rigs_dir=tmp_path / "rigs")
+    settings.rigs_dir.mkdir(parents=True)
+    rig.save(settings.rigs_dir / "tiny.rig")
+    hello = FacecastClient().send(Hello(rig="tiny", output="weights"))
+    frames = [encode(Frame(seq=seq, ts=seq * 10.0, points=rig.source_neutral)) for seq in range(20)]
+    async with run_server(settings) as server:
+        with server_logs() as records:
+            replies = await asyncio.to_thread(_stream_burst, server.port, hello, frames, 20)
+            await wait_until(lambda: _closed_sessions(records))
+
+    assert [decode_server(data).seq for data in replies] == list(range(20))
+    (closed,) = _closed_sessions(records)
+    assert closed["frames_in"] == 20
+    assert 1 <= closed["frames_taken"] < 20
