@@ -26,9 +26,8 @@ from facecast.protocol import (
     ServerProtocol,
 )
 from facecast.rig.errors import InputError, RigError
-from facecast.rig.filters import KalmanFilter, OneEuroFilter
 
-from .cloning import frame_error
+from .cloning import Smoother, frame_error
 from .core import PublisherCore, WatcherCore
 from .fanout import ChannelFrame
 from .outbox import Member
@@ -88,7 +87,9 @@ class PublisherMember(Member):
         self.owner = f"{hub.bus.origin}:{self.id}"
         self.channel: Channel | None = None
         self.hello: Hello | None = None
-        self._point_filter: OneEuroFilter | KalmanFilter | None = None
+        #: The publisher's smoothing of the points, done once for every key (a `Smoother`:
+        #: it starts afresh when ``ts`` goes back, as a stream session's does).
+        self._point_filter: Smoother | None = None
 
     @property
     def frames_in(self) -> int:
@@ -127,7 +128,7 @@ class PublisherMember(Member):
             raise
         self.hello, self.channel = hello, channel
         self.key = (hello.rig, hello.output, hello.dtype)
-        self._point_filter = point_filter
+        self._point_filter = None if point_filter is None else Smoother(point_filter, "points")
         core.open(rig, time.monotonic(), self.id)
         self._deliver()
         await channel.add_publisher(self, rig)
@@ -156,8 +157,7 @@ class PublisherMember(Member):
             self.report(frame_error(exc, frame.seq))
             return
         if self._point_filter is not None:
-            points = self._point_filter(np.asarray(points, dtype=np.float64).reshape(-1), frame.ts)
-            points = points.reshape(frame.points.shape)
+            points = self._point_filter(np.asarray(points, dtype=np.float64), frame.ts)
         hello, smoothing = self.hello, core.channel_smoothing
         submitted = self.channel.submit(
             ChannelFrame(

@@ -93,3 +93,17 @@ async def test_a_publishers_auto_smoothing_on_an_exact_rig_runs_the_one_euro_fil
 
     assert ready.smoothing == "one-euro"
     np.testing.assert_allclose(result.weights, expected.astype(np.float32), atol=1e-6)
+
+
+async def test_a_publishers_point_filter_starts_afresh_when_ts_goes_back(settings, ws_impl):
+    # A performer's clock that jumps back (the tracker restarted): the frame after the
+    # jump is the filter's first, passed through as it is, as on /v1/stream.
+    rig = tiny_rig(7, noise=0.05)
+    write_rigs(settings.rigs_dir, {"noisy": rig})
+    frames = [(points(rig, seed), 10.0 + 0.1 * seed) for seed in range(4)]
+    frames.append((points(rig, 9), 0.5))  # back in time
+
+    _, result = await _published(settings, ws_impl, "noisy", frames, Smoothing(filter="kalman"))
+
+    np.testing.assert_allclose(result.weights, rig.weights(frames[-1][0]).astype(np.float32),
+                               atol=1e-6)  # fmt: skip
