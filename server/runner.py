@@ -10,12 +10,14 @@ import contextlib
 import logging
 import multiprocessing
 import os
+import shutil
 import signal
 import socket
 import tempfile
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from types import FrameType
 from typing import Any
 
@@ -29,7 +31,14 @@ from .logs import uvicorn_log_config
 from .settings import Settings, SettingsError
 from .ws_guard import guarded_ws_protocol
 
-__all__ = ["WS_IMPLEMENTATIONS", "FacecastServer", "ThreadedServer", "serve", "uvicorn_config"]
+__all__ = [
+    "WS_IMPLEMENTATIONS",
+    "FacecastServer",
+    "ThreadedServer",
+    "serve",
+    "sweep_metrics_dirs",
+    "uvicorn_config",
+]
 
 log = logging.getLogger("facecast.server")
 
@@ -212,6 +221,32 @@ def _worker(settings_json: str, ws: str, sock: socket.socket) -> None:
     FacecastServer(config).run(sockets=[sock])
 
 
+#: The prefix of a supervisor's metrics directory, followed by its pid and a dash.
+_METRICS_PREFIX = "facecast-metrics-"
+
+
+def sweep_metrics_dirs(parent: Path) -> list[Path]:
+    """Remove the metrics directories in ``parent`` of supervisors no longer running.
+
+    A supervisor killed with SIGKILL leaves its ``facecast-metrics-<pid>-*`` directory
+    (the workers' metric files) behind; one whose pid is gone is removed. Only this
+    user's, and only directories named so. Returns those removed.
+    """
+    removed = []
+    for path in parent.glob(f"{_METRICS_PREFIX}*-*"):
+        pid_text = path.name[len(_METRICS_PREFIX) :].split("-", 1)[0]
+        if not pid_text.isdigit() or not path.is_dir() or path.stat().st_uid != os.getuid():
+            continue
+        try:
+            os.kill(int(pid_text), 0)
+        except ProcessLookupError:
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+        except (PermissionError, OverflowError):
+            continue  # alive (someone else's), or not a pid
+    return removed
+
+
 def _serve_workers(settings: Settings, ws: str) -> int:
     """N spawned worker processes serving one listening socket bound here.
 
@@ -221,7 +256,10 @@ def _serve_workers(settings: Settings, ws: str) -> int:
     config = uvicorn_config(settings, "facecast.server.app:app_from_env", ws=ws, factory=True)
     config.configure_logging()
     sock = config.bind_socket()
-    metrics_dir = tempfile.TemporaryDirectory(prefix="facecast-metrics-")
+    sweep_metrics_dirs(Path(tempfile.gettempdir()))
+    # Named after this process, so a later supervisor can tell it is gone (kill -9
+    # skips the clean-up) and remove it.
+    metrics_dir = tempfile.TemporaryDirectory(prefix=f"{_METRICS_PREFIX}{os.getpid()}-")
     # Read by prometheus_client in the workers (spawned processes inherit the env).
     os.environ["PROMETHEUS_MULTIPROC_DIR"] = metrics_dir.name
     ctx = multiprocessing.get_context("spawn")

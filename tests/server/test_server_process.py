@@ -154,3 +154,27 @@ def test_a_killed_worker_no_longer_counts_its_connections(tmp_path, rig):
 
     assert during == 1.0
     assert after == 0.0
+
+
+def test_a_supervisor_killed_with_sigkill_leaves_metrics_the_next_one_removes(tmp_path, rig):
+    # kill -9 skips the supervisor's clean-up of its workers' metric files; the next
+    # supervisor started on the machine removes the directory of one no longer running.
+    port = free_port()
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    env = {"TMPDIR": str(temp)}
+    with server_process(port, tmp_path / "rigs", "--workers", "2", env=env) as process:
+        left = [p for p in temp.iterdir() if p.name.startswith("facecast-metrics-")]
+        workers = _worker_pids(process.pid)
+        stop(process, signal.SIGKILL)
+        for pid in workers:  # orphans now: they would go on serving
+            os.kill(pid, signal.SIGKILL)
+    assert [p.name.split("-")[2] for p in left] == [str(process.pid)]
+    assert left[0].exists()
+
+    with server_process(free_port(), tmp_path / "rigs", "--workers", "2", env=env) as second:
+        now = [p.name for p in temp.iterdir() if p.name.startswith("facecast-metrics-")]
+        stop(second, signal.SIGTERM)
+
+    assert not left[0].exists()
+    assert [name.split("-")[2] for name in now] == [str(second.pid)]
