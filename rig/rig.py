@@ -501,6 +501,16 @@ class Rig:
 
         ``weights`` checks this itself; for callers that pass frames on unevaluated.
         """
+        if (
+            isinstance(points, np.ndarray)
+            and points.shape == (self.model.num_points, 3)
+            and points.dtype.kind == "f"
+            and points.itemsize >= 4
+            and np.vdot(points, points) <= self._fast2
+        ):
+            # One ordinary frame: the dot product ``weights`` uses proves the bound (NaN and
+            # Inf fail it, float16 squares could overflow: those take the exact check).
+            return
         x, single = self._points(points)
         self._check_range(x, single=single)
 

@@ -20,6 +20,7 @@ from facecast.rig.errors import InputError
 
 from .cloning import frame_error
 from .fanout import ChannelFrame, Key, KeyState, PointsKeyState, key_state
+from .outbox import offer_results
 from .stages import CPU_CLOCK
 
 if TYPE_CHECKING:
@@ -176,9 +177,9 @@ class Channel:
                 continue
             delay = self._last_frame_at + after - self._loop.time()
             if delay > 0:
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(delay):
-                        await self._frame_seen.wait()
+                # Sleeps to the deadline the newest frame set, then looks again: no wake
+                # (a task switch and a timer) per frame.
+                await asyncio.sleep(delay)
                 continue
             self.lost = True
             self.broadcast(encode(FaceLost(since=self.last_frame.ts)))
@@ -313,6 +314,7 @@ class Channel:
                 results.append(encoded)
             else:
                 results.append(outcome)
+        offered = 0
         for state, data in zip(states, results, strict=True):
             if isinstance(data, InputError | ProtocolError):
                 self._clone_refused(state, frame, data)
@@ -322,14 +324,17 @@ class Channel:
                           extra={"event": "channel.clone_failed", "rig": state.rig_id})  # fmt: skip
                 continue
             state.failing = False
-            members = self.members.get(state.key, ())
-            writing = CPU_CLOCK() if stages is not None else 0.0
-            for member in members:
-                member.offer_result(data)
-            if stages is not None:
-                stages.add("write", CPU_CLOCK() - writing, len(members))
-            self.results_out += len(members)
-            self.hub.results_counter.inc(len(members))
+            if stages is None:
+                offered += offer_results(self.members.get(state.key, ()), data)
+            else:
+                writing = CPU_CLOCK()
+                n = offer_results(self.members.get(state.key, ()), data)
+                stages.add("write", CPU_CLOCK() - writing, n)
+                offered += n
+        # Counted once per frame, not once per key.
+        if offered:
+            self.results_out += offered
+            self.hub.results_counter.inc(offered)
         # ``output=points`` keys only encode the frame: not clones (PROTOCOL.md §2.4).
         cloned = sum(1 for s in states if s.CLONES)
         if count:

@@ -11,7 +11,7 @@ import asyncio
 import logging
 import time
 from collections import deque
-from collections.abc import Callable, Coroutine, Generator
+from collections.abc import Callable, Coroutine, Generator, Iterable
 from typing import Any
 
 from starlette.websockets import WebSocket
@@ -23,7 +23,7 @@ from .direct import binary_frame, direct_writer
 from .driver import Driver
 from .fanout import Key
 
-__all__ = ["MAX_OUTBOX", "Member"]
+__all__ = ["MAX_OUTBOX", "Member", "offer_results"]
 
 log = logging.getLogger("facecast.server.channels")
 
@@ -75,8 +75,7 @@ class Member(Driver):
         return len(self._items)
 
     def offer_result(self, data: bytes) -> None:
-        # The fan-out's hot path (once per viewer and frame): the common case, an idle
-        # member whose socket takes the frame, without the calls of ``_push``.
+        """Send or queue one result (``offer_results`` does this for a key's members)."""
         direct = self._direct
         if (
             direct is not None
@@ -88,6 +87,10 @@ class Member(Driver):
         ):
             self.sent += 1
             return
+        self._queue_result(data)
+
+    def _queue_result(self, data: bytes) -> None:
+        """``offer_result`` once the direct write is ruled out: replace, send or queue."""
         if self._items and self._items[-1][0] == "r":
             self._items[-1][1] = data
             self.skipped += 1
@@ -196,6 +199,32 @@ class Member(Driver):
 
     def _extra_tasks(self) -> list[asyncio.Task[None]]:
         return [] if self._inflight is None else [self._inflight]
+
+
+def offer_results(members: Iterable[Member], data: bytes) -> int:
+    """Offer one result to every member of a key: the fan-out's loop, once per key and frame.
+
+    The RFC 6455 frame is built once for all of them, and an idle member whose socket
+    takes it at once is written in this loop, without a call of ``offer_result`` per
+    viewer; any other goes the way ``offer_result`` takes. Returns how many were offered.
+    """
+    frame = binary_frame(data)
+    offered = 0
+    for member in members:
+        offered += 1
+        direct = member._direct
+        if (
+            direct is not None
+            and not member._items
+            and member._open
+            and member._inflight is None
+            and not member._writing
+            and direct(frame)
+        ):
+            member.sent += 1
+        else:
+            member._queue_result(data)
+    return offered
 
 
 class _Resume:

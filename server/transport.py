@@ -167,21 +167,22 @@ def _direct_write(websocket: WebSocket, protocol: Any) -> Callable[[bytes], bool
     The fan-out calls it once per viewer and result: what it reads is bound here (cell
     reads), not looked up on ``self`` on every call.
     """
-    conn, writable, transport = protocol.conn, protocol.writable, protocol.transport
+    conn, writable, transport = protocol.conn, protocol.writable.is_set, protocol.transport
     opened, connected = State.OPEN, WebSocketState.CONNECTED
+    closing, send = transport.is_closing, transport.write
 
     def write(frame: bytes) -> bool:
         if (
             websocket.application_state is not connected
             or protocol.close_sent
             or protocol.disconnected
-            or not writable.is_set()
+            or not writable()
             or conn.state is not opened
             or conn.writes
-            or transport.is_closing()
+            or closing()
         ):
             return False
-        transport.write(frame)
+        send(frame)
         return True
 
     return write

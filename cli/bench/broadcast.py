@@ -337,12 +337,19 @@ def _prepare_rigs(directory: Path) -> tuple[Any, np.ndarray]:
     return rig, demo_animation(10.0, with_vertices=False).points.astype(np.float32)
 
 
-def _start_server(rigs: Path, redis_url: str | None) -> tuple[subprocess.Popen, int]:
+def _start_server(
+    rigs: Path, redis_url: str | None, *, stage_timing: bool = False
+) -> tuple[subprocess.Popen, int]:
+    """A ``facecast serve`` process; ``stage_timing`` turns its stage clocks on.
+
+    The clocks (a thread-CPU clock read, a system call, four per key and frame) only
+    where the figures are attributed by stage: the judged figures run as deployed.
+    """
     port = _free_port()
     env = {**os.environ, "FACECAST_MAX_CONNECTIONS": "5000", "FACECAST_ACCESS_LOG": "false",
            "FACECAST_MAX_CONNECTIONS_PER_ADDRESS": "0",  # every viewer is on 127.0.0.1
            "FACECAST_LOG_LEVEL": "warning", "OPENBLAS_NUM_THREADS": "1",
-           "FACECAST_STAGE_TIMING": "true"}  # fmt: skip
+           "FACECAST_STAGE_TIMING": "true" if stage_timing else "false"}  # fmt: skip
     command = [sys.executable, "-m", "facecast.cli", "serve", "--port", str(port),
                "--rigs", str(rigs)]  # fmt: skip
     if redis_url:
@@ -396,21 +403,22 @@ async def _publish(port: int, frames: np.ndarray, counter: list[int], stop: asyn
 
 async def _ramp(
     ports: dict[str, int], pids: list[int], frames: np.ndarray, seconds: float, say,
-    *, facecast: bool = True,
+    *, steps: tuple[int, ...] = STEPS, facecast: bool = True, staged: bool = False,
 ) -> dict[str, Any]:  # fmt: skip
     """Ramp viewers over ``ports`` (split evenly); figures per step, per group of viewers.
 
     ``facecast`` False: the floor, which has no ``GET /v1/channels/{name}`` to read.
+    ``staged``: the servers run with their stage clocks on; each step is attributed.
     """
 
     counter, stop = [0], asyncio.Event()
     publisher = asyncio.create_task(_publish(ports["a"], frames, counter, stop))
     clients = {group: _Clients({group: port}) for group, port in ports.items()}
-    steps: list[dict[str, Any]] = []
+    measured: list[dict[str, Any]] = []
     held = 0
     try:
         total = 0
-        for target in STEPS:
+        for target in steps:
             failed = 0
             for i, (group, client) in enumerate(clients.items()):
                 share = (target - total) // len(clients) + (i < (target - total) % len(clients))
@@ -422,7 +430,7 @@ async def _ramp(
                 await asyncio.sleep(1.0)  # warm-up: let the new viewers' first results settle
                 client_pids = [p.pid for c in clients.values() for p in c.processes]
                 before = await _channel_info(ports["a"]) if facecast else _NO_INFO
-                stages0 = await _snapshots(ports) if facecast else None
+                stages0 = await _snapshots(ports) if staged else None
                 cpu0, wall0 = cpu_seconds(pids), time.perf_counter()
                 client_cpu0 = cpu_seconds(client_pids)
                 figures = await asyncio.gather(
@@ -454,7 +462,7 @@ async def _ramp(
                 ok = failed == 0 and p99 < GOAL_P99_MS and delivered >= MIN_DELIVERY
                 server_cores = cpu / wall
                 us_per_result = cpu / results * 1e6 if results else float("nan")
-                steps.append({"viewers": target, "attempt": attempt,
+                measured.append({"viewers": target, "attempt": attempt,
                               "failed_connections": failed, "p99_ms": p99,
                               "delivered": round(delivered, 3), "ok": ok,
                               "server_cpu_cores": round(server_cores, 3),
@@ -483,7 +491,7 @@ async def _ramp(
         await asyncio.gather(publisher, return_exceptions=True)
         for client in clients.values():
             await client.close()
-    return {"held": held, "steps": steps, "clones_per_frame": info.get("clones_per_frame"),
+    return {"held": held, "steps": measured, "clones_per_frame": info.get("clones_per_frame"),
             "keys": len(info.get("keys", []))}  # fmt: skip
 
 
@@ -538,9 +546,11 @@ def _start_redis() -> tuple[subprocess.Popen | None, str | None]:
 
 def run(args: argparse.Namespace) -> int:
     say = print
+    steps = tuple(args.steps) if args.steps else STEPS
     seconds = max(2.0, float(args.duration) / len(STEPS))
     figures: dict[str, Any] = {"fps": FPS, "goal_p99_ms": GOAL_P99_MS, "goal_viewers": GOAL_VIEWERS,
                                "rigs": len(RIGS), "seconds_per_step": seconds,
+                               "steps": list(steps),
                                "cpus": os.cpu_count(),
                                "load_average_start": list(os.getloadavg())}  # fmt: skip
     say(
@@ -550,26 +560,43 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="facecast-bench-") as tmp:
         rigs = Path(tmp) / "rigs"
         rig, frames = _prepare_rigs(rigs)
-        say(f"one process, {len(RIGS)} rigs, 60 fps weights; {seconds:.1f} s per step")
+        say(f"one process, {len(RIGS)} rigs, 60 fps weights; {seconds:.1f} s per step; stage "
+            "clocks off (the judged figures: the server as deployed)")  # fmt: skip
         server, port = _start_server(rigs, None)
         try:
             _wait_ready(port)
             figures["one_process"] = asyncio.run(
-                _ramp({"a": port}, [server.pid], frames, seconds, say)
+                _ramp({"a": port}, [server.pid], frames, seconds, say, steps=steps)
             )
         finally:
             _stop(server)
         say("floor: a bare websockets server broadcasting a result of the same bytes")
         floor, floor_port = _start_floor(rig)
         try:
-            figures["floor"] = asyncio.run(
-                _ramp({"a": floor_port}, [floor.pid], frames, seconds, say, facecast=False)
+            floor_ramp = _ramp(
+                {"a": floor_port}, [floor.pid], frames, seconds, say, steps=steps, facecast=False
             )
+            figures["floor"] = asyncio.run(floor_ramp)
         finally:
             _stop(floor)
         figures["floor_ratio"] = _floor_ratios(figures["one_process"], figures["floor"])
-        redis_process, redis_url = (None, args.redis) if args.redis else _start_redis()
-        if redis_url is None:
+        # Where the time goes, from a second server with the stage clocks on: their reads
+        # (system calls, four per key and frame) are in its figures, not in the judged ones.
+        say("one process again, stage clocks on (attribution only, not judged)")
+        server, port = _start_server(rigs, None, stage_timing=True)
+        try:
+            _wait_ready(port)
+            figures["one_process_staged"] = asyncio.run(
+                _ramp({"a": port}, [server.pid], frames, seconds, say, steps=steps, staged=True)
+            )
+        finally:
+            _stop(server)
+        redis_process, redis_url = (
+            (None, None) if args.no_redis else (None, args.redis) if args.redis else _start_redis()
+        )
+        if args.no_redis:
+            say("two processes on Redis: skipped (--no-redis)")
+        elif redis_url is None:
             say("two processes on Redis: skipped (no --redis and no redis-server installed)")
         else:
             say(f"two processes on Redis ({redis_url}): publisher on A, viewers split A/B")
@@ -584,6 +611,7 @@ def run(args: argparse.Namespace) -> int:
                         frames,
                         seconds,
                         say,
+                        steps=steps,
                     )
                 )
             finally:
@@ -595,7 +623,10 @@ def run(args: argparse.Namespace) -> int:
     one = figures["one_process"]
     ratios = figures["floor_ratio"]
     for viewers, ratio in ratios["per_step"].items():
-        say(f"  {viewers:>5} viewers: server CPU per result {ratio:.2f}x the floor's")
+        say(
+            f"  {viewers:>5} viewers: server CPU per result {ratio:.2f}x the floor's "
+            "(stage clocks off)"
+        )
     at, worst = ratios["at_most_held"], ratios["worst_held"]
     say(f"server CPU per result against a bare websockets broadcast, at the most viewers "
         f"both held: {'-' if at is None else f'{at:.2f}'}x (goal <= {GOAL_FLOOR_RATIO}x) "

@@ -68,7 +68,27 @@ def register(subparsers) -> None:
     broadcast.add_argument("--json", metavar="FILE", help="write the figures as JSON")
     broadcast.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds")
     broadcast.add_argument("--redis", metavar="URL", help="Redis URL (default: in-process)")
+    broadcast.add_argument(
+        "--steps",
+        type=_viewer_counts,
+        metavar="N,N,...",
+        help="viewer counts of the ramp, in order (default 250,500,750,1000,1250,1500,2000)",
+    )
+    broadcast.add_argument(
+        "--no-redis", action="store_true", help="skip the two-process run on Redis"
+    )
     broadcast.set_defaults(func=_runner("broadcast"))
+
+
+def _viewer_counts(text: str) -> list[int]:
+    """``--steps``: positive viewer counts, comma-separated."""
+    try:
+        counts = [int(part) for part in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected N,N,... viewer counts, got {text!r}") from None
+    if not counts or min(counts) < 1:
+        raise argparse.ArgumentTypeError(f"viewer counts must be positive, got {text!r}")
+    return counts
 
 
 def _runner(name: str):

@@ -8,6 +8,7 @@ import json
 import pytest
 
 from facecast.cli import main as cli
+from facecast.cli.bench import broadcast
 
 
 def _importable(name: str) -> bool:
@@ -55,3 +56,19 @@ def test_bench_engine_writes_every_figure_with_baseline_and_verdict(tmp_path, ca
 def test_bench_engine_refuses_a_zero_repeat(capsys):
     assert cli.main(["bench", "engine", "--demo", "--repeat", "0"]) == 2
     assert "--repeat" in capsys.readouterr().err
+
+
+def test_bench_broadcast_takes_the_ramp_steps_given(monkeypatch):
+    seen = []
+    monkeypatch.setattr(broadcast, "run", lambda args: seen.append(args) or 0)
+
+    assert cli.main(["bench", "broadcast", "--steps", "250,500", "--no-redis"]) == 0
+    assert seen[0].steps == [250, 500] and seen[0].no_redis
+
+
+@pytest.mark.parametrize("steps", ["0", "250,x", ""])
+def test_bench_broadcast_refuses_steps_that_are_not_viewer_counts(steps, capsys):
+    with pytest.raises(SystemExit) as info:
+        cli.main(["bench", "broadcast", "--steps", steps])
+    assert info.value.code == 2
+    assert "--steps" in capsys.readouterr().err

@@ -439,6 +439,23 @@ def test_check_range_refuses_what_weights_refuses(example_set, rig):
     assert info.value.code == "out_of_range"
 
 
+@pytest.mark.parametrize("dtype", [np.float16, np.float32, np.float64])
+@pytest.mark.parametrize("factor", [0.0, 0.5, 0.999, 1.001, 2.0, np.nan])
+def test_check_range_of_one_frame_answers_as_the_exact_check(example_set, rig, dtype, factor):
+    # The one-frame shortcut (a dot product) may only accept what the exact check accepts.
+    frame = _at_rms(example_set.source_neutral, POINT_RANGE * factor).astype(dtype)
+    exact = InputError if not factor <= 1.0 else None
+
+    if exact is None:
+        rig.check_range(frame)
+        rig.check_range(frame[None])
+    else:
+        with pytest.raises(exact):
+            rig.check_range(frame)
+        with pytest.raises(exact):
+            rig.check_range(frame[None])
+
+
 def test_calibrated_rig_measures_the_range_from_the_performers_neutral(example_set, rig):
     # A performer tracked 1000x larger (other units), far from the origin: legitimate once
     # calibrated, while the same points are out of range for the uncalibrated rig.
