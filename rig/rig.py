@@ -302,9 +302,12 @@ class Rig:
         self._range2 = k * (POINT_RANGE * radius) ** 2
         #: A sum of squares of the points themselves up to this proves the bound without a
         #: subtraction (RMS |x - c| <= RMS |x| + |c|), with room for float32 rounding: one
-        #: dot product for every ordinary frame instead of three calls.
+        #: dot product for every ordinary frame instead of three calls. A float32 sum of
+        #: 3K squares is within 3K units in the last place of the exact one (its rounding
+        #: errors add up at most linearly); the room is four times that.
         slack = POINT_RANGE * radius - float(np.linalg.norm(self._centre))
-        self._fast2 = k * max(slack, 0.0) ** 2 * (1.0 - 1e-5)
+        rounding = 4 * 3 * k * float(np.finfo(np.float32).eps)
+        self._fast2 = k * max(slack, 0.0) ** 2 * (1.0 - max(rounding, 1e-5))
         self._radius = radius
         self._checksum: str | None = None
         # Derived from the models and the calibration at first use (see pose_refinement).
