@@ -2,6 +2,8 @@
 
 Bounded weights (``clamp``) are mostly exactly 0, and most of a head never moves: the
 blend reads only what a frame needs. Arrays in, arrays out; ``Rig.blend`` validates.
+Small batches go to the compiled row blend (``rig.kernel.blend_rows``), which reads each
+basis row some frame uses once per batch; without it numpy's and scipy's products do.
 """
 
 from __future__ import annotations
@@ -11,9 +13,11 @@ from typing import Literal
 import numpy as np
 import scipy.sparse
 
+from .kernel import blend_rows
+
 __all__ = ["blend_into", "blend_plan", "moving_vertices"]
 
-Plan = Literal["dense", "gathered", "sparse"]
+Plan = Literal["rows", "dense", "gathered", "sparse"]
 
 
 def moving_vertices(basis: np.ndarray) -> np.ndarray:
@@ -31,20 +35,51 @@ def moving_vertices(basis: np.ndarray) -> np.ndarray:
     return np.flatnonzero(moved.reshape(-1, 3).any(axis=1))
 
 
-def blend_plan(weights: np.ndarray) -> tuple[Plan, np.ndarray]:
+def blend_plan(weights: np.ndarray, *, compiled: bool | None = None) -> tuple[Plan, np.ndarray]:
     """How ``blend_into`` multiplies these (B, M) weights, and the basis rows they use.
 
-    A blend only streams basis rows from memory, so each way is costed in rows read:
-    the dense product reads all M rows once for the whole batch; a gathered product
-    copies the U rows some frame uses (written, read back) and multiplies them, ~3U;
-    the sparse (CSR) product reads one row per non-zero weight. The cheapest is taken
-    (ICT's moving columns, M = 56, bounded weights with ~7 non-zero a frame, measured
-    on a loaded 2-core machine: 2 frames of different sessions 210 µs a frame sparse,
-    305 gathered, 600 dense; 5 frames 130 / 150 / 230; 16 frames 370 / 135 / 110).
+    Parameters
+    ----------
+    weights : (B, M) float32
+    compiled : bool, optional
+        Whether the compiled row blend may be taken; by default whether it is built and
+        not disabled (``rig.kernel.blend_rows``).
+
+    A blend streams basis rows from memory, so each way is costed in reads of one row.
+    With the compiled row blend ("rows"), a batch reads the U rows some frame uses once,
+    and adds each non-zero weight's row from the cache: measured on ICT's moving columns
+    (M = 56, 62,181 columns, 14 MB; the whole mesh's 80,157 scale alike) on a loaded
+    2-core machine, one OpenBLAS thread, it costs about 0.8 U + 0.25 (non-zero weights)
+    row reads, BLAS's dense product M for one frame (a matrix-vector product) and
+    M (1.75 + 0.1 B) for B > 1 (it packs the basis first). Per frame, µs, rows / dense:
+
+    ===========  ==========  ==========  ==========  ==========  ==========  ==========
+    B            1           2           4           8           16          32
+    exact        510 / 523   301 / 470   200 / 255   160 / 141   145 / 90    153 / 83
+    bounded      322 / 537   156 / 512   135 / 265   105 / 148   94 / 102    85 / 76
+    ===========  ==========  ==========  ==========  ==========  ==========  ==========
+
+    (exact weights: all 56 rows; bounded, ``fit(..., noise=0.01, clamp="nonneg")``: ~30
+    non-zero a frame, 33 rows for one frame, ~48 for 4 or more.) So dense weights take the
+    rows for 2 to 6 frames (one frame is a tie: BLAS), bounded ones up to about 24. The gathered and CSR
+    products lose to the rows everywhere (2 frames: 889 and 725 µs exact, 408 and 370
+    bounded) and are taken only without the extension: then the dense product is costed M
+    for any batch, a gathered product (U rows copied, written, read back and multiplied)
+    ~3U, the CSR product one row per non-zero weight (ICT's moving columns, bounded
+    weights with ~7 non-zero a frame, measured on a loaded 2-core machine: 2 frames of
+    different sessions 210 µs a frame sparse, 305 gathered, 600 dense; 5 frames 130 /
+    150 / 230; 16 frames 370 / 135 / 110).
     """
+    batch, m = weights.shape
     used = np.flatnonzero(weights.any(axis=0))
     nonzero = int(np.count_nonzero(weights))
-    costs: dict[Plan, int] = {"dense": weights.shape[1], "gathered": 3 * used.size}
+    if compiled is None:
+        compiled = blend_rows() is not None
+    if compiled:
+        rows = 0.8 * used.size + 0.25 * nonzero
+        dense = m if batch == 1 else m * (1.75 + 0.1 * batch)
+        return ("rows" if rows <= dense else "dense"), used
+    costs: dict[Plan, int] = {"dense": m, "gathered": 3 * used.size}
     costs["sparse"] = nonzero
     return min(costs, key=costs.__getitem__), used
 
@@ -61,12 +96,20 @@ def blend_into(weights: np.ndarray, basis: np.ndarray, out: np.ndarray | None) -
         Where to write the product; None returns a new array (for a caller that only
         reads it: the sparse product is then not copied into a scratch buffer).
 
-    Sparse, gathered and dense products of the same weights agree to float rounding
+    Row, sparse, gathered and dense products of the same weights agree to float rounding
     (other summation orders), not bit for bit; so may products over different column
-    sets (BLAS blocks columns by position), which is why ``Rig.blend`` takes every
-    output, full or moving, from the one product over the moving columns.
+    sets (BLAS blocks columns by position; the row blend does not, but the plan depends
+    on the weights only), which is why ``Rig.blend`` takes every output, full or moving,
+    from the one product over the moving columns.
     """
-    plan, used = blend_plan(weights)
+    kernel = blend_rows()
+    plan, used = blend_plan(weights, compiled=kernel is not None)
+    if plan == "rows":
+        assert kernel is not None
+        if out is None:
+            out = np.empty((weights.shape[0], basis.shape[1]), np.float32)
+        kernel(np.ascontiguousarray(weights, dtype=np.float32), basis, out)
+        return out
     if plan == "dense":
         return np.matmul(weights, basis, out=out)
     if plan == "gathered":
