@@ -932,14 +932,18 @@ PyObject *facecast_blend_rows(PyObject *module, PyObject *const *args, Py_ssize_
 const char *facecast_blend_init(void);
 
 PyDoc_STRVAR(blend_rows_doc,
-             "blend_rows(weights, basis, out, generic=False, tile=0)\n"
+             "blend_rows(weights, basis, out, runs=None, generic=False, tile=0)\n"
              "--\n\n"
              "out = weights (B, M) @ basis (M, C), float32, C-contiguous, out (B, C) writable and\n"
-             "not overlapping the others. Columns go in tiles (tile columns; 0: 2048): each\n"
-             "basis row some frame weighs is read once per tile and added into every frame\n"
-             "whose weight for it is not 0, so a batch reads each used row once and zero weights\n"
-             "cost nothing. Agrees with a BLAS product to float rounding (another summation\n"
-             "order). generic=True forces the plain-C path (for tests). Releases the GIL.");
+             "not overlapping the others. With runs, an (R, 3) int64 array of (basis column,\n"
+             "out column, count), those columns of the product go to those of out (B, any\n"
+             "width), whose other columns are left as they are. Columns go in tiles (tile\n"
+             "columns; 0: 512): each basis row some frame weighs is read once per tile and\n"
+             "added into every frame whose weight for it is not 0, so a batch reads each used\n"
+             "row once and zero weights cost nothing. A column's value depends on that column\n"
+             "of basis and the weights only. Agrees with a BLAS product to float rounding\n"
+             "(another summation order). generic=True forces the plain-C path (for tests).\n"
+             "Releases the GIL.");
 
 static PyMethodDef module_methods[] = {
     {"blend_rows", (PyCFunction)(void (*)(void))facecast_blend_rows, METH_FASTCALL,
@@ -954,7 +958,8 @@ static struct PyModuleDef kernel_module = {
     PyModuleDef_HEAD_INIT,
     .m_name = "facecast.rig._kernel",
     .m_doc = "Compiled single-frame B-spline weights, bounded weights, the blend of small "
-             "batches and the float32 -> float16 result cast (see facecast.rig.kernel and facecast.rig.bounds).",
+             "batches and the float32 -> float16 result cast (see facecast.rig.kernel, "
+             "facecast.rig.bounds and facecast.rig.blend).",
     .m_size = -1,
     .m_methods = module_methods,
 };

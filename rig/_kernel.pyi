@@ -32,6 +32,7 @@ def blend_rows(
     weights: np.ndarray,
     basis: np.ndarray,
     out: np.ndarray,
+    runs: np.ndarray | None = None,
     generic: bool = False,
     tile: int = 0,
     /,

@@ -52,11 +52,12 @@ def box_kernel() -> Callable[..., None] | None:
     return None if _kernel is None or _disabled() else _kernel.project_box
 
 
-def blend_rows() -> Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None:
-    """The compiled small-batch blend ``blend_rows(weights, basis, out)``, or None.
+def blend_rows() -> Callable[..., None] | None:
+    """The compiled small-batch blend ``blend_rows(weights, basis, out, runs=None)``, or None.
 
     ``out (B, C) = weights (B, M) @ basis (M, C)``, float32, C-contiguous, reading each basis
-    row some frame weighs once per batch (``rig.blend.blend_into`` says when it is cheaper
+    row some frame weighs once per batch; with ``runs`` ((R, 3) int64: basis column, out
+    column, count) the product's columns go to those columns of a wider ``out`` (``rig.blend.blend_into`` says when it is cheaper
     than BLAS). None when the extension is not built or ``FACECAST_NO_KERNEL`` is set (read
     at each call, as ``to_float16`` does: a blend takes hundreds of µs); ``blend_into`` then
     takes numpy's and scipy's products.

@@ -10,7 +10,7 @@ import scipy.sparse
 
 from facecast.rig import ExampleSet, InputError, fit
 from facecast.rig import kernel as rig_kernel
-from facecast.rig.blend import blend_into, blend_plan
+from facecast.rig.blend import Placement, blend_into, blend_plan
 from facecast.rig.sources.ict import ict_animation, ict_example_set, locate_ict
 
 M, K, V = 9, 6, 50
@@ -221,3 +221,15 @@ def test_without_the_extension_blends_take_numpys_products(monkeypatch):
     assert blend_plan(weights)[0] == "dense"
     result = blend_into(weights, basis, None)
     np.testing.assert_array_equal(result, weights @ basis)
+
+
+@pytest.mark.parametrize("plan", ["dense", "gathered", "sparse"])
+def test_numpys_products_are_scattered_into_a_placement(plan, monkeypatch):
+    monkeypatch.setenv(rig_kernel.DISABLE_ENV, "1")
+    weights = _plan_weights(plan)
+    basis = np.random.default_rng(7).normal(size=(12, 300)).astype(np.float32)
+    columns = np.concatenate([np.arange(10, 110), np.arange(200, 400)])
+    out = np.zeros((len(weights), 450), np.float32)
+    blend_into(weights, basis, out, placement=Placement.of(columns))
+    np.testing.assert_array_equal(out[:, columns], blend_into(weights, basis, None))
+    assert not out[:, :10].any() and not out[:, 400:].any()

@@ -7,6 +7,7 @@ import pytest
 
 from facecast.rig import fit
 from facecast.rig import kernel as rig_kernel
+from facecast.rig.blend import Placement
 
 from .test_blend import make_set, sparse_weights
 
@@ -35,7 +36,7 @@ def make_basis(cols: int, seed: int = 1) -> np.ndarray:
 
 def blend(weights, basis, generic=False, tile=0) -> np.ndarray:
     out = np.full((weights.shape[0], basis.shape[1]), np.nan, np.float32)
-    rig_kernel._kernel.blend_rows(weights, basis, out, generic, tile)
+    rig_kernel._kernel.blend_rows(weights, basis, out, None, generic, tile)
     return out
 
 
@@ -109,6 +110,48 @@ def test_a_column_does_not_depend_on_the_columns_beside_it(tile, generic):
     np.testing.assert_array_equal(part.view(np.uint32), whole[:, columns].view(np.uint32))
 
 
+@pytest.mark.parametrize("generic", PATHS)
+@pytest.mark.parametrize("tile", [0, 24])
+def test_runs_place_the_product_in_a_wider_output_bit_for_bit(tile, generic):
+    weights, basis = make_weights(5, "mixed"), make_basis(300)
+    columns = np.concatenate([np.arange(3, 40), [41, 43], np.arange(100, 361)])
+    placement = Placement.of(columns)
+    out = np.full((5, 400), -7.0, np.float32)
+    rig_kernel._kernel.blend_rows(weights, basis, out, placement.runs, generic, tile)
+    product = blend(weights, basis, generic, tile)
+    np.testing.assert_array_equal(out[:, columns].view(np.uint32), product.view(np.uint32))
+    still = np.setdiff1d(np.arange(400), columns)
+    np.testing.assert_array_equal(out[:, still], np.full((5, still.size), -7.0, np.float32))
+
+
+def test_placement_finds_the_runs_of_consecutive_columns():
+    placement = Placement.of(np.array([3, 4, 5, 9, 11, 12]))
+    np.testing.assert_array_equal(placement.runs, [[0, 3, 3], [3, 9, 1], [4, 11, 2]])
+    assert Placement.of(np.array([], np.int64)).runs.shape == (0, 3)
+
+
+@pytest.mark.parametrize(
+    ("runs", "error", "match"),
+    [
+        (np.array([[0, 0, 9]]), ValueError, r"runs\[0\]: .* inside basis \(8 columns\)"),
+        (np.array([[0, 0, 4], [4, 9, 4]]), ValueError, r"runs\[1\]: .* and out \(12\)"),
+        (np.array([[0, -1, 2]]), ValueError, r"runs\[0\]"),
+        (np.array([[0, 0, 4]], np.int32), TypeError, "runs: expected int64"),
+        (np.array([0, 0, 4]), ValueError, r"runs: expected a C-contiguous \(R, 3\)"),
+    ],
+)
+def test_runs_outside_the_arrays_are_refused(runs, error, match):
+    weights, basis = make_weights(2, "dense"), make_basis(8)
+    with pytest.raises(error, match=match):
+        rig_kernel._kernel.blend_rows(weights, basis, np.zeros((2, 12), np.float32), runs)
+
+
+def test_without_runs_out_must_have_the_basis_columns():
+    weights, basis = make_weights(2, "dense"), make_basis(8)
+    with pytest.raises(ValueError, match=r"out: expected shape \(B, C\)"):
+        rig_kernel._kernel.blend_rows(weights, basis, np.zeros((2, 12), np.float32), None)
+
+
 def test_the_generic_path_agrees_with_the_dispatched_one():
     weights, basis = make_weights(9, "mixed"), make_basis(1001)
     np.testing.assert_allclose(
@@ -149,7 +192,7 @@ def test_strided_read_only_or_overlapping_arrays_are_refused():
         rig_kernel._kernel.blend_rows(weights, basis, out)
     with pytest.raises(ValueError, match="must not overlap"):
         rig_kernel._kernel.blend_rows(weights, basis, basis[:2])
-    with pytest.raises(TypeError, match="3 to 5 positional arguments"):
+    with pytest.raises(TypeError, match="3 to 6 positional arguments"):
         rig_kernel._kernel.blend_rows(weights, basis)
 
 
