@@ -93,15 +93,15 @@ def blend_plan(
     ===========  ==========  ==========  ==========  ==========  ==========  ==========
 
     (exact weights: all 56 rows; bounded, ``fit(..., noise=0.01, clamp="nonneg")``: ~30
-    non-zero a frame, 33 rows for one frame, ~48 for 4 or more.) So dense weights take the
-    rows for 2 to 6 frames (one frame is a tie: BLAS), bounded ones up to about 24. The gathered and CSR
-    products lose to the rows everywhere (2 frames: 889 and 725 µs exact, 408 and 370
-    bounded) and are taken only without the extension: then the dense product is costed M
-    for any batch, a gathered product (U rows copied, written, read back and multiplied)
-    ~3U, the CSR product one row per non-zero weight (ICT's moving columns, bounded
-    weights with ~7 non-zero a frame, measured on a loaded 2-core machine: 2 frames of
-    different sessions 210 µs a frame sparse, 305 gathered, 600 dense; 5 frames 130 /
-    150 / 230; 16 frames 370 / 135 / 110).
+    non-zero a frame, 33 rows for one frame, ~48 for 4 or more.) So dense weights take
+    the rows for 2 to 6 frames (one frame is a tie: BLAS), bounded ones up to about 24.
+    The gathered and CSR products lose to the rows everywhere (2 frames: 889 and 725 µs
+    exact, 408 and 370 bounded) and are taken only without the extension: then the dense
+    product is costed M for any batch, a gathered product (U rows copied, written, read
+    back and multiplied) ~3U, the CSR product one row per non-zero weight (ICT's moving
+    columns, bounded weights with ~7 non-zero a frame, measured on a loaded 2-core
+    machine: 2 frames of different sessions 210 µs a frame sparse, 305 gathered, 600
+    dense; 5 frames 130 / 150 / 230; 16 frames 370 / 135 / 110).
     """
     batch, m = weights.shape
     used = np.flatnonzero(weights.any(axis=0))
