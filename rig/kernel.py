@@ -56,9 +56,9 @@ def blend_rows() -> Callable[..., None] | None:
     """The compiled small-batch blend ``blend_rows(weights, basis, out, runs=None)``, or None.
 
     ``out (B, C) = weights (B, M) @ basis (M, C)``, float32, C-contiguous, reading each basis
-    row some frame weighs once per batch; with ``runs`` ((R, 3) int64: basis column, out
-    column, count) the product's columns go to those columns of a wider ``out`` (``rig.blend.blend_into`` says when it is cheaper
-    than BLAS). None when the extension is not built or ``FACECAST_NO_KERNEL`` is set (read
+    row some frame weighs once per batch (``rig.blend.blend_plan`` says when it is cheaper
+    than BLAS); with ``runs`` ((R, 3) int64: basis column, out column, count) the product's
+    columns go to those columns of a wider ``out``. None when the extension is not built or ``FACECAST_NO_KERNEL`` is set (read
     at each call, as ``to_float16`` does: a blend takes hundreds of µs); ``blend_into`` then
     takes numpy's and scipy's products.
     """
