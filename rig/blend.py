@@ -60,9 +60,7 @@ class Placement:
         return cls(columns, np.ascontiguousarray(runs))
 
 
-def blend_plan(
-    weights: np.ndarray, *, compiled: bool | None = None, placed: bool = False
-) -> tuple[Plan, np.ndarray]:
+def blend_plan(weights: np.ndarray, *, compiled: bool | None = None) -> tuple[Plan, np.ndarray]:
     """How ``blend_into`` multiplies these (B, M) weights, and the basis rows they use.
 
     Parameters
@@ -71,19 +69,19 @@ def blend_plan(
     compiled : bool, optional
         Whether the compiled row blend may be taken; by default whether it is built and
         not disabled (``rig.kernel.blend_rows``).
-    placed : bool
-        The product goes to a ``Placement`` (a full blend from the moving columns): the
-        row blend writes it in place, the others pay numpy's scatter, ~0.2 M row reads a
-        frame for one frame, ~0.6 M for more (ICT, one frame of exact weights: 622 µs
-        dense and scattered, 567 rows; 2 frames 711 and 343 a frame), so the rows win
-        for any batch.
+
+    The plan depends on the weights alone, never on where the product goes: a full blend
+    and a moving blend of the same weights must take the same arithmetic (``Rig.blend``
+    promises them equal bit for bit). A full blend's scatter would favour the rows more
+    (numpy's scatter of the moving columns: ~0.2 M row reads for one frame, ~0.6 M a
+    frame for more), but only where BLAS wins anyway (7 or more frames of dense weights).
 
     A blend streams basis rows from memory, so each way is costed in reads of one row.
     With the compiled row blend ("rows"), a batch reads the U rows some frame uses once,
     and adds each non-zero weight's row from the cache: measured on ICT's moving columns
     (M = 56, 62,181 columns, 14 MB; the whole mesh's 80,157 scale alike) on a loaded
     2-core machine, one OpenBLAS thread, it costs about 0.8 U + 0.25 (non-zero weights)
-    row reads, BLAS's dense product M for one frame (a matrix-vector product) and
+    row reads, BLAS's dense product 1.08 M for one frame (a matrix-vector product) and
     M (1.75 + 0.1 B) for B > 1 (it packs the basis first). Per frame, µs, rows / dense:
 
     ===========  ==========  ==========  ==========  ==========  ==========  ==========
@@ -94,7 +92,7 @@ def blend_plan(
 
     (exact weights: all 56 rows; bounded, ``fit(..., noise=0.01, clamp="nonneg")``: ~30
     non-zero a frame, 33 rows for one frame, ~48 for 4 or more.) So dense weights take
-    the rows for 2 to 6 frames (one frame is a tie: BLAS), bounded ones up to about 24.
+    the rows up to 6 frames (one frame is nearly a tie), bounded ones up to about 24.
     The gathered and CSR products lose to the rows everywhere (2 frames: 889 and 725 µs
     exact, 408 and 370 bounded) and are taken only without the extension: then the dense
     product is costed M for any batch, a gathered product (U rows copied, written, read
@@ -110,9 +108,7 @@ def blend_plan(
         compiled = blend_rows() is not None
     if compiled:
         rows = 0.8 * used.size + 0.25 * nonzero
-        dense = m if batch == 1 else m * (1.75 + 0.1 * batch)
-        if placed:
-            dense += (0.2 if batch == 1 else 0.6) * m * batch
+        dense = m * (1.08 if batch == 1 else 1.75 + 0.1 * batch)
         return ("rows" if rows <= dense else "dense"), used
     costs: dict[Plan, int] = {"dense": m, "gathered": 3 * used.size}
     costs["sparse"] = nonzero
@@ -149,7 +145,7 @@ def blend_into(
     from the one product over the moving columns.
     """
     kernel = blend_rows()
-    plan, used = blend_plan(weights, compiled=kernel is not None, placed=placement is not None)
+    plan, used = blend_plan(weights, compiled=kernel is not None)
     if plan == "rows":
         assert kernel is not None
         if out is None:

@@ -213,3 +213,20 @@ def test_rig_moving_blend_is_its_full_blend_bit_for_bit_either_way(monkeypatch, 
         dense[:, 0] = 1.0
         expected = (dense @ rig.blend_basis.astype(np.float64)).reshape(full.shape)
         np.testing.assert_allclose(full, expected, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("disabled", [False, True], ids=["row-blend", "numpy"])
+@pytest.mark.parametrize("rows", [1, 2, 7, 16])
+def test_rig_moving_blend_of_dense_weights_is_its_full_blend_bit_for_bit(
+    monkeypatch, disabled, rows
+):
+    # Dense weights: every row, so BLAS and the row blend both come into play by batch size.
+    if disabled:
+        monkeypatch.setenv(rig_kernel.DISABLE_ENV, "1")
+    rig = fit(make_set(seed=3))
+    weights = np.random.default_rng(rows).normal(size=(rows, rig.num_examples))
+    full = rig.blend(weights)
+    moving = rig.blend(weights, moving=True)
+    np.testing.assert_array_equal(
+        moving.view(np.uint32), full[:, rig.moving_vertices].view(np.uint32)
+    )
