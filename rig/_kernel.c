@@ -17,7 +17,8 @@
  * features; elsewhere a generic build runs (correct, but its 4-double vectors live in memory
  * without AVX: a few times slower, still faster than numpy for one frame).
  *
- * The module also holds project_box (bounded weights, in _boxqp.c) and f32_to_f16, the
+ * The module also holds project_box (bounded weights, in _boxqp.c), blend_rows (eq. 3.14's
+ * blend of small batches, in _blend.c) and f32_to_f16, the
  * float16 wire copy of vertices results (F16C where the CPU has it), which must give numpy's
  * bits exactly (see its section below).
  */
@@ -926,7 +927,27 @@ PyDoc_STRVAR(project_box_doc,
              "Block principal pivoting on the free variables only (see facecast.rig.bounds);\n"
              "each frame's result depends on that frame alone. Releases the GIL while solving.");
 
+/* In _blend.c. */
+PyObject *facecast_blend_rows(PyObject *module, PyObject *const *args, Py_ssize_t nargs);
+const char *facecast_blend_init(void);
+
+PyDoc_STRVAR(blend_rows_doc,
+             "blend_rows(weights, basis, out, runs=None, generic=False, tile=0)\n"
+             "--\n\n"
+             "out = weights (B, M) @ basis (M, C), float32, C-contiguous, out (B, C) writable and\n"
+             "not overlapping the others. With runs, an (R, 3) int64 array of (basis column,\n"
+             "out column, count), those columns of the product go to those of out (B, any\n"
+             "width), whose other columns are left as they are. Columns go in tiles (tile\n"
+             "columns; 0: 512): each basis row some frame weighs is read once per tile and\n"
+             "added into every frame whose weight for it is not 0, so a batch reads each used\n"
+             "row once and zero weights cost nothing. A column's value depends on that column\n"
+             "of basis and the weights only. Agrees with a BLAS product to float rounding\n"
+             "(another summation order). generic=True forces the plain-C path (for tests).\n"
+             "Releases the GIL.");
+
 static PyMethodDef module_methods[] = {
+    {"blend_rows", (PyCFunction)(void (*)(void))facecast_blend_rows, METH_FASTCALL,
+     blend_rows_doc},
     {"f32_to_f16", (PyCFunction)(void (*)(void))module_f32_to_f16, METH_FASTCALL, f32_to_f16_doc},
     {"project_box", (PyCFunction)(void (*)(void))facecast_project_box, METH_FASTCALL,
      project_box_doc},
@@ -936,8 +957,9 @@ static PyMethodDef module_methods[] = {
 static struct PyModuleDef kernel_module = {
     PyModuleDef_HEAD_INIT,
     .m_name = "facecast.rig._kernel",
-    .m_doc = "Compiled single-frame B-spline weights, bounded weights and the float32 -> "
-             "float16 result cast (see facecast.rig.kernel and facecast.rig.bounds).",
+    .m_doc = "Compiled single-frame B-spline weights, bounded weights, the blend of small "
+             "batches and the float32 -> float16 result cast (see facecast.rig.kernel, "
+             "facecast.rig.bounds and facecast.rig.blend).",
     .m_size = -1,
     .m_methods = module_methods,
 };
@@ -954,12 +976,14 @@ PyMODINIT_FUNC PyInit__kernel(void) {
         convert_isa = "f16c";
     }
 #endif
+    const char *blend_isa = facecast_blend_init();
     if (PyType_Ready(&KernelType) < 0) return NULL;
     PyObject *module = PyModule_Create(&kernel_module);
     if (module == NULL) return NULL;
     if (PyModule_AddObjectRef(module, "BsplineKernel", (PyObject *)&KernelType) < 0 ||
         PyModule_AddStringConstant(module, "ISA", compute_isa) < 0 ||
-        PyModule_AddStringConstant(module, "F16_ISA", convert_isa) < 0) {
+        PyModule_AddStringConstant(module, "F16_ISA", convert_isa) < 0 ||
+        PyModule_AddStringConstant(module, "BLEND_ISA", blend_isa) < 0) {
         Py_DECREF(module);
         return NULL;
     }

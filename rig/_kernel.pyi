@@ -6,6 +6,7 @@ import numpy as np
 
 ISA: Final[str]
 F16_ISA: Final[str]
+BLEND_ISA: Final[str]
 
 class BsplineKernel:
     num_inputs: int
@@ -27,6 +28,15 @@ class BsplineKernel:
     def evaluate_rows(self, x: np.ndarray, out: np.ndarray, /) -> None: ...
     def weights(self, points: np.ndarray, /) -> np.ndarray | None: ...
 
+def blend_rows(
+    weights: np.ndarray,
+    basis: np.ndarray,
+    out: np.ndarray,
+    runs: np.ndarray | None = None,
+    generic: bool = False,
+    tile: int = 0,
+    /,
+) -> None: ...
 def f32_to_f16(src: np.ndarray, dst: np.ndarray, generic: bool = False, /) -> None: ...
 def project_box(
     metric: np.ndarray,

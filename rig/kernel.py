@@ -1,4 +1,4 @@
-"""The compiled single-frame weight kernel and float16 cast (``facecast.rig._kernel``).
+"""The compiled single-frame weight kernel, small-batch blend and float16 cast (``rig._kernel``).
 
 Builds a kernel from a fitted model's arrays when the extension is built and not disabled;
 it must not change what the weights mean: the numpy path in ``rig.WeightModel`` stays the
@@ -21,6 +21,7 @@ except ImportError:  # not built (no C compiler at install time): numpy does the
 
 __all__ = [
     "DISABLE_ENV",
+    "blend_rows",
     "box_kernel",
     "bspline_kernel",
     "compiled",
@@ -28,7 +29,8 @@ __all__ = [
     "to_float16",
 ]
 
-# Set to anything but "" or "0" to force the numpy path (read when a rig is built).
+# Set to anything but "" or "0" to force the numpy path (read when a rig is built, and by
+# blend_rows and to_float16 at each call).
 DISABLE_ENV = "FACECAST_NO_KERNEL"
 
 
@@ -48,6 +50,19 @@ def box_kernel() -> Callable[..., None] | None:
     is built); ``bounds.project_box`` is then the solver, and always the reference.
     """
     return None if _kernel is None or _disabled() else _kernel.project_box
+
+
+def blend_rows() -> Callable[..., None] | None:
+    """The compiled small-batch blend ``blend_rows(weights, basis, out, runs=None)``, or None.
+
+    ``out (B, C) = weights (B, M) @ basis (M, C)``, float32, C-contiguous, reading each basis
+    row some frame weighs once per batch (``rig.blend.blend_plan`` says when it is cheaper
+    than BLAS); with ``runs`` ((R, 3) int64: basis column, out column, count) the product's
+    columns go to those columns of a wider ``out``. None when the extension is not built or ``FACECAST_NO_KERNEL`` is set (read
+    at each call, as ``to_float16`` does: a blend takes hundreds of µs); ``blend_into`` then
+    takes numpy's and scipy's products.
+    """
+    return None if _kernel is None or _disabled() else _kernel.blend_rows
 
 
 def _fast_f16() -> bool:

@@ -14,7 +14,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .basis import build_blend_basis
-from .blend import blend_into, moving_vertices
+from .blend import Placement, blend_into, moving_vertices
 from .bounds import BoxProjection, weight_metric
 from .errors import InputError
 from .examples import check_stable_points
@@ -414,11 +414,17 @@ class Rig:
             indices.flags.writeable = False
             columns = (3 * indices[:, None] + np.arange(3)).reshape(-1)
             basis = np.ascontiguousarray(self._blend_basis[:, columns])
+            runs = Placement.of(columns).runs
             # Filled last: another thread seeing "basis" sees the rest too.
-            self._moving.update(vertices=indices, columns=columns)
+            self._moving.update(vertices=indices, columns=columns, runs=runs)
             self._moving["basis"] = basis
         moving = self._moving
         return moving["basis"], moving["vertices"], moving["columns"]
+
+    def _moving_placement(self) -> Placement:
+        """Where the moving columns go in a full blend (found with the moving basis)."""
+        _, _, columns = self._moving_basis()
+        return Placement(columns, self._moving["runs"])
 
     # -- evaluation ----------------------------------------------------------------------
     def _points(self, points: npt.ArrayLike) -> tuple[np.ndarray, bool]:
@@ -617,12 +623,8 @@ class Rig:
         else:
             # Every vertex no example moves is T_B (row 0 of the basis); the others come
             # from the very product a moving blend makes, so both agree bit for bit.
-            moved = blend_into(w2, basis, None)
             flat[:] = self._blend_basis[0]
-            if rows == 1:  # numpy's 1-d scatter is ~1.5x its 2-d one
-                flat.reshape(-1)[columns] = moved.reshape(-1)
-            else:
-                flat[:, columns] = moved
+            blend_into(w2, basis, flat, placement=self._moving_placement())
         if out is not None:
             return out
         return flat.reshape(size // 3, 3) if single else flat.reshape(-1, size // 3, 3)

@@ -14,21 +14,31 @@ from typing import Any
 
 import numpy as np
 
-from facecast.rig.kernel import to_float16
+from facecast.rig.kernel import blend_rows, to_float16
 
 from .stages import CPU_CLOCK, StageTimes
 
-__all__ = ["MAX_BATCH", "MIN_BATCH", "BlendBatcher"]
+__all__ = ["MAX_BATCH", "MIN_BATCH", "MIN_BATCH_WITHOUT_KERNEL", "BlendBatcher", "min_batch"]
 
 #: Most frames blended in one ``Rig.blend`` call (bounds the scratch buffer: ICT's
 #: 27k vertices take 320 kB a frame).
 MAX_BATCH = 32
-#: Fewer waiting frames are blended one by one. A (B, M) @ (M, 3V) product of a small B
-#: costs BLAS a copy ("packing") of the whole basis, so on ICT's (56, 80157) basis a batch
-#: of 2 or 3 costs more per frame than single blends; from 4 on batches win (measured,
-#: one OpenBLAS thread, cold cache: 1 frame 740 us, 4 frames 590 us each, 8 frames 370,
-#: 16 frames 240).
-MIN_BATCH = 4
+#: Fewer waiting frames are blended one by one. With the compiled row blend
+#: (``rig.kernel.blend_rows``, which reads each used basis row once per batch) a batch costs
+#: less per frame than single blends from 2 frames on (ICT's moving columns, one thread:
+#: exact weights 1 frame 510 us, 2 frames 300 us each, 4 frames 200; bounded 322, 156,
+#: 135), so every batch is blended together.
+MIN_BATCH = 2
+#: The same without the extension: a (B, M) @ (M, 3V) product of a small B costs BLAS a
+#: copy ("packing") of the whole basis, so on ICT's (56, 80157) basis a batch of 2 or 3
+#: costs more per frame than single blends; from 4 on batches win (measured, one OpenBLAS
+#: thread, cold cache: 1 frame 740 us, 4 frames 590 us each, 8 frames 370, 16 frames 240).
+MIN_BATCH_WITHOUT_KERNEL = 4
+
+
+def min_batch() -> int:
+    """Fewest waiting frames blended together (``MIN_BATCH`` with the row blend, else 4)."""
+    return MIN_BATCH if blend_rows() is not None else MIN_BATCH_WITHOUT_KERNEL
 
 
 @dataclass
@@ -63,10 +73,11 @@ class _Scratch:
         clock = CPU_CLOCK
         started = clock()
         cast = 0.0
-        rows = len(batch) if len(batch) >= MIN_BATCH else 1
+        together = len(batch) >= min_batch()
+        rows = len(batch) if together else 1
         if self.array is None or self.array.shape[0] < rows:
             self.array = np.empty((rows, *batch[0].out.shape), np.float32)
-        if len(batch) < MIN_BATCH:
+        if not together:
             for request in batch:
                 if request.out.dtype == np.float32:
                     rig.blend(request.weights, out=request.out, moving=moving)

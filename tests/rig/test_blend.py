@@ -9,7 +9,8 @@ import pytest
 import scipy.sparse
 
 from facecast.rig import ExampleSet, InputError, fit
-from facecast.rig.blend import blend_into, blend_plan
+from facecast.rig import kernel as rig_kernel
+from facecast.rig.blend import Placement, blend_into, blend_plan
 from facecast.rig.sources.ict import ict_animation, ict_example_set, locate_ict
 
 M, K, V = 9, 6, 50
@@ -103,11 +104,19 @@ def test_sparse_blend_equals_dense_product_within_rounding(rig, rows, used):
     np.testing.assert_allclose(rig.blend(weights), expected, rtol=1e-5, atol=1e-5)
 
 
+@pytest.fixture
+def without_kernel(monkeypatch):
+    """numpy's and scipy's products only (as without the extension)."""
+    monkeypatch.setenv(rig_kernel.DISABLE_ENV, "1")
+
+
 def _plan_weights(plan: str) -> np.ndarray:
     """(B, 12) weights that ``blend_plan`` multiplies the way ``plan`` says."""
     rng = np.random.default_rng(3)
     if plan == "dense":  # every row used by every frame
         return rng.random((4, 12)).astype(np.float32)
+    if plan == "rows":  # two frames, every row
+        return rng.random((2, 12)).astype(np.float32)
     weights = np.zeros((16, 12), np.float32)
     weights[:, 0] = 1.0
     if plan == "gathered":  # 16 frames sharing 3 rows: 48 non-zeros, 9 rows gathered
@@ -118,8 +127,23 @@ def _plan_weights(plan: str) -> np.ndarray:
     return weights
 
 
-@pytest.mark.parametrize("plan", ["dense", "gathered", "sparse"])
-def test_every_blend_plan_equals_the_dense_product_within_rounding(plan):
+@pytest.mark.parametrize(
+    "plan",
+    [
+        pytest.param(
+            "rows",
+            marks=pytest.mark.skipif(
+                rig_kernel.blend_rows() is None, reason="extension not built or disabled"
+            ),
+        ),
+        "dense",
+        "gathered",
+        "sparse",
+    ],
+)
+def test_every_blend_plan_equals_the_dense_product_within_rounding(plan, monkeypatch):
+    if plan != "rows":  # numpy's and scipy's products: as without the extension
+        monkeypatch.setenv(rig_kernel.DISABLE_ENV, "1")
     weights = _plan_weights(plan)
     basis = np.random.default_rng(4).normal(size=(12, 300)).astype(np.float32)
     assert blend_plan(weights)[0] == plan
@@ -132,6 +156,18 @@ def test_every_blend_plan_equals_the_dense_product_within_rounding(plan):
     np.testing.assert_array_equal(fresh, result)
 
 
+@pytest.mark.skipif(not rig_kernel.compiled(), reason="extension not built")
+@pytest.mark.parametrize("batch", [2, 6, 16])
+def test_with_the_extension_small_batches_take_the_row_blend_large_ones_blas(batch):
+    rng = np.random.default_rng(batch)
+    dense = rng.random((batch, 56)).astype(np.float32)
+    bounded = np.where(rng.random((batch, 56)) < 0.5, dense, 0).astype(np.float32)
+    assert blend_plan(dense, compiled=True)[0] == ("rows" if batch <= 6 else "dense")
+    assert blend_plan(bounded, compiled=True)[0] == "rows"
+    assert blend_plan(dense[:1], compiled=True)[0] == "rows"
+
+
+@pytest.mark.usefixtures("without_kernel")
 def test_sparse_plan_adds_each_frames_rows_as_scipys_csr_product_does():
     # Frames 1 and 3 weigh only the neutral row: empty CSR rows between full ones.
     weights = np.zeros((4, 12), np.float32)
@@ -144,6 +180,7 @@ def test_sparse_plan_adds_each_frames_rows_as_scipys_csr_product_does():
     np.testing.assert_array_equal(result, scipy.sparse.csr_array(weights) @ basis)
 
 
+@pytest.mark.usefixtures("without_kernel")
 def test_a_sparse_frame_reads_only_its_rows():
     plan, used = blend_plan(_plan_weights("sparse"))
     assert plan == "sparse"
@@ -159,8 +196,13 @@ def test_ict_moving_vertices_stream_a_performance_losslessly():
         rig = fit(example_set, noise=0.01, clamp="nonneg")
     _, animation = ict_animation(example_set, seconds=0.5, fps=30.0, seed=5)
     weights = rig.weights(animation.points)
-    # Bounded weights are sparse: a frame alone is blended from its non-zero rows only.
-    assert all(blend_plan(w[None].astype(np.float32))[0] == "sparse" for w in weights)
+    # Bounded weights are sparse: a frame alone is blended from its non-zero rows only
+    # (the compiled row blend, or without it scipy's CSR product).
+    for compiled in (True, False):
+        assert all(
+            blend_plan(w[None].astype(np.float32), compiled=compiled)[0] in ("rows", "sparse")
+            for w in weights
+        )
     moving = rig.moving_vertices
     assert 0 < moving.size < rig.num_vertices
     full = rig.blend(weights)
@@ -171,3 +213,24 @@ def test_ict_moving_vertices_stream_a_performance_losslessly():
     )
     for frame in weights[:3]:
         np.testing.assert_array_equal(rig.blend(frame, moving=True), rig.blend(frame)[moving])
+
+
+def test_without_the_extension_blends_take_numpys_products(monkeypatch):
+    monkeypatch.setattr(rig_kernel, "_kernel", None)
+    weights = _plan_weights("rows")
+    basis = np.random.default_rng(6).normal(size=(12, 300)).astype(np.float32)
+    assert blend_plan(weights)[0] == "dense"
+    result = blend_into(weights, basis, None)
+    np.testing.assert_array_equal(result, weights @ basis)
+
+
+@pytest.mark.parametrize("plan", ["dense", "gathered", "sparse"])
+def test_numpys_products_are_scattered_into_a_placement(plan, monkeypatch):
+    monkeypatch.setenv(rig_kernel.DISABLE_ENV, "1")
+    weights = _plan_weights(plan)
+    basis = np.random.default_rng(7).normal(size=(12, 300)).astype(np.float32)
+    columns = np.concatenate([np.arange(10, 110), np.arange(200, 400)])
+    out = np.zeros((len(weights), 450), np.float32)
+    blend_into(weights, basis, out, placement=Placement.of(columns))
+    np.testing.assert_array_equal(out[:, columns], blend_into(weights, basis, None))
+    assert not out[:, :10].any() and not out[:, 400:].any()

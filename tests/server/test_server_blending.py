@@ -9,8 +9,15 @@ import numpy as np
 import pytest
 from _server_helpers import frame_points, tiny_rig
 
+from facecast.rig import kernel as rig_kernel
 from facecast.rig.errors import InputError
-from facecast.server.blending import MAX_BATCH, MIN_BATCH, BlendBatcher
+from facecast.server.blending import (
+    MAX_BATCH,
+    MIN_BATCH,
+    MIN_BATCH_WITHOUT_KERNEL,
+    BlendBatcher,
+    min_batch,
+)
 
 pytestmark = pytest.mark.anyio
 
@@ -30,9 +37,14 @@ def _weights(rig, count: int) -> list[np.ndarray]:
     return [rig.weights(frame_points(rig, i)) for i in range(count)]
 
 
+@pytest.mark.parametrize("kernel", [True, False], ids=["row-blend", "numpy"])
 @pytest.mark.parametrize("concurrency", [1, 2])
-@pytest.mark.parametrize("count", [1, MIN_BATCH - 1, MIN_BATCH, MAX_BATCH + 3])
-async def test_each_frame_gets_its_own_blend_in_f32(big_rig, executor, count, concurrency):
+@pytest.mark.parametrize("count", [1, 2, 3, MIN_BATCH_WITHOUT_KERNEL, MAX_BATCH + 3])
+async def test_each_frame_gets_its_own_blend_in_f32(
+    big_rig, executor, count, concurrency, kernel, monkeypatch
+):
+    if not kernel:
+        monkeypatch.setenv(rig_kernel.DISABLE_ENV, "1")
     batcher = BlendBatcher(executor, concurrency=concurrency)
     weights = _weights(big_rig, count)
     outs = [np.empty((big_rig.num_vertices, 3), np.float32) for _ in weights]
@@ -98,6 +110,13 @@ async def test_a_failing_blend_raises_in_every_caller_and_the_next_batch_works(b
 
     np.testing.assert_allclose(out, big_rig.blend(_weights(big_rig, 1)[0]), rtol=1e-6, atol=1e-6)
     assert batcher.active_groups == 0
+
+
+def test_small_batches_are_blended_together_with_the_row_blend_only(monkeypatch):
+    expected = MIN_BATCH if rig_kernel.blend_rows() is not None else MIN_BATCH_WITHOUT_KERNEL
+    assert min_batch() == expected
+    monkeypatch.setenv(rig_kernel.DISABLE_ENV, "1")
+    assert min_batch() == MIN_BATCH_WITHOUT_KERNEL
 
 
 def test_concurrency_below_one_is_refused(executor):
