@@ -459,12 +459,12 @@ class Rig:
             and isinstance(points, np.ndarray)
             and not align
             and self.regions is None
-            and self.model._box is None
         ):
             # One frame straight to the compiled kernel: the general path's conversions and
             # checks alone cost more than the kernel. The kernel takes only a C-contiguous
             # (K, 3) float array and returns None for non-finite weights; anything else
             # (batches, lists, NaN) goes the general way, which converts or reports it.
+            # Bounded weights then take the same projection as ``evaluate``'s.
             w: np.ndarray | None
             try:
                 w = kernel.weights(points)
@@ -475,7 +475,8 @@ class Rig:
                 # squares overflow in float16: those frames take the exact check.)
                 if points.itemsize < 4 or not np.vdot(points, points) <= self._fast2:
                     self._check_range(points[None], single=True)
-                return w
+                box = self.model._box
+                return w if box is None else self.model._bounded(w[None])[0]
         x, single = self._points(points)
         self._check_range(x, single=single)
         if align:
