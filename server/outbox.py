@@ -75,19 +75,8 @@ class Member(Driver):
         return len(self._items)
 
     def offer_result(self, data: bytes) -> None:
-        """Send or queue one result (``offer_results`` does this for a key's members)."""
-        direct = self._direct
-        if (
-            direct is not None
-            and not self._items
-            and self._open
-            and self._inflight is None
-            and not self._writing
-            and direct(binary_frame(data))
-        ):
-            self.sent += 1
-            return
-        self._queue_result(data)
+        """Send or queue one result (``offer_results`` for this member alone)."""
+        offer_results((self,), data)
 
     def _queue_result(self, data: bytes) -> None:
         """``offer_result`` once the direct write is ruled out: replace, send or queue."""
@@ -205,8 +194,8 @@ def offer_results(members: Iterable[Member], data: bytes) -> int:
     """Offer one result to every member of a key: the fan-out's loop, once per key and frame.
 
     The RFC 6455 frame is built once for all of them, and an idle member whose socket
-    takes it at once is written in this loop, without a call of ``offer_result`` per
-    viewer; any other goes the way ``offer_result`` takes. Returns how many were offered.
+    takes it at once is written in this loop, without a call per viewer; any other has
+    it replace, send or queue (``_queue_result``). Returns how many were offered.
     """
     frame = binary_frame(data)
     offered = 0
