@@ -64,7 +64,8 @@ INLINE_MAX_SECONDS = 0.0005
 #: first of them was read; later ones in the same burst replace one another (§8).
 _BURST_SECONDS = 0.005
 #: Frames of one read from the socket are taken on the protocol's stack (``_take``) for
-#: at most this long; later ones go to the reader, so a flood shares the loop.
+#: at most this long (less than ``_BURST_SECONDS``: every frame taken is in its burst);
+#: later ones go to the reader, so a flood shares the loop.
 _TAKE_SECONDS = 0.001
 #: Results of one burst written to the socket together (one syscall) at the burst's end,
 #: or as soon as they reach this many bytes.
@@ -256,7 +257,8 @@ class Session(Driver):
         """
         if not self._parked or self._stop.done():
             return False
-        if self._flush_due and time.perf_counter() - self._taken_burst > _TAKE_SECONDS:
+        read_at = time.perf_counter()
+        if self._flush_due and read_at - self._taken_burst > _TAKE_SECONDS:
             # This read has had its share of the loop: the rest goes to the reader, one
             # message per turn of the loop (uvicorn pauses reading behind it).
             return False
@@ -272,9 +274,9 @@ class Session(Driver):
             stages.add("decode", CPU_CLOCK() - decoding)
         if not self._flush_due:
             self._flush_due = True
-            self._taken_burst = time.perf_counter()
-        in_burst = time.perf_counter() - self._taken_burst < _BURST_SECONDS
-        self._guarded(self._on_frame, frame, in_burst, now)
+            self._taken_burst = read_at
+        # Within the read's first _TAKE_SECONDS, so within its burst (_BURST_SECONDS).
+        self._guarded(self._on_frame, frame, True, now)
         return True
 
     def _read_done(self) -> None:
