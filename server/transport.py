@@ -29,6 +29,7 @@ from typing import Any, Final
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from starlette.websockets import WebSocket, WebSocketState
+from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 from websockets.protocol import State
 
 from .ws_guard import BoundedSansIO
@@ -211,13 +212,6 @@ def transport_for(websocket: WebSocket) -> Transport:
 
 def _sansio_protocol(send: Any) -> Any:
     """The uvicorn ``WebSocketsSansIOProtocol`` whose own ``send`` ``send`` is, or None."""
-    try:
-        # Imported here: only where uvicorn runs the sans-I/O implementation.
-        from uvicorn.protocols.websockets.websockets_sansio_impl import (
-            WebSocketsSansIOProtocol,
-        )
-    except ImportError:  # pragma: no cover - uvicorn without websockets
-        return None
     owner = getattr(send, "__self__", None)
     if not isinstance(owner, WebSocketsSansIOProtocol):
         return None
