@@ -929,6 +929,7 @@ PyDoc_STRVAR(project_box_doc,
 
 /* In _blend.c. */
 PyObject *facecast_blend_rows(PyObject *module, PyObject *const *args, Py_ssize_t nargs);
+PyObject *facecast_place_columns(PyObject *module, PyObject *const *args, Py_ssize_t nargs);
 const char *facecast_blend_init(void);
 
 PyDoc_STRVAR(blend_rows_doc,
@@ -945,9 +946,19 @@ PyDoc_STRVAR(blend_rows_doc,
              "(another summation order). generic=True forces the plain-C path (for tests).\n"
              "Releases the GIL.");
 
+PyDoc_STRVAR(place_columns_doc,
+             "place_columns(src, out, runs)\n"
+             "--\n\n"
+             "Copy each run's columns of src (B, C) to its columns of out (B, W): runs an (R, 3)\n"
+             "int64 array of (src column, out column, count) as blend_rows takes; float32,\n"
+             "C-contiguous, out writable and not overlapping src; out's other columns are left\n"
+             "as they are. Releases the GIL.");
+
 static PyMethodDef module_methods[] = {
     {"blend_rows", (PyCFunction)(void (*)(void))facecast_blend_rows, METH_FASTCALL,
      blend_rows_doc},
+    {"place_columns", (PyCFunction)(void (*)(void))facecast_place_columns, METH_FASTCALL,
+     place_columns_doc},
     {"f32_to_f16", (PyCFunction)(void (*)(void))module_f32_to_f16, METH_FASTCALL, f32_to_f16_doc},
     {"project_box", (PyCFunction)(void (*)(void))facecast_project_box, METH_FASTCALL,
      project_box_doc},

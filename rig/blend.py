@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 import scipy.sparse
 
-from .kernel import blend_rows
+from .kernel import blend_rows, place_columns
 
 __all__ = ["Placement", "blend_into", "blend_plan", "moving_vertices"]
 
@@ -81,8 +81,11 @@ def blend_plan(weights: np.ndarray, *, compiled: bool | None = None) -> tuple[Pl
     and adds each non-zero weight's row from the cache: measured on ICT's moving columns
     (M = 56, 62,181 columns, 14 MB; the whole mesh's 80,157 scale alike) on a loaded
     2-core machine, one OpenBLAS thread, it costs about 0.8 U + 0.25 (non-zero weights)
-    row reads, BLAS's dense product 1.08 M for one frame (a matrix-vector product) and
-    M (1.75 + 0.1 B) for B > 1 (it packs the basis first). Per frame, µs, rows / dense:
+    row reads, BLAS's dense product M (1.75 + 0.1 B) for B > 1 (it packs the basis first)
+    and, for one frame (a matrix-vector product), 1.08 M on that machine but 0.9 M on
+    another of the same kind (below): 0.9 M is taken, so one frame of exact weights goes
+    to BLAS (a tie on the first machine), one of bounded weights to the rows. Per frame,
+    µs, rows / dense (the first machine):
 
     ===========  ==========  ==========  ==========  ==========  ==========  ==========
     B            1           2           4           8           16          32
@@ -92,7 +95,13 @@ def blend_plan(weights: np.ndarray, *, compiled: bool | None = None) -> tuple[Pl
 
     (exact weights: all 56 rows; bounded, ``fit(..., noise=0.01, clamp="nonneg")``: ~30
     non-zero a frame, 33 rows for one frame, ~48 for 4 or more.) So dense weights take
-    the rows up to 6 frames (one frame is nearly a tie), bounded ones up to about 24.
+    the rows from 2 up to 6 frames, bounded ones up to about 24. On the second machine
+    (AMD EPYC, 2026-12-02, basis evicted from the cache before each product, after the
+    row blend went to 64 columns of partial sums):
+
+    TABLE2
+
+    A frame alone, where the rows would read nearly all of them, is left to BLAS.
     The gathered and CSR products lose to the rows everywhere (2 frames: 889 and 725 µs
     exact, 408 and 370 bounded) and are taken only without the extension: then the dense
     product is costed M for any batch, a gathered product (U rows copied, written, read
@@ -108,7 +117,7 @@ def blend_plan(weights: np.ndarray, *, compiled: bool | None = None) -> tuple[Pl
         compiled = blend_rows() is not None
     if compiled:
         rows = 0.8 * used.size + 0.25 * nonzero
-        dense = m * (1.08 if batch == 1 else 1.75 + 0.1 * batch)
+        dense = m * (0.9 if batch == 1 else 1.75 + 0.1 * batch)
         return ("rows" if rows <= dense else "dense"), used
     costs: dict[Plan, int] = {"dense": m, "gathered": 3 * used.size}
     costs["sparse"] = nonzero
@@ -157,7 +166,10 @@ def blend_into(
         if out is None:
             raise ValueError("blend_into: a placement needs out")
         product = _product(plan, used, weights, basis, None)
-        if weights.shape[0] == 1:  # numpy's 1-d scatter is ~1.5x its 2-d one
+        place = place_columns()
+        if place is not None:
+            place(np.ascontiguousarray(product, dtype=np.float32), out, placement.runs)
+        elif weights.shape[0] == 1:  # numpy's 1-d scatter is ~1.5x its 2-d one
             out.reshape(-1)[placement.columns] = product.reshape(-1)
         else:
             out[:, placement.columns] = product

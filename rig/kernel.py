@@ -26,6 +26,7 @@ __all__ = [
     "bspline_kernel",
     "compiled",
     "description",
+    "place_columns",
     "to_float16",
 ]
 
@@ -63,6 +64,16 @@ def blend_rows() -> Callable[..., None] | None:
     takes numpy's and scipy's products.
     """
     return None if _kernel is None or _disabled() else _kernel.blend_rows
+
+
+def place_columns() -> Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None:
+    """The compiled ``place_columns(src, out, runs)``, or None (as ``blend_rows``).
+
+    Copies each run's columns of ``src`` (B, C) to its columns of ``out`` (B, W): where a
+    BLAS product lands in a wider output, one copy per run, not numpy's scatter of every
+    column (ICT's 62k moving columns of one frame: ~10 µs against ~100 µs).
+    """
+    return None if _kernel is None or _disabled() else _kernel.place_columns
 
 
 def _fast_f16() -> bool:

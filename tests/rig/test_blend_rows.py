@@ -124,6 +124,51 @@ def test_runs_place_the_product_in_a_wider_output_bit_for_bit(tile, generic):
     np.testing.assert_array_equal(out[:, still], np.full((5, still.size), -7.0, np.float32))
 
 
+@pytest.mark.parametrize("generic", PATHS)
+@pytest.mark.parametrize("tile", [0, 1, 3, 24])
+def test_runs_in_any_order_and_length_place_their_columns_bit_for_bit(tile, generic):
+    # Runs whose basis columns follow one another are tiled together (a span, through a
+    # scratch tile), others each on its own; empty runs, runs across tiles, in any order.
+    weights, basis = make_weights(4, "mixed"), make_basis(60)
+    runs = np.array([[0, 10, 5], [5, 0, 3], [8, 70, 0], [20, 30, 7], [8, 50, 12],
+                     [27, 90, 33], [40, 123, 1]], np.int64)  # fmt: skip
+    out = np.full((4, 130), -7.0, np.float32)
+    rig_kernel._kernel.blend_rows(weights, basis, out, runs, generic, tile)
+    product = blend(weights, basis, generic, tile)
+    expected = np.full((4, 130), -7.0, np.float32)
+    for c0, d0, count in runs:
+        expected[:, d0 : d0 + count] = product[:, c0 : c0 + count]
+    np.testing.assert_array_equal(out.view(np.uint32), expected.view(np.uint32))
+
+
+def test_place_columns_copies_each_run_bit_for_bit_and_leaves_the_rest():
+    src = make_basis(60)[:3]
+    src[1, 7] = np.nan
+    src[2, 0] = -0.0
+    runs = np.array([[0, 10, 5], [5, 0, 3], [8, 70, 0], [20, 30, 7], [27, 90, 33]], np.int64)
+    out = np.full((3, 130), -7.0, np.float32)
+    rig_kernel.place_columns()(src, out, runs)
+    expected = np.full((3, 130), -7.0, np.float32)
+    for c0, d0, count in runs:
+        expected[:, d0 : d0 + count] = src[:, c0 : c0 + count]
+    np.testing.assert_array_equal(out.view(np.uint32), expected.view(np.uint32))
+
+
+def test_place_columns_refuses_what_it_cannot_copy():
+    place = rig_kernel._kernel.place_columns
+    src, out = make_basis(8)[:2], np.zeros((2, 12), np.float32)
+    with pytest.raises(ValueError, match=r"runs\[0\]: .* inside basis \(8 columns\)"):
+        place(src, out, np.array([[0, 0, 9]], np.int64))
+    with pytest.raises(ValueError, match="as many rows"):
+        place(src, np.zeros((3, 12), np.float32), np.zeros((0, 3), np.int64))
+    with pytest.raises(ValueError, match="must not overlap"):
+        place(src, src, np.zeros((0, 3), np.int64))
+    with pytest.raises(TypeError, match="float32"):
+        place(src.astype(np.float64), out, np.zeros((0, 3), np.int64))
+    with pytest.raises(TypeError, match="3 arguments"):
+        place(src, out)
+
+
 def test_placement_finds_the_runs_of_consecutive_columns():
     placement = Placement.of(np.array([3, 4, 5, 9, 11, 12]))
     np.testing.assert_array_equal(placement.runs, [[0, 3, 3], [3, 9, 1], [4, 11, 2]])
