@@ -150,6 +150,22 @@ class RedisBus(Bus):
             retry=None,
             health_check_interval=0,
         )
+        # Frames leave on a client of their own, without ``socket_timeout``, so that the
+        # send loop's first step writes the PUBLISH to the socket. `Channel.submit` wakes
+        # the send loop before the pump, so that step runs before this process's fan-out
+        # of the same frame (milliseconds with many viewers) and the other processes fan
+        # out meanwhile. With a ``socket_timeout`` redis-py writes inside
+        # ``asyncio.wait_for``, on Python 3.11 a task of its own: the bytes would wait
+        # behind the whole fan-out. Taking the pool's one connection does not suspend
+        # while it is up (a connection Redis closed is replaced before the write); the
+        # send loop's ``asyncio.timeout`` bounds the write and the reply instead.
+        self._publisher = redis.Redis.from_url(
+            url,
+            socket_connect_timeout=_CALL_TIMEOUT,
+            socket_timeout=None,
+            retry=None,
+            health_check_interval=0,
+        )
         self._names: set[str] = set()
         self._dirty = asyncio.Event()
         self._outbox: deque[tuple[str, bytes]] = deque(maxlen=_MAX_OUTBOX)
@@ -172,8 +188,9 @@ class RedisBus(Bus):
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
-        with contextlib.suppress(Exception):
-            await self._redis.aclose()
+        for client in (self._publisher, self._redis):
+            with contextlib.suppress(Exception):
+                await client.aclose()
 
     def not_ready_reason(self) -> str | None:
         return None if self._up else self._reason
@@ -276,7 +293,7 @@ class RedisBus(Bus):
                 name, data = self._outbox.popleft()
                 try:
                     async with asyncio.timeout(_CALL_TIMEOUT):
-                        await self._redis.publish(frames_channel(name), data)
+                        await self._publisher.publish(frames_channel(name), data)
                 except Exception as exc:
                     # Live data: what cannot go now is stale later. Drop and move on.
                     self._down(exc)

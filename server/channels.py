@@ -223,6 +223,8 @@ class Channel:
         if self._pending is not None:
             frame = dataclasses.replace(frame, dropped=frame.dropped + 1)
         if self.hub.bus.distributed:
+            # Before ``accept``: the bus's send loop, woken first, writes the frame to
+            # Redis before the pump's fan-out holds the loop (`RedisBus` says how).
             self.hub.bus.send(self.name, "frame", frame.to_bytes())
         self.accept(frame)
         return frame
