@@ -3,10 +3,11 @@
 Starts real ``facecast serve`` processes on 127.0.0.1 (and a redis-server when needed),
 publishes the demo performance at 60 fps (weights mode) and ramps viewers held by
 separate client processes, so the load generator does not starve the server. It
-measures from outside only: it never imports the server. The same ramp then runs
-against its floor, a bare ``websockets`` server that broadcasts (``broadcast()``) a
-result of the same bytes to the same viewers per published frame: facecast's server
-CPU per result is reported as a ratio to the floor's at each viewer count.
+measures from outside only: it never imports the server. Beside facecast's ramp, in the
+same run, stands its floor: a bare ``websockets`` server that broadcasts (``broadcast()``)
+a result of the same bytes to the same viewers per published frame. Both hold each
+step's viewers and are measured in turn, each with only its own publisher running;
+facecast's server CPU per result is reported as a ratio to the floor's at each step.
 """
 
 from __future__ import annotations
@@ -348,6 +349,9 @@ def _start_server(
     port = _free_port()
     env = {**os.environ, "FACECAST_MAX_CONNECTIONS": "5000", "FACECAST_ACCESS_LOG": "false",
            "FACECAST_MAX_CONNECTIONS_PER_ADDRESS": "0",  # every viewer is on 127.0.0.1
+           # A paused publisher is silent while the floor beside it is measured (and while
+           # viewers join): the idle rule must not close it.
+           "FACECAST_IDLE_TIMEOUT": "3600",
            "FACECAST_LOG_LEVEL": "warning", "OPENBLAS_NUM_THREADS": "1",
            "FACECAST_STAGE_TIMING": "true" if stage_timing else "false"}  # fmt: skip
     command = [sys.executable, "-m", "facecast.cli", "serve", "--port", str(port),
@@ -385,84 +389,128 @@ def _stop(process: subprocess.Popen) -> None:
 
 
 # -- the scenarios ---------------------------------------------------------------------
-async def _publish(port: int, frames: np.ndarray, counter: list[int], stop: asyncio.Event) -> None:
+async def _publish(
+    port: int, frames: np.ndarray, counter: list[int], running: asyncio.Event, stop: asyncio.Event
+) -> None:
+    """One publisher at 60 fps while ``running`` is set; connected and silent while not.
+
+    Silent, its server does no per-frame work: its viewers then cost nothing while another
+    server beside it is measured.
+    """
     from facecast.client.channel import FramePublisher, channel_url
     from facecast.protocol import Hello
 
     url = channel_url(f"http://127.0.0.1:{port}", "bench", "publish")
     async with FramePublisher(url, Hello(rig=RIGS[0])) as publisher:
-        start = time.perf_counter()
         while not stop.is_set():
-            i = counter[0]
-            delay = start + i / FPS - time.perf_counter()
-            if delay > 0:
-                await asyncio.sleep(delay)
-            await publisher.send(frames[i % len(frames)], time.time())
-            counter[0] += 1
+            await running.wait()
+            # The 60 fps schedule restarts on every resume: no burst to catch up on a pause.
+            start, first = time.perf_counter(), counter[0]
+            while running.is_set() and not stop.is_set():
+                delay = start + (counter[0] - first) / FPS - time.perf_counter()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                    if not running.is_set():
+                        break
+                await publisher.send(frames[counter[0] % len(frames)], time.time())
+                counter[0] += 1
 
 
-async def _ramp(
-    ports: dict[str, int], pids: list[int], frames: np.ndarray, seconds: float, say,
-    *, steps: tuple[int, ...] = STEPS, facecast: bool = True, staged: bool = False,
-) -> dict[str, Any]:  # fmt: skip
-    """Ramp viewers over ``ports`` (split evenly); figures per step, per group of viewers.
+class _Target:
+    """One server (or pair on Redis) under a ramp: its publisher, its client processes (one
+    set per group of viewers), its figures step by step; ``close`` gives its results.
 
     ``facecast`` False: the floor, which has no ``GET /v1/channels/{name}`` to read.
     ``staged``: the servers run with their stage clocks on; each step is attributed.
+    ``label`` starts its printed lines (where two targets' lines interleave).
     """
 
-    counter, stop = [0], asyncio.Event()
-    publisher = asyncio.create_task(_publish(ports["a"], frames, counter, stop))
-    clients = {group: _Clients({group: port}) for group, port in ports.items()}
-    measured: list[dict[str, Any]] = []
-    held = 0
-    try:
-        total = 0
-        for target in steps:
-            failed = 0
-            for i, (group, client) in enumerate(clients.items()):
-                share = (target - total) // len(clients) + (i < (target - total) % len(clients))
-                failed += await client.add(group, share)
-            total = target
-            # A step over the goal is measured once more: one busy moment of a shared
-            # machine must not end the ramp (both attempts are kept in ``steps``).
+    def __init__(
+        self, ports: dict[str, int], pids: list[int], frames: np.ndarray,
+        *, facecast: bool = True, staged: bool = False, label: str = "",
+    ) -> None:  # fmt: skip
+        self.ports, self.pids, self.facecast, self.staged = ports, pids, facecast, staged
+        self.label = label
+        self.counter, self.running, self.stop = [0], asyncio.Event(), asyncio.Event()
+        self.publisher = asyncio.create_task(
+            _publish(ports["a"], frames, self.counter, self.running, self.stop)
+        )
+        self.clients = {group: _Clients({group: port}) for group, port in ports.items()}
+        self.measured: list[dict[str, Any]] = []
+        self.held = 0
+        self.total = 0
+        self.result: dict[str, Any] | None = None
+
+    async def add(self, target: int) -> int:
+        """Viewers up to ``target``, split evenly over the groups; connection failures."""
+        failed = 0
+        count = target - self.total
+        for i, (group, client) in enumerate(self.clients.items()):
+            share = count // len(self.clients) + (i < count % len(self.clients))
+            failed += await client.add(group, share)
+        self.total = target
+        return failed
+
+    async def step(self, failed: int, seconds: float, say) -> bool:
+        """Measure the viewers held now, with the publisher running; whether the step held.
+
+        A step over the goal is measured once more: one busy moment of a shared machine
+        must not end the ramp (both attempts are kept in ``steps``).
+        """
+        target = self.total
+        self.running.set()
+        try:
             for attempt in (1, 2):
                 await asyncio.sleep(1.0)  # warm-up: let the new viewers' first results settle
-                client_pids = [p.pid for c in clients.values() for p in c.processes]
-                before = await _channel_info(ports["a"]) if facecast else _NO_INFO
-                stages0 = await _snapshots(ports) if staged else None
-                cpu0, wall0 = cpu_seconds(pids), time.perf_counter()
-                client_cpu0 = cpu_seconds(client_pids)
-                figures = await asyncio.gather(
-                    *(c.measure(seconds, lambda: counter[0]) for c in clients.values())
-                )
-                cpu = cpu_seconds(pids) - cpu0
-                wall = time.perf_counter() - wall0
-                # The load generator shares the machine: its CPU says whether it, not the
-                # server, was the limit (each client process can use one core at most).
-                client_cores = (cpu_seconds(client_pids) - client_cpu0) / wall
-                after = await _channel_info(ports["a"]) if facecast else _NO_INFO
-                stages = None
-                if stages0 is not None:
-                    stages1 = await _snapshots(ports)
-                    stages = _summed_stages(stages0, stages1)
-                # Where results went missing: frames the server never cloned (the fan-out
-                # of one frame outlasted the next), or results it skipped for a slow viewer.
-                uncloned = 1.0 - min(
-                    1.0,
-                    (after["frames"] - before["frames"])
-                    / max(1, sum(f["frames"] for f in figures) / len(figures)),
-                ) if facecast else 0.0  # fmt: skip
-                skipped = after["skipped"] - before["skipped"]
-                results = sum(f["results"] for f in figures)
-                by_group = dict(zip(clients, figures, strict=True))
-                p99 = max(f["p99_ms"] for f in figures)
-                expected = sum(f["frames"] for f in figures) / len(figures) * target
-                delivered = sum(f["results"] for f in figures) / expected if expected else 0.0
-                ok = failed == 0 and p99 < GOAL_P99_MS and delivered >= MIN_DELIVERY
-                server_cores = cpu / wall
-                us_per_result = cpu / results * 1e6 if results else float("nan")
-                measured.append({"viewers": target, "attempt": attempt,
+                ok = await self._measure(target, attempt, failed, seconds, say)
+                if ok:
+                    break
+        finally:
+            self.running.clear()
+        if ok:
+            self.held = target
+        return ok
+
+    async def _measure(self, target: int, attempt: int, failed: int, seconds: float, say) -> bool:
+        clients = self.clients
+        client_pids = [p.pid for c in clients.values() for p in c.processes]
+        before = await _channel_info(self.ports["a"]) if self.facecast else _NO_INFO
+        stages0 = await _snapshots(self.ports) if self.staged else None
+        # When the window opened (Unix time): where two targets take turns, their order.
+        measured_at = time.time()
+        cpu0, wall0 = cpu_seconds(self.pids), time.perf_counter()
+        client_cpu0 = cpu_seconds(client_pids)
+        figures = await asyncio.gather(
+            *(c.measure(seconds, lambda: self.counter[0]) for c in clients.values())
+        )
+        cpu = cpu_seconds(self.pids) - cpu0
+        wall = time.perf_counter() - wall0
+        # The load generator shares the machine: its CPU says whether it, not the
+        # server, was the limit (each client process can use one core at most).
+        client_cores = (cpu_seconds(client_pids) - client_cpu0) / wall
+        after = await _channel_info(self.ports["a"]) if self.facecast else _NO_INFO
+        stages = None
+        if stages0 is not None:
+            stages1 = await _snapshots(self.ports)
+            stages = _summed_stages(stages0, stages1)
+        # Where results went missing: frames the server never cloned (the fan-out
+        # of one frame outlasted the next), or results it skipped for a slow viewer.
+        uncloned = 1.0 - min(
+            1.0,
+            (after["frames"] - before["frames"])
+            / max(1, sum(f["frames"] for f in figures) / len(figures)),
+        ) if self.facecast else 0.0  # fmt: skip
+        skipped = after["skipped"] - before["skipped"]
+        results = sum(f["results"] for f in figures)
+        by_group = dict(zip(clients, figures, strict=True))
+        p99 = max(f["p99_ms"] for f in figures)
+        expected = sum(f["frames"] for f in figures) / len(figures) * target
+        delivered = sum(f["results"] for f in figures) / expected if expected else 0.0
+        ok = failed == 0 and p99 < GOAL_P99_MS and delivered >= MIN_DELIVERY
+        server_cores = cpu / wall
+        us_per_result = cpu / results * 1e6 if results else float("nan")
+        self.measured.append({"viewers": target, "attempt": attempt,
+                              "measured_at": round(measured_at, 3),
                               "failed_connections": failed, "p99_ms": p99,
                               "delivered": round(delivered, 3), "ok": ok,
                               "server_cpu_cores": round(server_cores, 3),
@@ -470,29 +518,83 @@ async def _ramp(
                               "client_cpu_cores": round(client_cores, 3),
                               "frames_not_cloned": round(uncloned, 3), "server_skipped": skipped,
                               "groups": by_group, "stages": stages})  # fmt: skip
-                say(f"  {target:5d} viewers: p99 {p99:7.2f} ms, delivered {delivered:6.1%}, "
-                    f"server CPU {server_cores:4.2f} cores ({us_per_result:5.1f} us/result), "
-                    f"clients {client_cores:4.2f} cores, not cloned {uncloned:5.1%}, "
-                    f"skipped {skipped}, "
-                    f"connect failures {failed}  {'ok' if ok else 'OVER'}")  # fmt: skip
-                if stages is not None and results:
-                    per = {k: v / results * 1e6 for k, v in stages.items()}
-                    say(f"          server us/result by stage: clone and encode {per['weights']:.2f} "
-                        f"(one per rig and frame, shared by its viewers), fan-out write "
-                        f"{per['write']:.2f}")  # fmt: skip
-                if ok:
-                    break
-            if not ok:
+        say(f"  {self.label}{target:5d} viewers: p99 {p99:7.2f} ms, delivered {delivered:6.1%}, "
+            f"server CPU {server_cores:4.2f} cores ({us_per_result:5.1f} us/result), "
+            f"clients {client_cores:4.2f} cores, not cloned {uncloned:5.1%}, "
+            f"skipped {skipped}, "
+            f"connect failures {failed}  {'ok' if ok else 'OVER'}")  # fmt: skip
+        if stages is not None and results:
+            per = {k: v / results * 1e6 for k, v in stages.items()}
+            say(f"          server us/result by stage: clone and encode {per['weights']:.2f} "
+                f"(one per rig and frame, shared by its viewers), fan-out write "
+                f"{per['write']:.2f}")  # fmt: skip
+        return ok
+
+    async def close(self) -> dict[str, Any]:
+        """Stop the publisher and disconnect the viewers (once); the ramp's results."""
+        if self.result is None:
+            try:
+                info = await _channel_info(self.ports["a"]) if self.facecast else {}
+            finally:
+                self.stop.set()
+                self.running.set()  # wakes a paused publisher, which then sees ``stop``
+                await asyncio.gather(self.publisher, return_exceptions=True)
+                for client in self.clients.values():
+                    await client.close()
+            self.result = {"held": self.held, "steps": self.measured,
+                           "clones_per_frame": info.get("clones_per_frame"),
+                           "keys": len(info.get("keys", []))}  # fmt: skip
+        return self.result
+
+
+async def _ramp(
+    ports: dict[str, int], pids: list[int], frames: np.ndarray, seconds: float, say,
+    *, steps: tuple[int, ...] = STEPS, staged: bool = False,
+) -> dict[str, Any]:  # fmt: skip
+    """Ramp viewers over ``ports`` (split evenly) until a step fails; figures per step."""
+    target = _Target(ports, pids, frames, staged=staged)
+    try:
+        for viewers in steps:
+            if not await target.step(await target.add(viewers), seconds, say):
                 break
-            held = target
-        info = await _channel_info(ports["a"]) if facecast else {}
     finally:
-        stop.set()
-        await asyncio.gather(publisher, return_exceptions=True)
-        for client in clients.values():
-            await client.close()
-    return {"held": held, "steps": measured, "clones_per_frame": info.get("clones_per_frame"),
-            "keys": len(info.get("keys", []))}  # fmt: skip
+        result = await target.close()
+    return result
+
+
+async def _ramp_beside_floor(
+    port: int, pid: int, floor_port: int, floor_pid: int, frames: np.ndarray, seconds: float,
+    say, *, steps: tuple[int, ...] = STEPS,
+) -> tuple[dict[str, Any], dict[str, Any]]:  # fmt: skip
+    """facecast's ramp and its floor's in one: both servers hold each step's viewers, then
+    each is measured in turn with only its own publisher running; their results.
+
+    Measured seconds apart, the two stand on the same machine load, so their ratio no
+    longer moves with what else the machine did in between. Who goes first alternates
+    per step, so a drift of the machine's load over the ramp favours neither. A target that fails a
+    step leaves the ramp (its viewers disconnected, freeing the load generator); the
+    other goes on.
+    """
+    facecast = _Target({"a": port}, [pid], frames, label="facecast ")
+    floor = _Target({"a": floor_port}, [floor_pid], frames, facecast=False, label="floor    ")
+    try:
+        live = [facecast, floor]
+        for index, viewers in enumerate(steps):
+            # Both publishers are paused here: the viewers join idle servers.
+            failed = await asyncio.gather(*(target.add(viewers) for target in live))
+            turns = list(zip(live, failed, strict=True))
+            for target, target_failed in turns if index % 2 == 0 else turns[::-1]:
+                if not await target.step(target_failed, seconds, say):
+                    await target.close()
+                    live.remove(target)
+                    if live:
+                        say(f"  {target.label.strip()} held {target.held} viewers: its viewers "
+                            "disconnected, the ramp goes on without it")  # fmt: skip
+            if not live:
+                break
+    finally:
+        results = (await facecast.close(), await floor.close())
+    return results
 
 
 async def _snapshots(ports: dict[str, int]) -> list[dict[str, Any]]:
@@ -560,25 +662,24 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="facecast-bench-") as tmp:
         rigs = Path(tmp) / "rigs"
         rig, frames = _prepare_rigs(rigs)
-        say(f"one process, {len(RIGS)} rigs, 60 fps weights; {seconds:.1f} s per step; stage "
-            "clocks off (the judged figures: the server as deployed)")  # fmt: skip
+        say(f"one process, {len(RIGS)} rigs, 60 fps weights, beside its floor in the same run "
+            "(a bare websockets server broadcasting a result of the same bytes)")  # fmt: skip
+        say(f"  both hold each step's viewers; each is measured in turn (who goes first "
+            f"alternates) with only its own publisher running; {seconds:.1f} s per step; "
+            "stage clocks off (the judged figures: the server as deployed)")  # fmt: skip
         server, port = _start_server(rigs, None)
+        floor, floor_port = None, 0
         try:
             _wait_ready(port)
-            figures["one_process"] = asyncio.run(
-                _ramp({"a": port}, [server.pid], frames, seconds, say, steps=steps)
+            floor, floor_port = _start_floor(rig)
+            ramps = _ramp_beside_floor(
+                port, server.pid, floor_port, floor.pid, frames, seconds, say, steps=steps
             )
+            figures["one_process"], figures["floor"] = asyncio.run(ramps)
         finally:
             _stop(server)
-        say("floor: a bare websockets server broadcasting a result of the same bytes")
-        floor, floor_port = _start_floor(rig)
-        try:
-            floor_ramp = _ramp(
-                {"a": floor_port}, [floor.pid], frames, seconds, say, steps=steps, facecast=False
-            )
-            figures["floor"] = asyncio.run(floor_ramp)
-        finally:
-            _stop(floor)
+            if floor is not None:
+                _stop(floor)
         figures["floor_ratio"] = _floor_ratios(figures["one_process"], figures["floor"])
         # Where the time goes, from a second server with the stage clocks on: their reads
         # (system calls, four per key and frame) are in its figures, not in the judged ones.

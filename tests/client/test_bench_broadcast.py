@@ -1,0 +1,42 @@
+"""``facecast bench broadcast``: facecast's ramp and its floor's run interleaved."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+
+import pytest
+
+from facecast.cli.bench import broadcast
+
+pytestmark = pytest.mark.slow
+
+
+def test_facecast_and_its_floor_are_measured_in_turn_at_every_step(tmp_path):
+    rigs = tmp_path / "rigs"
+    rig, frames = broadcast._prepare_rigs(rigs)
+    server, port = broadcast._start_server(rigs, None)
+    floor = None
+    try:
+        broadcast._wait_ready(port)
+        floor, floor_port = broadcast._start_floor(rig)
+        ramps = broadcast._ramp_beside_floor(
+            port, server.pid, floor_port, floor.pid, frames, 0.5, lambda line: None, steps=(6, 12)
+        )
+        facecast, bare = asyncio.run(ramps)
+    finally:
+        broadcast._stop(server)
+        if floor is not None:
+            broadcast._stop(floor)
+
+    # Both held every step: the ratio stands at each viewer count.
+    assert facecast["held"] == bare["held"] == 12
+    assert set(broadcast._floor_ratios(facecast, bare)["per_step"]) == {6, 12}
+    # In the order measured (a second attempt of a step stays within its turn): a step
+    # each, facecast first at the first step, the floor first at the next.
+    measured = sorted(
+        [(step["measured_at"], "facecast", step["viewers"]) for step in facecast["steps"]]
+        + [(step["measured_at"], "floor", step["viewers"]) for step in bare["steps"]]
+    )
+    turns = [turn for turn, _ in itertools.groupby(target for _, *target in measured)]
+    assert turns == [["facecast", 6], ["floor", 6], ["floor", 12], ["facecast", 12]]
