@@ -571,9 +571,9 @@ async def _ramp_beside_floor(
 
     Measured seconds apart, the two stand on the same machine load, so their ratio no
     longer moves with what else the machine did in between. Who goes first alternates
-    per step, so a drift of the machine's load over the ramp favours neither. A target that fails a
-    step leaves the ramp (its viewers disconnected, freeing the load generator); the
-    other goes on.
+    per step, so a drift of the machine's load over the ramp favours neither. A target
+    that fails a step leaves the ramp after it (its viewers disconnected, freeing the
+    load generator); the other goes on.
     """
     facecast = _Target({"a": port}, [pid], frames, label="facecast ")
     floor = _Target({"a": floor_port}, [floor_pid], frames, facecast=False, label="floor    ")
@@ -583,13 +583,18 @@ async def _ramp_beside_floor(
             # Both publishers are paused here: the viewers join idle servers.
             failed = await asyncio.gather(*(target.add(viewers) for target in live))
             turns = list(zip(live, failed, strict=True))
+            over = []
             for target, target_failed in turns if index % 2 == 0 else turns[::-1]:
                 if not await target.step(target_failed, seconds, say):
-                    await target.close()
-                    live.remove(target)
-                    if live:
-                        say(f"  {target.label.strip()} held {target.held} viewers: its viewers "
-                            "disconnected, the ramp goes on without it")  # fmt: skip
+                    over.append(target)
+            # Only now: its viewers leaving (and its publisher's close handshake, slow
+            # behind a backlog) would load the machine while the other was measured.
+            for target in over:
+                await target.close()
+                live.remove(target)
+                if live:
+                    say(f"  {target.label.strip()} held {target.held} viewers: its viewers "
+                        "disconnected, the ramp goes on without it")  # fmt: skip
             if not live:
                 break
     finally:

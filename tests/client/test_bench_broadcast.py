@@ -40,3 +40,24 @@ def test_facecast_and_its_floor_are_measured_in_turn_at_every_step(tmp_path):
     )
     turns = [turn for turn, _ in itertools.groupby(target for _, *target in measured)]
     assert turns == [["facecast", 6], ["floor", 6], ["floor", 12], ["facecast", 12]]
+
+
+def test_a_target_that_fails_a_step_leaves_and_the_other_goes_on(tmp_path):
+    rigs = tmp_path / "rigs"
+    rig, frames = broadcast._prepare_rigs(rigs)
+    server, port = broadcast._start_server(rigs, None)
+    floor = None
+    try:
+        broadcast._wait_ready(port)
+        floor, floor_port = broadcast._start_floor(rig)
+        broadcast._stop(floor)  # a floor that takes no viewers fails its first step
+        ramps = broadcast._ramp_beside_floor(
+            port, server.pid, floor_port, floor.pid, frames, 0.5, lambda line: None, steps=(6, 12)
+        )
+        facecast, bare = asyncio.run(ramps)
+    finally:
+        broadcast._stop(server)
+
+    assert [(step["viewers"], step["ok"]) for step in bare["steps"]] == [(6, False), (6, False)]
+    assert bare["held"] == 0
+    assert facecast["held"] == 12
