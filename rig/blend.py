@@ -82,10 +82,10 @@ def blend_plan(weights: np.ndarray, *, compiled: bool | None = None) -> tuple[Pl
     (M = 56, 62,181 columns, 14 MB; the whole mesh's 80,157 scale alike) on a loaded
     2-core machine, one OpenBLAS thread, it costs about 0.8 U + 0.25 (non-zero weights)
     row reads, BLAS's dense product M (1.75 + 0.1 B) for B > 1 (it packs the basis first)
-    and, for one frame (a matrix-vector product), 1.08 M on that machine but 0.9 M on
-    another of the same kind (below): 0.9 M is taken, so one frame of exact weights goes
-    to BLAS (a tie on the first machine), one of bounded weights to the rows. Per frame,
-    µs, rows / dense (the first machine):
+    and, for one frame (a matrix-vector product), 1.08 M on that machine but about 0.8 M
+    on another of the same kind (below): 0.9 M is taken, so one frame of exact weights
+    goes to BLAS (a tie on the first machine, 22 % less on the second), one of bounded
+    weights to the rows. Per frame, µs, rows / dense (the first machine):
 
     ===========  ==========  ==========  ==========  ==========  ==========  ==========
     B            1           2           4           8           16          32
@@ -96,12 +96,15 @@ def blend_plan(weights: np.ndarray, *, compiled: bool | None = None) -> tuple[Pl
     (exact weights: all 56 rows; bounded, ``fit(..., noise=0.01, clamp="nonneg")``: ~30
     non-zero a frame, 33 rows for one frame, ~48 for 4 or more.) So dense weights take
     the rows from 2 up to 6 frames, bounded ones up to about 24. On the second machine
-    (AMD EPYC, 2026-12-02, basis evicted from the cache before each product, after the
-    row blend went to 64 columns of partial sums):
+    (AMD EPYC, 2026-12-02, quiet, the basis evicted from the cache before each product,
+    the row blend with 64 columns of partial sums):
 
-    TABLE2
+    ===========  ==========  ==========  ==========  ==========  ==========  ==========
+    B            1           2           4           8           16          32
+    exact        515 / 401   290 / 538   200 / 269   155 / 170   131 / 120   123 / 94
+    bounded      415 / 475   248 / 546   152 / 271   132 / 170   95 / 124    83 / 103
+    ===========  ==========  ==========  ==========  ==========  ==========  ==========
 
-    A frame alone, where the rows would read nearly all of them, is left to BLAS.
     The gathered and CSR products lose to the rows everywhere (2 frames: 889 and 725 µs
     exact, 408 and 370 bounded) and are taken only without the extension: then the dense
     product is costed M for any batch, a gathered product (U rows copied, written, read
