@@ -462,19 +462,17 @@ class Rig:
         ):
             # One frame straight to the compiled kernel: the general path's conversions and
             # checks alone cost more than the kernel. The kernel takes only a C-contiguous
-            # (K, 3) float array and returns None for non-finite weights; anything else
-            # (batches, lists, NaN) goes the general way, which converts or reports it.
-            # Bounded weights then take the same projection as ``evaluate``'s.
+            # (K, 3) float array and returns None for non-finite weights and for points whose
+            # sum of squares (float64) is past the range check's shortcut (``check_range``);
+            # anything else (batches, lists, NaN, frames far out) goes the general way,
+            # which converts, checks the range exactly or reports it. Bounded weights then
+            # take the same projection as ``evaluate``'s.
             w: np.ndarray | None
             try:
-                w = kernel.weights(points)
+                w = kernel.weights(points, self._fast2)
             except (TypeError, ValueError):
                 w = None
             if w is not None:
-                # The kernel took it, so ``points`` is a finite (K, 3) float array. (float16
-                # squares overflow in float16: those frames take the exact check.)
-                if points.itemsize < 4 or not np.vdot(points, points) <= self._fast2:
-                    self._check_range(points[None], single=True)
                 box = self.model._box
                 return w if box is None else self.model._bounded(w[None])[0]
         x, single = self._points(points)

@@ -180,6 +180,10 @@ def _paired_seconds(
     """
     numbers = []
     for f in (function, baseline):
+        # A first call may do one-time work (a rig's first blend finds its moving columns,
+        # ~15 ms): timed, it would make every run of the function one call long, each
+        # from a cache the baseline's run has just filled with its own data.
+        f()
         started = time.perf_counter()
         f()
         numbers.append(max(1, int(min_run_seconds / max(time.perf_counter() - started, 1e-9))))

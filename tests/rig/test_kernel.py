@@ -342,6 +342,37 @@ def test_rig_weights_still_converts_and_rejects_what_the_kernel_declines(big_set
         big_rig.weights(frame.reshape(-1))
 
 
+@needs_kernel
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.float16])
+def test_weights_with_a_limit_decline_frames_whose_sum_of_squares_is_past_it(handle, dtype):
+    points = np.random.default_rng(2).uniform(-2, 2, (25, 3)).astype(dtype)
+    squares = float(np.sum(points.astype(np.float64) ** 2))
+    expected = handle.weights(points)
+    np.testing.assert_array_equal(handle.weights(points, squares), expected)  # at the limit
+    np.testing.assert_array_equal(handle.weights(points, np.inf), expected)
+    assert handle.weights(points, np.nextafter(squares, 0.0)) is None
+    assert handle.weights(points, np.nan) is None
+    with pytest.raises(TypeError):
+        handle.weights(points, "far")
+
+
+@needs_kernel
+def test_rig_weights_of_a_frame_past_the_shortcut_but_in_range_take_the_exact_check(
+    big_set, big_rig
+):
+    # The kernel declines a frame past the range check's shortcut (``_fast2``); the general
+    # path checks it exactly and gives the same weights as the batch path.
+    # Every point at distance s from the centre c, away from the origin: RMS |x - c| = s
+    # within the range R, RMS |x| = |c| + s past the shortcut's R - |c|.
+    centre = big_rig._centre
+    reach = np.sqrt(big_rig._range2 / big_set.num_points)
+    s = reach - np.linalg.norm(centre) / 2
+    frame = np.tile(centre + s * centre / np.linalg.norm(centre), (big_set.num_points, 1))
+    assert float(np.sum(frame**2)) > big_rig._fast2
+    big_rig._check_range(frame[None], single=True)  # in range all the same
+    np.testing.assert_array_equal(big_rig.weights(frame), big_rig.weights(frame[None])[0])
+
+
 # -- NaN and Inf --------------------------------------------------------------------------
 
 
