@@ -12,7 +12,11 @@ from facecast.cli.bench import broadcast
 pytestmark = pytest.mark.slow
 
 
-def test_facecast_and_its_floor_are_measured_in_turn_at_every_step(tmp_path):
+def _ramps(tmp_path, *, floor_down: bool = False) -> tuple[dict, dict]:
+    """facecast's and its floor's ramp over 6 and 12 viewers, 0.5 s a step; their results.
+
+    ``floor_down``: the floor is stopped before the ramp (it takes no viewers).
+    """
     rigs = tmp_path / "rigs"
     rig, frames = broadcast._prepare_rigs(rigs)
     server, port = broadcast._start_server(rigs, None)
@@ -20,14 +24,20 @@ def test_facecast_and_its_floor_are_measured_in_turn_at_every_step(tmp_path):
     try:
         broadcast._wait_ready(port)
         floor, floor_port = broadcast._start_floor(rig)
+        if floor_down:
+            broadcast._stop(floor)
         ramps = broadcast._ramp_beside_floor(
             port, server.pid, floor_port, floor.pid, frames, 0.5, lambda line: None, steps=(6, 12)
         )
-        facecast, bare = asyncio.run(ramps)
+        return asyncio.run(ramps)
     finally:
         broadcast._stop(server)
         if floor is not None:
             broadcast._stop(floor)
+
+
+def test_facecast_and_its_floor_are_measured_in_turn_at_every_step(tmp_path):
+    facecast, bare = _ramps(tmp_path)
 
     # Both held every step: the ratio stands at each viewer count.
     assert facecast["held"] == bare["held"] == 12
@@ -43,20 +53,7 @@ def test_facecast_and_its_floor_are_measured_in_turn_at_every_step(tmp_path):
 
 
 def test_a_target_that_fails_a_step_leaves_and_the_other_goes_on(tmp_path):
-    rigs = tmp_path / "rigs"
-    rig, frames = broadcast._prepare_rigs(rigs)
-    server, port = broadcast._start_server(rigs, None)
-    floor = None
-    try:
-        broadcast._wait_ready(port)
-        floor, floor_port = broadcast._start_floor(rig)
-        broadcast._stop(floor)  # a floor that takes no viewers fails its first step
-        ramps = broadcast._ramp_beside_floor(
-            port, server.pid, floor_port, floor.pid, frames, 0.5, lambda line: None, steps=(6, 12)
-        )
-        facecast, bare = asyncio.run(ramps)
-    finally:
-        broadcast._stop(server)
+    facecast, bare = _ramps(tmp_path, floor_down=True)
 
     assert [(step["viewers"], step["ok"]) for step in bare["steps"]] == [(6, False), (6, False)]
     assert bare["held"] == 0
