@@ -236,10 +236,11 @@ static int get_matrix(PyObject *obj, Py_buffer *view, int writable, const char *
     return -1;
 }
 
-/* runs: None, or an (R, 3) C-contiguous int64 array of (basis column, out column, count),
- * each inside both arrays. Returns R (-1 with an exception set); *view is released by the
- * caller when R > 0 was returned from a buffer. */
-static Py_ssize_t get_runs(PyObject *obj, Py_buffer *view, Py_ssize_t cols, Py_ssize_t out_cols) {
+/* runs: an (R, 3) C-contiguous int64 array of (source column, out column, count), each
+ * inside both arrays (source: "basis" or "src", for the message). Returns R, *view then held
+ * for the caller to release, or -1 with an exception set and nothing held. */
+static Py_ssize_t get_runs(PyObject *obj, Py_buffer *view, Py_ssize_t cols, Py_ssize_t out_cols,
+                           const char *source) {
     if (PyObject_GetBuffer(obj, view, PyBUF_STRIDES | PyBUF_FORMAT) < 0) return -1;
     const char *f = view->format;
     if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<')) f++;
@@ -257,9 +258,9 @@ static Py_ssize_t get_runs(PyObject *obj, Py_buffer *view, Py_ssize_t cols, Py_s
         }
         if (r == view->shape[0]) return r;
         PyErr_Format(PyExc_ValueError,
-                     "runs[%zd]: (basis column, out column, count) must lie inside basis "
+                     "runs[%zd]: (%s column, out column, count) must lie inside %s "
                      "(%zd columns) and out (%zd)",
-                     r, cols, out_cols);
+                     r, source, source, cols, out_cols);
     }
     PyBuffer_Release(view);
     return -1;
@@ -312,7 +313,7 @@ PyObject *facecast_blend_rows(PyObject *module, PyObject *const *args, Py_ssize_
     const int64_t whole[3] = {0, 0, cols};
     const int64_t *runs = whole;
     if (error == NULL && placed) {
-        nruns = get_runs(args[3], &rv, cols, out_cols);
+        nruns = get_runs(args[3], &rv, cols, out_cols, "basis");
         if (nruns < 0) {
             PyBuffer_Release(&wv);
             PyBuffer_Release(&bv);
@@ -425,7 +426,7 @@ PyObject *facecast_place_columns(PyObject *module, PyObject *const *args, Py_ssi
     }
     Py_ssize_t nruns = 0;
     if (error == NULL) {
-        nruns = get_runs(args[2], &rv, sv.shape[1], ov.shape[1]);
+        nruns = get_runs(args[2], &rv, sv.shape[1], ov.shape[1], "src");
         if (nruns < 0) {
             PyBuffer_Release(&sv);
             PyBuffer_Release(&ov);

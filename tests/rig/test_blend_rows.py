@@ -157,7 +157,7 @@ def test_place_columns_copies_each_run_bit_for_bit_and_leaves_the_rest():
 def test_place_columns_refuses_what_it_cannot_copy():
     place = rig_kernel._kernel.place_columns
     src, out = make_basis(8)[:2], np.zeros((2, 12), np.float32)
-    with pytest.raises(ValueError, match=r"runs\[0\]: .* inside basis \(8 columns\)"):
+    with pytest.raises(ValueError, match=r"runs\[0\]: \(src column, .* inside src \(8 columns\)"):
         place(src, out, np.array([[0, 0, 9]], np.int64))
     with pytest.raises(ValueError, match="as many rows"):
         place(src, np.zeros((3, 12), np.float32), np.zeros((0, 3), np.int64))
