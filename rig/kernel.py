@@ -71,7 +71,7 @@ def place_columns() -> Callable[[np.ndarray, np.ndarray, np.ndarray], None] | No
 
     Copies each run's columns of ``src`` (B, C) to its columns of ``out`` (B, W): where a
     BLAS product lands in a wider output, one copy per run, not numpy's scatter of every
-    column (ICT's 62k moving columns of one frame: ~10 µs against ~100 µs).
+    column (ICT's 62k moving columns of one frame: 6 µs against 91 µs).
     """
     return None if _kernel is None or _disabled() else _kernel.place_columns
 
