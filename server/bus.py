@@ -143,13 +143,13 @@ class RedisBus(Bus):
         import redis.asyncio as redis
 
         self.url = url
-        self._redis = redis.Redis.from_url(
-            url,
-            socket_connect_timeout=_CALL_TIMEOUT,
-            socket_timeout=_CALL_TIMEOUT * 2,
-            retry=None,
-            health_check_interval=0,
-        )
+
+        def client(socket_timeout: float | None) -> redis.Redis:
+            return redis.Redis.from_url(url, socket_connect_timeout=_CALL_TIMEOUT,
+                                        socket_timeout=socket_timeout, retry=None,
+                                        health_check_interval=0)  # fmt: skip
+
+        self._redis = client(_CALL_TIMEOUT * 2)
         # Frames leave on a client of their own, without ``socket_timeout``, so that the
         # send loop's first step writes the PUBLISH to the socket. `Channel.submit` wakes
         # the send loop before the pump, so that step runs before this process's fan-out
@@ -159,13 +159,7 @@ class RedisBus(Bus):
         # behind the whole fan-out. Taking the pool's one connection does not suspend
         # while it is up (a connection Redis closed is replaced before the write); the
         # send loop's ``asyncio.timeout`` bounds the write and the reply instead.
-        self._publisher = redis.Redis.from_url(
-            url,
-            socket_connect_timeout=_CALL_TIMEOUT,
-            socket_timeout=None,
-            retry=None,
-            health_check_interval=0,
-        )
+        self._publisher = client(None)
         self._names: set[str] = set()
         self._dirty = asyncio.Event()
         self._outbox: deque[tuple[str, bytes]] = deque(maxlen=_MAX_OUTBOX)

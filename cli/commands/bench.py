@@ -73,7 +73,7 @@ def register(subparsers) -> None:
         type=float,
         default=35.0,
         metavar="S",
-        help="seconds of measurement over the 7 default steps (at least 2 a step; default 35)",
+        help="each step measures max(2, S / 7) seconds (default 35: 5 s a step)",
     )
     broadcast.add_argument("--redis", metavar="URL", help="Redis URL (default: in-process)")
     broadcast.add_argument(
