@@ -29,6 +29,7 @@ COMMAND_MODULES = (
     "stream",
     "publish",
     "perform",
+    "track",
     "watch",
     "record",
     "loadtest",

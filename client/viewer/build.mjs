@@ -20,6 +20,8 @@ const common = {
 
 await build({ ...common, entryPoints: ["src/main.js"], outfile: "dist/viewer.js" });
 await build({ ...common, entryPoints: ["src/perform/main.js"], outfile: "dist/perform.js" });
+// The offline tracker of `facecast track` (track.html): the page's own tracking pipeline.
+await build({ ...common, entryPoints: ["src/perform/track.js"], outfile: "dist/track.js" });
 
 // The face model (BlazeFace + FaceMesh, TensorFlow.js graph models) and the WebAssembly
 // backend's binaries; server/perform_page.py serves exactly these names.

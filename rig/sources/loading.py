@@ -62,7 +62,9 @@ def load_source_animation(
     Parameters
     ----------
     path : path-like
-        - ``.npz`` with ``points`` (F, K, 3), optional ``fps`` and ``timestamps`` (F,);
+        - ``.npz`` with ``points`` (F, K, 3), optional ``fps`` and ``timestamps`` (F,),
+          and optional ``found`` (F,) bool (``facecast track``'s: frames without a face,
+          NaN, hold the nearest earlier tracked frame, or the first tracked one);
         - ``.npz`` with ``vertices`` (F, Vs, 3) and no ``points``: ``feature_indices``
           select the points;
         - ``.npy`` holding (F, K, 3) points;
@@ -165,6 +167,7 @@ def _load_npz(
             keys = set(archive.files)
             fps = archive["fps"] if "fps" in keys else DEFAULT_FPS
             timestamps = archive["timestamps"] if "timestamps" in keys else None
+            found = archive["found"] if "found" in keys else None
     except FileNotFoundError:
         raise InputError(f"{path}: file not found", code="missing_file") from None
     except Exception as exc:  # zipfile/zlib/numpy raise many types on a corrupt file
@@ -184,6 +187,8 @@ def _load_npz(
         del all_vertices
     else:
         raise InputError(f"{path}: needs a 'points' or a 'vertices' array", code="bad_animation")
+    if found is not None:
+        points = _hold_untracked(points, found, path)
     check_frames_finite(str(path), points)
     try:
         return SourceAnimation(
@@ -191,6 +196,27 @@ def _load_npz(
         )
     except InputError as exc:
         raise InputError(f"{path}: {exc.message}", code=exc.code) from None
+
+
+def _hold_untracked(points: np.ndarray, found: np.ndarray, path: Path) -> np.ndarray:
+    """Frames ``found`` marks as without a face take the nearest earlier tracked frame (the
+    first tracked one before it): a live viewer too keeps the last face it was sent."""
+    found = np.asarray(found)
+    if found.dtype != np.bool_ or found.shape != points.shape[:1]:
+        raise InputError(
+            f"{path}: found must be a bool array of shape ({points.shape[0]},), got "
+            f"{found.dtype} {found.shape}",
+            code="bad_animation",
+        )
+    if not found.any():
+        raise InputError(
+            f"{path}: no frame has a face (found is all false): nothing to clone",
+            code="no_face",
+        )
+    frames = np.arange(found.size)
+    source = np.maximum.accumulate(np.where(found, frames, -1))
+    source[source < 0] = int(np.argmax(found))
+    return points[source]
 
 
 def _load_obj_frames(

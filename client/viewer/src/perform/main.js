@@ -2,19 +2,16 @@
 // and distance removed) -> published on the channel; the character's live pose beside
 // the camera; the calibration walk-through (studio.js). Publishes window.facecastStats.
 
-import layoutTable from "../../../../rig/sources/layouts/mediapipe_face_mesh.json";
 import { Link } from "../link.js";
 import { authHeaders, socketTarget } from "../params.js";
 import { encodeCalibrate, encodeFrame, encodeHello, ErrorCode, errorName } from "../protocol.js";
 import { FaceView } from "../scene.js";
-import { checkLayout, eyeOpenness, headAngles, imageToMesh, normaliseMesh } from "./facemesh.js";
 import { drawPoints, nextVideoFrame, openCamera } from "./camera.js";
+import { eyeOpenness, headAngles } from "./facemesh.js";
 import { readPerformParams } from "./params.js";
+import { FacePipeline, LAYOUT as layout } from "./pipeline.js";
 import { Studio } from "./studio.js";
 import { Rolling } from "./timing.js";
-import { Tracker } from "./tracker.js";
-
-const layout = checkLayout(layoutTable);
 const K = layout.features.length;
 const MAX_BUFFERED_BYTES = 64 * 1024; // a stalled socket drops frames instead of queueing them
 const WINDOW = 120; // frames in the rolling timing statistics
@@ -261,10 +258,10 @@ async function main() {
     return;
   }
   setTrack("loading", "loading the face model");
-  const tracker = new Tracker({ backend: params.backend });
+  const pipeline = new FacePipeline({ layout, backend: params.backend });
   try {
-    stats.backend = await tracker.load();
-    stats.backendFeatures = tracker.features;
+    stats.backend = await pipeline.load();
+    stats.backendFeatures = pipeline.features;
   } catch (err) {
     setTrack("failed", "face model failed", err.message);
     fatal(`The face model did not load: ${err.message}`);
@@ -278,7 +275,6 @@ async function main() {
   $("camera-box").style.aspectRatio = `${canvas.width} / ${canvas.height}`;
   const ctx = canvas.getContext("2d");
   let drawnBox = null;
-  const points = new Float32Array(K * 3);
   const modelTimes = new Rolling(WINDOW);
   const latency = new Rolling(WINDOW);
   const overlay = new Rolling(WINDOW);
@@ -296,27 +292,25 @@ async function main() {
     // Ask for the frame after this one now: one the camera delivers while the model runs
     // is tracked as soon as the model is done, so the rate is min(camera, 1 / model time).
     nextFrame = nextVideoFrame(video);
-    const t0 = performance.now();
     let result;
     try {
-      result = await tracker.track(video);
+      result = await pipeline.track(video);
     } catch (err) {
       setTrack("failed", "tracking failed", err.message);
       fatal(`Tracking failed: ${err.message}`);
       return;
     }
     const tLandmarks = performance.now();
-    modelTimes.push(tLandmarks - t0);
-    if (stats.firstModelMs === null) stats.firstModelMs = tLandmarks - t0;
+    modelTimes.push(result.modelMs);
+    if (stats.firstModelMs === null) stats.firstModelMs = result.modelMs;
     stats.tracked += 1;
     stats.faces = result.faces;
     frameTimes.push(tLandmarks);
     let sample = null;
-    if (result.face) {
-      const mesh = imageToMesh(result.face.landmarks);
-      const { frame } = normaliseMesh(mesh, layout, points);
-      const head = headAngles(frame);
-      const eyes = eyeOpenness(mesh, layout);
+    const { points } = result;
+    if (points) {
+      const head = headAngles(result.frame);
+      const eyes = eyeOpenness(result.mesh, layout);
       if (publishing && generic && !stats.rebased) stats.heldForNeutral += 1;
       else if (publishing && link.bufferedAmount < MAX_BUFFERED_BYTES) {
         if (link.send(encodeFrame(seq, performance.now() / 1000, points))) {

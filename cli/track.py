@@ -1,0 +1,220 @@
+"""A video file -> the /perform page's feature points for every frame, offline.
+
+Runs the page's own tracking pipeline (client/viewer/src/perform/pipeline.js: the same
+model files, TensorFlow.js backend and face-frame normalisation, bundled as dist/track.js)
+in headless Chromium, and hands it the video's frames one at a time, so every frame is
+tracked exactly once, in order. It serves the page to the browser itself (no server, no
+port, nothing fetched from elsewhere); it never publishes and never fits anything.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from facecast.cli.errors import CommandError
+from facecast.cli.y4m import Y4MVideo, open_y4m
+
+__all__ = ["BACKENDS", "TRACK_COLOR_SPACE", "TrackResult", "track_video"]
+
+#: The TensorFlow.js backends the page can run (docs/perform.md).
+BACKENDS = ("wasm", "webgl", "cpu")
+#: The origin the browser loads the tracker from; served by this module's route handler,
+#: never resolved on a network.
+_ORIGIN = "http://facecast-track.localhost"
+#: The colour space the frames are tagged with for Chromium's YUV -> RGB conversion: the
+#: one its fake camera gives the same file's frames (BT.601, limited range), so the
+#: pixels tracked here are the live page's, bit for bit (tests/perform/test_track.py).
+TRACK_COLOR_SPACE = {
+    "primaries": "smpte170m",
+    "transfer": "smpte170m",
+    "matrix": "smpte170m",
+    "fullRange": False,
+}
+_HTML = "text/html; charset=utf-8"
+
+
+@dataclass(frozen=True, eq=False)
+class TrackResult:
+    """Every frame of a video, tracked.
+
+    Attributes
+    ----------
+    points : (F, K, 3) float32
+        The layout's K feature points in its face frame, as /perform publishes them
+        (about cm); NaN in frames without a face.
+    found : (F,) bool
+        Whether a face was found in each frame.
+    fps : float
+        The video's frame rate.
+    faces : (F,) int
+        Faces found in each frame (the largest is tracked).
+    layout : str
+        The layout the points follow (``mediapipe_face_mesh``).
+    backend : str
+        The TensorFlow.js backend that ran.
+    """
+
+    points: np.ndarray
+    found: np.ndarray
+    fps: float
+    faces: np.ndarray
+    layout: str
+    backend: str
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.points.shape[0])
+
+    def save(self, path: str | Path) -> Path:
+        """Write ``points``, ``found``, ``fps`` and ``layout`` as an .npz (what ``facecast
+        clone`` reads)."""
+        path = Path(path)
+        with path.open("wb") as handle:
+            np.savez(
+                handle, points=self.points, found=self.found, fps=np.float64(self.fps),
+                faces=self.faces, layout=np.str_(self.layout),
+            )  # fmt: skip
+        return path
+
+
+def _assets() -> dict[str, tuple[Path, str]]:
+    """URL path -> (file, media type): the page, its script, the model and the .wasm files."""
+    from facecast.server.perform_page import PERFORM_ASSETS
+    from facecast.server.viewer import viewer_dir
+
+    root = viewer_dir()
+    dist = root / "dist"
+    files = {"/track": (root / "track.html", _HTML)}
+    for name, (path, media_type) in PERFORM_ASSETS.items():
+        if not name.startswith("perform.js"):
+            files[f"/perform/assets/{name}"] = (dist / path, media_type)
+    files["/perform/assets/track.js"] = (dist / "track.js", "text/javascript; charset=utf-8")
+    missing = [str(path) for path, _ in files.values() if not path.is_file()]
+    if missing:
+        raise CommandError(
+            f"the offline tracker is not built ({missing[0]} is missing): run scripts/setup, "
+            "or npm ci && npm run build in client/viewer"
+        )
+    return files
+
+
+def _serve(video: Y4MVideo, files: dict[str, tuple[Path, str]]) -> Callable[[Any], None]:
+    """The browser's route handler: the tracker's files and the video's frames."""
+
+    def handle(route: Any) -> None:
+        path = route.request.url[len(_ORIGIN) :].split("?")[0]
+        if path.startswith("/frames/"):
+            try:
+                body = video.read(int(path[len("/frames/") :]))
+            except (ValueError, IndexError):
+                route.fulfill(status=404, body=b"")
+                return
+            route.fulfill(status=200, body=body, content_type="application/octet-stream")
+        elif path in files:
+            file, media_type = files[path]
+            route.fulfill(status=200, body=file.read_bytes(), content_type=media_type)
+        else:
+            route.fulfill(status=404, body=b"")
+
+    return handle
+
+
+def track_video(
+    path: str | Path,
+    *,
+    backend: str = "wasm",
+    max_frames: int | None = None,
+    progress: bool = True,
+    chromium: str | None = None,
+) -> TrackResult:
+    """Track every frame of the Y4M video at ``path`` with the /perform page's pipeline.
+
+    Parameters
+    ----------
+    backend : str
+        TensorFlow.js backend, one of ``BACKENDS`` (the page's default ``wasm``).
+    max_frames : int, optional
+        Track only the first ``max_frames`` frames.
+    progress : bool
+        Show a progress bar (tqdm, on stderr).
+    chromium : str, optional
+        The Chromium executable (default ``/usr/bin/chromium``, or FACECAST_CHROMIUM).
+
+    Raises
+    ------
+    facecast.cli.y4m.Y4MError
+        The file is not a Y4M video this reads (the message says what is).
+    CommandError
+        No Chromium or Playwright, the tracker is not built, or the model failed to load.
+    """
+    from tqdm import tqdm
+
+    from facecast.cli.snapshot import CHROMIUM_ARGS, chromium_path
+
+    if backend not in BACKENDS:
+        raise CommandError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if max_frames is not None and max_frames < 1:
+        raise CommandError(f"max_frames must be at least 1, got {max_frames}")
+    video = open_y4m(path)
+    files = _assets()
+    executable = chromium or chromium_path()
+    if executable is None:
+        raise CommandError(
+            "facecast track runs the face model in Chromium: no Chromium at /usr/bin/chromium "
+            "(install Debian's chromium, or set FACECAST_CHROMIUM)"
+        )
+    try:
+        from playwright.sync_api import Error as PlaywrightError
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        raise CommandError(
+            "facecast track drives Chromium through Playwright: pip install playwright"
+        ) from None
+
+    frames = video.num_frames if max_frames is None else min(max_frames, video.num_frames)
+    points = np.full((frames, 0, 3), np.nan, dtype=np.float32)
+    faces = np.zeros(frames, dtype=np.int64)
+    shape = {
+        "format": video.format, "width": video.width, "height": video.height,
+        "colorSpace": TRACK_COLOR_SPACE,
+    }  # fmt: skip
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(
+            executable_path=executable, headless=True, args=[*CHROMIUM_ARGS]
+        )
+        try:
+            page = browser.new_page()
+            page.route(f"{_ORIGIN}/**", _serve(video, files))
+            page.goto(f"{_ORIGIN}/track")
+            page.wait_for_function("window.facecastTrack !== undefined", timeout=60_000)
+            try:
+                loaded = page.evaluate("(b) => window.facecastTrack.load(b)", backend)
+            except PlaywrightError as exc:
+                raise CommandError(f"the face model did not load: {exc}") from None
+            k = int(page.evaluate("window.facecastTrack.k"))
+            layout = str(page.evaluate("window.facecastTrack.layout"))
+            points = np.full((frames, k, 3), np.nan, dtype=np.float32)
+            bar = tqdm(
+                total=frames, unit="frame", desc="tracking", disable=not progress, leave=False
+            )
+            with bar:
+                for index in range(frames):
+                    tracked = page.evaluate(
+                        "([url, shape]) => window.facecastTrack.track(url, shape)",
+                        [f"/frames/{index}", shape],
+                    )
+                    faces[index] = tracked["faces"]
+                    if tracked["points"] is not None:
+                        points[index] = np.asarray(tracked["points"], dtype=np.float32).reshape(
+                            k, 3
+                        )
+                    bar.update(1)
+        finally:
+            browser.close()
+    found = np.isfinite(points).all(axis=(1, 2))
+    return TrackResult(points, found, video.fps, faces, layout, loaded["backend"])

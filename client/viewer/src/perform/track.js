@@ -1,0 +1,48 @@
+// Entry point of the offline tracker (`facecast track`, facecast/cli/track.py): the /perform
+// page's own FacePipeline (same model files, backend and normalisation) on video frames
+// handed in one at a time, each tracked exactly once. Publishes window.facecastTrack; no
+// camera, no network beyond the page's own origin, no drawing.
+
+import { FacePipeline, LAYOUT } from "./pipeline.js";
+
+const canvas = document.createElement("canvas");
+let pipeline = null;
+
+const api = {
+  layout: LAYOUT.name,
+  k: LAYOUT.features.length,
+  backend: null,
+  features: null,
+
+  /** Load the model on `backend`; returns {backend, features} as really running. */
+  async load(backend = "wasm") {
+    pipeline = new FacePipeline({ layout: LAYOUT, backend });
+    api.backend = await pipeline.load();
+    api.features = pipeline.features;
+    return { backend: api.backend, features: api.features };
+  },
+
+  /**
+   * Track the raw YUV frame at `url` (planar, `format` "I420", "I422" or "I444", as
+   * WebCodecs names them). Chromium converts it to RGB as it converts its camera's
+   * frames; returns {faces, points: [K*3] or null}.
+   */
+  async track(url, { format, width, height, colorSpace }) {
+    const response = await fetch(url);
+    if (!response.ok) throw new Error(`frame ${url}: ${response.status}`);
+    const data = await response.arrayBuffer();
+    const frame = new VideoFrame(data, { format, codedWidth: width, codedHeight: height, timestamp: 0, colorSpace });
+    if (canvas.width !== width || canvas.height !== height) {
+      canvas.width = width;
+      canvas.height = height;
+    }
+    try {
+      canvas.getContext("2d").drawImage(frame, 0, 0);
+    } finally {
+      frame.close();
+    }
+    const result = await pipeline.track(canvas);
+    return { faces: result.faces, points: result.points ? Array.from(result.points) : null };
+  },
+};
+window.facecastTrack = api;
