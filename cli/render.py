@@ -1,7 +1,8 @@
-"""A small software renderer for pictures of meshes: flat Lambert shading, painter's order.
+"""A small software renderer for pictures of meshes: flat Lambert shading, a z-buffer.
 
-numpy and matplotlib's Agg canvas only (no OpenGL, no pyplot global state), for reports,
-thumbnails and side-by-side comparisons; it must not be used for anything real-time.
+numpy (``facecast.cli.raster``, the one rasteriser) and matplotlib's Agg canvas for the
+labelled grids (no OpenGL, no pyplot global state), for reports, thumbnails and
+side-by-side comparisons; it must not be used for anything real-time.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from facecast.cli.errors import RenderError
+from facecast.cli.raster import lambert, rasterise
 
 __all__ = ["VIEWS", "RenderError", "render_mesh", "save_side_by_side"]
 
@@ -25,6 +27,7 @@ _LIGHT = np.array([-0.35, 0.45, 1.0]) / np.linalg.norm([-0.35, 0.45, 1.0])
 _AMBIENT = 0.22
 _DIFFUSE = 0.78
 _MAX_PIXELS = 8192
+_SUPERSAMPLE = 2
 _DPI = 100.0
 
 
@@ -106,7 +109,7 @@ def render_mesh(
 
     Orthographic camera on the +z axis looking down -z (y up), optionally turned by
     ``view``; triangles are shaded flat with a fixed light (two-sided, so the winding
-    does not matter) and drawn far to near.
+    does not matter), the nearest one at each pixel drawn (a z-buffer, supersampled 2 x 2).
 
     Parameters
     ----------
@@ -146,40 +149,25 @@ def render_mesh(
     scale = min(width / extent[0], height / extent[1])
     half_w, half_h = width / (2.0 * scale), height / (2.0 * scale)
 
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.collections import PolyCollection
-    from matplotlib.figure import Figure
-
-    figure = Figure(figsize=(width / _DPI, height / _DPI), dpi=_DPI, facecolor=bg)
-    canvas = FigureCanvasAgg(figure)
-    axes = figure.add_axes((0.0, 0.0, 1.0, 1.0))
-    axes.set_axis_off()
-    axes.set_xlim(centre[0] - half_w, centre[0] + half_w)
-    axes.set_ylim(centre[1] - half_h, centre[1] + half_h)
-
-    if tris.shape[0]:
-        corners = camera[tris]  # (F, 3, 3)
-        normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        lengths = np.linalg.norm(normals, axis=1)
-        keep = lengths > 0.0  # degenerate triangles have no area to draw
-        corners, normals = corners[keep], normals[keep] / lengths[keep, None]
-        normals *= np.where(normals[:, 2] < 0.0, -1.0, 1.0)[:, None]  # two-sided
-        lambert = np.clip(normals @ _LIGHT, 0.0, 1.0)
-        shades = np.clip((_AMBIENT + _DIFFUSE * lambert)[:, None] * rgb, 0.0, 1.0)
-        order = np.argsort(corners[:, :, 2].mean(axis=1), kind="stable")  # far first
-        # Edges in the face colour close the hairline gaps between neighbours.
-        collection = PolyCollection(
-            corners[order][:, :, :2],
-            facecolors=shades[order],
-            edgecolors=shades[order],
-            linewidths=0.3,
-            antialiased=True,
-        )
-        axes.add_collection(collection)
-    canvas.draw()
-    image = np.asarray(canvas.buffer_rgba())[:, :, :3].copy()
-    figure.clear()
-    return image
+    # Supersampled, then averaged: the antialiasing of the picture's edges.
+    big_w, big_h = width * _SUPERSAMPLE, height * _SUPERSAMPLE
+    pixels = scale * _SUPERSAMPLE
+    screen = np.empty_like(camera)
+    screen[:, 0] = (camera[:, 0] - centre[0] + half_w) * pixels
+    screen[:, 1] = (centre[1] + half_h - camera[:, 1]) * pixels
+    screen[:, 2] = -camera[:, 2]  # nearer the viewer (+z) is smaller depth
+    corners = camera[tris]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    lengths = np.linalg.norm(normals, axis=1)
+    keep = lengths > 0.0  # degenerate triangles have no area to draw
+    normals = normals[keep] / lengths[keep, None]
+    normals *= np.where(normals[:, 2] < 0.0, -1.0, 1.0)[:, None]  # two-sided
+    brightness = lambert(normals, _LIGHT, ambient=_AMBIENT, diffuse=_DIFFUSE)
+    shades = np.clip(brightness[:, None] * rgb, 0.0, 1.0)
+    image = rasterise(screen, tris[keep], size=(big_w, big_h), background=bg, face_colors=shades)
+    image = image.reshape(height, _SUPERSAMPLE, width, _SUPERSAMPLE, 3).mean(axis=(1, 3))
+    out: np.ndarray = (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    return out
 
 
 def _as_grid(rows) -> list[list[tuple]]:
