@@ -1,8 +1,10 @@
-"""YUV4MPEG2 (.y4m) video files, read frame by frame as raw planar 8-bit YUV.
+"""YUV4MPEG2 (.y4m) video files, read frame by frame as raw planar 8-bit YUV, and written.
 
 The header is validated up front and every frame located before any is read; frames are
 returned as their bytes, never converted to RGB here (``facecast track`` hands them to
-Chromium, which converts them as it converts its camera's frames). Reads only.
+Chromium, which converts them as it converts its camera's frames). ``Y4MWriter`` writes
+RGB frames as 4:2:0 in the colour space the tracker tags them with (BT.601, limited
+range), for rendered test videos.
 """
 
 from __future__ import annotations
@@ -11,10 +13,14 @@ import math
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
+from types import TracebackType
+
+import numpy as np
+import numpy.typing as npt
 
 from facecast.errors import FacecastError
 
-__all__ = ["ACCEPTED", "Y4MError", "Y4MVideo", "open_y4m"]
+__all__ = ["ACCEPTED", "Y4MError", "Y4MVideo", "Y4MWriter", "open_y4m", "rgb_to_i420"]
 
 _MAGIC = b"YUV4MPEG2"
 #: A header or a frame header longer than this is not a Y4M file.
@@ -163,3 +169,73 @@ def open_y4m(path: str | Path) -> Y4MVideo:
     if not offsets:
         raise Y4MError(f"{path}: the video has no frames", code="empty_video")
     return Y4MVideo(path, width, height, fps, layout, colour, frame_bytes, tuple(offsets))
+
+
+def rgb_to_i420(rgb: npt.ArrayLike) -> bytes:
+    """An (H, W, 3) RGB image (uint8, or float in [0, 1]) -> I420 planes (Y, U, V) as bytes.
+
+    BT.601 with limited range (Y in 16..235, U and V in 16..240): the colour space
+    ``facecast track`` tags frames with (``TRACK_COLOR_SPACE``). Chroma is averaged over
+    each 2 x 2 block; H and W must be even.
+    """
+    image = np.asarray(rgb)
+    if image.ndim != 3 or image.shape[2] != 3 or image.shape[0] % 2 or image.shape[1] % 2:
+        raise Y4MError(f"frames must be (H, W, 3) with H and W even, got {image.shape}")
+    if image.dtype == np.uint8:
+        x = image.astype(np.float64) / 255.0
+    else:
+        x = np.clip(np.asarray(image, dtype=np.float64), 0.0, 1.0)
+    r, g, b = x[..., 0], x[..., 1], x[..., 2]
+    luma = 0.299 * r + 0.587 * g + 0.114 * b
+    planes = [16.0 + 219.0 * luma]
+    for chroma in ((b - luma) / 1.772, (r - luma) / 1.402):  # each in [-0.5, 0.5]
+        h, w = chroma.shape
+        block = chroma.reshape(h // 2, 2, w // 2, 2).mean(axis=(1, 3))
+        planes.append(128.0 + 224.0 * block)
+    return b"".join(np.clip(p + 0.5, 0, 255).astype(np.uint8).tobytes() for p in planes)
+
+
+class Y4MWriter:
+    """Writes RGB frames to a 4:2:0 Y4M file (``rgb_to_i420``); a context manager.
+
+    ``open_y4m`` reads the result back with ``format`` I420 and the given ``fps``.
+    """
+
+    def __init__(self, path: str | Path, width: int, height: int, fps: float) -> None:
+        if not (1 <= width <= MAX_SIDE and 1 <= height <= MAX_SIDE) or width % 2 or height % 2:
+            raise Y4MError(f"frame size {width} x {height}: even sides in 2..{MAX_SIDE}")
+        rate = Fraction(fps).limit_denominator(1001)
+        if not rate > 0:
+            raise Y4MError(f"frame rate must be positive, got {fps}")
+        self.path = Path(path)
+        self.width, self.height = width, height
+        self.frames = 0
+        self._handle = self.path.open("wb")
+        self._handle.write(
+            f"YUV4MPEG2 W{width} H{height} F{rate.numerator}:{rate.denominator} Ip A1:1 "
+            "C420mpeg2 XCOLORRANGE=LIMITED\n".encode("ascii")
+        )
+
+    def write(self, rgb: npt.ArrayLike) -> None:
+        """Append one (height, width, 3) RGB frame."""
+        shape = np.shape(rgb)
+        if shape != (self.height, self.width, 3):
+            raise Y4MError(f"frame {self.frames}: expected shape {(self.height, self.width, 3)}, "
+                           f"got {shape}")  # fmt: skip
+        self._handle.write(b"FRAME\n")
+        self._handle.write(rgb_to_i420(rgb))
+        self.frames += 1
+
+    def close(self) -> None:
+        self._handle.close()
+
+    def __enter__(self) -> Y4MWriter:
+        return self
+
+    def __exit__(
+        self,
+        kind: type[BaseException] | None,
+        value: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.close()
