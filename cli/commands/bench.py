@@ -1,4 +1,4 @@
-"""``facecast bench``: the benchmarks (engine, transport, broadcast) as sub-commands.
+"""``facecast bench``: the benchmarks (engine, transport, broadcast, webcam) as sub-commands.
 
 Only parses arguments and hands over to ``facecast.cli.bench.<name>.run(args)``; it must
 not measure anything itself.
@@ -86,6 +86,23 @@ def register(subparsers) -> None:
         "--no-redis", action="store_true", help="skip the two-process run on Redis"
     )
     broadcast.set_defaults(func=_runner("broadcast"))
+
+    webcam = sub.add_parser(
+        "webcam",
+        help="the webcam path against ground truth: a rendered ICT face, tracked and cloned",
+        description=(
+            "Render an ICT-FaceKit identity performing a real take's ARKit weights, and its "
+            "key-expressions clip by clip, as 640 x 480 camera video; track both with "
+            "facecast track; fit the performer's own rig from the tracked keys onto another "
+            "identity, clone the tracked take and report eq. 4.1 per axis and jitter against "
+            "the truth, beside NNLS on the same points, the generic rig re-based on the "
+            "tracked neutral, and the same pipeline on the exact landmarks."
+        ),
+    )
+    from facecast.cli.bench.webcam import add_arguments
+
+    add_arguments(webcam)
+    webcam.set_defaults(func=_runner("webcam"))
 
 
 def _viewer_counts(text: str) -> list[int]:

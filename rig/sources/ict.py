@@ -30,6 +30,7 @@ __all__ = [
     "ICT_FILE",
     "ict_animation",
     "ict_example_set",
+    "ict_regions",
     "ict_target_frames",
     "locate_ict",
     "stable_positions",
@@ -114,6 +115,25 @@ def _landmark_vertices(landmarks68: np.ndarray, landmarks: Sequence[int]) -> np.
         raise ExampleSetError("landmarks: a landmark is chosen twice")
     indices: np.ndarray = landmarks68[chosen].astype(np.int64)
     return indices
+
+
+def ict_regions(path: str | os.PathLike[str]) -> tuple[dict[str, tuple[int, int]], np.ndarray]:
+    """The archive's parts and landmarks: ``({region name: (start, stop)}, landmarks68)``.
+
+    Regions are ICT's vertex ranges (face, head_and_neck, mouth_socket, eye sockets,
+    gums_and_tongue, teeth, eyeballs, lacrimal fluid, eye blend, eye occlusion, eyelashes);
+    ``landmarks68`` (68,) int64 the vertex of each Multi-PIE landmark.
+    """
+    archive = _archive_path(path)
+    try:
+        with np.load(archive, allow_pickle=False) as data:
+            names = [str(n) for n in data["region_names"]]
+            ranges = data["region_ranges"].astype(np.int64)
+            landmarks: np.ndarray = data["landmarks68"].astype(np.int64)
+    except KeyError as exc:
+        raise ExampleSetError(f"{archive}: no ICT-FaceKit regions (missing {exc})") from None
+    regions = {name: (int(a), int(b)) for name, (a, b) in zip(names, ranges, strict=True)}
+    return regions, landmarks
 
 
 def stable_positions(

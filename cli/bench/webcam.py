@@ -1,0 +1,327 @@
+"""``facecast bench webcam``: the webcam path measured against ground truth.
+
+An ICT-FaceKit identity performs a real take's ARKit weights and, clip by clip, its
+key-expressions, rendered as 640 x 480 camera video (``facecast.cli.bench.facevideo``);
+``facecast track`` tracks both; the performer's own rig is fitted from the tracked keys as
+the server fits it, the tracked take is cloned onto another identity, and every path is
+scored against the known ideal clone (eq. 4.1 per axis, jitter) beside NNLS on the same
+points and the same pipeline on the exact landmarks. It must not tune itself to the goals.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from facecast.cli.errors import CommandError
+
+#: The bundled real take (tests/data/livelink), BSD-2-Clause.
+BUNDLED_TAKE = Path(__file__).resolve().parents[2] / "tests" / "data" / "livelink" / "llv_dao.csv"
+#: Frame rate of the key clips' video (a calibration is filmed at camera rate).
+KEY_FPS = 30.0
+#: The paths scored, in the table's order; generic rows follow ``_generic_rigs``.
+PERSONAL, NNLS = "personal", "nnls"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--ict", metavar="PATH",
+        help="ICT-FaceKit folder or .npz (default: $FACECAST_ICT or ../shared/data/ict-facekit)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--take", metavar="CSV", help="a Live Link Face CSV take (default: the bundled llv_dao)"
+    )
+    parser.add_argument("--performer", default=None, metavar="PERSON",
+                        help="the ICT identity rendered (default person07)")  # fmt: skip
+    parser.add_argument("--target", default=None, metavar="PERSON",
+                        help="the ICT identity cloned onto (default person01)")  # fmt: skip
+    parser.add_argument("--frames", type=int, metavar="N", help="use the take's first N frames")
+    parser.add_argument("--ramp", type=int, default=None, metavar="N",
+                        help="frames a key clip rises to its expression (default 4)")  # fmt: skip
+    parser.add_argument("--hold", type=int, default=None, metavar="N",
+                        help="frames each key-expression is held and captured (default 10)")  # fmt: skip
+    parser.add_argument("--sway", type=float, default=1.5, metavar="DEG",
+                        help="head sway amplitude in degrees (default 1.5; 0: a still head)")  # fmt: skip
+    parser.add_argument("--exact-only", action="store_true",
+                        help="skip rendering and tracking: the exact-landmark rows only")  # fmt: skip
+    parser.add_argument("--videos", metavar="DIR",
+                        help="keep the rendered videos and tracked points in DIR (reused when "
+                        "there and made with the same settings)")  # fmt: skip
+    parser.add_argument("--backend", default="wasm", help="the tracker's TensorFlow.js backend")
+    parser.add_argument("--json", metavar="FILE", help="write every figure as JSON")
+
+
+@dataclass(frozen=True, eq=False)
+class _Setup:
+    """The experiment: performer, character, take, keys and the truth."""
+
+    performer: Any  # facecast.rig.evaluation.webcam.Performer
+    examples: Any  # the character's ExampleSet (ARKit-named, target identity)
+    experiment: Any  # takes.TakeExperiment
+    clips: Any  # webcam.KeyClips
+    character: Any  # the character's rig as imported (exact)
+    take_name: str
+
+
+def _setup(args: argparse.Namespace) -> _Setup:
+    from facecast.rig import fit
+    from facecast.rig.evaluation.takes import (
+        ARKIT_TARGET_IDENTITY,
+        arkit_example_set,
+        take_experiment,
+    )
+    from facecast.rig.evaluation.webcam import (
+        KEY_HOLD_FRAMES,
+        KEY_RAMP_FRAMES,
+        PERFORMER_IDENTITY,
+        ict_performer,
+        key_clips,
+    )
+    from facecast.rig.sources.ict import locate_ict
+    from facecast.rig.sources.trackers import read_livelink_csv
+
+    archive = locate_ict(args.ict) if args.ict else locate_ict()
+    if archive is None:
+        raise CommandError(
+            "ICT-FaceKit not found: pass --ict PATH or set FACECAST_ICT "
+            "(looked in ../shared/data/ict-facekit)"
+        )
+    take_path = Path(args.take) if args.take else BUNDLED_TAKE
+    if not take_path.is_file():
+        raise CommandError(f"{take_path}: no such file (a Live Link Face CSV take)")
+    performer_id = args.performer or PERFORMER_IDENTITY
+    target_id = args.target or ARKIT_TARGET_IDENTITY
+    if performer_id == target_id:
+        raise CommandError(f"--performer and --target are both {performer_id}: the benchmark "
+                           "clones one face onto another")  # fmt: skip
+    take = read_livelink_csv(take_path)
+    weights = take.weights if args.frames is None else take.weights[: args.frames]
+    if len(weights) < 3:
+        raise CommandError(f"the take has {len(weights)} frames; at least 3 are needed")
+    examples = arkit_example_set(archive, identity=target_id)
+    performer = ict_performer(archive, identity=performer_id)
+    clips = key_clips(
+        performer.names,
+        ramp=KEY_RAMP_FRAMES if args.ramp is None else args.ramp,
+        hold=KEY_HOLD_FRAMES if args.hold is None else args.hold,
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the exact ICT rig warns to fit with noise: known
+        character = fit(examples)
+    return _Setup(
+        performer=performer,
+        examples=examples,
+        experiment=take_experiment(examples, weights, take.fps),
+        clips=clips,
+        character=character,
+        take_name=take_path.name,
+    )
+
+
+def _generic_rigs(setup: _Setup, noise: float) -> dict[str, Any]:
+    """The generic path's rigs, one row each: the character as ``facecast import`` + ``rigs
+    put`` store it (exact), and fitted with the measured noise, bounded."""
+    from facecast.rig import fit
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        bounded = fit(setup.examples, noise=noise, clamp="nonneg")
+    return {"generic exact": setup.character, "generic noise": bounded}
+
+
+def _score_landmarks(
+    setup: _Setup, take_points: np.ndarray, key_points: np.ndarray, key_found: np.ndarray | None
+) -> dict[str, Any]:
+    """Every path on one kind of landmarks (exact or tracked): the rows and the capture."""
+    from facecast.rig.evaluation.webcam import captured_keys, webcam_rows
+    from facecast.server.performers import held_noise
+
+    keys, held = captured_keys(key_points, setup.clips, key_found)
+    noise, held_frames = held_noise(held)
+    experiment = setup.experiment
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # fit's advice on the bounded rigs: chosen settings
+        rows = webcam_rows(
+            setup.character,
+            experiment.truth,
+            experiment.activations,
+            take_points,
+            keys,
+            noise=noise,
+            generic=_generic_rigs(setup, noise),
+        )
+    return {
+        "noise": noise,
+        "held_frames": held_frames,
+        "keys_captured": len(keys),
+        "keys": len(setup.clips.names),
+        "rows": rows,
+    }
+
+
+def _video_paths(folder: Path, args: argparse.Namespace, setup: _Setup) -> dict[str, Path]:
+    tag = (
+        f"{setup.take_name.rsplit('.', 1)[0]}-{len(setup.experiment.activations)}-"
+        f"{args.performer or 'default'}-sway{args.sway:g}"
+    )
+    key_tag = f"keys-{args.performer or 'default'}-{len(setup.clips.activations)}-sway{args.sway:g}"
+    return {"take": folder / f"{tag}.y4m", "keys": folder / f"{key_tag}.y4m"}
+
+
+def _tracked(args: argparse.Namespace, setup: _Setup, folder: Path) -> dict[str, Any]:
+    """Render both videos (unless kept from an earlier run) and track every frame of each."""
+    from facecast.cli.bench.facevideo import head_scene, write_video
+    from facecast.cli.track import track_video
+    from facecast.rig.sources.ict import ict_regions, locate_ict
+
+    archive = locate_ict(args.ict) if args.ict else locate_ict()
+    regions, landmarks68 = ict_regions(archive)
+    scene = head_scene(setup.performer, regions, landmarks68)
+    paths = _video_paths(folder, args, setup)
+    plan = {
+        "take": (setup.experiment.activations, setup.experiment.fps),
+        "keys": (setup.clips.activations, KEY_FPS),
+    }
+    out: dict[str, Any] = {"videos": {}, "render_seconds": {}, "track_seconds": {}}
+    for name, (activations, fps) in plan.items():
+        path = paths[name]
+        points_path = path.with_suffix(".npz")
+        if not path.is_file():
+            started = time.perf_counter()
+            write_video(path, scene, setup.performer, activations, fps=fps,
+                        sway_degrees=args.sway)  # fmt: skip
+            out["render_seconds"][name] = time.perf_counter() - started
+        if points_path.is_file():
+            with np.load(points_path) as kept:
+                points, found = kept["points"], kept["found"]
+        else:
+            started = time.perf_counter()
+            result = track_video(path, backend=args.backend)
+            out["track_seconds"][name] = time.perf_counter() - started
+            result.save(points_path)
+            points, found = result.points, result.found
+        out[name] = (points.astype(np.float64), found.astype(bool))
+        out["videos"][name] = str(path)
+    return out
+
+
+def _row_text(label: str, row: dict[str, Any]) -> str:
+    axes = row["eq41_percent"]
+    worst = max(axes.values())
+    return (
+        f"  {label:<16}{axes['x']:>8.3f}{axes['y']:>8.3f}{axes['z']:>8.3f}{worst:>10.3f}"
+        f"{row['jitter_percent']:>10.4f}{max(row['weight_rms'].values()):>12.3f}"
+    )
+
+
+def _print_table(title: str, scored: dict[str, Any]) -> None:
+    print(
+        f"\n{title}: {scored['keys_captured']} of {scored['keys']} keys captured, landmark "
+        f"noise sigma = {scored['noise'] * 10:.3f} mm from {scored['held_frames']} held frames"
+    )
+    print(
+        f"  {'path':<16}{'x':>8}{'y':>8}{'z':>8}{'max axis':>10}{'jitter':>10}{'worst w RMS':>12}"
+    )
+    for label, row in scored["rows"].items():
+        print(_row_text(label, row))
+
+
+def _max_axis(row: dict[str, Any]) -> float:
+    return float(max(row["eq41_percent"].values()))
+
+
+def run(args: argparse.Namespace) -> int:
+    from facecast.cli.report import write_json
+    from facecast.rig.evaluation.evaluate import cloning_error
+    from facecast.rig.evaluation.webcam import hold_last_found
+
+    if args.json is not None and not Path(args.json).parent.exists():
+        raise CommandError(f"{Path(args.json).parent}: no such folder for --json")
+    if args.frames is not None and args.frames < 3:
+        raise CommandError(f"--frames must be at least 3, got {args.frames}")
+    if not (0.0 <= args.sway <= 10.0):
+        raise CommandError(f"--sway must lie in [0, 10] degrees, got {args.sway}")
+    started = time.perf_counter()
+    setup = _setup(args)
+    experiment = setup.experiment
+    truth_jitter = cloning_error(experiment.truth, experiment.truth)["jitter_percent"]
+    print(
+        f"webcam benchmark: take {setup.take_name} ({len(experiment.activations)} frames at "
+        f"{experiment.fps:g} fps) performed by ICT {args.performer or 'person07'}, cloned onto "
+        f"{args.target or 'person01'} ({setup.examples.num_vertices} vertices); "
+        f"{len(setup.clips.names)} key clips ({len(setup.clips.activations)} frames at "
+        f"{KEY_FPS:g} fps). eq. 4.1 % per axis; jitter % of the diagonal per frame^2 (truth "
+        f"{truth_jitter:.4f}); worst weight RMS over the ARKit names",
+        file=sys.stderr,
+    )
+    performer = setup.performer
+    exact = _score_landmarks(
+        setup,
+        performer.landmark_points(experiment.activations),
+        performer.landmark_points(setup.clips.activations),
+        None,
+    )
+    report: dict[str, Any] = {
+        "take": setup.take_name,
+        "frames": len(experiment.activations),
+        "fps": experiment.fps,
+        "truth_jitter_percent": truth_jitter,
+        "key_clip_frames": len(setup.clips.activations),
+        "sway_degrees": args.sway,
+        "exact": exact,
+    }
+    _print_table("exact landmarks (the ICT landmark vertices, head frame)", exact)
+    if not args.exact_only:
+        if args.videos:
+            folder = Path(args.videos)
+            folder.mkdir(parents=True, exist_ok=True)
+            tracked_raw = _tracked(args, setup, folder)
+        else:
+            with tempfile.TemporaryDirectory(prefix="facecast-webcam-") as scratch:
+                tracked_raw = _tracked(args, setup, Path(scratch))
+        take_points, take_found = tracked_raw["take"]
+        key_points, key_found = tracked_raw["keys"]
+        if not take_found.any():
+            raise CommandError("the tracker found no face in the take's video")
+        tracked = _score_landmarks(
+            setup, hold_last_found(take_points, take_found), key_points, key_found
+        )
+        tracked["take_found"] = int(take_found.sum())
+        tracked["key_found"] = int(key_found.sum())
+        tracked["render_seconds"] = tracked_raw["render_seconds"]
+        tracked["track_seconds"] = tracked_raw["track_seconds"]
+        report["tracked"] = tracked
+        _print_table(
+            f"tracked landmarks (facecast track; face found in {tracked['take_found']} of "
+            f"{len(take_found)} take frames, {tracked['key_found']} of {len(key_found)} key "
+            "frames)",
+            tracked,
+        )
+        personal, nnls = tracked["rows"][PERSONAL], tracked["rows"][NNLS]
+        share = 1.0 - _max_axis(exact["rows"][PERSONAL]) / max(_max_axis(personal), 1e-12)
+        report["tracker_share_personal"] = share
+        verdict = "PASS" if _max_axis(personal) < _max_axis(nnls) else "FAIL"
+        report["goal_personal_below_nnls"] = verdict
+        print(
+            f"\ngoal: personal below NNLS on the same tracked points (max axis): "
+            f"{_max_axis(personal):.3f} against {_max_axis(nnls):.3f}: {verdict}"
+        )
+        print(
+            f"the tracker's share of the personal path's error (max axis): {100 * share:.0f} % "
+            f"(exact landmarks {_max_axis(exact['rows'][PERSONAL]):.3f}, tracked "
+            f"{_max_axis(personal):.3f})"
+        )
+    report["seconds"] = time.perf_counter() - started
+    report["load_average"] = os.getloadavg()
+    if args.json is not None:
+        print(f"wrote {write_json(args.json, report)}", file=sys.stderr)
+    return 0

@@ -1,0 +1,320 @@
+"""The ground-truth webcam benchmark's numbers: a performer with known weights, and scores.
+
+An ICT-FaceKit identity (the performer) makes a real take's ARKit weights and, clip by clip,
+its key-expressions; another identity is the character, so the ideal clone is known. This
+module builds those weights, meshes and exact landmarks, turns tracked key clips into a
+capture as the /perform page does, and scores each cloning path against the truth. It
+must not render, track, print or do I/O (``facecast.cli.bench.webcam`` does).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from ..errors import InputError
+from ..examples import ExampleSet
+from ..retarget import fit_performer, target_examples
+from ..rig import Rig
+from ..sources.capture import robust_example
+from ..sources.ict import ict_example_set
+from ..sources.source_rig import arkit_from_ict
+from .evaluate import cloning_error, nnls_weights
+
+__all__ = [
+    "KEY_HOLD_FRAMES",
+    "KEY_RAMP_FRAMES",
+    "PERFORMER_IDENTITY",
+    "KeyClips",
+    "Performer",
+    "captured_keys",
+    "generic_rig",
+    "hold_last_found",
+    "ict_performer",
+    "key_clips",
+    "score",
+    "webcam_rows",
+]
+
+#: The face rendered as the performer: neither ICT's generic face (the generic rig's source)
+#: nor ``takes.ARKIT_TARGET_IDENTITY`` (the character).
+PERFORMER_IDENTITY = "person07"
+#: A key clip: the face goes from rest to the key-expression in KEY_RAMP_FRAMES frames
+#: (smoothstep), then holds it KEY_HOLD_FRAMES frames, which are the capture.
+KEY_RAMP_FRAMES = 4
+KEY_HOLD_FRAMES = 10
+
+
+@dataclass(frozen=True, eq=False)
+class Performer:
+    """An ICT identity's whole head (eyes, teeth, mouth inside) with its ARKit shapes.
+
+    Attributes
+    ----------
+    names : tuple of str
+        ``"neutral"``, then the ARKit names (``arkit_from_ict``), M in all.
+    neutral : (V, 3) float64
+    deltas : (M - 1, 3V) float32
+        Each shape minus the neutral, flattened.
+    faces : (F, 3) int64
+    landmarks : (K,) int64
+        Vertex indices of the feature points (ICT's default 20 landmarks).
+    """
+
+    names: tuple[str, ...]
+    neutral: np.ndarray
+    deltas: np.ndarray
+    faces: np.ndarray
+    landmarks: np.ndarray
+
+    def _activations(self, activations: npt.ArrayLike) -> np.ndarray:
+        act = np.asarray(activations, dtype=np.float64)
+        m = len(self.names)
+        if act.ndim != 2 or act.shape[1] != m:
+            raise InputError(f"activations: expected shape (F, {m}), got {act.shape}")
+        return act
+
+    def vertices(self, activations: npt.ArrayLike) -> np.ndarray:
+        """(B, V, 3) float32: the head making ``activations`` (B, M; column 0 ignored)."""
+        act = self._activations(activations)
+        flat = act[:, 1:].astype(np.float32) @ self.deltas
+        flat += self.neutral.reshape(-1).astype(np.float32)
+        out: np.ndarray = flat.reshape(len(act), -1, 3)
+        return out
+
+    def landmark_points(self, activations: npt.ArrayLike) -> np.ndarray:
+        """(B, K, 3) float64: the exact feature points, in the head's own frame (cm)."""
+        act = self._activations(activations)
+        columns = (self.landmarks[:, None] * 3 + np.arange(3)).reshape(-1)
+        deltas = self.deltas[:, columns].astype(np.float64)
+        flat = self.neutral[self.landmarks].reshape(-1) + act[:, 1:] @ deltas
+        out: np.ndarray = flat.reshape(len(act), -1, 3)
+        return out
+
+
+def ict_performer(path: str | os.PathLike[str], identity: str = PERFORMER_IDENTITY) -> Performer:
+    """ICT-FaceKit's ``identity`` with every ARKit shape (``arkit_from_ict``), whole head."""
+    ict = ict_example_set(path, identity=identity)
+    names, meshes = arkit_from_ict(ict.names[1:], ict.target_vertices[0], ict.target_vertices[1:])
+    neutral = meshes[0]
+    deltas = (meshes[1:] - neutral).reshape(len(names) - 1, -1).astype(np.float32)
+    if ict.feature_indices is None:
+        raise InputError("the ICT example set has no feature indices")
+    return Performer(
+        names=names,
+        neutral=neutral,
+        deltas=deltas,
+        faces=np.asarray(ict.target_faces, dtype=np.int64),
+        landmarks=np.asarray(ict.feature_indices, dtype=np.int64),
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class KeyClips:
+    """The key-expressions as a performer makes them for a calibration, one clip each.
+
+    Attributes
+    ----------
+    names : tuple of str
+        The neutral first.
+    activations : (F, M) float64
+        Column i is ``names[i]``'s weight; column 0 is 0.
+    held : tuple of (start, stop)
+        Per name, the frames [start, stop) where the expression is held: the capture.
+    """
+
+    names: tuple[str, ...]
+    activations: np.ndarray
+    held: tuple[tuple[int, int], ...]
+
+
+def key_clips(
+    names: Sequence[str], *, ramp: int = KEY_RAMP_FRAMES, hold: int = KEY_HOLD_FRAMES
+) -> KeyClips:
+    """The neutral held, then each other name: ``ramp`` frames rising, ``hold`` frames at 1.
+
+    The face is back at rest at the start of each clip, as after a capture.
+    """
+    if ramp < 0 or hold < 3:
+        raise InputError(f"key clips need ramp >= 0 and hold >= 3 frames, got {ramp}, {hold}")
+    m = len(names)
+    rise = (np.arange(1, ramp + 1) / (ramp + 1.0)) if ramp else np.zeros(0)
+    rise = rise * rise * (3.0 - 2.0 * rise)  # smoothstep: no jump at either end
+    frames = hold + (m - 1) * (ramp + hold)
+    activations = np.zeros((frames, m))
+    held = [(0, hold)]
+    start = hold
+    for i in range(1, m):
+        activations[start : start + ramp, i] = rise
+        activations[start + ramp : start + ramp + hold, i] = 1.0
+        held.append((start + ramp, start + ramp + hold))
+        start += ramp + hold
+    return KeyClips(names=tuple(names), activations=activations, held=tuple(held))
+
+
+def captured_keys(
+    points: npt.ArrayLike, clips: KeyClips, found: npt.ArrayLike | None = None
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Each key's captured points and held frames, as the calibration walk-through takes them.
+
+    ``capture.robust_example`` (outliers out, the median) of the frames where the key is
+    held and a face was found; a key with fewer than 3 such frames is not captured (the
+    page refuses it), and the neutral must be.
+
+    Parameters
+    ----------
+    points : (F, K, 3) float
+        The key clips' points, tracked or exact (NaN where no face was found).
+    found : (F,) bool, optional
+        Default: the frames whose points are finite.
+
+    Returns
+    -------
+    points : {name: (K, 3) float64}
+    held : {name: (n, K, 3) float64}
+        The frames each capture was made from (the server measures the noise on them).
+    """
+    x = np.asarray(points, dtype=np.float64)
+    if x.ndim != 3 or x.shape[0] != len(clips.activations) or x.shape[2] != 3:
+        raise InputError(
+            f"key points: expected shape ({len(clips.activations)}, K, 3), got {x.shape}",
+            code="wrong_point_count",
+        )
+    ok = np.asarray(np.isfinite(x).all(axis=(1, 2)))
+    if found is not None:
+        ok &= np.asarray(found, dtype=bool)
+    captured: dict[str, np.ndarray] = {}
+    held: dict[str, np.ndarray] = {}
+    for name, (start, stop) in zip(clips.names, clips.held, strict=True):
+        frames = x[start:stop][ok[start:stop]]
+        if len(frames) < 3:
+            continue
+        captured[name], _, kept = robust_example(frames)
+        held[name] = frames[kept]
+    if clips.names[0] not in captured:
+        raise InputError(
+            "the neutral clip has fewer than 3 frames with a face: nothing to calibrate on",
+            code="no_neutral",
+        )
+    return captured, held
+
+
+def hold_last_found(points: npt.ArrayLike, found: npt.ArrayLike) -> np.ndarray:
+    """(F, K, 3): each frame without a face replaced by the last one with (the first found
+    frame before any), which is what a viewer keeps seeing while the tracker has lost it."""
+    x = np.array(points, dtype=np.float64)
+    ok = np.asarray(found, dtype=bool) & np.isfinite(x).all(axis=(1, 2))
+    if not ok.any():
+        raise InputError("no frame has a face", code="no_face")
+    index = np.where(ok, np.arange(len(x)), -1)
+    np.maximum.accumulate(index, out=index)
+    index[index < 0] = int(np.argmax(ok))
+    out: np.ndarray = x[index]
+    return out
+
+
+def generic_rig(character: Rig, neutral: npt.ArrayLike) -> Rig:
+    """The generic path: the character's own rig re-based on the performer's captured
+    neutral (what /perform sends as ``calibrate`` for a rig that is not the performer's)."""
+    return character.calibrated(neutral)
+
+
+def score(
+    truth: np.ndarray,
+    rig: Rig,
+    weights: np.ndarray,
+    activations: np.ndarray,
+    names: Sequence[str],
+) -> dict[str, Any]:
+    """A cloned take against the truth: eq. 4.1 per axis, RMS, max, jitter, and weights.
+
+    Parameters
+    ----------
+    truth : (F, V, 3)
+        The ideal clone.
+    rig : Rig
+        Blends ``weights`` (its names, its target).
+    weights : (F, M') float
+        In ``rig.names`` order.
+    activations : (F, M) float
+        The true weights, in ``names`` order (a name the rig lacks counts as weight 0).
+
+    Returns
+    -------
+    dict (JSON-able)
+        ``cloning_error``'s figures without the series, and ``weight_rms`` {name: RMS over
+        the frames of the weight's error}, for every name but the neutral.
+    """
+    vertices = rig.blend(np.asarray(weights, dtype=np.float64))
+    errors = cloning_error(truth, vertices)
+    errors.pop("per_frame", None)
+    column = {name: i for i, name in enumerate(rig.names)}
+    rms = {}
+    for j, name in enumerate(names[1:], start=1):
+        got = weights[:, column[name]] if name in column else 0.0
+        rms[name] = float(np.sqrt(np.mean((got - activations[:, j]) ** 2)))
+    errors["weight_rms"] = rms
+    return errors
+
+
+def webcam_rows(
+    character: Rig,
+    truth: np.ndarray,
+    activations: np.ndarray,
+    take_points: npt.ArrayLike,
+    keys: Mapping[str, np.ndarray],
+    *,
+    noise: float,
+    generic: Mapping[str, Rig] | None = None,
+) -> dict[str, dict[str, Any]]:
+    """Clone one take's points by each path and score it against the truth.
+
+    Parameters
+    ----------
+    character : Rig
+        The character's rig (its target examples, names and settings; ``fit_performer``
+        refits it on the keys).
+    truth : (F, V, 3)
+        The take's ideal clone on the character.
+    activations : (F, M)
+        The take's true weights, in ``character.names`` order.
+    take_points : (F, K, 3)
+        The take's feature points (tracked or exact; no NaN).
+    keys : {name: (K, 3)}
+        The captured key-expressions (``captured_keys``), the neutral included.
+    noise : float
+        The landmark noise the personal rig is fitted with (the server measures it from the
+        held frames: ``server.performers.held_noise``).
+    generic : {label: Rig}, optional
+        Rigs on the character's own examples, not yet re-based: each is re-based on the
+        captured neutral (``generic_rig``) and scored as a row of its own.
+
+    Returns
+    -------
+    {label: score(...)}
+        ``personal`` (the performer's own rig, fitted as the server fits it), ``nnls`` (its
+        peer: non-negative least squares on the same captured keys and points), then one
+        row per ``generic`` rig.
+    """
+    points = np.asarray(take_points, dtype=np.float64)
+    names = character.names
+    rows: dict[str, dict[str, Any]] = {}
+    personal = fit_performer(character, keys, noise=noise)
+    rows["personal"] = score(truth, personal, personal.weights(points), activations, names)
+    captured = personal.names  # the keys captured, in the character's order
+    examples = ExampleSet(
+        names=captured,
+        source_points=np.stack([keys["neutral" if i == 0 else n] for i, n in enumerate(captured)]),
+        target_vertices=target_examples(personal),
+        target_faces=personal.target_faces,
+    )
+    rows["nnls"] = score(truth, personal, nnls_weights(examples, points), activations, names)
+    for label, rig in (generic or {}).items():
+        rebased = generic_rig(rig, keys["neutral"])
+        rows[label] = score(truth, rebased, rebased.weights(points), activations, names)
+    return rows

@@ -1,0 +1,53 @@
+"""The webcam benchmark's rendered face through ``facecast track``: found, and followed.
+
+A short clip of the benchmark's camera video (an ICT head, Lambert on grey) tracked by the
+/perform page's own pipeline in a real Chromium: the face is found in every frame and the
+tracked points move the way the rendered face does.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from facecast.cli.bench.facevideo import head_scene, write_video
+from facecast.cli.snapshot import chromium_path
+from facecast.cli.track import track_video
+from facecast.rig.evaluation.webcam import ict_performer
+from facecast.rig.sources.ict import ict_regions, locate_ict
+from facecast.server.viewer import viewer_dir
+
+ARCHIVE = locate_ict()
+pytestmark = [
+    pytest.mark.ict,
+    pytest.mark.skipif(
+        ARCHIVE is None, reason="ICT-FaceKit not found (../shared/data/ict-facekit)"
+    ),
+    pytest.mark.skipif(chromium_path() is None, reason="no Chromium at /usr/bin/chromium"),
+    pytest.mark.skipif(
+        not (viewer_dir() / "dist" / "track.js").is_file(),
+        reason="the offline tracker is not built (npm run build in client/viewer)",
+    ),
+]
+HOLD = 4
+#: Feature positions of the inner upper and lower lip (Multi-PIE 62, 66) in the layout.
+INNER_UPPER, INNER_LOWER = 17, 18
+
+
+def test_the_rendered_face_is_found_in_every_frame_and_its_mouth_followed(tmp_path):
+    performer = ict_performer(ARCHIVE)
+    regions, landmarks68 = ict_regions(ARCHIVE)
+    act = np.zeros((2 * HOLD, len(performer.names)))
+    act[HOLD:, performer.names.index("jawOpen")] = 0.6
+    path = write_video(tmp_path / "clip.y4m", head_scene(performer, regions, landmarks68),
+                       performer, act, fps=30.0, sway_degrees=1.5, progress=False)  # fmt: skip
+
+    result = track_video(path, progress=False)
+
+    assert result.found.all()
+    gap = result.points[:, INNER_UPPER, 1] - result.points[:, INNER_LOWER, 1]
+    exact = performer.landmark_points(act)
+    exact_gap = exact[:, INNER_UPPER, 1] - exact[:, INNER_LOWER, 1]
+    # The tracker's face frame is about centimetres (eye-centre distance 6.3), as ICT's.
+    opened = gap[HOLD:].mean() - gap[:HOLD].mean()
+    assert 0.5 * np.ptp(exact_gap) < opened < 2.0 * np.ptp(exact_gap)

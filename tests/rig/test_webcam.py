@@ -1,0 +1,125 @@
+"""The webcam benchmark's numbers: key clips, captures, lost frames, and the exact pipeline."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from facecast.cli.main import main
+from facecast.rig.errors import InputError
+from facecast.rig.evaluation.webcam import (
+    captured_keys,
+    hold_last_found,
+    ict_performer,
+    key_clips,
+)
+from facecast.rig.sources.ict import locate_ict
+
+ARCHIVE = locate_ict()
+needs_ict = pytest.mark.skipif(
+    ARCHIVE is None, reason="ICT-FaceKit not found (../shared/data/ict-facekit)"
+)
+NAMES = ("neutral", "a", "b", "c")
+
+
+def test_key_clips_hold_each_expression_alone_at_weight_one():
+    clips = key_clips(NAMES, ramp=3, hold=5)
+
+    assert clips.activations.shape == (5 + 3 * (3 + 5), 4)
+    assert (clips.activations[:, 0] == 0).all()
+    for i, (start, stop) in enumerate(clips.held):
+        assert stop - start == 5
+        expected = np.zeros(4)
+        expected[i] = 1.0 if i else 0.0
+        assert (clips.activations[start:stop] == expected).all()
+    rise = clips.activations[5:8, 1]
+    assert 0 < rise[0] < rise[1] < rise[2] < 1  # the ramp rises from rest
+
+
+def test_captured_keys_are_the_held_frames_medians():
+    clips = key_clips(NAMES, ramp=2, hold=5)
+    rng = np.random.default_rng(0)
+    shapes = rng.normal(size=(4, 6, 3))
+    points = np.einsum("fm,mkc->fkc", clips.activations[:, 1:], shapes[1:]) + shapes[0]
+    points += rng.normal(0, 0.01, points.shape)
+
+    keys, held = captured_keys(points, clips)
+
+    assert list(keys) == list(NAMES)
+    for name, shape, (start, stop) in zip(NAMES, shapes, clips.held, strict=True):
+        expected = shape if name == "neutral" else shape + shapes[0]
+        assert np.abs(keys[name] - expected).max() < 0.05
+        assert len(held[name]) <= stop - start
+
+
+def test_a_key_seen_in_fewer_than_three_frames_is_not_captured():
+    clips = key_clips(NAMES, ramp=0, hold=4)
+    points = np.zeros((len(clips.activations), 6, 3))
+    found = np.ones(len(points), dtype=bool)
+    start, stop = clips.held[2]
+    found[start : stop - 2] = False  # "b" is in view for 2 of its held frames
+
+    keys, _ = captured_keys(points, clips, found)
+
+    assert "b" not in keys and {"neutral", "a", "c"} <= set(keys)
+
+
+def test_no_neutral_in_view_is_an_error():
+    clips = key_clips(NAMES, ramp=0, hold=4)
+    points = np.zeros((len(clips.activations), 6, 3))
+    points[:4] = np.nan
+
+    with pytest.raises(InputError) as info:
+        captured_keys(points, clips)
+    assert info.value.code == "no_neutral"
+
+
+def test_a_lost_frame_keeps_the_last_frame_with_a_face():
+    points = np.arange(5, dtype=float)[:, None, None] * np.ones((5, 2, 3))
+    found = np.array([False, True, False, False, True])
+
+    held = hold_last_found(points, found)
+
+    assert held[:, 0, 0].tolist() == [1.0, 1.0, 1.0, 1.0, 4.0]
+
+
+@pytest.mark.ict
+@needs_ict
+def test_performer_landmarks_are_its_mesh_vertices():
+    performer = ict_performer(ARCHIVE)
+    activations = np.zeros((2, len(performer.names)))
+    activations[1, performer.names.index("jawOpen")] = 0.7
+
+    vertices = performer.vertices(activations)
+    points = performer.landmark_points(activations)
+
+    assert np.allclose(points, vertices[:, performer.landmarks], atol=1e-4)
+    chin = -1  # DEFAULT_LANDMARKS ends with Multi-PIE 8, the chin
+    assert points[1, chin, 1] < points[0, chin, 1] - 1.0  # the jaw opens downwards (cm)
+
+
+@pytest.mark.ict
+@needs_ict
+def test_bench_on_exact_landmarks_scores_every_path(tmp_path, capsys):
+    out = tmp_path / "webcam.json"
+
+    status = main(
+        ["bench", "webcam", "--exact-only", "--frames", "12", "--ramp", "1", "--hold", "3",
+         "--json", str(out)]
+    )  # fmt: skip
+
+    assert status == 0
+    report = json.loads(out.read_text())
+    rows = report["exact"]["rows"]
+    assert list(rows) == ["personal", "nnls", "generic exact", "generic noise"]
+    assert report["exact"]["keys_captured"] == report["exact"]["keys"] == 52
+    # Exact landmarks of a linear face: NNLS on the captured keys is exact; the personal rig,
+    # fitted for the server's noise floor, is close; re-basing moves the generic rig's
+    # deltas by the identities' similarity, so it is off by more.
+    assert max(rows["nnls"]["eq41_percent"].values()) < 1e-3
+    assert 0 < max(rows["personal"]["eq41_percent"].values()) < 1.0
+    for row in rows.values():
+        assert set(row["weight_rms"]) == set(ict_performer(ARCHIVE).names[1:])
+    assert "personal" in capsys.readouterr().out
