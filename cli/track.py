@@ -9,7 +9,9 @@ port, nothing fetched from elsewhere); it never publishes and never fits anythin
 
 from __future__ import annotations
 
+import importlib.util
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -152,9 +154,7 @@ def track_video(
     CommandError
         No Chromium or Playwright, the tracker is not built, or the model failed to load.
     """
-    from tqdm import tqdm
-
-    from facecast.cli.snapshot import CHROMIUM_ARGS, chromium_path
+    from facecast.cli.snapshot import chromium_path
 
     if backend not in BACKENDS:
         raise CommandError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
@@ -168,16 +168,31 @@ def track_video(
             "facecast track runs the face model in Chromium: no Chromium at /usr/bin/chromium "
             "(install Debian's chromium, or set FACECAST_CHROMIUM)"
         )
-    try:
-        from playwright.sync_api import Error as PlaywrightError
-        from playwright.sync_api import sync_playwright
-    except ImportError:
+    if importlib.util.find_spec("playwright") is None:
         raise CommandError(
             "facecast track drives Chromium through Playwright: pip install playwright"
-        ) from None
-
+        )
     frames = video.num_frames if max_frames is None else min(max_frames, video.num_frames)
-    points = np.full((frames, 0, 3), np.nan, dtype=np.float32)
+    # Playwright's sync API refuses a thread with a running event loop (Jupyter, an async
+    # app, another sync Playwright session): the browser gets a thread of its own.
+    with ThreadPoolExecutor(1, thread_name_prefix="facecast-track") as pool:
+        return pool.submit(_run, video, files, executable, backend, frames, progress).result()
+
+
+def _run(
+    video: Y4MVideo,
+    files: dict[str, tuple[Path, str]],
+    executable: str,
+    backend: str,
+    frames: int,
+    progress: bool,
+) -> TrackResult:
+    from playwright.sync_api import Error as PlaywrightError
+    from playwright.sync_api import sync_playwright
+    from tqdm import tqdm
+
+    from facecast.cli.snapshot import CHROMIUM_ARGS
+
     faces = np.zeros(frames, dtype=np.int64)
     shape = {
         "format": video.format, "width": video.width, "height": video.height,

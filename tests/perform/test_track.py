@@ -1,0 +1,121 @@
+"""``facecast track``: the /perform page's own tracker, offline, on every frame of a video.
+
+The agreement test runs the live page (a real Chromium whose fake camera plays the clip,
+publishing to a real server, its frames read back by a real points watcher) beside
+``track_video`` on the same Y4M file. The clip holds each of a few distinct expressions
+for several frames, so whichever camera frames the live page happened to track, each
+is one of the clip's few images, and must equal the offline points of that image.
+"""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from facecast.cli.main import main
+from facecast.cli.track import track_video
+from facecast.rig.sources.layouts import load_layout
+
+from .conftest import CHARACTER, FacePose, open_page, watching
+from .facevideo import write_y4m
+
+K = load_layout().num_features
+#: Distinct images of the clip, each held HOLD frames (the page tracks at 5-25 fps of 25).
+POSES = [FacePose(), FacePose(mouth=12.0), FacePose(brows=6.0, roll=4.0, shift=(6.0, 3.0))]
+HOLD = 8
+OUT_OF_VIEW = FacePose(shift=(400.0, 0.0))
+
+
+@pytest.fixture(scope="module")
+def clip_points(camera_file, tmp_path_factory):
+    """The clip on the package's camera file and what ``track_video`` makes of it."""
+    write_y4m(camera_file, [pose for pose in POSES for _ in range(HOLD)], fps=25)
+    kept = tmp_path_factory.mktemp("clip") / "clip.y4m"
+    shutil.copy(camera_file, kept)
+    return kept, track_video(kept, progress=False)
+
+
+def test_track_gives_every_frame_points_of_the_layout(clip_points):
+    _, result = clip_points
+
+    assert result.points.shape == (len(POSES) * HOLD, K, 3)
+    assert result.points.dtype == np.float32
+    assert result.found.all() and result.fps == 25.0
+    assert result.backend == "wasm" and result.layout == "mediapipe_face_mesh"
+    # Each image tracked anew gives the same points, and the expressions differ.
+    held = result.points.reshape(len(POSES), HOLD, K, 3)
+    assert np.array_equal(held, np.broadcast_to(held[:, :1], held.shape))
+    assert np.abs(held[1, 0] - held[0, 0]).max() > 0.3
+
+
+def test_track_gives_the_points_the_live_page_publishes(
+    browser, server, rigs_dir, clip_points, pages
+):
+    _, result = clip_points
+    rig = f"{CHARACTER}@agree"  # a performer's own rig: published from the first frame
+    shutil.copy(rigs_dir / f"{CHARACTER}.rig", rigs_dir / f"{rig}.rig")
+    distinct = result.points[::HOLD]
+    recorder, _ = watching(server, "agree", rig, "points")
+    try:
+        page = open_page(browser, f"{server}/perform?channel=agree&rig={rig}")
+        pages.append(page)
+        page.wait_for_function("window.facecastStats.published >= 24", timeout=120_000)
+    finally:
+        recorder.stop.set()
+    live = np.array([r.points for _, r in recorder.results], dtype=np.float32)
+
+    assert live.shape[0] >= 20 and live.shape[1:] == (K, 3)
+    # Match each live frame to the clip's image whose offline points are nearest.
+    gaps = np.abs(live[:, None] - distinct[None]).max(axis=(2, 3))
+    nearest = gaps.argmin(axis=1)
+    assert gaps.min(axis=1).max() <= 1e-5, gaps.min(axis=1)
+    assert set(nearest.tolist()) == set(range(len(POSES)))  # every image was compared
+    # ... and the match is unambiguous: the images are far apart at that tolerance.
+    apart = np.abs(distinct[:, None] - distinct[None]).max(axis=(2, 3))
+    assert apart[~np.eye(len(POSES), dtype=bool)].min() > 0.1
+
+
+def test_frames_without_a_face_are_nan_and_not_found(tmp_path):
+    video = write_y4m(tmp_path / "gone.y4m", [POSES[0], OUT_OF_VIEW, POSES[1], OUT_OF_VIEW])
+
+    result = track_video(video, progress=False)
+
+    assert result.found.tolist() == [True, False, True, False]
+    assert np.isnan(result.points[~result.found]).all()
+    assert np.isfinite(result.points[result.found]).all()
+    assert result.faces.tolist() == [1, 0, 1, 0]
+
+
+def test_a_video_without_a_face_is_said_and_fails_with_require_face(tmp_path, capsys):
+    video = write_y4m(tmp_path / "empty.y4m", [OUT_OF_VIEW] * 2)
+    out = tmp_path / "points.npz"
+
+    status = main(["track", str(video), "-o", str(out), "--require-face", "-q"])
+
+    assert status == 3
+    assert "no face was found in any of the 2 frames" in capsys.readouterr().err
+    with np.load(out) as saved:
+        assert not saved["found"].any() and np.isnan(saved["points"]).all()
+
+
+def test_clone_puts_a_tracked_video_on_a_rig(clip_points, rigs_dir, tmp_path, capsys):
+    _, result = clip_points
+    found = result.found.copy()
+    found[HOLD : 2 * HOLD] = False  # as if the face had left during the open mouth
+    points = result.points.copy()
+    points[~found] = np.nan
+    tracked = tmp_path / "tracked.npz"
+    np.savez(tracked, points=points, found=found, fps=result.fps)
+    out = tmp_path / "out.npz"
+
+    status = main(["clone", str(rigs_dir / f"{CHARACTER}.rig"), str(tracked), "-o", str(out)])
+
+    assert status == 0, capsys.readouterr().err
+    with np.load(out) as cloned:
+        weights = cloned["weights"]
+    assert weights.shape[0] == len(POSES) * HOLD and np.isfinite(weights).all()
+    # The frames without a face hold the last tracked one (the closed mouth's).
+    np.testing.assert_array_equal(weights[HOLD : 2 * HOLD], weights[[HOLD - 1] * HOLD])
+    assert np.abs(weights[2 * HOLD] - weights[0]).max() > 1e-3
