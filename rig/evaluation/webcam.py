@@ -218,9 +218,15 @@ def hold_last_found(points: npt.ArrayLike, found: npt.ArrayLike) -> np.ndarray:
     return out
 
 
-def generic_rig(character: Rig, neutral: npt.ArrayLike) -> Rig:
+def generic_rig(character: Rig, neutral: npt.ArrayLike, noise: float) -> Rig:
     """The generic path: the character's own rig re-based on the performer's captured
-    neutral (what /perform sends as ``calibrate`` for a rig that is not the performer's)."""
+    neutral (what /perform sends as ``calibrate`` for a rig that is not the performer's).
+
+    The one place the benchmark re-bases: ``Rig.calibrated``, which is exact whatever
+    ``noise`` (the landmark noise measured on the held frames) is; a noise-aware re-base
+    takes it here.
+    """
+    del noise  # Rig.calibrated has no use for it
     return character.calibrated(neutral)
 
 
@@ -315,6 +321,6 @@ def webcam_rows(
     )
     rows["nnls"] = score(truth, personal, nnls_weights(examples, points), activations, names)
     for label, rig in (generic or {}).items():
-        rebased = generic_rig(rig, keys["neutral"])
+        rebased = generic_rig(rig, keys["neutral"], noise)
         rows[label] = score(truth, rebased, rebased.weights(points), activations, names)
     return rows

@@ -123,3 +123,22 @@ def test_bench_on_exact_landmarks_scores_every_path(tmp_path, capsys):
     for row in rows.values():
         assert set(row["weight_rms"]) == set(ict_performer(ARCHIVE).names[1:])
     assert "personal" in capsys.readouterr().out
+
+
+@pytest.mark.ict
+@needs_ict
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--take", "/nonexistent.csv"], "no such file"),
+        (["--performer", "person01"], "both person01"),
+        (["--performer", "nobody"], "no ICT identity named 'nobody'"),
+        (["--frames", "2"], "at least 3"),
+        (["--sway", "30"], "--sway"),
+    ],
+)
+def test_bench_refuses_bad_arguments_with_a_message(argv, message, capsys):
+    status = main(["bench", "webcam", "--exact-only", *argv])
+
+    assert status == 2
+    assert message in capsys.readouterr().err
