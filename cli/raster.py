@@ -7,6 +7,7 @@ for offline pictures and test videos, never for anything real-time.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,9 +18,9 @@ from facecast.cli.errors import RenderError
 
 __all__ = ["PinholeCamera", "lambert", "normals_operator", "rasterise", "vertex_normals"]
 
-# Most pixels a triangle's bounding box may cover: a triangle larger than this is a framing
-# mistake (a camera inside the mesh), and would make the candidate arrays unbounded.
-_MAX_BOX_PIXELS = 1 << 16
+# Candidate (triangle, pixel) pairs drawn at once: bounds the scratch arrays (~100 bytes a
+# candidate) whatever the triangles' sizes; an ICT frame at 640 x 480 is one or two batches.
+_BATCH_PIXELS = 1 << 19
 
 
 @dataclass(frozen=True)
@@ -166,40 +167,75 @@ def rasterise(
     if cull is not None:
         drawn &= ~(np.asarray(cull, dtype=bool) & (area > 0))
     which = np.nonzero(drawn)[0]
-    counts = box_w[which] * box_h[which]
-    if counts.size and counts.max() > _MAX_BOX_PIXELS:
-        raise RenderError(
-            f"a triangle covers {int(counts.max())} pixels (at most {_MAX_BOX_PIXELS}): "
-            "the camera is too close to the mesh",
-            code="triangle_too_large",
-        )
-    # Every (triangle, pixel of its box) pair, enumerated without a loop.
-    tri = np.repeat(which, counts)
-    offset = np.arange(tri.size) - np.repeat(np.cumsum(counts) - counts, counts)
-    row, column = np.divmod(offset, box_w[tri])
-    px, py = x0[tri] + column, y0[tri] + row
-    dx = x[tri] - (px + 0.5)[:, None]
-    dy = y[tri] - (py + 0.5)[:, None]
-    inverse = 1.0 / area[tri]
-    bary = np.empty((tri.size, 3))
+    # Each box as strips of at most _BATCH_PIXELS pixels (a big triangle's box is cut into
+    # rows), the strips drawn in batches of about _BATCH_PIXELS candidates: bounded memory
+    # whatever the triangles' sizes.
+    strip_rows = np.maximum(1, _BATCH_PIXELS // box_w[which])
+    strips = -(-box_h[which] // strip_rows)
+    tri = np.repeat(which, strips)
+    first_strip = np.repeat(np.cumsum(strips) - strips, strips)
+    rows = np.repeat(strip_rows, strips)
+    strip_y0 = y0[tri] + (np.arange(tri.size) - first_strip) * rows
+    strip_h = np.minimum(rows, y0[tri] + box_h[tri] - strip_y0)
+    counts = box_w[tri] * strip_h
+    batch = np.cumsum(counts) // _BATCH_PIXELS
+    bounds = np.searchsorted(batch, np.arange(int(batch[-1]) + 2)) if tri.size else [0]
+    nearest = np.full(width * height, np.inf)
+    colors = np.asarray(face_colors if vertex_colors is None else vertex_colors, dtype=np.float64)
+    for lo, hi in itertools.pairwise(bounds):
+        if hi > lo:
+            _draw_batch(
+                corners, area, tri[lo:hi], x0, box_w, strip_y0[lo:hi], counts[lo:hi],
+                tris if vertex_colors is not None else None, colors, width, nearest, image,
+            )  # fmt: skip
+    return image.reshape(height, width, 3)
+
+
+def _draw_batch(
+    corners: np.ndarray,
+    area: np.ndarray,
+    tri: np.ndarray,
+    x0: np.ndarray,
+    box_w: np.ndarray,
+    y0: np.ndarray,
+    counts: np.ndarray,
+    vertex_faces: np.ndarray | None,
+    colors: np.ndarray,
+    width: int,
+    nearest: np.ndarray,
+    image: np.ndarray,
+) -> None:
+    """Draw one batch of strips (triangle ``tri``, first row ``y0``, ``counts`` pixels) into
+    ``image`` where nearer than ``nearest``, updating it. Ties go to the earlier candidate
+    (within a batch by a stable sort, across batches by a strict test): the image is a
+    function of the input alone."""
+    x, y = corners[..., 0], corners[..., 1]
+    # Every (triangle, pixel of its strip) pair, enumerated without a loop.
+    cand = np.repeat(tri, counts)
+    offset = np.arange(cand.size) - np.repeat(np.cumsum(counts) - counts, counts)
+    row, column = np.divmod(offset, box_w[cand])
+    px, py = x0[cand] + column, np.repeat(y0, counts) + row
+    dx = x[cand] - (px + 0.5)[:, None]
+    dy = y[cand] - (py + 0.5)[:, None]
+    inverse = 1.0 / area[cand]
+    bary = np.empty((cand.size, 3))
     bary[:, 0] = (dx[:, 1] * dy[:, 2] - dx[:, 2] * dy[:, 1]) * inverse
     bary[:, 1] = (dx[:, 2] * dy[:, 0] - dx[:, 0] * dy[:, 2]) * inverse
     bary[:, 2] = 1.0 - bary[:, 0] - bary[:, 1]
     inside = np.nonzero((bary >= 0.0).all(axis=1))[0]
-    tri, bary = tri[inside], bary[inside]
+    cand, bary = cand[inside], bary[inside]
     pixel = py[inside] * width + px[inside]
-    depth = np.einsum("ij,ij->i", bary, corners[tri, :, 2])
-    nearest = np.full(width * height, np.inf)
-    np.minimum.at(nearest, pixel, depth)
-    won = np.nonzero(depth <= nearest[pixel])[0]
-    # Ties (a shared edge at equal depth) go to the first candidate, whatever numpy's
-    # order of assignment: the image is a function of the input alone.
-    _, first = np.unique(pixel[won], return_index=True)
-    won = won[first]
-    if vertex_colors is not None:
-        colors = np.asarray(vertex_colors, dtype=np.float64)
-        shaded = np.einsum("ij,ijk->ik", bary[won], colors[tris[tri[won]]])
+    depth = np.einsum("ij,ij->i", bary, corners[cand, :, 2])
+    order = np.lexsort((depth, pixel))  # by pixel, nearest first; stable
+    pixel, depth = pixel[order], depth[order]
+    first = np.ones(pixel.size, dtype=bool)
+    first[1:] = pixel[1:] != pixel[:-1]
+    pixel, depth, order = pixel[first], depth[first], order[first]
+    nearer = depth < nearest[pixel]
+    won, won_pixel = order[nearer], pixel[nearer]
+    if vertex_faces is not None:
+        shaded = np.einsum("ij,ijk->ik", bary[won], colors[vertex_faces[cand[won]]])
     else:
-        shaded = np.asarray(face_colors, dtype=np.float64)[tri[won]]
-    image[pixel[won]] = shaded
-    return image.reshape(height, width, 3)
+        shaded = colors[cand[won]]
+    nearest[won_pixel] = depth[nearer]
+    image[won_pixel] = shaded

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+import facecast.cli.raster as raster
 from facecast.cli.errors import RenderError
 from facecast.cli.raster import PinholeCamera, lambert, rasterise, vertex_normals
 
@@ -97,6 +98,23 @@ def test_rendering_is_deterministic():
 
     first = _draw(vertices, faces, colors)
     assert np.array_equal(first, _draw(vertices, faces, colors))
+
+
+def test_batches_of_any_size_draw_the_same_image(monkeypatch):
+    rng = np.random.default_rng(5)
+    vertices = rng.uniform(-2, 2, (90, 3))
+    faces = rng.integers(0, 90, (150, 3))
+    colors = rng.uniform(0, 1, (90, 3))
+    whole = _draw(vertices, faces, colors)
+
+    monkeypatch.setattr(raster, "_BATCH_PIXELS", 7)  # strips of a few rows, many batches
+    assert np.array_equal(_draw(vertices, faces, colors), whole)
+
+
+def test_a_triangle_larger_than_a_batch_is_drawn_whole(monkeypatch):
+    monkeypatch.setattr(raster, "_BATCH_PIXELS", 100)
+    image = _draw(_square(1.0), QUAD, np.ones((4, 3)))  # 144 pixels, in strips
+    assert (image != GREY).any(axis=2).sum() == 12 * 12
 
 
 def test_camera_refuses_vertices_behind_it():
