@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
@@ -15,7 +16,7 @@ from facecast.rig.evaluation.webcam import (
     ict_performer,
     key_clips,
 )
-from facecast.rig.sources.ict import locate_ict
+from facecast.rig.sources.ict import ict_regions, locate_ict
 
 ARCHIVE = locate_ict()
 needs_ict = pytest.mark.skipif(
@@ -142,3 +143,15 @@ def test_bench_refuses_bad_arguments_with_a_message(argv, message, capsys):
 
     assert status == 2
     assert message in capsys.readouterr().err
+
+
+@pytest.mark.ict
+@needs_ict
+def test_ict_regions_tile_the_mesh_and_name_its_landmarks():
+    regions, landmarks68 = ict_regions(ARCHIVE)
+
+    ranges = sorted(regions.values())
+    assert ranges[0][0] == 0 and ranges[-1][1] == len(ict_performer(ARCHIVE).neutral)
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(ranges))  # no gap
+    assert {"face", "teeth", "eyeball_left", "eyelashes_right"} <= set(regions)
+    assert landmarks68.shape == (68,) and (landmarks68 < regions["face"][1]).all()
