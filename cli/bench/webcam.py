@@ -57,6 +57,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="keep the rendered videos and tracked points in DIR (reused when "
                         "there and made with the same settings)")  # fmt: skip
     parser.add_argument("--backend", default="wasm", help="the tracker's TensorFlow.js backend")
+    parser.add_argument("--by-name", action="store_true",
+                        help="also print each path's RMS weight error per ARKit name")  # fmt: skip
     parser.add_argument("--json", metavar="FILE", help="write every figure as JSON")
 
 
@@ -235,6 +237,17 @@ def _print_table(title: str, scored: dict[str, Any]) -> None:
         print(_row_text(label, row))
 
 
+def _print_by_name(title: str, scored: dict[str, Any]) -> None:
+    rows = scored["rows"]
+    labels = list(rows)
+    print(f"\nRMS weight error per ARKit name, {title}:")
+    print(f"  {'name':<20}" + "".join(f"{label:>15}" for label in labels))
+    for name in next(iter(rows.values()))["weight_rms"]:
+        print(
+            f"  {name:<20}" + "".join(f"{rows[lab]['weight_rms'][name]:>15.3f}" for lab in labels)
+        )
+
+
 def _max_axis(row: dict[str, Any]) -> float:
     return float(max(row["eq41_percent"].values()))
 
@@ -280,6 +293,8 @@ def run(args: argparse.Namespace) -> int:
         "exact": exact,
     }
     _print_table("exact landmarks (the ICT landmark vertices, head frame)", exact)
+    if args.by_name and args.exact_only:
+        _print_by_name("exact landmarks", exact)
     if not args.exact_only:
         if args.videos:
             folder = Path(args.videos)
@@ -309,6 +324,8 @@ def run(args: argparse.Namespace) -> int:
         personal, nnls = tracked["rows"][PERSONAL], tracked["rows"][NNLS]
         share = 1.0 - _max_axis(exact["rows"][PERSONAL]) / max(_max_axis(personal), 1e-12)
         report["tracker_share_personal"] = share
+        if args.by_name:
+            _print_by_name("tracked landmarks", tracked)
         verdict = "PASS" if _max_axis(personal) < _max_axis(nnls) else "FAIL"
         report["goal_personal_below_nnls"] = verdict
         print(
