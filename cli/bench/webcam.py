@@ -18,11 +18,17 @@ import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from facecast.cli.errors import CommandError
+
+if TYPE_CHECKING:
+    from facecast.rig.evaluation.takes import TakeExperiment
+    from facecast.rig.evaluation.webcam import KeyClips, Performer
+    from facecast.rig.examples import ExampleSet
+    from facecast.rig.rig import Rig
 
 #: The bundled real take (tests/data/livelink), BSD-2-Clause.
 BUNDLED_TAKE = Path(__file__).resolve().parents[2] / "tests" / "data" / "livelink" / "llv_dao.csv"
@@ -66,12 +72,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 class _Setup:
     """The experiment: performer, character, take, keys and the truth."""
 
-    performer: Any  # facecast.rig.evaluation.webcam.Performer
-    examples: Any  # the character's ExampleSet (ARKit-named, target identity)
-    experiment: Any  # takes.TakeExperiment
-    clips: Any  # webcam.KeyClips
-    character: Any  # the character's rig as imported (exact)
+    performer: Performer
+    examples: ExampleSet  # the character's (ARKit-named, the target identity)
+    experiment: TakeExperiment
+    clips: KeyClips
+    character: Rig  # the character's rig as imported (exact)
     take_name: str
+    performer_id: str
+    target_id: str
 
 
 def _setup(args: argparse.Namespace) -> _Setup:
@@ -126,10 +134,12 @@ def _setup(args: argparse.Namespace) -> _Setup:
         clips=clips,
         character=character,
         take_name=take_path.name,
+        performer_id=performer_id,
+        target_id=target_id,
     )
 
 
-def _generic_rigs(setup: _Setup, noise: float) -> dict[str, Any]:
+def _generic_rigs(setup: _Setup, noise: float) -> dict[str, Rig]:
     """The generic path's rigs, one row each: the character as ``facecast import`` + ``rigs
     put`` store it (exact), and fitted with the measured noise, bounded."""
     from facecast.rig import fit
@@ -171,12 +181,15 @@ def _score_landmarks(
 
 
 def _video_paths(folder: Path, args: argparse.Namespace, setup: _Setup) -> dict[str, Path]:
-    tag = (
-        f"{setup.take_name.rsplit('.', 1)[0]}-{len(setup.experiment.activations)}-"
-        f"{args.performer or 'default'}-sway{args.sway:g}"
-    )
-    key_tag = f"keys-{args.performer or 'default'}-{len(setup.clips.activations)}-sway{args.sway:g}"
-    return {"take": folder / f"{tag}.y4m", "keys": folder / f"{key_tag}.y4m"}
+    """Where each video goes, named by everything its frames depend on (so a kept video
+    is reused only for the same settings)."""
+    clips = setup.clips
+    ramp = clips.held[1][0] - clips.held[0][1] if len(clips.held) > 1 else 0
+    hold = clips.held[0][1] - clips.held[0][0]
+    face = f"{setup.performer_id}-sway{args.sway:g}"
+    take = f"{setup.take_name.rsplit('.', 1)[0]}-{len(setup.experiment.activations)}"
+    keys = f"keys{len(clips.names)}-ramp{ramp}-hold{hold}"
+    return {"take": folder / f"{take}-{face}.y4m", "keys": folder / f"{keys}-{face}.y4m"}
 
 
 def _tracked(args: argparse.Namespace, setup: _Setup, folder: Path) -> dict[str, Any]:
@@ -196,7 +209,7 @@ def _tracked(args: argparse.Namespace, setup: _Setup, folder: Path) -> dict[str,
     out: dict[str, Any] = {"videos": {}, "render_seconds": {}, "track_seconds": {}}
     for name, (activations, fps) in plan.items():
         path = paths[name]
-        points_path = path.with_suffix(".npz")
+        points_path = path.with_name(f"{path.stem}-{args.backend}.npz")
         if not path.is_file():
             started = time.perf_counter()
             write_video(path, scene, setup.performer, activations, fps=fps,
@@ -269,8 +282,8 @@ def run(args: argparse.Namespace) -> int:
     truth_jitter = cloning_error(experiment.truth, experiment.truth)["jitter_percent"]
     print(
         f"webcam benchmark: take {setup.take_name} ({len(experiment.activations)} frames at "
-        f"{experiment.fps:g} fps) performed by ICT {args.performer or 'person07'}, cloned onto "
-        f"{args.target or 'person01'} ({setup.examples.num_vertices} vertices); "
+        f"{experiment.fps:g} fps) performed by ICT {setup.performer_id}, cloned onto "
+        f"{setup.target_id} ({setup.examples.num_vertices} vertices); "
         f"{len(setup.clips.names)} key clips ({len(setup.clips.activations)} frames at "
         f"{KEY_FPS:g} fps). eq. 4.1 % per axis; jitter % of the diagonal per frame^2 (truth "
         f"{truth_jitter:.4f}); worst weight RMS over the ARKit names",
