@@ -212,8 +212,10 @@ def _tracked(args: argparse.Namespace, setup: _Setup, folder: Path) -> dict[str,
         points_path = path.with_name(f"{path.stem}-{args.backend}.npz")
         if not path.is_file():
             started = time.perf_counter()
-            write_video(path, scene, setup.performer, activations, fps=fps,
+            partial = path.with_name(path.name + ".partial")  # a cut-short run leaves no video
+            write_video(partial, scene, setup.performer, activations, fps=fps,
                         sway_degrees=args.sway)  # fmt: skip
+            partial.replace(path)
             out["render_seconds"][name] = time.perf_counter() - started
         if points_path.is_file():
             with np.load(points_path) as kept:
@@ -222,7 +224,8 @@ def _tracked(args: argparse.Namespace, setup: _Setup, folder: Path) -> dict[str,
             started = time.perf_counter()
             result = track_video(path, backend=args.backend)
             out["track_seconds"][name] = time.perf_counter() - started
-            result.save(points_path)
+            partial = points_path.with_name(points_path.name + ".partial")
+            result.save(partial).replace(points_path)
             points, found = result.points, result.found
         out[name] = (points.astype(np.float64), found.astype(bool))
         out["videos"][name] = str(path)
