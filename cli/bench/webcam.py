@@ -16,6 +16,7 @@ import sys
 import tempfile
 import time
 import warnings
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -55,6 +56,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="frames a key clip rises to its expression (default 4)")  # fmt: skip
     parser.add_argument("--hold", type=int, default=None, metavar="N",
                         help="frames each key-expression is held and captured (default 10)")  # fmt: skip
+    parser.add_argument("--keys", metavar="NAME,...", type=lambda text: text.split(","),
+                        help="the key-expressions performed and captured (default: all 51); "
+                        "the others are skipped, as in the page's walk-through")  # fmt: skip
     parser.add_argument("--sway", type=float, default=1.5, metavar="DEG",
                         help="head sway amplitude in degrees (default 1.5; 0: a still head)")  # fmt: skip
     parser.add_argument("--exact-only", action="store_true",
@@ -121,6 +125,7 @@ def _setup(args: argparse.Namespace) -> _Setup:
     performer = ict_performer(archive, identity=performer_id)
     clips = key_clips(
         performer.names,
+        keys=args.keys,
         ramp=KEY_RAMP_FRAMES if args.ramp is None else args.ramp,
         hold=KEY_HOLD_FRAMES if args.hold is None else args.hold,
     )
@@ -188,7 +193,8 @@ def _video_paths(folder: Path, args: argparse.Namespace, setup: _Setup) -> dict[
     hold = clips.held[0][1] - clips.held[0][0]
     face = f"{setup.performer_id}-sway{args.sway:g}"
     take = f"{setup.take_name.rsplit('.', 1)[0]}-{len(setup.experiment.activations)}"
-    keys = f"keys{len(clips.names)}-ramp{ramp}-hold{hold}"
+    performed = zlib.crc32(",".join(clips.names).encode())
+    keys = f"keys{len(clips.names)}-{performed:08x}-ramp{ramp}-hold{hold}"
     return {"take": folder / f"{take}-{face}.y4m", "keys": folder / f"{keys}-{face}.y4m"}
 
 

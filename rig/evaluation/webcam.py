@@ -121,11 +121,12 @@ class KeyClips:
     Attributes
     ----------
     names : tuple of str
-        The neutral first.
+        The expressions performed, the neutral first.
     activations : (F, M) float64
-        Column i is ``names[i]``'s weight; column 0 is 0.
+        The face's weights, a column per expression of the face (``key_clips``'s
+        ``names``); column 0, the neutral's, is 0.
     held : tuple of (start, stop)
-        Per name, the frames [start, stop) where the expression is held: the capture.
+        Per performed name, the frames [start, stop) where it is held: the capture.
     """
 
     names: tuple[str, ...]
@@ -134,27 +135,48 @@ class KeyClips:
 
 
 def key_clips(
-    names: Sequence[str], *, ramp: int = KEY_RAMP_FRAMES, hold: int = KEY_HOLD_FRAMES
+    names: Sequence[str],
+    *,
+    keys: Sequence[str] | None = None,
+    ramp: int = KEY_RAMP_FRAMES,
+    hold: int = KEY_HOLD_FRAMES,
 ) -> KeyClips:
-    """The neutral held, then each other name: ``ramp`` frames rising, ``hold`` frames at 1.
+    """The neutral held, then each key: ``ramp`` frames rising, ``hold`` frames at 1.
 
     The face is back at rest at the start of each clip, as after a capture.
+
+    Parameters
+    ----------
+    names : sequence of str
+        The face's expressions, the neutral first: the activations' columns.
+    keys : sequence of str, optional
+        The expressions performed, in this order (default: all but the neutral); the
+        others are skipped, as the calibration walk-through lets a performer skip.
     """
     if ramp < 0 or hold < 3:
         raise InputError(f"key clips need ramp >= 0 and hold >= 3 frames, got {ramp}, {hold}")
-    m = len(names)
+    column = {name: i for i, name in enumerate(names)}
+    performed = list(names[1:]) if keys is None else list(keys)
+    unknown = [name for name in performed if name not in column or column[name] == 0]
+    if unknown or len(set(performed)) != len(performed):
+        raise InputError(
+            f"keys: each an expression of the face other than the neutral, once; got "
+            f"{(unknown or performed)[0]!r}",
+            code="unknown_expression",
+        )
     rise = (np.arange(1, ramp + 1) / (ramp + 1.0)) if ramp else np.zeros(0)
     rise = rise * rise * (3.0 - 2.0 * rise)  # smoothstep: no jump at either end
-    frames = hold + (m - 1) * (ramp + hold)
-    activations = np.zeros((frames, m))
+    frames = hold + len(performed) * (ramp + hold)
+    activations = np.zeros((frames, len(names)))
     held = [(0, hold)]
     start = hold
-    for i in range(1, m):
+    for name in performed:
+        i = column[name]
         activations[start : start + ramp, i] = rise
         activations[start + ramp : start + ramp + hold, i] = 1.0
         held.append((start + ramp, start + ramp + hold))
         start += ramp + hold
-    return KeyClips(names=tuple(names), activations=activations, held=tuple(held))
+    return KeyClips(names=(names[0], *performed), activations=activations, held=tuple(held))
 
 
 def captured_keys(

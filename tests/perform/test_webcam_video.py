@@ -7,10 +7,13 @@ tracked points move the way the rendered face does.
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
 from facecast.cli.bench.facevideo import head_scene, write_video
+from facecast.cli.main import main
 from facecast.cli.snapshot import chromium_path
 from facecast.cli.track import track_video
 from facecast.rig.evaluation.webcam import ict_performer
@@ -51,3 +54,23 @@ def test_the_rendered_face_is_found_in_every_frame_and_its_mouth_followed(tmp_pa
     # The tracker's face frame is about centimetres (eye-centre distance 6.3), as ICT's.
     opened = gap[HOLD:].mean() - gap[:HOLD].mean()
     assert 0.5 * np.ptp(exact_gap) < opened < 2.0 * np.ptp(exact_gap)
+
+
+def test_bench_on_tracked_videos_scores_every_path_and_reuses_what_it_kept(tmp_path):
+    argv = ["bench", "webcam", "--frames", "8", "--keys", "jawOpen,mouthSmileLeft,eyeBlinkLeft",
+            "--ramp", "0", "--hold", "3", "--videos", str(tmp_path / "kept")]  # fmt: skip
+
+    reports = []
+    for run in ("first", "again"):
+        out = tmp_path / f"{run}.json"
+        assert main([*argv, "--json", str(out)]) == 0
+        reports.append(json.loads(out.read_text()))
+
+    first, again = (report["tracked"] for report in reports)
+    assert first["take_found"] == 8 and first["key_found"] == 3 + 3 * 3
+    assert first["keys_captured"] == 4  # the neutral and the three keys
+    assert set(first["rows"]) == {"personal", "nnls", "generic exact", "generic noise"}
+    assert set(first["render_seconds"]) == set(first["track_seconds"]) == {"take", "keys"}
+    # The second run renders and tracks nothing: it scores the kept points, to the same figures.
+    assert again["render_seconds"] == again["track_seconds"] == {}
+    assert again["rows"] == first["rows"]

@@ -39,6 +39,23 @@ def test_key_clips_hold_each_expression_alone_at_weight_one():
     assert 0 < rise[0] < rise[1] < rise[2] < 1  # the ramp rises from rest
 
 
+def test_key_clips_perform_only_the_keys_asked_for_in_their_order():
+    clips = key_clips(NAMES, keys=["c", "a"], ramp=0, hold=3)
+
+    assert clips.names == ("neutral", "c", "a")
+    assert clips.activations.shape == (3 + 2 * 3, 4)
+    assert (clips.activations[3:6] == [0, 0, 0, 1]).all()  # "c" first, in its own column
+    assert (clips.activations[6:9] == [0, 1, 0, 0]).all()
+    assert not clips.activations[:, 2].any()  # "b" skipped
+
+
+@pytest.mark.parametrize("keys", [["neutral"], ["z"], ["a", "a"]])
+def test_key_clips_refuse_keys_the_face_cannot_make(keys):
+    with pytest.raises(InputError) as info:
+        key_clips(NAMES, keys=keys)
+    assert info.value.code == "unknown_expression"
+
+
 def test_captured_keys_are_the_held_frames_medians():
     clips = key_clips(NAMES, ramp=2, hold=5)
     rng = np.random.default_rng(0)
