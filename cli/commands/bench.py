@@ -99,9 +99,36 @@ def register(subparsers) -> None:
             "tracked neutral, and the same pipeline on the exact landmarks."
         ),
     )
-    from facecast.cli.bench.webcam import add_arguments
-
-    add_arguments(webcam)
+    webcam.add_argument(
+        "--ict", metavar="PATH",
+        help="ICT-FaceKit folder or .npz (default: $FACECAST_ICT or ../shared/data/ict-facekit)",
+    )  # fmt: skip
+    webcam.add_argument(
+        "--take", metavar="CSV", help="a Live Link Face CSV take (default: the bundled llv_dao)"
+    )
+    webcam.add_argument("--performer", default=None, metavar="PERSON",
+                        help="the ICT identity rendered (default person07)")  # fmt: skip
+    webcam.add_argument("--target", default=None, metavar="PERSON",
+                        help="the ICT identity cloned onto (default person01)")  # fmt: skip
+    webcam.add_argument("--frames", type=int, metavar="N", help="use the take's first N frames")
+    webcam.add_argument("--ramp", type=int, default=None, metavar="N",
+                        help="frames a key clip rises to its expression (default 4)")  # fmt: skip
+    webcam.add_argument("--hold", type=int, default=None, metavar="N",
+                        help="frames each key-expression is held and captured (default 10)")  # fmt: skip
+    webcam.add_argument("--keys", metavar="NAME,...", type=lambda text: text.split(","),
+                        help="the key-expressions performed and captured (default: all 51); "
+                        "the others are skipped, as in the page's walk-through")  # fmt: skip
+    webcam.add_argument("--sway", type=float, default=1.5, metavar="DEG",
+                        help="head sway amplitude in degrees (default 1.5; 0: a still head)")  # fmt: skip
+    webcam.add_argument("--exact-only", action="store_true",
+                        help="skip rendering and tracking: the exact-landmark rows only")  # fmt: skip
+    webcam.add_argument("--videos", metavar="DIR",
+                        help="keep the rendered videos and tracked points in DIR (reused when "
+                        "there and made with the same settings)")  # fmt: skip
+    webcam.add_argument("--backend", default="wasm", help="the tracker's TensorFlow.js backend")
+    webcam.add_argument("--by-name", action="store_true",
+                        help="also print each path's RMS weight error per ARKit name")  # fmt: skip
+    webcam.add_argument("--json", metavar="FILE", help="write every figure as JSON")
     webcam.set_defaults(func=_runner("webcam"))
 
 
