@@ -5,7 +5,6 @@
 
 import { FacePipeline, LAYOUT } from "./pipeline.js";
 
-const canvas = document.createElement("canvas");
 let pipeline = null;
 
 const api = {
@@ -32,16 +31,12 @@ const api = {
     if (!response.ok) throw new Error(`frame ${url}: ${response.status}`);
     const data = await response.arrayBuffer();
     const frame = new VideoFrame(data, { format, codedWidth: width, codedHeight: height, timestamp: 0, colorSpace });
-    if (canvas.width !== width || canvas.height !== height) {
-      canvas.width = width;
-      canvas.height = height;
-    }
+    let result;
     try {
-      canvas.getContext("2d").drawImage(frame, 0, 0);
+      result = await pipeline.trackFrame(frame);
     } finally {
       frame.close();
     }
-    const result = await pipeline.track(canvas);
     return { faces: result.faces, points: result.points ? Array.from(result.points) : null };
   },
 };
