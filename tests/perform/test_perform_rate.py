@@ -27,6 +27,7 @@ def test_frames_come_from_the_track_and_the_character_is_drawn_within_its_budget
     pages.append(page)
     page.wait_for_function("window.facecastStats.results >= 5", timeout=120_000)
     drawn_before, _, t_before = page.evaluate(CLOCK)
+    assert isinstance(drawn_before, int), "the page does not count its draws of the character"
     page.wait_for_function(
         f"window.facecastStats.drawn >= {drawn_before + 2} "
         "&& window.facecastStats.drawCostMs !== null",
