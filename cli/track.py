@@ -18,9 +18,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from facecast.cli.errors import CommandError
+from facecast.cli.snapshot import CHROMIUM_ARGS, chromium_path
 from facecast.cli.y4m import Y4MVideo, open_y4m
+from facecast.server.perform_page import PERFORM_ASSETS
+from facecast.server.viewer import viewer_dir
 
 __all__ = ["BACKENDS", "TRACK_COLOR_SPACE", "TrackResult", "track_video"]
 
@@ -94,9 +98,6 @@ class TrackResult:
 
 def _assets() -> dict[str, tuple[Path, str]]:
     """URL path -> (file, media type): the page, its script, the model and the .wasm files."""
-    from facecast.server.perform_page import PERFORM_ASSETS
-    from facecast.server.viewer import viewer_dir
-
     root = viewer_dir()
     dist = root / "dist"
     files = {"/track": (root / "track.html", _HTML)}
@@ -162,8 +163,6 @@ def track_video(
     CommandError
         No Chromium or Playwright, the tracker is not built, or the model failed to load.
     """
-    from facecast.cli.snapshot import chromium_path
-
     if backend not in BACKENDS:
         raise CommandError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     if max_frames is not None and max_frames < 1:
@@ -197,9 +196,6 @@ def _run(
 ) -> TrackResult:
     from playwright.sync_api import Error as PlaywrightError
     from playwright.sync_api import sync_playwright
-    from tqdm import tqdm
-
-    from facecast.cli.snapshot import CHROMIUM_ARGS
 
     faces = np.zeros(frames, dtype=np.int64)
     model_ms = np.zeros(frames)
