@@ -10,6 +10,7 @@ port, nothing fetched from elsewhere); it never publishes and never fits anythin
 from __future__ import annotations
 
 import importlib.util
+import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -17,9 +18,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from facecast.cli.errors import CommandError
+from facecast.cli.snapshot import CHROMIUM_ARGS, chromium_path
 from facecast.cli.y4m import Y4MVideo, open_y4m
+from facecast.server.perform_page import PERFORM_ASSETS
+from facecast.server.viewer import viewer_dir
 
 __all__ = ["BACKENDS", "TRACK_COLOR_SPACE", "TrackResult", "track_video"]
 
@@ -59,6 +64,11 @@ class TrackResult:
         The layout the points follow (``mediapipe_face_mesh``).
     backend : str
         The TensorFlow.js backend that ran.
+    seconds : float
+        Time spent tracking the frames (the browser's start and the model's load not
+        counted).
+    model_ms : float
+        The model's mean time a frame, within ``seconds``.
     """
 
     points: np.ndarray
@@ -67,6 +77,8 @@ class TrackResult:
     faces: np.ndarray
     layout: str
     backend: str
+    seconds: float = 0.0
+    model_ms: float = float("nan")
 
     @property
     def num_frames(self) -> int:
@@ -86,9 +98,6 @@ class TrackResult:
 
 def _assets() -> dict[str, tuple[Path, str]]:
     """URL path -> (file, media type): the page, its script, the model and the .wasm files."""
-    from facecast.server.perform_page import PERFORM_ASSETS
-    from facecast.server.viewer import viewer_dir
-
     root = viewer_dir()
     dist = root / "dist"
     files = {"/track": (root / "track.html", _HTML)}
@@ -154,8 +163,6 @@ def track_video(
     CommandError
         No Chromium or Playwright, the tracker is not built, or the model failed to load.
     """
-    from facecast.cli.snapshot import chromium_path
-
     if backend not in BACKENDS:
         raise CommandError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     if max_frames is not None and max_frames < 1:
@@ -189,11 +196,9 @@ def _run(
 ) -> TrackResult:
     from playwright.sync_api import Error as PlaywrightError
     from playwright.sync_api import sync_playwright
-    from tqdm import tqdm
-
-    from facecast.cli.snapshot import CHROMIUM_ARGS
 
     faces = np.zeros(frames, dtype=np.int64)
+    model_ms = np.zeros(frames)
     shape = {
         "format": video.format, "width": video.width, "height": video.height,
         "colorSpace": TRACK_COLOR_SPACE,
@@ -217,13 +222,16 @@ def _run(
             bar = tqdm(
                 total=frames, unit="frame", desc="tracking", disable=not progress, leave=False
             )
+            started = time.perf_counter()
             with bar:
                 for index in range(frames):
+                    following = f"/frames/{index + 1}" if index + 1 < frames else None
                     tracked = page.evaluate(
-                        "([url, shape]) => window.facecastTrack.track(url, shape)",
-                        [f"/frames/{index}", shape],
+                        "([url, shape, next]) => window.facecastTrack.track(url, shape, next)",
+                        [f"/frames/{index}", shape, following],
                     )
                     faces[index] = tracked["faces"]
+                    model_ms[index] = tracked["modelMs"]
                     if tracked["points"] is not None:
                         points[index] = np.asarray(tracked["points"], dtype=np.float32).reshape(
                             k, 3
@@ -232,4 +240,8 @@ def _run(
         finally:
             browser.close()
     found = np.isfinite(points).all(axis=(1, 2))
-    return TrackResult(points, found, video.fps, faces, layout, loaded["backend"])
+    seconds = time.perf_counter() - started
+    return TrackResult(
+        points, found, video.fps, faces, layout, loaded["backend"], seconds,
+        float(model_ms.mean()),
+    )  # fmt: skip

@@ -39,6 +39,10 @@ LAZY: dict[tuple[str, str], str] = {
     ("facecast.cli.report", "facecast.cli.render"): _MATPLOTLIB,
     ("facecast.cli.render", "matplotlib.*"): _MATPLOTLIB,
     ("facecast.cli.loadgen", "matplotlib.*"): _MATPLOTLIB,
+    ("facecast.cli.track", "playwright.*"): (
+        "optional dependency: Playwright (the `test` extra) drives Chromium for `facecast "
+        "track` only; without it the command says what to install"
+    ),
     ("facecast.cli.facetrack", "cv2"): "optional dependency: the `perform` extra",
     ("facecast.cli.facetrack", "mediapipe.*"): "optional dependency: the `perform` extra",
     ("facecast.server.bus", "redis.asyncio"): (

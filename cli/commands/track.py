@@ -67,7 +67,10 @@ def run(args: argparse.Namespace) -> int:
     found = int(result.found.sum())
     print(
         f"tracked {result.num_frames} frames ({result.num_frames / result.fps:.1f} s at "
-        f"{result.fps:g} fps) on {result.backend}: a face in {found}; wrote {output}"
+        f"{result.fps:g} fps) on {result.backend} in {result.seconds:.1f} s "
+        f"({result.num_frames / max(result.seconds, 1e-9):.1f} frames/s; the model "
+        f"{result.model_ms:.0f} ms a frame): a face in {found}; "
+        f"wrote {output}"
     )
     if found == 0:
         print(

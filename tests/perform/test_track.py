@@ -119,3 +119,6 @@ def test_clone_puts_a_tracked_video_on_a_rig(clip_points, rigs_dir, tmp_path, ca
     # The frames without a face hold the last tracked one (the closed mouth's).
     np.testing.assert_array_equal(weights[HOLD : 2 * HOLD], weights[[HOLD - 1] * HOLD])
     assert np.abs(weights[2 * HOLD] - weights[0]).max() > 1e-3
+    glb = tmp_path / "out.glb"
+    assert main(["clone", str(rigs_dir / f"{CHARACTER}.rig"), str(tracked), "-o", str(glb)]) == 0
+    assert glb.read_bytes()[:4] == b"glTF"

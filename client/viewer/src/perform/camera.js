@@ -1,5 +1,5 @@
 // The camera side of /perform: opening the camera with errors a person can act on,
-// pacing by the camera's frames, drawing the points over its image. DOM only; no
+// handing its frames to the tracker, drawing the points over its image. DOM only; no
 // tracking, no network.
 
 /** Open the user-facing camera into `video`; rejects with a message saying what to do. */
@@ -31,6 +31,45 @@ export function nextVideoFrame(video) {
     if (video.requestVideoFrameCallback) video.requestVideoFrameCallback(() => resolve());
     else requestAnimationFrame(() => resolve());
   });
+}
+
+/**
+ * The camera's frames as the tracker takes them: `next()` resolves with the newest frame
+ * not yet tracked, `{frame}` (a VideoFrame the caller closes) where the browser has
+ * MediaStreamTrackProcessor, else `{video}` (the element, on its next presented frame).
+ *
+ * The processor hands over every frame the camera delivers, whatever the page draws:
+ * waiting on the <video> element's frame callbacks instead ties tracking to the
+ * compositor, which in headless Chromium drawing the character through SwiftShader held
+ * each callback back 200 ms (docs/perform.md, "Performance"). A buffer of one frame: a
+ * frame that arrives while the model runs replaces an older one, so what is tracked next
+ * is the newest.
+ */
+export function cameraFrames(stream, video) {
+  const [track] = stream.getVideoTracks();
+  if (typeof MediaStreamTrackProcessor === "function" && track) {
+    const processor = new MediaStreamTrackProcessor({ track, maxBufferSize: 1 });
+    const reader = processor.readable.getReader();
+    return {
+      kind: "processor",
+      async next() {
+        const { value, done } = await reader.read();
+        if (done) throw new Error("the camera stopped");
+        return { frame: value };
+      },
+    };
+  }
+  let pending = nextVideoFrame(video);
+  return {
+    kind: "video",
+    async next() {
+      await pending;
+      // Ask for the frame after this one now: one presented while the model runs is
+      // tracked as soon as the model is done.
+      pending = nextVideoFrame(video);
+      return { video };
+    },
+  };
 }
 
 /**

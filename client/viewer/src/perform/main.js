@@ -6,7 +6,7 @@ import { Link } from "../link.js";
 import { authHeaders, socketTarget } from "../params.js";
 import { encodeCalibrate, encodeFrame, encodeHello, ErrorCode, errorName } from "../protocol.js";
 import { FaceView } from "../scene.js";
-import { drawPoints, nextVideoFrame, openCamera } from "./camera.js";
+import { cameraFrames, drawPoints, openCamera } from "./camera.js";
 import { eyeOpenness, headAngles } from "./facemesh.js";
 import { readPerformParams } from "./params.js";
 import { FacePipeline, LAYOUT as layout } from "./pipeline.js";
@@ -15,6 +15,7 @@ import { Rolling } from "./timing.js";
 const K = layout.features.length;
 const MAX_BUFFERED_BYTES = 64 * 1024; // a stalled socket drops frames instead of queueing them
 const WINDOW = 120; // frames in the rolling timing statistics
+const DRAW_SHARE = 0.1; // of the page's time the character's drawing may block it
 
 /** Counters for people and tests (tests wait on them instead of sleeping). */
 const stats = {
@@ -47,6 +48,10 @@ const stats = {
   addedMs: null, // everything facecast adds per frame (normalise, encode, send, draw), mean
   addedP95Ms: null,
   renderMs: null, // drawing the character (three.js; the GPU's work, or SwiftShader's), mean
+  waitMs: null, // waiting for the camera's next frame once the last was tracked (mean)
+  drawn: 0, // times the character was drawn
+  drawCostMs: null, // what a draw of the character blocks the page: draw -> next task (mean)
+  frameSource: null, // "processor" (MediaStreamTrackProcessor) or "video" (frame callbacks)
   points: null, // the last published points, K*3
   head: null, // {yaw, pitch, roll} of the last frame, degrees
   eyes: null,
@@ -250,8 +255,9 @@ async function main() {
   // Camera and model.
   const video = $("video");
   setTrack("loading", "opening the camera");
+  let stream;
   try {
-    await openCamera(video);
+    stream = await openCamera(video);
   } catch (err) {
     setTrack("no-camera", "no camera", err.message);
     fatal(err.message);
@@ -280,21 +286,59 @@ async function main() {
   const overlay = new Rolling(WINDOW);
   const added = new Rolling(WINDOW);
   const render = new Rolling(WINDOW);
+  const waiting = new Rolling(WINDOW);
+  const drawCosts = new Rolling(WINDOW);
   const frameTimes = [];
   const publishTimes = [];
   let seq = 0;
   let lastPaint = 0;
   setTrack("tracking", "looking for a face");
 
-  let nextFrame = nextVideoFrame(video);
+  // The character is drawn on the browser's animation frames, never in the tracking loop,
+  // and within a budget: without a GPU, Chromium reads the WebGL canvas back on the main
+  // thread at the commit after each draw, waiting there for SwiftShader to finish it (100–
+  // 250 ms a draw on these 2-core machines): drawn every frame, the character held the
+  // tracker to a third of its rate. So each draw's cost (draw -> the next task after its
+  // commit) is measured, and the next draw waits until that cost is at most DRAW_SHARE of
+  // the time since: with a GPU (~1 ms) that is every animation frame; without, about one
+  // draw a second (docs/perform.md, "Performance").
+  const after = new MessageChannel();
+  let drawnAt = null;
+  let nextDraw = 0;
+  after.port1.onmessage = () => {
+    const cost = performance.now() - drawnAt;
+    drawCosts.push(cost);
+    stats.drawn += 1;
+    nextDraw = drawnAt + cost / DRAW_SHARE;
+    drawnAt = null;
+  };
+  const draw = () => {
+    const now = performance.now();
+    if (drawnAt === null && now >= nextDraw && view.mesh && view.dirty) {
+      view.render();
+      render.push(performance.now() - now);
+      drawnAt = now;
+      after.port2.postMessage(null);
+    }
+    requestAnimationFrame(draw);
+  };
+  requestAnimationFrame(draw);
+
+  // The rate is min(camera, 1 / model time): the next frame is asked for as soon as the
+  // last is tracked, and never waits on the page's drawing (cameraFrames).
+  const frames = cameraFrames(stream, video);
+  stats.frameSource = frames.kind;
   for (;;) {
-    await nextFrame;
-    // Ask for the frame after this one now: one the camera delivers while the model runs
-    // is tracked as soon as the model is done, so the rate is min(camera, 1 / model time).
-    nextFrame = nextVideoFrame(video);
+    const tWait = performance.now();
     let result;
     try {
-      result = await pipeline.track(video);
+      const { frame } = await frames.next();
+      waiting.push(performance.now() - tWait);
+      try {
+        result = frame ? await pipeline.trackFrame(frame) : await pipeline.track(video);
+      } finally {
+        if (frame) frame.close();
+      }
     } catch (err) {
       setTrack("failed", "tracking failed", err.message);
       fatal(`Tracking failed: ${err.message}`);
@@ -354,12 +398,9 @@ async function main() {
       stats.addedP95Ms = added.quantile(0.95);
       stats.serverLatencyMs = latencyEma;
       stats.renderMs = render.mean();
+      stats.waitMs = waiting.mean();
+      stats.drawCostMs = drawCosts.mean();
       paintStats(result);
-    }
-    if (view.mesh && view.dirty) {
-      const tRender = performance.now();
-      view.render();
-      render.push(performance.now() - tRender);
     }
   }
 }

@@ -1,7 +1,7 @@
 // One image -> the layout's feature points exactly as /perform publishes them: the face
 // model (tracker.js) and the face-frame normalisation (facemesh.js) joined in one place,
 // shared by the live page (main.js) and the offline tracker (track.js, `facecast track`).
-// No DOM beyond the image handed in, no network, no drawing.
+// No network, no drawing on the page (one off-screen canvas to hold a frame's pixels).
 
 import layoutTable from "../../../../rig/sources/layouts/mediapipe_face_mesh.json";
 import { checkLayout, FaceMeshError, imageToMesh, normaliseMesh } from "./facemesh.js";
@@ -16,6 +16,8 @@ export class FacePipeline {
     this.layout = layout;
     this.tracker = new Tracker(base === undefined ? { backend } : { backend, base });
     this.points = new Float32Array(layout.features.length * 3);
+    this.canvas = document.createElement("canvas");
+    this.context = this.canvas.getContext("2d");
   }
 
   /** Load the model and backend; returns the backend that really runs (Tracker.load). */
@@ -25,6 +27,21 @@ export class FacePipeline {
 
   get features() {
     return this.tracker.features;
+  }
+
+  /**
+   * Track one VideoFrame (a camera's, or one made from a file's YUV planes): drawn into a
+   * canvas of its display size, where Chromium converts it to RGB, then tracked. The
+   * caller keeps and closes the frame. Returns what `track` does.
+   */
+  async trackFrame(frame) {
+    const { displayWidth: width, displayHeight: height } = frame;
+    if (this.canvas.width !== width || this.canvas.height !== height) {
+      this.canvas.width = width;
+      this.canvas.height = height;
+    }
+    this.context.drawImage(frame, 0, 0);
+    return this.track(this.canvas);
   }
 
   /**

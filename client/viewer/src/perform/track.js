@@ -5,8 +5,14 @@
 
 import { FacePipeline, LAYOUT } from "./pipeline.js";
 
-const canvas = document.createElement("canvas");
 let pipeline = null;
+let prefetched = null; // {url, data: Promise<ArrayBuffer>}
+
+async function fetchFrame(url) {
+  const response = await fetch(url);
+  if (!response.ok) throw new Error(`frame ${url}: ${response.status}`);
+  return response.arrayBuffer();
+}
 
 const api = {
   layout: LAYOUT.name,
@@ -25,24 +31,20 @@ const api = {
   /**
    * Track the raw YUV frame at `url` (planar, `format` "I420", "I422" or "I444", as
    * WebCodecs names them). Chromium converts it to RGB as it converts its camera's
-   * frames; returns {faces, points: [K*3] or null}.
+   * frames. `next`: the frame the following call will ask for, fetched while this one is
+   * tracked. Returns {faces, points: [K*3] or null, modelMs}.
    */
-  async track(url, { format, width, height, colorSpace }) {
-    const response = await fetch(url);
-    if (!response.ok) throw new Error(`frame ${url}: ${response.status}`);
-    const data = await response.arrayBuffer();
+  async track(url, { format, width, height, colorSpace }, next = null) {
+    const data = await (prefetched && prefetched.url === url ? prefetched.data : fetchFrame(url));
+    prefetched = next === null ? null : { url: next, data: fetchFrame(next) };
     const frame = new VideoFrame(data, { format, codedWidth: width, codedHeight: height, timestamp: 0, colorSpace });
-    if (canvas.width !== width || canvas.height !== height) {
-      canvas.width = width;
-      canvas.height = height;
-    }
+    let result;
     try {
-      canvas.getContext("2d").drawImage(frame, 0, 0);
+      result = await pipeline.trackFrame(frame);
     } finally {
       frame.close();
     }
-    const result = await pipeline.track(canvas);
-    return { faces: result.faces, points: result.points ? Array.from(result.points) : null };
+    return { faces: result.faces, points: result.points ? Array.from(result.points) : null, modelMs: result.modelMs };
   },
 };
 window.facecastTrack = api;
