@@ -126,12 +126,15 @@ def _score_landmarks(
     setup: _Setup, take_points: np.ndarray, key_points: np.ndarray, key_found: np.ndarray | None
 ) -> dict[str, Any]:
     """Every path on one kind of landmarks (exact or tracked): the rows and the capture."""
-    from facecast.rig.evaluation.webcam import captured_keys, webcam_rows
+    from facecast.rig.evaluation.webcam import captured_keys, superposition, webcam_rows
     from facecast.server.performers import held_noise
 
     keys, held = captured_keys(key_points, setup.clips, key_found)
     noise, held_frames = held_noise(held)
     experiment = setup.experiment
+    mix, residual, slow = superposition(
+        take_points, keys, experiment.activations, setup.character.names
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # fit's advice on the bounded rigs: chosen settings
         rows = webcam_rows(
@@ -142,8 +145,11 @@ def _score_landmarks(
             keys,
             noise=noise,
             generic=_generic_rigs(setup, noise),
+            personal_also={"keys' mix": mix},
         )
     return {
+        "superposition_rms": residual,
+        "superposition_slow_rms": slow,
         "noise": noise,
         "held_frames": held_frames,
         "keys_captured": len(keys),
@@ -209,7 +215,7 @@ def _row_text(label: str, row: dict[str, Any]) -> str:
     axes = row["eq41_percent"]
     worst = max(axes.values())
     return (
-        f"  {label:<16}{axes['x']:>8.3f}{axes['y']:>8.3f}{axes['z']:>8.3f}{worst:>10.3f}"
+        f"  {label:<24}{axes['x']:>8.3f}{axes['y']:>8.3f}{axes['z']:>8.3f}{worst:>10.3f}"
         f"{row['jitter_percent']:>10.4f}{max(row['weight_rms'].values()):>12.3f}"
     )
 
@@ -220,10 +226,15 @@ def _print_table(title: str, scored: dict[str, Any]) -> None:
         f"noise sigma = {scored['noise'] * 10:.3f} mm from {scored['held_frames']} held frames"
     )
     print(
-        f"  {'path':<16}{'x':>8}{'y':>8}{'z':>8}{'max axis':>10}{'jitter':>10}{'worst w RMS':>12}"
+        f"  {'path':<24}{'x':>8}{'y':>8}{'z':>8}{'max axis':>10}{'jitter':>10}{'worst w RMS':>12}"
     )
     for label, row in scored["rows"].items():
         print(_row_text(label, row))
+    print(
+        f"  the take's points lie {scored['superposition_rms'] * 10:.2f} mm RMS from the true "
+        f"weights' mix of the captured keys ({scored['superposition_slow_rms'] * 10:.2f} mm "
+        'of it slow: a 7-frame average); "personal on keys\' mix" clones that mix'
+    )
 
 
 def _print_by_name(title: str, scored: dict[str, Any]) -> None:

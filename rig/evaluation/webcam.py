@@ -38,6 +38,7 @@ __all__ = [
     "ict_performer",
     "key_clips",
     "score",
+    "superposition",
     "webcam_rows",
 ]
 
@@ -290,6 +291,56 @@ def score(
     return errors
 
 
+def superposition(
+    take_points: npt.ArrayLike,
+    keys: Mapping[str, np.ndarray],
+    activations: npt.ArrayLike,
+    names: Sequence[str],
+    *,
+    window: int = 7,
+) -> tuple[np.ndarray, float, float]:
+    """How far a take's points are from the same mix of its captured keys.
+
+    A tracker that superposed expressions would give S_B + sum_i w_i (S_i - S_B) for the
+    true weights w and the captured keys S_i; what it gives instead is the error no rig
+    fitted on those keys can undo.
+
+    Parameters
+    ----------
+    take_points : (F, K, 3)
+    keys : {name: (K, 3)}
+        The captured keys, the neutral (``names[0]``) among them; a name not captured
+        counts as not moving the points.
+    activations : (F, M)
+        The true weights, in ``names`` order.
+    window : int
+        Frames of the centred moving average that separates the slow part.
+
+    Returns
+    -------
+    mix : (F, K, 3)
+        The keys mixed by the true weights.
+    rms : float
+        RMS over frames and coordinates of ``take_points - mix``.
+    slow_rms : float
+        The same of its centred ``window``-frame moving average: the part frame noise
+        does not explain.
+    """
+    points = np.asarray(take_points, dtype=np.float64)
+    act = np.asarray(activations, dtype=np.float64)
+    neutral = keys[names[0]]
+    mix = np.broadcast_to(neutral, points.shape).copy()
+    for j, name in enumerate(names[1:], start=1):
+        if name in keys:
+            mix += act[:, j, None, None] * (keys[name] - neutral)
+    residual = points - mix
+    half = window // 2
+    padded = np.concatenate([residual[:1].repeat(half, 0), residual, residual[-1:].repeat(half, 0)])
+    running = np.cumsum(np.concatenate([np.zeros((1, *residual.shape[1:])), padded]), axis=0)
+    slow = (running[window:] - running[:-window]) / window
+    return mix, float(np.sqrt(np.mean(residual**2))), float(np.sqrt(np.mean(slow**2)))
+
+
 def webcam_rows(
     character: Rig,
     truth: np.ndarray,
@@ -299,6 +350,7 @@ def webcam_rows(
     *,
     noise: float,
     generic: Mapping[str, Rig] | None = None,
+    personal_also: Mapping[str, npt.ArrayLike] | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Clone one take's points by each path and score it against the truth.
 
@@ -321,13 +373,16 @@ def webcam_rows(
     generic : {label: Rig}, optional
         Rigs on the character's own examples, not yet re-based: each is re-based on the
         captured neutral (``generic_rig``) and scored as a row of its own.
+    personal_also : {label: (F, K, 3)}, optional
+        Other points for the same take, each cloned by the personal rig as a row
+        ``"personal on <label>"`` (e.g. ``superposition``'s mix of the keys).
 
     Returns
     -------
     {label: score(...)}
         ``personal`` (the performer's own rig, fitted as the server fits it), ``nnls`` (its
-        peer: non-negative least squares on the same captured keys and points), then one
-        row per ``generic`` rig.
+        peer: non-negative least squares on the same captured keys and points), the
+        ``personal_also`` rows, then one row per ``generic`` rig.
     """
     points = np.asarray(take_points, dtype=np.float64)
     names = character.names
@@ -342,6 +397,9 @@ def webcam_rows(
         target_faces=personal.target_faces,
     )
     rows["nnls"] = score(truth, personal, nnls_weights(examples, points), activations, names)
+    for label, other in (personal_also or {}).items():
+        weights = personal.weights(np.asarray(other, dtype=np.float64))
+        rows[f"personal on {label}"] = score(truth, personal, weights, activations, names)
     for label, rig in (generic or {}).items():
         rebased = generic_rig(rig, keys["neutral"], noise)
         rows[label] = score(truth, rebased, rebased.weights(points), activations, names)

@@ -15,6 +15,7 @@ from facecast.rig.evaluation.webcam import (
     hold_last_found,
     ict_performer,
     key_clips,
+    superposition,
 )
 from facecast.rig.sources.ict import ict_regions, locate_ict
 
@@ -94,6 +95,23 @@ def test_no_neutral_in_view_is_an_error():
     assert info.value.code == "no_neutral"
 
 
+def test_superposition_splits_a_steady_offset_from_frame_noise():
+    rng = np.random.default_rng(2)
+    keys = {name: rng.normal(size=(5, 3)) for name in NAMES}
+    activations = np.zeros((40, 4))
+    activations[:, 1:] = rng.uniform(0, 1, (40, 3))
+    mix = keys["neutral"] + np.einsum(
+        "fm,mkc->fkc", activations[:, 1:], np.stack([keys[n] - keys["neutral"] for n in NAMES[1:]])
+    )
+    flicker = np.where(np.arange(40) % 2, 0.1, -0.1)[:, None, None] * np.ones((1, 5, 3))
+
+    got, rms, slow = superposition(mix + 0.3 + flicker, keys, activations, NAMES)
+
+    assert np.allclose(got, mix)
+    assert rms == pytest.approx(np.sqrt(0.3**2 + 0.1**2))
+    assert slow == pytest.approx(0.3, abs=0.02)  # the flicker averages out, the offset stays
+
+
 def test_a_lost_frame_keeps_the_last_frame_with_a_face():
     points = np.arange(5, dtype=float)[:, None, None] * np.ones((5, 2, 3))
     found = np.array([False, True, False, False, True])
@@ -131,7 +149,10 @@ def test_bench_on_exact_landmarks_scores_every_path(tmp_path, capsys):
     assert status == 0
     report = json.loads(out.read_text())
     rows = report["exact"]["rows"]
-    assert list(rows) == ["personal", "nnls", "generic exact", "generic noise"]
+    assert list(rows) == [
+        "personal", "nnls", "personal on keys' mix", "generic exact", "generic noise"
+    ]  # fmt: skip
+    assert report["exact"]["superposition_rms"] < 1e-9  # exact points are the keys' mix
     assert report["exact"]["keys_captured"] == report["exact"]["keys"] == 52
     # Exact landmarks of a linear face: NNLS on the captured keys is exact; the personal rig,
     # fitted for the server's noise floor, is close; re-basing moves the generic rig's
