@@ -57,21 +57,22 @@ def test_track_gives_the_points_the_live_page_publishes(
     rig = f"{CHARACTER}@agree"  # a performer's own rig: published from the first frame
     shutil.copy(rigs_dir / f"{CHARACTER}.rig", rigs_dir / f"{rig}.rig")
     distinct = result.points[::HOLD]
-    recorder, _ = watching(server, "agree", rig, "points")
+    recorder, thread = watching(server, "agree", rig, "points")
     try:
         page = open_page(browser, f"{server}/perform?channel=agree&rig={rig}")
         pages.append(page)
         page.wait_for_function("window.facecastStats.published >= 24", timeout=120_000)
     finally:
         recorder.stop.set()
+        thread.join(5)
     live = np.array([r.points for _, r in recorder.results], dtype=np.float32)
 
-    assert live.shape[0] >= 20 and live.shape[1:] == (K, 3)
+    assert live.shape[0] >= 20 and live.shape[1:] == (K, 3), live.shape
     # Match each live frame to the clip's image whose offline points are nearest.
     gaps = np.abs(live[:, None] - distinct[None]).max(axis=(2, 3))
     nearest = gaps.argmin(axis=1)
     assert gaps.min(axis=1).max() <= 1e-5, gaps.min(axis=1)
-    assert set(nearest.tolist()) == set(range(len(POSES)))  # every image was compared
+    assert set(nearest.tolist()) == set(range(len(POSES))), nearest  # every image compared
     # ... and the match is unambiguous: the images are far apart at that tolerance.
     apart = np.abs(distinct[:, None] - distinct[None]).max(axis=(2, 3))
     assert apart[~np.eye(len(POSES), dtype=bool)].min() > 0.1

@@ -38,12 +38,12 @@ export function nextVideoFrame(video) {
  * not yet tracked, `{frame}` (a VideoFrame the caller closes) where the browser has
  * MediaStreamTrackProcessor, else `{video}` (the element, on its next presented frame).
  *
- * The processor hands over every frame the camera delivers, whatever the page draws:
- * waiting on the <video> element's frame callbacks instead ties tracking to the
- * compositor, which in headless Chromium drawing the character through SwiftShader held
- * each callback back 200 ms (docs/perform.md, "Performance"). A buffer of one frame: a
- * frame that arrives while the model runs replaces an older one, so what is tracked next
- * is the newest.
+ * The processor hands over the camera's frames as they arrive, outside the page's
+ * rendering steps (where the <video> element's frame callbacks run), and as VideoFrames,
+ * which the tracker converts as `facecast track` converts a file's (FacePipeline.trackFrame).
+ * Measured in headless Chromium it tracks no faster than the callbacks (docs/perform.md,
+ * "Performance"). A buffer of one frame: a frame that arrives while the model runs
+ * replaces an older one, so what is tracked next is the newest.
  */
 export function cameraFrames(stream, video) {
   const [track] = stream.getVideoTracks();

@@ -325,7 +325,7 @@ async function main() {
   requestAnimationFrame(draw);
 
   // The rate is min(camera, 1 / model time): the next frame is asked for as soon as the
-  // last is tracked, and never waits on the page's drawing (cameraFrames).
+  // last is tracked (cameraFrames).
   const frames = cameraFrames(stream, video);
   stats.frameSource = frames.kind;
   for (;;) {
