@@ -16,11 +16,13 @@ from .noise import estimate_noise
 from .pose import align_points, similarity_transform
 from .regions import Region, fit_regions, split_masks
 from .rig import Rig
+from .smoothing import SMOOTHING_CHOICES, smooth_points
 from .sources.animation import SourceAnimation, write_clone_output
 from .sources.loading import load_source_animation
 
 __all__ = [
     "KERNELS",
+    "SMOOTHING_CHOICES",
     "ExampleSet",
     "ExampleSetError",
     "FitError",
@@ -46,6 +48,7 @@ __all__ = [
     "read_points",
     "rig_from_bytes",
     "similarity_transform",
+    "smooth_points",
     "split_masks",
     "write_clone_output",
     "write_obj",
