@@ -1,7 +1,8 @@
 """``facecast clone``: run a source animation through a rig and write the cloned animation.
 
-Batched, vectorised evaluation with a progress bar; the file formats belong to
-``facecast.rig.sources.animation.write_clone_output``, and it must not fit anything.
+Batched, vectorised evaluation with a progress bar, after the take's points are smoothed
+in time (``facecast.rig.smoothing``: RTS on a rig fitted with noise); the file formats
+belong to ``facecast.rig.sources.animation.write_clone_output``, and it must not fit anything.
 """
 
 from __future__ import annotations
@@ -17,6 +18,10 @@ BATCH = 256
 # Above this many bytes of cloned vertices an .npz keeps only the weights (the rig and
 # the weights give the vertices back), so a long performance cannot exhaust memory.
 MAX_NPZ_VERTEX_BYTES = 1 << 30
+# The engine's (facecast.rig.smoothing.SMOOTHING_CHOICES, rig.filters.KALMAN_ACCELERATION),
+# written out so that --help does not load numpy; a test keeps them equal.
+SMOOTHING_CHOICES = ("auto", "rts", "kalman", "none")
+KALMAN_ACCELERATION = 480.0
 
 
 def register(subparsers) -> None:
@@ -26,7 +31,9 @@ def register(subparsers) -> None:
         description=(
             "Compute blend weights for every frame of a source animation and write the "
             "target's animation: .npz (weights and vertices), .glb (morph targets + "
-            "animation) or a folder of OBJ frames, by the output's extension."
+            "animation) or a folder of OBJ frames, by the output's extension. On a rig fitted "
+            "with --noise the source points are first smoothed in time by a Rauch-Tung-Striebel "
+            "smoother (the live Kalman default's offline twin: less noise, no lag)."
         ),
     )
     parser.add_argument("rig", metavar="RIG", help="a rig file written by 'facecast fit'")
@@ -48,6 +55,18 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--seconds", type=float, default=12.0, help="length of the 'demo' source (default 12)"
     )
+    parser.add_argument(
+        "--smoothing", choices=SMOOTHING_CHOICES, default="auto",
+        help="temporal smoothing of the source points: 'rts' (the fixed-interval smoother: "
+        "each frame from the whole take), 'kalman' (the live, causal filter), 'none'; "
+        "default 'auto': rts on a rig fitted with --noise (measurement noise its sigma), "
+        "else none",
+    )  # fmt: skip
+    parser.add_argument(
+        "--acceleration", type=float, default=KALMAN_ACCELERATION, metavar="A",
+        help="the smoother's process noise: acceleration std in units of the rig's noise "
+        f"per s^2 (default {KALMAN_ACCELERATION:g}, as the live Kalman filter)",
+    )  # fmt: skip
     parser.set_defaults(func=run)
 
 
@@ -75,6 +94,8 @@ def clone_frames(rig, points, *, align: bool = False, with_vertices: bool = True
 def run(args: argparse.Namespace) -> int:
     from facecast.cli.commands._animation import load_animation, write_cloned
     from facecast.rig import load_rig
+    from facecast.rig.errors import InputError
+    from facecast.rig.smoothing import smooth_points, smoothing_method
 
     if not Path(args.rig).exists():
         raise CommandError(f"{args.rig}: no such rig file")
@@ -95,16 +116,31 @@ def run(args: argparse.Namespace) -> int:
     with_vertices = suffix == ".npz" and vertex_bytes <= MAX_NPZ_VERTEX_BYTES
     if suffix == ".npz" and not with_vertices:
         print(f"note: {vertex_bytes / 1e9:.1f} GB of vertices; the .npz keeps the weights only")
+    method = smoothing_method(rig, args.smoothing)
     started = time.perf_counter()
+    try:
+        points = smooth_points(
+            rig, animation.points, animation.times, smoothing=method,
+            acceleration=args.acceleration,
+        )  # fmt: skip
+    except InputError as exc:
+        raise CommandError(f"--smoothing {args.smoothing}: {exc}") from None
     weights, vertices = clone_frames(
-        rig, animation.points, align=args.align, with_vertices=with_vertices,
+        rig, points, align=args.align, with_vertices=with_vertices,
         progress=frames > 4 * BATCH,
     )  # fmt: skip
     elapsed = time.perf_counter() - started
     written = write_cloned(output, rig, weights, vertices, animation.fps)
     rate = frames / elapsed if elapsed > 0 else float("inf")
+    smoothed = "not smoothed" if method == "none" else _smoothing_note(rig, method, args)
     print(
-        f"cloned {frames} frames ({frames / animation.fps:.1f} s at {animation.fps:g} fps) "
-        f"in {elapsed * 1e3:.1f} ms ({rate:.0f} frames/s); wrote {written}"
+        f"cloned {frames} frames ({frames / animation.fps:.1f} s at {animation.fps:g} fps, "
+        f"{smoothed}) in {elapsed * 1e3:.1f} ms ({rate:.0f} frames/s); wrote {written}"
     )
     return 0
+
+
+def _smoothing_note(rig, method: str, args: argparse.Namespace) -> str:
+    name = "RTS-smoothed" if method == "rts" else "Kalman-filtered"
+    noise = float(rig.fit_report.get("noise", 0.0))
+    return f"{name}: noise {noise:g}, acceleration {args.acceleration:g} noise/s^2"
