@@ -17,10 +17,7 @@ With ``beta = 0`` it is a first-order low-pass at ``min_cutoff`` Hz.
 (``rig.temporal``): a constant-velocity model per channel whose measurement noise is the
 fit's landmark noise, so its one knob is how hard the face may accelerate.
 
-``RTSSmoother`` is its offline twin for a whole recorded series (``facecast clone``): the
-same model and parameters run forward (exactly ``KalmanFilter``) and then backward
-(Rauch, Tung & Striebel, AIAA J. 1965), so each frame is estimated from the frames after it
-as well as before: less noise, and no lag.
+Its offline twin for a whole recorded series is ``rig.smoother.RTSSmoother``.
 """
 
 from __future__ import annotations
@@ -36,7 +33,6 @@ __all__ = [
     "KALMAN_ACCELERATION",
     "KalmanFilter",
     "OneEuroFilter",
-    "RTSSmoother",
     "smoothing_alpha",
 ]
 
@@ -53,7 +49,7 @@ def smoothing_alpha(cutoff: np.ndarray | float, dt: float) -> np.ndarray:
     return 1.0 / (1.0 + tau / dt)
 
 
-def _positive(name: str, value: float, *, allow_zero: bool = False) -> float:
+def check_positive(name: str, value: float, *, allow_zero: bool = False) -> float:
     try:
         number = float(value)
     except (TypeError, ValueError):
@@ -117,9 +113,9 @@ class OneEuroFilter:
     """
 
     def __init__(self, min_cutoff: float = 2.0, beta: float = 2.0, d_cutoff: float = 1.0) -> None:
-        self.min_cutoff = _positive("min_cutoff", min_cutoff)
-        self.beta = _positive("beta", beta, allow_zero=True)
-        self.d_cutoff = _positive("d_cutoff", d_cutoff)
+        self.min_cutoff = check_positive("min_cutoff", min_cutoff)
+        self.beta = check_positive("beta", beta, allow_zero=True)
+        self.d_cutoff = check_positive("d_cutoff", d_cutoff)
         self.reset()
 
     def reset(self) -> None:
@@ -220,8 +216,8 @@ class KalmanFilter:
     """
 
     def __init__(self, noise: float, acceleration: float) -> None:
-        self.noise = _positive("noise", noise)
-        self.acceleration = _positive("acceleration", acceleration)
+        self.noise = check_positive("noise", noise)
+        self.acceleration = check_positive("acceleration", acceleration)
         self.reset()
 
     def reset(self) -> None:
@@ -272,159 +268,3 @@ class KalmanFilter:
         for i in range(series.shape[0]):
             out[i] = self(series[i], times[i])
         return out
-
-
-def _sanitize_series(x: npt.ArrayLike, t: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
-    """A series (F, C) float64 and its times (F,), checked whole; F may be 0 or 1."""
-    try:
-        series = np.array(x, dtype=np.float64)
-        times = np.asarray(t, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError("smoother input is not a numeric array", code="bad_input") from None
-    if series.ndim != 2 or series.shape[1] < 1:
-        raise InputError(
-            f"smoother input: expected shape (F, C) with C >= 1, got {series.shape}",
-            code="bad_input",
-        )
-    if times.shape != (series.shape[0],):
-        raise InputError(
-            f"smoother times: expected shape ({series.shape[0]},), one per frame, got "
-            f"{times.shape}",
-            code="bad_input",
-        )
-    finite = np.isfinite(series).all(axis=1)
-    if not finite.all():
-        bad = int(np.flatnonzero(~finite)[0])
-        raise InputError(f"smoother input: frame {bad} has NaN or Inf values", code="non_finite")
-    if not np.isfinite(times).all():
-        bad = int(np.flatnonzero(~np.isfinite(times))[0])
-        raise InputError(f"smoother times: time {bad} is {times[bad]}", code="non_finite")
-    back = np.flatnonzero(np.diff(times) < 0)
-    if back.size:
-        i = int(back[0]) + 1
-        raise InputError(
-            f"smoother times went backwards: frame {i} at {times[i]} s after {times[i - 1]} s",
-            code="bad_time",
-        )
-    return series, times
-
-
-class RTSSmoother:
-    """A fixed-interval (Rauch-Tung-Striebel) smoother over C channels: ``KalmanFilter`` offline.
-
-    The same constant-velocity model, parameters and start as ``KalmanFilter`` (the first
-    sample taken as it is, at rest; a repeated time ignored); its forward pass is that
-    filter's output. The backward pass then corrects every frame with what came after it,
-    ``x_s[i] = x[i] + G[i] (x_s[i+1] - A[i+1] x[i])`` with ``G[i] = P[i] A[i+1]^T
-    P_pred[i+1]^-1``, so a step or a ramp is not delayed. As in the filter, every channel
-    shares the covariances (one noise model, one clock): the 2 x 2 recursion runs once per
-    frame on scalars and the channels are whole-array operations. Frames are a loop: both
-    passes are recursive in time.
-
-    Parameters
-    ----------
-    noise : float
-        Measurement noise std, > 0.
-    acceleration : float
-        Process noise: std of the acceleration, > 0 (units/s^2, as ``KalmanFilter``'s).
-
-    Examples
-    --------
-    >>> t = np.arange(5) / 60.0
-    >>> RTSSmoother(noise=0.01, acceleration=4.8).smooth(np.zeros((5, 3)), t).shape
-    (5, 3)
-    """
-
-    def __init__(self, noise: float, acceleration: float) -> None:
-        self.noise = _positive("noise", noise)
-        self.acceleration = _positive("acceleration", acceleration)
-
-    def smooth(self, x: npt.ArrayLike, t: npt.ArrayLike) -> np.ndarray:
-        """The smoothed series: each frame estimated from the whole series.
-
-        Parameters
-        ----------
-        x : (F, C) float
-            Finite; F = 0 or 1 passes through (one sample is its own best estimate).
-        t : (F,) float
-            Seconds, finite and non-decreasing (variable steps are fine).
-
-        Returns
-        -------
-        (F, C) float64
-
-        Raises
-        ------
-        InputError
-            ``bad_input`` for a shape, ``non_finite`` for a NaN or Inf (naming the frame),
-            ``bad_time`` for times that go backwards.
-        """
-        series, times = _sanitize_series(x, t)
-        position, velocity, gains = self._forward(series, times)
-        self._backward(position, velocity, times, gains)
-        return position
-
-    def filter_series(self, x: npt.ArrayLike, t: npt.ArrayLike) -> np.ndarray:
-        """The forward pass alone (F, C): ``KalmanFilter(noise, acceleration)``'s output."""
-        series, times = _sanitize_series(x, t)
-        return self._forward(series, times)[0]
-
-    def _forward(
-        self, series: np.ndarray, times: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Filtered positions and velocities (F, C), and the backward gains G (F, 2, 2)."""
-        frames = series.shape[0]
-        position = series  # overwritten frame by frame with the estimate (a private copy)
-        velocity = np.zeros_like(series)
-        smoother_gains = np.zeros((frames, 2, 2))
-        if frames < 2:
-            return position, velocity, smoother_gains
-        r = self.noise * self.noise
-        q = self.acceleration * self.acceleration
-        # KalmanFilter's start: the first sample, at rest with the velocity of one second
-        # of the acceleration std.
-        p00, p01, p11 = r, 0.0, q
-        for i in range(1, frames):
-            dt = float(times[i] - times[i - 1])
-            if dt == 0.0:
-                # A repeated time: nothing happened (the live filter returns the previous
-                # estimate), and the backward pass copies the next frame (G = I).
-                position[i] = position[i - 1]
-                velocity[i] = velocity[i - 1]
-                smoother_gains[i - 1] = np.eye(2)
-                continue
-            # predict: P_pred = A P A^T + Q, A = [[1, dt], [0, 1]], Q = q [[dt^4/4, dt^3/2], ...]
-            a00 = p00 + dt * (2.0 * p01 + dt * p11) + q * dt**4 / 4.0
-            a01 = p01 + dt * p11 + q * dt**3 / 2.0
-            a11 = p11 + q * dt * dt
-            # G[i-1] = P A^T P_pred^-1, P the covariance before the prediction (frame i-1's);
-            # P_pred^-1 = [[a11, -a01], [-a01, a00]] / det
-            inv = 1.0 / (a00 * a11 - a01 * a01)
-            m00, m01 = p00 + dt * p01, p01
-            m10, m11 = p01 + dt * p11, p11
-            smoother_gains[i - 1] = (
-                ((m00 * a11 - m01 * a01) * inv, (m01 * a00 - m00 * a01) * inv),
-                ((m10 * a11 - m11 * a01) * inv, (m11 * a00 - m10 * a01) * inv),
-            )
-            # update with the position measurement
-            k0, k1 = a00 / (a00 + r), a01 / (a00 + r)
-            predicted = position[i - 1] + dt * velocity[i - 1]
-            innovation = series[i] - predicted
-            position[i] = predicted + k0 * innovation
-            velocity[i] = velocity[i - 1] + k1 * innovation
-            p00, p01, p11 = a00 - k0 * a00, a01 - k0 * a01, a11 - k1 * a01
-        return position, velocity, smoother_gains
-
-    @staticmethod
-    def _backward(
-        position: np.ndarray, velocity: np.ndarray, times: np.ndarray, gains: np.ndarray
-    ) -> None:
-        """Smooth the filtered positions and velocities in place, last frame to first."""
-        for i in range(position.shape[0] - 2, -1, -1):
-            dt = float(times[i + 1] - times[i])
-            # x_s[i+1] - A x[i], both components
-            d_position = position[i + 1] - (position[i] + dt * velocity[i])
-            d_velocity = velocity[i + 1] - velocity[i]
-            (g00, g01), (g10, g11) = gains[i]
-            position[i] += g00 * d_position + g01 * d_velocity
-            velocity[i] += g10 * d_position + g11 * d_velocity

@@ -1,28 +1,60 @@
 """Offline temporal smoothing of a take's feature points before cloning (``facecast clone``).
 
 The offline twin of a live session's default Kalman filter: the same model on the same
-channels (the source points), with the same noise (the rig's fitted one) and acceleration,
-but run over the whole take (``filters.RTSSmoother``). Pure computation; no I/O.
+channels (the source points, K x 3) with the same measurement noise (the rig's fitted one),
+run over the whole take (``smoother.RTSSmoother``); it reads the face's acceleration off
+the take and hands back the rig regularised for the noise it leaves. Pure computation.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 from .errors import InputError
-from .filters import KALMAN_ACCELERATION, KalmanFilter, RTSSmoother
+from .filters import KALMAN_ACCELERATION, KalmanFilter
+from .fit import refit_noise
 from .rig import Rig
+from .smoother import RTSSmoother, estimate_acceleration
 
-__all__ = ["SMOOTHING_CHOICES", "smooth_points", "smoothing_method"]
+__all__ = ["SMOOTHING_CHOICES", "SmoothedTake", "smooth_take", "smoothing_method"]
 
-#: ``smooth_points``' methods: "auto" is "rts" on a rig fitted with noise, else "none";
+#: ``smooth_take``'s methods: "auto" is "rts" on a rig fitted with noise, else "none";
 #: "kalman" is the live (causal) filter, for comparison with what a viewer sees.
 SMOOTHING_CHOICES = ("auto", "rts", "kalman", "none")
+# Fewer frames than this are cloned as they are: no acceleration can be read off them.
+_MIN_FRAMES = 3
+
+
+@dataclass(frozen=True)
+class SmoothedTake:
+    """``smooth_take``'s result: points to clone and the rig to clone them with.
+
+    Attributes
+    ----------
+    points : (F, K, 3) float64
+    rig : Rig
+        For "rts", the rig regularised for ``noise`` (``fit.refit_noise``); else the rig given.
+    method : str
+        "rts", "kalman" or "none": what ran.
+    noise : float
+        The landmark noise ``rig`` expects: the std the smoother leaves (its model's RMS
+        over the frames) for "rts", the rig's fitted noise otherwise.
+    acceleration : float or None
+        The process noise used, in units of the measurement noise per s^2; None for "none".
+    """
+
+    points: np.ndarray
+    rig: Rig
+    method: str
+    noise: float
+    acceleration: float | None
 
 
 def smoothing_method(rig: Rig, smoothing: str = "auto", *, noise: float | None = None) -> str:
-    """The method ``smooth_points`` runs: "rts", "kalman" or "none" ("auto" resolved).
+    """The method ``smooth_take`` runs: "rts", "kalman" or "none" ("auto" resolved).
 
     "auto" is the RTS smoother where a noise is known (``noise``, else the one ``rig`` was
     fitted with), as a live session's "auto" is the Kalman filter there; else "none": a rig
@@ -38,36 +70,39 @@ def smoothing_method(rig: Rig, smoothing: str = "auto", *, noise: float | None =
     return "rts" if _noise(rig, noise) > 0 else "none"
 
 
-def smooth_points(
+def smooth_take(
     rig: Rig,
     points: npt.ArrayLike,
     times: npt.ArrayLike,
     *,
     smoothing: str = "auto",
     noise: float | None = None,
-    acceleration: float = KALMAN_ACCELERATION,
-) -> np.ndarray:
-    """A take's source points smoothed in time, ready for ``rig.weights`` / ``rig.clone``.
+    acceleration: float | None = None,
+) -> SmoothedTake:
+    """A take's source points smoothed in time, and the rig to clone them with.
+
+    "rts" smooths with ``RTSSmoother``: measurement noise the rig's, process noise
+    ``acceleration`` x that, by default the acceleration under which the take is most
+    likely (``smoother.estimate_acceleration``: the live default of 480 noise/s^2 suits
+    a filter that must not lag, not a smoother, and over-smooths real takes at 0.1 mm).
+    The smoothed points carry less noise than the rig was fitted for, so the result's rig
+    is regularised for what is left (``fit.refit_noise``): on real takes that is most of
+    the gain (README "Temporal coherence"). "kalman" runs the live filter (default 480
+    noise/s^2) with the rig as it is; "none" returns the points and the rig.
 
     Parameters
     ----------
     rig : Rig
-        Whose fitted landmark noise is the measurement noise.
     points : (F, K, 3) float
-        The take's feature points, finite.
+        The take's feature points, finite. Fewer than 3 frames pass through unsmoothed.
     times : (F,) float
         Seconds of each frame, non-decreasing (``SourceAnimation.times``).
     smoothing : {"auto", "rts", "kalman", "none"}
-        See ``SMOOTHING_CHOICES``; "none" returns the points as float64.
+        See ``SMOOTHING_CHOICES``.
     noise : float, optional
         Measurement noise std in the points' units, instead of the rig's.
-    acceleration : float
-        Process noise: std of the acceleration in units of the noise per s^2, as
-        ``hello.smoothing.acceleration`` (default 480, the live default).
-
-    Returns
-    -------
-    (F, K, 3) float64
+    acceleration : float, optional
+        Process noise: std of the acceleration in units of the noise per s^2.
 
     Raises
     ------
@@ -82,7 +117,7 @@ def smooth_points(
             f"smoothing: expected points of shape (F, K, 3), got {array.shape}", code="bad_input"
         )
     if method == "none":
-        return array
+        return SmoothedTake(array, rig, "none", _noise(rig, noise), None)
     sigma = _noise(rig, noise)
     if not sigma > 0:
         raise InputError(
@@ -91,11 +126,21 @@ def smooth_points(
             code="no_noise",
         )
     channels = array.reshape(len(array), -1)  # as a live session filters them (K * 3)
-    if method == "rts":
-        flat = RTSSmoother(sigma, acceleration * sigma).smooth(channels, times)
+    if method == "kalman":
+        units = KALMAN_ACCELERATION if acceleration is None else float(acceleration)
+        filtered = KalmanFilter(sigma, units * sigma).filter_series(channels, times)
+        return SmoothedTake(filtered.reshape(array.shape), rig, method, sigma, units)
+    if acceleration is None and len(array) < _MIN_FRAMES:
+        return SmoothedTake(array, rig, method, sigma, None)
+    if acceleration is None:
+        units = estimate_acceleration(channels, times, sigma) / sigma
     else:
-        flat = KalmanFilter(sigma, acceleration * sigma).filter_series(channels, times)
-    return flat.reshape(array.shape)
+        units = float(acceleration)
+    smoother = RTSSmoother(sigma, units * sigma)
+    smoothed = smoother.smooth(channels, times)
+    left = float(np.sqrt(np.mean(np.square(smoother.smoothed_std(times)))))
+    smoothed_rig = refit_noise(rig, left) if left < sigma else rig
+    return SmoothedTake(smoothed.reshape(array.shape), smoothed_rig, method, left, units)
 
 
 def _noise(rig: Rig, noise: float | None) -> float:

@@ -58,14 +58,15 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--smoothing", choices=SMOOTHING_CHOICES, default="auto",
         help="temporal smoothing of the source points: 'rts' (the fixed-interval smoother: "
-        "each frame from the whole take), 'kalman' (the live, causal filter), 'none'; "
-        "default 'auto': rts on a rig fitted with --noise (measurement noise its sigma), "
-        "else none",
+        "each frame from the whole take, then the rig regularised for the noise it leaves), "
+        "'kalman' (the live, causal filter), 'none'; default 'auto': rts on a rig fitted "
+        "with --noise (its sigma the measurement noise), else none",
     )  # fmt: skip
     parser.add_argument(
-        "--acceleration", type=float, default=KALMAN_ACCELERATION, metavar="A",
-        help="the smoother's process noise: acceleration std in units of the rig's noise "
-        f"per s^2 (default {KALMAN_ACCELERATION:g}, as the live Kalman filter)",
+        "--acceleration", type=float, metavar="A",
+        help="the smoother's process noise: acceleration std in units of the rig's noise per "
+        "s^2 (default: rts reads it off the take, most likely value; kalman "
+        f"{KALMAN_ACCELERATION:g}, the live default)",
     )  # fmt: skip
     parser.set_defaults(func=run)
 
@@ -94,8 +95,8 @@ def clone_frames(rig, points, *, align: bool = False, with_vertices: bool = True
 def run(args: argparse.Namespace) -> int:
     from facecast.cli.commands._animation import load_animation, write_cloned
     from facecast.rig import load_rig
-    from facecast.rig.errors import InputError
-    from facecast.rig.smoothing import smooth_points, smoothing_method
+    from facecast.rig.errors import FitError, InputError
+    from facecast.rig.smoothing import smooth_take
 
     if not Path(args.rig).exists():
         raise CommandError(f"{args.rig}: no such rig file")
@@ -116,23 +117,22 @@ def run(args: argparse.Namespace) -> int:
     with_vertices = suffix == ".npz" and vertex_bytes <= MAX_NPZ_VERTEX_BYTES
     if suffix == ".npz" and not with_vertices:
         print(f"note: {vertex_bytes / 1e9:.1f} GB of vertices; the .npz keeps the weights only")
-    method = smoothing_method(rig, args.smoothing)
     started = time.perf_counter()
     try:
-        points = smooth_points(
-            rig, animation.points, animation.times, smoothing=method,
+        take = smooth_take(
+            rig, animation.points, animation.times, smoothing=args.smoothing,
             acceleration=args.acceleration,
         )  # fmt: skip
-    except InputError as exc:
+    except (InputError, FitError) as exc:
         raise CommandError(f"--smoothing {args.smoothing}: {exc}") from None
     weights, vertices = clone_frames(
-        rig, points, align=args.align, with_vertices=with_vertices,
+        take.rig, take.points, align=args.align, with_vertices=with_vertices,
         progress=frames > 4 * BATCH,
     )  # fmt: skip
     elapsed = time.perf_counter() - started
     written = write_cloned(output, rig, weights, vertices, animation.fps)
     rate = frames / elapsed if elapsed > 0 else float("inf")
-    smoothed = "not smoothed" if method == "none" else _smoothing_note(rig, method, args)
+    smoothed = _smoothing_note(rig, take)
     print(
         f"cloned {frames} frames ({frames / animation.fps:.1f} s at {animation.fps:g} fps, "
         f"{smoothed}) in {elapsed * 1e3:.1f} ms ({rate:.0f} frames/s); wrote {written}"
@@ -140,7 +140,14 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _smoothing_note(rig, method: str, args: argparse.Namespace) -> str:
-    name = "RTS-smoothed" if method == "rts" else "Kalman-filtered"
-    noise = float(rig.fit_report.get("noise", 0.0))
-    return f"{name}: noise {noise:g}, acceleration {args.acceleration:g} noise/s^2"
+def _smoothing_note(rig, take) -> str:
+    """How the take was smoothed, for the summary line."""
+    if take.method == "none" or take.acceleration is None:
+        return "not smoothed"
+    fitted = float(rig.fit_report.get("noise", 0.0))
+    if take.method == "kalman":
+        return f"Kalman-filtered: noise {fitted:g}, acceleration {take.acceleration:g} noise/s^2"
+    return (
+        f"RTS-smoothed: noise {fitted:g}, acceleration {take.acceleration:.0f} noise/s^2, "
+        f"rig regularised for the {take.noise:.3g} left"
+    )

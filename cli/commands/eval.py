@@ -300,7 +300,6 @@ def _temporal(args, data: _Data, plots: Path | None) -> dict:
     from facecast.cli.report import plot_jitter_against_lag
     from facecast.rig import fit
     from facecast.rig.evaluation.temporal import best_under_one_frame, temporal_tradeoff
-    from facecast.rig.filters import KALMAN_ACCELERATION
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the settings are chosen; fit's advice is printed
@@ -327,7 +326,7 @@ def _temporal(args, data: _Data, plots: Path | None) -> dict:
         print(f"  best {family} under one frame of lag: {row['label']}")
     raw = table["rows"][0]
     for row in table["rows"]:
-        if row["family"] == "rts" and row["settings"]["acceleration"] == KALMAN_ACCELERATION:
+        if row["family"] == "clone":
             print(
                 f"  'facecast clone' default ({row['label']}): eq. 4.1 max axis "
                 f"{row['eq41_max']:.3f} = {row['eq41_max'] / raw['eq41_max']:.3f} x per-frame "

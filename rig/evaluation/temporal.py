@@ -15,8 +15,10 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import InputError
-from ..filters import KALMAN_ACCELERATION, KalmanFilter, OneEuroFilter, RTSSmoother
+from ..filters import KALMAN_ACCELERATION, KalmanFilter, OneEuroFilter
 from ..rig import Rig
+from ..smoother import RTSSmoother
+from ..smoothing import smooth_take
 from .evaluate import cloning_error, jitter
 
 __all__ = [
@@ -125,7 +127,8 @@ def temporal_tradeoff(
 
     Returns
     -------
-    dict (JSON-able): ``truth_jitter`` and ``rows``, one per filter (and ``raw``), each
+    dict (JSON-able): ``truth_jitter`` and ``rows``, one per filter (and ``raw``, and
+    ``clone``: what ``facecast clone`` does by default, ``smoothing.smooth_take``), each
     {family, label, settings, jitter, lag_frames, rms_percent, eq41_percent, eq41_max};
     jitter in % of the truth's bounding-box diagonal per frame^2, lag in frames,
     ``eq41_percent`` {x, y, z} the thesis's eq. 4.1 (``cloning_error``) and ``eq41_max``
@@ -182,21 +185,41 @@ def temporal_tradeoff(
         else:
             filtered = smoother.filter_series(channels, times)
         vertices = rig.clone(filtered.reshape(points.shape))
-        diff = vertices.astype(np.float64) - truth
-        eq41 = cloning_error(truth, vertices)["eq41_percent"]
-        rows.append(
-            {
-                "family": family,
-                "label": label,
-                "settings": settings,
-                "jitter": jitter(vertices) * scale,
-                "lag_frames": lag_frames(truth[:, ::_LAG_STRIDE], vertices[:, ::_LAG_STRIDE]),
-                "rms_percent": float(np.sqrt(np.mean(np.sum(diff * diff, axis=-1))) * scale),
-                "eq41_percent": eq41,
-                "eq41_max": max(eq41.values()),
-            }
-        )
+        rows.append(_row(family, label, settings, vertices, truth, scale))
+    # What `facecast clone` does by default: RTS at the take's most likely acceleration,
+    # cloned by the rig regularised for the noise the smoother leaves.
+    take = smooth_take(rig, points, times, smoothing="rts", noise=noise)
+    settings = {"noise": float(noise), "acceleration": float(take.acceleration or 0.0),
+                "rig_noise": take.noise}  # fmt: skip
+    label = (
+        f"clone default: RTS, a {take.acceleration or 0.0:.0f} (estimated), rig noise "
+        f"{take.noise / noise:.2f} x"
+    )
+    rows.append(_row("clone", label, settings, take.rig.clone(take.points), truth, scale))
     return {"truth_jitter": jitter(truth) * scale, "fps": float(fps), "rows": rows}
+
+
+def _row(
+    family: str,
+    label: str,
+    settings: dict[str, float],
+    vertices: np.ndarray,
+    truth: np.ndarray,
+    scale: float,
+) -> dict[str, Any]:
+    """One row of ``temporal_tradeoff``: the clone's jitter, lag and errors."""
+    diff = vertices.astype(np.float64) - truth
+    eq41 = cloning_error(truth, vertices)["eq41_percent"]
+    return {
+        "family": family,
+        "label": label,
+        "settings": settings,
+        "jitter": jitter(vertices) * scale,
+        "lag_frames": lag_frames(truth[:, ::_LAG_STRIDE], vertices[:, ::_LAG_STRIDE]),
+        "rms_percent": float(np.sqrt(np.mean(np.sum(diff * diff, axis=-1))) * scale),
+        "eq41_percent": eq41,
+        "eq41_max": max(eq41.values()),
+    }
 
 
 def best_under_one_frame(tradeoff: dict[str, Any]) -> dict[str, dict[str, Any]]:

@@ -1,28 +1,36 @@
-"""The offline RTS smoother: a textbook reference, its forward pass, no lag, bad input."""
+"""The offline RTS smoother: a textbook reference, its forward pass, no lag, bad input; the
+acceleration read off a take, and the rig regularised for what the smoother leaves."""
 
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 import pytest
 
-from facecast.rig import fit, smooth_points
-from facecast.rig.demo import demo_example_set
-from facecast.rig.errors import InputError
+from facecast.rig import IdentifiabilityWarning, fit, refit_noise, smooth_take
+from facecast.rig.demo import demo_activations, demo_animation, demo_example_set, demo_target_frames
+from facecast.rig.errors import FitError, InputError
 from facecast.rig.evaluation.temporal import lag_frames
-from facecast.rig.filters import KALMAN_ACCELERATION, KalmanFilter, RTSSmoother
+from facecast.rig.filters import KalmanFilter
+from facecast.rig.smoother import RTSSmoother, estimate_acceleration
 
 NOISE = 0.05
 ACCELERATION = 40.0
 
 
-def _reference_rts(z: np.ndarray, t: np.ndarray, noise: float, acceleration: float) -> np.ndarray:
+def _reference_rts(
+    z: np.ndarray, t: np.ndarray, noise: float, acceleration: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Rauch-Tung-Striebel written plainly: one channel at a time, a loop over frames,
-    full matrices and inverses, the textbook equations (strictly increasing times)."""
+    full matrices and inverses, the textbook equations (strictly increasing times).
+    Returns the smoothed positions (F, C) and their variance (F,)."""
     frames, channels = z.shape
     h = np.array([[1.0, 0.0]])
     r = noise**2
     q = acceleration**2
     out = np.empty_like(z)
+    variance = np.empty(frames)
     for c in range(channels):
         x_f = np.zeros((frames, 2))
         p_f = np.zeros((frames, 2, 2))
@@ -44,11 +52,14 @@ def _reference_rts(z: np.ndarray, t: np.ndarray, noise: float, acceleration: flo
             x_f[i] = x_p[i] + (k @ (z[i, c] - h @ x_p[i])).ravel()
             p_f[i] = (np.eye(2) - k @ h) @ p_p[i]
         x_s = x_f.copy()
+        p_s = p_f.copy()
         for i in range(frames - 2, -1, -1):
             gain = p_f[i] @ transitions[i + 1].T @ np.linalg.inv(p_p[i + 1])
             x_s[i] = x_f[i] + gain @ (x_s[i + 1] - x_p[i + 1])
+            p_s[i] = p_f[i] + gain @ (p_s[i + 1] - p_p[i + 1]) @ gain.T
         out[:, c] = x_s[:, 0]
-    return out
+        variance[:] = p_s[:, 0, 0]
+    return out, variance
 
 
 def _irregular_take(frames: int = 200, channels: int = 4, seed: int = 0, *, clean=False):
@@ -63,9 +74,14 @@ def _irregular_take(frames: int = 200, channels: int = 4, seed: int = 0, *, clea
 def test_smoother_agrees_with_a_textbook_rts_to_rounding():
     z, t = _irregular_take()
 
-    smoothed = RTSSmoother(NOISE, ACCELERATION).smooth(z, t)
+    smoother = RTSSmoother(NOISE, ACCELERATION)
 
-    np.testing.assert_allclose(smoothed, _reference_rts(z, t, NOISE, ACCELERATION), atol=1e-12)
+    smoothed = smoother.smooth(z, t)
+    std = smoother.smoothed_std(t)
+
+    reference, variance = _reference_rts(z, t, NOISE, ACCELERATION)
+    np.testing.assert_allclose(smoothed, reference, atol=1e-12)
+    np.testing.assert_allclose(std, np.sqrt(variance), rtol=1e-9)
 
 
 def test_forward_pass_is_the_live_kalman_filters_output():
@@ -161,33 +177,113 @@ def test_bad_settings_are_refused():
         RTSSmoother(1.0, float("nan"))
 
 
+def test_log_likelihood_is_the_innovations_gaussian_density():
+    z, t = _irregular_take(frames=40, channels=3)
+    smoother = RTSSmoother(NOISE, ACCELERATION)
+
+    value = smoother.log_likelihood(z, t)
+
+    # The same from the live filter's predictions: x_pred = x + dt v, S = P_pred00 + r.
+    live = KalmanFilter(NOISE, ACCELERATION)
+    live(z[0], t[0])
+    total = 0.0
+    for i in range(1, len(t)):
+        dt = t[i] - t[i - 1]
+        assert live._x is not None and live._v is not None  # the live filter's state
+        predicted = live._x + dt * live._v
+        a = np.array([[1.0, dt], [0.0, 1.0]])
+        g = np.array([dt * dt / 2.0, dt])
+        s = (a @ live._p @ a.T)[0, 0] + ACCELERATION**2 * g[0] ** 2 + NOISE**2
+        total += float(np.sum(-0.5 * (z[i] - predicted) ** 2 / s - 0.5 * np.log(2 * np.pi * s)))
+        live(z[i], t[i])
+    assert value == pytest.approx(total / ((len(t) - 1) * 3), rel=1e-10)
+
+
+def test_estimated_acceleration_recovers_the_one_that_drove_the_series():
+    rng = np.random.default_rng(5)
+    frames, channels, dt, acceleration = 3000, 8, 1 / 60.0, 2.0
+    velocity = np.cumsum(rng.normal(0.0, acceleration * dt, (frames, channels)), axis=0)
+    position = np.cumsum(velocity * dt, axis=0)
+    t = np.arange(frames) * dt
+
+    estimate = estimate_acceleration(position + rng.normal(0.0, 0.001, position.shape), t, 0.001)
+
+    assert acceleration / 1.4 < estimate < acceleration * 1.4
+
+
+def test_estimating_the_acceleration_needs_three_distinct_times():
+    with pytest.raises(InputError, match="3 or more frames"):
+        estimate_acceleration(np.zeros((3, 2)), [0.0, 0.0, 1.0], 0.1)
+
+
 @pytest.fixture(scope="module")
 def demo_rigs():
     examples = demo_example_set()
-    return fit(examples), fit(examples, noise=0.01)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentifiabilityWarning)  # neutral and fv at 0.2
+        return examples, fit(examples), fit(examples, noise=0.2)
 
 
-def test_smooth_points_defaults_to_rts_on_a_noise_rig_only(demo_rigs):
-    exact, noisy_rig = demo_rigs
-    rng = np.random.default_rng(3)
-    points = exact.source_neutral + rng.normal(0.0, 0.01, (30, exact.num_points, 3))
+def test_refit_noise_gives_the_rig_fit_would_at_that_noise(demo_rigs):
+    examples, _, noise_rig = demo_rigs
+    points = demo_animation(1.0, 30.0).points
+
+    refitted = refit_noise(noise_rig, 0.05)
+
+    direct = fit(examples, noise=0.05)
+    np.testing.assert_allclose(refitted.weights(points), direct.weights(points), atol=1e-9)
+    assert refitted.fit_report["noise"] == 0.05 and refitted.fit_report["fitted_noise"] == 0.2
+    with pytest.raises(FitError, match="> 0"):
+        refit_noise(noise_rig, 0.0)
+
+
+def test_smooth_take_defaults_to_rts_and_a_rig_for_the_noise_left(demo_rigs):
+    _, _, noise_rig = demo_rigs
+    clean = demo_animation(4.0, 60.0).points
+    points = clean + np.random.default_rng(3).normal(0.0, 0.2, clean.shape)
+    t = np.arange(len(points)) / 60.0
+
+    take = smooth_take(noise_rig, points, t)
+
+    assert take.method == "rts" and take.acceleration is not None
+    flat = points.reshape(len(t), -1)
+    expected = RTSSmoother(0.2, take.acceleration * 0.2).smooth(flat, t)
+    np.testing.assert_allclose(take.points.reshape(len(t), -1), expected, atol=1e-15)
+    assert 0.0 < take.noise < 0.2 and take.rig.fit_report["noise"] == take.noise
+
+    truth = demo_target_frames(demo_activations(4.0, 60.0))
+
+    def error(rig, pts) -> float:
+        return float(np.sqrt(np.mean((rig.clone(pts) - truth) ** 2)))
+
+    # Against the ideal clone: the smoothed points beat the noisy ones, and the rig
+    # regularised for the noise left beats the rig as it was.
+    assert error(take.rig, take.points) < error(noise_rig, take.points) < error(noise_rig, points)
+
+
+def test_smooth_take_passes_an_exact_rig_none_and_short_takes_through(demo_rigs):
+    _, exact, noise_rig = demo_rigs
+    rng = np.random.default_rng(4)
+    points = exact.source_neutral + rng.normal(0.0, 0.2, (30, exact.num_points, 3))
     t = np.arange(30) / 30.0
 
-    smoothed = smooth_points(noisy_rig, points, t)
+    for take in (
+        smooth_take(exact, points, t),
+        smooth_take(noise_rig, points, t, smoothing="none"),
+        smooth_take(noise_rig, points[:2], t[:2]),
+    ):
+        np.testing.assert_array_equal(take.points, points[: len(take.points)])
+        assert take.rig is exact or take.rig is noise_rig
+    assert smooth_take(exact, points, t).method == "none"
 
-    expected = RTSSmoother(0.01, KALMAN_ACCELERATION * 0.01).smooth(points.reshape(30, -1), t)
-    np.testing.assert_allclose(smoothed.reshape(30, -1), expected, atol=1e-15)
-    np.testing.assert_array_equal(smooth_points(exact, points, t), points)
-    np.testing.assert_array_equal(smooth_points(noisy_rig, points, t, smoothing="none"), points)
 
-
-def test_smooth_points_refuses_rts_without_a_noise(demo_rigs):
-    exact, _ = demo_rigs
+def test_smooth_take_refuses_rts_without_a_noise_or_an_unknown_method(demo_rigs):
+    _, exact, _ = demo_rigs
     points = np.repeat(exact.source_neutral[None], 5, axis=0)
 
     with pytest.raises(InputError, match="--noise") as raised:
-        smooth_points(exact, points, np.arange(5.0), smoothing="rts")
+        smooth_take(exact, points, np.arange(5.0), smoothing="rts")
     assert raised.value.code == "no_noise"
     with pytest.raises(InputError, match="one of") as raised:
-        smooth_points(exact, points, np.arange(5.0), smoothing="gaussian")
+        smooth_take(exact, points, np.arange(5.0), smoothing="gaussian")
     assert raised.value.code == "bad_smoothing"
