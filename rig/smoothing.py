@@ -1,9 +1,9 @@
 """Offline temporal smoothing of a take's feature points before cloning (``facecast clone``).
 
-The offline twin of a live session's default Kalman filter: the same model on the same
-channels (the source points, K x 3) with the same measurement noise (the rig's fitted one),
-run over the whole take (``smoother.RTSSmoother``); it reads the face's acceleration off
-the take and hands back the rig regularised for the noise it leaves. Pure computation.
+The offline twin of a live session's default Kalman filter: the same model with the same
+measurement noise (the rig's fitted one), run over the whole take (``smoother.RTSSmoother``)
+along the take's principal directions of motion, each with the acceleration read off the
+take; it hands back the rig regularised for the noise it leaves. Pure computation.
 """
 
 from __future__ import annotations
@@ -41,16 +41,18 @@ class SmoothedTake:
         "rts", "kalman" or "none": what ran.
     noise : float
         The landmark noise ``rig`` expects: the std the smoother leaves (its model's RMS
-        over the frames) for "rts", the rig's fitted noise otherwise.
-    acceleration : float or None
-        The process noise used, in units of the measurement noise per s^2; None for "none".
+        over the frames and coordinates) for "rts", the rig's fitted noise otherwise.
+    acceleration : (D,) float64 or None
+        The process noise used, in units of the measurement noise per s^2: one for all the
+        coordinates (D = 1), or one per principal direction of the take's motion; None
+        when nothing ran.
     """
 
     points: np.ndarray
     rig: Rig
     method: str
     noise: float
-    acceleration: float | None
+    acceleration: np.ndarray | None
 
 
 def smoothing_method(rig: Rig, smoothing: str = "auto", *, noise: float | None = None) -> str:
@@ -81,14 +83,18 @@ def smooth_take(
 ) -> SmoothedTake:
     """A take's source points smoothed in time, and the rig to clone them with.
 
-    "rts" smooths with ``RTSSmoother``: measurement noise the rig's, process noise
-    ``acceleration`` x that, by default the acceleration under which the take is most
-    likely (``smoother.estimate_acceleration``: the live default of 480 noise/s^2 suits
-    a filter that must not lag, not a smoother, and over-smooths real takes at 0.1 mm).
-    The smoothed points carry less noise than the rig was fitted for, so the result's rig
-    is regularised for what is left (``fit.refit_noise``): on real takes that is most of
-    the gain (README "Temporal coherence"). "kalman" runs the live filter (default 480
-    noise/s^2) with the rig as it is; "none" returns the points and the rig.
+    "rts" smooths with ``RTSSmoother``, measurement noise the rig's, in the take's principal
+    directions of motion (the SVD of its centred (F, 3K) coordinates: white noise stays
+    white in any orthonormal basis), each with the acceleration under which it is most
+    likely (``smoother.estimate_acceleration``): a jaw opening may move fast while most
+    directions hold nearly still and carry mostly noise. The live default, 480 noise/s^2
+    for every coordinate, suits a filter that must not lag, not a smoother: offline it
+    over-smooths real takes at 0.1 mm. The smoothed points carry less noise than the rig
+    was fitted for, so the result's rig is regularised for what is left
+    (``fit.refit_noise``): on real takes that is most of the gain (README "Temporal
+    coherence"). With ``acceleration`` given, every coordinate shares it (the live
+    filter's model, run both ways). "kalman" runs the live filter (default 480 noise/s^2)
+    with the rig as it is; "none" returns the points and the rig.
 
     Parameters
     ----------
@@ -129,15 +135,23 @@ def smooth_take(
     if method == "kalman":
         units = KALMAN_ACCELERATION if acceleration is None else float(acceleration)
         filtered = KalmanFilter(sigma, units * sigma).filter_series(channels, times)
-        return SmoothedTake(filtered.reshape(array.shape), rig, method, sigma, units)
+        return SmoothedTake(filtered.reshape(array.shape), rig, method, sigma, np.array([units]))
     if acceleration is None and len(array) < _MIN_FRAMES:
         return SmoothedTake(array, rig, method, sigma, None)
-    if acceleration is None:
-        units = estimate_acceleration(channels, times, sigma) / sigma
+    if not np.isfinite(channels).all():
+        bad = int(np.flatnonzero(~np.isfinite(channels).all(axis=1))[0])
+        raise InputError(f"smoothing: frame {bad} has NaN or Inf coordinates", code="non_finite")
+    if acceleration is not None:
+        units = np.array([float(acceleration)])
+        smoother = RTSSmoother(sigma, units[0] * sigma)
+        smoothed = smoother.smooth(channels, times)
     else:
-        units = float(acceleration)
-    smoother = RTSSmoother(sigma, units * sigma)
-    smoothed = smoother.smooth(channels, times)
+        mean = channels.mean(axis=0)
+        directions = np.linalg.svd(channels - mean, full_matrices=False)[2]  # (D, 3K)
+        components = (channels - mean) @ directions.T
+        units = estimate_acceleration(components, times, sigma) / sigma
+        smoother = RTSSmoother(sigma, units * sigma)
+        smoothed = smoother.smooth(components, times) @ directions + mean
     left = float(np.sqrt(np.mean(np.square(smoother.smoothed_std(times)))))
     smoothed_rig = refit_noise(rig, left) if left < sigma else rig
     return SmoothedTake(smoothed.reshape(array.shape), smoothed_rig, method, left, units)

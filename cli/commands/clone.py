@@ -145,9 +145,11 @@ def _smoothing_note(rig, take) -> str:
     if take.method == "none" or take.acceleration is None:
         return "not smoothed"
     fitted = float(rig.fit_report.get("noise", 0.0))
+    low, high = float(take.acceleration.min()), float(take.acceleration.max())
     if take.method == "kalman":
-        return f"Kalman-filtered: noise {fitted:g}, acceleration {take.acceleration:g} noise/s^2"
+        return f"Kalman-filtered: noise {fitted:g}, acceleration {low:g} noise/s^2"
+    spread = f"{low:.0f}" if low == high else f"{low:.0f}-{high:.0f}"
     return (
-        f"RTS-smoothed: noise {fitted:g}, acceleration {take.acceleration:.0f} noise/s^2, "
-        f"rig regularised for the {take.noise:.3g} left"
+        f"RTS-smoothed: noise {fitted:g}, acceleration {spread} noise/s^2, rig regularised "
+        f"for the {take.noise:.3g} left"
     )

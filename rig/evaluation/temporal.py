@@ -186,14 +186,15 @@ def temporal_tradeoff(
             filtered = smoother.filter_series(channels, times)
         vertices = rig.clone(filtered.reshape(points.shape))
         rows.append(_row(family, label, settings, vertices, truth, scale))
-    # What `facecast clone` does by default: RTS at the take's most likely acceleration,
-    # cloned by the rig regularised for the noise the smoother leaves.
+    # What `facecast clone` does by default: RTS along the take's principal directions at
+    # their most likely accelerations, cloned by the rig regularised for the noise left.
     take = smooth_take(rig, points, times, smoothing="rts", noise=noise)
-    settings = {"noise": float(noise), "acceleration": float(take.acceleration or 0.0),
+    units = np.zeros(1) if take.acceleration is None else take.acceleration
+    settings = {"noise": float(noise), "acceleration_median": float(np.median(units)),
                 "rig_noise": take.noise}  # fmt: skip
     label = (
-        f"clone default: RTS, a {take.acceleration or 0.0:.0f} (estimated), rig noise "
-        f"{take.noise / noise:.2f} x"
+        f"clone default: RTS, a {np.min(units):.0f}-{np.max(units):.0f} (estimated), rig "
+        f"noise {take.noise / noise:.2f} x"
     )
     rows.append(_row("clone", label, settings, take.rig.clone(take.points), truth, scale))
     return {"truth_jitter": jitter(truth) * scale, "fps": float(fps), "rows": rows}

@@ -21,16 +21,18 @@ ACCELERATION = 40.0
 
 def _reference_rts(
     z: np.ndarray, t: np.ndarray, noise: float, acceleration: float
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rauch-Tung-Striebel written plainly: one channel at a time, a loop over frames,
     full matrices and inverses, the textbook equations (strictly increasing times).
-    Returns the smoothed positions (F, C) and their variance (F,)."""
+    Returns the smoothed positions (F, C), their variance (F,), and each channel's mean
+    log-likelihood of the innovations (C,)."""
     frames, channels = z.shape
     h = np.array([[1.0, 0.0]])
     r = noise**2
     q = acceleration**2
     out = np.empty_like(z)
     variance = np.empty(frames)
+    log_likelihood = np.zeros(channels)
     for c in range(channels):
         x_f = np.zeros((frames, 2))
         p_f = np.zeros((frames, 2, 2))
@@ -48,6 +50,9 @@ def _reference_rts(
             x_p[i] = a @ x_f[i - 1]
             p_p[i] = a @ p_f[i - 1] @ a.T + q * (g @ g.T)
             s = h @ p_p[i] @ h.T + r
+            innovation = z[i, c] - (h @ x_p[i])[0]
+            density = np.exp(-0.5 * innovation**2 / s[0, 0]) / np.sqrt(2 * np.pi * s[0, 0])
+            log_likelihood[c] += np.log(density) / (frames - 1)
             k = p_p[i] @ h.T @ np.linalg.inv(s)
             x_f[i] = x_p[i] + (k @ (z[i, c] - h @ x_p[i])).ravel()
             p_f[i] = (np.eye(2) - k @ h) @ p_p[i]
@@ -59,7 +64,7 @@ def _reference_rts(
             p_s[i] = p_f[i] + gain @ (p_s[i + 1] - p_p[i + 1]) @ gain.T
         out[:, c] = x_s[:, 0]
         variance[:] = p_s[:, 0, 0]
-    return out, variance
+    return out, variance, log_likelihood
 
 
 def _irregular_take(frames: int = 200, channels: int = 4, seed: int = 0, *, clean=False):
@@ -79,9 +84,9 @@ def test_smoother_agrees_with_a_textbook_rts_to_rounding():
     smoothed = smoother.smooth(z, t)
     std = smoother.smoothed_std(t)
 
-    reference, variance = _reference_rts(z, t, NOISE, ACCELERATION)
+    reference, variance, _ = _reference_rts(z, t, NOISE, ACCELERATION)
     np.testing.assert_allclose(smoothed, reference, atol=1e-12)
-    np.testing.assert_allclose(std, np.sqrt(variance), rtol=1e-9)
+    np.testing.assert_allclose(std[:, 0], np.sqrt(variance), rtol=1e-9)
 
 
 def test_forward_pass_is_the_live_kalman_filters_output():
@@ -179,36 +184,46 @@ def test_bad_settings_are_refused():
 
 def test_log_likelihood_is_the_innovations_gaussian_density():
     z, t = _irregular_take(frames=40, channels=3)
-    smoother = RTSSmoother(NOISE, ACCELERATION)
 
-    value = smoother.log_likelihood(z, t)
+    value = RTSSmoother(NOISE, ACCELERATION).log_likelihood(z, t)
 
-    # The same from the live filter's predictions: x_pred = x + dt v, S = P_pred00 + r.
-    live = KalmanFilter(NOISE, ACCELERATION)
-    live(z[0], t[0])
-    total = 0.0
-    for i in range(1, len(t)):
-        dt = t[i] - t[i - 1]
-        assert live._x is not None and live._v is not None  # the live filter's state
-        predicted = live._x + dt * live._v
-        a = np.array([[1.0, dt], [0.0, 1.0]])
-        g = np.array([dt * dt / 2.0, dt])
-        s = (a @ live._p @ a.T)[0, 0] + ACCELERATION**2 * g[0] ** 2 + NOISE**2
-        total += float(np.sum(-0.5 * (z[i] - predicted) ** 2 / s - 0.5 * np.log(2 * np.pi * s)))
-        live(z[i], t[i])
-    assert value == pytest.approx(total / ((len(t) - 1) * 3), rel=1e-10)
+    np.testing.assert_allclose(value, _reference_rts(z, t, NOISE, ACCELERATION)[2], rtol=1e-10)
 
 
-def test_estimated_acceleration_recovers_the_one_that_drove_the_series():
+def test_estimated_acceleration_recovers_each_channels_own():
     rng = np.random.default_rng(5)
-    frames, channels, dt, acceleration = 3000, 8, 1 / 60.0, 2.0
-    velocity = np.cumsum(rng.normal(0.0, acceleration * dt, (frames, channels)), axis=0)
+    frames, dt = 3000, 1 / 60.0
+    acceleration = np.repeat([2.0, 20.0], 4)
+    velocity = np.cumsum(rng.normal(0.0, 1.0, (frames, 8)) * acceleration * dt, axis=0)
     position = np.cumsum(velocity * dt, axis=0)
     t = np.arange(frames) * dt
 
     estimate = estimate_acceleration(position + rng.normal(0.0, 0.001, position.shape), t, 0.001)
 
-    assert acceleration / 1.4 < estimate < acceleration * 1.4
+    assert ((acceleration / 1.4 < estimate) & (estimate < acceleration * 1.4)).all()
+
+
+def test_a_shared_acceleration_smooths_the_same_in_any_orthonormal_basis():
+    z, t = _irregular_take()
+    rotation = np.linalg.qr(np.random.default_rng(6).normal(size=(4, 4)))[0]
+    smoother = RTSSmoother(NOISE, ACCELERATION)
+
+    rotated = smoother.smooth(z @ rotation.T, t) @ rotation
+
+    np.testing.assert_allclose(rotated, smoother.smooth(z, t), atol=1e-12)
+
+
+def test_one_acceleration_per_channel_smooths_each_as_alone():
+    z, t = _irregular_take()
+    each = np.array([5.0, 40.0, 80.0, 400.0])
+
+    together = RTSSmoother(NOISE, each).smooth(z, t)
+
+    for c, a in enumerate(each):
+        alone = RTSSmoother(NOISE, a).smooth(z[:, c : c + 1], t)
+        np.testing.assert_allclose(together[:, c : c + 1], alone, atol=1e-13)
+    with pytest.raises(InputError, match="4 channels"):
+        RTSSmoother(NOISE, each[:3]).smooth(z, t)
 
 
 def test_estimating_the_acceleration_needs_three_distinct_times():
@@ -246,9 +261,14 @@ def test_smooth_take_defaults_to_rts_and_a_rig_for_the_noise_left(demo_rigs):
     take = smooth_take(noise_rig, points, t)
 
     assert take.method == "rts" and take.acceleration is not None
+    # Smoothed along the take's principal directions, each at its own acceleration.
     flat = points.reshape(len(t), -1)
-    expected = RTSSmoother(0.2, take.acceleration * 0.2).smooth(flat, t)
-    np.testing.assert_allclose(take.points.reshape(len(t), -1), expected, atol=1e-15)
+    mean = flat.mean(axis=0)
+    directions = np.linalg.svd(flat - mean, full_matrices=False)[2]
+    assert take.acceleration.shape == (flat.shape[1],) and np.ptp(take.acceleration) > 0
+    smoother = RTSSmoother(0.2, take.acceleration * 0.2)
+    expected = smoother.smooth((flat - mean) @ directions.T, t) @ directions + mean
+    np.testing.assert_allclose(take.points.reshape(len(t), -1), expected, atol=1e-12)
     assert 0.0 < take.noise < 0.2 and take.rig.fit_report["noise"] == take.noise
 
     truth = demo_target_frames(demo_activations(4.0, 60.0))
@@ -259,6 +279,19 @@ def test_smooth_take_defaults_to_rts_and_a_rig_for_the_noise_left(demo_rigs):
     # Against the ideal clone: the smoothed points beat the noisy ones, and the rig
     # regularised for the noise left beats the rig as it was.
     assert error(take.rig, take.points) < error(noise_rig, take.points) < error(noise_rig, points)
+
+
+def test_smooth_take_with_an_acceleration_runs_the_live_model_both_ways(demo_rigs):
+    _, _, noise_rig = demo_rigs
+    rng = np.random.default_rng(7)
+    points = noise_rig.source_neutral + rng.normal(0.0, 0.2, (30, noise_rig.num_points, 3))
+    t = np.arange(30) / 30.0
+
+    take = smooth_take(noise_rig, points, t, acceleration=480.0)
+
+    expected = RTSSmoother(0.2, 480.0 * 0.2).smooth(points.reshape(30, -1), t)
+    np.testing.assert_allclose(take.points.reshape(30, -1), expected, atol=1e-15)
+    assert take.acceleration is not None and take.acceleration.tolist() == [480.0]
 
 
 def test_smooth_take_passes_an_exact_rig_none_and_short_takes_through(demo_rigs):
