@@ -165,8 +165,10 @@ class RTSSmoother:
 
     def __init__(self, noise: float, acceleration: float | npt.ArrayLike) -> None:
         self.noise = check_positive("noise", noise)
-        if np.ndim(acceleration) == 0:
-            self.acceleration: float | np.ndarray = check_positive("acceleration", acceleration)
+        if isinstance(acceleration, int | float | np.floating | np.integer):
+            self.acceleration: float | np.ndarray = check_positive(
+                "acceleration", float(acceleration)
+            )
         else:
             values = np.asarray(acceleration, dtype=np.float64)
             if (
@@ -227,7 +229,8 @@ class RTSSmoother:
         """
         _, times = _sanitize_series(np.zeros((np.size(t), 1)), t)
         channels = np.size(self.acceleration)
-        return np.sqrt(self._covariances(times, channels).smoothed_position_var())
+        std: np.ndarray = np.sqrt(self._covariances(times, channels).smoothed_position_var())
+        return std
 
     def log_likelihood(self, x: npt.ArrayLike, t: npt.ArrayLike) -> np.ndarray:
         """(C,) each channel's mean log-likelihood per measured sample under the model.
@@ -328,4 +331,5 @@ def estimate_acceleration(x: npt.ArrayLike, t: npt.ArrayLike, noise: float) -> n
             better = score > best_score
             best = np.where(better, candidate, best)
             best_score = np.where(better, score, best_score)
-    return best * sigma
+    estimate: np.ndarray = best * sigma
+    return estimate

@@ -133,9 +133,9 @@ def smooth_take(
         )
     channels = array.reshape(len(array), -1)  # as a live session filters them (K * 3)
     if method == "kalman":
-        units = KALMAN_ACCELERATION if acceleration is None else float(acceleration)
-        filtered = KalmanFilter(sigma, units * sigma).filter_series(channels, times)
-        return SmoothedTake(filtered.reshape(array.shape), rig, method, sigma, np.array([units]))
+        shared = KALMAN_ACCELERATION if acceleration is None else float(acceleration)
+        filtered = KalmanFilter(sigma, shared * sigma).filter_series(channels, times)
+        return SmoothedTake(filtered.reshape(array.shape), rig, method, sigma, np.array([shared]))
     if acceleration is None and len(array) < _MIN_FRAMES:
         return SmoothedTake(array, rig, method, sigma, None)
     if not np.isfinite(channels).all():
