@@ -158,24 +158,17 @@ def temporal_tradeoff(
                 OneEuroFilter(min_cutoff=min_cutoff, beta=beta),
             )
         )
-    for acceleration in kalman:
-        candidates.append(
-            (
-                "kalman",
-                f"Kalman, acceleration {acceleration:g} noise/s^2",
-                {"noise": float(noise), "acceleration": float(acceleration)},
-                KalmanFilter(noise=noise, acceleration=acceleration * noise),
+    models = (("kalman", "Kalman", kalman, KalmanFilter), ("rts", "RTS", rts, RTSSmoother))
+    for family, name, accelerations, model in models:
+        for acceleration in accelerations:
+            candidates.append(
+                (
+                    family,
+                    f"{name}, acceleration {acceleration:g} noise/s^2",
+                    {"noise": float(noise), "acceleration": float(acceleration)},
+                    model(noise, acceleration * noise),
+                )
             )
-        )
-    for acceleration in rts:
-        candidates.append(
-            (
-                "rts",
-                f"RTS, acceleration {acceleration:g} noise/s^2",
-                {"noise": float(noise), "acceleration": float(acceleration)},
-                RTSSmoother(noise=noise, acceleration=acceleration * noise),
-            )
-        )
     rows = []
     for family, label, settings, smoother in candidates:
         if smoother is None:
