@@ -631,7 +631,7 @@ class Rig:
     def clone(self, points: npt.ArrayLike, *, align: bool = False) -> np.ndarray:
         """Target vertices for source feature points: ``blend(weights(points))``.
 
-        Every frame on its own; ``facecast.rig.smooth_points`` smooths a take in time first.
+        Every frame on its own; ``facecast.rig.smooth_take`` smooths a take in time first.
         """
         return self.blend(self.weights(points, align=align))
 

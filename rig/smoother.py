@@ -63,17 +63,22 @@ def _sanitize_series(x: npt.ArrayLike, t: npt.ArrayLike) -> tuple[np.ndarray, np
 
 
 class _Covariances:
-    """The 2 x 2 recursion, per frame, for channels that share a process noise (Q,).
+    """The 2 x 2 recursion, per frame, once per distinct process noise q (Q of them).
 
-    It depends on the times only: one recursion serves every channel of one acceleration
-    (Q = 1 when all share it, Q = C for one per channel), on (Q,) arrays. ``gain`` (F, 2,
-    Q): the update's Kalman gain at frame i (0 where nothing was measured: frame 0,
+    It depends on the times and q only: one recursion serves every channel of one
+    acceleration, on (Q,) arrays, and ``channel`` spreads a (..., Q) result over the C
+    channels (Q stays small when channels share few accelerations, as
+    ``estimate_acceleration``'s grid makes them, so memory is F x Q, not F x C). ``gain``
+    (F, 2, Q): the update's Kalman gain at frame i (0 where nothing was measured: frame 0,
     repeated times); ``innovation_var`` (F, Q): the predicted measurement's variance S;
     ``smoother_gain`` (F, 2, 2, Q): G[i] = P[i] A[i+1]^T P_pred[i+1]^-1; ``filtered`` and
     ``predicted`` (F, 3, Q): P and P_pred as (p00, p01, p11).
     """
 
-    def __init__(self, times: np.ndarray, r: float, q: np.ndarray) -> None:
+    def __init__(self, times: np.ndarray, r: float, channel_q: np.ndarray) -> None:
+        q, inverse = np.unique(channel_q, return_inverse=True)
+        # Channel c's recursion is column inverse[c]; None: every channel shares one.
+        self.inverse = None if q.size == 1 else inverse.reshape(-1)
         frames, size = times.shape[0], q.shape[0]
         self.gain = np.zeros((frames, 2, size))
         self.innovation_var = np.ones((frames, size))
@@ -112,6 +117,10 @@ class _Covariances:
             self.predicted[i] = (a00, a01, a11)
             p00, p01, p11 = a00 - k0 * a00, a01 - k0 * a01, a11 - k1 * a01
             self.filtered[i] = (p00, p01, p11)
+
+    def channel(self, values: np.ndarray) -> np.ndarray:
+        """(..., Q) per distinct q -> (..., C) per channel (as is when all share one q)."""
+        return values if self.inverse is None else values[..., self.inverse]
 
     def smoothed_position_var(self) -> np.ndarray:
         """(F, Q) variance of the smoothed position: P_s = P + G (P_s[i+1] - P_pred[i+1]) G^T."""
@@ -222,14 +231,15 @@ class RTSSmoother:
         return _forward(series, times, self._covariances(times, series.shape[1]))[0]
 
     def smoothed_std(self, t: npt.ArrayLike) -> np.ndarray:
-        """(F, Q) the model's std of each smoothed position: the noise the smoothing leaves.
+        """The model's std of each smoothed position: the noise the smoothing leaves.
 
-        It depends on the times only: Q = 1 column for a shared acceleration, one per
-        channel for (C,) accelerations.
+        It depends on the times only: (F, 1) for a shared acceleration, (F, C) for one per
+        channel.
         """
         _, times = _sanitize_series(np.zeros((np.size(t), 1)), t)
         channels = np.size(self.acceleration)
-        std: np.ndarray = np.sqrt(self._covariances(times, channels).smoothed_position_var())
+        covariances = self._covariances(times, channels)
+        std: np.ndarray = np.sqrt(covariances.channel(covariances.smoothed_position_var()))
         return std
 
     def log_likelihood(self, x: npt.ArrayLike, t: npt.ArrayLike) -> np.ndarray:
@@ -266,8 +276,8 @@ def _forward(
             position[i] = position[i - 1]
             velocity[i] = velocity[i - 1]
             continue
-        k0, k1 = covariances.gain[i]
-        s = covariances.innovation_var[i]
+        k0, k1 = covariances.channel(covariances.gain[i])
+        s = covariances.channel(covariances.innovation_var[i])
         predicted = position[i - 1] + dt * velocity[i - 1]
         innovation = series[i] - predicted
         log_likelihood -= 0.5 * (innovation * innovation / s + np.log(2.0 * math.pi * s))
@@ -285,7 +295,7 @@ def _backward(
         # x_s[i+1] - A x[i], both components
         d_position = position[i + 1] - (position[i] + dt * velocity[i])
         d_velocity = velocity[i + 1] - velocity[i]
-        (g00, g01), (g10, g11) = covariances.smoother_gain[i]
+        (g00, g01), (g10, g11) = covariances.channel(covariances.smoother_gain[i])
         position[i] += g00 * d_position + g01 * d_velocity
         velocity[i] += g10 * d_position + g11 * d_velocity
 
