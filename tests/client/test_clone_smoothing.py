@@ -100,3 +100,16 @@ def test_clone_refuses_rts_on_a_rig_without_noise(rigs, take, tmp_path, capsys):
 def test_clone_smoothing_choices_match_the_engine():
     assert clone.SMOOTHING_CHOICES == SMOOTHING_CHOICES
     assert clone.KALMAN_ACCELERATION == KALMAN_ACCELERATION
+
+
+@pytest.mark.parametrize("value", ["-5", "nan", "0"])
+def test_clone_refuses_a_bad_acceleration(rigs, take, tmp_path, capsys, value):
+    _, noise_rig = rigs
+    source, _, _ = take
+
+    code = cli.main(["clone", str(noise_rig), str(source), "-o", str(tmp_path / "x.npz"),
+                     "--acceleration", value])  # fmt: skip
+
+    assert code == 2
+    assert "acceleration must be finite and > 0" in capsys.readouterr().err
+    assert not (tmp_path / "x.npz").exists()
