@@ -213,7 +213,7 @@ def plot_jitter_against_lag(path, tradeoff: dict, *, title: str | None = None):
     figure = _figure(8, 5)
     axes = figure.add_subplot(1, 1, 1)
     rows = tradeoff["rows"]
-    markers = {"one-euro": "o", "kalman": "s"}
+    markers = {"one-euro": "o", "kalman": "s", "rts": "^"}
     for family, marker in markers.items():
         points = sorted(
             (r["lag_frames"], r["jitter"], r["label"]) for r in rows if r["family"] == family
@@ -221,11 +221,12 @@ def plot_jitter_against_lag(path, tradeoff: dict, *, title: str | None = None):
         if not points:
             continue
         lags, jitters, _ = zip(*points, strict=True)
-        # Kalman settings are one knob (a curve); one-euro's are a grid (points).
-        axes.plot(lags, jitters, marker=marker, linewidth=0.8 if family == "kalman" else 0.0,
+        # Kalman and RTS settings are one knob (a curve); one-euro's are a grid (points).
+        axes.plot(lags, jitters, marker=marker, linewidth=0.0 if family == "one-euro" else 0.8,
                   label=family)  # fmt: skip
         for lag, jitter, label in points:
             short = label.replace("one-euro ", "").replace("Kalman, acceleration ", "a=")
+            short = short.replace("RTS, acceleration ", "a=")
             short = short.replace(" noise/s^2", "σ")
             axes.annotate(short, (lag, jitter), fontsize=6, xytext=(3, 3),
                           textcoords="offset points")  # fmt: skip

@@ -6,7 +6,7 @@ or client, and does no networking.
 
 from .errors import ExampleSetError, FitError, InputError, RigError, RigFileError
 from .examples import ExampleSet
-from .fit import FitReport, IdentifiabilityWarning, fit
+from .fit import FitReport, IdentifiabilityWarning, fit, refit_noise
 from .io.gltf import export_glb, read_glb_morph_targets
 from .io.loaders import load_example_set
 from .io.meshio import read_obj, read_obj_vertices, read_points, write_obj
@@ -16,11 +16,13 @@ from .noise import estimate_noise
 from .pose import align_points, similarity_transform
 from .regions import Region, fit_regions, split_masks
 from .rig import Rig
+from .smoothing import SMOOTHING_CHOICES, SmoothedTake, smooth_take
 from .sources.animation import SourceAnimation, write_clone_output
 from .sources.loading import load_source_animation
 
 __all__ = [
     "KERNELS",
+    "SMOOTHING_CHOICES",
     "ExampleSet",
     "ExampleSetError",
     "FitError",
@@ -31,6 +33,7 @@ __all__ = [
     "Rig",
     "RigError",
     "RigFileError",
+    "SmoothedTake",
     "SourceAnimation",
     "align_points",
     "estimate_noise",
@@ -44,8 +47,10 @@ __all__ = [
     "read_obj",
     "read_obj_vertices",
     "read_points",
+    "refit_noise",
     "rig_from_bytes",
     "similarity_transform",
+    "smooth_take",
     "split_masks",
     "write_clone_output",
     "write_obj",

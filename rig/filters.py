@@ -16,6 +16,8 @@ With ``beta = 0`` it is a first-order low-pass at ``min_cutoff`` Hz.
 ``KalmanFilter`` is the alternative the jitter-against-lag study compares it with
 (``rig.temporal``): a constant-velocity model per channel whose measurement noise is the
 fit's landmark noise, so its one knob is how hard the face may accelerate.
+
+Its offline twin for a whole recorded series is ``rig.smoother.RTSSmoother``.
 """
 
 from __future__ import annotations
@@ -27,7 +29,12 @@ import numpy.typing as npt
 
 from .errors import InputError
 
-__all__ = ["KALMAN_ACCELERATION", "KalmanFilter", "OneEuroFilter", "smoothing_alpha"]
+__all__ = [
+    "KALMAN_ACCELERATION",
+    "KalmanFilter",
+    "OneEuroFilter",
+    "smoothing_alpha",
+]
 
 #: The Kalman filter's default process noise as ``hello.smoothing`` gives it: the std of the
 #: face's acceleration in units of the landmark noise per s^2 (acceleration = this x noise).
@@ -42,7 +49,7 @@ def smoothing_alpha(cutoff: np.ndarray | float, dt: float) -> np.ndarray:
     return 1.0 / (1.0 + tau / dt)
 
 
-def _positive(name: str, value: float, *, allow_zero: bool = False) -> float:
+def check_positive(name: str, value: float, *, allow_zero: bool = False) -> float:
     try:
         number = float(value)
     except (TypeError, ValueError):
@@ -106,9 +113,9 @@ class OneEuroFilter:
     """
 
     def __init__(self, min_cutoff: float = 2.0, beta: float = 2.0, d_cutoff: float = 1.0) -> None:
-        self.min_cutoff = _positive("min_cutoff", min_cutoff)
-        self.beta = _positive("beta", beta, allow_zero=True)
-        self.d_cutoff = _positive("d_cutoff", d_cutoff)
+        self.min_cutoff = check_positive("min_cutoff", min_cutoff)
+        self.beta = check_positive("beta", beta, allow_zero=True)
+        self.d_cutoff = check_positive("d_cutoff", d_cutoff)
         self.reset()
 
     def reset(self) -> None:
@@ -209,8 +216,8 @@ class KalmanFilter:
     """
 
     def __init__(self, noise: float, acceleration: float) -> None:
-        self.noise = _positive("noise", noise)
-        self.acceleration = _positive("acceleration", acceleration)
+        self.noise = check_positive("noise", noise)
+        self.acceleration = check_positive("acceleration", acceleration)
         self.reset()
 
     def reset(self) -> None:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -28,6 +28,7 @@ __all__ = [
     "FitReport",
     "IdentifiabilityWarning",
     "fit",
+    "refit_noise",
     "resolution_threshold",
 ]
 
@@ -477,45 +478,11 @@ def _fit_weights(
 
     noise_var = noise * noise
     lam = m * noise_var if ridge is None else ridge
-
-    # Linear approximation, eq. 3.10: hyperplanes over [1, p] fitted to w_i(p_j) = delta_ij.
-    # The ridge leaves the constant column free, so the hyperplanes still sum to 1.
-    largest_singular = float(np.sqrt(eigenvalues[0] * max(m - 1, 1)))
-    linear_coeffs, hyperplane_condition, linear_exact = _fit_hyperplanes(
-        params, lam, largest_singular
-    )
-    identity = np.eye(m)
-    design = np.hstack([np.ones((m, 1)), params])
-    residuals = identity - design @ linear_coeffs  # eq. 3.11, residuals[j, i] at example j
-
-    # Radial part, eq. 3.12-3.13: R_j(p) = B(|p - p_j| / alpha_j), alpha_j = nearest distance,
-    # so the B-spline's support radius (2 alpha_j) is twice that distance.
     alpha = nearest_distance.copy()
-    basis = evaluate_kernel(kernel, dist / alpha[None, :])  # basis[j, l] = R_l(p_j)
-    condition = float(np.linalg.cond(basis))
-    if lam > 0:
-        # Each radial term passes on noise in proportion to its slope / alpha_l.
-        slope = kernel_slope(kernel) / alpha
-        penalty = np.diag(lam * slope * slope)
-        radial_coeffs = scipy.linalg.solve(
-            basis.T @ basis + penalty, basis.T @ residuals, assume_a="pos"
-        )
-    else:
-        if not np.isfinite(condition) or condition > MAX_CONDITION:
-            raise FitError(
-                f"the radial system is near-singular (condition number {condition:.3g} > "
-                f"{MAX_CONDITION:.0e}) with kernel {kernel!r}; use the cubic B-spline, set "
-                "--noise to regularise, or add feature points",
-                code="singular_system",
-            )
-        radial_coeffs = scipy.linalg.solve(basis, residuals)
-    if np.abs(residuals).max() <= EXACT_LINEAR or (lam > 0 and linear_exact):
-        # The hyperplanes already interpolate every example (M - 1 <= n and the examples are
-        # affinely independent): the radial terms would only fit rounding noise, and with a
-        # ridge the residuals are its deliberate shrinkage, which radial terms fitted to them
-        # would undo near each example (they cloned every real take and ICT's mixes worse,
-        # README "Real takes"). Exact zeros let evaluation skip them.
-        radial_coeffs = np.zeros_like(radial_coeffs)
+    largest_singular = float(np.sqrt(eigenvalues[0] * max(m - 1, 1)))
+    linear_coeffs, radial_coeffs, hyperplane_condition, condition = _solve_weights(
+        params, dist, alpha, kernel, lam, largest_singular
+    )
 
     model = WeightModel(
         kernel=kernel,
@@ -555,6 +522,110 @@ def _fit_weights(
     report.noise_gain = _noise_gain(model, dist)
     _warn_noise_gain(report, example_set.source_points, noise, clamp)
     return model, report
+
+
+def refit_noise(rig: Rig, noise: float) -> Rig:
+    """``rig`` regularised for another landmark noise, from what the rig keeps.
+
+    The weight functions depend on the examples only through their parameters, which the
+    rig stores, so the hyperplanes and radial terms are solved again at the ridge
+    ``M * noise^2`` (as ``fit(..., noise=noise)`` with no ``ridge`` override would) and
+    the sparsity prior's penalty follows the noise; the targets, bounds, calibration and
+    head pose stay. ``facecast clone`` uses it for points that a smoother left less noisy
+    than the rig was fitted for (``rig.smoothing``).
+
+    Parameters
+    ----------
+    rig : Rig
+    noise : float
+        > 0, the std left in the points the new rig will see (source units).
+
+    Returns
+    -------
+    Rig, with ``fit_report["noise"]`` the new noise and ``fitted_noise`` the old one.
+    """
+    sigma = float(noise)
+    if not (np.isfinite(sigma) and sigma > 0):
+        raise FitError(f"refit noise must be a finite number > 0, got {noise}")
+    report = dict(rig.fit_report or {})
+    sparsity = report.get("sparsity", DEFAULT_SPARSITY)
+    models = []
+    for model in rig.models:
+        params = model.params
+        m = params.shape[0]
+        lam = m * sigma * sigma
+        dist, _, _ = _nearest(params)
+        largest_singular = float(np.linalg.svd(params, compute_uv=False)[0])
+        linear_coeffs, radial_coeffs, _, _ = _solve_weights(
+            params, dist, model.alpha, model.kernel, lam, largest_singular
+        )
+        models.append(
+            replace(
+                model,
+                linear_coeffs=linear_coeffs,
+                radial_coeffs=radial_coeffs,
+                ridge=lam,
+                sparsity_penalty=sparsity_penalty(sigma, sparsity, m),
+            )
+        )
+    report["fitted_noise"] = report.get("fitted_noise", report.get("noise", 0.0))
+    report["noise"] = sigma
+    report["linear_ridge"] = float(rig.models[0].params.shape[0] * sigma * sigma)
+    return rig.with_weight_models(tuple(models), report)
+
+
+def _solve_weights(
+    params: np.ndarray,
+    dist: np.ndarray,
+    alpha: np.ndarray,
+    kernel: str,
+    lam: float,
+    largest_singular: float,
+) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Eq. 3.10-3.13 at ridge ``lam``: hyperplane and radial coefficients, and the condition
+    numbers of the hyperplane and radial systems.
+
+    ``dist`` (M, M) are the examples' parameter distances, ``alpha`` (M,) the dilations.
+    """
+    m = params.shape[0]
+    # Linear approximation, eq. 3.10: hyperplanes over [1, p] fitted to w_i(p_j) = delta_ij.
+    # The ridge leaves the constant column free, so the hyperplanes still sum to 1.
+    linear_coeffs, hyperplane_condition, linear_exact = _fit_hyperplanes(
+        params, lam, largest_singular
+    )
+    identity = np.eye(m)
+    design = np.hstack([np.ones((m, 1)), params])
+    residuals = identity - design @ linear_coeffs  # eq. 3.11, residuals[j, i] at example j
+
+    # Radial part, eq. 3.12-3.13: R_j(p) = B(|p - p_j| / alpha_j), alpha_j = nearest distance,
+    # so the B-spline's support radius (2 alpha_j) is twice that distance.
+    basis = evaluate_kernel(kernel, dist / alpha[None, :])  # basis[j, l] = R_l(p_j)
+    condition = float(np.linalg.cond(basis))
+    if lam > 0:
+        # Each radial term passes on noise in proportion to its slope / alpha_l.
+        slope = kernel_slope(kernel) / alpha
+        penalty = np.diag(lam * slope * slope)
+        radial_coeffs = scipy.linalg.solve(
+            basis.T @ basis + penalty, basis.T @ residuals, assume_a="pos"
+        )
+    else:
+        if not np.isfinite(condition) or condition > MAX_CONDITION:
+            raise FitError(
+                f"the radial system is near-singular (condition number {condition:.3g} > "
+                f"{MAX_CONDITION:.0e}) with kernel {kernel!r}; use the cubic B-spline, set "
+                "--noise to regularise, or add feature points",
+                code="singular_system",
+            )
+        radial_coeffs = scipy.linalg.solve(basis, residuals)
+    if np.abs(residuals).max() <= EXACT_LINEAR or (lam > 0 and linear_exact):
+        # The hyperplanes already interpolate every example (M - 1 <= n and the examples are
+        # affinely independent): the radial terms would only fit rounding noise, and with a
+        # ridge the residuals are its deliberate shrinkage, which radial terms fitted to them
+        # would undo near each example (they cloned every real take and ICT's mixes worse,
+        # README "Real takes"). Exact zeros let evaluation skip them.
+        radial_coeffs = np.zeros_like(radial_coeffs)
+
+    return linear_coeffs, radial_coeffs, hyperplane_condition, condition
 
 
 def _warn_collapsing(report: FitReport, names: Sequence[str], noise: float) -> None:

@@ -629,7 +629,10 @@ class Rig:
         return flat.reshape(size // 3, 3) if single else flat.reshape(-1, size // 3, 3)
 
     def clone(self, points: npt.ArrayLike, *, align: bool = False) -> np.ndarray:
-        """Target vertices for source feature points: ``blend(weights(points))``."""
+        """Target vertices for source feature points: ``blend(weights(points))``.
+
+        Every frame on its own; ``facecast.rig.smooth_take`` smooths a take in time first.
+        """
         return self.blend(self.weights(points, align=align))
 
     # -- derived rigs --------------------------------------------------------------------
@@ -716,6 +719,18 @@ class Rig:
             calibration=self.calibration,
             align_scale=self.align_scale,
         )
+
+    def with_weight_models(self, models: tuple[WeightModel, ...], report: dict[str, Any]) -> Rig:
+        """The same rig (targets, calibration, pose, regions) with other weight models.
+
+        One model per region, in this rig's order, and the fit report that describes
+        them (``fit.refit_noise``'s).
+        """
+        if len(models) != len(self.models):
+            raise ValueError(f"Expected {len(self.models)} weight models, got {len(models)}")
+        rig = self._derive(models, calibration=self.calibration, align_scale=self.align_scale)
+        rig.fit_report = report
+        return rig
 
     def with_align_scale(self, align_scale: bool) -> Rig:
         """The same rig, removing (or not) uniform scale with the head pose (``align``).

@@ -1,7 +1,8 @@
 """``facecast clone``: run a source animation through a rig and write the cloned animation.
 
-Batched, vectorised evaluation with a progress bar; the file formats belong to
-``facecast.rig.sources.animation.write_clone_output``, and it must not fit anything.
+Batched, vectorised evaluation with a progress bar, after the take's points are smoothed
+in time (``facecast.rig.smoothing``: RTS on a rig fitted with noise); the file formats
+belong to ``facecast.rig.sources.animation.write_clone_output``, and it must not fit anything.
 """
 
 from __future__ import annotations
@@ -17,6 +18,10 @@ BATCH = 256
 # Above this many bytes of cloned vertices an .npz keeps only the weights (the rig and
 # the weights give the vertices back), so a long performance cannot exhaust memory.
 MAX_NPZ_VERTEX_BYTES = 1 << 30
+# The engine's (facecast.rig.smoothing.SMOOTHING_CHOICES, rig.filters.KALMAN_ACCELERATION),
+# written out so that --help does not load numpy; a test keeps them equal.
+SMOOTHING_CHOICES = ("auto", "rts", "kalman", "none")
+KALMAN_ACCELERATION = 480.0
 
 
 def register(subparsers) -> None:
@@ -26,7 +31,9 @@ def register(subparsers) -> None:
         description=(
             "Compute blend weights for every frame of a source animation and write the "
             "target's animation: .npz (weights and vertices), .glb (morph targets + "
-            "animation) or a folder of OBJ frames, by the output's extension."
+            "animation) or a folder of OBJ frames, by the output's extension. On a rig fitted "
+            "with --noise the source points are first smoothed in time by a Rauch-Tung-Striebel "
+            "smoother (the live Kalman default's offline twin: less noise, no lag)."
         ),
     )
     parser.add_argument("rig", metavar="RIG", help="a rig file written by 'facecast fit'")
@@ -48,6 +55,19 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--seconds", type=float, default=12.0, help="length of the 'demo' source (default 12)"
     )
+    parser.add_argument(
+        "--smoothing", choices=SMOOTHING_CHOICES, default="auto",
+        help="temporal smoothing of the source points: 'rts' (the fixed-interval smoother: "
+        "each frame from the whole take, then the rig regularised for the noise it leaves), "
+        "'kalman' (the live, causal filter), 'none'; default 'auto': rts on a rig fitted "
+        "with --noise (its sigma the measurement noise), else none",
+    )  # fmt: skip
+    parser.add_argument(
+        "--acceleration", type=float, metavar="A",
+        help="the smoother's process noise: acceleration std in units of the rig's noise per "
+        "s^2 (default: rts reads it off the take, most likely value; kalman "
+        f"{KALMAN_ACCELERATION:g}, the live default)",
+    )  # fmt: skip
     parser.set_defaults(func=run)
 
 
@@ -75,6 +95,8 @@ def clone_frames(rig, points, *, align: bool = False, with_vertices: bool = True
 def run(args: argparse.Namespace) -> int:
     from facecast.cli.commands._animation import load_animation, write_cloned
     from facecast.rig import load_rig
+    from facecast.rig.errors import FitError, InputError
+    from facecast.rig.smoothing import smooth_take
 
     if not Path(args.rig).exists():
         raise CommandError(f"{args.rig}: no such rig file")
@@ -96,15 +118,38 @@ def run(args: argparse.Namespace) -> int:
     if suffix == ".npz" and not with_vertices:
         print(f"note: {vertex_bytes / 1e9:.1f} GB of vertices; the .npz keeps the weights only")
     started = time.perf_counter()
+    try:
+        take = smooth_take(
+            rig, animation.points, animation.times, smoothing=args.smoothing,
+            acceleration=args.acceleration,
+        )  # fmt: skip
+    except (InputError, FitError) as exc:
+        raise CommandError(f"--smoothing {args.smoothing}: {exc}") from None
     weights, vertices = clone_frames(
-        rig, animation.points, align=args.align, with_vertices=with_vertices,
+        take.rig, take.points, align=args.align, with_vertices=with_vertices,
         progress=frames > 4 * BATCH,
     )  # fmt: skip
     elapsed = time.perf_counter() - started
     written = write_cloned(output, rig, weights, vertices, animation.fps)
     rate = frames / elapsed if elapsed > 0 else float("inf")
+    smoothed = _smoothing_note(rig, take)
     print(
-        f"cloned {frames} frames ({frames / animation.fps:.1f} s at {animation.fps:g} fps) "
-        f"in {elapsed * 1e3:.1f} ms ({rate:.0f} frames/s); wrote {written}"
+        f"cloned {frames} frames ({frames / animation.fps:.1f} s at {animation.fps:g} fps, "
+        f"{smoothed}) in {elapsed * 1e3:.1f} ms ({rate:.0f} frames/s); wrote {written}"
     )
     return 0
+
+
+def _smoothing_note(rig, take) -> str:
+    """How the take was smoothed, for the summary line."""
+    if take.method == "none" or take.acceleration is None:
+        return "not smoothed"
+    fitted = float(rig.fit_report.get("noise", 0.0))
+    low, high = float(take.acceleration.min()), float(take.acceleration.max())
+    if take.method == "kalman":
+        return f"Kalman-filtered: noise {fitted:g}, acceleration {low:g} noise/s^2"
+    spread = f"{low:.0f}" if low == high else f"{low:.0f}-{high:.0f}"
+    return (
+        f"RTS-smoothed: noise {fitted:g}, acceleration {spread} noise/s^2, rig regularised "
+        f"for the {take.noise:.3g} left"
+    )

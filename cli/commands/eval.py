@@ -75,8 +75,8 @@ def register(subparsers) -> None:
     )
     parser.add_argument(
         "--temporal", action="store_true",
-        help="with --noise: jitter against lag of one-euro and Kalman filters at several "
-        "settings (a table; a plot with --plots)",
+        help="with --noise: jitter, error and lag of one-euro and Kalman filters and of the "
+        "offline RTS smoother at several settings (a table; a plot with --plots)",
     )  # fmt: skip
     parser.add_argument("--json", metavar="FILE", help="write the full report as JSON")
     parser.add_argument("--plots", metavar="DIR", help="write PNG plots into DIR")
@@ -310,16 +310,29 @@ def _temporal(args, data: _Data, plots: Path | None) -> dict:
     table["best_under_one_frame"] = best_under_one_frame(table)
     print(
         f"\ntemporal filters on the noisy points (noise {args.noise:g}), rig clamp=nonneg: "
-        f"jitter (% of diagonal per frame^2; truth {table['truth_jitter']:.4f}) and lag"
+        f"jitter (% of diagonal per frame^2; truth {table['truth_jitter']:.4f}), lag, errors"
     )
-    print(f"  {'filter':<34}{'jitter':>9}{'lag, frames':>13}{'RMS error %':>13}")
+    print(
+        f"  {'filter':<34}{'jitter':>9}{'lag, frames':>13}{'RMS error %':>13}"
+        f"{'eq. 4.1 % x / y / z':>26}{'max axis':>10}"
+    )
     for row in table["rows"]:
+        eq41 = " / ".join(f"{row['eq41_percent'][axis]:.3f}" for axis in "xyz")
         print(
             f"  {row['label']:<34}{row['jitter']:>9.4f}{row['lag_frames']:>13.2f}"
-            f"{row['rms_percent']:>13.4f}"
+            f"{row['rms_percent']:>13.4f}{eq41:>26}{row['eq41_max']:>10.3f}"
         )
     for family, row in table["best_under_one_frame"].items():
         print(f"  best {family} under one frame of lag: {row['label']}")
+    raw = table["rows"][0]
+    for row in table["rows"]:
+        if row["family"] == "clone":
+            print(
+                f"  'facecast clone' default ({row['label']}): eq. 4.1 max axis "
+                f"{row['eq41_max']:.3f} = {row['eq41_max'] / raw['eq41_max']:.3f} x per-frame "
+                f"{raw['eq41_max']:.3f}; lag {row['lag_frames']:.2f} frames (per-frame "
+                f"{raw['lag_frames']:.2f})"
+            )
     if plots is not None:
         path = plot_jitter_against_lag(
             plots / "jitter_vs_lag.png", table,

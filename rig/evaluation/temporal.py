@@ -1,8 +1,9 @@
-"""Temporal coherence measured: jitter against lag of filtered takes (one-euro, Kalman).
+"""Temporal coherence measured: jitter against lag of filtered takes (one-euro, Kalman, RTS).
 
-Runs each filter on a take's noisy feature points (as a session's ``smoothing`` does),
-clones the result and measures the cloned vertices' jitter and their lag behind the ideal
-clone. Returns JSON-able numbers; it must not plot, print or do I/O.
+Runs each filter on a take's noisy feature points (as a session's ``smoothing`` does; the
+RTS smoother as ``facecast clone`` does), clones the result and measures the cloned
+vertices' jitter, error and lag behind the ideal clone. Returns JSON-able numbers; it must
+not plot, print or do I/O.
 """
 
 from __future__ import annotations
@@ -14,13 +15,16 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import InputError
-from ..filters import KalmanFilter, OneEuroFilter
+from ..filters import KALMAN_ACCELERATION, KalmanFilter, OneEuroFilter
 from ..rig import Rig
-from .evaluate import jitter
+from ..smoother import RTSSmoother
+from ..smoothing import smooth_take
+from .evaluate import cloning_error, jitter
 
 __all__ = [
     "DEFAULT_KALMAN_ACCELERATIONS",
     "DEFAULT_ONE_EURO",
+    "DEFAULT_RTS_ACCELERATIONS",
     "MAX_LAG_FRAMES",
     "best_under_one_frame",
     "lag_frames",
@@ -41,6 +45,9 @@ DEFAULT_KALMAN_ACCELERATIONS: tuple[float, ...] = (
     100.0, 200.0, 300.0, 360.0, 400.0, 440.0, 480.0, 500.0, 600.0, 900.0, 1400.0, 2000.0,
     6000.0, 20000.0,
 )  # fmt: skip
+#: RTS smoother process noise compared (the same units): the live default, which offline
+#: ``facecast clone`` uses too, and its neighbours.
+DEFAULT_RTS_ACCELERATIONS: tuple[float, ...] = (100.0, 200.0, KALMAN_ACCELERATION, 1000.0, 2000.0)
 #: Lags searched, in frames.
 MAX_LAG_FRAMES = 20
 # Leads searched (frames): a constant-velocity filter can run slightly ahead.
@@ -98,8 +105,10 @@ def temporal_tradeoff(
     noise: float,
     one_euro: Sequence[tuple[float, float]] = DEFAULT_ONE_EURO,
     kalman: Sequence[float] = DEFAULT_KALMAN_ACCELERATIONS,
+    rts: Sequence[float] = DEFAULT_RTS_ACCELERATIONS,
 ) -> dict[str, Any]:
-    """Jitter and lag of a noisy take cloned raw, through one-euro filters and Kalman filters.
+    """Jitter, error and lag of a noisy take cloned raw, through one-euro and Kalman filters
+    and through RTS smoothers (offline: each frame from the whole take).
 
     Parameters
     ----------
@@ -112,15 +121,18 @@ def temporal_tradeoff(
     noise : float
         Landmark noise std (the Kalman filters' measurement noise), > 0.
     one_euro : sequence of (min_cutoff, beta)
-    kalman : sequence of float
+    kalman, rts : sequence of float
         Accelerations in landmark-noise units per s^2 (each filter's acceleration is this
-        times ``noise``).
+        times ``noise``) of the Kalman filters and of the RTS smoothers.
 
     Returns
     -------
-    dict (JSON-able): ``truth_jitter`` and ``rows``, one per filter (and ``raw``), each
-    {family, label, settings, jitter, lag_frames, rms_percent}; jitter in % of the
-    truth's bounding-box diagonal per frame^2, lag in frames.
+    dict (JSON-able): ``truth_jitter`` and ``rows``, one per filter (and ``raw``, and
+    ``clone``: what ``facecast clone`` does by default, ``smoothing.smooth_take``), each
+    {family, label, settings, jitter, lag_frames, rms_percent, eq41_percent, eq41_max};
+    jitter in % of the truth's bounding-box diagonal per frame^2, lag in frames,
+    ``eq41_percent`` {x, y, z} the thesis's eq. 4.1 (``cloning_error``) and ``eq41_max``
+    its largest axis.
     """
     points = np.asarray(noisy_points, dtype=np.float64)
     truth = np.asarray(truth_vertices)
@@ -134,9 +146,9 @@ def temporal_tradeoff(
     scale = 100.0 / diagonal
     times = np.arange(len(points)) / float(fps)
     channels = points.reshape(len(points), -1)
-    candidates: list[tuple[str, str, dict[str, float], OneEuroFilter | KalmanFilter | None]] = [
-        ("raw", "raw", {}, None)
-    ]
+    candidates: list[
+        tuple[str, str, dict[str, float], OneEuroFilter | KalmanFilter | RTSSmoother | None]
+    ] = [("raw", "raw", {}, None)]
     for min_cutoff, beta in one_euro:
         candidates.append(
             (
@@ -146,31 +158,62 @@ def temporal_tradeoff(
                 OneEuroFilter(min_cutoff=min_cutoff, beta=beta),
             )
         )
-    for acceleration in kalman:
-        candidates.append(
-            (
-                "kalman",
-                f"Kalman, acceleration {acceleration:g} noise/s^2",
-                {"noise": float(noise), "acceleration": float(acceleration)},
-                KalmanFilter(noise=noise, acceleration=acceleration * noise),
+    models = (("kalman", "Kalman", kalman, KalmanFilter), ("rts", "RTS", rts, RTSSmoother))
+    for family, name, accelerations, model in models:
+        for acceleration in accelerations:
+            candidates.append(
+                (
+                    family,
+                    f"{name}, acceleration {acceleration:g} noise/s^2",
+                    {"noise": float(noise), "acceleration": float(acceleration)},
+                    model(noise, acceleration * noise),
+                )
             )
-        )
     rows = []
     for family, label, settings, smoother in candidates:
-        filtered = channels if smoother is None else smoother.filter_series(channels, times)
+        if smoother is None:
+            filtered = channels
+        elif isinstance(smoother, RTSSmoother):
+            filtered = smoother.smooth(channels, times)
+        else:
+            filtered = smoother.filter_series(channels, times)
         vertices = rig.clone(filtered.reshape(points.shape))
-        diff = vertices.astype(np.float64) - truth
-        rows.append(
-            {
-                "family": family,
-                "label": label,
-                "settings": settings,
-                "jitter": jitter(vertices) * scale,
-                "lag_frames": lag_frames(truth[:, ::_LAG_STRIDE], vertices[:, ::_LAG_STRIDE]),
-                "rms_percent": float(np.sqrt(np.mean(np.sum(diff * diff, axis=-1))) * scale),
-            }
-        )
+        rows.append(_row(family, label, settings, vertices, truth, scale))
+    # What `facecast clone` does by default: RTS along the take's principal directions at
+    # their most likely accelerations, cloned by the rig regularised for the noise left.
+    take = smooth_take(rig, points, times, smoothing="rts", noise=noise)
+    units = np.zeros(1) if take.acceleration is None else take.acceleration
+    settings = {"noise": float(noise), "acceleration_median": float(np.median(units)),
+                "rig_noise": take.noise}  # fmt: skip
+    label = (
+        f"clone default: RTS, a {np.min(units):.0f}-{np.max(units):.0f} (estimated), rig "
+        f"noise {take.noise / noise:.2f} x"
+    )
+    rows.append(_row("clone", label, settings, take.rig.clone(take.points), truth, scale))
     return {"truth_jitter": jitter(truth) * scale, "fps": float(fps), "rows": rows}
+
+
+def _row(
+    family: str,
+    label: str,
+    settings: dict[str, float],
+    vertices: np.ndarray,
+    truth: np.ndarray,
+    scale: float,
+) -> dict[str, Any]:
+    """One row of ``temporal_tradeoff``: the clone's jitter, lag and errors."""
+    diff = vertices.astype(np.float64) - truth
+    eq41 = cloning_error(truth, vertices)["eq41_percent"]
+    return {
+        "family": family,
+        "label": label,
+        "settings": settings,
+        "jitter": jitter(vertices) * scale,
+        "lag_frames": lag_frames(truth[:, ::_LAG_STRIDE], vertices[:, ::_LAG_STRIDE]),
+        "rms_percent": float(np.sqrt(np.mean(np.sum(diff * diff, axis=-1))) * scale),
+        "eq41_percent": eq41,
+        "eq41_max": max(eq41.values()),
+    }
 
 
 def best_under_one_frame(tradeoff: dict[str, Any]) -> dict[str, dict[str, Any]]:
