@@ -9,12 +9,14 @@ from hypothesis import settings as hsettings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from facecast.client.channel import FramePublisher, channel_url
 from facecast.protocol import (
     Calibrate,
     Calibrated,
     Error,
     ErrorCode,
     Frame,
+    Hello,
     Ping,
     Pong,
     Result,
@@ -68,6 +70,24 @@ async def test_calibration_with_noise_rebases_every_watched_rig_bounded(settings
     np.testing.assert_array_equal(received, expected)
     assert received[:, 1:].min() >= 0.0 and received[:, 1:].max() <= 1.0
     assert exact[:, 1:].min() < 0.0 or exact[:, 1:].max() > 1.0  # what it was without
+
+
+async def test_a_frame_publishers_calibrate_rebases_the_channel_before_its_next_frame(
+    settings, rigs, ws_impl
+):
+    # FramePublisher.calibrate (what 'facecast perform' sends after the held neutral).
+    neutral = points(rigs["alpha"], 99)
+    pts = points(rigs["alpha"], 5)
+    results = []
+    async with run_server(settings, ws=ws_impl) as server:
+        url = channel_url(server.base_url, "stage", "publish")
+        async with FramePublisher(url, Hello(rig="alpha"), on_result=results.append) as pub:
+            await pub.calibrate(neutral, 0.01)
+            await pub.send(pts, 0.0)
+            assert await pub.drain(10.0)
+
+    expected = rebase(rigs["alpha"], neutral, noise=0.01).weights(pts).astype(np.float32)
+    np.testing.assert_array_equal(results[-1].weights, expected)
 
 
 async def test_align_applies_to_every_watched_rig(settings, rigs, ws_impl):
