@@ -100,9 +100,13 @@ def test_on_the_ict_import_every_frame_viewers_get_is_plausible_and_jaw_open_lea
     run = _perform_generic(browser, server, camera, ict_rig, "generic-ict")
     names = _names(server, ict_rig)
 
-    weights = _assert_plausible(run["received"])
+    _assert_plausible(run["received"])
     assert run["stats"]["neutralNoise"] is not None  # the calibrate carried the noise
-    gaps = np.array([run["gaps"][seq] for seq, _ in run["received"]])
+    # The frames both watchers got (a slow watcher's frames may be superseded).
+    both = [(seq, w) for seq, w in run["received"] if seq in run["gaps"]]
+    assert len(both) >= 0.9 * len(run["received"])
+    weights = np.stack([w for _, w in both])
+    gaps = np.array([run["gaps"][seq] for seq, _ in both])
     middle = 0.5 * (np.percentile(gaps, 10) + np.percentile(gaps, 90))
     opened = gaps > middle
     assert 20 <= opened.sum() <= len(gaps) - 20  # both mouths were performed
