@@ -16,7 +16,14 @@ from .fit import fit_weight_model
 from .pose import similarity_transform
 from .rig import Floats, Rig, WeightModel
 
-__all__ = ["DEPTH_NOISE_FACTOR", "REBASE_CLAMP", "calibrate", "identity_noise", "rebase"]
+__all__ = [
+    "DEPTH_NOISE_FACTOR",
+    "MAX_NOISE_RELATIVE",
+    "REBASE_CLAMP",
+    "calibrate",
+    "identity_noise",
+    "rebase",
+]
 
 #: How much noisier the depth (z) of the performer's points is taken to be than x and y.
 #: A webcam tracker measures a face in the image plane and guesses its depth from a learned
@@ -30,6 +37,9 @@ __all__ = ["DEPTH_NOISE_FACTOR", "REBASE_CLAMP", "calibrate", "identity_noise", 
 #: as another expression, 10 reads it right. Past ~30 the examples' depth falls below the
 #: fit's resolution and the neutral is no longer exact.
 DEPTH_NOISE_FACTOR = 10.0
+#: A ``noise`` above this many times the neutral's radius (RMS distance of its points from
+#: their centre) is refused: it cannot be landmark noise in the points' units.
+MAX_NOISE_RELATIVE = 10.0
 #: The bounds of a re-based rig's weights: each non-neutral weight in [0, 1], so a face
 #: that no example explains shows the nearest mix of them, never an extrapolated one.
 REBASE_CLAMP = "unit"
@@ -91,11 +101,20 @@ def rebase(
     ------
     InputError
         As ``Rig.calibrated`` (``wrong_point_count``, ``non_finite``, ``out_of_range``),
-        and ``bad_noise`` for a ``noise`` or ``depth_factor`` out of range.
+        and ``bad_noise`` for a ``noise`` or ``depth_factor`` out of range (``noise`` above
+        ``MAX_NOISE_RELATIVE`` times the neutral's radius included).
     """
     noise, depth_factor = _sanitize(noise, depth_factor)
     calibrated = rig.calibrated(neutral)  # checks the neutral; gives the similarity
     points = np.asarray(calibrated.calibration, dtype=np.float64)
+    radius = float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
+    if noise > MAX_NOISE_RELATIVE * radius:
+        # Noise beyond the face itself says nothing, and its square overflows the refit.
+        raise InputError(
+            f"noise {noise:g} is more than {MAX_NOISE_RELATIVE:g}x the neutral's radius "
+            f"{radius:.3g}: give the landmark noise in the points' units",
+            code="bad_noise",
+        )
     k = points.shape[0]
     matrix = calibrated.model.input_matrix
     assert matrix is not None

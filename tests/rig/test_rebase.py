@@ -14,7 +14,13 @@ from scipy.spatial.transform import Rotation
 
 from facecast.rig import InputError, fit, fit_regions
 from facecast.rig.demo import demo_example_set
-from facecast.rig.rebase import DEPTH_NOISE_FACTOR, calibrate, identity_noise, rebase
+from facecast.rig.rebase import (
+    DEPTH_NOISE_FACTOR,
+    MAX_NOISE_RELATIVE,
+    calibrate,
+    identity_noise,
+    rebase,
+)
 from facecast.rig.regions import Region
 
 #: What viewers may be sent: every non-neutral weight within these (issue 21).
@@ -179,12 +185,21 @@ def test_a_region_rig_is_re_based_region_by_region(example_set, performer):
     assert weights[:, 1:].min() >= 0.0 and weights[:, 1:].max() <= 1.0
 
 
-@pytest.mark.parametrize("noise", [-0.1, float("nan"), float("inf"), "loud"])
+@pytest.mark.parametrize("noise", [-0.1, float("nan"), float("inf"), "loud", 1e300, 1e3])
 def test_a_bad_noise_is_refused(rig, performer, noise):
     with pytest.raises(InputError) as raised:
         rebase(rig, performer.neutral, noise=noise)
 
     assert raised.value.code == "bad_noise"
+
+
+def test_the_largest_noise_accepted_gives_finite_bounded_weights(rig, performer):
+    noise = MAX_NOISE_RELATIVE * performer.radius * SCALE * 0.99
+    rebased = rebase(rig, performer.neutral, noise=noise)
+    weights = rebased.weights(performer.perform("happy", 0.7, 3))
+
+    assert np.isfinite(weights).all()
+    assert weights[:, 1:].min() >= 0.0 and weights[:, 1:].max() <= 1.0
 
 
 def test_a_neutral_of_the_wrong_shape_is_refused_as_calibrated_refuses_it(rig):

@@ -248,6 +248,21 @@ async def test_calibrate_with_an_absurd_neutral_is_refused_and_results_stay_fini
     np.testing.assert_array_equal(result.weights, rig.weights(p).astype(np.float32))
 
 
+async def test_calibrate_with_an_absurd_noise_is_refused_and_results_stay_finite(served, rig):
+    neutral = frame_points(rig, 10)
+    p = frame_points(rig, 24)
+    async with connect(served) as ws:
+        await open_session(ws, "face")
+        await ws.send(encode(Calibrate(points=neutral, noise=1e300)))
+        error = await recv_error(ws)
+        await ws.send(frame(0, p))
+        result = await next_result(ws)
+
+    assert (error.code, error.fatal) == (ErrorCode.CALIBRATION_FAILED, False)
+    assert "noise" in error.message
+    np.testing.assert_array_equal(result.weights, rig.weights(p).astype(np.float32))
+
+
 async def test_hello_on_a_rig_file_the_protocol_cannot_carry_is_refused_not_readied(served):
     # A ready naming a 300-character example would be refused by every client.
     es = tiny_example_set()
