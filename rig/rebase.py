@@ -34,8 +34,8 @@ __all__ = [
 #: (docs/perform.md): on the page's tracked photo, ICT's jawOpen over jawForward on
 #: mouth-open frames is 0.20 / 0.13 at 1, 0.24 / 0.09 at 3, 0.25 / 0.08 at 10; on the demo
 #: face with no depth motion at all (tests/rig/test_rebase.py) 1 and 3 read the jaw opening
-#: as another expression, 10 reads it right. Past ~30 the examples' depth falls below the
-#: fit's resolution and the neutral is no longer exact.
+#: as another expression, 10 reads it right. At 30 the fit keeps one principal axis fewer
+#: on ICT (50 of 51) and the neutral is no longer exact (weights up to 0.03).
 DEPTH_NOISE_FACTOR = 10.0
 #: A ``noise`` above this many times the neutral's radius (RMS distance of its points from
 #: their centre) is refused: it cannot be landmark noise in the points' units.
