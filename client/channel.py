@@ -25,6 +25,7 @@ from facecast.protocol import (
     PUBLISH_PATH,
     STREAM_PATH,
     WATCH_PATH,
+    Calibrate,
     ClientProtocol,
     Error,
     ErrorCode,
@@ -157,6 +158,8 @@ class FramePublisher:
         #: ``result.dropped`` is per session: the totals of earlier connections.
         self._dropped_before = 0
         self._session_dropped = 0
+        #: The neutral (and its noise) to re-base on, sent again on every connection.
+        self._calibration: Calibrate | None = None
 
     async def _connect(self) -> None:
         ws = await _open(self.url, self.token, self.limits, self.open_timeout)
@@ -176,6 +179,13 @@ class FramePublisher:
                 f"before, {ready.num_points} now)",
                 fatal=True,
             )
+        if self._calibration is not None:
+            # The server forgets a neutral with the connection: restore it before frames.
+            try:
+                await ws.send(protocol.send(self._calibration))
+            except BaseException:
+                await ws.close()
+                raise
         self.ready = ready
         self._dropped_before += self._session_dropped
         self._session_dropped = 0
@@ -354,6 +364,23 @@ class FramePublisher:
         self._seq += 1
         self.stats.sent += 1
         return seq
+
+    async def calibrate(self, points: np.ndarray, noise: float | None = None) -> None:
+        """Re-base the channel's rigs on the performer's neutral ``points`` (K, 3).
+
+        ``noise``: the landmark noise measured while the neutral was held; given, every
+        watched rig is re-based noise-aware and bounded (PROTOCOL.md §5.1.3), as the
+        /perform page asks. Frames sent after this use the neutral (the server handles a
+        publisher's messages in order); it is sent again after every reconnection. The
+        server's ``calibrated`` is not awaited; a refusal is logged as any error is.
+        """
+        message = Calibrate(points=np.asarray(points, dtype=np.float32), noise=noise)
+        self._calibration = message
+        ws, protocol = self._ws, self._protocol
+        if ws is None or protocol is None:
+            return  # reconnecting: _connect sends it
+        with contextlib.suppress(ConnectionClosed):  # the supervisor reconnects and resends
+            await ws.send(protocol.send(message))
 
     async def close(self) -> None:
         """Close the connection. Idempotent."""

@@ -396,11 +396,16 @@ class Calibrate(_ArrayMessage):
         The neutral explicitly; None means "use the next frame received".
     reset : bool
         Clear the captured neutral instead; excludes ``points``.
+    noise : float or None
+        The performer's landmark noise (standard deviation per coordinate, in the points'
+        units), e.g. measured over the frames the neutral was held; >= 0. Given, the server
+        re-bases the rig noise-aware and bounded; None: exactly, as before the field.
     """
 
     TYPE: ClassVar[str] = "calibrate"
     points: np.ndarray | None = None
     reset: bool = False
+    noise: float | None = None
 
     def __post_init__(self) -> None:
         check_bool(self.reset, "calibrate.reset")
@@ -411,13 +416,29 @@ class Calibrate(_ArrayMessage):
                     ErrorCode.INVALID_FIELD,
                     "calibrate.points and calibrate.reset exclude each other",
                 )
+        if self.noise is not None:
+            noise = check_float(self.noise, "calibrate.noise")
+            if noise < 0:
+                raise ProtocolError(
+                    ErrorCode.INVALID_FIELD, f"calibrate.noise must be >= 0, got {noise!r}"
+                )
+            if self.reset:
+                raise ProtocolError(
+                    ErrorCode.INVALID_FIELD,
+                    "calibrate.noise and calibrate.reset exclude each other",
+                )
+            object.__setattr__(self, "noise", noise)
 
     def serialize(self) -> dict[str, Any]:
-        return {
+        out = {
             **_header(self.TYPE),
             "points": None if self.points is None else array_to_wire(self.points),
             "reset": self.reset,
         }
+        # Absent unless given: a calibrate without it keeps its bytes (§10.4).
+        if self.noise is not None:
+            out["noise"] = self.noise
+        return out
 
     @classmethod
     def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Calibrate:
@@ -429,6 +450,7 @@ class Calibrate(_ArrayMessage):
                 points, "calibrate.points", trailing=(3,), max_rows=limits.max_points
             ),
             reset=read_bool(obj, "reset", "calibrate.reset", False),
+            noise=read_float(obj, "noise", "calibrate.noise", None),
         )
 
 

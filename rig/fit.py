@@ -28,6 +28,7 @@ __all__ = [
     "FitReport",
     "IdentifiabilityWarning",
     "fit",
+    "fit_weight_model",
     "refit_noise",
     "resolution_threshold",
 ]
@@ -404,7 +405,9 @@ def fit(
     building = BasisBuild(example_set.target_vertices, thread=basis_thread)
     try:
         model, report = _fit_weights(
-            example_set,
+            example_set.names,
+            example_set.source_points,
+            example_set.num_vertices,
             kernel=kernel,
             noise=noise,
             pca_threshold=pca_threshold,
@@ -449,8 +452,32 @@ def fit(
     return rig
 
 
+def fit_weight_model(
+    names: Sequence[str],
+    source_points: np.ndarray,
+    *,
+    noise: float,
+    kernel: str,
+    clamp: str | None,
+    sparsity: float = DEFAULT_SPARSITY,
+) -> tuple[WeightModel, FitReport]:
+    """The weight model alone of M source examples (K, 3), the neutral first, and its report.
+
+    ``fit``'s math without target examples, options already valid (``clamp`` None or a
+    bound), warnings kept in the report rather than issued: for refitting a rig's weights
+    on other source examples (``rebase``) where no caller is there to see a warning.
+    """
+    points = np.ascontiguousarray(source_points, dtype=np.float64)
+    return _fit_weights(
+        tuple(names), points, 0, kernel=kernel, noise=float(noise), pca_threshold=None,
+        ridge=None, clamp=clamp, sparsity=float(sparsity), emit=False,
+    )  # fmt: skip
+
+
 def _fit_weights(
-    example_set: ExampleSet,
+    names: Sequence[str],
+    source_points: np.ndarray,
+    num_vertices: int,
     *,
     kernel: str,
     noise: float,
@@ -458,16 +485,18 @@ def _fit_weights(
     ridge: float | None,
     clamp: str | None,
     sparsity: float,
+    emit: bool = True,
 ) -> tuple[WeightModel, FitReport]:
-    """The fit's math on sanitised options: the weight model and its report (no basis)."""
-    names = example_set.names
-    m = example_set.num_examples
-    k = example_set.num_points
+    """The fit's math on sanitised options: the weight model and its report (no basis).
 
-    source_neutral = example_set.source_neutral
-    displacements = (example_set.source_points - source_neutral).reshape(m, 3 * k)  # eq. 3.1
+    ``emit``: issue the report's warnings (``IdentifiabilityWarning``) as well as keep them.
+    """
+    m, k, _ = source_points.shape
+
+    source_neutral = source_points[0]
+    displacements = (source_points - source_neutral).reshape(m, 3 * k)  # eq. 3.1
     mean, features, eigenvalues, pca_threshold = _pca(
-        displacements, pca_threshold, resolution_threshold(example_set.source_points)
+        displacements, pca_threshold, resolution_threshold(source_points)
     )
     params = (displacements - mean) @ features.T  # eq. 3.7, (M, n)
     n = params.shape[1]
@@ -501,7 +530,7 @@ def _fit_weights(
     report = FitReport(
         num_examples=m,
         num_points=k,
-        num_vertices=example_set.num_vertices,
+        num_vertices=num_vertices,
         kernel=kernel,
         noise=noise,
         pca_threshold=pca_threshold,
@@ -518,9 +547,9 @@ def _fit_weights(
         nearest_name=[names[int(j)] for j in nearest],
         separation_snr=[float(d / noise) if noise > 0 else float("inf") for d in nearest_distance],
     )
-    _warn_collapsing(report, names, noise)
+    _warn_collapsing(report, names, noise, emit)
     report.noise_gain = _noise_gain(model, dist)
-    _warn_noise_gain(report, example_set.source_points, noise, clamp)
+    _warn_noise_gain(report, source_points, noise, clamp, emit)
     return model, report
 
 
@@ -628,7 +657,7 @@ def _solve_weights(
     return linear_coeffs, radial_coeffs, hyperplane_condition, condition
 
 
-def _warn_collapsing(report: FitReport, names: Sequence[str], noise: float) -> None:
+def _warn_collapsing(report: FitReport, names: Sequence[str], noise: float, emit: bool) -> None:
     nearest = np.asarray(report.nearest_distance)
     median = float(np.median(nearest))
     for i, d in enumerate(nearest):
@@ -646,14 +675,15 @@ def _warn_collapsing(report: FitReport, names: Sequence[str], noise: float) -> N
             )
         else:
             continue
-        _warn(report, msg)
+        _warn(report, msg, emit)
 
 
-def _warn(report: FitReport, message: str) -> None:
+def _warn(report: FitReport, message: str, emit: bool) -> None:
     if message not in report.warnings:
         report.warnings.append(message)
-        # Past _warn, its check, _fit_weights and fit: the line that called fit.
-        warnings.warn(message, IdentifiabilityWarning, stacklevel=5)
+        if emit:
+            # Past _warn, its check, _fit_weights and fit: the line that called fit.
+            warnings.warn(message, IdentifiabilityWarning, stacklevel=5)
 
 
 def _extent(source_points: np.ndarray) -> float:
@@ -663,7 +693,7 @@ def _extent(source_points: np.ndarray) -> float:
 
 
 def _warn_noise_gain(
-    report: FitReport, source_points: np.ndarray, noise: float, clamp: str | None
+    report: FitReport, source_points: np.ndarray, noise: float, clamp: str | None, emit: bool
 ) -> None:
     """Warn when landmark noise far below any tracker's already moves the weights.
 
@@ -685,6 +715,7 @@ def _warn_noise_gain(
         f"points' extent {extent:.3g} and far below any tracker's, moves the weights by "
         f"{NOISE_WEIGHT_CHANGE:g} RMS. For tracked input fit with {advice}, SIGMA the "
         "tracker's landmark noise in source units",
+        emit,
     )
 
 

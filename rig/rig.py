@@ -562,11 +562,13 @@ class Rig:
             if matrix is not None:
                 # calibrated() maps each frame point p to (s R) p (frames enter the models as
                 # x @ kron(I, (s R)^T)), so a frame displacement is an expression when it lies
-                # in (s R)^-1 = R^T / s of the span: rows e_k @ (s R) per point, made
+                # in (s R)^-1 of the span: rows e_k @ ((s R)^T)^-1 per point, made
                 # orthonormal again.
+                # The same for any invertible per-point map A (a re-base also scales z,
+                # ``rebase``): frame point p enters as p @ A, so the rows are e_k @ A^-1.
                 k = self.num_points
-                sr = matrix[:3, :3].T
-                rows = (basis.reshape(-1, k, 3) @ sr).reshape(basis.shape[0], -1)
+                inverse = np.linalg.inv(matrix[:3, :3])
+                rows = (basis.reshape(-1, k, 3) @ inverse).reshape(basis.shape[0], -1)
                 basis = np.linalg.qr(rows.T)[0].T
             reference = self.source_neutral if self.calibration is None else self.calibration
             self._pose_bases[scale] = (basis, pose_condition(basis, reference, scale=scale))
@@ -707,6 +709,28 @@ class Rig:
             regions=self.regions,
             _moving=self._moving,
         )
+
+    def with_models(
+        self,
+        models: tuple[WeightModel, ...],
+        *,
+        calibration: np.ndarray | None,
+        report: dict[str, Any] | None = None,
+    ) -> Rig:
+        """This rig's targets with other weight models (one per region), e.g. refitted.
+
+        ``calibration`` is the neutral the models read frames against (None: the source
+        neutral); ``report`` replaces the fit report (None keeps it). Shares the arrays.
+        """
+        if len(models) != len(self.models) or any(
+            m.num_examples != old.num_examples or m.num_points != old.num_points
+            for m, old in zip(models, self.models, strict=False)
+        ):
+            raise ValueError("with_models needs one model per region, of the same sizes")
+        rig = self._derive(tuple(models), calibration=calibration, align_scale=self.align_scale)
+        if report is not None:
+            rig.fit_report = report
+        return rig
 
     def with_clamp(self, clamp: str | None) -> Rig:
         """The same rig with another weight-clamping mode (None, "nonneg", "unit").

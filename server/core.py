@@ -179,6 +179,8 @@ class ConnectionCore:
         self.rig: Rig | None = None
         #: The next frame becomes the neutral (``hello.calibration`` or ``calibrate``).
         self.calibrate_next = False
+        #: The landmark noise that ``calibrate`` gave for it (None: an exact re-base).
+        self.calibrate_noise: float | None = None
         #: Work asked for and not yet answered (a rig load, a calibration).
         self.waiting = 0
         self.last_message = now
@@ -202,12 +204,13 @@ class ConnectionCore:
         self.last_message = now
         self.protocol.receive_text(text)
 
-    def handle(self, message: ClientMessage) -> Hello | np.ndarray | None:
+    def handle(self, message: ClientMessage) -> Hello | Calibrate | None:
         """React to a decoded message other than a frame.
 
         Returns the work the driver must do and report back: the `Hello` whose rig to
-        load (then `open` or `failed`), or calibration points (then `calibrated` or
-        `calibration_failed`); None when the answer, if any, is in `data_to_send`.
+        load (then `open` or `failed`), or the `Calibrate` with the points to re-base on
+        (then `calibrated` or `calibration_failed`); None when the answer, if any, is in
+        `data_to_send`.
         """
         if isinstance(message, Ping):
             self.send(Pong(id=message.id, ts=message.ts))
@@ -222,9 +225,10 @@ class ConnectionCore:
                 self.send(Calibrated(active=False))
             elif message.points is None:
                 self.calibrate_next = True
+                self.calibrate_noise = message.noise
             else:
                 self.waiting += 1
-                return message.points
+                return message
         return None
 
     def check_hello(self, hello: Hello) -> None:
@@ -241,6 +245,7 @@ class ConnectionCore:
         assert hello is not None
         self.base_rig = self.rig = rig
         self.calibrate_next = hello.calibration
+        self.calibrate_noise = None
         self.send(ready_message(session_id, hello, rig, self.protocol.limits, self.settings))
 
     def failed(self, now: float) -> None:
@@ -425,6 +430,8 @@ class PublisherCore(ConnectionCore):
     ) -> None:
         super().__init__(protocol, settings, now, idle_timeout=idle_timeout)
         self.neutral: np.ndarray | None = None
+        #: The landmark noise the neutral was re-based with (None: exactly; §5.1.3).
+        self.neutral_noise: float | None = None
         #: Names the neutral, so keys see a new one even if its points are equal.
         self.neutral_id = ""
         #: Frames of this publisher the channel discarded (superseded): ``channel.dropped``.
@@ -459,17 +466,25 @@ class PublisherCore(ConnectionCore):
         return hello.smoothing
 
     def calibrated(
-        self, rig: Rig, now: float, seq: int | None = None, *, points: np.ndarray | None = None
+        self,
+        rig: Rig,
+        now: float,
+        seq: int | None = None,
+        *,
+        points: np.ndarray | None = None,
+        noise: float | None = None,
     ) -> None:
-        """As `ConnectionCore.calibrated`; ``points`` (the neutral) go to the channel."""
+        """As `ConnectionCore.calibrated`; ``points`` (the neutral) and the ``noise`` it was
+        re-based with go to the channel, whose every key re-bases its own rig the same way."""
         assert points is not None
         self.neutral = np.array(points, copy=True)
+        self.neutral_noise = noise
         self.neutral_id = secrets.token_hex(6)
         super().calibrated(rig, now, seq)
 
     def reset_calibration(self) -> None:
         super().reset_calibration()
-        self.neutral, self.neutral_id = None, ""
+        self.neutral, self.neutral_noise, self.neutral_id = None, None, ""
 
 
 class WatcherCore(ConnectionCore):

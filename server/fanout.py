@@ -20,6 +20,7 @@ from facecast.protocol import Head, Result, Smoothing, array_from_wire, array_to
 from facecast.protocol.arrays import check_result_finite
 from facecast.rig.errors import InputError, RigError
 from facecast.rig.filters import OneEuroFilter
+from facecast.rig.rebase import calibrate as calibrate_rig
 
 if TYPE_CHECKING:
     from facecast.rig import Rig
@@ -50,6 +51,8 @@ class ChannelFrame:
     align, scale : the publisher's ``hello`` options, applied on every key's rig
     smoothing : the publisher's weight smoothing (target "weights"), or None
     neutral : (K, 3) or None, the performer's calibrated neutral
+    neutral_noise : the landmark noise the neutral came with (calibrate ``noise``, §5.1.3):
+        every key re-bases its rig noise-aware with it (``rig.rebase``); None: exactly
     neutral_id : changes whenever ``neutral`` does (keys cache their calibrated rig by it)
     head : the frame's head pose (PROTOCOL.md §5.3), relayed unchanged in every key's result
     """
@@ -63,6 +66,7 @@ class ChannelFrame:
     scale: bool = False
     smoothing: Smoothing | None = None
     neutral: np.ndarray | None = None
+    neutral_noise: float | None = None
     neutral_id: str = ""
     head: Head | None = None
 
@@ -78,6 +82,7 @@ class ChannelFrame:
                 "scale": self.scale,
                 "smoothing": None if self.smoothing is None else self.smoothing.serialize(),
                 "neutral": None if self.neutral is None else array_to_wire(self.neutral),
+                "neutral_noise": self.neutral_noise,
                 "neutral_id": self.neutral_id,
                 "head": None if self.head is None else self.head.serialize(),
             },
@@ -109,9 +114,19 @@ class ChannelFrame:
             neutral=None
             if neutral is None
             else array_from_wire(neutral, "neutral", trailing=(3,), max_rows=max_points),
+            neutral_noise=_optional_float(obj.get("neutral_noise")),
             neutral_id=str(obj.get("neutral_id", "")),
             head=None if head is None else Head.parse(head, "head"),
         )
+
+
+def _optional_float(value: object) -> float | None:
+    """A channel frame's optional number (``neutral_noise``); ValueError if not one."""
+    if value is None:
+        return None
+    if type(value) not in (int, float):
+        raise ValueError(f"channel frame: expected a number or nil, got {type(value).__name__}")
+    return float(value)  # type: ignore[arg-type]
 
 
 class _Key:
@@ -176,7 +191,7 @@ class KeyState(_Key):
             rig = self.rig
             if frame.neutral is not None:
                 try:
-                    rig = rig.calibrated(frame.neutral)
+                    rig = calibrate_rig(rig, frame.neutral, frame.neutral_noise)
                 except RigError as exc:
                     # The publisher's rig accepted this neutral; this one cannot: serve it
                     # uncalibrated rather than not at all.

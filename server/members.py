@@ -26,6 +26,7 @@ from facecast.protocol import (
     ServerProtocol,
 )
 from facecast.rig.errors import InputError, RigError
+from facecast.rig.rebase import calibrate as calibrate_rig
 
 from .cloning import Smoother, frame_error
 from .core import PublisherCore, WatcherCore
@@ -111,7 +112,8 @@ class PublisherMember(Member):
         if isinstance(work, Hello):
             await self._on_hello(work)
         elif work is not None:
-            await self._calibrate(work, None)
+            assert work.points is not None  # the core hands over only calibrates with points
+            await self._calibrate(work.points, None, work.noise)
         self._deliver()
         self.arm()  # a wait for the rig or a neutral suspended the idle deadline
 
@@ -146,7 +148,7 @@ class PublisherMember(Member):
         assert self.channel is not None and self.hello is not None
         points = frame.points
         if core.take_neutral():
-            await self._calibrate(points, frame.seq)
+            await self._calibrate(points, frame.seq, core.calibrate_noise)
             self._deliver()
         try:
             # Refused here, a frame far outside the layout rig's range (wrong units) never
@@ -163,7 +165,8 @@ class PublisherMember(Member):
             ChannelFrame(
                 seq=frame.seq, ts=frame.ts, points=points, dropped=core.dropped_total(),
                 align=hello.align, scale=hello.align_scale, smoothing=smoothing,
-                neutral=core.neutral, neutral_id=core.neutral_id,
+                neutral=core.neutral, neutral_noise=core.neutral_noise,
+                neutral_id=core.neutral_id,
                 raw_points=frame.points if self._point_filter is not None else None,
                 head=frame.head,
             )
@@ -174,19 +177,20 @@ class PublisherMember(Member):
         # then cloned, not superseded), as /v1/stream does.
         await asyncio.sleep(0)
 
-    async def _calibrate(self, points: np.ndarray, seq: int | None) -> None:
-        """Fit the neutral on the layout rig (every key re-bases its own on it)."""
+    async def _calibrate(self, points: np.ndarray, seq: int | None, noise: float | None) -> None:
+        """Fit the neutral on the layout rig (every key re-bases its own on it, with the
+        same ``noise``: None exactly, else noise-aware and bounded, ``rig.rebase``)."""
         core = self.core
         base = core.base_rig
         assert base is not None
         try:
             rig = await asyncio.get_running_loop().run_in_executor(
-                self.hub.executor, base.calibrated, points
+                self.hub.executor, calibrate_rig, base, points, noise
             )
         except RigError as exc:
             core.calibration_failed(exc, time.monotonic(), seq)
             return
-        core.calibrated(rig, time.monotonic(), seq, points=points)
+        core.calibrated(rig, time.monotonic(), seq, points=points, noise=noise)
 
     async def leave(self) -> None:
         # Called when the member ends and again by the route (which covers a failed

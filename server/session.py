@@ -29,6 +29,7 @@ from facecast.protocol import (
 )
 from facecast.rig import Rig
 from facecast.rig.errors import InputError, RigError
+from facecast.rig.rebase import calibrate as calibrate_rig
 
 from .blending import BlendBatcher
 from .cloning import (
@@ -348,7 +349,8 @@ class Session(Driver):
         if isinstance(work, Hello):
             await self._open(work)
         elif work is not None:
-            await self._calibrate(work)
+            assert work.points is not None  # the core hands over only calibrates with points
+            await self._calibrate(work.points, noise=work.noise)
         self._deliver()
         self.arm()  # a wait for the rig or a neutral suspended the idle deadline
 
@@ -452,16 +454,23 @@ class Session(Driver):
             },
         )
 
-    async def _calibrate(self, points: np.ndarray, seq: int | None = None) -> bool:
+    async def _calibrate(
+        self, points: np.ndarray, seq: int | None = None, *, noise: float | None = None
+    ) -> bool:
         """Fit the neutral ``points`` (a ``calibrate`` message's, or frame ``seq``'s).
 
-        The core queues its ``calibrated`` or its CALIBRATION_FAILED error; False if failed.
+        ``noise``: the calibrate's landmark noise, for a noise-aware, bounded re-base
+        (``rig.rebase``); None re-bases exactly. The core queues its ``calibrated`` or its
+        CALIBRATION_FAILED error; False if failed.
         """
         base = self.core.base_rig
         assert base is not None
         try:
-            # Re-fitting the projection is milliseconds for large K: in the clone pool.
-            rig = await self._loop.run_in_executor(self.executor, base.calibrated, points)
+            # Re-fitting the projection (or, with noise, the weight model) is milliseconds:
+            # in the clone pool.
+            rig = await self._loop.run_in_executor(
+                self.executor, calibrate_rig, base, points, noise
+            )
         except RigError as exc:
             self.core.calibration_failed(exc, time.monotonic(), seq)
             return False
@@ -522,7 +531,7 @@ class Session(Driver):
         """The encoded result of ``frame``, or None when it was refused (error queued)."""
         core = self.core
         if core.take_neutral():
-            if not await self._calibrate(frame.points, frame.seq):
+            if not await self._calibrate(frame.points, frame.seq, noise=core.calibrate_noise):
                 self._deliver()  # the CALIBRATION_FAILED error, instead of a result
                 return None
             for data in core.data_to_send():  # its ``calibrated``, before its result

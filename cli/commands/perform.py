@@ -116,6 +116,7 @@ async def perform(args: argparse.Namespace) -> PerformStats:
     from facecast.cli.facetrack import FaceTracker, VideoSource
     from facecast.client.channel import FramePublisher, channel_url
     from facecast.protocol import Hello
+    from facecast.rig import estimate_noise
     from facecast.rig.sources.capture import robust_example
     from facecast.rig.sources.layouts import DEFAULT_LAYOUT, load_layout
 
@@ -126,7 +127,10 @@ async def perform(args: argparse.Namespace) -> PerformStats:
     source = VideoSource(args.video if args.video is not None else args.camera)
     tracker = FaceTracker(layout, static=not args.track_between_frames)
     stats = PerformStats()
-    hello = Hello(rig=args.rig, calibration=calibrate)
+    # The neutral goes in a calibrate with its measured noise (below), not as the first
+    # frame (hello.calibration): a rig not fitted on this face is then re-based
+    # noise-aware and bounded, never extrapolating for viewers (PROTOCOL.md §5.1.3).
+    hello = Hello(rig=args.rig)
     deadline = None if args.seconds is None else time.monotonic() + args.seconds
     with source, tracker:
         async with FramePublisher(url, hello, token=args.token) as publisher:
@@ -167,10 +171,13 @@ async def perform(args: argparse.Namespace) -> PerformStats:
                     neutral.append(points)
                     if len(neutral) < args.neutral_frames:
                         continue
-                    # The first frame published is the held neutral's robust average: the
-                    # server calibrates on it (hello.calibration).
-                    points, spread, _ = robust_example(np.stack(neutral))
-                    say(f"neutral captured (spread {spread:.3f})")
+                    # The held neutral's robust average, re-based on with the landmark
+                    # noise of its frames; then it is the first frame published.
+                    held = np.stack(neutral)
+                    points, spread, _ = robust_example(held)
+                    noise = estimate_noise(held)
+                    await publisher.calibrate(points, noise)
+                    say(f"neutral captured (spread {spread:.3f}, landmark noise {noise:.4f})")
                 seq = await publisher.send(points.astype(np.float32), time.time())
                 if seq is None:
                     stats.dropped += 1

@@ -9,18 +9,21 @@ from hypothesis import settings as hsettings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from facecast.client.channel import FramePublisher, channel_url
 from facecast.protocol import (
     Calibrate,
     Calibrated,
     Error,
     ErrorCode,
     Frame,
+    Hello,
     Ping,
     Pong,
     Result,
     Smoothing,
     encode,
 )
+from facecast.rig.rebase import rebase
 from facecast.server.fanout import ChannelFrame
 from facecast.server.testing import run_server
 
@@ -43,6 +46,48 @@ async def test_calibration_rebases_every_watched_rig(settings, rigs, ws_impl):
 
     expected = rigs["gamma"].calibrated(neutral).weights(pts).astype(np.float32)
     np.testing.assert_array_equal(result.weights, expected)
+
+
+async def test_calibration_with_noise_rebases_every_watched_rig_bounded(settings, rigs, ws_impl):
+    # The page's calibrate carries the measured noise (PROTOCOL.md §5.1.3): every watched
+    # rig is then re-based noise-aware, its weights bounded to [0, 1], as rig.rebase does.
+    neutral = points(rigs["alpha"], 99)
+    pts = np.stack([points(rigs["alpha"], seed) for seed in range(6)])
+    async with run_server(settings, ws=ws_impl) as server:
+        watcher = await Watcher.open(server.ws_url, "stage", "gamma")
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        await publisher.ws.send(publisher.protocol.send(Calibrate(points=neutral, noise=0.01)))
+        while not isinstance(await publisher.queue.get(), Calibrated):
+            pass
+        results = []
+        for seq, frame in enumerate(pts):
+            await publisher.send(seq, frame)
+            results.append((await watcher.result_with_seq(seq)).weights)
+
+    received = np.stack(results)
+    expected = rebase(rigs["gamma"], neutral, noise=0.01).weights(pts).astype(np.float32)
+    exact = rigs["gamma"].calibrated(neutral).weights(pts)
+    np.testing.assert_array_equal(received, expected)
+    assert received[:, 1:].min() >= 0.0 and received[:, 1:].max() <= 1.0
+    assert exact[:, 1:].min() < 0.0 or exact[:, 1:].max() > 1.0  # what it was without
+
+
+async def test_a_frame_publishers_calibrate_rebases_the_channel_before_its_next_frame(
+    settings, rigs, ws_impl
+):
+    # FramePublisher.calibrate (what 'facecast perform' sends after the held neutral).
+    neutral = points(rigs["alpha"], 99)
+    pts = points(rigs["alpha"], 5)
+    results = []
+    async with run_server(settings, ws=ws_impl) as server:
+        url = channel_url(server.base_url, "stage", "publish")
+        async with FramePublisher(url, Hello(rig="alpha"), on_result=results.append) as pub:
+            await pub.calibrate(neutral, 0.01)
+            await pub.send(pts, 0.0)
+            assert await pub.drain(10.0)
+
+    expected = rebase(rigs["alpha"], neutral, noise=0.01).weights(pts).astype(np.float32)
+    np.testing.assert_array_equal(results[-1].weights, expected)
 
 
 async def test_align_applies_to_every_watched_rig(settings, rigs, ws_impl):
@@ -117,6 +162,7 @@ async def test_a_watcher_may_ping_but_not_send_frames(settings, rigs, ws_impl):
 def test_channel_frames_cross_processes_unchanged(seq, ts, pts, align, with_neutral, smoothing):
     frame = ChannelFrame(seq=seq, ts=ts, points=pts, align=align, smoothing=smoothing,
                          neutral=pts + 1 if with_neutral else None,
+                         neutral_noise=0.0125 if with_neutral else None,
                          neutral_id="n1" if with_neutral else "")  # fmt: skip
 
     back = ChannelFrame.from_bytes(frame.to_bytes(), max_points=4096)
@@ -124,6 +170,7 @@ def test_channel_frames_cross_processes_unchanged(seq, ts, pts, align, with_neut
     assert (back.seq, back.ts, back.align, back.smoothing, back.neutral_id) == (
         seq, ts, align, smoothing, frame.neutral_id,
     )  # fmt: skip
+    assert back.neutral_noise == frame.neutral_noise
     np.testing.assert_array_equal(back.points, pts)
     assert back.points.dtype == np.float32
     if with_neutral:

@@ -13,6 +13,7 @@ import subprocess
 import numpy as np
 import pytest
 
+from facecast.rig import estimate_noise
 from facecast.rig.sources.facemesh import normalise_mesh
 from facecast.rig.sources.layouts import load_layout
 from facecast.server.viewer import viewer_dir
@@ -27,6 +28,20 @@ process.stdout.write(JSON.stringify(out));
 """
 
 
+def _run_node(node: str, script: str, data: object) -> object:
+    """``script`` (an ES module in the viewer's folder) on ``data`` as JSON; its JSON out."""
+    run = subprocess.run(
+        [node, "--input-type=module", "-e", script],
+        cwd=viewer_dir(),
+        input=json.dumps(data),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert run.returncode == 0, run.stderr[-2000:]
+    return json.loads(run.stdout)
+
+
 def test_javascript_and_python_normalise_a_mesh_alike():
     node = shutil.which("node")
     if node is None:
@@ -39,16 +54,30 @@ def test_javascript_and_python_normalise_a_mesh_alike():
     meshes[:, layout.frame["left"]] += [30.0, 0.0, 0.0]
     meshes[:, layout.frame["top"]] += [0.0, 60.0, 0.0]
 
-    run = subprocess.run(
-        [node, "--input-type=module", "-e", _SCRIPT],
-        cwd=viewer_dir(),
-        input=json.dumps(meshes.tolist()),
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
-
-    assert run.returncode == 0, run.stderr[-2000:]
-    from_js = np.array(json.loads(run.stdout)).reshape(3, -1, 3)
+    from_js = np.array(_run_node(node, _SCRIPT, meshes.tolist())).reshape(3, -1, 3)
     from_python = normalise_mesh(meshes, layout)
     np.testing.assert_allclose(from_js, from_python, rtol=1e-5, atol=1e-4)
+
+
+_NOISE_SCRIPT = """
+import { readFileSync } from "node:fs";
+import { heldNoise } from "./src/perform/capture.js";
+process.stdout.write(JSON.stringify(heldNoise(JSON.parse(readFileSync(0, "utf8")))));
+"""
+
+
+def test_the_pages_neutral_noise_is_estimate_noise():
+    # What the page sends with its calibrate (heldNoise) and what the server measures from
+    # held frames (rig.estimate_noise) are one rule: they must give the same sigma.
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("node is not installed")
+    rng = np.random.default_rng(5)
+    held = (
+        rng.normal(scale=0.03, size=(24, load_layout().num_features, 3))
+        + np.linspace(0.0, 0.2, 24)[:, None, None]
+    )  # a slow drift, which steps barely count
+
+    from_js = _run_node(node, _NOISE_SCRIPT, held.tolist())
+
+    assert from_js == pytest.approx(estimate_noise(held), rel=1e-12)

@@ -86,7 +86,11 @@ def results(draw) -> Result:
 client_messages = st.one_of(
     hellos(),
     st.builds(Frame, seq=uint64, ts=finite, points=points()),
-    st.builds(Calibrate, points=st.none() | points()),
+    st.builds(
+        Calibrate,
+        points=st.none() | points(),
+        noise=st.none() | st.floats(0.0, 1e300, allow_nan=False, allow_infinity=False),
+    ),
     st.builds(Calibrate, reset=st.booleans()),
     st.builds(Ping, id=uint64, ts=finite),
 )

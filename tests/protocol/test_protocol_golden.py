@@ -5,11 +5,12 @@ from __future__ import annotations
 import re
 from importlib import resources
 
+import msgpack
 import pytest
 from _protocol_samples import SAMPLES
 
-from facecast.protocol import decode_client, decode_server, encode
-from facecast.protocol.messages import CLIENT_MESSAGES, SERVER_MESSAGES
+from facecast.protocol import ErrorCode, ProtocolError, decode_client, decode_server, encode
+from facecast.protocol.messages import CLIENT_MESSAGES, SERVER_MESSAGES, Calibrate
 
 GOLDEN = {
     "hello": "86a17601a474797065a568656c6c6fa3726967a464656d6fa66f7574707574a777656967687473a564"
@@ -39,7 +40,7 @@ GOLDEN = {
 }
 
 #: Further examples in PROTOCOL.md, of message variants (test_protocol_moving checks them).
-VARIANTS = ("ready_moving", "result_moving")
+VARIANTS = ("ready_moving", "result_moving", "calibrate_noise")
 
 # Examples in PROTOCOL.md look like: <!-- example: frame --> then a fenced block of hex.
 _EXAMPLE = re.compile(r"<!-- example: (\w+) -->\s*```[a-z]*\n(.*?)```", re.DOTALL)
@@ -78,3 +79,35 @@ def test_spec_shows_an_example_of_every_message_type() -> None:
 @pytest.mark.parametrize("name", sorted(GOLDEN))
 def test_spec_hex_example_equals_encoded_bytes(name: str) -> None:
     assert _spec_examples().get(name) == encode(SAMPLES[name])
+
+
+def test_calibrate_with_noise_is_the_spec_example_and_round_trips() -> None:
+    message = Calibrate(noise=0.015625)
+    data = encode(message)
+
+    assert _spec_examples()["calibrate_noise"] == data
+    assert decode_client(data) == message
+
+
+def test_calibrate_without_noise_keeps_its_bytes_and_reads_none() -> None:
+    # An older client's calibrate: no "noise" key on the wire, noise None after decoding.
+    assert decode_client(bytes.fromhex(GOLDEN["calibrate"])).noise is None
+    assert b"noise" not in encode(Calibrate())
+
+
+@pytest.mark.parametrize(
+    ("fields", "code"),
+    [
+        ({"noise": -0.01}, ErrorCode.INVALID_FIELD),
+        ({"noise": float("nan")}, ErrorCode.NON_FINITE),
+        ({"noise": "0.1"}, ErrorCode.INVALID_FIELD),
+        ({"noise": 0.01, "reset": True}, ErrorCode.INVALID_FIELD),
+    ],
+)
+def test_a_bad_calibrate_noise_is_refused_with_its_code(fields, code) -> None:
+    body = {"v": 1, "type": "calibrate", "points": None, "reset": False, **fields}
+
+    with pytest.raises(ProtocolError) as raised:
+        decode_client(msgpack.packb(body))
+
+    assert raised.value.code == code

@@ -259,7 +259,7 @@ def test_time_fitting_a_calibrate_message_is_not_client_idle_time(rig):
     opened(core, rig)
     points = frame_points(rig, 0)
     work = core.handle(core.receive(encode(Calibrate(points=points)), 1.0))
-    assert isinstance(work, np.ndarray)
+    assert isinstance(work, Calibrate)
 
     assert core.deadline() is None
     core.tick(1.0 + IDLE)
@@ -293,8 +293,9 @@ def test_calibrate_with_points_asks_for_the_fit_and_acks_it(rig):
     points = frame_points(rig, 1)
     work = core.handle(core.receive(encode(Calibrate(points=points)), 0.0))
 
-    assert isinstance(work, np.ndarray) and np.array_equal(work, points)
-    calibrated = rig.calibrated(work)
+    assert isinstance(work, Calibrate) and np.array_equal(work.points, points)
+    assert work.noise is None
+    calibrated = rig.calibrated(work.points)
     core.calibrated(calibrated, 0.1)
     assert core.rig is calibrated and core.base_rig is rig
     assert sent(core) == [Calibrated(active=True)]
@@ -309,6 +310,19 @@ def test_calibrate_without_points_takes_the_next_frame_once(rig):
     assert not core.take_neutral()
     core.calibrated(rig.calibrated(frame_points(rig, 0)), 0.1, seq=9)
     assert sent(core) == [Calibrated(active=True, seq=9)]
+
+
+def test_calibrate_noise_comes_with_its_points_or_waits_with_the_next_frame(rig):
+    core = stream_core()
+    opened(core, rig)
+    points = frame_points(rig, 1)
+
+    work = core.handle(core.receive(encode(Calibrate(points=points, noise=0.02)), 0.0))
+    assert isinstance(work, Calibrate) and work.noise == 0.02
+    core.calibrated(rig.calibrated(points), 0.1)
+    assert core.handle(core.receive(encode(Calibrate(noise=0.03)), 0.2)) is None
+
+    assert core.take_neutral() and core.calibrate_noise == 0.03
 
 
 def test_calibrate_reset_goes_back_to_the_rig_of_hello(rig):

@@ -42,6 +42,7 @@ from facecast.protocol import (
 )
 from facecast.rig import fit
 from facecast.rig.filters import KALMAN_ACCELERATION, KalmanFilter, OneEuroFilter
+from facecast.rig.rebase import rebase
 from facecast.server.cloning import blend_seconds
 from facecast.server.session import INLINE_MAX_SECONDS
 from facecast.server.settings import Settings
@@ -170,6 +171,25 @@ async def test_calibrate_without_points_uses_the_next_frame(served, rig):
     np.testing.assert_allclose(result.weights, np.eye(rig.num_examples)[0], atol=1e-5)
 
 
+async def test_calibrate_with_noise_rebases_noise_aware_and_bounded(served, rig):
+    neutral = frame_points(rig, 10) + np.float32(0.5)
+    p = frame_points(rig, 11) + np.float32(0.5)
+    async with connect(served) as ws:
+        await open_session(ws, "face")
+        await ws.send(encode(Calibrate(noise=0.01)))
+        await ws.send(frame(0, neutral))  # the next frame is the neutral, with that noise
+        ack = await recv_message(ws)
+        first = await next_result(ws)
+        await ws.send(frame(1, p))
+        result = await next_result(ws)
+
+    assert ack == Calibrated(active=True, seq=0)
+    np.testing.assert_allclose(first.weights, np.eye(rig.num_examples)[0], atol=1e-6)
+    expected = rebase(rig, neutral, noise=0.01).weights(p).astype(np.float32)
+    np.testing.assert_allclose(result.weights, expected, atol=1e-6)
+    assert result.weights[1:].min() >= 0.0 and result.weights[1:].max() <= 1.0
+
+
 # -- results that would not be finite (issue 13, item 3) ----------------------------------
 
 
@@ -225,6 +245,21 @@ async def test_calibrate_with_an_absurd_neutral_is_refused_and_results_stay_fini
         result = await next_result(ws)
 
     assert (error.code, error.fatal) == (ErrorCode.CALIBRATION_FAILED, False)
+    np.testing.assert_array_equal(result.weights, rig.weights(p).astype(np.float32))
+
+
+async def test_calibrate_with_an_absurd_noise_is_refused_and_results_stay_finite(served, rig):
+    neutral = frame_points(rig, 10)
+    p = frame_points(rig, 24)
+    async with connect(served) as ws:
+        await open_session(ws, "face")
+        await ws.send(encode(Calibrate(points=neutral, noise=1e300)))
+        error = await recv_error(ws)
+        await ws.send(frame(0, p))
+        result = await next_result(ws)
+
+    assert (error.code, error.fatal) == (ErrorCode.CALIBRATION_FAILED, False)
+    assert "noise" in error.message
     np.testing.assert_array_equal(result.weights, rig.weights(p).astype(np.float32))
 
 

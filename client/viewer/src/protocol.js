@@ -163,9 +163,12 @@ export function encodeFrame(seq, ts, points) {
   });
 }
 
-/** §5.1.3: re-base the session's rig on this neutral (`points`: Float32Array K*3). */
-export function encodeCalibrate(points) {
-  return msgpackEncode({ v: PROTOCOL_VERSION, type: "calibrate", points: arrayToWire(points, [points.length / 3, 3]), reset: false });
+/** §5.1.3: re-base the session's rig on this neutral (`points`: Float32Array K*3); with
+ * `noise` (the performer's landmark σ, a number ≥ 0) noise-aware and bounded. */
+export function encodeCalibrate(points, noise = null) {
+  const message = { v: PROTOCOL_VERSION, type: "calibrate", points: arrayToWire(points, [points.length / 3, 3]), reset: false };
+  if (typeof noise === "number" && Number.isFinite(noise) && noise >= 0) message.noise = noise;
+  return msgpackEncode(message);
 }
 
 export function encodePing(id, ts) {

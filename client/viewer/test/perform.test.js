@@ -4,7 +4,7 @@ import assert from "node:assert/strict";
 import { readFileSync } from "node:fs";
 import { test } from "node:test";
 
-import { expectsEyesShut, heldFrames, HELD_CAPTURES, noiseText, summariseCapture } from "../src/perform/capture.js";
+import { expectsEyesShut, heldFrames, heldNoise, HELD_CAPTURES, noiseText, summariseCapture } from "../src/perform/capture.js";
 import {
   checkLayout,
   eyeOpenness,
@@ -144,6 +144,19 @@ test("the fit sends the held frames of at most HELD_CAPTURES captures, rounded",
   const value = held.e0[0][3][1];
   assert.equal(value, Math.round(summary.held[0][3][1] * 1e4) / 1e4);
   assert.deepEqual(heldFrames([{ name: "x", result: { ok: false } }]), {});
+});
+
+test("the neutral's noise is half the mean squared frame-to-frame step, square-rooted", () => {
+  // rig.noise.estimate_noise's rule: steps of 0.3 on one coordinate of three frames of 2
+  // points (12 coordinates a step): sqrt((2 * 0.09) / 12 / 2).
+  const frame = (y) => [[0, y, 0], [1, 1, 1]];
+  const noise = heldNoise([frame(0), frame(0.3), frame(0)]);
+  assert.ok(Math.abs(noise - Math.sqrt((2 * 0.09) / 12 / 2)) < 1e-12, `noise ${noise}`);
+  // A slow drift counts far less than its spread: the steps, not the distance from the mean.
+  const drift = Array.from({ length: 21 }, (_, i) => frame(i * 0.01));
+  assert.ok(heldNoise(drift) < 0.01);
+  assert.equal(heldNoise([frame(0)]), 0);
+  assert.equal(heldNoise(null), 0);
 });
 
 test("the page says the fit's noise and where it came from", () => {

@@ -2,10 +2,13 @@
 import assert from "node:assert/strict";
 import { test } from "node:test";
 
+import { decode as msgpackDecode } from "@msgpack/msgpack";
+
 import {
   applyMoving,
   arrayFromWire,
   decodeServer,
+  encodeCalibrate,
   encodeFrame,
   encodePing,
   ErrorCode,
@@ -13,6 +16,7 @@ import {
   ProtocolError,
 } from "../src/protocol.js";
 
+const decode = (bytes) => msgpackDecode(bytes);
 const hex = (text) => Uint8Array.from(text.trim().split(/\s+/), (b) => parseInt(b, 16));
 
 test("frame encodes to the bytes of PROTOCOL.md §10.2", () => {
@@ -25,6 +29,15 @@ test("frame encodes to the bytes of PROTOCOL.md §10.2", () => {
   const points = new Float32Array([0, 1, 2, -0.5, 0.25, 1.5]);
   // 12.5 is not an integer, so msgpack writes float 64 as the spec's example does.
   assert.deepEqual(encodeFrame(7, 12.5, points), expected);
+});
+
+test("calibrate carries its noise only when given (PROTOCOL.md §5.1.3)", () => {
+  const points = new Float32Array([0, 1, 2, -0.5, 0.25, 1.5]);
+  const plain = decode(encodeCalibrate(points));
+  const noisy = decode(encodeCalibrate(points, 0.015625));
+  assert.equal("noise" in plain, false);
+  assert.equal(noisy.noise, 0.015625);
+  assert.equal("noise" in decode(encodeCalibrate(points, Number.NaN)), false);
 });
 
 test("ping encodes to the bytes of PROTOCOL.md §10.5", () => {

@@ -170,6 +170,30 @@ export function heldFrames(accepted) {
   );
 }
 
+/**
+ * The landmark noise σ of a capture's held frames (K×3 arrays each, in order), layout
+ * units: half the mean squared frame-to-frame step per coordinate, square-rooted — the
+ * rule of facecast.rig.estimate_noise, so a face relaxing slowly is not counted. The
+ * neutral's goes with the calibrate (PROTOCOL.md §5.1.3): the server re-bases a generic
+ * rig noise-aware and bounded with it. 0 for fewer than 2 frames (a still image: 0 too).
+ */
+export function heldNoise(held) {
+  if (!held || held.length < 2) return 0;
+  let sum = 0;
+  let count = 0;
+  for (let f = 1; f < held.length; f++) {
+    const a = held[f - 1];
+    const b = held[f];
+    for (let k = 0; k < b.length; k++) {
+      for (let c = 0; c < 3; c++) {
+        sum += (b[k][c] - a[k][c]) ** 2;
+        count += 1;
+      }
+    }
+  }
+  return Math.sqrt(sum / count / 2);
+}
+
 /** How the fit's landmark noise was found, for the performer (layout units ≈ cm, shown in mm). */
 export function noiseText(answer) {
   if (typeof answer.noise !== "number") return "";

@@ -56,6 +56,7 @@ const stats = {
   head: null, // {yaw, pitch, roll} of the last frame, degrees
   eyes: null,
   rebased: false, // a generic rig re-based on the performer's captured neutral (calibrated)
+  neutralNoise: null, // σ of the neutral capture's held frames, sent with the calibrate
   rig: null,
   channel: null,
 };
@@ -160,8 +161,10 @@ async function main() {
     showLive() {
       live = true;
     },
-    neutralCaptured(points) {
+    neutralCaptured(points, noise) {
       neutral = Float32Array.from(points.flat());
+      neutralNoise = noise;
+      stats.neutralNoise = noise;
       rebase(link);
     },
   });
@@ -188,8 +191,11 @@ async function main() {
     `rig ${params.rig} is not fitted on your face: press Calibrate and capture your neutral ` +
     "first; until then no frame is published (the character would be distorted)";
   let neutral = null;
+  // The landmark noise of the neutral's held frames: with it the server re-bases the rig
+  // noise-aware and bounded (weights in [0, 1]), never extrapolating for viewers.
+  let neutralNoise = null;
   const rebase = (l) => {
-    if (neutral && publishing && generic) l.send(encodeCalibrate(neutral));
+    if (neutral && publishing && generic) l.send(encodeCalibrate(neutral, neutralNoise));
   };
   let latencyEma = null;
   const link = new Link(socketTarget(params), {

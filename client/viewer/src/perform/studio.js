@@ -2,13 +2,14 @@
 // examples shown posed on the character; capture ~1 s of each, redo or skip any, then
 // fit the performer's own rig on the server. DOM and fetch; the math is in capture.js.
 
-import { heldFrames, noiseText, summariseCapture } from "./capture.js";
+import { heldFrames, heldNoise, noiseText, summariseCapture } from "./capture.js";
 
 export const CAPTURE_MS = 1000;
 
 /**
  * host: {stats, params, layoutName, authHeaders(), problemText(response, problem, role, what),
- *        performHref(rigId), showExample(name), showLive(), neutralCaptured(points K×3)}
+ *        performHref(rigId), showExample(name), showLive(),
+ *        neutralCaptured(points K×3, noise: σ of its held frames)}
  */
 export class Studio {
   constructor(doc, host) {
@@ -112,7 +113,7 @@ export class Studio {
       frames: rec.samples.length,
     };
     if (summary.ok) {
-      if (step.name === "neutral") this.host.neutralCaptured(summary.points);
+      if (step.name === "neutral") this.host.neutralCaptured(summary.points, heldNoise(summary.held));
       this.verdict(
         `${step.name}: held well — spread ${(summary.spread * 10).toFixed(2)} mm, head yaw ${summary.head.yaw.toFixed(0)}° ` +
           `pitch ${summary.head.pitch.toFixed(0)}° (moved ${summary.headMotion.toFixed(1)}°), ${summary.kept} frames kept, ` +

@@ -1,0 +1,197 @@
+"""A rig re-based on another face's neutral, noise-aware and bounded: the generic-rig re-base.
+
+``Rig.calibrated`` keeps a rig exact on another performer's neutral, so the performer's
+landmark noise, and every way their face differs from the rig's source face, reach the
+weights amplified. ``rebase`` refits the weight model for that: no fitting of targets, no
+I/O; it must not change the rig it is given.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+from .errors import InputError
+from .fit import fit_weight_model
+from .pose import similarity_transform
+from .rig import Floats, Rig, WeightModel
+
+__all__ = [
+    "DEPTH_NOISE_FACTOR",
+    "MAX_NOISE_RELATIVE",
+    "REBASE_CLAMP",
+    "calibrate",
+    "identity_noise",
+    "rebase",
+]
+
+#: How much noisier the depth (z) of the performer's points is taken to be than x and y.
+#: A webcam tracker measures a face in the image plane and guesses its depth from a learned
+#: prior: a mouth opening in the image comes back with almost no depth motion, where the
+#: source face's jawOpen moves the chin back as much as down (ICT-FaceKit: 2.9 cm both
+#: ways). Rotated into the source face's pitch (the tests' photo leans back ~25 degrees
+#: against ICT's face), the missing depth reads as the jaw thrust forward. Measured
+#: (docs/perform.md): on the page's tracked photo, ICT's jawOpen over jawForward on
+#: mouth-open frames is 0.20 / 0.13 at 1, 0.24 / 0.09 at 3, 0.25 / 0.08 at 10; on the demo
+#: face with no depth motion at all (tests/rig/test_rebase.py) 1 and 3 read the jaw opening
+#: as another expression, 10 reads it right. At 30 the fit keeps one principal axis fewer
+#: on ICT (50 of 51) and the neutral is no longer exact (weights up to 0.03).
+DEPTH_NOISE_FACTOR = 10.0
+#: A ``noise`` above this many times the neutral's radius (RMS distance of its points from
+#: their centre) is refused: it cannot be landmark noise in the points' units.
+MAX_NOISE_RELATIVE = 10.0
+#: The bounds of a re-based rig's weights: each non-neutral weight in [0, 1], so a face
+#: that no example explains shows the nearest mix of them, never an extrapolated one.
+REBASE_CLAMP = "unit"
+
+
+def identity_noise(rig: Rig, neutral: npt.ArrayLike) -> float:
+    """How far ``neutral`` (K, 3) differs from the rig's source neutral, per coordinate.
+
+    The root-mean-square residual of the best similarity (rotation, uniform scale,
+    translation) of the source neutral onto ``neutral``, in ``neutral``'s units: the part of
+    the two faces' shapes no re-base can remove. A re-based rig reads the performer's
+    expression displacements as the source face's; they differ by about this much too.
+    """
+    x = np.asarray(neutral, dtype=np.float64)
+    source = rig.source_neutral
+    rotation, scales, translation = similarity_transform(source[None], x, scale=True)
+    residual = x - (scales[0] * source @ rotation[0].T + translation[0])
+    return float(np.sqrt(np.mean(residual * residual)))
+
+
+def rebase(
+    rig: Rig,
+    neutral: npt.ArrayLike,
+    *,
+    noise: float,
+    depth_factor: float = DEPTH_NOISE_FACTOR,
+) -> Rig:
+    """``rig`` re-based on a performer's neutral, refitted for their noise and bounded.
+
+    As ``rig.calibrated(neutral)``, frames are read as displacements from ``neutral``, the
+    rig's source examples mapped into the performer's face frame by the same similarity;
+    but the weight model is then refitted there (``fit_weight_model``) for landmark noise
+    of standard deviation sigma on x and y and ``depth_factor`` * sigma on z, with sigma
+    the largest of ``noise`` (the tracker's, measured), ``identity_noise`` (how far this
+    face is from the source face) and the rig's own fitted noise, and its weights bounded
+    to [0, 1] (``REBASE_CLAMP``). So landmark noise and identity mismatch are shrunk
+    towards the neutral instead of amplified, and viewers never get extrapolated weights.
+    The neutral's own points give the neutral exactly.
+
+    Parameters
+    ----------
+    rig : Rig
+        Any fitted rig (a region rig refits each region).
+    neutral : (K, 3) float
+        The performer's neutral, in their tracker's face frame (z the depth).
+    noise : float
+        The tracker's landmark noise in ``neutral``'s units, >= 0 (e.g. measured from the
+        frames the neutral was held over, ``estimate_noise``).
+    depth_factor : float
+        >= 1: z's noise relative to x and y's.
+
+    Returns
+    -------
+    Rig
+        Its ``calibration`` is ``neutral``; ``fit_report["rebase"]`` says the sigma used
+        and where from.
+
+    Raises
+    ------
+    InputError
+        As ``Rig.calibrated`` (``wrong_point_count``, ``non_finite``, ``out_of_range``),
+        and ``bad_noise`` for a ``noise`` or ``depth_factor`` out of range (``noise`` above
+        ``MAX_NOISE_RELATIVE`` times the neutral's radius included).
+    """
+    noise, depth_factor = _sanitize(noise, depth_factor)
+    calibrated = rig.calibrated(neutral)  # checks the neutral; gives the similarity
+    points = np.asarray(calibrated.calibration, dtype=np.float64)
+    radius = float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
+    if noise > MAX_NOISE_RELATIVE * radius:
+        # Noise beyond the face itself says nothing, and its square overflows the refit.
+        raise InputError(
+            f"noise {noise:g} is more than {MAX_NOISE_RELATIVE:g}x the neutral's radius "
+            f"{radius:.3g}: give the landmark noise in the points' units",
+            code="bad_noise",
+        )
+    k = points.shape[0]
+    matrix = calibrated.model.input_matrix
+    assert matrix is not None
+    sr = matrix[:3, :3].T  # source = s R (performer - neutral) + source neutral
+    scale = float(np.cbrt(abs(np.linalg.det(sr))))
+    identity = identity_noise(rig, points)
+    fitted = float(rig.fit_report.get("noise", 0.0) or 0.0) / scale
+    sigma = max(noise, identity, fitted)
+    # Performer frame -> weighted frame: z scaled by 1 / depth_factor, so isotropic noise
+    # sigma there is (sigma, sigma, depth_factor * sigma) in the performer's frame.
+    weight: Floats = np.diag([1.0, 1.0, 1.0 / depth_factor])
+    back = np.linalg.inv(sr).T @ weight  # source displacement rows -> weighted rows
+    offset = (points - points @ weight).reshape(-1)
+    input_matrix: Floats = np.kron(np.eye(k), weight).astype(np.float64)
+    names = [rig.names] if rig.regions is None else [
+        (rig.names[0], *(rig.names[c] for c in columns)) for _, columns in rig.regions
+    ]  # fmt: skip
+    models = tuple(
+        _refit(model, region_names, points, back, sigma).with_input_map(input_matrix, offset)
+        for model, region_names in zip(rig.models, names, strict=True)
+    )
+    report = {
+        **rig.fit_report,
+        "rebase": {
+            "noise": sigma,
+            "tracker_noise": noise,
+            "identity_noise": identity,
+            "rig_noise": fitted,
+            "depth_factor": depth_factor,
+            "clamp": REBASE_CLAMP,
+        },
+    }
+    return rig.with_models(models, calibration=points, report=report)
+
+
+def _sanitize(noise: float, depth_factor: float) -> tuple[float, float]:
+    try:
+        noise, depth_factor = float(noise), float(depth_factor)
+    except (TypeError, ValueError):
+        raise InputError("noise and depth_factor must be numbers", code="bad_noise") from None
+    if not (np.isfinite(noise) and noise >= 0):
+        raise InputError(f"noise must be a finite number >= 0, got {noise}", code="bad_noise")
+    if not (np.isfinite(depth_factor) and depth_factor >= 1):
+        raise InputError(
+            f"depth_factor must be a finite number >= 1, got {depth_factor}", code="bad_noise"
+        )
+    return noise, depth_factor
+
+
+def _refit(
+    model: WeightModel,
+    names: tuple[str, ...],
+    neutral: np.ndarray,
+    back: np.ndarray,
+    sigma: float,
+) -> WeightModel:
+    """``model``'s examples moved onto ``neutral`` in the weighted frame, fitted for sigma.
+
+    The source examples are the model's own (eq. 3.7 inverted: mean + p_j F), so the
+    rig's example files are not needed.
+    """
+    displacements = model.mean + model.params @ model.features  # (M, 3K), eq. 3.4, 3.7
+    displacements -= displacements[0]  # the neutral's is 0 up to the PCA's rounding
+    k = neutral.shape[0]
+    examples = neutral + displacements.reshape(-1, k, 3) @ back
+    refitted, _ = fit_weight_model(
+        names, examples, noise=sigma, kernel=model.kernel, clamp=REBASE_CLAMP
+    )
+    return refitted
+
+
+def calibrate(rig: Rig, neutral: npt.ArrayLike, noise: float | None = None) -> Rig:
+    """A session's re-base on a performer's neutral: exact without ``noise``, else ``rebase``.
+
+    What a ``calibrate`` message asks for (PROTOCOL.md §5.1.3): without its ``noise`` the
+    rig is ``rig.calibrated(neutral)``, exact as fitted; with it, noise-aware and bounded.
+    """
+    if noise is None:
+        return rig.calibrated(neutral)
+    return rebase(rig, neutral, noise=noise)
