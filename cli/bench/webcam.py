@@ -111,15 +111,21 @@ def _setup(args: argparse.Namespace) -> _Setup:
     )
 
 
-def _generic_rigs(setup: _Setup, noise: float) -> dict[str, Rig]:
-    """The generic path's rigs, one row each: the character as ``facecast import`` + ``rigs
-    put`` store it (exact), and fitted with the measured noise, bounded."""
+def _generic_rigs(setup: _Setup, noise: float) -> dict[str, tuple[Rig, float | None]]:
+    """The generic path's rows: the character as ``facecast import`` + ``rigs put`` store it
+    (exact), re-based as the page does (a ``calibrate`` carrying the held frames' noise),
+    and, for comparison, exactly as a calibrate without noise did before; and the rig
+    fitted with the measured noise, bounded, re-based exactly."""
     from facecast.rig import fit
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         bounded = fit(setup.examples, noise=noise, clamp="nonneg")
-    return {"generic exact": setup.character, "generic noise": bounded}
+    return {
+        "generic": (setup.character, noise),
+        "generic exact": (setup.character, None),
+        "generic noise": (bounded, None),
+    }
 
 
 def _score_landmarks(

@@ -19,6 +19,7 @@ import numpy.typing as npt
 
 from ..errors import InputError
 from ..examples import ExampleSet
+from ..rebase import calibrate
 from ..retarget import fit_performer, target_examples
 from ..rig import Rig
 from ..sources.capture import robust_example
@@ -241,16 +242,12 @@ def hold_last_found(points: npt.ArrayLike, found: npt.ArrayLike) -> np.ndarray:
     return out
 
 
-def generic_rig(character: Rig, neutral: npt.ArrayLike, noise: float) -> Rig:
+def generic_rig(character: Rig, neutral: npt.ArrayLike, noise: float | None) -> Rig:
     """The generic path: the character's own rig re-based on the performer's captured
-    neutral (what /perform sends as ``calibrate`` for a rig that is not the performer's).
-
-    The one place the benchmark re-bases: ``Rig.calibrated``, which is exact whatever
-    ``noise`` (the landmark noise measured on the held frames) is; a noise-aware re-base
-    takes it here.
+    neutral, as a ``calibrate`` carrying the held frames' ``noise`` asks the server to
+    (/perform sends one for a rig that is not the performer's): ``rebase.calibrate``.
     """
-    del noise  # Rig.calibrated has no use for it
-    return character.calibrated(neutral)
+    return calibrate(character, neutral, noise)
 
 
 def score(
@@ -349,7 +346,7 @@ def webcam_rows(
     keys: Mapping[str, np.ndarray],
     *,
     noise: float,
-    generic: Mapping[str, Rig] | None = None,
+    generic: Mapping[str, tuple[Rig, float | None]] | None = None,
     personal_also: Mapping[str, npt.ArrayLike] | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Clone one take's points by each path and score it against the truth.
@@ -370,9 +367,10 @@ def webcam_rows(
     noise : float
         The landmark noise the personal rig is fitted with (the server measures it from the
         held frames: ``server.performers.held_noise``).
-    generic : {label: Rig}, optional
+    generic : {label: (Rig, noise or None)}, optional
         Rigs on the character's own examples, not yet re-based: each is re-based on the
-        captured neutral (``generic_rig``) and scored as a row of its own.
+        captured neutral (``generic_rig``: with the noise a ``calibrate`` carries, or
+        exactly with None, as a calibrate without one) and scored as a row of its own.
     personal_also : {label: (F, K, 3)}, optional
         Other points for the same take, each cloned by the personal rig as a row
         ``"personal on <label>"`` (e.g. ``superposition``'s mix of the keys).
@@ -400,7 +398,7 @@ def webcam_rows(
     for label, other in (personal_also or {}).items():
         weights = personal.weights(np.asarray(other, dtype=np.float64))
         rows[f"personal on {label}"] = score(truth, personal, weights, activations, names)
-    for label, rig in (generic or {}).items():
-        rebased = generic_rig(rig, keys["neutral"], noise)
+    for label, (rig, rebase_noise) in (generic or {}).items():
+        rebased = generic_rig(rig, keys["neutral"], rebase_noise)
         rows[label] = score(truth, rebased, rebased.weights(points), activations, names)
     return rows

@@ -70,7 +70,7 @@ def test_bench_on_tracked_videos_scores_every_path_and_reuses_what_it_kept(tmp_p
     assert first["take_found"] == 8 and first["key_found"] == 3 + 3 * 3
     assert first["keys_captured"] == 4  # the neutral and the three keys
     assert set(first["rows"]) == {
-        "personal", "nnls", "personal on keys' mix", "generic exact", "generic noise"
+        "personal", "nnls", "personal on keys' mix", "generic", "generic exact", "generic noise"
     }  # fmt: skip
     assert set(first["render_seconds"]) == set(first["track_seconds"]) == {"take", "keys"}
     # The second run renders and tracks nothing: it scores the kept points, to the same figures.
