@@ -18,6 +18,7 @@ from .rig import Floats, Rig, WeightModel
 
 __all__ = [
     "DEPTH_NOISE_FACTOR",
+    "IDENTITY_NOISE_FACTOR",
     "MAX_NOISE_RELATIVE",
     "REBASE_CLAMP",
     "calibrate",
@@ -37,6 +38,15 @@ __all__ = [
 #: as another expression, 10 reads it right. At 30 the fit keeps one principal axis fewer
 #: on ICT (50 of 51) and the neutral is no longer exact (weights up to 0.03).
 DEPTH_NOISE_FACTOR = 10.0
+#: The share of the identity residual (``identity_noise``) taken as noise the refit must
+#: not pass on. The expressions of two faces differ by less than their shapes do; how much
+#: less was measured (docs/perform.md) on a real face and on a rendered one with a known
+#: truth. The tests' photo, mouth opening, jawOpen / jawForward medians: 0.25 / 0.08 at 1,
+#: 0.35 / 0.16 at 0.5, 0.37 / 0.31 at 0.25 (jawOpen barely leads), other shapes lead below.
+#: `facecast bench webcam` (ICT person07 rendered and tracked, eq. 4.1 max axis, NNLS on
+#: the performer's own keys 3.04): 3.99 at 1, 2.92 at 0.5, 2.59 at 0.25. Half keeps the
+#: photo's open mouth clearly jawOpen and brings the rendered face under NNLS.
+IDENTITY_NOISE_FACTOR = 0.5
 #: A ``noise`` above this many times the neutral's radius (RMS distance of its points from
 #: their centre) is refused: it cannot be landmark noise in the points' units.
 MAX_NOISE_RELATIVE = 10.0
@@ -73,8 +83,9 @@ def rebase(
     rig's source examples mapped into the performer's face frame by the same similarity;
     but the weight model is then refitted there (``fit_weight_model``) for landmark noise
     of standard deviation sigma on x and y and ``depth_factor`` * sigma on z, with sigma
-    the largest of ``noise`` (the tracker's, measured), ``identity_noise`` (how far this
-    face is from the source face) and the rig's own fitted noise, and its weights bounded
+    the largest of ``noise`` (the tracker's, measured), ``IDENTITY_NOISE_FACTOR`` times
+    ``identity_noise`` (how far this face is from the source face) and the rig's own
+    fitted noise, and its weights bounded
     to [0, 1] (``REBASE_CLAMP``). So landmark noise and identity mismatch are shrunk
     towards the neutral instead of amplified, and viewers never get extrapolated weights.
     The neutral's own points give the neutral exactly.
@@ -120,7 +131,7 @@ def rebase(
     assert matrix is not None
     sr = matrix[:3, :3].T  # source = s R (performer - neutral) + source neutral
     scale = float(np.cbrt(abs(np.linalg.det(sr))))
-    identity = identity_noise(rig, points)
+    identity = IDENTITY_NOISE_FACTOR * identity_noise(rig, points)
     fitted = float(rig.fit_report.get("noise", 0.0) or 0.0) / scale
     sigma = max(noise, identity, fitted)
     # Performer frame -> weighted frame: z scaled by 1 / depth_factor, so isotropic noise

@@ -246,12 +246,12 @@ def _print_table(title: str, scored: dict[str, Any]) -> None:
 def _print_by_name(title: str, scored: dict[str, Any]) -> None:
     rows = scored["rows"]
     labels = list(rows)
+    widths = [max(10, len(label)) + 2 for label in labels]
     print(f"\nRMS weight error per ARKit name, {title}:")
-    print(f"  {'name':<20}" + "".join(f"{label:>15}" for label in labels))
+    print(f"  {'name':<20}" + "".join(f"{lab:>{w}}" for lab, w in zip(labels, widths, strict=True)))
     for name in next(iter(rows.values()))["weight_rms"]:
-        print(
-            f"  {name:<20}" + "".join(f"{rows[lab]['weight_rms'][name]:>15.3f}" for lab in labels)
-        )
+        cells = (rows[lab]["weight_rms"][name] for lab in labels)
+        print(f"  {name:<20}" + "".join(f"{c:>{w}.3f}" for c, w in zip(cells, widths, strict=True)))
 
 
 def _max_axis(row: dict[str, Any]) -> float:

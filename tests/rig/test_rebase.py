@@ -16,6 +16,7 @@ from facecast.rig import InputError, fit, fit_regions
 from facecast.rig.demo import demo_example_set
 from facecast.rig.rebase import (
     DEPTH_NOISE_FACTOR,
+    IDENTITY_NOISE_FACTOR,
     MAX_NOISE_RELATIVE,
     calibrate,
     identity_noise,
@@ -144,7 +145,7 @@ def test_the_noise_used_is_the_largest_of_tracker_identity_and_rig(example_set, 
     loud = rebase(fit(example_set), performer.neutral, noise=10 * identity).fit_report["rebase"]
     from_rig = rebase(noisy_rig, performer.neutral, noise=0.0).fit_report["rebase"]
 
-    assert quiet["noise"] == pytest.approx(identity) and identity > 0
+    assert quiet["noise"] == pytest.approx(IDENTITY_NOISE_FACTOR * identity) and identity > 0
     assert loud["noise"] == pytest.approx(10 * identity)
     # The rig's noise in the performer's units: about SCALE times (the identity moves the
     # similarity's scale a little).
