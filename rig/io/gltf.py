@@ -21,7 +21,7 @@ import pygltflib
 
 from ..errors import ExampleSetError, InputError
 
-__all__ = ["export_glb", "read_glb_morph_targets"]
+__all__ = ["export_glb", "read_glb_morph_targets", "read_gltf_mesh"]
 
 _GLB_MAGIC = 0x46546C67  # b"glTF"
 _CHUNK_JSON = 0x4E4F534A
@@ -490,12 +490,47 @@ def read_glb_morph_targets(
         ) from None
 
 
+def read_gltf_mesh(path_or_bytes: GltfSource) -> tuple[np.ndarray, np.ndarray]:
+    """The neutral of a glTF/GLB/VRM file's face: its first mesh with morph targets, else its
+    first mesh, as (V, 3) float64 vertices and (F, 3) int64 triangles (mesh space).
+
+    Raises
+    ------
+    ExampleSetError
+        As ``read_glb_morph_targets``; ``no_mesh`` for a file without meshes.
+    """
+    is_bytes = isinstance(path_or_bytes, bytes | bytearray | memoryview)
+    label = "<glTF bytes>" if is_bytes else str(path_or_bytes)
+    gltf = _load_document(path_or_bytes, label)
+    reader = _BufferReader(gltf, None if is_bytes else Path(path_or_bytes).parent, label)
+    try:
+        meshes = [m for m in gltf.meshes or [] if m.primitives]
+        if not meshes:
+            raise ExampleSetError(f"{label}: holds no mesh", code="no_mesh")
+        mesh = next((m for m in meshes if any(p.targets for p in m.primitives)), meshes[0])
+        neutral, faces, _, _ = _read_mesh(mesh, reader, label)
+        return neutral, faces
+    except ExampleSetError:
+        raise
+    except (AttributeError, TypeError, KeyError, IndexError, ValueError) as exc:
+        raise ExampleSetError(
+            f"{label}: malformed glTF ({type(exc).__name__}: {exc})", code="bad_gltf"
+        ) from None
+
+
 def _read_morph_mesh(
     gltf: pygltflib.GLTF2, reader: _BufferReader, label: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
     mesh = next((m for m in gltf.meshes or [] if any(p.targets for p in m.primitives or [])), None)
     if mesh is None:
         raise ExampleSetError(f"{label}: no mesh with morph targets", code="no_morph_targets")
+    return _read_mesh(mesh, reader, label)
+
+
+def _read_mesh(
+    mesh: pygltflib.Mesh, reader: _BufferReader, label: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """All triangle primitives of ``mesh`` concatenated, with its morph targets (maybe 0)."""
     num_targets = {len(p.targets or []) for p in mesh.primitives}
     if len(num_targets) != 1:
         raise ExampleSetError(
@@ -535,7 +570,7 @@ def _read_morph_mesh(
                     code="too_large",
                 )
             prim_deltas = np.zeros((m, pos.shape[0], 3))
-            for t, target in enumerate(prim.targets):
+            for t, target in enumerate(prim.targets or []):
                 t_pos = target.POSITION if hasattr(target, "POSITION") else target.get("POSITION")
                 if t_pos is not None:
                     d = reader.accessor(t_pos)
