@@ -47,6 +47,9 @@ MIN_MARKERS = 3
 # The closest-point phase has converged when the fitted source's vertices lie, by median,
 # within this many target edge lengths of the target surface.
 _CONVERGED_EDGES = 1.0
+# ... and when no more than this fraction of its triangles turned over on the way (markers
+# that name the wrong places fold the source onto itself).
+_FOLDED = 0.05
 
 
 @dataclass(frozen=True)
@@ -286,12 +289,16 @@ def fit_correspondence(
     near = closest_points(fitted, target, tfaces, normals=vertex_normals(fitted, sfaces))
     distances = near.distance[near.found]
     residual = float(np.median(distances)) / target_edge if distances.size else np.inf
-    if not np.isfinite(fitted).all() or not residual <= _CONVERGED_EDGES:
+    turned = np.einsum("fc,fc->f", face_normals(fitted, sfaces), face_normals(placed, sfaces))
+    folded = float(np.mean(turned < 0.0)) if np.isfinite(fitted).all() else 1.0
+    if not residual <= _CONVERGED_EDGES or folded > _FOLDED:
         raise CorrespondenceError(
             f"the source did not settle on the target: its vertices stay {residual:.3g} "
-            f"target edge lengths from the surface (median; {_CONVERGED_EDGES:g} needed). "
-            "Check that each marker pair names the same facial feature on both meshes, "
-            "and add markers where the shapes differ most",
+            f"target edge lengths from the surface (median; {_CONVERGED_EDGES:g} allowed) "
+            f"and {100 * folded:.1f}% of its triangles turned over ({100 * _FOLDED:g}% "
+            "allowed). Check that each marker pair names the same facial feature on both "
+            "meshes (0-based indices, source first), and add markers where the shapes "
+            "differ most",
             code="not_converged",
         )
     if threshold is None:
