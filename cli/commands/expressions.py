@@ -59,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
 
     from facecast.rig.sources.ict import locate_ict
     from facecast.rig.transfer import (
+        check_mesh,
         ict_source_expressions,
         read_markers,
         read_target_mesh,
@@ -66,17 +67,20 @@ def run(args: argparse.Namespace) -> int:
         write_expression_set,
     )
 
-    archive = locate_ict(args.ict) if args.ict else locate_ict()
+    # The inputs first (cheap, and their errors say what to fix), then the source.
+    if not Path(args.target).is_file():
+        raise CommandError(f"{args.target}: no such file (the target neutral mesh)")
+    vertices, faces = check_mesh(*read_target_mesh(args.target), what=str(args.target))
+    markers = read_markers(args.markers) if args.markers else None
+    archive = None
+    if args.ict is None or Path(args.ict).exists():
+        archive = locate_ict(args.ict) if args.ict else locate_ict()
     if archive is None:
         raise CommandError(
             "ICT-FaceKit not found: its expressions are the source this command transfers. "
             "Set FACECAST_ICT to the folder holding ict_facekit.npz, pass --ict PATH, or place "
             "it in ../shared/data/ict-facekit (see that folder's README for the conversion)"
         )
-    if not Path(args.target).is_file():
-        raise CommandError(f"{args.target}: no such file (the target neutral mesh)")
-    vertices, faces = read_target_mesh(args.target)
-    markers = read_markers(args.markers) if args.markers else None
     source = ict_source_expressions(archive)
     count = len(args.names) if args.names else len(source.names) - 1
     with tqdm(total=count, unit="expr", desc="transferring", disable=args.quiet) as bar:
