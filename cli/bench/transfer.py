@@ -45,7 +45,9 @@ def run(args: argparse.Namespace) -> int:
         take = Path(args.take) if args.take else TAKE
         if not take.is_file():
             raise CommandError(f"{take}: no such take (a Live Link Face CSV)")
-        report["accuracy"] = _accuracy(archive, source, landmarks, take)
+        report["accuracy"], shown = _accuracy(archive, source, landmarks, take)
+        if args.sheet:
+            print(f"wrote {_sheet(args.sheet, source, shown)}")
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1, default=float))
         print(f"wrote {args.json}")
@@ -140,7 +142,9 @@ def _exact_markers(source_vertices: np.ndarray, landmarks: np.ndarray, target: n
     return np.unique(np.asarray(pairs), axis=0)
 
 
-def _accuracy(archive, source, landmarks: np.ndarray, take: Path) -> list[dict[str, Any]]:
+def _accuracy(
+    archive, source, landmarks: np.ndarray, take: Path
+) -> tuple[list[dict[str, Any]], list[tuple[str, Any, np.ndarray]]]:
     from facecast.rig.evaluation.remesh import carry_shapes, decimate, sqrt3_retriangulate
     from facecast.rig.evaluation.takes import arkit_example_set
     from facecast.rig.evaluation.transfer import end_to_end, score_transfer
@@ -177,6 +181,7 @@ def _accuracy(archive, source, landmarks: np.ndarray, take: Path) -> list[dict[s
         cases.append((label, truth_set, markers, remeshed.faces))
 
     rows = []
+    shown = []
     print("accuracy: error relative to the true displacement (sum over vertices), and a real "
           f"take ({take.name}) cloned through generated vs true examples (eq. 4.1, worst axis)")  # fmt: skip
     for label, truth_set, markers, faces in cases:
@@ -186,6 +191,8 @@ def _accuracy(archive, source, landmarks: np.ndarray, take: Path) -> list[dict[s
             truth_set = ExampleSet(names=truth_set.names, source_points=truth_set.source_points,
                                    target_vertices=truth_vertices, target_faces=faces)  # fmt: skip
         score = score_transfer(generated, source, truth_vertices)
+        if markers is None or "nearest" in label:
+            shown.append((label, generated, truth_vertices))
         ends = [end_to_end(generated, truth_set, livelink.weights, livelink.fps, noise=n)
                 for n in NOISES]  # fmt: skip
         worse = [
@@ -215,4 +222,36 @@ def _accuracy(archive, source, landmarks: np.ndarray, take: Path) -> list[dict[s
                 f"    take, noise {end['noise']:g} cm: eq. 4.1 through true examples "
                 f"{true_e:.4f}%, through generated {gen_e:.4f}% ({gen_e / true_e:.3g}x)"
             )
-    return rows
+    return rows, shown
+
+
+SHEET_NAMES = (
+    "jawOpen",
+    "eyeBlinkLeft",
+    "mouthSmileLeft",
+    "mouthPucker",
+    "browInnerUp",
+    "cheekPuff",
+)
+
+
+def _sheet(path: str, source, shown: list[tuple[str, Any, np.ndarray]]) -> Path:
+    """Rows of expressions: the source, then per shown case the truth and the transfer."""
+    from facecast.cli.render import save_side_by_side
+
+    rows = []
+    for name in SHEET_NAMES:
+        row = [(f"ICT generic: {name}", source.vertices[source.names.index(name)], source.faces)]
+        for label, generated, truth in shown:
+            short = "person01" if "person01" in label else ("person10" if "person10" in label
+                                                            else "decimated 4k")  # fmt: skip
+            index = generated.names.index(name)
+            faces = generated.target_faces
+            row.append((f"{short}: true", truth[index], faces))
+            row.append((f"{short}: transferred", generated.target_vertices[index], faces))
+        rows.append(row)
+    return save_side_by_side(
+        path, rows, panel_size=(260, 300), view="three_quarter",
+        title="facecast expressions: ICT-FaceKit's shapes transferred (Sumner & Popovic 2004) "
+        "beside the targets' true shapes",
+    )  # fmt: skip

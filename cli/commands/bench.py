@@ -83,6 +83,9 @@ def register(subparsers) -> None:
     )
     transfer.add_argument("--json", metavar="FILE", help="write every figure as JSON")
     transfer.add_argument(
+        "--sheet", metavar="PNG", help="write a picture: transferred beside true expressions"
+    )
+    transfer.add_argument(
         "--repeat", type=int, default=5, metavar="N", help="timed runs per solve figure (median)"
     )
     part = transfer.add_mutually_exclusive_group()

@@ -21,6 +21,9 @@ from .mesh import check_mesh, frame_inverses, triangle_frames, vertex_components
 
 __all__ = ["DeformationTransfer", "frame_rows", "source_gradients"]
 
+# Expressions solved together: one back-substitution with 3 x _CHUNK right-hand sides.
+_CHUNK = 8
+
 
 def frame_rows(inverses: np.ndarray, faces: np.ndarray, num_vertices: int) -> sp.csr_matrix:
     """The (3F, V + F) matrix taking vertices and fourth vertices to transformations.
@@ -166,7 +169,8 @@ class DeformationTransfer:
         source_deformed : (Vs, 3) or (M, Vs, 3) float
             Deformed source meshes (the source neutral's topology).
         progress : callable, optional
-            Called with 1 after each mesh (a tqdm bar's ``update``).
+            Called with the number of meshes done after each batch of them (a tqdm bar's
+            ``update``).
 
         Returns
         -------
@@ -184,24 +188,30 @@ class DeformationTransfer:
         if not np.isfinite(deformed).all():
             raise InputError("source_deformed: NaN or Inf coordinates", code="non_finite")
         out = np.empty((deformed.shape[0], *self.target_neutral.shape))
-        for m, mesh in enumerate(deformed):
-            out[m] = self._transfer_one(mesh)
+        for start in range(0, deformed.shape[0], _CHUNK):
+            chunk = deformed[start : start + _CHUNK]
+            out[start : start + len(chunk)] = self._transfer_chunk(chunk)
             if progress is not None:
-                progress(1)
+                progress(len(chunk))
         return out[0] if single else out
 
-    def _transfer_one(self, source_deformed: np.ndarray) -> np.ndarray:
+    def _transfer_chunk(self, source_deformed: np.ndarray) -> np.ndarray:
+        """(C, Vt, 3) for C deformed sources: one back-substitution for all 3C columns."""
         vt, ft = self.target_neutral.shape[0], self.target_faces.shape[0]
+        c = source_deformed.shape[0]
         gradients = triangle_frames(source_deformed, self.source_faces) @ self._source_inverses
         gradients -= np.eye(3)
-        summed = (self._pair_sum @ gradients.reshape(-1, 9)).reshape(ft, 3, 3)
-        # Row 3t + k, column i: entry (i, k) of triangle t's summed transformation - I.
-        rhs = self._rows_t @ summed.transpose(0, 2, 1).reshape(3 * ft, 3)
-        displacement = np.zeros((vt + ft, 3))
+        # (Fs, C * 9) -> the summed transformations - I of each target triangle (Ft, C, 3, 3).
+        flat = gradients.transpose(1, 0, 2, 3).reshape(-1, c * 9)
+        summed = (self._pair_sum @ flat).reshape(ft, c, 3, 3)
+        # Row 3t + k, column 3c + i: entry (i, k) of expression c's transformation of t.
+        rhs = self._rows_t @ summed.transpose(0, 3, 1, 2).reshape(3 * ft, 3 * c)
+        displacement = np.zeros((vt + ft, 3 * c))
         displacement[self._free] = self._lu.solve(rhs)  # type: ignore[attr-defined]
-        moved = displacement[:vt]
+        moved = displacement[:vt].reshape(vt, c, 3).transpose(1, 0, 2).copy()
         if self.vertex_map is not None:
-            self._place_pieces(moved, source_deformed - self.source_neutral)
+            for index in range(c):
+                self._place_pieces(moved[index], source_deformed[index] - self.source_neutral)
         result: np.ndarray = self.target_neutral + moved
         return result
 

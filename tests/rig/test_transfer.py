@@ -110,14 +110,15 @@ def test_one_factorisation_serves_every_expression():
     transfer = DeformationTransfer(
         vertices, faces, vertices, faces, same.pairs, vertex_map=same.vertex_map
     )
-    shapes = np.stack(
-        [vertices + k * 0.05 * (smooth_deformation(vertices) - vertices) for k in range(1, 6)]
-    )
-    ticks = []
-    moved = transfer.transfer(shapes, progress=ticks.append)
+    steps = np.arange(1, 13)[:, None, None] * 0.02
+    shapes = vertices + steps * (smooth_deformation(vertices) - vertices)
+    done = []
+    moved = transfer.transfer(shapes, progress=done.append)
     assert transfer.factorizations == 1
-    assert ticks == [1] * 5
+    assert sum(done) == 12 and len(done) > 1  # solved in batches, each reported
     np.testing.assert_allclose(moved, shapes, atol=1e-10)
+    np.testing.assert_allclose(transfer.transfer(shapes[5]), moved[5], atol=1e-12)
+    assert transfer.factorizations == 1
 
 
 def test_triangles_no_source_triangle_reaches_keep_their_neutral():
