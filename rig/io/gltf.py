@@ -502,7 +502,12 @@ def read_gltf_mesh(path_or_bytes: GltfSource) -> tuple[np.ndarray, np.ndarray]:
     is_bytes = isinstance(path_or_bytes, bytes | bytearray | memoryview)
     label = "<glTF bytes>" if is_bytes else str(path_or_bytes)
     gltf = _load_document(path_or_bytes, label)
-    reader = _BufferReader(gltf, None if is_bytes else Path(path_or_bytes).parent, label)
+    base = (
+        None
+        if isinstance(path_or_bytes, bytes | bytearray | memoryview)
+        else Path(path_or_bytes).parent
+    )
+    reader = _BufferReader(gltf, base, label)
     try:
         meshes = [m for m in gltf.meshes or [] if m.primitives]
         if not meshes:

@@ -68,10 +68,10 @@ class SourceExpressions:
 def ict_source_expressions(path: str | os.PathLike[str]) -> SourceExpressions:
     """ICT-FaceKit's generic face area with its ARKit-named shapes (``arkit_example_set``).
 
-    51 shapes after the neutral (no ``tongueOut``) on the face area's 9,409 vertices, with
-    ICT's default 20 landmarks as feature points. The eyes, teeth, mouth socket and the
-    back of the head are not part of it, so target triangles there pair with nothing and
-    keep their neutral.
+    51 shapes after the neutral (no ``tongueOut``) on the face area's 9,409 vertices (ICT's
+    ``face`` region: the skin, ears included), with ICT's default 20 landmarks as feature
+    points. Eyes, teeth, gums, the mouth socket and ICT's ``head_and_neck`` region are not
+    part of it, so target triangles there pair with nothing and keep their neutral.
     """
     generic = arkit_example_set(path, identity=None)
     return SourceExpressions(

@@ -14,7 +14,7 @@ from collections.abc import Callable
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
-from scipy.sparse.linalg import splu
+from scipy.sparse.linalg import SuperLU, splu
 
 from ..errors import CorrespondenceError, InputError
 from .mesh import check_mesh, frame_inverses, triangle_frames, vertex_components
@@ -146,7 +146,7 @@ class DeformationTransfer:
         self.unknowns = int(self._free.size)
         self.nonzeros = int(self._lu.L.nnz + self._lu.U.nnz)
 
-    def _factor(self, normal: sp.csc_matrix) -> object:
+    def _factor(self, normal: sp.csc_matrix) -> SuperLU:
         self.factorizations += 1
         # The matrix is symmetric positive definite: symmetric ordering, no pivoting.
         return splu(
@@ -207,7 +207,7 @@ class DeformationTransfer:
         # Row 3t + k, column 3c + i: entry (i, k) of expression c's transformation of t.
         rhs = self._rows_t @ summed.transpose(0, 3, 1, 2).reshape(3 * ft, 3 * c)
         displacement = np.zeros((vt + ft, 3 * c))
-        displacement[self._free] = self._lu.solve(rhs)  # type: ignore[attr-defined]
+        displacement[self._free] = self._lu.solve(rhs)
         moved = displacement[:vt].reshape(vt, c, 3).transpose(1, 0, 2).copy()
         if self.vertex_map is not None:
             for index in range(c):

@@ -201,3 +201,15 @@ def test_another_topology_without_markers_asks_for_them(tmp_path, capsys):
     assert code == 2
     assert "needs markers" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_gltf_target_is_read_as_its_face_mesh(tmp_path):
+    from facecast.rig.io.gltf import export_glb
+    from facecast.rig.transfer import read_target_mesh
+
+    vertices, faces = _square()
+    path = tmp_path / "face.glb"
+    path.write_bytes(export_glb(vertices, faces, 0.1 * np.ones((1, 25, 3)), ["smile"]))
+    read_vertices, read_faces = read_target_mesh(path)
+    np.testing.assert_allclose(read_vertices, vertices, atol=1e-6)  # float32 in the file
+    np.testing.assert_array_equal(read_faces, faces)
