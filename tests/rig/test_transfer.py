@@ -9,12 +9,14 @@ import pytest
 from facecast.rig.errors import CorrespondenceError, InputError, MarkerError, MeshError
 from facecast.rig.evaluation.remesh import carry_shapes, decimate, sqrt3_retriangulate
 from facecast.rig.evaluation.transfer import naive_transfer, relative_errors
+from facecast.rig.sources.ict import locate_ict
 from facecast.rig.transfer import (
     DeformationTransfer,
     SourceExpressions,
     check_markers,
     check_mesh,
     fit_correspondence,
+    ict_source_expressions,
     identity_correspondence,
     read_markers,
     transfer_expressions,
@@ -279,3 +281,20 @@ def test_non_finite_and_out_of_range_meshes_are_refused():
     with pytest.raises(MeshError) as caught:
         check_mesh(vertices, faces + 1)
     assert caught.value.code == "index_out_of_range"
+
+
+# -- on ICT-FaceKit -------------------------------------------------------------------------
+
+
+@pytest.mark.ict
+@pytest.mark.skipif(locate_ict() is None, reason="ICT-FaceKit not found")
+def test_ict_shapes_transferred_onto_the_generic_face_itself_are_the_shapes():
+    source = ict_source_expressions(locate_ict())
+    picked = ["jawOpen", "eyeBlinkLeft", "mouthPucker", "browInnerUp"]
+    generated = transfer_expressions(source, source.vertices[0], source.faces, names=picked)
+    assert generated.correspondence.method == "identity"
+    expected = source.vertices[[0, *(source.names.index(n) for n in picked)]]
+    np.testing.assert_allclose(generated.target_vertices, expected, atol=1e-8)
+    np.testing.assert_array_equal(
+        generated.source_points[1], source.points[source.names.index("jawOpen")]
+    )
