@@ -11,7 +11,7 @@ import base64
 import json
 import os
 import struct
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -470,24 +470,7 @@ def read_glb_morph_targets(
         Unreadable file, no mesh with morph targets, non-triangle primitives, or
         primitives that disagree on the number of targets.
     """
-    is_bytes = isinstance(path_or_bytes, bytes | bytearray | memoryview)
-    label = "<glTF bytes>" if is_bytes else str(path_or_bytes)
-    gltf = _load_document(path_or_bytes, label)
-    base = (
-        None
-        if isinstance(path_or_bytes, bytes | bytearray | memoryview)
-        else Path(path_or_bytes).parent
-    )
-    reader = _BufferReader(gltf, base, label)
-    try:
-        return _read_morph_mesh(gltf, reader, label)
-    except ExampleSetError:
-        raise
-    except (AttributeError, TypeError, KeyError, IndexError, ValueError) as exc:
-        # dataclasses-json leaves wrongly typed JSON fields as they are; say so, don't crash.
-        raise ExampleSetError(
-            f"{label}: malformed glTF ({type(exc).__name__}: {exc})", code="bad_gltf"
-        ) from None
+    return _read_chosen_mesh(path_or_bytes, _morph_mesh)
 
 
 def read_gltf_mesh(path_or_bytes: GltfSource) -> tuple[np.ndarray, np.ndarray]:
@@ -499,6 +482,14 @@ def read_gltf_mesh(path_or_bytes: GltfSource) -> tuple[np.ndarray, np.ndarray]:
     ExampleSetError
         As ``read_glb_morph_targets``; ``no_mesh`` for a file without meshes.
     """
+    neutral, faces, _, _ = _read_chosen_mesh(path_or_bytes, _face_mesh)
+    return neutral, faces
+
+
+def _read_chosen_mesh(
+    path_or_bytes: GltfSource, choose: Callable[[pygltflib.GLTF2, str], pygltflib.Mesh]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """The mesh ``choose(gltf, label)`` picks, read as ``_read_mesh`` reads it."""
     is_bytes = isinstance(path_or_bytes, bytes | bytearray | memoryview)
     label = "<glTF bytes>" if is_bytes else str(path_or_bytes)
     gltf = _load_document(path_or_bytes, label)
@@ -509,27 +500,28 @@ def read_gltf_mesh(path_or_bytes: GltfSource) -> tuple[np.ndarray, np.ndarray]:
     )
     reader = _BufferReader(gltf, base, label)
     try:
-        meshes = [m for m in gltf.meshes or [] if m.primitives]
-        if not meshes:
-            raise ExampleSetError(f"{label}: holds no mesh", code="no_mesh")
-        mesh = next((m for m in meshes if any(p.targets for p in m.primitives)), meshes[0])
-        neutral, faces, _, _ = _read_mesh(mesh, reader, label)
-        return neutral, faces
+        return _read_mesh(choose(gltf, label), reader, label)
     except ExampleSetError:
         raise
     except (AttributeError, TypeError, KeyError, IndexError, ValueError) as exc:
+        # dataclasses-json leaves wrongly typed JSON fields as they are; say so, don't crash.
         raise ExampleSetError(
             f"{label}: malformed glTF ({type(exc).__name__}: {exc})", code="bad_gltf"
         ) from None
 
 
-def _read_morph_mesh(
-    gltf: pygltflib.GLTF2, reader: _BufferReader, label: str
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+def _morph_mesh(gltf: pygltflib.GLTF2, label: str) -> pygltflib.Mesh:
     mesh = next((m for m in gltf.meshes or [] if any(p.targets for p in m.primitives or [])), None)
     if mesh is None:
         raise ExampleSetError(f"{label}: no mesh with morph targets", code="no_morph_targets")
-    return _read_mesh(mesh, reader, label)
+    return mesh
+
+
+def _face_mesh(gltf: pygltflib.GLTF2, label: str) -> pygltflib.Mesh:
+    meshes = [m for m in gltf.meshes or [] if m.primitives]
+    if not meshes:
+        raise ExampleSetError(f"{label}: holds no mesh", code="no_mesh")
+    return next((m for m in meshes if any(p.targets for p in m.primitives)), meshes[0])
 
 
 def _read_mesh(
