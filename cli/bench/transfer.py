@@ -251,8 +251,8 @@ def _sheet(path: str, source, shown: list[tuple[str, Any, np.ndarray]]) -> Path:
         shape = source.vertices[source.names.index(name)]
         row = [(f"ICT: {name}", *_front(shape, source.faces, source.vertices[0]))]
         for label, generated, truth in shown:
-            short = label.split(",")[0].replace("(a) ICT ", "").replace("(b) ICT face ", "")
-            short = short.replace("decimated to 4,000 vertices", "decimated 4k")
+            short = label.replace("decimated to 4,000 vertices", "decimated 4k").split(",")[0]
+            short = short.replace("(a) ICT ", "").replace("(b) ICT face ", "")
             index = generated.names.index(name)
             faces = generated.target_faces
             row.append((f"{short}: true", *_front(truth[index], faces, truth[0])))
