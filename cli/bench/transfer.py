@@ -85,6 +85,7 @@ def _cost(source, landmarks: np.ndarray, *, repeat: int) -> list[dict[str, Any]]
         transfer = DeformationTransfer(
             source.vertices[0], source.faces, target.vertices, target.faces,
             generated.correspondence.pairs, vertex_map=generated.correspondence.vertex_map,
+            rotation=generated.correspondence.rotation, scale=generated.correspondence.scale,
         )  # fmt: skip
         factor_again = time.perf_counter() - started
         lu = transfer._lu

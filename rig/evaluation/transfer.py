@@ -45,20 +45,17 @@ def relative_errors(predicted: np.ndarray, truth: np.ndarray) -> tuple[np.ndarra
 
 
 def naive_transfer(
-    correspondence: Correspondence,
-    source_vertices: np.ndarray,
-    target_neutral: np.ndarray,
-    *,
-    scale: float = 1.0,
+    correspondence: Correspondence, source_vertices: np.ndarray, target_neutral: np.ndarray
 ) -> np.ndarray:
     """The baseline: each target vertex moves as its nearest fitted-source vertex does.
 
-    ``source_vertices`` (M, Vs, 3), neutral first; ``scale`` converts source units into
-    target units. Returns (M, Vt, 3).
+    ``source_vertices`` (M, Vs, 3), neutral first; the displacements are turned and scaled
+    into the target's frame by the correspondence's similarity. Returns (M, Vt, 3).
     """
     nearest = nearest_vertices(target_neutral, correspondence.fitted_source)
     displacement = source_vertices[:, nearest] - source_vertices[0, nearest]
-    out: np.ndarray = target_neutral + scale * displacement
+    turned = correspondence.scale * displacement @ correspondence.rotation.T
+    out: np.ndarray = target_neutral + turned
     return out
 
 

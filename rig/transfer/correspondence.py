@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -58,8 +58,8 @@ class CorrespondenceWeights:
 
     The first step fits with markers only (w_C = 0); then ``steps`` steps raise w_C
     geometrically from ``closest_start`` to ``closest_end``. Distances are measured with
-    both meshes scaled to a unit target bounding-box diagonal, so the weights do not depend
-    on the meshes' units.
+    both meshes scaled to a unit target diagonal (of its box along its principal axes), so
+    the weights depend on neither the meshes' units nor their pose.
     """
 
     smoothness: float = 1.0
@@ -92,6 +92,11 @@ class Correspondence:
         edge lengths (0 for the identity).
     method : str
         "identity" (same topology) or "markers" (markers, then closest points).
+    rotation : (3, 3) float64
+        The rotation that turns the source's axes into the target's (the markers'
+        similarity; the identity for ``identity_correspondence``).
+    scale : float
+        Target units per source unit (the same similarity's scale).
     """
 
     pairs: np.ndarray
@@ -99,6 +104,8 @@ class Correspondence:
     fitted_source: np.ndarray
     residual: float
     method: str = "markers"
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    scale: float = 1.0
 
     @property
     def reached_targets(self) -> np.ndarray:
@@ -203,20 +210,33 @@ def identity_correspondence(
 ) -> Correspondence | None:
     """The correspondence of a target sharing the source's topology, or None if it does not.
 
-    The target shares it when its first Fs triangles are the source's (the source may be a
-    part of the target, as ICT's face area is of ICT's head): those pair one to one, and
-    each source vertex maps to the target vertex of the same index.
+    The target shares it when every source triangle is also one of the target's, with the
+    same vertex numbers and winding (the source may be a part of the target, as ICT's face
+    area is of ICT's head): those pair one to one, and each source vertex maps to the
+    target vertex of the same index.
     """
-    fs, vs = source_faces.shape[0], source_vertices.shape[0]
-    if target_faces.shape[0] < fs or not np.array_equal(target_faces[:fs], source_faces):
-        return None
-    vt = target_vertices.shape[0]
+    vs, vt = source_vertices.shape[0], target_vertices.shape[0]
     if vt < vs:
         return None
-    pairs = np.stack([np.arange(fs), np.arange(fs)], axis=1)
+    source_keys = _triangle_keys(source_faces, vt)
+    target_keys = _triangle_keys(target_faces, vt)
+    order = np.argsort(target_keys, kind="stable")
+    where = np.searchsorted(target_keys[order], source_keys)
+    where = np.minimum(where, len(order) - 1)
+    if not np.array_equal(target_keys[order][where], source_keys):
+        return None
+    pairs = np.stack([np.arange(len(source_faces)), order[where]], axis=1)
     vertex_map = sp.csr_matrix((np.ones(vs), (np.arange(vs), np.arange(vs))), shape=(vt, vs))
     # The source placed on the target: each source vertex where its target vertex is.
     return Correspondence(pairs, vertex_map, target_vertices[:vs].copy(), 0.0, "identity")
+
+
+def _triangle_keys(faces: np.ndarray, count: int) -> np.ndarray:
+    """One integer per triangle, equal for the same vertices in the same cyclic order."""
+    start = np.argmin(faces, axis=1)
+    turned = np.take_along_axis(faces, (start[:, None] + np.arange(3)) % 3, axis=1)
+    keys: np.ndarray = (turned[:, 0] * count + turned[:, 1]) * count + turned[:, 2]
+    return keys
 
 
 def _similarity(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -280,8 +300,11 @@ def fit_correspondence(
     pairs = check_markers(markers, src.shape[0], tgt.shape[0], source=src)
     # Work with the target scaled to a unit bounding-box diagonal and the source placed on
     # it by the markers' similarity: the weights are then unit-free.
-    unit = float(np.linalg.norm(np.ptp(tgt, axis=0)))
-    target = (tgt - tgt.mean(axis=0)) / unit
+    centred = tgt - tgt.mean(axis=0)
+    # The diagonal of the target's box along its principal axes: unit-free and pose-free.
+    axes = np.linalg.svd(centred, full_matrices=False)[2]
+    unit = float(np.linalg.norm(np.ptp(centred @ axes.T, axis=0)))
+    target = centred / unit
     scale, rotation, shift = _similarity(src[pairs[:, 0]], target[pairs[:, 1]])
     placed = scale * src @ rotation.T + shift
     fitted = _fit_closest(placed, sfaces, target, tfaces, pairs, weights)
@@ -314,7 +337,9 @@ def fit_correspondence(
         )
     vertex_map = _vertex_map(fitted, sfaces, target, tfaces, reach)
     restored = fitted * unit + tgt.mean(axis=0)
-    return Correspondence(triangle_pairs, vertex_map, restored, residual)
+    return Correspondence(
+        triangle_pairs, vertex_map, restored, residual, "markers", rotation, scale * unit
+    )
 
 
 def _fit_closest(

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from ..errors import ExampleSetError, MarkerError
+from ..errors import ExampleSetError, MarkerError, MeshError
 from ..evaluation.takes import arkit_example_set
 from ..io.gltf import read_gltf_mesh
 from ..io.meshio import read_obj
@@ -193,6 +193,11 @@ def transfer_expressions(
     target, faces = check_mesh(target_vertices, target_faces)
     picked = _pick_names(source, names)
     welded, welded_faces, welded_index = weld(target, faces)
+    try:
+        check_mesh(welded, welded_faces)
+    except MeshError:
+        # Separate pieces that touch (an eyelash on a lid) would share edges once welded.
+        welded, welded_faces, welded_index = target, faces, np.arange(len(target))
     started = time.perf_counter()
     correspondence = identity_correspondence(source.vertices[0], source.faces, welded, welded_faces)
     if correspondence is None:
@@ -219,6 +224,8 @@ def transfer_expressions(
         welded_faces,
         correspondence.pairs,
         vertex_map=correspondence.vertex_map,
+        rotation=correspondence.rotation,
+        scale=correspondence.scale,
     )
     factored = time.perf_counter()
     moved = transfer.transfer(source.vertices[picked[1:]], progress=progress)

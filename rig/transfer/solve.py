@@ -77,6 +77,11 @@ class DeformationTransfer:
         unmatched vertices empty). It fixes each connected piece's translation, which the
         gradients leave free: the piece moves as its mapped vertices' source points do (median).
         Without it every piece's first vertex stays where it is.
+    rotation : (3, 3) float, optional
+        The rotation from the source's axes to the target's (``Correspondence.rotation``):
+        transformations are turned into the target's frame, R (Q − I) Rᵀ.
+    scale : float
+        Target units per source unit, for the source displacements ``vertex_map`` reads.
 
     Notes
     -----
@@ -94,6 +99,8 @@ class DeformationTransfer:
         pairs: npt.ArrayLike,
         *,
         vertex_map: sp.spmatrix | None = None,
+        rotation: npt.ArrayLike | None = None,
+        scale: float = 1.0,
     ) -> None:
         self.source_neutral, self.source_faces = check_mesh(
             source_neutral, source_faces, what="source mesh"
@@ -121,6 +128,14 @@ class DeformationTransfer:
                 code="bad_pairs",
             )
         self.pairs = pairs
+        self.rotation = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+        if self.rotation.shape != (3, 3) or not np.allclose(
+            self.rotation @ self.rotation.T, np.eye(3), atol=1e-9
+        ):
+            raise CorrespondenceError("rotation: expected a (3, 3) rotation", code="bad_pairs")
+        if not (np.isfinite(scale) and scale > 0):
+            raise CorrespondenceError(f"scale: expected > 0, got {scale!r}", code="bad_pairs")
+        self.scale = float(scale)
         self.vertex_map = None if vertex_map is None else sp.csr_matrix(vertex_map)
         self._source_inverses = frame_inverses(self.source_neutral, self.source_faces)
         # Sums of source transformations per target triangle: G = P (S - I).
@@ -201,6 +216,7 @@ class DeformationTransfer:
         c = source_deformed.shape[0]
         gradients = triangle_frames(source_deformed, self.source_faces) @ self._source_inverses
         gradients -= np.eye(3)
+        gradients = self.rotation @ gradients @ self.rotation.T  # into the target's frame
         # (Fs, C * 9) -> the summed transformations - I of each target triangle (Ft, C, 3, 3).
         flat = gradients.transpose(1, 0, 2, 3).reshape(-1, c * 9)
         summed = (self._pair_sum @ flat).reshape(ft, c, 3, 3)
@@ -211,7 +227,8 @@ class DeformationTransfer:
         moved = displacement[:vt].reshape(vt, c, 3).transpose(1, 0, 2).copy()
         if self.vertex_map is not None:
             for index in range(c):
-                self._place_pieces(moved[index], source_deformed[index] - self.source_neutral)
+                displacement = source_deformed[index] - self.source_neutral
+                self._place_pieces(moved[index], self.scale * displacement @ self.rotation.T)
         result: np.ndarray = self.target_neutral + moved
         return result
 
@@ -230,4 +247,6 @@ class DeformationTransfer:
         order = np.argsort(labels, kind="stable")
         pieces, starts = np.unique(labels[order], return_index=True)
         for piece, chunk in zip(pieces, np.split(order, starts[1:]), strict=True):
-            moved[self._labels == piece] += np.median(differences[chunk], axis=0)
+            # The median per axis of the source's frame, so the result turns with the target.
+            along_source = np.median(differences[chunk] @ self.rotation, axis=0)
+            moved[self._labels == piece] += along_source @ self.rotation.T

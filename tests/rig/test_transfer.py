@@ -298,3 +298,63 @@ def test_ict_shapes_transferred_onto_the_generic_face_itself_are_the_shapes():
     np.testing.assert_array_equal(
         generated.source_points[1], source.points[source.names.index("jawOpen")]
     )
+
+
+def test_a_target_holding_the_source_in_another_triangle_order_pairs_triangle_for_triangle():
+    source, source_faces = grid(6)
+    extra = np.array([[35, 36, 37]])  # a separate piece after the source's vertices
+    target = np.concatenate([source, [[2.0, 0, 0], [3.0, 0, 0], [2.0, 1.0, 0]]])
+    order = np.random.default_rng(3).permutation(len(source_faces) + 1)
+    # Same triangles, shuffled, each starting at another corner (same winding).
+    target_faces = np.roll(np.concatenate([source_faces, extra]), 1, axis=1)[order]
+    found = identity_correspondence(source, source_faces, target, target_faces)
+    assert found is not None and found.method == "identity"
+    np.testing.assert_array_equal(
+        np.sort(target_faces[found.pairs[:, 1]], axis=1), np.sort(source_faces, axis=1)
+    )
+    flipped = target_faces[:, ::-1]  # the other winding is another surface orientation
+    assert identity_correspondence(source, source_faces, target, flipped) is None
+
+
+def test_transfer_does_not_depend_on_the_targets_units_or_pose():
+    source, source_faces = grid(12)
+    target, target_faces = grid(9, 10)
+    markers = corner_markers(12, 9, 10)
+    deformed = smooth_deformation(source)
+    shapes = np.stack([source, deformed])
+    expressions = SourceExpressions(("neutral", "x"), shapes, source_faces, shapes[:, :3])
+    plain = transfer_expressions(expressions, target, target_faces, markers=markers)
+    angle = 0.7
+    turn = np.array(
+        [[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]]
+    )
+    moved = 0.01 * target @ turn.T + [3.0, -1.0, 2.0]  # centimetres to metres, turned, moved
+    posed = transfer_expressions(expressions, moved, target_faces, markers=markers)
+    displacement = plain.target_vertices[1] - target
+    np.testing.assert_allclose(
+        posed.target_vertices[1] - moved, 0.01 * displacement @ turn.T, atol=1e-9
+    )
+
+
+def test_a_target_split_at_a_seam_is_welded_so_it_does_not_crack():
+    source, source_faces = grid(8)
+    # Split along column 4: the vertices there appear twice, once for each side's triangles.
+    seam = np.flatnonzero(np.isclose(source[:, 0], source[4, 0]))
+    copies = len(source) + np.arange(len(seam))
+    split_faces = source_faces.copy()
+    right = (source[source_faces][:, :, 0] > source[4, 0] + 1e-9).any(axis=1)
+    for original, copy in zip(seam, copies, strict=True):
+        split_faces[right & (split_faces == original).any(axis=1)] = np.where(
+            split_faces[right & (split_faces == original).any(axis=1)] == original,
+            copy,
+            split_faces[right & (split_faces == original).any(axis=1)],
+        )
+    target = np.concatenate([source, source[seam]])
+    shapes = np.stack([source, smooth_deformation(source)])
+    generated = transfer_expressions(
+        SourceExpressions(("neutral", "x"), shapes, source_faces, shapes[:, :3]),
+        target, split_faces, markers=corner_markers(8, 8, 8),
+    )  # fmt: skip
+    moved = generated.target_vertices[1]
+    np.testing.assert_allclose(moved[seam], moved[copies], atol=1e-12)
+    np.testing.assert_allclose(moved[: len(source)], shapes[1], atol=1e-6)
