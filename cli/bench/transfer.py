@@ -161,10 +161,16 @@ def _accuracy(
         truth = arkit_example_set(archive, identity=identity)
         cases.append((f"(a) ICT {identity}, same topology (identity map)", truth, None,
                       truth.target_faces))  # fmt: skip
+    # The same face with its vertices renumbered, so the markers' path runs.
     truth = arkit_example_set(archive, identity="person01")
-    shuffled = truth.target_faces[np.random.default_rng(0).permutation(len(truth.target_faces))]
-    cases.append(("(a) ICT person01, 20 landmark markers + closest points", truth,
-                  np.stack([landmarks, landmarks], axis=1), shuffled))  # fmt: skip
+    order = np.random.default_rng(0).permutation(truth.num_vertices)
+    new_index = np.argsort(order)
+    renumbered = ExampleSet(names=truth.names, source_points=truth.source_points,
+                            target_vertices=truth.target_vertices[:, order],
+                            target_faces=new_index[truth.target_faces])  # fmt: skip
+    cases.append(("(a) ICT person01 renumbered, 20 landmark markers + closest points",
+                  renumbered, np.stack([landmarks, new_index[landmarks]], axis=1),
+                  renumbered.target_faces))  # fmt: skip
     decimated = decimate(face, source.faces, 4000)
     sqrt3 = sqrt3_retriangulate(face, source.faces)
     for label, remeshed, exact in (
