@@ -213,3 +213,17 @@ def test_a_gltf_target_is_read_as_its_face_mesh(tmp_path):
     read_vertices, read_faces = read_target_mesh(path)
     np.testing.assert_allclose(read_vertices, vertices, atol=1e-6)  # float32 in the file
     np.testing.assert_array_equal(read_faces, faces)
+
+
+def test_an_unknown_mesh_type_and_a_file_in_the_folders_place_are_refused(tmp_path):
+    from facecast.rig.transfer import read_target_mesh
+
+    (tmp_path / "face.stl").write_text("solid x\n")
+    with pytest.raises(ExampleSetError) as caught:
+        read_target_mesh(tmp_path / "face.stl")
+    assert caught.value.code == "bad_mesh_type"
+    (tmp_path / "taken").write_text("a file, not a folder")
+    with pytest.raises(ExampleSetError) as caught:
+        write_expression_set(tmp_path / "taken", _generated())
+    assert caught.value.code == "bad_output"
+    assert (tmp_path / "taken").read_text() == "a file, not a folder"
