@@ -88,7 +88,7 @@ def _cost(source, landmarks: np.ndarray, *, repeat: int) -> list[dict[str, Any]]
             rotation=generated.correspondence.rotation, scale=generated.correspondence.scale,
         )  # fmt: skip
         factor_again = time.perf_counter() - started
-        lu = transfer._lu
+        lu = transfer.factor
         rhs = np.random.default_rng(0).normal(size=(transfer.unknowns, 3))
         shape = source.vertices[1]
 

@@ -283,8 +283,8 @@ def fit_correspondence(
     weights : CorrespondenceWeights, optional
         Default: the paper's (w_S 1, w_I 0.001, w_C 0 then 1 ... 5000 in 4 steps).
     threshold : float, optional
-        Largest centroid distance of a triangle pair, in target units. Default: twice the
-        larger of the two meshes' median edge lengths (after fitting).
+        Largest distance from a triangle's centroid to its partner, in target units.
+        Default: twice the larger of the two meshes' median edge lengths (after fitting).
 
     Raises
     ------
@@ -298,10 +298,10 @@ def fit_correspondence(
     src, sfaces = check_mesh(source_vertices, source_faces, what="source mesh")
     tgt, tfaces = check_mesh(target_vertices, target_faces)
     pairs = check_markers(markers, src.shape[0], tgt.shape[0], source=src)
-    # Work with the target scaled to a unit bounding-box diagonal and the source placed on
-    # it by the markers' similarity: the weights are then unit-free.
+    # Work with the target scaled to a unit diagonal (of its box along its principal axes)
+    # and the source placed on it by the markers' similarity: the weights are then free of
+    # the meshes' units and pose.
     centred = tgt - tgt.mean(axis=0)
-    # The diagonal of the target's box along its principal axes: unit-free and pose-free.
     axes = np.linalg.svd(centred, full_matrices=False)[2]
     unit = float(np.linalg.norm(np.ptp(centred @ axes.T, axis=0)))
     target = centred / unit

@@ -161,6 +161,12 @@ class DeformationTransfer:
         self.unknowns = int(self._free.size)
         self.nonzeros = int(self._lu.L.nnz + self._lu.U.nnz)
 
+    @property
+    def factor(self) -> SuperLU:
+        """The factorisation every ``transfer`` reuses (read-only; ``bench transfer`` times
+        a product with its L and U as the solve's floor)."""
+        return self._lu
+
     def _factor(self, normal: sp.csc_matrix) -> SuperLU:
         self.factorizations += 1
         # The matrix is symmetric positive definite: symmetric ordering, no pivoting.
