@@ -45,9 +45,13 @@ def run(args: argparse.Namespace) -> int:
         take = Path(args.take) if args.take else TAKE
         if not take.is_file():
             raise CommandError(f"{take}: no such take (a Live Link Face CSV)")
-        report["accuracy"], shown = _accuracy(archive, source, landmarks, take)
+        report["accuracy"], shown = _accuracy(
+            archive, source, landmarks, take,
+            marker_weight=None if args.hold_markers else args.marker_weight,
+        )  # fmt: skip
         if args.sheet:
             print(f"wrote {_sheet(args.sheet, source, shown)}")
+    report["marker_weight"] = None if args.hold_markers else args.marker_weight
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1, default=float))
         print(f"wrote {args.json}")
@@ -144,14 +148,14 @@ def _exact_markers(source_vertices: np.ndarray, landmarks: np.ndarray, target: n
 
 
 def _accuracy(
-    archive, source, landmarks: np.ndarray, take: Path
+    archive, source, landmarks: np.ndarray, take: Path, *, marker_weight: float | None = 0.01
 ) -> tuple[list[dict[str, Any]], list[tuple[str, Any, np.ndarray]]]:
     from facecast.rig.evaluation.remesh import carry_shapes, decimate, sqrt3_retriangulate
     from facecast.rig.evaluation.takes import arkit_example_set
     from facecast.rig.evaluation.transfer import end_to_end, score_transfer
     from facecast.rig.examples import ExampleSet
     from facecast.rig.sources.trackers import read_livelink_csv
-    from facecast.rig.transfer import transfer_expressions
+    from facecast.rig.transfer import CorrespondenceWeights, transfer_expressions
     from facecast.rig.transfer.mesh import nearest_vertices
 
     livelink = read_livelink_csv(take)
@@ -189,10 +193,15 @@ def _accuracy(
 
     rows = []
     shown = []
+    held = "held" if marker_weight is None else f"pulled with {marker_weight:g} x w_C"
+    print(f"markers {held}")
     print("accuracy: error relative to the true displacement (sum over vertices), and a real "
           f"take ({take.name}) cloned through generated vs true examples (eq. 4.1, worst axis)")  # fmt: skip
     for label, truth_set, markers, faces in cases:
-        generated = transfer_expressions(source, truth_set.target_neutral, faces, markers=markers)
+        generated = transfer_expressions(
+            source, truth_set.target_neutral, faces, markers=markers,
+            weights=CorrespondenceWeights(marker_weight=marker_weight),
+        )  # fmt: skip
         truth_vertices = truth_set.target_vertices
         if faces is not truth_set.target_faces:
             truth_set = ExampleSet(names=truth_set.names, source_points=truth_set.source_points,

@@ -88,6 +88,14 @@ def register(subparsers) -> None:
     transfer.add_argument(
         "--repeat", type=int, default=5, metavar="N", help="timed runs per solve figure (median)"
     )
+    held = transfer.add_mutually_exclusive_group()
+    held.add_argument(
+        "--marker-weight", type=float, default=0.01, metavar="M",
+        help="pull the markers with M x w_C after the first step (default 0.01)",
+    )  # fmt: skip
+    held.add_argument(
+        "--hold-markers", action="store_true", help="hold the markers, as the paper does"
+    )
     part = transfer.add_mutually_exclusive_group()
     part.add_argument("--cost-only", action="store_true", help="skip the accuracy runs")
     part.add_argument("--accuracy-only", action="store_true", help="skip the cost runs")

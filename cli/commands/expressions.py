@@ -40,6 +40,20 @@ def register(subparsers) -> None:
         help="correspondence markers: 'source_vertex target_vertex' a line (0-based; source "
         "vertices of ICT's face area, [0, 9409)); at least 3, about 20 spread over the face",
     )
+    markers = parser.add_mutually_exclusive_group()
+    markers.add_argument(
+        "--marker-weight",
+        type=float,
+        default=0.01,
+        metavar="M",
+        help="after the first step, pull the markers to their places with M x the closest-point "
+        "weight (default 0.01: forgives markers up to half an edge off their place)",
+    )
+    markers.add_argument(
+        "--hold-markers",
+        action="store_true",
+        help="hold the markers exactly in every step, as the paper does",
+    )
     parser.add_argument(
         "--names", nargs="+", metavar="NAME", help="ARKit names to make (default: all 51)"
     )
@@ -59,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
 
     from facecast.rig.sources.ict import locate_ict
     from facecast.rig.transfer import (
+        CorrespondenceWeights,
         check_mesh,
         ict_source_expressions,
         read_markers,
@@ -85,8 +100,11 @@ def run(args: argparse.Namespace) -> int:
     count = len(args.names) if args.names else len(source.names) - 1
     with tqdm(total=count, unit="expr", desc="transferring", disable=args.quiet) as bar:
         generated = transfer_expressions(
-            source, vertices, faces, markers=markers, names=args.names, progress=bar.update
-        )
+            source, vertices, faces, markers=markers, names=args.names, progress=bar.update,
+            weights=CorrespondenceWeights(
+                marker_weight=None if args.hold_markers else args.marker_weight
+            ),
+        )  # fmt: skip
     written = write_expression_set(
         args.output,
         generated,

@@ -11,6 +11,7 @@ from facecast.rig.evaluation.remesh import carry_shapes, decimate, sqrt3_retrian
 from facecast.rig.evaluation.transfer import naive_transfer, relative_errors
 from facecast.rig.sources.ict import locate_ict
 from facecast.rig.transfer import (
+    CorrespondenceWeights,
     DeformationTransfer,
     SourceExpressions,
     check_markers,
@@ -358,3 +359,40 @@ def test_a_target_split_at_a_seam_is_welded_so_it_does_not_crack():
     moved = generated.target_vertices[1]
     np.testing.assert_allclose(moved[seam], moved[copies], atol=1e-12)
     np.testing.assert_allclose(moved[: len(source)], shapes[1], atol=1e-6)
+
+
+def test_markers_off_their_places_drag_the_transfer_less_when_pulled_than_when_held():
+    source, source_faces = grid(16)
+    coarse = decimate(source, source_faces, 200)
+    # 16 markers spread over the grid, each snapped to the nearest coarse vertex (off its
+    # place by up to half an edge, as a click on the nearest vertex is).
+    spread = [16 * row + column for row in (2, 6, 9, 13) for column in (2, 6, 9, 13)]
+    markers = np.array(
+        [[c, int(np.argmin(np.linalg.norm(coarse.vertices - source[c], axis=1)))] for c in spread]
+    )
+    offsets = np.linalg.norm(coarse.vertices[markers[:, 1]] - source[markers[:, 0]], axis=1)
+    assert offsets.max() > 0.02  # about a third of a source edge
+    bump = source.copy()
+    bump[:, 2] += 0.2 * np.exp(-((source[:, 0] - 0.5) ** 2 + (source[:, 1] - 0.5) ** 2) / 0.05)
+    shapes = np.stack([source, bump])
+    expressions = SourceExpressions(("neutral", "bump"), shapes, source_faces, shapes[:, :3])
+    truth = carry_shapes(coarse, shapes, source_faces)
+    errors, naive = {}, {}
+    for label, weight in (("held", None), ("pulled", 0.01)):
+        generated = transfer_expressions(
+            expressions, coarse.vertices, coarse.faces, markers=markers,
+            weights=CorrespondenceWeights(marker_weight=weight),
+        )  # fmt: skip
+        errors[label] = relative_errors(generated.target_vertices, truth)[1]
+        copied = naive_transfer(generated.correspondence, shapes, coarse.vertices)
+        naive[label] = relative_errors(copied, truth)[1]
+    assert errors["pulled"] < 0.95 * errors["held"]
+    assert errors["pulled"] < naive["pulled"]
+
+
+def test_correspondence_weights_must_be_positive():
+    with pytest.raises(CorrespondenceError) as caught:
+        CorrespondenceWeights(marker_weight=0.0)
+    assert caught.value.code == "bad_weights"
+    with pytest.raises(CorrespondenceError):
+        CorrespondenceWeights(identity=-1.0)
