@@ -20,6 +20,7 @@ __all__ = ["COMMAND_MODULES", "CommandError", "build_parser", "limit_blas_thread
 # Order is the order shown by --help.
 COMMAND_MODULES = (
     "demo",
+    "expressions",
     "fit",
     "clone",
     "eval",

@@ -6,7 +6,12 @@ The tree (the root is ``facecast.errors.FacecastError``)::
     ├── ExampleSetError(RigError, ValueError)   bad example data (files, shapes, NaN, pairing)
     ├── FitError(RigError, ValueError)          examples that cannot be fitted (collapsed, singular)
     ├── RigFileError(RigError, ValueError)      unreadable, truncated, tampered or unknown-version rig file
-    └── InputError(RigError, ValueError)        bad runtime input to a fitted rig (shape, NaN/Inf)
+    ├── InputError(RigError, ValueError)        bad runtime input to a fitted rig (shape, NaN/Inf)
+    ├── MeshError(RigError, ValueError)         a mesh deformation transfer cannot use (not a
+    │                                           manifold triangle/quad mesh, degenerate triangles)
+    ├── MarkerError(RigError, ValueError)       correspondence markers out of range, repeated or too few
+    └── CorrespondenceError(RigError, ValueError)  the source cannot be fitted onto the target
+                                                (diverged, far apart, no triangle pairs)
 """
 
 from __future__ import annotations
@@ -43,3 +48,15 @@ class RigFileError(RigError, ValueError):
 
 class InputError(RigError, ValueError):
     code = "bad_input"
+
+
+class MeshError(RigError, ValueError):
+    code = "bad_target_mesh"
+
+
+class MarkerError(RigError, ValueError):
+    code = "bad_markers"
+
+
+class CorrespondenceError(RigError, ValueError):
+    code = "correspondence_failed"

@@ -62,6 +62,45 @@ def register(subparsers) -> None:
     )
     transport.set_defaults(func=_runner("transport"))
 
+    transfer = sub.add_parser(
+        "transfer",
+        help="deformation transfer's cost (ICT -> ~10k, ~50k vertices) and accuracy",
+        description=(
+            "Cost of `facecast expressions` for ICT-FaceKit's 51 ARKit shapes onto remeshed "
+            "ICT faces of about 10k and 50k vertices (correspondence, the one factorisation, "
+            "each solve beside a floor: one product with the factors), and its accuracy on "
+            "targets with a known truth (other ICT identities, ICT's face decimated or "
+            "re-triangulated) beside the naive baseline, with a real take cloned through "
+            "generated and true examples (eq. 4.1). Needs ICT-FaceKit; takes minutes."
+        ),
+    )
+    transfer.add_argument(
+        "--ict", metavar="PATH",
+        help="ICT-FaceKit folder or .npz (default: $FACECAST_ICT or ../shared/data/ict-facekit)",
+    )  # fmt: skip
+    transfer.add_argument(
+        "--take", metavar="CSV", help="Live Link Face take (default: the bundled one)"
+    )
+    transfer.add_argument("--json", metavar="FILE", help="write every figure as JSON")
+    transfer.add_argument(
+        "--sheet", metavar="PNG", help="write a picture: transferred beside true expressions"
+    )
+    transfer.add_argument(
+        "--repeat", type=int, default=5, metavar="N", help="timed runs per solve figure (median)"
+    )
+    held = transfer.add_mutually_exclusive_group()
+    held.add_argument(
+        "--marker-weight", type=float, default=0.01, metavar="M",
+        help="pull the markers with M x w_C after the first step (default 0.01)",
+    )  # fmt: skip
+    held.add_argument(
+        "--hold-markers", action="store_true", help="hold the markers, as the paper does"
+    )
+    part = transfer.add_mutually_exclusive_group()
+    part.add_argument("--cost-only", action="store_true", help="skip the accuracy runs")
+    part.add_argument("--accuracy-only", action="store_true", help="skip the cost runs")
+    transfer.set_defaults(func=_runner("transfer"))
+
     broadcast = sub.add_parser(
         "broadcast", help="fan-out of results to viewers (optionally through Redis)"
     )

@@ -11,7 +11,7 @@ import base64
 import json
 import os
 import struct
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +21,7 @@ import pygltflib
 
 from ..errors import ExampleSetError, InputError
 
-__all__ = ["export_glb", "read_glb_morph_targets"]
+__all__ = ["export_glb", "read_glb_morph_targets", "read_gltf_mesh"]
 
 _GLB_MAGIC = 0x46546C67  # b"glTF"
 _CHUNK_JSON = 0x4E4F534A
@@ -470,6 +470,26 @@ def read_glb_morph_targets(
         Unreadable file, no mesh with morph targets, non-triangle primitives, or
         primitives that disagree on the number of targets.
     """
+    return _read_chosen_mesh(path_or_bytes, _morph_mesh)
+
+
+def read_gltf_mesh(path_or_bytes: GltfSource) -> tuple[np.ndarray, np.ndarray]:
+    """The neutral of a glTF/GLB/VRM file's face: its first mesh with morph targets, else its
+    first mesh, as (V, 3) float64 vertices and (F, 3) int64 triangles (mesh space).
+
+    Raises
+    ------
+    ExampleSetError
+        As ``read_glb_morph_targets``; ``no_mesh`` for a file without meshes.
+    """
+    neutral, faces, _, _ = _read_chosen_mesh(path_or_bytes, _face_mesh)
+    return neutral, faces
+
+
+def _read_chosen_mesh(
+    path_or_bytes: GltfSource, choose: Callable[[pygltflib.GLTF2, str], pygltflib.Mesh]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """The mesh ``choose(gltf, label)`` picks, read as ``_read_mesh`` reads it."""
     is_bytes = isinstance(path_or_bytes, bytes | bytearray | memoryview)
     label = "<glTF bytes>" if is_bytes else str(path_or_bytes)
     gltf = _load_document(path_or_bytes, label)
@@ -480,7 +500,7 @@ def read_glb_morph_targets(
     )
     reader = _BufferReader(gltf, base, label)
     try:
-        return _read_morph_mesh(gltf, reader, label)
+        return _read_mesh(choose(gltf, label), reader, label)
     except ExampleSetError:
         raise
     except (AttributeError, TypeError, KeyError, IndexError, ValueError) as exc:
@@ -490,12 +510,24 @@ def read_glb_morph_targets(
         ) from None
 
 
-def _read_morph_mesh(
-    gltf: pygltflib.GLTF2, reader: _BufferReader, label: str
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+def _morph_mesh(gltf: pygltflib.GLTF2, label: str) -> pygltflib.Mesh:
     mesh = next((m for m in gltf.meshes or [] if any(p.targets for p in m.primitives or [])), None)
     if mesh is None:
         raise ExampleSetError(f"{label}: no mesh with morph targets", code="no_morph_targets")
+    return mesh
+
+
+def _face_mesh(gltf: pygltflib.GLTF2, label: str) -> pygltflib.Mesh:
+    meshes = [m for m in gltf.meshes or [] if m.primitives]
+    if not meshes:
+        raise ExampleSetError(f"{label}: holds no mesh", code="no_mesh")
+    return next((m for m in meshes if any(p.targets for p in m.primitives)), meshes[0])
+
+
+def _read_mesh(
+    mesh: pygltflib.Mesh, reader: _BufferReader, label: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """All triangle primitives of ``mesh`` concatenated, with its morph targets (maybe 0)."""
     num_targets = {len(p.targets or []) for p in mesh.primitives}
     if len(num_targets) != 1:
         raise ExampleSetError(
@@ -535,7 +567,7 @@ def _read_morph_mesh(
                     code="too_large",
                 )
             prim_deltas = np.zeros((m, pos.shape[0], 3))
-            for t, target in enumerate(prim.targets):
+            for t, target in enumerate(prim.targets or []):
                 t_pos = target.POSITION if hasattr(target, "POSITION") else target.get("POSITION")
                 if t_pos is not None:
                     d = reader.accessor(t_pos)

@@ -1,0 +1,285 @@
+"""``facecast bench transfer``: deformation transfer's cost and accuracy on ICT-FaceKit.
+
+Cost: ICT's 51 ARKit shapes onto remeshed ICT faces of about 10k and 50k vertices
+(correspondence, the one factorisation, the solves), each solve beside a floor measured in
+the same run (one product with the factors). Accuracy: targets with a known truth (other
+ICT identities; ICT's face decimated or re-triangulated, its shapes carried over), the
+transfer beside the naive baseline, and a real take cloned through generated and true
+examples (eq. 4.1). It must not tune the method to the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from facecast.cli.errors import CommandError
+
+# Landmark noise (std per coordinate, cm) for the end-to-end runs: none, and 0.5 mm.
+NOISES = (0.0, 0.05)
+TAKE = Path(__file__).resolve().parents[2] / "tests" / "data" / "livelink" / "llv_dao.csv"
+
+
+def run(args: argparse.Namespace) -> int:
+    from facecast.rig.sources.ict import ict_example_set, locate_ict
+
+    archive = locate_ict(args.ict) if args.ict else locate_ict()
+    if archive is None:
+        raise CommandError(
+            "ICT-FaceKit not found (the transfer's source): set FACECAST_ICT, pass --ict PATH "
+            "or place it in ../shared/data/ict-facekit"
+        )
+    from facecast.rig.transfer import ict_source_expressions
+
+    source = ict_source_expressions(archive)
+    landmarks = ict_example_set(archive).feature_indices
+    report: dict[str, Any] = {}
+    if not args.accuracy_only:
+        report["cost"] = _cost(source, landmarks, repeat=args.repeat)
+    if not args.cost_only:
+        take = Path(args.take) if args.take else TAKE
+        if not take.is_file():
+            raise CommandError(f"{take}: no such take (a Live Link Face CSV)")
+        report["accuracy"], shown = _accuracy(
+            archive, source, landmarks, take,
+            marker_weight=None if args.hold_markers else args.marker_weight,
+        )  # fmt: skip
+        if args.sheet:
+            print(f"wrote {_sheet(args.sheet, source, shown)}")
+    report["marker_weight"] = None if args.hold_markers else args.marker_weight
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=1, default=float))
+        print(f"wrote {args.json}")
+    return 0
+
+
+# -- cost -------------------------------------------------------------------------------
+
+
+def _cost_targets(source) -> list[tuple[str, Any]]:
+    from facecast.rig.evaluation.remesh import decimate, sqrt3_retriangulate
+
+    face, faces = source.vertices[0], source.faces
+    small = sqrt3_retriangulate(*_mesh(decimate(face, faces, 3400)))
+    large = sqrt3_retriangulate(*_mesh(sqrt3_retriangulate(*_mesh(decimate(face, faces, 5600)))))
+    return [("~10k", small), ("~50k", large)]
+
+
+def _mesh(remeshed) -> tuple[np.ndarray, np.ndarray]:
+    return remeshed.vertices, remeshed.faces
+
+
+def _cost(source, landmarks: np.ndarray, *, repeat: int) -> list[dict[str, Any]]:
+    from facecast.cli.bench.engine import _paired_seconds
+    from facecast.rig.transfer import DeformationTransfer, transfer_expressions
+    from facecast.rig.transfer.mesh import nearest_vertices
+
+    rows = []
+    print("cost: ICT-FaceKit's 51 ARKit shapes (9,409-vertex face) -> remeshed ICT faces")
+    for label, target in _cost_targets(source):
+        markers = np.stack([landmarks, nearest_vertices(source.vertices[0][landmarks],
+                                                        target.vertices)], axis=1)  # fmt: skip
+        generated = transfer_expressions(source, target.vertices, target.faces, markers=markers)
+        started = time.perf_counter()
+        transfer = DeformationTransfer(
+            source.vertices[0], source.faces, target.vertices, target.faces,
+            generated.correspondence.pairs, vertex_map=generated.correspondence.vertex_map,
+            rotation=generated.correspondence.rotation, scale=generated.correspondence.scale,
+        )  # fmt: skip
+        factor_again = time.perf_counter() - started
+        lu = transfer.factor
+        rhs = np.random.default_rng(0).normal(size=(transfer.unknowns, 3))
+        shape = source.vertices[1]
+
+        def one_expression(shape=shape, transfer=transfer):
+            transfer.transfer(shape)
+
+        def floor(lu=lu, rhs=rhs):
+            lu.L @ (lu.U @ rhs)
+
+        per_expression, floor_s = _paired_seconds(one_expression, floor, repeat=repeat)
+        row = {
+            "target": label,
+            "vertices": int(target.vertices.shape[0]),
+            "triangles": int(target.faces.shape[0]),
+            "unknowns": transfer.unknowns,
+            "factor_nonzeros": transfer.nonzeros,
+            "correspondence_s": generated.seconds["correspondence"],
+            "factor_s": generated.seconds["factor"],
+            "factor_again_s": factor_again,
+            "solve_all_s": generated.seconds["solve"],
+            "per_expression_s": per_expression,
+            "floor_s": floor_s,
+            "ratio": per_expression / floor_s,
+            "residual_edges": generated.correspondence.residual,
+        }
+        rows.append(row)
+        print(
+            f"  {label:5s} {row['vertices']:6d} vertices: correspondence "
+            f"{row['correspondence_s']:6.1f} s, factor {row['factor_s']:5.2f} s (again "
+            f"{factor_again:.2f} s; {row['unknowns']} unknowns, {row['factor_nonzeros']:,} "
+            f"nonzeros in L+U), 51 solves {row['solve_all_s']:5.2f} s; one expression "
+            f"{1e3 * per_expression:6.1f} ms beside the floor {1e3 * floor_s:5.1f} ms "
+            f"(one product with L and U, 3 columns) = {row['ratio']:.1f}x"
+        )
+    return rows
+
+
+# -- accuracy ---------------------------------------------------------------------------
+
+
+def _exact_markers(source_vertices: np.ndarray, landmarks: np.ndarray, target: np.ndarray):
+    """Markers a careful user would place: for each landmark, the nearest target vertex
+    that coincides with a source vertex (a decimation leaves many where they were)."""
+    from scipy.spatial import cKDTree
+
+    distance, match = cKDTree(source_vertices).query(target)
+    exact = np.flatnonzero(distance < 1e-9)
+    pairs = []
+    for mark in landmarks:
+        best = exact[np.argmin(np.linalg.norm(target[exact] - source_vertices[mark], axis=1))]
+        pairs.append((int(match[best]), int(best)))
+    return np.unique(np.asarray(pairs), axis=0)
+
+
+def _accuracy(
+    archive, source, landmarks: np.ndarray, take: Path, *, marker_weight: float | None = 0.01
+) -> tuple[list[dict[str, Any]], list[tuple[str, Any, np.ndarray]]]:
+    from facecast.rig.evaluation.remesh import carry_shapes, decimate, sqrt3_retriangulate
+    from facecast.rig.evaluation.takes import arkit_example_set
+    from facecast.rig.evaluation.transfer import end_to_end, score_transfer
+    from facecast.rig.examples import ExampleSet
+    from facecast.rig.sources.trackers import read_livelink_csv
+    from facecast.rig.transfer import CorrespondenceWeights, transfer_expressions
+    from facecast.rig.transfer.mesh import nearest_vertices
+
+    livelink = read_livelink_csv(take)
+    face = source.vertices[0]
+    cases: list[tuple[str, ExampleSet, np.ndarray | None, np.ndarray]] = []
+    for identity in ("person01", "person10"):
+        truth = arkit_example_set(archive, identity=identity)
+        cases.append((f"(a) ICT {identity}, same topology (identity map)", truth, None,
+                      truth.target_faces))  # fmt: skip
+    # The same face with its vertices renumbered, so the markers' path runs.
+    truth = arkit_example_set(archive, identity="person01")
+    order = np.random.default_rng(0).permutation(truth.num_vertices)
+    new_index = np.argsort(order)
+    renumbered = ExampleSet(names=truth.names, source_points=truth.source_points,
+                            target_vertices=truth.target_vertices[:, order],
+                            target_faces=new_index[truth.target_faces])  # fmt: skip
+    cases.append(("(a) ICT person01 renumbered, 20 landmark markers + closest points",
+                  renumbered, np.stack([landmarks, new_index[landmarks]], axis=1),
+                  renumbered.target_faces))  # fmt: skip
+    decimated = decimate(face, source.faces, 4000)
+    sqrt3 = sqrt3_retriangulate(face, source.faces)
+    for label, remeshed, exact in (
+        ("(b) ICT face decimated to 4,000 vertices, exact markers", decimated, True),
+        ("(b) ICT face decimated to 4,000 vertices, nearest-vertex markers", decimated, False),
+        ("(b) ICT face sqrt3-retriangulated (27,870 vertices), exact markers", sqrt3, True),
+    ):
+        shapes = carry_shapes(remeshed, source.vertices, source.faces)
+        truth_set = ExampleSet(names=source.names, source_points=source.points,
+                               target_vertices=shapes, target_faces=remeshed.faces)  # fmt: skip
+        if exact:
+            markers = _exact_markers(face, landmarks, remeshed.vertices)
+        else:
+            markers = np.stack([landmarks, nearest_vertices(face[landmarks], remeshed.vertices)], 1)
+        cases.append((label, truth_set, markers, remeshed.faces))
+
+    rows = []
+    shown = []
+    held = "held" if marker_weight is None else f"pulled with {marker_weight:g} x w_C"
+    print(f"markers {held}")
+    print("accuracy: error relative to the true displacement (sum over vertices), and a real "
+          f"take ({take.name}) cloned through generated vs true examples (eq. 4.1, worst axis)")  # fmt: skip
+    for label, truth_set, markers, faces in cases:
+        generated = transfer_expressions(
+            source, truth_set.target_neutral, faces, markers=markers,
+            weights=CorrespondenceWeights(marker_weight=marker_weight),
+        )  # fmt: skip
+        truth_vertices = truth_set.target_vertices
+        if faces is not truth_set.target_faces:
+            truth_set = ExampleSet(names=truth_set.names, source_points=truth_set.source_points,
+                                   target_vertices=truth_vertices, target_faces=faces)  # fmt: skip
+        score = score_transfer(generated, source, truth_vertices)
+        if label.startswith("(a) ICT person01, same") or "nearest" in label:
+            shown.append((label, generated, truth_vertices))
+        ends = [end_to_end(generated, truth_set, livelink.weights, livelink.fps, noise=n)
+                for n in NOISES]  # fmt: skip
+        worse = [
+            n for n, t, v in zip(score.names, score.transfer, score.naive, strict=True) if t >= v
+        ]
+        row = {
+            "case": label,
+            "markers": None if markers is None else len(markers),
+            "residual_edges": generated.correspondence.residual,
+            **score.as_dict(),
+            "transfer_not_below_naive": worse,
+            "end_to_end": ends,
+        }
+        rows.append(row)
+        worst = score.names[int(np.argmax(score.transfer))]
+        print(f"  {label}")
+        print(
+            f"    transfer {100 * score.transfer_overall:5.1f}%  naive {100 * score.naive_overall:5.1f}%"
+            f"  (transfer below naive on {len(score.names) - len(worse)} of {len(score.names)}; "
+            f"worst {worst} {100 * score.transfer.max():.0f}%; median "
+            f"{100 * np.median(score.transfer):.1f}% vs {100 * np.median(score.naive):.1f}%)"
+        )
+        for end in ends:
+            true_e = max(end["true"]["eq41_percent"].values())
+            gen_e = max(end["generated"]["eq41_percent"].values())
+            print(
+                f"    take, noise {end['noise']:g} cm: eq. 4.1 through true examples "
+                f"{true_e:.4f}%, through generated {gen_e:.4f}% ({gen_e / true_e:.3g}x)"
+            )
+    return rows, shown
+
+
+SHEET_NAMES = (
+    "jawOpen",
+    "eyeBlinkLeft",
+    "mouthSmileLeft",
+    "mouthPucker",
+    "browInnerUp",
+    "cheekPuff",
+)
+
+
+def _front(vertices: np.ndarray, faces: np.ndarray, neutral: np.ndarray) -> tuple:
+    """The triangles in front of the ears (ICT's axes, cm: the nose tip is at z = 13)."""
+    keep = (neutral[faces][:, :, 2] > 4.0).all(axis=1)
+    return vertices, faces[keep]
+
+
+def _sheet(path: str, source, shown: list[tuple[str, Any, np.ndarray]]) -> Path:
+    """Rows of expressions: the source, then per shown case the truth and the transfer
+    (only the front of the face, so the lids and lips show)."""
+    from facecast.cli.render import save_side_by_side
+
+    rows = []
+    for name in SHEET_NAMES:
+        shape = source.vertices[source.names.index(name)]
+        row = [(f"ICT: {name}", *_front(shape, source.faces, source.vertices[0]))]
+        for label, generated, truth in shown:
+            short = label.replace("decimated to 4,000 vertices", "decimated 4k").split(",")[0]
+            short = short.replace("(a) ICT ", "").replace("(b) ICT face ", "")
+            index = generated.names.index(name)
+            faces = generated.target_faces
+            row.append((f"{short}: true", *_front(truth[index], faces, truth[0])))
+            row.append(
+                (
+                    f"{short}: transferred",
+                    *_front(generated.target_vertices[index], faces, truth[0]),
+                )
+            )
+        rows.append(row)
+    return save_side_by_side(
+        path, rows, panel_size=(210, 230), view="front",
+        title="ICT-FaceKit's shapes transferred (Sumner & Popovic 2004) beside the true ones",
+    )  # fmt: skip

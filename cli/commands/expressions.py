@@ -1,0 +1,139 @@
+"""``facecast expressions``: key-expressions for a neutral-only character, by deformation transfer.
+
+Reads the target neutral and the markers, hands them to ``facecast.rig.transfer`` and
+writes the example-set folder it returns; it must not compute anything itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from facecast.cli.errors import CommandError
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "expressions",
+        help="make a neutral-only character's key-expressions by deformation transfer",
+        description=(
+            "Transfer ICT-FaceKit's ARKit-named expressions onto a target neutral (Sumner & "
+            "Popovic 2004) and write an example-set folder ready for `facecast fit`: "
+            "facecast.toml, source/<name>.csv (ICT's 20 feature points) and target/<name>.obj "
+            "(the target's own topology). A target sharing ICT's face topology needs no "
+            "markers; any other needs --markers. Needs ICT-FaceKit ($FACECAST_ICT or "
+            "../shared/data/ict-facekit). A target example already in the folder is kept "
+            "unless --overwrite; nothing is written on failure."
+        ),
+    )
+    parser.add_argument(
+        "target",
+        metavar="TARGET_NEUTRAL",
+        help="the character's neutral: .obj, .glb, .gltf or .vrm",
+    )
+    parser.add_argument(
+        "-o", "--output", required=True, metavar="EXAMPLES", help="example-set folder to write"
+    )
+    parser.add_argument(
+        "--markers",
+        metavar="FILE",
+        help="correspondence markers: 'source_vertex target_vertex' a line (0-based; source "
+        "vertices of ICT's face area, [0, 9409)); at least 3, about 20 spread over the face",
+    )
+    markers = parser.add_mutually_exclusive_group()
+    markers.add_argument(
+        "--marker-weight",
+        type=float,
+        default=0.01,
+        metavar="M",
+        help="after the first step, pull the markers to their places with M x the closest-point "
+        "weight (default 0.01: forgives markers up to half an edge off their place)",
+    )
+    markers.add_argument(
+        "--hold-markers",
+        action="store_true",
+        help="hold the markers exactly in every step, as the paper does",
+    )
+    parser.add_argument(
+        "--names", nargs="+", metavar="NAME", help="ARKit names to make (default: all 51)"
+    )
+    parser.add_argument(
+        "--overwrite", action="store_true", help="replace target examples already in the folder"
+    )
+    parser.add_argument(
+        "--ict", metavar="PATH",
+        help="ICT-FaceKit folder or .npz (default: $FACECAST_ICT or ../shared/data/ict-facekit)",
+    )  # fmt: skip
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from facecast.rig.sources.ict import locate_ict
+    from facecast.rig.transfer import (
+        CorrespondenceWeights,
+        check_mesh,
+        ict_source_expressions,
+        read_markers,
+        read_target_mesh,
+        transfer_expressions,
+        write_expression_set,
+    )
+
+    # The inputs first (cheap, and their errors say what to fix), then the source.
+    if not Path(args.target).is_file():
+        raise CommandError(f"{args.target}: no such file (the target neutral mesh)")
+    vertices, faces = check_mesh(*read_target_mesh(args.target), what=str(args.target))
+    markers = read_markers(args.markers) if args.markers else None
+    archive = None
+    if args.ict is None or Path(args.ict).exists():
+        archive = locate_ict(args.ict) if args.ict else locate_ict()
+    if archive is None:
+        raise CommandError(
+            "ICT-FaceKit not found: its expressions are the source this command transfers. "
+            "Set FACECAST_ICT to the folder holding ict_facekit.npz, pass --ict PATH, or place "
+            "it in ../shared/data/ict-facekit (see that folder's README for the conversion)"
+        )
+    source = ict_source_expressions(archive)
+    count = len(args.names) if args.names else len(source.names) - 1
+    with tqdm(total=count, unit="expr", desc="transferring", disable=args.quiet) as bar:
+        generated = transfer_expressions(
+            source, vertices, faces, markers=markers, names=args.names, progress=bar.update,
+            weights=CorrespondenceWeights(
+                marker_weight=None if args.hold_markers else args.marker_weight
+            ),
+        )  # fmt: skip
+    written = write_expression_set(
+        args.output,
+        generated,
+        overwrite=args.overwrite,
+        comment=(
+            f"made by facecast expressions from {Path(args.target).name}: ICT-FaceKit's "
+            "ARKit shapes moved onto it by deformation transfer (Sumner & Popovic 2004)"
+        ),
+    )
+    seconds = generated.seconds
+    how = (
+        "same topology (identity)"
+        if generated.correspondence.method == "identity"
+        else f"markers + closest points, residual {generated.correspondence.residual:.3g} edges"
+    )
+    print(
+        f"correspondence: {how}; {len(generated.correspondence.pairs)} triangle pairs, "
+        f"{int(generated.correspondence.vertex_map.getnnz(axis=1).astype(bool).sum())} of "
+        f"{vertices.shape[0]} target vertices reached"
+    )
+    print(
+        f"cost: correspondence {seconds['correspondence']:.2f} s, factor {seconds['factor']:.2f} s "
+        f"({generated.unknowns} unknowns, once), solve {seconds['solve']:.2f} s "
+        f"({1e3 * seconds['solve'] / max(1, count):.0f} ms per expression)"
+    )
+    kept = f", kept {len(written.kept)} already there: {', '.join(written.kept)}"
+    print(
+        f"{written.folder}: wrote {len(written.written)} expression(s)"
+        + (kept * bool(written.kept))
+    )
+    print(f"next: facecast fit {written.folder} -o character.rig")
+    return 0

@@ -1,0 +1,44 @@
+"""Deformation transfer (Sumner & Popović 2004): key-expressions for a neutral-only character.
+
+``transfer_expressions`` moves a source's expressions (ICT-FaceKit's ARKit shapes) onto a
+target neutral of any topology; ``write_expression_set`` writes them as an example set.
+"""
+
+from .correspondence import (
+    MIN_MARKERS,
+    Correspondence,
+    CorrespondenceWeights,
+    check_markers,
+    fit_correspondence,
+    identity_correspondence,
+    read_markers,
+)
+from .expressions import (
+    GeneratedExpressions,
+    SourceExpressions,
+    ict_source_expressions,
+    read_target_mesh,
+    transfer_expressions,
+)
+from .folder import WrittenSet, write_expression_set
+from .mesh import check_mesh
+from .solve import DeformationTransfer
+
+__all__ = [
+    "MIN_MARKERS",
+    "Correspondence",
+    "CorrespondenceWeights",
+    "DeformationTransfer",
+    "GeneratedExpressions",
+    "SourceExpressions",
+    "WrittenSet",
+    "check_markers",
+    "check_mesh",
+    "fit_correspondence",
+    "ict_source_expressions",
+    "identity_correspondence",
+    "read_markers",
+    "read_target_mesh",
+    "transfer_expressions",
+    "write_expression_set",
+]

@@ -1,0 +1,258 @@
+"""Deformation transfer's linear solve: a source's per-triangle deformations onto a target.
+
+Sumner & Popović 2004, section 3: the target's deformed vertices are the least-squares fit
+of its triangles' transformations to those of their corresponding source triangles. The
+matrix depends only on the target neutral and the correspondence, so it is factored once
+and every expression is one back-substitution. It must not read files or find the
+correspondence (that is ``correspondence``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import numpy.typing as npt
+import scipy.sparse as sp
+from scipy.sparse.linalg import SuperLU, splu
+
+from ..errors import CorrespondenceError, InputError
+from .mesh import check_mesh, frame_inverses, triangle_frames, vertex_components
+
+__all__ = ["DeformationTransfer", "frame_rows", "source_gradients"]
+
+# Expressions solved together: one back-substitution with 3 x _CHUNK right-hand sides.
+_CHUNK = 8
+
+
+def frame_rows(inverses: np.ndarray, faces: np.ndarray, num_vertices: int) -> sp.csr_matrix:
+    """The (3F, V + F) matrix taking vertices and fourth vertices to transformations.
+
+    Row 3t + k of the product with one coordinate of the unknowns (V vertices, then one
+    fourth vertex per triangle) is column k of that coordinate's row of triangle t's
+    transformation Ṽ V⁻¹ (eq. 3 with the frames of ``triangle_frames``): the same matrix
+    serves x, y and z.
+    """
+    f = faces.shape[0]
+    columns = np.stack(
+        [faces[:, 0], faces[:, 1], faces[:, 2], num_vertices + np.arange(f)], axis=1
+    )  # (F, 4): v1, v2, v3, v4
+    # d/dv2, d/dv3, d/dv4 of column k are the rows of V⁻¹; d/dv1 is minus their sum.
+    coefficients = np.empty((f, 3, 4))
+    coefficients[:, :, 1:] = inverses.transpose(0, 2, 1)
+    coefficients[:, :, 0] = -inverses.sum(axis=1)
+    rows = np.repeat(np.arange(3 * f), 4)
+    cols = np.repeat(columns, 3, axis=0).ravel()
+    matrix: sp.csr_matrix = sp.csr_matrix(
+        (coefficients.ravel(), (rows, cols)), shape=(3 * f, num_vertices + f)
+    )
+    return matrix
+
+
+def source_gradients(
+    source_neutral: np.ndarray, source_deformed: np.ndarray, faces: np.ndarray
+) -> np.ndarray:
+    """(..., F, 3, 3) transformations Q = Ṽ V⁻¹ of every source triangle (eq. 3)."""
+    gradients: np.ndarray = triangle_frames(source_deformed, faces) @ frame_inverses(
+        source_neutral, faces
+    )
+    return gradients
+
+
+class DeformationTransfer:
+    """The transfer onto one target neutral for one triangle correspondence, factored once.
+
+    Parameters
+    ----------
+    source_neutral : (Vs, 3) float
+    source_faces : (Fs, 3) int
+    target_neutral : (Vt, 3) float
+    target_faces : (Ft, 3) int
+    pairs : (P, 2) int
+        (source triangle, target triangle) correspondences, the paper's set M. A target
+        triangle in several pairs is fitted to all of them; one in none keeps its neutral
+        shape (its transformation is fitted to the identity).
+    vertex_map : (Vt, Vs) sparse, optional
+        Each target vertex's corresponding source point as interpolation weights (rows of
+        unmatched vertices empty). It fixes each connected piece's translation, which the
+        gradients leave free: the piece moves as its mapped vertices' source points do (median).
+        Without it every piece's first vertex stays where it is.
+    rotation : (3, 3) float, optional
+        The rotation from the source's axes to the target's (``Correspondence.rotation``):
+        transformations are turned into the target's frame, R (Q − I) Rᵀ.
+    scale : float
+        Target units per source unit, for the source displacements ``vertex_map`` reads.
+
+    Notes
+    -----
+    The unknowns are the displacements of the Vt vertices and of one fourth vertex per
+    target triangle; one vertex per connected piece is held, so the normal matrix is
+    positive definite and its sparse LU (``splu``) is computed once, here.
+    """
+
+    def __init__(
+        self,
+        source_neutral: npt.ArrayLike,
+        source_faces: npt.ArrayLike,
+        target_neutral: npt.ArrayLike,
+        target_faces: npt.ArrayLike,
+        pairs: npt.ArrayLike,
+        *,
+        vertex_map: sp.spmatrix | None = None,
+        rotation: npt.ArrayLike | None = None,
+        scale: float = 1.0,
+    ) -> None:
+        self.source_neutral, self.source_faces = check_mesh(
+            source_neutral, source_faces, what="source mesh"
+        )
+        self.target_neutral, self.target_faces = check_mesh(target_neutral, target_faces)
+        vs, fs = self.source_neutral.shape[0], self.source_faces.shape[0]
+        vt, ft = self.target_neutral.shape[0], self.target_faces.shape[0]
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        if pairs.size == 0:
+            raise CorrespondenceError(
+                "no triangle of the target corresponds to a source triangle; give markers "
+                "that place the source face on the target's face",
+                code="no_triangle_pairs",
+            )
+        if (
+            pairs[:, 0].min() < 0
+            or pairs[:, 0].max() >= fs
+            or pairs[:, 1].min() < 0
+            or (pairs[:, 1].max() >= ft)
+        ):
+            raise CorrespondenceError("triangle pairs out of range", code="bad_pairs")
+        if vertex_map is not None and vertex_map.shape != (vt, vs):
+            raise CorrespondenceError(
+                f"vertex_map: expected shape ({vt}, {vs}), got {vertex_map.shape}",
+                code="bad_pairs",
+            )
+        self.pairs = pairs
+        self.rotation = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+        if self.rotation.shape != (3, 3) or not np.allclose(
+            self.rotation @ self.rotation.T, np.eye(3), atol=1e-9
+        ):
+            raise CorrespondenceError("rotation: expected a (3, 3) rotation", code="bad_pairs")
+        if not (np.isfinite(scale) and scale > 0):
+            raise CorrespondenceError(f"scale: expected > 0, got {scale!r}", code="bad_pairs")
+        self.scale = float(scale)
+        self.vertex_map = None if vertex_map is None else sp.csr_matrix(vertex_map)
+        self._source_inverses = frame_inverses(self.source_neutral, self.source_faces)
+        # Sums of source transformations per target triangle: G = P (S - I).
+        self._pair_sum = sp.csr_matrix(
+            (np.ones(len(pairs)), (pairs[:, 1], pairs[:, 0])), shape=(ft, fs)
+        )
+        counts = np.bincount(pairs[:, 1], minlength=ft).astype(np.float64)
+        self.reached = counts > 0
+        weights = np.repeat(np.where(self.reached, counts, 1.0), 3)
+
+        rows = frame_rows(frame_inverses(self.target_neutral, self.target_faces),
+                          self.target_faces, vt)  # fmt: skip
+        labels = vertex_components(vt, self.target_faces)
+        _, first = np.unique(labels, return_index=True)
+        self._labels = labels
+        free = np.ones(vt + ft, dtype=bool)
+        free[first] = False
+        self._free = np.flatnonzero(free)
+        self._rows_t = rows.T.tocsr()[self._free]  # (free, 3Ft): rhs = Aᵀ W r
+        normal = (self._rows_t @ sp.diags(weights) @ rows[:, self._free]).tocsc()
+        self.factorizations = 0
+        self._lu = self._factor(normal)
+        self.unknowns = int(self._free.size)
+        self.nonzeros = int(self._lu.L.nnz + self._lu.U.nnz)
+
+    @property
+    def factor(self) -> SuperLU:
+        """The factorisation every ``transfer`` reuses (read-only; ``bench transfer`` times
+        a product with its L and U as the solve's floor)."""
+        return self._lu
+
+    def _factor(self, normal: sp.csc_matrix) -> SuperLU:
+        self.factorizations += 1
+        # The matrix is symmetric positive definite: symmetric ordering, no pivoting.
+        return splu(
+            normal,
+            permc_spec="MMD_AT_PLUS_A",
+            diag_pivot_thresh=0.0,
+            options={"SymmetricMode": True},
+        )
+
+    def transfer(
+        self,
+        source_deformed: npt.ArrayLike,
+        *,
+        progress: Callable[[int], object] | None = None,
+    ) -> np.ndarray:
+        """The target's vertices under each source deformation.
+
+        Parameters
+        ----------
+        source_deformed : (Vs, 3) or (M, Vs, 3) float
+            Deformed source meshes (the source neutral's topology).
+        progress : callable, optional
+            Called with the number of meshes done after each batch of them (a tqdm bar's
+            ``update``).
+
+        Returns
+        -------
+        (Vt, 3) or (M, Vt, 3) float64
+        """
+        deformed = np.asarray(source_deformed, dtype=np.float64)
+        single = deformed.ndim == 2
+        deformed = deformed.reshape(-1, *deformed.shape[-2:])
+        vs = self.source_neutral.shape[0]
+        if deformed.shape[1:] != (vs, 3):
+            raise InputError(
+                f"source_deformed: expected shape (M, {vs}, 3), got {deformed.shape}",
+                code="wrong_vertex_count",
+            )
+        if not np.isfinite(deformed).all():
+            raise InputError("source_deformed: NaN or Inf coordinates", code="non_finite")
+        out = np.empty((deformed.shape[0], *self.target_neutral.shape))
+        for start in range(0, deformed.shape[0], _CHUNK):
+            chunk = deformed[start : start + _CHUNK]
+            out[start : start + len(chunk)] = self._transfer_chunk(chunk)
+            if progress is not None:
+                progress(len(chunk))
+        return out[0] if single else out
+
+    def _transfer_chunk(self, source_deformed: np.ndarray) -> np.ndarray:
+        """(C, Vt, 3) for C deformed sources: one back-substitution for all 3C columns."""
+        vt, ft = self.target_neutral.shape[0], self.target_faces.shape[0]
+        c = source_deformed.shape[0]
+        gradients = triangle_frames(source_deformed, self.source_faces) @ self._source_inverses
+        gradients -= np.eye(3)
+        gradients = self.rotation @ gradients @ self.rotation.T  # into the target's frame
+        # (Fs, C * 9) -> the summed transformations - I of each target triangle (Ft, C, 3, 3).
+        flat = gradients.transpose(1, 0, 2, 3).reshape(-1, c * 9)
+        summed = (self._pair_sum @ flat).reshape(ft, c, 3, 3)
+        # Row 3t + k, column 3c + i: entry (i, k) of expression c's transformation of t.
+        rhs = self._rows_t @ summed.transpose(0, 3, 1, 2).reshape(3 * ft, 3 * c)
+        displacement = np.zeros((vt + ft, 3 * c))
+        displacement[self._free] = self._lu.solve(rhs)
+        moved = displacement[:vt].reshape(vt, c, 3).transpose(1, 0, 2).copy()
+        if self.vertex_map is not None:
+            for index in range(c):
+                displacement = source_deformed[index] - self.source_neutral
+                self._place_pieces(moved[index], self.scale * displacement @ self.rotation.T)
+        result: np.ndarray = self.target_neutral + moved
+        return result
+
+    def _place_pieces(self, moved: np.ndarray, source_displacement: np.ndarray) -> None:
+        """Shift each connected piece so its mapped vertices move as their source points do.
+
+        The shift is the median, per axis, of the differences: the bulk of a piece that
+        the expression leaves still stays still, whatever its moving part does.
+        """
+        assert self.vertex_map is not None
+        mapped = np.flatnonzero(np.diff(self.vertex_map.indptr) > 0)
+        if mapped.size == 0:
+            return
+        differences = self.vertex_map[mapped] @ source_displacement - moved[mapped]
+        labels = self._labels[mapped]
+        order = np.argsort(labels, kind="stable")
+        pieces, starts = np.unique(labels[order], return_index=True)
+        for piece, chunk in zip(pieces, np.split(order, starts[1:]), strict=True):
+            # The median per axis of the source's frame, so the result turns with the target.
+            along_source = np.median(differences[chunk] @ self.rotation, axis=0)
+            moved[self._labels == piece] += along_source @ self.rotation.T

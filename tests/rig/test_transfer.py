@@ -1,0 +1,398 @@
+"""Deformation transfer (rig/transfer): exact cases on small synthetic meshes, the
+correspondence, one factorisation for every expression, and every bad input's error."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from facecast.rig.errors import CorrespondenceError, InputError, MarkerError, MeshError
+from facecast.rig.evaluation.remesh import carry_shapes, decimate, sqrt3_retriangulate
+from facecast.rig.evaluation.transfer import naive_transfer, relative_errors
+from facecast.rig.sources.ict import locate_ict
+from facecast.rig.transfer import (
+    CorrespondenceWeights,
+    DeformationTransfer,
+    SourceExpressions,
+    check_markers,
+    check_mesh,
+    fit_correspondence,
+    ict_source_expressions,
+    identity_correspondence,
+    read_markers,
+    transfer_expressions,
+)
+from facecast.rig.transfer.mesh import closest_points
+
+
+def grid(columns: int, rows: int | None = None, *, bump: float = 0.3) -> tuple:
+    """A (rows x columns) height field over the unit square, two triangles a cell."""
+    rows = rows or columns
+    x, y = np.meshgrid(np.linspace(0, 1, columns), np.linspace(0, 1, rows))
+    z = bump * np.sin(3 * x) * np.cos(2 * y)
+    vertices = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    index = np.arange(rows * columns).reshape(rows, columns)
+    a, b = index[:-1, :-1].ravel(), index[:-1, 1:].ravel()
+    c, d = index[1:, 1:].ravel(), index[1:, :-1].ravel()
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    return vertices, faces
+
+
+def corner_markers(source_columns: int, target_columns: int, target_rows: int) -> np.ndarray:
+    """The four corners and the centre-ish vertex of two grids over the same square."""
+    s, t = source_columns, target_columns
+    return np.array(
+        [
+            [0, 0],
+            [s - 1, t - 1],
+            [s * s - 1, t * target_rows - 1],
+            [s * (s - 1), t * (target_rows - 1)],
+        ]
+    )
+
+
+def smooth_deformation(vertices: np.ndarray) -> np.ndarray:
+    x, y = vertices[:, 0], vertices[:, 1]
+    return vertices + 0.1 * np.stack([np.sin(4 * y), x**2, np.cos(3 * x) * y], axis=1)
+
+
+# -- the solve --------------------------------------------------------------------------
+
+
+def test_identity_transfer_reproduces_the_source_deformation():
+    vertices, faces = grid(12)
+    same = identity_correspondence(vertices, faces, vertices, faces)
+    transfer = DeformationTransfer(
+        vertices, faces, vertices, faces, same.pairs, vertex_map=same.vertex_map
+    )
+    deformed = smooth_deformation(vertices)
+    np.testing.assert_allclose(transfer.transfer(deformed), deformed, atol=1e-10)
+
+
+def test_affine_deformation_transfers_exactly_between_flat_meshes_of_other_triangulations():
+    source, source_faces = grid(10, bump=0.0)
+    target, target_faces = grid(7, 9, bump=0.0)
+    affine = np.array([[1.2, 0.3, 0.0], [0.1, 0.9, 0.2], [0.0, 0.1, 1.1]])
+    found = fit_correspondence(source, source_faces, target, target_faces, corner_markers(10, 7, 9))
+    transfer = DeformationTransfer(
+        source, source_faces, target, target_faces, found.pairs, vertex_map=found.vertex_map
+    )
+    moved = transfer.transfer(source @ affine.T + [0.5, -0.2, 0.1])
+    np.testing.assert_allclose(moved, target @ affine.T + [0.5, -0.2, 0.1], atol=1e-9)
+
+
+def test_rotation_and_scale_transfer_exactly_onto_a_retriangulated_curved_surface():
+    source, source_faces = grid(9)
+    remeshed = sqrt3_retriangulate(source, source_faces)
+    same_surface = identity_correspondence(source, source_faces, source, source_faces)
+    assert same_surface is not None
+    # The markers: the source's corners, which the retriangulation keeps as vertices.
+    corners = np.array([0, 8, 80, 72])
+    targets = [
+        int(np.argmin(np.linalg.norm(remeshed.vertices - source[c], axis=1))) for c in corners
+    ]
+    found = fit_correspondence(
+        source, source_faces, remeshed.vertices, remeshed.faces, np.stack([corners, targets], 1)
+    )
+    angle = 0.4
+    rotation = np.array(
+        [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
+    )
+    similarity = 1.3 * rotation
+    transfer = DeformationTransfer(
+        source, source_faces, remeshed.vertices, remeshed.faces, found.pairs,
+        vertex_map=found.vertex_map,
+    )  # fmt: skip
+    moved = transfer.transfer(source @ similarity.T)
+    np.testing.assert_allclose(moved, remeshed.vertices @ similarity.T, atol=1e-6)
+
+
+def test_one_factorisation_serves_every_expression():
+    vertices, faces = grid(10)
+    same = identity_correspondence(vertices, faces, vertices, faces)
+    transfer = DeformationTransfer(
+        vertices, faces, vertices, faces, same.pairs, vertex_map=same.vertex_map
+    )
+    steps = np.arange(1, 13)[:, None, None] * 0.02
+    shapes = vertices + steps * (smooth_deformation(vertices) - vertices)
+    done = []
+    moved = transfer.transfer(shapes, progress=done.append)
+    assert transfer.factorizations == 1
+    assert sum(done) == 12 and len(done) > 1  # solved in batches, each reported
+    np.testing.assert_allclose(moved, shapes, atol=1e-10)
+    np.testing.assert_allclose(transfer.transfer(shapes[5]), moved[5], atol=1e-12)
+    assert transfer.factorizations == 1
+
+
+def test_triangles_no_source_triangle_reaches_keep_their_neutral():
+    source, source_faces = grid(8)
+    far_piece = source + np.array([5.0, 0.0, 0.0])  # a second, separate piece far from the source
+    target = np.concatenate([source, far_piece])
+    target_faces = np.concatenate([source_faces, source_faces + len(source)])
+    same = identity_correspondence(source, source_faces, target, target_faces)
+    assert same is not None
+    transfer = DeformationTransfer(
+        source, source_faces, target, target_faces, same.pairs, vertex_map=same.vertex_map
+    )
+    moved = transfer.transfer(smooth_deformation(source))
+    np.testing.assert_allclose(moved[len(source) :], far_piece, atol=1e-12)
+    np.testing.assert_allclose(moved[: len(source)], smooth_deformation(source), atol=1e-10)
+
+
+def test_transfer_refuses_deformed_meshes_of_another_vertex_count():
+    vertices, faces = grid(6)
+    same = identity_correspondence(vertices, faces, vertices, faces)
+    transfer = DeformationTransfer(vertices, faces, vertices, faces, same.pairs)
+    with pytest.raises(InputError, match=r"expected shape \(M, 36, 3\)"):
+        transfer.transfer(vertices[:-1])
+    with pytest.raises(InputError, match="NaN"):
+        transfer.transfer(np.full_like(vertices, np.nan))
+
+
+# -- the correspondence -----------------------------------------------------------------
+
+
+def test_markers_and_closest_points_settle_the_source_on_a_decimated_surface():
+    source, source_faces = grid(16)
+    coarse = decimate(source, source_faces, 120)
+    markers = np.array(
+        [[c, int(np.argmin(np.linalg.norm(coarse.vertices - source[c], axis=1)))]
+         for c in (0, 15, 255, 240, 119)]
+    )  # fmt: skip
+    found = fit_correspondence(source, source_faces, coarse.vertices, coarse.faces, markers)
+    assert found.residual < 0.1
+    # Every target triangle is reached, and each fitted source vertex lies on the target.
+    assert set(found.pairs[:, 1]) == set(range(len(coarse.faces)))
+    on_target = closest_points(found.fitted_source, coarse.vertices, coarse.faces)
+    edge = np.linalg.norm(
+        coarse.vertices[coarse.faces[:, 0]] - coarse.vertices[coarse.faces[:, 1]], axis=1
+    )
+    assert np.median(on_target.distance) < 0.1 * np.median(edge)
+
+
+def test_transfer_onto_a_decimated_surface_carries_a_bump_better_than_the_naive_copy():
+    source, source_faces = grid(16)
+    coarse = decimate(source, source_faces, 120)
+    markers = np.array(
+        [[c, int(np.argmin(np.linalg.norm(coarse.vertices - source[c], axis=1)))]
+         for c in (0, 15, 255, 240)]
+    )  # fmt: skip
+    bump = source.copy()
+    bump[:, 2] += 0.2 * np.exp(-((source[:, 0] - 0.5) ** 2 + (source[:, 1] - 0.5) ** 2) / 0.05)
+    shapes = np.stack([source, bump])
+    generated = transfer_expressions(
+        SourceExpressions(("neutral", "bump"), shapes, source_faces, shapes[:, :3]),
+        coarse.vertices, coarse.faces, markers=markers,
+    )  # fmt: skip
+    truth = carry_shapes(coarse, shapes, source_faces)
+    naive = naive_transfer(generated.correspondence, shapes, coarse.vertices)
+    per_transfer, _ = relative_errors(generated.target_vertices, truth)
+    per_naive, _ = relative_errors(naive, truth)
+    assert per_transfer[0] < 0.1
+    assert per_transfer[0] < per_naive[0]
+
+
+def test_read_markers_takes_pairs_with_comments_and_commas(tmp_path):
+    path = tmp_path / "markers.txt"
+    path.write_text("# source target\n1 2\n\n3,4  # a comment\n")
+    np.testing.assert_array_equal(read_markers(path), [[1, 2], [3, 4]])
+
+
+def test_read_markers_names_the_line_that_is_not_two_integers(tmp_path):
+    path = tmp_path / "markers.txt"
+    path.write_text("1 2\n3 four\n")
+    with pytest.raises(MarkerError, match="line 2"):
+        read_markers(path)
+
+
+@pytest.mark.parametrize(
+    ("markers", "code"),
+    [
+        ([[0, 0], [1, 1]], "too_few_markers"),
+        ([[0, 0], [1, 1], [99, 2]], "marker_out_of_range"),
+        ([[0, 0], [1, 1], [2, 50]], "marker_out_of_range"),
+        ([[0, 0], [1, 1], [-1, 2]], "marker_out_of_range"),
+        ([[0, 0], [0, 1], [2, 2]], "repeated_marker"),
+        ([[0, 0], [1, 1], [2, 2]], "collinear_markers"),
+    ],
+)
+def test_bad_markers_are_refused_with_what_to_fix(markers, code):
+    source, _ = grid(6, bump=0.0)  # vertices 0, 1, 2 lie on a line
+    with pytest.raises(MarkerError) as caught:
+        check_markers(markers, len(source), 40, source=source)
+    assert caught.value.code == code
+    assert isinstance(caught.value, ValueError)
+
+
+def test_markers_that_name_the_wrong_places_do_not_converge():
+    source, source_faces = grid(10, bump=0.0)
+    target, target_faces = grid(7, 9, bump=0.0)
+    good = corner_markers(10, 7, 9)
+    crossed = good.copy()
+    crossed[:, 1] = good[[0, 2, 1, 3], 1]  # two corners swapped: the source must fold
+    with pytest.raises(CorrespondenceError) as caught:
+        fit_correspondence(source, source_faces, target, target_faces, crossed)
+    assert caught.value.code == "not_converged"
+    assert "marker" in str(caught.value)
+
+
+def test_another_topology_without_markers_asks_for_markers():
+    source, source_faces = grid(6)
+    target, target_faces = grid(5)
+    with pytest.raises(MarkerError) as caught:
+        transfer_expressions(
+            SourceExpressions(("neutral", "x"), np.stack([source, source + 0.1]), source_faces,
+                              np.zeros((2, 3, 3))),
+            target, target_faces,
+        )  # fmt: skip
+    assert caught.value.code == "markers_needed"
+
+
+# -- bad meshes -------------------------------------------------------------------------
+
+
+def test_a_point_cloud_is_not_a_mesh():
+    with pytest.raises(MeshError) as caught:
+        check_mesh(np.random.default_rng(0).normal(size=(10, 3)), np.zeros((0, 3), int))
+    assert caught.value.code == "no_triangles"
+
+
+def test_an_edge_shared_by_three_triangles_is_refused_as_non_manifold():
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1.0]])
+    faces = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])
+    with pytest.raises(MeshError, match=r"edge \(0, 1\)") as caught:
+        check_mesh(vertices, faces)
+    assert caught.value.code == "non_manifold"
+
+
+def test_zero_area_triangles_are_refused_naming_the_first():
+    vertices, faces = grid(4)
+    vertices[5] = vertices[6] = vertices[4]
+    with pytest.raises(MeshError) as caught:
+        check_mesh(vertices, faces)
+    assert caught.value.code == "degenerate_triangles"
+
+
+def test_non_finite_and_out_of_range_meshes_are_refused():
+    vertices, faces = grid(4)
+    broken = vertices.copy()
+    broken[3, 1] = np.inf
+    with pytest.raises(MeshError, match="vertex 3"):
+        check_mesh(broken, faces)
+    with pytest.raises(MeshError) as caught:
+        check_mesh(vertices, faces + 1)
+    assert caught.value.code == "index_out_of_range"
+
+
+# -- on ICT-FaceKit -------------------------------------------------------------------------
+
+
+@pytest.mark.ict
+@pytest.mark.skipif(locate_ict() is None, reason="ICT-FaceKit not found")
+def test_ict_shapes_transferred_onto_the_generic_face_itself_are_the_shapes():
+    source = ict_source_expressions(locate_ict())
+    picked = ["jawOpen", "eyeBlinkLeft", "mouthPucker", "browInnerUp"]
+    generated = transfer_expressions(source, source.vertices[0], source.faces, names=picked)
+    assert generated.correspondence.method == "identity"
+    expected = source.vertices[[0, *(source.names.index(n) for n in picked)]]
+    np.testing.assert_allclose(generated.target_vertices, expected, atol=1e-8)
+    np.testing.assert_array_equal(
+        generated.source_points[1], source.points[source.names.index("jawOpen")]
+    )
+
+
+def test_a_target_holding_the_source_in_another_triangle_order_pairs_triangle_for_triangle():
+    source, source_faces = grid(6)
+    extra = np.array([[35, 36, 37]])  # a separate piece after the source's vertices
+    target = np.concatenate([source, [[2.0, 0, 0], [3.0, 0, 0], [2.0, 1.0, 0]]])
+    order = np.random.default_rng(3).permutation(len(source_faces) + 1)
+    # Same triangles, shuffled, each starting at another corner (same winding).
+    target_faces = np.roll(np.concatenate([source_faces, extra]), 1, axis=1)[order]
+    found = identity_correspondence(source, source_faces, target, target_faces)
+    assert found is not None and found.method == "identity"
+    np.testing.assert_array_equal(
+        np.sort(target_faces[found.pairs[:, 1]], axis=1), np.sort(source_faces, axis=1)
+    )
+    flipped = target_faces[:, ::-1]  # the other winding is another surface orientation
+    assert identity_correspondence(source, source_faces, target, flipped) is None
+
+
+def test_transfer_does_not_depend_on_the_targets_units_or_pose():
+    source, source_faces = grid(12)
+    target, target_faces = grid(9, 10)
+    markers = corner_markers(12, 9, 10)
+    deformed = smooth_deformation(source)
+    shapes = np.stack([source, deformed])
+    expressions = SourceExpressions(("neutral", "x"), shapes, source_faces, shapes[:, :3])
+    plain = transfer_expressions(expressions, target, target_faces, markers=markers)
+    angle = 0.7
+    turn = np.array(
+        [[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]]
+    )
+    moved = 0.01 * target @ turn.T + [3.0, -1.0, 2.0]  # centimetres to metres, turned, moved
+    posed = transfer_expressions(expressions, moved, target_faces, markers=markers)
+    displacement = plain.target_vertices[1] - target
+    np.testing.assert_allclose(
+        posed.target_vertices[1] - moved, 0.01 * displacement @ turn.T, atol=1e-9
+    )
+
+
+def test_a_target_split_at_a_seam_is_welded_so_it_does_not_crack():
+    source, source_faces = grid(8)
+    # Split along column 4: the vertices there appear twice, once for each side's triangles.
+    seam = np.flatnonzero(np.isclose(source[:, 0], source[4, 0]))
+    copies = len(source) + np.arange(len(seam))
+    split_faces = source_faces.copy()
+    right = (source[source_faces][:, :, 0] > source[4, 0] + 1e-9).any(axis=1)
+    for original, copy in zip(seam, copies, strict=True):
+        split_faces[right & (split_faces == original).any(axis=1)] = np.where(
+            split_faces[right & (split_faces == original).any(axis=1)] == original,
+            copy,
+            split_faces[right & (split_faces == original).any(axis=1)],
+        )
+    target = np.concatenate([source, source[seam]])
+    shapes = np.stack([source, smooth_deformation(source)])
+    generated = transfer_expressions(
+        SourceExpressions(("neutral", "x"), shapes, source_faces, shapes[:, :3]),
+        target, split_faces, markers=corner_markers(8, 8, 8),
+    )  # fmt: skip
+    moved = generated.target_vertices[1]
+    np.testing.assert_allclose(moved[seam], moved[copies], atol=1e-12)
+    np.testing.assert_allclose(moved[: len(source)], shapes[1], atol=1e-6)
+
+
+def test_markers_off_their_places_drag_the_transfer_less_when_pulled_than_when_held():
+    source, source_faces = grid(16)
+    coarse = decimate(source, source_faces, 200)
+    # 16 markers spread over the grid, each snapped to the nearest coarse vertex (off its
+    # place by up to half an edge, as a click on the nearest vertex is).
+    spread = [16 * row + column for row in (2, 6, 9, 13) for column in (2, 6, 9, 13)]
+    markers = np.array(
+        [[c, int(np.argmin(np.linalg.norm(coarse.vertices - source[c], axis=1)))] for c in spread]
+    )
+    offsets = np.linalg.norm(coarse.vertices[markers[:, 1]] - source[markers[:, 0]], axis=1)
+    assert offsets.max() > 0.02  # about a third of a source edge
+    bump = source.copy()
+    bump[:, 2] += 0.2 * np.exp(-((source[:, 0] - 0.5) ** 2 + (source[:, 1] - 0.5) ** 2) / 0.05)
+    shapes = np.stack([source, bump])
+    expressions = SourceExpressions(("neutral", "bump"), shapes, source_faces, shapes[:, :3])
+    truth = carry_shapes(coarse, shapes, source_faces)
+    errors, naive = {}, {}
+    for label, weight in (("held", None), ("pulled", 0.01)):
+        generated = transfer_expressions(
+            expressions, coarse.vertices, coarse.faces, markers=markers,
+            weights=CorrespondenceWeights(marker_weight=weight),
+        )  # fmt: skip
+        errors[label] = relative_errors(generated.target_vertices, truth)[1]
+        copied = naive_transfer(generated.correspondence, shapes, coarse.vertices)
+        naive[label] = relative_errors(copied, truth)[1]
+    assert errors["pulled"] < 0.95 * errors["held"]
+    assert errors["pulled"] < naive["pulled"]
+
+
+def test_correspondence_weights_must_be_positive():
+    with pytest.raises(CorrespondenceError) as caught:
+        CorrespondenceWeights(marker_weight=0.0)
+    assert caught.value.code == "bad_weights"
+    with pytest.raises(CorrespondenceError):
+        CorrespondenceWeights(identity=-1.0)
