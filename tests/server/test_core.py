@@ -335,6 +335,32 @@ def test_refused_calibration_is_calibration_failed_not_a_close(rig):
     assert core.deadline() == pytest.approx(0.5 + IDLE)
 
 
+def test_calibrates_over_the_budget_are_refused_and_the_budget_refills(rig):
+    core = stream_core(calibrate_rate=2.0, calibrate_burst=2)
+    opened(core, rig)
+    points = frame_points(rig, 1)
+    asked = [core.handle(core.receive(encode(Calibrate(points=points)), 0.0), 0.0)
+             for _ in range(3)]  # fmt: skip
+
+    assert [isinstance(work, np.ndarray) for work in asked] == [True, True, False]
+    (error,) = sent(core)
+    assert isinstance(error, Error) and error.code is ErrorCode.RATE_LIMITED
+    assert error.seq is None and not error.fatal and "2 calibrations/s" in error.message
+    assert core.rig is rig  # nothing changed
+    # Half a second later one token is back (2/s).
+    assert isinstance(core.handle(core.receive(encode(Calibrate(points=points)), 0.5), 0.5),
+                      np.ndarray)  # fmt: skip
+
+
+def test_a_reset_is_never_refused(rig):
+    core = stream_core(calibrate_rate=0.001, calibrate_burst=1)
+    opened(core, rig)
+    for _ in range(3):
+        core.handle(core.receive(encode(Calibrate(reset=True)), 0.0), 0.0)
+
+    assert sent(core) == [Calibrated(active=False)] * 3
+
+
 # -- closing -----------------------------------------------------------------------------
 def test_closing_without_an_error_sends_only_the_close():
     core = stream_core()
