@@ -20,7 +20,7 @@ Subclasses uvicorn's classes (pinned in pyproject.toml); relies on both having
 ``run_asgi``, ``loop``, ``transport`` and ``close_timeout`` (read when closing), and on the
 sans-I/O one's ``handle_ping``, ``conn``, ``writable``, ``send_receive_event_to_app``
 with ``frames``, ``curr_msg_data_type``, ``close_sent`` and ``queue`` (the message hook),
-and ``send`` with ``handshake_complete`` (the denial).
+and ``app``, ``initial_response`` and ``handshake_complete`` (the denial).
 """
 
 from __future__ import annotations
@@ -78,12 +78,20 @@ class BoundedSansIO(_AbortLingering, WebSocketsSansIOProtocol):
         if done is not None:
             done()
 
-    async def send(self, message: Any) -> None:
-        await super().send(message)
-        if message["type"] == "websocket.http.response.body" and not message.get("more_body"):
-            # The whole denial is written and the transport closed: the handshake was
-            # answered, with a response instead of a 101.
-            self.handshake_complete = True
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        app = self.app
+
+        async def app_whose_denial_answers(scope: Any, receive: Any, send: Any) -> None:
+            await app(scope, receive, send)
+            if self.initial_response is not None:
+                # The app denied the handshake with an HTTP response (written, and the
+                # transport closed): answered, with a response instead of a 101.
+                self.handshake_complete = True
+
+        # Not an override of ``send``: ``transport`` writes frames directly only under
+        # uvicorn's own ``send`` (``transport._sansio_protocol``).
+        self.app = app_whose_denial_answers
 
     def send_receive_event_to_app(self) -> None:
         hook = self.message_hook
