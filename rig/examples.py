@@ -15,7 +15,16 @@ import numpy.typing as npt
 
 from .errors import ExampleSetError
 
-__all__ = ["ExampleSet", "check_stable_points"]
+__all__ = ["MIN_NEUTRAL_RADIUS", "ExampleSet", "check_stable_points"]
+
+#: The source neutral must have extent: its radius (the RMS distance of its K points from
+#: their centroid) must exceed this fraction of its largest coordinate's magnitude, else
+#: the set is refused (``degenerate_neutral``). float32, in which points reach a rig,
+#: resolves about 1e-7 of a coordinate; a neutral 100 times finer than that, or of one
+#: point, or of K equal points, gives a rig whose point range (``rig.POINT_RANGE``, a
+#: multiple of that radius) refuses every frame but the neutral itself. A face's neutral
+#: is about 0.3 of its largest coordinate near the origin, 0.05 two metres away from it.
+MIN_NEUTRAL_RADIUS = 1e-5
 
 
 def _finite_array(
@@ -41,6 +50,21 @@ def _check_finite(name: str, array: np.ndarray, names: Sequence[str] | None = No
             f"{name}: example {names[bad]!r} has NaN or Inf coordinates", code="non_finite"
         )
     raise ExampleSetError(f"{name}: NaN or Inf coordinates", code="non_finite")
+
+
+def _check_neutral_extent(neutral: np.ndarray, name: str) -> None:
+    """Refuse a source neutral (K, 3) without extent (see ``MIN_NEUTRAL_RADIUS``)."""
+    d = neutral - neutral.mean(axis=0)
+    radius = float(np.sqrt(np.vdot(d, d) / neutral.shape[0]))
+    scale = float(np.abs(neutral).max())
+    if not radius > MIN_NEUTRAL_RADIUS * scale:
+        raise ExampleSetError(
+            f"source_points: the neutral {name!r} has no extent (radius {radius:.3g}, the RMS "
+            f"distance of its {neutral.shape[0]} points from their centroid, is not above "
+            f"{MIN_NEUTRAL_RADIUS:g} of its largest coordinate {scale:.3g}): a rig needs "
+            "at least two distinct feature points in its neutral",
+            code="degenerate_neutral",
+        )
 
 
 def check_stable_points(value: npt.ArrayLike, num_points: int) -> np.ndarray:
@@ -179,6 +203,8 @@ class ExampleSet:
         stable = self.stable_points
         if stable is not None:
             stable = check_stable_points(stable, src.shape[1])
+        # Shapes first: a set whose arrays do not even pair up is told so before this.
+        _check_neutral_extent(src[0], names[0])
 
         object.__setattr__(self, "names", names)
         object.__setattr__(self, "source_points", src)

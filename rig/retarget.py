@@ -123,6 +123,9 @@ def fit_performer(rig: Rig, points: Mapping[str, object], *, noise: float | None
     InputError
         ``no_neutral``, ``unknown_expression``, ``wrong_point_count``, ``non_finite``,
         ``too_few_examples``, ``bad_noise``.
+    ExampleSetError
+        ``degenerate_neutral``: the captured neutral has no extent (its points coincide,
+        ``examples.MIN_NEUTRAL_RADIUS``).
     FitError
         From ``fit``: e.g. ``examples_coincide`` naming two captures the feature points
         cannot tell apart.

@@ -6,6 +6,7 @@ is read from the environment except by ``app_from_env``, the worker-process entr
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import os
 import time
@@ -41,12 +42,15 @@ from .stream import router as stream_router
 from .transport import TransportSeam
 from .viewer import mount_viewer
 
-__all__ = ["SESSIONS_STATE_KEY", "SETTINGS_ENV", "app_from_env", "create_app"]
+__all__ = ["SESSIONS_STATE_KEY", "SETTINGS_ENV", "STOPPING_STATE_KEY", "app_from_env", "create_app"]
 
 log = logging.getLogger("facecast.server")
 
 #: Key of the session registry in the ASGI lifespan state (read by ``runner``).
 SESSIONS_STATE_KEY = "facecast_sessions"
+#: Key of the app's ``stopping`` event in the lifespan state: ``runner`` sets it when a
+#: shutdown begins, and requests still reading a body or waiting for a fit answer 503.
+STOPPING_STATE_KEY = "facecast_stopping"
 #: Environment variable carrying serialised settings to worker processes.
 SETTINGS_ENV = "FACECAST_SETTINGS_JSON"
 
@@ -79,7 +83,7 @@ def create_app(settings: Settings) -> FastAPI:
             },
         )
         try:
-            yield {SESSIONS_STATE_KEY: app.state.sessions}
+            yield {SESSIONS_STATE_KEY: app.state.sessions, STOPPING_STATE_KEY: app.state.stopping}
         finally:
             # Normally the runner has already closed sessions with 1001; this catches
             # servers stopped any other way.
@@ -110,6 +114,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.sessions = SessionRegistry()
     app.state.channels = ChannelHub(settings, app.state.store, app.state.metrics)
     app.state.pending_fits = 0
+    app.state.stopping = asyncio.Event()
     app.state.profiles = profile_store(settings, app.state.store)
     install_error_handlers(app)
     app.include_router(rest_router)

@@ -40,6 +40,7 @@ from facecast.rig import Rig
 from facecast.rig.errors import RigError
 from facecast.rig.filters import KalmanFilter, OneEuroFilter
 
+from .calibrate_rate import CalibrateRateLimit
 from .cloning import Smoother, smoothing_filter, smoothing_name
 from .frame_rate import FrameRateLimit
 from .settings import Settings
@@ -126,6 +127,8 @@ def ready_message(
             "max_points": int(limits.max_points),
             "max_fps": float(settings.max_fps),
             "rate_burst": int(settings.rate_burst),
+            "calibrate_rate": float(settings.calibrate_rate),
+            "calibrate_burst": int(settings.calibrate_burst),
             "max_message_bytes": int(settings.max_message_bytes),
             "idle_timeout": float(settings.idle_timeout),
         },
@@ -156,7 +159,8 @@ class ConnectionCore:
     Parameters
     ----------
     protocol : the connection's `ServerProtocol` (the core decodes and encodes with it)
-    settings : the app's (``max_fps``, ``rate_burst``, ``idle_timeout``)
+    settings : the app's (``max_fps``, ``rate_burst``, ``calibrate_rate``,
+        ``calibrate_burst``, ``idle_timeout``)
     now : the clock when the connection was accepted
     idle_timeout : seconds without a message before IDLE_TIMEOUT; None: no idle rule
     """
@@ -174,6 +178,9 @@ class ConnectionCore:
         self.counters = Counters()
         self.idle_timeout = idle_timeout
         self.rate = FrameRateLimit(settings.max_fps, settings.rate_burst, now)
+        self.calibrations = CalibrateRateLimit(
+            settings.calibrate_rate, settings.calibrate_burst, now
+        )
         #: The rig as bound at hello; ``rig`` is it or its calibrated variant.
         self.base_rig: Rig | None = None
         self.rig: Rig | None = None
@@ -204,13 +211,15 @@ class ConnectionCore:
         self.last_message = now
         self.protocol.receive_text(text)
 
-    def handle(self, message: ClientMessage) -> Hello | Calibrate | None:
-        """React to a decoded message other than a frame.
+    def handle(self, message: ClientMessage, now: float) -> Hello | Calibrate | None:
+        """React to a decoded message other than a frame, received at ``now``.
 
         Returns the work the driver must do and report back: the `Hello` whose rig to
         load (then `open` or `failed`), or the `Calibrate` with the points to re-base on
         (then `calibrated` or `calibration_failed`); None when the answer, if any, is in
-        `data_to_send`.
+        `data_to_send`. A
+        ``calibrate`` over the connection's budget (``calibrate_rate``) asks for nothing:
+        its RATE_LIMITED error is in `data_to_send`.
         """
         if isinstance(message, Ping):
             self.send(Pong(id=message.id, ts=message.ts))
@@ -223,6 +232,10 @@ class ConnectionCore:
                 self.calibrate_next = False
                 self.reset_calibration()
                 self.send(Calibrated(active=False))
+            elif message.points is None and self.calibrate_next:
+                pass  # the next frame is already to become the neutral: no second fit
+            elif self._calibration_refused(now):
+                pass
             elif message.points is None:
                 self.calibrate_next = True
                 self.calibrate_noise = message.noise
@@ -230,6 +243,13 @@ class ConnectionCore:
                 self.waiting += 1
                 return message
         return None
+
+    def _calibration_refused(self, now: float) -> bool:
+        error = self.calibrations.refusal(now)
+        if error is None:
+            return False
+        self.report(error)
+        return True
 
     def check_hello(self, hello: Hello) -> None:
         """Refuse a ``hello`` this endpoint cannot serve (fatal ProtocolError)."""

@@ -4,8 +4,11 @@ A connection is *pending* from the moment it opens (or its previous response end
 its next request head is complete: it must send a first byte within
 ``request_idle_timeout`` and the whole head within ``request_head_timeout`` of that, and at
 most ``max_pending_connections`` are pending at once (one more closes the oldest). So
-slowloris connections can neither stay nor fill uvicorn's ``limit_concurrency``. No
-request handling here: only timers and the order connections opened in.
+slowloris connections can neither stay nor fill uvicorn's ``limit_concurrency``. And on
+httptools, whose uvicorn protocol routes ``GET http://name/path`` by its path and drops
+``name``, an absolute-form target's authority becomes the request's ``Host`` (RFC 9112
+§3.2.2), so the Host check (``origins``) judges the host the request names. No request
+handling here: only timers, the order connections opened in, and that header.
 
 Subclasses uvicorn's own protocol classes (pinned in pyproject.toml) and relies on their
 documented asyncio ``Protocol`` methods plus ``cycle`` (the request in progress) and
@@ -21,7 +24,12 @@ from typing import Any
 from uvicorn.protocols.http.h11_impl import H11Protocol
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
-__all__ = ["HTTP_IMPLEMENTATIONS", "PendingConnections", "guarded_http_protocol"]
+__all__ = [
+    "HTTP_IMPLEMENTATIONS",
+    "PendingConnections",
+    "absolute_authority",
+    "guarded_http_protocol",
+]
 
 #: uvicorn's HTTP implementations by name ("auto" is uvicorn's choice with httptools,
 #: which ``uvicorn[standard]`` installs).
@@ -121,7 +129,34 @@ class _Guarded:
         super().connection_lost(exc)  # type: ignore[misc]
 
 
+def absolute_authority(target: bytes) -> bytes | None:
+    """The ``host[:port]`` an absolute-form request target (``http://host/path``) names."""
+    if not target[:8].lower().startswith((b"http://", b"https://")):
+        return None
+    authority = target.split(b"://", 1)[1].split(b"/", 1)[0].split(b"?", 1)[0]
+    return authority.rsplit(b"@", 1)[-1]
+
+
+class _TargetHost:
+    """httptools only: an absolute-form target's authority replaces the ``Host`` header.
+
+    Relies on uvicorn's ``HttpToolsProtocol`` collecting the target in ``url`` and the
+    headers in ``headers`` (the list its scope holds) before ``on_headers_complete``.
+    """
+
+    url: bytes
+    headers: list[tuple[bytes, bytes]]
+
+    def on_headers_complete(self) -> None:
+        authority = absolute_authority(self.url)
+        if authority is not None:
+            self.headers[:] = [h for h in self.headers if h[0] != b"host"]
+            self.headers.append((b"host", authority))
+        super().on_headers_complete()  # type: ignore[misc]
+
+
 def guarded_http_protocol(pending: PendingConnections, http: str = "auto") -> type:
     """uvicorn's HTTP protocol ``http`` (see ``HTTP_IMPLEMENTATIONS``) under ``pending``."""
     base = HTTP_IMPLEMENTATIONS[http]
-    return type(f"Guarded{base.__name__}", (_Guarded, base), {"pending": pending})
+    mixins = (_Guarded, _TargetHost) if base is HttpToolsProtocol else (_Guarded,)
+    return type(f"Guarded{base.__name__}", (*mixins, base), {"pending": pending})

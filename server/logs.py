@@ -1,7 +1,8 @@
 """Structured logs: one JSON object per line on stderr, one line per event.
 
-Call sites log an ``event`` name plus fields through ``extra=``; this module only formats
-and wires handlers (for this process and, via ``uvicorn_log_config``, uvicorn's workers).
+Call sites log an ``event`` name plus fields through ``extra=``; this module formats and
+wires handlers (for this process and, via ``uvicorn_log_config``, uvicorn's workers), and
+keeps refusals a client controls to one line per streak (``RefusalLog``).
 """
 
 from __future__ import annotations
@@ -12,7 +13,47 @@ import re
 import time
 from typing import Any
 
-__all__ = ["JsonFormatter", "uvicorn_log_config"]
+__all__ = ["STREAK_GAP", "STREAK_REPORT", "JsonFormatter", "RefusalLog", "uvicorn_log_config"]
+
+#: A streak of refusals of one code ends after this many seconds without one.
+STREAK_GAP = 10.0
+#: While a streak lasts, its count is logged at most this often.
+STREAK_REPORT = 60.0
+
+
+class RefusalLog:
+    """Logs refusals once per streak: the first of each code, then counts.
+
+    A client decides how often it is refused; one line per refusal would be a log flood
+    it controls. The first refusal of a code logs a line at info (``event``, the code,
+    the caller's fields); later ones less than ``STREAK_GAP`` s after the previous are
+    only counted, and the count (``suppressed``: refusals of this code not logged since
+    the last line) goes out with the next line: the one starting the next streak, or the
+    one logged every ``STREAK_REPORT`` s while a streak goes on. The clock is passed in.
+    """
+
+    def __init__(self, logger: logging.Logger, event: str, message: str) -> None:
+        self.logger = logger
+        self.event = event
+        self.message = message
+        # code -> [time of the last refusal, of the last line, refusals since that line]
+        self._streaks: dict[str, list[float]] = {}
+
+    def refused(self, code: str, now: float, **fields: Any) -> bool:
+        """Count a refusal at ``now``; True if it was logged."""
+        streak = self._streaks.get(code)
+        if streak is not None and now - streak[0] < STREAK_GAP and now - streak[1] < STREAK_REPORT:
+            streak[0] = now
+            streak[2] += 1
+            return False
+        suppressed = 0 if streak is None else int(streak[2])
+        self._streaks[code] = [now, now, 0]
+        self.logger.info(
+            self.message,
+            extra={"event": self.event, "code": code, "suppressed": suppressed, **fields},
+        )
+        return True
+
 
 # Attributes every LogRecord has; anything else came from ``extra=`` and is a field.
 _STANDARD = set(logging.LogRecord("", 0, "", 0, "", (), None).__dict__.keys()) | {

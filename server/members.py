@@ -108,7 +108,7 @@ class PublisherMember(Member):
         if type(message) is Frame:
             await self._on_frame(message, now)
             return
-        work = self.core.handle(message)
+        work = self.core.handle(message, now)
         if isinstance(work, Hello):
             await self._on_hello(work)
         elif work is not None:

@@ -5,18 +5,27 @@ A pure-ASGI middleware refusing, before any route runs, (1) on a loopback-bound 
 rebinding: a page of attacker.example resolved to 127.0.0.1), and (2) a WebSocket
 handshake or unsafe method (PUT, POST, PATCH, DELETE) whose ``Origin`` is neither the
 server's own nor in ``allowed_origins`` (any web page the user visits). Requests without
-``Origin`` (every non-browser client) pass. No auth and no CORS here (``app`` adds
-Starlette's CORS middleware for ``allowed_origins``).
+``Origin`` (every non-browser client) pass. A request naming itself ambiguously is refused
+whatever the bind: two ``Host`` or two ``Origin`` headers (which one would a proxy, or we,
+believe?). On a loopback bind an empty ``Host`` is refused like a foreign one, and so is
+an absolute-form target (``GET http://name/...``) naming a foreign host: its authority is
+the request's host (RFC 9112 §3.2.2; ``http_guard`` puts it in ``Host`` for httptools, h11
+leaves it in ``raw_path``). A request without ``Host`` (HTTP/1.0) passes: no browser sends
+one. Refusals are logged once per streak (``logs.RefusalLog``). No auth and no CORS here
+(``app`` adds Starlette's CORS middleware for ``allowed_origins``).
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from urllib.parse import urlsplit
 
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from .errors import problem
+from .http_guard import absolute_authority
+from .logs import RefusalLog
 from .settings import Settings, is_loopback, normalise_origin
 
 __all__ = ["OriginGuard", "host_name"]
@@ -53,29 +62,42 @@ class OriginGuard:
         )  # lower-cased by Settings
         self.any_origin = "*" in settings.allowed_origins
         self.origins = frozenset(o for o in settings.allowed_origins if o != "*")
+        self.refusals = RefusalLog(log, "http.refused", "request refused")
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] not in ("http", "websocket"):
             await self.app(scope, receive, send)
             return
-        headers = {k: v for k, v in scope.get("headers", ()) if k in (b"host", b"origin")}
-        host = headers.get(b"host", b"").decode("latin-1")
-        refusal = self._host_refusal(host)
-        if refusal is None and (scope["type"] == "websocket" or scope["method"] in _UNSAFE_METHODS):
-            origin = headers.get(b"origin")
-            if origin is not None:
-                refusal = self._origin_refusal(origin.decode("latin-1"), host)
+        hosts = [v for k, v in scope.get("headers", ()) if k == b"host"]
+        origins = [v for k, v in scope.get("headers", ()) if k == b"origin"]
+        refusal = _duplicate("Host", hosts) or _duplicate("Origin", origins)
+        host = hosts[0].decode("latin-1") if hosts else None
+        if refusal is None:
+            # h11 passes an absolute-form target on as raw_path (httptools: http_guard).
+            target = absolute_authority(scope.get("raw_path") or b"")
+            refusal = self._host_refusal(host if target is None else target.decode("latin-1"))
+        if (
+            refusal is None
+            and origins
+            and (scope["type"] == "websocket" or scope["method"] in _UNSAFE_METHODS)
+        ):
+            refusal = self._origin_refusal(origins[0].decode("latin-1"), host or "")
         if refusal is None:
             await self.app(scope, receive, send)
             return
         code, detail = refusal
-        log.info("request refused", extra={"event": "http.refused", "code": code,
-                                            "path": scope.get("path")})  # fmt: skip
+        self.refusals.refused(code, time.monotonic(), path=scope.get("path"))
         await _deny(scope, receive, send, code, detail)
 
-    def _host_refusal(self, host: str) -> tuple[str, str] | None:
-        if not self.check_host or not host:  # no Host at all: not a browser
+    def _host_refusal(self, host: str | None) -> tuple[str, str] | None:
+        if not self.check_host or host is None:  # no Host at all (HTTP/1.0): not a browser
             return None
+        if not host.strip():
+            return (
+                "host_not_allowed",
+                "this server is bound to a loopback address and answers to loopback names "
+                "only, not an empty Host",
+            )
         name = host_name(host)
         if _is_loopback_name(name) or name in self.hosts:
             return None
@@ -99,6 +121,15 @@ class OriginGuard:
             f"requests from pages of {origin[:80]!r} are not allowed here (add the origin "
             "to allowed_origins)",
         )
+
+
+def _duplicate(name: str, values: list[bytes]) -> tuple[str, str] | None:
+    if len(values) < 2:
+        return None
+    return (
+        f"duplicate_{name.lower()}",
+        f"the request has {len(values)} {name} headers; send one",
+    )
 
 
 def _netloc(url: str) -> str | None:

@@ -161,7 +161,7 @@ class Member(Driver):
 
     async def _on_message(self, message: ClientMessage, now: float) -> None:
         """A decoded message: by default, the core's answer (a watcher's pong)."""
-        self.core.handle(message)
+        self.core.handle(message, now)
         self._deliver()
 
     async def _write_loop(self) -> None:

@@ -10,7 +10,7 @@ import asyncio
 import contextlib
 import logging
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar
@@ -78,12 +78,13 @@ async def read_body(request: Request, limit: int) -> bytes:
 
     Checks ``Content-Length`` first, then counts while streaming, so an oversized or
     unannounced (chunked) body is never buffered beyond ``limit`` bytes; one that takes
-    longer than ``body_timeout`` to arrive is 408 ``body_timeout``.
+    longer than ``body_timeout`` to arrive is 408 ``body_timeout``, and one still arriving
+    when the server begins to shut down 503 ``shutting_down`` (``unless_stopping``).
     """
     timeout = _settings(request).body_timeout
     try:
         async with asyncio.timeout(timeout):
-            return await _read_body(request, limit)
+            return await unless_stopping(request, _read_body(request, limit))
     except TimeoutError:
         raise ApiError(
             408, "body_timeout", f"the request body took longer than {timeout:g} s to arrive"
@@ -111,6 +112,36 @@ async def _read_body(request: Request, limit: int) -> bytes:
     if received == 0:
         raise ApiError(400, "empty_body", "the request body is empty")
     return b"".join(chunks)
+
+
+async def unless_stopping(request: Request, work: Awaitable[T]) -> T:
+    """``work``'s result, or 503 ``shutting_down`` as soon as the server begins to stop.
+
+    uvicorn gives requests in flight ``shutdown_timeout`` s, then cancels them: a 500 with
+    a traceback at error level for an upload still arriving (a slow or trickled body) or
+    a fit still running. Told at once instead (the app's ``stopping`` event, set by
+    ``runner``), such a request answers 503 with ``Connection: close``; ``work`` is
+    cancelled (a fit's thread runs to its end, and its result is dropped).
+    """
+    stopping: asyncio.Event = request.app.state.stopping
+    task = asyncio.ensure_future(work)
+    waiter = asyncio.ensure_future(stopping.wait())
+    try:
+        await asyncio.wait((task, waiter), return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        waiter.cancel()
+        if not task.done():
+            task.cancel()  # stopping, or this request cancelled (its body_timeout)
+    if not task.done() or task.cancelled():
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        raise ApiError(
+            503,
+            "shutting_down",
+            "the server is shutting down; send the request again in a moment",
+            headers={"Retry-After": "5", "Connection": "close"},
+        )
+    return task.result()
 
 
 @contextlib.contextmanager
@@ -142,7 +173,7 @@ async def run_fit(request: Request, job: Callable[[], T]) -> T:
     # Fitting is seconds of numpy: it runs in the dedicated fit executor, never on the
     # event loop and never in the pool that clones frames.
     executor: ThreadPoolExecutor = request.app.state.fit_executor
-    return await asyncio.wrap_future(executor.submit(job))
+    return await unless_stopping(request, asyncio.wrap_future(executor.submit(job)))
 
 
 def _described(rig_id: str, rig: Rig) -> dict[str, Any]:

@@ -25,7 +25,7 @@ import uvicorn
 from fastapi import FastAPI
 from prometheus_client.multiprocess import mark_process_dead
 
-from .app import SESSIONS_STATE_KEY, SETTINGS_ENV, create_app
+from .app import SESSIONS_STATE_KEY, SETTINGS_ENV, STOPPING_STATE_KEY, create_app
 from .http_guard import HTTP_IMPLEMENTATIONS, PendingConnections, guarded_http_protocol
 from .logs import uvicorn_log_config
 from .settings import Settings, SettingsError
@@ -124,11 +124,19 @@ def uvicorn_config(
 
 
 class FacecastServer(uvicorn.Server):
-    """uvicorn's server, closing stream sessions with 1001 ("going away") on shutdown."""
+    """uvicorn's server, closing stream sessions with 1001 ("going away") on shutdown.
+
+    Requests still reading a body or waiting for a fit are told to stop at once (the app's
+    ``stopping`` event: they answer 503 ``shutting_down``), rather than be cancelled by
+    uvicorn when its graceful wait runs out (a 500 and a traceback).
+    """
 
     async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
         for server in getattr(self, "servers", []):
             server.close()  # stop accepting before anything else
+        stopping = self.lifespan.state.get(STOPPING_STATE_KEY)
+        if stopping is not None:
+            stopping.set()
         sessions = self.lifespan.state.get(SESSIONS_STATE_KEY)
         if sessions is not None:
             timeout = getattr(self.config, "timeout_graceful_shutdown", None) or 5.0

@@ -240,7 +240,7 @@ class Session(Driver):
                     self._on_frame(decoded, in_burst, now)
                 else:
                     self._flush()
-                    await self._dispatch(decoded)
+                    await self._dispatch(decoded, now)
             except ProtocolError as exc:
                 self._report(exc)
 
@@ -344,8 +344,8 @@ class Session(Driver):
             self._control.extend(out)
             self._wake.set()
 
-    async def _dispatch(self, message: ClientMessage) -> None:
-        work = self.core.handle(message)
+    async def _dispatch(self, message: ClientMessage, now: float) -> None:
+        work = self.core.handle(message, now)
         if isinstance(work, Hello):
             await self._open(work)
         elif work is not None:

@@ -78,6 +78,12 @@ class Settings:
     max_fps: float = 240.0
     #: Token bucket depth: frames a client may send in a burst above ``max_fps``.
     rate_burst: int = 60
+    #: Calibrations a connection may ask for per second on average (``calibrate`` with
+    #: points, or without: its next frame), and at once: each refits the rig's projection
+    #: (~1 ms of CPU, and on a channel once per watched rig), so one over the budget is
+    #: refused with RATE_LIMITED (``calibrate_rate.py``; SERVER.md, the cost table).
+    calibrate_rate: float = 1.0
+    calibrate_burst: int = 4
     #: A session with no message from the client for this long is closed (IDLE_TIMEOUT).
     idle_timeout: float = 60.0
     max_message_bytes: int = 1 * MiB
@@ -181,6 +187,8 @@ class Settings:
             "max_connections",
             "max_fps",
             "rate_burst",
+            "calibrate_rate",
+            "calibrate_burst",
             "idle_timeout",
             "max_message_bytes",
             "clone_threads",

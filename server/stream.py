@@ -7,6 +7,7 @@ handshake, send one protocol ``error`` and close, so clients see a code, not a b
 from __future__ import annotations
 
 import logging
+import time
 
 from fastapi import APIRouter, WebSocket
 
@@ -15,6 +16,7 @@ from facecast.protocol import STREAM_PATH, ProtocolError, select_subprotocol
 from .admission import authorize_websocket, serve
 from .blending import BlendBatcher
 from .core import code_name
+from .logs import RefusalLog
 from .refusal import refuse
 from .session import Session
 from .settings import Settings
@@ -35,7 +37,11 @@ async def stream(websocket: WebSocket) -> None:
     try:
         principal = authorize_websocket(websocket, settings, "stream")
     except ProtocolError as exc:
-        log.info("stream refused", extra={"event": "stream.refused", "code": code_name(exc)})
+        refusals = getattr(app.state, "stream_refusals", None)
+        if refusals is None:  # one per app: a tokenless flood is one line per streak
+            refusals = app.state.stream_refusals = RefusalLog(log, "stream.refused",
+                                                              "stream refused")  # fmt: skip
+        refusals.refused(code_name(exc), time.monotonic())
         app.state.metrics.errors.labels(code_name(exc)).inc()
         await refuse(websocket, exc, subprotocol, timeout=settings.refuse_timeout)
         return

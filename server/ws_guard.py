@@ -10,13 +10,17 @@ a connection whose app has ended is dropped ``2 x ws_close_timeout`` later whate
 peer does (uvicorn's ``transport.close()`` waits for the peer to read everything
 buffered). On the sans-I/O one, the app may take binary messages as they are parsed
 (``message_hook``, for the per-frame path: no queue, task switch or read pause per
-message); whatever it declines goes to the app's receive as before. Nothing else of
-uvicorn's protocols changes.
+message); whatever it declines goes to the app's receive as before. And on the sans-I/O
+one, a handshake the app answered with an HTTP response (a 403 denial, ``origins``) counts
+as answered: uvicorn leaves it marked incomplete and then logs "ASGI callable returned
+without completing handshake." at error level for every refused connection, a log
+flood any web page could cause. Nothing else of uvicorn's protocols changes.
 
 Subclasses uvicorn's classes (pinned in pyproject.toml); relies on both having
 ``run_asgi``, ``loop``, ``transport`` and ``close_timeout`` (read when closing), and on the
-sans-I/O one's ``handle_ping``, ``conn``, ``writable``, and ``send_receive_event_to_app``
-with ``frames``, ``curr_msg_data_type``, ``close_sent`` and ``queue`` (the message hook).
+sans-I/O one's ``handle_ping``, ``conn``, ``writable``, ``send_receive_event_to_app``
+with ``frames``, ``curr_msg_data_type``, ``close_sent`` and ``queue`` (the message hook),
+and ``app``, ``initial_response`` and ``handshake_complete`` (the denial).
 """
 
 from __future__ import annotations
@@ -73,6 +77,21 @@ class BoundedSansIO(_AbortLingering, WebSocketsSansIOProtocol):
         done = self.read_hook
         if done is not None:
             done()
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        app = self.app
+
+        async def app_whose_denial_answers(scope: Any, receive: Any, send: Any) -> None:
+            await app(scope, receive, send)
+            if self.initial_response is not None:
+                # The app denied the handshake with an HTTP response (written, and the
+                # transport closed): answered, with a response instead of a 101.
+                self.handshake_complete = True
+
+        # Not an override of ``send``: ``transport`` writes frames directly only under
+        # uvicorn's own ``send`` (``transport._sansio_protocol``).
+        self.app = app_whose_denial_answers
 
     def send_receive_event_to_app(self) -> None:
         hook = self.message_hook

@@ -53,6 +53,8 @@ SAMPLES: dict[str, Message] = {
             "max_points": 4096,
             "max_fps": 240.0,
             "rate_burst": 60,
+            "calibrate_rate": 1.0,
+            "calibrate_burst": 4,
             "max_message_bytes": 1048576,
             "idle_timeout": 60.0,
         },

@@ -24,6 +24,7 @@ from facecast.rig import (
     fit,
     rig_from_bytes,
 )
+from facecast.rig.examples import MIN_NEUTRAL_RADIUS
 from facecast.rig.fit import NOISE_MAX_RELATIVE
 from facecast.rig.kernels import bspline
 from facecast.rig.rig import CALIBRATION_RANGE, POINT_RANGE
@@ -251,6 +252,49 @@ def test_fit_refuses_the_bad_stable_points_an_example_set_refuses(example_set, s
     assert info.value.code == "bad_stable_points"
 
 
+def _with_neutral(example_set, neutral):
+    source = example_set.source_points.copy()
+    source[0] = neutral
+    return dataclasses.replace(example_set, source_points=source)
+
+
+@pytest.mark.parametrize(
+    "neutral",
+    [
+        np.full((K, 3), 0.25),  # K equal points
+        np.zeros((K, 3)),  # at the origin too
+        np.full((K, 3), 1e3) + np.arange(K)[:, None] * 1e-6,  # apart by 1e-9 of it
+    ],
+)
+def test_example_set_refuses_a_neutral_without_extent(example_set, neutral):
+    with pytest.raises(ExampleSetError) as info:
+        _with_neutral(example_set, neutral)
+    assert info.value.code == "degenerate_neutral"
+    assert "no extent" in str(info.value)
+
+
+def test_example_set_of_one_feature_point_is_refused():
+    # One point has no extent, however far its examples move it: the rig would refuse
+    # every frame but the neutral (its point range is a multiple of that extent).
+    source = np.zeros((3, 1, 3))
+    source[:, 0, 0] = [0.5, 1.0, 2.0]
+    with pytest.raises(ExampleSetError) as info:
+        ExampleSet(["neutral", "a", "b"], source, np.zeros((3, 4, 3)), np.zeros((0, 3)))
+    assert info.value.code == "degenerate_neutral"
+
+
+def test_example_set_takes_a_neutral_just_above_the_extent_bound(example_set):
+    # Two points apart along x: radius d / 2, largest coordinate 1.
+    neutral = np.zeros((K, 3))
+    neutral[:, 1] = 1.0
+    neutral[: K // 2, 0] = 2.01 * MIN_NEUTRAL_RADIUS
+    above = _with_neutral(example_set, neutral)
+    assert above.source_points[0, 0, 0] == neutral[0, 0]
+    neutral[: K // 2, 0] = 1.99 * MIN_NEUTRAL_RADIUS
+    with pytest.raises(ExampleSetError, match="no extent"):
+        _with_neutral(example_set, neutral)
+
+
 def test_weights_that_overflow_for_finite_points_are_an_input_error(example_set, rig):
     # A rig file need only be finite: hyperplane coefficients at float64's largest load,
     # and take finite, in-range points to infinite weights, refused rather than returned.
@@ -372,8 +416,10 @@ def test_examples_that_move_no_feature_point_are_refused():
 def test_near_singular_radial_system_is_reported_with_its_condition_number():
     # Thin-plate terms vanish at t = 0 and t = 1: on three evenly spaced examples the radial
     # matrix has a zero row.
-    source = np.zeros((3, 1, 3))
+    # Point 1 stays put (a neutral needs extent): the examples differ by point 0 alone.
+    source = np.zeros((3, 2, 3))
     source[:, 0, 0] = [0.0, 1.0, 2.0]
+    source[:, 1, 1] = 1.0
     example_set = ExampleSet(
         ["neutral", "a", "b"],
         source,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from facecast.rig import ExampleSet, fit
-from facecast.rig.errors import InputError
+from facecast.rig.errors import ExampleSetError, InputError
 from facecast.rig.retarget import fit_performer, target_examples
 from facecast.rig.sources.capture import robust_example
 
@@ -79,6 +79,16 @@ def test_bad_captures_are_refused_by_code(character, change, code):
     with pytest.raises(InputError) as info:
         fit_performer(rig, points)
     assert info.value.code == code
+
+
+def test_a_capture_whose_neutral_has_no_extent_is_refused(character):
+    # Before: fitted and stored, a rig refusing every frame but its neutral (issue 25).
+    _, rig = character
+    points = _performer()
+    points["neutral"] = np.full((6, 3), 0.3)
+    with pytest.raises(ExampleSetError) as info:
+        fit_performer(rig, points)
+    assert info.value.code == "degenerate_neutral"
 
 
 def test_robust_example_drops_a_blink_and_measures_the_spread():

@@ -62,7 +62,7 @@ def sent(core: ConnectionCore) -> list[object]:
 
 def opened(core: StreamCore, rig, now: float = 0.0, **hello: object) -> Ready:
     """Feed ``hello``, answer the rig load with ``rig``: the ``ready`` sent."""
-    work = core.handle(core.receive(encode(Hello(rig="face", **hello)), now))  # type: ignore[arg-type]
+    work = core.handle(core.receive(encode(Hello(rig="face", **hello)), now), now)  # type: ignore[arg-type]
     assert isinstance(work, Hello)
     core.open(core.bind(rig), now, "s1")
     (ready,) = sent(core)
@@ -77,7 +77,7 @@ def frame_bytes(rig, seq: int) -> bytes:
 # -- hello and ready ---------------------------------------------------------------------
 def test_hello_asks_for_its_rig_and_open_sends_ready_with_the_limits(rig):
     core = stream_core(max_fps=30.0, rate_burst=4)
-    work = core.handle(core.receive(encode(Hello(rig="face", output="weights")), 0.0))
+    work = core.handle(core.receive(encode(Hello(rig="face", output="weights")), 0.0), 0.0)
 
     assert isinstance(work, Hello) and work.rig == "face"
     assert core.data_to_send() == []  # nothing is said before the rig is there
@@ -94,7 +94,7 @@ def test_hello_with_an_invalid_rig_id_is_fatal_unknown_rig():
     message = core.receive(encode(Hello(rig="../etc")), 0.0)
 
     with pytest.raises(ProtocolError) as caught:
-        core.handle(message)
+        core.handle(message, 0.0)
     assert caught.value.code is ErrorCode.UNKNOWN_RIG and caught.value.fatal
 
 
@@ -129,14 +129,14 @@ def test_text_message_is_fatal_before_hello_and_an_error_after(rig):
 
 def test_ping_is_answered_with_its_id_and_ts_even_before_hello():
     core = stream_core()
-    assert core.handle(core.receive(encode(Ping(id=7, ts=1.5)), 0.0)) is None
+    assert core.handle(core.receive(encode(Ping(id=7, ts=1.5)), 0.0), 0.0) is None
 
     assert sent(core) == [Pong(id=7, ts=1.5)]
 
 
 def test_bind_with_align_scale_leaves_the_given_rig_unchanged(rig):
     core = stream_core()
-    core.handle(core.receive(encode(Hello(rig="face", align=True, align_scale=True)), 0.0))
+    core.handle(core.receive(encode(Hello(rig="face", align=True, align_scale=True)), 0.0), 0.0)
 
     bound = core.bind(rig)
     assert bound is not rig and bound.align_scale
@@ -240,7 +240,7 @@ def test_idle_timeout_closes_after_no_message_for_idle_timeout(rig):
 
 def test_time_loading_the_rig_for_hello_is_not_client_idle_time(rig):
     core = stream_core()
-    work = core.handle(core.receive(encode(Hello(rig="face")), 0.0))
+    work = core.handle(core.receive(encode(Hello(rig="face")), 0.0), 0.0)
     assert isinstance(work, Hello)
 
     # The load takes longer than the idle timeout: no deadline while it runs.
@@ -258,7 +258,7 @@ def test_time_fitting_a_calibrate_message_is_not_client_idle_time(rig):
     core = stream_core()
     opened(core, rig)
     points = frame_points(rig, 0)
-    work = core.handle(core.receive(encode(Calibrate(points=points)), 1.0))
+    work = core.handle(core.receive(encode(Calibrate(points=points)), 1.0), 1.0)
     assert isinstance(work, Calibrate)
 
     assert core.deadline() is None
@@ -269,7 +269,7 @@ def test_time_fitting_a_calibrate_message_is_not_client_idle_time(rig):
 
 def test_a_failed_rig_load_ends_the_wait():
     core = stream_core()
-    core.handle(core.receive(encode(Hello(rig="face")), 0.0))
+    core.handle(core.receive(encode(Hello(rig="face")), 0.0), 0.0)
 
     core.failed(1.0)
     assert core.deadline() == pytest.approx(1.0 + IDLE)
@@ -291,7 +291,7 @@ def test_calibrate_with_points_asks_for_the_fit_and_acks_it(rig):
     core = stream_core()
     opened(core, rig)
     points = frame_points(rig, 1)
-    work = core.handle(core.receive(encode(Calibrate(points=points)), 0.0))
+    work = core.handle(core.receive(encode(Calibrate(points=points)), 0.0), 0.0)
 
     assert isinstance(work, Calibrate) and np.array_equal(work.points, points)
     assert work.noise is None
@@ -304,7 +304,7 @@ def test_calibrate_with_points_asks_for_the_fit_and_acks_it(rig):
 def test_calibrate_without_points_takes_the_next_frame_once(rig):
     core = stream_core()
     opened(core, rig)
-    assert core.handle(core.receive(encode(Calibrate()), 0.0)) is None
+    assert core.handle(core.receive(encode(Calibrate()), 0.0), 0.0) is None
 
     assert core.take_neutral()
     assert not core.take_neutral()
@@ -332,7 +332,7 @@ def test_calibrate_reset_goes_back_to_the_rig_of_hello(rig):
     core.calibrated(rig.calibrated(frame_points(rig, 0)), 0.0, seq=0)
     sent(core)
 
-    core.handle(core.receive(encode(Calibrate(reset=True)), 1.0))
+    core.handle(core.receive(encode(Calibrate(reset=True)), 1.0), 1.0)
     assert core.rig is rig and not core.calibrate_next
     assert sent(core) == [Calibrated(active=False)]
 
@@ -340,13 +340,39 @@ def test_calibrate_reset_goes_back_to_the_rig_of_hello(rig):
 def test_refused_calibration_is_calibration_failed_not_a_close(rig):
     core = stream_core()
     opened(core, rig)
-    core.handle(core.receive(encode(Calibrate(points=frame_points(rig, 0))), 0.0))
+    core.handle(core.receive(encode(Calibrate(points=frame_points(rig, 0))), 0.0), 0.0)
 
     core.calibration_failed(RigError("neutral too far"), 0.5)
     (error,) = sent(core)
     assert isinstance(error, Error) and error.code is ErrorCode.CALIBRATION_FAILED
     assert not error.fatal and "neutral too far" in error.message
     assert core.deadline() == pytest.approx(0.5 + IDLE)
+
+
+def test_calibrates_over_the_budget_are_refused_and_the_budget_refills(rig):
+    core = stream_core(calibrate_rate=2.0, calibrate_burst=2)
+    opened(core, rig)
+    points = frame_points(rig, 1)
+    asked = [core.handle(core.receive(encode(Calibrate(points=points)), 0.0), 0.0)
+             for _ in range(3)]  # fmt: skip
+
+    assert [isinstance(work, np.ndarray) for work in asked] == [True, True, False]
+    (error,) = sent(core)
+    assert isinstance(error, Error) and error.code is ErrorCode.RATE_LIMITED
+    assert error.seq is None and not error.fatal and "2 calibrations/s" in error.message
+    assert core.rig is rig  # nothing changed
+    # Half a second later one token is back (2/s).
+    assert isinstance(core.handle(core.receive(encode(Calibrate(points=points)), 0.5), 0.5),
+                      np.ndarray)  # fmt: skip
+
+
+def test_a_reset_is_never_refused(rig):
+    core = stream_core(calibrate_rate=0.001, calibrate_burst=1)
+    opened(core, rig)
+    for _ in range(3):
+        core.handle(core.receive(encode(Calibrate(reset=True)), 0.0), 0.0)
+
+    assert sent(core) == [Calibrated(active=False)] * 3
 
 
 # -- closing -----------------------------------------------------------------------------
@@ -391,7 +417,7 @@ def test_publisher_refuses_outputs_a_channel_does_not_serve():
     message = core.receive(encode(Hello(rig="face", output="moving")), 0.0)
 
     with pytest.raises(ProtocolError) as caught:
-        core.handle(message)
+        core.handle(message, 0.0)
     assert caught.value.code is ErrorCode.INVALID_FIELD and caught.value.fatal
 
 
@@ -400,7 +426,7 @@ def test_publisher_dropped_total_counts_frames_the_channel_superseded(rig):
         ServerProtocol(), Settings(max_fps=10.0, rate_burst=1), 0.0, idle_timeout=IDLE
     )
     core.superseded = lambda: 4
-    core.handle(core.receive(encode(Hello(rig="face")), 0.0))
+    core.handle(core.receive(encode(Hello(rig="face")), 0.0), 0.0)
     core.open(rig, 0.0, "p1")
     sent(core)
     for seq in range(2):
@@ -412,7 +438,7 @@ def test_publisher_dropped_total_counts_frames_the_channel_superseded(rig):
 
 def test_publisher_neutral_is_captured_renamed_and_reset(rig):
     core = publisher_core()
-    core.handle(core.receive(encode(Hello(rig="face")), 0.0))
+    core.handle(core.receive(encode(Hello(rig="face")), 0.0), 0.0)
     core.open(rig, 0.0, "p1")
     points = frame_points(rig, 2)
 
@@ -420,7 +446,7 @@ def test_publisher_neutral_is_captured_renamed_and_reset(rig):
     first = core.neutral_id
     core.calibrated(rig.calibrated(points), 0.0, seq=2, points=points)
     assert np.array_equal(core.neutral, points) and first and core.neutral_id != first
-    core.handle(core.receive(encode(Calibrate(reset=True)), 1.0))
+    core.handle(core.receive(encode(Calibrate(reset=True)), 1.0), 1.0)
     assert core.neutral is None and core.neutral_id == "" and core.rig is rig
 
 
@@ -434,10 +460,10 @@ def test_smoothing_options_go_to_the_filter_of_their_target(rig):
     assert smoother is not None and smoother.target == "weights"
     assert smoother.filter.min_cutoff == weights.min_cutoff
     publisher = publisher_core()
-    publisher.handle(publisher.receive(encode(Hello(rig="face", smoothing=points)), 0.0))
+    publisher.handle(publisher.receive(encode(Hello(rig="face", smoothing=points)), 0.0), 0.0)
     assert publisher.point_filter(rig) is not None and publisher.channel_smoothing is None
     publisher = publisher_core()
-    publisher.handle(publisher.receive(encode(Hello(rig="face", smoothing=weights)), 0.0))
+    publisher.handle(publisher.receive(encode(Hello(rig="face", smoothing=weights)), 0.0), 0.0)
     assert publisher.point_filter(rig) is None and publisher.channel_smoothing == weights
 
 
@@ -450,7 +476,9 @@ def test_no_smoothing_without_the_option(rig):
 
 def test_a_kalman_filter_on_a_rig_without_noise_is_refused_before_ready(rig):
     core = stream_core()
-    core.handle(core.receive(encode(Hello(rig="face", smoothing=Smoothing(filter="kalman"))), 0.0))
+    core.handle(
+        core.receive(encode(Hello(rig="face", smoothing=Smoothing(filter="kalman"))), 0.0), 0.0
+    )
 
     with pytest.raises(ProtocolError) as refused:
         core.smoother(rig)  # the driver builds it before ``open``, which sends ready

@@ -218,6 +218,8 @@ def _bad_cases():
     coincide = dict(points, frown=points["smile"])
     short = dict(points, smile=points["smile"][:19])
     only_neutral = {"neutral": points["neutral"]}
+    # All 20 neutral points equal: was stored (201), a rig refusing every other frame.
+    flat_neutral = dict(points, neutral=np.full((K, 3), 2.5))
     held = {n: f.tolist() for n, f in _held(points, 0.05, frames=3).items()}
     return {
         "no-neutral": (capture_body(no_neutral), None, 422, "no_neutral"),
@@ -229,6 +231,7 @@ def _bad_cases():
         "not-triples": (dict(capture_body(points), points={"neutral": [[1, 2]] * K}), None, 422,
                         "wrong_point_count"),
         "only-neutral": (capture_body(only_neutral), None, 422, "too_few_examples"),
+        "flat-neutral": (capture_body(flat_neutral), None, 422, "degenerate_neutral"),
         "negative-noise": (capture_body(points, noise=-1.0), None, 422, "bad_noise"),
         "string-noise": (capture_body(points, noise="high"), None, 422, "bad_noise"),
         "unknown-layout": (dict(capture_body(points), layout="dlib_68"), None, 422,

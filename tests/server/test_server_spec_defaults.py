@@ -29,7 +29,11 @@ def _table_default(key: str) -> float:
     return float(match.group(1).replace(" ", ""))
 
 
-@pytest.mark.parametrize("key", ["max_fps", "rate_burst", "idle_timeout", "max_message_bytes"])
+@pytest.mark.parametrize(
+    "key",
+    ["max_fps", "rate_burst", "calibrate_rate", "calibrate_burst", "idle_timeout",
+     "max_message_bytes"],
+)  # fmt: skip
 def test_section_7_states_the_servers_default(key):
     assert _table_default(key) == getattr(Settings(), key)
 
