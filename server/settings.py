@@ -120,8 +120,9 @@ class Settings:
     #: any peer. Empty (the default): none, so a client cannot name its own address and
     #: dodge ``max_connections_per_address`` (uvicorn alone trusts 127.0.0.1).
     trusted_proxies: tuple[str, ...] = ()
-    #: Connections beyond ``max_connections`` that only channel publishers may take,
-    #: so watchers (or streams) filling the server cannot lock the performer out.
+    #: Connections that only channel publishers may take beyond ``max_connections``, and
+    #: beyond each token's and each address's quota, so watchers (or streams) filling the
+    #: server, one token's quota or one address's cannot lock the performer out.
     publisher_slots: int = 4
 
     # -- broadcast channels (server/channels.py) --------------------------------------------
