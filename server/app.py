@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections import Counter
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
@@ -110,6 +111,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.sessions = SessionRegistry()
     app.state.channels = ChannelHub(settings, app.state.store, app.state.metrics)
     app.state.pending_fits = 0
+    app.state.fits_per_token = Counter()  # principal name -> fit slots held (rest.fit_slot)
     app.state.profiles = profile_store(settings, app.state.store)
     install_error_handlers(app)
     app.include_router(rest_router)
