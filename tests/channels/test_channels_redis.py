@@ -128,30 +128,34 @@ AUTH_TOKENS = {**TOKENS, "other-publisher-token": frozenset({"publisher"})}
 
 
 @pytest.fixture
-def auth_redis_settings(redis_settings):
-    return dataclasses.replace(redis_settings, auth=True, tokens=AUTH_TOKENS)
+async def auth_servers(redis_settings, ws_impl):
+    """Two processes on one Redis, auth on."""
+    settings = dataclasses.replace(redis_settings, auth=True, tokens=AUTH_TOKENS)
+    async with run_server(settings, ws=ws_impl) as a, run_server(settings, ws=ws_impl) as b:
+        yield a, b
 
 
-@pytest.mark.parametrize("returns_to", ["same-process", "other-process"])
+#: Where the publisher's second connection goes: the process of its first, or another.
+RETURNS_TO = pytest.mark.parametrize("returns_to", [0, 1], ids=["same-process", "other-process"])
+
+
+@RETURNS_TO
 async def test_a_returning_publisher_takes_its_channel_back_from_its_stale_connection(
-    auth_redis_settings, rigs, ws_impl, returns_to
+    auth_servers, rigs, returns_to
 ):
     # A blip: the publisher reconnects while its old connection is still open on the
     # server (not yet noticed gone); the same token gets the channel, the old one ends.
-    async with (
-        run_server(auth_redis_settings, ws=ws_impl) as a,
-        run_server(auth_redis_settings, ws=ws_impl) as b,
-    ):
-        watcher = await Watcher.open(b.ws_url, "stage", "beta", token="viewer-token")
-        stale = await Publisher.open(a.ws_url, "stage", "alpha", token="publisher-token")
-        await _live(watcher)
-        server = a if returns_to == "same-process" else b
-        again = await Publisher.open(server.ws_url, "stage", "alpha", token="publisher-token")
-        ended = await asyncio.wait_for(stale.queue.get(), 10)
-        pts = points(rigs["alpha"], 3)
-        await again.send(3, pts)
-        resumed = await watcher.result_with_seq(3, timeout=10)
-        await again.close()
+    a, b = auth_servers
+    watcher = await Watcher.open(b.ws_url, "stage", "beta", token="viewer-token")
+    stale = await Publisher.open(a.ws_url, "stage", "alpha", token="publisher-token")
+    await _live(watcher)
+    server = auth_servers[returns_to]
+    again = await Publisher.open(server.ws_url, "stage", "alpha", token="publisher-token")
+    ended = await asyncio.wait_for(stale.queue.get(), 10)
+    pts = points(rigs["alpha"], 3)
+    await again.send(3, pts)
+    resumed = await watcher.result_with_seq(3, timeout=10)
+    await again.close()
 
     assert again.ready.rig == "alpha"
     assert isinstance(ended, Error) and ended.code == ErrorCode.CHANNEL_BUSY
@@ -160,60 +164,49 @@ async def test_a_returning_publisher_takes_its_channel_back_from_its_stale_conne
     np.testing.assert_array_equal(resumed.weights, expected)
 
 
-@pytest.mark.parametrize("returns_to", ["same-process", "other-process"])
+@RETURNS_TO
 async def test_a_publisher_that_keeps_sending_keeps_its_channel_from_its_own_token(
-    auth_redis_settings, rigs, ws_impl, returns_to
+    auth_servers, rigs, returns_to
 ):
     # Two pages of one performer: the one that sends keeps the channel (the other is
     # refused after RECLAIM_WAIT), so they do not take it from each other in turn.
-    async with (
-        run_server(auth_redis_settings, ws=ws_impl) as a,
-        run_server(auth_redis_settings, ws=ws_impl) as b,
-    ):
-        live = await Publisher.open(a.ws_url, "stage", "alpha", token="publisher-token")
+    live = await Publisher.open(auth_servers[0].ws_url, "stage", "alpha", token="publisher-token")
 
-        async def keep_sending() -> None:
-            for seq in itertools.count():
-                await live.send(seq, points(rigs["alpha"], seq % 5))
-                await asyncio.sleep(1 / 30)  # a camera's pace, not a wait for an event
+    async def keep_sending() -> None:
+        for seq in itertools.count():
+            await live.send(seq, points(rigs["alpha"], seq % 5))
+            await asyncio.sleep(1 / 30)  # a camera's pace, not a wait for an event
 
-        sending = asyncio.create_task(keep_sending())
-        server = a if returns_to == "same-process" else b
-        url = channel_url(server.ws_url, "stage", "publish")
-        try:
-            error, _ = await refused(
-                url, token="publisher-token", hello=Hello(rig="alpha"), timeout=RECLAIM_WAIT + 5
-            )
-        finally:
-            sending.cancel()
-        await live.send(10_000, points(rigs["alpha"], 1))
-        while (result := await asyncio.wait_for(live.queue.get(), 5)).seq != 10_000:
-            pass
-        await live.close()
+    sending = asyncio.create_task(keep_sending())
+    url = channel_url(auth_servers[returns_to].ws_url, "stage", "publish")
+    try:
+        error, _ = await refused(
+            url, token="publisher-token", hello=Hello(rig="alpha"), timeout=RECLAIM_WAIT + 5
+        )
+    finally:
+        sending.cancel()
+    await live.send(10_000, points(rigs["alpha"], 1))
+    while (result := await asyncio.wait_for(live.queue.get(), 5)).seq != 10_000:
+        pass
+    await live.close()
 
     assert error.code == ErrorCode.CHANNEL_BUSY
     assert isinstance(result, Result)
 
 
-async def test_another_token_cannot_take_a_live_publishers_channel(
-    auth_redis_settings, rigs, ws_impl
-):
-    async with (
-        run_server(auth_redis_settings, ws=ws_impl) as a,
-        run_server(auth_redis_settings, ws=ws_impl) as b,
-    ):
-        first = await Publisher.open(a.ws_url, "stage", "alpha", token="publisher-token")
-        url_a, url_b = (channel_url(s.ws_url, "stage", "publish") for s in (a, b))
-        hello = Hello(rig="alpha")
-        here, _ = await refused(url_a, token="other-publisher-token", hello=hello)
-        # On another process the holder might have been leaving: refused after
-        # RELEASE_WAIT, within the helper's 5 s.
-        there, _ = await refused(url_b, token="other-publisher-token", hello=hello)
-        await first.send(1, points(rigs["alpha"], 1))
-        result = await asyncio.wait_for(first.queue.get(), 5)
-        await first.close()
+async def test_another_token_cannot_take_a_live_publishers_channel(auth_servers, rigs):
+    first = await Publisher.open(auth_servers[0].ws_url, "stage", "alpha", token="publisher-token")
+    here, there = (channel_url(s.ws_url, "stage", "publish") for s in auth_servers)
+    hello = Hello(rig="alpha")
+    refused_here, _ = await refused(here, token="other-publisher-token", hello=hello)
+    # On another process the holder might have been leaving: refused after RELEASE_WAIT,
+    # within the helper's 5 s.
+    refused_there, _ = await refused(there, token="other-publisher-token", hello=hello)
+    await first.send(1, points(rigs["alpha"], 1))
+    result = await asyncio.wait_for(first.queue.get(), 5)
+    await first.close()
 
-    assert here.code == there.code == ErrorCode.CHANNEL_BUSY
+    assert refused_here.code == refused_there.code == ErrorCode.CHANNEL_BUSY
     assert isinstance(result, Result) and result.seq == 1
 
 
