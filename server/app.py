@@ -10,6 +10,7 @@ import asyncio
 import logging
 import os
 import time
+from collections import Counter
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
@@ -115,6 +116,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.channels = ChannelHub(settings, app.state.store, app.state.metrics)
     app.state.pending_fits = 0
     app.state.stopping = asyncio.Event()
+    app.state.fits_per_token = Counter()  # principal name -> fit slots held (rest.fit_slot)
     app.state.profiles = profile_store(settings, app.state.store)
     install_error_handlers(app)
     app.include_router(rest_router)

@@ -6,6 +6,9 @@ its own code (URLs end up in logs, histories and Referer headers), and accepted 
 the pages a browser opens by URL (``/docs``, ``/openapi.json``: ``authorize_page``) and by
 WebSockets (PROTOCOL.md §2.2). This module decides, it does not send responses: callers
 turn ``ApiError`` into 401/403 or a WS close 1008.
+
+A token's ``performer:NAME`` roles bind it to those performers (``Principal.performers``,
+checked by ``check_performer``); plain ``performer`` and ``admin`` reach every performer.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from dataclasses import dataclass
 from fastapi import Request
 
 from .errors import ApiError
-from .settings import ROLES, Settings
+from .settings import PERFORMER_ROLE, ROLES, Settings, bound_performer
 
 __all__ = [
     "READ_ROLES",
@@ -26,6 +29,7 @@ __all__ = [
     "authorize",
     "authorize_page",
     "authorize_request",
+    "check_performer",
     "requires",
     "token_from_request",
 ]
@@ -37,13 +41,32 @@ READ_ROLES = frozenset({"viewer", "stream"})
 
 @dataclass(frozen=True)
 class Principal:
-    """An authenticated caller. ``name`` is a short token digest, safe to log."""
+    """An authenticated caller. ``name`` is a short token digest, safe to log.
+
+    ``roles`` are plain roles (``performer:NAME`` counts as ``performer``);
+    ``performers`` the performer names a token bound by ``performer:NAME`` roles may
+    capture, read, refit and delete, None for every name.
+    """
 
     name: str
     roles: frozenset[str]
+    performers: frozenset[str] | None = None
+
+    @classmethod
+    def holding(cls, name: str, roles: frozenset[str]) -> Principal:
+        """The caller whose token holds ``roles`` as configured (``Settings.tokens``)."""
+        bound = frozenset(n for n in map(bound_performer, roles) if n is not None)
+        plain = frozenset(r for r in roles if r in ROLES) | (
+            {PERFORMER_ROLE} if bound else frozenset()
+        )
+        return cls(name, plain, bound if bound and "admin" not in plain else None)
 
     def has_any(self, roles: Iterable[str]) -> bool:
         return "admin" in self.roles or bool(self.roles & frozenset(roles))
+
+    def may_perform(self, performer: str) -> bool:
+        """Whether this caller may use ``performer``'s profile and rigs (after ``requires``)."""
+        return self.performers is None or performer in self.performers
 
 
 ANONYMOUS = Principal("anonymous", frozenset({"admin"}))
@@ -89,7 +112,7 @@ def authorize(settings: Settings, token: str | None, roles: Iterable[str]) -> Pr
         raise ApiError(
             401, "unauthorized", "unknown API token", headers={"WWW-Authenticate": "Bearer"}
         )
-    principal = Principal(_digest(token).hex()[:8], held)
+    principal = Principal.holding(_digest(token).hex()[:8], held)
     if not principal.has_any(needed):
         wanted = " or ".join(sorted(needed | {"admin"}))
         raise ApiError(403, "forbidden", f"this endpoint needs the role {wanted}")
@@ -137,6 +160,18 @@ def authorize_page(request: Request, roles: Iterable[str]) -> tuple[Principal, s
     query = request.query_params.get("token")
     token = token_from_request(request) or query
     return authorize(request.app.state.settings, token, roles), query
+
+
+def check_performer(principal: Principal, performer: str) -> None:
+    """Raise 403 ``performer_forbidden`` unless ``principal`` may use ``performer``."""
+    if principal.may_perform(performer):
+        return
+    names = ", ".join(sorted(principal.performers or ()))
+    raise ApiError(
+        403,
+        "performer_forbidden",
+        f"this token is bound to the performer(s) {names}, not {performer[:64]!r}",
+    )
 
 
 def requires(*roles: str) -> Callable[[Request], Principal]:

@@ -112,6 +112,10 @@ class Bus:
         """Whether any process holds the channel's publisher lock."""
         return False
 
+    async def holder(self, name: str) -> str | None:
+        """The owner holding the channel's publisher lock (None: no one, or one process)."""
+        return None
+
     async def report(self, channels: dict[str, Any]) -> None:
         """Publish this process's per-channel report (viewers per rig, rates)."""
 
@@ -321,6 +325,12 @@ class RedisBus(Bus):
 
     async def publisher_present(self, name: str) -> bool:
         return bool(await self._call(lambda: self._redis.exists(lock_key(name))))
+
+    async def holder(self, name: str) -> str | None:
+        value = await self._call(lambda: self._redis.get(lock_key(name)))
+        if isinstance(value, bytes):
+            return value.decode("utf-8", "replace")
+        return value
 
     async def report(self, channels: dict[str, Any]) -> None:
         key = f"facecast:proc:{self.origin}"

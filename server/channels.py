@@ -57,6 +57,8 @@ class Channel:
         self.states: dict[Key, KeyState | PointsKeyState] = {}
         self.publisher: PublisherMember | None = None
         self.claimed_by: PublisherMember | None = None
+        #: Set while a publisher that left is giving its lock back (``hub.claim`` waits).
+        self.releasing: asyncio.Event | None = None
         self.remote_live_until = 0.0
         self.live = False
         self.lost = False
@@ -140,7 +142,12 @@ class Channel:
             self.update_live()
         elif not claimed:
             return
-        await self.hub.bus.release(self.name, publisher.owner)
+        released = self.releasing = asyncio.Event()
+        try:
+            await self.hub.bus.release(self.name, publisher.owner)
+        finally:
+            self.releasing = None
+            released.set()
         self.hub.maybe_drop(self)
 
     # -- liveness and face-lost ----------------------------------------------------------
@@ -231,6 +238,11 @@ class Channel:
 
     def on_bus(self, kind: str, payload: bytes | None) -> None:
         """An event from another process (see ``bus``)."""
+        if kind == "evict":  # our publisher's token came back on another process
+            publisher = self.publisher
+            if publisher is not None and payload == publisher.owner.encode():
+                publisher.supersede()  # if it is silent; the claimant asks again
+            return
         if kind == "idle":
             self.remote_live_until = 0.0
             self.update_live()

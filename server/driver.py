@@ -45,6 +45,7 @@ class Driver:
         self._done = asyncio.Event()
         self._timer: asyncio.TimerHandle | None = None
         self._timer_at = math.inf
+        self._finishing = False
 
     # -- subclasses ----------------------------------------------------------------------
     async def _read_loop(self) -> None:  # pragma: no cover - overridden
@@ -87,6 +88,7 @@ class Driver:
             done, _ = await asyncio.wait(order, return_when=asyncio.FIRST_COMPLETED)
             ending = self._ending(done, order)
         finally:
+            self._finishing = True
             self._disarm()
             self._stopping()
             tasks = [reader, writer, *self._extra_tasks()]
@@ -123,6 +125,11 @@ class Driver:
                 return result
             return None
         return None
+
+    @property
+    def ending(self) -> bool:
+        """Whether the connection is ending: asked to stop, or its client left."""
+        return self._finishing or self._stop.done()
 
     async def close(self, code: int, reason: str) -> None:
         """Ask the connection to end with ``code`` (e.g. 1001 at shutdown) and wait for it."""

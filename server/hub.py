@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 from concurrent.futures import Executor
 from typing import TYPE_CHECKING, Any
 
@@ -18,7 +19,7 @@ from facecast.protocol import ErrorCode, ProtocolError
 from facecast.rig import Rig
 from facecast.rig.errors import RigError
 
-from .bus import Bus, BusUnavailable, make_bus
+from .bus import LOCK_TTL_MS, Bus, BusUnavailable, make_bus
 from .channels import Channel
 from .core import rig_unavailable
 from .settings import Settings
@@ -36,6 +37,18 @@ log = logging.getLogger("facecast.server.channels")
 
 #: Heartbeats, lock refreshes and reports to other processes: this often.
 MAINTENANCE_INTERVAL = 1.0
+#: Seconds a claim waits for a publisher that is leaving to give the channel back (its
+#: lock release is one Redis call, which the bus bounds at 1 s) before CHANNEL_BUSY.
+RELEASE_WAIT = 1.5
+#: Seconds a returning publisher (auth on, same token) waits for its older connection,
+#: here or on another process, to be silent for ``members.STALE_AFTER``, ended and give
+#: the channel back, or for the lock of a process that died to expire (``LOCK_TTL_MS``),
+#: before CHANNEL_BUSY.
+RECLAIM_WAIT = LOCK_TTL_MS / 1000 + RELEASE_WAIT
+#: How often a claim asks again for a lock another process holds.
+_CLAIM_POLL = 0.05
+#: How often a claim asks again for that process to end this token's older connection.
+_EVICT_AGAIN = 0.5
 
 
 class ChannelHub:
@@ -145,17 +158,66 @@ class ChannelHub:
     async def claim(self, name: str, publisher: PublisherMember) -> Channel:
         """Make ``publisher`` the channel's only one, here and (with Redis) everywhere.
 
-        Raises fatal CHANNEL_BUSY when another publisher has it, OVERLOADED (retry
-        later) when the shared registry cannot be reached to check.
+        A publisher that is leaving (its connection closed, its lock on its way out, here
+        or on another process) is waited for, at most ``RELEASE_WAIT``. With auth on, an
+        older connection of the same token (a connection that blipped, not yet noticed
+        gone) is ended once it has been silent for ``members.STALE_AFTER``, here or
+        through the bus on another process, and waited for, at most ``RECLAIM_WAIT``; one
+        that keeps sending keeps the channel (two pages of one performer do not take it
+        from each other in turn). Raises fatal CHANNEL_BUSY when another publisher keeps
+        the channel past that, OVERLOADED (retry later) when the shared registry cannot be
+        reached to check.
         """
-        channel = self.channel(name)
+        loop = asyncio.get_running_loop()
+        started = loop.time()
         busy = ProtocolError(ErrorCode.CHANNEL_BUSY, f"channel {name[:64]!r} already has a publisher",
                              fatal=True)  # fmt: skip
-        if channel.publisher is not None or channel.claimed_by is not None:
-            raise busy
+        # A same-token connection ended (here or elsewhere) earns the longer wait.
+        budget, evicted_at = RELEASE_WAIT, -math.inf
+        while True:
+            channel = self.channel(name)
+            holder = channel.publisher
+            done: asyncio.Event | None = None
+            if channel.releasing is not None:
+                done = channel.releasing
+            elif holder is not None and holder.ending:
+                done = holder.left
+            elif holder is not None and self._same_caller(holder.owner, publisher):
+                budget = RECLAIM_WAIT
+                if holder.supersede():
+                    done = holder.left
+                # else it still sends: ask again until it falls silent, or give up
+            elif holder is not None or channel.claimed_by is not None:
+                raise busy
+            elif await self._take(channel, publisher):
+                return channel
+            else:
+                # Another process holds the lock: its publisher leaving, or this token's.
+                owner = await self._holder(name)
+                if owner is not None and self._same_caller(owner, publisher):
+                    budget = RECLAIM_WAIT
+                    if loop.time() - evicted_at >= _EVICT_AGAIN:  # bus events may be lost
+                        self.bus.send(name, "evict", owner.encode())
+                        evicted_at = loop.time()
+            deadline = started + budget
+            if loop.time() >= deadline:
+                self.maybe_drop(channel)
+                raise busy
+            if done is None:
+                await asyncio.sleep(min(_CLAIM_POLL, deadline - loop.time()))
+                continue
+            try:
+                async with asyncio.timeout_at(deadline):
+                    await done.wait()
+            except TimeoutError:
+                self.maybe_drop(channel)
+                raise busy from None
+
+    async def _take(self, channel: Channel, publisher: PublisherMember) -> bool:
+        """Take the bus's lock for ``publisher`` (False: another process holds it)."""
         channel.claimed_by = publisher
         try:
-            ok = await self.bus.claim(name, publisher.owner)
+            ok = await self.bus.claim(channel.name, publisher.owner)
         except BusUnavailable as exc:
             channel.claimed_by = None
             self.maybe_drop(channel)
@@ -163,9 +225,24 @@ class ChannelHub:
                                 "try again later", fatal=True) from None  # fmt: skip
         if not ok:
             channel.claimed_by = None
-            self.maybe_drop(channel)
-            raise busy
-        return channel
+        return ok
+
+    async def _holder(self, name: str) -> str | None:
+        try:
+            return await self.bus.holder(name)
+        except BusUnavailable:
+            return None
+
+    def _same_caller(self, owner: str, publisher: PublisherMember) -> bool:
+        """Whether the lock ``owner`` is another connection of ``publisher``'s token.
+
+        Only with auth on: without tokens every caller is "anonymous".
+        """
+        return (
+            self.settings.auth_enabled
+            and owner != publisher.owner
+            and owner.rpartition(":")[2] == publisher.principal
+        )
 
     def _on_bus(self, name: str, origin: str, kind: str, payload: bytes | None) -> None:
         channel = self.channels.get(name)
@@ -190,6 +267,12 @@ class ChannelHub:
             self.bus.send(channel.name, "hb")
             try:
                 kept = await self.bus.refresh(channel.name, publisher.owner)
+                if channel.publisher is not publisher:
+                    # It left while the refresh was on its way, which re-takes a missing
+                    # lock (Redis restarted): the leave's release may have gone first,
+                    # and the lock must not outlive its publisher for LOCK_TTL_MS.
+                    await self.bus.release(channel.name, publisher.owner)
+                    continue
             except BusUnavailable:
                 continue  # keep publishing locally; re-taken when Redis is back
             if not kept:

@@ -19,6 +19,7 @@ from starlette.websockets import WebSocket
 
 from facecast.protocol import (
     ClientMessage,
+    ErrorCode,
     Frame,
     Hello,
     Limits,
@@ -41,6 +42,11 @@ if TYPE_CHECKING:
 __all__ = ["PublisherMember", "WatcherMember"]
 
 log = logging.getLogger("facecast.server.channels")
+
+#: Seconds without a message after which a publisher is taken for a connection that
+#: blipped: a newer connection with its token may then take its channel (``supersede``).
+#: A publisher that sends (frames, pings) keeps its channel against its own token too.
+STALE_AFTER = 1.0
 
 
 class WatcherMember(Member):
@@ -85,7 +91,11 @@ class PublisherMember(Member):
         self.hub = hub
         self.name = name
         self.principal = principal
-        self.owner = f"{hub.bus.origin}:{self.id}"
+        #: The channel lock's value: this process, this connection, and whose token it is
+        #: (a token digest, or "anonymous"), so another process can tell the same caller.
+        self.owner = f"{hub.bus.origin}:{self.id}:{principal}"
+        #: Set once ``leave`` has given the channel (and its lock) back.
+        self.left = asyncio.Event()
         self.channel: Channel | None = None
         self.hello: Hello | None = None
         #: The publisher's smoothing of the points, done once for every key (a `Smoother`:
@@ -192,12 +202,25 @@ class PublisherMember(Member):
             return
         core.calibrated(rig, time.monotonic(), seq, points=points, noise=noise)
 
+    def supersede(self) -> bool:
+        """End this connection if it is silent (``STALE_AFTER``): a newer one with the same
+        token takes its channel. False: it is alive, and keeps the channel.
+        """
+        if time.monotonic() - self.core.last_message < STALE_AFTER:
+            return False
+        self.end(ProtocolError(ErrorCode.CHANNEL_BUSY, "a newer connection with the same "
+                               "token took over the channel", fatal=True))  # fmt: skip
+        return True
+
     async def leave(self) -> None:
         # Called when the member ends and again by the route (which covers a failed
         # accept): only the first call leaves, and logs.
         channel, self.channel = self.channel, None
-        if channel is not None:
-            await channel.remove_publisher(self)
-            log.info("publisher left",
-                     extra={"event": "channel.unpublish", "channel": self.name,
-                            "frames_in": self.frames_in, "dropped": self.dropped})  # fmt: skip
+        try:
+            if channel is not None:
+                await channel.remove_publisher(self)
+                log.info("publisher left",
+                         extra={"event": "channel.unpublish", "channel": self.name,
+                                "frames_in": self.frames_in, "dropped": self.dropped})  # fmt: skip
+        finally:
+            self.left.set()

@@ -2,8 +2,10 @@
 
 ``PUT /v1/rigs/{id}/performer/{performer}`` takes a capture and stores the rig
 ``{id}@{performer}`` and the performer's profile; ``/v1/performers/{performer}`` shows,
-refits (onto another character) or deletes that profile. Thin handlers: parsing and
-files in threads, fitting in the fit executor (``rest.run_fit``, holding a ``rest.fit_slot``). See server/SERVER.md.
+refits (onto another character) or deletes that profile. A token bound to performer
+names reaches only those (``auth.check_performer``, before any body is read). Thin
+handlers: parsing and files in threads, fitting in the fit executor (``rest.run_fit``,
+holding a ``rest.fit_slot``). See server/SERVER.md.
 """
 
 from __future__ import annotations
@@ -19,12 +21,13 @@ from facecast.rig import Rig
 from facecast.rig.retarget import NEUTRAL, fit_performer, shared_names
 from facecast.rig.sources.layouts import load_layout
 
-from .auth import Principal, requires
+from .auth import Principal, check_performer, requires
 from .errors import ApiError
+from .names import NAME_PATTERN, performer_rig_id, valid_name
 from .performers import Capture, PerformerProfile, ProfileNotFoundError, ProfileStore, parse_capture
 from .rest import fit_slot, read_body, run_fit
 from .settings import Settings
-from .store import NAME_PATTERN, RigNotFoundError, RigStore, performer_rig_id, valid_name
+from .store import RigNotFoundError, RigStore
 
 __all__ = ["PROFILES_DIR", "profile_store", "router"]
 
@@ -171,7 +174,8 @@ async def put_performer(
 ) -> JSONResponse:
     _check_rig_id(rig_id)
     _check_performer(performer)
-    with fit_slot(request):
+    check_performer(principal, performer)
+    with fit_slot(request, principal):
         data = await read_body(request, request.app.state.settings.max_capture_bytes)
         capture = await anyio.to_thread.run_sync(
             parse_capture, data, request.headers.get("content-type")
@@ -184,8 +188,9 @@ async def put_performer(
     return JSONResponse(described, status_code=201 if created else 200)
 
 
-async def _profile(request: Request, performer: str) -> PerformerProfile:
+async def _profile(request: Request, performer: str, principal: Principal) -> PerformerProfile:
     _check_performer(performer)
+    check_performer(principal, performer)
     try:
         return await anyio.to_thread.run_sync(_profiles(request).get, performer)
     except ProfileNotFoundError:
@@ -197,8 +202,8 @@ async def _profile(request: Request, performer: str) -> PerformerProfile:
 
 
 @router.get("/performers/{performer}", summary="Describe a performer's profile")
-async def get_performer(request: Request, performer: str, _: Performer) -> dict[str, Any]:
-    return (await _profile(request, performer)).summary()
+async def get_performer(request: Request, performer: str, principal: Performer) -> dict[str, Any]:
+    return (await _profile(request, performer, principal)).summary()
 
 
 @router.post(
@@ -213,8 +218,8 @@ async def refit_performer(
     rig: Annotated[str, Query(max_length=64, description="the character to refit onto")],
 ) -> JSONResponse:
     _check_rig_id(rig)
-    profile = await _profile(request, performer)
-    with fit_slot(request):
+    profile = await _profile(request, performer, principal)
+    with fit_slot(request, principal):
         described, created = await _fit_and_store(
             request, rig, performer, profile.capture, principal.name, refit=True
         )
@@ -224,6 +229,7 @@ async def refit_performer(
 @router.delete("/performers/{performer}", summary="Delete a performer's profile", status_code=204)
 async def delete_performer(request: Request, performer: str, principal: Performer) -> Response:
     _check_performer(performer)
+    check_performer(principal, performer)
     try:
         await anyio.to_thread.run_sync(_profiles(request).delete, performer)
     except ProfileNotFoundError:

@@ -23,7 +23,8 @@ from facecast.rig import estimate_noise
 from facecast.rig.sources.layouts import DEFAULT_LAYOUT, layout_names
 
 from .errors import ApiError, ProfileNotFoundError
-from .store import fsync_directory, valid_name, write_atomically
+from .names import valid_name
+from .store import fsync_directory, write_atomically
 
 __all__ = [
     "PROFILE_FORMAT",

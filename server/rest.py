@@ -10,6 +10,7 @@ import asyncio
 import contextlib
 import logging
 import tempfile
+from collections import Counter
 from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -145,27 +146,44 @@ async def unless_stopping(request: Request, work: Awaitable[T]) -> T:
 
 
 @contextlib.contextmanager
-def fit_slot(request: Request) -> Iterator[None]:
-    """Hold one of ``max_pending_fits`` fit slots, or raise 503 ``server_busy``.
+def fit_slot(request: Request, principal: Principal) -> Iterator[None]:
+    """Hold one of ``max_pending_fits`` fit slots for ``principal``, or refuse.
 
-    Check and count happen together on the event loop (no await between), so no number
-    of simultaneous requests can get past the limit. Take it before reading the body:
-    concurrent uploads then cannot buffer more bodies than there are fits.
+    503 ``server_busy`` when all are held; 429 ``too_many_fits`` when a caller without
+    the admin role already holds ``max_fits_per_token`` (one token trickling bodies until
+    ``body_timeout`` must not hold every slot). Check and count happen together on the
+    event loop (no await between), so no number of simultaneous requests can get past a
+    limit. Take it before reading the body: concurrent uploads then cannot buffer more
+    bodies than there are fits.
     """
     state = request.app.state
-    limit = _settings(request).max_pending_fits
-    if state.pending_fits >= limit:
+    settings = _settings(request)
+    held: Counter[str] = state.fits_per_token
+    capped = settings.max_fits_per_token > 0 and "admin" not in principal.roles
+    if capped and held[principal.name] >= settings.max_fits_per_token:
+        raise ApiError(
+            429,
+            "too_many_fits",
+            f"this token already has {settings.max_fits_per_token} fit(s) running or queued; "
+            "retry when it ends",
+            headers={"Retry-After": "5"},
+        )
+    if state.pending_fits >= settings.max_pending_fits:
         raise ApiError(
             503,
             "server_busy",
-            f"{limit} fits are already running or queued; retry later",
+            f"{settings.max_pending_fits} fits are already running or queued; retry later",
             headers={"Retry-After": "5"},
         )
     state.pending_fits += 1
+    held[principal.name] += 1
     try:
         yield
     finally:
         state.pending_fits -= 1
+        held[principal.name] -= 1
+        if held[principal.name] <= 0:
+            del held[principal.name]
 
 
 async def run_fit(request: Request, job: Callable[[], T]) -> T:
@@ -205,7 +223,7 @@ async def get_rig(request: Request, rig_id: str, _: Reader) -> dict[str, Any]:
 async def put_rig(request: Request, rig_id: str, principal: Admin) -> JSONResponse:
     _check_id(rig_id)
     # A fit slot as for examples: at most that many upload bodies are held at once.
-    with fit_slot(request):
+    with fit_slot(request, principal):
         data = await read_body(request, _settings(request).max_upload_bytes)
         rig, created = await anyio.to_thread.run_sync(_store(request).put_bytes, rig_id, data)
     log.info(
@@ -272,7 +290,7 @@ async def put_examples(
         "clamp": clamp,
         "sparsity": sparsity,
     }
-    with fit_slot(request):
+    with fit_slot(request, principal):
         # The slot is held from before the body is read: concurrent uploads cannot all
         # pass the check while none is counted yet, nor buffer more bodies than fits.
         data = await read_body(request, settings.max_upload_bytes)

@@ -30,8 +30,10 @@ class Closable(Protocol):
 class Quotas:
     """How many connections may be open: in all, per token, per address; 0 means no quota.
 
-    ``publisher_slots`` connections beyond ``max_connections`` are kept for channel
-    publishers, so watchers (or streams) filling the server cannot lock the performer out.
+    ``publisher_slots`` connections beyond each of the three are kept for channel
+    publishers: beyond ``max_connections``, and beyond every token's and every address's
+    quota. Watchers (or streams) filling the server, their token's quota or their address's
+    (one machine, a NAT, an untrusted proxy) therefore cannot lock the performer out.
     """
 
     max_connections: int
@@ -90,17 +92,23 @@ class SessionRegistry:
         token, address = owner.token, owner.address
         if self.closing:
             return "the server is shutting down"
-        limit = quotas.max_connections + (quotas.publisher_slots if publisher else 0)
-        if len(self._sessions) >= limit:
-            return f"the server is at its limit of {quotas.max_connections} connections"
-        if token is not None and quotas.per_token and self._per_token[token] >= quotas.per_token:
-            return f"this token already holds its limit of {quotas.per_token} connections"
+        # One rule for the three scopes: a publisher may go ``publisher_slots`` past each.
+        extra = quotas.publisher_slots if publisher else 0
+        kept = f" and {extra} kept for publishers" if extra else ""
+        if len(self._sessions) >= quotas.max_connections + extra:
+            return f"the server is at its limit of {quotas.max_connections} connections{kept}"
+        if (
+            token is not None
+            and quotas.per_token
+            and self._per_token[token] >= quotas.per_token + extra
+        ):
+            return f"this token already holds its limit of {quotas.per_token} connections{kept}"
         if (
             address is not None
             and quotas.per_address
-            and self._per_address[address] >= quotas.per_address
+            and self._per_address[address] >= quotas.per_address + extra
         ):
-            return f"this address already holds its limit of {quotas.per_address} connections"
+            return f"this address already holds its limit of {quotas.per_address} connections{kept}"
         self._sessions[session.id] = session
         self._owners[session.id] = (token, address)
         if token is not None:

@@ -20,12 +20,24 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from .errors import SettingsError
+from .names import valid_name
 
-__all__ = ["ROLES", "Settings", "SettingsError", "normalise_origin", "parse_tokens"]
+__all__ = [
+    "PERFORMER_ROLE",
+    "ROLES",
+    "Settings",
+    "SettingsError",
+    "bound_performer",
+    "normalise_origin",
+    "parse_tokens",
+]
 
 #: The roles a token can hold; ``admin`` implies all others (see ``auth``). ``performer``
 #: may store calibration captures and refit rigs on them (server/SERVER.md, "Performers").
 ROLES = frozenset({"admin", "stream", "publisher", "viewer", "performer"})
+#: ``performer:NAME`` (a role of its own): the performer role for the performer NAME
+#: only; a token may hold several. Plain ``performer`` is the role for every name.
+PERFORMER_ROLE = "performer"
 
 ENV_PREFIX = "FACECAST_"
 MiB = 1024 * 1024
@@ -46,6 +58,7 @@ class Settings:
 
     # -- auth -----------------------------------------------------------------------------
     #: token -> roles. Read from ``[tokens]`` in the config file or ``FACECAST_TOKENS``.
+    #: Besides ``ROLES``, ``performer:NAME`` binds the token to the performer NAME.
     tokens: Mapping[str, frozenset[str]] = field(
         default_factory=lambda: MappingProxyType({}), repr=False
     )
@@ -67,6 +80,9 @@ class Settings:
     #: is 408 ``body_timeout``, so a trickled body cannot hold an upload slot for long.
     body_timeout: float = 120.0
     fit_threads: int = 1
+    #: Fit slots (of ``max_pending_fits``) one token without the admin role may hold at
+    #: once; one more is 429 ``too_many_fits``. 0: no per-token cap.
+    max_fits_per_token: int = 1
 
     # -- performers (server/performer_routes.py) -------------------------------------------
     #: Largest calibration capture body (JSON or msgpack points per expression).
@@ -126,8 +142,9 @@ class Settings:
     #: any peer. Empty (the default): none, so a client cannot name its own address and
     #: dodge ``max_connections_per_address`` (uvicorn alone trusts 127.0.0.1).
     trusted_proxies: tuple[str, ...] = ()
-    #: Connections beyond ``max_connections`` that only channel publishers may take,
-    #: so watchers (or streams) filling the server cannot lock the performer out.
+    #: Connections that only channel publishers may take beyond ``max_connections``, and
+    #: beyond each token's and each address's quota, so watchers (or streams) filling the
+    #: server, one token's quota or one address's cannot lock the performer out.
     publisher_slots: int = 4
 
     # -- broadcast channels (server/channels.py) --------------------------------------------
@@ -165,13 +182,19 @@ class Settings:
         for token, roles in tokens.items():
             if not token:
                 raise SettingsError("tokens: an empty token is not allowed")
-            unknown = roles - ROLES
+            unknown = {r for r in roles if r not in ROLES and bound_performer(r) is None}
             if unknown:
                 raise SettingsError(
-                    f"tokens: unknown role(s) {sorted(unknown)}; roles are {sorted(ROLES)}"
+                    f"tokens: unknown role(s) {sorted(unknown)}; roles are {sorted(ROLES)} "
+                    f"and {PERFORMER_ROLE}:NAME (NAME a performer name)"
                 )
             if not roles:
                 raise SettingsError("tokens: every token needs at least one role")
+            if PERFORMER_ROLE in roles and any(bound_performer(r) for r in roles):
+                raise SettingsError(
+                    f"tokens: a token holds both '{PERFORMER_ROLE}' (every performer) and "
+                    f"'{PERFORMER_ROLE}:NAME' (one performer); keep the one you mean"
+                )
         if not 0 <= self.port <= 65535:
             raise SettingsError(f"port: {self.port} is not in 0..65535")
         positive = (
@@ -212,6 +235,7 @@ class Settings:
             "max_connections_per_token",
             "max_connections_per_address",
             "publisher_slots",
+            "max_fits_per_token",
         ):
             if getattr(self, name) < 0:
                 raise SettingsError(f"{name}: must be >= 0, got {getattr(self, name)!r}")
@@ -322,8 +346,24 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+def bound_performer(role: str) -> str | None:
+    """NAME for a ``performer:NAME`` role (NAME a valid performer name), else None."""
+    prefix, sep, name = role.partition(":")
+    return name if sep and prefix == PERFORMER_ROLE and valid_name(name) else None
+
+
+def _roles(text: str) -> frozenset[str]:
+    return frozenset(r.strip() for r in text.split("+") if r.strip())
+
+
 def parse_tokens(text: str) -> dict[str, frozenset[str]]:
-    """Parse ``"tok1:admin,tok2:stream+viewer"`` into ``{token: roles}``."""
+    """Parse ``"tok1:admin,tok2:stream+viewer,tok3:performer:ann+publisher"`` into ``{token: roles}``.
+
+    A token may contain ``:``: it ends at the last ``:`` after which only roles follow,
+    ``performer:NAME`` included (so ``tok:performer:ann`` is ``tok`` bound to ann, and
+    ``a:b:viewer`` the token ``a:b``). With no such ``:`` it ends at the last one, and
+    ``Settings`` names the unknown role.
+    """
     tokens: dict[str, frozenset[str]] = {}
     for item in text.split(","):
         item = item.strip()
@@ -335,7 +375,13 @@ def parse_tokens(text: str) -> dict[str, frozenset[str]]:
                 f"FACECAST_TOKENS: expected 'token:role[+role...]', got an item without ':'"
                 f" (item {len(tokens) + 1})"
             )
-        tokens[token] = frozenset(r.strip() for r in roles.split("+") if r.strip())
+        splits = [i for i, c in enumerate(item) if c == ":" and i > 0]
+        for i in reversed(splits):
+            held = _roles(item[i + 1 :])
+            if held and all(r in ROLES or bound_performer(r) for r in held):
+                token, roles = item[:i], item[i + 1 :]
+                break
+        tokens[token] = _roles(roles)
     return tokens
 
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
-import re
 import secrets
 import shutil
 import threading
@@ -27,6 +26,14 @@ from facecast.rig.io.gltf import export_glb
 from facecast.rig.io.rigfile import rig_from_bytes
 
 from .errors import RigNotFoundError
+from .names import (
+    NAME_PATTERN,
+    PERFORMER_SEPARATOR,
+    RIG_ID_PATTERN,
+    performer_rig_id,
+    valid_name,
+    valid_rig_id,
+)
 
 if TYPE_CHECKING:
     from facecast.rig.rig import Rig
@@ -46,15 +53,6 @@ __all__ = [
     "write_atomically",
 ]
 
-_NAME_BODY = r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}"
-#: A plain rig id, and a performer's name.
-NAME_PATTERN = f"^{_NAME_BODY}$"
-#: Joins a character's rig id and a performer's name into the id of the rig fitted on that
-#: performer's own expressions (``ict@alice``; see server/SERVER.md, "Performers").
-PERFORMER_SEPARATOR = "@"
-RIG_ID_PATTERN = f"^{_NAME_BODY}({PERFORMER_SEPARATOR}{_NAME_BODY})?$"
-_RIG_ID = re.compile(RIG_ID_PATTERN)
-_NAME = re.compile(NAME_PATTERN)
 SUFFIX = ".rig"
 #: Under the rig directory: one folder per live store (process), holding its temp files.
 SCRATCH_DIR = ".scratch"
@@ -95,24 +93,6 @@ def check_servable(rig: Rig, limits: Limits, source: str) -> None:
             f"{source} cannot be streamed: " + "; ".join(problems) + " (PROTOCOL.md §7)",
             code="rig_exceeds_limits",
         )
-
-
-def valid_rig_id(rig_id: str) -> bool:
-    """A plain id (``ict``) or a performer rig's (``ict@alice``)."""
-    # fullmatch: ``$`` alone would accept a trailing newline.
-    return _RIG_ID.fullmatch(rig_id) is not None
-
-
-def valid_name(name: str) -> bool:
-    """A plain rig id or a performer's name: no separator."""
-    return _NAME.fullmatch(name) is not None
-
-
-def performer_rig_id(rig_id: str, performer: str) -> str:
-    """The id of ``rig_id`` refitted on ``performer``'s expressions (both plain names)."""
-    if not (valid_name(rig_id) and valid_name(performer)):
-        raise ValueError(f"not plain names: {rig_id!r}, {performer!r}")
-    return f"{rig_id}{PERFORMER_SEPARATOR}{performer}"
 
 
 def write_atomically(directory: Path, name: str, data: bytes, *, scratch: Path) -> bool:

@@ -33,7 +33,8 @@ def register(subparsers) -> None:
         action="append",
         default=[],
         metavar="TOKEN[:ROLE+ROLE]",
-        help="add an API token (roles admin, stream, publisher, viewer; default admin); repeatable",
+        help="add an API token (roles admin, stream, publisher, viewer, performer or "
+        "performer:NAME for one performer's profile only; default admin); repeatable",
     )
     parser.add_argument(
         "--auth",

@@ -224,18 +224,19 @@ class Publisher:
 
 
 async def refused(
-    url: str, *, token: str | None = None, hello: Hello | None = None
+    url: str, *, token: str | None = None, hello: Hello | None = None, timeout: float = 5.0
 ) -> tuple[Error, int]:
-    """Connect, (send ``hello``), and return the server's fatal error and close code."""
+    """Connect, (send ``hello``), and return the server's fatal error and close code
+    (each awaited at most ``timeout``)."""
     ws = await _connect(url, token)
     protocol = ClientProtocol(watching=hello is None)
     if hello is not None:
         await ws.send(protocol.send(hello))
     try:
         while True:
-            message = protocol.receive(await asyncio.wait_for(ws.recv(), 5))
+            message = protocol.receive(await asyncio.wait_for(ws.recv(), timeout))
             if isinstance(message, Error):
-                await asyncio.wait_for(ws.wait_closed(), 5)
+                await asyncio.wait_for(ws.wait_closed(), timeout)
                 return message, ws.close_code
     finally:
         await ws.close()

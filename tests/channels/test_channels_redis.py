@@ -6,17 +6,21 @@ Each "process" is a separate app with its own event loop, hub and Redis connecti
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
+import itertools
 
 import httpx
 import numpy as np
 import pytest
 
 from facecast.client.channel import channel_url
-from facecast.protocol import ChannelIdle, ChannelLive, ErrorCode, Hello, Result
+from facecast.protocol import ChannelIdle, ChannelLive, Error, ErrorCode, Hello, Result
+from facecast.server.hub import RECLAIM_WAIT
 from facecast.server.testing import run_server
 
 from ._helpers import RIG_IDS, Publisher, Watcher, points, refused, wait_for
+from .conftest import TOKENS
 
 pytestmark = pytest.mark.anyio
 
@@ -102,6 +106,108 @@ async def test_remote_viewers_see_the_publisher_leave_and_return(redis_settings,
 
     assert isinstance(idle, ChannelIdle) and isinstance(live, ChannelLive)
     assert resumed.seq == 3
+
+
+async def test_a_publisher_closing_and_coming_back_at_once_gets_its_channel(
+    redis_settings, ws_impl
+):
+    # Issue #25 item 8: the client's close returns before the server has released the
+    # channel's lock in Redis; a publisher coming straight back got CHANNEL_BUSY.
+    async with run_server(redis_settings, ws=ws_impl) as a:
+        readies = []
+        for _ in range(20):
+            publisher = await Publisher.open(a.ws_url, "stage", "alpha")
+            readies.append(publisher.ready.rig)
+            await publisher.close()
+
+    assert readies == ["alpha"] * 20
+
+
+#: With auth on, a second publisher token: another performer.
+AUTH_TOKENS = {**TOKENS, "other-publisher-token": frozenset({"publisher"})}
+
+
+@pytest.fixture
+async def auth_servers(redis_settings, ws_impl):
+    """Two processes on one Redis, auth on."""
+    settings = dataclasses.replace(redis_settings, auth=True, tokens=AUTH_TOKENS)
+    async with run_server(settings, ws=ws_impl) as a, run_server(settings, ws=ws_impl) as b:
+        yield a, b
+
+
+#: Where the publisher's second connection goes: the process of its first, or another.
+RETURNS_TO = pytest.mark.parametrize("returns_to", [0, 1], ids=["same-process", "other-process"])
+
+
+@RETURNS_TO
+async def test_a_returning_publisher_takes_its_channel_back_from_its_stale_connection(
+    auth_servers, rigs, returns_to
+):
+    # A blip: the publisher reconnects while its old connection is still open on the
+    # server (not yet noticed gone); the same token gets the channel, the old one ends.
+    a, b = auth_servers
+    watcher = await Watcher.open(b.ws_url, "stage", "beta", token="viewer-token")
+    stale = await Publisher.open(a.ws_url, "stage", "alpha", token="publisher-token")
+    await _live(watcher)
+    server = auth_servers[returns_to]
+    again = await Publisher.open(server.ws_url, "stage", "alpha", token="publisher-token")
+    ended = await asyncio.wait_for(stale.queue.get(), 10)
+    pts = points(rigs["alpha"], 3)
+    await again.send(3, pts)
+    resumed = await watcher.result_with_seq(3, timeout=10)
+    await again.close()
+
+    assert again.ready.rig == "alpha"
+    assert isinstance(ended, Error) and ended.code == ErrorCode.CHANNEL_BUSY
+    assert "same token" in ended.message
+    expected = rigs["beta"].weights(pts).astype(np.float32)
+    np.testing.assert_array_equal(resumed.weights, expected)
+
+
+@RETURNS_TO
+async def test_a_publisher_that_keeps_sending_keeps_its_channel_from_its_own_token(
+    auth_servers, rigs, returns_to
+):
+    # Two pages of one performer: the one that sends keeps the channel (the other is
+    # refused after RECLAIM_WAIT), so they do not take it from each other in turn.
+    live = await Publisher.open(auth_servers[0].ws_url, "stage", "alpha", token="publisher-token")
+
+    async def keep_sending() -> None:
+        for seq in itertools.count():
+            await live.send(seq, points(rigs["alpha"], seq % 5))
+            await asyncio.sleep(1 / 30)  # a camera's pace, not a wait for an event
+
+    sending = asyncio.create_task(keep_sending())
+    url = channel_url(auth_servers[returns_to].ws_url, "stage", "publish")
+    try:
+        error, _ = await refused(
+            url, token="publisher-token", hello=Hello(rig="alpha"), timeout=RECLAIM_WAIT + 5
+        )
+    finally:
+        sending.cancel()
+    await live.send(10_000, points(rigs["alpha"], 1))
+    while (result := await asyncio.wait_for(live.queue.get(), 5)).seq != 10_000:
+        pass
+    await live.close()
+
+    assert error.code == ErrorCode.CHANNEL_BUSY
+    assert isinstance(result, Result)
+
+
+async def test_another_token_cannot_take_a_live_publishers_channel(auth_servers, rigs):
+    first = await Publisher.open(auth_servers[0].ws_url, "stage", "alpha", token="publisher-token")
+    here, there = (channel_url(s.ws_url, "stage", "publish") for s in auth_servers)
+    hello = Hello(rig="alpha")
+    refused_here, _ = await refused(here, token="other-publisher-token", hello=hello)
+    # On another process the holder might have been leaving: refused after RELEASE_WAIT,
+    # within the helper's 5 s.
+    refused_there, _ = await refused(there, token="other-publisher-token", hello=hello)
+    await first.send(1, points(rigs["alpha"], 1))
+    result = await asyncio.wait_for(first.queue.get(), 5)
+    await first.close()
+
+    assert refused_here.code == refused_there.code == ErrorCode.CHANNEL_BUSY
+    assert isinstance(result, Result) and result.seq == 1
 
 
 async def test_channels_recover_when_redis_is_killed_and_restarted(

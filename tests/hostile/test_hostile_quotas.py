@@ -1,12 +1,15 @@
 """One token or one address cannot hold every connection, and watchers cannot lock out the performer.
 
 Issue #13 item 10: one viewer token held all 200 slots and the publisher got OVERLOADED.
+Issue #25 item 1: 100 watchers filled their address's (or their token's) quota and the
+publisher from that address (or with that token) got OVERLOADED.
 """
 
 from __future__ import annotations
 
 import asyncio
 
+import numpy as np
 import pytest
 import websockets
 
@@ -22,7 +25,7 @@ from facecast.protocol import (
 )
 from facecast.server.settings import Settings, SettingsError
 from facecast.server.testing import run_server
-from tests.channels._helpers import Publisher, Watcher, refused, wait_for
+from tests.channels._helpers import Publisher, Watcher, points, refused, wait_for
 
 from .conftest import TOKENS
 
@@ -126,6 +129,64 @@ async def test_watchers_filling_the_server_cannot_lock_out_the_publisher(rigs_di
     assert (error.code, code) == (ErrorCode.OVERLOADED, 1013)
     assert publisher.ready.rig == "alpha"
     # The slots are for publishers only as far as publisher_slots goes.
+    assert second_refused == ErrorCode.OVERLOADED
+
+
+#: The perform page's one token: capture, publish, and watch the character it drives.
+PAGE_TOKENS = {**TOKENS, "page-token": frozenset({"performer", "publisher", "viewer"})}
+
+
+@pytest.mark.parametrize(
+    ("watcher_token", "publisher_token"),
+    [("viewer-token", "publisher-token"), ("page-token", "page-token")],
+    ids=["shared-address", "shared-token"],
+)
+async def test_watchers_filling_their_quotas_cannot_lock_out_the_publisher(
+    rigs_dir, rigs, ws_impl, watcher_token, publisher_token
+):
+    # The defaults with --auth: every connection here comes from 127.0.0.1, so the
+    # watchers fill the address's quota, and with the page's token the token's as well.
+    settings = Settings(rigs_dir=rigs_dir, auth=True, tokens=PAGE_TOKENS)
+    quota = settings.max_connections_per_address
+    assert quota == settings.max_connections_per_token == 100
+    async with run_server(settings, ws=ws_impl) as server:
+        watchers = await open_watchers(server, quota, watcher_token)
+        url = channel_url(server.ws_url, "stage", "watch", {"rig": "alpha"})
+        error, code = await refused(url, token=watcher_token)
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha", token=publisher_token)
+        pts = points(rigs["alpha"], 1)
+        await publisher.send(1, pts)
+        result = await watchers[-1].result_with_seq(1)
+        await publisher.close()
+        for watcher in watchers:
+            await watcher.close()
+
+    assert (error.code, code) == (ErrorCode.OVERLOADED, 1013)
+    assert publisher.ready.rig == "alpha"
+    assert result.seq == 1
+    np.testing.assert_array_equal(result.weights, rigs["alpha"].weights(pts).astype(np.float32))
+
+
+async def test_publisher_slots_past_a_token_quota_are_for_publishers_only(rigs_dir, ws_impl):
+    settings = Settings(
+        rigs_dir=rigs_dir, auth=True, tokens=PAGE_TOKENS, max_connections_per_token=2,
+        max_connections_per_address=0, publisher_slots=1,
+    )  # fmt: skip
+    async with run_server(settings, ws=ws_impl) as server:
+        watchers = await open_watchers(server, 2, "page-token")
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha", token="page-token")
+        try:
+            second = await Publisher.open(server.ws_url, "other", "alpha", token="page-token")
+        except ProtocolError as exc:
+            second_refused: ErrorCode | None = exc.code
+        else:  # pragma: no cover - the assert below reports it
+            second_refused = None
+            await second.close()
+        await publisher.close()
+        for watcher in watchers:
+            await watcher.close()
+
+    assert publisher.ready.rig == "alpha"
     assert second_refused == ErrorCode.OVERLOADED
 
 

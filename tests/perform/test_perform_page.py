@@ -353,6 +353,7 @@ def auth_server(rigs_dir) -> Iterator[str]:
         "watch-only": frozenset({"viewer"}),
         "publish-only": frozenset({"publisher"}),
         "no-performer": frozenset({"viewer", "publisher"}),
+        "bob-only": frozenset({"viewer", "publisher", "performer:bob"}),
     }
     settings = Settings(
         rigs_dir=rigs_dir, auth=True, tokens=tokens, access_log=False, log_level="warning"
@@ -380,11 +381,20 @@ def test_a_wrong_token_names_the_missing_role(
     assert says in page.evaluate(f"window.facecastStats[{where!r}]")
 
 
-def test_a_token_without_the_performer_role_cannot_fit_and_is_told(
-    browser, auth_server, camera, pages
+@pytest.mark.parametrize(
+    ("token", "says"),
+    [
+        ("no-performer", "the token lacks the role performer"),
+        # Issue #25 item 3: a token bound to bob fits for bob only, not for ann.
+        ("bob-only", "the token is bound to other performers"),
+    ],
+)
+def test_a_token_that_may_not_fit_this_performer_cannot_fit_and_is_told(
+    browser, auth_server, camera, pages, token, says
 ):
     camera.show([FacePose()] * 5)
-    page = open_page(browser, perform_url(auth_server, "auth-fit", CHARACTER, token="no-performer"))
+    url = perform_url(auth_server, f"auth-fit-{token}", CHARACTER, token=token, performer="ann")
+    page = open_page(browser, url)
     pages.append(page)
     page.wait_for_selector('#steps button[data-name="aa"]')
     tracking(page)
@@ -395,8 +405,8 @@ def test_a_token_without_the_performer_role_cannot_fit_and_is_told(
     page.wait_for_function("window.facecastStats.calibration.fitError !== null")
 
     error = page.evaluate("window.facecastStats.calibration.fitError")
-    assert "the token lacks the role performer" in error
-    assert "the token lacks the role performer" in page.text_content("#verdict")
+    assert says in error
+    assert says in page.text_content("#verdict")
 
 
 def test_a_generic_rig_gets_no_frame_until_it_is_rebased_on_the_captured_neutral(

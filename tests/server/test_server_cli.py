@@ -126,6 +126,8 @@ def test_serve_flags_override_env_and_tokens_default_to_admin(tmp_path):
             "abc",
             "--token",
             "s:stream",
+            "--token",
+            "p:performer:ann+publisher",
         ],
     )
 
@@ -134,7 +136,11 @@ def test_serve_flags_override_env_and_tokens_default_to_admin(tmp_path):
     )
 
     assert (settings.port, settings.workers, settings.rigs_dir) == (9100, 3, tmp_path)
-    assert dict(settings.tokens) == {"abc": frozenset({"admin"}), "s": frozenset({"stream"})}
+    assert dict(settings.tokens) == {
+        "abc": frozenset({"admin"}),
+        "s": frozenset({"stream"}),
+        "p": frozenset({"performer:ann", "publisher"}),
+    }
 
 
 def test_serve_refuses_public_bind_without_tokens_as_a_command_error(tmp_path, monkeypatch):

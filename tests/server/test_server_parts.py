@@ -81,6 +81,37 @@ def test_env_tokens_parse_roles_joined_with_plus():
         parse_tokens("no-roles-here")
 
 
+def test_a_token_is_bound_to_performers_in_toml_the_environment_or_a_flag(tmp_path):
+    config = tmp_path / "c.toml"
+    config.write_text('[tokens]\n"ann" = ["performer:ann", "publisher", "viewer"]\n')
+    roles = frozenset({"performer:ann", "publisher", "viewer"})
+
+    from_file = Settings.load(config_file=config, env={})
+    from_env = Settings.load(env={"FACECAST_TOKENS": "ann:performer:ann+publisher+viewer"})
+
+    assert dict(from_file.tokens) == dict(from_env.tokens) == {"ann": roles}
+    assert Settings.from_json(from_file.to_json()).tokens == from_file.tokens
+    # A token may contain ':': it ends where only roles follow.
+    assert parse_tokens("a:b:performer:bob+performer:cy,c:d:viewer") == {
+        "a:b": frozenset({"performer:bob", "performer:cy"}),
+        "c:d": frozenset({"viewer"}),
+    }
+
+
+@pytest.mark.parametrize(
+    ("roles", "message"),
+    [
+        (["performer:"], "unknown role"),
+        (["performer:no spaces"], "unknown role"),
+        (["viewer:ann"], "unknown role"),
+        (["performer", "performer:ann"], "keep the one you mean"),
+    ],
+)
+def test_a_bad_performer_binding_is_a_settings_error(tmp_path, roles, message):
+    with pytest.raises(SettingsError, match=message):
+        Settings(rigs_dir=tmp_path, tokens={"t": frozenset(roles)})
+
+
 def test_allowed_origins_and_hosts_come_from_toml_or_the_environment(tmp_path):
     config = tmp_path / "c.toml"
     config.write_text('allowed_origins = ["https://Viewer.Example:443", "http://a.example:81"]\n')

@@ -368,7 +368,13 @@ async def test_a_burst_mixing_frames_and_pings_keeps_frames_behind_what_waits(
         assert closed["frames_taken"] == 0
 
 
-async def test_a_burst_of_frames_taken_together_is_answered_in_order(tmp_path, rig):
+async def test_a_burst_of_frames_taken_together_is_answered_in_order(tmp_path, rig, monkeypatch):
+    # How many reads the burst arrives in is TCP's choice, and how many frames one read
+    # takes within its share of the loop (_TAKE_SECONDS) depends on the machine's load
+    # (issue #25 item 8: 12 of 20 on a busy one). Without that share every frame of
+    # every read is taken while the reader is parked, however the burst was split; the
+    # share itself is the next test's.
+    monkeypatch.setattr("facecast.server.session._TAKE_SECONDS", 60.0)
     settings = Settings(rigs_dir=tmp_path / "rigs")
     settings.rigs_dir.mkdir(parents=True)
     rig.save(settings.rigs_dir / "tiny.rig")
@@ -386,7 +392,7 @@ async def test_a_burst_of_frames_taken_together_is_answered_in_order(tmp_path, r
     results = [decode_server(data) for data in replies]
     assert [r.seq for r in results] == list(range(20))
     (closed,) = _closed_sessions(records)
-    assert closed["frames_taken"] == 20  # all in one read, none through the queue
+    assert closed["frames_in"] == closed["frames_taken"] == 20  # none through the queue
     for seq, result in enumerate(results):
         expected = rig.weights(rig.source_neutral + 0.01 * seq)
         np.testing.assert_allclose(result.weights, expected, rtol=1e-5, atol=1e-6)

@@ -94,6 +94,9 @@ function fatal(message) {
 function problemText(response, problem, role, what) {
   const detail = problem.detail || response.statusText;
   if (response.status === 401) return `the token is not accepted (401 ${problem.code || "unauthorized"}): cannot ${what}. ${detail}`;
+  if (response.status === 403 && problem.code === "performer_forbidden") {
+    return `the token is bound to other performers: it may not ${what} as this one (403 performer_forbidden: ${detail})`;
+  }
   if (response.status === 403) {
     return `the token lacks the role ${role} (or admin) needed to ${what} (403 ${problem.code || "forbidden"}: ${detail})`;
   }
