@@ -317,10 +317,10 @@ def test_calibrate_noise_comes_with_its_points_or_waits_with_the_next_frame(rig)
     opened(core, rig)
     points = frame_points(rig, 1)
 
-    work = core.handle(core.receive(encode(Calibrate(points=points, noise=0.02)), 0.0))
+    work = core.handle(core.receive(encode(Calibrate(points=points, noise=0.02)), 0.0), 0.0)
     assert isinstance(work, Calibrate) and work.noise == 0.02
     core.calibrated(rig.calibrated(points), 0.1)
-    assert core.handle(core.receive(encode(Calibrate(noise=0.03)), 0.2)) is None
+    assert core.handle(core.receive(encode(Calibrate(noise=0.03)), 0.2), 0.2) is None
 
     assert core.take_neutral() and core.calibrate_noise == 0.03
 
@@ -356,14 +356,14 @@ def test_calibrates_over_the_budget_are_refused_and_the_budget_refills(rig):
     asked = [core.handle(core.receive(encode(Calibrate(points=points)), 0.0), 0.0)
              for _ in range(3)]  # fmt: skip
 
-    assert [isinstance(work, np.ndarray) for work in asked] == [True, True, False]
+    assert [isinstance(work, Calibrate) for work in asked] == [True, True, False]
     (error,) = sent(core)
     assert isinstance(error, Error) and error.code is ErrorCode.RATE_LIMITED
     assert error.seq is None and not error.fatal and "2 calibrations/s" in error.message
     assert core.rig is rig  # nothing changed
     # Half a second later one token is back (2/s).
     assert isinstance(core.handle(core.receive(encode(Calibrate(points=points)), 0.5), 0.5),
-                      np.ndarray)  # fmt: skip
+                      Calibrate)  # fmt: skip
 
 
 def test_a_reset_is_never_refused(rig):
