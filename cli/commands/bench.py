@@ -1,4 +1,4 @@
-"""``facecast bench``: the benchmarks (engine, transport, broadcast, webcam) as sub-commands.
+"""``facecast bench``: the benchmarks (engine, transport, broadcast, transfer, webcam) as sub-commands.
 
 Only parses arguments and hands over to ``facecast.cli.bench.<name>.run(args)``; it must
 not measure anything itself.
@@ -10,6 +10,19 @@ import argparse
 import importlib
 
 from facecast.cli.errors import CommandError
+
+
+def _add_ict(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--ict", metavar="PATH",
+        help="ICT-FaceKit folder or .npz (default: $FACECAST_ICT or ../shared/data/ict-facekit)",
+    )  # fmt: skip
+
+
+def _add_take(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--take", metavar="CSV", help="a Live Link Face CSV take (default: the bundled llv_dao)"
+    )
 
 
 def register(subparsers) -> None:
@@ -30,10 +43,7 @@ def register(subparsers) -> None:
             "--repeat runs. Falls back to the procedural demo when ICT is absent."
         ),
     )
-    engine.add_argument(
-        "--ict", metavar="PATH",
-        help="ICT-FaceKit folder or .npz (default: $FACECAST_ICT or ../shared/data/ict-facekit)",
-    )  # fmt: skip
+    _add_ict(engine)
     engine.add_argument("--json", metavar="FILE", help="write every figure as JSON")
     engine.add_argument(
         "--repeat", type=int, default=7, metavar="N", help="timed runs per figure (median)"
@@ -74,13 +84,8 @@ def register(subparsers) -> None:
             "generated and true examples (eq. 4.1). Needs ICT-FaceKit; takes minutes."
         ),
     )
-    transfer.add_argument(
-        "--ict", metavar="PATH",
-        help="ICT-FaceKit folder or .npz (default: $FACECAST_ICT or ../shared/data/ict-facekit)",
-    )  # fmt: skip
-    transfer.add_argument(
-        "--take", metavar="CSV", help="Live Link Face take (default: the bundled one)"
-    )
+    _add_ict(transfer)
+    _add_take(transfer)
     transfer.add_argument("--json", metavar="FILE", help="write every figure as JSON")
     transfer.add_argument(
         "--sheet", metavar="PNG", help="write a picture: transferred beside true expressions"
@@ -138,13 +143,8 @@ def register(subparsers) -> None:
             "tracked neutral, and the same pipeline on the exact landmarks."
         ),
     )
-    webcam.add_argument(
-        "--ict", metavar="PATH",
-        help="ICT-FaceKit folder or .npz (default: $FACECAST_ICT or ../shared/data/ict-facekit)",
-    )  # fmt: skip
-    webcam.add_argument(
-        "--take", metavar="CSV", help="a Live Link Face CSV take (default: the bundled llv_dao)"
-    )
+    _add_ict(webcam)
+    _add_take(webcam)
     webcam.add_argument("--performer", default=None, metavar="PERSON",
                         help="the ICT identity rendered (default person07)")  # fmt: skip
     webcam.add_argument("--target", default=None, metavar="PERSON",

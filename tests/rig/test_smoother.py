@@ -4,7 +4,6 @@ acceleration read off a take, and the rig regularised for what the smoother leav
 from __future__ import annotations
 
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,12 +12,11 @@ from facecast.rig import IdentifiabilityWarning, fit, refit_noise, smooth_take
 from facecast.rig.demo import demo_activations, demo_animation, demo_example_set, demo_target_frames
 from facecast.rig.errors import FitError, InputError
 from facecast.rig.evaluation.evaluate import cloning_error
-from facecast.rig.evaluation.takes import arkit_example_set, take_experiment
 from facecast.rig.evaluation.temporal import lag_frames
 from facecast.rig.filters import KalmanFilter
 from facecast.rig.smoother import RTSSmoother, estimate_acceleration
-from facecast.rig.sources.ict import locate_ict
-from facecast.rig.sources.trackers import read_livelink_csv
+
+from ._real_take import ARCHIVE, noisy_take
 
 NOISE = 0.05
 ACCELERATION = 40.0
@@ -327,29 +325,19 @@ def test_smooth_take_refuses_rts_without_a_noise_or_an_unknown_method(demo_rigs)
     assert raised.value.code == "bad_smoothing"
 
 
-ARCHIVE = locate_ict()
-TAKE = Path(__file__).parents[1] / "data" / "livelink" / "llv_dao.csv"
-
-
 @pytest.mark.ict
 @pytest.mark.slow
 @pytest.mark.skipif(ARCHIVE is None, reason="ICT-FaceKit not found")
 @pytest.mark.parametrize("sigma", [0.01, 0.05])  # cm: 0.1 and 0.5 mm
 def test_clone_default_smoothing_cuts_the_error_on_a_real_take_without_lag(sigma):
-    examples = arkit_example_set(ARCHIVE)
-    livelink = read_livelink_csv(TAKE)
-    experiment = take_experiment(examples, livelink.weights, livelink.fps)
-    noisy = experiment.points + np.random.default_rng(0).normal(0.0, sigma, experiment.points.shape)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        rig = fit(examples, noise=sigma)
-    times = np.arange(len(noisy)) / livelink.fps
+    data = noisy_take(sigma)
+    times = np.arange(len(data.noisy)) / data.fps
 
-    take = smooth_take(rig, noisy, times)
+    take = smooth_take(data.rig, data.noisy, times)
 
-    per_frame = rig.clone(noisy)
+    per_frame = data.rig.clone(data.noisy)
     smoothed = take.rig.clone(take.points)
-    truth = experiment.truth
+    truth = data.experiment.truth
 
     def max_axis(vertices: np.ndarray) -> float:
         return max(cloning_error(truth, vertices)["eq41_percent"].values())

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,11 +13,9 @@ from facecast.rig.errors import InputError
 from facecast.rig.evaluation.takes import arkit_example_set, take_experiment
 from facecast.rig.evaluation.temporal import best_under_one_frame, lag_frames, temporal_tradeoff
 from facecast.rig.filters import KALMAN_ACCELERATION, KalmanFilter, OneEuroFilter
-from facecast.rig.sources.ict import locate_ict
 from facecast.rig.sources.trackers import read_livelink_csv
 
-ARCHIVE = locate_ict()
-TAKE = Path(__file__).parents[1] / "data" / "livelink" / "llv_dao.csv"
+from ._real_take import ARCHIVE, TAKE, noisy_take
 
 
 def _wave(frames: int = 240) -> np.ndarray:
@@ -78,16 +75,10 @@ def test_protocol_and_filter_defaults_agree():
 @pytest.mark.skipif(ARCHIVE is None, reason="ICT-FaceKit not found")
 @pytest.mark.parametrize("sigma", [0.01, 0.05])  # cm: 0.1 and 0.5 mm
 def test_default_kalman_has_less_jitter_and_lag_than_the_default_one_euro_on_a_real_take(sigma):
-    examples = arkit_example_set(ARCHIVE)
-    livelink = read_livelink_csv(TAKE)
-    take = take_experiment(examples, livelink.weights, livelink.fps)
-    noisy = take.points + np.random.default_rng(0).normal(0.0, sigma, take.points.shape)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        rig = fit(examples, noise=sigma)
+    data = noisy_take(sigma)
     one_euro = OneEuroFilter()
     table = temporal_tradeoff(
-        rig, noisy, take.truth, fps=livelink.fps, noise=sigma,
+        data.rig, data.noisy, data.experiment.truth, fps=data.fps, noise=sigma,
         one_euro=[(one_euro.min_cutoff, one_euro.beta)], kalman=[KALMAN_ACCELERATION],
     )  # fmt: skip
     euro, kalman = (
