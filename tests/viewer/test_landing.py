@@ -6,18 +6,12 @@ The landing page lists the rigs and live channels through the REST API with the 
 
 from __future__ import annotations
 
-import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from urllib.parse import parse_qs, urlsplit
 
 import httpx
 import pytest
-from websockets.sync.client import connect
 
 from facecast.cli.snapshot import serving
-from facecast.protocol import PUBLISH_PATH, SUBPROTOCOL, Frame, Hello, Ready, decode_server, encode
-from facecast.rig.demo import demo_animation
 from facecast.server.api_docs import DOCS_ASSETS
 from facecast.server.landing import LANDING_ASSETS
 from facecast.server.settings import Settings
@@ -25,6 +19,7 @@ from facecast.server.viewer import viewer_dir
 
 from .conftest import TOKENS
 from .test_viewer_pages import FRAMES
+from .test_viewer_watch import publishing
 
 BUILT = (viewer_dir() / "dist" / "landing.js").is_file() and all(
     (viewer_dir() / "dist" / "docs" / name).is_file() for name in DOCS_ASSETS
@@ -40,35 +35,6 @@ def landing_settings(demo_rigs) -> Settings:
     return Settings(
         rigs_dir=demo_rigs, auth=True, tokens=tokens, access_log=False, log_level="warning"
     )
-
-
-@contextmanager
-def publishing(base_url: str, channel: str, token: str) -> Iterator[None]:
-    """Stream the demo performance into ``channel`` (as ``token``) until the block exits."""
-    points = demo_animation(seconds=2.0, with_vertices=False).points.astype("float32")
-    stop = threading.Event()
-    ready = threading.Event()
-    url = base_url.replace("http", "ws") + PUBLISH_PATH.format(name=channel)
-
-    def run() -> None:
-        with connect(url, subprotocols=[SUBPROTOCOL, f"facecast.bearer.{token}"]) as ws:
-            ws.send(encode(Hello(rig="demo")))
-            assert isinstance(decode_server(ws.recv(timeout=10)), Ready)
-            ready.set()
-            seq = 0
-            while not stop.wait(1 / 60):  # lockstep at the performance's 60 fps
-                ws.send(encode(Frame(seq=seq, ts=seq / 60, points=points[seq % len(points)])))
-                ws.recv(timeout=10)
-                seq += 1
-
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    assert ready.wait(10), "the publisher got no ready"
-    try:
-        yield
-    finally:
-        stop.set()
-        thread.join(10)
 
 
 def _row(page, table: str, first_cell: str):
