@@ -86,7 +86,7 @@ function renderRigs() {
       ]),
     ]);
   });
-  fill(document.getElementById("rigs"), rows, "No rigs stored yet: upload one with `facecast rigs put`.");
+  fill(document.getElementById("rigs"), rows, "No rigs stored yet: upload one with facecast rigs put.");
 }
 
 function renderChannels() {
@@ -104,7 +104,7 @@ function renderChannels() {
       ]),
     ]);
   });
-  fill(document.getElementById("channels"), rows, "No live channels: a publisher (the performer studio, `facecast perform`) opens one.");
+  fill(document.getElementById("channels"), rows, "No live channels: a publisher (the performer studio, facecast perform or publish) opens one.");
 }
 
 function showError(message) {
