@@ -15,21 +15,20 @@ from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from typing import Any
-from urllib.parse import quote
 
 import anyio
 from fastapi import FastAPI, Request, Response
-from fastapi.openapi.docs import get_swagger_ui_html
-from fastapi.responses import HTMLResponse, JSONResponse
 from starlette.middleware.cors import CORSMiddleware
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from facecast import __version__
 
-from .auth import authorize_page, authorize_request
+from .api_docs import mount_docs
+from .auth import authorize_request
 from .channel_routes import router as channel_router
 from .errors import LogOnce, install_error_handlers, problem
 from .hub import ChannelHub
+from .landing import mount_landing
 from .metrics import CONTENT_TYPE_LATEST, Metrics
 from .origins import OriginGuard
 from .perform_page import mount_perform
@@ -37,7 +36,7 @@ from .performer_routes import profile_store
 from .performer_routes import router as performer_router
 from .rest import router as rest_router
 from .sessions import SessionRegistry
-from .settings import ROLES, Settings
+from .settings import Settings
 from .store import RigStore
 from .stream import router as stream_router
 from .transport import TransportSeam
@@ -124,7 +123,8 @@ def create_app(settings: Settings) -> FastAPI:
     app.include_router(channel_router)
     app.include_router(performer_router)
     _add_ops_routes(app)
-    _add_docs_routes(app)
+    mount_docs(app)
+    mount_landing(app)
     mount_viewer(app, settings)
     mount_perform(app)
     # Added innermost first: transport seam > access log > Host/Origin checks > CORS >
@@ -178,35 +178,6 @@ def _add_ops_routes(app: FastAPI) -> None:
             authorize_request(request, ("admin",))
         body = await anyio.to_thread.run_sync(request.app.state.metrics.render)
         return Response(body, media_type=CONTENT_TYPE_LATEST)
-
-
-def _docs_token(request: Request) -> str | None:
-    """Admit any valid token (header, or ``?token=`` for a browser) when auth is on.
-
-    Returns the query token, which the docs page must hand on to its schema request.
-    """
-    _, query = authorize_page(request, ROLES)
-    return query
-
-
-#: Headers of the pages that may carry ``?token=`` in their URL: never sent on in a
-#: Referer (the docs page loads Swagger UI from a CDN) and never cached.
-_TOKEN_PAGE_HEADERS = {"Referrer-Policy": "no-referrer", "Cache-Control": "no-store"}
-
-
-def _add_docs_routes(app: FastAPI) -> None:
-    @app.get("/openapi.json", include_in_schema=False)
-    async def openapi(request: Request) -> JSONResponse:
-        _docs_token(request)
-        return JSONResponse(request.app.openapi(), headers=_TOKEN_PAGE_HEADERS)
-
-    @app.get("/docs", include_in_schema=False)
-    async def docs(request: Request) -> HTMLResponse:
-        token = _docs_token(request)
-        schema = "/openapi.json" if token is None else f"/openapi.json?token={quote(token)}"
-        page = get_swagger_ui_html(openapi_url=schema, title="facecast API")
-        page.headers.update(_TOKEN_PAGE_HEADERS)
-        return page
 
 
 class _FacecastAPI(FastAPI):

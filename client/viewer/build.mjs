@@ -2,6 +2,8 @@
 // script viewer.html and overlay.html load, and src/perform/main.js into dist/perform.js
 // for perform.html, next to the face model's weights and WebAssembly binaries copied out
 // of their npm packages (dist/perform/: served by facecast, never fetched from elsewhere).
+// src/landing.js becomes dist/landing.js for index.html (the landing page at /), and Swagger
+// UI's files are copied out of swagger-ui-dist into dist/docs/ for the API docs at /docs.
 // Run by `npm run build` (scripts/setup does).
 import { copyFile, mkdir } from "node:fs/promises";
 import { join } from "node:path";
@@ -23,6 +25,8 @@ await build({ ...common, entryPoints: ["src/perform/main.js"], outfile: "dist/pe
 // The offline tracker of `facecast track` (track.html): the page's own tracking pipeline.
 await build({ ...common, entryPoints: ["src/perform/track.js"], outfile: "dist/track.js" });
 
+await build({ ...common, entryPoints: ["src/landing.js"], outfile: "dist/landing.js" });
+
 // The face model (BlazeFace + FaceMesh, TensorFlow.js graph models) and the WebAssembly
 // backend's binaries; server/perform_page.py serves exactly these names.
 // Human's package.json exports neither itself nor its models: read them from node_modules.
@@ -40,4 +44,11 @@ for (const [pkg, files] of Object.entries(PERFORM_ASSETS)) {
   for (const file of files) {
     await copyFile(join(packageDir(pkg), file), join("dist/perform", file.split("/").pop()));
   }
+}
+
+// Swagger UI for /docs (server/api_docs.py serves exactly these names), with its licence.
+const DOCS_ASSETS = ["swagger-ui-bundle.js", "swagger-ui.css", "favicon-32x32.png", "LICENSE", "NOTICE"];
+await mkdir("dist/docs", { recursive: true });
+for (const file of DOCS_ASSETS) {
+  await copyFile(join(packageDir("swagger-ui-dist"), file), join("dist/docs", file));
 }

@@ -27,15 +27,19 @@ from .test_viewer_pages import FRAMES, changed_fraction, frames, pixels
 
 
 @contextmanager
-def publishing(base_url: str, channel: str) -> Iterator[None]:
-    """Stream the demo performance into ``channel`` from a thread until the block exits."""
+def publishing(base_url: str, channel: str, token: str | None = None) -> Iterator[None]:
+    """Stream the demo performance into ``channel`` from a thread until the block exits.
+
+    ``token``: presented as the bearer subprotocol (a server with auth on).
+    """
     points = demo_animation(seconds=4.0, with_vertices=False).points.astype("float32")
     stop = threading.Event()
     ready = threading.Event()
     url = base_url.replace("http", "ws") + PUBLISH_PATH.format(name=channel)
 
     def run() -> None:
-        with connect(url, subprotocols=[SUBPROTOCOL]) as ws:
+        protocols = [SUBPROTOCOL] if token is None else [SUBPROTOCOL, f"facecast.bearer.{token}"]
+        with connect(url, subprotocols=protocols) as ws:
             ws.send(encode(Hello(rig="demo")))
             assert isinstance(decode_server(ws.recv(timeout=10)), Ready)
             ready.set()
