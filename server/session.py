@@ -40,7 +40,7 @@ from .cloning import (
     frame_error,
     frame_weights,
 )
-from .core import Closing, Counters, StreamCore, ready_message, rig_unavailable
+from .core import Closing, Counters, StreamCore, rig_unavailable
 from .direct import binary_frame, direct_writer, queued_messages
 from .driver import Driver
 from .metrics import Metrics
@@ -49,7 +49,7 @@ from .stages import CPU_CLOCK
 from .store import RigNotFoundError, RigStore
 from .transport import Transport, transport_for
 
-__all__ = ["INLINE_MAX_SECONDS", "Session", "SessionCounters", "ready_message"]
+__all__ = ["INLINE_MAX_SECONDS", "Session"]
 
 log = logging.getLogger("facecast.server.session")
 
@@ -74,10 +74,6 @@ _CORK_BYTES = 64 * 1024
 #: Encoded results the reader may leave for the writer (at least one is always
 #: allowed); past this, frames wait in the mailbox and newer ones replace them (§8).
 _MAX_OUTBOX_BYTES = 256 * 1024
-
-
-#: What a session has done (the core's counters), read by tests and logged at the end.
-SessionCounters = Counters
 
 
 class Session(Driver):
