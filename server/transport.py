@@ -1,8 +1,8 @@
 """The seam between facecast's WebSocket writers and uvicorn's connection: one small interface.
 
-``TransportSeam`` (pure ASGI middleware, outermost in the app) records the ``send`` and
-``receive`` uvicorn hands the app in the connection's scope; ``transport_for`` turns them
-into a `Transport`. It decides nothing about what is sent, and never reads framework state
+``TransportSeam`` (pure ASGI middleware, outermost in the app) records the ``send``
+uvicorn hands the app in the connection's scope; ``transport_for`` turns it into a
+`Transport`. It decides nothing about what is sent, and never reads framework state
 that is not its own: no closure cells, no qualnames.
 
 What it relies on, pinned in pyproject.toml and tested under both WebSocket
@@ -24,10 +24,10 @@ frame goes through the ASGI send, which waits, raises or closes as uvicorn decid
 
 from __future__ import annotations
 
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from typing import Any, Final
 
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import ASGIApp, Receive, Scope, Send
 from starlette.websockets import WebSocket, WebSocketState
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 from websockets.protocol import State
@@ -36,14 +36,13 @@ from .ws_guard import BoundedSansIO
 
 __all__ = ["AsgiTransport", "SansIOTransport", "Transport", "TransportSeam", "transport_for"]
 
-#: Scope keys set by `TransportSeam` (uvicorn's own callables) and by `transport_for`.
+#: Scope keys set by `TransportSeam` (uvicorn's own send) and by `transport_for`.
 SEND_KEY: Final = "facecast.uvicorn_send"
-RECEIVE_KEY: Final = "facecast.uvicorn_receive"
 _TRANSPORT_KEY: Final = "facecast.transport"
 
 
 class TransportSeam:
-    """Pure-ASGI middleware recording the server's own ``send``/``receive`` in a WebSocket scope.
+    """Pure-ASGI middleware recording the server's own ``send`` in a WebSocket scope.
 
     Must be the outermost middleware of the app (``create_app`` adds it last): a send that
     something else has wrapped is not uvicorn's, and `transport_for` then refuses the
@@ -59,7 +58,6 @@ class TransportSeam:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] == "websocket":
             scope[SEND_KEY] = send
-            scope[RECEIVE_KEY] = receive
         await self.app(scope, receive, send)
 
 
@@ -130,12 +128,10 @@ class SansIOTransport(Transport):
 
     direct = True
 
-    def __init__(self, websocket: WebSocket, protocol: Any, receive: Receive) -> None:
+    def __init__(self, websocket: WebSocket, protocol: Any) -> None:
         self._websocket = websocket
         self._protocol = protocol
         self._transport = protocol.transport
-        #: uvicorn's own receive: the next message without Starlette's per-message checks.
-        self.receive: Callable[[], Awaitable[Message]] = receive
         #: Received messages waiting for the app (a bound method: no wrapper on the hot path).
         self.messages_waiting = protocol.queue.qsize  # type: ignore[method-assign]
         self.buffered_bytes = protocol.transport.get_write_buffer_size  # type: ignore[method-assign]
@@ -205,7 +201,7 @@ def transport_for(websocket: WebSocket) -> Transport:
     if protocol is None or protocol.conn.extensions:
         transport = AsgiTransport(websocket)
     else:
-        transport = SansIOTransport(websocket, protocol, scope[RECEIVE_KEY])
+        transport = SansIOTransport(websocket, protocol)
     scope[_TRANSPORT_KEY] = transport
     return transport
 
