@@ -54,7 +54,6 @@ __all__ = [
     "PublisherCore",
     "StreamCore",
     "WatcherCore",
-    "code_name",
     "ready_message",
     "rig_unavailable",
 ]
@@ -76,7 +75,7 @@ class Closing(Exception):
     @classmethod
     def for_error(cls, error: ProtocolError) -> Closing:
         """The close a fatal ``error`` calls for (PROTOCOL.md §7: its code's close code)."""
-        return cls(close_code(error), code_name(error).lower(), error)
+        return cls(close_code(error), error.code_name.lower(), error)
 
     @classmethod
     def internal(cls) -> Closing:
@@ -137,11 +136,6 @@ def ready_message(
 
 def _none() -> int:
     return 0
-
-
-def code_name(error: ProtocolError) -> str:
-    """``error``'s code by name (metrics labels, close reasons); a number if unnamed."""
-    return error.code.name if isinstance(error.code, ErrorCode) else str(error.code)
 
 
 class ConnectionCore:
@@ -344,7 +338,7 @@ class ConnectionCore:
     # -- errors, time and closing --------------------------------------------------------
     def report(self, error: ProtocolError) -> None:
         """Send ``error``; a fatal one raises `Closing` instead (sent with the close)."""
-        self._count(code_name(error))
+        self._count(error.code_name)
         if error.fatal:
             raise Closing.for_error(error)
         self.send(Error.of(error))

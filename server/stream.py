@@ -14,7 +14,6 @@ from fastapi import APIRouter, WebSocket
 from facecast.protocol import STREAM_PATH, ProtocolError, select_subprotocol
 
 from .admission import authorize_websocket, serve
-from .core import code_name
 from .logs import RefusalLog
 from .refusal import refuse
 from .session import Session
@@ -40,8 +39,8 @@ async def stream(websocket: WebSocket) -> None:
         if refusals is None:  # one per app: a tokenless flood is one line per streak
             refusals = app.state.stream_refusals = RefusalLog(log, "stream.refused",
                                                               "stream refused")  # fmt: skip
-        refusals.refused(code_name(exc), time.monotonic())
-        app.state.metrics.errors.labels(code_name(exc)).inc()
+        refusals.refused(exc.code_name, time.monotonic())
+        app.state.metrics.errors.labels(exc.code_name).inc()
         await refuse(websocket, exc, subprotocol, timeout=settings.refuse_timeout)
         return
     session = Session(
