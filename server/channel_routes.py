@@ -105,7 +105,6 @@ async def publish(websocket: WebSocket, name: str) -> None:
         principal = authorize_websocket(websocket, hub.settings, "publisher")
         _check_name(name)
     except ProtocolError as exc:
-        websocket.app.state.metrics.errors.labels(exc.code_name).inc()
         await refuse(websocket, exc.evolve(fatal=True), subprotocol,
                      timeout=hub.settings.refuse_timeout)  # fmt: skip
         return
@@ -129,7 +128,6 @@ async def watch(websocket: WebSocket, name: str) -> None:
         hello, output, dtype = _watch_query(websocket.query_params, limits)
         rig = await hub.load_rig(hello.rig)
     except ProtocolError as exc:
-        websocket.app.state.metrics.errors.labels(exc.code_name).inc()
         await refuse(websocket, exc.evolve(fatal=True), subprotocol,
                      timeout=settings.refuse_timeout, wait_first=False)  # fmt: skip
         return

@@ -40,7 +40,6 @@ async def stream(websocket: WebSocket) -> None:
             refusals = app.state.stream_refusals = RefusalLog(log, "stream.refused",
                                                               "stream refused")  # fmt: skip
         refusals.refused(exc.code_name, time.monotonic())
-        app.state.metrics.errors.labels(exc.code_name).inc()
         await refuse(websocket, exc, subprotocol, timeout=settings.refuse_timeout)
         return
     session = Session(
