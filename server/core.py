@@ -9,7 +9,6 @@ run the work asked for in threads and write.
 
 from __future__ import annotations
 
-import copy
 import secrets
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -402,11 +401,8 @@ class StreamCore(ConnectionCore):
         """The rig this session clones with, as ``hello`` asks; ``rig`` is not mutated."""
         hello = self.hello
         assert hello is not None
-        if hello.align_scale and not rig.align_scale:
-            # The rig's weights() reads this flag; a shallow copy keeps the cached rig as is.
-            rig = copy.copy(rig)
-            rig.align_scale = True
-        return rig
+        # A rig of its own when it differs: the store's cached rig is shared by every session.
+        return rig.with_align_scale(True) if hello.align_scale else rig
 
     def open(self, rig: Rig, now: float, session_id: str) -> None:
         """As `ConnectionCore.open`; fatal INVALID_FIELD for ``moving`` on a rig moving nothing.
