@@ -2,8 +2,9 @@
 
 ``TransportSeam`` (pure ASGI middleware, outermost in the app) records the ``send``
 uvicorn hands the app in the connection's scope; ``transport_for`` turns it into a
-`Transport`. It decides nothing about what is sent, and never reads framework state
-that is not its own: no closure cells, no qualnames.
+`Transport`, whose ``write`` takes whole frames built by ``binary_frame``. It decides
+nothing about what is sent, and never reads framework state that is not its own: no
+closure cells, no qualnames.
 
 What it relies on, pinned in pyproject.toml and tested under both WebSocket
 implementations (tests/server/test_server_transport.py):
@@ -24,6 +25,7 @@ frame goes through the ASGI send, which waits, raises or closes as uvicorn decid
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable
 from typing import Any, Final
 
@@ -34,11 +36,46 @@ from websockets.protocol import State
 
 from .ws_guard import BoundedSansIO
 
-__all__ = ["AsgiTransport", "SansIOTransport", "Transport", "TransportSeam", "transport_for"]
+__all__ = [
+    "AsgiTransport",
+    "SansIOTransport",
+    "Transport",
+    "TransportSeam",
+    "binary_frame",
+    "transport_for",
+]
 
 #: Scope keys set by `TransportSeam` (uvicorn's own send) and by `transport_for`.
 SEND_KEY: Final = "facecast.uvicorn_send"
 _TRANSPORT_KEY: Final = "facecast.transport"
+
+_LENGTH16 = struct.Struct(">BBH")
+_LENGTH64 = struct.Struct(">BBQ")
+_last_frame: tuple[bytes, bytes] = (b"", b"\x82\x00")
+
+
+def binary_frame(data: bytes) -> bytes:
+    """``data`` as one unmasked, unfragmented RFC 6455 binary frame (a server's frame).
+
+    The fan-out hands the same result bytes to every member of a key in a row, so the
+    newest frame is kept: it is built once per result, not once per viewer.
+    """
+    global _last_frame
+    cached = _last_frame  # one read: servers in other threads (tests) may replace it
+    if cached[0] is data:
+        return cached[1]
+    frame = frame_header(len(data)) + data
+    _last_frame = (data, frame)
+    return frame
+
+
+def frame_header(n: int) -> bytes:
+    """The header of an unmasked, unfragmented binary frame of ``n`` payload bytes."""
+    if n < 126:
+        return bytes((0x82, n))
+    if n < 65536:
+        return _LENGTH16.pack(0x82, 126, n)
+    return _LENGTH64.pack(0x82, 127, n)
 
 
 class TransportSeam:
@@ -64,7 +101,7 @@ class TransportSeam:
 class Transport:
     """Writing one connection's frames: the interface every implementation offers.
 
-    ``write`` takes a whole RFC 6455 frame (``direct.binary_frame``) and returns whether it
+    ``write`` takes a whole RFC 6455 frame (`binary_frame`) and returns whether it
     was handed to the socket now; on False the caller sends the message through the ASGI
     send instead (``websocket.send_bytes``), which waits for back-pressure and raises on a
     closed connection. This base class is that fallback: it never writes directly.
