@@ -21,7 +21,6 @@ from facecast.protocol import (
     Hello,
     Limits,
     ProtocolError,
-    Ready,
     select_subprotocol,
     watch_hello,
 )
@@ -30,6 +29,7 @@ from facecast.protocol.messages import POINTS_DTYPES, WATCH_OUTPUTS
 
 from .admission import authorize_websocket, serve
 from .auth import Principal, requires
+from .core import watch_ready
 from .errors import ApiError
 from .hub import ChannelHub
 from .members import PublisherMember, WatcherMember
@@ -135,18 +135,7 @@ async def watch(websocket: WebSocket, name: str) -> None:
     member = WatcherMember(websocket, channel, hello, limits, settings)
     member.key = (hello.rig, output, dtype)  # what it receives; a points key clones nothing
     member.offer(
-        member.protocol.send(
-            Ready(
-                session=member.id,
-                rig=hello.rig,
-                names=rig.names,
-                num_points=rig.num_points,
-                num_vertices=rig.num_vertices,
-                output=output,
-                dtype=dtype,
-                limits={"max_message_bytes": int(settings.max_message_bytes)},
-            )
-        )
+        member.protocol.send(watch_ready(member.id, hello.rig, rig, output, dtype, settings))
     )
     channel.add_watcher(member, rig)
     log.info("watcher joined", extra={"event": "channel.watch", "channel": name,

@@ -55,6 +55,7 @@ __all__ = [
     "WatcherCore",
     "ready_message",
     "rig_unavailable",
+    "watch_ready",
 ]
 
 #: How long a closing connection waits to hand its last error, then its close frame, to
@@ -130,6 +131,25 @@ def ready_message(
             "max_message_bytes": int(settings.max_message_bytes),
             "idle_timeout": float(settings.idle_timeout),
         },
+    )
+
+
+def watch_ready(
+    session_id: str, rig_id: str, rig: Rig, output: str, dtype: str, settings: Settings
+) -> Ready:
+    """The ``ready`` a channel watcher gets on joining (§2.1): what it will receive.
+
+    Its limits hold ``max_message_bytes`` only: a watcher sends no frames or calibrations.
+    """
+    return Ready(
+        session=session_id,
+        rig=rig_id,
+        names=rig.names,
+        num_points=rig.num_points,
+        num_vertices=rig.num_vertices,
+        output=output,
+        dtype=dtype,
+        limits={"max_message_bytes": int(settings.max_message_bytes)},
     )
 
 
