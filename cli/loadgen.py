@@ -19,7 +19,7 @@ import numpy as np
 
 from facecast.client.connection import ConnectionFailed, StreamSession, connect
 from facecast.client.latency import latency_stats
-from facecast.protocol import ErrorCode, ProtocolError, Result
+from facecast.protocol import ProtocolError, Result
 
 __all__ = [
     "MAX_CLIENTS",
@@ -124,7 +124,7 @@ def motion_frames(neutral: np.ndarray, seed: int, *, amplitude: float) -> np.nda
 
 def _code(error: BaseException) -> str:
     if isinstance(error, ProtocolError):
-        return error.code.name if isinstance(error.code, ErrorCode) else str(int(error.code))
+        return error.code_name
     if isinstance(error, ConnectionFailed):
         return "CONNECTION_FAILED"
     return type(error).__name__

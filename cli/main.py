@@ -66,15 +66,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     limit_blas_threads()
     parser = build_parser()
     args = parser.parse_args(argv)
+    from facecast.protocol.errors import ProtocolError
     from facecast.rig.errors import RigError
 
-    handled: tuple[type[BaseException], ...] = (CommandError, RigError, OSError)
-    try:
-        from facecast.protocol.errors import ProtocolError
-
-        handled += (ProtocolError,)
-    except ImportError:  # pragma: no cover - protocol is part of the same distribution
-        pass
+    handled = (CommandError, RigError, OSError, ProtocolError)
     try:
         result = args.func(args)
     except KeyboardInterrupt:

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from facecast.protocol import ErrorCode, ProtocolError, Result
+from facecast.protocol import Result
 
 from .latency import LatencyStats
 
@@ -105,10 +105,6 @@ class _Pacer:
                 self.tokens -= 1.0
                 return
             await asyncio.sleep((1.0 - self.tokens) / self.rate)
-
-
-def _code_name(error: ProtocolError) -> str:
-    return error.code.name if isinstance(error.code, ErrorCode) else str(int(error.code))
 
 
 async def stream_frames(
@@ -225,7 +221,7 @@ async def stream_frames(
                 if session.dropped > dropped_at_start and not realtime:
                     state["window"] = 1
             else:
-                errors[_code_name(item)] += 1
+                errors[item.code_name] += 1
                 if item.seq is not None:
                     state["done"] = max(state["done"], item.seq)
             moved.set()

@@ -82,6 +82,11 @@ class ProtocolError(FacecastError, ValueError):
         self.seq = seq
         self.fatal = fatal
 
+    @property
+    def code_name(self) -> str:
+        """The code by name (metrics labels, close reasons, counts); its number if unnamed."""
+        return self.code.name if isinstance(self.code, ErrorCode) else str(int(self.code))
+
     def __str__(self) -> str:
         name = self.code.name if isinstance(self.code, ErrorCode) else "UNKNOWN"
         return f"[{int(self.code)} {name}] {self.message}"

@@ -764,7 +764,10 @@ class Rig:
         """
         if bool(align_scale) == self.align_scale:
             return self
-        return self._derive(self.models, calibration=self.calibration, align_scale=align_scale)
+        rig = self._derive(self.models, calibration=self.calibration, align_scale=align_scale)
+        # Same models and calibration: the pose bases (by ``scale``, not by this flag) too.
+        rig._pose_bases = self._pose_bases
+        return rig
 
     # -- description -----------------------------------------------------------------------
     @property

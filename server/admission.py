@@ -63,7 +63,6 @@ async def serve(
     owner = Owner.of(settings, principal.name, websocket.client)
     why = registry.admit(connection, Quotas.from_settings(settings), owner, publisher=publisher)
     if why is not None:
-        app.state.metrics.errors.labels(ErrorCode.OVERLOADED.name).inc()
         error = ProtocolError(ErrorCode.OVERLOADED, why, fatal=True)
         await refuse(
             websocket, error, subprotocol, timeout=settings.refuse_timeout, wait_first=wait_first

@@ -25,6 +25,7 @@ from facecast import __version__
 
 from .api_docs import mount_docs
 from .auth import authorize_request
+from .blending import BlendBatcher
 from .channel_routes import router as channel_router
 from .errors import LogOnce, install_error_handlers, problem
 from .hub import ChannelHub
@@ -71,6 +72,12 @@ def create_app(settings: Settings) -> FastAPI:
         )
         app.state.fit_executor = ThreadPoolExecutor(
             settings.fit_threads, thread_name_prefix="facecast-fit"
+        )
+        # One per app, so frames of all its stream sessions on one rig blend together.
+        app.state.blend_batcher = BlendBatcher(
+            app.state.clone_executor,
+            concurrency=settings.clone_threads,
+            stages=app.state.metrics.stages if settings.stage_timing else None,
         )
         await app.state.channels.start(app.state.clone_executor)
         log.info(

@@ -21,7 +21,6 @@ from facecast.protocol import (
     Hello,
     Limits,
     ProtocolError,
-    Ready,
     select_subprotocol,
     watch_hello,
 )
@@ -30,7 +29,7 @@ from facecast.protocol.messages import POINTS_DTYPES, WATCH_OUTPUTS
 
 from .admission import authorize_websocket, serve
 from .auth import Principal, requires
-from .core import code_name
+from .core import watch_ready
 from .errors import ApiError
 from .hub import ChannelHub
 from .members import PublisherMember, WatcherMember
@@ -106,7 +105,6 @@ async def publish(websocket: WebSocket, name: str) -> None:
         principal = authorize_websocket(websocket, hub.settings, "publisher")
         _check_name(name)
     except ProtocolError as exc:
-        websocket.app.state.metrics.errors.labels(code_name(exc)).inc()
         await refuse(websocket, exc.evolve(fatal=True), subprotocol,
                      timeout=hub.settings.refuse_timeout)  # fmt: skip
         return
@@ -130,7 +128,6 @@ async def watch(websocket: WebSocket, name: str) -> None:
         hello, output, dtype = _watch_query(websocket.query_params, limits)
         rig = await hub.load_rig(hello.rig)
     except ProtocolError as exc:
-        websocket.app.state.metrics.errors.labels(code_name(exc)).inc()
         await refuse(websocket, exc.evolve(fatal=True), subprotocol,
                      timeout=settings.refuse_timeout, wait_first=False)  # fmt: skip
         return
@@ -138,18 +135,7 @@ async def watch(websocket: WebSocket, name: str) -> None:
     member = WatcherMember(websocket, channel, hello, limits, settings)
     member.key = (hello.rig, output, dtype)  # what it receives; a points key clones nothing
     member.offer(
-        member.protocol.send(
-            Ready(
-                session=member.id,
-                rig=hello.rig,
-                names=rig.names,
-                num_points=rig.num_points,
-                num_vertices=rig.num_vertices,
-                output=output,
-                dtype=dtype,
-                limits={"max_message_bytes": int(settings.max_message_bytes)},
-            )
-        )
+        member.protocol.send(watch_ready(member.id, hello.rig, rig, output, dtype, settings))
     )
     channel.add_watcher(member, rig)
     log.info("watcher joined", extra={"event": "channel.watch", "channel": name,

@@ -89,8 +89,9 @@ def _noise(smoothing: Smoothing, rig: Rig) -> float:
 class Smoother:
     """A session's smoothing filter (PROTOCOL.md §5.1.1 ``smoothing``), clocked by ``frame.ts``.
 
-    Used only on the event loop, one frame at a time and in frame order (weights are
-    always computed there), so needs no lock.
+    Used one frame at a time and in frame order, so needs no lock of its own: a
+    session's on the event loop (weights are always computed there), a channel key's
+    (``fanout``) under the key's lock.
     """
 
     def __init__(self, one_euro: OneEuroFilter | KalmanFilter, target: str) -> None:

@@ -9,7 +9,6 @@ run the work asked for in threads and write.
 
 from __future__ import annotations
 
-import copy
 import secrets
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -54,9 +53,9 @@ __all__ = [
     "PublisherCore",
     "StreamCore",
     "WatcherCore",
-    "code_name",
     "ready_message",
     "rig_unavailable",
+    "watch_ready",
 ]
 
 #: How long a closing connection waits to hand its last error, then its close frame, to
@@ -76,7 +75,7 @@ class Closing(Exception):
     @classmethod
     def for_error(cls, error: ProtocolError) -> Closing:
         """The close a fatal ``error`` calls for (PROTOCOL.md §7: its code's close code)."""
-        return cls(close_code(error), code_name(error).lower(), error)
+        return cls(close_code(error), error.code_name.lower(), error)
 
     @classmethod
     def internal(cls) -> Closing:
@@ -135,13 +134,27 @@ def ready_message(
     )
 
 
+def watch_ready(
+    session_id: str, rig_id: str, rig: Rig, output: str, dtype: str, settings: Settings
+) -> Ready:
+    """The ``ready`` a channel watcher gets on joining (§2.1): what it will receive.
+
+    Its limits hold ``max_message_bytes`` only: a watcher sends no frames or calibrations.
+    """
+    return Ready(
+        session=session_id,
+        rig=rig_id,
+        names=rig.names,
+        num_points=rig.num_points,
+        num_vertices=rig.num_vertices,
+        output=output,
+        dtype=dtype,
+        limits={"max_message_bytes": int(settings.max_message_bytes)},
+    )
+
+
 def _none() -> int:
     return 0
-
-
-def code_name(error: ProtocolError) -> str:
-    """``error``'s code by name (metrics labels, close reasons); a number if unnamed."""
-    return error.code.name if isinstance(error.code, ErrorCode) else str(error.code)
 
 
 class ConnectionCore:
@@ -344,7 +357,7 @@ class ConnectionCore:
     # -- errors, time and closing --------------------------------------------------------
     def report(self, error: ProtocolError) -> None:
         """Send ``error``; a fatal one raises `Closing` instead (sent with the close)."""
-        self._count(code_name(error))
+        self._count(error.code_name)
         if error.fatal:
             raise Closing.for_error(error)
         self.send(Error.of(error))
@@ -408,11 +421,8 @@ class StreamCore(ConnectionCore):
         """The rig this session clones with, as ``hello`` asks; ``rig`` is not mutated."""
         hello = self.hello
         assert hello is not None
-        if hello.align_scale and not rig.align_scale:
-            # The rig's weights() reads this flag; a shallow copy keeps the cached rig as is.
-            rig = copy.copy(rig)
-            rig.align_scale = True
-        return rig
+        # A rig of its own when it differs: the store's cached rig is shared by every session.
+        return rig.with_align_scale(True) if hello.align_scale else rig
 
     def open(self, rig: Rig, now: float, session_id: str) -> None:
         """As `ConnectionCore.open`; fatal INVALID_FIELD for ``moving`` on a rig moving nothing.

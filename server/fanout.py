@@ -22,6 +22,8 @@ from facecast.rig.errors import InputError, RigError
 from facecast.rig.filters import OneEuroFilter
 from facecast.rig.rebase import calibrate as calibrate_rig
 
+from .cloning import Smoother
+
 if TYPE_CHECKING:
     from facecast.rig import Rig
 
@@ -177,8 +179,7 @@ class KeyState(_Key):
         self._rig_for: tuple[str, bool] = ("", False)
         self._effective = rig
         self._smoothing: Smoothing | None = None
-        self._filter: OneEuroFilter | None = None
-        self._filter_ts: float | None = None
+        self._smoother: Smoother | None = None
 
     def inline(self, frame: ChannelFrame) -> bool:
         # A new calibration neutral refits the projection (ms): that goes to a thread.
@@ -209,18 +210,13 @@ class KeyState(_Key):
 
     def _smooth(self, weights: np.ndarray, frame: ChannelFrame) -> np.ndarray:
         if frame.smoothing is None:
-            self._filter = None
+            self._smoother = None
             return weights
-        if self._filter is None or frame.smoothing != self._smoothing:
+        if self._smoother is None or frame.smoothing != self._smoothing:
             sm = frame.smoothing
-            self._filter = OneEuroFilter(
-                min_cutoff=sm.min_cutoff, beta=sm.beta, d_cutoff=sm.d_cutoff
-            )
-            self._smoothing, self._filter_ts = sm, None
-        if self._filter_ts is not None and frame.ts < self._filter_ts:
-            self._filter.reset()
-        self._filter_ts = frame.ts
-        return self._filter(weights, frame.ts)
+            one_euro = OneEuroFilter(min_cutoff=sm.min_cutoff, beta=sm.beta, d_cutoff=sm.d_cutoff)
+            self._smoother, self._smoothing = Smoother(one_euro, "weights"), sm
+        return self._smoother(weights, frame.ts)
 
     def clone(self, frame: ChannelFrame, arrived: float, *, count: bool = True) -> bytes:
         """The encoded result of ``frame`` for this key (runs in a clone thread).

@@ -19,9 +19,9 @@ from starlette.websockets import WebSocket
 from facecast.protocol import ClientMessage, ProtocolError
 
 from .core import ConnectionCore
-from .direct import binary_frame, direct_writer
 from .driver import Driver
 from .fanout import Key
+from .transport import binary_frame, transport_for
 
 __all__ = ["MAX_OUTBOX", "Member", "offer_results"]
 
@@ -66,7 +66,7 @@ class Member(Driver):
 
     @property
     def direct(self) -> bool:
-        """Whether results are written straight to the socket (see ``direct_writer``)."""
+        """Whether results are written straight to the socket (``Transport.direct``)."""
         return self._direct is not None
 
     @property
@@ -165,7 +165,8 @@ class Member(Driver):
         self._deliver()
 
     async def _write_loop(self) -> None:
-        self._direct = direct_writer(self.ws)
+        transport = transport_for(self.ws)
+        self._direct = transport.write if transport.direct else None
         self._open = True
         while True:
             await self._wake.wait()

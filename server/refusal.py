@@ -1,7 +1,8 @@
 """Refusing a WebSocket connection with a protocol error, in bounded time whatever the peer does.
 
-One rule for ``/v1/stream`` and the channel endpoints: accept (so the client reads a
-code, not a bare 403), wait briefly for its first message, send one fatal ``error``, close.
+One rule for ``/v1/stream`` and the channel endpoints: count the error (the app's
+``facecast_errors`` metric), accept (so the client reads a code, not a bare 403), wait
+briefly for its first message, send one fatal ``error``, close.
 It decides nothing about why a connection is refused.
 """
 
@@ -30,7 +31,7 @@ async def refuse(
     timeout: float,
     wait_first: bool = True,
 ) -> None:
-    """Accept, answer the first message with ``error`` (fatal), close; at most ``timeout`` s.
+    """Count ``error``; accept, answer the first message with it (fatal), close: ``timeout`` s.
 
     Waiting for that first message (at most ``FIRST_MESSAGE_WAIT``) means a client that
     sends right after connecting has finished sending before the close arrives, so it
@@ -38,6 +39,7 @@ async def refuse(
     not read cannot hold the refusal open: past ``timeout`` the handler returns, and
     uvicorn drops the connection.
     """
+    websocket.app.state.metrics.errors.labels(error.code_name).inc()
     with contextlib.suppress(Exception):
         async with asyncio.timeout(timeout):
             await websocket.accept(subprotocol=subprotocol)

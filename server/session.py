@@ -40,16 +40,15 @@ from .cloning import (
     frame_error,
     frame_weights,
 )
-from .core import Closing, Counters, StreamCore, ready_message, rig_unavailable
-from .direct import binary_frame, direct_writer, queued_messages
+from .core import Closing, Counters, StreamCore, rig_unavailable
 from .driver import Driver
 from .metrics import Metrics
 from .settings import Settings
 from .stages import CPU_CLOCK
 from .store import RigNotFoundError, RigStore
-from .transport import Transport, transport_for
+from .transport import Transport, binary_frame, transport_for
 
-__all__ = ["INLINE_MAX_SECONDS", "Session", "SessionCounters", "ready_message"]
+__all__ = ["INLINE_MAX_SECONDS", "Session"]
 
 log = logging.getLogger("facecast.server.session")
 
@@ -74,10 +73,6 @@ _CORK_BYTES = 64 * 1024
 #: Encoded results the reader may leave for the writer (at least one is always
 #: allowed); past this, frames wait in the mailbox and newer ones replace them (§8).
 _MAX_OUTBOX_BYTES = 256 * 1024
-
-
-#: What a session has done (the core's counters), read by tests and logged at the end.
-SessionCounters = Counters
 
 
 class Session(Driver):
@@ -143,7 +138,7 @@ class Session(Driver):
         self._outbox_bytes = 0
         self._wake = asyncio.Event()
         self._writer_idle = False
-        #: Writes a whole frame straight to the socket, or False (``direct_writer``);
+        #: Writes a whole frame straight to the socket, or False (``Transport.write``);
         #: None where uvicorn's protocol does not allow it. Set once the session runs.
         self._direct: Callable[[bytes], bool] | None = None
         #: Results of the current burst waiting to be written in one go (``_flush``),
@@ -185,10 +180,9 @@ class Session(Driver):
 
     async def run(self) -> None:
         """Run until the client leaves, a fatal error, the idle timeout or ``close``."""
-        self._direct = direct_writer(self.ws)
-        self._queued = queued_messages(self.ws) if self._direct is not None else None
-        if self._direct is not None:
-            transport = transport_for(self.ws)
+        transport = transport_for(self.ws)
+        if transport.direct:
+            self._direct, self._queued = transport.write, transport.messages_waiting
             if transport.take_messages(self._take, self._read_done):
                 self._transport = transport
         await super().run()

@@ -14,8 +14,6 @@ from fastapi import APIRouter, WebSocket
 from facecast.protocol import STREAM_PATH, ProtocolError, select_subprotocol
 
 from .admission import authorize_websocket, serve
-from .blending import BlendBatcher
-from .core import code_name
 from .logs import RefusalLog
 from .refusal import refuse
 from .session import Session
@@ -41,25 +39,16 @@ async def stream(websocket: WebSocket) -> None:
         if refusals is None:  # one per app: a tokenless flood is one line per streak
             refusals = app.state.stream_refusals = RefusalLog(log, "stream.refused",
                                                               "stream refused")  # fmt: skip
-        refusals.refused(code_name(exc), time.monotonic())
-        app.state.metrics.errors.labels(code_name(exc)).inc()
+        refusals.refused(exc.code_name, time.monotonic())
         await refuse(websocket, exc, subprotocol, timeout=settings.refuse_timeout)
         return
-    blender = getattr(app.state, "blend_batcher", None)
-    if blender is None:
-        # One per app, so frames of all its sessions on one rig blend together.
-        blender = app.state.blend_batcher = BlendBatcher(
-            app.state.clone_executor,
-            concurrency=settings.clone_threads,
-            stages=app.state.metrics.stages if settings.stage_timing else None,
-        )
     session = Session(
         websocket,
         settings=settings,
         store=app.state.store,
         metrics=app.state.metrics,
         executor=app.state.clone_executor,
-        blender=blender,
+        blender=app.state.blend_batcher,
         principal=principal.name,
     )
     await serve(websocket, session, subprotocol, principal)

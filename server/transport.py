@@ -1,9 +1,10 @@
 """The seam between facecast's WebSocket writers and uvicorn's connection: one small interface.
 
-``TransportSeam`` (pure ASGI middleware, outermost in the app) records the ``send`` and
-``receive`` uvicorn hands the app in the connection's scope; ``transport_for`` turns them
-into a `Transport`. It decides nothing about what is sent, and never reads framework state
-that is not its own: no closure cells, no qualnames.
+``TransportSeam`` (pure ASGI middleware, outermost in the app) records the ``send``
+uvicorn hands the app in the connection's scope; ``transport_for`` turns it into a
+`Transport`, whose ``write`` takes whole frames built by ``binary_frame``. It decides
+nothing about what is sent, and never reads framework state that is not its own: no
+closure cells, no qualnames.
 
 What it relies on, pinned in pyproject.toml and tested under both WebSocket
 implementations (tests/server/test_server_transport.py):
@@ -24,26 +25,61 @@ frame goes through the ASGI send, which waits, raises or closes as uvicorn decid
 
 from __future__ import annotations
 
-from collections.abc import Awaitable, Callable
+import struct
+from collections.abc import Callable
 from typing import Any, Final
 
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import ASGIApp, Receive, Scope, Send
 from starlette.websockets import WebSocket, WebSocketState
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 from websockets.protocol import State
 
 from .ws_guard import BoundedSansIO
 
-__all__ = ["AsgiTransport", "SansIOTransport", "Transport", "TransportSeam", "transport_for"]
+__all__ = [
+    "AsgiTransport",
+    "SansIOTransport",
+    "Transport",
+    "TransportSeam",
+    "binary_frame",
+    "transport_for",
+]
 
-#: Scope keys set by `TransportSeam` (uvicorn's own callables) and by `transport_for`.
+#: Scope keys set by `TransportSeam` (uvicorn's own send) and by `transport_for`.
 SEND_KEY: Final = "facecast.uvicorn_send"
-RECEIVE_KEY: Final = "facecast.uvicorn_receive"
 _TRANSPORT_KEY: Final = "facecast.transport"
+
+_LENGTH16 = struct.Struct(">BBH")
+_LENGTH64 = struct.Struct(">BBQ")
+_last_frame: tuple[bytes, bytes] = (b"", b"\x82\x00")
+
+
+def binary_frame(data: bytes) -> bytes:
+    """``data`` as one unmasked, unfragmented RFC 6455 binary frame (a server's frame).
+
+    The fan-out hands the same result bytes to every member of a key in a row, so the
+    newest frame is kept: it is built once per result, not once per viewer.
+    """
+    global _last_frame
+    cached = _last_frame  # one read: servers in other threads (tests) may replace it
+    if cached[0] is data:
+        return cached[1]
+    frame = frame_header(len(data)) + data
+    _last_frame = (data, frame)
+    return frame
+
+
+def frame_header(n: int) -> bytes:
+    """The header of an unmasked, unfragmented binary frame of ``n`` payload bytes."""
+    if n < 126:
+        return bytes((0x82, n))
+    if n < 65536:
+        return _LENGTH16.pack(0x82, 126, n)
+    return _LENGTH64.pack(0x82, 127, n)
 
 
 class TransportSeam:
-    """Pure-ASGI middleware recording the server's own ``send``/``receive`` in a WebSocket scope.
+    """Pure-ASGI middleware recording the server's own ``send`` in a WebSocket scope.
 
     Must be the outermost middleware of the app (``create_app`` adds it last): a send that
     something else has wrapped is not uvicorn's, and `transport_for` then refuses the
@@ -59,14 +95,13 @@ class TransportSeam:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] == "websocket":
             scope[SEND_KEY] = send
-            scope[RECEIVE_KEY] = receive
         await self.app(scope, receive, send)
 
 
 class Transport:
     """Writing one connection's frames: the interface every implementation offers.
 
-    ``write`` takes a whole RFC 6455 frame (``direct.binary_frame``) and returns whether it
+    ``write`` takes a whole RFC 6455 frame (`binary_frame`) and returns whether it
     was handed to the socket now; on False the caller sends the message through the ASGI
     send instead (``websocket.send_bytes``), which waits for back-pressure and raises on a
     closed connection. This base class is that fallback: it never writes directly.
@@ -130,12 +165,10 @@ class SansIOTransport(Transport):
 
     direct = True
 
-    def __init__(self, websocket: WebSocket, protocol: Any, receive: Receive) -> None:
+    def __init__(self, websocket: WebSocket, protocol: Any) -> None:
         self._websocket = websocket
         self._protocol = protocol
         self._transport = protocol.transport
-        #: uvicorn's own receive: the next message without Starlette's per-message checks.
-        self.receive: Callable[[], Awaitable[Message]] = receive
         #: Received messages waiting for the app (a bound method: no wrapper on the hot path).
         self.messages_waiting = protocol.queue.qsize  # type: ignore[method-assign]
         self.buffered_bytes = protocol.transport.get_write_buffer_size  # type: ignore[method-assign]
@@ -205,7 +238,7 @@ def transport_for(websocket: WebSocket) -> Transport:
     if protocol is None or protocol.conn.extensions:
         transport = AsgiTransport(websocket)
     else:
-        transport = SansIOTransport(websocket, protocol, scope[RECEIVE_KEY])
+        transport = SansIOTransport(websocket, protocol)
     scope[_TRANSPORT_KEY] = transport
     return transport
 

@@ -51,9 +51,6 @@ LAZY: dict[tuple[str, str], str] = {
     ("facecast.server.ws_guard", "uvicorn.protocols.websockets.websockets_impl"): (
         "chosen at run time: importing uvicorn's legacy implementation warns it is deprecated"
     ),
-    ("facecast.server.transport", "uvicorn.protocols.websockets.websockets_sansio_impl"): (
-        "chosen at run time: the sans-I/O implementation only when uvicorn runs it"
-    ),
     ("facecast.server.viewer", "facecast.rig.demo"): (
         "start-up time: the demo performance is generated only when /viewer asks for it"
     ),

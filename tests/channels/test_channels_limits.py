@@ -30,6 +30,23 @@ async def test_a_name_of_256_characters_is_accepted_and_257_refused(settings, ws
     assert (error.code, code) == (ErrorCode.INVALID_FIELD, 1008)
 
 
+@pytest.mark.parametrize(("output", "dtype"), [("weights", "f16"), ("points", "f64")])
+async def test_a_watchers_ready_says_what_it_receives_and_its_one_limit(
+    settings, rigs, output, dtype
+):
+    async with run_server(settings) as server:
+        watcher = await Watcher.open(server.ws_url, "stage", "beta", output=output, dtype=dtype)
+        ready = await watcher.next(Ready)
+
+    rig = rigs["beta"]
+    assert (ready.rig, ready.output, ready.dtype) == ("beta", output, dtype)
+    assert (list(ready.names), ready.num_points, ready.num_vertices) == (
+        list(rig.names), rig.num_points, rig.num_vertices,
+    )  # fmt: skip
+    assert ready.limits == {"max_message_bytes": settings.max_message_bytes}
+    assert ready.moving is None and ready.smoothing is None
+
+
 async def test_names_with_slashes_and_spaces_are_channels_too(settings, rigs, ws_impl):
     async with run_server(settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "studio/a b", "beta")

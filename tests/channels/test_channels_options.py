@@ -21,13 +21,14 @@ from facecast.protocol import (
     Pong,
     Result,
     Smoothing,
+    decode_server,
     encode,
 )
 from facecast.rig.rebase import rebase
-from facecast.server.fanout import ChannelFrame
+from facecast.server.fanout import ChannelFrame, key_state
 from facecast.server.testing import run_server
 
-from ._helpers import Publisher, Watcher, points
+from ._helpers import RIG_IDS, Publisher, Watcher, points
 
 pytestmark = pytest.mark.anyio
 
@@ -177,3 +178,23 @@ def test_channel_frames_cross_processes_unchanged(seq, ts, pts, align, with_neut
         np.testing.assert_array_equal(back.neutral, pts + 1)
     else:
         assert back.neutral is None
+
+
+def test_a_keys_weight_smoothing_starts_afresh_when_ts_goes_back(rigs):
+    # A publisher's clock that jumped back (restart, wrap): the key's filter is reset, so
+    # the frame is smoothed as if it were the first one, not held back by the old state.
+    rig = rigs[RIG_IDS[0]]
+    smoothing = Smoothing(min_cutoff=0.05, beta=0.0, target="weights")
+
+    def weights(state, seq: int, ts: float, seed: int) -> np.ndarray:
+        frame = ChannelFrame(seq=seq, ts=ts, points=points(rig, seed), smoothing=smoothing)
+        return decode_server(state.clone(frame, 0.0)).weights
+
+    key = (RIG_IDS[0], "weights", "f32")
+    running = key_state(key, rig)
+    before = [weights(running, seq, 10.0 + seq / 60, seed=1) for seq in range(5)]
+    back = weights(running, 5, 0.5, seed=2)
+    fresh = weights(key_state(key, rig), 0, 0.5, seed=2)
+
+    np.testing.assert_array_equal(back, fresh)
+    assert not np.allclose(back, before[-1])  # a new pose, not the old one held

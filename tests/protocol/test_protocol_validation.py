@@ -256,6 +256,12 @@ def test_unknown_error_code_from_a_newer_server_is_kept_as_int() -> None:
     assert message.code == 4242
 
 
+def test_code_name_is_the_name_or_the_number_of_an_unnamed_code() -> None:
+    # Metrics labels, close reasons and loadgen's counts all read it.
+    assert ProtocolError(ErrorCode.RATE_LIMITED, "slow").code_name == "RATE_LIMITED"
+    assert ProtocolError(4242, "newer server").code_name == "4242"
+
+
 def test_frame_error_carries_the_frame_seq() -> None:
     obj = _set(raw("frame"), "points.dtype", "i32")
     with pytest.raises(ProtocolError) as info:

@@ -141,6 +141,12 @@ def test_bind_with_align_scale_leaves_the_given_rig_unchanged(rig):
     bound = core.bind(rig)
     assert bound is not rig and bound.align_scale
     assert not rig.align_scale
+    points = frame_points(rig, 2)
+    bigger = points.mean(axis=0) + 1.5 * (points - points.mean(axis=0))
+    np.testing.assert_allclose(
+        bound.weights(bigger, align=True), bound.weights(points, align=True), atol=1e-6
+    )
+    assert not np.allclose(rig.weights(bigger, align=True), rig.weights(points, align=True))
 
 
 # -- frames and the rate limit -----------------------------------------------------------

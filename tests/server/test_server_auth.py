@@ -16,7 +16,7 @@ from _server_helpers import (
     zip_bytes,
 )
 
-from facecast.protocol import ErrorCode, Hello, encode
+from facecast.protocol import PUBLISH_PATH, WATCH_PATH, ErrorCode, Hello, encode
 from facecast.server.logs import JsonFormatter
 from facecast.server.settings import Settings, SettingsError
 from facecast.server.testing import run_server
@@ -277,6 +277,29 @@ async def test_refusal_reaches_a_client_that_sends_nothing(auth_settings, ws_imp
         error = await recv_error(ws)
 
     assert error.code == ErrorCode.UNAUTHORIZED
+
+
+async def test_every_websocket_refusal_is_counted_once_by_its_code(auth_settings, ws_impl):
+    # /v1/stream and both channel endpoints refuse through one rule (refusal.refuse).
+    async with run_server(auth_settings, ws=ws_impl) as server:
+        paths = [
+            ("/v1/stream", "viewer-token"),
+            ("/v1/stream", None),
+            (PUBLISH_PATH.format(name="stage"), None),
+            (WATCH_PATH.format(name="stage") + "?rig=face", None),
+        ]
+        for path, token in paths:
+            headers = {"Authorization": f"Bearer {token}"} if token else {}
+            async with websockets.connect(
+                f"{server.ws_url}{path}", additional_headers=headers
+            ) as ws:
+                await recv_error(ws)
+        async with httpx.AsyncClient(base_url=server.base_url) as http:
+            admin = {"Authorization": "Bearer admin-token"}
+            text = (await http.get("/metrics", headers=admin)).text
+
+    assert 'facecast_errors_total{code="UNAUTHORIZED"} 3.0' in text
+    assert 'facecast_errors_total{code="FORBIDDEN"} 1.0' in text
 
 
 def test_public_bind_without_tokens_refuses_to_start():
