@@ -100,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
             viewer = f"{url}/viewer?rig={DEMO_RIG_ID}"
             print(f"\nviewer: {viewer}")
             print(f"overlay (OBS browser source): {url}/overlay?rig={DEMO_RIG_ID}")
+            print(f"every rig and live channel, the API docs: {url}/")
             if not args.exit:
                 print("serving; press Ctrl-C to stop")
                 try:

@@ -14,6 +14,7 @@ def test_demo_streams_the_performance_and_matches_offline_cloning(capsys):
     assert re.search(r"streamed 120 frames .* as weights/f32", out)
     assert "results vs offline cloning: max difference 0 (exactly equal)" in out
     assert re.search(r"viewer: http://127\.0\.0\.1:\d+/viewer\?rig=demo", out)
+    assert re.search(r"the API docs: http://127\.0\.0\.1:\d+/$", out, re.MULTILINE)
 
 
 def test_demo_in_vertices_f16_matches_offline_cloning(capsys):
