@@ -18,6 +18,7 @@ import numpy as np
 
 from facecast.protocol import Head, Result, Smoothing, array_from_wire, array_to_wire, encode
 from facecast.protocol.arrays import check_result_finite
+from facecast.protocol.fields import read_float
 from facecast.rig.errors import InputError, RigError
 from facecast.rig.filters import OneEuroFilter
 from facecast.rig.rebase import calibrate as calibrate_rig
@@ -116,19 +117,10 @@ class ChannelFrame:
             neutral=None
             if neutral is None
             else array_from_wire(neutral, "neutral", trailing=(3,), max_rows=max_points),
-            neutral_noise=_optional_float(obj.get("neutral_noise")),
+            neutral_noise=read_float(obj, "neutral_noise", "channel frame neutral_noise", None),
             neutral_id=str(obj.get("neutral_id", "")),
             head=None if head is None else Head.parse(head, "head"),
         )
-
-
-def _optional_float(value: object) -> float | None:
-    """A channel frame's optional number (``neutral_noise``); ValueError if not one."""
-    if value is None:
-        return None
-    if type(value) not in (int, float):
-        raise ValueError(f"channel frame: expected a number or nil, got {type(value).__name__}")
-    return float(value)  # type: ignore[arg-type]
 
 
 class _Key:
