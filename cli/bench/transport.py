@@ -709,6 +709,8 @@ def run(args: argparse.Namespace) -> int:
     duration = float(getattr(args, "duration", None) or 10.0)
     clients = int(getattr(args, "clients", None) or 20)
     max_streams = int(getattr(args, "max_streams", None) or RAMP_STEPS[-1])
+    # Not a flag: the test's smoke run shortens it (the figures of a short run mean nothing).
+    warmup = float(getattr(args, "warmup_seconds", None) or WARMUP_SECONDS)
     if not 0 < duration <= 3600:
         raise ValueError(f"--duration must be in (0, 3600] s, got {duration}")
     if not 1 <= clients <= 1000:
@@ -802,7 +804,7 @@ def run(args: argparse.Namespace) -> int:
             # buffers): each rig is warmed up once, unmeasured, before its figures.
             for kind, rig_id, output in (("exact", name, "vertices"),
                                          ("bounded", f"{name}-bounded", "moving")):  # fmt: skip
-                bench.load(base, [pid], rigs[kind], rig_id, clients, WARMUP_SECONDS, output,
+                bench.load(base, [pid], rigs[kind], rig_id, clients, warmup, output,
                            False)  # fmt: skip
             full = {}
             for kind, rig_id in (("exact", name), ("bounded", f"{name}-bounded")):
@@ -817,7 +819,7 @@ def run(args: argparse.Namespace) -> int:
                               step_seconds, "facecast", True)  # fmt: skip
         with _server("bare-vertices", rigs_dir, tmp_path) as (bare_port, bare_pid):
             bench.load(f"http://127.0.0.1:{bare_port}", [bare_pid], rigs["bounded"],
-                       f"{name}-bounded", clients, WARMUP_SECONDS, "moving", False)  # fmt: skip
+                       f"{name}-bounded", clients, warmup, "moving", False)  # fmt: skip
             floor = bench.ramp(f"http://127.0.0.1:{bare_port}", [bare_pid], rigs["bounded"],
                                f"{name}-bounded", steps, step_seconds, "floor", False)  # fmt: skip
             say(f"bench transport: the whole mesh's floor, {clients} clients ({duration:g} s) ...")
