@@ -330,7 +330,7 @@ def _check_textures(doc: dict[str, Any], blob: bytes, label: str) -> None:
         else:
             view_index = image.get("bufferView")
             try:
-                view = views[view_index]
+                view = views[int(view_index)]  # type: ignore[arg-type]
                 start = int(view.get("byteOffset", 0))
                 data = blob[start : start + int(view["byteLength"])]
             except (TypeError, IndexError, KeyError, ValueError, AttributeError):
@@ -410,7 +410,7 @@ def _mesh_targets(doc: dict[str, Any], gltf: Any, label: str) -> tuple[list[int]
 
     def count(index: object) -> int:
         try:
-            return int(accessors[index]["count"])  # type: ignore[index]
+            return int(accessors[index]["count"])  # type: ignore[call-overload]
         except (TypeError, IndexError, KeyError, ValueError):
             raise ExampleSetError(
                 f"{label}: an attribute names no accessor", code="bad_gltf"

@@ -7,6 +7,7 @@ read the character file again or write anything.
 
 from __future__ import annotations
 
+import os
 import tomllib
 from pathlib import Path
 
@@ -91,7 +92,10 @@ def _folder_sources(folder: Path) -> tuple[dict[str, np.ndarray], np.ndarray | N
 
 
 def character_example_set(
-    character: Character, source: str | Path | None = None, *, label: str = "character"
+    character: Character,
+    source: str | os.PathLike[str] | None = None,
+    *,
+    label: str = "character",
 ) -> tuple[ExampleSet, PairingReport]:
     """The character's expressions paired with source points, ready for ``fit``.
 

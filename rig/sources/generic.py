@@ -80,7 +80,7 @@ class GenericSources:
         if composition is None:
             return None
         neutral = self.points[0]
-        out = neutral.copy()
+        out: np.ndarray = neutral.copy()
         for shape, weight in composition.items():
             out += weight * (self.points[self._index[shape]] - neutral)
         return out

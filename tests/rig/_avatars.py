@@ -208,7 +208,9 @@ def _mesh(
         NORMAL=writer.accessor(
             vertex_normals(vertices, faces), "VEC3", target=pygltflib.ARRAY_BUFFER
         ),
-        TEXCOORD_0=writer.accessor(uv, "VEC2", target=pygltflib.ARRAY_BUFFER),
+        TEXCOORD_0=None
+        if uv is None
+        else writer.accessor(uv, "VEC2", target=pygltflib.ARRAY_BUFFER),
         JOINTS_0=writer.accessor(skin_joints, "VEC4", target=pygltflib.ARRAY_BUFFER),
         WEIGHTS_0=writer.accessor(skin_weights, "VEC4", target=pygltflib.ARRAY_BUFFER),
     )
@@ -244,6 +246,7 @@ def _skin_weights(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     weights = np.zeros((vertices.shape[0], 4), dtype=np.float32)
     weights[:, 0] = head
     weights[:, 1] = 1.0 - weights[:, 0]
+    joints[weights == 0] = 0  # glTF: a joint with no weight is written as 0
     return joints, weights
 
 
@@ -251,7 +254,7 @@ def _build(variant: str, *, redistribution: bool) -> bytes:
     parts = ict_parts()
     gltf = pygltflib.GLTF2(
         asset=pygltflib.Asset(version="2.0", generator="facecast tests/rig/_avatars.py"),
-        scene=0, scenes=[pygltflib.Scene(nodes=[0])],
+        scene=0, scenes=[pygltflib.Scene(nodes=[0])],  # meshes added below
         nodes=[], meshes=[], accessors=[], bufferViews=[], materials=[], textures=[],
         images=[], samplers=[pygltflib.Sampler(magFilter=9729, minFilter=9729)], skins=[],
     )  # fmt: skip
@@ -290,7 +293,7 @@ def _build(variant: str, *, redistribution: bool) -> bytes:
         eyes_uv[side] = _front_uv(eyes_v[side])
     meshes = [
         ("face", face_v, face_f, face_uv, _morphs(variant, parts, face_i, False), 0),
-        ("teeth", teeth_v, teeth_f, _front_uv(teeth_v), _morphs(variant, parts, teeth_i, True), 2),
+        ("teeth", teeth_v, teeth_f, None, _morphs(variant, parts, teeth_i, True), 2),
         ("eyes", eyes_v, eyes_f, eyes_uv, {}, 1),
     ]
     if variant == "teeth_first":
@@ -300,8 +303,10 @@ def _build(variant: str, *, redistribution: bool) -> bytes:
             (n, v * [-1, 1, -1], f, uv, {k: d * [-1, 1, -1] for k, d in m.items()}, mat)
             for n, v, f, uv, m, mat in meshes
         ]
-    # Nodes: 0 root; 1..4 the joints; then one node per mesh, children of the root.
-    gltf.nodes.append(pygltflib.Node(name="Armature", children=[1, *range(5, 5 + len(meshes))]))
+    # Nodes: 0 the armature, 1..4 its joints, then one root node per skinned mesh (the
+    # validator wants skinned meshes at the root: parents would not move them anyway).
+    gltf.nodes.append(pygltflib.Node(name="Armature", children=[1]))
+    gltf.scenes[0].nodes += list(range(5, 5 + len(meshes)))
     previous = 0.0
     for number, (joint, height) in enumerate(_JOINTS):
         gltf.nodes.append(

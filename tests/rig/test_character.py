@@ -4,7 +4,11 @@ paired with the generic ARKit source set, fitted (facecast.rig.io.character)."""
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import subprocess
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,7 +21,7 @@ from facecast.rig.io.gltf import pack_glb
 from facecast.rig.io.loaders import load_example_set
 from facecast.rig.sources.generic import generic_sources
 
-from ._avatars import FCL_CLIPS, TEETH_SHAPES, VRM_BINDS, avatar, ict_parts
+from ._avatars import FCL_CLIPS, TEETH_SHAPES, VARIANTS, VRM_BINDS, avatar, ict_parts
 
 pytestmark = pytest.mark.ict
 
@@ -286,3 +290,69 @@ def test_morph_target_with_another_vertex_count_is_morph_vertex_mismatch():
         load_character(edited("arkit", shrink))
 
     assert info.value.code == "morph_vertex_mismatch" and "'teeth'" in str(info.value)
+
+
+# -- the Khronos validator on the test avatars and on what facecast packs ------------------
+
+VALIDATE_JS = """
+const validator = require('gltf-validator');
+const data = new Uint8Array(require('fs').readFileSync(process.argv[1]));
+validator.validateBytes(data).then((r) => console.log(JSON.stringify(r.issues)));
+"""
+NODE_MODULES = Path(__file__).resolve().parents[2] / "client" / "viewer" / "node_modules"
+# VRM 0.x's extension is named "VRM", without the vendor prefix glTF asks for: the one
+# warning every VRM 0.x file gets.
+VRM0_NAME_WARNING = "INVALID_EXTENSION_NAME_FORMAT"
+
+
+def _validator_available() -> bool:
+    return shutil.which("node") is not None and (NODE_MODULES / "gltf-validator").is_dir()
+
+
+def validate(path: Path) -> dict:
+    result = subprocess.run(
+        ["node", "-e", VALIDATE_JS, str(path)],
+        capture_output=True, text=True, timeout=120,
+        env={**os.environ, "NODE_PATH": str(NODE_MODULES)},
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    return json.loads(result.stdout)
+
+
+needs_validator = pytest.mark.skipif(
+    os.environ.get("CI") != "true" and not _validator_available(),
+    reason="node with the npm package gltf-validator (npm ci in client/viewer) not available",
+)
+
+
+@needs_validator
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_test_avatars_pass_the_khronos_validator(variant, tmp_path):
+    path = tmp_path / f"{variant}.glb"
+    path.write_bytes(avatar(variant))
+
+    issues = validate(path)
+
+    warnings_ = [m for m in issues["messages"] if m["severity"] == 1]
+    allowed = {VRM0_NAME_WARNING} if variant in ("vrm0", "fcl") else set()
+    assert issues["numErrors"] == 0, issues["messages"][:5]
+    assert {m["code"] for m in warnings_} <= allowed, warnings_[:5]
+
+
+@needs_validator
+def test_gltf_packed_into_a_glb_passes_the_khronos_validator(tmp_path):
+    doc, blob = split(avatar("vrm1"))
+    (tmp_path / "a.bin").write_bytes(blob)
+    doc["buffers"] = [{"byteLength": len(blob), "uri": "a.bin"}]
+    view = doc["bufferViews"][doc["images"][1]["bufferView"]]
+    (tmp_path / "eye.png").write_bytes(
+        blob[view["byteOffset"] : view["byteOffset"] + view["byteLength"]]
+    )
+    doc["images"][1] = {"uri": "eye.png"}
+    (tmp_path / "a.gltf").write_text(json.dumps(doc))
+    packed = tmp_path / "packed.glb"
+    packed.write_bytes(load_character(tmp_path / "a.gltf").glb)
+
+    issues = validate(packed)
+
+    assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"][:5]
