@@ -362,3 +362,40 @@ def test_gltf_packed_into_a_glb_passes_the_khronos_validator(tmp_path):
     issues = validate(packed)
 
     assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"][:5]
+
+
+def _cut(data: bytes) -> bytes:
+    return data[: len(data) // 3]
+
+
+def _bomb(data: bytes) -> bytes:
+    out = bytearray(data)
+    at = out.index(b"\x89PNG\r\n\x1a\n")
+    out[at + 16 : at + 24] = (40000).to_bytes(4, "big") * 2
+    return bytes(out)
+
+
+def _bad_bind(_: bytes) -> bytes:
+    def breaking(doc):
+        doc["extensions"]["VRMC_vrm"]["expressions"]["preset"]["aa"]["morphTargetBinds"][0][
+            "index"
+        ] = -1
+
+    return edited("vrm1", breaking)
+
+
+@pytest.mark.parametrize(
+    ("spoil", "code"),
+    [(_cut, "truncated_file"), (_bomb, "texture_too_large"), (_bad_bind, "bad_vrm_bind")],
+)
+def test_errors_for_a_file_on_disk_name_no_path(tmp_path, spoil, code):
+    upload = tmp_path / "scratch" / "upload-1234"
+    upload.mkdir(parents=True)
+    path = upload / "avatar.vrm"
+    path.write_bytes(spoil(avatar("vrm1")))
+
+    with pytest.raises(Exception) as info:
+        load_character(path)
+
+    assert info.value.code == code
+    assert "scratch" not in str(info.value) and "upload-1234" not in str(info.value)
