@@ -36,7 +36,7 @@ T = TypeVar("T")
 
 __all__ = ["fit_slot", "read_body", "router", "run_fit"]
 
-log = logging.getLogger("facecast.server.http.rigs")
+log = logging.getLogger("facecast.server.rest")
 
 router = APIRouter(prefix="/v1", tags=["rigs"])
 
