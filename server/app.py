@@ -27,6 +27,7 @@ from .api_docs import mount_docs
 from .auth import authorize_request
 from .blending import BlendBatcher
 from .channel_routes import router as channel_router
+from .character_routes import router as character_router
 from .errors import LogOnce, install_error_handlers, problem
 from .hub import ChannelHub
 from .landing import mount_landing
@@ -126,6 +127,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.profiles = profile_store(settings, app.state.store)
     install_error_handlers(app)
     app.include_router(rest_router)
+    app.include_router(character_router)
     app.include_router(stream_router)
     app.include_router(channel_router)
     app.include_router(performer_router)
