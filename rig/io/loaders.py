@@ -19,6 +19,8 @@ import numpy as np
 
 from ..errors import ExampleSetError
 from ..examples import ExampleSet
+from .character import load_character
+from .character_examples import character_example_set
 from .gltf import read_glb_morph_targets
 from .meshio import read_obj, read_obj_vertices, read_points
 
@@ -30,6 +32,8 @@ _MESH_SUFFIXES = (".obj",)
 _POINT_SUFFIXES = (".npy", ".csv")
 _SOURCE_SUFFIXES = _MESH_SUFFIXES + _POINT_SUFFIXES
 _GLTF_SUFFIXES = (".glb", ".gltf")
+#: Files ``load_character`` reads: a character paired with the generic ARKit set.
+CHARACTER_SUFFIXES = (".glb", ".gltf", ".vrm")
 
 T = TypeVar("T")
 _NPZ_REQUIRED = ("names", "source_points", "target_vertices", "target_faces")
@@ -54,8 +58,12 @@ def load_example_set(
           ``[target] neutral``, ``[examples] name = [source file, target file]``,
           paths relative to the folder; or ``[target] gltf`` + ``[source] folder``;
         - an ``.npz`` written by ``ExampleSet.save_npz``;
-        - a ``.glb``/``.gltf`` whose first morphed mesh's targets are the target
-          examples, paired by name with the files in ``source``.
+        - a character, ``.glb``/``.gltf``/``.vrm``: without ``source`` (and a ``.vrm``
+          always) read by ``character.load_character`` and paired with facecast's generic
+          ARKit source set or the point files of ``source``
+          (``character_examples.character_example_set``); a ``.glb``/``.gltf`` with
+          ``source``: its first morphed mesh's targets paired by their exact names with
+          the files in ``source`` (the form facecast.toml's ``[target] gltf`` uses).
     source : path-like, optional
         For a glTF target: the folder holding ``neutral.obj|.npy|.csv`` and one
         ``<name>.obj|.npy|.csv`` per morph target (plus ``feature_points.txt`` or a
@@ -82,16 +90,18 @@ def load_example_set(
         return _load_manifest(path if path.is_dir() else path.parent, allow_unpaired)
     if suffix == ".npz":
         return _load_npz(path)
+    if suffix in CHARACTER_SUFFIXES and (source is None or suffix == ".vrm"):
+        character = load_character(path, label=path.name)
+        example_set, _ = character_example_set(character, source, label=path.name)
+        return example_set
     if suffix in _GLTF_SUFFIXES:
-        if source is None:
-            raise ExampleSetError(
-                f"{path}: a glTF target needs a source folder (source=...)", code="bad_argument"
-            )
+        assert source is not None
         return _load_gltf_pair(path, Path(source), allow_unpaired, feature_points=None)
     if not path.exists():
         raise ExampleSetError(f"{path}: no such file or folder", code="missing_file")
     raise ExampleSetError(
-        f"{path}: not an example set (expected a folder with {MANIFEST}, .npz, .glb or .gltf)",
+        f"{path}: not an example set (expected a folder with {MANIFEST}, .npz, or a character: "
+        ".glb, .gltf or .vrm)",
         code="bad_example_set",
     )
 
