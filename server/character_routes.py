@@ -7,7 +7,6 @@ description and ``GET /v1/rigs/{id}/character.glb`` give it to the pages.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import tempfile
 from pathlib import Path
@@ -18,6 +17,7 @@ from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import JSONResponse
 
 from facecast.rig import fit
+from facecast.rig.io.character import PairingReport, character_example_set, load_character
 
 from .archive import ArchiveError, ArchiveLimits, extract_archive
 from .auth import ANONYMOUS, READ_ROLES, Principal, requires
@@ -169,17 +169,6 @@ class _CharacterJob:
         self.scratch = scratch
 
     def __call__(self, data: bytes) -> tuple[Rig, bytes, dict[str, Any], str]:
-        # Until the rig side's loader lands (issue #22), the route answers 501.
-        try:
-            from facecast.rig.io.character import (  # type: ignore[import-not-found,unused-ignore]
-                character_example_set,
-                load_character,
-            )
-        except ImportError:
-            raise ApiError(
-                501, "characters_unavailable", "this server cannot read character files yet"
-            ) from None
-
         if data[:4] == b"glTF":
             character = load_character(data, label="the uploaded file")
         elif data.lstrip()[:1] == b"{":
@@ -203,8 +192,9 @@ class _CharacterJob:
                             ".gltf folder",
                         ) from None
                     raise
+                found = _find_character(dest)
                 with upload_paths_hidden(dest):
-                    character = load_character(_find_character(dest))
+                    character = load_character(found, label=found.relative_to(dest).as_posix())
         example_set, report = character_example_set(character)
         rig = fit(example_set, **self.options)
         record = {
@@ -215,7 +205,7 @@ class _CharacterJob:
                 for name, expression in character.expressions.items()
             },
         }
-        return rig, pack_character(character.glb, record), _report_json(report), character.format
+        return rig, pack_character(character.glb, record), _pairing(report), character.format
 
 
 def _find_character(dest: Path) -> Path:
@@ -240,12 +230,6 @@ def _find_character(dest: Path) -> Path:
     return found[0]
 
 
-def _report_json(report: Any) -> dict[str, Any]:
-    """The pairing report as JSON (whatever dataclass or mapping the loader returns)."""
-    for method in ("to_json", "to_dict", "as_dict"):
-        if hasattr(report, method):
-            value = getattr(report, method)()
-            return dict(value)
-    if dataclasses.is_dataclass(report) and not isinstance(report, type):
-        return dataclasses.asdict(report)
-    return dict(report)
+def _pairing(report: PairingReport) -> dict[str, Any]:
+    """The pairing report as JSON, with its lines as ``facecast fit`` prints them."""
+    return {**report.to_dict(), "text": report.lines()}

@@ -3,6 +3,8 @@ a glTF sent where a rig is expected, and no server path in any error body."""
 
 from __future__ import annotations
 
+import json
+
 import httpx
 import pytest
 from _server_helpers import folder_members, tiny_example_set, write_example_folder, zip_bytes
@@ -155,3 +157,127 @@ async def test_no_error_body_holds_a_server_path(settings, tmp_path):
         assert response.status_code == 422, text
         assert rigs not in text and ".scratch" not in text and "upload-" not in text, text
         assert "set/" in text  # the file at fault, by its path inside the upload
+
+
+# -- PUT /v1/characters/{id}: the real loader on the ICT-FaceKit test avatars -------------
+
+
+def upload_avatar(variant: str, **kw) -> bytes:
+    from tests.rig._avatars import avatar
+
+    return avatar(variant, **kw)
+
+
+@pytest.mark.parametrize("variant", ["arkit", "vrm0", "vrm1"])
+async def test_a_character_file_uploads_as_it_is_and_is_fitted_and_served(settings, variant):
+    data = upload_avatar(variant)
+    async with run_server(settings) as server, client(server) as http:
+        put = await http.put("/v1/characters/ava", content=data)
+        described = (await http.get("/v1/rigs/ava")).json()
+        served = await http.get("/v1/rigs/ava/character.glb")
+        model = await http.get("/v1/rigs/ava/model.glb")
+
+    body = put.json()
+    assert put.status_code == 201, body
+    pairing = body["pairing"]
+    assert "jawOpen" in pairing["paired"] and "eyeBlinkLeft" in pairing["paired"]
+    assert pairing["face_mesh"] and pairing["entries"] and pairing["text"][0].startswith("pairing")
+    assert body["names"][0] == "neutral" and set(body["names"][1:]) <= set(pairing["paired"])
+    assert body["num_points"] == 20  # the generic ARKit source set's landmarks
+    fmt = {"arkit": "gltf"}.get(variant, variant)
+    assert described["character"]["format"] == fmt
+    jaw = described["character"]["bindings"][described["names"].index("jawOpen")]
+    assert len({b["mesh"] for b in jaw}) == 2  # the face's and the teeth's morph
+    assert served.status_code == 200 and served.content == data  # byte for byte
+    assert model.status_code == 200  # the vertex outputs' face mesh, as for any rig
+
+
+async def test_a_vrm_forbidding_redistribution_uploads_and_is_withheld_from_anonymous(settings):
+    async with run_server(settings) as server, client(server) as http:
+        put = await http.put(
+            "/v1/characters/locked", content=upload_avatar("vrm1", redistribution=False)
+        )
+        served = await http.get("/v1/rigs/locked/character.glb")
+
+    assert put.status_code == 201
+    assert put.json()["character"]["meta"]["redistribution"] is False
+    assert served.status_code == 403 and served.json()["code"] == "character_not_redistributable"
+
+
+async def test_a_gltf_folder_uploads_as_a_zip_and_is_stored_as_one_valid_glb(settings, tmp_path):
+    from tests.rig.test_character import needs_validator, split, validate
+
+    doc, blob = split(upload_avatar("arkit"))
+    view = doc["bufferViews"][doc["images"][0]["bufferView"]]
+    png = blob[view["byteOffset"] : view["byteOffset"] + view["byteLength"]]
+    doc["buffers"] = [{"byteLength": len(blob), "uri": "avatar.bin"}]
+    doc["images"][0] = {"uri": "textures/skin.png"}
+    members = {
+        "avatar/avatar.gltf": json.dumps(doc).encode(),
+        "avatar/avatar.bin": blob,
+        "avatar/textures/skin.png": png,
+    }
+    async with run_server(settings) as server, client(server) as http:
+        put = await http.put("/v1/characters/folder", content=zip_bytes(members))
+        served = await http.get("/v1/rigs/folder/character.glb")
+
+    assert put.status_code == 201, put.json()
+    assert served.content[:4] == b"glTF"
+    packed = tmp_path / "served.glb"
+    packed.write_bytes(served.content)
+    if needs_validator.args[0]:  # the validator's skip condition
+        pytest.skip(needs_validator.kwargs["reason"])
+    issues = validate(packed)
+    assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"][:5]
+
+
+def _edited(variant: str, edit) -> bytes:
+    from tests.rig.test_character import edited
+
+    return edited(variant, edit)
+
+
+def _bad_inputs() -> dict[str, tuple[bytes, int, str]]:
+    from tests.rig.test_character import split
+
+    arkit = upload_avatar("arkit")
+    bomb = bytearray(arkit)
+    at = bomb.index(b"\x89PNG\r\n\x1a\n")
+    bomb[at + 16 : at + 24] = (60000).to_bytes(4, "big") * 2
+    doc, _ = split(upload_avatar("neutral_only"))
+    doc["buffers"] = [{"byteLength": 64, "uri": "../outside.bin"}]
+    outside = zip_bytes({"a/avatar.gltf": json.dumps(doc).encode()})
+
+    def broken_bind(doc):
+        doc["extensions"]["VRMC_vrm"]["expressions"]["preset"]["aa"]["morphTargetBinds"][0][
+            "index"
+        ] = 999
+
+    return {
+        "truncated": (arkit[: len(arkit) // 2], 422, "truncated_file"),
+        "external uri": (outside, 422, "external_uri"),
+        "texture bomb": (bytes(bomb), 422, "texture_too_large"),
+        "broken vrm bind": (_edited("vrm1", broken_bind), 422, "bad_vrm_bind"),
+        "neutral only": (upload_avatar("neutral_only"), 422, "no_expressions"),
+        "not a character": (b"hello there, not a model", 415, "unsupported_character"),
+        "bare gltf": (b'{"asset": {"version": "2.0"}}', 415, "gltf_needs_archive"),
+        "empty zip": (zip_bytes({"readme.txt": b"hi"}), 422, "no_character_in_archive"),
+    }
+
+
+async def test_bad_character_uploads_are_4xx_with_a_code_and_no_server_path(settings):
+    cases = _bad_inputs()
+    rigs = str(settings.rigs_dir)
+    async with run_server(settings) as server, client(server) as http:
+        answers = {
+            name: await http.put("/v1/characters/bad", content=body)
+            for name, (body, _, _) in cases.items()
+        }
+        listed = (await http.get("/v1/rigs")).json()
+
+    for name, (_, status, code) in cases.items():
+        problem = answers[name].json()
+        assert (answers[name].status_code, problem["code"]) == (status, code), (name, problem)
+        assert rigs not in answers[name].text and "upload-" not in answers[name].text, problem
+    assert listed["rigs"] == []  # nothing stored for any of them
+    assert not list(settings.rigs_dir.glob("*.character"))
