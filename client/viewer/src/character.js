@@ -20,7 +20,8 @@ function parse(glb, withVrm) {
  * three-vrm refuses (a humanoid missing required bones, say) is shown as plain glTF, its
  * meshes, materials and skin as they are, with three-vrm's reason in `vrmError`.
  */
-export async function parseCharacter(glb, { vrm: withVrm = true } = {}) {
+export async function parseCharacter(glb, { format = "gltf" } = {}) {
+  const withVrm = format !== "gltf";
   let gltf;
   let vrmError = null;
   try {
@@ -31,9 +32,11 @@ export async function parseCharacter(glb, { vrm: withVrm = true } = {}) {
     gltf = await parse(glb, false);
   }
   const vrm = gltf.userData.vrm || null;
-  // VRM 0.x faces -z; rotated so that every character faces the camera (+z) alike.
-  if (vrm && vrm.meta && vrm.meta.metaVersion === "0") VRMUtils.rotateVRM0(vrm);
   const root = vrm ? vrm.scene : gltf.scene;
+  // VRM 0.x faces -z; turned about y so that every character faces the camera (+z) alike
+  // (three-vrm's rotateVRM0, by hand when three-vrm refused the file).
+  if (vrm && vrm.meta && vrm.meta.metaVersion === "0") VRMUtils.rotateVRM0(vrm);
+  else if (!vrm && format === "vrm0") root.rotation.y = Math.PI;
   // The bindings name meshes by their index in the file's `meshes`: the loader's
   // associations give the three.js meshes (one per primitive) each index became.
   const meshesByIndex = new Map();

@@ -95,7 +95,10 @@ async function loadModel(params, view) {
       const glb = await fetchBinary(params, character.url, `character of rig ${params.rig}`);
       const shown = await view.loadCharacter(glb, character);
       stats.character = { format: character.format, meta: character.meta, ...shown };
-      hud.character(metaText(character.meta, character.format));
+      hud.character(
+        metaText(character.meta, character.format) +
+          (shown.vrmError ? ` — shown as plain glTF (three-vrm refused it: ${shown.vrmError})` : ""),
+      );
       return { names: described.names, vertexCount: described.num_vertices };
     } catch (err) {
       if (!(err instanceof Permanent && err.code === "character_not_redistributable")) throw err;

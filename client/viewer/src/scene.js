@@ -90,7 +90,7 @@ export class FaceView {
    * {mesh, morph, weight} it drives). Framed on the meshes the bindings drive (the face).
    */
   async loadCharacter(glb, character) {
-    const { root, vrm, meshesByIndex, vrmError } = await parseCharacter(glb, { vrm: character.format !== "gltf" });
+    const { root, vrm, meshesByIndex, vrmError } = await parseCharacter(glb, { format: character.format });
     this.show(root);
     this.mesh = null;
     const bound = bindMorphs(meshesByIndex, character.bindings || []);

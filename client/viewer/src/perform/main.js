@@ -133,7 +133,8 @@ async function loadModel(params, view) {
       const glb = await (await fetchOk(params, character.url, what)).arrayBuffer();
       const shown = await view.loadCharacter(glb, character);
       stats.character = { format: character.format, meta: character.meta, ...shown };
-      $("stage-meta").textContent = metaText(character.meta, character.format);
+      $("stage-meta").textContent =
+        metaText(character.meta, character.format) + (shown.vrmError ? " — shown as plain glTF (three-vrm refused it)" : "");
       return { names: described.names.filter((n) => n !== "neutral"), bindNames: described.names };
     } catch (err) {
       if (err.code !== "character_not_redistributable") throw err;
