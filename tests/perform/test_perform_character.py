@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 
 from facecast.rig import fit
-from facecast.server.character_store import pack_character
-from facecast.server.store import RigStore
+from facecast.server.storage.characters import pack_character
+from facecast.server.storage.rig_store import RigStore
 
 from ..viewer._character import build_character
 from ..viewer.test_viewer_character import SHOTS, iris, lips, teeth

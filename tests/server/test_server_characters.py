@@ -10,9 +10,9 @@ import pytest
 from _server_helpers import folder_members, tiny_example_set, write_example_folder, zip_bytes
 
 from facecast.rig import fit
-from facecast.server.character_store import pack_character
 from facecast.server.settings import Settings
-from facecast.server.store import RigStore
+from facecast.server.storage.characters import pack_character
+from facecast.server.storage.rig_store import RigStore
 from facecast.server.testing import run_server
 from tests.viewer._character import NAMES, build_character
 

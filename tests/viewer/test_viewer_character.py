@@ -25,9 +25,9 @@ from facecast.cli.snapshot import serving
 from facecast.protocol import PUBLISH_PATH, SUBPROTOCOL, Frame, Hello, Ready, decode_server, encode
 from facecast.protocol.head import Head
 from facecast.rig import fit
-from facecast.server.character_store import pack_character
 from facecast.server.settings import Settings
-from facecast.server.store import RigStore
+from facecast.server.storage.characters import pack_character
+from facecast.server.storage.rig_store import RigStore
 
 from ..rig import _avatars as ict_avatars
 from ._character import NAMES, build_character
