@@ -41,8 +41,8 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--source",
         metavar="FOLDER",
-        help="for a character: a folder of source point files named by expression instead of "
-        "the generic ARKit set (a .glb/.gltf with --source pairs exact morph names, as before)",
+        help="for a character: the folder of source examples (point files or meshes, named "
+        "by expression) instead of facecast's generic ARKit set",
     )
     parser.add_argument(
         "--noise",
@@ -109,13 +109,13 @@ def _stable_points(text: str | None):
     return values
 
 
-def load_character_examples(path: Path, source: str | None):
-    """A character file's example set and its pairing report (what was paired and why)."""
+def load_character_examples(path: Path):
+    """A character file's example set with the generic ARKit set, and its pairing report."""
     from facecast.rig.io.character import load_character
     from facecast.rig.io.character_examples import character_example_set
 
     character = load_character(path, label=path.name)
-    return character_example_set(character, source, label=path.name)
+    return character_example_set(character, label=path.name)
 
 
 def load_examples(spec: str, source: str | None = None):
@@ -239,12 +239,10 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"{output.parent}: no such folder for the rig file {output.name}")
     path = Path(args.examples)
     pairing = None
-    if path.suffix.lower() in (".glb", ".gltf", ".vrm") and (
-        args.source is None or path.suffix.lower() == ".vrm"
-    ):
+    if path.suffix.lower() in (".glb", ".gltf", ".vrm") and args.source is None:
         if not path.is_file():
             raise CommandError(f"{args.examples}: no such file")
-        examples, pairing = load_character_examples(path, args.source)
+        examples, pairing = load_character_examples(path)
         if not args.json:
             print("\n".join(pairing.lines()))
     else:

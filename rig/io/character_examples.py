@@ -16,11 +16,11 @@ import numpy as np
 from ..errors import ExampleSetError
 from ..examples import ExampleSet, check_stable_points
 from ..sources.generic import GENERIC_ATTRIBUTION, generic_sources
-from .character import Character, PairingReport, pair_report
+from .character_model import Character, PairingReport, pair_report
 from .expression_names import normalise_name
 from .meshio import read_points
 
-__all__ = ["character_example_set"]
+__all__ = ["character_example_set", "folder_stable_points"]
 
 _POINT_SUFFIXES = (".npy", ".csv")
 _MANIFEST = "facecast.toml"
@@ -35,6 +35,32 @@ def _no_expressions(label: str) -> ExampleSetError:
         "tool",
         code="no_expressions",
     )
+
+
+def folder_stable_points(folder: Path) -> np.ndarray | None:
+    """``[source] stable_points`` of the ``facecast.toml`` in ``folder``, or of its parent's
+    when that file's ``[source] neutral`` lies in ``folder`` (``facecast import``'s
+    ``source/``); None when neither says."""
+    for manifest in (folder / _MANIFEST, folder.parent / _MANIFEST):
+        if not manifest.is_file():
+            continue
+        try:
+            doc = tomllib.loads(manifest.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+            raise ExampleSetError(
+                f"{manifest.name} beside the source folder is not readable TOML",
+                code="bad_manifest",
+            ) from None
+        source = doc.get("source")
+        if not isinstance(source, dict) or source.get("stable_points") is None:
+            continue
+        neutral = source.get("neutral")
+        if manifest.parent == folder or (
+            isinstance(neutral, str)
+            and (manifest.parent / neutral).resolve().parent == folder.resolve()
+        ):
+            return np.asarray(source["stable_points"])
+    return None
 
 
 def _folder_sources(folder: Path) -> tuple[dict[str, np.ndarray], np.ndarray | None, str]:
@@ -68,26 +94,7 @@ def _folder_sources(folder: Path) -> tuple[dict[str, np.ndarray], np.ndarray | N
             f"source folder {folder.name!r} has no neutral (neutral.npy or neutral.csv)",
             code="missing_file",
         )
-    stable = None
-    for manifest in (folder / _MANIFEST, folder.parent / _MANIFEST):
-        if not manifest.is_file():
-            continue
-        try:
-            doc = tomllib.loads(manifest.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-            raise ExampleSetError(
-                f"{manifest.name} beside the source folder is not readable TOML",
-                code="bad_manifest",
-            ) from None
-        source = doc.get("source")
-        neutral = source.get("neutral") if isinstance(source, dict) else None
-        here = manifest.parent == folder or (
-            isinstance(neutral, str)
-            and (manifest.parent / neutral).parent.resolve() == folder.resolve()
-        )
-        if here and isinstance(source, dict) and source.get("stable_points") is not None:
-            stable = np.asarray(source["stable_points"])
-            break
+    stable = folder_stable_points(folder)
     return points, stable, f"source folder {folder.name!r}"
 
 
