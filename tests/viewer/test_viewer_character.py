@@ -215,6 +215,22 @@ def test_overlay_renders_the_vrm_on_transparency(character_server, examples, pag
     assert page.errors == []
 
 
+def test_vertex_output_of_a_character_rig_shows_its_face_mesh(character_server, examples, page):
+    # PROTOCOL.md §5.2: the vertex outputs carry the face mesh alone, so the page shows the
+    # rig's model.glb (that mesh), not the character file.
+    with publishing(character_server, "ch-vertices", "face", examples.source_points) as pub:
+        page.goto(f"{character_server}/overlay?rig=face&channel=ch-vertices&output=vertices")
+        page.wait_for_function("window.facecastStats.state === 'live'")
+        shown(page, pub.pose(NAMES.index("jawOpen")))
+        image = pixels(page.screenshot(omit_background=True))
+        stats = page.evaluate("window.facecastStats")
+
+    assert stats["character"] is None and stats["error"] is None
+    assert (image[..., 3] > 0).mean() > 0.05  # the face mesh is drawn
+    assert lips(image) == 0  # ... untextured: the character file is not used
+    assert page.errors == []
+
+
 def test_a_vrm_that_forbids_redistribution_is_not_fetched_anonymously(character_server, page):
     page.goto(f"{character_server}/viewer?rig={LOCKED}")
     page.wait_for_function("window.facecastStats.character !== null")
