@@ -327,7 +327,16 @@ def build_character(
     fmt = "gltf"
     if variant == "vrm1":
         fmt = "vrm1"
-        gltf["extensionsUsed"] = ["VRMC_vrm"]
+        gltf["extensionsUsed"] = ["VRMC_vrm", "VRMC_materials_mtoon"]
+        # The skin as VRM authors make it: MToon, a toon ramp to a darker shade colour.
+        gltf["materials"][0]["extensions"] = {
+            "VRMC_materials_mtoon": {
+                "specVersion": "1.0",
+                "shadeColorFactor": [0.55, 0.35, 0.3],
+                "shadingToonyFactor": 0.9,
+                "shadingShiftFactor": 0.0,
+            }
+        }
         gltf["extensions"] = {
             "VRMC_vrm": {
                 "specVersion": "1.0",

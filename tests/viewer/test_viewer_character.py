@@ -200,6 +200,8 @@ def test_viewer_renders_the_character_file_posed_by_weights_and_head(
     assert stats["vrm"] is (variant != "gltf")
     assert stats["head"] is not None
     assert stats["bound"] == 5  # four face morphs and the teeth's jawOpen
+    if variant == "vrm1":
+        assert "MToonMaterial" in stats["materials"]  # three-vrm's MToon for the skin
     info = page.locator("#character").inner_text()
     if variant != "gltf":
         assert "Facecast Tests" in info and "VRM" in info

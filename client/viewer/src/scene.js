@@ -110,6 +110,7 @@ export class FaceView {
       bound: bound.slots.length,
       head: head ? head.name : null,
       vrmError,
+      materials: materialTypes(root),
     };
   }
 
@@ -262,6 +263,16 @@ export class FaceView {
     this.camera.updateProjectionMatrix();
     this.camera.updateMatrixWorld();
   }
+}
+
+/** The kinds of material the character is drawn with (MToonMaterial for a VRM's MToon). */
+function materialTypes(root) {
+  const types = new Set();
+  root.traverse((node) => {
+    if (!node.isMesh) return;
+    for (const material of [].concat(node.material)) types.add(material.isMToonMaterial ? "MToonMaterial" : material.type);
+  });
+  return [...types].sort();
 }
 
 /** Share of the shorter side the neutral's box corners take: its silhouette then fills ~65-75 %. */
