@@ -273,8 +273,14 @@ async def test_bad_character_uploads_are_4xx_with_a_code_and_no_server_path(sett
             name: await http.put("/v1/characters/bad", content=body)
             for name, (body, _, _) in cases.items()
         }
+        performer = await http.put("/v1/characters/bad@ann", content=upload_avatar("arkit"))
+        two = zip_bytes({"a.glb": upload_avatar("arkit"), "b.vrm": upload_avatar("vrm1")})
+        several = await http.put("/v1/characters/bad", content=two)
         listed = (await http.get("/v1/rigs")).json()
 
+    assert (performer.status_code, performer.json()["code"]) == (400, "invalid_rig_id")
+    assert "performer" in performer.json()["detail"]
+    assert (several.status_code, several.json()["code"]) == (422, "several_characters")
     for name, (_, status, code) in cases.items():
         problem = answers[name].json()
         assert (answers[name].status_code, problem["code"]) == (status, code), (name, problem)
