@@ -129,12 +129,13 @@ async def put_character(
 )
 async def get_character(request: Request, rig_id: str, principal: Reader) -> Response:
     _check_id(rig_id)
+    # The rig itself must exist: ``x@nobody`` shows no character, even if ``x`` has one.
+    if not await anyio.to_thread.run_sync(_store(request).exists, rig_id):
+        raise ApiError(404, "rig_not_found", f"no rig with id {rig_id!r}")
     stored = await anyio.to_thread.run_sync(
         lambda: _store(request).character(base_id(rig_id), with_glb=True)
     )
     if stored is None:
-        if not await anyio.to_thread.run_sync(_store(request).exists, rig_id):
-            raise ApiError(404, "rig_not_found", f"no rig with id {rig_id!r}")
         raise ApiError(
             404,
             "no_character",

@@ -52,6 +52,7 @@ async def test_a_rig_with_a_character_describes_it_with_bindings_per_weight(sett
         described = (await http.get("/v1/rigs/face-vrm1")).json()
         glb = await http.get("/v1/rigs/face-vrm1/character.glb")
         performer = (await http.get("/v1/rigs/face-locked@ann")).json()
+        no_performer = await http.get("/v1/rigs/face-vrm1@bo/character.glb")
 
     character = described["character"]
     assert character["format"] == "vrm1"
@@ -70,6 +71,7 @@ async def test_a_rig_with_a_character_describes_it_with_bindings_per_weight(sett
     # A performer's rig shows its base rig's character.
     assert performer["character"]["format"] == "vrm1"
     assert performer["character"]["url"] == "/v1/rigs/face-locked@ann/character.glb"
+    assert no_performer.status_code == 404 and no_performer.json()["code"] == "rig_not_found"
 
 
 async def test_a_rig_without_a_character_has_none(settings, rig):
