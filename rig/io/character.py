@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import ExampleSetError
-from ..sources.generic import GENERIC_ATTRIBUTION, generic_sources
-from .character_examples import character_example_set
+from ..sources.generic import GENERIC_ATTRIBUTION
+from .character_examples import character_example_set, generic_pairing
 from .character_file import (
     MAX_CHARACTER_BYTES,
     MAX_TEXTURE_PIXELS,
@@ -296,15 +296,7 @@ def _load(source: Path | bytes, label: str) -> Character:
                 displacement += b.weight * deltas[b.morph]
         displacement.flags.writeable = False
         expressions[name] = Expression(name, bindings, displacement, found[name].origin)
-    generic = generic_sources()
-    paired = {
-        n: "paired with the generic set"
-        for n in expressions
-        if generic.source_points(n) is not None
-    }
-    unpaired = {
-        n: "no source points in the generic ARKit set" for n in expressions if n not in paired
-    }
+    paired, unpaired = generic_pairing(expressions)
     vertices.flags.writeable = False
     return Character(
         glb=glb,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import tomllib
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,7 @@ from .character_model import Character, PairingReport, pair_report
 from .expression_names import normalise_name
 from .meshio import read_points
 
-__all__ = ["character_example_set", "folder_stable_points"]
+__all__ = ["character_example_set", "folder_stable_points", "generic_pairing"]
 
 _POINT_SUFFIXES = (".npy", ".csv")
 _MANIFEST = "facecast.toml"
@@ -98,6 +99,72 @@ def _folder_sources(folder: Path) -> tuple[dict[str, np.ndarray], np.ndarray | N
     return points, stable, f"source folder {folder.name!r}"
 
 
+def _pair(
+    expressions: Iterable[str],
+    available: dict[str, np.ndarray],
+    neutral: np.ndarray,
+    described: str,
+    missing_reason: str,
+) -> tuple[dict[str, np.ndarray], dict[str, str], dict[str, str]]:
+    """``(chosen {name: points}, paired {name: why}, unpaired {name: why})`` in order.
+
+    An expression whose points equal an earlier one's (or the neutral's) is left out: a rig
+    could not tell the two apart.
+    """
+    chosen: dict[str, np.ndarray] = {}
+    paired: dict[str, str] = {}
+    unpaired: dict[str, str] = {}
+    for name in expressions:
+        found = available.get(name)
+        if found is None:
+            unpaired[name] = missing_reason
+            continue
+        if found.shape != neutral.shape:
+            raise ExampleSetError(
+                f"source {name!r} has {found.shape[0]} points, the source neutral "
+                f"{neutral.shape[0]}",
+                code="point_count_mismatch",
+            )
+        twin = next(
+            (n for n, s in (("neutral", neutral), *chosen.items()) if np.array_equal(s, found)),
+            None,
+        )
+        if twin is not None:
+            unpaired[name] = f"same source points as {twin!r}: a rig cannot tell them apart"
+            continue
+        chosen[name] = found
+        paired[name] = f"paired with the {described.split(':')[0]}"
+    return chosen, paired, unpaired
+
+
+def _pair_generic(
+    expressions: Iterable[str],
+) -> tuple[dict[str, np.ndarray], dict[str, str], dict[str, str]]:
+    """``_pair`` with facecast's generic ARKit set (VRM presets composed)."""
+    generic = generic_sources()
+    names = list(expressions)
+    available = {n: p for n in names if (p := generic.source_points(n)) is not None}
+    chosen, paired, unpaired = _pair(
+        names,
+        available,
+        generic.points[0],
+        GENERIC_ATTRIBUTION,
+        "no source points in the generic ARKit set (ARKit shapes, VRM presets)",
+    )
+    if "tongueOut" in unpaired:
+        unpaired["tongueOut"] = (
+            "no source: ICT-FaceKit has no tongue shape (and a tongue moves no landmark)"
+        )
+    return chosen, paired, unpaired
+
+
+def generic_pairing(expressions: Iterable[str]) -> tuple[dict[str, str], dict[str, str]]:
+    """Which of ``expressions`` (in order) the generic ARKit set pairs, and why the others
+    are not: ``({name: why}, {name: why})``, as ``character_example_set`` decides."""
+    _, paired, unpaired = _pair_generic(expressions)
+    return paired, unpaired
+
+
 def character_example_set(
     character: Character,
     source: str | os.PathLike[str] | None = None,
@@ -135,50 +202,25 @@ def character_example_set(
         raise _no_expressions(label)
     if source is None:
         generic = generic_sources()
-        available = {
-            n: p for n in character.expressions if (p := generic.source_points(n)) is not None
-        }
         neutral = generic.points[0]
         stable: np.ndarray | None = generic.stable_points
+        chosen, paired, unpaired = _pair_generic(character.expressions)
         described = GENERIC_ATTRIBUTION
-        missing_reason = "no source points in the generic ARKit set (ARKit shapes, VRM presets)"
-        if "tongueOut" in character.expressions:
-            available.pop("tongueOut", None)
     else:
         points, stable, described = _folder_sources(Path(source))
         neutral = points.pop("neutral")
-        available = {n: p for n, p in points.items() if n in character.expressions}
-        missing_reason = f"no file of this name in the {described}"
-    names = ["neutral"]
-    sources = [neutral]
-    targets = [character.face_vertices]
-    paired: dict[str, str] = {}
-    unpaired: dict[str, str] = {}
-    for name, expression in character.expressions.items():
-        found = available.get(name)
-        if found is None:
-            unpaired[name] = (
-                "no source: ICT-FaceKit has no tongue shape (and a tongue moves no landmark)"
-                if name == "tongueOut" and source is None
-                else missing_reason
-            )
-            continue
-        if found.shape != neutral.shape:
-            raise ExampleSetError(
-                f"source {name!r} has {found.shape[0]} points, the source neutral "
-                f"{neutral.shape[0]}",
-                code="point_count_mismatch",
-            )
-        twin = next(
-            (n for n, s in zip(names, sources, strict=True) if np.array_equal(s, found)), None
+        chosen, paired, unpaired = _pair(
+            character.expressions,
+            points,
+            neutral,
+            described,
+            f"no file of this name in the {described}",
         )
-        if twin is not None:
-            unpaired[name] = f"same source points as {twin!r}: a rig cannot tell them apart"
-            continue
-        names.append(name)
-        sources.append(found)
-        targets.append(character.face_vertices + expression.face_displacement)
-        paired[name] = f"paired with the {described.split(':')[0]}"
+    names = ["neutral", *chosen]
+    sources = [neutral, *chosen.values()]
+    targets = [character.face_vertices] + [
+        character.face_vertices + character.expressions[n].face_displacement for n in chosen
+    ]
     report = pair_report(
         character.names,
         paired,

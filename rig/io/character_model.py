@@ -6,6 +6,7 @@ Plain frozen values shared by ``character`` (which builds them from a file) and
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -151,28 +152,10 @@ def pair_report(
     out = []
     for entry in entries:
         name = entry.expression
-        if name is not None and name in paired:
-            out.append(
-                PairingEntry(
-                    entry.authored,
-                    entry.origin,
-                    entry.meshes,
-                    name,
-                    True,
-                    f"{entry.reason}; {paired[name]}",
-                )
-            )
-        elif name is not None and name in unpaired:
-            out.append(
-                PairingEntry(
-                    entry.authored,
-                    entry.origin,
-                    entry.meshes,
-                    name,
-                    False,
-                    f"{entry.reason}; {unpaired[name]}",
-                )
-            )
-        else:
-            out.append(entry)
+        for table, paired_ in ((paired, True), (unpaired, False)):
+            if name is not None and name in table:
+                reason = f"{entry.reason}; {table[name]}"
+                entry = dataclasses.replace(entry, paired=paired_, reason=reason)
+                break
+        out.append(entry)
     return PairingReport(tuple(out), source, face_mesh)

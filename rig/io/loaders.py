@@ -431,9 +431,13 @@ def _load_gltf_pair(
     gltf: Path, folder: Path, allow_unpaired: bool, feature_points: np.ndarray | None
 ) -> ExampleSet:
     """A character (``load_character``: every mesh, VRM binds, names normalised, the face
-    mesh by its rule) paired with the files of ``folder`` whose names normalise alike."""
+    mesh by its rule) paired with the files of ``folder`` whose names normalise alike.
+
+    Its own messages name the file and the folder by their names, not their paths (a
+    server's upload folder is no one's business).
+    """
     if not folder.is_dir():
-        raise ExampleSetError(f"{folder}: source folder not found", code="missing_file")
+        raise ExampleSetError(f"source folder {folder.name!r} not found", code="missing_file")
     character = load_character(gltf, label=gltf.name)
 
     by_name: dict[str, Path] = {}
@@ -448,7 +452,8 @@ def _load_gltf_pair(
             by_name[name] = file
     if "neutral" not in by_name:
         raise ExampleSetError(
-            f"{folder}: no source neutral (neutral.obj, neutral.npy or neutral.csv)",
+            f"source folder {folder.name!r} has no source neutral (neutral.obj, neutral.npy or "
+            "neutral.csv)",
             code="missing_file",
         )
 
@@ -458,8 +463,12 @@ def _load_gltf_pair(
     unpaired_sources = [by_name[n].name for n in by_name if n not in names]
     rules = " (names compared as ARKit, Perfect Sync, _L/_R, VRM preset and Fcl_ names)"
     for kind, missing, hint in (
-        ("morph target", unpaired_targets, f"has no source file in {folder}{rules}"),
-        ("source file", unpaired_sources, f"has no morph target in {gltf}{rules}"),
+        (
+            "morph target",
+            unpaired_targets,
+            f"has no source file in source folder {folder.name!r}{rules}",
+        ),
+        ("source file", unpaired_sources, f"has no morph target in {gltf.name}{rules}"),
     ):
         if not missing:
             continue
@@ -471,7 +480,7 @@ def _load_gltf_pair(
         warnings.warn(f"skipping unpaired examples: {message}", stacklevel=3)
     if len(names) < 2:
         raise ExampleSetError(
-            f"{gltf}: need at least 2 examples (the neutral and one paired morph target), "
+            f"{gltf.name}: need at least 2 examples (the neutral and one paired morph target), "
             f"got {len(names)}",
             code="too_few_examples",
         )

@@ -62,8 +62,15 @@ def _int(value: object) -> int | None:
 
 
 def _check_bind(
-    label: str, where: str, mesh: int | None, index: object, weight: object, targets: list[int]
+    label: str,
+    where: str,
+    mesh: int | None,
+    index: object,
+    weight: object,
+    targets: list[int],
+    full: float,
 ) -> tuple[int, int, float]:
+    """``(mesh, morph, weight / full)`` of a bind whose weight runs from 0 to ``full``."""
     morph = _int(index)
     if mesh is None or not 0 <= mesh < len(targets):
         raise _bad(label, f"{where} binds mesh {mesh!r}, the file has {len(targets)} meshes")
@@ -74,7 +81,9 @@ def _check_bind(
         )
     if not isinstance(weight, int | float) or isinstance(weight, bool) or not math.isfinite(weight):
         raise _bad(label, f"{where} has weight {weight!r}, not a number")
-    return mesh, morph, float(weight)
+    if not 0.0 <= weight <= full:
+        raise _bad(label, f"{where} has weight {weight!r} outside [0, {full:g}]")
+    return mesh, morph, float(weight) / full
 
 
 def vrm_expressions(
@@ -145,9 +154,9 @@ def _vrm1(
                 if mesh is None:
                     raise _bad(label, f"{at} names node {node}, which holds no mesh")
                 weight = bind.get("weight", 1.0)
-                checked.append(_check_bind(label, at, mesh, bind.get("index"), weight, targets))
-                if not 0.0 <= checked[-1][2] <= 1.0:
-                    raise _bad(label, f"{at} has weight {weight!r} outside [0, 1]")
+                checked.append(
+                    _check_bind(label, at, mesh, bind.get("index"), weight, targets, 1.0)
+                )
             found.append(
                 VrmExpression(
                     str(name), str(name) if group == "preset" else None, tuple(checked), "vrm1"
@@ -178,12 +187,12 @@ def _vrm0(block: dict[str, Any], targets: list[int], label: str) -> tuple[VrmExp
             if not isinstance(bind, dict):
                 raise _bad(label, f"{at} is not an object")
             weight = bind.get("weight", 100.0)
-            mesh, morph, value = _check_bind(
-                label, at, _int(bind.get("mesh")), bind.get("index"), weight, targets
+            # VRM 0.x weights are percent.
+            checked.append(
+                _check_bind(
+                    label, at, _int(bind.get("mesh")), bind.get("index"), weight, targets, 100.0
+                )
             )
-            if not 0.0 <= value <= 100.0:
-                raise _bad(label, f"{at} has weight {weight!r} outside [0, 100]")
-            checked.append((mesh, morph, value / 100.0))  # VRM 0.x weights are percent
         preset = group.get("presetName")
         found.append(
             VrmExpression(

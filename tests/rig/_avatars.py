@@ -98,15 +98,27 @@ def _front_uv(vertices: np.ndarray) -> np.ndarray:
     return uv.astype(np.float32)
 
 
-def _skin_texture(uv: np.ndarray, brows: np.ndarray, lips: np.ndarray, size: int = 256) -> bytes:
-    """Skin colour with brows and lips painted at their landmarks' UVs."""
+def _polyline(points: np.ndarray, closed: bool, steps: int = 8) -> np.ndarray:
+    """Points along the polyline through ``points`` (P, 2), ``steps`` per segment."""
+    ends = np.vstack([points[1:], points[:1]]) if closed else points[1:]
+    t = np.linspace(0.0, 1.0, steps, endpoint=False)[None, :, None]
+    starts = points[: len(ends)]
+    return (starts[:, None] + t * (ends - starts)[:, None]).reshape(-1, 2)
+
+
+def _skin_texture(uv: np.ndarray, landmarks: np.ndarray, size: int = 256) -> bytes:
+    """Skin colour with brows (Multi-PIE 17-21, 22-26) and lips (48-59) painted at their
+    landmarks' UVs: strokes along each brow and around the lips' outer ring."""
     grid = (np.stack(np.meshgrid(np.arange(size), np.arange(size)), axis=-1) + 0.5) / size
     image = np.empty((size, size, 3), dtype=np.uint8)
     image[:] = SKIN
-    for points, colour, radius in ((brows, BROW, 0.035), (lips, LIPS, 0.04)):
-        near = np.min(
-            np.linalg.norm(grid[:, :, None, :] - uv[points][None, None], axis=-1), axis=-1
-        )
+    strokes = (
+        (_polyline(uv[landmarks[17:22]], False), BROW, 0.025),
+        (_polyline(uv[landmarks[22:27]], False), BROW, 0.025),
+        (_polyline(uv[landmarks[48:60]], True), LIPS, 0.03),
+    )
+    for points, colour, radius in strokes:
+        near = np.min(np.linalg.norm(grid[:, :, None, :] - points[None, None], axis=-1), axis=-1)
         image[near < radius] = colour
     return png(image)
 
@@ -261,8 +273,10 @@ def _build(variant: str, *, redistribution: bool) -> bytes:
     writer = _Writer(gltf)
     face_v, face_f, face_i = _part(parts, _FACE)
     face_uv = _front_uv(face_v)
-    landmarks = parts["landmarks"]
-    skin_png = _skin_texture(face_uv, landmarks[17:27], landmarks[48:60])
+    skin_png = _skin_texture(face_uv, parts["landmarks"])
+    # The back of the head would repeat the front's projection (brows on the nape): it
+    # takes a corner of plain skin instead.
+    face_uv[face_v[:, 2] < np.median(face_v[:, 2])] = (0.02, 0.02)
     for number, (image, name) in enumerate(((skin_png, "skin"), (_eye_texture(), "eyes"))):
         gltf.images.append(
             pygltflib.Image(name=name, mimeType="image/png", bufferView=writer.view(image))

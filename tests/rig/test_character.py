@@ -169,15 +169,21 @@ def test_each_variant_fits_and_reproduces_its_examples(variant):
 
 
 def test_vrm_preset_equal_to_an_arkit_shape_is_left_out_as_its_twin():
-    character = load_character(avatar("fcl"))
-    doc_has_blink_left = "blinkLeft" in character.expressions
+    def add_blink_left(doc):
+        face = next(i for i, m in enumerate(doc["meshes"]) if m["name"] == "face")
+        morph = doc["meshes"][face]["extras"]["targetNames"].index("eyeBlinkLeft")
+        node = next(i for i, n in enumerate(doc["nodes"]) if n.get("mesh") == face)
+        preset = doc["extensions"]["VRMC_vrm"]["expressions"]["preset"]
+        preset["blinkLeft"] = {"morphTargetBinds": [{"node": node, "index": morph, "weight": 1.0}]}
+
+    character = load_character(edited("vrm1", add_blink_left))
 
     example_set, report = character_example_set(character)
 
-    assert doc_has_blink_left and "blinkLeft" in example_set.names  # no eyeBlinkLeft here
-    arkit = load_character(avatar("vrm1"))
-    assert "eyeBlinkLeft" in character_example_set(arkit)[0].names
-    assert report.face_mesh == "face"
+    assert "eyeBlinkLeft" in example_set.names and "blinkLeft" not in example_set.names
+    entry = next(e for e in report.entries if e.authored == "blinkLeft")
+    assert not entry.paired and "same source points as 'eyeBlinkLeft'" in entry.reason
+    assert character.report.to_dict() == report.to_dict()
 
 
 def test_neutral_only_character_points_to_facecast_expressions():
@@ -356,3 +362,40 @@ def test_gltf_packed_into_a_glb_passes_the_khronos_validator(tmp_path):
     issues = validate(packed)
 
     assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"][:5]
+
+
+def _cut(data: bytes) -> bytes:
+    return data[: len(data) // 3]
+
+
+def _bomb(data: bytes) -> bytes:
+    out = bytearray(data)
+    at = out.index(b"\x89PNG\r\n\x1a\n")
+    out[at + 16 : at + 24] = (40000).to_bytes(4, "big") * 2
+    return bytes(out)
+
+
+def _bad_bind(_: bytes) -> bytes:
+    def breaking(doc):
+        doc["extensions"]["VRMC_vrm"]["expressions"]["preset"]["aa"]["morphTargetBinds"][0][
+            "index"
+        ] = -1
+
+    return edited("vrm1", breaking)
+
+
+@pytest.mark.parametrize(
+    ("spoil", "code"),
+    [(_cut, "truncated_file"), (_bomb, "texture_too_large"), (_bad_bind, "bad_vrm_bind")],
+)
+def test_errors_for_a_file_on_disk_name_no_path(tmp_path, spoil, code):
+    upload = tmp_path / "scratch" / "upload-1234"
+    upload.mkdir(parents=True)
+    path = upload / "avatar.vrm"
+    path.write_bytes(spoil(avatar("vrm1")))
+
+    with pytest.raises(Exception) as info:
+        load_character(path)
+
+    assert info.value.code == code
+    assert "scratch" not in str(info.value) and "upload-1234" not in str(info.value)

@@ -17,7 +17,6 @@ from facecast.rig.io.character import load_character
 from facecast.rig.io.expression_names import ARKIT_NAMES, half_of, normalise_name
 from facecast.rig.io.gltf import export_glb, pack_glb
 from facecast.rig.io.image_headers import image_size
-from facecast.rig.sources import source_rig
 from facecast.rig.sources.generic import VRM_COMPOSITIONS, generic_sources
 
 
@@ -54,10 +53,6 @@ def test_every_arkit_name_survives_capitals_and_side_suffixes():
         suffixed = name.replace("Left", "_L").replace("Right", "_R")
         assert normalise_name(capital).name == name
         assert normalise_name(suffixed).name == name
-
-
-def test_expression_names_agree_with_the_source_rigs_arkit_list():
-    assert set(ARKIT_NAMES) == set(source_rig.ARKIT_NAMES)
 
 
 def test_halves_of_side_less_shapes_are_recognised():
