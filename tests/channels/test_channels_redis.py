@@ -16,8 +16,8 @@ import pytest
 
 from facecast.client.channel import channel_url
 from facecast.protocol import ChannelIdle, ChannelLive, Error, ErrorCode, Hello, Result
-from facecast.server.hub import RECLAIM_WAIT
-from facecast.server.members import STALE_AFTER
+from facecast.server.channels.hub import RECLAIM_WAIT
+from facecast.server.channels.members import STALE_AFTER
 from facecast.server.testing import run_server
 
 from ._helpers import RIG_IDS, Publisher, Watcher, points, refused, wait_for
