@@ -184,6 +184,7 @@ def _tracked(args: argparse.Namespace, setup: _Setup, folder: Path) -> dict[str,
     from facecast.rig.sources.ict import ict_regions, locate_ict
 
     archive = locate_ict(args.ict) if args.ict else locate_ict()
+    assert archive is not None  # run() found it before anything was rendered
     regions, landmarks68 = ict_regions(archive)
     scene = head_scene(setup.performer, regions, landmarks68)
     paths = _video_paths(folder, args, setup)

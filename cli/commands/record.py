@@ -17,13 +17,15 @@ from facecast.cli.errors import CommandError
 if TYPE_CHECKING:  # numpy loads when the command runs, not for --help
     import numpy as np
 
+    from facecast.cli.commands import Subparsers
+
 #: Most frames one take holds (1 hour at 60 fps): bounds the recorder's memory.
 MAX_FRAMES = 216_000
 #: After the publisher leaves, results still in flight arrive within this long.
 _LINGER = 0.5
 
 
-def register(subparsers) -> None:
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "record",
         help="save a broadcast channel's performance (points and timestamps) as a take",
@@ -102,7 +104,7 @@ class Take:
         return {
             "points": np.stack(self.points),
             "timestamps": stamps,
-            "fps": np.float64(fps),
+            "fps": np.asarray(fps, dtype=np.float64),
             "seq": np.asarray(self.seq, dtype=np.int64),
             "rig": np.asarray(self.rig),
         }
@@ -250,7 +252,7 @@ def run(args: argparse.Namespace) -> int:
             "is a publisher live?"
         )
     arrays = take.arrays()
-    np.savez(out, **arrays)
+    np.savez(out, allow_pickle=False, **arrays)  # no record is an object array
     if not args.quiet:
         seq = arrays["seq"]
         print(

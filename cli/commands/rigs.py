@@ -13,13 +13,17 @@ import os
 import sys
 import zipfile
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from facecast.cli.errors import CommandError
+
+if TYPE_CHECKING:
+    from facecast.cli.commands import Subparsers
 
 ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz")
 
 
-def register(subparsers) -> None:
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "rigs",
         help="put, list, show, get and remove rigs on a server",
@@ -81,7 +85,7 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def _print_performer_fit(summary: dict) -> None:
+def _print_performer_fit(summary: dict[str, Any]) -> None:
     print(
         f"fitted {summary['id']}: M={summary['num_examples']} K={summary['num_points']} "
         f"(skipped: {', '.join(summary['skipped']) or 'none'})"
@@ -108,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
     token = args.token or os.environ.get("FACECAST_TOKEN")
     headers = {"Authorization": f"Bearer {token}"} if token else {}
 
-    def call(method: str, path: str, **kwargs) -> httpx.Response:
+    def call(method: str, path: str, **kwargs: Any) -> httpx.Response:
         try:
             with httpx.Client(base_url=base, headers=headers, timeout=600) as http:
                 response = http.request(method, path, **kwargs)

@@ -8,11 +8,15 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import TYPE_CHECKING, Any
 
 from facecast.cli.errors import CommandError
 
+if TYPE_CHECKING:
+    from facecast.cli.commands import Subparsers
 
-def register(subparsers) -> None:
+
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "watch",
         help="record a broadcast channel as one character (a viewer's results)",
@@ -36,7 +40,7 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-async def record(args: argparse.Namespace) -> dict:
+async def record(args: argparse.Namespace) -> dict[str, Any]:
     """Results as lists (values, seq, t) plus the ``ready``; stops as documented."""
     import asyncio
     import contextlib
@@ -46,7 +50,7 @@ async def record(args: argparse.Namespace) -> dict:
 
     query = {"rig": args.rig, "output": args.output, "dtype": args.dtype}
     url = channel_url(args.url, args.channel, "watch", query)
-    got: dict = {"ready": None, "values": [], "seq": [], "t": []}
+    got: dict[str, Any] = {"ready": None, "values": [], "seq": [], "t": []}
     was_live = False
 
     async def consume() -> None:
@@ -104,10 +108,10 @@ def run(args: argparse.Namespace) -> int:
     steps = steps[steps > 0]
     fps = float(1.0 / np.median(steps)) if steps.size else 60.0
     if out.suffix.lower() == ".npz":
-        arrays = {"names": np.asarray(ready.names, dtype=str), "fps": np.float64(fps),
-                  "seq": seq, "t": t}  # fmt: skip
+        arrays = {"names": np.asarray(ready.names, dtype=str),
+                  "fps": np.asarray(fps, dtype=np.float64), "seq": seq, "t": t}  # fmt: skip
         arrays["weights" if args.output == "weights" else "vertices"] = values
-        np.savez(out, **arrays)
+        np.savez(out, allow_pickle=False, **arrays)  # no record is an object array
     else:
         from facecast.cli.commands._animation import write_results
         from facecast.client.fetch import fetch_rig
