@@ -19,8 +19,15 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import scipy
+from scipy.interpolate import RBFInterpolator
 
 from facecast.cli.errors import CommandError
+from facecast.cli.report import write_json
+from facecast.rig import fit
+from facecast.rig.demo import demo_example_set
+from facecast.rig.kernel import description as kernel_description
+from facecast.rig.sources.ict import ict_example_set, locate_ict
 
 if TYPE_CHECKING:
     from facecast.rig.examples import ExampleSet
@@ -47,7 +54,6 @@ GOALS: dict[str, Goal] = {
 
 
 def _dataset(args: argparse.Namespace) -> tuple[str, str | None, ExampleSet]:
-    from facecast.rig.sources.ict import ict_example_set, locate_ict
 
     if not getattr(args, "demo", False):
         archive = locate_ict(args.ict) if args.ict else locate_ict()
@@ -58,7 +64,6 @@ def _dataset(args: argparse.Namespace) -> tuple[str, str | None, ExampleSet]:
             "../shared/data/ict-facekit); benchmarking the procedural demo instead",
             file=sys.stderr,
         )
-    from facecast.rig.demo import demo_example_set
 
     return "demo", None, demo_example_set()
 
@@ -78,9 +83,6 @@ def measure(example_set: ExampleSet, *, repeat: int) -> tuple[dict[str, Any], di
     """Every figure with its baseline, {name: {value_s, baseline_s, baseline, ratio}}, and
     how the fit's wall time splits by its own clocks, {wall_s, math_s, basis_s, overlapped}.
     """
-    from scipy.interpolate import RBFInterpolator
-
-    from facecast.rig import fit
 
     def paired(
         function: Callable[[], object], baseline: Callable[[], object]
@@ -255,10 +257,6 @@ def format_split(split: dict[str, Any]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    import scipy
-
-    from facecast.cli.report import write_json
-    from facecast.rig.kernel import description as kernel_description
 
     if args.repeat < 1:
         raise CommandError(f"--repeat must be at least 1, got {args.repeat}")

@@ -17,8 +17,24 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
+from facecast.cli.bench.engine import _paired_seconds
 from facecast.cli.errors import CommandError
+from facecast.cli.render import save_side_by_side
+from facecast.rig.evaluation.remesh import carry_shapes, decimate, sqrt3_retriangulate
+from facecast.rig.evaluation.takes import arkit_example_set
+from facecast.rig.evaluation.transfer import end_to_end, score_transfer
+from facecast.rig.examples import ExampleSet
+from facecast.rig.sources.ict import ict_example_set, locate_ict
+from facecast.rig.sources.trackers import read_livelink_csv
+from facecast.rig.transfer import (
+    CorrespondenceWeights,
+    DeformationTransfer,
+    ict_source_expressions,
+    transfer_expressions,
+)
+from facecast.rig.transfer.mesh import nearest_vertices
 
 if TYPE_CHECKING:
     from scipy.sparse.linalg import SuperLU
@@ -33,7 +49,6 @@ TAKE = Path(__file__).resolve().parents[2] / "tests" / "data" / "livelink" / "ll
 
 
 def run(args: argparse.Namespace) -> int:
-    from facecast.rig.sources.ict import ict_example_set, locate_ict
 
     archive = locate_ict(args.ict) if args.ict else locate_ict()
     if archive is None:
@@ -41,7 +56,6 @@ def run(args: argparse.Namespace) -> int:
             "ICT-FaceKit not found (the transfer's source): set FACECAST_ICT, pass --ict PATH "
             "or place it in ../shared/data/ict-facekit"
         )
-    from facecast.rig.transfer import ict_source_expressions
 
     source = ict_source_expressions(archive)
     landmarks = ict_example_set(archive).feature_indices
@@ -70,7 +84,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _cost_targets(source: SourceExpressions) -> list[tuple[str, Remeshed]]:
-    from facecast.rig.evaluation.remesh import decimate, sqrt3_retriangulate
 
     face, faces = source.vertices[0], source.faces
     small = sqrt3_retriangulate(*_mesh(decimate(face, faces, 3400)))
@@ -83,9 +96,6 @@ def _mesh(remeshed: Remeshed) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _cost(source: SourceExpressions, landmarks: np.ndarray, *, repeat: int) -> list[dict[str, Any]]:
-    from facecast.cli.bench.engine import _paired_seconds
-    from facecast.rig.transfer import DeformationTransfer, transfer_expressions
-    from facecast.rig.transfer.mesh import nearest_vertices
 
     rows = []
     print("cost: ICT-FaceKit's 51 ARKit shapes (9,409-vertex face) -> remeshed ICT faces")
@@ -148,7 +158,6 @@ def _exact_markers(
 ) -> np.ndarray:
     """Markers a careful user would place: for each landmark, the nearest target vertex
     that coincides with a source vertex (a decimation leaves many where they were)."""
-    from scipy.spatial import cKDTree
 
     distance, match = cKDTree(source_vertices).query(target)
     exact = np.flatnonzero(distance < 1e-9)
@@ -167,13 +176,6 @@ def _accuracy(
     *,
     marker_weight: float | None = 0.01,
 ) -> tuple[list[dict[str, Any]], list[tuple[str, Any, np.ndarray]]]:
-    from facecast.rig.evaluation.remesh import carry_shapes, decimate, sqrt3_retriangulate
-    from facecast.rig.evaluation.takes import arkit_example_set
-    from facecast.rig.evaluation.transfer import end_to_end, score_transfer
-    from facecast.rig.examples import ExampleSet
-    from facecast.rig.sources.trackers import read_livelink_csv
-    from facecast.rig.transfer import CorrespondenceWeights, transfer_expressions
-    from facecast.rig.transfer.mesh import nearest_vertices
 
     livelink = read_livelink_csv(take)
     face = source.vertices[0]
@@ -279,7 +281,6 @@ def _front(
 def _sheet(path: str, source: SourceExpressions, shown: list[tuple[str, Any, np.ndarray]]) -> Path:
     """Rows of expressions: the source, then per shown case the truth and the transfer
     (only the front of the face, so the lids and lips show)."""
-    from facecast.cli.render import save_side_by_side
 
     rows = []
     for name in SHEET_NAMES:
