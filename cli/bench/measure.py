@@ -14,7 +14,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 __all__ = ["STAGES", "cpu_seconds", "stage_delta", "stage_snapshot"]
 
-#: The server's stages (``facecast.server.stages.STAGES``, read off ``/metrics`` by name
+#: The server's stages (``facecast.server.compute.stages.STAGES``, read off ``/metrics`` by name
 #: so the benchmarks never import the server).
 STAGES = ("decode", "weights", "blend", "cast", "encode", "write")
 

@@ -43,7 +43,7 @@ from facecast.rig.evaluation.webcam import (
 )
 from facecast.rig.sources.ict import ict_regions, locate_ict
 from facecast.rig.sources.trackers import read_livelink_csv
-from facecast.server.performers import held_noise
+from facecast.server.storage.profiles import held_noise
 
 if TYPE_CHECKING:
     from facecast.rig.evaluation.takes import TakeExperiment

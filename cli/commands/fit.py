@@ -20,7 +20,7 @@ if TYPE_CHECKING:
     from facecast.cli.commands import Subparsers
     from facecast.rig.examples import ExampleSet
 
-# The engine's kernel names (facecast.rig.kernels.KERNELS), spelled out so --help does
+# The engine's kernel names (facecast.rig.radial.KERNELS), spelled out so --help does
 # not import numpy; a test keeps the two equal.
 KERNEL_CHOICES = ("bspline", "gaussian", "thin_plate", "linear")
 
