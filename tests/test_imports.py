@@ -31,7 +31,14 @@ _MATPLOTLIB = "start-up time: matplotlib (~0.5 s) loads only when a figure is dr
 LAZY: dict[tuple[str, str], str] = {
     ("facecast.cli.main", "facecast.*.errors"): _STARTUP_CLI,
     ("facecast.cli.commands.*", "*"): _STARTUP_CLI,
-    ("facecast.cli.bench.*", "*"): _STARTUP_CLI,
+    ("facecast.cli.bench.transport_client", "facecast.rig*"): (
+        "start-up time of a client process (its wall time divides the servers' CPU): the rig "
+        "engine (~1.3 s) loads only for the blend floor"
+    ),
+    ("facecast.cli.bench.servers", "facecast.server.*"): (
+        "the server loads only in the subprocess that serves it: the benchmark starting it "
+        "measures from outside"
+    ),
     ("facecast.cli.snapshot", "*"): (
         "start-up time: the snapshot tool starts a server and Chromium (playwright) only "
         "when a command asks for a picture"

@@ -8,8 +8,10 @@ watches a channel's weights and sends VMC OSC. Only argument parsing and wiring 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
+import time
 from typing import TYPE_CHECKING
 
 from facecast.cli.errors import CommandError
@@ -269,7 +271,6 @@ def _run_tracker(
     cancelled when the loop returns).
     """
     import asyncio
-    import contextlib
 
     from facecast.cli.bridges.vmc import VmcSender, vmc_head_bundle
     from facecast.client.channel import FramePublisher
@@ -369,7 +370,6 @@ def run_livelink(args: argparse.Namespace) -> int:
 
 def run_ifacialmocap(args: argparse.Namespace) -> int:
     import asyncio
-    import time
 
     from facecast.cli.bridges.ifacialmocap import (
         FacialMocapReceiver,

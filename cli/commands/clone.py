@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from facecast.cli.commands._animation import add_source_arguments
+from facecast.cli.commands._animation import add_source_arguments, load_animation, write_cloned
 from facecast.cli.errors import CommandError
 
 if TYPE_CHECKING:  # numpy and the rig load when the command runs, not for --help
@@ -104,7 +104,6 @@ def clone_frames(
 
 
 def run(args: argparse.Namespace) -> int:
-    from facecast.cli.commands._animation import load_animation, write_cloned
     from facecast.rig import load_rig
     from facecast.rig.errors import FitError, InputError
     from facecast.rig.smoothing import smooth_take

@@ -8,6 +8,10 @@ offline cloning and prints the viewer's URL. It needs nothing but this package.
 from __future__ import annotations
 
 import argparse
+import sys
+import tempfile
+import threading
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from facecast.cli.errors import CommandError
@@ -53,9 +57,6 @@ def register(subparsers: Subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import asyncio
-    import tempfile
-    import threading
-    from pathlib import Path
 
     import numpy as np
 
@@ -121,7 +122,6 @@ def run(args: argparse.Namespace) -> int:
 async def _stream(
     url: str, rig_id: str, animation: SourceAnimation, args: argparse.Namespace
 ) -> StreamOutcome:
-    import sys
 
     from facecast.client.connection import connect
     from facecast.client.streaming import stream_frames

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from facecast.cli.commands.fit import load_examples
 from facecast.cli.errors import CommandError
 
 from .fit import KERNEL_CHOICES
@@ -205,7 +206,6 @@ def _estimated_noise(args: argparse.Namespace, data: _Data) -> tuple[float, tupl
 def _files(args: argparse.Namespace) -> _Data:
     import numpy as np
 
-    from facecast.cli.commands.fit import load_examples
     from facecast.rig.sources.loading import load_source_animation
 
     if args.examples is None or args.source is None:

@@ -7,6 +7,7 @@ clients, rate and time, and only ever connects to the URL given.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from typing import TYPE_CHECKING, Any
 
@@ -87,7 +88,6 @@ def format_report(report: dict[str, Any]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     import asyncio
-    import json
 
     from facecast.cli.loadgen import (
         MAX_CLIENTS,

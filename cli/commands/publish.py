@@ -7,10 +7,12 @@ writes nothing and clones nothing: viewers (``facecast watch``, the web viewer) 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
+import time
 from typing import TYPE_CHECKING
 
-from facecast.cli.commands._animation import add_source_arguments
+from facecast.cli.commands._animation import add_source_arguments, load_animation
 from facecast.cli.errors import CommandError
 
 if TYPE_CHECKING:  # numpy loads when the command runs, not for --help
@@ -68,10 +70,8 @@ def register(subparsers: Subparsers) -> None:
 
 def _animation(args: argparse.Namespace, num_points: int) -> SourceAnimation:
     """The source animation, checked against the channel rig's K."""
-    from facecast.cli.commands._animation import load_animation
 
     def feature_indices() -> np.ndarray | None:
-        import contextlib
 
         from facecast.client.fetch import ServerRequestError, fetch_rig
 
@@ -117,7 +117,6 @@ async def publish(args: argparse.Namespace) -> tuple[int, PublisherStats, bool, 
     within ``--drain-timeout``, frames neither a result nor a counted drop or refusal).
     """
     import asyncio
-    import time
 
     from facecast.client.channel import FramePublisher, channel_url
     from facecast.protocol import Hello

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from facecast.cli.errors import CommandError
@@ -222,7 +223,6 @@ async def record(args: argparse.Namespace, take: Take) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import asyncio
-    from pathlib import Path
 
     import numpy as np
 

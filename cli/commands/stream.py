@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from facecast.cli.commands._animation import add_source_arguments
+from facecast.cli.commands._animation import add_source_arguments, load_animation, write_results
 from facecast.cli.errors import CommandError
 
 if TYPE_CHECKING:  # the client library loads when the command runs, not for --help
@@ -110,7 +110,6 @@ class _ProgressLine:
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
-    from facecast.cli.commands._animation import load_animation, write_results
     from facecast.client.connection import connect
     from facecast.client.fetch import fetch_rig
     from facecast.client.streaming import stream_frames

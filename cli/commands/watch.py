@@ -7,9 +7,12 @@ like ``facecast clone`` (.npz with weights/vertices plus seq and t); no cloning 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from facecast.cli.commands._animation import write_results
 from facecast.cli.errors import CommandError
 
 if TYPE_CHECKING:
@@ -43,7 +46,6 @@ def register(subparsers: Subparsers) -> None:
 async def record(args: argparse.Namespace) -> dict[str, Any]:
     """Results as lists (values, seq, t) plus the ``ready``; stops as documented."""
     import asyncio
-    import contextlib
 
     from facecast.client.channel import channel_url, watch_channel
     from facecast.protocol import ChannelIdle, ChannelLive, Ready, Result
@@ -81,7 +83,6 @@ async def record(args: argparse.Namespace) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     import asyncio
-    from pathlib import Path
 
     import numpy as np
 
@@ -113,7 +114,6 @@ def run(args: argparse.Namespace) -> int:
         arrays["weights" if args.output == "weights" else "vertices"] = values
         np.savez(out, allow_pickle=False, **arrays)  # no record is an object array
     else:
-        from facecast.cli.commands._animation import write_results
         from facecast.client.fetch import fetch_rig
 
         rig = fetch_rig(args.url, args.rig, token=args.token)
