@@ -14,11 +14,34 @@ import argparse
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
+from facecast.cli.bench.engine import _paired_seconds
 from facecast.cli.errors import CommandError
+from facecast.cli.render import save_side_by_side
+from facecast.rig.evaluation.remesh import carry_shapes, decimate, sqrt3_retriangulate
+from facecast.rig.evaluation.takes import arkit_example_set
+from facecast.rig.evaluation.transfer import end_to_end, score_transfer
+from facecast.rig.examples import ExampleSet
+from facecast.rig.sources.ict import ict_example_set, locate_ict
+from facecast.rig.sources.trackers import read_livelink_csv
+from facecast.rig.transfer import (
+    CorrespondenceWeights,
+    DeformationTransfer,
+    ict_source_expressions,
+    transfer_expressions,
+)
+from facecast.rig.transfer.mesh import nearest_vertices
+
+if TYPE_CHECKING:
+    from scipy.sparse.linalg import SuperLU
+
+    from facecast.rig.evaluation.remesh import Remeshed
+    from facecast.rig.transfer import DeformationTransfer
+    from facecast.rig.transfer.expressions import SourceExpressions
 
 # Landmark noise (std per coordinate, cm) for the end-to-end runs: none, and 0.5 mm.
 NOISES = (0.0, 0.05)
@@ -26,7 +49,6 @@ TAKE = Path(__file__).resolve().parents[2] / "tests" / "data" / "livelink" / "ll
 
 
 def run(args: argparse.Namespace) -> int:
-    from facecast.rig.sources.ict import ict_example_set, locate_ict
 
     archive = locate_ict(args.ict) if args.ict else locate_ict()
     if archive is None:
@@ -34,10 +56,10 @@ def run(args: argparse.Namespace) -> int:
             "ICT-FaceKit not found (the transfer's source): set FACECAST_ICT, pass --ict PATH "
             "or place it in ../shared/data/ict-facekit"
         )
-    from facecast.rig.transfer import ict_source_expressions
 
     source = ict_source_expressions(archive)
     landmarks = ict_example_set(archive).feature_indices
+    assert landmarks is not None  # ICT's example set is made of meshes and their landmarks
     report: dict[str, Any] = {}
     if not args.accuracy_only:
         report["cost"] = _cost(source, landmarks, repeat=args.repeat)
@@ -61,8 +83,7 @@ def run(args: argparse.Namespace) -> int:
 # -- cost -------------------------------------------------------------------------------
 
 
-def _cost_targets(source) -> list[tuple[str, Any]]:
-    from facecast.rig.evaluation.remesh import decimate, sqrt3_retriangulate
+def _cost_targets(source: SourceExpressions) -> list[tuple[str, Remeshed]]:
 
     face, faces = source.vertices[0], source.faces
     small = sqrt3_retriangulate(*_mesh(decimate(face, faces, 3400)))
@@ -70,14 +91,11 @@ def _cost_targets(source) -> list[tuple[str, Any]]:
     return [("~10k", small), ("~50k", large)]
 
 
-def _mesh(remeshed) -> tuple[np.ndarray, np.ndarray]:
+def _mesh(remeshed: Remeshed) -> tuple[np.ndarray, np.ndarray]:
     return remeshed.vertices, remeshed.faces
 
 
-def _cost(source, landmarks: np.ndarray, *, repeat: int) -> list[dict[str, Any]]:
-    from facecast.cli.bench.engine import _paired_seconds
-    from facecast.rig.transfer import DeformationTransfer, transfer_expressions
-    from facecast.rig.transfer.mesh import nearest_vertices
+def _cost(source: SourceExpressions, landmarks: np.ndarray, *, repeat: int) -> list[dict[str, Any]]:
 
     rows = []
     print("cost: ICT-FaceKit's 51 ARKit shapes (9,409-vertex face) -> remeshed ICT faces")
@@ -96,10 +114,12 @@ def _cost(source, landmarks: np.ndarray, *, repeat: int) -> list[dict[str, Any]]
         rhs = np.random.default_rng(0).normal(size=(transfer.unknowns, 3))
         shape = source.vertices[1]
 
-        def one_expression(shape=shape, transfer=transfer):
+        def one_expression(
+            shape: np.ndarray = shape, transfer: DeformationTransfer = transfer
+        ) -> None:
             transfer.transfer(shape)
 
-        def floor(lu=lu, rhs=rhs):
+        def floor(lu: SuperLU = lu, rhs: np.ndarray = rhs) -> None:
             lu.L @ (lu.U @ rhs)
 
         per_expression, floor_s = _paired_seconds(one_expression, floor, repeat=repeat)
@@ -133,10 +153,11 @@ def _cost(source, landmarks: np.ndarray, *, repeat: int) -> list[dict[str, Any]]
 # -- accuracy ---------------------------------------------------------------------------
 
 
-def _exact_markers(source_vertices: np.ndarray, landmarks: np.ndarray, target: np.ndarray):
+def _exact_markers(
+    source_vertices: np.ndarray, landmarks: np.ndarray, target: np.ndarray
+) -> np.ndarray:
     """Markers a careful user would place: for each landmark, the nearest target vertex
     that coincides with a source vertex (a decimation leaves many where they were)."""
-    from scipy.spatial import cKDTree
 
     distance, match = cKDTree(source_vertices).query(target)
     exact = np.flatnonzero(distance < 1e-9)
@@ -148,15 +169,13 @@ def _exact_markers(source_vertices: np.ndarray, landmarks: np.ndarray, target: n
 
 
 def _accuracy(
-    archive, source, landmarks: np.ndarray, take: Path, *, marker_weight: float | None = 0.01
+    archive: Path,
+    source: SourceExpressions,
+    landmarks: np.ndarray,
+    take: Path,
+    *,
+    marker_weight: float | None = 0.01,
 ) -> tuple[list[dict[str, Any]], list[tuple[str, Any, np.ndarray]]]:
-    from facecast.rig.evaluation.remesh import carry_shapes, decimate, sqrt3_retriangulate
-    from facecast.rig.evaluation.takes import arkit_example_set
-    from facecast.rig.evaluation.transfer import end_to_end, score_transfer
-    from facecast.rig.examples import ExampleSet
-    from facecast.rig.sources.trackers import read_livelink_csv
-    from facecast.rig.transfer import CorrespondenceWeights, transfer_expressions
-    from facecast.rig.transfer.mesh import nearest_vertices
 
     livelink = read_livelink_csv(take)
     face = source.vertices[0]
@@ -186,10 +205,10 @@ def _accuracy(
         truth_set = ExampleSet(names=source.names, source_points=source.points,
                                target_vertices=shapes, target_faces=remeshed.faces)  # fmt: skip
         if exact:
-            markers = _exact_markers(face, landmarks, remeshed.vertices)
+            placed = _exact_markers(face, landmarks, remeshed.vertices)
         else:
-            markers = np.stack([landmarks, nearest_vertices(face[landmarks], remeshed.vertices)], 1)
-        cases.append((label, truth_set, markers, remeshed.faces))
+            placed = np.stack([landmarks, nearest_vertices(face[landmarks], remeshed.vertices)], 1)
+        cases.append((label, truth_set, placed, remeshed.faces))
 
     rows = []
     shown = []
@@ -251,16 +270,17 @@ SHEET_NAMES = (
 )
 
 
-def _front(vertices: np.ndarray, faces: np.ndarray, neutral: np.ndarray) -> tuple:
+def _front(
+    vertices: np.ndarray, faces: np.ndarray, neutral: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """The triangles in front of the ears (ICT's axes, cm: the nose tip is at z = 13)."""
     keep = (neutral[faces][:, :, 2] > 4.0).all(axis=1)
     return vertices, faces[keep]
 
 
-def _sheet(path: str, source, shown: list[tuple[str, Any, np.ndarray]]) -> Path:
+def _sheet(path: str, source: SourceExpressions, shown: list[tuple[str, Any, np.ndarray]]) -> Path:
     """Rows of expressions: the source, then per shown case the truth and the transfer
     (only the front of the face, so the lids and lips show)."""
-    from facecast.cli.render import save_side_by_side
 
     rows = []
     for name in SHEET_NAMES:

@@ -8,8 +8,13 @@ from __future__ import annotations
 
 import argparse
 import importlib
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from facecast.cli.errors import CommandError
+
+if TYPE_CHECKING:
+    from facecast.cli.commands import Subparsers
 
 
 def _add_ict(parser: argparse.ArgumentParser) -> None:
@@ -25,7 +30,7 @@ def _add_take(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def register(subparsers) -> None:
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "bench",
         help="benchmarks of the engine, the transport and the broadcast path",
@@ -182,9 +187,8 @@ def _viewer_counts(text: str) -> list[int]:
     return counts
 
 
-def _runner(name: str):
+def _runner(name: str) -> Callable[[argparse.Namespace], int]:
     def run(args: argparse.Namespace) -> int:
-
         module_name = f"facecast.cli.bench.{name}"
         try:
             module = importlib.import_module(module_name)
@@ -194,6 +198,6 @@ def _runner(name: str):
             raise CommandError(
                 f"bench {name} is not available in this installation ({module_name} is missing)"
             ) from None
-        return module.run(args)
+        return int(module.run(args))
 
     return run

@@ -8,11 +8,15 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from facecast.cli.errors import CommandError
 
+if TYPE_CHECKING:
+    from facecast.cli.commands import Subparsers
 
-def register(subparsers) -> None:
+
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "expressions",
         help="make a neutral-only character's key-expressions by deformation transfer",
