@@ -55,6 +55,20 @@ def register(subparsers) -> None:
         help="hold the markers exactly in every step, as the paper does",
     )
     parser.add_argument(
+        "--still",
+        type=float,
+        default=0.01,
+        metavar="F",
+        help="hold the target points whose source point moves less than F x the expression's "
+        "largest motion (default 0.01), so what an expression leaves still does not drift",
+    )
+    parser.add_argument(
+        "--paper-solve",
+        action="store_true",
+        help="the paper's solve instead: one factorisation for every expression, nothing held "
+        "but one vertex per piece (faster; the still parts drift)",
+    )
+    parser.add_argument(
         "--names", nargs="+", metavar="NAME", help="ARKit names to make (default: all 51)"
     )
     parser.add_argument(
@@ -104,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
             weights=CorrespondenceWeights(
                 marker_weight=None if args.hold_markers else args.marker_weight
             ),
+            still=None if args.paper_solve else args.still,
         )  # fmt: skip
     written = write_expression_set(
         args.output,
@@ -125,10 +140,14 @@ def run(args: argparse.Namespace) -> int:
         f"{int(generated.correspondence.vertex_map.getnnz(axis=1).astype(bool).sum())} of "
         f"{vertices.shape[0]} target vertices reached"
     )
+    again = generated.factorizations - 1
     print(
         f"cost: correspondence {seconds['correspondence']:.2f} s, factor {seconds['factor']:.2f} s "
-        f"({generated.unknowns} unknowns, once), solve {seconds['solve']:.2f} s "
-        f"({1e3 * seconds['solve'] / max(1, count):.0f} ms per expression)"
+        f"({generated.unknowns} unknowns{'' if again else ', once'}), solve "
+        f"{seconds['solve']:.2f} s ({1e3 * seconds['solve'] / max(1, count):.0f} ms per "
+        "expression"
+        + (f", each factoring the points it moves: {again} factorisations" * bool(again))
+        + ")"
     )
     kept = f", kept {len(written.kept)} already there: {', '.join(written.kept)}"
     print(

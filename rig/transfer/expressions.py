@@ -29,7 +29,7 @@ from .correspondence import (
     identity_correspondence,
 )
 from .mesh import check_mesh
-from .solve import DeformationTransfer
+from .solve import STILL, DeformationTransfer, check_still
 
 __all__ = [
     "GeneratedExpressions",
@@ -115,6 +115,9 @@ class GeneratedExpressions:
         ``correspondence``, ``factor`` and ``solve`` (all expressions) wall-clock times.
     unknowns : int
         Unknowns of the factored system (target vertices and fourth vertices).
+    factorizations : int
+        Sparse factorisations made: 1 for the paper's solve; with ``still``, one more per
+        expression (each of the unknowns its still points leave).
     """
 
     names: tuple[str, ...]
@@ -125,6 +128,7 @@ class GeneratedExpressions:
     correspondence: Correspondence
     seconds: dict[str, float] = field(default_factory=dict)
     unknowns: int = 0
+    factorizations: int = 1
 
 
 def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -166,6 +170,7 @@ def transfer_expressions(
     markers: npt.ArrayLike | None = None,
     names: Sequence[str] | None = None,
     weights: CorrespondenceWeights | None = None,
+    still: float | None = STILL,
     progress: Callable[[int], object] | None = None,
 ) -> GeneratedExpressions:
     """Transfer the source's expressions onto a target neutral (Sumner & Popović 2004).
@@ -182,6 +187,10 @@ def transfer_expressions(
     names : sequence of str, optional
         The expressions to make (default: all of the source's).
     weights : CorrespondenceWeights, optional
+    still : float or None
+        Target points whose source point moves less than this fraction of the
+        expression's largest motion are held there (``DeformationTransfer``'s ``still``;
+        None: the paper's system, factored once for every expression).
     progress : callable, optional
         Called with 1 after each expression.
 
@@ -192,6 +201,7 @@ def transfer_expressions(
     """
     target, faces = check_mesh(target_vertices, target_faces)
     picked = _pick_names(source, names)
+    still = check_still(still)
     welded, welded_faces, welded_index = weld(target, faces)
     try:
         check_mesh(welded, welded_faces)
@@ -226,6 +236,7 @@ def transfer_expressions(
         vertex_map=correspondence.vertex_map,
         rotation=correspondence.rotation,
         scale=correspondence.scale,
+        still=still,
     )
     factored = time.perf_counter()
     moved = transfer.transfer(source.vertices[picked[1:]], progress=progress)
@@ -246,4 +257,5 @@ def transfer_expressions(
             "solve": solved - factored,
         },
         unknowns=transfer.unknowns,
+        factorizations=transfer.factorizations,
     )

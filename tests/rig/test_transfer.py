@@ -139,6 +139,32 @@ def test_triangles_no_source_triangle_reaches_keep_their_neutral():
     np.testing.assert_allclose(moved[: len(source)], smooth_deformation(source), atol=1e-10)
 
 
+def test_what_the_source_leaves_still_stays_still_on_a_face_of_another_shape():
+    source, faces = grid(16)
+    target, _ = grid(16, bump=0.6)  # another shape on the same topology, as ICT's identities
+    x, y = source[:, 0], source[:, 1]
+    r2 = ((x - 0.5) ** 2 + (y - 0.5) ** 2) / 0.25**2
+    lift = np.where(r2 < 1, (1 - r2) ** 2, 0.0)  # moves a disc, nothing outside it
+    shapes = np.stack([source, source + 0.15 * lift[:, None] * np.array([0.5, 0.0, 1.0])])
+    expressions = SourceExpressions(("neutral", "lift"), shapes, faces, shapes[:, :3])
+    generated = transfer_expressions(expressions, target, faces)
+    moved = np.linalg.norm(generated.target_vertices[1] - target, axis=1)
+    # The paper's solve spreads what it cannot fit on the other shape over the whole
+    # surface (about 0.01 here); held, the still part does not move at all.
+    np.testing.assert_array_equal(moved[lift == 0], 0.0)
+    assert moved[lift > 0.5].min() > 0.05
+
+
+def test_still_must_be_a_fraction():
+    vertices, faces = grid(6)
+    same = identity_correspondence(vertices, faces, vertices, faces)
+    with pytest.raises(CorrespondenceError) as caught:
+        DeformationTransfer(
+            vertices, faces, vertices, faces, same.pairs, vertex_map=same.vertex_map, still=1.5
+        )
+    assert caught.value.code == "bad_weights"
+
+
 def test_transfer_refuses_deformed_meshes_of_another_vertex_count():
     vertices, faces = grid(6)
     same = identity_correspondence(vertices, faces, vertices, faces)
