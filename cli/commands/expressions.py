@@ -38,7 +38,9 @@ def register(subparsers) -> None:
         "--markers",
         metavar="FILE",
         help="correspondence markers: 'source_vertex target_vertex' a line (0-based; source "
-        "vertices of ICT's face area, [0, 9409)); at least 3, about 20 spread over the face",
+        "vertices of ICT's face area, [0, 9409)); at least 3, about 20 spread over the face. "
+        "'auto': none, ICT's face fitted to the target by closest points alone (the target "
+        "facing +z with y up, as ICT does; landmarks within about 1.5 mm on ICT's identities)",
     )
     markers = parser.add_mutually_exclusive_group()
     markers.add_argument(
@@ -100,7 +102,9 @@ def run(args: argparse.Namespace) -> int:
     if not Path(args.target).is_file():
         raise CommandError(f"{args.target}: no such file (the target neutral mesh)")
     vertices, faces = check_mesh(*read_target_mesh(args.target), what=str(args.target))
-    markers = read_markers(args.markers) if args.markers else None
+    markers = args.markers
+    if markers is not None and markers != "auto":
+        markers = read_markers(markers)
     archive = None
     if args.ict is None or Path(args.ict).exists():
         archive = locate_ict(args.ict) if args.ict else locate_ict()
@@ -130,24 +134,28 @@ def run(args: argparse.Namespace) -> int:
         ),
     )
     seconds = generated.seconds
-    how = (
-        "same topology (identity)"
-        if generated.correspondence.method == "identity"
-        else f"markers + closest points, residual {generated.correspondence.residual:.3g} edges"
-    )
+    how = {
+        "identity": "same topology (identity)",
+        "markers": "markers + closest points",
+        "automatic": "automatic (closest points, no markers)",
+    }[generated.correspondence.method]
+    if generated.correspondence.method != "identity":
+        how += f", residual {generated.correspondence.residual:.3g} edges"
     print(
         f"correspondence: {how}; {len(generated.correspondence.pairs)} triangle pairs, "
         f"{int(generated.correspondence.vertex_map.getnnz(axis=1).astype(bool).sum())} of "
         f"{vertices.shape[0]} target vertices reached"
     )
-    again = generated.factorizations - 1
+    once = generated.factorizations == 1
     print(
-        f"cost: correspondence {seconds['correspondence']:.2f} s, factor {seconds['factor']:.2f} s "
-        f"({generated.unknowns} unknowns{'' if again else ', once'}), solve "
-        f"{seconds['solve']:.2f} s ({1e3 * seconds['solve'] / max(1, count):.0f} ms per "
-        "expression"
-        + (f", each factoring the points it moves: {again} factorisations" * bool(again))
-        + ")"
+        f"cost: correspondence {seconds['correspondence']:.2f} s, "
+        + (
+            f"factor {seconds['factor']:.2f} s ({generated.unknowns} unknowns, once), "
+            if once
+            else f"set-up {seconds['factor']:.2f} s ({generated.unknowns} unknowns), "
+        )
+        + f"solve {seconds['solve']:.2f} s ({1e3 * seconds['solve'] / max(1, count):.0f} ms "
+        + ("per expression)" if once else "per expression, each factoring what it moves)")
     )
     kept = f", kept {len(written.kept)} already there: {', '.join(written.kept)}"
     print(

@@ -116,8 +116,8 @@ class GeneratedExpressions:
     unknowns : int
         Unknowns of the factored system (target vertices and fourth vertices).
     factorizations : int
-        Sparse factorisations made: 1 for the paper's solve; with ``still``, one more per
-        expression (each of the unknowns its still points leave).
+        Sparse factorisations made: 1 for the paper's solve; with ``still``, one per
+        expression (each of the unknowns its still points leave) and none of the whole.
     """
 
     names: tuple[str, ...]
@@ -167,7 +167,7 @@ def transfer_expressions(
     target_vertices: npt.ArrayLike,
     target_faces: npt.ArrayLike,
     *,
-    markers: npt.ArrayLike | None = None,
+    markers: npt.ArrayLike | str | None = None,
     names: Sequence[str] | None = None,
     weights: CorrespondenceWeights | None = None,
     still: float | None = STILL,
@@ -181,9 +181,11 @@ def transfer_expressions(
         Usually ``ict_source_expressions``.
     target_vertices, target_faces : (Vt, 3), (Ft, 3)
         The character's neutral, a manifold triangle mesh (quads split).
-    markers : (N, 2) int, optional
+    markers : (N, 2) int or "auto", optional
         (source vertex, target vertex) pairs; not needed when the target shares the
-        source's topology (then the correspondence is the identity).
+        source's topology (then the correspondence is the identity). "auto": none, the
+        source placed by closest points alone (``fit_correspondence`` with None; the
+        target must face +z with y up, as ICT does).
     names : sequence of str, optional
         The expressions to make (default: all of the source's).
     weights : CorrespondenceWeights, optional
@@ -202,6 +204,11 @@ def transfer_expressions(
     target, faces = check_mesh(target_vertices, target_faces)
     picked = _pick_names(source, names)
     still = check_still(still)
+    automatic = isinstance(markers, str)
+    if automatic and markers != "auto":
+        raise MarkerError(
+            f"markers: {markers!r} is neither marker pairs nor 'auto'", code="bad_markers"
+        )
     welded, welded_faces, welded_index = weld(target, faces)
     try:
         check_mesh(welded, welded_faces)
@@ -216,13 +223,15 @@ def transfer_expressions(
                 "the target's topology differs from the source's, so the correspondence needs "
                 "markers: a file of 'source_vertex target_vertex' lines (0-based), at least 3, "
                 "about 20 spread over the face (eye and mouth corners, lids, nose tip, brows, "
-                "chin)",
+                "chin); or 'auto' for a fit without markers",
                 code="markers_needed",
             )
-        checked = check_markers(
-            markers, source.vertices.shape[1], target.shape[0], source=source.vertices[0]
-        )
-        marker_pairs = np.stack([checked[:, 0], welded_index[checked[:, 1]]], axis=1)
+        marker_pairs = None
+        if not automatic:
+            checked = check_markers(
+                markers, source.vertices.shape[1], target.shape[0], source=source.vertices[0]
+            )
+            marker_pairs = np.stack([checked[:, 0], welded_index[checked[:, 1]]], axis=1)
         correspondence = fit_correspondence(
             source.vertices[0], source.faces, welded, welded_faces, marker_pairs, weights=weights
         )

@@ -183,15 +183,24 @@ class DeformationTransfer:
         self._rows_t = rows.T.tocsr()  # (Vt + Ft, 3Ft): rhs = Aᵀ W r
         self._normal = (self._rows_t @ sp.diags(weights) @ rows).tocsr()
         self.factorizations = 0
-        self._lu = self._factor(self._normal[self._free][:, self._free].tocsc())
+        # The held solve factors its own systems: the whole one only when asked for.
+        self._lu: SuperLU | None = None
+        if self.still is None:
+            self._lu = self.factor
         self.unknowns = int(self._free.size)
-        self.nonzeros = int(self._lu.L.nnz + self._lu.U.nnz)
 
     @property
     def factor(self) -> SuperLU:
         """The factorisation every ``transfer`` reuses (read-only; ``bench transfer`` times
         a product with its L and U as the solve's floor)."""
+        if self._lu is None:
+            self._lu = self._factor(self._normal[self._free][:, self._free].tocsc())
         return self._lu
+
+    @property
+    def nonzeros(self) -> int:
+        """Nonzeros in the whole system's factors L and U."""
+        return int(self.factor.L.nnz + self.factor.U.nnz)
 
     def _factor(self, normal: sp.csc_matrix) -> SuperLU:
         self.factorizations += 1
@@ -311,7 +320,7 @@ class DeformationTransfer:
         c = source_deformed.shape[0]
         rhs = self._target_rhs(source_deformed)[self._free]
         displacement = np.zeros((vt + ft, 3 * c))
-        displacement[self._free] = self._lu.solve(rhs)
+        displacement[self._free] = self.factor.solve(rhs)
         moved = displacement[:vt].reshape(vt, c, 3).transpose(1, 0, 2).copy()
         if self.vertex_map is not None:
             for index in range(c):

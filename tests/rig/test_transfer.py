@@ -218,6 +218,41 @@ def test_transfer_onto_a_decimated_surface_carries_a_bump_better_than_the_naive_
     assert per_transfer[0] < per_naive[0]
 
 
+def test_without_markers_the_source_finds_a_scaled_and_moved_decimated_copy_of_itself():
+    source, source_faces = grid(16)
+    coarse = decimate(source, source_faces, 120)
+    placed = 2.5 * coarse.vertices + [1.0, -0.5, 0.3]  # other units and origin, same axes
+    bump = source.copy()
+    bump[:, 2] += 0.2 * np.exp(-((source[:, 0] - 0.5) ** 2 + (source[:, 1] - 0.5) ** 2) / 0.05)
+    shapes = np.stack([source, bump])
+    generated = transfer_expressions(
+        SourceExpressions(("neutral", "bump"), shapes, source_faces, shapes[:, :3]),
+        placed, coarse.faces, markers="auto",
+    )  # fmt: skip
+    found = generated.correspondence
+    assert found.method == "automatic"
+    assert abs(found.scale - 2.5) < 0.01
+    # Each fitted source vertex lies within a tenth of a (scaled) source edge of its place.
+    edge = 2.5 / 15
+    assert np.abs(found.fitted_source - (2.5 * source + [1.0, -0.5, 0.3])).max() < 0.15 * edge
+    truth = 2.5 * carry_shapes(coarse, shapes, source_faces) + [1.0, -0.5, 0.3]
+    per_transfer, _ = relative_errors(generated.target_vertices, truth)
+    per_naive, _ = relative_errors(naive_transfer(found, shapes, placed), truth)
+    assert per_transfer[0] < 0.5 * per_naive[0]
+
+
+def test_markers_that_are_neither_pairs_nor_auto_are_refused():
+    source, source_faces = grid(6)
+    target, target_faces = grid(5)
+    with pytest.raises(MarkerError) as caught:
+        transfer_expressions(
+            SourceExpressions(("neutral", "x"), np.stack([source, source + 0.1]), source_faces,
+                              np.zeros((2, 3, 3))),
+            target, target_faces, markers="automatic",
+        )  # fmt: skip
+    assert caught.value.code == "bad_markers"
+
+
 def test_read_markers_takes_pairs_with_comments_and_commas(tmp_path):
     path = tmp_path / "markers.txt"
     path.write_text("# source target\n1 2\n\n3,4  # a comment\n")
