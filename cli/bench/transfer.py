@@ -186,36 +186,47 @@ def _accuracy(
 
     livelink = read_livelink_csv(take)
     face = source.vertices[0]
-    cases: list[tuple[str, ExampleSet, np.ndarray | None, np.ndarray]] = []
+    # (label, truth, markers, target faces, the 20 landmarks' true places on the target)
+    cases: list[tuple[str, ExampleSet, Any, np.ndarray, np.ndarray | None]] = []
     for identity in ("person01", "person10"):
         truth = arkit_example_set(archive, identity=identity)
         cases.append((f"(a) ICT {identity}, same topology (identity map)", truth, None,
-                      truth.target_faces))  # fmt: skip
-    # The same face with its vertices renumbered, so the markers' path runs.
-    truth = arkit_example_set(archive, identity="person01")
-    order = np.random.default_rng(0).permutation(truth.num_vertices)
-    new_index = np.argsort(order)
-    renumbered = ExampleSet(names=truth.names, source_points=truth.source_points,
-                            target_vertices=truth.target_vertices[:, order],
-                            target_faces=new_index[truth.target_faces])  # fmt: skip
-    cases.append(("(a) ICT person01 renumbered, 20 landmark markers + closest points",
-                  renumbered, np.stack([landmarks, new_index[landmarks]], axis=1),
-                  renumbered.target_faces))  # fmt: skip
+                      truth.target_faces, None))  # fmt: skip
+    # The same faces with their vertices renumbered, so the markers' path runs.
+    for identity, markers in (("person01", "landmarks"), ("person01", "auto"),
+                              ("person10", "auto")):  # fmt: skip
+        truth = arkit_example_set(archive, identity=identity)
+        order = np.random.default_rng(0).permutation(truth.num_vertices)
+        new_index = np.argsort(order)
+        renumbered = ExampleSet(names=truth.names, source_points=truth.source_points,
+                                target_vertices=truth.target_vertices[:, order],
+                                target_faces=new_index[truth.target_faces])  # fmt: skip
+        if markers == "auto":
+            label = f"(a) ICT {identity} renumbered, automatic (no markers) + closest points"
+            given: Any = "auto"
+        else:
+            label = f"(a) ICT {identity} renumbered, 20 landmark markers + closest points"
+            given = np.stack([landmarks, new_index[landmarks]], axis=1)
+        cases.append((label, renumbered, given, renumbered.target_faces,
+                      truth.target_vertices[0, landmarks]))  # fmt: skip
     decimated = decimate(face, source.faces, 4000)
     sqrt3 = sqrt3_retriangulate(face, source.faces)
-    for label, remeshed, exact in (
-        ("(b) ICT face decimated to 4,000 vertices, exact markers", decimated, True),
-        ("(b) ICT face decimated to 4,000 vertices, nearest-vertex markers", decimated, False),
-        ("(b) ICT face sqrt3-retriangulated (27,870 vertices), exact markers", sqrt3, True),
+    for label, remeshed, kind in (
+        ("(b) ICT face decimated to 4,000 vertices, exact markers", decimated, "exact"),
+        ("(b) ICT face decimated to 4,000 vertices, nearest-vertex markers", decimated, "nearest"),
+        ("(b) ICT face decimated to 4,000 vertices, automatic (no markers)", decimated, "auto"),
+        ("(b) ICT face sqrt3-retriangulated (27,870 vertices), exact markers", sqrt3, "exact"),
     ):
         shapes = carry_shapes(remeshed, source.vertices, source.faces)
         truth_set = ExampleSet(names=source.names, source_points=source.points,
                                target_vertices=shapes, target_faces=remeshed.faces)  # fmt: skip
-        if exact:
-            markers = _exact_markers(face, landmarks, remeshed.vertices)
+        if kind == "exact":
+            given = _exact_markers(face, landmarks, remeshed.vertices)
+        elif kind == "nearest":
+            given = np.stack([landmarks, nearest_vertices(face[landmarks], remeshed.vertices)], 1)
         else:
-            markers = np.stack([landmarks, nearest_vertices(face[landmarks], remeshed.vertices)], 1)
-        cases.append((label, truth_set, markers, remeshed.faces))
+            given = "auto"
+        cases.append((label, truth_set, given, remeshed.faces, face[landmarks]))
 
     rows = []
     shown = []
@@ -224,7 +235,7 @@ def _accuracy(
     print(f"markers {held}; solve: {solve}")
     print("accuracy: error relative to the true displacement (sum over vertices), and a real "
           f"take ({take.name}) cloned through generated vs true examples (eq. 4.1, worst axis)")  # fmt: skip
-    for label, truth_set, markers, faces in cases:
+    for label, truth_set, markers, faces, true_landmarks in cases:
         generated = transfer_expressions(
             source, truth_set.target_neutral, faces, markers=markers,
             weights=CorrespondenceWeights(marker_weight=marker_weight), still=still,
@@ -241,9 +252,21 @@ def _accuracy(
         worse = [
             n for n, t, v in zip(score.names, score.transfer, score.naive, strict=True) if t >= v
         ]
+        landmark_mm = None
+        if isinstance(markers, str) and true_landmarks is not None:
+            # The automatic fit's 20 landmarks against their true places (ICT's cm -> mm).
+            fitted = generated.correspondence.fitted_source[landmarks]
+            landmark_mm = 10.0 * np.linalg.norm(fitted - true_landmarks, axis=1)
         row = {
             "case": label,
-            "markers": None if markers is None else len(markers),
+            "markers": markers if isinstance(markers, str) or markers is None else len(markers),
+            "landmark_error_mm": None
+            if landmark_mm is None
+            else {
+                "median": float(np.median(landmark_mm)),
+                "max": float(landmark_mm.max()),
+                "per_landmark": landmark_mm.tolist(),
+            },
             "residual_edges": generated.correspondence.residual,
             **score.as_dict(),
             "transfer_not_below_naive": worse,
@@ -252,6 +275,12 @@ def _accuracy(
         rows.append(row)
         worst = score.names[int(np.argmax(score.transfer))]
         print(f"  {label}")
+        if landmark_mm is not None:
+            print(
+                f"    automatic fit: the 20 landmarks {np.median(landmark_mm):.2f} mm from their "
+                f"true places (median; {landmark_mm.max():.2f} mm at most), residual "
+                f"{generated.correspondence.residual:.3f} target edges"
+            )
         print(
             f"    transfer {100 * score.transfer_overall:5.1f}%  naive {100 * score.naive_overall:5.1f}%"
             f"  (transfer below naive on {len(score.names) - len(worse)} of {len(score.names)}; "
