@@ -84,8 +84,8 @@ def serving(settings: Any, *, port: int = 0, startup_timeout: float = 10.0) -> I
     stop a server and start the next one on the same port at once.
     """
     from facecast.server.app import create_app
+    from facecast.server.pages.viewer import mount_viewer
     from facecast.server.runner import ThreadedServer, uvicorn_config
-    from facecast.server.viewer import mount_viewer
 
     app = create_app(settings)
     if not any(getattr(route, "path", None) == "/viewer" for route in app.routes):

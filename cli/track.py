@@ -23,8 +23,8 @@ from tqdm import tqdm
 from facecast.cli.errors import CommandError
 from facecast.cli.snapshot import CHROMIUM_ARGS, chromium_path
 from facecast.cli.y4m import Y4MVideo, open_y4m
-from facecast.server.perform_page import PERFORM_ASSETS
-from facecast.server.viewer import viewer_dir
+from facecast.server.pages.perform import PERFORM_ASSETS
+from facecast.server.pages.viewer import viewer_dir
 
 __all__ = ["BACKENDS", "TRACK_COLOR_SPACE", "TrackResult", "track_video"]
 

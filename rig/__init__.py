@@ -11,9 +11,9 @@ from .io.gltf import export_glb, read_glb_morph_targets
 from .io.loaders import load_example_set
 from .io.meshio import read_obj, read_obj_vertices, read_points, write_obj
 from .io.rigfile import load_rig, rig_from_bytes
-from .kernels import KERNELS
 from .noise import estimate_noise
 from .pose import align_points, similarity_transform
+from .radial import KERNELS
 from .regions import Region, fit_regions, split_masks
 from .rig import Rig
 from .smoothing import SMOOTHING_CHOICES, SmoothedTake, smooth_take

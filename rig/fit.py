@@ -20,7 +20,7 @@ from .basis import BasisBuild
 from .bounds import sparsity_penalty
 from .errors import FitError
 from .examples import ExampleSet
-from .kernels import KERNELS, evaluate_kernel, kernel_derivative, kernel_slope
+from .radial import KERNELS, evaluate_kernel, kernel_derivative, kernel_slope
 from .rig import Rig, WeightModel
 
 __all__ = [

@@ -20,7 +20,6 @@ from .errors import InputError
 from .examples import check_stable_points
 from .io.rigformat import content_checksum, rig_to_bytes, save_rig
 from .kernel import bspline_kernel
-from .kernels import evaluate_kernel
 from .pose import (
     POSE_REFINE_MAX_CONDITION,
     align_points,
@@ -29,6 +28,7 @@ from .pose import (
     refine_pose,
     similarity_transform,
 )
+from .radial import evaluate_kernel
 
 if TYPE_CHECKING:
     from ._kernel import BsplineKernel

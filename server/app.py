@@ -23,25 +23,25 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from facecast import __version__
 
-from .api_docs import mount_docs
-from .auth import authorize_request
-from .blending import BlendBatcher
-from .channel_routes import router as channel_router
+from .channels.hub import ChannelHub
+from .channels.routes import router as channel_router
+from .compute.blending import BlendBatcher
+from .connection.registry import SessionRegistry
 from .errors import LogOnce, install_error_handlers, problem
-from .hub import ChannelHub
-from .landing import mount_landing
+from .guards.auth import authorize_request
+from .guards.origins import OriginGuard
+from .http.performers import profile_store
+from .http.performers import router as performer_router
+from .http.rigs import router as rest_router
 from .metrics import CONTENT_TYPE_LATEST, Metrics
-from .origins import OriginGuard
-from .perform_page import mount_perform
-from .performer_routes import profile_store
-from .performer_routes import router as performer_router
-from .rest import router as rest_router
-from .sessions import SessionRegistry
+from .pages.api_docs import mount_docs
+from .pages.landing import mount_landing
+from .pages.perform import mount_perform
+from .pages.viewer import mount_viewer
+from .serving.seam import TransportSeam
 from .settings import Settings
-from .store import RigStore
-from .stream import router as stream_router
-from .transport import TransportSeam
-from .viewer import mount_viewer
+from .storage.rig_store import RigStore
+from .stream.route import router as stream_router
 
 __all__ = ["SESSIONS_STATE_KEY", "SETTINGS_ENV", "STOPPING_STATE_KEY", "app_from_env", "create_app"]
 

@@ -23,7 +23,7 @@ from prometheus_client import (
 from prometheus_client.metrics_core import HistogramMetricFamily
 from prometheus_client.registry import Collector
 
-from .stages import StageCollector, StageTimes
+from .compute.stages import StageCollector, StageTimes
 
 if TYPE_CHECKING:
     from collections.abc import Iterator

@@ -26,10 +26,10 @@ from fastapi import FastAPI
 from prometheus_client.multiprocess import mark_process_dead
 
 from .app import SESSIONS_STATE_KEY, SETTINGS_ENV, STOPPING_STATE_KEY, create_app
-from .http_guard import HTTP_IMPLEMENTATIONS, PendingConnections, guarded_http_protocol
 from .logs import uvicorn_log_config
+from .serving.http_guard import HTTP_IMPLEMENTATIONS, PendingConnections, guarded_http_protocol
+from .serving.ws_guard import guarded_ws_protocol
 from .settings import Settings, SettingsError
-from .ws_guard import guarded_ws_protocol
 
 __all__ = [
     "WS_IMPLEMENTATIONS",

@@ -45,13 +45,13 @@ LAZY: dict[tuple[str, str], str] = {
     ),
     ("facecast.cli.facetrack", "cv2"): "optional dependency: the `perform` extra",
     ("facecast.cli.facetrack", "mediapipe.*"): "optional dependency: the `perform` extra",
-    ("facecast.server.bus", "redis.asyncio"): (
+    ("facecast.server.channels.bus", "redis.asyncio"): (
         "start-up time: redis.asyncio (~0.2 s) only for a server given a Redis URL"
     ),
-    ("facecast.server.ws_guard", "uvicorn.protocols.websockets.websockets_impl"): (
+    ("facecast.server.serving.ws_guard", "uvicorn.protocols.websockets.websockets_impl"): (
         "chosen at run time: importing uvicorn's legacy implementation warns it is deprecated"
     ),
-    ("facecast.server.viewer", "facecast.rig.demo"): (
+    ("facecast.server.pages.viewer", "facecast.rig.demo"): (
         "start-up time: the demo performance is generated only when /viewer asks for it"
     ),
 }
@@ -169,6 +169,46 @@ def test_no_import_cycle_between_facecast_modules(graph):
         graphlib.TopologicalSorter(edges).prepare()
     except graphlib.CycleError as exc:
         pytest.fail("import cycle: " + " -> ".join(exc.args[1]))
+
+
+#: The server's rooms, lowest first: a module imports only from its own room or a lower one
+#: (server/SERVER.md, "Modules"). Rooms on one rank do not import each other; the base
+#: modules at the top level (names, errors, settings, logs) are one room.
+SERVER_BASE = frozenset({"names", "errors", "settings", "logs"})
+SERVER_ROOMS: tuple[tuple[str, ...], ...] = (
+    ("base",),
+    ("compute",),
+    ("metrics",),
+    ("storage", "serving"),
+    ("guards",),
+    ("connection",),
+    ("stream", "channels", "http", "pages"),
+    ("app",),
+    ("runner",),
+    ("testing",),
+)
+
+
+def _room(module: str) -> str | None:
+    parts = module.split(".")
+    if parts[:2] != ["facecast", "server"] or len(parts) < 3:
+        return None
+    return "base" if parts[2] in SERVER_BASE else parts[2]
+
+
+def test_server_rooms_import_one_way(graph):
+    edges, _ = graph
+    rank = {room: i for i, rooms in enumerate(SERVER_ROOMS) for room in rooms}
+    rooms_seen = {_room(m) for m in edges if _room(m)}
+    assert rooms_seen == set(rank), "a server module outside SERVER_ROOMS, or a room gone"
+    upward = [
+        f"{module} -> {target}"
+        for module, targets in edges.items()
+        if (room := _room(module))
+        for target in targets
+        if (other := _room(target)) and other != room and rank[other] >= rank[room]
+    ]
+    assert upward == []
 
 
 def test_rig_imports_nothing_of_protocol_server_or_client(graph):

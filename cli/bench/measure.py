@@ -11,7 +11,7 @@ from typing import Any
 
 __all__ = ["STAGES", "cpu_seconds", "stage_delta", "stage_snapshot"]
 
-#: The server's stages (``facecast.server.stages.STAGES``, read off ``/metrics`` by name
+#: The server's stages (``facecast.server.compute.stages.STAGES``, read off ``/metrics`` by name
 #: so the benchmarks never import the server).
 STAGES = ("decode", "weights", "blend", "cast", "encode", "write")
 

@@ -133,7 +133,7 @@ def _score_landmarks(
 ) -> dict[str, Any]:
     """Every path on one kind of landmarks (exact or tracked): the rows and the capture."""
     from facecast.rig.evaluation.webcam import captured_keys, superposition, webcam_rows
-    from facecast.server.performers import held_noise
+    from facecast.server.storage.profiles import held_noise
 
     keys, held = captured_keys(key_points, setup.clips, key_found)
     noise, held_frames = held_noise(held)

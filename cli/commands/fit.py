@@ -13,7 +13,7 @@ from pathlib import Path
 
 from facecast.cli.errors import CommandError
 
-# The engine's kernel names (facecast.rig.kernels.KERNELS), spelled out so --help does
+# The engine's kernel names (facecast.rig.radial.KERNELS), spelled out so --help does
 # not import numpy; a test keeps the two equal.
 KERNEL_CHOICES = ("bspline", "gaussian", "thin_plate", "linear")
 

@@ -20,7 +20,7 @@ from ..errors import FitError, InputError
 from ..examples import ExampleSet
 from ..filters import OneEuroFilter
 from ..fit import fit
-from ..kernels import KERNELS
+from ..radial import KERNELS
 from ..rig import Rig
 
 if TYPE_CHECKING:

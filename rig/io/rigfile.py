@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import RigFileError
-from ..kernels import KERNELS
+from ..radial import KERNELS
 from ..rig import Rig, WeightModel
 from .rigformat import (
     DEFAULT_MAX_BYTES,

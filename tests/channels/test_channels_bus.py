@@ -12,7 +12,7 @@ import msgpack
 import pytest
 import redis
 
-from facecast.server.bus import RedisBus, frames_channel
+from facecast.server.channels.bus import RedisBus, frames_channel
 
 from ._helpers import wait_for
 

@@ -8,8 +8,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from websockets.frames import Frame, Opcode
 
+from facecast.server.serving.seam import binary_frame
 from facecast.server.testing import WS_IMPLEMENTATIONS, run_server
-from facecast.server.transport import binary_frame
 
 from ._helpers import RIG_IDS, Publisher, Watcher, points, wait_for
 

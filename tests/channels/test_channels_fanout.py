@@ -10,7 +10,7 @@ import pytest
 
 from facecast.client.channel import channel_url
 from facecast.protocol import ChannelIdle, ChannelLive, ErrorCode, Hello, Ready, Result
-from facecast.server.fanout import ChannelFrame, key_state
+from facecast.server.channels.fanout import ChannelFrame, key_state
 from facecast.server.testing import run_server
 
 from ._helpers import RIG_IDS, Publisher, Watcher, points, refused, wait_for

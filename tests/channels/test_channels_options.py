@@ -25,7 +25,7 @@ from facecast.protocol import (
     encode,
 )
 from facecast.rig.rebase import rebase
-from facecast.server.fanout import ChannelFrame, key_state
+from facecast.server.channels.fanout import ChannelFrame, key_state
 from facecast.server.testing import run_server
 
 from ._helpers import RIG_IDS, Publisher, Watcher, points

@@ -30,7 +30,7 @@ from facecast.protocol import (
     encode,
 )
 from facecast.rig.sources.loading import load_source_animation
-from facecast.server.fanout import ChannelFrame
+from facecast.server.channels.fanout import ChannelFrame
 from facecast.server.testing import run_server
 
 from ._helpers import K, Publisher, Watcher, points, refused, wait_for

@@ -16,7 +16,7 @@ import pytest
 
 from facecast.client.channel import channel_url
 from facecast.protocol import ChannelIdle, ChannelLive, Error, ErrorCode, Hello, Result
-from facecast.server.hub import RECLAIM_WAIT
+from facecast.server.channels.hub import RECLAIM_WAIT
 from facecast.server.testing import run_server
 
 from ._helpers import RIG_IDS, Publisher, Watcher, points, refused, wait_for

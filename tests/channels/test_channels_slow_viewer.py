@@ -9,7 +9,7 @@ import pytest
 import websockets
 
 from facecast.client.channel import channel_url
-from facecast.server.outbox import MAX_OUTBOX
+from facecast.server.channels.outbox import MAX_OUTBOX
 from facecast.server.testing import run_server
 
 from ._helpers import Publisher, Watcher, points, tiny_rig, write_rigs

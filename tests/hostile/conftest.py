@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from facecast.server.http_guard import HTTP_IMPLEMENTATIONS
+from facecast.server.serving.http_guard import HTTP_IMPLEMENTATIONS
 from tests.channels._helpers import RIG_IDS, tiny_rig, write_rigs
 
 TOKENS = {

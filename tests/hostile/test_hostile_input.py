@@ -38,7 +38,7 @@ from facecast.protocol import (
 )
 from facecast.rig import ExampleSet, fit
 from facecast.server.settings import Settings
-from facecast.server.store import SCRATCH_DIR
+from facecast.server.storage.rig_store import SCRATCH_DIR
 from facecast.server.testing import free_port, run_server
 from tests.server._server_helpers import folder_members, tiny_example_set, write_example_folder
 

@@ -20,8 +20,8 @@ import time
 from pathlib import Path
 
 from facecast.cli.snapshot import CHROMIUM_ARGS, chromium_path, serving, write_demo_rig
+from facecast.server.pages.viewer import viewer_dir
 from facecast.server.settings import Settings
-from facecast.server.viewer import viewer_dir
 
 from .conftest import CHARACTER, _write_character_rig
 from .facevideo import FacePose, write_y4m

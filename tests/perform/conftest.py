@@ -22,9 +22,9 @@ from facecast.rig import fit
 from facecast.rig.demo import demo_example_set
 from facecast.rig.examples import ExampleSet
 from facecast.rig.sources.layouts import load_layout
-from facecast.server.perform_page import PERFORM_ASSETS
+from facecast.server.pages.perform import PERFORM_ASSETS
+from facecast.server.pages.viewer import viewer_dir
 from facecast.server.settings import Settings
-from facecast.server.viewer import viewer_dir
 
 playwright_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
 pytest.importorskip("skimage", reason="scikit-image (the test extras) is not installed")

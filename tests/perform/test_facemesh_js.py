@@ -16,7 +16,7 @@ import pytest
 from facecast.rig import estimate_noise
 from facecast.rig.sources.facemesh import normalise_mesh
 from facecast.rig.sources.layouts import load_layout
-from facecast.server.viewer import viewer_dir
+from facecast.server.pages.viewer import viewer_dir
 
 _SCRIPT = """
 import { readFileSync } from "node:fs";

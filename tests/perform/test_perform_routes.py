@@ -6,9 +6,9 @@ import httpx
 import pytest
 
 from facecast.cli.snapshot import serving
-from facecast.server.perform_page import PERFORM_ASSETS
+from facecast.server.pages.perform import PERFORM_ASSETS
+from facecast.server.pages.viewer import viewer_dir
 from facecast.server.settings import Settings
-from facecast.server.viewer import viewer_dir
 
 BUILT = all((viewer_dir() / "dist" / path).is_file() for path, _ in PERFORM_ASSETS.values())
 needs_build = pytest.mark.skipif(

@@ -18,7 +18,7 @@ from facecast.cli.snapshot import chromium_path
 from facecast.cli.track import track_video
 from facecast.rig.evaluation.webcam import ict_performer
 from facecast.rig.sources.ict import ict_regions, locate_ict
-from facecast.server.viewer import viewer_dir
+from facecast.server.pages.viewer import viewer_dir
 
 ARCHIVE = locate_ict()
 pytestmark = [

@@ -26,7 +26,7 @@ from facecast.rig import (
 )
 from facecast.rig.examples import MIN_NEUTRAL_RADIUS
 from facecast.rig.fit import NOISE_MAX_RELATIVE
-from facecast.rig.kernels import bspline
+from facecast.rig.radial import bspline
 from facecast.rig.rig import CALIBRATION_RANGE, POINT_RANGE
 
 M, K, V = 9, 6, 40

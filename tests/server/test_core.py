@@ -29,7 +29,7 @@ from facecast.protocol import (
     encode,
 )
 from facecast.rig.errors import RigError
-from facecast.server.core import (
+from facecast.server.connection.core import (
     CLOSE_GRACE,
     Closing,
     ConnectionCore,
@@ -37,7 +37,7 @@ from facecast.server.core import (
     StreamCore,
     WatcherCore,
 )
-from facecast.server.frame_rate import ERROR_INTERVAL
+from facecast.server.guards.frame_rate import ERROR_INTERVAL
 from facecast.server.settings import Settings
 
 IDLE = 5.0

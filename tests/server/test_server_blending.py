@@ -11,7 +11,7 @@ from _server_helpers import frame_points, tiny_rig
 
 from facecast.rig import kernel as rig_kernel
 from facecast.rig.errors import InputError
-from facecast.server.blending import (
+from facecast.server.compute.blending import (
     MAX_BATCH,
     MIN_BATCH,
     MIN_BATCH_WITHOUT_KERNEL,

@@ -61,7 +61,7 @@ async def stream(server, rig_id: str, points: list[np.ndarray], **hello):
 
 @pytest.fixture(params=["inline", "pool"])
 async def served(request, tmp_path, ws_impl, monkeypatch):
-    from facecast.server import session as session_module
+    from facecast.server.stream import session as session_module
 
     # Every blend on the loop, or every one through the clone pool's batcher.
     monkeypatch.setattr(

@@ -16,15 +16,15 @@ from hypothesis import settings as hsettings
 from hypothesis import strategies as st
 
 from facecast.rig import RigFileError, fit
-from facecast.server.archive import (
+from facecast.server.settings import Settings, SettingsError, parse_tokens
+from facecast.server.storage.archive import (
     MAX_NAME_BYTES,
     MAX_PATH_BYTES,
     ArchiveError,
     ArchiveLimits,
     extract_archive,
 )
-from facecast.server.settings import Settings, SettingsError, parse_tokens
-from facecast.server.store import SCRATCH_DIR, RigNotFoundError, RigStore
+from facecast.server.storage.rig_store import SCRATCH_DIR, RigNotFoundError, RigStore
 
 # -- settings -----------------------------------------------------------------------------
 
@@ -244,7 +244,7 @@ def test_stale_temp_files_of_killed_writers_are_removed_at_open(tmp_path):
 _KILLED_STORE = (
     "import sys\n"
     "from pathlib import Path\n"
-    "from facecast.server.store import RigStore\n"
+    "from facecast.server.storage.rig_store import RigStore\n"
     "store = RigStore(Path(sys.argv[1]))\n"
     "store.open()\n"
     "(store.scratch / 'upload-abc').mkdir()\n"

@@ -14,8 +14,8 @@ from _server_helpers import open_session, tiny_rig
 from facecast.protocol import Frame, Result, decode_server, encode
 from facecast.rig import ExampleSet, fit
 from facecast.rig.sources.capture import robust_example
-from facecast.server.performers import HELD_NOISE_FLOOR, MAX_HELD_FRAMES
 from facecast.server.settings import Settings
+from facecast.server.storage.profiles import HELD_NOISE_FLOOR, MAX_HELD_FRAMES
 from facecast.server.testing import run_server
 
 pytestmark = pytest.mark.anyio

@@ -9,8 +9,8 @@ from _server_helpers import frame_points, open_session, recv_message, tiny_rig
 from prometheus_client.parser import text_string_to_metric_families
 
 from facecast.protocol import Frame, Result, encode
+from facecast.server.compute.stages import STAGES
 from facecast.server.settings import Settings
-from facecast.server.stages import STAGES
 from facecast.server.testing import run_server
 
 pytestmark = pytest.mark.anyio
@@ -45,7 +45,7 @@ async def scrape(server) -> dict[tuple[str, str], float]:
 
 @pytest.mark.parametrize("where", ["inline", "pool"])
 async def test_every_stage_of_every_vertices_frame_is_timed(tmp_path, ws_impl, monkeypatch, where):
-    from facecast.server import session as session_module
+    from facecast.server.stream import session as session_module
 
     monkeypatch.setattr(session_module, "INLINE_MAX_SECONDS", 1e9 if where == "inline" else 0.0)
     rig = tiny_rig(num_vertices=2000)
@@ -62,7 +62,7 @@ async def test_every_stage_of_every_vertices_frame_is_timed(tmp_path, ws_impl, m
 
 
 async def test_pooled_blends_count_their_batch_sizes(tmp_path, ws_impl, monkeypatch):
-    from facecast.server import session as session_module
+    from facecast.server.stream import session as session_module
 
     monkeypatch.setattr(session_module, "INLINE_MAX_SECONDS", 0.0)
     rig = tiny_rig(num_vertices=2000)

@@ -43,9 +43,9 @@ from facecast.protocol import (
 from facecast.rig import fit
 from facecast.rig.filters import KALMAN_ACCELERATION, KalmanFilter, OneEuroFilter
 from facecast.rig.rebase import rebase
-from facecast.server.cloning import blend_seconds
-from facecast.server.session import INLINE_MAX_SECONDS
+from facecast.server.compute.cloning import blend_seconds
 from facecast.server.settings import Settings
+from facecast.server.stream.session import INLINE_MAX_SECONDS
 from facecast.server.testing import run_server
 
 pytestmark = pytest.mark.anyio
@@ -616,7 +616,7 @@ async def test_pipelined_frames_reaching_an_idle_session_are_all_processed(serve
 async def test_client_with_two_frames_in_flight_never_loses_one(
     tmp_path, ws_impl, monkeypatch, where
 ):
-    from facecast.server import session as session_module
+    from facecast.server.stream import session as session_module
 
     # All blends on the loop, or all in the clone pool, whatever the rig's size.
     limit = 1e9 if where == "inline" else 0.0
@@ -739,7 +739,7 @@ async def test_client_that_never_reads_is_bounded_and_does_not_slow_others(tmp_p
 
 
 async def test_client_that_never_reads_an_inline_session_is_bounded(tmp_path, ws_impl):
-    from facecast.server import session as session_module
+    from facecast.server.stream import session as session_module
 
     mid = tiny_rig(num_vertices=20_000)  # 240 kB results, cloned on the loop
     settings = Settings(rigs_dir=tmp_path / "rigs", max_fps=1e6, rate_burst=100_000)

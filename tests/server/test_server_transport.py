@@ -35,15 +35,15 @@ from facecast.protocol import (
 )
 from facecast.protocol import ClientProtocol as FacecastClient
 from facecast.server.app import create_app
-from facecast.server.settings import Settings
-from facecast.server.testing import run_server
-from facecast.server.transport import (
+from facecast.server.serving.seam import (
     AsgiTransport,
     SansIOTransport,
     TransportSeam,
     binary_frame,
     transport_for,
 )
+from facecast.server.settings import Settings
+from facecast.server.testing import run_server
 
 pytestmark = pytest.mark.anyio
 
@@ -373,7 +373,7 @@ async def test_a_burst_of_frames_taken_together_is_answered_in_order(tmp_path, r
     # (issue #25 item 8: 12 of 20 on a busy one). Without that share every frame of
     # every read is taken while the reader is parked, however the burst was split; the
     # share itself is the next test's.
-    monkeypatch.setattr("facecast.server.session._TAKE_SECONDS", 60.0)
+    monkeypatch.setattr("facecast.server.stream.session._TAKE_SECONDS", 60.0)
     settings = Settings(rigs_dir=tmp_path / "rigs")
     settings.rigs_dir.mkdir(parents=True)
     rig.save(settings.rigs_dir / "tiny.rig")
@@ -403,7 +403,7 @@ async def test_a_read_takes_frames_for_its_share_of_the_loop_then_hands_the_rest
     # With no time to spare per read, only the first frame of each read is taken on the
     # protocol's stack; the rest go through the reader, and every frame is still answered
     # in order (they arrived together, within one burst).
-    monkeypatch.setattr("facecast.server.session._TAKE_SECONDS", 0.0)
+    monkeypatch.setattr("facecast.server.stream.session._TAKE_SECONDS", 0.0)
     settings = Settings(rigs_dir=tmp_path / "rigs")
     settings.rigs_dir.mkdir(parents=True)
     rig.save(settings.rigs_dir / "tiny.rig")

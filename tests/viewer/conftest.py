@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from facecast.cli.snapshot import chromium_path, launch, serving, write_demo_rig
+from facecast.server.pages.viewer import viewer_dir
 from facecast.server.settings import Settings
-from facecast.server.viewer import viewer_dir
 
 playwright_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
 

@@ -12,10 +12,10 @@ import httpx
 import pytest
 
 from facecast.cli.snapshot import serving
-from facecast.server.api_docs import DOCS_ASSETS
-from facecast.server.landing import LANDING_ASSETS
+from facecast.server.pages.api_docs import DOCS_ASSETS
+from facecast.server.pages.landing import LANDING_ASSETS
+from facecast.server.pages.viewer import viewer_dir
 from facecast.server.settings import Settings
-from facecast.server.viewer import viewer_dir
 
 from .conftest import TOKENS
 from .test_viewer_pages import FRAMES

@@ -10,7 +10,7 @@ import subprocess
 
 import pytest
 
-from facecast.server.viewer import viewer_dir
+from facecast.server.pages.viewer import viewer_dir
 
 
 def test_viewer_javascript_unit_tests_pass():

@@ -9,7 +9,7 @@ import pytest
 
 from facecast.cli.snapshot import serving
 from facecast.rig.demo import demo_animation
-from facecast.server.viewer import viewer_dir
+from facecast.server.pages.viewer import viewer_dir
 
 BUILT = (viewer_dir() / "dist" / "viewer.js").is_file()
 

@@ -1,0 +1,3 @@
+"""The pages a browser opens: ``/``, ``/viewer``, ``/overlay``, ``/perform``, ``/docs``, and
+their built files.
+"""

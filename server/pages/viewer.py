@@ -1,0 +1,114 @@
+"""The web viewer's routes: ``/viewer``, ``/overlay``, their built script, and the demo performance.
+
+Serves files built by ``npm run build`` in client/viewer (never builds or imports client
+code) and ``GET /v1/demo/animation``; the pages authenticate from the browser themselves.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+
+import anyio
+import msgpack
+from fastapi import APIRouter, Depends, FastAPI, Request, Response
+from fastapi.responses import FileResponse, HTMLResponse
+
+from facecast.protocol import array_to_wire
+
+from ..errors import ApiError
+from ..guards.auth import READ_ROLES, requires
+from ..settings import Settings
+
+__all__ = ["DEMO_ANIMATION_PATH", "demo_animation_bytes", "mount_viewer", "viewer_dir"]
+
+DEMO_ANIMATION_PATH = "/v1/demo/animation"
+#: The only files under /viewer/assets/; anything else is 404 (no directory serving).
+_ASSETS = {
+    "viewer.js": "text/javascript; charset=utf-8",
+    "viewer.js.map": "application/json",
+    "viewer.js.LEGAL.txt": "text/plain; charset=utf-8",
+}
+_PAGES = {"viewer": "viewer.html", "overlay": "overlay.html"}
+_NOT_BUILT = """<!doctype html><meta charset="utf-8"><title>facecast viewer not built</title>
+<body style="font:15px system-ui;background:#14161c;color:#ffd8dc;padding:2em">
+<h1>The facecast web viewer is not built</h1>
+<p>Run <code>scripts/setup</code> (or <code>npm ci &amp;&amp; npm run build</code> in
+<code>client/viewer</code>), then reload this page.</p>"""
+
+
+def viewer_dir() -> Path:
+    """client/viewer of this installation, found without importing the client package."""
+    spec = importlib.util.find_spec("facecast.client")
+    if spec is None or not spec.submodule_search_locations:  # pragma: no cover - broken install
+        return Path(__file__).resolve().parents[2] / "client" / "viewer"
+    return Path(next(iter(spec.submodule_search_locations))) / "viewer"
+
+
+@functools.lru_cache(maxsize=1)
+def demo_animation_bytes() -> bytes:
+    """The demo performance as one msgpack map (built once, ~0.5 s, then cached).
+
+    ``{"v": 1, "type": "animation", "fps": float, "points": array (F, K, 3) f32}``, the
+    array in the wire format of PROTOCOL.md §4; K is the demo rig's point count.
+    """
+    from facecast.rig.demo import demo_animation
+
+    animation = demo_animation(with_vertices=False)
+    points = animation.points.astype("<f4")
+    data: bytes = msgpack.packb(
+        {"v": 1, "type": "animation", "fps": float(animation.fps), "points": array_to_wire(points)}
+    )
+    return data
+
+
+def mount_viewer(app: FastAPI, settings: Settings) -> None:
+    """Add ``/viewer``, ``/overlay``, ``/viewer/assets/{name}`` and ``GET /v1/demo/animation``.
+
+    The pages themselves need no token (they hold no data); the browser presents the
+    ``?token=`` of the page URL to the API and the WebSocket.
+    """
+    root = viewer_dir()
+    dist = root / "dist"
+    router = APIRouter(include_in_schema=False)
+
+    def page(name: str) -> Callable[[], Awaitable[Response]]:
+        async def handler() -> Response:
+            if not (dist / "viewer.js").is_file():
+                return HTMLResponse(_NOT_BUILT, status_code=503)
+            html = await anyio.Path(root / _PAGES[name]).read_text(encoding="utf-8")
+            return HTMLResponse(html, headers={"Cache-Control": "no-cache"})
+
+        return handler
+
+    router.add_api_route("/viewer", page("viewer"), methods=["GET"])
+    router.add_api_route("/overlay", page("overlay"), methods=["GET"])
+
+    @router.get("/viewer/assets/{name}")
+    async def asset(name: str) -> Response:
+        media_type = _ASSETS.get(name)
+        path = dist / name
+        if media_type is None or not path.is_file():
+            raise ApiError(404, "not_found", f"no viewer asset {name[:80]!r}")
+        return FileResponse(path, media_type=media_type, headers={"Cache-Control": "no-cache"})
+
+    @router.get(
+        DEMO_ANIMATION_PATH,
+        include_in_schema=True,
+        tags=["demo"],
+        summary="The demo performance's feature points (msgpack; see server/viewer.py)",
+        response_class=Response,
+        responses={200: {"content": {"application/vnd.msgpack": {}}}},
+        dependencies=[Depends(requires(*READ_ROLES))],
+    )
+    async def demo_animation(request: Request) -> Response:
+        data = await anyio.to_thread.run_sync(demo_animation_bytes)
+        return Response(
+            data,
+            media_type="application/vnd.msgpack",
+            headers={"Cache-Control": "public, max-age=3600"},
+        )
+
+    app.include_router(router)

@@ -1,0 +1,3 @@
+"""What the server keeps on disk: fitted rigs, performer profiles, and safe extraction of
+uploaded archives.
+"""

@@ -1,0 +1,362 @@
+"""The rig store: fitted rigs as ``<id>.rig`` files in one directory, with an in-memory cache.
+
+Writes are atomic (temp file, fsync, rename, fsync dir) so a crash leaves the old or the
+new rig; every read re-stats, so other worker processes' changes are seen. Temp files
+(rig writes, unpacked uploads) live in the store's scratch directory, which a later
+start cleans. Blocking calls: run them in a thread, never on the event loop.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+import secrets
+import shutil
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from facecast.protocol import Limits
+from facecast.rig.errors import RigFileError
+from facecast.rig.io.gltf import export_glb
+from facecast.rig.io.rigfile import rig_from_bytes
+
+from ..errors import RigNotFoundError
+from ..names import (
+    NAME_PATTERN,
+    PERFORMER_SEPARATOR,
+    RIG_ID_PATTERN,
+    performer_rig_id,
+    valid_name,
+    valid_rig_id,
+)
+
+if TYPE_CHECKING:
+    from facecast.rig.rig import Rig
+
+__all__ = [
+    "NAME_PATTERN",
+    "PERFORMER_SEPARATOR",
+    "RIG_ID_PATTERN",
+    "RigInfo",
+    "RigNotFoundError",
+    "RigStore",
+    "check_servable",
+    "fsync_directory",
+    "performer_rig_id",
+    "valid_name",
+    "valid_rig_id",
+    "write_atomically",
+]
+
+SUFFIX = ".rig"
+#: Under the rig directory: one folder per live store (process), holding its temp files.
+SCRATCH_DIR = ".scratch"
+#: In each such folder, a file its store holds an exclusive ``flock`` on while it lives:
+#: the kernel drops the lock when the process dies, kill -9 included, so any store that
+#: can take the lock knows the folder is a dead one's leftovers.
+_LOCK_NAME = ".lock"
+#: Temp files of facecast versions that wrote them beside the rigs; removed at start-up
+#: once older than this (they cannot be told from a live writer's otherwise).
+_TEMP_PREFIX = ".tmp-"
+_STALE_TEMP_SECONDS = 3600.0
+#: A scratch folder without its lock file is being created, or its creator died doing so.
+_UNLOCKED_GRACE_SECONDS = 60.0
+
+
+def check_servable(rig: Rig, limits: Limits, source: str) -> None:
+    """Raise ``RigFileError`` (``rig_exceeds_limits``) for a rig the protocol cannot carry.
+
+    A rig is only worth storing if its ``ready`` and results fit PROTOCOL.md §7 as every
+    client decodes it: K <= max_points, V <= max_vertices, M <= max_names, and every
+    example name at most max_string characters.
+    """
+    problems = []
+    if rig.num_points > limits.max_points:
+        problems.append(f"K={rig.num_points} feature points (max_points {limits.max_points})")
+    if rig.num_vertices > limits.max_vertices:
+        problems.append(f"V={rig.num_vertices} vertices (max_vertices {limits.max_vertices})")
+    if rig.num_examples > limits.max_names:
+        problems.append(f"M={rig.num_examples} examples (max_names {limits.max_names})")
+    long = [name for name in rig.names if len(name) > limits.max_string]
+    if long:
+        problems.append(
+            f"{len(long)} example name(s) over {limits.max_string} characters "
+            f"(the first: {long[0][:40]!r}...)"
+        )
+    if problems:
+        raise RigFileError(
+            f"{source} cannot be streamed: " + "; ".join(problems) + " (PROTOCOL.md §7)",
+            code="rig_exceeds_limits",
+        )
+
+
+def write_atomically(directory: Path, name: str, data: bytes, *, scratch: Path) -> bool:
+    """Write ``directory / name`` whole or not at all; returns whether it is new.
+
+    Temp file in ``scratch`` (a rig store's scratch folder, on the same file system, so
+    the rename stays atomic and a writer killed mid-write leaves nothing the next start
+    does not remove), fsync, rename, fsync of the directory: a crash leaves the old file
+    or the new one, and concurrent writers of one name each replace whole files (last one
+    wins).
+    """
+    path = directory / name
+    existed = path.exists()
+    temp = scratch / f"{name}-{secrets.token_hex(6)}"
+    fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(temp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            temp.unlink()
+        raise
+    fsync_directory(directory)
+    return not existed
+
+
+def fsync_directory(directory: Path) -> None:
+    """Make a rename or unlink in ``directory`` durable (else a power cut could lose it)."""
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@dataclass(frozen=True)
+class RigInfo:
+    id: str
+    size: int
+    modified: float  # POSIX seconds
+
+
+@dataclass
+class _Entry:
+    key: tuple[int, int, int]  # (inode, size, mtime_ns): changes on every replace
+    rig: Rig
+    glb: bytes | None = None
+
+
+class RigStore:
+    """Rig files in ``directory``; ``cache_size`` loaded rigs kept per process.
+
+    ``max_rig_bytes`` bounds a rig file's unpacked size. Thread-safe; a rig id must satisfy ``valid_rig_id`` (callers check it first and
+    answer with their own error; here an invalid id is a ``ValueError``).
+    """
+
+    def __init__(
+        self, directory: Path, *, cache_size: int = 16, max_rig_bytes: int = 1 << 30
+    ) -> None:
+        self.directory = Path(directory)
+        self.cache_size = cache_size
+        self.max_rig_bytes = max_rig_bytes
+        self._cache: OrderedDict[str, _Entry] = OrderedDict()
+        self._lock = threading.Lock()
+        #: What a stored rig must fit: the protocol's limits, as every client decodes.
+        self.limits = Limits()
+        self._scratch: Path | None = None
+        self._scratch_lock: int | None = None  # the fd holding the scratch folder's flock
+
+    # -- lifecycle ----------------------------------------------------------------------
+    def open(self) -> None:
+        """Create the directory if needed and remove what killed processes left behind.
+
+        Every scratch folder no live store holds (partial rig writes, unpacked uploads of
+        a process killed mid-request) goes, at once; legacy ``.tmp-*`` files after an hour.
+        """
+        self.directory.mkdir(parents=True, exist_ok=True)
+        now = time.time()
+        for path in self.directory.glob(f"{_TEMP_PREFIX}*"):
+            with contextlib.suppress(OSError):
+                if now - path.stat().st_mtime > _STALE_TEMP_SECONDS:
+                    path.unlink()
+        root = self.directory / SCRATCH_DIR
+        root.mkdir(exist_ok=True)
+        for folder in root.iterdir():
+            if folder != self._scratch:
+                _remove_if_abandoned(folder, now)
+        _ = self.scratch
+
+    def close(self) -> None:
+        """Remove this store's scratch folder and release it (at shutdown)."""
+        with self._lock:
+            scratch, fd = self._scratch, self._scratch_lock
+            self._scratch = self._scratch_lock = None
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
+        if fd is not None:
+            os.close(fd)
+
+    @property
+    def scratch(self) -> Path:
+        """This store's own folder for temp files (created, and locked, on first use)."""
+        with self._lock:
+            if self._scratch is None:
+                self._scratch, self._scratch_lock = _claim_scratch(self.directory / SCRATCH_DIR)
+            return self._scratch
+
+    def check_readable(self) -> None:
+        """Raise ``OSError`` unless the directory can be listed and written."""
+        if not self.directory.is_dir():
+            raise FileNotFoundError(f"rig directory {self.directory} does not exist")
+        if not os.access(self.directory, os.R_OK | os.W_OK | os.X_OK):
+            raise PermissionError(f"rig directory {self.directory} is not readable and writable")
+        next(iter(os.scandir(self.directory)), None)
+
+    # -- queries ------------------------------------------------------------------------
+    def list(self) -> list[RigInfo]:
+        infos = []
+        with os.scandir(self.directory) as entries:
+            for entry in entries:
+                name = entry.name
+                if not name.endswith(SUFFIX) or name.startswith("."):
+                    continue
+                rig_id = name[: -len(SUFFIX)]
+                if not valid_rig_id(rig_id):
+                    continue
+                try:
+                    st = entry.stat()
+                except FileNotFoundError:  # deleted while listing
+                    continue
+                infos.append(RigInfo(rig_id, st.st_size, st.st_mtime))
+        infos.sort(key=lambda info: info.id)
+        return infos
+
+    def get(self, rig_id: str) -> Rig:
+        """The loaded rig, from the cache unless the file changed since it was loaded."""
+        return self._load(rig_id).rig
+
+    def get_bytes(self, rig_id: str) -> bytes:
+        try:
+            return self._path(rig_id).read_bytes()
+        except FileNotFoundError:
+            raise RigNotFoundError(rig_id) from None
+
+    def glb(self, rig_id: str) -> bytes:
+        """The target mesh with every example as a morph target, built once per rig version."""
+        entry = self._load(rig_id)
+        if entry.glb is None:
+            rig = entry.rig
+            m, v = rig.num_examples, rig.num_vertices
+            entry.glb = export_glb(
+                rig.target_neutral,
+                rig.target_faces,
+                rig.target_deltas.reshape(m, v, 3),
+                list(rig.names),
+            )
+        return entry.glb
+
+    # -- changes ------------------------------------------------------------------------
+    def put_bytes(self, rig_id: str, data: bytes) -> tuple[Rig, bool]:
+        """Validate ``data`` as a rig file and store it; returns ``(rig, created)``.
+
+        Raises ``RigFileError`` (nothing written) when ``data`` is not a valid rig, or
+        one the protocol cannot carry (``check_servable``).
+        """
+        rig = rig_from_bytes(data, source=f"rig {rig_id!r}", max_bytes=self.max_rig_bytes)
+        check_servable(rig, self.limits, f"rig {rig_id!r}")
+        created = self._write(rig_id, data)
+        return rig, created
+
+    def put_rig(self, rig_id: str, rig: Rig) -> bool:
+        """Store a fitted rig; returns whether the id is new.
+
+        Raises ``RigFileError`` (nothing written) for a rig the protocol cannot carry.
+        """
+        check_servable(rig, self.limits, f"rig {rig_id!r}")
+        return self._write(rig_id, rig.to_bytes())
+
+    def delete(self, rig_id: str) -> None:
+        path = self._path(rig_id)
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            raise RigNotFoundError(rig_id) from None
+        fsync_directory(self.directory)
+        with self._lock:
+            self._cache.pop(rig_id, None)
+
+    # -- internals ----------------------------------------------------------------------
+    def _path(self, rig_id: str) -> Path:
+        if not valid_rig_id(rig_id):
+            raise ValueError(f"invalid rig id {rig_id!r}")
+        return self.directory / f"{rig_id}{SUFFIX}"
+
+    def _write(self, rig_id: str, data: bytes) -> bool:
+        self._path(rig_id)  # validates the id
+        return write_atomically(self.directory, f"{rig_id}{SUFFIX}", data, scratch=self.scratch)
+
+    def _load(self, rig_id: str) -> _Entry:
+        path = self._path(rig_id)
+        try:
+            fh = path.open("rb")
+        except FileNotFoundError:
+            raise RigNotFoundError(rig_id) from None
+        with fh:
+            # fstat on the open file: the key describes exactly the bytes read below,
+            # even if another process replaces the file meanwhile.
+            st = os.fstat(fh.fileno())
+            key = (st.st_ino, st.st_size, st.st_mtime_ns)
+            with self._lock:
+                entry = self._cache.get(rig_id)
+                if entry is not None and entry.key == key:
+                    self._cache.move_to_end(rig_id)
+                    return entry
+            data = fh.read()
+        rig = rig_from_bytes(data, source=f"rig {rig_id!r}", max_bytes=self.max_rig_bytes)
+        # A file put in the directory by hand is held to what an upload is.
+        check_servable(rig, self.limits, f"rig {rig_id!r}")
+        entry = _Entry(key, rig)
+        with self._lock:
+            self._cache[rig_id] = entry
+            self._cache.move_to_end(rig_id)
+            while len(self._cache) > self.cache_size:
+                self._cache.popitem(last=False)
+        return entry
+
+
+def _claim_scratch(root: Path) -> tuple[Path, int]:
+    """A new scratch folder under ``root`` and the fd holding the flock on its lock file.
+
+    The lock file is created and locked under a temporary name, then renamed into place,
+    so a lock file that can be seen is already held while its process lives.
+    """
+    root.mkdir(parents=True, exist_ok=True)
+    folder = root / f"{os.getpid()}-{secrets.token_hex(6)}"
+    folder.mkdir()
+    pending = folder / f".pending-{secrets.token_hex(4)}"
+    fd = os.open(pending, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    os.rename(pending, folder / _LOCK_NAME)
+    return folder, fd
+
+
+def _remove_if_abandoned(folder: Path, now: float) -> None:
+    """Delete a scratch folder whose store is gone (its lock free); keep live ones."""
+    try:
+        fd = os.open(folder / _LOCK_NAME, os.O_RDONLY)
+    except NotADirectoryError:
+        with contextlib.suppress(OSError):
+            folder.unlink()
+        return
+    except FileNotFoundError:
+        with contextlib.suppress(OSError):
+            if now - folder.stat().st_mtime > _UNLOCKED_GRACE_SECONDS:
+                shutil.rmtree(folder, ignore_errors=True)
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return  # its store is alive
+        shutil.rmtree(folder, ignore_errors=True)
+    finally:
+        os.close(fd)

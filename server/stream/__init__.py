@@ -1,0 +1,1 @@
+"""``WS /v1/stream``: the route and one streaming session."""
