@@ -91,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
     from facecast.rig.transfer import (
         CorrespondenceWeights,
         check_mesh,
+        check_still,
         ict_source_expressions,
         read_markers,
         read_target_mesh,
@@ -105,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
     markers = args.markers
     if markers is not None and markers != "auto":
         markers = read_markers(markers)
+    still = check_still(None if args.paper_solve else args.still)
     archive = None
     if args.ict is None or Path(args.ict).exists():
         archive = locate_ict(args.ict) if args.ict else locate_ict()
@@ -122,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
             weights=CorrespondenceWeights(
                 marker_weight=None if args.hold_markers else args.marker_weight
             ),
-            still=None if args.paper_solve else args.still,
+            still=still,
         )  # fmt: skip
     written = write_expression_set(
         args.output,

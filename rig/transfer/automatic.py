@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import CorrespondenceError
 from .mesh import closest_points, edge_length, vertex_normals
 
 __all__ = ["place_by_closest_points", "similarity"]
@@ -20,6 +21,10 @@ STEPS = 30
 # A pair counts if its distance is below this many times the step's median distance
 # (trims what only one mesh has: a neck, the back of a head).
 _TRIM = 3.0
+# The fit's scale may differ from the spreads' ratio by this factor at most: beyond it the
+# source has shrunk onto a patch of the target (or grown past it), which is no face's fit
+# (ICT's identities stay within 3 %).
+_SCALE_DRIFT = 2.0
 
 
 def similarity(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -48,6 +53,13 @@ def place_by_closest_points(
     them, axes unchanged. Then ``steps`` times: each source vertex's closest compatible
     point on the target (normals within 90°), pairs beyond ``_TRIM`` × their median
     distance (and one target edge) dropped, the similarity of the rest composed on.
+
+    Raises
+    ------
+    CorrespondenceError
+        ``not_converged``: the scale drifted more than ``_SCALE_DRIFT`` times from the
+        spreads' ratio (the source shrank onto a part of the target: not a face, or not
+        one seen the way ICT's is).
     """
     centre_s, centre_t = source.mean(axis=0), target.mean(axis=0)
     spread_s = np.sqrt(((source - centre_s) ** 2).sum(axis=1).mean())
@@ -67,4 +79,12 @@ def place_by_closest_points(
         keep = found[distance <= max(_TRIM * float(np.median(distance)), edge)]
         s, r, t = similarity(placed[keep], near.points[keep])
         scale, rotation, shift = s * scale, r @ rotation, s * r @ shift + t
+    drift = scale * spread_s / spread_t
+    if not 1.0 / _SCALE_DRIFT <= drift <= _SCALE_DRIFT:
+        raise CorrespondenceError(
+            f"without markers the source face was scaled by {drift:.3g} times the ratio of the "
+            "two meshes' sizes to fit the target: the target does not look like a face facing "
+            "+z with y up (or holds much more than the face). Turn or crop it, or give markers",
+            code="not_converged",
+        )
     return scale, rotation, shift
