@@ -241,18 +241,6 @@ def test_without_markers_the_source_finds_a_scaled_and_moved_decimated_copy_of_i
     assert per_transfer[0] < 0.5 * per_naive[0]
 
 
-def test_markers_that_are_neither_pairs_nor_auto_are_refused():
-    source, source_faces = grid(6)
-    target, target_faces = grid(5)
-    with pytest.raises(MarkerError) as caught:
-        transfer_expressions(
-            SourceExpressions(("neutral", "x"), np.stack([source, source + 0.1]), source_faces,
-                              np.zeros((2, 3, 3))),
-            target, target_faces, markers="automatic",
-        )  # fmt: skip
-    assert caught.value.code == "bad_markers"
-
-
 def test_read_markers_takes_pairs_with_comments_and_commas(tmp_path):
     path = tmp_path / "markers.txt"
     path.write_text("# source target\n1 2\n\n3,4  # a comment\n")
@@ -297,16 +285,19 @@ def test_markers_that_name_the_wrong_places_do_not_converge():
     assert "marker" in str(caught.value)
 
 
-def test_another_topology_without_markers_asks_for_markers():
+@pytest.mark.parametrize(
+    ("markers", "code"), [(None, "markers_needed"), ("automatic", "bad_markers")]
+)
+def test_another_topology_needs_markers_or_auto(markers, code):
     source, source_faces = grid(6)
     target, target_faces = grid(5)
     with pytest.raises(MarkerError) as caught:
         transfer_expressions(
             SourceExpressions(("neutral", "x"), np.stack([source, source + 0.1]), source_faces,
                               np.zeros((2, 3, 3))),
-            target, target_faces,
+            target, target_faces, markers=markers,
         )  # fmt: skip
-    assert caught.value.code == "markers_needed"
+    assert caught.value.code == code
 
 
 # -- bad meshes -------------------------------------------------------------------------
