@@ -21,7 +21,7 @@ def register(subparsers) -> None:
             "Popovic 2004) and write an example-set folder ready for `facecast fit`: "
             "facecast.toml, source/<name>.csv (ICT's 20 feature points) and target/<name>.obj "
             "(the target's own topology). A target sharing ICT's face topology needs no "
-            "markers; any other needs --markers. Needs ICT-FaceKit ($FACECAST_ICT or "
+            "markers; any other needs --markers: a file, or auto for a fit without them. Needs ICT-FaceKit ($FACECAST_ICT or "
             "../shared/data/ict-facekit). A target example already in the folder is kept "
             "unless --overwrite; nothing is written on failure."
         ),
@@ -36,7 +36,7 @@ def register(subparsers) -> None:
     )
     parser.add_argument(
         "--markers",
-        metavar="FILE",
+        metavar="FILE|auto",
         help="correspondence markers: 'source_vertex target_vertex' a line (0-based; source "
         "vertices of ICT's face area, [0, 9409)); at least 3, about 20 spread over the face. "
         "'auto': none, ICT's face fitted to the target by closest points alone (the target "
@@ -56,7 +56,8 @@ def register(subparsers) -> None:
         action="store_true",
         help="hold the markers exactly in every step, as the paper does",
     )
-    parser.add_argument(
+    solve = parser.add_mutually_exclusive_group()
+    solve.add_argument(
         "--still",
         type=float,
         default=0.01,
@@ -64,7 +65,7 @@ def register(subparsers) -> None:
         help="hold the target points whose source point moves less than F x the expression's "
         "largest motion (default 0.01), so what an expression leaves still does not drift",
     )
-    parser.add_argument(
+    solve.add_argument(
         "--paper-solve",
         action="store_true",
         help="the paper's solve instead: one factorisation for every expression, nothing held "
