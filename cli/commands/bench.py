@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib
 
+from facecast.cli.commands.expressions import add_solve_arguments
 from facecast.cli.errors import CommandError
 
 
@@ -101,16 +102,7 @@ def register(subparsers) -> None:
     held.add_argument(
         "--hold-markers", action="store_true", help="hold the markers, as the paper does"
     )
-    solve = transfer.add_mutually_exclusive_group()
-    solve.add_argument(
-        "--still", type=float, default=0.01, metavar="F",
-        help="hold target points whose source point moves less than F x the expression's "
-        "largest motion (default 0.01)",
-    )  # fmt: skip
-    solve.add_argument(
-        "--paper-solve", action="store_true",
-        help="the paper's solve: one factorisation, nothing held but one vertex per piece",
-    )  # fmt: skip
+    add_solve_arguments(transfer)
     part = transfer.add_mutually_exclusive_group()
     part.add_argument("--cost-only", action="store_true", help="skip the accuracy runs")
     part.add_argument("--accuracy-only", action="store_true", help="skip the cost runs")

@@ -56,21 +56,7 @@ def register(subparsers) -> None:
         action="store_true",
         help="hold the markers exactly in every step, as the paper does",
     )
-    solve = parser.add_mutually_exclusive_group()
-    solve.add_argument(
-        "--still",
-        type=float,
-        default=0.01,
-        metavar="F",
-        help="hold the target points whose source point moves less than F x the expression's "
-        "largest motion (default 0.01), so what an expression leaves still does not drift",
-    )
-    solve.add_argument(
-        "--paper-solve",
-        action="store_true",
-        help="the paper's solve instead: one factorisation for every expression, nothing held "
-        "but one vertex per piece (faster; the still parts drift)",
-    )
+    add_solve_arguments(parser)
     parser.add_argument(
         "--names", nargs="+", metavar="NAME", help="ARKit names to make (default: all 51)"
     )
@@ -83,6 +69,21 @@ def register(subparsers) -> None:
     )  # fmt: skip
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
+
+
+def add_solve_arguments(parser: argparse.ArgumentParser) -> None:
+    """--still F | --paper-solve (here and in ``facecast bench transfer``)."""
+    solve = parser.add_mutually_exclusive_group()
+    solve.add_argument(
+        "--still", type=float, default=0.01, metavar="F",
+        help="hold the target points whose source point moves less than F x the expression's "
+        "largest motion (default 0.01), so what an expression leaves still does not drift",
+    )  # fmt: skip
+    solve.add_argument(
+        "--paper-solve", action="store_true",
+        help="the paper's solve instead: one factorisation for every expression, nothing held "
+        "but one vertex per piece (faster; the still parts drift)",
+    )  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
