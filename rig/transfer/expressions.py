@@ -1,7 +1,7 @@
 """A neutral-only character's key-expressions: ICT-FaceKit's ARKit shapes transferred onto it.
 
 Ties the pieces together: the source expression set (ICT's generic face), the
-correspondence (same topology, or markers then closest points), one factored transfer for
+correspondence (same topology, markers or none, then closest points), one transfer for
 every expression. Builds arrays; writing them as an example-set folder is ``folder``.
 """
 

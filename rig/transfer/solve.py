@@ -2,9 +2,10 @@
 
 Sumner & Popović 2004, section 3: the target's deformed vertices are the least-squares fit
 of its triangles' transformations to those of their corresponding source triangles. The
-matrix depends only on the target neutral and the correspondence, so it is factored once
-and every expression is one back-substitution. It must not read files or find the
-correspondence (that is ``correspondence``).
+matrix depends only on the target neutral and the correspondence, so the paper's system is
+factored once and every expression is one back-substitution; with ``still`` each
+expression holds the target points whose source point barely moves and factors what is
+left. It must not read files or find the correspondence (that is ``correspondence``).
 """
 
 from __future__ import annotations
@@ -109,7 +110,8 @@ class DeformationTransfer:
     -----
     The unknowns are the displacements of the Vt vertices and of one fourth vertex per
     target triangle; one vertex per connected piece is held, so the normal matrix is
-    positive definite and its sparse LU (``splu``) is computed once, here.
+    positive definite and its sparse LU (``splu``) is computed once, here (with ``still``,
+    only if ``factor`` is asked for: each expression factors its own smaller system).
     """
 
     def __init__(
