@@ -71,6 +71,8 @@ def test_wheel_holds_every_package_and_the_protocol_spec(wheel):
         "facecast/protocol/codec.py",
         "facecast/rig/fit.py",
         "facecast/rig/sources/layouts/mediapipe_face_mesh.json",
+        "facecast/rig/sources/generic_arkit/points.npz",
+        "facecast/rig/sources/generic_arkit/LICENSE-ICT-FaceKit",
         "facecast/rig/demo/scene.py",
         "facecast/server/app.py",
         "facecast/client/connection.py",

@@ -33,12 +33,16 @@ def register(subparsers) -> None:
     parser.add_argument(
         "examples",
         metavar="EXAMPLES",
-        help="a folder with facecast.toml, an .npz example set, a .glb/.gltf target (with "
-        "--source), or the word 'demo' for the built-in procedural set",
+        help="a folder with facecast.toml, an .npz example set, a character (.glb, .gltf or "
+        ".vrm: paired with facecast's generic ARKit source set, or with --source), or the word "
+        "'demo' for the built-in procedural set",
     )
     parser.add_argument("-o", "--output", required=True, metavar="RIG", help="rig file to write")
     parser.add_argument(
-        "--source", metavar="FOLDER", help="for a glTF target: the folder of source examples"
+        "--source",
+        metavar="FOLDER",
+        help="for a character: the folder of source examples (point files or meshes, named "
+        "by expression) instead of facecast's generic ARKit set",
     )
     parser.add_argument(
         "--noise",
@@ -103,6 +107,15 @@ def _stable_points(text: str | None):
     if len(values) < 3:
         raise CommandError("--stable-points: need at least 3 indices")
     return values
+
+
+def load_character_examples(path: Path):
+    """A character file's example set with the generic ARKit set, and its pairing report."""
+    from facecast.rig.io.character import load_character
+    from facecast.rig.io.character_examples import character_example_set
+
+    character = load_character(path, label=path.name)
+    return character_example_set(character, label=path.name)
 
 
 def load_examples(spec: str, source: str | None = None):
@@ -224,7 +237,16 @@ def run(args: argparse.Namespace) -> int:
     output = Path(args.output)
     if not output.parent.exists():
         raise CommandError(f"{output.parent}: no such folder for the rig file {output.name}")
-    examples = load_examples(args.examples, args.source)
+    path = Path(args.examples)
+    pairing = None
+    if path.suffix.lower() in (".glb", ".gltf", ".vrm") and args.source is None:
+        if not path.is_file():
+            raise CommandError(f"{args.examples}: no such file")
+        examples, pairing = load_character_examples(path)
+        if not args.json:
+            print("\n".join(pairing.lines()))
+    else:
+        examples = load_examples(args.examples, args.source)
     with warnings.catch_warnings():
         # fit's IdentifiabilityWarnings are in the report, printed below once each.
         warnings.simplefilter("ignore")
@@ -244,6 +266,8 @@ def run(args: argparse.Namespace) -> int:
         from facecast.cli.report import json_safe
 
         payload = {"rig": str(output), "checksum": rig.checksum, "fit_report": report}
+        if pairing is not None:
+            payload["pairing"] = pairing.to_dict()
         print(json.dumps(json_safe(payload), indent=1))
     else:
         print(format_report(report, rig.names))

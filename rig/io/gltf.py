@@ -21,7 +21,16 @@ import pygltflib
 
 from ..errors import ExampleSetError, InputError
 
-__all__ = ["export_glb", "read_glb_morph_targets", "read_gltf_mesh"]
+__all__ = [
+    "BufferReader",
+    "export_glb",
+    "load_document",
+    "pack_glb",
+    "read_glb_morph_targets",
+    "read_gltf_mesh",
+    "read_mesh",
+    "target_names",
+]
 
 _GLB_MAGIC = 0x46546C67  # b"glTF"
 _CHUNK_JSON = 0x4E4F534A
@@ -274,10 +283,10 @@ def export_glb(
         ]
     blob = writer.blob()
     doc["buffers"] = [{"byteLength": len(blob)}]
-    return _pack_glb(doc, blob)
+    return pack_glb(doc, blob)
 
 
-def _pack_glb(doc: dict[str, Any], blob: bytes) -> bytes:
+def pack_glb(doc: dict[str, Any], blob: bytes) -> bytes:
     json_bytes = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     json_bytes += b" " * ((-len(json_bytes)) % 4)
     blob += b"\0" * ((-len(blob)) % 4)
@@ -300,7 +309,7 @@ def _pack_glb(doc: dict[str, Any], blob: bytes) -> bytes:
 GltfSource = str | os.PathLike[str] | bytes | bytearray | memoryview
 
 
-def _load_document(path_or_bytes: GltfSource, label: str) -> pygltflib.GLTF2:
+def load_document(path_or_bytes: GltfSource, label: str) -> pygltflib.GLTF2:
     if isinstance(path_or_bytes, bytes | bytearray | memoryview):
         data = bytes(path_or_bytes)
     else:
@@ -329,7 +338,7 @@ def _load_document(path_or_bytes: GltfSource, label: str) -> pygltflib.GLTF2:
     return gltf
 
 
-class _BufferReader:
+class BufferReader:
     def __init__(self, gltf: pygltflib.GLTF2, base: Path | None, label: str) -> None:
         self.gltf = gltf
         self.base = base
@@ -489,18 +498,18 @@ def read_gltf_mesh(path_or_bytes: GltfSource) -> tuple[np.ndarray, np.ndarray]:
 def _read_chosen_mesh(
     path_or_bytes: GltfSource, choose: Callable[[pygltflib.GLTF2, str], pygltflib.Mesh]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
-    """The mesh ``choose(gltf, label)`` picks, read as ``_read_mesh`` reads it."""
+    """The mesh ``choose(gltf, label)`` picks, read as ``read_mesh`` reads it."""
     is_bytes = isinstance(path_or_bytes, bytes | bytearray | memoryview)
     label = "<glTF bytes>" if is_bytes else str(path_or_bytes)
-    gltf = _load_document(path_or_bytes, label)
+    gltf = load_document(path_or_bytes, label)
     base = (
         None
         if isinstance(path_or_bytes, bytes | bytearray | memoryview)
         else Path(path_or_bytes).parent
     )
-    reader = _BufferReader(gltf, base, label)
+    reader = BufferReader(gltf, base, label)
     try:
-        return _read_mesh(choose(gltf, label), reader, label)
+        return read_mesh(choose(gltf, label), reader, label)
     except ExampleSetError:
         raise
     except (AttributeError, TypeError, KeyError, IndexError, ValueError) as exc:
@@ -524,8 +533,8 @@ def _face_mesh(gltf: pygltflib.GLTF2, label: str) -> pygltflib.Mesh:
     return next((m for m in meshes if any(p.targets for p in m.primitives)), meshes[0])
 
 
-def _read_mesh(
-    mesh: pygltflib.Mesh, reader: _BufferReader, label: str
+def read_mesh(
+    mesh: pygltflib.Mesh, reader: BufferReader, label: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
     """All triangle primitives of ``mesh`` concatenated, with its morph targets (maybe 0)."""
     num_targets = {len(p.targets or []) for p in mesh.primitives}
@@ -595,11 +604,11 @@ def _read_mesh(
 
     neutral = np.concatenate(positions)
     all_faces = np.concatenate(faces)
-    names = _target_names(mesh, m)
+    names = target_names(mesh, m)
     return neutral, all_faces, np.concatenate(deltas, axis=1), names
 
 
-def _target_names(mesh: pygltflib.Mesh, m: int) -> list[str]:
+def target_names(mesh: pygltflib.Mesh, m: int) -> list[str]:
     for extras in (mesh.extras, mesh.primitives[0].extras):
         if isinstance(extras, dict) and isinstance(extras.get("targetNames"), list):
             names = extras["targetNames"]

@@ -19,7 +19,9 @@ import numpy as np
 
 from ..errors import ExampleSetError
 from ..examples import ExampleSet
-from .gltf import read_glb_morph_targets
+from .character import load_character
+from .character_examples import character_example_set, folder_stable_points
+from .expression_names import normalise_name
 from .meshio import read_obj, read_obj_vertices, read_points
 
 __all__ = ["load_example_set"]
@@ -29,7 +31,8 @@ FEATURE_POINTS_FILE = "feature_points.txt"
 _MESH_SUFFIXES = (".obj",)
 _POINT_SUFFIXES = (".npy", ".csv")
 _SOURCE_SUFFIXES = _MESH_SUFFIXES + _POINT_SUFFIXES
-_GLTF_SUFFIXES = (".glb", ".gltf")
+#: Files ``load_character`` reads: a character paired with the generic ARKit set.
+CHARACTER_SUFFIXES = (".glb", ".gltf", ".vrm")
 
 T = TypeVar("T")
 _NPZ_REQUIRED = ("names", "source_points", "target_vertices", "target_faces")
@@ -54,14 +57,20 @@ def load_example_set(
           ``[target] neutral``, ``[examples] name = [source file, target file]``,
           paths relative to the folder; or ``[target] gltf`` + ``[source] folder``;
         - an ``.npz`` written by ``ExampleSet.save_npz``;
-        - a ``.glb``/``.gltf`` whose first morphed mesh's targets are the target
-          examples, paired by name with the files in ``source``.
+        - a character, ``.glb``/``.gltf``/``.vrm``, read by ``character.load_character``
+          (expressions from every mesh and VRM binds, names normalised, the face mesh as
+          the target; docs/characters.md): without ``source``, paired with facecast's
+          generic ARKit source set (``character_examples.character_example_set``); with
+          ``source``, with the files there whose names normalise alike (the form
+          facecast.toml's ``[target] gltf`` uses too).
     source : path-like, optional
-        For a glTF target: the folder holding ``neutral.obj|.npy|.csv`` and one
-        ``<name>.obj|.npy|.csv`` per morph target (plus ``feature_points.txt`` or a
-        ``facecast.toml`` with ``[source] feature_points`` when the files are meshes).
+        For a character: the folder holding ``neutral.obj|.npy|.csv`` and one
+        ``<name>.obj|.npy|.csv`` per expression (plus ``feature_points.txt`` or a
+        ``facecast.toml`` with ``[source] feature_points`` when the files are meshes);
+        ``[source] stable_points`` of a facecast.toml there, or of the parent's that
+        names this folder's neutral, are kept.
     allow_unpaired : bool
-        For a glTF target: skip, with a warning, morph targets without a source file
+        For a character with ``source``: skip, with a warning, expressions without a source file
         and source files without a morph target, instead of raising.
 
     Returns
@@ -82,16 +91,17 @@ def load_example_set(
         return _load_manifest(path if path.is_dir() else path.parent, allow_unpaired)
     if suffix == ".npz":
         return _load_npz(path)
-    if suffix in _GLTF_SUFFIXES:
-        if source is None:
-            raise ExampleSetError(
-                f"{path}: a glTF target needs a source folder (source=...)", code="bad_argument"
-            )
-        return _load_gltf_pair(path, Path(source), allow_unpaired, feature_points=None)
+    if suffix in CHARACTER_SUFFIXES:
+        if source is not None:
+            return _load_gltf_pair(path, Path(source), allow_unpaired, feature_points=None)
+        character = load_character(path, label=path.name)
+        example_set, _ = character_example_set(character, label=path.name)
+        return example_set
     if not path.exists():
         raise ExampleSetError(f"{path}: no such file or folder", code="missing_file")
     raise ExampleSetError(
-        f"{path}: not an example set (expected a folder with {MANIFEST}, .npz, .glb or .gltf)",
+        f"{path}: not an example set (expected a folder with {MANIFEST}, .npz, or a character: "
+        ".glb, .gltf or .vrm)",
         code="bad_example_set",
     )
 
@@ -420,50 +430,45 @@ def _load_npz(path: Path) -> ExampleSet:
 def _load_gltf_pair(
     gltf: Path, folder: Path, allow_unpaired: bool, feature_points: np.ndarray | None
 ) -> ExampleSet:
+    """A character (``load_character``: every mesh, VRM binds, names normalised, the face
+    mesh by its rule) paired with the files of ``folder`` whose names normalise alike.
+
+    Its own messages name the file and the folder by their names, not their paths (a
+    server's upload folder is no one's business).
+    """
     if not folder.is_dir():
-        raise ExampleSetError(f"{folder}: source folder not found", code="missing_file")
-    neutral, faces, deltas, target_names = read_glb_morph_targets(gltf)
+        raise ExampleSetError(f"source folder {folder.name!r} not found", code="missing_file")
+    character = load_character(gltf, label=gltf.name)
 
     by_name: dict[str, Path] = {}
     for file in sorted(folder.iterdir()):
         if file.is_file() and file.suffix.lower() in _SOURCE_SUFFIXES:
-            if file.stem in by_name:
+            name = normalise_name(file.stem).name or file.stem
+            if name in by_name:
                 raise ExampleSetError(
-                    f"{folder}: two source files for {file.stem!r} "
-                    f"({by_name[file.stem].name}, {file.name})",
+                    f"{folder}: two source files for {name!r} ({by_name[name].name}, {file.name})",
                     code="bad_source",
                 )
-            by_name[file.stem] = file
+            by_name[name] = file
     if "neutral" not in by_name:
         raise ExampleSetError(
-            f"{folder}: no source neutral (neutral.obj, neutral.npy or neutral.csv)",
+            f"source folder {folder.name!r} has no source neutral (neutral.obj, neutral.npy or "
+            "neutral.csv)",
             code="missing_file",
         )
 
-    names = ["neutral"]
-    target_vertices = [neutral]
-    unpaired_targets = []
-    for name, delta in zip(target_names, deltas, strict=True):
-        if name == "neutral":
-            # Older facecast exports (and other tools) write the neutral as a zero target.
-            if np.abs(delta).max(initial=0.0) > 1e-6 * max(1.0, np.abs(neutral).max()):
-                raise ExampleSetError(
-                    f"{gltf}: morph target 'neutral' is not zero; rename it", code="bad_gltf"
-                )
-            continue
-        if name not in by_name:
-            unpaired_targets.append(name)
-            continue
-        names.append(name)
-        target_vertices.append(neutral + delta)
-    unpaired_sources = sorted(set(by_name) - set(target_names) - {"neutral"})
+    authored = {e.expression: e.authored for e in reversed(character.names) if e.expression}
+    names = ["neutral"] + [n for n in character.expressions if n in by_name]
+    unpaired_targets = [authored.get(n, n) for n in character.expressions if n not in by_name]
+    unpaired_sources = [by_name[n].name for n in by_name if n not in names]
+    rules = " (names compared as ARKit, Perfect Sync, _L/_R, VRM preset and Fcl_ names)"
     for kind, missing, hint in (
-        ("morph target", unpaired_targets, f"has no source file in {folder}"),
         (
-            "source file",
-            [by_name[n].name for n in unpaired_sources],
-            f"has no morph target in {gltf}",
+            "morph target",
+            unpaired_targets,
+            f"has no source file in source folder {folder.name!r}{rules}",
         ),
+        ("source file", unpaired_sources, f"has no morph target in {gltf.name}{rules}"),
     ):
         if not missing:
             continue
@@ -475,7 +480,7 @@ def _load_gltf_pair(
         warnings.warn(f"skipping unpaired examples: {message}", stacklevel=3)
     if len(names) < 2:
         raise ExampleSetError(
-            f"{gltf}: need at least 2 examples (the neutral and one paired morph target), "
+            f"{gltf.name}: need at least 2 examples (the neutral and one paired morph target), "
             f"got {len(names)}",
             code="too_few_examples",
         )
@@ -484,7 +489,13 @@ def _load_gltf_pair(
     if feature_points is None and files[0].suffix.lower() in _MESH_SUFFIXES:
         feature_points = _folder_feature_points(folder)
     sources = _read_sources(names, files, feature_points, folder)
-    return _build(names, sources, np.stack(target_vertices), faces)
+    neutral = character.face_vertices
+    targets = [neutral] + [neutral + character.expressions[n].face_displacement for n in names[1:]]
+    example_set = _build(names, sources, np.stack(targets), character.face_faces)
+    stable = folder_stable_points(folder)
+    if stable is None:
+        return example_set
+    return _with_stable_points(example_set, stable.tolist(), folder / MANIFEST)
 
 
 def _folder_feature_points(folder: Path) -> np.ndarray | None:

@@ -54,7 +54,18 @@ def load_rig(path: str | os.PathLike[str], *, max_bytes: int = DEFAULT_MAX_BYTES
 
 
 def rig_from_bytes(data: bytes, *, source: str = "rig", max_bytes: int = DEFAULT_MAX_BYTES) -> Rig:
-    """Parse rig file bytes, verifying format, version, sizes and checksum."""
+    """Parse rig file bytes, verifying format, version, sizes and checksum.
+
+    A character file (glTF, GLB, VRM) given where a rig is expected is told how to become
+    one (``character_not_rig``): it is uploaded as a character or fitted first.
+    """
+    if data[:4] == b"glTF" or (data.lstrip()[:1] == b"{" and b'"asset"' in data[:4096]):
+        raise RigFileError(
+            f"{source}: is a character file (glTF/GLB/VRM), not a fitted rig: upload it as a "
+            "character (`facecast rigs put URL ID FILE`, PUT /v1/characters/{id}) or fit it "
+            "first (`facecast fit FILE -o RIG`)",
+            code="character_not_rig",
+        )
     try:
         with zipfile.ZipFile(io.BytesIO(data)) as archive:
             total = sum(info.file_size for info in archive.infolist())

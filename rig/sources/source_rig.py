@@ -32,6 +32,7 @@ import numpy.typing as npt
 
 from ..errors import ExampleSetError, InputError
 from ..examples import ExampleSet
+from ..io.expression_names import ARKIT_NAMES
 from ..io.loaders import load_example_set
 from .ict import ict_example_set
 
@@ -47,25 +48,6 @@ __all__ = [
     "load_source_rig",
 ]
 
-#: The 52 ARKit blendshapes in Live Link Face's order (Unreal's EARFaceBlendShape): the
-#: order of the UDP packet's values. CSV takes name their columns instead (PascalCase).
-ARKIT_NAMES: tuple[str, ...] = (
-    "eyeBlinkLeft", "eyeLookDownLeft", "eyeLookInLeft", "eyeLookOutLeft", "eyeLookUpLeft",
-    "eyeSquintLeft", "eyeWideLeft",
-    "eyeBlinkRight", "eyeLookDownRight", "eyeLookInRight", "eyeLookOutRight", "eyeLookUpRight",
-    "eyeSquintRight", "eyeWideRight",
-    "jawForward", "jawLeft", "jawRight", "jawOpen",
-    "mouthClose", "mouthFunnel", "mouthPucker", "mouthLeft", "mouthRight",
-    "mouthSmileLeft", "mouthSmileRight", "mouthFrownLeft", "mouthFrownRight",
-    "mouthDimpleLeft", "mouthDimpleRight", "mouthStretchLeft", "mouthStretchRight",
-    "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper",
-    "mouthPressLeft", "mouthPressRight", "mouthLowerDownLeft", "mouthLowerDownRight",
-    "mouthUpperUpLeft", "mouthUpperUpRight",
-    "browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight",
-    "cheekPuff", "cheekSquintLeft", "cheekSquintRight",
-    "noseSneerLeft", "noseSneerRight",
-    "tongueOut",
-)  # fmt: skip
 NUM_ARKIT = len(ARKIT_NAMES)
 
 #: The 9 extra Live Link Face values after the 52 weights, radians.

@@ -28,7 +28,7 @@ __all__ = ["Bus", "BusUnavailable", "LocalBus", "RedisBus", "make_bus"]
 
 T = TypeVar("T")
 
-log = logging.getLogger("facecast.server.channels.bus")
+log = logging.getLogger("facecast.server.bus")
 
 #: A publisher lock lives this long unless refreshed (its process died: it frees itself).
 LOCK_TTL_MS = 5000

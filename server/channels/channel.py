@@ -32,7 +32,7 @@ if TYPE_CHECKING:
 
 __all__ = ["Channel"]
 
-log = logging.getLogger("facecast.server.channels.channel")
+log = logging.getLogger("facecast.server.channels")
 
 #: A remote publisher is taken as gone when no frame or heartbeat came for this long.
 REMOTE_LIVE_SECONDS = 3.0

@@ -30,7 +30,7 @@ if TYPE_CHECKING:
 
 __all__ = ["ChannelFrame", "Key", "KeyState", "PointsKeyState", "key_state"]
 
-log = logging.getLogger("facecast.server.channels.channel")
+log = logging.getLogger("facecast.server.channels")
 
 #: (rig id, output, dtype): what a watcher asks for; watchers of one key share bytes.
 Key = tuple[str, str, str]

@@ -33,7 +33,7 @@ if TYPE_CHECKING:
 
 __all__ = ["ChannelHub"]
 
-log = logging.getLogger("facecast.server.channels.channel")
+log = logging.getLogger("facecast.server.channels")
 
 #: Heartbeats, lock refreshes and reports to other processes: this often.
 MAINTENANCE_INTERVAL = 1.0

@@ -41,7 +41,7 @@ if TYPE_CHECKING:
 
 __all__ = ["PublisherMember", "WatcherMember"]
 
-log = logging.getLogger("facecast.server.channels.channel")
+log = logging.getLogger("facecast.server.channels")
 
 #: Seconds without a message after which a publisher is taken for a connection that
 #: blipped: a newer connection with its token may then take its channel (``supersede``).

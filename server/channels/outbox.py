@@ -25,7 +25,7 @@ from .fanout import Key
 
 __all__ = ["MAX_OUTBOX", "Member", "offer_results"]
 
-log = logging.getLogger("facecast.server.channels.channel")
+log = logging.getLogger("facecast.server.channels")
 
 #: Messages waiting in one member's outbox. Consecutive results collapse into the newest,
 #: so this bounds control messages (events, pongs, errors); beyond it the oldest go.

@@ -38,7 +38,7 @@ from .members import PublisherMember, WatcherMember
 
 __all__ = ["router"]
 
-log = logging.getLogger("facecast.server.channels.channel")
+log = logging.getLogger("facecast.server.channels")
 
 router = APIRouter(tags=["channels"])
 

@@ -17,7 +17,7 @@ from ..settings import Settings
 
 __all__ = ["Closable", "Owner", "Quotas", "SessionRegistry"]
 
-log = logging.getLogger("facecast.server.connection.registry")
+log = logging.getLogger("facecast.server.sessions")
 
 
 class Closable(Protocol):

@@ -37,7 +37,7 @@ from .rigs import fit_slot, read_body, run_fit
 
 __all__ = ["PROFILES_DIR", "profile_store", "router"]
 
-log = logging.getLogger("facecast.server.storage.profiles")
+log = logging.getLogger("facecast.server.performers")
 
 router = APIRouter(prefix="/v1", tags=["performers"])
 

@@ -21,7 +21,7 @@ from .session import Session
 
 __all__ = ["router"]
 
-log = logging.getLogger("facecast.server.stream.route")
+log = logging.getLogger("facecast.server.stream")
 
 router = APIRouter(tags=["stream"])
 

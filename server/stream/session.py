@@ -50,7 +50,7 @@ from ..storage.rig_store import RigNotFoundError, RigStore
 
 __all__ = ["INLINE_MAX_SECONDS", "Session"]
 
-log = logging.getLogger("facecast.server.stream.session")
+log = logging.getLogger("facecast.server.session")
 
 #: Control messages (pongs, errors, acks) waiting for the writer; beyond this the oldest
 #: are dropped: a client that floods pings but never reads must not grow memory.

@@ -426,12 +426,15 @@ def test_glb_without_source_neutral_is_an_error(tmp_path):
     assert "no source neutral" in str(error)
 
 
-def test_glb_without_source_folder_argument_is_an_error(tmp_path):
-    pair = write_gltf_pair(tmp_path)
+def test_glb_without_source_pairs_with_the_generic_set_and_names_the_rules_tried(tmp_path):
+    _, _, target, faces = synthetic_shapes()
+    glb = tmp_path / "character.glb"
+    glb.write_bytes(export_glb(target[0], faces, target[1:3] - target[0], ["wink", "grin"]))
 
-    error = _bad(pair["glb"])
+    error = _bad(glb)
 
-    assert "character.glb" in str(error) and "source" in str(error)
+    assert error.code == "too_few_examples" and "character.glb" in str(error)
+    assert "Perfect Sync" in str(error) and "Fcl_" in str(error)
 
 
 def test_unknown_path_type_is_an_error_naming_it(tmp_path):

@@ -104,3 +104,18 @@ def test_non_finite_records_are_refused_even_with_a_valid_checksum(spoil):
     with pytest.raises(RigFileError, match="NaN or Inf") as info:
         rig_from_bytes(data)
     assert info.value.code == "rig_not_finite"
+
+
+@pytest.mark.parametrize("kind", ["glb", "gltf"])
+def test_a_character_file_given_as_a_rig_says_how_to_upload_or_fit_it(kind):
+    from facecast.rig.io.gltf import export_glb
+
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=float)
+    glb = export_glb(vertices, np.array([[0, 1, 2]]), np.ones((1, 3, 3)), ["jawOpen"])
+    data = glb if kind == "glb" else b'{"asset": {"version": "2.0"}, "meshes": []}'
+
+    with pytest.raises(RigFileError) as info:
+        rig_from_bytes(data, source="rig 'avatar'")
+
+    assert info.value.code == "character_not_rig"
+    assert "facecast rigs put" in str(info.value) and "facecast fit" in str(info.value)

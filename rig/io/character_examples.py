@@ -1,0 +1,247 @@
+"""A character's expressions paired with source points: the example set a rig is fitted from.
+
+Pairs with facecast's generic ARKit source set (``sources.generic``) or a folder of point
+files named by expression; the target side is the character's face mesh. It must not fit,
+read the character file again or write anything.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ExampleSetError
+from ..examples import ExampleSet, check_stable_points
+from ..sources.generic import GENERIC_ATTRIBUTION, generic_sources
+from .character_model import Character, PairingReport, pair_report
+from .expression_names import normalise_name
+from .meshio import read_points
+
+__all__ = ["character_example_set", "folder_stable_points", "generic_pairing"]
+
+_POINT_SUFFIXES = (".npy", ".csv")
+_MANIFEST = "facecast.toml"
+
+
+def _no_expressions(label: str) -> ExampleSetError:
+    return ExampleSetError(
+        f"{label} has no expressions: no morph target and no VRM expression moves it, so "
+        "there is nothing to drive. Make its key-expressions by deformation transfer with "
+        "`facecast expressions CHARACTER -o FOLDER` (ICT-FaceKit's ARKit shapes carried onto "
+        "its neutral) and fit that folder, or add ARKit-named morph targets in your modelling "
+        "tool",
+        code="no_expressions",
+    )
+
+
+def folder_stable_points(folder: Path) -> np.ndarray | None:
+    """``[source] stable_points`` of the ``facecast.toml`` in ``folder``, or of its parent's
+    when that file's ``[source] neutral`` lies in ``folder`` (``facecast import``'s
+    ``source/``); None when neither says."""
+    for manifest in (folder / _MANIFEST, folder.parent / _MANIFEST):
+        if not manifest.is_file():
+            continue
+        try:
+            doc = tomllib.loads(manifest.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+            raise ExampleSetError(
+                f"{manifest.name} beside the source folder is not readable TOML",
+                code="bad_manifest",
+            ) from None
+        source = doc.get("source")
+        if not isinstance(source, dict) or source.get("stable_points") is None:
+            continue
+        neutral = source.get("neutral")
+        if manifest.parent == folder or (
+            isinstance(neutral, str)
+            and (manifest.parent / neutral).resolve().parent == folder.resolve()
+        ):
+            return np.asarray(source["stable_points"])
+    return None
+
+
+def _folder_sources(folder: Path) -> tuple[dict[str, np.ndarray], np.ndarray | None, str]:
+    """Point files of ``folder`` by normalised name, the stable points its facecast.toml
+    (or its parent's, when that names this folder's neutral) gives, and a description."""
+    if not folder.is_dir():
+        raise ExampleSetError(f"source folder {folder.name!r} not found", code="missing_file")
+    points: dict[str, np.ndarray] = {}
+    for file in sorted(folder.iterdir()):
+        suffix = file.suffix.lower()
+        if suffix == ".obj":
+            raise ExampleSetError(
+                f"source folder {folder.name!r} holds meshes (.obj): a character pairs with "
+                "point files (.npy/.csv, K x 3 feature points each); for meshes write a "
+                "facecast.toml with [target] gltf and [source] feature_points",
+                code="bad_source",
+            )
+        if not file.is_file() or suffix not in _POINT_SUFFIXES:
+            continue
+        name = normalise_name(file.stem).name or file.stem
+        if name in points:
+            raise ExampleSetError(
+                f"source folder {folder.name!r}: two files give {name!r}", code="bad_source"
+            )
+        try:
+            points[name] = read_points(file)
+        except ExampleSetError as exc:
+            raise ExampleSetError(f"source {file.name}: {exc.message}", code=exc.code) from None
+    if "neutral" not in points:
+        raise ExampleSetError(
+            f"source folder {folder.name!r} has no neutral (neutral.npy or neutral.csv)",
+            code="missing_file",
+        )
+    stable = folder_stable_points(folder)
+    return points, stable, f"source folder {folder.name!r}"
+
+
+def _pair(
+    expressions: Iterable[str],
+    available: dict[str, np.ndarray],
+    neutral: np.ndarray,
+    described: str,
+    missing_reason: str,
+) -> tuple[dict[str, np.ndarray], dict[str, str], dict[str, str]]:
+    """``(chosen {name: points}, paired {name: why}, unpaired {name: why})`` in order.
+
+    An expression whose points equal an earlier one's (or the neutral's) is left out: a rig
+    could not tell the two apart.
+    """
+    chosen: dict[str, np.ndarray] = {}
+    paired: dict[str, str] = {}
+    unpaired: dict[str, str] = {}
+    for name in expressions:
+        found = available.get(name)
+        if found is None:
+            unpaired[name] = missing_reason
+            continue
+        if found.shape != neutral.shape:
+            raise ExampleSetError(
+                f"source {name!r} has {found.shape[0]} points, the source neutral "
+                f"{neutral.shape[0]}",
+                code="point_count_mismatch",
+            )
+        twin = next(
+            (n for n, s in (("neutral", neutral), *chosen.items()) if np.array_equal(s, found)),
+            None,
+        )
+        if twin is not None:
+            unpaired[name] = f"same source points as {twin!r}: a rig cannot tell them apart"
+            continue
+        chosen[name] = found
+        paired[name] = f"paired with the {described.split(':')[0]}"
+    return chosen, paired, unpaired
+
+
+def _pair_generic(
+    expressions: Iterable[str],
+) -> tuple[dict[str, np.ndarray], dict[str, str], dict[str, str]]:
+    """``_pair`` with facecast's generic ARKit set (VRM presets composed)."""
+    generic = generic_sources()
+    names = list(expressions)
+    available = {n: p for n in names if (p := generic.source_points(n)) is not None}
+    chosen, paired, unpaired = _pair(
+        names,
+        available,
+        generic.points[0],
+        GENERIC_ATTRIBUTION,
+        "no source points in the generic ARKit set (ARKit shapes, VRM presets)",
+    )
+    if "tongueOut" in unpaired:
+        unpaired["tongueOut"] = (
+            "no source: ICT-FaceKit has no tongue shape (and a tongue moves no landmark)"
+        )
+    return chosen, paired, unpaired
+
+
+def generic_pairing(expressions: Iterable[str]) -> tuple[dict[str, str], dict[str, str]]:
+    """Which of ``expressions`` (in order) the generic ARKit set pairs, and why the others
+    are not: ``({name: why}, {name: why})``, as ``character_example_set`` decides."""
+    _, paired, unpaired = _pair_generic(expressions)
+    return paired, unpaired
+
+
+def character_example_set(
+    character: Character,
+    source: str | os.PathLike[str] | None = None,
+    *,
+    label: str = "character",
+) -> tuple[ExampleSet, PairingReport]:
+    """The character's expressions paired with source points, ready for ``fit``.
+
+    Parameters
+    ----------
+    character : Character
+    source : path, optional
+        A folder of point files (``neutral.npy`` and ``<name>.npy|.csv``, names normalised
+        as the character's are); its ``facecast.toml``, or its parent's that names this
+        folder's neutral, gives ``[source] stable_points``. Default: facecast's generic
+        ARKit set (composing VRM presets without an ARKit twin), with its stable points.
+    label : str
+        What errors call the character.
+
+    Returns
+    -------
+    (ExampleSet, PairingReport)
+        Examples named "neutral" then the paired expressions in the character's order;
+        targets are the face mesh plus each expression's ``face_displacement``. An
+        expression whose source points equal an earlier one's (VRM ``blinkLeft`` beside
+        ARKit ``eyeBlinkLeft``) is left out: a rig could not tell the two apart.
+
+    Raises
+    ------
+    ExampleSetError
+        ``no_expressions`` (a neutral-only character: the message says how to make them),
+        ``too_few_examples`` (none paired), and the source folder's errors.
+    """
+    if not character.expressions:
+        raise _no_expressions(label)
+    if source is None:
+        generic = generic_sources()
+        neutral = generic.points[0]
+        stable: np.ndarray | None = generic.stable_points
+        chosen, paired, unpaired = _pair_generic(character.expressions)
+        described = GENERIC_ATTRIBUTION
+    else:
+        points, stable, described = _folder_sources(Path(source))
+        neutral = points.pop("neutral")
+        chosen, paired, unpaired = _pair(
+            character.expressions,
+            points,
+            neutral,
+            described,
+            f"no file of this name in the {described}",
+        )
+    names = ["neutral", *chosen]
+    sources = [neutral, *chosen.values()]
+    targets = [character.face_vertices] + [
+        character.face_vertices + character.expressions[n].face_displacement for n in chosen
+    ]
+    report = pair_report(
+        character.names,
+        paired,
+        unpaired,
+        source=described,
+        face_mesh=character.mesh_names[character.face_mesh],
+    )
+    if len(names) < 2:
+        raise ExampleSetError(
+            f"{label}: none of its {len(character.expressions)} expressions could be paired "
+            f"with the {described.split(':')[0]} (names tried: ARKit, Perfect Sync, _L/_R, "
+            "VRM 0.x/1.0 presets, VRoid Fcl_ clips); see `facecast fit`'s pairing report",
+            code="too_few_examples",
+        )
+    if stable is not None:
+        stable = check_stable_points(stable, neutral.shape[0])
+    example_set = ExampleSet(
+        names=tuple(names),
+        source_points=np.stack(sources),
+        target_vertices=np.stack(targets),
+        target_faces=character.face_faces,
+        stable_points=stable,
+    )
+    return example_set, report

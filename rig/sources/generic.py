@@ -1,0 +1,127 @@
+"""facecast's generic ARKit source set: ICT-FaceKit's 20 landmarks for each ARKit shape.
+
+Reads the package data ``generic_arkit/points.npz`` (written by
+scripts/make_generic_sources.py from ICT-FaceKit, MIT, see generic_arkit/LICENSE-ICT-FaceKit)
+and composes source points for VRM presets that have no ARKit twin (the table is
+docs/characters.md); it must not read characters, fit or touch the network.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from importlib import resources
+from types import MappingProxyType
+from typing import Final
+
+import numpy as np
+
+from ..errors import ExampleSetError
+
+__all__ = ["GENERIC_ATTRIBUTION", "VRM_COMPOSITIONS", "GenericSources", "generic_sources"]
+
+GENERIC_ATTRIBUTION: Final = (
+    "generic ARKit source set: 20 landmarks of the ICT Face Model (ICT-FaceKit, "
+    "USC Institute for Creative Technologies, MIT licence)"
+)
+
+_L, _R = "Left", "Right"
+
+
+def _both(shape: str, weight: float) -> dict[str, float]:
+    return {shape + _L: weight, shape + _R: weight}
+
+
+#: VRM 1.0 presets without an ARKit twin, as weighted sums of ARKit shapes: their source
+#: points are the neutral plus these weights times the shapes' deltas. Visemes follow the
+#: Japanese vowels VRM names (aa あ, ih い, ou う, ee え, oh お); emotions the usual FACS
+#: reading of each (happy: AU6+12, angry: AU4+9, sad: AU1+15, surprised: AU1+2+5+26).
+VRM_COMPOSITIONS: Final = MappingProxyType(
+    {
+        "aa": {"jawOpen": 0.6, **_both("mouthLowerDown", 0.3)},
+        "ih": {"jawOpen": 0.15, **_both("mouthStretch", 0.5), **_both("mouthSmile", 0.3)},
+        "ou": {"jawOpen": 0.15, "mouthPucker": 0.9, "mouthFunnel": 0.3},
+        "ee": {"jawOpen": 0.35, **_both("mouthStretch", 0.4)},
+        "oh": {"jawOpen": 0.45, "mouthFunnel": 0.7},
+        "blink": _both("eyeBlink", 1.0),
+        "blinkLeft": {"eyeBlinkLeft": 1.0},
+        "blinkRight": {"eyeBlinkRight": 1.0},
+        "happy": {**_both("mouthSmile", 0.8), **_both("cheekSquint", 0.5), **_both("eyeSquint", 0.3)},
+        "angry": {**_both("browDown", 0.9), **_both("noseSneer", 0.4), **_both("mouthFrown", 0.3)},
+        "sad": {"browInnerUp": 0.9, **_both("mouthFrown", 0.7)},
+        "relaxed": {**_both("mouthSmile", 0.5), **_both("eyeBlink", 0.35)},
+        "surprised": {"browInnerUp": 0.8, **_both("browOuterUp", 0.8), **_both("eyeWide", 0.8), "jawOpen": 0.4},
+        "lookUp": _both("eyeLookUp", 1.0),
+        "lookDown": _both("eyeLookDown", 1.0),
+        # The character's own left: its left eye turns out, its right eye in.
+        "lookLeft": {"eyeLookOutLeft": 1.0, "eyeLookInRight": 1.0},
+        "lookRight": {"eyeLookInLeft": 1.0, "eyeLookOutRight": 1.0},
+    }
+)  # fmt: skip
+
+
+@dataclass(frozen=True, eq=False)
+class GenericSources:
+    """The generic set: ``names`` (neutral first), ``points`` (M, K, 3) in centimetres,
+    ``landmarks68`` (K,) the Multi-PIE position of each point, ``stable_points`` (S,)."""
+
+    names: tuple[str, ...]
+    points: np.ndarray
+    landmarks68: np.ndarray
+    stable_points: np.ndarray
+
+    def source_points(self, name: str) -> np.ndarray | None:
+        """(K, 3) points of an ARKit shape or a composed VRM preset; None if it has none."""
+        index = self._index.get(name)
+        if index is not None:
+            points: np.ndarray = self.points[index]
+            return points
+        composition = VRM_COMPOSITIONS.get(name)
+        if composition is None:
+            return None
+        neutral = self.points[0]
+        out: np.ndarray = neutral.copy()
+        for shape, weight in composition.items():
+            out += weight * (self.points[self._index[shape]] - neutral)
+        return out
+
+    def composition(self, name: str) -> dict[str, float] | None:
+        """The ARKit weights a composed preset stands for, or {name: 1} for a shape."""
+        if name in self._index and name != "neutral":
+            return {name: 1.0}
+        found = VRM_COMPOSITIONS.get(name)
+        return None if found is None else dict(found)
+
+    @functools.cached_property
+    def _index(self) -> dict[str, int]:
+        return {n: i for i, n in enumerate(self.names)}
+
+
+@functools.cache
+def generic_sources() -> GenericSources:
+    """The packaged set, read once and shared (its arrays are read-only)."""
+    path = resources.files(__package__).joinpath("generic_arkit", "points.npz")
+    try:
+        with path.open("rb") as handle, np.load(handle, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in ("names", "points", "landmarks68", "stable_points")}
+    except (OSError, KeyError, ValueError) as exc:
+        raise ExampleSetError(
+            f"facecast's generic source set is missing or damaged ({type(exc).__name__}); "
+            "reinstall facecast",
+            code="generic_set_missing",
+        ) from None
+    points = arrays["points"].astype(np.float64)
+    points.flags.writeable = False
+    names = tuple(str(n) for n in arrays["names"])
+    missing = sorted({s for c in VRM_COMPOSITIONS.values() for s in c} - set(names))
+    if missing or names[0] != "neutral" or points.shape[0] != len(names):
+        raise ExampleSetError(
+            f"facecast's generic source set does not match this facecast (missing {missing})",
+            code="generic_set_missing",
+        )
+    return GenericSources(
+        names=names,
+        points=points,
+        landmarks68=arrays["landmarks68"].astype(np.int64),
+        stable_points=arrays["stable_points"].astype(np.int64),
+    )
