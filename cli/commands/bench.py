@@ -11,6 +11,7 @@ import importlib
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from facecast.cli.commands.expressions import add_solve_arguments
 from facecast.cli.errors import CommandError
 
 if TYPE_CHECKING:
@@ -106,6 +107,7 @@ def register(subparsers: Subparsers) -> None:
     held.add_argument(
         "--hold-markers", action="store_true", help="hold the markers, as the paper does"
     )
+    add_solve_arguments(transfer)
     part = transfer.add_mutually_exclusive_group()
     part.add_argument("--cost-only", action="store_true", help="skip the accuracy runs")
     part.add_argument("--accuracy-only", action="store_true", help="skip the cost runs")
