@@ -48,6 +48,8 @@ def test_track_gives_every_frame_points_of_the_layout(clip_points):
     # Each image tracked anew gives the same points, and the expressions differ.
     held = result.points.reshape(len(POSES), HOLD, K, 3)
     assert np.array_equal(held, np.broadcast_to(held[:, :1], held.shape))
+    heads = result.head.reshape(len(POSES), HOLD, 4)
+    assert np.array_equal(heads, np.broadcast_to(heads[:, :1], heads.shape))
     assert np.abs(held[1, 0] - held[0, 0]).max() > 0.3
 
 
