@@ -18,25 +18,15 @@ from scipy.spatial.transform import Rotation
 
 from facecast.cli.bench.facevideo import head_scene, write_video
 from facecast.cli.bridges.head_pose import unity_quaternion
-from facecast.cli.snapshot import chromium_path
 from facecast.cli.track import track_video
 from facecast.rig.evaluation.webcam import ict_performer
-from facecast.rig.sources.ict import ict_regions, locate_ict
+from facecast.rig.sources.ict import ict_regions
 from facecast.rig.sources.source_rig import head_rotation
-from facecast.server.pages.viewer import viewer_dir
 
-ARCHIVE = locate_ict()
-pytestmark = [
-    pytest.mark.ict,
-    pytest.mark.skipif(
-        ARCHIVE is None, reason="ICT-FaceKit not found (../shared/data/ict-facekit)"
-    ),
-    pytest.mark.skipif(chromium_path() is None, reason="no Chromium at /usr/bin/chromium"),
-    pytest.mark.skipif(
-        not (viewer_dir() / "dist" / "track.js").is_file(),
-        reason="the offline tracker is not built (npm run build in client/viewer)",
-    ),
-]
+from .conftest import ICT_ARCHIVE as ARCHIVE
+from .conftest import ICT_TRACKING
+
+pytestmark = ICT_TRACKING
 _MIRROR_X = np.diag([-1.0, 1.0, 1.0])
 #: (yaw, pitch, roll) degrees: facing the camera, then each axis alone at ±10° and ±20°.
 POSES = [(0.0, 0.0, 0.0)] + [
