@@ -18,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse
 from matplotlib.path import Path as Polygon
+from tqdm import tqdm
 
 from facecast.cli.raster import (
     PinholeCamera,
@@ -227,9 +228,8 @@ def write_video(
 ) -> Path:
     """Render ``activations`` (F, M) to a Y4M video at ``path``; returns the path.
 
-    ``rotations``: as for `render_frames`."""
-    from tqdm import tqdm
-
+    ``rotations``: as for `render_frames`.
+    """
     act = np.asarray(activations, dtype=np.float64)
     camera = scene.camera
     frames = render_frames(
