@@ -223,13 +223,11 @@ def write_video(
     *,
     fps: float,
     sway_degrees: float = 1.5,
-    rotations: npt.ArrayLike | None = None,
+    rotations: npt.ArrayLike | None = None,  # as for render_frames
     progress: bool = True,
 ) -> Path:
-    """Render ``activations`` (F, M) to a Y4M video at ``path``; returns the path.
+    """Render ``activations`` (F, M) to a Y4M video at ``path``; returns the path."""
 
-    ``rotations``: as for `render_frames`.
-    """
     act = np.asarray(activations, dtype=np.float64)
     camera = scene.camera
     frames = render_frames(
