@@ -1,4 +1,4 @@
-"""A video file -> the /perform page's feature points for every frame, offline.
+"""A video file -> the /perform page's feature points and head pose for every frame, offline.
 
 Runs the page's own tracking pipeline (client/viewer/src/perform/pipeline.js: the same
 model files, TensorFlow.js backend and face-frame normalisation, bundled as dist/track.js)
@@ -54,6 +54,10 @@ class TrackResult:
     points : (F, K, 3) float32
         The layout's K feature points in its face frame, as /perform publishes them
         (about cm); NaN in frames without a face.
+    head : (F, 4) float32
+        The head pose the page sends with each frame (its ``head.rotation``, PROTOCOL.md
+        §5.3): the unit quaternion (x, y, z, w) in Unity's frame; NaN in frames without a
+        face.
     found : (F,) bool
         Whether a face was found in each frame.
     fps : float
@@ -72,6 +76,7 @@ class TrackResult:
     """
 
     points: np.ndarray
+    head: np.ndarray
     found: np.ndarray
     fps: float
     faces: np.ndarray
@@ -85,13 +90,13 @@ class TrackResult:
         return int(self.points.shape[0])
 
     def save(self, path: str | Path) -> Path:
-        """Write ``points``, ``found``, ``fps`` and ``layout`` as an .npz (what ``facecast
-        clone`` reads)."""
+        """Write ``points``, ``head``, ``found``, ``fps`` and ``layout`` as an .npz (what
+        ``facecast clone`` reads)."""
         path = Path(path)
         with path.open("wb") as handle:
             np.savez(
-                handle, points=self.points, found=self.found, fps=np.float64(self.fps),
-                faces=self.faces, layout=np.str_(self.layout),
+                handle, points=self.points, head=self.head, found=self.found,
+                fps=np.float64(self.fps), faces=self.faces, layout=np.str_(self.layout),
             )  # fmt: skip
         return path
 
@@ -219,6 +224,7 @@ def _run(
             k = int(page.evaluate("window.facecastTrack.k"))
             layout = str(page.evaluate("window.facecastTrack.layout"))
             points = np.full((frames, k, 3), np.nan, dtype=np.float32)
+            head = np.full((frames, 4), np.nan, dtype=np.float32)
             bar = tqdm(
                 total=frames, unit="frame", desc="tracking", disable=not progress, leave=False
             )
@@ -236,12 +242,13 @@ def _run(
                         points[index] = np.asarray(tracked["points"], dtype=np.float32).reshape(
                             k, 3
                         )
+                        head[index] = tracked["head"]
                     bar.update(1)
         finally:
             browser.close()
     found = np.asarray(np.isfinite(points).all(axis=(1, 2)))
     seconds = time.perf_counter() - started
     return TrackResult(
-        points, found, video.fps, faces, layout, loaded["backend"], seconds,
+        points, head, found, video.fps, faces, layout, loaded["backend"], seconds,
         float(model_ms.mean()),
     )  # fmt: skip

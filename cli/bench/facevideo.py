@@ -179,10 +179,20 @@ def render_frames(
     *,
     fps: float,
     sway_degrees: float = 1.5,
+    rotations: npt.ArrayLike | None = None,
 ) -> Iterator[np.ndarray]:
-    """Each frame of ``performer`` making ``activations`` (F, M): (480, 640, 3) uint8 RGB."""
+    """Each frame of ``performer`` making ``activations`` (F, M): (480, 640, 3) uint8 RGB.
+
+    ``rotations``: (F, 3, 3) head rotations about the neck (``PIVOT``), applied to column
+    vectors in ICT's frame, in place of the sway (the head-pose tests' known poses).
+    """
     act = np.asarray(activations, dtype=np.float64)
-    rotations = _sway(len(act), fps, sway_degrees)
+    if rotations is None:
+        rotations = _sway(len(act), fps, sway_degrees)
+    else:
+        rotations = np.asarray(rotations, dtype=np.float64)
+        if rotations.shape != (len(act), 3, 3):
+            raise ValueError(f"rotations must be ({len(act)}, 3, 3), got {rotations.shape}")
     pivot = np.asarray(PIVOT)
     camera = scene.camera
     size = (camera.width, camera.height)
@@ -213,13 +223,16 @@ def write_video(
     *,
     fps: float,
     sway_degrees: float = 1.5,
+    rotations: npt.ArrayLike | None = None,  # as for render_frames
     progress: bool = True,
 ) -> Path:
     """Render ``activations`` (F, M) to a Y4M video at ``path``; returns the path."""
 
     act = np.asarray(activations, dtype=np.float64)
     camera = scene.camera
-    frames = render_frames(scene, performer, act, fps=fps, sway_degrees=sway_degrees)
+    frames = render_frames(
+        scene, performer, act, fps=fps, sway_degrees=sway_degrees, rotations=rotations
+    )
     with Y4MWriter(path, camera.width, camera.height, fps) as writer:
         for image in tqdm(frames, total=len(act), unit="frame", desc=f"rendering {Path(path).name}",
                           disable=not progress, leave=False):  # fmt: skip

@@ -28,7 +28,8 @@ def register(subparsers: Subparsers) -> None:
             "Run the /perform page's own face tracker (BlazeFace + FaceMesh on TensorFlow.js "
             "WebAssembly, in headless Chromium) on every frame of a YUV4MPEG2 (.y4m) video and "
             "write the layout's feature points as /perform publishes them: an .npz with "
-            "points (F, K, 3) float32 (NaN where no face was found), found (F,) and fps. "
+            "points (F, K, 3) float32 (NaN where no face was found), head (F, 4) the head "
+            "pose the page sends (quaternion x, y, z, w, PROTOCOL.md §5.3), found (F,) and fps. "
             "`facecast clone RIG POINTS.npz -o out.glb` then puts the performance on any rig "
             "fitted for the layout."
         ),

@@ -21,6 +21,7 @@ from facecast.protocol import SUBPROTOCOL, decode_server
 from facecast.rig import fit
 from facecast.rig.demo import demo_example_set
 from facecast.rig.examples import ExampleSet
+from facecast.rig.sources.ict import locate_ict
 from facecast.rig.sources.layouts import load_layout
 from facecast.server.pages.perform import PERFORM_ASSETS
 from facecast.server.pages.viewer import viewer_dir
@@ -32,6 +33,20 @@ pytest.importorskip("skimage", reason="scikit-image (the test extras) is not ins
 from .facevideo import FacePose, write_y4m  # noqa: E402
 
 FPS = 25
+#: ICT-FaceKit's archive, or None; the marks of a test module that renders its head and
+#: tracks it with ``facecast track`` (skipped, with the reason, when something is missing).
+ICT_ARCHIVE = locate_ict()
+ICT_TRACKING = [
+    pytest.mark.ict,
+    pytest.mark.skipif(
+        ICT_ARCHIVE is None, reason="ICT-FaceKit not found (../shared/data/ict-facekit)"
+    ),
+    pytest.mark.skipif(chromium_path() is None, reason="no Chromium at /usr/bin/chromium"),
+    pytest.mark.skipif(
+        not (viewer_dir() / "dist" / "track.js").is_file(),
+        reason="the offline tracker is not built (npm run build in client/viewer)",
+    ),
+]
 
 
 def _missing() -> str | None:

@@ -81,3 +81,52 @@ def test_the_pages_neutral_noise_is_estimate_noise():
     from_js = _run_node(node, _NOISE_SCRIPT, held.tolist())
 
     assert from_js == pytest.approx(estimate_noise(held), rel=1e-12)
+
+
+_HEAD_SCRIPT = """
+import { readFileSync } from "node:fs";
+import { encodePerformFrame, headQuaternion, REST_PITCH_DEG } from "./src/perform/headpose.js";
+const { axes, points } = JSON.parse(readFileSync(0, "utf8"));
+const quaternions = axes.map((rotation) => Array.from(headQuaternion({ rotation })));
+const head = Float32Array.from(quaternions[0]);
+const frames = [head, null].map((h) =>
+  Array.from(encodePerformFrame(3, 1.5, Float32Array.from(points), h)));
+process.stdout.write(JSON.stringify({ quaternions, frames, rest: REST_PITCH_DEG }));
+"""
+
+
+def test_the_pages_head_pose_is_the_bridges_quaternion_and_a_valid_frame_head():
+    # The face frame of a head turned by known angles (the frame's rest pitch, then the
+    # turn: its axes are the columns of head_rotation(angles) @ Rx(rest)) gives the
+    # quaternion the bridges send for those angles (§5.3), and its frame message decodes
+    # with that head; without a head, the bytes of encodeFrame (protocol.js).
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("node is not installed")
+    from facecast.cli.bridges.head_pose import unity_quaternion
+    from facecast.protocol import Frame, decode_client, encode
+    from facecast.rig.sources.source_rig import head_rotation
+
+    rng = np.random.default_rng(6)
+    # Every quadrant of Shepperd's method: small turns, and half-turns about each axis.
+    angles = np.concatenate(
+        [rng.uniform(-0.6, 0.6, size=(20, 3)), [[np.pi * 0.9, 0, 0], [0, np.pi * 0.9, 0],
+                                                [0, 0, np.pi * 0.9], [0, 0, 0]]]
+    )  # fmt: skip
+    rest = head_rotation([0.0, np.radians(-11.4), 0.0])  # the page's REST_PITCH_DEG
+    axes = np.swapaxes(head_rotation(angles) @ rest, 1, 2)  # rows: the frame's x, y, z
+    points = rng.normal(size=(load_layout().num_features, 3)).astype(np.float32)
+
+    out = _run_node(node, _HEAD_SCRIPT, {"axes": axes.tolist(), "points": points.ravel().tolist()})
+
+    assert out["rest"] == -11.4
+    got = np.array(out["quaternions"])
+    want = np.array([unity_quaternion(a) for a in angles])
+    want *= np.sign(want[:, 3:4] + (want[:, 3:4] == 0))  # w >= 0, as the page sends it
+    np.testing.assert_allclose(got, want, atol=1e-6)
+    with_head, without = (decode_client(bytes(frame)) for frame in out["frames"])
+    assert isinstance(with_head, Frame) and with_head.head is not None
+    np.testing.assert_array_equal(with_head.head.rotation, got[0].astype(np.float32))
+    assert with_head.head.position is None and without.head is None
+    np.testing.assert_array_equal(with_head.points, points)
+    assert bytes(out["frames"][1]) == encode(Frame(seq=3, ts=1.5, points=points))

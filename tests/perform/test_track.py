@@ -42,11 +42,14 @@ def test_track_gives_every_frame_points_of_the_layout(clip_points):
 
     assert result.points.shape == (len(POSES) * HOLD, K, 3)
     assert result.points.dtype == np.float32
+    assert result.head.shape == (len(POSES) * HOLD, 4) and result.head.dtype == np.float32
     assert result.found.all() and result.fps == 25.0
     assert result.backend == "wasm" and result.layout == "mediapipe_face_mesh"
     # Each image tracked anew gives the same points, and the expressions differ.
     held = result.points.reshape(len(POSES), HOLD, K, 3)
     assert np.array_equal(held, np.broadcast_to(held[:, :1], held.shape))
+    heads = result.head.reshape(len(POSES), HOLD, 4)
+    assert np.array_equal(heads, np.broadcast_to(heads[:, :1], heads.shape))
     assert np.abs(held[1, 0] - held[0, 0]).max() > 0.3
 
 
@@ -66,6 +69,7 @@ def test_track_gives_the_points_the_live_page_publishes(
         recorder.stop.set()
         thread.join(5)
     live = np.array([r.points for _, r in recorder.results], dtype=np.float32)
+    heads = [r.head for _, r in recorder.results]
 
     assert live.shape[0] >= 20 and live.shape[1:] == (K, 3), live.shape
     # Match each live frame to the clip's image whose offline points are nearest.
@@ -76,6 +80,13 @@ def test_track_gives_the_points_the_live_page_publishes(
     # ... and the match is unambiguous: the images are far apart at that tolerance.
     apart = np.abs(distinct[:, None] - distinct[None]).max(axis=(2, 3))
     assert apart[~np.eye(len(POSES), dtype=bool)].min() > 0.1
+    # The page sends its head pose with every frame; the channel relays it to the watcher
+    # (a points watcher: whatever the output), the offline tracker's for the same image.
+    assert all(head is not None and head.position is None for head in heads)
+    live_heads = np.array([head.rotation for head in heads])
+    np.testing.assert_allclose(live_heads, result.head[::HOLD][nearest], atol=1e-5)
+    # The rolled image's head is not the upright one's (test_head_pose.py: the signs).
+    assert np.abs(result.head[2 * HOLD] - result.head[0]).max() > 0.02
 
 
 def test_frames_without_a_face_are_nan_and_not_found(tmp_path):

@@ -10,28 +10,17 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
 
 from facecast.cli.bench.facevideo import head_scene, write_video
 from facecast.cli.main import main
-from facecast.cli.snapshot import chromium_path
 from facecast.cli.track import track_video
 from facecast.rig.evaluation.webcam import ict_performer
-from facecast.rig.sources.ict import ict_regions, locate_ict
-from facecast.server.pages.viewer import viewer_dir
+from facecast.rig.sources.ict import ict_regions
 
-ARCHIVE = locate_ict()
-pytestmark = [
-    pytest.mark.ict,
-    pytest.mark.skipif(
-        ARCHIVE is None, reason="ICT-FaceKit not found (../shared/data/ict-facekit)"
-    ),
-    pytest.mark.skipif(chromium_path() is None, reason="no Chromium at /usr/bin/chromium"),
-    pytest.mark.skipif(
-        not (viewer_dir() / "dist" / "track.js").is_file(),
-        reason="the offline tracker is not built (npm run build in client/viewer)",
-    ),
-]
+from .conftest import ICT_ARCHIVE as ARCHIVE
+from .conftest import ICT_TRACKING
+
+pytestmark = ICT_TRACKING
 HOLD = 4
 #: Feature positions of the inner upper and lower lip (Multi-PIE 62, 66) in the layout.
 INNER_UPPER, INNER_LOWER = 17, 18

@@ -1,14 +1,16 @@
 // Entry point of /perform: camera -> face mesh -> the layout's feature points (head pose
-// and distance removed) -> published on the channel; the character's live pose beside
+// and distance removed) -> published on the channel, with the head pose as the frame's
+// `head` (headpose.js); the character's live pose beside
 // the camera; the calibration walk-through (studio.js). Publishes window.facecastStats.
 
 import { Link } from "../link.js";
 import { authHeaders, socketTarget } from "../params.js";
-import { encodeCalibrate, encodeFrame, encodeHello, ErrorCode, errorName } from "../protocol.js";
+import { encodeCalibrate, encodeHello, ErrorCode, errorName } from "../protocol.js";
 import { metaText } from "../character.js";
 import { FaceView } from "../scene.js";
 import { cameraFrames, drawPoints, openCamera } from "./camera.js";
 import { eyeOpenness, headAngles } from "./facemesh.js";
+import { encodePerformFrame } from "./headpose.js";
 import { readPerformParams } from "./params.js";
 import { FacePipeline, LAYOUT as layout } from "./pipeline.js";
 import { Studio } from "./studio.js";
@@ -404,7 +406,8 @@ async function main() {
       const eyes = eyeOpenness(result.mesh, layout);
       if (publishing && generic && !stats.rebased) stats.heldForNeutral += 1;
       else if (publishing && link.bufferedAmount < MAX_BUFFERED_BYTES) {
-        if (link.send(encodeFrame(seq, performance.now() / 1000, points))) {
+        // The head pose goes in its own field (§5.3): the points stay pose-free.
+        if (link.send(encodePerformFrame(seq, performance.now() / 1000, points, result.head))) {
           stats.seq = seq;
           seq += 1;
           stats.published += 1;

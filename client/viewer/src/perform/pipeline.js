@@ -5,6 +5,7 @@
 
 import layoutTable from "../../../../rig/sources/layouts/mediapipe_face_mesh.json";
 import { checkLayout, FaceMeshError, imageToMesh, normaliseMesh } from "./facemesh.js";
+import { headQuaternion } from "./headpose.js";
 import { Tracker } from "./tracker.js";
 
 /** The layout both the page and the offline tracker publish in. */
@@ -16,6 +17,7 @@ export class FacePipeline {
     this.layout = layout;
     this.tracker = new Tracker(base === undefined ? { backend } : { backend, base });
     this.points = new Float32Array(layout.features.length * 3);
+    this.head = new Float32Array(4);
     this.canvas = document.createElement("canvas");
     this.context = this.canvas.getContext("2d");
   }
@@ -46,8 +48,10 @@ export class FacePipeline {
 
   /**
    * Track one image (a <video>, a canvas, anything the face model takes). Returns
-   * {faces, face, mesh, points, frame, modelMs}: `points` (this.points, Float32Array K*3,
-   * overwritten by the next call) and `mesh`/`frame` are null when no face was found;
+   * {faces, face, mesh, points, head, frame, modelMs}: `points` (this.points, Float32Array
+   * K*3) and `head` (this.head, the head pose's quaternion x, y, z, w in the protocol's
+   * frame, headpose.js), both overwritten by the next call, and `mesh`/`frame` are null
+   * when no face was found;
    * `face` is the tracker's (landmarks in image pixels, box, score); `modelMs` the model's
    * time.
    */
@@ -55,16 +59,17 @@ export class FacePipeline {
     const t0 = performance.now();
     const result = await this.tracker.track(image);
     const modelMs = performance.now() - t0;
-    if (!result.face) return { faces: result.faces, face: null, mesh: null, points: null, frame: null, modelMs };
+    if (!result.face) return { faces: result.faces, face: null, mesh: null, points: null, head: null, frame: null, modelMs };
     const mesh = imageToMesh(result.face.landmarks);
     let frame;
     try {
       ({ frame } = normaliseMesh(mesh, this.layout, this.points));
     } catch (err) {
       // A degenerate mesh (eye centres coinciding) is no face, as in facecast.cli.facetrack.
-      if (err instanceof FaceMeshError) return { faces: result.faces, face: null, mesh: null, points: null, frame: null, modelMs };
+      if (err instanceof FaceMeshError) return { faces: result.faces, face: null, mesh: null, points: null, head: null, frame: null, modelMs };
       throw err;
     }
-    return { faces: result.faces, face: result.face, mesh, points: this.points, frame, modelMs };
+    headQuaternion(frame, this.head);
+    return { faces: result.faces, face: result.face, mesh, points: this.points, head: this.head, frame, modelMs };
   }
 }

@@ -32,7 +32,8 @@ const api = {
    * Track the raw YUV frame at `url` (planar, `format` "I420", "I422" or "I444", as
    * WebCodecs names them). Chromium converts it to RGB as it converts its camera's
    * frames. `next`: the frame the following call will ask for, fetched while this one is
-   * tracked. Returns {faces, points: [K*3] or null, modelMs}.
+   * tracked. Returns {faces, points: [K*3] or null, head: [x, y, z, w] or null (the
+   * quaternion the page sends as the frame's head.rotation), modelMs}.
    */
   async track(url, { format, width, height, colorSpace }, next = null) {
     const data = await (prefetched && prefetched.url === url ? prefetched.data : fetchFrame(url));
@@ -44,7 +45,12 @@ const api = {
     } finally {
       frame.close();
     }
-    return { faces: result.faces, points: result.points ? Array.from(result.points) : null, modelMs: result.modelMs };
+    return {
+      faces: result.faces,
+      points: result.points ? Array.from(result.points) : null,
+      head: result.head ? Array.from(result.head) : null,
+      modelMs: result.modelMs,
+    };
   },
 };
 window.facecastTrack = api;
