@@ -30,6 +30,7 @@ from .connection.registry import SessionRegistry
 from .errors import LogOnce, install_error_handlers, problem
 from .guards.auth import authorize_request
 from .guards.origins import OriginGuard
+from .http.characters import router as character_router
 from .http.performers import profile_store
 from .http.performers import router as performer_router
 from .http.rigs import router as rest_router
@@ -126,6 +127,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.profiles = profile_store(settings, app.state.store)
     install_error_handlers(app)
     app.include_router(rest_router)
+    app.include_router(character_router)
     app.include_router(stream_router)
     app.include_router(channel_router)
     app.include_router(performer_router)

@@ -16,9 +16,12 @@ class's ``code`` is its default, and the module that raises each re-exports it):
 
 from __future__ import annotations
 
+import contextlib
 import logging
-from collections.abc import Mapping
+import re
+from collections.abc import Iterator, Mapping
 from http import HTTPStatus
+from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -40,6 +43,8 @@ __all__ = [
     "SettingsError",
     "install_error_handlers",
     "problem",
+    "redact_paths",
+    "upload_paths_hidden",
 ]
 
 log = logging.getLogger("facecast.server")
@@ -138,6 +143,39 @@ class LogOnce:
                 raise
 
 
+def redact_paths(text: str, roots: list[Path]) -> str:
+    """``text`` with every path under one of ``roots`` cut to its last part.
+
+    A safety net for error bodies: a server path (the rig directory, a scratch folder)
+    tells a caller nothing it can use and something about the host it should not know.
+    """
+    for root in roots:
+        for form in {str(root), str(root.resolve())}:
+            text = re.sub(
+                re.escape(form) + r"(/[^\s'\"`:,;()]*)?",
+                lambda m: m.group(0).rsplit("/", 1)[-1] if m.group(1) else "<server>",
+                text,
+            )
+    return text
+
+
+@contextlib.contextmanager
+def upload_paths_hidden(root: Path) -> Iterator[None]:
+    """Engine errors raised inside shown with paths relative to the upload's folder ``root``.
+
+    Loaders name the file at fault by its path, which for an upload is a scratch folder on
+    the server: ``.../upload-x/set/neutral.obj`` becomes ``set/neutral.obj``.
+    """
+    try:
+        yield
+    except RigError as exc:
+        message = exc.message
+        for form in {str(root), str(root.resolve())}:
+            message = message.replace(form + "/", "").replace(form, "the upload")
+        exc.args = (message, *exc.args[1:])
+        raise
+
+
 def problem(
     status: int, code: str, detail: str, *, headers: Mapping[str, str] | None = None
 ) -> JSONResponse:
@@ -166,7 +204,10 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RigError)
     async def _rig_error(request: Request, exc: RigError) -> JSONResponse:
-        return problem(422, exc.code, exc.message or exc.code)
+        # Routes hide their upload folders (``upload_paths_hidden``); no other server path
+        # may reach a caller either.
+        roots = [request.app.state.store.directory]
+        return problem(422, exc.code, redact_paths(exc.message or exc.code, roots))
 
     @app.exception_handler(RequestValidationError)
     async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:

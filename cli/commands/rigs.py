@@ -11,12 +11,15 @@ import io
 import json
 import os
 import sys
+import urllib.parse
 import zipfile
 from pathlib import Path
 
 from facecast.cli.errors import CommandError
 
 ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz")
+#: A character file: sent to PUT /v1/characters/{id} (a .gltf zipped with its files).
+CHARACTER_SUFFIXES = (".glb", ".vrm", ".gltf")
 
 
 def register(subparsers) -> None:
@@ -40,7 +43,9 @@ def register(subparsers) -> None:
     action("show", "print a rig's summary as JSON", "name")
     put = action(
         "put",
-        "store a rig: an example-set folder or archive (fitted on the server) or a rig file",
+        "store a rig: a character file (.glb, .vrm, or .gltf with its files; fitted on the "
+        "server with the generic ARKit source set), an example-set folder or archive (fitted "
+        "on the server) or a rig file",
         "name",
         "path",
     )
@@ -99,6 +104,59 @@ def _zip_folder(folder: Path) -> bytes:
     return buffer.getvalue()
 
 
+def _gltf_archive(path: Path) -> bytes:
+    """A zip of a .gltf and the files its buffers and images name (relative URIs inside its folder)."""
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise CommandError(f"{path}: not a readable .gltf ({exc})") from None
+    folder = path.parent.resolve()
+    members = {path.name: path.read_bytes()}
+    for kind in ("buffers", "images"):
+        entries = doc.get(kind) if isinstance(doc, dict) else None
+        for entry in entries if isinstance(entries, list) else []:
+            uri = entry.get("uri") if isinstance(entry, dict) else None
+            if not isinstance(uri, str) or uri.startswith("data:"):
+                continue
+            relative = urllib.parse.unquote(uri)
+            target = (path.parent / relative).resolve()
+            if "://" in uri or not target.is_relative_to(folder):
+                raise CommandError(
+                    f"{path}: {kind[:-1]} {uri!r} is outside the .gltf's folder; put its "
+                    "files beside it (or export a .glb)"
+                )
+            if not target.is_file():
+                raise CommandError(f"{path}: {kind[:-1]} {uri!r}: no such file beside it")
+            members[target.relative_to(folder).as_posix()] = target.read_bytes()
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+        for name, data in members.items():
+            archive.writestr(name, data)
+    return buffer.getvalue()
+
+
+def _is_character(path: Path) -> bool:
+    """A .glb/.vrm/.gltf by name, or any file that is a glTF binary by its first bytes."""
+    if not path.is_file():
+        return False
+    if path.suffix.lower() in CHARACTER_SUFFIXES:
+        return True
+    with path.open("rb") as fh:
+        return fh.read(4) == b"glTF"
+
+
+def _print_character_fit(name: str, summary: dict) -> None:
+    character = summary.get("character") or {}
+    print(
+        f"fitted {name} from a {character.get('format', 'glTF')} character: "
+        f"M={summary['num_examples']} K={summary['num_points']} V={summary['num_vertices']}"
+    )
+    for line in summary.get("pairing", {}).get("text", []):
+        print(line)
+    for message in summary.get("warnings", []):
+        print(f"warning: {message}", file=sys.stderr)
+
+
 def run(args: argparse.Namespace) -> int:
     import httpx
 
@@ -147,7 +205,11 @@ def run(args: argparse.Namespace) -> int:
             )
             if v is not None
         }
-        if path.is_dir() or path.name.lower().endswith(ARCHIVE_SUFFIXES):
+        if _is_character(path):
+            body = _gltf_archive(path) if path.suffix.lower() == ".gltf" else path.read_bytes()
+            summary = call("PUT", f"/v1/characters/{args.name}", content=body, params=params)
+            _print_character_fit(args.name, summary.json())
+        elif path.is_dir() or path.name.lower().endswith(ARCHIVE_SUFFIXES):
             body = _zip_folder(path) if path.is_dir() else path.read_bytes()
             summary = call("PUT", f"{rig_path}/examples", content=body, params=params).json()
             print(

@@ -23,10 +23,11 @@ from fastapi.responses import JSONResponse
 from facecast.rig import fit
 from facecast.rig.io.loaders import load_example_set
 
-from ..errors import ApiError
+from ..errors import ApiError, upload_paths_hidden
 from ..guards.auth import READ_ROLES, Principal, requires
 from ..settings import Settings
 from ..storage.archive import ArchiveError, ArchiveLimits, extract_archive, find_example_root
+from ..storage.characters import base_id, character_view, looks_like_character
 from ..storage.rig_store import RIG_ID_PATTERN, RigNotFoundError, RigStore, valid_rig_id
 
 if TYPE_CHECKING:
@@ -34,7 +35,16 @@ if TYPE_CHECKING:
 
 T = TypeVar("T")
 
-__all__ = ["fit_slot", "read_body", "router", "run_fit"]
+__all__ = [
+    "FitOptions",
+    "archive_limits",
+    "fit_options",
+    "fit_slot",
+    "read_body",
+    "refuse_character",
+    "router",
+    "run_fit",
+]
 
 log = logging.getLogger("facecast.server.rest")
 
@@ -207,11 +217,20 @@ async def list_rigs(request: Request, _: Reader) -> dict[str, Any]:
 @router.get("/rigs/{rig_id}", summary="Describe a rig (Rig.summary())")
 async def get_rig(request: Request, rig_id: str, _: Reader) -> dict[str, Any]:
     _check_id(rig_id)
+    store = _store(request)
     try:
-        rig = await anyio.to_thread.run_sync(_store(request).get, rig_id)
+        rig = await anyio.to_thread.run_sync(store.get, rig_id)
     except RigNotFoundError:
         raise _not_found(rig_id) from None
-    return _described(rig_id, rig)
+    described = _described(rig_id, rig)
+    # A performer's rig shows its base rig's character (the same expressions, by name).
+    stored = await anyio.to_thread.run_sync(
+        lambda: store.character(base_id(rig_id), with_glb=False)
+    )
+    character = character_view(rig_id, rig.names, stored)
+    if character is not None:
+        described["character"] = character
+    return described
 
 
 @router.put(
@@ -225,6 +244,7 @@ async def put_rig(request: Request, rig_id: str, principal: Admin) -> JSONRespon
     # A fit slot as for examples: at most that many upload bodies are held at once.
     with fit_slot(request, principal):
         data = await read_body(request, _settings(request).max_upload_bytes)
+        refuse_character(data, rig_id)
         rig, created = await anyio.to_thread.run_sync(_store(request).put_bytes, rig_id, data)
     log.info(
         "rig stored",
@@ -233,21 +253,7 @@ async def put_rig(request: Request, rig_id: str, principal: Admin) -> JSONRespon
     return JSONResponse(_described(rig_id, rig), status_code=201 if created else 200)
 
 
-@router.put(
-    "/rigs/{rig_id}/examples",
-    summary="Fit a rig from an example-set archive (zip, tar, tar.gz) and store it",
-    status_code=201,
-    openapi_extra={
-        "requestBody": {
-            "content": {"application/zip": {}, "application/gzip": {}, "application/x-tar": {}},
-            "required": True,
-        }
-    },
-)
-async def put_examples(
-    request: Request,
-    rig_id: str,
-    principal: Admin,
+def fit_options(
     noise: Annotated[
         float, Query(ge=0.0, allow_inf_nan=False, description="expected landmark noise")
     ] = 0.0,
@@ -268,8 +274,8 @@ async def put_examples(
             description="with clamp: the sparsity prior's rate (default 0, the plain projection)",
         ),
     ] = None,
-) -> JSONResponse:
-    _check_id(rig_id)
+) -> dict[str, Any]:
+    """The fit's query options (keyword arguments of ``facecast.rig.fit``), checked."""
     if sparsity is not None and sparsity > 0 and clamp is None:
         # The engine refuses this too, but only after the upload has been read and unpacked.
         raise ApiError(
@@ -277,23 +283,61 @@ async def put_examples(
             "sparsity_without_clamp",
             "sparsity is a prior on bounded weights: it needs clamp 'nonneg' or 'unit'",
         )
-    settings = _settings(request)
-    limits = ArchiveLimits(
-        max_members=settings.max_archive_members,
-        max_extracted_bytes=settings.max_extracted_bytes,
-        max_compression_ratio=settings.max_compression_ratio,
-    )
-    options = {
+    return {
         "noise": noise,
         "pca_threshold": pca_threshold,
         "kernel": kernel,
         "clamp": clamp,
         "sparsity": sparsity,
     }
+
+
+FitOptions = Annotated[dict[str, Any], Depends(fit_options)]
+
+
+def archive_limits(settings: Settings) -> ArchiveLimits:
+    return ArchiveLimits(
+        max_members=settings.max_archive_members,
+        max_extracted_bytes=settings.max_extracted_bytes,
+        max_compression_ratio=settings.max_compression_ratio,
+    )
+
+
+def refuse_character(data: bytes, rig_id: str) -> None:
+    """415 ``character_not_rig`` for a glTF/VRM sent where a rig or example set is expected."""
+    if looks_like_character(data):
+        raise ApiError(
+            415,
+            "character_not_rig",
+            "the body is a glTF/VRM character file, not a rig file or an example-set archive: "
+            f"upload a character with PUT /v1/characters/{rig_id} (body: the .glb or .vrm as "
+            "it is, or a zip of the .gltf with its files), or `facecast rigs put URL "
+            f"{rig_id} avatar.glb`",
+        )
+
+
+@router.put(
+    "/rigs/{rig_id}/examples",
+    summary="Fit a rig from an example-set archive (zip, tar, tar.gz) and store it",
+    status_code=201,
+    openapi_extra={
+        "requestBody": {
+            "content": {"application/zip": {}, "application/gzip": {}, "application/x-tar": {}},
+            "required": True,
+        }
+    },
+)
+async def put_examples(
+    request: Request, rig_id: str, principal: Admin, options: FitOptions
+) -> JSONResponse:
+    _check_id(rig_id)
+    settings = _settings(request)
+    limits = archive_limits(settings)
     with fit_slot(request, principal):
         # The slot is held from before the body is read: concurrent uploads cannot all
         # pass the check while none is counted yet, nor buffer more bodies than fits.
         data = await read_body(request, settings.max_upload_bytes)
+        refuse_character(data, rig_id)
         try:
             rig = await run_fit(request, _FitJob(data, limits, options, _scratch(request)))
         except ArchiveError as exc:
@@ -305,10 +349,10 @@ async def put_examples(
             "event": "rig.fitted",
             "rig": rig_id,
             "bytes": len(data),
-            "kernel": kernel,
-            "noise": noise,
-            "clamp": clamp,
-            "sparsity": sparsity,
+            "kernel": options["kernel"],
+            "noise": options["noise"],
+            "clamp": options["clamp"],
+            "sparsity": options["sparsity"],
             "by": principal.name,
         },
     )
@@ -336,7 +380,8 @@ class _FitJob:
         with tempfile.TemporaryDirectory(prefix="upload-", dir=self.scratch) as tmp:
             dest = Path(tmp)
             extract_archive(self.data, dest, self.limits)
-            example_set = load_example_set(find_example_root(dest))
+            with upload_paths_hidden(dest):
+                example_set = load_example_set(find_example_root(dest))
         return fit(example_set, **self.options)
 
 

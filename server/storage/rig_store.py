@@ -34,6 +34,7 @@ from ..names import (
     valid_name,
     valid_rig_id,
 )
+from .characters import CHARACTER_SUFFIX, StoredCharacter, unpack_character
 
 if TYPE_CHECKING:
     from facecast.rig.rig import Rig
@@ -230,6 +231,9 @@ class RigStore:
         infos.sort(key=lambda info: info.id)
         return infos
 
+    def exists(self, rig_id: str) -> bool:
+        return self._path(rig_id).is_file()
+
     def get(self, rig_id: str) -> Rig:
         """The loaded rig, from the cache unless the file changed since it was loaded."""
         return self._load(rig_id).rig
@@ -263,16 +267,42 @@ class RigStore:
         """
         rig = rig_from_bytes(data, source=f"rig {rig_id!r}", max_bytes=self.max_rig_bytes)
         check_servable(rig, self.limits, f"rig {rig_id!r}")
+        self._remove_character(rig_id)
         created = self._write(rig_id, data)
         return rig, created
 
-    def put_rig(self, rig_id: str, rig: Rig) -> bool:
-        """Store a fitted rig; returns whether the id is new.
+    def put_rig(self, rig_id: str, rig: Rig, *, character: bytes | None = None) -> bool:
+        """Store a fitted rig, with its character file or without one; returns whether the id is new.
 
-        Raises ``RigFileError`` (nothing written) for a rig the protocol cannot carry.
+        ``character`` (``characters.pack_character``'s bytes) is written first, then
+        the rig, each atomically; without one, a character the id had is removed, so a
+        rig never shows another rig's file. Raises ``RigFileError`` (nothing written) for
+        a rig the protocol cannot carry.
         """
         check_servable(rig, self.limits, f"rig {rig_id!r}")
+        if character is None:
+            self._remove_character(rig_id)
+        else:
+            write_atomically(
+                self.directory, f"{rig_id}{CHARACTER_SUFFIX}", character, scratch=self.scratch
+            )
         return self._write(rig_id, rig.to_bytes())
+
+    def character(self, rig_id: str, *, with_glb: bool = True) -> StoredCharacter | None:
+        """The character stored beside rig ``rig_id``; ``None`` when it has none or it is unreadable.
+
+        ``with_glb=False``: its record only (``characters.unpack_character``).
+        """
+        self._path(rig_id)  # validates the id
+        try:
+            fh = (self.directory / f"{rig_id}{CHARACTER_SUFFIX}").open("rb")
+        except FileNotFoundError:
+            return None
+        with fh:
+            try:
+                return unpack_character(fh, with_glb=with_glb)
+            except ValueError:
+                return None
 
     def delete(self, rig_id: str) -> None:
         path = self._path(rig_id)
@@ -280,6 +310,7 @@ class RigStore:
             path.unlink()
         except FileNotFoundError:
             raise RigNotFoundError(rig_id) from None
+        self._remove_character(rig_id)
         fsync_directory(self.directory)
         with self._lock:
             self._cache.pop(rig_id, None)
@@ -289,6 +320,11 @@ class RigStore:
         if not valid_rig_id(rig_id):
             raise ValueError(f"invalid rig id {rig_id!r}")
         return self.directory / f"{rig_id}{SUFFIX}"
+
+    def _remove_character(self, rig_id: str) -> None:
+        self._path(rig_id)  # validates the id
+        with contextlib.suppress(FileNotFoundError):
+            (self.directory / f"{rig_id}{CHARACTER_SUFFIX}").unlink()
 
     def _write(self, rig_id: str, data: bytes) -> bool:
         self._path(rig_id)  # validates the id

@@ -150,3 +150,54 @@ def test_serve_refuses_public_bind_without_tokens_as_a_command_error(tmp_path, m
 
     with pytest.raises(CommandError, match="no API tokens"):
         args.func(args)
+
+
+@pytest.mark.parametrize("name", ["avatar.vrm", "avatar.bin"])
+async def test_rigs_put_of_a_character_file_fits_it_and_prints_the_pairing(
+    settings, tmp_path, capsys, name
+):
+    from tests.rig._avatars import avatar
+
+    (tmp_path / name).write_bytes(avatar("vrm1"))
+    async with run_server(settings) as server:
+        code = run_rigs(server, "put", "ava", str(tmp_path / name), "--noise", "0.05")
+        run_rigs(server, "show", "ava")
+
+    out = capsys.readouterr().out
+    assert code == 0
+    assert "fitted ava from a vrm1 character: M=" in out and "K=20" in out
+    assert "pairing with" in out and "paired   morph target 'jawOpen'" in out
+    assert '"format": "vrm1"' in out  # rigs show: the character's description
+
+
+async def test_rigs_put_of_a_gltf_sends_it_with_the_files_it_names(settings, tmp_path, capsys):
+    from tests.rig._avatars import avatar
+    from tests.rig.test_character import split
+
+    doc, blob = split(avatar("arkit"))
+    (tmp_path / "tex").mkdir()
+    (tmp_path / "avatar.bin").write_bytes(blob)
+    (tmp_path / "unrelated.bin").write_bytes(b"\0" * 1024)
+    doc["buffers"] = [{"byteLength": len(blob), "uri": "avatar.bin"}]
+    view = doc["bufferViews"][doc["images"][0]["bufferView"]]
+    (tmp_path / "tex" / "skin map.png").write_bytes(
+        blob[view["byteOffset"] : view["byteOffset"] + view["byteLength"]]
+    )
+    doc["images"][0] = {"uri": "tex/skin%20map.png"}
+    (tmp_path / "avatar.gltf").write_text(json.dumps(doc))
+    async with run_server(settings) as server:
+        code = run_rigs(server, "put", "folder", str(tmp_path / "avatar.gltf"))
+
+    assert code == 0
+    assert "fitted folder from a gltf character" in capsys.readouterr().out
+
+
+def test_rigs_put_of_a_gltf_naming_a_file_outside_its_folder_says_so(tmp_path):
+    (tmp_path / "in").mkdir()
+    (tmp_path / "secret.bin").write_bytes(b"\0" * 8)
+    gltf = {"asset": {"version": "2.0"}, "buffers": [{"byteLength": 8, "uri": "../secret.bin"}]}
+    (tmp_path / "in" / "a.gltf").write_text(json.dumps(gltf))
+    args = parse(rigs, ["rigs", "put", "http://127.0.0.1:9", "x", str(tmp_path / "in" / "a.gltf")])
+
+    with pytest.raises(CommandError, match=r"outside the \.gltf's folder"):
+        args.func(args)

@@ -16,6 +16,7 @@ export class Hud {
       stats: doc.getElementById("stats"),
       error: doc.getElementById("error"),
       weights: doc.getElementById("weights"),
+      character: doc.getElementById("character"),
     };
     if (this.el.hud) this.el.hud.hidden = !showStats;
     this.bars = [];
@@ -40,6 +41,13 @@ export class Hud {
   clearError() {
     this.el.error.hidden = true;
     this.el.error.textContent = "";
+  }
+
+  /** The character file's description: format, name, authors, licence (VRM meta). */
+  character(text) {
+    if (!this.el.character) return;
+    this.el.character.textContent = text;
+    this.el.character.hidden = !text;
   }
 
   stats(s) {

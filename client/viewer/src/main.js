@@ -6,6 +6,7 @@ import { Hud } from "./hud.js";
 import { Link } from "./link.js";
 import { authHeaders, readParams, socketTarget } from "./params.js";
 import { decodeAnimation, encodeHello, ErrorCode, errorName } from "./protocol.js";
+import { metaText } from "./character.js";
 import { FaceView } from "./scene.js";
 
 const RETRY_FIRST_MS = 250;
@@ -29,11 +30,18 @@ const stats = {
   dropped: 0,
   channel: null,
   rig: null,
+  character: null, // the rig's character file as shown: {format, meshes, vrm, bound, head, meta}
+  head: null, // the last result's head rotation (x, y, z, w), channel mode
 };
 window.facecastStats = stats;
 
 /** An error another attempt would only repeat (bad token, unknown rig, bad URL). */
-class Permanent extends Error {}
+class Permanent extends Error {
+  constructor(message, code = null) {
+    super(message);
+    this.code = code;
+  }
+}
 
 const hud = new Hud(document, { showStats: stats.page === "viewer" });
 
@@ -49,7 +57,7 @@ function failed(message) {
   hud.error(message);
 }
 
-async function fetchBinary(params, path, what) {
+async function fetchBinary(params, path, what, read = (response) => response.arrayBuffer()) {
   let attempt = 0;
   for (;;) {
     let response;
@@ -59,18 +67,46 @@ async function fetchBinary(params, path, what) {
       response = null;
       setState("waiting", "waiting for the server", `${what}: ${err.message}`);
     }
-    if (response && response.ok) return response.arrayBuffer();
+    if (response && response.ok) return read(response);
     if (response) {
       const problem = await response.json().catch(() => ({}));
       const detail = problem.detail || response.statusText;
       if (response.status === 401) throw new Permanent(`Authentication failed (401 ${problem.code || "unauthorized"}): ${detail}`);
-      if (response.status === 403) throw new Permanent(`Not allowed (403 ${problem.code || "forbidden"}): ${detail}`);
+      if (response.status === 403) throw new Permanent(`Not allowed (403 ${problem.code || "forbidden"}): ${detail}`, problem.code);
       if (response.status === 404 || response.status === 400) throw new Permanent(`${what}: ${detail}`);
       setState("waiting", "waiting for the server", `${what}: HTTP ${response.status} ${detail}`);
     }
     const delay = Math.min(RETRY_MAX_MS, RETRY_FIRST_MS * 2 ** attempt++);
     await new Promise((resolve) => setTimeout(resolve, delay));
   }
+}
+
+/**
+ * The rig's character file as uploaded when it has one and the page shows weights (the
+ * vertex outputs pose the rig's own mesh: PROTOCOL.md §5.2), else the rig's model.glb.
+ * A VRM whose licence keeps it from anonymous viewers (403) falls back to model.glb.
+ */
+async function loadModel(params, view) {
+  const rigPath = `/v1/rigs/${encodeURIComponent(params.rig)}`;
+  const described = await fetchBinary(params, rigPath, `rig ${params.rig}`, (r) => r.json());
+  const character = described.character;
+  if (character && params.output === "weights") {
+    try {
+      const glb = await fetchBinary(params, character.url, `character of rig ${params.rig}`);
+      const shown = await view.loadCharacter(glb, character);
+      stats.character = { format: character.format, meta: character.meta, ...shown };
+      hud.character(
+        metaText(character.meta, character.format) +
+          (shown.vrmError ? ` — shown as plain glTF (three-vrm refused it: ${shown.vrmError})` : ""),
+      );
+      return { names: described.names, vertexCount: described.num_vertices };
+    } catch (err) {
+      if (!(err instanceof Permanent && err.code === "character_not_redistributable")) throw err;
+      stats.character = { format: character.format, meta: character.meta, withheld: err.message };
+      hud.character(`${metaText(character.meta, character.format)} — not shown: its licence forbids redistribution to viewers without a token`);
+    }
+  }
+  return view.load(await fetchBinary(params, `${rigPath}/model.glb`, `rig ${params.rig}`));
 }
 
 async function main() {
@@ -99,12 +135,11 @@ async function main() {
   let model;
   let player = null;
   try {
-    const rigPath = `/v1/rigs/${encodeURIComponent(params.rig)}/model.glb`;
-    const [glb, animation] = await Promise.all([
-      fetchBinary(params, rigPath, `rig ${params.rig}`),
+    const [loaded, animation] = await Promise.all([
+      loadModel(params, view),
       params.mode === "demo" ? fetchBinary(params, "/v1/demo/animation", "demo animation") : null,
     ]);
-    model = await view.load(glb);
+    model = loaded;
     if (animation) player = new DemoPlayer(decodeAnimation(animation), { start: params.start });
   } catch (err) {
     failed(err instanceof Permanent ? err.message : `Cannot load: ${err.message}`);
@@ -115,6 +150,7 @@ async function main() {
   let latencyEma = null;
   let pendingWeights = null;
   let pendingVertices = null;
+  let pendingHead = null;
   let moving = null; // output "moving": the indices of the vertices results carry
 
   const link = new Link(socketTarget(params), {
@@ -188,6 +224,7 @@ async function main() {
           }
           if (msg.weights) pendingWeights = msg.weights;
           else pendingVertices = msg.vertices;
+          if (msg.head) pendingHead = msg.head.rotation;
           break;
         }
         case "channel_idle":
@@ -220,13 +257,17 @@ async function main() {
   const tick = (now) => {
     try {
       if (pendingWeights) view.setWeights(pendingWeights);
+      if (pendingHead) {
+        view.setHead(pendingHead);
+        stats.head = Array.from(pendingHead);
+      }
       if (pendingVertices && moving) view.setMovingVertices(moving, pendingVertices);
       else if (pendingVertices) view.setVertices(pendingVertices);
       if (pendingWeights) hud.weights(pendingWeights);
     } catch (err) {
       link.fail(err.message);
     }
-    pendingWeights = pendingVertices = null;
+    pendingWeights = pendingVertices = pendingHead = null;
     if (view.dirty) {
       view.render();
       stats.rendered += 1;

@@ -236,6 +236,12 @@ const PARSERS = {
     const out = { ...m, proc_us: m.proc_us ?? 0, dropped: m.dropped ?? 0 };
     if (hasWeights) out.weights = arrayFromWire(m.weights, { ndim: 1 }).data;
     else out.vertices = arrayFromWire(m.vertices, { ndim: 2, trailing: [3] }).data;
+    // §5.3: the publisher's head pose, relayed unchanged (the server checked it).
+    if (isMap(m.head) && m.head.rotation != null) {
+      const rotation = arrayFromWire(m.head.rotation, { ndim: 1 }).data;
+      if (rotation.length !== 4) throw new ProtocolError(ErrorCode.INVALID_ARRAY, "result: head.rotation must have 4 values");
+      out.head = { rotation };
+    } else delete out.head;
     return out;
   },
   error(m) {

@@ -1,10 +1,13 @@
 // The 3D view: the rig's target mesh from its GLB, posed by weights (morph targets on the
-// GPU) or by whole vertex arrays. Knows nothing of sockets or the protocol.
+// GPU) or by whole vertex arrays; or the rig's character file as uploaded (character.js),
+// posed by weights through its bindings and by the head pose. Knows nothing of sockets or
+// the protocol.
 
 import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 
+import { applyWeights, bindMorphs, findHead, headQuaternion, parseCharacter } from "./character.js";
 import { applyMoving } from "./protocol.js";
 
 export class FaceView {
@@ -36,7 +39,10 @@ export class FaceView {
     this.scene.add(rim);
 
     this.controls = controls ? new OrbitControls(this.camera, this.renderer.domElement) : null;
-    this.mesh = null;
+    this.mesh = null; // the rig's mesh (model.glb); null while a character is shown
+    this.character = null; // {vrm, bound, head, headRest, format} for a character file
+    this.loaded = false;
+    this.clock = new THREE.Clock();
     this.names = [];
     this.dirty = true;
     this.resize();
@@ -67,15 +73,65 @@ export class FaceView {
     });
     // Morphs move vertices outside the neutral's bounding sphere.
     mesh.frustumCulled = false;
-    if (this.mesh) this.scene.remove(this.root);
-    this.root = gltf.scene;
-    this.scene.add(this.root);
+    this.show(gltf.scene);
     this.mesh = mesh;
     this.names = names;
     this.basePositions = geometry.attributes.position.array.slice();
-    this.frame(geometry);
+    // The neutral's bounds: three.js's own bounding sphere also takes in every morph
+    // target at full weight, which makes the face small and off-centre.
+    this.frame(new THREE.Box3().setFromBufferAttribute(geometry.attributes.position));
     this.dirty = true;
     return { names, vertexCount: geometry.attributes.position.count };
+  }
+
+  /**
+   * Show a character file (ArrayBuffer of its GLB; a VRM is one) as authored, posed
+   * through `character.bindings` (GET /v1/rigs/{id}'s `character`: per rig weight, the
+   * {mesh, morph, weight} it drives). Framed on the meshes the bindings drive (the face).
+   */
+  async loadCharacter(glb, character) {
+    const { root, vrm, meshesByIndex, vrmError } = await parseCharacter(glb, { format: character.format });
+    this.show(root);
+    this.mesh = null;
+    const bound = bindMorphs(meshesByIndex, character.bindings || []);
+    const head = findHead(root, vrm);
+    this.character = { vrm, bound, head, headRest: head ? head.quaternion.clone() : null, format: character.format, weights: null };
+    if (vrm) vrm.update(0);
+    root.updateMatrixWorld(true);
+    const box = new THREE.Box3();
+    const driven = new Set();
+    for (const list of character.bindings || []) for (const { mesh } of list) driven.add(mesh);
+    for (const index of driven) for (const object of meshesByIndex.get(index) || []) box.expandByObject(object);
+    this.frame(box.isEmpty() ? new THREE.Box3().setFromObject(root) : box);
+    this.dirty = true;
+    return {
+      meshes: meshesByIndex.size,
+      vrm: Boolean(vrm),
+      bound: bound.slots.length,
+      head: head ? head.name : null,
+      vrmError,
+      materials: materialTypes(root),
+    };
+  }
+
+  show(root) {
+    if (this.root) this.scene.remove(this.root);
+    this.root = root;
+    this.scene.add(root);
+    this.character = null;
+    this.loaded = true;
+  }
+
+  /** rotation: the head pose's (x, y, z, w) (PROTOCOL.md §5.3); turns the head bone. */
+  setHead(rotation) {
+    const c = this.character;
+    if (!c || !c.head) return;
+    const q = headQuaternion(rotation);
+    // A VRM 0.x model faces -z in its own frame (turned about y to face the camera).
+    if (c.format === "vrm0") q.set(-q.x, q.y, -q.z, q.w);
+    if (c.vrm) c.head.quaternion.copy(q);
+    else c.head.quaternion.copy(c.headRest).multiply(q);
+    this.dirty = true;
   }
 
   /**
@@ -84,6 +140,11 @@ export class FaceView {
    * the model is not this rig's.
    */
   bindWeights(names) {
+    if (this.character) {
+      // The bindings come in the rig's weight order: one list per weight.
+      this.weightCount = this.character.bound.perWeight.length;
+      return names.length === this.weightCount;
+    }
     const index = new Map(names.map((name, i) => [name, i]));
     const order = this.names.map((name) => index.get(name));
     if (order.some((i) => i === undefined)) return false;
@@ -94,6 +155,15 @@ export class FaceView {
 
   /** weights: Float32Array of M, in the rig's weight order (see bindWeights). */
   setWeights(weights) {
+    if (this.character) {
+      if (weights.length !== this.character.bound.perWeight.length) {
+        throw new Error(`got ${weights.length} weights for a character bound to ${this.character.bound.perWeight.length}`);
+      }
+      this.character.weights = weights;
+      applyWeights(this.character.bound, weights);
+      this.dirty = true;
+      return;
+    }
     const influences = this.mesh.morphTargetInfluences;
     const order = this.weightOrder;
     if (!order || weights.length !== this.weightCount) {
@@ -134,8 +204,17 @@ export class FaceView {
 
   render() {
     if (this.controls) this.controls.update();
+    const c = this.character;
+    const delta = this.clock.getDelta();
+    if (c && c.vrm) {
+      // three-vrm's update (look-at, spring bones, normalised bones to the skeleton)
+      // resets the morphs its expressions bind: the rig's weights go on after it.
+      c.vrm.update(Math.min(delta, 0.1));
+      if (c.weights) applyWeights(c.bound, c.weights);
+    }
     this.renderer.render(this.scene, this.camera);
-    this.dirty = false;
+    // Spring bones keep moving after the pose stops changing.
+    this.dirty = Boolean(c && c.vrm && c.vrm.springBoneManager && c.vrm.springBoneManager.joints.size);
   }
 
   resize() {
@@ -151,12 +230,10 @@ export class FaceView {
 
   /**
    * Put the camera in front of the face (+z out of the face, y up, a little from the right
-   * and above) so the neutral's box, as drawn, fills FRAME_FILL of the view's shorter side.
+   * and above) so `box` (the neutral's, or the character face's), as drawn, fills
+   * FRAME_FILL of the view's shorter side.
    */
-  frame(geometry) {
-    // The neutral's bounds: three.js's own bounding sphere also takes in every morph
-    // target at full weight, which makes the face small and off-centre.
-    const box = new THREE.Box3().setFromBufferAttribute(geometry.attributes.position);
+  frame(box) {
     const center = box.getCenter(new THREE.Vector3());
     const size = box.getSize(new THREE.Vector3());
     const direction = new THREE.Vector3(0.18, 0.1, 1).normalize();
@@ -171,7 +248,7 @@ export class FaceView {
       distance *= projectedFill(box, this.camera) / FRAME_FILL;
     }
     this.placeCamera(center, direction, distance);
-    this.framed = geometry;
+    this.framed = box;
     if (this.controls) {
       this.controls.target.copy(center);
       this.controls.update();
@@ -186,6 +263,16 @@ export class FaceView {
     this.camera.updateProjectionMatrix();
     this.camera.updateMatrixWorld();
   }
+}
+
+/** The kinds of material the character is drawn with (MToonMaterial for a VRM's MToon). */
+function materialTypes(root) {
+  const types = new Set();
+  root.traverse((node) => {
+    if (!node.isMesh) return;
+    for (const material of [].concat(node.material)) types.add(material.isMToonMaterial ? "MToonMaterial" : material.type);
+  });
+  return [...types].sort();
 }
 
 /** Share of the shorter side the neutral's box corners take: its silhouette then fills ~65-75 %. */

@@ -5,6 +5,7 @@
 import { Link } from "../link.js";
 import { authHeaders, socketTarget } from "../params.js";
 import { encodeCalibrate, encodeFrame, encodeHello, ErrorCode, errorName } from "../protocol.js";
+import { metaText } from "../character.js";
 import { FaceView } from "../scene.js";
 import { cameraFrames, drawPoints, openCamera } from "./camera.js";
 import { eyeOpenness, headAngles } from "./facemesh.js";
@@ -50,6 +51,8 @@ const stats = {
   renderMs: null, // drawing the character (three.js; the GPU's work, or SwiftShader's), mean
   waitMs: null, // waiting for the camera's next frame once the last was tracked (mean)
   drawn: 0, // times the character was drawn
+  poses: 0, // weights applied to the character (live results, or an example the studio shows)
+  posesDrawn: 0, // of those, how many were applied before the last finished draw began
   drawCostMs: null, // what a draw of the character blocks the page: draw -> next task (mean)
   frameSource: null, // "processor" (MediaStreamTrackProcessor) or "video" (frame callbacks)
   points: null, // the last published points, K*3
@@ -59,6 +62,7 @@ const stats = {
   neutralNoise: null, // σ of the neutral capture's held frames, sent with the calibrate
   rig: null,
   channel: null,
+  character: null, // the rig's character file as shown: {format, meshes, vrm, bound, head, meta}
 };
 window.facecastStats = stats;
 
@@ -103,15 +107,43 @@ function problemText(response, problem, role, what) {
   return `${response.status} ${problem.code || ""}: ${detail}`.trim();
 }
 
-async function fetchModel(params) {
-  const response = await fetch(`${params.server}/v1/rigs/${encodeURIComponent(params.rig)}/model.glb`, {
-    headers: authHeaders(params),
-  });
+async function fetchOk(params, path, what) {
+  const response = await fetch(`${params.server}${path}`, { headers: authHeaders(params) });
   if (!response.ok) {
     const problem = await response.json().catch(() => ({}));
-    throw new Error(problemText(response, problem, "viewer", `load the character of rig ${params.rig}`));
+    const error = new Error(problemText(response, problem, "viewer", what));
+    error.code = problem.code;
+    throw error;
   }
-  return response.arrayBuffer();
+  return response;
+}
+
+/**
+ * Show the rig's character file as uploaded when it has one (its licence permitting),
+ * else the rig's model.glb. Returns {names: the expressions (no neutral), bindNames: the
+ * names the view takes weights in before the rig's `ready`}.
+ */
+async function loadModel(params, view) {
+  const rigPath = `/v1/rigs/${encodeURIComponent(params.rig)}`;
+  const what = `load the character of rig ${params.rig}`;
+  const described = await (await fetchOk(params, rigPath, what)).json();
+  const character = described.character;
+  if (character) {
+    try {
+      const glb = await (await fetchOk(params, character.url, what)).arrayBuffer();
+      const shown = await view.loadCharacter(glb, character);
+      stats.character = { format: character.format, meta: character.meta, ...shown };
+      $("stage-meta").textContent =
+        metaText(character.meta, character.format) + (shown.vrmError ? " — shown as plain glTF (three-vrm refused it)" : "");
+      return { names: described.names.filter((n) => n !== "neutral"), bindNames: described.names };
+    } catch (err) {
+      if (err.code !== "character_not_redistributable") throw err;
+      stats.character = { format: character.format, meta: character.meta, withheld: err.message };
+      $("stage-meta").textContent = `${metaText(character.meta, character.format)} — not shown: its licence forbids redistribution to viewers without a token`;
+    }
+  }
+  const model = await view.load(await (await fetchOk(params, `${rigPath}/model.glb`, what)).arrayBuffer());
+  return { names: model.names, bindNames: model.names };
 }
 
 async function main() {
@@ -134,14 +166,16 @@ async function main() {
   // the model's own target names, so the studio can pose the character before publishing.
   let rigNames = null;
   let weightNames = [];
+  let bindNames = [];
   const bindView = () => {
-    if (!view.mesh) return;
+    if (!view.loaded) return;
     if (rigNames && view.bindWeights(rigNames)) weightNames = rigNames;
-    else if (view.bindWeights(names)) weightNames = names;
+    else if (view.bindWeights(bindNames)) weightNames = bindNames;
   };
   const showWeights = (weights) => {
     view.setWeights(weights);
     view.dirty = true;
+    stats.poses += 1;
   };
   const studio = new Studio(document, {
     stats,
@@ -159,7 +193,7 @@ async function main() {
       const weights = new Float32Array(weightNames.length);
       const i = weightNames.indexOf(name);
       if (i >= 0) weights[i] = 1;
-      if (view.mesh) showWeights(weights);
+      if (view.loaded) showWeights(weights);
     },
     showLive() {
       live = true;
@@ -171,10 +205,10 @@ async function main() {
       rebase(link);
     },
   });
-  const modelLoad = fetchModel(params)
-    .then((glb) => view.load(glb))
+  const modelLoad = loadModel(params, view)
     .then((model) => {
       names = model.names;
+      bindNames = model.bindNames;
       bindView();
       studio.setNames(names);
       $("stage-label").textContent = `character · ${params.rig}`;
@@ -250,7 +284,8 @@ async function main() {
           const rtt = Date.now() - msg.server_ts * 1000;
           latencyEma = latencyEma === null ? rtt : 0.9 * latencyEma + 0.1 * rtt;
         }
-        if (live && msg.weights && view.mesh && msg.weights.length === weightNames.length) showWeights(msg.weights);
+        if (live && msg.weights && view.loaded && msg.weights.length === weightNames.length) showWeights(msg.weights);
+        if (msg.head && view.loaded) view.setHead(msg.head.rotation);
       } else if (msg.type === "error") {
         const text = `${errorName(msg.code)}: ${msg.message}`;
         if (msg.code === ErrorCode.UNKNOWN_RIG) setPublish("failed", "not publishing", `unknown rig ${params.rig}: ${msg.message}`);
@@ -313,17 +348,20 @@ async function main() {
   // draw a second (docs/perform.md, "Performance").
   const after = new MessageChannel();
   let drawnAt = null;
+  let drawnPoses = 0;
   let nextDraw = 0;
   after.port1.onmessage = () => {
     const cost = performance.now() - drawnAt;
     drawCosts.push(cost);
     stats.drawn += 1;
+    stats.posesDrawn = drawnPoses;
     nextDraw = drawnAt + cost / DRAW_SHARE;
     drawnAt = null;
   };
   const draw = () => {
     const now = performance.now();
-    if (drawnAt === null && now >= nextDraw && view.mesh && view.dirty) {
+    if (drawnAt === null && now >= nextDraw && view.loaded && view.dirty) {
+      drawnPoses = stats.poses;
       view.render();
       render.push(performance.now() - now);
       drawnAt = now;

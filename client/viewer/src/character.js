@@ -1,0 +1,124 @@
+// A character as its author made it: the uploaded glTF/VRM (all meshes, materials,
+// textures, skinning; VRM through @pixiv/three-vrm), posed by the rig's weights through
+// the server's bindings (morph targets on every bound mesh, on the GPU) and by the head
+// pose (the head bone). Knows nothing of sockets or the protocol.
+
+import * as THREE from "three";
+import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
+import { VRMLoaderPlugin, VRMUtils } from "@pixiv/three-vrm";
+
+function parse(glb, withVrm) {
+  const loader = new GLTFLoader();
+  if (withVrm) loader.register((parser) => new VRMLoaderPlugin(parser));
+  return new Promise((resolve, reject) =>
+    loader.parse(glb, "", resolve, (err) => reject(new Error(`character.glb: ${err.message || err}`))),
+  );
+}
+
+/**
+ * Parse the character's GLB (ArrayBuffer): {root, vrm, meshesByIndex, vrmError}. A VRM
+ * three-vrm refuses (a humanoid missing required bones, say) is shown as plain glTF, its
+ * meshes, materials and skin as they are, with three-vrm's reason in `vrmError`.
+ */
+export async function parseCharacter(glb, { format = "gltf" } = {}) {
+  const withVrm = format !== "gltf";
+  let gltf;
+  let vrmError = null;
+  try {
+    gltf = await parse(glb, withVrm);
+  } catch (err) {
+    if (!withVrm) throw err;
+    vrmError = err.message;
+    gltf = await parse(glb, false);
+  }
+  const vrm = gltf.userData.vrm || null;
+  const root = vrm ? vrm.scene : gltf.scene;
+  // VRM 0.x faces -z; turned about y so that every character faces the camera (+z) alike
+  // (three-vrm's rotateVRM0, by hand when three-vrm refused the file).
+  if (vrm && vrm.meta && vrm.meta.metaVersion === "0") VRMUtils.rotateVRM0(vrm);
+  else if (!vrm && format === "vrm0") root.rotation.y = Math.PI;
+  // The bindings name meshes by their index in the file's `meshes`: the loader's
+  // associations give the three.js meshes (one per primitive) each index became.
+  const meshesByIndex = new Map();
+  root.traverse((node) => {
+    if (!node.isMesh) return;
+    const association = gltf.parser.associations.get(node);
+    if (!association || association.meshes === undefined) return;
+    if (!meshesByIndex.has(association.meshes)) meshesByIndex.set(association.meshes, []);
+    meshesByIndex.get(association.meshes).push(node);
+    // Morphs and skinning move vertices outside the rest pose's bounds.
+    node.frustumCulled = false;
+  });
+  return { root, vrm, meshesByIndex, vrmError };
+}
+
+/**
+ * bindings: one list of {mesh, morph, weight} per rig weight (GET /v1/rigs/{id}'s
+ * `character.bindings`), in the rig's weight order. Returns the morph slots to drive:
+ * per weight, [influences array, morph index, factor] triples; and every slot once.
+ */
+export function bindMorphs(meshesByIndex, bindings) {
+  const slots = new Map(); // "meshObjectId:morph" -> [influences, morph]
+  const perWeight = bindings.map((list) =>
+    list.flatMap(({ mesh, morph, weight }) =>
+      (meshesByIndex.get(mesh) || [])
+        .filter((object) => object.morphTargetInfluences && morph < object.morphTargetInfluences.length)
+        .map((object) => {
+          const key = `${object.id}:${morph}`;
+          if (!slots.has(key)) slots.set(key, [object.morphTargetInfluences, morph]);
+          return [object.morphTargetInfluences, morph, weight];
+        }),
+    ),
+  );
+  return { perWeight, slots: [...slots.values()] };
+}
+
+/** Write weights into the bound morph targets: sum of weight × binding factor per slot. */
+export function applyWeights(bound, weights) {
+  for (const [influences, morph] of bound.slots) influences[morph] = 0;
+  const { perWeight } = bound;
+  for (let j = 0; j < perWeight.length; j++) {
+    const w = weights[j];
+    if (!w) continue;
+    for (const [influences, morph, factor] of perWeight[j]) influences[morph] += w * factor;
+  }
+}
+
+/**
+ * The head pose of PROTOCOL.md §5.3 (x, y, z, w in VMC's left-handed frame, +x the
+ * performer's right) as a three.js rotation of a character facing +z (+x its left):
+ * mirrored in x, a turn about y or z changes sign.
+ */
+export function headQuaternion(rotation, out = new THREE.Quaternion()) {
+  const [x, y, z, w] = rotation;
+  return out.set(x, -y, -z, w).normalize();
+}
+
+/** The head bone to turn: the VRM's normalised head, else the first bone named like a head. */
+export function findHead(root, vrm) {
+  if (vrm && vrm.humanoid) {
+    const head = vrm.humanoid.getNormalizedBoneNode("head");
+    if (head) return head;
+  }
+  let found = null;
+  root.traverse((node) => {
+    if (!found && (node.isBone || node.type === "Object3D") && /^(j_bip_c_)?head$/i.test(node.name)) found = node;
+  });
+  if (!found) {
+    root.traverse((node) => {
+      if (!found && node.isBone && /head/i.test(node.name) && !/top|end/i.test(node.name)) found = node;
+    });
+  }
+  return found;
+}
+
+/** "name · by authors · licence (no redistribution)" from the server's normalised meta. */
+export function metaText(meta, format) {
+  if (!meta || !Object.keys(meta).length) return format === "gltf" ? "" : format.toUpperCase();
+  const parts = [];
+  if (meta.name) parts.push(meta.name);
+  if (meta.authors && meta.authors.length) parts.push(`by ${meta.authors.join(", ")}`);
+  if (meta.licence || meta.licence_url) parts.push(`licence ${meta.licence || meta.licence_url}`);
+  if (meta.redistribution === false) parts.push("no redistribution");
+  return `${format === "vrm0" ? "VRM 0.x" : format === "vrm1" ? "VRM 1.0" : "glTF"} · ${parts.join(" · ")}`;
+}
