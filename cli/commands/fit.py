@@ -47,10 +47,13 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--noise",
         type=float,
-        default=0.0,
+        default=None,
         metavar="SIGMA",
         help="expected landmark noise (std per coordinate, source units); 0 = exact "
-        "interpolation (default)",
+        "interpolation, the default for an example set; a character paired with the generic "
+        "ARKit set is fitted by default for a live tracker's noise, 0.05 cm with --clamp "
+        "unit (facecast.rig.sources.generic.CHARACTER_FIT_DEFAULTS, the same as "
+        "PUT /v1/characters/{id}; docs/characters.md)",
     )
     parser.add_argument(
         "--pca-threshold",
@@ -233,6 +236,7 @@ def run(args: argparse.Namespace) -> int:
     import warnings
 
     from facecast.rig import fit
+    from facecast.rig.io.character_examples import character_fit_options
 
     output = Path(args.output)
     if not output.parent.exists():
@@ -245,17 +249,19 @@ def run(args: argparse.Namespace) -> int:
         examples, pairing = load_character_examples(path)
         if not args.json:
             print("\n".join(pairing.lines()))
+        options = character_fit_options({"noise": args.noise, "clamp": args.clamp})
     else:
         examples = load_examples(args.examples, args.source)
+        options = {"noise": 0.0 if args.noise is None else args.noise, "clamp": args.clamp}
     with warnings.catch_warnings():
         # fit's IdentifiabilityWarnings are in the report, printed below once each.
         warnings.simplefilter("ignore")
         rig = fit(
             examples,
             pca_threshold=args.pca_threshold,
-            noise=args.noise,
+            noise=options["noise"],
             kernel=args.kernel,
-            clamp=args.clamp,
+            clamp=options.get("clamp"),
             sparsity=args.sparsity,
             stable_points=_stable_points(args.stable_points),
             align_scale=args.align_scale,
