@@ -10,7 +10,12 @@ import pytest
 from facecast.rig import fit
 from facecast.rig.examples import ExampleSet
 from facecast.rig.io.character_examples import character_fit_options
-from facecast.rig.sources.generic import CHARACTER_FIT_DEFAULTS, generic_sources
+from facecast.rig.sources.generic import (
+    CHARACTER_FIT_DEFAULTS,
+    VRM_COMPOSITIONS,
+    composed_captures,
+    generic_sources,
+)
 
 
 def test_no_noise_given_takes_the_live_defaults_a_given_noise_keeps_fits_bound():
@@ -66,3 +71,23 @@ def test_the_defaults_keep_tracker_noise_out_of_the_weights(options, gain, error
     assert error[0] <= rms < error[1], rms
     if options is None:  # bounded to [0, 1]: no wild weights reach a character
         assert weights.min() >= 0.0 and weights.max() <= 1.0 + 1e-9
+
+
+def test_presets_not_captured_are_composed_from_the_performers_own_shapes():
+    rng = np.random.default_rng(2)
+    neutral = rng.normal(size=(20, 3))
+    captured = {"neutral": neutral}
+    for shape in ("jawOpen", "mouthLowerDownLeft", "mouthLowerDownRight", "eyeBlinkLeft"):
+        captured[shape] = neutral + rng.normal(scale=0.3, size=(20, 3))
+    captured["happy"] = neutral + 1.0  # captured itself: kept as the performer made it
+    wanted = ("neutral", "aa", "happy", "ou", "blinkLeft", "sad")
+
+    composed = composed_captures(wanted, captured)
+
+    assert sorted(composed) == ["aa", "blinkLeft"]  # ou and sad need shapes not captured
+    expected = neutral + sum(w * (captured[s] - neutral) for s, w in VRM_COMPOSITIONS["aa"].items())
+    np.testing.assert_allclose(composed["aa"], expected)
+    # blinkLeft is eyeBlinkLeft: composed for a rig without it, left out for one with it.
+    np.testing.assert_array_equal(composed["blinkLeft"], captured["eyeBlinkLeft"])
+    assert "blinkLeft" not in composed_captures((*wanted, "eyeBlinkLeft"), captured)
+    assert composed_captures(wanted, {k: v for k, v in captured.items() if k != "neutral"}) == {}

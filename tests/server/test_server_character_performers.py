@@ -4,6 +4,8 @@ whose description carries the base character (issue #22: generic first, then per
 
 from __future__ import annotations
 
+import warnings
+
 import httpx
 import numpy as np
 import pytest
@@ -11,8 +13,12 @@ import websockets
 from _server_helpers import open_session
 
 from facecast.protocol import Frame, Result, decode_server, encode
-from facecast.rig import rig_from_bytes
-from facecast.rig.sources.generic import CHARACTER_FIT_DEFAULTS, generic_sources
+from facecast.rig import ExampleSet, fit, rig_from_bytes
+from facecast.rig.sources.generic import (
+    CHARACTER_FIT_DEFAULTS,
+    VRM_COMPOSITIONS,
+    generic_sources,
+)
 from facecast.server.testing import run_server
 
 pytestmark = pytest.mark.anyio
@@ -126,3 +132,53 @@ async def test_a_character_uploaded_without_a_noise_is_fitted_for_a_live_tracker
         CHARACTER_FIT_DEFAULTS["noise"],
         CHARACTER_FIT_DEFAULTS["clamp"],
     )
+
+
+def generic_rig():
+    """A rig with the generic set's ARKit names and points (its target: the points)."""
+    generic = generic_sources()
+    examples = ExampleSet(
+        generic.names, generic.points, generic.points.copy(), np.array([[0, 1, 2]])
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # exact on 20 landmarks: the noise-gain advice
+        return fit(examples)
+
+
+async def test_a_calibration_on_an_arkit_rig_refits_onto_a_vroid_character_by_composing(
+    settings,
+):
+    from tests.rig._avatars import avatar
+
+    presets = ("happy", "aa", "blinkLeft")
+    shapes = sorted({shape for p in presets for shape in VRM_COMPOSITIONS[p]})
+    points = performer_points(shapes)
+    capture = {
+        "layout": "mediapipe_face_mesh",
+        "points": {n: p.tolist() for n, p in points.items()},
+    }
+    async with run_server(settings) as server:
+        server.app.state.store.put_rig("arkit", generic_rig())
+        async with httpx.AsyncClient(base_url=server.base_url, timeout=120) as http:
+            uploaded = await http.put("/v1/characters/vroid", content=avatar("fcl"))
+            assert uploaded.status_code == 201, uploaded.text
+            captured = await http.put("/v1/rigs/arkit/performer/ann", json=capture)
+            assert captured.status_code == 201, captured.text
+            refit = await http.post("/v1/performers/ann/refit", params={"rig": "vroid"})
+            rig_file = await http.get("/v1/rigs/vroid@ann/rig")
+
+    # The VRoid character has presets only: none was captured, three are composed from the
+    # performer's own ARKit shapes by the generic set's rule (docs/characters.md).
+    assert refit.status_code == 201, refit.text
+    body = refit.json()
+    base_names = uploaded.json()["names"]
+    in_order = [n for n in base_names if n in presets]
+    assert body["composed"] == in_order and body["names"] == ["neutral", *in_order]
+    rig = rig_from_bytes(rig_file.content)
+    neutral = points["neutral"]
+    made = {
+        p: neutral + sum(w * (points[s] - neutral) for s, w in VRM_COMPOSITIONS[p].items())
+        for p in presets
+    }
+    weights = rig.weights(np.stack([neutral, *(made[n] for n in in_order)]))
+    np.testing.assert_allclose(weights, np.eye(len(rig.names)), atol=1e-6)
