@@ -11,6 +11,7 @@ import math
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
+from types import ModuleType
 
 import numpy as np
 
@@ -25,7 +26,8 @@ __all__ = ["FaceTracker", "Tracked", "TrackerUnavailable", "VideoSource"]
 EXTRA = "facecast[perform]"
 
 
-def _modules():
+def _modules() -> tuple[ModuleType, ModuleType]:
+    """OpenCV and MediaPipe's FaceMesh (the `perform` extra), or TrackerUnavailable."""
     try:
         import cv2
         from mediapipe.python.solutions import face_mesh

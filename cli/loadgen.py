@@ -13,7 +13,7 @@ from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -221,8 +221,8 @@ async def run_load(
     duration: float,
     neutral: np.ndarray,
     amplitude: float = 0.01,
-    output: str = "weights",
-    dtype: str = "f32",
+    output: Literal["weights", "vertices", "moving"] = "weights",
+    dtype: Literal["f32", "f16"] = "f32",
     token: str | None = None,
     reconnect: int = 0,
     progress: Callable[[dict[str, Any]], None] | None = None,
@@ -252,11 +252,10 @@ async def run_load(
         raise ValueError(f"duration must be in (0, {MAX_DURATION:g}] s, got {duration}")
     neutral = np.asarray(neutral, dtype=np.float64)
     count = max(1, math.ceil(duration * fps))
-    options = {"output": output, "dtype": dtype, "token": token, "reconnect": reconnect}
     tallies = [ClientTally() for _ in range(clients)]
 
     async def opened() -> StreamSession:
-        return await connect(url, rig, **options)
+        return await connect(url, rig, output=output, dtype=dtype, token=token, reconnect=reconnect)
 
     connecting = [asyncio.create_task(opened()) for _ in range(clients)]
     scheduled: asyncio.Future[float] = asyncio.get_running_loop().create_future()
@@ -275,8 +274,8 @@ async def run_load(
         for i in range(clients)
     ]
     _, late = await asyncio.wait(connecting, timeout=_CONNECT_SECONDS)
-    for task in late:
-        task.cancel()  # its client counts a TIMEOUT error
+    for pending in late:
+        pending.cancel()  # its client counts a TIMEOUT error
     start = time.perf_counter() + 0.05
     scheduled.set_result(start)
     # Hard stop: whatever happens, the run ends this long after its nominal end.

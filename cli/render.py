@@ -8,10 +8,13 @@ side-by-side comparisons; it must not be used for anything real-time.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
+import numpy.typing as npt
 
 from facecast.cli.errors import RenderError
 from facecast.cli.raster import lambert, rasterise
@@ -27,6 +30,9 @@ _LIGHT = np.array([-0.35, 0.45, 1.0]) / np.linalg.norm([-0.35, 0.45, 1.0])
 _AMBIENT = 0.22
 _DIFFUSE = 0.78
 _MAX_PIXELS = 8192
+
+#: ``(label, vertices (V, 3), faces (F, 3)[, color])``, checked when drawn (``bad_panel``).
+Panel = tuple[Any, ...]
 _SUPERSAMPLE = 2
 _DPI = 100.0
 
@@ -40,10 +46,11 @@ def _view_rotation(view: str) -> np.ndarray:
     a, b = math.radians(yaw), math.radians(pitch)
     about_y = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
     about_x = np.array([[1, 0, 0], [0, math.cos(b), -math.sin(b)], [0, math.sin(b), math.cos(b)]])
-    return about_x @ about_y
+    rotation: np.ndarray = about_x @ about_y
+    return rotation
 
 
-def _sanitize_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+def _sanitize_mesh(vertices: npt.ArrayLike, faces: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     try:
         verts = np.asarray(vertices, dtype=np.float64)
         tris = np.asarray(faces)
@@ -66,7 +73,7 @@ def _sanitize_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
     return verts, tris
 
 
-def _sanitize_color(name: str, value) -> np.ndarray:
+def _sanitize_color(name: str, value: npt.ArrayLike) -> np.ndarray:
     try:
         rgb = np.asarray(value, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError):
@@ -80,7 +87,7 @@ def _sanitize_color(name: str, value) -> np.ndarray:
     return np.clip(rgb, 0.0, 1.0)
 
 
-def _sanitize_size(size) -> tuple[int, int]:
+def _sanitize_size(size: Sequence[int]) -> tuple[int, int]:
     try:
         width, height = (int(s) for s in size)
     except (TypeError, ValueError):
@@ -95,14 +102,14 @@ def _sanitize_size(size) -> tuple[int, int]:
 
 
 def render_mesh(
-    vertices,
-    faces,
+    vertices: npt.ArrayLike,
+    faces: npt.ArrayLike,
     *,
     size: tuple[int, int] = (480, 480),
     view: str = "front",
-    color=(0.82, 0.72, 0.64),
-    background=(1.0, 1.0, 1.0),
-    frame_vertices=None,
+    color: npt.ArrayLike = (0.82, 0.72, 0.64),
+    background: npt.ArrayLike = (1.0, 1.0, 1.0),
+    frame_vertices: npt.ArrayLike | None = None,
     margin: float = 0.06,
 ) -> np.ndarray:
     """Render a triangle mesh to an RGB image.
@@ -170,8 +177,8 @@ def render_mesh(
     return out
 
 
-def _as_grid(rows) -> list[list[tuple]]:
-    grid: list[list[tuple]] = []
+def _as_grid(rows: Sequence[Panel | Sequence[Panel]]) -> list[list[Panel]]:
+    grid: list[list[Panel]] = []
     for row in rows:
         if isinstance(row, tuple) and row and isinstance(row[0], str):
             grid.append([row])
@@ -181,13 +188,13 @@ def _as_grid(rows) -> list[list[tuple]]:
 
 
 def save_side_by_side(
-    path,
-    rows: Sequence,
+    path: str | os.PathLike[str],
+    rows: Sequence[Panel] | Sequence[Sequence[Panel]],
     *,
     columns: int | None = None,
     panel_size: tuple[int, int] = (320, 320),
     view: str = "front",
-    color=(0.82, 0.72, 0.64),
+    color: npt.ArrayLike = (0.82, 0.72, 0.64),
     title: str | None = None,
     frame_by_panel: bool = True,
 ) -> Path:
@@ -215,7 +222,7 @@ def save_side_by_side(
         The written file; the image is ``rows * (height + 28) (+ 36 with a title)``
         pixels high and ``columns * width`` pixels wide.
     """
-    items = list(rows)
+    items: list[Panel | Sequence[Panel]] = list(rows)
     if not items:
         raise RenderError("rows: need at least one panel", code="empty_grid")
     flat = all(isinstance(item, tuple) and item and isinstance(item[0], str) for item in items)
@@ -223,7 +230,10 @@ def save_side_by_side(
         per_row = len(items) if columns is None else int(columns)
         if per_row < 1:
             raise RenderError(f"columns must be at least 1, got {columns!r}", code="bad_size")
-        grid = [items[i : i + per_row] for i in range(0, len(items), per_row)]
+        grid: list[list[Panel]] = [
+            [cast(Panel, item) for item in items[i : i + per_row]]
+            for i in range(0, len(items), per_row)
+        ]
     else:
         grid = _as_grid(items)
     n_cols = max(len(row) for row in grid)
@@ -284,6 +294,6 @@ def save_side_by_side(
                 fontsize=11,
             )
     out = Path(path)
-    canvas.print_png(str(out))
+    canvas.print_png(str(out))  # type: ignore[no-untyped-call]  # matplotlib leaves it unannotated
     figure.clear()
     return out

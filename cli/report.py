@@ -8,10 +8,15 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:  # matplotlib loads when a figure is drawn
+    from matplotlib.figure import Figure
 
 __all__ = [
     "format_error_table",
@@ -23,8 +28,11 @@ __all__ = [
 ]
 
 
-def json_safe(value):
-    """``value`` with numpy scalars/arrays as Python numbers/lists and NaN/Inf as None."""
+def json_safe(value: object) -> object:
+    """``value`` with numpy scalars/arrays as Python numbers/lists and NaN/Inf as None.
+
+    Containers and numbers come back as what ``json.dumps`` writes; anything else as it is.
+    """
     if isinstance(value, dict):
         return {str(k): json_safe(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
@@ -38,7 +46,7 @@ def json_safe(value):
     return value
 
 
-def write_json(path, report: dict) -> Path:
+def write_json(path: str | os.PathLike[str], report: dict[str, Any]) -> Path:
     """Write ``report`` as indented JSON (NaN/Inf become null); returns the path."""
     out = Path(path)
     if out.parent and not out.parent.exists():
@@ -47,7 +55,7 @@ def write_json(path, report: dict) -> Path:
     return out
 
 
-def _pct(value) -> str:
+def _pct(value: float | None) -> str:
     if value is None or not math.isfinite(value):
         return "-"
     if value != 0 and abs(value) < 1e-3:
@@ -55,7 +63,7 @@ def _pct(value) -> str:
     return f"{value:.3f}" if abs(value) < 100 else f"{value:.0f}"
 
 
-def format_error_table(report: dict) -> str:
+def format_error_table(report: dict[str, Any]) -> str:
     """The error table of an ``evaluate`` report: one row per method, per condition.
 
     Columns: eq. 4.1 x/y/z %, RMS % and max % of the bounding-box diagonal.
@@ -99,7 +107,7 @@ def format_error_table(report: dict) -> str:
     return "\n".join(lines)
 
 
-def _duration(seconds) -> str:
+def _duration(seconds: float | None) -> str:
     if seconds is None:
         return "-"
     if seconds < 1e-3:
@@ -109,7 +117,7 @@ def _duration(seconds) -> str:
     return f"{seconds:.2f} s"
 
 
-def format_timing_table(timing: dict | None, *, num_examples: int | None = None) -> str:
+def format_timing_table(timing: dict[str, Any] | None, *, num_examples: int | None = None) -> str:
     """The thesis's Table 4.4 from ``evaluate``'s ``timing``."""
     if not timing:
         return "timing not measured"
@@ -132,7 +140,7 @@ def format_timing_table(timing: dict | None, *, num_examples: int | None = None)
     )
 
 
-def _figure(width: float, height: float):
+def _figure(width: float, height: float) -> Figure:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -141,7 +149,13 @@ def _figure(width: float, height: float):
     return figure
 
 
-def plot_error_over_time(path, report: dict, *, fps: float, labels: Sequence[str] | None = None):
+def plot_error_over_time(
+    path: str | os.PathLike[str],
+    report: dict[str, Any],
+    *,
+    fps: float,
+    labels: Sequence[str] | None = None,
+) -> Path | None:
     """PNG of the per-frame eq. 4.1 error (mean of the three axes) for each method.
 
     One panel per condition (clean, noisy), log scale; needs the report's series.
@@ -174,37 +188,26 @@ def plot_error_over_time(path, report: dict, *, fps: float, labels: Sequence[str
     return Path(path)
 
 
-def save_frames_picture(path, panels: Sequence[Sequence[tuple]], *, title: str | None = None):
+def save_frames_picture(
+    path: str | os.PathLike[str],
+    panels: Sequence[Sequence[tuple[str, np.ndarray, np.ndarray]]],
+    *,
+    title: str | None = None,
+) -> Path:
     """PNG grid of meshes, one row per time: ``panels[row] = [(label, vertices, faces), ...]``.
 
-    Uses ``facecast.cli.render.save_side_by_side`` when available; otherwise plain
-    matplotlib triangle plots seen from the front (+z).
+    Drawn by ``facecast.cli.render.save_side_by_side``.
     """
-    try:
-        from facecast.cli.render import save_side_by_side
-    except ImportError:
-        save_side_by_side = None
-    if save_side_by_side is not None:
-        return save_side_by_side(
-            path, [list(row) for row in panels], title=title, panel_size=(260, 260)
-        )
-    rows, cols = len(panels), max(len(row) for row in panels)
-    figure = _figure(2.6 * cols, 2.8 * rows)
-    for r, row in enumerate(panels):
-        for c, (label, vertices, faces) in enumerate(row):
-            axes = figure.add_subplot(rows, cols, r * cols + c + 1)
-            v = np.asarray(vertices)
-            axes.triplot(v[:, 0], v[:, 1], np.asarray(faces), linewidth=0.1, color="0.3")
-            axes.set_aspect("equal")
-            axes.set_axis_off()
-            axes.set_title(label, fontsize=8)
-    if title:
-        figure.suptitle(title)
-    figure.savefig(str(path))
-    return Path(path)
+    from facecast.cli.render import save_side_by_side
+
+    return save_side_by_side(
+        path, [list(row) for row in panels], title=title, panel_size=(260, 260)
+    )
 
 
-def plot_jitter_against_lag(path, tradeoff: dict, *, title: str | None = None):
+def plot_jitter_against_lag(
+    path: str | os.PathLike[str], tradeoff: dict[str, Any], *, title: str | None = None
+) -> Path:
     """PNG of ``rig.temporal.temporal_tradeoff``: jitter against lag, one line per family.
 
     The one-frame lag is marked; the raw (unfiltered) clone and the truth's own jitter are

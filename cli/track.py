@@ -239,7 +239,7 @@ def _run(
                     bar.update(1)
         finally:
             browser.close()
-    found = np.isfinite(points).all(axis=(1, 2))
+    found = np.asarray(np.isfinite(points).all(axis=(1, 2)))
     seconds = time.perf_counter() - started
     return TrackResult(
         points, found, video.fps, faces, layout, loaded["backend"], seconds,

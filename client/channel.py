@@ -13,7 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import AsyncIterator, Callable, Mapping
+from collections.abc import AsyncGenerator, Callable, Mapping
 from dataclasses import dataclass
 from urllib.parse import quote, urlencode
 
@@ -407,7 +407,7 @@ async def watch_channel(
     reconnect: Reconnect = _DEFAULT_RECONNECT,
     open_timeout: float = 10.0,
     limits: Limits | None = None,
-) -> AsyncIterator[ServerMessage]:
+) -> AsyncGenerator[ServerMessage, None]:
     """The messages a watch endpoint sends: ``ready``, then results and channel events.
 
     Parameters

@@ -1,7 +1,9 @@
 """Test helpers: a real uvicorn serving ``create_app(settings)`` on 127.0.0.1, in a thread.
 
 For tests and benchmarks of any package (``from facecast.server.testing import
-run_server``); production code never imports this module.
+run_server``); production code never imports this module. Servers in processes of their
+own (``facecast serve``, redis-server, the benchmarks' floors) are started, waited for and
+stopped by ``facecast.cli.bench.harness``, which never imports the server.
 """
 
 from __future__ import annotations

@@ -14,23 +14,32 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import base64
 import json
-import multiprocessing
 import os
-import shutil
-import socket
-import struct
-import subprocess
-import sys
 import tempfile
 import time
-from array import array
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import httpx
 import numpy as np
 
+from facecast.client.channel import FramePublisher, channel_url
+from facecast.protocol import Hello, Ready, encode
+from facecast.rig import Rig, fit
+from facecast.rig.demo import demo_animation, demo_example_set
+
+from .broadcast_viewers import RIGS, Clients
+from .harness import (
+    RedisServer,
+    ServerProcess,
+    answers_ok,
+    facecast_serve,
+    python_server,
+    start_redis,
+    wait_until,
+)
 from .measure import cpu_seconds, stage_snapshot
 
 #: Viewer counts tried, in order; the ramp stops at the first step over the goal.
@@ -38,299 +47,36 @@ STEPS = (250, 500, 750, 1000, 1250, 1500, 2000)
 GOAL_P99_MS = 50.0
 GOAL_VIEWERS = 1000
 FPS = 60.0
-RIGS = ("bench-a", "bench-b", "bench-c")
-CLIENT_PROCESSES = 2
 #: A step fails too when viewers get fewer than this share of the frames published.
 MIN_DELIVERY = 0.9
 #: Goal: facecast's server CPU per delivered result at most this times the floor's.
 GOAL_FLOOR_RATIO = 1.2
 
-
-# -- the floor: a bare websockets broadcast of the same bytes ------------------------------
-def _serve_floor(port: int, ready: bytes, weights: bytes) -> None:
-    """Subprocess: viewers connect on any ``.../watch`` path; each frame the publisher
-    sends is answered by one ``broadcast()`` of a result to each rig's viewers."""
-    import msgpack
-    import uvloop
-    from websockets.asyncio.server import broadcast, serve
-
-    from facecast.protocol import SUBPROTOCOL, Result, encode
-
-    values = np.frombuffer(weights, dtype=np.float32)
-    groups: dict[str, set] = {}
-
-    async def handler(ws) -> None:
-        path = ws.request.path
-        if "/publish" in path:
-            await ws.recv()  # hello
-            await ws.send(ready)
-            async for message in ws:
-                frame = msgpack.unpackb(message)
-                for members in groups.values():
-                    # What facecast sends a watcher: the rig's result, encoded once.
-                    data = encode(Result(seq=frame["seq"], ts=frame["ts"], weights=values,
-                                         server_ts=time.time()))  # fmt: skip
-                    broadcast(members, data)
-            return
-        rig = path.split("rig=", 1)[-1].split("&", 1)[0]
-        members = groups.setdefault(rig, set())
-        members.add(ws)
-        try:
-            await ws.wait_closed()
-        finally:
-            members.discard(ws)
-
-    async def main() -> None:
-        async with serve(handler, "127.0.0.1", port, compression=None, max_size=1 << 20,
-                         subprotocols=[SUBPROTOCOL], ping_interval=None):  # fmt: skip
-            await asyncio.Future()
-
-    uvloop.run(main())
+#: Where a ramp's progress lines go (``print``).
+Say = Callable[[str], None]
 
 
-def _start_floor(rig) -> tuple[subprocess.Popen, int]:
-    from facecast.protocol import Ready, encode
-
-    port = _free_port()
+# -- servers: facecast, its floor and Redis, each a process of its own ---------------------
+def _start_floor(rig: Rig) -> tuple[ServerProcess, int]:
+    """The floor (``servers.serve_broadcast_floor``), listening; and its port."""
     ready = encode(Ready(session="floor", rig=RIGS[0], names=rig.names,
                          num_points=rig.num_points, num_vertices=rig.num_vertices,
                          output="weights", dtype="f32"))  # fmt: skip
     weights = np.full(rig.num_examples, 1.0 / rig.num_examples, np.float32).tobytes()
-    code = (
-        "from facecast.cli.bench.broadcast import _serve_floor; "
-        f"_serve_floor({port}, bytes.fromhex({ready.hex()!r}), bytes.fromhex({weights.hex()!r}))"
-    )
-    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
-    process = subprocess.Popen([sys.executable, "-c", code], env=env,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline:
-        with socket.socket() as sock:
-            if sock.connect_ex(("127.0.0.1", port)) == 0:
-                return process, port
-        time.sleep(0.05)
-    _stop(process)
-    raise TimeoutError("the bare broadcast server did not listen within 30 s")
-
-
-# -- client processes: many raw WebSocket viewers each -----------------------------------
-_RESULT_TYPE = b"\xa4type\xa6result"
-_TS_KEY = b"\xa2ts\xcb"
-_F64 = struct.Struct(">d")
-
-
-class _Viewer(asyncio.Protocol):
-    """A minimal RFC 6455 client: handshake, unmasked server frames, pongs; no library.
-
-    Cheap per message on purpose: thousands of these share one client process.
-    """
-
-    def __init__(self, path: str, stats: dict[str, Any]) -> None:
-        self.path = path
-        self.stats = stats
-        self.buffer = bytearray()
-        self.open = False
-        self.ready = asyncio.get_running_loop().create_future()
-        self.transport: asyncio.Transport | None = None
-
-    def connection_made(self, transport) -> None:
-        self.transport = transport
-        key = base64.b64encode(os.urandom(16)).decode()
-        transport.write(
-            (
-                f"GET {self.path} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\n"
-                f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
-                "Sec-WebSocket-Version: 13\r\nSec-WebSocket-Protocol: facecast.v1\r\n\r\n"
-            ).encode()
-        )
-
-    def connection_lost(self, exc) -> None:
-        self.stats["lost"] += 1
-        if not self.ready.done():
-            self.ready.set_result(False)
-
-    def data_received(self, data: bytes) -> None:
-        # Fast path (nearly every call): exactly one whole unfragmented frame, no copy.
-        if self.open and not self.buffer and len(data) >= 2:
-            length, offset = data[1] & 0x7F, 2
-            if length == 126 and len(data) >= 4:
-                length, offset = int.from_bytes(data[2:4], "big"), 4
-            if length < 127 and len(data) == offset + length:
-                self._message(data[0] & 0x0F, data, offset)
-                return
-        buf = self.buffer
-        buf += data
-        if not self.open:
-            end = buf.find(b"\r\n\r\n")
-            if end < 0:
-                return
-            ok = buf.startswith(b"HTTP/1.1 101")
-            del buf[: end + 4]
-            self.open = True
-            if not self.ready.done():
-                self.ready.set_result(ok)
-        while len(buf) >= 2:
-            length, offset = buf[1] & 0x7F, 2
-            if length == 126:
-                if len(buf) < 4:
-                    return
-                length, offset = int.from_bytes(buf[2:4], "big"), 4
-            elif length == 127:
-                if len(buf) < 10:
-                    return
-                length, offset = int.from_bytes(buf[2:10], "big"), 10
-            if len(buf) < offset + length:
-                return
-            frame = bytes(buf[: offset + length])
-            del buf[: offset + length]
-            self._message(frame[0] & 0x0F, frame, offset)
-
-    def _message(self, opcode: int, frame: bytes, offset: int) -> None:
-        if opcode == 2:
-            # The server's result maps start {v, type, seq, ts, ...}: read ts in place
-            # (a full msgpack decode costs the client more than the server's send).
-            if frame.find(_RESULT_TYPE, offset, offset + 24) < 0:
-                return
-            self.stats["results"] += 1
-            if self.stats["measuring"]:
-                at = frame.find(_TS_KEY, offset)
-                if at >= 0:
-                    ts = _F64.unpack_from(frame, at + len(_TS_KEY))[0]
-                else:  # pragma: no cover - another encoder's key order
-                    import msgpack
-
-                    ts = msgpack.unpackb(frame[offset:])["ts"]
-                self.stats["latency"].append(time.time() - ts)
-        elif opcode == 9 and self.transport is not None:  # ping: answer with a masked pong
-            payload = frame[offset:]
-            mask = os.urandom(4)
-            body = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
-            self.transport.write(bytes([0x8A, 0x80 | len(payload)]) + mask + body)
-
-
-def _client_main(conn, port_by_group: dict[str, int]) -> None:
-    """A client process: obeys ("add", group, rig, n), ("measure", on), ("collect",), ("quit",)."""
-
-    async def main() -> None:
-        loop = asyncio.get_running_loop()
-        stats: dict[str, Any] = {"results": 0, "lost": 0, "measuring": False,
-                                 "latency": array("d")}  # fmt: skip
-        viewers: list[_Viewer] = []
-        while True:
-            command = await loop.run_in_executor(None, conn.recv)
-            if command[0] == "add":
-                _, group, rig, count = command
-                path = f"/v1/channels/bench/watch?rig={rig}&output=weights&dtype=f32"
-                port = port_by_group[group]
-
-                async def join(viewer: _Viewer, port: int = port) -> bool:
-                    try:
-                        await loop.create_connection(lambda: viewer, "127.0.0.1", port)
-                        return bool(await asyncio.wait_for(viewer.ready, 10))
-                    except (OSError, TimeoutError):
-                        return False
-
-                failed = 0
-                # Batches of 50 at once: quick, without a connect storm; 10 s per batch
-                # at most, so an overloaded server bounds the ramp's time.
-                for start in range(0, count, 50):
-                    batch = [_Viewer(path, stats) for _ in range(min(50, count - start))]
-                    viewers.extend(batch)
-                    joined = await asyncio.gather(*(join(v) for v in batch))
-                    failed += joined.count(False)
-                conn.send(("added", failed))
-            elif command[0] == "measure":
-                stats["measuring"] = command[1]
-                if command[1]:
-                    stats["latency"] = array("d")
-                    stats["results"] = 0
-                conn.send(("ok",))
-            elif command[0] == "collect":
-                conn.send(("stats", stats["latency"].tobytes(), stats["results"], stats["lost"]))
-            else:
-                for viewer in viewers:
-                    if viewer.transport is not None:
-                        viewer.transport.close()
-                conn.send(("bye",))
-                return
-
-    try:  # uvloop (shipped with uvicorn[standard]): less client CPU per message
-        import uvloop
-
-        uvloop.run(main())
-    except ImportError:  # pragma: no cover - uvicorn without extras
-        asyncio.run(main())
-
-
-class _Clients:
-    """The client processes and the commands sent to all of them."""
-
-    def __init__(self, ports: dict[str, int]) -> None:
-        ctx = multiprocessing.get_context("spawn")
-        self.pipes = []
-        self.processes = []
-        for _ in range(CLIENT_PROCESSES):
-            here, there = ctx.Pipe()
-            process = ctx.Process(target=_client_main, args=(there, ports), daemon=True)
-            process.start()
-            self.pipes.append(here)
-            self.processes.append(process)
-
-    async def ask(self, command: tuple, pipes=None) -> list[tuple]:
-        pipes = pipes or self.pipes
-        for pipe in pipes:
-            pipe.send(command)
-        return [await asyncio.to_thread(pipe.recv) for pipe in pipes]
-
-    async def add(self, group: str, count: int) -> int:
-        """``count`` more viewers on ``group``, rigs round-robin; connection failures."""
-        failed = 0
-        share = [
-            count // len(self.pipes) + (i < count % len(self.pipes)) for i in range(len(self.pipes))
-        ]
-        for pipe, n in zip(self.pipes, share, strict=True):
-            for r, rig in enumerate(RIGS):
-                k = n // len(RIGS) + (r < n % len(RIGS))
-                if k:
-                    failed += (await self.ask(("add", group, rig, k), [pipe]))[0][1]
-        return failed
-
-    async def measure(self, seconds: float, published: Any) -> dict[str, float]:
-        await self.ask(("measure", True))
-        frames0 = published()
-        await asyncio.sleep(seconds)
-        frames = published() - frames0
-        await self.ask(("measure", False))
-        replies = await self.ask(("collect",))
-        latency = np.concatenate([np.frombuffer(r[1]) for r in replies]) * 1000.0
-        results = sum(r[2] for r in replies)
-        lost = sum(r[3] for r in replies)
-        return {
-            "p50_ms": float(np.percentile(latency, 50)) if latency.size else float("nan"),
-            "p99_ms": float(np.percentile(latency, 99)) if latency.size else float("nan"),
-            "results": results,
-            "frames": frames,
-            "lost": lost,
-        }
-
-    async def close(self) -> None:
-        await self.ask(("quit",))
-        for process in self.processes:
-            process.join(5)
-
-
-# -- servers ---------------------------------------------------------------------------
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+    floor = python_server(
+        "facecast.cli.bench.servers:serve_broadcast_floor", ready, weights,
+        env={"OPENBLAS_NUM_THREADS": "1"}, name="the bare broadcast server",
+    ).start()  # fmt: skip
+    try:
+        floor.wait_listening(timeout=30.0)
+    except BaseException:
+        floor.stop()
+        raise
+    return floor, floor.port
 
 
 def _prepare_rigs(directory: Path) -> tuple[Any, np.ndarray]:
     """The demo rig under three ids (three characters), and the demo performance's points."""
-    from facecast.rig import fit
-    from facecast.rig.demo import demo_animation, demo_example_set
-
     rig = fit(demo_example_set())
     directory.mkdir(parents=True, exist_ok=True)
     for rig_id in RIGS:
@@ -340,52 +86,32 @@ def _prepare_rigs(directory: Path) -> tuple[Any, np.ndarray]:
 
 def _start_server(
     rigs: Path, redis_url: str | None, *, stage_timing: bool = False
-) -> tuple[subprocess.Popen, int]:
-    """A ``facecast serve`` process; ``stage_timing`` turns its stage clocks on.
+) -> tuple[ServerProcess, int]:
+    """A ``facecast serve`` process, started; ``stage_timing`` turns its stage clocks on.
 
     The clocks (a thread-CPU clock read, a system call, four per key and frame) only
     where the figures are attributed by stage: the judged figures run as deployed.
     """
-    port = _free_port()
-    env = {**os.environ, "FACECAST_MAX_CONNECTIONS": "5000", "FACECAST_ACCESS_LOG": "false",
+    env = {"FACECAST_MAX_CONNECTIONS": "5000", "FACECAST_ACCESS_LOG": "false",
            "FACECAST_MAX_CONNECTIONS_PER_ADDRESS": "0",  # every viewer is on 127.0.0.1
            # A paused publisher is silent while the floor beside it is measured (and while
            # viewers join): the idle rule must not close it.
            "FACECAST_IDLE_TIMEOUT": "3600",
            "FACECAST_LOG_LEVEL": "warning", "OPENBLAS_NUM_THREADS": "1",
            "FACECAST_STAGE_TIMING": "true" if stage_timing else "false"}  # fmt: skip
-    command = [sys.executable, "-m", "facecast.cli", "serve", "--port", str(port),
-               "--rigs", str(rigs)]  # fmt: skip
-    if redis_url:
-        command += ["--redis", redis_url]
-    process = subprocess.Popen(
-        command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-    )
-    return process, port
+    extra = ["--redis", redis_url] if redis_url else []
+    server = facecast_serve(rigs, *extra, env=env).start()
+    return server, server.port
 
 
 def _wait_ready(port: int, timeout: float = 30.0) -> None:
-    import httpx
-
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200:
-                return
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.1)
-    raise TimeoutError(f"server on port {port} not ready within {timeout} s")
+    """Return once the server on ``port`` answers ``GET /readyz``."""
+    url = f"http://127.0.0.1:{port}/readyz"
+    wait_until(lambda: answers_ok(url), f"the server on port {port} ready", timeout)
 
 
-def _stop(process: subprocess.Popen) -> None:
-    if process.poll() is None:
-        process.terminate()
-        try:
-            process.wait(15)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+def _stop(server: ServerProcess) -> None:
+    server.stop()
 
 
 # -- the scenarios ---------------------------------------------------------------------
@@ -397,9 +123,6 @@ async def _publish(
     Silent, its server does no per-frame work: its viewers then cost nothing while another
     server beside it is measured.
     """
-    from facecast.client.channel import FramePublisher, channel_url
-    from facecast.protocol import Hello
-
     url = channel_url(f"http://127.0.0.1:{port}", "bench", "publish")
     async with FramePublisher(url, Hello(rig=RIGS[0])) as publisher:
         while not stop.is_set():
@@ -435,7 +158,7 @@ class _Target:
         self.publisher = asyncio.create_task(
             _publish(ports["a"], frames, self.counter, self.running, self.stop)
         )
-        self.clients = {group: _Clients({group: port}) for group, port in ports.items()}
+        self.clients = {group: Clients({group: port}) for group, port in ports.items()}
         self.measured: list[dict[str, Any]] = []
         self.held = 0
         self.total = 0
@@ -451,7 +174,7 @@ class _Target:
         self.total = target
         return failed
 
-    async def step(self, failed: int, seconds: float, say) -> bool:
+    async def step(self, failed: int, seconds: float, say: Say) -> bool:
         """Measure the viewers held now, with the publisher running; whether the step held.
 
         A step over the goal is measured once more: one busy moment of a shared machine
@@ -471,9 +194,11 @@ class _Target:
             self.held = target
         return ok
 
-    async def _measure(self, target: int, attempt: int, failed: int, seconds: float, say) -> bool:
+    async def _measure(
+        self, target: int, attempt: int, failed: int, seconds: float, say: Say
+    ) -> bool:
         clients = self.clients
-        client_pids = [p.pid for c in clients.values() for p in c.processes]
+        client_pids = [p.pid for c in clients.values() for p in c.processes if p.pid is not None]
         before = await _channel_info(self.ports["a"]) if self.facecast else _NO_INFO
         stages0 = await _snapshots(self.ports) if self.staged else None
         # When the window opened (Unix time): where two targets take turns, their order.
@@ -548,7 +273,7 @@ class _Target:
 
 
 async def _ramp(
-    ports: dict[str, int], pids: list[int], frames: np.ndarray, seconds: float, say,
+    ports: dict[str, int], pids: list[int], frames: np.ndarray, seconds: float, say: Say,
     *, steps: tuple[int, ...] = STEPS, staged: bool = False,
 ) -> dict[str, Any]:  # fmt: skip
     """Ramp viewers over ``ports`` (split evenly) until a step fails; figures per step."""
@@ -564,7 +289,7 @@ async def _ramp(
 
 async def _ramp_beside_floor(
     port: int, pid: int, floor_port: int, floor_pid: int, frames: np.ndarray, seconds: float,
-    say, *, steps: tuple[int, ...] = STEPS,
+    say: Say, *, steps: tuple[int, ...] = STEPS,
 ) -> tuple[dict[str, Any], dict[str, Any]]:  # fmt: skip
     """facecast's ramp and its floor's in one: both servers hold each step's viewers, then
     each is measured in turn with only its own publisher running; their results.
@@ -610,7 +335,7 @@ async def _snapshots(ports: dict[str, int]) -> list[dict[str, Any]]:
     ]
 
 
-def _summed_stages(before: list[dict], after: list[dict]) -> dict[str, float]:
+def _summed_stages(before: list[dict[str, Any]], after: list[dict[str, Any]]) -> dict[str, float]:
     """Seconds per stage spent between two snapshots of every server, summed."""
     return {
         stage: sum(
@@ -626,29 +351,18 @@ _NO_INFO: dict[str, Any] = {"frames": 0, "skipped": 0}
 
 async def _channel_info(port: int) -> dict[str, Any]:
     """``GET /v1/channels/bench`` of the server on ``port`` (this process's figures)."""
-    import httpx
-
     async with httpx.AsyncClient() as http:
-        return (await http.get(f"http://127.0.0.1:{port}/v1/channels/bench")).json()
+        info: dict[str, Any] = (await http.get(f"http://127.0.0.1:{port}/v1/channels/bench")).json()
+        return info
 
 
-def _start_redis() -> tuple[subprocess.Popen | None, str | None]:
-    exe = shutil.which("redis-server")
-    if exe is None:
+def _start_redis() -> tuple[RedisServer | None, str | None]:
+    """A redis-server of this run and its URL; (None, None) if none is installed or starts."""
+    try:
+        server = start_redis()
+    except (RuntimeError, TimeoutError):
         return None, None
-    port = _free_port()
-    process = subprocess.Popen(
-        [exe, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )  # fmt: skip
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:
-        with socket.socket() as sock:
-            if sock.connect_ex(("127.0.0.1", port)) == 0:
-                return process, f"redis://127.0.0.1:{port}/0"
-        time.sleep(0.05)
-    _stop(process)
-    return None, None
+    return (server, server.url) if server is not None else (None, None)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -784,4 +498,4 @@ def _added_latency(two: dict[str, Any]) -> float | None:
     groups = held[-1]["groups"]
     if "a" not in groups or "b" not in groups:
         return None
-    return round(groups["b"]["p50_ms"] - groups["a"]["p50_ms"], 3)
+    return round(float(groups["b"]["p50_ms"]) - float(groups["a"]["p50_ms"]), 3)

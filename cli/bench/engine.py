@@ -15,14 +15,29 @@ import platform
 import sys
 import time
 import warnings
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import scipy
+from scipy.interpolate import RBFInterpolator
 
 from facecast.cli.errors import CommandError
+from facecast.cli.report import write_json
+from facecast.rig import fit
+from facecast.rig.demo import demo_example_set
+from facecast.rig.kernel import description as kernel_description
+from facecast.rig.sources.ict import ict_example_set, locate_ict
+
+if TYPE_CHECKING:
+    from facecast.rig.examples import ExampleSet
+
+#: A figure's goal: its text, and the test of its entry ({value_s, ratio, ...}).
+Goal = tuple[str, Callable[[dict[str, Any]], bool]]
 
 BATCH = 1024
 # Goals, in seconds or as ratios; a figure passes when its test holds.
-GOALS = {
+GOALS: dict[str, Goal] = {
     "weights_single": ("< 20 us", lambda f: f["value_s"] < 20e-6),
     "weights_batched_per_frame": ("< 2 us per frame", lambda f: f["value_s"] < 2e-6),
     "blend_single": ("<= 1.5x the memory floor", lambda f: f["ratio"] <= 1.5),
@@ -38,8 +53,7 @@ GOALS = {
 }
 
 
-def _dataset(args: argparse.Namespace):
-    from facecast.rig.sources.ict import ict_example_set, locate_ict
+def _dataset(args: argparse.Namespace) -> tuple[str, str | None, ExampleSet]:
 
     if not getattr(args, "demo", False):
         archive = locate_ict(args.ict) if args.ict else locate_ict()
@@ -50,30 +64,29 @@ def _dataset(args: argparse.Namespace):
             "../shared/data/ict-facekit); benchmarking the procedural demo instead",
             file=sys.stderr,
         )
-    from facecast.rig.demo import demo_example_set
 
     return "demo", None, demo_example_set()
 
 
-def _frames(example_set, count: int, seed: int = 0) -> np.ndarray:
+def _frames(example_set: ExampleSet, count: int, seed: int = 0) -> np.ndarray:
     """Feature points (count, K, 3) of random sparse mixes of the source examples."""
     rng = np.random.default_rng(seed)
     m = example_set.num_examples
     mix = rng.uniform(0.0, 1.0, size=(count, m - 1)) * (rng.random((count, m - 1)) < 0.1)
     neutral = example_set.source_neutral
     deltas = (example_set.source_points[1:] - neutral).reshape(m - 1, -1)
-    return (neutral.reshape(-1) + mix @ deltas).reshape(count, -1, 3)
+    frames: np.ndarray = (neutral.reshape(-1) + mix @ deltas).reshape(count, -1, 3)
+    return frames
 
 
-def measure(example_set, *, repeat: int) -> tuple[dict, dict]:
+def measure(example_set: ExampleSet, *, repeat: int) -> tuple[dict[str, Any], dict[str, Any]]:
     """Every figure with its baseline, {name: {value_s, baseline_s, baseline, ratio}}, and
     how the fit's wall time splits by its own clocks, {wall_s, math_s, basis_s, overlapped}.
     """
-    from scipy.interpolate import RBFInterpolator
 
-    from facecast.rig import fit
-
-    def paired(function, baseline):
+    def paired(
+        function: Callable[[], object], baseline: Callable[[], object]
+    ) -> tuple[float, float]:
         return _paired_seconds(function, baseline, repeat=repeat)
 
     with warnings.catch_warnings():
@@ -84,7 +97,9 @@ def measure(example_set, *, repeat: int) -> tuple[dict, dict]:
     frame = points[0]
     flat = points.reshape(BATCH, -1)
 
-    def unfolded(x):  # eq. 3.7 then eq. 3.8, term by term, as the thesis writes them
+    def unfolded(
+        x: np.ndarray,
+    ) -> np.ndarray:  # eq. 3.7 then eq. 3.8, term by term, as the thesis writes them
         return model.weights_from_params(model.project(x))
 
     weights = rig.weights(frame)
@@ -102,33 +117,34 @@ def measure(example_set, *, repeat: int) -> tuple[dict, dict]:
     parts: list[tuple[float, float, float]] = []
     overlapped: list[bool] = []
 
-    def fit_quietly():
+    def fit_quietly() -> None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             report = fit(example_set).fit_report
         parts.append((report["fit_seconds"], report["math_seconds"], report["basis_seconds"]))
         overlapped.append(report["basis_overlapped"])
 
-    def rbf_fit():
+    def rbf_fit() -> None:
         RBFInterpolator(params, identity, kernel="thin_plate_spline", degree=1)
 
     target = example_set.target_vertices
     m = example_set.num_examples
     target_flat = target.reshape(m, -1)
 
-    def basis_floor():
+    def basis_floor() -> None:
         # Read the float64 target examples once and write them as float32 into a new array
         # (a fit's rig owns a new basis): the bytes the blend basis must move.
         out = np.empty((m - 1, target_flat.shape[1]), dtype=np.float32)
         np.copyto(out, target_flat[1:], casting="same_kind")
 
-    figures = {
+    # name -> (seconds, the baseline's seconds, what the baseline is)
+    figures: dict[str, tuple[float, float, str]] = {
         "weights_single": (
             *paired(lambda: rig.weights(frame), lambda: unfolded(flat[:1])),
             "eq. 3.8 unfolded (project, then linear + radial terms)",
         ),
         "weights_batched_per_frame": (
-            *(t / BATCH for t in paired(lambda: rig.weights(points), lambda: unfolded(flat))),
+            *_per(BATCH, paired(lambda: rig.weights(points), lambda: unfolded(flat))),
             f"eq. 3.8 unfolded, batch of {BATCH}",
         ),
         "blend_single": (
@@ -155,7 +171,7 @@ def measure(example_set, *, repeat: int) -> tuple[dict, dict]:
     )
     result = {}
     for name, (value, baseline, what) in figures.items():
-        entry = {
+        entry: dict[str, Any] = {
             "value_s": float(value),
             "baseline_s": float(baseline),
             "baseline": what,
@@ -169,8 +185,17 @@ def measure(example_set, *, repeat: int) -> tuple[dict, dict]:
     return result, split
 
 
+def _per(count: int, seconds: tuple[float, float]) -> tuple[float, float]:
+    """A pair of timings of ``count`` items each, per item."""
+    return seconds[0] / count, seconds[1] / count
+
+
 def _paired_seconds(
-    function, baseline, *, repeat: int, min_run_seconds: float = 0.02
+    function: Callable[[], object],
+    baseline: Callable[[], object],
+    *,
+    repeat: int,
+    min_run_seconds: float = 0.02,
 ) -> tuple[float, float]:
     """Median seconds per call of ``function`` and of ``baseline``, timed in alternating runs.
 
@@ -203,7 +228,7 @@ def _duration(seconds: float) -> str:
     return f"{seconds * 1e3:9.2f} ms"
 
 
-def format_figures(figures: dict) -> str:
+def format_figures(figures: dict[str, Any]) -> str:
     lines = [
         f"{'figure':<28}{'value':>13}{'baseline':>13}{'ratio':>9}  {'goal':<26}result  baseline",
     ]
@@ -216,7 +241,7 @@ def format_figures(figures: dict) -> str:
     return "\n".join(lines)
 
 
-def format_split(split: dict) -> str:
+def format_split(split: dict[str, Any]) -> str:
     """How the fit's wall time splits between its math and building the blend basis."""
     wall, math, basis = (_duration(split[k]).strip() for k in ("wall_s", "math_s", "basis_s"))
     if not split["overlapped"]:
@@ -232,10 +257,6 @@ def format_split(split: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    import scipy
-
-    from facecast.cli.report import write_json
-    from facecast.rig.kernel import description as kernel_description
 
     if args.repeat < 1:
         raise CommandError(f"--repeat must be at least 1, got {args.repeat}")

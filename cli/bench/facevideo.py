@@ -18,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse
 from matplotlib.path import Path as Polygon
+from tqdm import tqdm
 
 from facecast.cli.raster import (
     PinholeCamera,
@@ -215,7 +216,6 @@ def write_video(
     progress: bool = True,
 ) -> Path:
     """Render ``activations`` (F, M) to a Y4M video at ``path``; returns the path."""
-    from tqdm import tqdm
 
     act = np.asarray(activations, dtype=np.float64)
     camera = scene.camera

@@ -9,6 +9,9 @@ import os
 from pathlib import Path
 from typing import Any
 
+import httpx
+from prometheus_client.parser import text_string_to_metric_families
+
 __all__ = ["STAGES", "cpu_seconds", "stage_delta", "stage_snapshot"]
 
 #: The server's stages (``facecast.server.compute.stages.STAGES``, read off ``/metrics`` by name
@@ -30,8 +33,6 @@ def cpu_seconds(pids: list[int]) -> float:
 
 def stage_snapshot(base_url: str) -> dict[str, Any]:
     """The server's stage clocks and blend batch counts from ``GET /metrics``."""
-    import httpx
-    from prometheus_client.parser import text_string_to_metric_families
 
     text = httpx.get(f"{base_url}/metrics", timeout=10).text
     seconds = dict.fromkeys(STAGES, 0.0)

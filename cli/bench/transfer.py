@@ -14,11 +14,33 @@ import argparse
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
+from facecast.cli.bench.engine import _paired_seconds
 from facecast.cli.errors import CommandError
+from facecast.cli.render import save_side_by_side
+from facecast.rig.evaluation.remesh import carry_shapes, decimate, sqrt3_retriangulate
+from facecast.rig.evaluation.takes import arkit_example_set
+from facecast.rig.evaluation.transfer import end_to_end, score_transfer
+from facecast.rig.examples import ExampleSet
+from facecast.rig.sources.ict import ict_example_set, locate_ict
+from facecast.rig.sources.trackers import read_livelink_csv
+from facecast.rig.transfer import (
+    CorrespondenceWeights,
+    DeformationTransfer,
+    ict_source_expressions,
+    transfer_expressions,
+)
+from facecast.rig.transfer.mesh import nearest_vertices
+
+if TYPE_CHECKING:
+    from scipy.sparse.linalg import SuperLU
+
+    from facecast.rig.evaluation.remesh import Remeshed
+    from facecast.rig.transfer.expressions import SourceExpressions
 
 # Landmark noise (std per coordinate, cm) for the end-to-end runs: none, and 0.5 mm.
 NOISES = (0.0, 0.05)
@@ -26,7 +48,6 @@ TAKE = Path(__file__).resolve().parents[2] / "tests" / "data" / "livelink" / "ll
 
 
 def run(args: argparse.Namespace) -> int:
-    from facecast.rig.sources.ict import ict_example_set, locate_ict
 
     archive = locate_ict(args.ict) if args.ict else locate_ict()
     if archive is None:
@@ -34,13 +55,15 @@ def run(args: argparse.Namespace) -> int:
             "ICT-FaceKit not found (the transfer's source): set FACECAST_ICT, pass --ict PATH "
             "or place it in ../shared/data/ict-facekit"
         )
-    from facecast.rig.transfer import ict_source_expressions
 
     source = ict_source_expressions(archive)
     landmarks = ict_example_set(archive).feature_indices
+    assert landmarks is not None  # ICT's example set is made of meshes and their landmarks
     report: dict[str, Any] = {}
     if not args.accuracy_only:
-        report["cost"] = _cost(source, landmarks, repeat=args.repeat)
+        report["cost"] = _cost(
+            source, landmarks, repeat=args.repeat, still=None if args.paper_solve else args.still
+        )
     if not args.cost_only:
         take = Path(args.take) if args.take else TAKE
         if not take.is_file():
@@ -48,10 +71,12 @@ def run(args: argparse.Namespace) -> int:
         report["accuracy"], shown = _accuracy(
             archive, source, landmarks, take,
             marker_weight=None if args.hold_markers else args.marker_weight,
+            still=None if args.paper_solve else args.still,
         )  # fmt: skip
         if args.sheet:
             print(f"wrote {_sheet(args.sheet, source, shown)}")
     report["marker_weight"] = None if args.hold_markers else args.marker_weight
+    report["still"] = None if args.paper_solve else args.still
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1, default=float))
         print(f"wrote {args.json}")
@@ -61,8 +86,7 @@ def run(args: argparse.Namespace) -> int:
 # -- cost -------------------------------------------------------------------------------
 
 
-def _cost_targets(source) -> list[tuple[str, Any]]:
-    from facecast.rig.evaluation.remesh import decimate, sqrt3_retriangulate
+def _cost_targets(source: SourceExpressions) -> list[tuple[str, Remeshed]]:
 
     face, faces = source.vertices[0], source.faces
     small = sqrt3_retriangulate(*_mesh(decimate(face, faces, 3400)))
@@ -70,23 +94,24 @@ def _cost_targets(source) -> list[tuple[str, Any]]:
     return [("~10k", small), ("~50k", large)]
 
 
-def _mesh(remeshed) -> tuple[np.ndarray, np.ndarray]:
+def _mesh(remeshed: Remeshed) -> tuple[np.ndarray, np.ndarray]:
     return remeshed.vertices, remeshed.faces
 
 
-def _cost(source, landmarks: np.ndarray, *, repeat: int) -> list[dict[str, Any]]:
-    from facecast.cli.bench.engine import _paired_seconds
-    from facecast.rig.transfer import DeformationTransfer, transfer_expressions
-    from facecast.rig.transfer.mesh import nearest_vertices
+def _cost(
+    source: SourceExpressions, landmarks: np.ndarray, *, repeat: int, still: float | None
+) -> list[dict[str, Any]]:
 
     rows = []
     print("cost: ICT-FaceKit's 51 ARKit shapes (9,409-vertex face) -> remeshed ICT faces")
     for label, target in _cost_targets(source):
         markers = np.stack([landmarks, nearest_vertices(source.vertices[0][landmarks],
                                                         target.vertices)], axis=1)  # fmt: skip
-        generated = transfer_expressions(source, target.vertices, target.faces, markers=markers)
+        generated = transfer_expressions(
+            source, target.vertices, target.faces, markers=markers, still=still
+        )
         started = time.perf_counter()
-        transfer = DeformationTransfer(
+        transfer = DeformationTransfer(  # the paper's solve, factored here
             source.vertices[0], source.faces, target.vertices, target.faces,
             generated.correspondence.pairs, vertex_map=generated.correspondence.vertex_map,
             rotation=generated.correspondence.rotation, scale=generated.correspondence.scale,
@@ -96,10 +121,12 @@ def _cost(source, landmarks: np.ndarray, *, repeat: int) -> list[dict[str, Any]]
         rhs = np.random.default_rng(0).normal(size=(transfer.unknowns, 3))
         shape = source.vertices[1]
 
-        def one_expression(shape=shape, transfer=transfer):
+        def one_expression(
+            shape: np.ndarray = shape, transfer: DeformationTransfer = transfer
+        ) -> None:
             transfer.transfer(shape)
 
-        def floor(lu=lu, rhs=rhs):
+        def floor(lu: SuperLU = lu, rhs: np.ndarray = rhs) -> None:
             lu.L @ (lu.U @ rhs)
 
         per_expression, floor_s = _paired_seconds(one_expression, floor, repeat=repeat)
@@ -117,26 +144,40 @@ def _cost(source, landmarks: np.ndarray, *, repeat: int) -> list[dict[str, Any]]
             "floor_s": floor_s,
             "ratio": per_expression / floor_s,
             "residual_edges": generated.correspondence.residual,
+            "still": still,
+            "factorizations": generated.factorizations,
         }
         rows.append(row)
         print(
             f"  {label:5s} {row['vertices']:6d} vertices: correspondence "
-            f"{row['correspondence_s']:6.1f} s, factor {row['factor_s']:5.2f} s (again "
-            f"{factor_again:.2f} s; {row['unknowns']} unknowns, {row['factor_nonzeros']:,} "
-            f"nonzeros in L+U), 51 solves {row['solve_all_s']:5.2f} s; one expression "
+            f"{row['correspondence_s']:6.1f} s, set-up {row['factor_s']:5.2f} s; the paper's "
+            f"solve: factor {factor_again:.2f} s ({row['unknowns']} unknowns, "
+            f"{row['factor_nonzeros']:,} nonzeros in L+U), one expression "
             f"{1e3 * per_expression:6.1f} ms beside the floor {1e3 * floor_s:5.1f} ms "
-            f"(one product with L and U, 3 columns) = {row['ratio']:.1f}x"
+            f"(one product with L and U, 3 columns) = {row['ratio']:.1f}x; 51 solves as "
+            f"run {row['solve_all_s']:5.2f} s"
         )
+        if still is not None:
+            # Each expression factors the unknowns its still points leave: at most the whole
+            # system, whose factorisation (timed above for the paper's solve) is its floor.
+            each = generated.seconds["solve"] / (len(source.names) - 1)
+            print(
+                f"        still points held ({still:g}): the 51 solves above factor "
+                f"{generated.factorizations} systems, {1e3 * each:.0f} ms per expression "
+                f"beside one factorisation of the whole system {1e3 * factor_again:.0f} ms "
+                f"= {each / factor_again:.2f}x; the one-expression figure is the paper's solve"
+            )
     return rows
 
 
 # -- accuracy ---------------------------------------------------------------------------
 
 
-def _exact_markers(source_vertices: np.ndarray, landmarks: np.ndarray, target: np.ndarray):
+def _exact_markers(
+    source_vertices: np.ndarray, landmarks: np.ndarray, target: np.ndarray
+) -> np.ndarray:
     """Markers a careful user would place: for each landmark, the nearest target vertex
     that coincides with a source vertex (a decimation leaves many where they were)."""
-    from scipy.spatial import cKDTree
 
     distance, match = cKDTree(source_vertices).query(target)
     exact = np.flatnonzero(distance < 1e-9)
@@ -148,59 +189,70 @@ def _exact_markers(source_vertices: np.ndarray, landmarks: np.ndarray, target: n
 
 
 def _accuracy(
-    archive, source, landmarks: np.ndarray, take: Path, *, marker_weight: float | None = 0.01
+    archive: Path,
+    source: SourceExpressions,
+    landmarks: np.ndarray,
+    take: Path,
+    *,
+    marker_weight: float | None = 0.01,
+    still: float | None = None,
 ) -> tuple[list[dict[str, Any]], list[tuple[str, Any, np.ndarray]]]:
-    from facecast.rig.evaluation.remesh import carry_shapes, decimate, sqrt3_retriangulate
-    from facecast.rig.evaluation.takes import arkit_example_set
-    from facecast.rig.evaluation.transfer import end_to_end, score_transfer
-    from facecast.rig.examples import ExampleSet
-    from facecast.rig.sources.trackers import read_livelink_csv
-    from facecast.rig.transfer import CorrespondenceWeights, transfer_expressions
-    from facecast.rig.transfer.mesh import nearest_vertices
 
     livelink = read_livelink_csv(take)
     face = source.vertices[0]
-    cases: list[tuple[str, ExampleSet, np.ndarray | None, np.ndarray]] = []
+    # (label, truth, markers, target faces, the 20 landmarks' true places on the target)
+    cases: list[tuple[str, ExampleSet, Any, np.ndarray, np.ndarray | None]] = []
     for identity in ("person01", "person10"):
         truth = arkit_example_set(archive, identity=identity)
         cases.append((f"(a) ICT {identity}, same topology (identity map)", truth, None,
-                      truth.target_faces))  # fmt: skip
-    # The same face with its vertices renumbered, so the markers' path runs.
-    truth = arkit_example_set(archive, identity="person01")
-    order = np.random.default_rng(0).permutation(truth.num_vertices)
-    new_index = np.argsort(order)
-    renumbered = ExampleSet(names=truth.names, source_points=truth.source_points,
-                            target_vertices=truth.target_vertices[:, order],
-                            target_faces=new_index[truth.target_faces])  # fmt: skip
-    cases.append(("(a) ICT person01 renumbered, 20 landmark markers + closest points",
-                  renumbered, np.stack([landmarks, new_index[landmarks]], axis=1),
-                  renumbered.target_faces))  # fmt: skip
+                      truth.target_faces, None))  # fmt: skip
+    # The same faces with their vertices renumbered, so the markers' path runs.
+    for identity, markers in (("person01", "landmarks"), ("person01", "auto"),
+                              ("person10", "auto")):  # fmt: skip
+        truth = arkit_example_set(archive, identity=identity)
+        order = np.random.default_rng(0).permutation(truth.num_vertices)
+        new_index = np.argsort(order)
+        renumbered = ExampleSet(names=truth.names, source_points=truth.source_points,
+                                target_vertices=truth.target_vertices[:, order],
+                                target_faces=new_index[truth.target_faces])  # fmt: skip
+        if markers == "auto":
+            label = f"(a) ICT {identity} renumbered, automatic (no markers) + closest points"
+            given: Any = "auto"
+        else:
+            label = f"(a) ICT {identity} renumbered, 20 landmark markers + closest points"
+            given = np.stack([landmarks, new_index[landmarks]], axis=1)
+        cases.append((label, renumbered, given, renumbered.target_faces,
+                      truth.target_vertices[0, landmarks]))  # fmt: skip
     decimated = decimate(face, source.faces, 4000)
     sqrt3 = sqrt3_retriangulate(face, source.faces)
-    for label, remeshed, exact in (
-        ("(b) ICT face decimated to 4,000 vertices, exact markers", decimated, True),
-        ("(b) ICT face decimated to 4,000 vertices, nearest-vertex markers", decimated, False),
-        ("(b) ICT face sqrt3-retriangulated (27,870 vertices), exact markers", sqrt3, True),
+    for label, remeshed, kind in (
+        ("(b) ICT face decimated to 4,000 vertices, exact markers", decimated, "exact"),
+        ("(b) ICT face decimated to 4,000 vertices, nearest-vertex markers", decimated, "nearest"),
+        ("(b) ICT face decimated to 4,000 vertices, automatic (no markers)", decimated, "auto"),
+        ("(b) ICT face sqrt3-retriangulated (27,870 vertices), exact markers", sqrt3, "exact"),
     ):
         shapes = carry_shapes(remeshed, source.vertices, source.faces)
         truth_set = ExampleSet(names=source.names, source_points=source.points,
                                target_vertices=shapes, target_faces=remeshed.faces)  # fmt: skip
-        if exact:
-            markers = _exact_markers(face, landmarks, remeshed.vertices)
+        if kind == "exact":
+            given = _exact_markers(face, landmarks, remeshed.vertices)
+        elif kind == "nearest":
+            given = np.stack([landmarks, nearest_vertices(face[landmarks], remeshed.vertices)], 1)
         else:
-            markers = np.stack([landmarks, nearest_vertices(face[landmarks], remeshed.vertices)], 1)
-        cases.append((label, truth_set, markers, remeshed.faces))
+            given = "auto"
+        cases.append((label, truth_set, given, remeshed.faces, face[landmarks]))
 
     rows = []
     shown = []
     held = "held" if marker_weight is None else f"pulled with {marker_weight:g} x w_C"
-    print(f"markers {held}")
+    solve = "the paper's (one vertex held)" if still is None else f"still points held ({still:g})"
+    print(f"markers {held}; solve: {solve}")
     print("accuracy: error relative to the true displacement (sum over vertices), and a real "
           f"take ({take.name}) cloned through generated vs true examples (eq. 4.1, worst axis)")  # fmt: skip
-    for label, truth_set, markers, faces in cases:
+    for label, truth_set, markers, faces, true_landmarks in cases:
         generated = transfer_expressions(
             source, truth_set.target_neutral, faces, markers=markers,
-            weights=CorrespondenceWeights(marker_weight=marker_weight),
+            weights=CorrespondenceWeights(marker_weight=marker_weight), still=still,
         )  # fmt: skip
         truth_vertices = truth_set.target_vertices
         if faces is not truth_set.target_faces:
@@ -214,9 +266,21 @@ def _accuracy(
         worse = [
             n for n, t, v in zip(score.names, score.transfer, score.naive, strict=True) if t >= v
         ]
+        landmark_mm = None
+        if isinstance(markers, str) and true_landmarks is not None:
+            # The automatic fit's 20 landmarks against their true places (ICT's cm -> mm).
+            fitted = generated.correspondence.fitted_source[landmarks]
+            landmark_mm = 10.0 * np.linalg.norm(fitted - true_landmarks, axis=1)
         row = {
             "case": label,
-            "markers": None if markers is None else len(markers),
+            "markers": markers if isinstance(markers, str) or markers is None else len(markers),
+            "landmark_error_mm": None
+            if landmark_mm is None
+            else {
+                "median": float(np.median(landmark_mm)),
+                "max": float(landmark_mm.max()),
+                "per_landmark": landmark_mm.tolist(),
+            },
             "residual_edges": generated.correspondence.residual,
             **score.as_dict(),
             "transfer_not_below_naive": worse,
@@ -225,6 +289,12 @@ def _accuracy(
         rows.append(row)
         worst = score.names[int(np.argmax(score.transfer))]
         print(f"  {label}")
+        if landmark_mm is not None:
+            print(
+                f"    automatic fit: the 20 landmarks {np.median(landmark_mm):.2f} mm from their "
+                f"true places (median; {landmark_mm.max():.2f} mm at most), residual "
+                f"{generated.correspondence.residual:.3f} target edges"
+            )
         print(
             f"    transfer {100 * score.transfer_overall:5.1f}%  naive {100 * score.naive_overall:5.1f}%"
             f"  (transfer below naive on {len(score.names) - len(worse)} of {len(score.names)}; "
@@ -251,16 +321,17 @@ SHEET_NAMES = (
 )
 
 
-def _front(vertices: np.ndarray, faces: np.ndarray, neutral: np.ndarray) -> tuple:
+def _front(
+    vertices: np.ndarray, faces: np.ndarray, neutral: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """The triangles in front of the ears (ICT's axes, cm: the nose tip is at z = 13)."""
     keep = (neutral[faces][:, :, 2] > 4.0).all(axis=1)
     return vertices, faces[keep]
 
 
-def _sheet(path: str, source, shown: list[tuple[str, Any, np.ndarray]]) -> Path:
+def _sheet(path: str, source: SourceExpressions, shown: list[tuple[str, Any, np.ndarray]]) -> Path:
     """Rows of expressions: the source, then per shown case the truth and the transfer
     (only the front of the face, so the lids and lips show)."""
-    from facecast.cli.render import save_side_by_side
 
     rows = []
     for name in SHEET_NAMES:

@@ -23,7 +23,27 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from facecast.cli.bench.facevideo import head_scene, write_video
 from facecast.cli.errors import CommandError
+from facecast.cli.report import write_json
+from facecast.cli.track import track_video
+from facecast.rig import fit
+from facecast.rig.evaluation.evaluate import cloning_error
+from facecast.rig.evaluation.takes import ARKIT_TARGET_IDENTITY, arkit_example_set, take_experiment
+from facecast.rig.evaluation.webcam import (
+    KEY_HOLD_FRAMES,
+    KEY_RAMP_FRAMES,
+    PERFORMER_IDENTITY,
+    captured_keys,
+    hold_last_found,
+    ict_performer,
+    key_clips,
+    superposition,
+    webcam_rows,
+)
+from facecast.rig.sources.ict import ict_regions, locate_ict
+from facecast.rig.sources.trackers import read_livelink_csv
+from facecast.server.storage.profiles import held_noise
 
 if TYPE_CHECKING:
     from facecast.rig.evaluation.takes import TakeExperiment
@@ -54,21 +74,6 @@ class _Setup:
 
 
 def _setup(args: argparse.Namespace) -> _Setup:
-    from facecast.rig import fit
-    from facecast.rig.evaluation.takes import (
-        ARKIT_TARGET_IDENTITY,
-        arkit_example_set,
-        take_experiment,
-    )
-    from facecast.rig.evaluation.webcam import (
-        KEY_HOLD_FRAMES,
-        KEY_RAMP_FRAMES,
-        PERFORMER_IDENTITY,
-        ict_performer,
-        key_clips,
-    )
-    from facecast.rig.sources.ict import locate_ict
-    from facecast.rig.sources.trackers import read_livelink_csv
 
     archive = locate_ict(args.ict) if args.ict else locate_ict()
     if archive is None:
@@ -116,7 +121,6 @@ def _generic_rigs(setup: _Setup, noise: float) -> dict[str, tuple[Rig, float | N
     (exact), re-based as the page does (a ``calibrate`` carrying the held frames' noise),
     and, for comparison, exactly as a calibrate without noise did before; and the rig
     fitted with the measured noise, bounded, re-based exactly."""
-    from facecast.rig import fit
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -132,8 +136,6 @@ def _score_landmarks(
     setup: _Setup, take_points: np.ndarray, key_points: np.ndarray, key_found: np.ndarray | None
 ) -> dict[str, Any]:
     """Every path on one kind of landmarks (exact or tracked): the rows and the capture."""
-    from facecast.rig.evaluation.webcam import captured_keys, superposition, webcam_rows
-    from facecast.server.storage.profiles import held_noise
 
     keys, held = captured_keys(key_points, setup.clips, key_found)
     noise, held_frames = held_noise(held)
@@ -179,11 +181,9 @@ def _video_paths(folder: Path, args: argparse.Namespace, setup: _Setup) -> dict[
 
 def _tracked(args: argparse.Namespace, setup: _Setup, folder: Path) -> dict[str, Any]:
     """Render both videos (unless kept from an earlier run) and track every frame of each."""
-    from facecast.cli.bench.facevideo import head_scene, write_video
-    from facecast.cli.track import track_video
-    from facecast.rig.sources.ict import ict_regions, locate_ict
 
     archive = locate_ict(args.ict) if args.ict else locate_ict()
+    assert archive is not None  # run() found it before anything was rendered
     regions, landmarks68 = ict_regions(archive)
     scene = head_scene(setup.performer, regions, landmarks68)
     paths = _video_paths(folder, args, setup)
@@ -259,9 +259,6 @@ def _max_axis(row: dict[str, Any]) -> float:
 
 
 def run(args: argparse.Namespace) -> int:
-    from facecast.cli.report import write_json
-    from facecast.rig.evaluation.evaluate import cloning_error
-    from facecast.rig.evaluation.webcam import hold_last_found
 
     if args.json is not None and not Path(args.json).parent.exists():
         raise CommandError(f"{Path(args.json).parent}: no such folder for --json")

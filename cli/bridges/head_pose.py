@@ -14,13 +14,16 @@ from scipy.spatial.transform import Rotation
 from facecast.protocol import Head
 from facecast.rig.sources.source_rig import head_rotation
 
-__all__ = ["head_pose", "unity_quaternion"]
+__all__ = ["Vector", "head_pose", "unity_quaternion"]
+
+#: A few floats: head angles (yaw, pitch, roll), a position or a quaternion.
+Vector = Sequence[float] | np.ndarray
 
 #: facecast's face frame has +x the performer's left, Unity's +x their right.
 _MIRROR_X = np.diag([-1.0, 1.0, 1.0])
 
 
-def unity_quaternion(angles: Sequence[float]) -> np.ndarray:
+def unity_quaternion(angles: Vector) -> np.ndarray:
     """The (4,) float64 quaternion (x, y, z, w) of head (yaw, pitch, roll) radians.
 
     The rotation ``--head-pose`` applies to the points
@@ -30,10 +33,11 @@ def unity_quaternion(angles: Sequence[float]) -> np.ndarray:
     the turn reverses, about x (ear to ear) it does not.
     """
     rotation = _MIRROR_X @ head_rotation(np.asarray(angles, dtype=np.float64)) @ _MIRROR_X
-    return Rotation.from_matrix(rotation).as_quat()
+    quaternion: np.ndarray = Rotation.from_matrix(rotation).as_quat()
+    return quaternion
 
 
-def head_pose(angles: Sequence[float], position: Sequence[float] | None = None) -> Head:
+def head_pose(angles: Vector, position: Vector | None = None) -> Head:
     """The `Head` a bridge publishes for head (yaw, pitch, roll) radians (PROTOCOL.md §5.3).
 
     float32 on the wire: a unit quaternion's norm stays within 1e-7 of 1, and VMC

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -225,7 +226,7 @@ async def open_ifacialmocap_receiver(
 
 
 def request_stream(
-    receiver: DatagramReceiver, phone: str, app: str = "ifacialmocap", port: int | None = None
+    receiver: DatagramReceiver[Any], phone: str, app: str = "ifacialmocap", port: int | None = None
 ) -> None:
     """Ask the app on ``phone`` to stream to this receiver's port (sent from its socket).
 

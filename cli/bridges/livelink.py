@@ -59,6 +59,7 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -188,7 +189,7 @@ def _utf8(raw: bytes, what: str) -> str:
         ) from None
 
 
-def _face(data: bytes, offset: int, head: dict) -> LiveLinkFrame:
+def _face(data: bytes, offset: int, head: dict[str, Any]) -> LiveLinkFrame:
     """The frame from ``offset`` (just after the subject name) to the packet's end."""
     if offset == len(data):
         return LiveLinkFrame(**head)

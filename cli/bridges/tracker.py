@@ -15,7 +15,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Generic, Protocol, TypeVar
+from typing import Any, Generic, Protocol, TypeVar, cast
 
 import numpy as np
 
@@ -62,6 +62,7 @@ class TrackerFrame(Protocol):
 
 
 FrameT = TypeVar("FrameT")
+TrackerFrameT = TypeVar("TrackerFrameT", bound=TrackerFrame)
 #: Called with each published frame's head (yaw, pitch, roll) radians, e.g. a VMC sender.
 HeadSink = Callable[[np.ndarray], None]
 
@@ -93,10 +94,13 @@ class DatagramReceiver(asyncio.DatagramProtocol, Generic[FrameT]):
         #: ``time.monotonic()`` of the last datagram, good or bad (-inf: none yet).
         self.last_datagram = -math.inf
 
-    def connection_made(self, transport) -> None:  # asyncio callback
-        self._transport = transport
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:  # asyncio callback
+        # A datagram endpoint's transport (asyncio types the callback for every protocol).
+        self._transport = cast(asyncio.DatagramTransport, transport)
 
-    def datagram_received(self, data: bytes, addr) -> None:  # asyncio callback
+    def datagram_received(
+        self, data: bytes, addr: tuple[str | Any, int]
+    ) -> None:  # asyncio callback
         now = time.monotonic()
         self.last_datagram = now
         try:
@@ -160,12 +164,12 @@ class BridgeStats:
 
 
 async def run_tracker_bridge(
-    receiver: DatagramReceiver,
+    receiver: DatagramReceiver[TrackerFrameT],
     source_rig: SourceRig,
     publisher: FramePublisher,
     *,
     head_pose: bool = False,
-    accept: Callable[[TrackerFrame], bool] | None = None,
+    accept: Callable[[TrackerFrameT], bool] | None = None,
     on_head: HeadSink | None = None,
     max_frames: int | None = None,
 ) -> BridgeStats:
@@ -190,7 +194,7 @@ async def run_tracker_bridge(
     """
     stats = BridgeStats()
     while max_frames is None or stats.frames < max_frames:
-        frame: TrackerFrame = await receiver.get()
+        frame = await receiver.get()
         if frame.weights is None or (accept is not None and not accept(frame)):
             stats.skipped += 1
             continue

@@ -31,7 +31,7 @@ import asyncio
 import logging
 import socket
 import struct
-from collections.abc import AsyncIterable, Mapping, Sequence
+from collections.abc import AsyncIterable, Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,9 +39,18 @@ from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
 from pythonosc.osc_message import OscMessage
 from pythonosc.osc_message_builder import OscMessageBuilder
 
-from facecast.protocol import ChannelIdle, ChannelLive, Error, FaceLost, Head, Ready, Result
+from facecast.protocol import (
+    ChannelIdle,
+    ChannelLive,
+    Error,
+    FaceLost,
+    Head,
+    Ready,
+    Result,
+    ServerMessage,
+)
 
-from .head_pose import unity_quaternion
+from .head_pose import Vector, unity_quaternion
 from .vmc_names import DEFAULT_CONVENTION, vmc_names
 
 __all__ = [
@@ -70,7 +79,7 @@ MIN_DATAGRAM = 576
 _FLOAT32 = struct.Struct(">f")
 
 
-def _message(address: str, *args) -> OscMessageBuilder:
+def _message(address: str, *args: str | int | float) -> OscMessageBuilder:
     builder = OscMessageBuilder(address)
     for arg in args:
         if isinstance(arg, str):
@@ -120,9 +129,7 @@ def _split(elements: Sequence[bytes], max_datagram: int) -> list[bytes]:
     return datagrams
 
 
-def head_bone_message(
-    angles: Sequence[float], position: Sequence[float] = (0.0, 0.0, 0.0)
-) -> OscMessage:
+def head_bone_message(angles: Vector, position: Vector = (0.0, 0.0, 0.0)) -> OscMessage:
     """``/VMC/Ext/Bone/Pos "Head"`` for head (yaw, pitch, roll) in radians.
 
     The rotation is `unity_quaternion` of the angles (the one ``--head-pose`` applies
@@ -142,13 +149,13 @@ def head_pose_message(head: Head) -> OscMessage:
     return _bone_message(head.rotation, position)
 
 
-def _bone_message(quaternion: Sequence[float], position: Sequence[float]) -> OscMessage:
+def _bone_message(quaternion: Vector, position: Vector) -> OscMessage:
     qx, qy, qz, qw = (float(v) for v in quaternion)
     px, py, pz = (float(v) for v in position)
     return _message("/VMC/Ext/Bone/Pos", "Head", px, py, pz, qx, qy, qz, qw).build()
 
 
-def vmc_head_bundle(angles: Sequence[float], position: Sequence[float] = (0.0, 0.0, 0.0)) -> bytes:
+def vmc_head_bundle(angles: Vector, position: Vector = (0.0, 0.0, 0.0)) -> bytes:
     """A datagram with only the head transform, for a tracker bridge beside ``bridge vmc``.
 
     No ``/VMC/Ext/OK`` nor ``T``: the expression sender owns the tracking state.
@@ -357,7 +364,7 @@ class VmcBridgeStats:
 
 
 async def run_vmc_bridge(
-    messages: AsyncIterable,
+    messages: AsyncIterable[ServerMessage],
     sender: VmcSender,
     *,
     convention: str = DEFAULT_CONVENTION,
@@ -365,7 +372,7 @@ async def run_vmc_bridge(
     clamp: bool = True,
     max_datagram: int = SAFE_DATAGRAM,
     max_frames: int | None = None,
-    clock=None,
+    clock: Callable[[], float] | None = None,
 ) -> VmcBridgeStats:
     """Turn a watch stream's messages into VMC datagrams.
 

@@ -8,8 +8,14 @@ from __future__ import annotations
 
 import argparse
 import importlib
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
+from facecast.cli.commands.expressions import add_solve_arguments
 from facecast.cli.errors import CommandError
+
+if TYPE_CHECKING:
+    from facecast.cli.commands import Subparsers
 
 
 def _add_ict(parser: argparse.ArgumentParser) -> None:
@@ -25,7 +31,7 @@ def _add_take(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def register(subparsers) -> None:
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "bench",
         help="benchmarks of the engine, the transport and the broadcast path",
@@ -101,6 +107,7 @@ def register(subparsers) -> None:
     held.add_argument(
         "--hold-markers", action="store_true", help="hold the markers, as the paper does"
     )
+    add_solve_arguments(transfer)
     part = transfer.add_mutually_exclusive_group()
     part.add_argument("--cost-only", action="store_true", help="skip the accuracy runs")
     part.add_argument("--accuracy-only", action="store_true", help="skip the cost runs")
@@ -182,9 +189,8 @@ def _viewer_counts(text: str) -> list[int]:
     return counts
 
 
-def _runner(name: str):
+def _runner(name: str) -> Callable[[argparse.Namespace], int]:
     def run(args: argparse.Namespace) -> int:
-
         module_name = f"facecast.cli.bench.{name}"
         try:
             module = importlib.import_module(module_name)
@@ -194,6 +200,6 @@ def _runner(name: str):
             raise CommandError(
                 f"bench {name} is not available in this installation ({module_name} is missing)"
             ) from None
-        return module.run(args)
+        return int(module.run(args))
 
     return run

@@ -8,10 +8,30 @@ watches a channel's weights and sends VMC OSC. Only argument parsing and wiring 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
+import time
+from typing import TYPE_CHECKING
 
 from facecast.cli.errors import CommandError
+
+if TYPE_CHECKING:  # the bridges and the client load when a command runs, not for --help
+    from collections.abc import Awaitable, Callable, Coroutine
+    from typing import Any, TypeVar
+
+    import numpy as np
+
+    from facecast.cli.bridges.tracker import BridgeStats, DatagramReceiver, HeadSink
+    from facecast.cli.commands import Subparsers
+    from facecast.client.channel import FramePublisher
+    from facecast.rig.sources.source_rig import SourceRig
+
+    ReceiverT = TypeVar("ReceiverT", bound=DatagramReceiver[Any])
+    #: ``run_bridge(receiver, source_rig, publisher, on_head)``: one tracker's loop.
+    BridgeLoop = Callable[
+        [ReceiverT, SourceRig, FramePublisher, HeadSink | None], Awaitable[BridgeStats]
+    ]
 
 
 def _host_port(text: str, default_port: int | None = None) -> tuple[str, int]:
@@ -85,7 +105,7 @@ def _vector(text: str) -> tuple[float, float, float]:
         values = ()
     if len(values) != 3 or not all(math.isfinite(v) for v in values):
         raise argparse.ArgumentTypeError(f"expected X,Y,Z (three finite numbers), got {text!r}")
-    return values  # type: ignore[return-value]
+    return values[0], values[1], values[2]
 
 
 def _mapping(text: str) -> tuple[str, str]:
@@ -96,7 +116,14 @@ def _mapping(text: str) -> tuple[str, str]:
 
 
 def _add_bridge(
-    sub, name: str, *, help: str, description: str, url_help: str, channel_help: str, rig_help: str
+    sub: Subparsers,
+    name: str,
+    *,
+    help: str,
+    description: str,
+    url_help: str,
+    channel_help: str,
+    rig_help: str,
 ) -> argparse.ArgumentParser:
     """A bridge's sub-parser, opened with the channel it bridges: URL, --channel, --rig."""
     parser = sub.add_parser(name, help=help, description=description)
@@ -106,7 +133,9 @@ def _add_bridge(
     return parser
 
 
-def _add_run_arguments(parser: argparse.ArgumentParser, run) -> None:
+def _add_run_arguments(
+    parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace], int]
+) -> None:
     """The options every bridge ends with (--token, --frames), and ``run`` to run it."""
     parser.add_argument("--token", help="bearer token (default FACECAST_TOKEN)")
     parser.add_argument("--frames", type=int, metavar="N", help="stop after N frames")
@@ -123,7 +152,7 @@ def _bridge_url(args: argparse.Namespace, kind: str, query: dict[str, str] | Non
         raise CommandError(str(exc)) from None
 
 
-def register(subparsers) -> None:
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "bridge",
         help="bridge Live Link Face / iFacialMocap into a channel, or a channel out to VMC",
@@ -227,7 +256,14 @@ def register(subparsers) -> None:
     _add_run_arguments(vmc, run_vmc)
 
 
-def _run_tracker(args: argparse.Namespace, what: str, open_receiver, run_bridge, *, start=None):
+def _run_tracker(
+    args: argparse.Namespace,
+    what: str,
+    open_receiver: Callable[[], Awaitable[ReceiverT]],
+    run_bridge: BridgeLoop[ReceiverT],
+    *,
+    start: Callable[[ReceiverT], Coroutine[Any, Any, None]] | None = None,
+) -> int:
     """Open the receiver, publish what ``run_bridge`` makes of it, report; shared by trackers.
 
     ``open_receiver()`` makes the receiver; ``run_bridge(receiver, source_rig, publisher,
@@ -235,7 +271,6 @@ def _run_tracker(args: argparse.Namespace, what: str, open_receiver, run_bridge,
     cancelled when the loop returns).
     """
     import asyncio
-    import contextlib
 
     from facecast.cli.bridges.vmc import VmcSender, vmc_head_bundle
     from facecast.client.channel import FramePublisher
@@ -256,7 +291,7 @@ def _run_tracker(args: argparse.Namespace, what: str, open_receiver, run_bridge,
     async def main() -> int:
         receiver = await open_receiver()
         head_sender = None if args.vmc_head is None else VmcSender(*args.vmc_head)
-        helper = None
+        helper: asyncio.Task[None] | None = None
         try:
             async with FramePublisher(url, hello, token=args.token) as publisher:
                 assert publisher.ready is not None
@@ -274,7 +309,7 @@ def _run_tracker(args: argparse.Namespace, what: str, open_receiver, run_bridge,
                 if start is not None:
                     helper = asyncio.create_task(start(receiver))
 
-                def send_head(head) -> None:
+                def send_head(head: np.ndarray) -> None:
                     assert head_sender is not None
                     head_sender.send(vmc_head_bundle(head, args.vmc_head_position))
 
@@ -308,9 +343,18 @@ def _run_tracker(args: argparse.Namespace, what: str, open_receiver, run_bridge,
 
 
 def run_livelink(args: argparse.Namespace) -> int:
-    from facecast.cli.bridges.livelink import open_livelink_receiver, run_livelink_bridge
+    from facecast.cli.bridges.livelink import (
+        LiveLinkReceiver,
+        open_livelink_receiver,
+        run_livelink_bridge,
+    )
 
-    def run_bridge(receiver, source_rig, publisher, on_head):
+    def run_bridge(
+        receiver: LiveLinkReceiver,
+        source_rig: SourceRig,
+        publisher: FramePublisher,
+        on_head: HeadSink | None,
+    ) -> Awaitable[BridgeStats]:
         return run_livelink_bridge(
             receiver,
             source_rig,
@@ -326,12 +370,20 @@ def run_livelink(args: argparse.Namespace) -> int:
 
 def run_ifacialmocap(args: argparse.Namespace) -> int:
     import asyncio
-    import time
 
-    from facecast.cli.bridges.ifacialmocap import open_ifacialmocap_receiver, request_stream
+    from facecast.cli.bridges.ifacialmocap import (
+        FacialMocapReceiver,
+        open_ifacialmocap_receiver,
+        request_stream,
+    )
     from facecast.cli.bridges.tracker import run_tracker_bridge
 
-    def run_bridge(receiver, source_rig, publisher, on_head):
+    def run_bridge(
+        receiver: FacialMocapReceiver,
+        source_rig: SourceRig,
+        publisher: FramePublisher,
+        on_head: HeadSink | None,
+    ) -> Awaitable[BridgeStats]:
         return run_tracker_bridge(
             receiver,
             source_rig,
@@ -341,7 +393,7 @@ def run_ifacialmocap(args: argparse.Namespace) -> int:
             max_frames=args.frames,
         )
 
-    async def keep_requesting(receiver) -> None:
+    async def keep_requesting(receiver: FacialMocapReceiver) -> None:
         # The app streams once asked; ask again while nothing arrives (it restarted,
         # the phone slept). A timer, not a wait for an event: there is none to wait on.
         while True:

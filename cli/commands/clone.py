@@ -10,9 +10,17 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from facecast.cli.commands._animation import add_source_arguments
+from facecast.cli.commands._animation import add_source_arguments, load_animation, write_cloned
 from facecast.cli.errors import CommandError
+
+if TYPE_CHECKING:  # numpy and the rig load when the command runs, not for --help
+    import numpy as np
+
+    from facecast.cli.commands import Subparsers
+    from facecast.rig import Rig
+    from facecast.rig.smoothing import SmoothedTake
 
 BATCH = 256
 # Above this many bytes of cloned vertices an .npz keeps only the weights (the rig and
@@ -24,7 +32,7 @@ SMOOTHING_CHOICES = ("auto", "rts", "kalman", "none")
 KALMAN_ACCELERATION = 480.0
 
 
-def register(subparsers) -> None:
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "clone",
         help="clone a source animation onto a rig's target",
@@ -71,7 +79,10 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def clone_frames(rig, points, *, align: bool = False, with_vertices: bool = True, progress=True):
+def clone_frames(
+    rig: Rig, points: np.ndarray, *, align: bool = False, with_vertices: bool = True,
+    progress: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None]:  # fmt: skip
     """Weights (F, M) and, optionally, vertices (F, V, 3) float32, BATCH frames at a time."""
     import numpy as np
     from tqdm import tqdm
@@ -93,7 +104,6 @@ def clone_frames(rig, points, *, align: bool = False, with_vertices: bool = True
 
 
 def run(args: argparse.Namespace) -> int:
-    from facecast.cli.commands._animation import load_animation, write_cloned
     from facecast.rig import load_rig
     from facecast.rig.errors import FitError, InputError
     from facecast.rig.smoothing import smooth_take
@@ -140,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _smoothing_note(rig, take) -> str:
+def _smoothing_note(rig: Rig, take: SmoothedTake) -> str:
     """How the take was smoothed, for the summary line."""
     if take.method == "none" or take.acceleration is None:
         return "not smoothed"

@@ -8,11 +8,21 @@ offline cloning and prints the viewer's URL. It needs nothing but this package.
 from __future__ import annotations
 
 import argparse
+import sys
+import tempfile
+import threading
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 from facecast.cli.errors import CommandError
 
+if TYPE_CHECKING:  # the rig and the client load when the command runs, not for --help
+    from facecast.cli.commands import Subparsers
+    from facecast.client.streaming import Progress, StreamOutcome
+    from facecast.rig.sources.animation import SourceAnimation
 
-def register(subparsers) -> None:
+
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "demo",
         help="fit the demo rig, serve it locally, stream the demo performance, show the viewer URL",
@@ -47,9 +57,6 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import asyncio
-    import tempfile
-    import threading
-    from pathlib import Path
 
     import numpy as np
 
@@ -112,13 +119,14 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-async def _stream(url: str, rig_id: str, animation, args):
-    import sys
+async def _stream(
+    url: str, rig_id: str, animation: SourceAnimation, args: argparse.Namespace
+) -> StreamOutcome:
 
     from facecast.client.connection import connect
     from facecast.client.streaming import stream_frames
 
-    def progress(p) -> None:
+    def progress(p: Progress) -> None:
         print(
             f"\r  streamed {p.done}/{p.total} frames  {p.fps:6.1f} fps  "
             f"latency p50 {p.latency.p50_ms:5.2f} ms",
@@ -139,7 +147,9 @@ async def _stream(url: str, rig_id: str, animation, args):
     return outcome
 
 
-def _report(outcome, animation, difference: float, args) -> None:
+def _report(
+    outcome: StreamOutcome, animation: SourceAnimation, difference: float, args: argparse.Namespace
+) -> None:
     latency = outcome.latency
     verdict = "exactly equal" if difference == 0.0 else "DIFFERENT"
     print(

@@ -9,17 +9,32 @@ from __future__ import annotations
 import argparse
 import sys
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
+from facecast.cli.commands.fit import load_examples
 from facecast.cli.errors import CommandError
 
 from .fit import KERNEL_CHOICES
+
+if TYPE_CHECKING:  # numpy and the rig load when the command runs, not for --help
+    from collections.abc import Callable
+
+    import numpy as np
+
+    from facecast.cli.commands import Subparsers
+    from facecast.rig.examples import ExampleSet
+    from facecast.rig.sources.animation import SourceAnimation
+
+    #: Frame indices (n,) -> the source meshes' vertices (n, Vs, 3) and their faces.
+    SourceFrames = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 DEFAULT_NOISE = 0.01  # cm: about a tenth of a millimetre of landmark jitter
 PICTURE_TIMES = 4
 
 
-def register(subparsers) -> None:
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "eval",
         help="measure cloning error and speed against peers (thesis ch. 4)",
@@ -83,19 +98,18 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
+@dataclass
 class _Data:
     """What an experiment needs: examples, source points, truth, and pictures' sources."""
 
-    def __init__(self, name, examples, animation, truth, source_frames=None):
-        self.name = name
-        self.examples = examples
-        self.animation = animation
-        self.truth = truth
-        # Callable frame indices -> (source vertices (n, Vs, 3), source faces), or None.
-        self.source_frames = source_frames
+    name: str
+    examples: ExampleSet
+    animation: SourceAnimation
+    truth: np.ndarray | None
+    source_frames: SourceFrames | None = None
 
 
-def _demo(args) -> _Data:
+def _demo(args: argparse.Namespace) -> _Data:
     from facecast.rig.demo import (
         demo_activations,
         demo_animation,
@@ -108,13 +122,15 @@ def _demo(args) -> _Data:
     animation = demo_animation(args.seconds, args.fps, with_vertices=bool(args.plots), seed=seed)
     truth = demo_target_frames(demo_activations(args.seconds, args.fps, seed=seed))
 
-    def source_frames(indices):
-        return animation.source_vertices[indices], examples.source_faces
+    def source_frames(indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        vertices, faces = animation.source_vertices, examples.source_faces
+        assert vertices is not None and faces is not None  # with_vertices; the demo's meshes
+        return vertices[indices], faces
 
     return _Data("demo", examples, animation, truth, source_frames if args.plots else None)
 
 
-def _ict(args) -> _Data:
+def _ict(args: argparse.Namespace) -> _Data:
     from facecast.rig.sources.ict import (
         ict_animation,
         ict_example_set,
@@ -134,17 +150,18 @@ def _ict(args) -> _Data:
     )
     truth = ict_target_frames(examples, activations)
 
-    def source_frames(indices):
-        src = examples.source_vertices
+    def source_frames(indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        src, faces = examples.source_vertices, examples.source_faces
+        assert src is not None and faces is not None  # ICT's example set keeps its meshes
         deltas = (src[1:] - src[0]).reshape(len(src) - 1, -1)
         frames = src[0].reshape(-1) + activations[indices, 1:] @ deltas
-        return frames.reshape(len(indices), -1, 3), examples.source_faces
+        return frames.reshape(len(indices), -1, 3), faces
 
     name = "ict" if args.identity is None else f"ict ({args.identity})"
     return _Data(name, examples, animation, truth, source_frames)
 
 
-def _take(args) -> _Data:
+def _take(args: argparse.Namespace) -> _Data:
     from facecast.rig.evaluation.takes import (
         ARKIT_TARGET_IDENTITY,
         arkit_example_set,
@@ -171,7 +188,7 @@ def _take(args) -> _Data:
                  experiment.truth)  # fmt: skip
 
 
-def _estimated_noise(args, data: _Data) -> tuple[float, tuple[int, int]]:
+def _estimated_noise(args: argparse.Namespace, data: _Data) -> tuple[float, tuple[int, int]]:
     """Sigma from the stillest half second of the input the rigs see (noisy if --noise)."""
     import numpy as np
 
@@ -186,10 +203,9 @@ def _estimated_noise(args, data: _Data) -> tuple[float, tuple[int, int]]:
     return estimate_noise(points[start:stop]), (start, stop)
 
 
-def _files(args) -> _Data:
+def _files(args: argparse.Namespace) -> _Data:
     import numpy as np
 
-    from facecast.cli.commands.fit import load_examples
     from facecast.rig.sources.loading import load_source_animation
 
     if args.examples is None or args.source is None:
@@ -216,7 +232,7 @@ def _files(args) -> _Data:
     return _Data(Path(args.examples).name, examples, animation, truth)
 
 
-def _write_plots(folder: Path, data: _Data, report: dict, fps: float) -> list[Path]:
+def _write_plots(folder: Path, data: _Data, report: dict[str, Any], fps: float) -> list[Path]:
 
     import numpy as np
 
@@ -255,7 +271,9 @@ def _write_plots(folder: Path, data: _Data, report: dict, fps: float) -> list[Pa
     return [w for w in written if w is not None]
 
 
-def _smoothing(args, data: _Data, report: dict) -> dict:
+def _smoothing(
+    args: argparse.Namespace, data: _Data, truth: np.ndarray, report: dict[str, Any]
+) -> dict[str, Any]:
     """Jitter of the noisy take cloned raw and through the one-euro filter (a table, printed)."""
     import numpy as np
 
@@ -275,7 +293,7 @@ def _smoothing(args, data: _Data, report: dict) -> dict:
     clean = data.animation.points
     noisy = clean + np.random.default_rng(args.seed).normal(0.0, args.noise, size=clean.shape)
     table = smoothing_report(
-        rig, clean, noisy, data.truth, fps=data.animation.fps, min_cutoff=min_cutoff, beta=beta
+        rig, clean, noisy, truth, fps=data.animation.fps, min_cutoff=min_cutoff, beta=beta
     )
     table["rig"] = label
     print(
@@ -293,7 +311,9 @@ def _smoothing(args, data: _Data, report: dict) -> dict:
     return table
 
 
-def _temporal(args, data: _Data, plots: Path | None) -> dict:
+def _temporal(
+    args: argparse.Namespace, data: _Data, truth: np.ndarray, plots: Path | None
+) -> dict[str, Any]:
     """Jitter against lag of filtered noisy input, cloned by the default bounded noise rig."""
     import numpy as np
 
@@ -306,7 +326,7 @@ def _temporal(args, data: _Data, plots: Path | None) -> dict:
         rig = fit(data.examples, noise=args.noise, clamp="nonneg")
     clean = data.animation.points
     noisy = clean + np.random.default_rng(args.seed).normal(0.0, args.noise, size=clean.shape)
-    table = temporal_tradeoff(rig, noisy, data.truth, fps=data.animation.fps, noise=args.noise)
+    table = temporal_tradeoff(rig, noisy, truth, fps=data.animation.fps, noise=args.noise)
     table["best_under_one_frame"] = best_under_one_frame(table)
     print(
         f"\ntemporal filters on the noisy points (noise {args.noise:g}), rig clamp=nonneg: "
@@ -403,12 +423,12 @@ def run(args: argparse.Namespace) -> int:
         print()
         print(format_timing_table(report["timing"], num_examples=report["num_examples"]))
     if args.noise > 0 and data.truth is not None:
-        report["smoothing"] = _smoothing(args, data, report)
+        report["smoothing"] = _smoothing(args, data, data.truth, report)
     if args.temporal:
         if data.truth is None:
             raise CommandError("--temporal needs a known truth (--demo, --ict, --take, --truth)")
         plots = None if args.plots is None else Path(args.plots)
-        report["temporal"] = _temporal(args, data, plots)
+        report["temporal"] = _temporal(args, data, data.truth, plots)
     if args.plots is not None:
         for path in _write_plots(Path(args.plots), data, report, data.animation.fps):
             print(f"wrote {path}", file=sys.stderr)

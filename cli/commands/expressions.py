@@ -8,11 +8,15 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from facecast.cli.errors import CommandError
 
+if TYPE_CHECKING:
+    from facecast.cli.commands import Subparsers
 
-def register(subparsers) -> None:
+
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "expressions",
         help="make a neutral-only character's key-expressions by deformation transfer",
@@ -21,7 +25,7 @@ def register(subparsers) -> None:
             "Popovic 2004) and write an example-set folder ready for `facecast fit`: "
             "facecast.toml, source/<name>.csv (ICT's 20 feature points) and target/<name>.obj "
             "(the target's own topology). A target sharing ICT's face topology needs no "
-            "markers; any other needs --markers. Needs ICT-FaceKit ($FACECAST_ICT or "
+            "markers; any other needs --markers: a file, or auto for a fit without them. Needs ICT-FaceKit ($FACECAST_ICT or "
             "../shared/data/ict-facekit). A target example already in the folder is kept "
             "unless --overwrite; nothing is written on failure."
         ),
@@ -36,9 +40,11 @@ def register(subparsers) -> None:
     )
     parser.add_argument(
         "--markers",
-        metavar="FILE",
+        metavar="FILE|auto",
         help="correspondence markers: 'source_vertex target_vertex' a line (0-based; source "
-        "vertices of ICT's face area, [0, 9409)); at least 3, about 20 spread over the face",
+        "vertices of ICT's face area, [0, 9409)); at least 3, about 20 spread over the face. "
+        "'auto': none, ICT's face fitted to the target by closest points alone (the target "
+        "facing +z with y up, as ICT does; landmarks within about 1.5 mm on ICT's identities)",
     )
     markers = parser.add_mutually_exclusive_group()
     markers.add_argument(
@@ -54,6 +60,7 @@ def register(subparsers) -> None:
         action="store_true",
         help="hold the markers exactly in every step, as the paper does",
     )
+    add_solve_arguments(parser)
     parser.add_argument(
         "--names", nargs="+", metavar="NAME", help="ARKit names to make (default: all 51)"
     )
@@ -68,6 +75,21 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
+def add_solve_arguments(parser: argparse.ArgumentParser) -> None:
+    """--still F | --paper-solve (here and in ``facecast bench transfer``)."""
+    solve = parser.add_mutually_exclusive_group()
+    solve.add_argument(
+        "--still", type=float, default=0.01, metavar="F",
+        help="hold the target points whose source point moves less than F x the expression's "
+        "largest motion (default 0.01), so what an expression leaves still does not drift",
+    )  # fmt: skip
+    solve.add_argument(
+        "--paper-solve", action="store_true",
+        help="the paper's solve instead: one factorisation for every expression, nothing held "
+        "but one vertex per piece (faster; the still parts drift)",
+    )  # fmt: skip
+
+
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -75,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
     from facecast.rig.transfer import (
         CorrespondenceWeights,
         check_mesh,
+        check_still,
         ict_source_expressions,
         read_markers,
         read_target_mesh,
@@ -86,7 +109,10 @@ def run(args: argparse.Namespace) -> int:
     if not Path(args.target).is_file():
         raise CommandError(f"{args.target}: no such file (the target neutral mesh)")
     vertices, faces = check_mesh(*read_target_mesh(args.target), what=str(args.target))
-    markers = read_markers(args.markers) if args.markers else None
+    markers = args.markers
+    if markers is not None and markers != "auto":
+        markers = read_markers(markers)
+    still = check_still(None if args.paper_solve else args.still)
     archive = None
     if args.ict is None or Path(args.ict).exists():
         archive = locate_ict(args.ict) if args.ict else locate_ict()
@@ -104,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
             weights=CorrespondenceWeights(
                 marker_weight=None if args.hold_markers else args.marker_weight
             ),
+            still=still,
         )  # fmt: skip
     written = write_expression_set(
         args.output,
@@ -115,20 +142,28 @@ def run(args: argparse.Namespace) -> int:
         ),
     )
     seconds = generated.seconds
-    how = (
-        "same topology (identity)"
-        if generated.correspondence.method == "identity"
-        else f"markers + closest points, residual {generated.correspondence.residual:.3g} edges"
-    )
+    how = {
+        "identity": "same topology (identity)",
+        "markers": "markers + closest points",
+        "automatic": "automatic (closest points, no markers)",
+    }[generated.correspondence.method]
+    if generated.correspondence.method != "identity":
+        how += f", residual {generated.correspondence.residual:.3g} edges"
     print(
         f"correspondence: {how}; {len(generated.correspondence.pairs)} triangle pairs, "
         f"{int(generated.correspondence.vertex_map.getnnz(axis=1).astype(bool).sum())} of "
         f"{vertices.shape[0]} target vertices reached"
     )
+    once = generated.factorizations == 1
     print(
-        f"cost: correspondence {seconds['correspondence']:.2f} s, factor {seconds['factor']:.2f} s "
-        f"({generated.unknowns} unknowns, once), solve {seconds['solve']:.2f} s "
-        f"({1e3 * seconds['solve'] / max(1, count):.0f} ms per expression)"
+        f"cost: correspondence {seconds['correspondence']:.2f} s, "
+        + (
+            f"factor {seconds['factor']:.2f} s ({generated.unknowns} unknowns, once), "
+            if once
+            else f"set-up {seconds['factor']:.2f} s ({generated.unknowns} unknowns), "
+        )
+        + f"solve {seconds['solve']:.2f} s ({1e3 * seconds['solve'] / max(1, count):.0f} ms "
+        + ("per expression)" if once else "per expression, each factoring what it moves)")
     )
     kept = f", kept {len(written.kept)} already there: {', '.join(written.kept)}"
     print(

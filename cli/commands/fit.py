@@ -9,16 +9,25 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from facecast.cli.errors import CommandError
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from facecast.cli.commands import Subparsers
+    from facecast.rig.examples import ExampleSet
+    from facecast.rig.io.character_model import PairingReport
 
 # The engine's kernel names (facecast.rig.radial.KERNELS), spelled out so --help does
 # not import numpy; a test keeps the two equal.
 KERNEL_CHOICES = ("bspline", "gaussian", "thin_plate", "linear")
 
 
-def register(subparsers) -> None:
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "fit",
         help="fit a rig from an example set",
@@ -97,8 +106,7 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def _stable_points(text: str | None):
-
+def _stable_points(text: str | None) -> list[int] | None:
     if text is None:
         return None
     try:
@@ -112,7 +120,7 @@ def _stable_points(text: str | None):
     return values
 
 
-def load_character_examples(path: Path):
+def load_character_examples(path: Path) -> tuple[ExampleSet, PairingReport]:
     """A character file's example set with the generic ARKit set, and its pairing report."""
     from facecast.rig.io.character import load_character
     from facecast.rig.io.character_examples import character_example_set
@@ -121,7 +129,7 @@ def load_character_examples(path: Path):
     return character_example_set(character, label=path.name)
 
 
-def load_examples(spec: str, source: str | None = None):
+def load_examples(spec: str, source: str | None = None) -> ExampleSet:
     """The example set named on the command line: a path, or ``demo``."""
 
     if spec == "demo":
@@ -145,7 +153,7 @@ def _spectrum(eigenvalues: list[float], kept: int) -> str:
     return f"{', '.join(shown)}{more}  (relative to {top:.4g}; kept {kept})"
 
 
-def format_report(report: dict, names) -> str:
+def format_report(report: dict[str, Any], names: Sequence[str]) -> str:
     lines = [
         f"examples M = {report['num_examples']}, feature points K = {report['num_points']}, "
         f"target vertices V = {report['num_vertices']}",
@@ -173,7 +181,7 @@ def format_report(report: dict, names) -> str:
     return "\n".join(lines)
 
 
-def _hyperplane_line(report: dict) -> list[str]:
+def _hyperplane_line(report: dict[str, Any]) -> list[str]:
     # Rig files fitted before the hyperplanes' conditioning was reported lack it.
     if report.get("hyperplane_condition_number") is None:
         return []
@@ -182,7 +190,7 @@ def _hyperplane_line(report: dict) -> list[str]:
     ]
 
 
-def _tolerance_line(report: dict) -> list[str]:
+def _tolerance_line(report: dict[str, Any]) -> list[str]:
     from facecast.rig.fit import NOISE_WEIGHT_CHANGE
 
     tolerance = report.get("noise_tolerance")
@@ -194,7 +202,7 @@ def _tolerance_line(report: dict) -> list[str]:
     ]
 
 
-def _pose_lines(report: dict) -> list[str]:
+def _pose_lines(report: dict[str, Any]) -> list[str]:
     from facecast.rig.pose import POSE_REFINE_MAX_CONDITION
 
     # Rig files fitted before head-pose refinement was reported lack the keys.
@@ -223,7 +231,7 @@ def _pose_lines(report: dict) -> list[str]:
     return [line, refine]
 
 
-def _bounds_line(report: dict) -> list[str]:
+def _bounds_line(report: dict[str, Any]) -> list[str]:
     if report.get("clamp") is None:
         return []
     return [
@@ -233,7 +241,6 @@ def _bounds_line(report: dict) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    import warnings
 
     from facecast.rig import fit
     from facecast.rig.io.character_examples import character_fit_options

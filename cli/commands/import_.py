@@ -25,8 +25,20 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from facecast.cli.errors import CommandError
+
+if TYPE_CHECKING:  # numpy and the rig load when the command runs, not for --help
+    from collections.abc import Sequence
+
+    import numpy as np
+
+    from facecast.cli.commands import Subparsers
+    from facecast.rig.examples import ExampleSet
+
+    #: (names, neutral (V, 3), shapes (N, V, 3), faces (F, 3), landmarks68 (68,))
+    IctMeshes = tuple[list[str], np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 #: ICT-FaceKit vertex of each Multi-PIE 68 landmark (the topology of the public
 #: repository's FaceXModel meshes; the same list as ``landmarks68`` in ict_facekit.npz).
@@ -42,7 +54,7 @@ ICT_VERTEX_COUNT = 26_719
 ICT_FACE_VERTEX_COUNT = 9_409
 
 
-def register(subparsers) -> None:
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "import",
         help="convert third-party face data into a facecast example set",
@@ -79,7 +91,7 @@ def register(subparsers) -> None:
     ict.set_defaults(func=run)
 
 
-def _landmarks(text: str | None):
+def _landmarks(text: str | None) -> tuple[int, ...]:
     from facecast.rig.sources.ict import DEFAULT_LANDMARKS
 
     if text is None:
@@ -93,7 +105,7 @@ def _landmarks(text: str | None):
     return chosen
 
 
-def read_ict(path: Path):
+def read_ict(path: Path) -> IctMeshes:
     """(names, neutral (V,3), shapes (N,V,3), faces, landmarks68) from a checkout or archive."""
     import numpy as np
 
@@ -134,7 +146,7 @@ def read_ict(path: Path):
     return names, neutral, shapes, faces, np.asarray(ICT_LANDMARKS68)
 
 
-def _read_archive(path: Path):
+def _read_archive(path: Path) -> IctMeshes:
     import numpy as np
 
     from facecast.rig.errors import ExampleSetError
@@ -157,7 +169,9 @@ def _read_archive(path: Path):
     )
 
 
-def arkit_example_set(path: Path, landmarks, target: str):
+def arkit_example_set(
+    path: Path, landmarks: Sequence[int], target: str
+) -> tuple[ExampleSet, np.ndarray]:
     """The ARKit-named ``ExampleSet`` of an ICT-FaceKit source, and the vertex indices used."""
     import numpy as np
 
@@ -173,6 +187,7 @@ def arkit_example_set(path: Path, landmarks, target: str):
     except ExampleSetError as exc:
         raise ExampleSetError(f"{path}: {exc}") from None
     faces = np.asarray(faces, dtype=np.int64)
+    stable = stable_positions(landmarks)
     if target == "face":
         count = min(ICT_FACE_VERTEX_COUNT, vertices.shape[1])
         faces = faces[(faces < count).all(axis=1)]
@@ -184,12 +199,12 @@ def arkit_example_set(path: Path, landmarks, target: str):
         source_points=vertices[:, feature],
         target_vertices=target_vertices,
         target_faces=faces,
-        stable_points=stable_positions(landmarks),
+        stable_points=None if stable is None else np.asarray(stable, dtype=np.int64),
     )
     return example_set, feature
 
 
-def write_example_folder(example_set, folder: Path, comment: str) -> None:
+def write_example_folder(example_set: ExampleSet, folder: Path, comment: str) -> None:
     """``facecast.toml`` + ``source/*.npy`` points + ``target/*.obj`` meshes."""
     import numpy as np
 

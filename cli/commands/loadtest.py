@@ -7,12 +7,19 @@ clients, rate and time, and only ever connects to the URL given.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+from typing import TYPE_CHECKING, Any
 
 from facecast.cli.errors import CommandError
 
+if TYPE_CHECKING:  # numpy loads when the command runs, not for --help
+    import numpy as np
 
-def register(subparsers) -> None:
+    from facecast.cli.commands import Subparsers
+
+
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "loadtest",
         help="measure a server under N concurrent streaming clients",
@@ -37,7 +44,7 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def _neutral(url: str, rig: str, token: str | None):
+def _neutral(url: str, rig: str, token: str | None) -> np.ndarray:
     """The rig's source neutral (K, 3) if the rig file can be fetched, else zeros (K, 3)."""
     import numpy as np
 
@@ -54,7 +61,7 @@ def _neutral(url: str, rig: str, token: str | None):
         return np.zeros((int(summary["num_points"]), 3))
 
 
-def format_report(report: dict) -> str:
+def format_report(report: dict[str, Any]) -> str:
     """The human-readable summary of ``LoadReport.to_dict()``."""
     lat = report["latency_ms"]
 
@@ -81,7 +88,6 @@ def format_report(report: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     import asyncio
-    import json
 
     from facecast.cli.loadgen import (
         MAX_CLIENTS,
@@ -102,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:  # a malformed URL
         raise CommandError(str(exc)) from None
 
-    def progress(p: dict) -> None:
+    def progress(p: dict[str, Any]) -> None:
         if not args.quiet:
             print(
                 f"  {p['elapsed']:5.1f} s  sent {p['sent']}  received {p['received']}  "

@@ -11,14 +11,18 @@ import argparse
 import sys
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from facecast.cli.errors import CommandError, TrackerUnavailable
+
+if TYPE_CHECKING:
+    from facecast.cli.commands import Subparsers
 
 #: Frames of the held neutral face whose robust average starts a calibrated performance.
 NEUTRAL_FRAMES = 15
 
 
-def register(subparsers) -> None:
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "perform",
         help="track your face with a webcam and publish it to a channel",
@@ -167,6 +171,7 @@ async def perform(args: argparse.Namespace) -> PerformStats:
                     continue  # no frame: the channel's face_lost path eases to the neutral
                 stats.found += 1
                 points = tracked.points
+                assert points is not None  # found
                 if calibrate and len(neutral) < args.neutral_frames:
                     neutral.append(points)
                     if len(neutral) < args.neutral_frames:

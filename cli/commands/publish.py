@@ -7,19 +7,23 @@ writes nothing and clones nothing: viewers (``facecast watch``, the web viewer) 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
+import time
 from typing import TYPE_CHECKING
 
-from facecast.cli.commands._animation import add_source_arguments
+from facecast.cli.commands._animation import add_source_arguments, load_animation
 from facecast.cli.errors import CommandError
 
 if TYPE_CHECKING:  # numpy loads when the command runs, not for --help
     import numpy as np
 
+    from facecast.cli.commands import Subparsers
     from facecast.client.channel import PublisherStats
+    from facecast.rig.sources.animation import SourceAnimation
 
 
-def register(subparsers) -> None:
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "publish",
         help="stream an animation to a broadcast channel (one performer, many viewers)",
@@ -64,12 +68,10 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def _animation(args: argparse.Namespace, num_points: int):
+def _animation(args: argparse.Namespace, num_points: int) -> SourceAnimation:
     """The source animation, checked against the channel rig's K."""
-    from facecast.cli.commands._animation import load_animation
 
-    def feature_indices():
-        import contextlib
+    def feature_indices() -> np.ndarray | None:
 
         from facecast.client.fetch import ServerRequestError, fetch_rig
 
@@ -89,7 +91,7 @@ def _animation(args: argparse.Namespace, num_points: int):
     )
 
 
-def _schedule(animation) -> tuple[np.ndarray, np.ndarray | None, float]:
+def _schedule(animation: SourceAnimation) -> tuple[np.ndarray, np.ndarray | None, float]:
     """When each frame plays and what ``ts`` it carries, for one pass over ``animation``.
 
     Returns
@@ -115,7 +117,6 @@ async def publish(args: argparse.Namespace) -> tuple[int, PublisherStats, bool, 
     within ``--drain-timeout``, frames neither a result nor a counted drop or refusal).
     """
     import asyncio
-    import time
 
     from facecast.client.channel import FramePublisher, channel_url
     from facecast.protocol import Hello

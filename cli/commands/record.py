@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from facecast.cli.errors import CommandError
@@ -17,13 +18,15 @@ from facecast.cli.errors import CommandError
 if TYPE_CHECKING:  # numpy loads when the command runs, not for --help
     import numpy as np
 
+    from facecast.cli.commands import Subparsers
+
 #: Most frames one take holds (1 hour at 60 fps): bounds the recorder's memory.
 MAX_FRAMES = 216_000
 #: After the publisher leaves, results still in flight arrive within this long.
 _LINGER = 0.5
 
 
-def register(subparsers) -> None:
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "record",
         help="save a broadcast channel's performance (points and timestamps) as a take",
@@ -102,7 +105,7 @@ class Take:
         return {
             "points": np.stack(self.points),
             "timestamps": stamps,
-            "fps": np.float64(fps),
+            "fps": np.asarray(fps, dtype=np.float64),
             "seq": np.asarray(self.seq, dtype=np.int64),
             "rig": np.asarray(self.rig),
         }
@@ -220,7 +223,6 @@ async def record(args: argparse.Namespace, take: Take) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import asyncio
-    from pathlib import Path
 
     import numpy as np
 
@@ -250,7 +252,7 @@ def run(args: argparse.Namespace) -> int:
             "is a publisher live?"
         )
     arrays = take.arrays()
-    np.savez(out, **arrays)
+    np.savez(out, allow_pickle=False, **arrays)  # no record is an object array
     if not args.quiet:
         seq = arrays["seq"]
         print(

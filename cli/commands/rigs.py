@@ -14,15 +14,19 @@ import sys
 import urllib.parse
 import zipfile
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from facecast.cli.errors import CommandError
+
+if TYPE_CHECKING:
+    from facecast.cli.commands import Subparsers
 
 ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz")
 #: A character file: sent to PUT /v1/characters/{id} (a .gltf zipped with its files).
 CHARACTER_SUFFIXES = (".glb", ".vrm", ".gltf")
 
 
-def register(subparsers) -> None:
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "rigs",
         help="put, list, show, get and remove rigs on a server",
@@ -86,7 +90,7 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def _print_performer_fit(summary: dict) -> None:
+def _print_performer_fit(summary: dict[str, Any]) -> None:
     print(
         f"fitted {summary['id']}: M={summary['num_examples']} K={summary['num_points']} "
         f"(skipped: {', '.join(summary['skipped']) or 'none'})"
@@ -145,7 +149,7 @@ def _is_character(path: Path) -> bool:
         return fh.read(4) == b"glTF"
 
 
-def _print_character_fit(name: str, summary: dict) -> None:
+def _print_character_fit(name: str, summary: dict[str, Any]) -> None:
     character = summary.get("character") or {}
     print(
         f"fitted {name} from a {character.get('format', 'glTF')} character: "
@@ -166,7 +170,7 @@ def run(args: argparse.Namespace) -> int:
     token = args.token or os.environ.get("FACECAST_TOKEN")
     headers = {"Authorization": f"Bearer {token}"} if token else {}
 
-    def call(method: str, path: str, **kwargs) -> httpx.Response:
+    def call(method: str, path: str, **kwargs: Any) -> httpx.Response:
         try:
             with httpx.Client(base_url=base, headers=headers, timeout=600) as http:
                 response = http.request(method, path, **kwargs)

@@ -9,11 +9,18 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+from typing import TYPE_CHECKING
 
 from facecast.cli.errors import CommandError
 
+if TYPE_CHECKING:  # the server loads when the command runs, not for --help
+    from collections.abc import Mapping
 
-def register(subparsers) -> None:
+    from facecast.cli.commands import Subparsers
+    from facecast.server.settings import Settings
+
+
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "serve",
         help="run the server (REST rig API + WebSocket streaming)",
@@ -58,7 +65,7 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def settings_from_args(args: argparse.Namespace, env=None):
+def settings_from_args(args: argparse.Namespace, env: Mapping[str, str] | None = None) -> Settings:
     """The ``Settings`` the flags, the config file and the environment describe."""
     from facecast.server.settings import Settings, parse_tokens
 

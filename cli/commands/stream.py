@@ -9,15 +9,22 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from facecast.cli.commands._animation import add_source_arguments
+from facecast.cli.commands._animation import add_source_arguments, load_animation, write_results
 from facecast.cli.errors import CommandError
+
+if TYPE_CHECKING:  # the client library loads when the command runs, not for --help
+    from typing import TextIO
+
+    from facecast.cli.commands import Subparsers
+    from facecast.client.streaming import Progress, StreamOutcome
 
 #: Largest (frames x vertices) result kept in memory for --output vertices, bytes.
 MAX_VERTEX_BYTES = 2 << 30
 
 
-def register(subparsers) -> None:
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "stream",
         help="stream an animation through a server and write the cloned result",
@@ -71,13 +78,13 @@ def register(subparsers) -> None:
 class _ProgressLine:
     """One self-overwriting status line on a terminal; a line a second otherwise."""
 
-    def __init__(self, stream, quiet: bool) -> None:
+    def __init__(self, stream: TextIO, quiet: bool) -> None:
         self.stream = stream
         self.quiet = quiet
         self.tty = stream.isatty()
         self.last = -1.0
 
-    def __call__(self, p) -> None:
+    def __call__(self, p: Progress) -> None:
         if self.quiet:
             return
         if not self.tty and p.elapsed - self.last < 1.0 and p.done < p.total:
@@ -103,7 +110,6 @@ class _ProgressLine:
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
-    from facecast.cli.commands._animation import load_animation, write_results
     from facecast.client.connection import connect
     from facecast.client.fetch import fetch_rig
     from facecast.client.streaming import stream_frames
@@ -134,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
             )
     line = _ProgressLine(sys.stderr, args.quiet)
 
-    async def main():
+    async def main() -> StreamOutcome:
         async with connect(
             args.url,
             args.rig,

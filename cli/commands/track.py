@@ -9,14 +9,18 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from facecast.cli.errors import CommandError
+
+if TYPE_CHECKING:
+    from facecast.cli.commands import Subparsers
 
 #: Exit status when --require-face is given and no frame has a face.
 NO_FACE_EXIT = 3
 
 
-def register(subparsers) -> None:
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "track",
         help="track the face in every frame of a video, as /perform does",

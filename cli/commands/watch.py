@@ -7,12 +7,19 @@ like ``facecast clone`` (.npz with weights/vertices plus seq and t); no cloning 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
+from facecast.cli.commands._animation import write_results
 from facecast.cli.errors import CommandError
 
+if TYPE_CHECKING:
+    from facecast.cli.commands import Subparsers
 
-def register(subparsers) -> None:
+
+def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "watch",
         help="record a broadcast channel as one character (a viewer's results)",
@@ -36,17 +43,16 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-async def record(args: argparse.Namespace) -> dict:
+async def record(args: argparse.Namespace) -> dict[str, Any]:
     """Results as lists (values, seq, t) plus the ``ready``; stops as documented."""
     import asyncio
-    import contextlib
 
     from facecast.client.channel import channel_url, watch_channel
     from facecast.protocol import ChannelIdle, ChannelLive, Ready, Result
 
     query = {"rig": args.rig, "output": args.output, "dtype": args.dtype}
     url = channel_url(args.url, args.channel, "watch", query)
-    got: dict = {"ready": None, "values": [], "seq": [], "t": []}
+    got: dict[str, Any] = {"ready": None, "values": [], "seq": [], "t": []}
     was_live = False
 
     async def consume() -> None:
@@ -77,7 +83,6 @@ async def record(args: argparse.Namespace) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     import asyncio
-    from pathlib import Path
 
     import numpy as np
 
@@ -104,12 +109,11 @@ def run(args: argparse.Namespace) -> int:
     steps = steps[steps > 0]
     fps = float(1.0 / np.median(steps)) if steps.size else 60.0
     if out.suffix.lower() == ".npz":
-        arrays = {"names": np.asarray(ready.names, dtype=str), "fps": np.float64(fps),
-                  "seq": seq, "t": t}  # fmt: skip
+        arrays = {"names": np.asarray(ready.names, dtype=str),
+                  "fps": np.asarray(fps, dtype=np.float64), "seq": seq, "t": t}  # fmt: skip
         arrays["weights" if args.output == "weights" else "vertices"] = values
-        np.savez(out, **arrays)
+        np.savez(out, allow_pickle=False, **arrays)  # no record is an object array
     else:
-        from facecast.cli.commands._animation import write_results
         from facecast.client.fetch import fetch_rig
 
         rig = fetch_rig(args.url, args.rig, token=args.token)

@@ -1,9 +1,10 @@
 """The rig file's layout and writing: records, meta, content checksum, the atomic save.
 
 A rig file is one ``.npz`` (no pickles) with a format version and a content checksum.
-This module reads nothing and imports no engine class (a ``Rig`` is read by attribute),
-so ``Rig.save``, ``Rig.to_bytes`` and ``Rig.checksum`` use it without an import cycle;
-reading a file back into a ``Rig`` is ``facecast.rig.io.rigfile``.
+This module reads nothing and imports no engine class: a ``Rig`` is read by attribute,
+through the ``SavedRig`` protocol below, so ``Rig.save``, ``Rig.to_bytes`` and
+``Rig.checksum`` use it without an import cycle, type-only imports included; reading a file
+back into a ``Rig`` is ``facecast.rig.io.rigfile``.
 """
 
 from __future__ import annotations
@@ -13,17 +14,16 @@ import io
 import json
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from ..rig import Rig, WeightModel
 
 __all__ = [
     "DEFAULT_MAX_BYTES",
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "SavedModel",
+    "SavedRig",
     "content_checksum",
     "rig_to_bytes",
     "save_rig",
@@ -67,12 +67,72 @@ OPTIONAL_RECORDS = (
 )
 
 
-def _model_arrays(model: WeightModel, prefix: str) -> dict[str, np.ndarray]:
+class SavedModel(Protocol):
+    """What a rig file holds of one weight model (``facecast.rig.WeightModel`` is one)."""
+
+    @property
+    def kernel(self) -> str: ...
+    @property
+    def clamp(self) -> str | None: ...
+    @property
+    def ridge(self) -> float: ...
+    @property
+    def sparsity_penalty(self) -> float: ...
+    @property
+    def source_neutral(self) -> np.ndarray: ...
+    @property
+    def mean(self) -> np.ndarray: ...
+    @property
+    def features(self) -> np.ndarray: ...
+    @property
+    def params(self) -> np.ndarray: ...
+    @property
+    def linear_coeffs(self) -> np.ndarray: ...
+    @property
+    def radial_coeffs(self) -> np.ndarray: ...
+    @property
+    def alpha(self) -> np.ndarray: ...
+    @property
+    def input_matrix(self) -> np.ndarray | None: ...
+    @property
+    def input_offset(self) -> np.ndarray | None: ...
+
+
+class SavedRig(Protocol):
+    """What a rig file holds of a rig (``facecast.rig.Rig`` is one), read by attribute."""
+
+    @property
+    def names(self) -> tuple[str, ...]: ...
+    @property
+    def model(self) -> SavedModel: ...
+    @property
+    def models(self) -> tuple[SavedModel, ...]: ...
+    @property
+    def blend_basis(self) -> np.ndarray: ...
+    @property
+    def target_faces(self) -> np.ndarray: ...
+    @property
+    def feature_indices(self) -> np.ndarray | None: ...
+    @property
+    def stable_points(self) -> np.ndarray | None: ...
+    @property
+    def source_preview(self) -> tuple[np.ndarray, np.ndarray] | None: ...
+    @property
+    def calibration(self) -> np.ndarray | None: ...
+    @property
+    def align_scale(self) -> bool: ...
+    @property
+    def fit_report(self) -> dict[str, Any]: ...
+    @property
+    def regions(self) -> tuple[tuple[str, np.ndarray], ...] | None: ...
+
+
+def _model_arrays(model: SavedModel, prefix: str) -> dict[str, np.ndarray]:
     values = {key: getattr(model, key) for key in MODEL_RECORDS}
     return {prefix + k: v for k, v in values.items() if v is not None}
 
 
-def _arrays(rig: Rig) -> dict[str, np.ndarray]:
+def _arrays(rig: SavedRig) -> dict[str, np.ndarray]:
     model = rig.model
     arrays = {
         "source_neutral": model.source_neutral,
@@ -101,7 +161,7 @@ def _arrays(rig: Rig) -> dict[str, np.ndarray]:
     return {k: np.ascontiguousarray(v) for k, v in arrays.items()}
 
 
-def _meta(rig: Rig) -> dict[str, Any]:
+def _meta(rig: SavedRig) -> dict[str, Any]:
     meta = {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
@@ -133,11 +193,11 @@ def checksum_of(meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
-def content_checksum(rig: Rig) -> str:
+def content_checksum(rig: SavedRig) -> str:
     return checksum_of(_meta(rig), _arrays(rig))
 
 
-def rig_to_bytes(rig: Rig) -> bytes:
+def rig_to_bytes(rig: SavedRig) -> bytes:
     meta = _meta(rig)
     arrays = _arrays(rig)
     meta_with_sum = dict(meta, checksum=checksum_of(meta, arrays))
@@ -153,7 +213,7 @@ def rig_to_bytes(rig: Rig) -> bytes:
     return buffer.getvalue()
 
 
-def save_rig(rig: Rig, path: str | os.PathLike[str]) -> None:
+def save_rig(rig: SavedRig, path: str | os.PathLike[str]) -> None:
     """Write atomically: a temporary file beside ``path``, fsynced, then renamed over it."""
     path = Path(path)
     data = rig_to_bytes(rig)

@@ -22,10 +22,11 @@ from .expressions import (
 )
 from .folder import WrittenSet, write_expression_set
 from .mesh import check_mesh
-from .solve import DeformationTransfer
+from .solve import STILL, DeformationTransfer, check_still
 
 __all__ = [
     "MIN_MARKERS",
+    "STILL",
     "Correspondence",
     "CorrespondenceWeights",
     "DeformationTransfer",
@@ -34,6 +35,7 @@ __all__ = [
     "WrittenSet",
     "check_markers",
     "check_mesh",
+    "check_still",
     "fit_correspondence",
     "ict_source_expressions",
     "identity_correspondence",

@@ -20,6 +20,7 @@ from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
 from ..errors import CorrespondenceError, MarkerError
+from .automatic import place_by_closest_points, similarity
 from .mesh import (
     check_mesh,
     closest_points,
@@ -112,7 +113,8 @@ class Correspondence:
         Median distance of the fitted source's vertices to the target surface, in target
         edge lengths (0 for the identity).
     method : str
-        "identity" (same topology) or "markers" (markers, then closest points).
+        "identity" (same topology), "markers" (markers, then closest points) or
+        "automatic" (a similarity fitted to closest points, then closest points).
     rotation : (3, 3) float64
         The rotation that turns the source's axes into the target's (the markers'
         similarity; the identity for ``identity_correspondence``).
@@ -260,18 +262,6 @@ def _triangle_keys(faces: np.ndarray, count: int) -> np.ndarray:
     return keys
 
 
-def _similarity(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Scale s, rotation R, translation t minimising |s R source + t - target| (Umeyama)."""
-    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
-    a, b = source - mu_s, target - mu_t
-    u, sigma, vt = np.linalg.svd(b.T @ a)
-    d = np.sign(np.linalg.det(u @ vt))
-    flip = np.array([1.0, 1.0, d])
-    rotation = (u * flip) @ vt
-    scale = float((sigma * flip).sum() / (a**2).sum())
-    return scale, rotation, mu_t - scale * rotation @ mu_s
-
-
 def _adjacent_triangles(faces: np.ndarray) -> np.ndarray:
     """(E, 2) pairs of triangles sharing an edge."""
     edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
@@ -288,7 +278,7 @@ def fit_correspondence(
     source_faces: npt.ArrayLike,
     target_vertices: npt.ArrayLike,
     target_faces: npt.ArrayLike,
-    markers: npt.ArrayLike,
+    markers: npt.ArrayLike | None,
     *,
     weights: CorrespondenceWeights | None = None,
     threshold: float | None = None,
@@ -299,8 +289,11 @@ def fit_correspondence(
     ----------
     source_vertices, source_faces : (Vs, 3), (Fs, 3)
     target_vertices, target_faces : (Vt, 3), (Ft, 3)
-    markers : (N, 2) int
-        (source vertex, target vertex) pairs, N >= ``MIN_MARKERS``.
+    markers : (N, 2) int or None
+        (source vertex, target vertex) pairs, N >= ``MIN_MARKERS``. None: automatic, the
+        source placed by a similarity fitted to closest points
+        (``automatic.place_by_closest_points``; the faces must look the same way), then
+        the closest-point steps without markers (method "automatic").
     weights : CorrespondenceWeights, optional
         Default: the paper's (w_S 1, w_I 0.001, w_C 0 then 1 ... 5000 in 4 steps), with the
         markers pulled (0.01 × w_C) rather than held after the first step.
@@ -319,7 +312,10 @@ def fit_correspondence(
     weights = weights or CorrespondenceWeights()
     src, sfaces = check_mesh(source_vertices, source_faces, what="source mesh")
     tgt, tfaces = check_mesh(target_vertices, target_faces)
-    pairs = check_markers(markers, src.shape[0], tgt.shape[0], source=src)
+    if markers is None:
+        pairs = np.zeros((0, 2), dtype=np.int64)
+    else:
+        pairs = check_markers(markers, src.shape[0], tgt.shape[0], source=src)
     # Work with the target scaled to a unit diagonal (of its box along its principal axes)
     # and the source placed on it by the markers' similarity: the weights are then free of
     # the meshes' units and pose.
@@ -327,7 +323,10 @@ def fit_correspondence(
     axes = np.linalg.svd(centred, full_matrices=False)[2]
     unit = float(np.linalg.norm(np.ptp(centred @ axes.T, axis=0)))
     target = centred / unit
-    scale, rotation, shift = _similarity(src[pairs[:, 0]], target[pairs[:, 1]])
+    if markers is None:
+        scale, rotation, shift = place_by_closest_points(src, sfaces, target, tfaces)
+    else:
+        scale, rotation, shift = similarity(src[pairs[:, 0]], target[pairs[:, 1]])
     placed = scale * src @ rotation.T + shift
     fitted = _fit_closest(placed, sfaces, target, tfaces, pairs, weights)
     target_edge = float(np.median(edge_length(target, tfaces)))
@@ -337,6 +336,15 @@ def fit_correspondence(
     turned = np.einsum("fc,fc->f", face_normals(fitted, sfaces), face_normals(placed, sfaces))
     folded = float(np.mean(turned < 0.0)) if np.isfinite(fitted).all() else 1.0
     if not residual <= _CONVERGED_EDGES or folded > _FOLDED:
+        if markers is None:
+            raise CorrespondenceError(
+                f"the source did not settle on the target without markers: its vertices stay "
+                f"{residual:.3g} target edge lengths from the surface (median; "
+                f"{_CONVERGED_EDGES:g} allowed) and {100 * folded:.1f}% of its triangles "
+                f"turned over ({100 * _FOLDED:g}% allowed). Turn the target to face +z with "
+                "y up, or give markers",
+                code="not_converged",
+            )
         raise CorrespondenceError(
             f"the source did not settle on the target: its vertices stay {residual:.3g} "
             f"target edge lengths from the surface (median; {_CONVERGED_EDGES:g} allowed) "
@@ -359,8 +367,9 @@ def fit_correspondence(
         )
     vertex_map = _vertex_map(fitted, sfaces, target, tfaces, reach)
     restored = fitted * unit + tgt.mean(axis=0)
+    method = "markers" if markers is not None else "automatic"
     return Correspondence(
-        triangle_pairs, vertex_map, restored, residual, "markers", rotation, scale * unit
+        triangle_pairs, vertex_map, restored, residual, method, rotation, scale * unit
     )
 
 
@@ -394,6 +403,8 @@ def _fit_closest(
     current = np.concatenate([placed, placed[faces].mean(axis=1)])  # v4s: any start
     current[fixed] = fixed_values
     for w_closest in weights.schedule():
+        if w_closest == 0 and fixed.size == 0:
+            continue  # no markers: the closest points alone (a source already placed)
         normal = base.copy()
         rhs = base_rhs.copy()
         if w_closest > 0:

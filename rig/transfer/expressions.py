@@ -1,7 +1,7 @@
 """A neutral-only character's key-expressions: ICT-FaceKit's ARKit shapes transferred onto it.
 
 Ties the pieces together: the source expression set (ICT's generic face), the
-correspondence (same topology, or markers then closest points), one factored transfer for
+correspondence (same topology, markers or none, then closest points), one transfer for
 every expression. Builds arrays; writing them as an example-set folder is ``folder``.
 """
 
@@ -29,7 +29,7 @@ from .correspondence import (
     identity_correspondence,
 )
 from .mesh import check_mesh
-from .solve import DeformationTransfer
+from .solve import STILL, DeformationTransfer, check_still
 
 __all__ = [
     "GeneratedExpressions",
@@ -115,6 +115,9 @@ class GeneratedExpressions:
         ``correspondence``, ``factor`` and ``solve`` (all expressions) wall-clock times.
     unknowns : int
         Unknowns of the factored system (target vertices and fourth vertices).
+    factorizations : int
+        Sparse factorisations made: 1 for the paper's solve; with ``still``, one per
+        expression (each of the unknowns its still points leave) and none of the whole.
     """
 
     names: tuple[str, ...]
@@ -125,6 +128,7 @@ class GeneratedExpressions:
     correspondence: Correspondence
     seconds: dict[str, float] = field(default_factory=dict)
     unknowns: int = 0
+    factorizations: int = 1
 
 
 def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -163,9 +167,10 @@ def transfer_expressions(
     target_vertices: npt.ArrayLike,
     target_faces: npt.ArrayLike,
     *,
-    markers: npt.ArrayLike | None = None,
+    markers: npt.ArrayLike | str | None = None,
     names: Sequence[str] | None = None,
     weights: CorrespondenceWeights | None = None,
+    still: float | None = STILL,
     progress: Callable[[int], object] | None = None,
 ) -> GeneratedExpressions:
     """Transfer the source's expressions onto a target neutral (Sumner & Popović 2004).
@@ -176,12 +181,18 @@ def transfer_expressions(
         Usually ``ict_source_expressions``.
     target_vertices, target_faces : (Vt, 3), (Ft, 3)
         The character's neutral, a manifold triangle mesh (quads split).
-    markers : (N, 2) int, optional
+    markers : (N, 2) int or "auto", optional
         (source vertex, target vertex) pairs; not needed when the target shares the
-        source's topology (then the correspondence is the identity).
+        source's topology (then the correspondence is the identity). "auto": none, the
+        source placed by closest points alone (``fit_correspondence`` with None; the
+        target must face +z with y up, as ICT does).
     names : sequence of str, optional
         The expressions to make (default: all of the source's).
     weights : CorrespondenceWeights, optional
+    still : float or None
+        Target points whose source point moves less than this fraction of the
+        expression's largest motion are held there (``DeformationTransfer``'s ``still``;
+        None: the paper's system, factored once for every expression).
     progress : callable, optional
         Called with 1 after each expression.
 
@@ -192,6 +203,12 @@ def transfer_expressions(
     """
     target, faces = check_mesh(target_vertices, target_faces)
     picked = _pick_names(source, names)
+    still = check_still(still)
+    automatic = isinstance(markers, str)
+    if automatic and markers != "auto":
+        raise MarkerError(
+            f"markers: {markers!r} is neither marker pairs nor 'auto'", code="bad_markers"
+        )
     welded, welded_faces, welded_index = weld(target, faces)
     try:
         check_mesh(welded, welded_faces)
@@ -206,13 +223,15 @@ def transfer_expressions(
                 "the target's topology differs from the source's, so the correspondence needs "
                 "markers: a file of 'source_vertex target_vertex' lines (0-based), at least 3, "
                 "about 20 spread over the face (eye and mouth corners, lids, nose tip, brows, "
-                "chin)",
+                "chin); or 'auto' for a fit without markers",
                 code="markers_needed",
             )
-        checked = check_markers(
-            markers, source.vertices.shape[1], target.shape[0], source=source.vertices[0]
-        )
-        marker_pairs = np.stack([checked[:, 0], welded_index[checked[:, 1]]], axis=1)
+        marker_pairs = None
+        if not automatic:
+            checked = check_markers(
+                markers, source.vertices.shape[1], target.shape[0], source=source.vertices[0]
+            )
+            marker_pairs = np.stack([checked[:, 0], welded_index[checked[:, 1]]], axis=1)
         correspondence = fit_correspondence(
             source.vertices[0], source.faces, welded, welded_faces, marker_pairs, weights=weights
         )
@@ -226,6 +245,7 @@ def transfer_expressions(
         vertex_map=correspondence.vertex_map,
         rotation=correspondence.rotation,
         scale=correspondence.scale,
+        still=still,
     )
     factored = time.perf_counter()
     moved = transfer.transfer(source.vertices[picked[1:]], progress=progress)
@@ -246,4 +266,5 @@ def transfer_expressions(
             "solve": solved - factored,
         },
         unknowns=transfer.unknowns,
+        factorizations=transfer.factorizations,
     )

@@ -2,9 +2,10 @@
 
 Sumner & Popović 2004, section 3: the target's deformed vertices are the least-squares fit
 of its triangles' transformations to those of their corresponding source triangles. The
-matrix depends only on the target neutral and the correspondence, so it is factored once
-and every expression is one back-substitution. It must not read files or find the
-correspondence (that is ``correspondence``).
+matrix depends only on the target neutral and the correspondence, so the paper's system is
+factored once and every expression is one back-substitution; with ``still`` each
+expression holds the target points whose source point barely moves and factors what is
+left. It must not read files or find the correspondence (that is ``correspondence``).
 """
 
 from __future__ import annotations
@@ -19,10 +20,24 @@ from scipy.sparse.linalg import SuperLU, splu
 from ..errors import CorrespondenceError, InputError
 from .mesh import check_mesh, frame_inverses, triangle_frames, vertex_components
 
-__all__ = ["DeformationTransfer", "frame_rows", "source_gradients"]
+__all__ = ["STILL", "DeformationTransfer", "check_still", "frame_rows", "source_gradients"]
 
 # Expressions solved together: one back-substitution with 3 x _CHUNK right-hand sides.
 _CHUNK = 8
+#: Default ``still``: a target point whose corresponding source point moves less than this
+#: fraction of the expression's largest source displacement is held (README, measured).
+STILL = 0.01
+
+
+def check_still(still: float | None) -> float | None:
+    """``still`` as a float in (0, 1), or None; a ``CorrespondenceError`` otherwise."""
+    if still is None:
+        return None
+    if not (isinstance(still, (int, float)) and np.isfinite(still) and 0.0 < still < 1.0):
+        raise CorrespondenceError(
+            f"still: expected a fraction in (0, 1) or None, got {still!r}", code="bad_weights"
+        )
+    return float(still)
 
 
 def frame_rows(inverses: np.ndarray, faces: np.ndarray, num_vertices: int) -> sp.csr_matrix:
@@ -82,12 +97,21 @@ class DeformationTransfer:
         transformations are turned into the target's frame, R (Q − I) Rᵀ.
     scale : float
         Target units per source unit, for the source displacements ``vertex_map`` reads.
+    still : float or None
+        With ``vertex_map``: for each expression, the target vertices whose corresponding
+        source point moves less than ``still`` times the expression's largest source
+        displacement are held where that point goes (the solve's boundary conditions, so
+        the parts the expression leaves still do not drift with what least squares could
+        not fit elsewhere); the rest is solved with those held, one factorisation per
+        expression of the unknowns they leave. None: the paper's system, factored once,
+        one vertex held per connected piece and each piece then placed by the median.
 
     Notes
     -----
     The unknowns are the displacements of the Vt vertices and of one fourth vertex per
     target triangle; one vertex per connected piece is held, so the normal matrix is
-    positive definite and its sparse LU (``splu``) is computed once, here.
+    positive definite and its sparse LU (``splu``) is computed once, here (with ``still``,
+    only if ``factor`` is asked for: each expression factors its own smaller system).
     """
 
     def __init__(
@@ -101,6 +125,7 @@ class DeformationTransfer:
         vertex_map: sp.spmatrix | None = None,
         rotation: npt.ArrayLike | None = None,
         scale: float = 1.0,
+        still: float | None = None,
     ) -> None:
         self.source_neutral, self.source_faces = check_mesh(
             source_neutral, source_faces, what="source mesh"
@@ -136,7 +161,9 @@ class DeformationTransfer:
         if not (np.isfinite(scale) and scale > 0):
             raise CorrespondenceError(f"scale: expected > 0, got {scale!r}", code="bad_pairs")
         self.scale = float(scale)
+        still = check_still(still)
         self.vertex_map = None if vertex_map is None else sp.csr_matrix(vertex_map)
+        self.still = None if self.vertex_map is None else still
         self._source_inverses = frame_inverses(self.source_neutral, self.source_faces)
         # Sums of source transformations per target triangle: G = P (S - I).
         self._pair_sum = sp.csr_matrix(
@@ -154,18 +181,28 @@ class DeformationTransfer:
         free = np.ones(vt + ft, dtype=bool)
         free[first] = False
         self._free = np.flatnonzero(free)
-        self._rows_t = rows.T.tocsr()[self._free]  # (free, 3Ft): rhs = Aᵀ W r
-        normal = (self._rows_t @ sp.diags(weights) @ rows[:, self._free]).tocsc()
+        self._first = first
+        self._rows_t = rows.T.tocsr()  # (Vt + Ft, 3Ft): rhs = Aᵀ W r
+        self._normal = (self._rows_t @ sp.diags(weights) @ rows).tocsr()
         self.factorizations = 0
-        self._lu = self._factor(normal)
+        # The held solve factors its own systems: the whole one only when asked for.
+        self._lu: SuperLU | None = None
+        if self.still is None:
+            self._lu = self.factor
         self.unknowns = int(self._free.size)
-        self.nonzeros = int(self._lu.L.nnz + self._lu.U.nnz)
 
     @property
     def factor(self) -> SuperLU:
         """The factorisation every ``transfer`` reuses (read-only; ``bench transfer`` times
         a product with its L and U as the solve's floor)."""
+        if self._lu is None:
+            self._lu = self._factor(self._normal[self._free][:, self._free].tocsc())
         return self._lu
+
+    @property
+    def nonzeros(self) -> int:
+        """Nonzeros in the whole system's factors L and U."""
+        return int(self.factor.L.nnz + self.factor.U.nnz)
 
     def _factor(self, normal: sp.csc_matrix) -> SuperLU:
         self.factorizations += 1
@@ -209,6 +246,12 @@ class DeformationTransfer:
         if not np.isfinite(deformed).all():
             raise InputError("source_deformed: NaN or Inf coordinates", code="non_finite")
         out = np.empty((deformed.shape[0], *self.target_neutral.shape))
+        if self.still is not None:
+            for index, shape in enumerate(deformed):
+                out[index] = self._transfer_held(shape)
+                if progress is not None:
+                    progress(1)
+            return out[0] if single else out
         for start in range(0, deformed.shape[0], _CHUNK):
             chunk = deformed[start : start + _CHUNK]
             out[start : start + len(chunk)] = self._transfer_chunk(chunk)
@@ -216,9 +259,12 @@ class DeformationTransfer:
                 progress(len(chunk))
         return out[0] if single else out
 
-    def _transfer_chunk(self, source_deformed: np.ndarray) -> np.ndarray:
-        """(C, Vt, 3) for C deformed sources: one back-substitution for all 3C columns."""
-        vt, ft = self.target_neutral.shape[0], self.target_faces.shape[0]
+    def _target_rhs(self, source_deformed: np.ndarray) -> np.ndarray:
+        """(Vt + Ft, 3C) Aᵀ W (the paired source transformations − I) of C deformed sources.
+
+        Column 3c + i: coordinate i of expression c.
+        """
+        ft = self.target_faces.shape[0]
         c = source_deformed.shape[0]
         gradients = triangle_frames(source_deformed, self.source_faces) @ self._source_inverses
         gradients -= np.eye(3)
@@ -227,9 +273,56 @@ class DeformationTransfer:
         flat = gradients.transpose(1, 0, 2, 3).reshape(-1, c * 9)
         summed = (self._pair_sum @ flat).reshape(ft, c, 3, 3)
         # Row 3t + k, column 3c + i: entry (i, k) of expression c's transformation of t.
-        rhs = self._rows_t @ summed.transpose(0, 3, 1, 2).reshape(3 * ft, 3 * c)
+        rhs: np.ndarray = self._rows_t @ summed.transpose(0, 3, 1, 2).reshape(3 * ft, 3 * c)
+        return rhs
+
+    def _transfer_held(self, source_deformed: np.ndarray) -> np.ndarray:
+        """(Vt, 3) for one deformed source, the vertices where the source is still held.
+
+        Held: each mapped target vertex whose corresponding source point moves less than
+        ``still`` × the largest such motion, at that point's displacement; and in a piece
+        with no such vertex, its first vertex (the piece then placed by the median, as
+        without ``still``). Unknowns: the other vertices and the fourth vertices of the
+        triangles that touch them (a triangle whose corners are all held moves as they do).
+        """
+        assert self.vertex_map is not None and self.still is not None
+        vt, ft = self.target_neutral.shape[0], self.target_faces.shape[0]
+        copied = self.scale * (self.vertex_map @ (source_deformed - self.source_neutral))
+        copied = copied @ self.rotation.T
+        mapped = np.diff(self.vertex_map.indptr) > 0
+        motion = np.linalg.norm(copied, axis=1)
+        largest = float(motion[mapped].max()) if mapped.any() else 0.0
+        held = mapped & (motion < self.still * largest)
+        free_pieces = np.setdiff1d(np.arange(self._first.size), self._labels[held])
+        placed_by_median = self._first[free_pieces]
+        held[placed_by_median] = True
+        displacement = np.zeros((vt + ft, 3))
+        displacement[:vt][held] = copied[held]
+        displacement[placed_by_median] = 0.0
+        touched = ~held[self.target_faces].all(axis=1)
+        unknown = np.concatenate([np.flatnonzero(~held), vt + np.flatnonzero(touched)])
+        known = np.flatnonzero(held)
+        if unknown.size:
+            rhs = self._target_rhs(source_deformed[None])
+            rhs = rhs[unknown] - self._normal[unknown][:, known] @ displacement[known]
+            lu = self._factor(self._normal[unknown][:, unknown].tocsc())
+            displacement[unknown] = lu.solve(rhs)
+        moved = displacement[:vt]
+        if free_pieces.size:
+            source_displacement = source_deformed - self.source_neutral
+            self._place_pieces(
+                moved, self.scale * source_displacement @ self.rotation.T, pieces=free_pieces
+            )
+        result: np.ndarray = self.target_neutral + moved
+        return result
+
+    def _transfer_chunk(self, source_deformed: np.ndarray) -> np.ndarray:
+        """(C, Vt, 3) for C deformed sources: one back-substitution for all 3C columns."""
+        vt, ft = self.target_neutral.shape[0], self.target_faces.shape[0]
+        c = source_deformed.shape[0]
+        rhs = self._target_rhs(source_deformed)[self._free]
         displacement = np.zeros((vt + ft, 3 * c))
-        displacement[self._free] = self._lu.solve(rhs)
+        displacement[self._free] = self.factor.solve(rhs)
         moved = displacement[:vt].reshape(vt, c, 3).transpose(1, 0, 2).copy()
         if self.vertex_map is not None:
             for index in range(c):
@@ -238,17 +331,28 @@ class DeformationTransfer:
         result: np.ndarray = self.target_neutral + moved
         return result
 
-    def _place_pieces(self, moved: np.ndarray, source_displacement: np.ndarray) -> None:
+    def _place_pieces(
+        self,
+        moved: np.ndarray,
+        source_displacement: np.ndarray,
+        *,
+        pieces: np.ndarray | None = None,
+    ) -> None:
         """Shift each connected piece so its mapped vertices move as their source points do.
 
         The shift is the median, per axis, of the differences: the bulk of a piece that
-        the expression leaves still stays still, whatever its moving part does.
+        the expression leaves still stays still, whatever its moving part does. ``pieces``:
+        only these piece labels (default all).
         """
         assert self.vertex_map is not None
         mapped = np.flatnonzero(np.diff(self.vertex_map.indptr) > 0)
         if mapped.size == 0:
             return
         differences = self.vertex_map[mapped] @ source_displacement - moved[mapped]
+        if pieces is not None:
+            mapped = mapped[np.isin(self._labels[mapped], pieces)]
+            if mapped.size == 0:
+                return
         labels = self._labels[mapped]
         order = np.argsort(labels, kind="stable")
         pieces, starts = np.unique(labels[order], return_index=True)

@@ -24,6 +24,7 @@ from ..settings import Settings
 from ..storage.rig_store import RigNotFoundError, RigStore, valid_rig_id
 from .bus import LOCK_TTL_MS, Bus, BusUnavailable, make_bus
 from .channel import Channel
+from .members import STALE_AFTER
 
 if TYPE_CHECKING:
     from facecast.rig import Rig
@@ -62,6 +63,10 @@ class ChannelHub:
         self.channels: dict[str, Channel] = {}
         self.executor: Executor | None = None
         self.max_points = 4096
+        #: ``members.STALE_AFTER`` and ``RECLAIM_WAIT`` for this hub's claims: the tests of
+        #: a takeover shorten them on a running server instead of waiting out 6.5 s.
+        self.stale_after = STALE_AFTER
+        self.reclaim_wait = RECLAIM_WAIT
         registry = metrics.registry
         self.frames_counter = Counter(
             "facecast_channel_frames", "Frames received by channels", registry=registry
@@ -183,7 +188,7 @@ class ChannelHub:
             elif holder is not None and holder.ending:
                 done = holder.left
             elif holder is not None and self._same_caller(holder.owner, publisher):
-                budget = RECLAIM_WAIT
+                budget = self.reclaim_wait
                 if holder.supersede():
                     done = holder.left
                 # else it still sends: ask again until it falls silent, or give up
@@ -195,7 +200,7 @@ class ChannelHub:
                 # Another process holds the lock: its publisher leaving, or this token's.
                 owner = await self._holder(name)
                 if owner is not None and self._same_caller(owner, publisher):
-                    budget = RECLAIM_WAIT
+                    budget = self.reclaim_wait
                     if loop.time() - evicted_at >= _EVICT_AGAIN:  # bus events may be lost
                         self.bus.send(name, "evict", owner.encode())
                         evicted_at = loop.time()

@@ -203,10 +203,11 @@ class PublisherMember(Member):
         core.calibrated(rig, time.monotonic(), seq, points=points, noise=noise)
 
     def supersede(self) -> bool:
-        """End this connection if it is silent (``STALE_AFTER``): a newer one with the same
-        token takes its channel. False: it is alive, and keeps the channel.
+        """End this connection if it is silent (the hub's ``stale_after``, ``STALE_AFTER``):
+        a newer one with the same token takes its channel. False: it is alive, and keeps
+        the channel.
         """
-        if time.monotonic() - self.core.last_message < STALE_AFTER:
+        if time.monotonic() - self.core.last_message < self.hub.stale_after:
             return False
         self.end(ProtocolError(ErrorCode.CHANNEL_BUSY, "a newer connection with the same "
                                "token took over the channel", fatal=True))  # fmt: skip

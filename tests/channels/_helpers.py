@@ -1,4 +1,6 @@
-"""Helpers of the channel tests: tiny rigs, a real redis-server, raw watcher and publisher clients.
+"""Helpers of the channel tests: tiny rigs, raw watcher and publisher clients.
+
+A real redis-server is the benchmarks' and the tests' one: ``facecast.cli.bench.harness``.
 
 The clients speak facecast.protocol over plain websockets so the tests see exactly what a
 third-party client would; nothing here fakes a server component.
@@ -8,9 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import shutil
-import socket
-import subprocess
 import time
 from pathlib import Path
 from typing import Any
@@ -29,7 +28,6 @@ from facecast.protocol import (
     Result,
 )
 from facecast.rig import ExampleSet, fit
-from facecast.server.testing import free_port
 
 NAMES = ("neutral", "smile", "frown", "jaw")
 K = 5
@@ -63,47 +61,6 @@ def points(rig, seed: int) -> np.ndarray:
     return (rig.source_neutral + rng.normal(scale=0.1, size=rig.source_neutral.shape)).astype(
         np.float32
     )
-
-
-class RedisServer:
-    """A real redis-server on 127.0.0.1, no persistence; kill and restart on the same port."""
-
-    def __init__(self, port: int | None = None) -> None:
-        self.port = port or free_port()
-        self.process: subprocess.Popen[bytes] | None = None
-
-    @property
-    def url(self) -> str:
-        return f"redis://127.0.0.1:{self.port}/0"
-
-    def start(self, timeout: float = 10.0) -> None:
-        exe = shutil.which("redis-server") or "/usr/bin/redis-server"
-        self.process = subprocess.Popen(
-            [exe, "--port", str(self.port), "--bind", "127.0.0.1", "--save", "",
-             "--appendonly", "no", "--protected-mode", "no"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-        )  # fmt: skip
-        deadline = time.monotonic() + timeout
-        while not self.ping():
-            if self.process.poll() is not None:
-                raise RuntimeError(f"redis-server exited with {self.process.returncode}")
-            if time.monotonic() > deadline:
-                raise TimeoutError("redis-server did not answer PING")
-            time.sleep(0.02)
-
-    def ping(self) -> bool:
-        try:
-            with socket.create_connection(("127.0.0.1", self.port), timeout=0.5) as sock:
-                sock.sendall(b"PING\r\n")
-                return sock.recv(16).startswith(b"+PONG")
-        except OSError:
-            return False
-
-    def kill(self) -> None:
-        """SIGKILL: no goodbye to the clients, as in a crash."""
-        if self.process is not None and self.process.poll() is None:
-            self.process.kill()
-            self.process.wait(10)
 
 
 async def wait_for(predicate, timeout: float = 10.0, what: str = "condition") -> None:

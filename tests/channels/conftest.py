@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import pytest
 
+from facecast.cli.bench.harness import RedisServer
 from facecast.server.settings import Settings
 
-from ._helpers import RIG_IDS, RedisServer, tiny_rig, write_rigs
+from ._helpers import RIG_IDS, tiny_rig, write_rigs
 
 TOKENS = {
     "admin-token": frozenset({"admin"}),

@@ -3,17 +3,14 @@
 from __future__ import annotations
 
 import asyncio
-import os
-import signal
-import subprocess
-import sys
 
 import httpx
 import numpy as np
 import pytest
 
+from facecast.cli.bench.harness import facecast_serve
 from facecast.cli.main import main
-from facecast.server.testing import free_port, run_server
+from facecast.server.testing import run_server
 
 from ._helpers import RIG_IDS, Publisher, Watcher, points, wait_for
 
@@ -55,42 +52,29 @@ async def test_publish_and_watch_commands_round_trip_an_animation(
 
 
 async def test_serve_with_workers_and_redis_fans_out_across_workers(rigs_dir, rigs, redis_server):
-    port = free_port()
-    env = {**os.environ, "FACECAST_LOG_LEVEL": "warning"}
-    server = subprocess.Popen(
-        [sys.executable, "-m", "facecast.cli", "serve", "--port", str(port), "--rigs",
-         str(rigs_dir), "--workers", "2", "--redis", redis_server.url],
-        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-    )  # fmt: skip
-    base = f"http://127.0.0.1:{port}"
+    server = facecast_serve(
+        rigs_dir, "--workers", "2", "--redis", redis_server.url,
+        env={"FACECAST_LOG_LEVEL": "warning"}, name="facecast serve --workers 2",
+    ).start()  # fmt: skip
     try:
-        async with httpx.AsyncClient(base_url=base) as http:
+        await asyncio.to_thread(server.wait_ready, timeout=30)
+        ws = server.ws_url
+        watchers = [await Watcher.open(ws, "stage", RIG_IDS[i % 3]) for i in range(8)]
+        publisher = await Publisher.open(ws, "stage", "alpha")
+        seq = 0
 
-            async def ready() -> bool:
-                try:
-                    return (await http.get("/readyz")).status_code == 200
-                except httpx.HTTPError:
-                    return False
+        async def everyone_has_results() -> bool:
+            nonlocal seq
+            await publisher.send(seq, points(rigs["alpha"], seq))
+            seq += 1
+            return all(w.results for w in watchers)
 
-            await wait_for(ready, timeout=30, what="facecast serve --workers 2")
-            ws = f"ws://127.0.0.1:{port}"
-            watchers = [await Watcher.open(ws, "stage", RIG_IDS[i % 3]) for i in range(8)]
-            publisher = await Publisher.open(ws, "stage", "alpha")
-            seq = 0
-
-            async def everyone_has_results() -> bool:
-                nonlocal seq
-                await publisher.send(seq, points(rigs["alpha"], seq))
-                seq += 1
-                return all(w.results for w in watchers)
-
-            await wait_for(everyone_has_results, timeout=20, what="results on every worker")
-            await publisher.close()
+        await wait_for(everyone_has_results, timeout=20, what="results on every worker")
+        await publisher.close()
     finally:
-        server.send_signal(signal.SIGTERM)
-        server.wait(30)
+        status = server.stop(timeout=30)  # SIGTERM
 
-    assert server.returncode == 0
+    assert status == 0
 
 
 def test_serve_takes_redis_from_the_flag_or_the_environment():

@@ -8,18 +8,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import os
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
 
+from facecast.cli.bench.harness import ServerProcess, facecast_serve
 from facecast.protocol import ChannelIdle, ChannelLive
-from facecast.server.testing import free_port
 
 from ._helpers import Publisher, Watcher, points, wait_for
 
@@ -31,73 +27,23 @@ STARTUP_TIMEOUT = 45.0
 FRAME_INTERVAL = 0.02
 
 
-class FacecastProcess:
-    """One ``facecast serve --redis URL`` subprocess on a free port; its stderr goes to a file."""
-
-    def __init__(self, name: str, rigs_dir: Path, redis_url: str, log_dir: Path) -> None:
-        self.name = name
-        self.port = free_port()
-        self.log_path = log_dir / f"facecast-{name}.log"
-        # face_lost_after as in conftest's settings: no eased (synthetic) results while
-        # frames stop crossing Redis, so every result is the clone of a published frame.
-        env = {**os.environ, "FACECAST_LOG_LEVEL": "warning", "FACECAST_FACE_LOST_AFTER": "30"}
-        with self.log_path.open("wb") as log:
-            self.process = subprocess.Popen(
-                [sys.executable, "-m", "facecast.cli", "serve", "--port", str(self.port),
-                 "--rigs", str(rigs_dir), "--redis", redis_url],
-                env=env, stdout=subprocess.DEVNULL, stderr=log,
-            )  # fmt: skip
-
-    @property
-    def base_url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
-
-    @property
-    def ws_url(self) -> str:
-        return f"ws://127.0.0.1:{self.port}"
-
-    @property
-    def alive(self) -> bool:
-        return self.process.poll() is None
-
-    def stderr(self) -> str:
-        return self.log_path.read_text(errors="replace")[-4000:]
-
-    def wait_ready(self, deadline: float) -> None:
-        with httpx.Client(base_url=self.base_url, timeout=2.0) as http:
-            while True:
-                if not self.alive:
-                    raise RuntimeError(
-                        f"facecast {self.name} exited with {self.process.returncode}:\n"
-                        f"{self.stderr()}"
-                    )
-                with contextlib.suppress(httpx.HTTPError):
-                    if http.get("/readyz").status_code == 200:
-                        return
-                if time.monotonic() > deadline:
-                    raise TimeoutError(f"facecast {self.name} not ready:\n{self.stderr()}")
-                time.sleep(0.05)
-
-    def stop(self) -> None:
-        if self.alive:
-            self.process.terminate()
-            try:
-                self.process.wait(15)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait(10)
-
-
 @pytest.fixture
 def processes(rigs_dir, redis_server, tmp_path):
     """Processes A and B, both ready, on the same redis-server; stopped at the end."""
-    started: list[FacecastProcess] = []
+    # face_lost_after as in conftest's settings: no eased (synthetic) results while
+    # frames stop crossing Redis, so every result is the clone of a published frame.
+    env = {"FACECAST_LOG_LEVEL": "warning", "FACECAST_FACE_LOST_AFTER": "30"}
+    started: list[ServerProcess] = []
     try:
         for name in ("A", "B"):
-            started.append(FacecastProcess(name, rigs_dir, redis_server.url, tmp_path))
+            process = facecast_serve(
+                rigs_dir, "--redis", redis_server.url, env=env,
+                log_path=tmp_path / f"facecast-{name}.log", name=f"facecast {name}",
+            )  # fmt: skip
+            started.append(process.start())
         deadline = time.monotonic() + STARTUP_TIMEOUT
         for process in started:
-            process.wait_ready(deadline)
+            process.wait_ready(timeout=max(0.0, deadline - time.monotonic()))
         yield tuple(started)
     finally:
         for process in started:

@@ -17,6 +17,7 @@ import pytest
 from facecast.client.channel import channel_url
 from facecast.protocol import ChannelIdle, ChannelLive, Error, ErrorCode, Hello, Result
 from facecast.server.channels.hub import RECLAIM_WAIT
+from facecast.server.channels.members import STALE_AFTER
 from facecast.server.testing import run_server
 
 from ._helpers import RIG_IDS, Publisher, Watcher, points, refused, wait_for
@@ -135,6 +136,10 @@ async def auth_servers(redis_settings, ws_impl):
         yield a, b
 
 
+def _hubs(servers):
+    return [server.app.state.channels for server in servers]
+
+
 #: Where the publisher's second connection goes: the process of its first, or another.
 RETURNS_TO = pytest.mark.parametrize("returns_to", [0, 1], ids=["same-process", "other-process"])
 
@@ -145,7 +150,12 @@ async def test_a_returning_publisher_takes_its_channel_back_from_its_stale_conne
 ):
     # A blip: the publisher reconnects while its old connection is still open on the
     # server (not yet noticed gone); the same token gets the channel, the old one ends.
+    # The old one is taken for stale once silent for the hubs' stale_after: shortened
+    # from STALE_AFTER (1 s) here; the test that a sender keeps its channel keeps it.
     a, b = auth_servers
+    for hub in _hubs(auth_servers):
+        assert hub.stale_after == STALE_AFTER  # the production default, unless set
+        hub.stale_after = STALE_AFTER / 4
     watcher = await Watcher.open(b.ws_url, "stage", "beta", token="viewer-token")
     stale = await Publisher.open(a.ws_url, "stage", "alpha", token="publisher-token")
     await _live(watcher)
@@ -169,7 +179,13 @@ async def test_a_publisher_that_keeps_sending_keeps_its_channel_from_its_own_tok
     auth_servers, rigs, returns_to
 ):
     # Two pages of one performer: the one that sends keeps the channel (the other is
-    # refused after RECLAIM_WAIT), so they do not take it from each other in turn.
+    # refused after the hubs' reclaim_wait), so they do not take it from each other in
+    # turn. reclaim_wait is shortened from RECLAIM_WAIT (6.5 s, the lock TTL of a dead
+    # process, which no process here is) to a few times STALE_AFTER: long enough that a
+    # sender silent that long would have lost the channel.
+    for hub in _hubs(auth_servers):
+        assert hub.reclaim_wait == RECLAIM_WAIT  # the production default, unless set
+        hub.reclaim_wait = 2 * STALE_AFTER
     live = await Publisher.open(auth_servers[0].ws_url, "stage", "alpha", token="publisher-token")
 
     async def keep_sending() -> None:
@@ -181,7 +197,7 @@ async def test_a_publisher_that_keeps_sending_keeps_its_channel_from_its_own_tok
     url = channel_url(auth_servers[returns_to].ws_url, "stage", "publish")
     try:
         error, _ = await refused(
-            url, token="publisher-token", hello=Hello(rig="alpha"), timeout=RECLAIM_WAIT + 5
+            url, token="publisher-token", hello=Hello(rig="alpha"), timeout=2 * STALE_AFTER + 5
         )
     finally:
         sending.cancel()

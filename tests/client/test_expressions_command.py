@@ -227,3 +227,26 @@ def test_an_unknown_mesh_type_and_a_file_in_the_folders_place_are_refused(tmp_pa
         write_expression_set(tmp_path / "taken", _generated())
     assert caught.value.code == "bad_output"
     assert (tmp_path / "taken").read_text() == "a file, not a folder"
+
+
+@pytest.mark.ict
+@needs_ict
+def test_automatic_markers_on_a_target_that_is_no_face_write_nothing(tmp_path, capsys):
+    target = tmp_path / "face.obj"
+    write_obj(target, *_square())
+    code = main(["expressions", str(target), "-o", str(tmp_path / "out"), "--markers", "auto",
+                 "--quiet"])  # fmt: skip
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "without markers" in err and "does not look like a face" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_still_fraction_out_of_range_is_refused_before_anything_is_written(tmp_path, capsys):
+    target = tmp_path / "face.obj"
+    write_obj(target, *_square())
+    code = main(["expressions", str(target), "-o", str(tmp_path / "out"), "--markers", "auto",
+                 "--still", "1.5", "--ict", str(tmp_path)])  # fmt: skip
+    assert code == 2
+    assert "still: expected a fraction in (0, 1)" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

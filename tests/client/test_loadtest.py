@@ -65,7 +65,10 @@ def test_bench_transport_smoke_writes_its_json_keys(tmp_path):
     out = tmp_path / "transport.json"
 
     status = transport.run(
-        argparse.Namespace(json=str(out), duration=0.3, clients=2, max_streams=3)
+        # The warm-ups too as short as the phases (2 s each, 3 of them, by default).
+        argparse.Namespace(
+            json=str(out), duration=0.3, clients=2, max_streams=3, warmup_seconds=0.3
+        )
     )
 
     assert status == 0

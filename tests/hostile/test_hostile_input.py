@@ -12,9 +12,6 @@ import collections
 import contextlib
 import io
 import os
-import signal
-import subprocess
-import sys
 import threading
 import time
 import zipfile
@@ -25,6 +22,7 @@ import numpy as np
 import pytest
 import websockets
 
+from facecast.cli.bench.harness import facecast_serve
 from facecast.client.channel import channel_url
 from facecast.protocol import (
     SUBPROTOCOL,
@@ -192,27 +190,6 @@ async def test_ten_uploads_at_once_hold_at_most_max_pending_fits(tmp_path):
 # -- item 6: kill -9 in the middle of an upload leaves nothing behind -----------------------
 
 
-def _serve(port: int, rigs: Path) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "facecast.cli", "serve", "--host", "127.0.0.1",
-         "--port", str(port), "--rigs", str(rigs), "--log-level", "warning"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )  # fmt: skip
-
-
-def _wait_healthy(port: int, process: subprocess.Popen, timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        assert process.poll() is None, f"server exited with {process.returncode}"
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=0.5).status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        time.sleep(0.05)  # polling another process: there is no event to wait on
-    raise TimeoutError("server did not answer /healthz")
-
-
 def _uploads_in_scratch(rigs: Path) -> list[Path]:
     return sorted(rigs.glob(f"{SCRATCH_DIR}/*/upload-*"))
 
@@ -222,9 +199,9 @@ def test_uploads_killed_mid_fit_leave_no_files_after_the_next_start(tmp_path):
     # A target large enough that unpacking and loading it takes a while (~1 s here).
     body = example_archive(tmp_path / "set", tiny_example_set(num_vertices=60_000))
     rigs, port = tmp_path / "rigs", free_port()
-    server = _serve(port, rigs)
+    server = facecast_serve(rigs, "--log-level", "warning", port=port).start()
     try:
-        _wait_healthy(port, server)
+        server.wait_ready("/healthz")
         uploads = [
             threading.Thread(
                 target=lambda i=i: _put_ignoring_errors(port, f"big{i}", body), daemon=True
@@ -237,25 +214,18 @@ def test_uploads_killed_mid_fit_leave_no_files_after_the_next_start(tmp_path):
         while not _uploads_in_scratch(rigs):
             assert time.monotonic() < deadline, "no upload was ever unpacked"
             time.sleep(0.005)  # polling the file system of another process
-        server.send_signal(signal.SIGKILL)
-        server.wait(10)
+        server.kill()
         for thread in uploads:
             thread.join(30)
         left = _uploads_in_scratch(rigs)
     finally:
-        if server.poll() is None:
-            server.kill()
-            server.wait(10)
+        server.kill()
 
-    restarted = _serve(port, rigs)
-    try:
-        _wait_healthy(port, restarted)
+    with facecast_serve(rigs, "--log-level", "warning", port=port) as restarted:
+        restarted.wait_ready("/healthz")
         after = _uploads_in_scratch(rigs)
         folders = [os.listdir(f) for f in (rigs / SCRATCH_DIR).iterdir()]
         listed = httpx.get(f"http://127.0.0.1:{port}/v1/rigs").json()["rigs"]
-    finally:
-        restarted.send_signal(signal.SIGTERM)
-        restarted.wait(20)
 
     assert left  # the kill did leave an unpacked upload behind
     assert after == []

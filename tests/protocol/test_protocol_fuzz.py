@@ -1,6 +1,11 @@
 """Fuzz: on any input the decoders either return a message or raise ProtocolError (§3).
 
-Runs at least 10,000 cases per test when the environment has CI=true.
+With CI=true each test runs about as many cases as it takes to reach every branch of the
+decoders it ever reaches (line arcs of facecast.protocol traced over 10,000 cases of each,
+Dec 2026): arbitrary bytes reached 66 of its 72 arcs within 100 cases and the last 6 at
+2,526 (the version check of a decoded map, which the msgpack test reaches in its first
+cases), arbitrary msgpack all 70 within 277: 2,000 and 1,000 cases. Message-like maps
+still found new arcs at 8,783 (159 in all): 10,000. 300 each elsewhere.
 """
 
 from __future__ import annotations
@@ -15,12 +20,17 @@ from hypothesis import strategies as st
 
 from facecast.protocol import Limits, ProtocolError, decode_client, decode_server
 
-FUZZ_EXAMPLES = 10_000 if os.environ.get("CI") == "true" else 300
-_fuzz = settings(
-    max_examples=FUZZ_EXAMPLES,
-    deadline=None,
-    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
-)
+CI = os.environ.get("CI") == "true"
+
+
+def _fuzz(ci_examples: int):
+    return settings(
+        max_examples=ci_examples if CI else 300,
+        deadline=None,
+        suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+    )
+
+
 # Small limits so that fuzzing also crosses them.
 _SMALL = Limits(max_message_bytes=512, max_server_message_bytes=512, max_string=8, max_keys=12)
 
@@ -34,19 +44,19 @@ def _decode_all(data: bytes) -> None:
                 decode(data, limits)
 
 
-@_fuzz
+@_fuzz(ci_examples=2_000)
 @given(st.binary(max_size=512))
 def test_decoders_raise_only_protocol_error_on_arbitrary_bytes(data: bytes) -> None:
     _decode_all(data)
 
 
-@_fuzz
+@_fuzz(ci_examples=1_000)
 @given(msgpack_values)
 def test_decoders_raise_only_protocol_error_on_arbitrary_msgpack(value: object) -> None:
     _decode_all(msgpack.packb(value, use_bin_type=True))
 
 
-@_fuzz
+@_fuzz(ci_examples=10_000)
 @given(near_messages())
 def test_decoders_raise_only_protocol_error_on_message_like_maps(value: dict) -> None:
     _decode_all(msgpack.packb(value, use_bin_type=True))

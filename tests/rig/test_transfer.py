@@ -139,6 +139,32 @@ def test_triangles_no_source_triangle_reaches_keep_their_neutral():
     np.testing.assert_allclose(moved[: len(source)], smooth_deformation(source), atol=1e-10)
 
 
+def test_what_the_source_leaves_still_stays_still_on_a_face_of_another_shape():
+    source, faces = grid(16)
+    target, _ = grid(16, bump=0.6)  # another shape on the same topology, as ICT's identities
+    x, y = source[:, 0], source[:, 1]
+    r2 = ((x - 0.5) ** 2 + (y - 0.5) ** 2) / 0.25**2
+    lift = np.where(r2 < 1, (1 - r2) ** 2, 0.0)  # moves a disc, nothing outside it
+    shapes = np.stack([source, source + 0.15 * lift[:, None] * np.array([0.5, 0.0, 1.0])])
+    expressions = SourceExpressions(("neutral", "lift"), shapes, faces, shapes[:, :3])
+    generated = transfer_expressions(expressions, target, faces)
+    moved = np.linalg.norm(generated.target_vertices[1] - target, axis=1)
+    # The paper's solve spreads what it cannot fit on the other shape over the whole
+    # surface (about 0.01 here); held, the still part does not move at all.
+    np.testing.assert_array_equal(moved[lift == 0], 0.0)
+    assert moved[lift > 0.5].min() > 0.05
+
+
+def test_still_must_be_a_fraction():
+    vertices, faces = grid(6)
+    same = identity_correspondence(vertices, faces, vertices, faces)
+    with pytest.raises(CorrespondenceError) as caught:
+        DeformationTransfer(
+            vertices, faces, vertices, faces, same.pairs, vertex_map=same.vertex_map, still=1.5
+        )
+    assert caught.value.code == "bad_weights"
+
+
 def test_transfer_refuses_deformed_meshes_of_another_vertex_count():
     vertices, faces = grid(6)
     same = identity_correspondence(vertices, faces, vertices, faces)
@@ -192,6 +218,29 @@ def test_transfer_onto_a_decimated_surface_carries_a_bump_better_than_the_naive_
     assert per_transfer[0] < per_naive[0]
 
 
+def test_without_markers_the_source_finds_a_scaled_and_moved_decimated_copy_of_itself():
+    source, source_faces = grid(16)
+    coarse = decimate(source, source_faces, 120)
+    placed = 2.5 * coarse.vertices + [1.0, -0.5, 0.3]  # other units and origin, same axes
+    bump = source.copy()
+    bump[:, 2] += 0.2 * np.exp(-((source[:, 0] - 0.5) ** 2 + (source[:, 1] - 0.5) ** 2) / 0.05)
+    shapes = np.stack([source, bump])
+    generated = transfer_expressions(
+        SourceExpressions(("neutral", "bump"), shapes, source_faces, shapes[:, :3]),
+        placed, coarse.faces, markers="auto",
+    )  # fmt: skip
+    found = generated.correspondence
+    assert found.method == "automatic"
+    assert abs(found.scale - 2.5) < 0.01
+    # Each fitted source vertex lies within a tenth of a (scaled) source edge of its place.
+    edge = 2.5 / 15
+    assert np.abs(found.fitted_source - (2.5 * source + [1.0, -0.5, 0.3])).max() < 0.15 * edge
+    truth = 2.5 * carry_shapes(coarse, shapes, source_faces) + [1.0, -0.5, 0.3]
+    per_transfer, _ = relative_errors(generated.target_vertices, truth)
+    per_naive, _ = relative_errors(naive_transfer(found, shapes, placed), truth)
+    assert per_transfer[0] < 0.5 * per_naive[0]
+
+
 def test_read_markers_takes_pairs_with_comments_and_commas(tmp_path):
     path = tmp_path / "markers.txt"
     path.write_text("# source target\n1 2\n\n3,4  # a comment\n")
@@ -236,16 +285,19 @@ def test_markers_that_name_the_wrong_places_do_not_converge():
     assert "marker" in str(caught.value)
 
 
-def test_another_topology_without_markers_asks_for_markers():
+@pytest.mark.parametrize(
+    ("markers", "code"), [(None, "markers_needed"), ("automatic", "bad_markers")]
+)
+def test_another_topology_needs_markers_or_auto(markers, code):
     source, source_faces = grid(6)
     target, target_faces = grid(5)
     with pytest.raises(MarkerError) as caught:
         transfer_expressions(
             SourceExpressions(("neutral", "x"), np.stack([source, source + 0.1]), source_faces,
                               np.zeros((2, 3, 3))),
-            target, target_faces,
+            target, target_faces, markers=markers,
         )  # fmt: skip
-    assert caught.value.code == "markers_needed"
+    assert caught.value.code == code
 
 
 # -- bad meshes -------------------------------------------------------------------------

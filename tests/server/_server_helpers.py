@@ -18,9 +18,10 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-import httpx
 import numpy as np
 
+from facecast.cli.bench.harness import answers_ok
+from facecast.cli.bench.harness import wait_until as poll_until
 from facecast.protocol import ClientProtocol, Error, Hello, Ready, decode_server, encode
 from facecast.rig import ExampleSet, fit
 from facecast.rig.io.meshio import write_obj
@@ -242,19 +243,16 @@ def server_process(
 
 
 def wait_ready(base_url: str, process: subprocess.Popen, timeout: float = 20.0) -> None:
-    """Poll ``/healthz`` until it answers; fail early if the process died."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            err = process.stderr.read().decode() if process.stderr else ""
-            raise RuntimeError(f"server exited with {process.returncode}: {err[-2000:]}")
-        try:
-            if httpx.get(f"{base_url}/healthz", timeout=0.5).status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        time.sleep(0.05)  # polling a server we do not control; no event to wait on
-    raise TimeoutError(f"server at {base_url} not ready within {timeout} s")
+    """Poll ``/healthz`` until it answers; fail early if the process died (with its stderr)."""
+
+    def exited() -> str | None:
+        if process.poll() is None:
+            return None
+        err = process.stderr.read().decode() if process.stderr else ""
+        return f"server exited with {process.returncode}: {err[-2000:]}"
+
+    url = f"{base_url}/healthz"
+    poll_until(lambda: answers_ok(url), f"server at {base_url} ready", timeout, exited=exited)
 
 
 def stop(process: subprocess.Popen, sig: int = signal.SIGTERM, timeout: float = 15.0) -> int:
