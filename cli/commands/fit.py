@@ -81,7 +81,8 @@ def register(subparsers: Subparsers) -> None:
         default=None,
         help="bound the non-neutral weights to >= 0 or [0, 1] (the nearest bounded weights in "
         "the metric of the examples; with --noise, the MAP weights under a sparsity prior); "
-        "default nonneg with --noise, none without",
+        "default nonneg with --noise, none without (a character on the generic ARKit set "
+        "without --noise: unit)",
     )
     parser.add_argument(
         "--sparsity",
