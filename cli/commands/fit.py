@@ -56,10 +56,13 @@ def register(subparsers: Subparsers) -> None:
     parser.add_argument(
         "--noise",
         type=float,
-        default=0.0,
+        default=None,
         metavar="SIGMA",
         help="expected landmark noise (std per coordinate, source units); 0 = exact "
-        "interpolation (default)",
+        "interpolation, the default for an example set; a character paired with the generic "
+        "ARKit set is fitted by default for a live tracker's noise, 0.05 cm with --clamp "
+        "unit (facecast.rig.sources.generic.CHARACTER_FIT_DEFAULTS, the same as "
+        "PUT /v1/characters/{id}; docs/characters.md)",
     )
     parser.add_argument(
         "--pca-threshold",
@@ -78,7 +81,8 @@ def register(subparsers: Subparsers) -> None:
         default=None,
         help="bound the non-neutral weights to >= 0 or [0, 1] (the nearest bounded weights in "
         "the metric of the examples; with --noise, the MAP weights under a sparsity prior); "
-        "default nonneg with --noise, none without",
+        "default nonneg with --noise, none without (a character on the generic ARKit set "
+        "without --noise: unit)",
     )
     parser.add_argument(
         "--sparsity",
@@ -240,6 +244,7 @@ def _bounds_line(report: dict[str, Any]) -> list[str]:
 def run(args: argparse.Namespace) -> int:
 
     from facecast.rig import fit
+    from facecast.rig.io.character_examples import character_fit_options
 
     output = Path(args.output)
     if not output.parent.exists():
@@ -252,17 +257,19 @@ def run(args: argparse.Namespace) -> int:
         examples, pairing = load_character_examples(path)
         if not args.json:
             print("\n".join(pairing.lines()))
+        options = character_fit_options({"noise": args.noise, "clamp": args.clamp})
     else:
         examples = load_examples(args.examples, args.source)
+        options = {"noise": 0.0 if args.noise is None else args.noise, "clamp": args.clamp}
     with warnings.catch_warnings():
         # fit's IdentifiabilityWarnings are in the report, printed below once each.
         warnings.simplefilter("ignore")
         rig = fit(
             examples,
             pca_threshold=args.pca_threshold,
-            noise=args.noise,
+            noise=options["noise"],
             kernel=args.kernel,
-            clamp=args.clamp,
+            clamp=options.get("clamp"),
             sparsity=args.sparsity,
             stable_points=_stable_points(args.stable_points),
             align_scale=args.align_scale,

@@ -9,19 +9,25 @@ from __future__ import annotations
 
 import os
 import tomllib
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from ..errors import ExampleSetError
 from ..examples import ExampleSet, check_stable_points
-from ..sources.generic import GENERIC_ATTRIBUTION, generic_sources
+from ..sources.generic import CHARACTER_FIT_DEFAULTS, GENERIC_ATTRIBUTION, generic_sources
 from .character_model import Character, PairingReport, pair_report
 from .expression_names import normalise_name
 from .meshio import read_points
 
-__all__ = ["character_example_set", "folder_stable_points", "generic_pairing"]
+__all__ = [
+    "character_example_set",
+    "character_fit_options",
+    "folder_stable_points",
+    "generic_pairing",
+]
 
 _POINT_SUFFIXES = (".npy", ".csv")
 _MANIFEST = "facecast.toml"
@@ -36,6 +42,22 @@ def _no_expressions(label: str) -> ExampleSetError:
         "tool",
         code="no_expressions",
     )
+
+
+def character_fit_options(given: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """``fit`` keyword arguments for a character paired with the generic ARKit set.
+
+    ``given`` holds the options its uploader chose (``fit``'s keywords; a key absent or None
+    is not chosen). Without a ``noise``, the rig is fitted for the noise of a live tracker,
+    ``sources.generic.CHARACTER_FIT_DEFAULTS`` (and bounded as it says unless a ``clamp`` is
+    given), so the character is live the moment it is uploaded; a given ``noise`` (0 too:
+    exact interpolation) keeps ``fit``'s own default bound for it.
+    """
+    options = {key: value for key, value in (given or {}).items() if value is not None}
+    if "noise" not in options:
+        options["noise"] = CHARACTER_FIT_DEFAULTS["noise"]
+        options.setdefault("clamp", CHARACTER_FIT_DEFAULTS["clamp"])
+    return options
 
 
 def folder_stable_points(folder: Path) -> np.ndarray | None:

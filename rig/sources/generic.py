@@ -3,12 +3,15 @@
 Reads the package data ``generic_arkit/points.npz`` (written by
 scripts/make_generic_sources.py from ICT-FaceKit, MIT, see generic_arkit/LICENSE-ICT-FaceKit)
 and composes source points for VRM presets that have no ARKit twin (the table is
-docs/characters.md); it must not read characters, fit or touch the network.
+docs/characters.md), from this set's shapes or from a performer's captured ones
+(``composed_captures``); ``CHARACTER_FIT_DEFAULTS`` are the fit options of a character
+paired with it. It must not read characters, fit or touch the network.
 """
 
 from __future__ import annotations
 
 import functools
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from importlib import resources
 from types import MappingProxyType
@@ -18,12 +21,29 @@ import numpy as np
 
 from ..errors import ExampleSetError
 
-__all__ = ["GENERIC_ATTRIBUTION", "VRM_COMPOSITIONS", "GenericSources", "generic_sources"]
+__all__ = [
+    "CHARACTER_FIT_DEFAULTS",
+    "GENERIC_ATTRIBUTION",
+    "VRM_COMPOSITIONS",
+    "GenericSources",
+    "composed_captures",
+    "generic_sources",
+]
 
 GENERIC_ATTRIBUTION: Final = (
     "generic ARKit source set: 20 landmarks of the ICT Face Model (ICT-FaceKit, "
     "USC Institute for Creative Technologies, MIT licence)"
 )
+
+#: ``fit`` options of a character paired with this set when its uploader gives no noise:
+#: the landmark noise (centimetres, this set's units) and the bound the rig is fitted for.
+#: Exact interpolation (noise 0) of these 20 points amplifies landmark noise ~3000-fold
+#: (noise gain 3174): live, tracker noise became weights of 7 to 190. Measured on the
+#: ground-truth webcam benchmark and the bundled real take (docs/characters.md, "Fit
+#: defaults"): 0.05 cm with weights bounded to [0, 1] is the lowest weight error on tracked
+#: landmarks, costs nothing on /perform's noise-aware calibrate and keeps every weight in
+#: [0, 1]; its noise gain is 9.2.
+CHARACTER_FIT_DEFAULTS: Final = MappingProxyType({"noise": 0.05, "clamp": "unit"})
 
 _L, _R = "Left", "Right"
 
@@ -125,3 +145,40 @@ def generic_sources() -> GenericSources:
         landmarks68=arrays["landmarks68"].astype(np.int64),
         stable_points=arrays["stable_points"].astype(np.int64),
     )
+
+
+def composed_captures(
+    names: Iterable[str], captured: Mapping[str, np.ndarray]
+) -> dict[str, np.ndarray]:
+    """A performer's points for the VRM presets among ``names`` they did not capture.
+
+    The generic set's rule on the performer's own face: a preset ``captured`` lacks whose
+    every ARKit shape in ``VRM_COMPOSITIONS`` it holds is ``captured["neutral"]`` plus the
+    composition's weights times those shapes' displacements, so a calibration captured on
+    an ARKit character drives a VRM / VRoid one's presets too. Presets with a shape not
+    captured, a preset equal to one of its shapes the rig has as well (``blinkLeft``
+    beside ``eyeBlinkLeft``), and every preset when there is no neutral or the shapes'
+    points differ in shape from it, are left out (the fit names what is wrong with the
+    capture itself).
+    """
+    neutral = captured.get("neutral")
+    if neutral is None:
+        return {}
+    base = np.asarray(neutral, dtype=np.float64)
+    wanted = tuple(names)
+    out: dict[str, np.ndarray] = {}
+    for name in wanted:
+        composition = VRM_COMPOSITIONS.get(name)
+        if name in captured or composition is None:
+            continue
+        shapes = [captured.get(shape) for shape in composition]
+        if any(s is None or np.shape(s) != base.shape for s in shapes):
+            continue
+        point = base.copy()
+        for weight, shape in zip(composition.values(), shapes, strict=True):
+            point += weight * (np.asarray(shape, dtype=np.float64) - base)
+        # ``blinkLeft`` is ``eyeBlinkLeft``: a rig with both cannot tell them apart.
+        if any(s in wanted and np.array_equal(point, captured[s]) for s in composition):
+            continue
+        out[name] = point
+    return out

@@ -19,6 +19,7 @@ from fastapi.responses import JSONResponse
 
 from facecast.rig import Rig
 from facecast.rig.retarget import NEUTRAL, fit_performer, shared_names
+from facecast.rig.sources.generic import composed_captures
 from facecast.rig.sources.layouts import load_layout
 
 from ..errors import ApiError
@@ -105,7 +106,7 @@ class _PerformerFit:
         self.capture = capture
         self.shared_only = shared_only
 
-    def __call__(self) -> tuple[Rig, list[str]]:
+    def __call__(self) -> tuple[Rig, list[str], list[str]]:
         try:
             base = self.store.get(self.rig_id)
         except RigNotFoundError:
@@ -119,13 +120,16 @@ class _PerformerFit:
                 f"{self.rig_id!r} has {base.num_points}",
             )
         points = self.capture.points
+        # VRM presets the performer did not make, from the ARKit shapes they did.
+        composed = composed_captures(base.names, points)
         if self.shared_only:
             known = {NEUTRAL, *base.names}
             points = {name: p for name, p in points.items() if name in known}
+        points = {**points, **composed}
         rig = fit_performer(base, points, noise=self.capture.noise)
         used = shared_names(base, points)
         skipped = [name for name in base.names[1:] if name not in used]
-        return rig, skipped
+        return rig, skipped, [name for name in rig.names if name in composed]
 
 
 async def _fit_and_store(
@@ -133,7 +137,7 @@ async def _fit_and_store(
 ) -> tuple[dict[str, Any], bool]:
     store = request.app.state.store
     job = _PerformerFit(store, rig_id, capture, shared_only=refit)
-    rig, skipped = await run_fit(request, job)
+    rig, skipped, composed = await run_fit(request, job)
     new_id = performer_rig_id(rig_id, performer)
     created = await anyio.to_thread.run_sync(store.put_rig, new_id, rig)
     log.info(
@@ -153,6 +157,8 @@ async def _fit_and_store(
         "performer": performer,
         "character": rig_id,
         "skipped": skipped,
+        # VRM presets not captured, composed from the captured ARKit shapes.
+        "composed": composed,
         # The landmark noise the rig was fitted with ("noise", from rig.summary) and where
         # it came from: the capture's own, or measured from its held frames (how many).
         "noise_source": capture.noise_source,

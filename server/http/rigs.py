@@ -21,6 +21,7 @@ from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import JSONResponse
 
 from facecast.rig import fit
+from facecast.rig.io.character_examples import character_fit_options as character_fit_options_for
 from facecast.rig.io.loaders import load_example_set
 
 from ..errors import ApiError, upload_paths_hidden
@@ -36,8 +37,10 @@ if TYPE_CHECKING:
 T = TypeVar("T")
 
 __all__ = [
+    "CharacterFitOptions",
     "FitOptions",
     "archive_limits",
+    "character_fit_options",
     "fit_options",
     "fit_slot",
     "read_body",
@@ -293,6 +296,17 @@ def fit_options(
 
 
 FitOptions = Annotated[dict[str, Any], Depends(fit_options)]
+
+
+def character_fit_options(request: Request, options: FitOptions) -> dict[str, Any]:
+    """``fit_options`` for a character paired with the generic ARKit set: without a
+    ``noise`` query, the rig side's live defaults (``character_examples.character_fit_options``:
+    ``sources.generic.CHARACTER_FIT_DEFAULTS``, docs/characters.md "Fit defaults")."""
+    given = {k: v for k, v in options.items() if k != "noise" or "noise" in request.query_params}
+    return character_fit_options_for(given)
+
+
+CharacterFitOptions = Annotated[dict[str, Any], Depends(character_fit_options)]
 
 
 def archive_limits(settings: Settings) -> ArchiveLimits:

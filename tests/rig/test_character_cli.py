@@ -13,7 +13,7 @@ from facecast.rig.io.character import load_character
 from facecast.rig.io.character_examples import character_example_set
 from facecast.rig.io.loaders import load_example_set
 from facecast.rig.io.rigfile import load_rig
-from facecast.rig.sources.generic import generic_sources
+from facecast.rig.sources.generic import CHARACTER_FIT_DEFAULTS, generic_sources
 
 from ._avatars import avatar
 
@@ -50,6 +50,12 @@ def test_fit_json_carries_the_pairing(tmp_path, capsys):
         "reason": jaw["reason"],
     }
     assert "Perfect Sync capitals" in jaw["reason"]
+    # No --noise: fitted for a live tracker, as PUT /v1/characters/{id} fits it.
+    report = payload["fit_report"]
+    assert (report["noise"], report["clamp"]) == (
+        CHARACTER_FIT_DEFAULTS["noise"],
+        CHARACTER_FIT_DEFAULTS["clamp"],
+    )
 
 
 def test_fit_a_neutral_only_glb_says_what_is_possible(tmp_path, capsys):
