@@ -30,7 +30,7 @@ from ..storage.characters import (
     pack_character,
 )
 from ..storage.rig_store import RIG_ID_PATTERN, RigStore, valid_rig_id
-from .rigs import FitOptions, archive_limits, fit_slot, read_body, run_fit
+from .rigs import CharacterFitOptions, archive_limits, fit_slot, read_body, run_fit
 
 if TYPE_CHECKING:
     from facecast.rig import Rig
@@ -76,7 +76,7 @@ def _check_id(rig_id: str) -> str:
     },
 )
 async def put_character(
-    request: Request, rig_id: str, principal: Admin, options: FitOptions
+    request: Request, rig_id: str, principal: Admin, options: CharacterFitOptions
 ) -> JSONResponse:
     _check_id(rig_id)
     if PERFORMER_SEPARATOR in rig_id:

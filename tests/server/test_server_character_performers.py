@@ -113,10 +113,6 @@ async def test_a_performer_calibrates_an_uploaded_character_into_their_own_rig(s
     assert served.status_code == 200 and served.content == data
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the character route takes rigs.CharacterFitOptions at merge (charlive's report)",
-)
 async def test_a_character_uploaded_without_a_noise_is_fitted_for_a_live_tracker(settings):
     from tests.rig._avatars import avatar
 
