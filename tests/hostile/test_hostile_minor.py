@@ -26,7 +26,7 @@ class _Records(logging.Handler):
 
 async def test_a_publisher_leaving_is_logged_once(rigs_dir, ws_impl):
     records = _Records()
-    logger = logging.getLogger("facecast.server.channels.channel")
+    logger = logging.getLogger("facecast.server.channels")
     try:
         async with run_server(Settings(rigs_dir=rigs_dir), ws=ws_impl) as server:
             logger.addHandler(records)  # after uvicorn has configured logging
