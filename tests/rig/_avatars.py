@@ -43,7 +43,43 @@ _HEAD_Y = 1.45  # metres: the ICT head's origin placed at a standing character's
 _FACE = (0, 14062)  # face, head and neck, mouth socket, eye sockets
 _TEETH = (14062, 21451)  # gums, tongue, teeth
 _EYES = (21451, 24591)  # both eyeballs
-_JOINTS = (("Hips", 0.95), ("Spine", 1.15), ("Neck", 1.40), ("Head", 1.50))
+#: The skeleton, in a +z-facing frame (+x the character's left), metres: name, parent,
+#: position. VRM's humanoid: its required bones (hips, spine, head, arms, legs) and chest,
+#: neck and the eyes (at the eyeballs' centres, from the mesh); a hair chain behind the
+#: head for the spring bones. VRM 0.x variants turn it to face -z with the meshes.
+_BONES = (
+    ("Hips", None, (0.0, 0.95, 0.0)),
+    ("Spine", "Hips", (0.0, 1.10, 0.0)),
+    ("Chest", "Spine", (0.0, 1.25, 0.0)),
+    ("Neck", "Chest", (0.0, 1.40, 0.0)),
+    ("Head", "Neck", (0.0, 1.50, 0.0)),
+    ("LeftEye", "Head", (0.0309, 1.4861, 0.0799)),
+    ("RightEye", "Head", (-0.0309, 1.4861, 0.0799)),
+    ("HairRoot", "Head", (0.0, 1.52, -0.10)),
+    ("Hair1", "HairRoot", (0.0, 1.45, -0.12)),
+    ("Hair2", "Hair1", (0.0, 1.38, -0.13)),
+    ("LeftUpperArm", "Chest", (0.18, 1.33, 0.0)),
+    ("LeftLowerArm", "LeftUpperArm", (0.45, 1.33, 0.0)),
+    ("LeftHand", "LeftLowerArm", (0.70, 1.33, 0.0)),
+    ("RightUpperArm", "Chest", (-0.18, 1.33, 0.0)),
+    ("RightLowerArm", "RightUpperArm", (-0.45, 1.33, 0.0)),
+    ("RightHand", "RightLowerArm", (-0.70, 1.33, 0.0)),
+    ("LeftUpperLeg", "Hips", (0.10, 0.90, 0.0)),
+    ("LeftLowerLeg", "LeftUpperLeg", (0.10, 0.50, 0.0)),
+    ("LeftFoot", "LeftLowerLeg", (0.10, 0.08, 0.0)),
+    ("RightUpperLeg", "Hips", (-0.10, 0.90, 0.0)),
+    ("RightLowerLeg", "RightUpperLeg", (-0.10, 0.50, 0.0)),
+    ("RightFoot", "RightLowerLeg", (-0.10, 0.08, 0.0)),
+)
+#: The bones that skin the meshes (the skin's joints, in this order).
+_SKIN_JOINTS = ("Hips", "Spine", "Chest", "Neck", "Head", "LeftEye", "RightEye")
+#: The hair chain the spring bones move, root first; the head's sphere collider (offset
+#: from the Head bone, radius) keeps it out of the skull.
+_HAIR = ("HairRoot", "Hair1", "Hair2")
+_HEAD_COLLIDER = ((0.0, -0.03, 0.02), 0.08)
+#: Bone nodes are 1.. in _BONES order (node 0 the armature); the mesh nodes follow.
+_NODE = {name: 1 + i for i, (name, _, _) in enumerate(_BONES)}
+_FIRST_MESH_NODE = 1 + len(_BONES)
 
 
 def require_ict() -> Path:
@@ -106,6 +142,38 @@ def _polyline(points: np.ndarray, closed: bool, steps: int = 8) -> np.ndarray:
     return (starts[:, None] + t * (ends - starts)[:, None]).reshape(-1, 2)
 
 
+#: Where the skin texture is plain skin: the UV of every triangle the front projection
+#: does not fit.
+_PLAIN_SKIN_UV = (0.02, 0.02)
+
+
+def _split_uv_seam(
+    vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plain skin for the triangles turned away from the front projection (sides, back,
+    nape: it would repeat the face's brows there, or stretch them across the triangles
+    that straddle the two), with a seam of duplicated vertices between the two kinds, so
+    no triangle interpolates a face UV to the plain-skin corner (a smeared streak).
+
+    Returns ``source`` (V',) int: the original vertex each vertex copies (duplicates
+    appended after the originals, which keep their index), the re-indexed faces and UVs.
+    """
+    corners = vertices[faces]
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    facing = normal[:, 2] / np.maximum(np.linalg.norm(normal, axis=1), 1e-12)
+    back = facing < 0.3  # steeper than ~73 degrees from the view: the projection stretches
+    count = vertices.shape[0]
+    shared = np.intersect1d(faces[back], faces[~back])
+    remap = np.arange(count)
+    remap[shared] = count + np.arange(shared.size)
+    faces = faces.copy()
+    faces[back] = remap[faces[back]]
+    source = np.concatenate([np.arange(count), shared])
+    uv = uv[source]
+    uv[np.unique(faces[back])] = _PLAIN_SKIN_UV
+    return source, faces, uv
+
+
 def _skin_texture(uv: np.ndarray, landmarks: np.ndarray, size: int = 256) -> bytes:
     """Skin colour with brows (Multi-PIE 17-21, 22-26) and lips (48-59) painted at their
     landmarks' UVs: strokes along each brow and around the lips' outer ring."""
@@ -130,6 +198,23 @@ def _eye_texture(size: int = 128) -> bytes:
     image[radius < 0.22] = IRIS
     image[radius < 0.08] = (10, 10, 10)
     return png(image)
+
+
+@functools.cache
+def face_mesh() -> dict[str, Any]:
+    """The face mesh of every variant (+z-facing): ``vertices`` (V, 3), ``faces``, ``uv``,
+    ``normals``, ``ict`` (V,) the ICT vertex each vertex is (the UV seam's duplicates come
+    after ICT's own, which keep their order) and the skin ``texture`` (PNG bytes)."""
+    parts = ict_parts()
+    vertices, faces, ict = _part(parts, _FACE)
+    uv = _front_uv(vertices)
+    texture = _skin_texture(uv, parts["landmarks"])
+    normals = vertex_normals(vertices, faces)
+    source, faces, uv = _split_uv_seam(vertices, faces, uv)
+    return {
+        "vertices": vertices[source], "faces": faces, "uv": uv, "normals": normals[source],
+        "ict": ict[source], "texture": texture,
+    }  # fmt: skip
 
 
 def _part(
@@ -212,14 +297,13 @@ def _morphs(
 def _mesh(
     writer: _Writer, name: str, vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray,
     morphs: dict[str, np.ndarray], material: int, skin_joints: np.ndarray, skin_weights: np.ndarray,
+    normals: np.ndarray,
 ) -> pygltflib.Mesh:  # fmt: skip
     attributes = pygltflib.Attributes(
         POSITION=writer.accessor(
             vertices.astype(np.float32), "VEC3", target=pygltflib.ARRAY_BUFFER, minmax=True
         ),
-        NORMAL=writer.accessor(
-            vertex_normals(vertices, faces), "VEC3", target=pygltflib.ARRAY_BUFFER
-        ),
+        NORMAL=writer.accessor(normals.astype(np.float32), "VEC3", target=pygltflib.ARRAY_BUFFER),
         TEXCOORD_0=None
         if uv is None
         else writer.accessor(uv, "VEC2", target=pygltflib.ARRAY_BUFFER),
@@ -250,13 +334,19 @@ def _mesh(
     )
 
 
-def _skin_weights(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The head on Head; the neck blends Neck into Head over 10 cm below the jaw."""
+def _skin_weights(vertices: np.ndarray, eyes: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The head on Head; the neck blends Neck into Head over 10 cm below the jaw; each
+    eyeball on its eye bone (the look-at turns them). In the +z-facing frame."""
     joints = np.zeros((vertices.shape[0], 4), dtype=np.uint8)
-    joints[:, 0], joints[:, 1] = 3, 2  # Head, Neck
-    head = np.clip((vertices[:, 1] - (_HEAD_Y - 0.12)) / 0.10, 0.0, 1.0)
     weights = np.zeros((vertices.shape[0], 4), dtype=np.float32)
-    weights[:, 0] = head
+    if eyes:
+        joints[:, 0] = np.where(
+            vertices[:, 0] > 0, _SKIN_JOINTS.index("LeftEye"), _SKIN_JOINTS.index("RightEye")
+        )
+        weights[:, 0] = 1.0
+        return joints, weights
+    joints[:, 0], joints[:, 1] = _SKIN_JOINTS.index("Head"), _SKIN_JOINTS.index("Neck")
+    weights[:, 0] = np.clip((vertices[:, 1] - (_HEAD_Y - 0.12)) / 0.10, 0.0, 1.0)
     weights[:, 1] = 1.0 - weights[:, 0]
     joints[weights == 0] = 0  # glTF: a joint with no weight is written as 0
     return joints, weights
@@ -271,12 +361,9 @@ def _build(variant: str, *, redistribution: bool) -> bytes:
         images=[], samplers=[pygltflib.Sampler(magFilter=9729, minFilter=9729)], skins=[],
     )  # fmt: skip
     writer = _Writer(gltf)
-    face_v, face_f, face_i = _part(parts, _FACE)
-    face_uv = _front_uv(face_v)
-    skin_png = _skin_texture(face_uv, parts["landmarks"])
-    # The back of the head would repeat the front's projection (brows on the nape): it
-    # takes a corner of plain skin instead.
-    face_uv[face_v[:, 2] < np.median(face_v[:, 2])] = (0.02, 0.02)
+    face = face_mesh()
+    face_v, face_f, face_i, face_uv = face["vertices"], face["faces"], face["ict"], face["uv"]
+    face_normals, skin_png = face["normals"], face["texture"]
     for number, (image, name) in enumerate(((skin_png, "skin"), (_eye_texture(), "eyes"))):
         gltf.images.append(
             pygltflib.Image(name=name, mimeType="image/png", bufferView=writer.view(image))
@@ -310,45 +397,54 @@ def _build(variant: str, *, redistribution: bool) -> bytes:
         ("teeth", teeth_v, teeth_f, None, _morphs(variant, parts, teeth_i, True), 2),
         ("eyes", eyes_v, eyes_f, eyes_uv, {}, 1),
     ]
+    # The face's normals are the unsplit surface's: its UV seam is no crease in the light.
+    normals = {
+        "face": face_normals,
+        "teeth": vertex_normals(teeth_v, teeth_f),
+        "eyes": vertex_normals(eyes_v, eyes_f),
+    }
+    skinning = {name: _skin_weights(v, name == "eyes") for name, v, *_ in meshes}
     if variant == "teeth_first":
         meshes = [meshes[1], meshes[0], meshes[2]]
-    if variant == "vrm0":  # VRM 0.x characters face -z (three-vrm turns them round)
-        meshes = [
-            (n, v * [-1, 1, -1], f, uv, {k: d * [-1, 1, -1] for k, d in m.items()}, mat)
-            for n, v, f, uv, m, mat in meshes
-        ]
-    # Nodes: 0 the armature, 1..4 its joints, then one root node per skinned mesh (the
-    # validator wants skinned meshes at the root: parents would not move them anyway).
-    gltf.nodes.append(pygltflib.Node(name="Armature", children=[1]))
-    gltf.scenes[0].nodes += list(range(5, 5 + len(meshes)))
-    previous = 0.0
-    for number, (joint, height) in enumerate(_JOINTS):
+    # VRM 0.x characters face -z (three-vrm's rotateVRM0 turns them round): meshes,
+    # morphs and bones turned half a turn about y.
+    turn = np.array([-1.0, 1.0, -1.0]) if variant in ("vrm0", "fcl") else np.ones(3)
+    meshes = [
+        (n, v * turn, f, uv, {k: d * turn for k, d in m.items()}, mat)
+        for n, v, f, uv, m, mat in meshes
+    ]
+    # Nodes: 0 the armature, then its bones (_NODE), then one root node per skinned mesh
+    # (the validator wants skinned meshes at the root: parents would not move them anyway).
+    position = {name: np.array(at) * turn for name, _, at in _BONES}
+    gltf.nodes.append(pygltflib.Node(name="Armature", children=[_NODE["Hips"]]))
+    for name, parent, _ in _BONES:
+        offset = position[name] - (position[parent] if parent else 0.0)
+        children = [_NODE[child] for child, up, _ in _BONES if up == name]
         gltf.nodes.append(
-            pygltflib.Node(
-                name=joint,
-                translation=[0.0, height - previous, 0.0],
-                children=[2 + number] if number < 3 else None,
-            )
+            pygltflib.Node(name=name, translation=offset.tolist(), children=children or None)
         )
-        previous = height
-    inverse = np.zeros((4, 4, 4), dtype=np.float32)
-    for number, (_, height) in enumerate(_JOINTS):
+    gltf.scenes[0].nodes += list(range(_FIRST_MESH_NODE, _FIRST_MESH_NODE + len(meshes)))
+    inverse = np.zeros((len(_SKIN_JOINTS), 4, 4), dtype=np.float32)
+    for number, joint in enumerate(_SKIN_JOINTS):
         matrix = np.eye(4, dtype=np.float32)
-        matrix[1, 3] = -height
+        matrix[:3, 3] = -position[joint]
         inverse[number] = matrix.T  # glTF matrices are column-major
     gltf.skins.append(
         pygltflib.Skin(
             name="body",
-            joints=[1, 2, 3, 4],
-            skeleton=1,
+            joints=[_NODE[j] for j in _SKIN_JOINTS],
+            skeleton=_NODE["Hips"],
             inverseBindMatrices=writer.accessor(inverse.reshape(-1), "MAT4"),
         )
     )
     for name, vertices, faces, uv, morphs, material in meshes:
-        joints, weights = _skin_weights(vertices)
+        joints, weights = skinning[name]
         gltf.meshes.append(
-            _mesh(writer, name, vertices, faces, uv, morphs, material, joints, weights)
-        )
+            _mesh(
+                writer, name, vertices, faces, uv, morphs, material, joints, weights,
+                normals[name] * turn,
+            )
+        )  # fmt: skip
         gltf.nodes.append(pygltflib.Node(name=name, mesh=len(gltf.meshes) - 1, skin=0))
     mesh_index = {m[0]: i for i, m in enumerate(meshes)}
     morph_index = {m[0]: {n: j for j, n in enumerate(m[4])} for m in meshes}
@@ -379,7 +475,7 @@ def _binds(
 
 
 def _vrm1(gltf, mesh_index, morph_index, redistribution: bool) -> None:
-    node_of = {mesh: 5 + index for mesh, index in mesh_index.items()}
+    node_of = {mesh: _FIRST_MESH_NODE + index for mesh, index in mesh_index.items()}
     preset = {
         name: {
             "morphTargetBinds": [
@@ -391,7 +487,7 @@ def _vrm1(gltf, mesh_index, morph_index, redistribution: bool) -> None:
     }
     preset["neutral"] = {}
     custom = {"Wink": {"morphTargetBinds": [{"node": node_of["face"], "index": morph_index["face"]["eyeBlinkLeft"], "weight": 1.0}, {"node": node_of["face"], "index": morph_index["face"]["mouthSmileLeft"], "weight": 0.5}]}}  # fmt: skip
-    gltf.extensionsUsed = ["VRMC_vrm"]
+    gltf.extensionsUsed = ["VRMC_vrm", "VRMC_springBone"]
     gltf.extensions = {
         "VRMC_vrm": {
             "specVersion": "1.0",
@@ -406,11 +502,52 @@ def _vrm1(gltf, mesh_index, morph_index, redistribution: bool) -> None:
                 "modification": "prohibited",
                 "creditNotation": "required",
             },
-            "humanoid": {
-                "humanBones": {b.lower(): {"node": 1 + i} for i, (b, _) in enumerate(_JOINTS)}
+            "humanoid": {"humanBones": {bone: {"node": node} for bone, node in _humanoid()}},
+            "firstPerson": {
+                "meshAnnotations": [
+                    {"node": node, "type": "auto"} for node in sorted(node_of.values())
+                ]
+            },
+            # Eye bones turned by up to 10 degrees (the spec's defaults, written out).
+            "lookAt": {
+                "offsetFromHeadBone": [0.0, -0.014, 0.08],
+                "type": "bone",
+                **{
+                    f"rangeMap{side}": {"inputMaxValue": 90.0, "outputScale": 10.0}
+                    for side in ("HorizontalInner", "HorizontalOuter", "VerticalDown", "VerticalUp")
+                },
             },
             "expressions": {"preset": preset, "custom": custom},
-        }
+        },
+        "VRMC_springBone": {
+            "specVersion": "1.0",
+            "colliders": [
+                {
+                    "node": _NODE["Head"],
+                    "shape": {
+                        "sphere": {"offset": list(_HEAD_COLLIDER[0]), "radius": _HEAD_COLLIDER[1]}
+                    },
+                }
+            ],
+            "colliderGroups": [{"name": "head", "colliders": [0]}],
+            "springs": [
+                {
+                    "name": "hair",
+                    "joints": [
+                        {
+                            "node": _NODE[joint],
+                            "hitRadius": 0.02,
+                            "stiffness": 1.0,
+                            "gravityPower": 0.2,
+                            "gravityDir": [0.0, -1.0, 0.0],
+                            "dragForce": 0.4,
+                        }
+                        for joint in _HAIR
+                    ],
+                    "colliderGroups": [0],
+                }
+            ],
+        },
     }
 
 
@@ -442,13 +579,67 @@ def _vrm0(gltf, mesh_index, morph_index, redistribution: bool, *, fcl: bool) -> 
             },
             "humanoid": {
                 "humanBones": [
-                    {"bone": b.lower(), "node": 1 + i} for i, (b, _) in enumerate(_JOINTS)
-                ]
+                    {"bone": bone, "node": node, "useDefaultValues": True}
+                    for bone, node in _humanoid()
+                ],
+                "armStretch": 0.05,
+                "legStretch": 0.05,
+                "upperArmTwist": 0.5,
+                "lowerArmTwist": 0.5,
+                "upperLegTwist": 0.5,
+                "lowerLegTwist": 0.5,
+                "feetSpacing": 0.0,
+                "hasTranslationDoF": False,
+            },
+            "firstPerson": {
+                "firstPersonBone": _NODE["Head"],
+                # 0.x writes the offset in Unity's frame (z mirrored): eyes 8 cm in front.
+                "firstPersonBoneOffset": {"x": 0.0, "y": -0.014, "z": 0.08},
+                "meshAnnotations": [
+                    {"mesh": mesh, "firstPersonFlag": "Auto"}
+                    for mesh in sorted(mesh_index.values())
+                ],
+                "lookAtTypeName": "Bone",
+                **{
+                    f"lookAt{side}": {"curve": [0, 0, 0, 1, 1, 1, 1, 0], "xRange": 90, "yRange": 10}
+                    for side in ("HorizontalInner", "HorizontalOuter", "VerticalDown", "VerticalUp")
+                },
             },
             "blendShapeMaster": {"blendShapeGroups": groups},
+            "secondaryAnimation": {
+                "boneGroups": [
+                    {
+                        "comment": "hair",
+                        "stiffiness": 1.0,
+                        "gravityPower": 0.2,
+                        "gravityDir": {"x": 0.0, "y": -1.0, "z": 0.0},
+                        "dragForce": 0.4,
+                        "center": -1,
+                        "hitRadius": 0.02,
+                        "bones": [_NODE[_HAIR[0]]],
+                        "colliderGroups": [0],
+                    }
+                ],
+                "colliderGroups": [
+                    {
+                        "node": _NODE["Head"],
+                        "colliders": [
+                            {
+                                "offset": dict(zip("xyz", _HEAD_COLLIDER[0], strict=True)),
+                                "radius": _HEAD_COLLIDER[1],
+                            }
+                        ],
+                    }
+                ],
+            },
             "materialProperties": [],
         }
     }
+
+
+def _humanoid() -> list[tuple[str, int]]:
+    """VRM humanoid bone names (leftUpperArm, ...) and their nodes: every bone but hair."""
+    return [(name[0].lower() + name[1:], _NODE[name]) for name, _, _ in _BONES if name not in _HAIR]
 
 
 @functools.cache

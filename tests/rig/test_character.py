@@ -21,7 +21,15 @@ from facecast.rig.io.gltf import pack_glb
 from facecast.rig.io.loaders import load_example_set
 from facecast.rig.sources.generic import generic_sources
 
-from ._avatars import FCL_CLIPS, TEETH_SHAPES, VARIANTS, VRM_BINDS, avatar, ict_parts
+from ._avatars import (
+    FCL_CLIPS,
+    TEETH_SHAPES,
+    VARIANTS,
+    VRM_BINDS,
+    avatar,
+    face_mesh,
+    ict_parts,
+)
 
 pytestmark = pytest.mark.ict
 
@@ -100,8 +108,53 @@ def test_face_displacement_is_the_face_meshes_morph():
 
     displacement = character.expressions["jawOpen"].face_displacement
 
-    expected = ict_parts()["shapes"]["jawOpen"][: character.face_vertices.shape[0]]
+    expected = ict_parts()["shapes"]["jawOpen"][face_mesh()["ict"]]
     np.testing.assert_allclose(displacement, expected, atol=1e-6)
+
+
+def test_no_skin_triangle_stretches_its_texture_across_the_uv_seam():
+    # The front projection's UVs meet the plain-skin corner of the sides and the back at a
+    # seam of duplicated vertices: a triangle spanning both smeared the brows and lips
+    # over the cheek (seen in the viewer's screenshots).
+    face = face_mesh()
+
+    spans = np.ptp(face["uv"][face["faces"]], axis=1).max(axis=1)
+
+    assert spans.max() < 0.1, spans.max()  # 0.7 on the old seam
+    duplicates = face["ict"][np.unique(face["ict"], return_index=True)[1].size :]
+    assert np.isin(duplicates, face["ict"][: -duplicates.size]).all()
+
+
+@pytest.mark.parametrize("variant", ["vrm0", "vrm1"])
+def test_vrm_variants_carry_what_vrm_apps_need(variant):
+    # three-vrm refuses a humanoid without its required bones (arms and legs too); the
+    # look-at turns the eye bones, and the spring bones move the hair chain.
+    doc, _ = split(avatar(variant))
+    names = {i: n.get("name") for i, n in enumerate(doc["nodes"])}
+    if variant == "vrm1":
+        vrm = doc["extensions"]["VRMC_vrm"]
+        bones = {bone: names[b["node"]] for bone, b in vrm["humanoid"]["humanBones"].items()}
+        assert vrm["lookAt"]["type"] == "bone"
+        springs = doc["extensions"]["VRMC_springBone"]["springs"]
+        chain = [names[j["node"]] for j in springs[0]["joints"]]
+        assert "VRMC_springBone" in doc["extensionsUsed"]
+    else:
+        vrm = doc["extensions"]["VRM"]
+        bones = {b["bone"]: names[b["node"]] for b in vrm["humanoid"]["humanBones"]}
+        assert vrm["firstPerson"]["lookAtTypeName"] == "Bone"
+        assert names[vrm["firstPerson"]["firstPersonBone"]] == "Head"
+        groups = vrm["secondaryAnimation"]["boneGroups"]
+        chain = [names[b] for b in groups[0]["bones"]]
+
+    required = {"hips", "spine", "head", "leftUpperArm", "leftLowerArm", "leftHand",
+                "rightUpperArm", "rightLowerArm", "rightHand", "leftUpperLeg", "leftLowerLeg",
+                "leftFoot", "rightUpperLeg", "rightLowerLeg", "rightFoot"}  # fmt: skip
+    assert required | {"chest", "neck", "leftEye", "rightEye"} <= set(bones)
+    assert all(bone.lower() == node.lower() for bone, node in bones.items())
+    assert chain[0] == "HairRoot"
+    # VRM 0.x faces -z: the character's left eye (and hand) on -x.
+    left_eye = doc["nodes"][next(i for i, n in names.items() if n == "LeftEye")]
+    assert (left_eye["translation"][0] > 0) is (variant == "vrm1")
 
 
 def test_teeth_first_file_still_takes_the_face_as_the_face_mesh():
@@ -130,11 +183,11 @@ def test_vrm_expression_binds_are_read_with_their_weights(variant):
 def test_vrm_preset_displacement_sums_its_binds_on_the_face():
     character = load_character(avatar("vrm1"))
     shapes = ict_parts()["shapes"]
-    v = character.face_vertices.shape[0]
+    ict = face_mesh()["ict"]
 
     displacement = character.expressions["aa"].face_displacement
 
-    expected = sum(w * shapes[m][:v] for (mesh, m), w in VRM_BINDS["aa"].items() if mesh == "face")
+    expected = sum(w * shapes[m][ict] for (mesh, m), w in VRM_BINDS["aa"].items() if mesh == "face")
     np.testing.assert_allclose(displacement, expected, atol=1e-6)
 
 

@@ -9,6 +9,7 @@ silhouette when the head turns.
 
 from __future__ import annotations
 
+import base64
 import math
 import os
 import tempfile
@@ -117,6 +118,14 @@ def shown(page, seq: int) -> None:
     page.wait_for_function("n => window.facecastStats.rendered > n", arg=drawn)
 
 
+def canvas_png(page) -> bytes:
+    """The character's canvas as last drawn (a PNG; the page keeps its drawing buffer): what
+    a screenshot of it shows, without the page's compositing a new frame for it, which
+    takes seconds a shot with a large character on a machine without a GPU."""
+    url = page.evaluate("document.querySelector('#stage canvas').toDataURL('image/png')")
+    return base64.b64decode(url.split(",", 1)[1])
+
+
 def lips(image: np.ndarray) -> int:
     """Pixels of the texture's painted lips (saturated red), however lit."""
     r, g, b = (image[..., c].astype(int) for c in range(3))
@@ -146,25 +155,30 @@ def silhouette(image: np.ndarray, background: tuple[int, int, int] | None) -> np
     return np.abs(image[..., :3].astype(int) - background).max(axis=-1) > 12
 
 
-def check_character_page(page, publisher: Publisher, name: str, background) -> dict[str, int]:
-    """Neutral, jaw open, head turned: screenshots saved and checked; returns the counts."""
-    hud = page.locator("#hud")
+YAW = 35.0  # degrees: the head turn check_character_page sends
+
+
+def check_character_page(page, publisher: Publisher, name: str, background) -> dict:
+    """Neutral, jaw open, head turned: screenshots saved and checked; returns the counts
+    and the page's ``characterState()`` in each pose (``states``)."""
+    states = {}
 
     def shot(tag: str) -> np.ndarray:
-        png = page.screenshot(mask=[hud], omit_background=background is None)
+        png = canvas_png(page)
         SHOTS.mkdir(exist_ok=True)
         (SHOTS / f"{name}-{tag}.png").write_bytes(png)
+        states[tag] = page.evaluate("window.characterState()")
         return pixels(png)
 
     shown(page, publisher.pose(0))
     neutral = shot("neutral")
     shown(page, publisher.pose(publisher.jaw_open))
     jaw = shot("jaw")
-    shown(page, publisher.pose(0, yaw=35.0))
+    shown(page, publisher.pose(0, yaw=YAW))
     page.wait_for_function("() => Math.abs(window.facecastStats.head[1]) > 0.2")
     turned = shot("turned")
 
-    counts = {"lips": lips(neutral), "iris": iris(neutral), "skin": skin(neutral)}
+    counts: dict = {"lips": lips(neutral), "iris": iris(neutral), "skin": skin(neutral)}
     assert counts["lips"] > 150, counts
     assert counts["iris"] > 20, counts
     assert counts["skin"] > 2000, counts
@@ -178,6 +192,7 @@ def check_character_page(page, publisher: Publisher, name: str, background) -> d
     # Same expression (neutral) both times: without the head pose nothing would change.
     moved = float((before ^ after).sum() / before.sum())
     assert moved > 0.01, moved
+    counts["states"] = states
     return counts
 
 
@@ -244,7 +259,7 @@ def test_a_vrm_that_forbids_redistribution_is_not_fetched_anonymously(character_
 
 # -- the ICT-FaceKit test avatars, uploaded through PUT /v1/characters --------------------
 
-ICT_VARIANTS = ("arkit", "vrm1")
+ICT_VARIANTS = ("arkit", "vrm0", "vrm1")
 
 
 @pytest.fixture(scope="module")
@@ -267,6 +282,49 @@ def ict_poses(character_server) -> np.ndarray:
     return np.stack([generic.points[0], generic.source_points("jawOpen")]).astype(np.float32)
 
 
+def loaded_character(page) -> str:
+    """Wait until the canvas shows a character file (or failed to): its data-character."""
+    page.wait_for_function(
+        "() => ['vrm', 'gltf', 'model', 'error'].includes("
+        "document.querySelector('canvas').dataset.character)",
+        timeout=60_000,
+    )
+    return page.locator("canvas").get_attribute("data-character")
+
+
+def check_ict_states(states: dict, variant: str) -> None:
+    """What three-vrm made of the avatar and how the page posed it, from characterState()."""
+    neutral, jaw, turned = states["neutral"], states["jaw"], states["turned"]
+    assert neutral["status"] == ("gltf" if variant == "arkit" else "vrm")
+    assert [m["name"] for m in neutral["meshes"]] == ["face", "teeth", "eyes"]
+    assert all(m["skinned"] for m in neutral["meshes"])
+    # ICT's 51 ARKit shapes on the face, its jaw shapes on the teeth.
+    assert neutral["morphs"] == 51 + len(ict_avatars.TEETH_SHAPES)
+    # The rig's weights reach the morphs of both meshes bound to jawOpen.
+    assert jaw["influences"]["face"]["jawOpen"] > 0.5, jaw["influences"]
+    assert jaw["influences"]["teeth"]["jawOpen"] > 0.5, jaw["influences"]
+    assert neutral["influences"].get("teeth", {}).get("jawOpen", 0.0) < 0.1
+    # The head bone holds the sent turn (a VMC yaw: mirrored, PROTOCOL.md §5.3).
+    assert neutral["head"]["rotation"][1] == pytest.approx(0.0, abs=0.01)
+    expected_y = -math.sin(math.radians(YAW) / 2)
+    assert turned["head"]["rotation"][1] == pytest.approx(expected_y, abs=0.02)
+    if variant == "arkit":
+        assert neutral["vrm"] is None
+        return
+    vrm = neutral["vrm"]
+    assert neutral["vrmError"] is None
+    assert vrm["metaVersion"] == variant[-1]
+    assert vrm["humanoid"] and vrm["lookAt"] and vrm["expressionManager"], vrm
+    assert vrm["springBoneManager"] and vrm["springJoints"] >= 2, vrm
+    assert {"chest", "neck", "leftEye", "rightEye"} <= set(vrm["humanBones"])
+    assert {"aa", "blink", "happy", "surprised", "neutral"} <= set(vrm["expressions"])
+    # The eyes look at the viewer: the camera is a little to the character's left (+x of
+    # a character facing +z) and above, for VRM 0.x (turned by rotateVRM0) as for 1.0.
+    look = neutral["lookAt"]
+    assert look["target"] == "camera"
+    assert look["yaw"] > 3 and look["pitch"] != 0, look
+
+
 @pytest.mark.parametrize("variant", ICT_VARIANTS)
 def test_viewer_renders_an_uploaded_ict_avatar_as_authored(
     character_server, ict_poses, page, variant
@@ -275,10 +333,26 @@ def test_viewer_renders_an_uploaded_ict_avatar_as_authored(
     with publishing(character_server, f"ch-{rig_id}", rig_id, ict_poses) as publisher:
         page.set_viewport_size({"width": 800, "height": 420})
         page.goto(f"{character_server}/viewer?rig={rig_id}&channel=ch-{rig_id}")
+        status = loaded_character(page)
         page.wait_for_function("window.facecastStats.state === 'live'", timeout=60_000)
-        stats = page.evaluate("window.facecastStats.character")
         publisher.jaw_open = 1
-        check_character_page(page, publisher, f"viewer-{rig_id}", background=(0x14, 0x16, 0x1C))
+        checked = check_character_page(
+            page, publisher, f"viewer-{rig_id}", background=(0x14, 0x16, 0x1C)
+        )
 
-    assert stats["meshes"] == 3 and stats["head"] is not None
+    assert status == ("gltf" if variant == "arkit" else "vrm")
+    check_ict_states(checked["states"], variant)
+    assert page.errors == []
+
+
+def test_overlay_renders_an_uploaded_ict_vrm0_on_transparency(character_server, ict_poses, page):
+    page.set_viewport_size({"width": 400, "height": 400})
+    with publishing(character_server, "ch-ict-overlay", "ict-vrm0", ict_poses) as publisher:
+        page.goto(f"{character_server}/overlay?rig=ict-vrm0&channel=ch-ict-overlay")
+        assert loaded_character(page) == "vrm"
+        page.wait_for_function("window.facecastStats.state === 'live'", timeout=60_000)
+        publisher.jaw_open = 1
+        checked = check_character_page(page, publisher, "overlay-ict-vrm0", background=None)
+
+    check_ict_states(checked["states"], "vrm0")
     assert page.errors == []

@@ -91,6 +91,7 @@ async function loadModel(params, view) {
   const described = await fetchBinary(params, rigPath, `rig ${params.rig}`, (r) => r.json());
   const character = described.character;
   if (character && params.output === "weights") {
+    view.setCharacterStatus("loading");
     try {
       const glb = await fetchBinary(params, character.url, `character of rig ${params.rig}`);
       const shown = await view.loadCharacter(glb, character);
@@ -101,7 +102,10 @@ async function loadModel(params, view) {
       );
       return { names: described.names, vertexCount: described.num_vertices };
     } catch (err) {
-      if (!(err instanceof Permanent && err.code === "character_not_redistributable")) throw err;
+      if (!(err instanceof Permanent && err.code === "character_not_redistributable")) {
+        view.setCharacterStatus("error");
+        throw err;
+      }
       stats.character = { format: character.format, meta: character.meta, withheld: err.message };
       hud.character(`${metaText(character.meta, character.format)} — not shown: its licence forbids redistribution to viewers without a token`);
     }
@@ -130,6 +134,8 @@ async function main() {
     height: params.height,
   });
   if (view.controls) view.controls.addEventListener("change", () => (view.dirty = true));
+  // Tests (and the curious) read what is shown and how it is posed (FaceView.characterState).
+  window.characterState = () => view.characterState();
 
   setState("connecting", "loading", `rig ${params.rig}`);
   let model;

@@ -27,6 +27,9 @@ export class FaceView {
     if (transparent) this.renderer.setClearColor(0x000000, 0);
     else this.renderer.setClearColor(0x14161c, 1);
     container.appendChild(this.renderer.domElement);
+    // What the canvas shows, for people and tests to synchronise on (characterState()):
+    // none, loading, vrm or gltf (a character file), model (the rig's own mesh), error.
+    this.setCharacterStatus("none");
 
     this.scene = new THREE.Scene();
     this.camera = new THREE.PerspectiveCamera(30, 1, 0.01, 1000);
@@ -74,6 +77,7 @@ export class FaceView {
     // Morphs move vertices outside the neutral's bounding sphere.
     mesh.frustumCulled = false;
     this.show(gltf.scene);
+    this.setCharacterStatus("model");
     this.mesh = mesh;
     this.names = names;
     this.basePositions = geometry.attributes.position.array.slice();
@@ -90,12 +94,31 @@ export class FaceView {
    * {mesh, morph, weight} it drives). Framed on the meshes the bindings drive (the face).
    */
   async loadCharacter(glb, character) {
-    const { root, vrm, meshesByIndex, vrmError } = await parseCharacter(glb, { format: character.format });
+    this.setCharacterStatus("loading");
+    let parsed;
+    try {
+      parsed = await parseCharacter(glb, { format: character.format });
+    } catch (err) {
+      this.setCharacterStatus("error");
+      throw err;
+    }
+    const { root, vrm, meshesByIndex, vrmError } = parsed;
     this.show(root);
     this.mesh = null;
     const bound = bindMorphs(meshesByIndex, character.bindings || []);
     const head = findHead(root, vrm);
-    this.character = { vrm, bound, head, headRest: head ? head.quaternion.clone() : null, format: character.format, weights: null };
+    this.character = {
+      vrm,
+      bound,
+      head,
+      headRest: head ? head.quaternion.clone() : null,
+      format: character.format,
+      weights: null,
+      vrmError,
+    };
+    // The eyes look at the viewer: three-vrm's look-at aims them at the camera on every
+    // vrm.update (bone or expression look-at, within the file's range maps).
+    if (vrm && vrm.lookAt) vrm.lookAt.target = this.camera;
     if (vrm) vrm.update(0);
     root.updateMatrixWorld(true);
     const box = new THREE.Box3();
@@ -104,6 +127,7 @@ export class FaceView {
     for (const index of driven) for (const object of meshesByIndex.get(index) || []) box.expandByObject(object);
     this.frame(box.isEmpty() ? new THREE.Box3().setFromObject(root) : box);
     this.dirty = true;
+    this.setCharacterStatus(vrm ? "vrm" : "gltf");
     return {
       meshes: meshesByIndex.size,
       vrm: Boolean(vrm),
@@ -112,6 +136,68 @@ export class FaceView {
       vrmError,
       materials: materialTypes(root),
     };
+  }
+
+  /** Mark the canvas (`data-character`) with what it shows (see the constructor). */
+  setCharacterStatus(status) {
+    this.renderer.domElement.dataset.character = status;
+  }
+
+  /**
+   * What the character shown is and how it is posed now, for tests and the curious
+   * (window.characterState()): its meshes and morph targets, which of three-vrm's parts
+   * exist, the head bone's rotation, where the eyes look, the morph influences in effect.
+   */
+  characterState() {
+    const c = this.character;
+    const state = { status: this.renderer.domElement.dataset.character, format: null, meshes: [], morphs: 0 };
+    if (!c) return state;
+    state.format = c.format;
+    state.vrmError = c.vrmError;
+    const influences = {};
+    this.root.updateMatrixWorld(true);
+    this.root.traverse((node) => {
+      if (!node.isMesh) return;
+      const weights = node.morphTargetInfluences || [];
+      state.meshes.push({ name: node.name, morphs: weights.length, skinned: Boolean(node.isSkinnedMesh) });
+      state.morphs += weights.length;
+      const names = Object.entries(node.morphTargetDictionary || {});
+      for (const [name, index] of names) {
+        if (weights[index] > 1e-4) (influences[node.name] ||= {})[name] = weights[index];
+      }
+    });
+    state.influences = influences;
+    if (c.head) {
+      const world = c.head.getWorldQuaternion(new THREE.Quaternion());
+      state.head = { name: c.head.name, rotation: c.head.quaternion.toArray(), world: world.toArray() };
+    } else {
+      state.head = null;
+    }
+    const vrm = c.vrm;
+    if (vrm) {
+      const springs = vrm.springBoneManager;
+      state.vrm = {
+        metaVersion: vrm.meta ? vrm.meta.metaVersion : null,
+        humanoid: Boolean(vrm.humanoid),
+        humanBones: vrm.humanoid ? Object.keys(vrm.humanoid.humanBones).sort() : [],
+        lookAt: Boolean(vrm.lookAt),
+        expressionManager: Boolean(vrm.expressionManager),
+        expressions: vrm.expressionManager ? vrm.expressionManager.expressions.map((e) => e.expressionName) : [],
+        springBoneManager: Boolean(springs),
+        springJoints: springs ? springs.joints.size : 0,
+        firstPerson: Boolean(vrm.firstPerson),
+      };
+      if (vrm.lookAt) {
+        state.lookAt = {
+          target: vrm.lookAt.target === this.camera ? "camera" : vrm.lookAt.target ? "object" : null,
+          yaw: vrm.lookAt.yaw,
+          pitch: vrm.lookAt.pitch,
+        };
+      }
+    } else {
+      state.vrm = null;
+    }
+    return state;
   }
 
   show(root) {

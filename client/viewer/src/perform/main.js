@@ -131,6 +131,7 @@ async function loadModel(params, view) {
   const described = await (await fetchOk(params, rigPath, what)).json();
   const character = described.character;
   if (character) {
+    view.setCharacterStatus("loading");
     try {
       const glb = await (await fetchOk(params, character.url, what)).arrayBuffer();
       const shown = await view.loadCharacter(glb, character);
@@ -139,7 +140,10 @@ async function loadModel(params, view) {
         metaText(character.meta, character.format) + (shown.vrmError ? " — shown as plain glTF (three-vrm refused it)" : "");
       return { names: described.names.filter((n) => n !== "neutral"), bindNames: described.names };
     } catch (err) {
-      if (err.code !== "character_not_redistributable") throw err;
+      if (err.code !== "character_not_redistributable") {
+        view.setCharacterStatus("error");
+        throw err;
+      }
       stats.character = { format: character.format, meta: character.meta, withheld: err.message };
       $("stage-meta").textContent = `${metaText(character.meta, character.format)} — not shown: its licence forbids redistribution to viewers without a token`;
     }
@@ -161,6 +165,8 @@ async function main() {
   stats.channel = params.channel;
 
   const view = new FaceView($("stage"), { controls: false });
+  // Tests (and the curious) read what is shown and how it is posed (FaceView.characterState).
+  window.characterState = () => view.characterState();
   let names = [];
   let live = true; // the view follows the server's weights (else: showing a target example)
   // The view takes weights in one named order (FaceView.bindWeights: the GLB leaves out the
