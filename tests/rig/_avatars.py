@@ -1,10 +1,12 @@
 """Test avatars of the kind people have, built from ICT-FaceKit with pygltflib.
 
-Face, teeth and eyes as separate skinned meshes on a Hips -> Spine -> Neck -> Head
-skeleton, a textured skin (a generated PNG with painted brows and lips), a blue-iris eye
-texture, ARKit-named morph targets (jawOpen on the face AND the teeth), in metres, and its
-variants: VRM 1.0 and 0.x blocks with presets binding several morphs on several meshes,
-Perfect Sync capitals, VRoid ``Fcl_`` clips, the teeth mesh first, a neutral-only file.
+Face, teeth and eyes as separate skinned meshes on a VRM humanoid skeleton (hips to head,
+arms, legs, eye bones the eyeballs hang on, a hair chain), a textured skin (a generated
+PNG with painted brows and lips; its UV seam split), a blue-iris eye texture, ARKit-named
+morph targets (jawOpen on the face AND the teeth), in metres, and its variants: VRM 1.0
+and 0.x blocks (0.x facing -z) with presets binding several morphs on several meshes, a
+bone look-at and spring bones on the hair, Perfect Sync capitals, VRoid ``Fcl_`` clips,
+the teeth mesh first, a neutral-only file.
 ``avatar(variant)`` is cached for the session; the ICT archive is read once.
 """
 

@@ -4,7 +4,9 @@ uploaded glTF / VRM 1.0 / VRM 0.x file in a real Chromium, posed through its bin
 One server for the module (rigs stored with their character files), the package's one
 browser; a publisher thread streams the poses a test asks for into a channel the page
 watches. Checked by pixel: the texture's colours, the teeth when the jaw opens, the
-silhouette when the head turns.
+silhouette when the head turns; and through the page's ``window.characterState()``: what
+three-vrm made of a VRM (humanoid, look-at at the camera, expressions, spring bones), the
+morphs the weights drive, the head bone's turn.
 """
 
 from __future__ import annotations
@@ -286,10 +288,10 @@ def loaded_character(page) -> str:
     """Wait until the canvas shows a character file (or failed to): its data-character."""
     page.wait_for_function(
         "() => ['vrm', 'gltf', 'model', 'error'].includes("
-        "document.querySelector('canvas').dataset.character)",
+        "document.querySelector('#stage canvas').dataset.character)",
         timeout=60_000,
     )
-    return page.locator("canvas").get_attribute("data-character")
+    return page.locator("#stage canvas").get_attribute("data-character")
 
 
 def check_ict_states(states: dict, variant: str) -> None:
