@@ -122,3 +122,23 @@ export function metaText(meta, format) {
   if (meta.redistribution === false) parts.push("no redistribution");
   return `${format === "vrm0" ? "VRM 0.x" : format === "vrm1" ? "VRM 1.0" : "glTF"} · ${parts.join(" · ")}`;
 }
+
+/**
+ * Whether spring bones still move: the largest change of a spring joint's rotation since
+ * the last call (kept in `last`, a Float32Array of 4 per joint) above `tolerance`. Once
+ * they settle the page stops redrawing until something else changes (a pose, the camera).
+ */
+export function springsMoving(joints, last, tolerance = 1e-5) {
+  let moved = 0;
+  let i = 0;
+  for (const joint of joints) {
+    const q = joint.bone.quaternion;
+    moved = Math.max(moved, Math.abs(q.x - last[i]), Math.abs(q.y - last[i + 1]), Math.abs(q.z - last[i + 2]), Math.abs(q.w - last[i + 3]));
+    last[i] = q.x;
+    last[i + 1] = q.y;
+    last[i + 2] = q.z;
+    last[i + 3] = q.w;
+    i += 4;
+  }
+  return moved > tolerance;
+}

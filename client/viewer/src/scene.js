@@ -7,7 +7,7 @@ import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 
-import { applyWeights, bindMorphs, findHead, headQuaternion, parseCharacter } from "./character.js";
+import { applyWeights, bindMorphs, findHead, headQuaternion, parseCharacter, springsMoving } from "./character.js";
 import { applyMoving } from "./protocol.js";
 
 export class FaceView {
@@ -185,6 +185,7 @@ export class FaceView {
         expressions: vrm.expressionManager ? vrm.expressionManager.expressions.map((e) => e.expressionName) : [],
         springBoneManager: Boolean(springs),
         springJoints: springs ? springs.joints.size : 0,
+        springsSettled: Boolean(c.springsSettled),
         firstPerson: Boolean(vrm.firstPerson),
       };
       if (vrm.lookAt) {
@@ -299,8 +300,16 @@ export class FaceView {
       if (c.weights) applyWeights(c.bound, c.weights);
     }
     this.renderer.render(this.scene, this.camera);
-    // Spring bones keep moving after the pose stops changing.
-    this.dirty = Boolean(c && c.vrm && c.vrm.springBoneManager && c.vrm.springBoneManager.joints.size);
+    // Spring bones keep moving after the pose stops changing: drawn again until they
+    // settle (an idle overlay then costs nothing, as for any other character).
+    const springs = c && c.vrm && c.vrm.springBoneManager ? c.vrm.springBoneManager.joints : null;
+    if (springs && springs.size) {
+      c.springPose ||= new Float32Array(springs.size * 4);
+      c.springsSettled = !springsMoving(springs, c.springPose);
+      this.dirty = !c.springsSettled;
+    } else {
+      this.dirty = false;
+    }
   }
 
   resize() {

@@ -3,7 +3,7 @@
 import assert from "node:assert/strict";
 import { test } from "node:test";
 
-import { applyWeights, bindMorphs, headQuaternion, metaText } from "../src/character.js";
+import { applyWeights, bindMorphs, headQuaternion, metaText, springsMoving } from "../src/character.js";
 
 function mesh(id, morphs) {
   return { id, morphTargetInfluences: new Array(morphs).fill(0.5) };
@@ -44,4 +44,16 @@ test("the VRM meta reads as name, authors, licence and the redistribution rule",
   const text = metaText({ name: "Ava", authors: ["A", "B"], licence: "CC_BY", redistribution: false }, "vrm0");
   assert.equal(text, "VRM 0.x · Ava · by A, B · licence CC_BY · no redistribution");
   assert.equal(metaText({}, "gltf"), "");
+});
+
+test("spring bones count as moving until no joint turns by more than the tolerance", () => {
+  const joint = (x, w) => ({ bone: { quaternion: { x, y: 0, z: 0, w } } });
+  const joints = new Set([joint(0, 1), joint(0.1, 0.995)]);
+  const last = new Float32Array(8);
+  assert.equal(springsMoving(joints, last), true); // from the zeros: everything moved
+  assert.equal(springsMoving(joints, last), false); // the same pose again: settled
+  [...joints][1].bone.quaternion.x = 0.1 + 1e-4;
+  assert.equal(springsMoving(joints, last), true);
+  [...joints][1].bone.quaternion.x += 1e-6; // below the tolerance
+  assert.equal(springsMoving(joints, last), false);
 });
