@@ -243,8 +243,10 @@ def test_vertex_output_of_a_character_rig_shows_its_face_mesh(character_server, 
         shown(page, pub.pose(NAMES.index("jawOpen")))
         image = pixels(page.screenshot(omit_background=True))
         stats = page.evaluate("window.facecastStats")
+        state = page.evaluate("window.characterState()")
 
     assert stats["character"] is None and stats["error"] is None
+    assert state["status"] == "model" and state["meshes"] == []
     assert (image[..., 3] > 0).mean() > 0.05  # the face mesh is drawn
     assert lips(image) == 0  # ... untextured: the character file is not used
     assert page.errors == []
@@ -252,9 +254,10 @@ def test_vertex_output_of_a_character_rig_shows_its_face_mesh(character_server, 
 
 def test_a_vrm_that_forbids_redistribution_is_not_fetched_anonymously(character_server, page):
     page.goto(f"{character_server}/viewer?rig={LOCKED}")
-    page.wait_for_function("window.facecastStats.character !== null")
+    status = loaded_character(page)
     stats = page.evaluate("window.facecastStats.character")
 
+    assert status == "model"  # the rig's own mesh instead
     assert "redistribution" in stats["withheld"]
     assert "forbids redistribution" in page.locator("#character").inner_text()
 
