@@ -164,6 +164,20 @@ async def test_a_second_transfer_while_one_runs_is_refused_as_busy(settings):
     assert busy.headers["retry-after"]
 
 
+async def test_a_job_the_server_stops_under_ends_as_interrupted(settings):
+    every = {"expressions": "transfer"}  # all 51: still running when the server stops
+    async with run_server(settings) as server, client(server) as http:
+        put = await http.put("/v1/characters/ava", content=neutral_only(), params=every)
+    assert put.status_code == 202, put.text
+    async with run_server(settings) as server, client(server) as http:
+        records = await follow(http, "ava")
+        described = await http.get("/v1/rigs/ava")
+
+    assert records[-1]["state"] == "failed", records[-1]
+    assert records[-1]["error"]["code"] == "interrupted"
+    assert described.status_code == 404  # nothing stored
+
+
 async def test_a_job_whose_process_died_reads_as_interrupted(settings):
     settings.rigs_dir.mkdir(parents=True)
     jobs = settings.rigs_dir / JOBS_DIR
