@@ -126,7 +126,7 @@ async def start_transfer(
             data = await read_body(request, settings.max_upload_bytes)
             prepare = _Prepare(archive_limits(settings), store.scratch, archive, settings)
             try:
-                plan = await run_fit(request, lambda: prepare(data, markers, wanted))
+                plan, source = await run_fit(request, lambda: prepare(data, markers, wanted))
             except ArchiveError as exc:
                 raise ApiError(exc.status, exc.code, str(exc)) from None
             now = time.time()
@@ -146,7 +146,7 @@ async def start_transfer(
             }
             await anyio.to_thread.run_sync(store.jobs.write, rig_id, record)
             job = _TransferJob(
-                rig_id, record["job"], plan, _source(archive), options, store,
+                rig_id, record["job"], plan, source, options, store,
                 request.app.state.transfer_cancel,
             )  # fmt: skip
             executor: ThreadPoolExecutor = request.app.state.transfer_executor
@@ -218,7 +218,9 @@ class _Prepare:
         self.archive = archive
         self.max_vertices = settings.max_transfer_vertices
 
-    def __call__(self, data: bytes, markers: str | None, names: list[str] | None) -> TransferPlan:
+    def __call__(
+        self, data: bytes, markers: str | None, names: list[str] | None
+    ) -> tuple[TransferPlan, SourceExpressions]:
         character, found = read_character_upload(data, self.limits, self.scratch)
         if found is not None and markers is not None:
             raise ApiError(
@@ -227,14 +229,16 @@ class _Prepare:
                 "markers=auto and a markers.txt in the archive: keep the one you mean",
             )
         given: Any = found if found is not None else markers
-        return plan_transfer(
+        source = _source(self.archive)
+        plan = plan_transfer(
             character,
-            _source(self.archive),
+            source,
             markers=given,
             names=names,
             max_vertices=self.max_vertices,
             label="the uploaded character",
         )
+        return plan, source
 
 
 class _TransferJob:
