@@ -178,12 +178,14 @@ async def get_job(request: Request, rig_id: str, _: Reader) -> dict[str, Any]:
         raise ApiError(400, "invalid_rig_id", f"rig id {rig_id[:80]!r} must match {RIG_ID_PATTERN}")
     store = _store(request)
     record = await anyio.to_thread.run_sync(store.jobs.read, rig_id)
-    # Nobody holds the slot, yet the record says it runs: its process died.
+    # Nobody holds the slot, yet the record says it runs: its process died. (A job writes
+    # its end before it lets go of the slot, so the record is read again under that rule.)
     if (
         record is not None
         and record.get("state") not in FINISHED
         and await anyio.to_thread.run_sync(store.jobs.slot_free)
     ):
+        job = str(record.get("job"))
         interrupted = {
             "state": "failed",
             "updated": time.time(),
@@ -193,7 +195,7 @@ async def get_job(request: Request, rig_id: str, _: Reader) -> dict[str, Any]:
             },
         }
         await anyio.to_thread.run_sync(
-            store.jobs.update, rig_id, str(record.get("job")), interrupted
+            lambda: store.jobs.update(rig_id, job, interrupted, unfinished=True)
         )
         record = await anyio.to_thread.run_sync(store.jobs.read, rig_id)
     if record is None:

@@ -61,14 +61,20 @@ class JobStore:
         if record.get("state") in FINISHED:
             self.prune()
 
-    def update(self, rig_id: str, job: str, changes: dict[str, Any]) -> bool:
+    def update(
+        self, rig_id: str, job: str, changes: dict[str, Any], *, unfinished: bool = False
+    ) -> bool:
         """Apply ``changes`` to the record if it is still job ``job``'s; whether it was.
 
         A record deleted or replaced meanwhile (the character deleted, or uploaded again)
-        is left alone: the job's result is no longer wanted.
+        is left alone: the job's result is no longer wanted. ``unfinished``: only while
+        the record is not yet done or failed (a reader marking a dead job must not
+        overwrite the end a live one wrote just before it let go of the slot).
         """
         record = self.read(rig_id)
         if record is None or record.get("job") != job:
+            return False
+        if unfinished and record.get("state") in FINISHED:
             return False
         self.write(rig_id, {**record, **changes})
         return True

@@ -207,3 +207,13 @@ def test_finished_job_records_are_pruned_to_the_limit_and_go_with_a_replaced_cha
 
     assert kept == ["c", "d", "e"]  # the two newest finished, and the running one
     assert after == ["c", "e"]
+
+
+def test_marking_a_dead_job_never_overwrites_the_end_a_live_one_wrote(tmp_path):
+    jobs = JobStore(tmp_path, scratch=lambda: tmp_path, max_records=4)
+    jobs.write("ava", {"id": "ava", "job": "j1", "state": "done", "updated": 1.0})
+    failed = {"state": "failed", "error": {"code": "interrupted", "message": "..."}}
+
+    marked = jobs.update("ava", "j1", failed, unfinished=True)
+
+    assert not marked and jobs.read("ava")["state"] == "done"
