@@ -16,8 +16,9 @@ from typing import Final
 import numpy as np
 
 from facecast.protocol.arrays import WIRE_DTYPES, all_finite
+from facecast.protocol.frames import Frame
 from facecast.protocol.limits import Limits
-from facecast.protocol.messages import Frame, _checked
+from facecast.protocol.message import _checked
 
 __all__ = ["decode_frame"]
 

@@ -1,30 +1,45 @@
 """Fitting a rig: parameterization, PCA and cardinal-basis weight functions (thesis ch. 3).
 
 Everything that does not depend on a frame is computed here, once; evaluation lives in
-``rig.Rig``. No file I/O.
+``rig.Rig``. No file I/O. The options are checked in fit_options.py, the weight functions
+solved in weight_solve.py, the report and its warnings made in fit_report.py.
 """
 
 from __future__ import annotations
 
 import time
-import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
-from typing import Any
+from dataclasses import replace
 
 import numpy as np
 import numpy.typing as npt
-import scipy.linalg
 
 from .basis import BasisBuild
 from .bounds import sparsity_penalty
 from .errors import FitError
 from .examples import ExampleSet
-from .radial import KERNELS, evaluate_kernel, kernel_derivative, kernel_slope
+from .fit_options import CLAMP_MODES, DEFAULT_SPARSITY, NOISE_MAX_RELATIVE, sanitize_fit_options
+from .fit_report import (
+    NOISE_WEIGHT_CHANGE,
+    FitReport,
+    IdentifiabilityWarning,
+    noise_gain,
+    warn_collapsing,
+    warn_noise_gain,
+)
 from .rig import Rig, WeightModel
+from .weight_solve import (
+    check_separation,
+    nearest_neighbours,
+    pca,
+    resolution_threshold,
+    solve_weights,
+)
 
 __all__ = [
     "CLAMP_MODES",
+    "NOISE_MAX_RELATIVE",
+    "NOISE_WEIGHT_CHANGE",
     "FitReport",
     "IdentifiabilityWarning",
     "fit",
@@ -32,297 +47,6 @@ __all__ = [
     "refit_noise",
     "resolution_threshold",
 ]
-
-CLAMP_MODES = (None, "none", "nonneg", "unit")
-# clamp None (the default) chooses: bounded ("nonneg") when fitted for noise, where every
-# unbounded noise rig cloned real takes worse than NNLS (README "Real takes"); unbounded
-# without noise, where exact interpolation needs no bounds. "none" asks for unbounded.
-NOISE_CLAMP = "nonneg"
-# The sparsity prior's default: none, the plain metric projection. Chosen on real takes
-# (tests/data/livelink, README "Real takes"): an iPhone's ARKit weights hold 4-10
-# expressions' worth a frame, many small weights at once, and every exponential prior tried
-# (1, the take's own rate, per-shape rates) cloned them worse than none at sigma = 0.5 mm.
-# On synthetic sparse mixes the prior helps; --sparsity 1 asks for it.
-DEFAULT_SPARSITY = 0.0
-
-# Parameter vectors closer than this, relative to the spread of all examples, are taken
-# to coincide: the radial system is singular there whatever the kernel.
-COINCIDE_RELATIVE = 1e-4
-# Examples whose nearest neighbour is closer than this fraction of the median nearest
-# distance collapse together: distinguishable only in the absence of any noise.
-COLLAPSE_RELATIVE = 0.05
-# Points reach a rig as float32 (the protocol's frames, rig and example files): a coordinate
-# x is known to eps32 |x|, so a difference of two to about eps32 * max|x| per coordinate.
-POINT_PRECISION = float(np.finfo(np.float32).eps)
-# Residuals of the hyperplanes below this are rounding: the radial part is then zero.
-EXACT_LINEAR = 1e-10
-# A radial or hyperplane system worse conditioned than this is not solved unregularised.
-MAX_CONDITION = 1e10
-# The noise-gain check: the landmark noise that moves the weights by NOISE_WEIGHT_CHANGE
-# (RMS) is the rig's noise tolerance. Below NOISE_FLOOR_RELATIVE of the feature points'
-# extent (2 um on a 20 cm face, 50 times finer than marker-based capture's ~0.1 mm) no real
-# tracker can feed the rig, so fit warns. ICT-FaceKit fitted exactly sits at 5e-7, the demo
-# at 2e-4, ICT at --noise 0.1 mm at 1e-4: a decade or more either side.
-NOISE_WEIGHT_CHANGE = 0.05
-NOISE_FLOOR_RELATIVE = 1e-5
-# Landmark noise above this many times the feature points' extent is refused: it could not
-# be told from no tracking at all, and its square overflows the regularised fit.
-NOISE_MAX_RELATIVE = 10.0
-
-
-class IdentifiabilityWarning(UserWarning):
-    """Some examples lie so close in parameter space that noise makes them indistinguishable.
-
-    Two examples collapsing together, or the examples barely spanning some direction, so
-    that landmark noise far below any tracker's swings the weights (the noise-gain check).
-    """
-
-
-@dataclass
-class FitReport:
-    """What ``fit`` found: the numbers ``facecast fit`` prints and the rig file keeps."""
-
-    num_examples: int
-    num_points: int
-    num_vertices: int
-    kernel: str
-    noise: float
-    pca_threshold: float
-    eigenvalues: list[float]
-    components_kept: int
-    condition_number: float
-    linear_ridge: float
-    fit_seconds: float
-    # The bounds on the weights, and the sparsity prior on bounded weights
-    # (bounds.sparsity_penalty): its setting and the linear term lambda it gives at this
-    # noise (used only with a clamp).
-    clamp: str | None = None
-    sparsity: float = 0.0
-    sparsity_penalty: float = 0.0
-    # Per example: distance to the nearest other example in the kept space, and its name.
-    nearest_distance: list[float] = field(default_factory=list)
-    nearest_name: list[str] = field(default_factory=list)
-    # Per example: nearest distance / noise (inf without noise): how many noise standard
-    # deviations separate the example from its nearest neighbour.
-    separation_snr: list[float] = field(default_factory=list)
-    warnings: list[str] = field(default_factory=list)
-    # How much landmark noise of unit standard deviation moves the weights (RMS over the
-    # examples): the cost of the kept components.
-    noise_gain: float = 0.0
-    # The landmark noise (source units) that moves the weights by NOISE_WEIGHT_CHANGE RMS,
-    # NOISE_WEIGHT_CHANGE / noise_gain, and the feature points' extent it is judged against
-    # (the diagonal of their bounding box over all source examples).
-    noise_tolerance: float = float("inf")
-    feature_extent: float = 0.0
-    # Condition number of the hyperplanes' least-squares system [1, s p] (eq. 3.10), the
-    # parameters scaled by one factor s so their largest singular value matches the constant
-    # column's: unit-free, and sqrt(largest / smallest kept PCA eigenvalue) since p is centred.
-    # Without the ridge: it is what --noise has to tame.
-    hyperplane_condition_number: float = 1.0
-    # Head-pose removal (Rig.weights(align=True)): the feature points it aligns on first
-    # (None: the set named none, so all of them, jaw and lips included) and the condition
-    # number of the pose refinement against the examples' span (inf: not possible, the
-    # stable-point alignment stands alone).
-    stable_points: list[int] | None = None
-    pose_condition: float = float("inf")
-    # The fit's two parts by their own clocks: the math of this module (wall time of the
-    # fitting thread), and building the (M, 3V) float32 blend basis (memory-bound,
-    # proportional to the target's vertices; the CPU time of the threads that built it,
-    # summed: BasisBuild.seconds). With basis_overlapped a worker thread built the basis
-    # beside the math and the caller finished it, so fit_seconds (wall) is about the longer
-    # of the math and half the two parts' sum; without, about their sum.
-    math_seconds: float = 0.0
-    basis_seconds: float = 0.0
-    basis_overlapped: bool = False
-
-    def to_dict(self) -> dict[str, Any]:
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
-
-
-def _sanitize(
-    example_set: object,
-    kernel: str,
-    noise: float,
-    pca_threshold: float | None,
-    ridge: float | None,
-    clamp: str | None,
-    sparsity: float | None,
-) -> tuple[str, float, float | None, float | None, str | None, float]:
-    """Checked and normalised ``fit`` options: kernel, noise, pca_threshold, ridge, clamp
-    (None or a bound), sparsity."""
-    if not isinstance(example_set, ExampleSet):
-        raise TypeError(f"expected an ExampleSet, got {type(example_set).__name__}")
-    if kernel not in KERNELS:
-        raise FitError(f"unknown kernel {kernel!r}; expected one of {', '.join(KERNELS)}")
-    noise = float(noise)
-    if not np.isfinite(noise) or noise < 0:
-        raise FitError(f"noise must be a finite number >= 0, got {noise}")
-    extent = _extent(example_set.source_points)
-    if noise > NOISE_MAX_RELATIVE * extent:
-        # Noise beyond the face itself means nothing, and its square overflows the fit.
-        raise FitError(
-            f"noise {noise:g} is more than {NOISE_MAX_RELATIVE:g}x the feature points' extent "
-            f"{extent:.3g}: give the landmark noise in the source's units",
-            code="noise_too_large",
-        )
-    if pca_threshold is not None:
-        pca_threshold = float(pca_threshold)
-    if pca_threshold is not None and not (0.0 <= pca_threshold < 1.0):
-        raise FitError(
-            f"pca_threshold is relative to the largest eigenvalue: expected [0, 1), got "
-            f"{pca_threshold}"
-        )
-    if ridge is not None:
-        ridge = float(ridge)
-        if not np.isfinite(ridge) or ridge < 0:
-            raise FitError(f"ridge must be a finite number >= 0, got {ridge}")
-    if clamp not in CLAMP_MODES:
-        raise FitError(f"clamp must be one of {CLAMP_MODES}, got {clamp!r}")
-    explicit_clamp = clamp
-    if clamp is None:
-        clamp = NOISE_CLAMP if noise > 0 else None
-    elif clamp == "none":
-        clamp = None
-    if sparsity is None:
-        sparsity = DEFAULT_SPARSITY
-    else:
-        sparsity = float(sparsity)
-        if not np.isfinite(sparsity) or sparsity < 0:
-            raise FitError(f"sparsity must be a finite number >= 0, got {sparsity}")
-        if sparsity > 0 and explicit_clamp in (None, "none"):
-            raise FitError(
-                "sparsity is a prior on bounded weights: it needs clamp 'nonneg' or 'unit'",
-                code="sparsity_without_clamp",
-            )
-    return kernel, noise, pca_threshold, ridge, clamp, sparsity
-
-
-def resolution_threshold(source_points: np.ndarray) -> float:
-    """The smallest singular value of the centred displacements that is signal, not rounding.
-
-    Each coordinate is known to ``POINT_PRECISION * max|x|`` (float32); rounding of that
-    size on the (M, 3K) displacement matrix has singular values up to about that times
-    sqrt(M) + sqrt(3K) (the edge of the Marchenko-Pastur law), so a principal axis whose
-    singular value is above it stands above the input's numerical resolution.
-
-    Parameters
-    ----------
-    source_points : (M, K, 3) float
-
-    Returns
-    -------
-    float, in source units.
-    """
-    m, k, _ = source_points.shape
-    step = POINT_PRECISION * float(np.abs(source_points).max())
-    return step * float(np.sqrt(m) + np.sqrt(3 * k))
-
-
-def _pca(
-    displacements: np.ndarray, relative_threshold: float | None, resolution: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """Eq. 3.2-3.7: centre, eigen-decompose the covariance, keep the significant axes.
-
-    ``relative_threshold`` None keeps every axis whose singular value is above
-    ``resolution`` (``resolution_threshold``); a number keeps eigenvalues above that
-    fraction of the largest. Returns mean (3K,), feature matrix F (n, 3K), eigenvalues (all,
-    descending) and the relative eigenvalue threshold applied.
-    """
-    mean = displacements.mean(axis=0)  # eq. 3.4
-    centred = displacements - mean
-    # The SVD of the centred data gives the covariance's eigenvectors (eq. 3.5) without
-    # forming the 3K x 3K matrix, and more accurately.
-    _, singular, vt = np.linalg.svd(centred, full_matrices=False)
-    eigenvalues = singular**2 / max(len(displacements) - 1, 1)
-    if eigenvalues[0] <= 0 or singular[0] <= resolution:
-        raise FitError(
-            "no example moves any feature point beyond the points' float precision: every "
-            "source example equals the neutral; choose feature points that the expressions move"
-        )
-    if relative_threshold is None:
-        relative_threshold = float((resolution / singular[0]) ** 2)
-    keep = eigenvalues > relative_threshold * eigenvalues[0]
-    return mean, vt[keep], eigenvalues, relative_threshold
-
-
-def _nearest(params: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    diff = params[:, None, :] - params[None, :, :]
-    dist = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
-    masked = dist + np.diag(np.full(len(params), np.inf))
-    nearest = masked.argmin(axis=1)
-    return dist, masked[np.arange(len(params)), nearest], nearest
-
-
-def _check_separation(
-    names: Sequence[str], nearest_distance: np.ndarray, nearest: np.ndarray, spread: float
-) -> None:
-    tol = COINCIDE_RELATIVE * spread
-    bad = np.flatnonzero(nearest_distance <= tol)
-    if bad.size:
-        i = int(bad[0])
-        j = int(nearest[i])
-        raise FitError(
-            f"examples {names[i]!r} and {names[j]!r} have coinciding feature-point parameters "
-            f"(distance {nearest_distance[i]:.3g}, {nearest_distance[i] / spread:.2g} of the "
-            "examples' spread): no feature point tells them apart, so the radial system is "
-            "singular. Add feature points that these expressions move, or drop one of them.",
-            code="examples_coincide",
-        )
-
-
-def _fit_hyperplanes(
-    params: np.ndarray, lam: float, largest_singular: float
-) -> tuple[np.ndarray, float, bool]:
-    """Eq. 3.10: least-squares hyperplanes over [1, p] with w_i(p_j) = delta_ij, ridge ``lam``.
-
-    Returns the coefficients (n + 1, M), the system's condition number, and whether the
-    unregularised hyperplanes interpolate every example (the design [1, p] has full row
-    rank M and is not near-singular). The parameters are scaled by one factor so that their
-    largest singular value (``largest_singular``, the PCA's) equals the constant column's
-    norm: the solution is the same, but the condition number (and the solver's accuracy) no
-    longer depends on the source's length unit. Refused when near-singular without a
-    ridge, as the radial system is. One SVD of the design gives both the condition number
-    and, without a ridge, the solution.
-
-    With a ridge the hyperplanes are anchored at the neutral, w(p) = e_0 + (p - p_0) C with
-    lam |C|^2: the prior the ridge stands for is then "the face at rest" (weights near 0,
-    the neutral's near 1), not "the average example" (every weight 1 / M) that an
-    intercept left free shrinks towards. On linear data this is the MAP weights under
-    landmark noise and a Gaussian prior on the weights (ridge regression on the example
-    displacements), which the bounded projection's metric (``bounds.weight_metric``, the
-    same ridge) then bounds exactly. The weights still sum to 1: C 1 = 0.
-    """
-    m, n = params.shape
-    scale = np.sqrt(m) / largest_singular
-    design = np.hstack([np.ones((m, 1)), params * scale])
-    u, singular, vt = np.linalg.svd(design, full_matrices=False)
-    condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else float("inf")
-    well_posed = bool(np.isfinite(condition) and condition <= MAX_CONDITION)
-    exact = well_posed and m <= n + 1
-    identity = np.eye(m)
-    if lam > 0:
-        # lam |C|^2 on the unscaled slopes C = scale * C_scaled, fitted to e_j - e_0 at the
-        # examples' displacements from the neutral (the neutral's own row is exact).
-        displacement = (params[1:] - params[0]) * scale
-        reg = np.sqrt(lam) * scale * np.eye(n)
-        steps = identity[1:] - identity[0]
-        slopes = scipy.linalg.lstsq(
-            np.vstack([displacement, reg]), np.vstack([steps, np.zeros((n, m))])
-        )[0]
-        slopes *= scale
-        return np.vstack([identity[0] - params[0] @ slopes, slopes]), condition, exact
-    if not well_posed:
-        raise FitError(
-            f"the hyperplane system [1, p] is near-singular (condition number "
-            f"{condition:.3g} > {MAX_CONDITION:.0e}): the examples barely span some kept "
-            "principal axis, so exact interpolation along it divides by almost nothing. "
-            "Raise --pca-threshold (e.g. 1e-10), set --noise to regularise, or add "
-            "feature points",
-            code="singular_system",
-        )
-    coeffs = vt.T @ (u.T / singular[:, None])  # the least-squares solution for I
-    coeffs[1:] *= scale
-    return coeffs, condition, exact
 
 
 def fit(
@@ -399,7 +123,7 @@ def fit(
         either part reaches the caller.
     """
     started = time.perf_counter()
-    kernel, noise, pca_threshold, ridge, clamp, sparsity = _sanitize(
+    kernel, noise, pca_threshold, ridge, clamp, sparsity = sanitize_fit_options(
         example_set, kernel, noise, pca_threshold, ridge, clamp, sparsity
     )
     building = BasisBuild(example_set.target_vertices, thread=basis_thread)
@@ -495,21 +219,21 @@ def _fit_weights(
 
     source_neutral = source_points[0]
     displacements = (source_points - source_neutral).reshape(m, 3 * k)  # eq. 3.1
-    mean, features, eigenvalues, pca_threshold = _pca(
+    mean, features, eigenvalues, pca_threshold = pca(
         displacements, pca_threshold, resolution_threshold(source_points)
     )
     params = (displacements - mean) @ features.T  # eq. 3.7, (M, n)
     n = params.shape[1]
 
-    dist, nearest_distance, nearest = _nearest(params)
+    dist, nearest_distance, nearest = nearest_neighbours(params)
     spread = float(dist.max())
-    _check_separation(names, nearest_distance, nearest, spread)
+    check_separation(names, nearest_distance, nearest, spread)
 
     noise_var = noise * noise
     lam = m * noise_var if ridge is None else ridge
     alpha = nearest_distance.copy()
     largest_singular = float(np.sqrt(eigenvalues[0] * max(m - 1, 1)))
-    linear_coeffs, radial_coeffs, hyperplane_condition, condition = _solve_weights(
+    linear_coeffs, radial_coeffs, hyperplane_condition, condition = solve_weights(
         params, dist, alpha, kernel, lam, largest_singular
     )
 
@@ -547,9 +271,9 @@ def _fit_weights(
         nearest_name=[names[int(j)] for j in nearest],
         separation_snr=[float(d / noise) if noise > 0 else float("inf") for d in nearest_distance],
     )
-    _warn_collapsing(report, names, noise, emit)
-    report.noise_gain = _noise_gain(model, dist)
-    _warn_noise_gain(report, source_points, noise, clamp, emit)
+    warn_collapsing(report, names, noise, emit)
+    report.noise_gain = noise_gain(model, dist)
+    warn_noise_gain(report, source_points, noise, clamp, emit)
     return model, report
 
 
@@ -583,9 +307,9 @@ def refit_noise(rig: Rig, noise: float) -> Rig:
         params = model.params
         m = params.shape[0]
         lam = m * sigma * sigma
-        dist, _, _ = _nearest(params)
+        dist, _, _ = nearest_neighbours(params)
         largest_singular = float(np.linalg.svd(params, compute_uv=False)[0])
-        linear_coeffs, radial_coeffs, _, _ = _solve_weights(
+        linear_coeffs, radial_coeffs, _, _ = solve_weights(
             params, dist, model.alpha, model.kernel, lam, largest_singular
         )
         models.append(
@@ -601,146 +325,3 @@ def refit_noise(rig: Rig, noise: float) -> Rig:
     report["noise"] = sigma
     report["linear_ridge"] = float(rig.models[0].params.shape[0] * sigma * sigma)
     return rig.with_weight_models(tuple(models), report)
-
-
-def _solve_weights(
-    params: np.ndarray,
-    dist: np.ndarray,
-    alpha: np.ndarray,
-    kernel: str,
-    lam: float,
-    largest_singular: float,
-) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """Eq. 3.10-3.13 at ridge ``lam``: hyperplane and radial coefficients, and the condition
-    numbers of the hyperplane and radial systems.
-
-    ``dist`` (M, M) are the examples' parameter distances, ``alpha`` (M,) the dilations.
-    """
-    m = params.shape[0]
-    # Linear approximation, eq. 3.10: hyperplanes over [1, p] fitted to w_i(p_j) = delta_ij.
-    # The ridge leaves the constant column free, so the hyperplanes still sum to 1.
-    linear_coeffs, hyperplane_condition, linear_exact = _fit_hyperplanes(
-        params, lam, largest_singular
-    )
-    identity = np.eye(m)
-    design = np.hstack([np.ones((m, 1)), params])
-    residuals = identity - design @ linear_coeffs  # eq. 3.11, residuals[j, i] at example j
-
-    # Radial part, eq. 3.12-3.13: R_j(p) = B(|p - p_j| / alpha_j), alpha_j = nearest distance,
-    # so the B-spline's support radius (2 alpha_j) is twice that distance.
-    basis = evaluate_kernel(kernel, dist / alpha[None, :])  # basis[j, l] = R_l(p_j)
-    condition = float(np.linalg.cond(basis))
-    if lam > 0:
-        # Each radial term passes on noise in proportion to its slope / alpha_l.
-        slope = kernel_slope(kernel) / alpha
-        penalty = np.diag(lam * slope * slope)
-        radial_coeffs = scipy.linalg.solve(
-            basis.T @ basis + penalty, basis.T @ residuals, assume_a="pos"
-        )
-    else:
-        if not np.isfinite(condition) or condition > MAX_CONDITION:
-            raise FitError(
-                f"the radial system is near-singular (condition number {condition:.3g} > "
-                f"{MAX_CONDITION:.0e}) with kernel {kernel!r}; use the cubic B-spline, set "
-                "--noise to regularise, or add feature points",
-                code="singular_system",
-            )
-        radial_coeffs = scipy.linalg.solve(basis, residuals)
-    if np.abs(residuals).max() <= EXACT_LINEAR or (lam > 0 and linear_exact):
-        # The hyperplanes already interpolate every example (M - 1 <= n and the examples are
-        # affinely independent): the radial terms would only fit rounding noise, and with a
-        # ridge the residuals are its deliberate shrinkage, which radial terms fitted to them
-        # would undo near each example (they cloned every real take and ICT's mixes worse,
-        # README "Real takes"). Exact zeros let evaluation skip them.
-        radial_coeffs = np.zeros_like(radial_coeffs)
-
-    return linear_coeffs, radial_coeffs, hyperplane_condition, condition
-
-
-def _warn_collapsing(report: FitReport, names: Sequence[str], noise: float, emit: bool) -> None:
-    nearest = np.asarray(report.nearest_distance)
-    median = float(np.median(nearest))
-    for i, d in enumerate(nearest):
-        other = report.nearest_name[i]
-        if d < COLLAPSE_RELATIVE * median:
-            msg = (
-                f"examples {names[i]!r} and {other!r} nearly collapse together: distance "
-                f"{d:.3g} is {d / median:.2g} of the median nearest distance; landmark noise "
-                "will swap their weights. Add feature points that tell them apart, or drop one."
-            )
-        elif noise > 0 and d < 3.0 * noise * np.sqrt(2.0):
-            msg = (
-                f"example {names[i]!r} is within {d / noise:.2g} noise standard deviations of "
-                f"{other!r}: at --noise {noise:g} the two cannot be told apart reliably"
-            )
-        else:
-            continue
-        _warn(report, msg, emit)
-
-
-def _warn(report: FitReport, message: str, emit: bool) -> None:
-    if message not in report.warnings:
-        report.warnings.append(message)
-        if emit:
-            # Past _warn, its check, _fit_weights and fit: the line that called fit.
-            warnings.warn(message, IdentifiabilityWarning, stacklevel=5)
-
-
-def _extent(source_points: np.ndarray) -> float:
-    """The diagonal of the feature points' bounding box over every example."""
-    flat = source_points.reshape(-1, 3)
-    return float(np.linalg.norm(flat.max(axis=0) - flat.min(axis=0)))
-
-
-def _warn_noise_gain(
-    report: FitReport, source_points: np.ndarray, noise: float, clamp: str | None, emit: bool
-) -> None:
-    """Warn when landmark noise far below any tracker's already moves the weights.
-
-    Judged on the rig as fitted, whatever ``noise`` was: at 0 (exact interpolation) this is
-    the usual cause; above 0 it means the given noise is far below any tracker's.
-    """
-    extent = _extent(source_points)
-    tolerance = NOISE_WEIGHT_CHANGE / report.noise_gain if report.noise_gain > 0 else np.inf
-    report.noise_tolerance = float(tolerance)
-    report.feature_extent = extent
-    if not tolerance < NOISE_FLOOR_RELATIVE * extent:
-        return
-    fitted = "--noise 0, exact interpolation" if noise == 0 else f"--noise {noise:g}"
-    advice = "--noise SIGMA" if clamp is not None else "--noise SIGMA --clamp nonneg"
-    _warn(
-        report,
-        f"the rig amplifies landmark noise (noise gain {report.noise_gain:.4g} at {fitted}): "
-        f"noise of only {tolerance:.2g} source units, {tolerance / extent:.1g} of the feature "
-        f"points' extent {extent:.3g} and far below any tracker's, moves the weights by "
-        f"{NOISE_WEIGHT_CHANGE:g} RMS. For tracked input fit with {advice}, SIGMA the "
-        "tracker's landmark noise in source units",
-        emit,
-    )
-
-
-def _noise_gain(model: WeightModel, dist: np.ndarray) -> float:
-    """RMS over the examples of |dw/dp|_F: how far unit landmark noise moves the weights.
-
-    F has orthonormal rows, so isotropic noise of standard deviation s on the points is
-    isotropic noise s on p, and the weights move by s |dw/dp|_F to first order.
-    ``dist`` (M, M) holds |p_k - p_j| between the model's examples (``_nearest``'s).
-    """
-    slopes = model.linear_coeffs[1:]  # (n, M): the hyperplanes' part of every Jacobian
-    if not np.any(model.radial_coeffs):
-        # No radial terms (the hyperplanes interpolate): the Jacobian is the slopes at every
-        # example, and its RMS over them the slopes' norm.
-        return float(np.sqrt(np.vdot(slopes, slopes)))
-    params = model.params
-    m = len(params)
-    # diff[k, :, j] = p_k - p_j, laid out (M, n, M) so the radial part below is one product.
-    diff = params[:, :, None] - params.T[None, :, :]
-    t = dist / model.alpha[None, :]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scale = np.where(dist > 0, kernel_derivative(model.kernel, t) / (model.alpha * dist), 0.0)
-    # d R_j / d p at p_k = B'(t_kj) (p_k - p_j) / (alpha_j |p_k - p_j|), summed over j
-    # against the radial coefficients for every k at once: one (M n, M) @ (M, M) product.
-    diff *= scale[:, None, :]
-    jacobian = (diff.reshape(-1, m) @ model.radial_coeffs).reshape(m, -1, m)
-    jacobian += slopes[None, :, :]  # (M, n, M)
-    return float(np.sqrt(np.vdot(jacobian, jacobian) / m))

@@ -1,8 +1,8 @@
 """The compiled single-frame weight kernel, small-batch blend and float16 cast (``rig._kernel``).
 
 Builds a kernel from a fitted model's arrays when the extension is built and not disabled;
-it must not change what the weights mean: the numpy path in ``rig.WeightModel`` stays the
-reference, and the kernel agrees with it to rounding (about 1e-15 relative, not bit for bit:
+it must not change what the weights mean: the numpy path in ``weight_model.WeightModel`` stays
+the reference, and the kernel agrees with it to rounding (about 1e-15 relative, not bit for bit:
 the sums run in another order, and FMA rounds once where numpy rounds twice). The float16
 cast must give numpy's bits exactly; without F16C it is numpy's own cast.
 """

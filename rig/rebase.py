@@ -14,7 +14,8 @@ import numpy.typing as npt
 from .errors import InputError
 from .fit import fit_weight_model
 from .pose import similarity_transform
-from .rig import Floats, Rig, WeightModel
+from .rig import Rig
+from .weight_model import Floats, WeightModel
 
 __all__ = [
     "DEPTH_NOISE_FACTOR",

@@ -2,24 +2,23 @@
 
 The per-frame hot path: array code end to end, a single frame is a batch of one, and every
 frame-independent product is folded into matrices at construction. No fitting, no file I/O.
+The weight functions are weight_model.py's, the frames a rig accepts point_range.py's.
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field, fields, replace
-from typing import TYPE_CHECKING, Any, TypedDict
+from typing import Any, TypedDict
 
 import numpy as np
 import numpy.typing as npt
 
 from .basis import build_blend_basis
 from .blend import Placement, blend_into, moving_vertices
-from .bounds import BoxProjection, weight_metric
 from .errors import InputError
 from .examples import check_stable_points
 from .io.rigformat import content_checksum, rig_to_bytes, save_rig
-from .kernel import bspline_kernel
+from .point_range import CALIBRATION_RANGE, POINT_RANGE, PointRange, check_calibration_range
 from .pose import (
     POSE_REFINE_MAX_CONDITION,
     align_points,
@@ -28,28 +27,9 @@ from .pose import (
     refine_pose,
     similarity_transform,
 )
-from .radial import evaluate_kernel
-
-if TYPE_CHECKING:
-    from ._kernel import BsplineKernel
+from .weight_model import WeightModel
 
 __all__ = ["CALIBRATION_RANGE", "POINT_RANGE", "Rig", "RigSummary", "WeightModel"]
-
-#: float64 arrays: what a weight model holds (its constructor converts to them).
-Floats = npt.NDArray[np.float64]
-
-#: A frame's feature points are refused (``InputError`` code ``out_of_range``) when their
-#: root-mean-square distance from the reference neutral's centroid is more than this many
-#: times that neutral's radius (its own RMS distance from its centroid). The reference is
-#: the rig's source neutral, or the performer's neutral once calibrated. Far looser than
-#: any real face (a head 2 m from the origin of a 10 cm rig is 20x), it catches points in
-#: other units than the rig (mm for m is 1000x), whose weights mean nothing and overflow.
-POINT_RANGE = 100.0
-#: A calibration neutral is refused (``out_of_range``) when its RMS distance from the source
-#: neutral's centroid is more than this many times the source neutral's radius, or when its
-#: own radius is more than this factor larger or smaller: calibration absorbs a performer's
-#: position and units, not an absurd scale (a 1e300 neutral makes every later frame NaN).
-CALIBRATION_RANGE = 1e4
 
 
 class RigSummary(TypedDict):
@@ -69,189 +49,6 @@ class RigSummary(TypedDict):
     condition_number: float | None
     feature_indices: list[int] | None
     checksum: str
-
-
-@dataclass(frozen=True, eq=False)
-class WeightModel:
-    """The M cardinal weight functions w_i(p) of eq. 3.8, with p computed from raw points.
-
-    Attributes hold the fitted quantities in the thesis's terms; the underscored ones are the
-    same maps folded together for evaluation.
-    """
-
-    kernel: str
-    source_neutral: Floats  # (K, 3) S_B
-    mean: Floats  # (3K,) mean displacement, eq. 3.4
-    features: Floats  # (n, 3K) feature matrix F, eq. 3.6
-    params: Floats  # (M, n) example parameters p_j, eq. 3.7
-    linear_coeffs: Floats  # (n + 1, M) a_il, eq. 3.10
-    radial_coeffs: Floats  # (M, M) r_ji, eq. 3.13
-    alpha: Floats  # (M,) dilation factors
-    clamp: str | None
-    # Noise prior (ridge) of the fit; sets the metric bounded weights are projected in.
-    ridge: float = 0.0
-    # Linear term lambda of the bounded projection (bounds.sparsity_penalty): the sparsity
-    # prior on the bounded weights; 0 is the plain metric projection. Unused without clamp.
-    sparsity_penalty: float = 0.0
-    # Input map x' = x @ input_matrix + input_offset on flattened points (calibration);
-    # identity when not calibrated.
-    input_matrix: Floats | None = None
-    input_offset: Floats | None = None
-    # Folded evaluation matrices, made by __post_init__ (see _fold).
-    _project: Floats = field(init=False, repr=False)  # (3K, M + n + 2M)
-    _offset: Floats = field(init=False, repr=False)  # (M + n + 2M,)
-    _inv_alpha2: Floats = field(init=False, repr=False)  # (2M,)
-    _knots: Floats = field(init=False, repr=False)  # (2M,) 2 then 1
-    _radial2: Floats = field(init=False, repr=False)  # (2M, M)
-    _metric: Floats = field(init=False, repr=False)  # (M-1, M-1) for bounded weights
-    # The bounded-weights step; None without clamp.
-    _box: BoxProjection | None = field(init=False, repr=False)
-    _has_radial: bool = field(init=False, repr=False)
-    _project_linear: Floats = field(init=False, repr=False)  # (3K, M): hyperplanes on raw points
-    # Compiled single-frame evaluator (facecast.rig.kernel); None: numpy does every frame.
-    _kernel: BsplineKernel | None = field(init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        # C-contiguous float64 everywhere, so a rig and its reloaded copy take the same BLAS
-        # paths and give bit-identical weights.
-        for f in fields(self):
-            value = getattr(self, f.name) if f.init else None
-            if isinstance(value, np.ndarray):
-                object.__setattr__(self, f.name, np.ascontiguousarray(value, dtype=np.float64))
-        self._fold()
-
-    @property
-    def num_examples(self) -> int:
-        return int(self.params.shape[0])
-
-    @property
-    def num_points(self) -> int:
-        return int(self.source_neutral.shape[0])
-
-    def _fold(self) -> None:
-        """Fold eq. 3.1, 3.7, 3.10 and the distance expansion into one affine map.
-
-        For flattened points x: p = x F^T - c (c = (S_B + mean) F^T), the hyperplanes are
-        a_0 + p A, and |p - p_j|^2 = |p|^2 - 2 p.p_j + |p_j|^2. One product x @ G + g then
-        gives [linear weights | p | -2 p.p_j + |p_j|^2 (twice, for the two B-spline knots)].
-        """
-        m = self.num_examples
-        ft = self.features.T  # (3K, n)
-        c = (self.source_neutral.reshape(-1) + self.mean) @ ft  # (n,)
-        a0, a1 = self.linear_coeffs[0], self.linear_coeffs[1:]
-        cross = -2.0 * self.params.T  # (n, M)
-        pp = np.einsum("ij,ij->i", self.params, self.params)
-        project = np.hstack([ft @ a1, ft, ft @ cross, ft @ cross])
-        offset = np.concatenate([a0 - c @ a1, -c, pp - c @ cross, pp - c @ cross])
-        if self.input_matrix is not None:
-            if self.input_offset is None:
-                raise ValueError("a weight model's input_matrix needs its input_offset")
-            offset = self.input_offset @ project + offset
-            project = self.input_matrix @ project
-        inv_alpha = 1.0 / self.alpha
-        set_ = object.__setattr__
-        set_(self, "_project", np.ascontiguousarray(project))
-        set_(self, "_offset", offset)
-        set_(self, "_inv_alpha2", np.concatenate([inv_alpha, inv_alpha]) ** 2)
-        set_(self, "_metric", weight_metric(self.params, self.ridge))
-        box = None
-        if self.clamp is not None:
-            upper = 1.0 if self.clamp == "unit" else None
-            box = BoxProjection(self._metric, upper, self.sparsity_penalty)
-        set_(self, "_box", box)
-        set_(self, "_has_radial", bool(np.any(self.radial_coeffs)))
-        set_(self, "_project_linear", np.ascontiguousarray(project[:, :m]))
-        set_(self, "_knots", np.concatenate([np.full(m, 2.0), np.ones(m)]))
-        # B(t) = ((2 - t)_+^3 - 4 (1 - t)_+^3) / 6, so B(t) @ r = [(2-t)_+^3, (1-t)_+^3] @ R2.
-        set_(
-            self,
-            "_radial2",
-            np.vstack([self.radial_coeffs / 6.0, self.radial_coeffs * (-4.0 / 6.0)]),
-        )
-        kernel = None
-        if self.kernel == "bspline":
-            # One frame through numpy is ~13 calls of ~1 us overhead each; the compiled kernel
-            # does the same sums in ~1 us. It agrees with the numpy path to rounding.
-            n = self.params.shape[1]
-            kernel = bspline_kernel(
-                project[:, m : m + n],
-                offset[m : m + n],
-                self.linear_coeffs,
-                self.params,
-                self.alpha,
-                self.radial_coeffs,
-            )
-        set_(self, "_kernel", kernel)
-
-    # -- evaluation ---------------------------------------------------------------------
-    def evaluate(self, flat: np.ndarray) -> np.ndarray:
-        """Weights for flattened points (B, 3K) -> (B, M)."""
-        m = self.num_examples
-        if self._kernel is not None:
-            # Every frame, alone or in a batch, through the same compiled sums: a frame's
-            # weights do not depend on the batch it came in (streamed == offline, exactly).
-            weights = np.empty((flat.shape[0], m))
-            x = np.ascontiguousarray(flat, dtype=np.float64)
-            if flat.shape[0] == 1:
-                self._kernel.evaluate(x[0], weights[0])
-            else:
-                self._kernel.evaluate_rows(x, weights)
-            return self._bounded(weights)
-        if not self._has_radial:
-            # The hyperplanes interpolate (see fit): no distances, no radial terms.
-            weights = flat @ self._project_linear
-            weights += self._offset[:m]
-            return self._bounded(weights)
-        n = self.params.shape[1]
-        z = flat @ self._project
-        z += self._offset
-        p = z[:, m : m + n]
-        if self.kernel == "bspline":
-            d2 = z[:, m + n :]
-            d2 += np.einsum("ij,ij->i", p, p)[:, None]
-            np.maximum(d2, 0.0, out=d2)
-            d2 *= self._inv_alpha2
-            np.sqrt(d2, out=d2)  # now t = |p - p_j| / alpha_j
-            np.subtract(self._knots, d2, out=d2)
-            np.maximum(d2, 0.0, out=d2)
-            cubed = d2 * d2
-            cubed *= d2
-            weights = cubed @ self._radial2
-        else:
-            d2 = z[:, m + n : m + n + m]
-            d2 += np.einsum("ij,ij->i", p, p)[:, None]
-            np.maximum(d2, 0.0, out=d2)
-            t = np.sqrt(d2 * self._inv_alpha2[:m])
-            weights = evaluate_kernel(self.kernel, t) @ self.radial_coeffs
-        weights += z[:, :m]
-        return self._bounded(weights)
-
-    def _bounded(self, weights: np.ndarray) -> np.ndarray:
-        if self._box is not None:
-            rest = self._box(weights[:, 1:])
-            weights[:, 1:] = rest
-            weights[:, 0] = 1.0 - rest.sum(axis=1)
-        return weights
-
-    def weights_from_params(self, params: np.ndarray) -> np.ndarray:
-        """Unclamped weights at reduced parameters (B, n), straight from eq. 3.8 (for analysis)."""
-        lin = self.linear_coeffs[0] + params @ self.linear_coeffs[1:]
-        diff = params[:, None, :] - self.params[None, :, :]
-        t = np.sqrt(np.einsum("bjk,bjk->bj", diff, diff)) / self.alpha
-        weights: np.ndarray = lin + evaluate_kernel(self.kernel, t) @ self.radial_coeffs
-        return weights
-
-    def project(self, flat: np.ndarray) -> np.ndarray:
-        """Reduced parameters p (B, n) of flattened points (B, 3K) (eq. 3.7)."""
-        m, n = self.num_examples, self.params.shape[1]
-        return (flat @ self._project[:, m : m + n]) + self._offset[m : m + n]
-
-    def with_input_map(self, matrix: Floats, offset: Floats) -> WeightModel:
-        # replace() builds a new model, so __post_init__ folds the map in afresh.
-        return replace(self, input_matrix=matrix, input_offset=offset)
-
-    def with_clamp(self, clamp: str | None) -> WeightModel:
-        return replace(self, clamp=clamp)
 
 
 class Rig:
@@ -296,19 +93,12 @@ class Rig:
         self.fit_report = report
         self.calibration = calibration
         reference = self.model.source_neutral if calibration is None else calibration
-        self._centre, radius = _centre_radius(np.asarray(reference, dtype=np.float64))
-        k = reference.shape[0]
-        #: Bound on a frame's sum of squared distances from ``_centre`` (see POINT_RANGE).
-        self._range2 = k * (POINT_RANGE * radius) ** 2
-        #: A sum of squares of the points themselves up to this proves the bound without a
-        #: subtraction (RMS |x - c| <= RMS |x| + |c|), with room for float32 rounding: one
-        #: dot product for every ordinary frame instead of three calls. A float32 sum of
-        #: 3K squares is within 3K units in the last place of the exact one (its rounding
-        #: errors add up at most linearly); the room is four times that.
-        slack = POINT_RANGE * radius - float(np.linalg.norm(self._centre))
-        rounding = 4 * 3 * k * float(np.finfo(np.float32).eps)
-        self._fast2 = k * max(slack, 0.0) ** 2 * (1.0 - max(rounding, 1e-5))
-        self._radius = radius
+        #: The frames this rig accepts (see POINT_RANGE); its bounds as plain attributes too,
+        #: read on every frame.
+        self._point_range = PointRange.around(reference)
+        self._centre = self._point_range.centre
+        self._range2 = self._point_range.range2
+        self._fast2 = self._point_range.fast2
         self._checksum: str | None = None
         # Derived from the models and the calibration at first use (see pose_refinement).
         self._pose_bases: dict[bool, tuple[np.ndarray, float]] = {}
@@ -492,7 +282,7 @@ class Rig:
                 w[:, columns] = model.evaluate(flat)[:, 1:]
             w[:, 0] = 1.0 - w[:, 1:].sum(axis=1)
         if not np.isfinite(w.sum()):
-            # _check_range refused every non-finite frame, so the points are finite here: the
+            # the range check refused every non-finite frame, so the points are finite here: the
             # weights overflowed (a rig file's finite but huge coefficients, or an alignment
             # scaling a frame up by ~1e150).
             bad = np.flatnonzero(~np.isfinite(w).all(axis=1))
@@ -524,20 +314,7 @@ class Rig:
 
     def _check_range(self, x: np.ndarray, *, single: bool) -> None:
         """Raise ``InputError`` for frames (B, K, 3) outside POINT_RANGE (or not finite)."""
-        d = x - self._centre
-        sums = np.einsum("bkc,bkc->b", d, d)
-        bad = np.flatnonzero(~(sums <= self._range2))
-        if not bad.size:
-            return
-        where = "" if single else f" (frame {int(bad[0])})"
-        if not np.isfinite(x[bad[0]]).all():
-            raise InputError(f"feature points hold NaN or Inf{where}", code="non_finite")
-        rms = float(np.sqrt(sums[bad[0]] / x.shape[1]))
-        raise InputError(
-            f"feature points{where} lie {rms:.3g} (RMS) from the neutral's centre, more than "
-            f"{POINT_RANGE:g}x its radius {self._radius:.3g}: are they in the rig's units?",
-            code="out_of_range",
-        )
+        self._point_range.check(x, single=single)
 
     def pose_refinement(self, *, scale: bool = False) -> np.ndarray | None:
         """The expression span ``align`` refines head pose against, or None if it cannot.
@@ -655,7 +432,7 @@ class Rig:
             )
         if not np.isfinite(neutral).all():
             raise InputError("calibration neutral holds NaN or Inf", code="non_finite")
-        self._check_calibration_range(neutral)
+        check_calibration_range(self.model.source_neutral, neutral)
         rotation, scales, _ = similarity_transform(neutral[None], self.source_neutral, scale=scale)
         sr = scales[0] * rotation[0]  # x_row -> x_row @ sr.T
         matrix = np.kron(np.eye(k), sr.T)
@@ -665,25 +442,6 @@ class Rig:
             tuple(m.with_input_map(matrix, offset) for m in self.models),
             calibration=neutral,
             align_scale=self.align_scale,
-        )
-
-    def _check_calibration_range(self, neutral: np.ndarray) -> None:
-        """Refuse a neutral too far from, or too much larger or smaller than, the source's."""
-        source_centre, source_radius = _centre_radius(self.model.source_neutral)
-        _, radius = _centre_radius(neutral)
-        d = neutral - source_centre
-        distance = float(np.sqrt(np.vdot(d, d) / neutral.shape[0]))
-        limit = CALIBRATION_RANGE
-        if not distance <= limit * source_radius:
-            why = f"lies {distance:.3g} (RMS) from the source neutral's centre"
-        elif not source_radius / limit <= radius <= source_radius * limit:
-            why = f"has radius {radius:.3g}"
-        else:
-            return
-        raise InputError(
-            f"calibration neutral {why}; it must lie within {limit:g}x the source neutral's "
-            f"radius {source_radius:.3g} of its centre, with a radius within a factor {limit:g}",
-            code="out_of_range",
         )
 
     def _derive(
@@ -811,11 +569,3 @@ class Rig:
             f"Rig(M={self.num_examples}, K={self.num_points}, V={self.num_vertices}, "
             f"kernel={self.model.kernel!r})"
         )
-
-
-def _centre_radius(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """Centroid (3,) of points (K, 3) and their RMS distance from it (never 0)."""
-    centre = points.mean(axis=0)
-    d = points - centre
-    radius = float(np.sqrt(np.vdot(d, d) / points.shape[0]))
-    return centre, max(radius, float(np.finfo(np.float64).tiny))

@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import threading
 import time
 from collections import Counter
 from collections.abc import AsyncIterator
@@ -34,6 +35,7 @@ from .http.characters import router as character_router
 from .http.performers import profile_store
 from .http.performers import router as performer_router
 from .http.rigs import router as rest_router
+from .http.transfer import router as transfer_router
 from .metrics import CONTENT_TYPE_LATEST, Metrics
 from .pages.api_docs import mount_docs
 from .pages.landing import mount_landing
@@ -74,6 +76,10 @@ def create_app(settings: Settings) -> FastAPI:
         app.state.fit_executor = ThreadPoolExecutor(
             settings.fit_threads, thread_name_prefix="facecast-fit"
         )
+        # Deformation transfer jobs (minutes of scipy for big meshes): their own thread, so
+        # they never hold up fits; one at a time (the slot in ``storage.jobs``).
+        app.state.transfer_executor = ThreadPoolExecutor(1, thread_name_prefix="facecast-transfer")
+        app.state.transfer_cancel = threading.Event()
         # One per app, so frames of all its stream sessions on one rig blend together.
         app.state.blend_batcher = BlendBatcher(
             app.state.clone_executor,
@@ -99,6 +105,8 @@ def create_app(settings: Settings) -> FastAPI:
             await app.state.channels.close()
             app.state.clone_executor.shutdown(wait=False, cancel_futures=True)
             app.state.fit_executor.shutdown(wait=False, cancel_futures=True)
+            app.state.transfer_cancel.set()  # a running transfer stops after its expression
+            app.state.transfer_executor.shutdown(wait=False, cancel_futures=True)
             await anyio.to_thread.run_sync(app.state.store.close)
             log.info("server stopped", extra={"event": "server.stop", "pid": os.getpid()})
 
@@ -117,6 +125,7 @@ def create_app(settings: Settings) -> FastAPI:
         settings.rigs_dir,
         cache_size=settings.rig_cache_size,
         max_rig_bytes=settings.max_extracted_bytes,
+        max_job_records=settings.max_job_records,
     )
     app.state.metrics = Metrics()
     app.state.sessions = SessionRegistry()
@@ -128,6 +137,7 @@ def create_app(settings: Settings) -> FastAPI:
     install_error_handlers(app)
     app.include_router(rest_router)
     app.include_router(character_router)
+    app.include_router(transfer_router)
     app.include_router(stream_router)
     app.include_router(channel_router)
     app.include_router(performer_router)

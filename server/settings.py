@@ -84,6 +84,20 @@ class Settings:
     #: once; one more is 429 ``too_many_fits``. 0: no per-token cap.
     max_fits_per_token: int = 1
 
+    # -- deformation transfer jobs (server/http/transfer.py) ------------------------------
+    #: Largest character face mesh (vertices) ``PUT /v1/characters/{id}?expressions=transfer``
+    #: takes; a larger one is 422 ``too_many_vertices`` (at 50k the correspondence and 51
+    #: shapes take about a minute of one core). One transfer runs per server at a time;
+    #: another is 503 ``transfer_busy``.
+    max_transfer_vertices: int = 50_000
+    #: Finished transfer job records kept under ``<rigs_dir>/.jobs``; older ones are pruned
+    #: (a character's record also goes when the character is deleted or replaced).
+    max_job_records: int = 64
+    #: ICT-FaceKit (its folder or ``ict_facekit.npz``), the expressions a transfer carries:
+    #: "" looks in ``$FACECAST_ICT`` and ``../shared/data/ict-facekit``; "off" turns
+    #: transfers off. Without it a transfer is 503 ``transfer_unavailable``.
+    transfer_source: str = ""
+
     # -- performers (server/performer_routes.py) -------------------------------------------
     #: Largest calibration capture body (JSON or msgpack points per expression).
     max_capture_bytes: int = 1 * MiB
@@ -207,6 +221,8 @@ class Settings:
             "body_timeout",
             "fit_threads",
             "max_capture_bytes",
+            "max_transfer_vertices",
+            "max_job_records",
             "max_connections",
             "max_fps",
             "rate_burst",

@@ -69,6 +69,29 @@ def register(subparsers: Subparsers) -> None:
         metavar="S",
         help="fit, with --clamp: the sparsity prior (default 0, the plain projection)",
     )
+    put.add_argument(
+        "--expressions",
+        choices=("transfer",),
+        default=None,
+        help="transfer: a character with only a neutral (or too few expressions) gets "
+        "ICT-FaceKit's ARKit shapes by deformation transfer on the server first (a job; "
+        "progress shown until it is live)",
+    )
+    put.add_argument(
+        "--markers",
+        metavar="FILE|auto",
+        default=None,
+        help="with --expressions transfer: correspondence markers ('source_vertex "
+        "target_vertex' a line, sent as markers.txt beside the character in a zip), or auto; "
+        "none for a face on ICT's own topology",
+    )
+    put.add_argument(
+        "--names",
+        nargs="+",
+        metavar="NAME",
+        default=None,
+        help="with --expressions transfer: the ARKit names to make (default all it lacks)",
+    )
     get = action("get", "save a rig's file (or with --glb its target mesh)", "name", "out")
     get.add_argument(
         "--glb", action="store_true", help="save the target mesh with morph targets instead"
@@ -110,6 +133,19 @@ def _zip_folder(folder: Path) -> bytes:
 
 def _gltf_archive(path: Path) -> bytes:
     """A zip of a .gltf and the files its buffers and images name (relative URIs inside its folder)."""
+    return _zip_members(_gltf_members(path))
+
+
+def _zip_members(members: dict[str, bytes]) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+        for name, data in members.items():
+            archive.writestr(name, data)
+    return buffer.getvalue()
+
+
+def _gltf_members(path: Path) -> dict[str, bytes]:
+    """A .gltf and the files its buffers and images name, by path relative to its folder."""
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, ValueError) as exc:
@@ -132,11 +168,42 @@ def _gltf_archive(path: Path) -> bytes:
             if not target.is_file():
                 raise CommandError(f"{path}: {kind[:-1]} {uri!r}: no such file beside it")
             members[target.relative_to(folder).as_posix()] = target.read_bytes()
-    buffer = io.BytesIO()
-    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
-        for name, data in members.items():
-            archive.writestr(name, data)
-    return buffer.getvalue()
+    return members
+
+
+def _transfer_body(path: Path, markers: str | None) -> bytes:
+    """The character as sent for a transfer: as it is, or zipped with its markers.txt."""
+    if markers is None or markers == "auto":
+        return _gltf_archive(path) if path.suffix.lower() == ".gltf" else path.read_bytes()
+    try:
+        marker_bytes = Path(markers).read_bytes()
+    except OSError as exc:
+        raise CommandError(f"--markers {markers}: cannot read ({exc})") from None
+    members = (
+        _gltf_members(path) if path.suffix.lower() == ".gltf" else {path.name: path.read_bytes()}
+    )
+    members["markers.txt"] = marker_bytes
+    return _zip_members(members)
+
+
+def _follow_job(get_job: Any, job: dict[str, Any], *, interval: float = 0.5) -> dict[str, Any]:
+    """Poll the job until it ends, a progress line on stderr; its final record."""
+    import time
+
+    while job["state"] not in ("done", "failed"):
+        progress = job.get("progress") or {}
+        stage = job.get("stage") or job["state"]
+        print(
+            f"\rtransferring: {progress.get('done', 0)}/{progress.get('total', '?')} "
+            f"expressions ({stage})   ",
+            end="",
+            file=sys.stderr,
+            flush=True,
+        )
+        time.sleep(interval)  # a REST resource to poll: nothing to wait on but time
+        job = get_job()
+    print(file=sys.stderr)
+    return job
 
 
 def _is_character(path: Path) -> bool:
@@ -209,7 +276,39 @@ def run(args: argparse.Namespace) -> int:
             )
             if v is not None
         }
-        if _is_character(path):
+        if args.expressions is None and (args.markers or args.names):
+            raise CommandError("--markers and --names go with --expressions transfer")
+        if args.expressions == "transfer":
+            if not _is_character(path):
+                raise CommandError(
+                    f"{path}: --expressions transfer takes a character file (.glb, .vrm, .gltf)"
+                )
+            if args.markers == "auto":
+                params["markers"] = "auto"
+            if args.names:
+                params["names"] = ",".join(args.names)
+            params["expressions"] = "transfer"
+            body = _transfer_body(path, args.markers)
+            job = call("PUT", f"/v1/characters/{args.name}", content=body, params=params).json()
+            print(
+                f"transfer job for {args.name}: {len(job['expressions'])} expression(s) onto "
+                f"{job['vertices']} vertices ({job['correspondence']} correspondence)"
+            )
+            job = _follow_job(lambda: call("GET", f"/v1/characters/{args.name}/job").json(), job)
+            if job["state"] == "failed":
+                error = job.get("error") or {}
+                raise CommandError(
+                    f"transfer failed: {error.get('code', 'error')}: {error.get('message', '')}"
+                )
+            result = job["result"]
+            seconds = result["transfer"]["seconds"]
+            print(
+                f"transferred {len(result['transfer']['expressions'])} expression(s) in "
+                f"{seconds['total']:.1f} s (correspondence {seconds['correspondence']:.1f} s, "
+                f"solve {seconds['solve']:.1f} s), fitted in {seconds['fit']:.1f} s"
+            )
+            _print_character_fit(args.name, result)
+        elif _is_character(path):
             body = _gltf_archive(path) if path.suffix.lower() == ".gltf" else path.read_bytes()
             summary = call("PUT", f"/v1/characters/{args.name}", content=body, params=params)
             _print_character_fit(args.name, summary.json())

@@ -68,7 +68,7 @@ OPTIONAL_RECORDS = (
 
 
 class SavedModel(Protocol):
-    """What a rig file holds of one weight model (``facecast.rig.WeightModel`` is one)."""
+    """What a rig file holds of one weight model (``facecast.rig.weight_model.WeightModel`` is one)."""
 
     @property
     def kernel(self) -> str: ...

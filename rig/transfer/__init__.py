@@ -1,9 +1,16 @@
 """Deformation transfer (Sumner & Popović 2004): key-expressions for a neutral-only character.
 
 ``transfer_expressions`` moves a source's expressions (ICT-FaceKit's ARKit shapes) onto a
-target neutral of any topology; ``write_expression_set`` writes them as an example set.
+target neutral of any topology; ``write_expression_set`` writes them as an example set,
+``with_transferred_expressions`` into a character's GLB as morph targets.
 """
 
+from .character import (
+    TransferPlan,
+    add_morph_targets,
+    plan_transfer,
+    with_transferred_expressions,
+)
 from .correspondence import (
     MIN_MARKERS,
     Correspondence,
@@ -32,15 +39,19 @@ __all__ = [
     "DeformationTransfer",
     "GeneratedExpressions",
     "SourceExpressions",
+    "TransferPlan",
     "WrittenSet",
+    "add_morph_targets",
     "check_markers",
     "check_mesh",
     "check_still",
     "fit_correspondence",
     "ict_source_expressions",
     "identity_correspondence",
+    "plan_transfer",
     "read_markers",
     "read_target_mesh",
     "transfer_expressions",
+    "with_transferred_expressions",
     "write_expression_set",
 ]

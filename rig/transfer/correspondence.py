@@ -117,7 +117,7 @@ class Correspondence:
         "automatic" (a similarity fitted to closest points, then closest points).
     rotation : (3, 3) float64
         The rotation that turns the source's axes into the target's (the markers'
-        similarity; the identity for ``identity_correspondence``).
+        similarity; for ``identity_correspondence`` that of the shared vertices).
     scale : float
         Target units per source unit (the same similarity's scale).
     """
@@ -236,7 +236,11 @@ def identity_correspondence(
     The target shares it when every source triangle is also one of the target's, with the
     same vertex numbers and winding (the source may be a part of the target, as ICT's face
     area is of ICT's head): those pair one to one, and each source vertex maps to the
-    target vertex of the same index.
+    target vertex of the same index. The target may be the source in other units and
+    pose (an avatar in metres at head height, ICT in centimetres at the origin): the
+    similarity of the shared vertices (Umeyama) gives the correspondence's ``scale`` and
+    ``rotation``, so the displacements the transfer copies (``still``, placing pieces)
+    arrive in the target's units and axes.
     """
     vs, vt = source_vertices.shape[0], target_vertices.shape[0]
     if vt < vs:
@@ -251,7 +255,10 @@ def identity_correspondence(
     pairs = np.stack([np.arange(len(source_faces)), order[where]], axis=1)
     vertex_map = sp.csr_matrix((np.ones(vs), (np.arange(vs), np.arange(vs))), shape=(vt, vs))
     # The source placed on the target: each source vertex where its target vertex is.
-    return Correspondence(pairs, vertex_map, target_vertices[:vs].copy(), 0.0, "identity")
+    scale, rotation, _ = similarity(source_vertices, target_vertices[:vs])
+    return Correspondence(
+        pairs, vertex_map, target_vertices[:vs].copy(), 0.0, "identity", rotation, scale
+    )
 
 
 def _triangle_keys(faces: np.ndarray, count: int) -> np.ndarray:

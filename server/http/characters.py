@@ -8,21 +8,21 @@ description and ``GET /v1/rigs/{id}/character.glb`` give it to the pages.
 from __future__ import annotations
 
 import logging
-import tempfile
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import anyio
-from fastapi import APIRouter, Depends, Request, Response
+from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import JSONResponse
 
 from facecast.rig import fit
-from facecast.rig.io.character import PairingReport, character_example_set, load_character
+from facecast.rig.errors import ExampleSetError
+from facecast.rig.io.character import character_example_set
 
-from ..errors import ApiError, upload_paths_hidden
+from ..errors import ApiError
 from ..guards.auth import ANONYMOUS, READ_ROLES, Principal, requires
 from ..names import PERFORMER_SEPARATOR
-from ..storage.archive import ArchiveError, ArchiveLimits, extract_archive
+from ..storage.archive import ArchiveError, ArchiveLimits
 from ..storage.characters import (
     base_id,
     character_not_served,
@@ -30,7 +30,9 @@ from ..storage.characters import (
     pack_character,
 )
 from ..storage.rig_store import RIG_ID_PATTERN, RigStore, valid_rig_id
+from .character_upload import character_record, pairing_view, read_character_upload
 from .rigs import CharacterFitOptions, archive_limits, fit_slot, read_body, run_fit
+from .transfer import start_transfer
 
 if TYPE_CHECKING:
     from facecast.rig import Rig
@@ -43,9 +45,6 @@ router = APIRouter(prefix="/v1", tags=["characters"])
 
 Reader = Annotated[Principal, Depends(requires(*READ_ROLES))]
 Admin = Annotated[Principal, Depends(requires("admin"))]
-
-#: What an archive may hold as its character (the one such file in it).
-CHARACTER_SUFFIXES = (".gltf", ".glb", ".vrm")
 
 
 def _store(request: Request) -> RigStore:
@@ -63,6 +62,7 @@ def _check_id(rig_id: str) -> str:
     "/characters/{rig_id}",
     summary="Fit a rig from a character file (.glb, .vrm, or a zip/tar of a .gltf folder)",
     status_code=201,
+    responses={202: {"description": "expressions=transfer: the job (GET .../job follows it)"}},
     openapi_extra={
         "requestBody": {
             "content": {
@@ -76,7 +76,33 @@ def _check_id(rig_id: str) -> str:
     },
 )
 async def put_character(
-    request: Request, rig_id: str, principal: Admin, options: CharacterFitOptions
+    request: Request,
+    rig_id: str,
+    principal: Admin,
+    options: CharacterFitOptions,
+    expressions: Annotated[
+        Literal["transfer"] | None,
+        Query(
+            description="transfer: give a character with only a neutral (or too few "
+            "expressions) ICT-FaceKit's ARKit shapes by deformation transfer, as a job (202)"
+        ),
+    ] = None,
+    markers: Annotated[
+        Literal["auto"] | None,
+        Query(
+            description="with expressions=transfer: auto fits the correspondence without "
+            "markers (else a markers.txt beside the character in a zip, or none for ICT's "
+            "own topology)"
+        ),
+    ] = None,
+    names: Annotated[
+        str | None,
+        Query(
+            max_length=2000,
+            description="with expressions=transfer: comma-separated ARKit names to make "
+            "(default all the character lacks)",
+        ),
+    ] = None,
 ) -> JSONResponse:
     _check_id(rig_id)
     if PERFORMER_SEPARATOR in rig_id:
@@ -86,6 +112,16 @@ async def put_character(
             f"a character is stored under a base id, not a performer's rig ({rig_id!r}); "
             "performers calibrate on it with PUT /v1/rigs/{id}/performer/{name}",
         )
+    if expressions == "transfer":
+        return await start_transfer(
+            request, rig_id, principal, options, markers=markers, names=names
+        )
+    if markers is not None or names is not None:
+        raise ApiError(
+            422,
+            "transfer_options_without_transfer",
+            "markers and names choose how expressions are transferred: add expressions=transfer",
+        )
     settings = request.app.state.settings
     job = _CharacterJob(archive_limits(settings), options, _store(request).scratch)
     with fit_slot(request, principal):
@@ -94,6 +130,16 @@ async def put_character(
             fitted = await run_fit(request, lambda: job(data))
         except ArchiveError as exc:
             raise ApiError(exc.status, exc.code, str(exc)) from None
+        except ExampleSetError as exc:
+            if exc.code != "no_expressions":
+                raise
+            raise ApiError(
+                422,
+                exc.code,
+                f"{exc.message}. Or let this server make them: upload it again with "
+                f"?expressions=transfer (`facecast rigs put URL {rig_id} FILE --expressions "
+                "transfer`)",
+            ) from None
     rig, packed, pairing, fmt = fitted
     created = await anyio.to_thread.run_sync(
         lambda: _store(request).put_rig(rig_id, rig, character=packed)
@@ -170,67 +216,12 @@ class _CharacterJob:
         self.scratch = scratch
 
     def __call__(self, data: bytes) -> tuple[Rig, bytes, dict[str, Any], str]:
-        if data[:4] == b"glTF":
-            character = load_character(data, label="the uploaded file")
-        elif data.lstrip()[:1] == b"{":
-            raise ApiError(
-                415,
-                "gltf_needs_archive",
-                "a .gltf refers to its buffers and images by file name: send it in a zip or "
-                "tar with its files (`facecast rigs put URL ID avatar.gltf` does), or as a .glb",
-            )
-        else:
-            with tempfile.TemporaryDirectory(prefix="upload-", dir=self.scratch) as tmp:
-                dest = Path(tmp)
-                try:
-                    extract_archive(data, dest, self.limits)
-                except ArchiveError as exc:
-                    if exc.code == "unsupported_archive":
-                        raise ArchiveError(
-                            415,
-                            "unsupported_character",
-                            "the body is neither a glTF binary (.glb, .vrm) nor a zip/tar of a "
-                            ".gltf folder",
-                        ) from None
-                    raise
-                found = _find_character(dest)
-                with upload_paths_hidden(dest):
-                    character = load_character(found, label=found.relative_to(dest).as_posix())
+        character, _ = read_character_upload(data, self.limits, self.scratch)
         example_set, report = character_example_set(character)
         rig = fit(example_set, **self.options)
-        record = {
-            "format": character.format,
-            "meta": character.meta,
-            "bindings": {
-                name: [[b.mesh, b.morph, b.weight] for b in expression.bindings]
-                for name, expression in character.expressions.items()
-            },
-        }
-        return rig, pack_character(character.glb, record), _pairing(report), character.format
-
-
-def _find_character(dest: Path) -> Path:
-    """The one .gltf/.glb/.vrm in an unpacked upload (at its top or one folder down)."""
-    found = [
-        p
-        for pattern in ("*", "*/*")
-        for p in dest.glob(pattern)
-        if p.is_file() and p.suffix.lower() in CHARACTER_SUFFIXES
-    ]
-    if not found:
-        raise ArchiveError(
-            422,
-            "no_character_in_archive",
-            "the archive holds no .gltf, .glb or .vrm at its top level or one folder down",
+        return (
+            rig,
+            pack_character(character.glb, character_record(character)),
+            pairing_view(report),
+            character.format,
         )
-    if len(found) > 1:
-        names = ", ".join(sorted(str(p.relative_to(dest)) for p in found)[:4])
-        raise ArchiveError(
-            422, "several_characters", f"the archive holds more than one character file ({names})"
-        )
-    return found[0]
-
-
-def _pairing(report: PairingReport) -> dict[str, Any]:
-    """The pairing report as JSON, with its lines as ``facecast fit`` prints them."""
-    return {**report.to_dict(), "text": report.lines()}

@@ -34,7 +34,9 @@ from ..names import (
     valid_name,
     valid_rig_id,
 )
+from .atomic import fsync_directory, write_atomically
 from .characters import CHARACTER_SUFFIX, StoredCharacter, unpack_character
+from .jobs import JOBS_DIR, JobStore
 
 if TYPE_CHECKING:
     from facecast.rig.rig import Rig
@@ -96,42 +98,6 @@ def check_servable(rig: Rig, limits: Limits, source: str) -> None:
         )
 
 
-def write_atomically(directory: Path, name: str, data: bytes, *, scratch: Path) -> bool:
-    """Write ``directory / name`` whole or not at all; returns whether it is new.
-
-    Temp file in ``scratch`` (a rig store's scratch folder, on the same file system, so
-    the rename stays atomic and a writer killed mid-write leaves nothing the next start
-    does not remove), fsync, rename, fsync of the directory: a crash leaves the old file
-    or the new one, and concurrent writers of one name each replace whole files (last one
-    wins).
-    """
-    path = directory / name
-    existed = path.exists()
-    temp = scratch / f"{name}-{secrets.token_hex(6)}"
-    fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(temp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            temp.unlink()
-        raise
-    fsync_directory(directory)
-    return not existed
-
-
-def fsync_directory(directory: Path) -> None:
-    """Make a rename or unlink in ``directory`` durable (else a power cut could lose it)."""
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 @dataclass(frozen=True)
 class RigInfo:
     id: str
@@ -149,12 +115,19 @@ class _Entry:
 class RigStore:
     """Rig files in ``directory``; ``cache_size`` loaded rigs kept per process.
 
-    ``max_rig_bytes`` bounds a rig file's unpacked size. Thread-safe; a rig id must satisfy ``valid_rig_id`` (callers check it first and
+    ``max_rig_bytes`` bounds a rig file's unpacked size; ``jobs`` holds transfer job
+    records (``max_job_records`` finished ones), a character's removed when the character
+    is deleted or replaced. Thread-safe; a rig id must satisfy ``valid_rig_id`` (callers check it first and
     answer with their own error; here an invalid id is a ``ValueError``).
     """
 
     def __init__(
-        self, directory: Path, *, cache_size: int = 16, max_rig_bytes: int = 1 << 30
+        self,
+        directory: Path,
+        *,
+        cache_size: int = 16,
+        max_rig_bytes: int = 1 << 30,
+        max_job_records: int = 64,
     ) -> None:
         self.directory = Path(directory)
         self.cache_size = cache_size
@@ -165,6 +138,9 @@ class RigStore:
         self.limits = Limits()
         self._scratch: Path | None = None
         self._scratch_lock: int | None = None  # the fd holding the scratch folder's flock
+        self.jobs = JobStore(
+            self.directory / JOBS_DIR, scratch=lambda: self.scratch, max_records=max_job_records
+        )
 
     # -- lifecycle ----------------------------------------------------------------------
     def open(self) -> None:
@@ -268,18 +244,24 @@ class RigStore:
         rig = rig_from_bytes(data, source=f"rig {rig_id!r}", max_bytes=self.max_rig_bytes)
         check_servable(rig, self.limits, f"rig {rig_id!r}")
         self._remove_character(rig_id)
+        self.jobs.remove(rig_id)
         created = self._write(rig_id, data)
         return rig, created
 
-    def put_rig(self, rig_id: str, rig: Rig, *, character: bytes | None = None) -> bool:
+    def put_rig(
+        self, rig_id: str, rig: Rig, *, character: bytes | None = None, keep_job: bool = False
+    ) -> bool:
         """Store a fitted rig, with its character file or without one; returns whether the id is new.
 
         ``character`` (``characters.pack_character``'s bytes) is written first, then
         the rig, each atomically; without one, a character the id had is removed, so a
-        rig never shows another rig's file. Raises ``RigFileError`` (nothing written) for
-        a rig the protocol cannot carry.
+        rig never shows another rig's file. The id's transfer job record goes too (the
+        character was replaced), unless ``keep_job`` (the job storing its own result).
+        Raises ``RigFileError`` (nothing written) for a rig the protocol cannot carry.
         """
         check_servable(rig, self.limits, f"rig {rig_id!r}")
+        if not keep_job:
+            self.jobs.remove(rig_id)
         if character is None:
             self._remove_character(rig_id)
         else:
@@ -305,11 +287,15 @@ class RigStore:
                 return None
 
     def delete(self, rig_id: str) -> None:
+        """Delete the rig, its character and its transfer job record (a job still running
+        then drops its result); ``RigNotFoundError`` when there was none of rig and record."""
         path = self._path(rig_id)
+        had_job = self.jobs.remove(rig_id)
         try:
             path.unlink()
         except FileNotFoundError:
-            raise RigNotFoundError(rig_id) from None
+            if not had_job:
+                raise RigNotFoundError(rig_id) from None
         self._remove_character(rig_id)
         fsync_directory(self.directory)
         with self._lock:

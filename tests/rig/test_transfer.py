@@ -448,3 +448,68 @@ def test_correspondence_weights_must_be_positive():
     assert caught.value.code == "bad_weights"
     with pytest.raises(CorrespondenceError):
         CorrespondenceWeights(identity=-1.0)
+
+
+# -- same topology in other units and pose; the transferred shapes written into a GLB ------
+
+
+def test_a_target_of_the_same_topology_scaled_and_moved_gets_the_displacement_in_its_units():
+    source, faces = grid(10)
+    deformed = smooth_deformation(source)
+    shapes = np.stack([source, deformed])
+    expressions = SourceExpressions(("neutral", "x"), shapes, faces, shapes[:, :3])
+    target = 0.01 * source + [0.2, 1.45, -0.3]  # centimetres to metres, at head height
+
+    generated = transfer_expressions(expressions, target, faces)
+
+    assert generated.correspondence.method == "identity"
+    assert generated.correspondence.scale == pytest.approx(0.01)
+    np.testing.assert_allclose(
+        generated.target_vertices[1] - target, 0.01 * (deformed - source), atol=1e-9
+    )
+
+
+def test_transferred_shapes_are_appended_as_named_morph_targets_the_loader_reads_back():
+    from facecast.rig.io.character import load_character
+    from facecast.rig.io.gltf import export_glb
+    from facecast.rig.transfer import add_morph_targets
+
+    vertices, faces = grid(5)
+    authored = 0.1 * np.ones((1, len(vertices), 3))
+    glb = export_glb(vertices, faces, authored, ["jawOpen"])
+    added = np.random.default_rng(0).normal(size=(2, len(vertices), 3))
+
+    character = load_character(add_morph_targets(glb, 0, ["eyeBlinkLeft", "mouthSmileLeft"], added))
+
+    assert list(character.expressions) == ["eyeBlinkLeft", "jawOpen", "mouthSmileLeft"]
+    for name, expected in (("jawOpen", authored[0]), ("eyeBlinkLeft", added[0]),
+                           ("mouthSmileLeft", added[1])):  # fmt: skip
+        np.testing.assert_allclose(
+            character.expressions[name].face_displacement, expected, atol=1e-6
+        )
+
+
+@pytest.mark.ict
+@pytest.mark.skipif(locate_ict() is None, reason="ICT-FaceKit not found")
+def test_plan_transfer_makes_only_what_the_character_lacks_and_bounds_its_size():
+    from facecast.rig.errors import ExampleSetError
+    from facecast.rig.io.character import load_character
+    from facecast.rig.transfer import plan_transfer
+    from tests.rig._avatars import avatar
+
+    source = ict_source_expressions(locate_ict())
+    authored = load_character(avatar("arkit"))
+    neutral_only = load_character(avatar("neutral_only"))
+
+    plan = plan_transfer(neutral_only, source, names=["jawOpen", "eyeBlinkLeft"])
+    with pytest.raises(ExampleSetError) as complete:
+        plan_transfer(authored, source, names=["jawOpen"])
+    with pytest.raises(ExampleSetError) as large:
+        plan_transfer(neutral_only, source, max_vertices=1000)
+    with pytest.raises(MarkerError) as bad:
+        plan_transfer(neutral_only, source, markers=[[0, 0], [1, 1], [2, 10**6]])
+
+    assert plan.method == "identity" and plan.names == ("eyeBlinkLeft", "jawOpen")
+    assert complete.value.code == "expressions_complete"
+    assert large.value.code == "too_many_vertices"
+    assert bad.value.code == "marker_out_of_range"

@@ -301,4 +301,5 @@ async def test_bad_character_uploads_are_4xx_with_a_code_and_no_server_path(sett
         assert (answers[name].status_code, problem["code"]) == (status, code), (name, problem)
         assert rigs not in answers[name].text and "upload-" not in answers[name].text, problem
     assert listed["rigs"] == []  # nothing stored for any of them
+    assert "?expressions=transfer" in answers["neutral only"].json()["detail"]
     assert not list(settings.rigs_dir.glob("*.character"))

@@ -201,3 +201,54 @@ def test_rigs_put_of_a_gltf_naming_a_file_outside_its_folder_says_so(tmp_path):
 
     with pytest.raises(CommandError, match=r"outside the \.gltf's folder"):
         args.func(args)
+
+
+@pytest.mark.ict
+async def test_rigs_put_with_expressions_transfer_waits_for_the_job_and_prints_its_report(
+    settings, tmp_path, capsys
+):
+    from tests.rig._avatars import avatar, require_ict
+
+    require_ict()
+    (tmp_path / "head.glb").write_bytes(avatar("neutral_only"))
+    async with run_server(settings) as server:
+        code = run_rigs(
+            server, "put", "ava", str(tmp_path / "head.glb"),
+            "--expressions", "transfer", "--names", "jawOpen", "eyeBlinkLeft",
+        )  # fmt: skip
+
+    captured = capsys.readouterr()
+    assert code == 0
+    assert "transfer job for ava: 2 expression(s) onto 14062 vertices (identity" in captured.out
+    assert "transferring: " in captured.err  # the progress line
+    assert "transferred 2 expression(s) in" in captured.out
+    assert "fitted ava from a gltf character: M=3 K=20" in captured.out
+
+
+@pytest.mark.ict
+async def test_rigs_put_sends_a_markers_file_beside_the_character_and_shows_its_error(
+    settings, tmp_path
+):
+    from tests.rig._avatars import avatar, require_ict
+
+    require_ict()
+    (tmp_path / "head.glb").write_bytes(avatar("neutral_only"))
+    (tmp_path / "markers.txt").write_text("0 0\n1 1\n2 999999\n")
+    async with run_server(settings) as server:
+        with pytest.raises(CommandError) as info:
+            run_rigs(
+                server, "put", "ava", str(tmp_path / "head.glb"),
+                "--expressions", "transfer", "--markers", str(tmp_path / "markers.txt"),
+            )  # fmt: skip
+
+    assert "422 marker_out_of_range" in str(info.value)
+    assert "target vertex 999999" in str(info.value)
+
+
+def test_rigs_put_refuses_transfer_options_without_expressions_transfer(tmp_path):
+    (tmp_path / "head.glb").write_bytes(b"glTF")
+    args = parse(rigs, ["rigs", "put", "http://127.0.0.1:9", "ava", str(tmp_path / "head.glb"),
+                        "--markers", "auto"])  # fmt: skip
+
+    with pytest.raises(CommandError, match="--expressions transfer"):
+        args.func(args)

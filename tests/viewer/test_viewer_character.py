@@ -371,3 +371,35 @@ def test_overlay_renders_an_uploaded_ict_vrm0_on_transparency(character_server, 
     check_ict_states(checked["states"], "vrm0")
     assert drawn == 0
     assert page.errors == []
+
+
+def test_viewer_renders_a_neutral_only_avatar_moved_by_its_transferred_shapes(
+    character_server, ict_poses, page
+):
+    import time
+
+    import httpx
+
+    rig_id = "ict-transferred"
+    put = httpx.put(
+        f"{character_server}/v1/characters/{rig_id}",
+        content=ict_avatars.avatar("neutral_only"),
+        params={"expressions": "transfer", "names": "jawOpen", "noise": 0.05, "clamp": "unit"},
+        timeout=120,
+    )
+    assert put.status_code == 202, put.text
+    deadline = time.monotonic() + 120
+    while (job := httpx.get(f"{character_server}/v1/characters/{rig_id}/job").json())[
+        "state"
+    ] not in ("done", "failed"):  # a job resource: polled
+        assert time.monotonic() < deadline, job
+        time.sleep(0.1)
+    assert job["state"] == "done", job
+    with publishing(character_server, f"ch-{rig_id}", rig_id, ict_poses) as publisher:
+        page.set_viewport_size({"width": 800, "height": 420})
+        page.goto(f"{character_server}/viewer?rig={rig_id}&channel=ch-{rig_id}")
+        page.wait_for_function("window.facecastStats.state === 'live'", timeout=60_000)
+        publisher.jaw_open = 1
+        check_character_page(page, publisher, f"viewer-{rig_id}", background=(0x14, 0x16, 0x1C))
+
+    assert page.errors == []

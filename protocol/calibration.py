@@ -1,0 +1,131 @@
+"""The calibration messages (PROTOCOL.md §5.1.3, §5.2.5): `Calibrate` and its answer `Calibrated`.
+
+Capturing or clearing the performer's neutral pose; the re-basing itself is the rig's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from facecast.protocol.arrays import array_from_wire, array_to_wire
+from facecast.protocol.errors import ErrorCode, ProtocolError
+from facecast.protocol.fields import (
+    check_bool,
+    check_float,
+    check_uint,
+    read_bool,
+    read_float,
+    read_uint,
+)
+from facecast.protocol.limits import Limits
+from facecast.protocol.message import (
+    _DEFAULT_LIMITS,
+    Message,
+    _ArrayMessage,
+    _check_array,
+    _header,
+)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Calibrate(_ArrayMessage):
+    """Capture (or clear) the performer's neutral pose (§5.1.3).
+
+    Attributes
+    ----------
+    points : (K, 3) float array or None
+        The neutral explicitly; None means "use the next frame received".
+    reset : bool
+        Clear the captured neutral instead; excludes ``points``.
+    noise : float or None
+        The performer's landmark noise (standard deviation per coordinate, in the points'
+        units), e.g. measured over the frames the neutral was held; >= 0. Given, the server
+        re-bases the rig noise-aware and bounded; None: exactly, as before the field.
+    """
+
+    TYPE: ClassVar[str] = "calibrate"
+    points: np.ndarray | None = None
+    reset: bool = False
+    noise: float | None = None
+
+    def __post_init__(self) -> None:
+        check_bool(self.reset, "calibrate.reset")
+        if self.points is not None:
+            _check_array(self.points, "calibrate.points", (3,))
+            if self.reset:
+                raise ProtocolError(
+                    ErrorCode.INVALID_FIELD,
+                    "calibrate.points and calibrate.reset exclude each other",
+                )
+        if self.noise is not None:
+            noise = check_float(self.noise, "calibrate.noise")
+            if noise < 0:
+                raise ProtocolError(
+                    ErrorCode.INVALID_FIELD, f"calibrate.noise must be >= 0, got {noise!r}"
+                )
+            if self.reset:
+                raise ProtocolError(
+                    ErrorCode.INVALID_FIELD,
+                    "calibrate.noise and calibrate.reset exclude each other",
+                )
+            object.__setattr__(self, "noise", noise)
+
+    def serialize(self) -> dict[str, Any]:
+        out = {
+            **_header(self.TYPE),
+            "points": None if self.points is None else array_to_wire(self.points),
+            "reset": self.reset,
+        }
+        # Absent unless given: a calibrate without it keeps its bytes (§10.4).
+        if self.noise is not None:
+            out["noise"] = self.noise
+        return out
+
+    @classmethod
+    def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Calibrate:
+        points = obj.get("points")
+        return cls(
+            points=None
+            if points is None
+            else array_from_wire(
+                points, "calibrate.points", trailing=(3,), max_rows=limits.max_points
+            ),
+            reset=read_bool(obj, "reset", "calibrate.reset", False),
+            noise=read_float(obj, "noise", "calibrate.noise", None),
+        )
+
+
+@dataclass(frozen=True, kw_only=True)
+class Calibrated(Message):
+    """Acknowledges a `Calibrate` (§5.2.5).
+
+    Attributes
+    ----------
+    active : bool
+        True when a neutral is now captured, False after a reset.
+    seq : int or None
+        The frame whose points became the neutral, or None (explicit points, reset).
+    """
+
+    TYPE: ClassVar[str] = "calibrated"
+    active: bool
+    seq: int | None = None
+
+    def __post_init__(self) -> None:
+        check_bool(self.active, "calibrated.active")
+        if self.seq is not None:
+            check_uint(self.seq, "calibrated.seq")
+
+    def serialize(self) -> dict[str, Any]:
+        return {**_header(self.TYPE), "active": self.active, "seq": self.seq}
+
+    @classmethod
+    def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Calibrated:
+        return cls(
+            active=read_bool(obj, "active", "calibrated.active"),
+            seq=read_uint(obj, "seq", "calibrated.seq", None),
+        )
