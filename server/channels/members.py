@@ -12,7 +12,8 @@ import asyncio
 import logging
 import secrets
 import time
-from typing import TYPE_CHECKING
+from concurrent.futures import Executor
+from typing import Protocol
 
 import numpy as np
 from starlette.websockets import WebSocket
@@ -26,20 +27,18 @@ from facecast.protocol import (
     ProtocolError,
     ServerProtocol,
 )
+from facecast.rig import Rig
 from facecast.rig.errors import InputError, RigError
 from facecast.rig.rebase import calibrate as calibrate_rig
 
 from ..compute.cloning import Smoother, frame_error
 from ..connection.core import PublisherCore, WatcherCore
 from ..settings import Settings
+from .channel import Channel
 from .fanout import ChannelFrame
 from .outbox import Member
 
-if TYPE_CHECKING:
-    from .channel import Channel
-    from .hub import ChannelHub
-
-__all__ = ["PublisherMember", "WatcherMember"]
+__all__ = ["Directory", "PublisherMember", "WatcherMember"]
 
 log = logging.getLogger("facecast.server.channels")
 
@@ -47,6 +46,28 @@ log = logging.getLogger("facecast.server.channels")
 #: blipped: a newer connection with its token may then take its channel (``supersede``).
 #: A publisher that sends (frames, pings) keeps its channel against its own token too.
 STALE_AFTER = 1.0
+
+
+class Directory(Protocol):
+    """What a publisher needs of its process's channels (the hub): rigs, claims, services."""
+
+    @property
+    def settings(self) -> Settings: ...
+
+    @property
+    def executor(self) -> Executor | None: ...
+
+    @property
+    def origin(self) -> str: ...
+
+    @property
+    def stale_after(self) -> float: ...
+
+    async def load_rig(self, rig_id: str) -> Rig: ...
+
+    async def claim(self, name: str, publisher: PublisherMember) -> Channel: ...
+
+    def metrics_dropped(self, reason: str) -> None: ...
 
 
 class WatcherMember(Member):
@@ -81,19 +102,21 @@ class PublisherMember(Member):
     watcher = False
     core: PublisherCore
 
-    def __init__(self, websocket: WebSocket, hub: ChannelHub, name: str, principal: str) -> None:
-        settings = hub.settings
+    def __init__(
+        self, websocket: WebSocket, directory: Directory, name: str, principal: str
+    ) -> None:
+        settings = directory.settings
         protocol = ServerProtocol(Limits(max_message_bytes=settings.max_message_bytes))
         core = PublisherCore(protocol, settings, time.monotonic(),
                              idle_timeout=settings.idle_timeout)  # fmt: skip
         super().__init__(websocket, ("", "", ""), core, secrets.token_hex(8))
         core.superseded = self._superseded
-        self.hub = hub
+        self.directory = directory
         self.name = name
         self.principal = principal
         #: The channel lock's value: this process, this connection, and whose token it is
         #: (a token digest, or "anonymous"), so another process can tell the same caller.
-        self.owner = f"{hub.bus.origin}:{self.id}:{principal}"
+        self.owner = f"{directory.origin}:{self.id}:{principal}"
         #: Set once ``leave`` has given the channel (and its lock) back.
         self.left = asyncio.Event()
         self.channel: Channel | None = None
@@ -130,11 +153,13 @@ class PublisherMember(Member):
     async def _on_hello(self, hello: Hello) -> None:
         core = self.core
         try:
-            rig = await self.hub.load_rig(hello.rig)
+            rig = await self.directory.load_rig(hello.rig)
             # Built before the claim, so a refused smoothing (a Kalman without noise)
             # claims nothing.
             point_filter = core.point_filter(rig)
-            channel = await self.hub.claim(self.name, self)  # raises CHANNEL_BUSY / OVERLOADED
+            channel = await self.directory.claim(
+                self.name, self
+            )  # raises CHANNEL_BUSY / OVERLOADED
         except ProtocolError:
             core.failed(time.monotonic())
             raise
@@ -151,7 +176,7 @@ class PublisherMember(Member):
     async def _on_frame(self, frame: Frame, now: float) -> None:
         core = self.core
         if not core.frame_allowed(frame, now):
-            self.hub.metrics_dropped("rate_limited")
+            self.directory.metrics_dropped("rate_limited")
             self._deliver()
             self.arm()
             return
@@ -195,7 +220,7 @@ class PublisherMember(Member):
         assert base is not None
         try:
             rig = await asyncio.get_running_loop().run_in_executor(
-                self.hub.executor, calibrate_rig, base, points, noise
+                self.directory.executor, calibrate_rig, base, points, noise
             )
         except RigError as exc:
             core.calibration_failed(exc, time.monotonic(), seq)
@@ -203,11 +228,11 @@ class PublisherMember(Member):
         core.calibrated(rig, time.monotonic(), seq, points=points, noise=noise)
 
     def supersede(self) -> bool:
-        """End this connection if it is silent (the hub's ``stale_after``, ``STALE_AFTER``):
+        """End this connection if it is silent (the directory's ``stale_after``, ``STALE_AFTER``):
         a newer one with the same token takes its channel. False: it is alive, and keeps
         the channel.
         """
-        if time.monotonic() - self.core.last_message < self.hub.stale_after:
+        if time.monotonic() - self.core.last_message < self.directory.stale_after:
             return False
         self.end(ProtocolError(ErrorCode.CHANNEL_BUSY, "a newer connection with the same "
                                "token took over the channel", fatal=True))  # fmt: skip

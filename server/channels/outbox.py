@@ -12,7 +12,7 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable, Coroutine, Generator, Iterable
-from typing import Any
+from typing import Any, cast
 
 from starlette.websockets import WebSocket
 
@@ -21,6 +21,7 @@ from facecast.protocol import ClientMessage, ProtocolError
 from ..connection.core import ConnectionCore
 from ..connection.driver import Driver
 from ..serving.seam import binary_frame, transport_for
+from .context import ChannelMember
 from .fanout import Key
 
 __all__ = ["MAX_OUTBOX", "Member", "offer_results"]
@@ -191,7 +192,7 @@ class Member(Driver):
         return [] if self._inflight is None else [self._inflight]
 
 
-def offer_results(members: Iterable[Member], data: bytes) -> int:
+def offer_results(members: Iterable[ChannelMember], data: bytes) -> int:
     """Offer one result to every member of a key: the fan-out's loop, once per key and frame.
 
     The RFC 6455 frame is built once for all of them, and an idle member whose socket
@@ -200,7 +201,8 @@ def offer_results(members: Iterable[Member], data: bytes) -> int:
     """
     frame = binary_frame(data)
     offered = 0
-    for member in members:
+    for one in members:
+        member = cast(Member, one)
         offered += 1
         direct = member._direct
         if (
