@@ -19,6 +19,7 @@ from prometheus_client import Counter, Gauge
 from facecast.protocol import ProtocolError
 
 from ..compute.stages import StageTimes
+from ..connection.outbox import Outbox
 from ..metrics import Metrics
 from ..settings import Settings
 from .bus import Bus
@@ -112,6 +113,9 @@ class ChannelMember(Protocol):
 
     @property
     def key(self) -> Key: ...
+
+    @property
+    def outbox(self) -> Outbox: ...
 
     @property
     def watcher(self) -> bool: ...

@@ -16,11 +16,10 @@ from typing import TYPE_CHECKING, Any
 
 from facecast.protocol import ErrorCode, ProtocolError
 from facecast.rig import Rig
-from facecast.rig.errors import RigError
 
-from ..connection.core import rig_unavailable
+from ..connection.opening import load_rig
 from ..settings import Settings
-from ..storage.rig_store import RigNotFoundError, RigStore, valid_rig_id
+from ..storage.rig_store import RigStore
 from .bus import LOCK_TTL_MS, Bus, BusUnavailable, make_bus
 from .channel import Channel
 from .context import ChannelContext, ChannelMetrics, EmptiedChannel
@@ -144,17 +143,7 @@ class ChannelHub:
 
     async def load_rig(self, rig_id: str) -> Rig:
         """The rig ``rig_id`` (file I/O in a thread); fatal UNKNOWN_RIG if there is none."""
-        if not valid_rig_id(rig_id):
-            raise ProtocolError(
-                ErrorCode.UNKNOWN_RIG, f"no rig with id {rig_id[:64]!r}", fatal=True
-            )
-        try:
-            rig: Rig = await asyncio.get_running_loop().run_in_executor(
-                None, self.store.get, rig_id
-            )
-            return rig
-        except (RigNotFoundError, RigError) as exc:
-            raise rig_unavailable(rig_id, exc) from None
+        return await load_rig(self.store, rig_id)
 
     async def claim(self, name: str, publisher: PublisherMember) -> Channel:
         """Make ``publisher`` the channel's only one, here and (with Redis) everywhere.

@@ -1,9 +1,9 @@
 """The two kinds of channel connection: a watcher, and the channel's one publisher.
 
-Each drives its core (``core``: the protocol rules) from a reader task and writes through
-a bounded outbox (``outbox``: the newest result replaces an unsent one), so a slow client
-only ever slows itself. They do no cloning and no fan-out: frames go to the `Channel`,
-results come back from it as shared bytes.
+Each is a `Member` (``outbox``): the driver's read loop feeds its core (the protocol
+rules), and it writes through a bounded outbox where the newest result replaces an
+unsent one, so a slow client only ever slows itself. They do no cloning and no fan-out:
+frames go to the `Channel`, results come back from it as shared bytes.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import asyncio
 import logging
 import secrets
 import time
+from collections.abc import Awaitable
 from concurrent.futures import Executor
 from typing import Protocol
 
@@ -19,7 +20,6 @@ import numpy as np
 from starlette.websockets import WebSocket
 
 from facecast.protocol import (
-    ClientMessage,
     ErrorCode,
     Frame,
     Hello,
@@ -28,8 +28,7 @@ from facecast.protocol import (
     ServerProtocol,
 )
 from facecast.rig import Rig
-from facecast.rig.errors import InputError, RigError
-from facecast.rig.rebase import calibrate as calibrate_rig
+from facecast.rig.errors import InputError
 
 from ..compute.cloning import Smoother, frame_error
 from ..connection.core import PublisherCore, WatcherCore
@@ -109,7 +108,7 @@ class PublisherMember(Member):
         protocol = ServerProtocol(Limits(max_message_bytes=settings.max_message_bytes))
         core = PublisherCore(protocol, settings, time.monotonic(),
                              idle_timeout=settings.idle_timeout)  # fmt: skip
-        super().__init__(websocket, ("", "", ""), core, secrets.token_hex(8))
+        super().__init__(websocket, ("", "", ""), core, secrets.token_hex(8), directory.executor)
         core.superseded = self._superseded
         self.directory = directory
         self.name = name
@@ -137,20 +136,7 @@ class PublisherMember(Member):
     def _superseded(self) -> int:
         return self.channel.dropped if self.channel is not None else 0
 
-    async def _on_message(self, message: ClientMessage, now: float) -> None:
-        if type(message) is Frame:
-            await self._on_frame(message, now)
-            return
-        work = self.core.handle(message, now)
-        if isinstance(work, Hello):
-            await self._on_hello(work)
-        elif work is not None:
-            assert work.points is not None  # the core hands over only calibrates with points
-            await self._calibrate(work.points, None, work.noise)
-        self._deliver()
-        self.arm()  # a wait for the rig or a neutral suspended the idle deadline
-
-    async def _on_hello(self, hello: Hello) -> None:
+    async def _open(self, hello: Hello) -> None:
         core = self.core
         try:
             rig = await self.directory.load_rig(hello.rig)
@@ -173,7 +159,11 @@ class PublisherMember(Member):
                  extra={"event": "channel.publish", "channel": self.name, "rig": hello.rig,
                         "by": self.principal})  # fmt: skip
 
-    async def _on_frame(self, frame: Frame, now: float) -> None:
+    def _on_frame(self, frame: Frame, now: float, in_burst: bool) -> Awaitable[None]:
+        return self._publish(frame, now)
+
+    async def _publish(self, frame: Frame, now: float) -> None:
+        """Check ``frame`` (rate, neutral, range), smooth its points, hand it to the channel."""
         core = self.core
         if not core.frame_allowed(frame, now):
             self.directory.metrics_dropped("rate_limited")
@@ -211,21 +201,6 @@ class PublisherMember(Member):
         # Let the pump take this frame before reading the next (pipelined frames are
         # then cloned, not superseded), as /v1/stream does.
         await asyncio.sleep(0)
-
-    async def _calibrate(self, points: np.ndarray, seq: int | None, noise: float | None) -> None:
-        """Fit the neutral on the layout rig (every key re-bases its own on it, with the
-        same ``noise``: None exactly, else noise-aware and bounded, ``rig.rebase``)."""
-        core = self.core
-        base = core.base_rig
-        assert base is not None
-        try:
-            rig = await asyncio.get_running_loop().run_in_executor(
-                self.directory.executor, calibrate_rig, base, points, noise
-            )
-        except RigError as exc:
-            core.calibration_failed(exc, time.monotonic(), seq)
-            return
-        core.calibrated(rig, time.monotonic(), seq, points=points, noise=noise)
 
     def supersede(self) -> bool:
         """End this connection if it is silent (the directory's ``stale_after``, ``STALE_AFTER``):

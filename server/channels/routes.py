@@ -28,7 +28,7 @@ from facecast.protocol.fields import check_str
 from facecast.protocol.messages import POINTS_DTYPES, WATCH_OUTPUTS
 
 from ..connection.admission import authorize_websocket, serve
-from ..connection.core import watch_ready
+from ..connection.opening import watch_ready
 from ..connection.refusal import refuse
 from ..errors import ApiError
 from ..guards.auth import Principal, requires
