@@ -25,6 +25,7 @@ from facecast.protocol import (
     Hello,
     Limits,
     ProtocolError,
+    Ready,
     ServerProtocol,
 )
 from facecast.rig import Rig
@@ -84,6 +85,11 @@ class WatcherMember(Member):
         super().__init__(websocket, (hello.rig, hello.output, hello.dtype), core,
                          secrets.token_hex(8))  # fmt: skip
         self.channel = channel
+
+    def greet(self, ready: Ready) -> None:
+        """Queue the ``ready`` the watcher is opened with (before the channel's state)."""
+        self.core.send(ready)
+        self._deliver()
 
     async def leave(self) -> None:
         self.channel.remove_member(self)

@@ -55,7 +55,6 @@ class Member(Driver):
         super().__init__(websocket, core, f"member-{member_id}", outbox, executor=executor)
         self.id = member_id
         self.key = key
-        self.protocol = core.protocol
 
     @property
     def direct(self) -> bool:

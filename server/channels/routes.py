@@ -134,9 +134,7 @@ async def watch(websocket: WebSocket, name: str) -> None:
     channel = await hub.open_channel(name)
     member = WatcherMember(websocket, channel, hello, limits, settings)
     member.key = (hello.rig, output, dtype)  # what it receives; a points key clones nothing
-    member.offer(
-        member.protocol.send(watch_ready(member.id, hello.rig, rig, output, dtype, settings))
-    )
+    member.greet(watch_ready(member.id, hello.rig, rig, output, dtype, settings))
     channel.add_watcher(member, rig)
     log.info("watcher joined", extra={"event": "channel.watch", "channel": name,
                                       "rig": hello.rig, "output": output,

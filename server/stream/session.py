@@ -110,7 +110,6 @@ class Session(Driver):
         self.metrics = metrics
         self.blender = blender if blender is not None else BlendBatcher(executor)
         self.principal = principal
-        self.protocol = core.protocol
         self.rig_id: str | None = None
         self._smoother: Smoother | None = None
         self._outputs: Outputs | None = None
