@@ -42,7 +42,14 @@ from facecast.protocol import (
 
 from .errors import ConnectionFailed
 from .handshake import await_ready, open_websocket
-from .reconnect import OPEN_ERRORS, RETRYABLE_CODES, Reconnect, describe, reopen_with_backoff
+from .reconnect import (
+    OPEN_ERRORS,
+    RETRYABLE_CODES,
+    Reconnect,
+    describe,
+    reopen_with_backoff,
+    supervise,
+)
 from .urls import auth_headers, resolve_token, stream_url
 
 __all__ = [
@@ -209,6 +216,12 @@ class FramePublisher:
         self._supervisor = asyncio.create_task(self._supervise(), name="facecast-publisher")
         return self
 
+    async def _read_until_lost(self) -> BaseException | None:
+        try:
+            return await self._read()
+        finally:
+            self._ws = None
+
     async def _read(self) -> BaseException | None:
         assert self._ws is not None and self._protocol is not None
         async for data in self._ws:
@@ -259,17 +272,7 @@ class FramePublisher:
 
     async def _supervise(self) -> None:
         try:
-            while True:
-                try:
-                    reason = await self._read()
-                except (ConnectionClosed, OSError) as exc:
-                    reason = exc
-                self._ws = None
-                if self._closing:
-                    return
-                if isinstance(reason, ProtocolError) and reason.code not in RETRYABLE_CODES:
-                    raise reason
-                await self._reconnect(reason)
+            await supervise(self._read_until_lost, self._reconnect, closing=lambda: self._closing)
         except asyncio.CancelledError:
             raise
         except (ProtocolError, ConnectionFailed) as exc:

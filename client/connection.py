@@ -57,7 +57,14 @@ from facecast.protocol import (
 from .errors import ConnectionFailed
 from .handshake import await_ready, open_websocket
 from .latency import LatencyTracker
-from .reconnect import OPEN_ERRORS, RETRYABLE_CODES, Reconnect, describe, reopen_with_backoff
+from .reconnect import (
+    OPEN_ERRORS,
+    RETRYABLE_CODES,
+    Reconnect,
+    describe,
+    reopen_with_backoff,
+    supervise,
+)
 from .urls import auth_headers, resolve_token, stream_url
 
 __all__ = [
@@ -201,25 +208,18 @@ class StreamSession:
     # -- the reader and reconnection ---------------------------------------------------
     async def _supervise(self) -> None:
         try:
-            while True:
-                assert self._ws is not None and self._protocol is not None
-                reason: BaseException | None = None
-                try:
-                    reason = await self._read(self._ws, self._protocol)
-                except (ConnectionClosed, OSError) as exc:
-                    reason = exc
-                if self._closing:
-                    return
-                self._connection_lost()
-                if isinstance(reason, ProtocolError) and reason.code not in RETRYABLE_CODES:
-                    raise reason
-                await self._reconnect(reason)
+            await supervise(self._read_open, self._reconnect,
+                            closing=lambda: self._closing, lost=self._connection_lost)  # fmt: skip
         except asyncio.CancelledError:
             raise
         except (ProtocolError, ConnectionFailed) as exc:
             self._fail(exc)
         except Exception as exc:  # a bug here must still end the session loudly
             self._fail(ConnectionFailed(f"the client reader failed: {exc!r}", last_error=exc))
+
+    async def _read_open(self) -> BaseException | None:
+        assert self._ws is not None and self._protocol is not None
+        return await self._read(self._ws, self._protocol)
 
     async def _read(self, ws: ClientConnection, protocol: ClientProtocol) -> BaseException | None:
         """Read until the connection ends; the fatal error that ended it, if any."""

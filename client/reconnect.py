@@ -1,8 +1,9 @@
-"""The one reconnection loop of the client: a backoff policy and the loop that applies it.
+"""The one reconnection loop of the client: a backoff policy and the loops that apply it.
 
 Stream sessions, channel publishers and channel watchers all re-open a lost connection
-through `reopen_with_backoff`; what "open" means (handshake, ``hello``, ``ready``) is
-theirs. No sockets here: the loop only calls what it is given and sleeps between calls.
+through `reopen_with_backoff`; sessions and publishers keep reading, and re-opening, in
+`supervise`. What "open" and "read" mean (handshake, ``hello``, ``ready``, messages) is
+theirs. No sockets here: the loops only call what they are given and sleep between calls.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import TypeVar
 
-from websockets.exceptions import WebSocketException
+from websockets.exceptions import ConnectionClosed, WebSocketException
 
 from facecast.protocol import ErrorCode, ProtocolError
 
@@ -24,6 +25,7 @@ __all__ = [
     "Reconnect",
     "describe",
     "reopen_with_backoff",
+    "supervise",
 ]
 
 #: Fatal server errors after which reconnecting may succeed; any other fatal error is final.
@@ -109,6 +111,35 @@ async def reopen_with_backoff(
         else:
             return opened
     raise ConnectionFailed(gave_up(last), attempts=reconnect.attempts, last_error=last)
+
+
+async def supervise(
+    read: Callable[[], Awaitable[BaseException | None]],
+    reopen: Callable[[BaseException | None], Awaitable[object]],
+    *,
+    closing: Callable[[], bool],
+    lost: Callable[[], None] = lambda: None,
+) -> None:
+    """Read a connection until it ends, then re-open it; again, until ``closing()``.
+
+    ``read()`` returns when the connection ends, with the fatal error that ended it (or
+    None); a dropped connection (``ConnectionClosed``, ``OSError``) is such an end too.
+    Unless the caller is closing, ``lost()`` is told, then ``reopen(reason)`` re-opens
+    (`reopen_with_backoff`). Returns once closing; raises the fatal `ProtocolError` that
+    retrying cannot cure (not in `RETRYABLE_CODES`), or ``reopen``'s `ConnectionFailed`.
+    """
+    while True:
+        reason: BaseException | None
+        try:
+            reason = await read()
+        except (ConnectionClosed, OSError) as exc:
+            reason = exc
+        if closing():
+            return
+        lost()
+        if isinstance(reason, ProtocolError) and reason.code not in RETRYABLE_CODES:
+            raise reason
+        await reopen(reason)
 
 
 def describe(exc: BaseException) -> str:

@@ -72,15 +72,7 @@ CYCLE_DEBT: dict[tuple[str, str], str] = {}
 #: Import cycles that exist only through ``if TYPE_CHECKING:`` imports today (each the set
 #: of modules of one strongly connected component), and the step that removes each. The
 #: test fails on any other cycle, and when one of these is gone, so that this list shrinks.
-TYPE_ONLY_CYCLE_DEBT: dict[frozenset[str], str] = {
-    frozenset(
-        {
-            "facecast.server.channels.channel",
-            "facecast.server.channels.hub",
-            "facecast.server.channels.members",
-        }
-    ): "issue 24 step 2 (branch conn): a channel gets a frozen context and protocols, not its hub",
-}
+TYPE_ONLY_CYCLE_DEBT: dict[frozenset[str], str] = {}
 
 
 @dataclass(frozen=True)

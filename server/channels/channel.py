@@ -1,7 +1,8 @@
 """One broadcast channel in one process: its members by key, the pump, liveness and face-lost.
 
 A frame is cloned once per watched (rig, output, dtype) and the bytes offered to every
-member of that key. No WebSocket I/O here (see ``members``), no registry (see ``hub``).
+member of that key. No WebSocket I/O here (see ``members``), no registry (see ``hub``): what
+it needs of them is its `ChannelContext` and the `ChannelMember` and `ChannelPublisher` shapes.
 """
 
 from __future__ import annotations
@@ -20,15 +21,12 @@ from facecast.rig.errors import InputError
 
 from ..compute.cloning import frame_error
 from ..compute.stages import CPU_CLOCK
+from .context import ChannelContext, ChannelMember, ChannelPublisher
 from .fanout import ChannelFrame, Key, KeyState, PointsKeyState, key_state
 from .outbox import offer_results
 
 if TYPE_CHECKING:
     from facecast.rig import Rig
-
-    from .hub import ChannelHub
-    from .members import PublisherMember
-    from .outbox import Member
 
 __all__ = ["Channel"]
 
@@ -50,13 +48,13 @@ class Channel:
     counted in ``dropped``.
     """
 
-    def __init__(self, hub: ChannelHub, name: str) -> None:
-        self.hub = hub
+    def __init__(self, context: ChannelContext, name: str) -> None:
+        self.context = context
         self.name = name
-        self.members: dict[Key, set[Member]] = {}
+        self.members: dict[Key, set[ChannelMember]] = {}
         self.states: dict[Key, KeyState | PointsKeyState] = {}
-        self.publisher: PublisherMember | None = None
-        self.claimed_by: PublisherMember | None = None
+        self.publisher: ChannelPublisher | None = None
+        self.claimed_by: ChannelPublisher | None = None
         #: Set while a publisher that left is giving its lock back (``hub.claim`` waits).
         self.releasing: asyncio.Event | None = None
         self.remote_live_until = 0.0
@@ -87,19 +85,19 @@ class Channel:
     def empty(self) -> bool:
         return not self.members and self.publisher is None and self.claimed_by is None
 
-    def watchers(self, key: Key | None = None) -> list[Member]:
+    def watchers(self, key: Key | None = None) -> list[ChannelMember]:
         groups = self.members.values() if key is None else [self.members.get(key, set())]
         return [m for group in groups for m in group if m.watcher]
 
-    def _join(self, member: Member, rig: Rig) -> KeyState | PointsKeyState:
+    def _join(self, member: ChannelMember, rig: Rig) -> KeyState | PointsKeyState:
         state = self.states.get(member.key)
         if state is None:
             state = self.states[member.key] = key_state(member.key, rig)
         self.members.setdefault(member.key, set()).add(member)
-        self.hub.members_gauge.labels("publisher" if not member.watcher else "viewer").inc()
+        self.context.metrics.members.labels(_role(member)).inc()
         return state
 
-    def add_watcher(self, member: Member, rig: Rig) -> None:
+    def add_watcher(self, member: ChannelMember, rig: Rig) -> None:
         """Register a watcher whose ``ready`` is already queued; it gets the state at once."""
         state = self._join(member, rig)
         event = ChannelLive if self.live else ChannelIdle
@@ -113,42 +111,42 @@ class Channel:
             self._catchup.add(member.key)
             self._wake.set()
 
-    def remove_member(self, member: Member) -> None:
+    def remove_member(self, member: ChannelMember) -> None:
         group = self.members.get(member.key)
         if group is None or member not in group:
             return
         group.discard(member)
-        self.hub.members_gauge.labels("publisher" if not member.watcher else "viewer").dec()
+        self.context.metrics.members.labels(_role(member)).dec()
         if not group:
             del self.members[member.key]
             self.states.pop(member.key, None)
-        self.hub.maybe_drop(self)
+        self.context.on_empty(self)
 
-    async def add_publisher(self, publisher: PublisherMember, rig: Rig) -> None:
+    async def add_publisher(self, publisher: ChannelPublisher, rig: Rig) -> None:
         self.claimed_by = None
         self.publisher = publisher
         self._join(publisher, rig)
-        self.hub.bus.send(self.name, "live")
+        self.context.bus.send(self.name, "live")
         self.update_live()
 
-    async def remove_publisher(self, publisher: PublisherMember) -> None:
+    async def remove_publisher(self, publisher: ChannelPublisher) -> None:
         claimed = self.claimed_by is publisher
         if claimed:
             self.claimed_by = None
         if self.publisher is publisher:
             self.publisher = None
             self.remove_member(publisher)
-            self.hub.bus.send(self.name, "idle")
+            self.context.bus.send(self.name, "idle")
             self.update_live()
         elif not claimed:
             return
         released = self.releasing = asyncio.Event()
         try:
-            await self.hub.bus.release(self.name, publisher.owner)
+            await self.context.bus.release(self.name, publisher.owner)
         finally:
             self.releasing = None
             released.set()
-        self.hub.maybe_drop(self)
+        self.context.on_empty(self)
 
     # -- liveness and face-lost ----------------------------------------------------------
     def update_live(self) -> None:
@@ -176,7 +174,7 @@ class Channel:
             member.offer(data)
 
     async def _face_watch(self) -> None:
-        after = self.hub.settings.face_lost_after
+        after = self.context.settings.face_lost_after
         while True:
             self._frame_seen.clear()
             if not self._frame_in_live or self.last_frame is None:
@@ -197,13 +195,13 @@ class Channel:
 
     async def _ease(self, frame: ChannelFrame) -> None:
         """Blend every watched key from the held pose to the neutral over ``face_lost_ease`` s."""
-        steps = max(1, round(self.hub.settings.face_lost_ease * EASE_FPS))
+        steps = max(1, round(self.context.settings.face_lost_ease * EASE_FPS))
         for step in range(1, steps + 1):
             alpha = step / steps
             states = [s for k, s in self.states.items() if self.watchers(k)]
             futures = [
                 self._loop.run_in_executor(
-                    self.hub.executor, s.ease, alpha, frame.seq, frame.ts, frame.dropped
+                    self.context.executor, s.ease, alpha, frame.seq, frame.ts, frame.dropped
                 )
                 for s in states
             ]
@@ -229,10 +227,10 @@ class Channel:
         """
         if self._pending is not None:
             frame = dataclasses.replace(frame, dropped=frame.dropped + 1)
-        if self.hub.bus.distributed:
+        if self.context.bus.distributed:
             # Before ``accept``: the bus's send loop, woken first, writes the frame to
             # Redis before the pump's fan-out holds the loop (`RedisBus` says how).
-            self.hub.bus.send(self.name, "frame", frame.to_bytes())
+            self.context.bus.send(self.name, "frame", frame.to_bytes())
         self.accept(frame)
         return frame
 
@@ -252,7 +250,7 @@ class Channel:
         self.remote_seen()
         if kind == "frame" and payload is not None:
             try:
-                frame = ChannelFrame.from_bytes(payload, self.hub.max_points)
+                frame = ChannelFrame.from_bytes(payload, self.context.max_points)
             except (ValueError, KeyError, TypeError, ProtocolError) as exc:
                 log.warning("bad frame from the bus", extra={"event": "channel.bad_frame",
                                                              "error": str(exc)})  # fmt: skip
@@ -263,13 +261,13 @@ class Channel:
         now = time.perf_counter()
         if self._pending is not None:
             self.dropped += 1
-            self.hub.metrics_dropped("channel_superseded")
+            self.context.metrics.dropped.labels("channel_superseded").inc()
         self._pending = (frame, now)
         self.last_frame, self._last_arrival = frame, now
         self._last_frame_at = self._loop.time()
         self._frame_in_live = True
         self.frames_in += 1
-        self.hub.frames_counter.inc()
+        self.context.metrics.frames.inc()
         if self.lost:
             self.lost = False
             self.broadcast(encode(ChannelLive(channel=self.name)))
@@ -296,7 +294,7 @@ class Channel:
         states = [self.states[k] for k in keys if k in self.states]
         if not states:
             return
-        stages = self.hub.metrics.stages if self.hub.settings.stage_timing else None
+        stages = self.context.metrics.stages
         call: _CloneCall = _clone_call if stages is None else _timed_clone_call
         outcomes: list[bytes | tuple[bytes, float] | BaseException | None] = [None] * len(states)
         threaded: list[tuple[int, asyncio.Future[bytes | tuple[bytes, float]]]] = []
@@ -310,7 +308,7 @@ class Channel:
                     outcomes[i] = exc
             else:
                 future = self._loop.run_in_executor(
-                    self.hub.executor, call, s, frame, arrived, count
+                    self.context.executor, call, s, frame, arrived, count
                 )
                 threaded.append((i, future))
         if threaded:
@@ -348,13 +346,13 @@ class Channel:
         # Counted once per frame, not once per key.
         if offered:
             self.results_out += offered
-            self.hub.results_counter.inc(offered)
+            self.context.metrics.results.inc(offered)
         # ``output=points`` keys only encode the frame: not clones (PROTOCOL.md §2.4).
         cloned = sum(1 for s in states if s.CLONES)
         if count:
             self.frames_cloned += 1
             self.clones += cloned
-            self.hub.clones_counter.inc(cloned)
+            self.context.metrics.clones.inc(cloned)
         else:
             self.catchup_clones += cloned
 
@@ -427,6 +425,10 @@ class Channel:
             if task is not None:
                 task.cancel()
         await asyncio.gather(*(t for t in (self._pump, self._face) if t), return_exceptions=True)
+
+
+def _role(member: ChannelMember) -> str:
+    return "viewer" if member.watcher else "publisher"
 
 
 #: A key's clone in a thread or here: its result's bytes (with its seconds when timed).

@@ -8,27 +8,24 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import math
 from concurrent.futures import Executor
 from typing import TYPE_CHECKING, Any
 
-from prometheus_client import Counter, Gauge
-
 from facecast.protocol import ErrorCode, ProtocolError
 from facecast.rig import Rig
-from facecast.rig.errors import RigError
 
-from ..connection.core import rig_unavailable
+from ..connection.opening import load_rig
 from ..settings import Settings
-from ..storage.rig_store import RigNotFoundError, RigStore, valid_rig_id
+from ..storage.rig_store import RigStore
 from .bus import LOCK_TTL_MS, Bus, BusUnavailable, make_bus
 from .channel import Channel
+from .context import ChannelContext, ChannelMetrics, EmptiedChannel
 from .members import STALE_AFTER
 
 if TYPE_CHECKING:
-    from facecast.rig import Rig
-
     from ..metrics import Metrics
     from .members import PublisherMember
 
@@ -61,36 +58,33 @@ class ChannelHub:
         self.metrics = metrics
         self.bus: Bus = make_bus(settings.redis_url)
         self.channels: dict[str, Channel] = {}
-        self.executor: Executor | None = None
-        self.max_points = 4096
+        #: What every channel is handed (its clone pool set at ``start``).
+        self.context = ChannelContext(
+            settings=settings,
+            bus=self.bus,
+            executor=None,
+            metrics=ChannelMetrics.register(metrics, stage_timing=settings.stage_timing),
+            on_empty=self.maybe_drop,
+        )
         #: ``members.STALE_AFTER`` and ``RECLAIM_WAIT`` for this hub's claims: the tests of
         #: a takeover shorten them on a running server instead of waiting out 6.5 s.
         self.stale_after = STALE_AFTER
         self.reclaim_wait = RECLAIM_WAIT
-        registry = metrics.registry
-        self.frames_counter = Counter(
-            "facecast_channel_frames", "Frames received by channels", registry=registry
-        )
-        self.clones_counter = Counter(
-            "facecast_channel_clones",
-            "Clones of channel frames (one per frame per watched rig/output/dtype)",
-            registry=registry,
-        )
-        self.results_counter = Counter(
-            "facecast_channel_results", "Results offered to channel members", registry=registry
-        )
-        self.members_gauge = Gauge(
-            "facecast_channel_members",
-            "Connected channel members",
-            ["role"],
-            registry=registry,
-            multiprocess_mode="livesum",
-        )
         self._maintenance: asyncio.Task[None] | None = None
         self._stopping: set[asyncio.Task[None]] = set()
 
+    @property
+    def executor(self) -> Executor | None:
+        """The clone pool (None before ``start``: asyncio's default)."""
+        return self.context.executor
+
+    @property
+    def origin(self) -> str:
+        """This process's id on the bus (a publisher's lock names it)."""
+        return self.bus.origin
+
     async def start(self, executor: Executor) -> None:
-        self.executor = executor
+        self.context = dataclasses.replace(self.context, executor=executor)
         if self.settings.workers > 1 and not self.bus.distributed:
             log.warning(
                 "channels without --redis are per worker process: a publisher and its "
@@ -119,7 +113,7 @@ class ChannelHub:
     def channel(self, name: str) -> Channel:
         channel = self.channels.get(name)
         if channel is None:
-            channel = self.channels[name] = Channel(self, name)
+            channel = self.channels[name] = Channel(self.context, name)
             self.bus.subscribe(name)
         return channel
 
@@ -137,7 +131,8 @@ class ChannelHub:
                     channel.remote_seen()
         return channel
 
-    def maybe_drop(self, channel: Channel) -> None:
+    def maybe_drop(self, channel: EmptiedChannel) -> None:
+        """Forget ``channel`` if it is empty and still this process's (its ``on_empty``)."""
         if channel.empty and self.channels.get(channel.name) is channel:
             del self.channels[channel.name]
             self.bus.unsubscribe(channel.name)
@@ -148,17 +143,7 @@ class ChannelHub:
 
     async def load_rig(self, rig_id: str) -> Rig:
         """The rig ``rig_id`` (file I/O in a thread); fatal UNKNOWN_RIG if there is none."""
-        if not valid_rig_id(rig_id):
-            raise ProtocolError(
-                ErrorCode.UNKNOWN_RIG, f"no rig with id {rig_id[:64]!r}", fatal=True
-            )
-        try:
-            rig: Rig = await asyncio.get_running_loop().run_in_executor(
-                None, self.store.get, rig_id
-            )
-            return rig
-        except (RigNotFoundError, RigError) as exc:
-            raise rig_unavailable(rig_id, exc) from None
+        return await load_rig(self.store, rig_id)
 
     async def claim(self, name: str, publisher: PublisherMember) -> Channel:
         """Make ``publisher`` the channel's only one, here and (with Redis) everywhere.

@@ -1,9 +1,9 @@
 """The two kinds of channel connection: a watcher, and the channel's one publisher.
 
-Each drives its core (``core``: the protocol rules) from a reader task and writes through
-a bounded outbox (``outbox``: the newest result replaces an unsent one), so a slow client
-only ever slows itself. They do no cloning and no fan-out: frames go to the `Channel`,
-results come back from it as shared bytes.
+Each is a `Member` (``outbox``): the driver's read loop feeds its core (the protocol
+rules), and it writes through a bounded outbox where the newest result replaces an
+unsent one, so a slow client only ever slows itself. They do no cloning and no fan-out:
+frames go to the `Channel`, results come back from it as shared bytes.
 """
 
 from __future__ import annotations
@@ -12,34 +12,33 @@ import asyncio
 import logging
 import secrets
 import time
-from typing import TYPE_CHECKING
+from collections.abc import Awaitable
+from concurrent.futures import Executor
+from typing import Protocol
 
 import numpy as np
 from starlette.websockets import WebSocket
 
 from facecast.protocol import (
-    ClientMessage,
     ErrorCode,
     Frame,
     Hello,
     Limits,
     ProtocolError,
+    Ready,
     ServerProtocol,
 )
-from facecast.rig.errors import InputError, RigError
-from facecast.rig.rebase import calibrate as calibrate_rig
+from facecast.rig import Rig
+from facecast.rig.errors import InputError
 
 from ..compute.cloning import Smoother, frame_error
 from ..connection.core import PublisherCore, WatcherCore
 from ..settings import Settings
+from .channel import Channel
 from .fanout import ChannelFrame
 from .outbox import Member
 
-if TYPE_CHECKING:
-    from .channel import Channel
-    from .hub import ChannelHub
-
-__all__ = ["PublisherMember", "WatcherMember"]
+__all__ = ["Directory", "PublisherMember", "WatcherMember"]
 
 log = logging.getLogger("facecast.server.channels")
 
@@ -47,6 +46,28 @@ log = logging.getLogger("facecast.server.channels")
 #: blipped: a newer connection with its token may then take its channel (``supersede``).
 #: A publisher that sends (frames, pings) keeps its channel against its own token too.
 STALE_AFTER = 1.0
+
+
+class Directory(Protocol):
+    """What a publisher needs of its process's channels (the hub): rigs, claims, services."""
+
+    @property
+    def settings(self) -> Settings: ...
+
+    @property
+    def executor(self) -> Executor | None: ...
+
+    @property
+    def origin(self) -> str: ...
+
+    @property
+    def stale_after(self) -> float: ...
+
+    async def load_rig(self, rig_id: str) -> Rig: ...
+
+    async def claim(self, name: str, publisher: PublisherMember) -> Channel: ...
+
+    def metrics_dropped(self, reason: str) -> None: ...
 
 
 class WatcherMember(Member):
@@ -65,6 +86,11 @@ class WatcherMember(Member):
                          secrets.token_hex(8))  # fmt: skip
         self.channel = channel
 
+    def greet(self, ready: Ready) -> None:
+        """Queue the ``ready`` the watcher is opened with (before the channel's state)."""
+        self.core.send(ready)
+        self._deliver()
+
     async def leave(self) -> None:
         self.channel.remove_member(self)
 
@@ -81,19 +107,21 @@ class PublisherMember(Member):
     watcher = False
     core: PublisherCore
 
-    def __init__(self, websocket: WebSocket, hub: ChannelHub, name: str, principal: str) -> None:
-        settings = hub.settings
+    def __init__(
+        self, websocket: WebSocket, directory: Directory, name: str, principal: str
+    ) -> None:
+        settings = directory.settings
         protocol = ServerProtocol(Limits(max_message_bytes=settings.max_message_bytes))
         core = PublisherCore(protocol, settings, time.monotonic(),
                              idle_timeout=settings.idle_timeout)  # fmt: skip
-        super().__init__(websocket, ("", "", ""), core, secrets.token_hex(8))
+        super().__init__(websocket, ("", "", ""), core, secrets.token_hex(8), directory.executor)
         core.superseded = self._superseded
-        self.hub = hub
+        self.directory = directory
         self.name = name
         self.principal = principal
         #: The channel lock's value: this process, this connection, and whose token it is
         #: (a token digest, or "anonymous"), so another process can tell the same caller.
-        self.owner = f"{hub.bus.origin}:{self.id}:{principal}"
+        self.owner = f"{directory.origin}:{self.id}:{principal}"
         #: Set once ``leave`` has given the channel (and its lock) back.
         self.left = asyncio.Event()
         self.channel: Channel | None = None
@@ -114,27 +142,16 @@ class PublisherMember(Member):
     def _superseded(self) -> int:
         return self.channel.dropped if self.channel is not None else 0
 
-    async def _on_message(self, message: ClientMessage, now: float) -> None:
-        if type(message) is Frame:
-            await self._on_frame(message, now)
-            return
-        work = self.core.handle(message, now)
-        if isinstance(work, Hello):
-            await self._on_hello(work)
-        elif work is not None:
-            assert work.points is not None  # the core hands over only calibrates with points
-            await self._calibrate(work.points, None, work.noise)
-        self._deliver()
-        self.arm()  # a wait for the rig or a neutral suspended the idle deadline
-
-    async def _on_hello(self, hello: Hello) -> None:
+    async def _open(self, hello: Hello) -> None:
         core = self.core
         try:
-            rig = await self.hub.load_rig(hello.rig)
+            rig = await self.directory.load_rig(hello.rig)
             # Built before the claim, so a refused smoothing (a Kalman without noise)
             # claims nothing.
             point_filter = core.point_filter(rig)
-            channel = await self.hub.claim(self.name, self)  # raises CHANNEL_BUSY / OVERLOADED
+            channel = await self.directory.claim(
+                self.name, self
+            )  # raises CHANNEL_BUSY / OVERLOADED
         except ProtocolError:
             core.failed(time.monotonic())
             raise
@@ -148,10 +165,14 @@ class PublisherMember(Member):
                  extra={"event": "channel.publish", "channel": self.name, "rig": hello.rig,
                         "by": self.principal})  # fmt: skip
 
-    async def _on_frame(self, frame: Frame, now: float) -> None:
+    def _on_frame(self, frame: Frame, now: float, in_burst: bool) -> Awaitable[None]:
+        return self._publish(frame, now)
+
+    async def _publish(self, frame: Frame, now: float) -> None:
+        """Check ``frame`` (rate, neutral, range), smooth its points, hand it to the channel."""
         core = self.core
         if not core.frame_allowed(frame, now):
-            self.hub.metrics_dropped("rate_limited")
+            self.directory.metrics_dropped("rate_limited")
             self._deliver()
             self.arm()
             return
@@ -187,27 +208,12 @@ class PublisherMember(Member):
         # then cloned, not superseded), as /v1/stream does.
         await asyncio.sleep(0)
 
-    async def _calibrate(self, points: np.ndarray, seq: int | None, noise: float | None) -> None:
-        """Fit the neutral on the layout rig (every key re-bases its own on it, with the
-        same ``noise``: None exactly, else noise-aware and bounded, ``rig.rebase``)."""
-        core = self.core
-        base = core.base_rig
-        assert base is not None
-        try:
-            rig = await asyncio.get_running_loop().run_in_executor(
-                self.hub.executor, calibrate_rig, base, points, noise
-            )
-        except RigError as exc:
-            core.calibration_failed(exc, time.monotonic(), seq)
-            return
-        core.calibrated(rig, time.monotonic(), seq, points=points, noise=noise)
-
     def supersede(self) -> bool:
-        """End this connection if it is silent (the hub's ``stale_after``, ``STALE_AFTER``):
+        """End this connection if it is silent (the directory's ``stale_after``, ``STALE_AFTER``):
         a newer one with the same token takes its channel. False: it is alive, and keeps
         the channel.
         """
-        if time.monotonic() - self.core.last_message < self.hub.stale_after:
+        if time.monotonic() - self.core.last_message < self.directory.stale_after:
             return False
         self.end(ProtocolError(ErrorCode.CHANNEL_BUSY, "a newer connection with the same "
                                "token took over the channel", fatal=True))  # fmt: skip

@@ -28,7 +28,7 @@ from facecast.protocol.fields import check_str
 from facecast.protocol.messages import POINTS_DTYPES, WATCH_OUTPUTS
 
 from ..connection.admission import authorize_websocket, serve
-from ..connection.core import watch_ready
+from ..connection.opening import watch_ready
 from ..connection.refusal import refuse
 from ..errors import ApiError
 from ..guards.auth import Principal, requires
@@ -134,9 +134,7 @@ async def watch(websocket: WebSocket, name: str) -> None:
     channel = await hub.open_channel(name)
     member = WatcherMember(websocket, channel, hello, limits, settings)
     member.key = (hello.rig, output, dtype)  # what it receives; a points key clones nothing
-    member.offer(
-        member.protocol.send(watch_ready(member.id, hello.rig, rig, output, dtype, settings))
-    )
+    member.greet(watch_ready(member.id, hello.rig, rig, output, dtype, settings))
     channel.add_watcher(member, rig)
     log.info("watcher joined", extra={"event": "channel.watch", "channel": name,
                                       "rig": hello.rig, "output": output,

@@ -2,9 +2,10 @@
 
 ``/v1/stream`` sessions and channel publishers and watchers all drive a `ConnectionCore`:
 fed received bytes and the clock, it returns messages (bytes to send), asks for rigs to
-be loaded or calibrated, and decides when to close. No asyncio, sockets or Starlette here
-(the websockets sans-I/O precedent): the drivers (``session``, ``members``) schedule,
-run the work asked for in threads and write.
+be loaded or calibrated, decides when to close, and counts what the connection did (its
+``counters`` and, given ``metrics``, the app's). No asyncio, sockets or Starlette here
+(the websockets sans-I/O precedent): the `Driver` schedules, runs the work asked for in
+threads and writes.
 """
 
 from __future__ import annotations
@@ -25,11 +26,9 @@ from facecast.protocol import (
     ErrorCode,
     Frame,
     Hello,
-    Limits,
     Ping,
     Pong,
     ProtocolError,
-    Ready,
     ServerMessage,
     ServerProtocol,
     Smoothing,
@@ -39,11 +38,14 @@ from facecast.rig import Rig
 from facecast.rig.errors import RigError
 from facecast.rig.filters import KalmanFilter, OneEuroFilter
 
-from ..compute.cloning import Smoother, smoothing_filter, smoothing_name
+from ..compute.cloning import Smoother, smoothing_filter
 from ..guards.calibrate_rate import CalibrateRateLimit
 from ..guards.frame_rate import FrameRateLimit
+from ..metrics import Metrics
 from ..settings import Settings
-from ..storage.rig_store import RigNotFoundError, valid_rig_id
+from ..storage.rig_store import valid_rig_id
+from .closing import CLOSE_GRACE, Closing
+from .opening import ready_message
 
 __all__ = [
     "CLOSE_GRACE",
@@ -53,35 +55,7 @@ __all__ = [
     "PublisherCore",
     "StreamCore",
     "WatcherCore",
-    "ready_message",
-    "rig_unavailable",
-    "watch_ready",
 ]
-
-#: How long a closing connection waits to hand its last error, then its close frame, to
-#: the socket (each).
-CLOSE_GRACE = 1.0
-
-
-class Closing(Exception):
-    """Ends a connection with a close code (and maybe a fatal error sent first)."""
-
-    def __init__(self, code: int, reason: str, error: ProtocolError | None = None) -> None:
-        super().__init__(reason)
-        self.code = code
-        self.reason = reason
-        self.error = error
-
-    @classmethod
-    def for_error(cls, error: ProtocolError) -> Closing:
-        """The close a fatal ``error`` calls for (PROTOCOL.md §7: its code's close code)."""
-        return cls(close_code(error), error.code_name.lower(), error)
-
-    @classmethod
-    def internal(cls) -> Closing:
-        """The close of a connection whose server side failed (a bug): 1011, INTERNAL."""
-        error = ProtocolError(ErrorCode.INTERNAL, "internal server error", fatal=True)
-        return cls(1011, "internal error", error)
 
 
 @dataclass
@@ -97,60 +71,6 @@ class Counters:
     @property
     def dropped(self) -> int:
         return self.dropped_superseded + self.dropped_rate
-
-
-def rig_unavailable(rig_id: str, exc: Exception) -> ProtocolError:
-    """The fatal UNKNOWN_RIG for a ``hello`` whose rig could not be loaded (``exc``)."""
-    if isinstance(exc, RigNotFoundError):
-        return ProtocolError(ErrorCode.UNKNOWN_RIG, f"no rig with id {rig_id!r}", fatal=True)
-    return ProtocolError(
-        ErrorCode.UNKNOWN_RIG, f"rig {rig_id!r} cannot be loaded: {exc}", fatal=True
-    )
-
-
-def ready_message(
-    session_id: str, hello: Hello, rig: Rig, limits: Limits, settings: Settings
-) -> Ready:
-    """The ``ready`` answering ``hello`` for ``rig``, with the limits the server enforces."""
-    return Ready(
-        session=session_id,
-        rig=hello.rig,
-        names=rig.names,
-        num_points=rig.num_points,
-        num_vertices=rig.num_vertices,
-        output=hello.output,
-        dtype=hello.dtype,
-        moving=rig.moving_vertices if hello.output == "moving" else None,
-        smoothing=None if hello.smoothing is None else smoothing_name(hello.smoothing, rig),
-        limits={
-            "max_points": int(limits.max_points),
-            "max_fps": float(settings.max_fps),
-            "rate_burst": int(settings.rate_burst),
-            "calibrate_rate": float(settings.calibrate_rate),
-            "calibrate_burst": int(settings.calibrate_burst),
-            "max_message_bytes": int(settings.max_message_bytes),
-            "idle_timeout": float(settings.idle_timeout),
-        },
-    )
-
-
-def watch_ready(
-    session_id: str, rig_id: str, rig: Rig, output: str, dtype: str, settings: Settings
-) -> Ready:
-    """The ``ready`` a channel watcher gets on joining (§2.1): what it will receive.
-
-    Its limits hold ``max_message_bytes`` only: a watcher sends no frames or calibrations.
-    """
-    return Ready(
-        session=session_id,
-        rig=rig_id,
-        names=rig.names,
-        num_points=rig.num_points,
-        num_vertices=rig.num_vertices,
-        output=output,
-        dtype=dtype,
-        limits={"max_message_bytes": int(settings.max_message_bytes)},
-    )
 
 
 def _none() -> int:
@@ -176,6 +96,8 @@ class ConnectionCore:
         ``calibrate_burst``, ``idle_timeout``)
     now : the clock when the connection was accepted
     idle_timeout : seconds without a message before IDLE_TIMEOUT; None: no idle rule
+    metrics : the app's collectors, counted into along with ``counters`` (errors by code,
+        frames in and out, frames dropped); None: ``counters`` only
     """
 
     def __init__(
@@ -185,8 +107,10 @@ class ConnectionCore:
         now: float,
         *,
         idle_timeout: float | None,
+        metrics: Metrics | None = None,
     ) -> None:
         self.protocol = protocol
+        self.metrics = metrics
         self.settings = settings
         self.counters = Counters()
         self.idle_timeout = idle_timeout
@@ -205,7 +129,9 @@ class ConnectionCore:
         self.waiting = 0
         self.last_message = now
         #: Told the code's name of every error the core counts (the app's metrics).
-        self.on_error: Callable[[str], None] | None = None
+        self.on_error: Callable[[str], None] | None = (
+            None if metrics is None else self._error_metric
+        )
         self._out: list[bytes] = []
 
     @property
@@ -218,6 +144,16 @@ class ConnectionCore:
         """Decode one binary message received at ``now`` (ProtocolError if refused)."""
         self.last_message = now
         return self.protocol.receive(data)
+
+    def receive_frame(self, data: bytes, now: float) -> Frame | None:
+        """``data`` received at ``now`` as a frame taken as is (``ServerProtocol.receive_frame``).
+
+        None: not such a frame (nothing is consumed; `receive` it in order instead).
+        """
+        frame = self.protocol.receive_frame(data)
+        if frame is not None:
+            self.last_message = now
+        return frame
 
     def receive_text(self, text: str, now: float) -> NoReturn:
         """A text message received at ``now``: always refused (TEXT_NOT_SUPPORTED)."""
@@ -298,13 +234,17 @@ class ConnectionCore:
     # -- frames --------------------------------------------------------------------------
     def frame_allowed(self, frame: Frame, now: float) -> bool:
         """Count ``frame``; False when it is over the rate (dropped, counted, maybe told)."""
-        counters = self.counters
+        counters, metrics = self.counters, self.metrics
         counters.frames_in += 1
+        if metrics is not None:
+            metrics.frames_in.inc()
         if self.rig is None:  # hello accepted but ready not sent: the driver awaits the rig
             raise ProtocolError(ErrorCode.WRONG_STATE, "frame before ready", seq=frame.seq)
         if self.rate.allow(now):
             return True
         counters.dropped_rate += 1
+        if metrics is not None:
+            metrics.frames_dropped.labels("rate_limited").inc()
         error = self.rate.discarded(frame.seq, now, self.dropped_total())
         if error is not None:
             self._count(ErrorCode.RATE_LIMITED.name)
@@ -314,6 +254,18 @@ class ConnectionCore:
     def dropped_total(self) -> int:
         """Frames of this connection discarded so far (``result.dropped``, §8)."""
         return self.counters.dropped
+
+    def frame_superseded(self) -> None:
+        """A frame waiting to be cloned was replaced by a newer one (§8): dropped, counted."""
+        self.counters.dropped_superseded += 1
+        if self.metrics is not None:
+            self.metrics.frames_dropped.labels("superseded").inc()
+
+    def results_sent(self, n: int) -> None:
+        """``n`` results were handed to the socket."""
+        self.counters.results_out += n
+        if self.metrics is not None:
+            self.metrics.frames_out.inc(n)
 
     def take_neutral(self) -> bool:
         """Whether this frame is to become the neutral (once per ``calibrate`` asked)."""
@@ -332,11 +284,20 @@ class ConnectionCore:
         return data
 
     # -- calibration ---------------------------------------------------------------------
-    def calibrated(self, rig: Rig, now: float, seq: int | None = None) -> None:
+    def calibrated(
+        self,
+        rig: Rig,
+        now: float,
+        seq: int | None = None,
+        *,
+        points: np.ndarray | None = None,
+        noise: float | None = None,
+    ) -> None:
         """The calibration asked for gave ``rig``; ``seq``: the frame taken as neutral.
 
         Only a calibration `handle` asked for (``seq`` None) ends a wait: a frame's
-        neutral (`take_neutral`) is fitted while the reader goes on reading.
+        neutral (`take_neutral`) is fitted while the reader goes on reading. ``points``
+        and ``noise`` (what it was fitted on) matter to a channel's publisher only.
         """
         if seq is None:
             self._done_waiting(now)
@@ -401,6 +362,10 @@ class ConnectionCore:
         if out:
             self._out = []
         return out
+
+    def _error_metric(self, name: str) -> None:
+        assert self.metrics is not None
+        self.metrics.errors.labels(name).inc()
 
     def _count(self, name: str) -> None:
         self.counters.errors += 1
@@ -507,8 +472,7 @@ class PublisherCore(ConnectionCore):
         """As `ConnectionCore.calibrated`; ``points`` (the neutral) and the ``noise`` it was
         re-based with go to the channel, whose every key re-bases its own rig the same way."""
         assert points is not None
-        self.neutral = np.array(points, copy=True)
-        self.neutral_noise = noise
+        self.neutral, self.neutral_noise = np.array(points, copy=True), noise
         self.neutral_id = secrets.token_hex(6)
         super().calibrated(rig, now, seq)
 

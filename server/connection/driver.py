@@ -1,9 +1,10 @@
-"""The asyncio half of a client connection: its two tasks, its deadline timer, its close.
+"""The asyncio half of a client connection: its reader, its writer, its timer, its close.
 
-Runs a reader and a writer task beside a `ConnectionCore` until either side ends it,
-calls the core's ``tick`` at its ``deadline`` (one timer, not one per message) and sends
-the close in bounded time. It makes no protocol decision (the core does) and reads and
-writes nothing itself: subclasses (``session.Session``, ``outbox.Member``) do.
+Runs one read loop and one writer (its `Outbox`) beside a `ConnectionCore` until either
+side ends it, runs the work the core asks for off the loop (a neutral's fit), calls the
+core's ``tick`` at its ``deadline`` (one timer, not one per message) and sends the close
+in bounded time. It makes no protocol decision (the core does); what a frame or a
+``hello`` leads to is the subclasses' (``stream.session.Session``, ``channels.members``).
 """
 
 from __future__ import annotations
@@ -13,33 +14,72 @@ import contextlib
 import logging
 import math
 import time
+from collections.abc import Awaitable, Callable
+from concurrent.futures import Executor
 from typing import Any
 
+import numpy as np
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
-from facecast.protocol import ProtocolError
+from facecast.protocol import ClientMessage, Frame, Hello, ProtocolError
+from facecast.rig.errors import RigError
+from facecast.rig.rebase import calibrate as calibrate_rig
 
-from .core import CLOSE_GRACE, Closing, ConnectionCore
+from ..compute.stages import CPU_CLOCK, StageTimes
+from ..serving.seam import transport_for
+from .closing import CLOSE_GRACE, Closing
+from .core import ConnectionCore
+from .outbox import Outbox
 
-__all__ = ["Driver"]
+__all__ = ["BURST_SECONDS", "Driver"]
+
+#: Frames that arrived together are cloned in order for at most this long after the
+#: first of them was read; later ones in the same burst replace one another (§8).
+BURST_SECONDS = 0.005
 
 
 class Driver:
     """Serve one accepted WebSocket with ``core``'s rules until either side ends it.
 
-    Subclasses write ``_read_loop`` and ``_write_loop`` and ``_deliver`` (hand what the
-    core queued to their writer); the hooks ``_stopping``, ``_extra_tasks``, ``_ended``
-    and ``_log_end`` run, in that order, as the connection ends.
+    Subclasses say what a frame (``_on_frame``) and a ``hello`` (``_open``) lead to;
+    everything written goes through ``outbox``. The hooks ``_stopping``, ``_ended`` and
+    ``_log_end`` run, in that order, as the connection ends.
+
+    Parameters
+    ----------
+    websocket : accepted before ``run``
+    core : the connection's rules
+    name : names its tasks and log lines
+    outbox : its sending side
+    executor : where a neutral is fitted (the clone pool; None: asyncio's default)
+    stages : where decode times go, or None
     """
 
     #: Logged (``event``) when a task fails with an unexpected exception.
     crash_event = "connection.crash"
     log = logging.getLogger("facecast.server")
 
-    def __init__(self, websocket: WebSocket, core: ConnectionCore, name: str) -> None:
+    def __init__(
+        self,
+        websocket: WebSocket,
+        core: ConnectionCore,
+        name: str,
+        outbox: Outbox,
+        *,
+        executor: Executor | None = None,
+        stages: StageTimes | None = None,
+    ) -> None:
         self.ws = websocket
         self.core = core
+        self.outbox = outbox
+        self.executor = executor
+        self._stages = stages
         self._name = name
+        #: Received messages waiting for the reader (where the transport tells), or None.
+        self._queued: Callable[[], int] | None = None
+        self._reader_waited = False
+        #: The reader waits in its receive with nothing of its own in flight.
+        self._parked = False
         self._loop = asyncio.get_running_loop()
         self._stop: asyncio.Future[Closing] = self._loop.create_future()
         self._done = asyncio.Event()
@@ -48,22 +88,27 @@ class Driver:
         self._finishing = False
 
     # -- subclasses ----------------------------------------------------------------------
-    async def _read_loop(self) -> None:  # pragma: no cover - overridden
-        raise NotImplementedError
+    def _on_frame(self, frame: Frame, now: float, in_burst: bool) -> Awaitable[None] | None:
+        """A frame received at ``now`` (``in_burst``: with others that arrived together).
 
-    async def _write_loop(self) -> None:  # pragma: no cover - overridden
-        raise NotImplementedError
+        By default the core's answer, as to any message; an awaitable is awaited before
+        the next message is read.
+        """
+        return self._on_message(frame, now)
 
-    def _deliver(self) -> None:
-        """Hand the messages the core queued (``core.data_to_send()``) to the writer."""
-        raise NotImplementedError  # pragma: no cover - overridden
+    async def _open(self, hello: Hello) -> None:
+        """Load the rig ``hello`` asks for and open the core (then ``ready`` is sent).
+
+        A watcher, opened by its query string, asks for nothing.
+        """
+
+    async def _write_loop(self) -> None:
+        await self.outbox.run()
 
     def _stopping(self) -> None:
         """The connection is ending: stop sending on other tasks' stacks."""
-
-    def _extra_tasks(self) -> list[asyncio.Task[None]]:
-        """Tasks of this connection besides the reader and writer, cancelled at the end."""
-        return []
+        self._parked = False
+        self.outbox.stop()
 
     async def _ended(self) -> None:
         """The tasks are gone; before the close is sent."""
@@ -78,6 +123,10 @@ class Driver:
     # -- running -------------------------------------------------------------------------
     async def run(self) -> None:
         """Run until the client leaves, a fatal error, the idle timeout or ``close``."""
+        transport = transport_for(self.ws)
+        self.outbox.start(transport)
+        if transport.direct:
+            self._queued = transport.messages_waiting
         name = self._name
         reader = asyncio.create_task(self._read_loop(), name=f"{name}-reader")
         writer = asyncio.create_task(self._write_loop(), name=f"{name}-writer")
@@ -91,7 +140,7 @@ class Driver:
             self._finishing = True
             self._disarm()
             self._stopping()
-            tasks = [reader, writer, *self._extra_tasks()]
+            tasks = [reader, writer]
             for task in tasks:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
@@ -154,6 +203,101 @@ class Driver:
         with contextlib.suppress(Exception):
             async with asyncio.timeout(CLOSE_GRACE):
                 await self.ws.close(ending.code, ending.reason[:120])
+
+    # -- reading -------------------------------------------------------------------------
+    async def _read_loop(self) -> None:
+        receive, clock, queued = self.ws.receive, time.monotonic, self._queued
+        core, stages, outbox = self.core, self._stages, self.outbox
+        burst_start = 0.0
+        waits = False
+        while True:
+            if queued is not None:
+                waits = not queued()
+                if waits:
+                    outbox.flush()  # the burst is over: its results go out together
+            else:
+                self._reader_waited = False
+                self._loop.call_soon(self._mark_reader_waited)
+            self._parked = True
+            try:
+                message = await receive()
+            finally:
+                self._parked = False
+            now = clock()
+            if waits if queued is not None else self._reader_waited:
+                # The receive had to wait: this message starts a new burst (messages
+                # that were already queued when the reader got to them belong to one).
+                burst_start = time.perf_counter()
+            if message["type"] == "websocket.disconnect":
+                return
+            data = message.get("bytes")
+            try:
+                if data is None:
+                    core.receive_text(message.get("text") or "", now)
+                decoding = CPU_CLOCK() if stages is not None else 0.0
+                decoded = core.receive(data, now)
+                if type(decoded) is Frame:
+                    if stages is not None:
+                        stages.add("decode", CPU_CLOCK() - decoding)
+                    in_burst = time.perf_counter() - burst_start < BURST_SECONDS
+                    work = self._on_frame(decoded, now, in_burst)
+                    if work is not None:
+                        await work
+                else:
+                    outbox.flush()
+                    await self._on_message(decoded, now)
+            except ProtocolError as exc:
+                self.report(exc)
+
+    def _mark_reader_waited(self) -> None:
+        # Scheduled before each receive: it runs before the receive returns only if the
+        # receive suspended (the loop turned), i.e. no message was already queued.
+        self._reader_waited = True
+
+    async def _on_message(self, message: ClientMessage, now: float) -> None:
+        """A decoded message: the core's answer, and the work it asks for."""
+        work = self.core.handle(message, now)
+        if isinstance(work, Hello):
+            await self._open(work)
+        elif work is not None:
+            assert work.points is not None  # the core hands over only calibrates with points
+            await self._calibrate(work.points, None, work.noise)
+        self._deliver()
+        self.arm()  # a wait for the rig or a neutral suspended the idle deadline
+
+    async def _calibrate(self, points: np.ndarray, seq: int | None, noise: float | None) -> bool:
+        """Fit the neutral ``points`` (a ``calibrate`` message's, or frame ``seq``'s).
+
+        ``noise``: the calibrate's landmark noise, for a noise-aware, bounded re-base
+        (``rig.rebase``); None re-bases exactly. The core queues its ``calibrated`` or its
+        CALIBRATION_FAILED error; False if failed.
+        """
+        core = self.core
+        base = core.base_rig
+        assert base is not None
+        try:
+            # Re-fitting the projection (or, with noise, the weight model) is milliseconds:
+            # in the clone pool.
+            rig = await self._loop.run_in_executor(
+                self.executor, calibrate_rig, base, points, noise
+            )
+        except RigError as exc:
+            core.calibration_failed(exc, time.monotonic(), seq)
+            return False
+        core.calibrated(rig, time.monotonic(), seq, points=points, noise=noise)
+        return True
+
+    # -- writing -------------------------------------------------------------------------
+    def _deliver(self) -> None:
+        """Hand what the core has to send (pongs, errors, acks) to the outbox."""
+        for data in self.core.data_to_send():
+            self.outbox.offer(data)
+
+    def report(self, error: ProtocolError) -> None:
+        """Queue an error for the client; a fatal one ends the connection after it is sent."""
+        self.outbox.flush()
+        self.core.report(error)  # raises Closing when fatal
+        self._deliver()
 
     # -- the core's deadline -------------------------------------------------------------
     def arm(self) -> None:

@@ -15,7 +15,7 @@ from starlette.websockets import WebSocket
 
 from facecast.protocol import ProtocolError, ServerProtocol
 
-from .core import Closing
+from .closing import Closing
 
 __all__ = ["FIRST_MESSAGE_WAIT", "refuse"]
 
