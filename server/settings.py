@@ -98,7 +98,7 @@ class Settings:
     #: transfers off. Without it a transfer is 503 ``transfer_unavailable``.
     transfer_source: str = ""
 
-    # -- performers (server/performer_routes.py) -------------------------------------------
+    # -- performers (server/http/performers.py) -------------------------------------------
     #: Largest calibration capture body (JSON or msgpack points per expression).
     max_capture_bytes: int = 1 * MiB
 
@@ -161,7 +161,7 @@ class Settings:
     #: server, one token's quota or one address's cannot lock the performer out.
     publisher_slots: int = 4
 
-    # -- broadcast channels (server/channels.py) --------------------------------------------
+    # -- broadcast channels (server/channels/) ----------------------------------------------
     #: Redis URL spanning channels across processes (``redis://host:6379/0``); empty:
     #: channels live in this process only.
     redis_url: str = ""
@@ -170,7 +170,7 @@ class Settings:
     #: Seconds over which a lost face eases from the last pose to the neutral.
     face_lost_ease: float = 1.0
 
-    # -- browsers (server/origins.py) -------------------------------------------------------
+    # -- browsers (server/guards/origins.py) -----------------------------------------------
     #: Origins (``scheme://host[:port]``) besides the server's own whose pages may open
     #: WebSockets and send PUT/DELETE here, and read the REST API (CORS): a viewer page
     #: served elsewhere that points here with ``server=``. ``"*"``: any origin.

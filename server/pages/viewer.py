@@ -98,7 +98,7 @@ def mount_viewer(app: FastAPI, settings: Settings) -> None:
         DEMO_ANIMATION_PATH,
         include_in_schema=True,
         tags=["demo"],
-        summary="The demo performance's feature points (msgpack; see server/viewer.py)",
+        summary="The demo performance's feature points (msgpack; see server/pages/viewer.py)",
         response_class=Response,
         responses={200: {"content": {"application/vnd.msgpack": {}}}},
         dependencies=[Depends(requires(*READ_ROLES))],
