@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: Exceptions that are not errors: raised and caught inside one module for control flow.
 NOT_ERRORS = {
-    "facecast.server.connection.core.Closing": "a connection's tasks signalling its own close (control flow)",
+    "facecast.server.connection.closing.Closing": "a connection's tasks signalling its own close (control flow)",
 }
 
 #: What each exception also is, so that an ``except`` written before the root keeps
