@@ -217,10 +217,15 @@ class FramePublisher:
         return self
 
     async def _read_until_lost(self) -> BaseException | None:
+        # The socket is forgotten when it ends, not when close() cancels the read: close()
+        # must still close it (else the server sees the publisher leave only at its timeout).
         try:
-            return await self._read()
-        finally:
+            reason = await self._read()
+        except (ConnectionClosed, OSError):
             self._ws = None
+            raise
+        self._ws = None
+        return reason
 
     async def _read(self) -> BaseException | None:
         assert self._ws is not None and self._protocol is not None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import httpx
 import numpy as np
 import pytest
 from hypothesis import given
@@ -28,7 +29,7 @@ from facecast.rig.rebase import rebase
 from facecast.server.channels.fanout import ChannelFrame, key_state
 from facecast.server.testing import run_server
 
-from ._helpers import RIG_IDS, Publisher, Watcher, points
+from ._helpers import RIG_IDS, Publisher, Watcher, points, wait_for
 
 pytestmark = pytest.mark.anyio
 
@@ -89,6 +90,26 @@ async def test_a_frame_publishers_calibrate_rebases_the_channel_before_its_next_
 
     expected = rebase(rigs["alpha"], neutral, noise=0.01).weights(pts).astype(np.float32)
     np.testing.assert_array_equal(results[-1].weights, expected)
+
+
+async def test_a_frame_publisher_closed_leaves_its_channel_at_once(settings, rigs, ws_impl):
+    # close() closes the socket itself: the server sees the publisher leave then, not when
+    # its connection times out (facecast publish/record waited ~10 s for it).
+    async with (
+        run_server(settings, ws=ws_impl) as server,
+        httpx.AsyncClient(base_url=server.base_url) as http,
+    ):
+        url = channel_url(server.base_url, "stage", "publish")
+        publisher = await FramePublisher(url, Hello(rig="alpha")).start()
+        await publisher.send(points(rigs["alpha"], 1), 0.0)
+        assert await publisher.drain(10.0)
+        await publisher.close()
+
+        async def left() -> bool:
+            response = await http.get("/v1/channels/stage")
+            return response.status_code == 404 or not response.json()["publisher"]
+
+        await wait_for(left, timeout=3.0, what="the closed publisher to leave the channel")
 
 
 async def test_align_applies_to_every_watched_rig(settings, rigs, ws_impl):
