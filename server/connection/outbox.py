@@ -99,10 +99,6 @@ class Outbox:
         """Results waiting for the writer: (count, bytes)."""
         return len(self._results), self.result_bytes
 
-    @property
-    def empty(self) -> bool:
-        return not self._control and not self._results
-
     def wake(self) -> None:
         """Wake the writer (the caller has given its ``produce`` something to do)."""
         self._wake.set()
@@ -161,12 +157,19 @@ class Outbox:
         self.result_bytes += len(data)
         self._wake.set()
 
-    def cork(self, data: bytes) -> None:
-        """Hold a result of the burst being read, to write it with the others (``flush``)."""
+    def cork(self, data: bytes) -> bool:
+        """Hold a result of the burst being read, to write it with the others (``flush``).
+
+        Only while results go straight to the socket and nothing waits for the writer
+        (it is idle, nothing queued). False: not held; offer it instead (`offer_result`).
+        """
+        if self._direct is None or not self.idle or self._control or self._results:
+            return False
         self._corked.append(data)
         self._corked_bytes += len(data)
         if self._corked_bytes >= CORK_BYTES:
             self.flush()
+        return True
 
     def flush(self) -> None:
         """Write the corked results in one go (one syscall), or queue them for the writer.

@@ -247,12 +247,10 @@ class Session(Driver):
             data = self._clone_inline(frame, arrived)
             if data is None:
                 return None
-            if outbox.direct and outbox.idle and outbox.empty:
-                # Nothing queued before it: the reader writes it to the socket itself
-                # at the end of this burst (``Outbox.flush``), without waking the writer
-                # task or the ASGI send path, and with one syscall for the whole burst.
-                outbox.cork(data)
-            else:
+            # Nothing queued before it: the reader writes it to the socket itself at the
+            # end of this burst (``Outbox.flush``), without waking the writer task or the
+            # ASGI send path, and with one syscall for the whole burst.
+            if not outbox.cork(data):
                 outbox.offer_result(data)
             return None
         outbox.flush()
