@@ -89,4 +89,4 @@ def offer_results(members: Iterable[ChannelMember], data: bytes) -> int:
     The RFC 6455 frame is built once for all of them (``connection.outbox.offer_results``).
     Returns how many were offered.
     """
-    return connection_outbox.offer_results((m.outbox for m in members), data)
+    return connection_outbox.offer_results([m.outbox for m in members], data)
