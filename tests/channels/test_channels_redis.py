@@ -166,6 +166,7 @@ async def test_a_returning_publisher_takes_its_channel_back_from_its_stale_conne
     await again.send(3, pts)
     resumed = await watcher.result_with_seq(3, timeout=10)
     await again.close()
+    await watcher.close()
 
     assert again.ready.rig == "alpha"
     assert isinstance(ended, Error) and ended.code == ErrorCode.CHANNEL_BUSY
