@@ -24,7 +24,7 @@ import msgpack
 from ..errors import BusUnavailable
 from ..settings import SettingsError
 
-__all__ = ["Bus", "BusUnavailable", "LocalBus", "RedisBus", "make_bus"]
+__all__ = ["Bus", "BusUnavailable", "LocalBus", "RedisBus", "make_bus", "stop_tasks"]
 
 T = TypeVar("T")
 
@@ -40,6 +40,32 @@ _CALL_TIMEOUT = 1.0
 _MAX_OUTBOX = 256
 _BACKOFF_FIRST, _BACKOFF_MAX = 0.1, 2.0
 _PROBE_INTERVAL = 0.5
+
+#: How often `stop_tasks` cancels a task again that has not ended.
+_RECANCEL_INTERVAL = 0.05
+
+
+async def stop_tasks(tasks: list[asyncio.Task[None]], *, timeout: float) -> None:
+    """Cancel ``tasks`` and wait until they end, cancelling again those still running.
+
+    One cancel was not always enough: the probe's was seen swallowed inside its ping (the
+    task marked cancelling, back in its loop's sleep), and the bus's close, so the server's
+    shutdown, waited for it for good (tests gave up after 30 s). Each pass cancels what is
+    left; after ``timeout`` the rest is logged and left behind.
+    """
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    pending = {task for task in tasks if not task.done()}
+    while pending:
+        for task in pending:
+            task.cancel()
+        left = deadline - loop.time()
+        if left <= 0:
+            log.error("bus tasks did not stop", extra={"event": "bus.stuck",
+                      "tasks": sorted(task.get_name() for task in pending)})  # fmt: skip
+            return
+        _, pending = await asyncio.wait(pending, timeout=min(_RECANCEL_INTERVAL, left))
+
 
 # Refresh our lock, re-take it if Redis lost it (restart without persistence), else 0.
 _REFRESH_LOCK = """
@@ -183,9 +209,7 @@ class RedisBus(Bus):
         ]
 
     async def close(self) -> None:
-        for task in self._tasks:
-            task.cancel()
-        await asyncio.gather(*self._tasks, return_exceptions=True)
+        await stop_tasks(self._tasks, timeout=_CALL_TIMEOUT * 2)
         for client in (self._publisher, self._redis):
             with contextlib.suppress(Exception):
                 await client.aclose()

@@ -12,7 +12,7 @@ import msgpack
 import pytest
 import redis
 
-from facecast.server.channels.bus import RedisBus, frames_channel
+from facecast.server.channels.bus import RedisBus, frames_channel, stop_tasks
 
 from ._helpers import wait_for
 
@@ -41,3 +41,45 @@ async def test_a_frame_reaches_redis_before_the_local_fan_out_holds_the_loop(red
 
     assert message is not None, "the frame was still in this process when the fan-out began"
     assert msgpack.unpackb(message["data"])["p"] == b"points"
+
+
+async def _swallows_cancels(times: int, hold: list[bool] | None = None) -> None:
+    """Sleeps on, ``times`` cancellations over (as the probe's loop did after a ping), or
+    every one while ``hold[0]``."""
+    swallowed = 0
+    while True:
+        try:
+            await asyncio.sleep(3600)
+        except asyncio.CancelledError:
+            swallowed += 1
+            if swallowed > times and not (hold and hold[0]):
+                raise
+
+
+async def test_stopping_the_bus_tasks_cancels_again_one_that_swallowed_its_cancel():
+    stubborn = asyncio.create_task(_swallows_cancels(1))
+    plain = asyncio.create_task(_swallows_cancels(0))
+    await asyncio.sleep(0)
+
+    async with asyncio.timeout(5):  # one cancel and a gather waited here for good
+        await stop_tasks([stubborn, plain], timeout=4)
+
+    assert stubborn.cancelled() and plain.cancelled()
+
+
+async def test_a_task_that_never_stops_is_logged_and_left_after_the_timeout(caplog):
+    hold = [True]
+    stuck = asyncio.create_task(_swallows_cancels(0, hold))
+    await asyncio.sleep(0)
+
+    try:
+        async with asyncio.timeout(5):
+            await stop_tasks([stuck], timeout=0.2)
+        done = stuck.done()
+    finally:
+        hold[0] = False  # the test's own clean-up
+        stuck.cancel()
+
+    assert not done
+    stuck_logs = [r for r in caplog.records if getattr(r, "event", "") == "bus.stuck"]
+    assert [r.tasks for r in stuck_logs] == [[stuck.get_name()]]
