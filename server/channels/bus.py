@@ -16,7 +16,7 @@ import secrets
 import socket
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterable
 from typing import Any, TypeVar
 
 import msgpack
@@ -24,7 +24,15 @@ import msgpack
 from ..errors import BusUnavailable
 from ..settings import SettingsError
 
-__all__ = ["Bus", "BusUnavailable", "LocalBus", "RedisBus", "make_bus", "stop_tasks"]
+__all__ = [
+    "SHUTDOWN_STOP_SECONDS",
+    "Bus",
+    "BusUnavailable",
+    "LocalBus",
+    "RedisBus",
+    "make_bus",
+    "stop_tasks",
+]
 
 T = TypeVar("T")
 
@@ -43,15 +51,19 @@ _PROBE_INTERVAL = 0.5
 
 #: How often `stop_tasks` cancels a task again that has not ended.
 _RECANCEL_INTERVAL = 0.05
+#: How long a task may take to stop at shutdown: past one bounded Redis call and its reply.
+SHUTDOWN_STOP_SECONDS = _CALL_TIMEOUT * 2
 
 
-async def stop_tasks(tasks: list[asyncio.Task[None]], *, timeout: float) -> None:
+async def stop_tasks(tasks: Iterable[asyncio.Task[Any]], *, timeout: float) -> None:
     """Cancel ``tasks`` and wait until they end, cancelling again those still running.
 
-    One cancel was not always enough: the probe's was seen swallowed inside its ping (the
-    task marked cancelling, back in its loop's sleep), and the bus's close, so the server's
-    shutdown, waited for it for good (tests gave up after 30 s). Each pass cancels what is
-    left; after ``timeout`` the rest is logged and left behind.
+    One cancel was not always enough: the bus probe's was seen swallowed inside its ping
+    (the task marked cancelling, back in its loop's sleep), and the bus's close, so the
+    server's shutdown, waited for it for good (tests gave up after 30 s). Every task that
+    awaits Redis runs that risk: the bus's loops, the hub's maintenance, the channels' tasks
+    all stop through here at shutdown. Each pass cancels what is left; after ``timeout``
+    the rest is logged (``tasks.stuck``) and left behind.
     """
     loop = asyncio.get_running_loop()
     deadline = loop.time() + timeout
@@ -61,7 +73,7 @@ async def stop_tasks(tasks: list[asyncio.Task[None]], *, timeout: float) -> None
             task.cancel()
         left = deadline - loop.time()
         if left <= 0:
-            log.error("bus tasks did not stop", extra={"event": "bus.stuck",
+            log.error("tasks did not stop", extra={"event": "tasks.stuck",
                       "tasks": sorted(task.get_name() for task in pending)})  # fmt: skip
             return
         _, pending = await asyncio.wait(pending, timeout=min(_RECANCEL_INTERVAL, left))
@@ -209,7 +221,7 @@ class RedisBus(Bus):
         ]
 
     async def close(self) -> None:
-        await stop_tasks(self._tasks, timeout=_CALL_TIMEOUT * 2)
+        await stop_tasks(self._tasks, timeout=SHUTDOWN_STOP_SECONDS)
         for client in (self._publisher, self._redis):
             with contextlib.suppress(Exception):
                 await client.aclose()

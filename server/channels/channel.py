@@ -21,6 +21,7 @@ from facecast.rig.errors import InputError
 
 from ..compute.cloning import frame_error
 from ..compute.stages import CPU_CLOCK
+from .bus import SHUTDOWN_STOP_SECONDS, stop_tasks
 from .context import ChannelContext, ChannelMember, ChannelPublisher
 from .fanout import ChannelFrame, Key, KeyState, PointsKeyState, key_state
 from .outbox import offer_results
@@ -421,10 +422,8 @@ class Channel:
         }
 
     async def stop(self) -> None:
-        for task in (self._pump, self._face):
-            if task is not None:
-                task.cancel()
-        await asyncio.gather(*(t for t in (self._pump, self._face) if t), return_exceptions=True)
+        tasks = [task for task in (self._pump, self._face) if task is not None]
+        await stop_tasks(tasks, timeout=SHUTDOWN_STOP_SECONDS)
 
 
 def _role(member: ChannelMember) -> str:

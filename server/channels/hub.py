@@ -20,7 +20,7 @@ from facecast.rig import Rig
 from ..connection.opening import load_rig
 from ..settings import Settings
 from ..storage.rig_store import RigStore
-from .bus import LOCK_TTL_MS, Bus, BusUnavailable, make_bus
+from .bus import LOCK_TTL_MS, SHUTDOWN_STOP_SECONDS, Bus, BusUnavailable, make_bus, stop_tasks
 from .channel import Channel
 from .context import ChannelContext, ChannelMetrics, EmptiedChannel
 from .members import STALE_AFTER
@@ -96,9 +96,7 @@ class ChannelHub:
 
     async def close(self) -> None:
         if self._maintenance is not None:
-            self._maintenance.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._maintenance
+            await stop_tasks([self._maintenance], timeout=SHUTDOWN_STOP_SECONDS)
         for channel in list(self.channels.values()):
             await channel.stop()
         await self.bus.close()

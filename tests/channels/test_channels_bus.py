@@ -81,5 +81,5 @@ async def test_a_task_that_never_stops_is_logged_and_left_after_the_timeout(capl
         stuck.cancel()
 
     assert not done
-    stuck_logs = [r for r in caplog.records if getattr(r, "event", "") == "bus.stuck"]
+    stuck_logs = [r for r in caplog.records if getattr(r, "event", "") == "tasks.stuck"]
     assert [r.tasks for r in stuck_logs] == [[stuck.get_name()]]
