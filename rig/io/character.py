@@ -248,7 +248,8 @@ def load_character(source: Path | bytes, *, label: str = "character") -> Charact
         folder, or any external URI in a GLB or bytes), ``texture_too_large`` (a header
         declaring more than ``MAX_TEXTURE_SIDE`` a side or ``MAX_TEXTURE_PIXELS`` in all),
         ``bad_image``, ``bad_vrm_bind``, ``morph_vertex_mismatch``, ``too_large``,
-        ``unsupported_extension``, ``no_mesh``, ``missing_file``.
+        ``bad_compression`` (meshopt or Draco data that does not decode to what its
+        accessors declare), ``no_mesh``, ``missing_file``.
     """
     try:
         return _load(source, label)
@@ -286,6 +287,7 @@ def _load(source: Path | bytes, label: str) -> Character:
     ] + vrm_entries
     face = _face_mesh(found, doc, gltf, label)
     reader = BufferReader(gltf, None, label)
+    reader.decode_all()  # a compressed part that does not decode is refused now (bounded)
     vertices, faces, deltas, _ = read_mesh(gltf.meshes[face], reader, label)
     expressions = {}
     for name in sorted(found, key=lambda n: _ORDER.get(n, len(_ORDER))):

@@ -30,9 +30,6 @@ MAX_TEXTURE_PIXELS = 2**27
 
 _GLB_HEADER = struct.Struct("<4sII")
 _CHUNK = struct.Struct("<I4s")
-_GLB_HEADER = struct.Struct("<4sII")
-_CHUNK = struct.Struct("<I4s")
-_UNSUPPORTED = ("KHR_draco_mesh_compression", "EXT_meshopt_compression", "KHR_mesh_quantization")
 
 
 def _split_glb(data: bytes, label: str) -> tuple[bytes, bytes | None]:
@@ -80,14 +77,6 @@ def _parse_json(text: bytes, label: str) -> dict[str, Any]:
     asset = doc.get("asset") if isinstance(doc, dict) else None
     if not isinstance(asset, dict) or not str(asset.get("version", "")).startswith("2"):
         raise ExampleSetError(f"{label}: not a glTF 2.0 document", code="bad_gltf")
-    required = doc.get("extensionsRequired") or []
-    blocked = [e for e in required if e in _UNSUPPORTED] if isinstance(required, list) else []
-    if blocked:
-        raise ExampleSetError(
-            f"{label}: uses {blocked[0]}, which facecast cannot read: export without mesh "
-            "compression or quantisation",
-            code="unsupported_extension",
-        )
     checked: dict[str, Any] = doc
     return checked
 
@@ -217,7 +206,8 @@ def read_character_file(source: Path | bytes, label: str) -> tuple[dict[str, Any
     ------
     ExampleSetError
         ``truncated_file``, ``bad_gltf``, ``external_uri``, ``texture_too_large``,
-        ``bad_image``, ``too_large``, ``unsupported_extension``, ``missing_file``.
+        ``bad_image``, ``too_large``, ``missing_file``. Compressed geometry (meshopt,
+        Draco) is not decoded here: ``gltf_read`` decodes it, bounded.
     """
     folder: Path | None = None
     if isinstance(source, bytes | bytearray | memoryview):
