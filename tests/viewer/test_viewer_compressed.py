@@ -73,7 +73,7 @@ def show(page, base_url: str, rig_id: str) -> tuple[dict, np.ndarray, dict]:
         neutral = page.evaluate("window.characterState()")
         shown(page, publisher.pose(1))
         jaw = page.evaluate("window.characterState()")
-    SHOTS.mkdir(exist_ok=True)
+    SHOTS.mkdir(parents=True, exist_ok=True)
     (SHOTS / f"compressed-{rig_id}.png").write_bytes(png)
     return neutral, pixels(png), jaw
 
