@@ -17,6 +17,7 @@ from typing import Any
 
 from ..errors import ExampleSetError
 from .gltf import pack_glb
+from .gltf_compression import MESHOPT
 from .image_headers import image_size, sniff_mime
 
 __all__ = ["MAX_CHARACTER_BYTES", "MAX_TEXTURE_PIXELS", "MAX_TEXTURE_SIDE", "read_character_file"]
@@ -119,24 +120,39 @@ def _read_uri(uri: str, folder: Path | None, label: str, budget: list[int]) -> b
         ) from None
 
 
+def _is_fallback(buffer: object) -> bool:
+    """An ``EXT_meshopt_compression`` fallback buffer: no bytes, only a size to stand for."""
+    if not isinstance(buffer, dict) or "uri" in buffer:
+        return False
+    extensions = buffer.get("extensions")
+    ext = extensions.get(MESHOPT) if isinstance(extensions, dict) else None
+    return isinstance(ext, dict) and ext.get("fallback") is True
+
+
 def _pack_gltf(doc: dict[str, Any], folder: Path | None, label: str, budget: list[int]) -> bytes:
-    """The .gltf as one GLB: its buffers concatenated in one BIN chunk, images embedded."""
+    """The .gltf as one GLB: its buffers concatenated in one BIN chunk, images embedded;
+    meshopt's fallback buffers (no bytes) stay buffers of their own after it."""
     buffers = doc.get("buffers") or []
     if not isinstance(buffers, list):
         raise ExampleSetError(f"{label}: buffers is not a list", code="bad_gltf")
     parts: list[bytes] = []
-    starts: list[int] = []
+    starts: dict[int, int] = {}
+    fallbacks: dict[int, int] = {}  # old index -> its place among the fallback buffers
     size = 0
-    for buffer in buffers:
+    for number, buffer in enumerate(buffers):
+        if _is_fallback(buffer):
+            fallbacks[number] = len(fallbacks)
+            continue
         uri = buffer.get("uri") if isinstance(buffer, dict) else None
         if not isinstance(uri, str):
             raise ExampleSetError(f"{label}: a .gltf buffer without a uri", code="bad_gltf")
         data = _read_uri(uri, folder, label, budget)
-        starts.append(size)
+        starts[number] = size
         pad = (-len(data)) % 4  # keeps every buffer's views aligned as they were
         parts.append(data + b"\0" * pad)
         size += len(data) + pad
     views = doc.setdefault("bufferViews", [])
+    moved: list[dict[str, Any]] = []  # views in fallback buffers: renumbered once known
     for view in views:
         if (
             not isinstance(view, dict)
@@ -144,6 +160,18 @@ def _pack_gltf(doc: dict[str, Any], folder: Path | None, label: str, budget: lis
             or not 0 <= view["buffer"] < len(buffers)
         ):
             raise ExampleSetError(f"{label}: a bufferView names no buffer", code="bad_gltf")
+        extensions = view.get("extensions")
+        ext = extensions.get(MESHOPT) if isinstance(extensions, dict) else None
+        if isinstance(ext, dict):  # its compressed bytes move with their buffer
+            if ext.get("buffer") not in starts:
+                raise ExampleSetError(
+                    f"{label}: a meshopt view names no buffer with bytes", code="bad_gltf"
+                )
+            ext["byteOffset"] = int(ext.get("byteOffset", 0)) + starts[ext["buffer"]]
+            ext["buffer"] = 0
+        if view["buffer"] in fallbacks:
+            moved.append(view)
+            continue
         view["byteOffset"] = int(view.get("byteOffset", 0)) + starts[view["buffer"]]
         view["buffer"] = 0
     for image in doc.get("images") or []:
@@ -154,10 +182,12 @@ def _pack_gltf(doc: dict[str, Any], folder: Path | None, label: str, budget: lis
             image["bufferView"] = len(views) - 1
             parts.append(data + b"\0" * ((-len(data)) % 4))
             size += len(data) + (-len(data)) % 4
-    if parts:
-        doc["buffers"] = [{"byteLength": size}]
-    else:
-        doc.pop("buffers", None)
+    first = [{"byteLength": size}] if parts else []
+    for view in moved:
+        view["buffer"] = len(first) + fallbacks[view["buffer"]]
+    doc["buffers"] = first + [buffers[number] for number in fallbacks]
+    if not doc["buffers"]:
+        doc.pop("buffers")
     return pack_glb(doc, b"".join(parts))
 
 

@@ -6,6 +6,7 @@ more than the reader's bounds, is a named error before anything is decoded."""
 from __future__ import annotations
 
 import functools
+import json
 
 import numpy as np
 import pytest
@@ -192,3 +193,31 @@ def test_a_draco_primitive_declaring_more_than_the_bound_is_refused_before_decod
 
     assert info.value.code == "bad_gltf"
     assert f"count {MAX_VALUES // 3 + 1} is out of bounds" in str(info.value)
+
+
+def test_a_meshopt_gltf_folder_is_packed_with_its_fallback_buffer_and_reads_as_the_glb(tmp_path):
+    # gltfpack's .gltf output: the compressed bytes in a .bin, a fallback buffer without
+    # one; packing moves the compressed bytes and keeps the fallback a buffer of its own.
+    _avatars.require_ict()
+    twin_bytes, data = twin_and("meshopt")
+    doc, blob = split_glb(data)
+    doc["buffers"][0]["uri"] = "avatar.bin"
+    (tmp_path / "avatar.bin").write_bytes(blob)
+    # A buffer before it, so that packing has offsets to move.
+    doc["buffers"].insert(0, {"uri": "pad.bin", "byteLength": 100})
+    (tmp_path / "pad.bin").write_bytes(b"\xee" * 100)
+    for view in doc["bufferViews"]:
+        view["buffer"] += 1
+        if "extensions" in view:
+            view["extensions"]["EXT_meshopt_compression"]["buffer"] += 1
+    (tmp_path / "avatar.gltf").write_text(json.dumps(doc))
+
+    character = load_character(tmp_path / "avatar.gltf", label="avatar.gltf")
+    packed, _ = split_glb(character.glb)
+    again = load_character(character.glb, label="packed.glb")
+
+    assert packed["buffers"][1] == doc["buffers"][2]  # the fallback, after the BIN chunk
+    twin = load_character(twin_bytes, label="twin.glb")
+    for read in (character, again):
+        np.testing.assert_allclose(read.face_vertices, twin.face_vertices, atol=1e-9)
+        assert read.report.paired == twin.report.paired
