@@ -115,6 +115,13 @@ class BufferReader:
             ) from None
         uri = buf.uri
         data: bytes | None
+        if uri is None and index != 0:
+            # A meshopt fallback buffer, say: only a GLB's first buffer is its BIN chunk.
+            raise ExampleSetError(
+                f"{self.label}: buffer {index} has no bytes (no uri, and only buffer 0 is a "
+                "GLB's binary chunk)",
+                code="bad_gltf",
+            )
         if uri is None:
             data = self.gltf.binary_blob()
             if data is None:

@@ -221,3 +221,15 @@ def test_a_meshopt_gltf_folder_is_packed_with_its_fallback_buffer_and_reads_as_t
     for read in (character, again):
         np.testing.assert_allclose(read.face_vertices, twin.face_vertices, atol=1e-9)
         assert read.report.paired == twin.report.paired
+
+
+def test_a_plain_view_in_a_fallback_buffer_is_bad_gltf_not_the_binary_chunk_read():
+    _avatars.require_ict()
+
+    def plain(doc, blob):
+        del _face_position_view(doc)["extensions"]  # now a plain view in buffer 1
+
+    with pytest.raises(ExampleSetError) as info:
+        load_character(edited(twin_and("meshopt")[1], plain), label="avatar.glb")
+
+    assert info.value.code == "bad_gltf" and "buffer 1 has no bytes" in str(info.value)
