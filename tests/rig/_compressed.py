@@ -12,6 +12,10 @@ as tests/rig/_avatars.py writes them) the way an exporter or optimiser would:
 - ``draco``: each primitive's positions, normals, UVs and triangles through Draco's
   encoder (DracoPy, order preserved), joints, weights and morph targets left as accessors.
 
+``gltfpack(glb)`` runs the real tool: npm's gltfpack (meshoptimizer's own glTF optimiser, a
+devDependency of client/viewer) with ``-cc``, meshopt compression over quantisation as
+published files have it (filters, 14-bit positions, dequantisation in the nodes).
+
 Nothing here is a decoder: the reader under test and three.js decode these files.
 """
 
@@ -19,6 +23,10 @@ from __future__ import annotations
 
 import copy
 import json
+import os
+import subprocess
+import tempfile
+from pathlib import Path
 from typing import Any
 
 import DracoPy
@@ -28,6 +36,13 @@ import numpy as np
 from facecast.rig.io.gltf import pack_glb
 
 KINDS = ("meshopt", "quantized", "draco")
+GLTFPACK = Path(__file__).resolve().parents[2] / "client/viewer/node_modules/gltfpack/cli.js"
+#: Why a gltfpack test cannot run here, or None; never on CI (its setup installs it).
+GLTFPACK_MISSING = (
+    None
+    if GLTFPACK.is_file() or os.environ.get("CI") == "true"
+    else "npm's gltfpack is not installed (npm ci in client/viewer)"
+)
 
 _DTYPES = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}  # fmt: skip
 _NCOMP = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
@@ -252,3 +267,15 @@ def compressed(glb: bytes, kind: str) -> bytes:
     doc, blob = split_glb(glb)
     make = {"meshopt": _meshopt, "quantized": _quantized, "draco": _draco}[kind]
     return make(doc, blob)
+
+
+def gltfpack(glb: bytes) -> bytes:
+    """``glb`` through ``gltfpack -cc`` (meshopt over quantisation)."""
+    with tempfile.TemporaryDirectory(prefix="gltfpack-") as folder:
+        source, packed = Path(folder) / "in.glb", Path(folder) / "out.glb"
+        source.write_bytes(glb)
+        subprocess.run(
+            ["node", str(GLTFPACK), "-i", str(source), "-o", str(packed), "-cc"],
+            check=True, capture_output=True, timeout=300,
+        )  # fmt: skip
+        return packed.read_bytes()

@@ -17,7 +17,7 @@ from facecast.rig.io.gltf import MAX_VALUES, pack_glb, read_glb_morph_targets
 from facecast.rig.io.gltf_read import MAX_DECODED_BYTES
 
 from . import _avatars
-from ._compressed import KINDS, compressed, split_glb
+from ._compressed import GLTFPACK_MISSING, KINDS, compressed, gltfpack, split_glb
 
 
 @functools.cache
@@ -233,3 +233,28 @@ def test_a_plain_view_in_a_fallback_buffer_is_bad_gltf_not_the_binary_chunk_read
         load_character(edited(twin_and("meshopt")[1], plain), label="avatar.glb")
 
     assert info.value.code == "bad_gltf" and "buffer 1 has no bytes" in str(info.value)
+
+
+@pytest.mark.skipif(GLTFPACK_MISSING is not None, reason=str(GLTFPACK_MISSING))
+def test_a_file_packed_by_gltfpack_reads_with_its_twins_expressions_at_its_own_scale():
+    # The real tool: vertices reordered for the GPU, meshopt filters over 14-bit quantised
+    # positions, the dequantisation in the node transforms.
+    _avatars.require_ict()
+    twin_bytes = _avatars.avatar("arkit")
+    data = gltfpack(twin_bytes)
+    doc, _ = split_glb(data)
+    assert {"EXT_meshopt_compression", "KHR_mesh_quantization"} <= set(doc["extensionsRequired"])
+
+    twin = load_character(twin_bytes, label="twin.glb")
+    character = load_character(data, label="packed.glb")
+
+    assert character.glb == data
+    assert character.report.paired == twin.report.paired
+    assert character.face_vertices.shape == twin.face_vertices.shape
+    assert character.face_faces.shape == twin.face_faces.shape
+    # One scale from the twin's metres to the file's integers, for the mesh and its morphs.
+    scale = np.ptp(character.face_vertices, axis=0).max() / np.ptp(twin.face_vertices, axis=0).max()
+    for name in ("jawOpen", "eyeBlinkLeft", "mouthSmileLeft"):
+        ours = np.abs(character.expressions[name].face_displacement).max()
+        theirs = np.abs(twin.expressions[name].face_displacement).max()
+        assert ours == pytest.approx(scale * theirs, rel=0.01), name

@@ -14,7 +14,7 @@ from facecast.rig.io.rigfile import rig_from_bytes
 from facecast.rig.sources.generic import generic_sources
 from facecast.server.testing import run_server
 from tests.rig import _avatars
-from tests.rig._compressed import KINDS, compressed, split_glb
+from tests.rig._compressed import GLTFPACK_MISSING, KINDS, compressed, gltfpack, split_glb
 
 pytestmark = pytest.mark.anyio
 
@@ -87,3 +87,22 @@ async def test_a_compressed_file_that_does_not_decode_is_a_named_422_and_nothing
     assert "Draco" in put.json()["detail"] and str(settings.rigs_dir) not in put.text
     assert listed["rigs"] == [] and described.status_code == 404
     assert not list(settings.rigs_dir.glob("broken*"))
+
+
+@pytest.mark.skipif(GLTFPACK_MISSING is not None, reason=str(GLTFPACK_MISSING))
+async def test_a_file_packed_by_gltfpack_is_paired_and_fitted_like_its_twin(settings):
+    _avatars.require_ict()
+    twin = _avatars.avatar("arkit")
+    packed = gltfpack(twin)
+    async with run_server(settings) as server, client(server) as http:
+        puts = {k: await http.put(f"/v1/characters/{k}", content=v, params=FIT) for k, v in (("twin", twin), ("packed", packed))}  # fmt: skip
+        served = (await http.get("/v1/rigs/packed/character.glb")).content
+        rigs = {k: rig_from_bytes((await http.get(f"/v1/rigs/{k}/rig")).content) for k in puts}
+
+    assert puts["packed"].status_code == 201, puts["packed"].text
+    assert puts["packed"].json()["pairing"]["paired"] == puts["twin"].json()["pairing"]["paired"]
+    assert served == packed
+    points = generic_poses()
+    np.testing.assert_allclose(
+        rigs["packed"].weights(points), rigs["twin"].weights(points), atol=1e-6
+    )
