@@ -17,7 +17,7 @@ import secrets
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -37,7 +37,7 @@ from facecast.rig.transfer import (
     with_transferred_expressions,
 )
 
-from ..errors import ApiError
+from ..errors import ApiError, StoreClosedError
 from ..guards.auth import READ_ROLES, Principal, requires
 from ..settings import Settings
 from ..storage.archive import ArchiveError, ArchiveLimits
@@ -161,7 +161,7 @@ async def start_transfer(
                 rig_id, record["job"], plan, source, options, store,
                 request.app.state.transfer_cancel, getattr(request.app.state, STAGE_HOOK, None),
             )  # fmt: skip
-            executor: ThreadPoolExecutor = request.app.state.transfer_executor
+            executor: Executor = request.app.state.transfer_executor
             future = executor.submit(job.run, slot)
             # Cancelled before it ran (the server stopping): the slot is still this one's.
             future.add_done_callback(lambda f: f.cancelled() and store.jobs.release(slot))
@@ -298,7 +298,9 @@ class _TransferJob:
         self._update(progress={"done": self.done, "total": total})
 
     def _end(self, **changes: Any) -> None:
-        with contextlib.suppress(_Superseded):  # a cancelled record keeps its reason
+        # A cancelled record keeps its reason; a closed store (the server stopped) is
+        # read as interrupted by the free slot.
+        with contextlib.suppress(_Superseded, StoreClosedError):
             self._update(**changes)
 
     def run(self, slot: int) -> None:
@@ -309,6 +311,8 @@ class _TransferJob:
                 "transfer cancelled",
                 extra={"event": "character.transfer_cancelled", "rig": self.rig_id},
             )
+        except StoreClosedError:
+            pass  # the server stopped under it: the free slot marks the record interrupted
         except RigError as exc:
             self._end(state="failed", error={"code": exc.code, "message": exc.message})
         except _Interrupted:

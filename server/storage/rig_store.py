@@ -25,7 +25,7 @@ from facecast.rig.errors import RigFileError
 from facecast.rig.io.gltf import export_glb
 from facecast.rig.io.rigfile import rig_from_bytes
 
-from ..errors import RigNotFoundError
+from ..errors import RigNotFoundError, StoreClosedError
 from ..names import (
     NAME_PATTERN,
     PERFORMER_SEPARATOR,
@@ -48,6 +48,7 @@ __all__ = [
     "RigInfo",
     "RigNotFoundError",
     "RigStore",
+    "StoreClosedError",
     "check_servable",
     "fsync_directory",
     "performer_rig_id",
@@ -69,6 +70,8 @@ _TEMP_PREFIX = ".tmp-"
 _STALE_TEMP_SECONDS = 3600.0
 #: A scratch folder without its lock file is being created, or its creator died doing so.
 _UNLOCKED_GRACE_SECONDS = 60.0
+#: Removals of the scratch folder at close, for a thread still writing into it.
+_CLOSE_TRIES = 5
 
 
 def check_servable(rig: Rig, limits: Limits, source: str) -> None:
@@ -138,6 +141,7 @@ class RigStore:
         self.limits = Limits()
         self._scratch: Path | None = None
         self._scratch_lock: int | None = None  # the fd holding the scratch folder's flock
+        self._closed = False
         self.jobs = JobStore(
             self.directory / JOBS_DIR, scratch=lambda: self.scratch, max_records=max_job_records
         )
@@ -149,6 +153,8 @@ class RigStore:
         Every scratch folder no live store holds (partial rig writes, unpacked uploads of
         a process killed mid-request) goes, at once; legacy ``.tmp-*`` files after an hour.
         """
+        with self._lock:
+            self._closed = False
         self.directory.mkdir(parents=True, exist_ok=True)
         now = time.time()
         for path in self.directory.glob(f"{_TEMP_PREFIX}*"):
@@ -163,19 +169,32 @@ class RigStore:
         _ = self.scratch
 
     def close(self) -> None:
-        """Remove this store's scratch folder and release it (at shutdown)."""
+        """Remove this store's scratch folder and release it (at shutdown).
+
+        Closed for good: ``scratch`` then raises ``StoreClosedError``, so work the server
+        abandons (a parse, a transfer job: daemon threads) can neither make a new scratch
+        folder nor write through one. One such thread may still be writing into the old
+        folder as it goes: removed again until it is gone (a few tries).
+        """
         with self._lock:
             scratch, fd = self._scratch, self._scratch_lock
             self._scratch = self._scratch_lock = None
+            self._closed = True
         if scratch is not None:
-            shutil.rmtree(scratch, ignore_errors=True)
+            for _ in range(_CLOSE_TRIES):
+                shutil.rmtree(scratch, ignore_errors=True)
+                if not scratch.exists():
+                    break
         if fd is not None:
             os.close(fd)
 
     @property
     def scratch(self) -> Path:
-        """This store's own folder for temp files (created, and locked, on first use)."""
+        """This store's own folder for temp files (created, and locked, on first use);
+        ``StoreClosedError`` once the store is closed."""
         with self._lock:
+            if self._closed:
+                raise StoreClosedError("the rig store is closed: the server is stopping")
             if self._scratch is None:
                 self._scratch, self._scratch_lock = _claim_scratch(self.directory / SCRATCH_DIR)
             return self._scratch
