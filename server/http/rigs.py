@@ -12,7 +12,7 @@ import logging
 import tempfile
 from collections import Counter
 from collections.abc import Awaitable, Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar
 
@@ -205,7 +205,7 @@ async def run_fit(request: Request, job: Callable[[], T]) -> T:
     """Run ``job`` (a fit) in the app's fit executor; the caller holds a ``fit_slot``."""
     # Fitting is seconds of numpy: it runs in the dedicated fit executor, never on the
     # event loop and never in the pool that clones frames.
-    executor: ThreadPoolExecutor = request.app.state.fit_executor
+    executor: Executor = request.app.state.fit_executor
     return await unless_stopping(request, asyncio.wrap_future(executor.submit(job)))
 
 
