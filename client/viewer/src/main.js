@@ -3,6 +3,7 @@
 
 import { DemoPlayer } from "./demo.js";
 import { Hud } from "./hud.js";
+import { LiveLatency } from "./latency.js";
 import { Link } from "./link.js";
 import { authHeaders, readParams, socketTarget } from "./params.js";
 import { decodeAnimation, encodeHello, ErrorCode, errorName } from "./protocol.js";
@@ -24,6 +25,7 @@ const stats = {
   connects: 0,
   fps: 0,
   latencyMs: null,
+  glassMs: null, // capture → drawn, p50 of the recent frames (channel mode, stamped frames)
   rttMs: null,
   seq: null,
   demoTime: null, // demo mode: seconds into the performance of the frame shown
@@ -215,6 +217,7 @@ async function main() {
         case "result": {
           stats.frames += 1;
           stats.seq = msg.seq;
+          live.receive(msg, performance.now());
           stats.dropped = msg.dropped;
           let latency = null;
           if (player) {
@@ -255,6 +258,9 @@ async function main() {
       }
     },
   });
+  // Glass to glass (PROTOCOL.md §5.4): the stamped results' stages, received to drawn.
+  const live = new LiveLatency(link.clock);
+  window.liveLatency = () => live.report();
   link.start();
 
   // Apply at most one pose per display frame: results can outpace the screen.
@@ -277,11 +283,13 @@ async function main() {
     if (view.dirty) {
       view.render();
       stats.rendered += 1;
+      live.drawn(performance.now()); // the draw is submitted: the newest result is drawn
     }
     if (now - fpsSince >= 500) {
       stats.fps = ((stats.frames - fpsFrames) * 1000) / (now - fpsSince);
       fpsFrames = stats.frames;
       fpsSince = now;
+      stats.glassMs = live.median();
       hud.stats(stats);
     }
     requestAnimationFrame(tick);
