@@ -38,6 +38,14 @@ export class LiveLatency {
     this.superseded = 0; // received but replaced by a newer one before a draw
     this.lastSeq = null;
     this.seqGaps = 0; // frames the path lost before this page (gaps in seq)
+    this.renders = []; // the recent draws' own time (render() call), ms
+    this.costs = []; // what each draw held the page: render() to the next task after its commit, ms
+  }
+
+  /** A draw held the page `ms` (render() to the next task: without a GPU, the readback). */
+  drawCost(ms) {
+    this.costs.push(ms);
+    if (this.costs.length > this.window) this.costs.shift();
   }
 
   /** A result arrived at `perfMs` (performance.now()); only results with stamps count. */
@@ -67,8 +75,15 @@ export class LiveLatency {
     }
   }
 
-  /** A draw was submitted at `perfMs`: the newest pending frame is what it shows. */
-  drawn(perfMs) {
+  /**
+   * A draw was submitted at `perfMs` (taking `renderMs` itself): the newest pending frame
+   * is what it shows.
+   */
+  drawn(perfMs, renderMs = null) {
+    if (renderMs !== null) {
+      this.renders.push(renderMs);
+      if (this.renders.length > this.window) this.renders.shift();
+    }
     if (!this.pending.length) return;
     const frame = this.pending.pop();
     this.superseded += this.pending.length;
@@ -82,8 +97,11 @@ export class LiveLatency {
     if (this.frames.length > this.window) this.frames.shift();
   }
 
-  /** The recent frames' figures, in ms (what window.liveLatency() returns). */
-  report() {
+  /**
+   * The recent frames' figures, in ms (what window.liveLatency() returns); with `detail`
+   * also `records`, every kept frame's stamps (seconds, server clock) and capture → drawn.
+   */
+  report(detail = false) {
     const e2e = [];
     const stages = {};
     for (const [name] of STAGES) stages[name] = [];
@@ -110,7 +128,10 @@ export class LiveLatency {
       seqGaps: this.seqGaps,
       clockOffsetMs: this.clock.offsetMs,
       clockRttMs: this.clock.rttMs,
+      renderMs: quantiles(this.renders),
+      drawCostMs: quantiles(this.costs),
     };
+    if (detail) out.records = this.frames.map((f) => ({ seq: f.seq, e2eMs: f.e2eMs, ...f.stamps }));
     for (const [name] of STAGES) out.stages[name] = quantiles(stages[name]);
     return out;
   }

@@ -260,8 +260,17 @@ async function main() {
   });
   // Glass to glass (PROTOCOL.md §5.4): the stamped results' stages, received to drawn.
   const live = new LiveLatency(link.clock);
-  window.liveLatency = () => live.report();
+  window.liveLatency = (detail = false) => live.report(detail);
   link.start();
+
+  // What a draw holds the page: from render() to the next task, which runs after the
+  // draw's commit (without a GPU, Chromium reads the WebGL canvas back there).
+  const after = new MessageChannel();
+  let costFrom = null;
+  after.port1.onmessage = () => {
+    live.drawCost(performance.now() - costFrom);
+    costFrom = null;
+  };
 
   // Apply at most one pose per display frame: results can outpace the screen.
   let fpsFrames = 0;
@@ -281,9 +290,15 @@ async function main() {
     }
     pendingWeights = pendingVertices = pendingHead = null;
     if (view.dirty) {
+      const started = performance.now();
       view.render();
       stats.rendered += 1;
-      live.drawn(performance.now()); // the draw is submitted: the newest result is drawn
+      const submitted = performance.now();
+      live.drawn(submitted, submitted - started); // the newest result is drawn
+      if (costFrom === null) {
+        costFrom = started;
+        after.port2.postMessage(null);
+      }
     }
     if (now - fpsSince >= 500) {
       stats.fps = ((stats.frames - fpsFrames) * 1000) / (now - fpsSince);
