@@ -72,6 +72,11 @@ _SEND_HOPS = """async ({ url, seconds, fps, bytes }) => {
   }
   ws.close();
 }"""
+_VIEWER_STATE = """() => ({
+  state: window.facecastStats.state, error: window.facecastStats.error,
+  results: window.facecastStats.frames, rendered: window.facecastStats.rendered,
+  frames: window.liveLatency ? window.liveLatency().frames : 0,
+})"""
 _VIEWER_COUNTS = """() => {
   const r = window.liveLatency();
   return { received: r.received, drawn: r.drawn, superseded: r.superseded, seqGaps: r.seqGaps,
@@ -201,8 +206,14 @@ def _open_pages(run: _Run, args: argparse.Namespace) -> None:
         page.set_default_timeout(180_000)
         page.goto(f"{base}/{args.page}?channel={CHANNEL}&rig={RIG}")
         run.viewers.append(page)
-    for page in run.viewers:
-        page.wait_for_function("window.liveLatency && window.liveLatency().frames >= 10")
+    deadline = time.monotonic() + 300.0
+    while True:
+        states = [page.evaluate(_VIEWER_STATE) for page in run.viewers]
+        if all(state["frames"] >= 10 for state in states):
+            return
+        if time.monotonic() > deadline:
+            raise CommandError(f"the viewers did not draw 10 stamped frames in 300 s: {states}")
+        run.viewers[0].wait_for_timeout(1000)  # polling the pages' counters, once a second
 
 
 def _measure(run: _Run, seconds: float) -> dict[str, Any]:
