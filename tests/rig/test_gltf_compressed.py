@@ -11,8 +11,8 @@ import json
 import numpy as np
 import pytest
 
+from facecast.rig.characters.character import load_character
 from facecast.rig.errors import ExampleSetError
-from facecast.rig.io.character import load_character
 from facecast.rig.io.gltf import MAX_VALUES, pack_glb, read_glb_morph_targets
 from facecast.rig.io.gltf_read import MAX_DECODED_BYTES
 

@@ -9,9 +9,9 @@ import httpx
 import numpy as np
 import pytest
 
+from facecast.rig.characters.generic import generic_sources
 from facecast.rig.io.gltf import pack_glb
-from facecast.rig.io.rigfile import rig_from_bytes
-from facecast.rig.sources.generic import generic_sources
+from facecast.rig.rigfile import rig_from_bytes
 from facecast.server.testing import run_server
 from tests.rig import _avatars
 from tests.rig._compressed import GLTFPACK_MISSING, KINDS, compressed, gltfpack, split_glb

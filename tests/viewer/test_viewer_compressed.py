@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from facecast.cli.snapshot import serving
-from facecast.rig.sources.generic import generic_sources
+from facecast.rig.characters.generic import generic_sources
 from facecast.server.pages.viewer import DRACO_ASSETS
 from facecast.server.settings import Settings
 
