@@ -67,7 +67,11 @@ def draco_extension(primitive: Any) -> Mapping[str, Any] | None:
 
 
 def decode_meshopt_view(
-    ext: Mapping[str, Any], buffer: Callable[[int], bytes], max_bytes: int, label: str
+    ext: Mapping[str, Any],
+    view_length: int,
+    buffer: Callable[[int], bytes],
+    max_bytes: int,
+    label: str,
 ) -> bytes:
     """The bytes of a buffer view that ``EXT_meshopt_compression`` stores compressed.
 
@@ -76,6 +80,9 @@ def decode_meshopt_view(
     ext : mapping
         The view's extension object: ``buffer``, ``byteOffset``, ``byteLength``,
         ``byteStride``, ``count``, ``mode`` and ``filter`` as the extension defines them.
+    view_length : int
+        The view's own ``byteLength``, which the extension requires to be ``byteStride``
+        times ``count``.
     buffer : callable
         A buffer's bytes by its index.
     max_bytes : int
@@ -106,6 +113,9 @@ def decode_meshopt_view(
             f"reader's limit of {max_bytes} decoded bytes",
             code="too_large",
         )
+    problem = _meshopt_rule(mode, chosen, stride, count, view_length)
+    if problem is not None:
+        raise ExampleSetError(f"{label}: a meshopt view {problem}", code="bad_compression")
     data = buffer(index)
     if offset + length > len(data):
         raise ExampleSetError(
@@ -131,6 +141,23 @@ def decode_meshopt_view(
             code="bad_compression",
         )
     return decoded
+
+
+def _meshopt_rule(mode: str, chosen: str, stride: int, count: int, view_length: int) -> str | None:
+    """What breaks the extension's validity rules (its "JSON schema updates"), or None."""
+    if stride * count != view_length:
+        return f"decodes to {count} x {stride} bytes, its bufferView holds {view_length}"
+    if mode == "ATTRIBUTES" and (stride % 4 or stride > 256):
+        return f"of ATTRIBUTES has byteStride {stride} (4 to 256, in fours)"
+    if mode != "ATTRIBUTES" and (stride not in (2, 4) or chosen != "NONE"):
+        return f"of {mode} has byteStride {stride} and filter {chosen} (2 or 4, NONE)"
+    if mode == "TRIANGLES" and count % 3:
+        return f"of TRIANGLES has {count} indices, not triangles"
+    if (chosen in ("OCTAHEDRAL", "COLOR") and stride not in (4, 8)) or (
+        chosen == "QUATERNION" and stride != 8
+    ):
+        return f"filtered {chosen} has byteStride {stride}"
+    return None
 
 
 def decode_draco(

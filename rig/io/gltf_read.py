@@ -176,9 +176,18 @@ class BufferReader:
     def view_bytes(self, view_index: int) -> bytes:
         """A meshopt-compressed view's bytes, decoded once (bounded by ``decoded_left``)."""
         if view_index not in self.decoded:
-            ext = meshopt_extension(self.gltf.bufferViews[view_index])
+            view = self.gltf.bufferViews[view_index]
+            ext = meshopt_extension(view)
             assert ext is not None
-            data = decode_meshopt_view(ext, self.buffer, self.decoded_left, self.label)
+            if view.byteStride is not None and view.byteStride != ext.get("byteStride"):
+                raise ExampleSetError(
+                    f"{self.label}: bufferView {view_index} byteStride {view.byteStride} is "
+                    f"not its meshopt byteStride {ext.get('byteStride')}",
+                    code="bad_compression",
+                )
+            data = decode_meshopt_view(
+                ext, int(view.byteLength), self.buffer, self.decoded_left, self.label
+            )
             self.decoded_left -= len(data)
             self.decoded[view_index] = data
         return self.decoded[view_index]

@@ -111,6 +111,14 @@ def _meshopt_bad_filter(doc, blob) -> None:
     _face_position_view(doc)["extensions"]["EXT_meshopt_compression"]["filter"] = "ZIP"
 
 
+def _meshopt_miscounted(doc, blob) -> None:
+    _face_position_view(doc)["extensions"]["EXT_meshopt_compression"]["count"] -= 1
+
+
+def _meshopt_octahedral_positions(doc, blob) -> None:
+    _face_position_view(doc)["extensions"]["EXT_meshopt_compression"]["filter"] = "OCTAHEDRAL"
+
+
 def _draco_scrambled(doc, blob) -> None:
     view = doc["bufferViews"][_draco_of_face(doc)["bufferView"]]
     start = view["byteOffset"] + 16
@@ -134,6 +142,8 @@ def _draco_missing_attribute(doc, blob) -> None:
         ("meshopt", _meshopt_cut, "does not decode"),
         ("meshopt", _meshopt_scrambled, "does not decode"),
         ("meshopt", _meshopt_bad_filter, "'ZIP'"),
+        ("meshopt", _meshopt_miscounted, "its bufferView holds"),
+        ("meshopt", _meshopt_octahedral_positions, "filtered OCTAHEDRAL has byteStride 12"),
         ("draco", _draco_scrambled, "does not decode"),
         ("draco", _draco_miscounted, "its accessor declares 15344"),
         ("draco", _draco_missing_attribute, "no attribute 77"),
@@ -171,8 +181,9 @@ def test_a_meshopt_view_declaring_more_than_the_bound_is_refused_before_decoding
     _avatars.require_ict()
     count = MAX_DECODED_BYTES // 12 + 1  # one row past the bound
 
-    def huge(doc, blob):
+    def huge(doc, blob):  # consistent: the view as long as the count says
         _face_position_view(doc)["extensions"]["EXT_meshopt_compression"]["count"] = count
+        _face_position_view(doc)["byteLength"] = count * 12
 
     with pytest.raises(ExampleSetError) as info:
         load_character(edited(twin_and("meshopt")[1], huge), label="avatar.glb")
