@@ -52,18 +52,21 @@ def _int(value: object, where: str, label: str, low: int = 0) -> int:
     return value
 
 
+def _extension(item: Any, name: str) -> Mapping[str, Any] | None:
+    """Extension ``name``'s object on a glTF item (a JSON dict or a pygltflib object)."""
+    extensions = item.get("extensions") if isinstance(item, dict) else getattr(item, "extensions", None)  # fmt: skip
+    found = extensions.get(name) if isinstance(extensions, dict) else None
+    return found if isinstance(found, dict) else None
+
+
 def meshopt_extension(view: Any) -> Mapping[str, Any] | None:
     """A buffer view's ``EXT_meshopt_compression`` object, or None if it has none."""
-    extensions = getattr(view, "extensions", None)
-    found = extensions.get(MESHOPT) if isinstance(extensions, dict) else None
-    return found if isinstance(found, dict) else None
+    return _extension(view, MESHOPT)
 
 
 def draco_extension(primitive: Any) -> Mapping[str, Any] | None:
     """A primitive's ``KHR_draco_mesh_compression`` object, or None if it has none."""
-    extensions = getattr(primitive, "extensions", None)
-    found = extensions.get(DRACO) if isinstance(extensions, dict) else None
-    return found if isinstance(found, dict) else None
+    return _extension(primitive, DRACO)
 
 
 def decode_meshopt_view(
