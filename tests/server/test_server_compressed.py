@@ -9,6 +9,7 @@ import httpx
 import numpy as np
 import pytest
 
+from facecast.rig.characters.character import load_character
 from facecast.rig.characters.generic import generic_sources
 from facecast.rig.io.gltf import pack_glb
 from facecast.rig.rigfile import rig_from_bytes
@@ -106,3 +107,39 @@ async def test_a_file_packed_by_gltfpack_is_paired_and_fitted_like_its_twin(sett
     np.testing.assert_allclose(
         rigs["packed"].weights(points), rigs["twin"].weights(points), atol=1e-6
     )
+
+
+@pytest.mark.parametrize("kind", ["meshopt", "draco"])
+async def test_a_compressed_neutral_only_character_is_given_shapes_by_a_transfer(settings, kind):
+    # The transferred morph targets are appended to the stored (still compressed) file in
+    # the order its compressed mesh decodes to, so the pages drive them as the server read.
+    from tests.rig._avatars import ict_parts
+    from tests.server.test_server_character_transfer import follow
+
+    _avatars.require_ict()
+    data = compressed(_avatars.avatar("neutral_only"), kind)
+    async with run_server(settings) as server, client(server) as http:
+        put = await http.put(
+            "/v1/characters/ava",
+            content=data,
+            params={"expressions": "transfer", "names": "jawOpen"},
+        )
+        records = await follow(http, "ava")
+        served = (await http.get("/v1/rigs/ava/character.glb")).content
+
+    assert put.status_code == 202, put.text
+    assert records[-1]["state"] == "done", records[-1]
+    doc, _ = split_glb(served)
+    assert (
+        kind.replace("draco", "KHR_draco_mesh_compression").replace(
+            "meshopt", "EXT_meshopt_compression"
+        )
+        in doc["extensionsRequired"]
+    )
+    character = load_character(served, label="served.glb")
+    face_area = slice(0, 9409)  # as tests/server/test_server_character_transfer.py measures
+    truth = ict_parts()["shapes"]["jawOpen"][face_area]
+    moved = character.expressions["jawOpen"].face_displacement[face_area]
+    size = np.linalg.norm(truth, axis=1)
+    reach = size > 1e-3 * size.max()
+    assert np.linalg.norm(moved - truth, axis=1)[reach].mean() < 0.25 * size[reach].mean()
