@@ -22,7 +22,7 @@ from facecast.server.pages.viewer import DRACO_ASSETS
 from facecast.server.settings import Settings
 
 from ..rig import _avatars as ict_avatars
-from ..rig._compressed import GLTFPACK_MISSING, KINDS, compressed, gltfpack
+from ..rig._compressed import GLTFPACK_MISSING, KINDS, compressed, gltfpack, split_glb
 from .test_viewer_character import (
     SHOTS,
     canvas_png,
@@ -42,6 +42,7 @@ def compressed_server(tmp_path_factory) -> Iterator[str]:
     ict_avatars.require_ict()
     twin = ict_avatars.avatar("arkit")
     files = {"twin": twin, **{k: compressed(twin, k) for k in KINDS}}
+    files["vroid-meshopt"] = compressed(ict_avatars.avatar("fcl"), "meshopt")
     if GLTFPACK_MISSING is None:
         files["gltfpack"] = gltfpack(twin)
     settings = Settings(
@@ -64,13 +65,13 @@ def poses() -> np.ndarray:
     return np.stack([generic.points[0], generic.source_points("jawOpen")]).astype(np.float32)
 
 
-def show(page, base_url: str, rig_id: str) -> tuple[dict, np.ndarray, dict]:
+def show(page, base_url: str, rig_id: str, status: str = "gltf") -> tuple[dict, np.ndarray, dict]:
     """The page's characterState and canvas at neutral, and its state with the jaw open."""
     with publishing(base_url, f"ch-{rig_id}", rig_id, poses()) as publisher:
         page.set_viewport_size({"width": 640, "height": 420})
         page.goto(f"{base_url}/viewer?rig={rig_id}&channel=ch-{rig_id}")
-        status = loaded_character(page)
-        assert status == "gltf", (status, page.evaluate("window.facecastStats.error"), page.errors)
+        shows = loaded_character(page)
+        assert shows == status, (shows, page.evaluate("window.facecastStats.error"), page.errors)
         page.wait_for_function("window.facecastStats.state === 'live'", timeout=60_000)
         shown(page, publisher.pose(0))
         png = canvas_png(page)
@@ -115,6 +116,29 @@ def test_the_viewer_renders_a_compressed_character_as_its_uncompressed_twin(
     drawn = np.abs(twin_image[..., :3].astype(int) - BACKGROUND).max(axis=-1) > 12
     assert drawn.mean() > 0.05  # the twin itself shows a character
     assert changed_fraction(image, twin_image) < 0.001  # measured: at most 2e-4
+    assert page.errors == []
+
+
+def test_a_vroid_style_vrm_published_with_meshopt_is_shown_through_three_vrm(
+    compressed_server, page
+):
+    # The VRoid-style test avatar (VRM 0.x, Fcl_ clips) as such files are published.
+    doc, _ = split_glb(compressed(ict_avatars.avatar("fcl"), "meshopt"))
+    declared = [
+        doc["accessors"][mesh["primitives"][0]["attributes"]["POSITION"]]["count"]
+        for mesh in doc["meshes"]
+    ]
+
+    state, image, _ = show(page, compressed_server, "vroid-meshopt", status="vrm")
+
+    assert [m["vertices"] for m in state["meshes"]] == declared
+    vrm = state["vrm"]
+    assert state["vrmError"] is None and vrm["metaVersion"] == "0"
+    assert (
+        vrm["humanoid"] and vrm["expressionManager"] and {"aa", "blink"} <= set(vrm["expressions"])
+    )
+    drawn = np.abs(image[..., :3].astype(int) - BACKGROUND).max(axis=-1) > 12
+    assert drawn.mean() > 0.05
     assert page.errors == []
 
 
