@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from ..characters.character import Character
 from ..errors import ExampleSetError, MarkerError
-from ..io.character import Character
 from .correspondence import check_markers, identity_correspondence
 from .expressions import GeneratedExpressions, SourceExpressions, transfer_expressions, weld
 from .mesh import check_mesh

@@ -26,8 +26,8 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse
 
 from facecast.rig import fit
+from facecast.rig.characters.character import character_example_set, load_character
 from facecast.rig.errors import RigError
-from facecast.rig.io.character import character_example_set, load_character
 from facecast.rig.sources.ict import locate_ict
 from facecast.rig.transfer import (
     SourceExpressions,

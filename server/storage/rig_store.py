@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, BinaryIO
 from facecast.protocol import Limits
 from facecast.rig.errors import RigFileError
 from facecast.rig.io.gltf import export_glb
-from facecast.rig.io.rigfile import rig_from_bytes
+from facecast.rig.rigfile import rig_from_bytes
 
 from ..errors import RigNotFoundError, StoreClosedError
 from ..names import (

@@ -18,7 +18,7 @@ import httpx
 import numpy as np
 import pytest
 
-from facecast.rig.io.character import load_character
+from facecast.rig.characters.character import load_character
 from facecast.rig.sources.ict import locate_ict
 from facecast.server.settings import Settings
 from facecast.server.storage.jobs import JOBS_DIR, JobStore
