@@ -276,7 +276,9 @@ def load_character(source: Path | bytes, *, label: str = "character") -> Charact
         Expressions from every mesh's morph targets (one name on several meshes is one
         expression binding them all) and from the VRM expressions' morph binds (which
         replace a morph-named expression of the same normalised name), names normalised by
-        ``expression_names.normalise_name``; the report pairs them with the generic set.
+        ``expression_names.normalise_name``, less those that move no vertex visibly
+        (``STILL_RELATIVE``; the report names them); the report pairs them with the
+        generic set.
 
     Raises
     ------
