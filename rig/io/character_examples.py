@@ -269,8 +269,10 @@ def character_example_set(
     (ExampleSet, PairingReport)
         Examples named "neutral" then the paired expressions in the character's order;
         targets are the face mesh plus each expression's ``face_displacement``. An
-        expression whose source points equal an earlier one's (VRM ``blinkLeft`` beside
-        ARKit ``eyeBlinkLeft``) is left out: a rig could not tell the two apart.
+        expression whose source points equal an earlier one's is left out: a rig could
+        not tell the two apart. With the generic set, gaze is left out too, and so are
+        presets the character's own ARKit shapes drive or that mix those paired before
+        them (VRM ``blinkLeft`` beside ARKit ``eyeBlinkLeft``; ``_pair_generic``).
 
     Raises
     ------

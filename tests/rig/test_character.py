@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from facecast.rig import fit
-from facecast.rig.io.character import load_character
-from facecast.rig.io.character_examples import character_example_set
+from facecast.rig.io.character import STILL_RELATIVE, load_character
+from facecast.rig.io.character_examples import character_example_set, generic_pairing
 from facecast.rig.io.expression_names import ARKIT_NAMES
 from facecast.rig.io.gltf import pack_glb
 from facecast.rig.io.loaders import load_example_set
@@ -464,3 +464,49 @@ def test_errors_for_a_file_on_disk_name_no_path(tmp_path, spoil, code):
 
     assert info.value.code == code
     assert "scratch" not in str(info.value) and "upload-1234" not in str(info.value)
+
+
+# -- what the generic set leaves unpaired, so what shows moves at full strength -----------
+
+
+def test_an_expression_moving_no_vertex_visibly_is_reported_and_not_an_expression():
+    face = face_mesh()
+    smile = ict_parts()["shapes"]["mouthSmileLeft"][face["ict"]]
+    extent = float(np.linalg.norm(np.ptp(face["vertices"], axis=0)))
+    threshold = STILL_RELATIVE * extent / float(np.linalg.norm(smile, axis=1).max())
+
+    def add_faint_and_slight(doc):
+        mesh = next(i for i, m in enumerate(doc["meshes"]) if m["name"] == "face")
+        morph = doc["meshes"][mesh]["extras"]["targetNames"].index("mouthSmileLeft")
+        node = next(i for i, n in enumerate(doc["nodes"]) if n.get("mesh") == mesh)
+        custom = doc["extensions"]["VRMC_vrm"]["expressions"]["custom"]
+        for name, weight in (("Faint", 0.9 * threshold), ("Slight", 1.1 * threshold)):
+            custom[name] = {"morphTargetBinds": [{"node": node, "index": morph, "weight": weight}]}
+
+    character = load_character(edited("vrm1", add_faint_and_slight))
+
+    assert "Faint" not in character.expressions and "Slight" in character.expressions
+    faint = next(e for e in character.report.entries if e.authored == "Faint")
+    assert not faint.paired and "moves no vertex visibly" in faint.reason
+
+
+def test_a_preset_half_driven_by_the_characters_arkit_shapes_is_left_out():
+    # mouthSmile carries most of happy's motion at the landmarks (cheek and eye squint the
+    # rest): happy would smile a second time. mouthLowerDown carries 7 % of aa's: aa stays
+    # to open the mouth of a character whose jawOpen is missing.
+    paired, unpaired = generic_pairing(
+        ["mouthSmileLeft", "mouthSmileRight", "mouthLowerDownLeft", "mouthLowerDownRight",
+         "happy", "aa"]
+    )  # fmt: skip
+
+    assert "aa" in paired and "happy" in unpaired
+    assert "own ARKit shapes (mouthSmileLeft, mouthSmileRight: 85%" in unpaired["happy"]
+
+
+def test_gaze_is_left_to_the_look_at():
+    names = ["eyeBlinkLeft", "eyeLookDownLeft", "eyeLookUpRight", "lookLeft", "lookUp"]
+
+    paired, unpaired = generic_pairing(names)
+
+    assert list(paired) == ["eyeBlinkLeft"]
+    assert all(unpaired[n].startswith("gaze") for n in names[1:])
