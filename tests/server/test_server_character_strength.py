@@ -13,7 +13,7 @@ import httpx
 import numpy as np
 import pytest
 
-from facecast.rig.sources.generic import generic_sources
+from facecast.rig.characters.generic import generic_sources
 from facecast.server.testing import run_server
 from tests.channels._helpers import Publisher, Watcher
 
