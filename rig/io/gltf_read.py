@@ -409,6 +409,10 @@ def read_mesh(
             pos = (reader.accessor(pos_index) if draco is None else draco[0]).astype(np.float64)
             if pos.shape[1] != 3:
                 raise ExampleSetError(f"{label}: POSITION is not VEC3", code="bad_gltf")
+            if not np.isfinite(pos).all():  # a float accessor, or a decoded one, may hold NaN
+                raise ExampleSetError(
+                    f"{label}: primitive {number} has NaN or Inf positions", code="non_finite"
+                )
             first_vertex[pos_index] = total
             vertex_count[pos_index] = pos.shape[0]
             total += pos.shape[0]
@@ -429,6 +433,10 @@ def read_mesh(
                             f"{label}: morph target {t} has {d.shape[0]} vertices, "
                             f"the mesh has {pos.shape[0]}",
                             code="bad_gltf",
+                        )
+                    if not np.isfinite(d).all():
+                        raise ExampleSetError(
+                            f"{label}: morph target {t} has NaN or Inf offsets", code="non_finite"
                         )
                     prim_deltas[t] = d
             deltas.append(prim_deltas)

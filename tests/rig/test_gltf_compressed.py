@@ -10,6 +10,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from facecast.rig.characters.character import load_character
 from facecast.rig.errors import ExampleSetError
@@ -269,3 +271,86 @@ def test_a_file_packed_by_gltfpack_reads_with_its_twins_expressions_at_its_own_s
         ours = np.abs(character.expressions[name].face_displacement).max()
         theirs = np.abs(twin.expressions[name].face_displacement).max()
         assert ours == pytest.approx(scale * theirs, rel=0.01), name
+
+
+def small_glb() -> bytes:
+    """A 12 x 12 grid with a jawOpen morph target, one accessor a view (no ICT needed)."""
+    side = 12
+    u, v = np.meshgrid(np.arange(side, dtype=np.float32), np.arange(side, dtype=np.float32))
+    positions = np.stack([u.ravel(), v.ravel(), np.zeros(side * side, np.float32)], axis=1) / side
+    corners = np.arange(side * side).reshape(side, side)[:-1, :-1].ravel()
+    faces = np.concatenate([np.stack([corners, corners + 1, corners + side], 1),
+                            np.stack([corners + 1, corners + side + 1, corners + side], 1)])  # fmt: skip
+    jaw = np.zeros_like(positions)
+    jaw[: side * 3, 1] = -0.05
+    arrays = [positions, jaw, faces.astype(np.uint32).reshape(-1, 1)]
+    blob, views, accessors = b"", [], []
+    for array, kind in zip(arrays, ("VEC3", "VEC3", "SCALAR"), strict=True):
+        views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": array.nbytes})
+        accessor = {"bufferView": len(views) - 1, "count": len(array), "type": kind,
+                    "componentType": 5125 if kind == "SCALAR" else 5126}  # fmt: skip
+        if array is positions:
+            accessor.update(min=positions.min(0).tolist(), max=positions.max(0).tolist())
+        accessors.append(accessor)
+        blob += array.tobytes()
+    doc = {
+        "asset": {"version": "2.0"},
+        "buffers": [{"byteLength": len(blob)}],
+        "bufferViews": views,
+        "accessors": accessors,
+        "meshes": [
+            {
+                "primitives": [
+                    {"attributes": {"POSITION": 0}, "indices": 2, "targets": [{"POSITION": 1}]}
+                ],
+                "extras": {"targetNames": ["jawOpen"]},
+            }
+        ],
+        "nodes": [{"mesh": 0}],
+        "scenes": [{"nodes": [0]}],
+    }
+    return pack_glb(doc, blob)
+
+
+@functools.cache
+def small(kind: str) -> bytes:
+    return compressed(small_glb(), kind)
+
+
+@pytest.mark.parametrize("kind", ["meshopt", "draco"])
+@settings(max_examples=150, deadline=None)
+@given(data=st.data())
+def test_mutated_compressed_bytes_are_read_or_refused_by_name_never_crash(kind, data):
+    glb = bytearray(small(kind))
+    twin = load_character(small_glb(), label="twin.glb")
+    chunk = int.from_bytes(glb[12:16], "little")
+    start = 20 + chunk + 8  # the BIN chunk: the compressed streams
+    for _ in range(data.draw(st.integers(1, 8))):
+        at = data.draw(st.integers(start, len(glb) - 1))
+        glb[at] = data.draw(st.integers(0, 255))
+
+    try:
+        character = load_character(bytes(glb), label="mutated.glb")
+    except ExampleSetError as exc:
+        assert exc.code in ("bad_compression", "bad_gltf", "too_large", "non_finite"), exc
+    else:  # decoded: then to what its accessors declare
+        assert character.face_vertices.shape == twin.face_vertices.shape
+        assert character.face_faces.shape == twin.face_faces.shape
+        assert np.isfinite(character.face_vertices).all()
+        assert all(np.isfinite(e.face_displacement).all() for e in character.expressions.values())
+
+
+# meshopt carries a NaN position through; Draco leaves morph targets as float accessors
+# (meshopt's exponential filter would turn a NaN offset into a number).
+@pytest.mark.parametrize(("where", "kind"), [("positions", "meshopt"), ("morph target", "draco")])
+def test_a_decoded_nan_is_non_finite_not_a_face(where, kind):
+    doc, blob = split_glb(small_glb())
+    blob = bytearray(blob)
+    view = doc["bufferViews"][0 if where == "positions" else 1]
+    blob[view["byteOffset"] + 4 : view["byteOffset"] + 8] = np.float32(np.nan).tobytes()
+    data = compressed(pack_glb(doc, bytes(blob)), kind)
+
+    with pytest.raises(ExampleSetError) as info:
+        load_character(data, label="avatar.glb")
+
+    assert info.value.code == "non_finite" and "NaN or Inf" in str(info.value)
