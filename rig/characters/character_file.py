@@ -31,6 +31,12 @@ MAX_TEXTURE_PIXELS = 2**27
 
 _GLB_HEADER = struct.Struct("<4sII")
 _CHUNK = struct.Struct("<I4s")
+#: Required extensions refused, and why: ones the pages' three.js (0.170) cannot read, so
+#: a viewer would get a file it cannot show (meshopt's Khronos successor to EXT_).
+_UNREADABLE = {
+    "KHR_meshopt_compression": "the viewer's three.js cannot decode yet: export with "
+    "EXT_meshopt_compression (gltfpack -cc, gltf-transform meshopt) instead",
+}
 
 
 def _split_glb(data: bytes, label: str) -> tuple[bytes, bytes | None]:
@@ -78,6 +84,13 @@ def _parse_json(text: bytes, label: str) -> dict[str, Any]:
     asset = doc.get("asset") if isinstance(doc, dict) else None
     if not isinstance(asset, dict) or not str(asset.get("version", "")).startswith("2"):
         raise ExampleSetError(f"{label}: not a glTF 2.0 document", code="bad_gltf")
+    required = doc.get("extensionsRequired") or []
+    blocked = [e for e in required if e in _UNREADABLE] if isinstance(required, list) else []
+    if blocked:
+        raise ExampleSetError(
+            f"{label}: requires {blocked[0]}, which {_UNREADABLE[blocked[0]]}",
+            code="unsupported_extension",
+        )
     checked: dict[str, Any] = doc
     return checked
 

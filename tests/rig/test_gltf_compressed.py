@@ -354,3 +354,15 @@ def test_a_decoded_nan_is_non_finite_not_a_face(where, kind):
         load_character(data, label="avatar.glb")
 
     assert info.value.code == "non_finite" and "NaN or Inf" in str(info.value)
+
+
+def test_khr_meshopt_compression_is_refused_by_name_as_the_pages_cannot_show_it():
+    def khr(doc, blob):
+        doc["extensionsRequired"] = ["KHR_meshopt_compression"]
+        doc["extensionsUsed"] = ["KHR_meshopt_compression"]
+
+    with pytest.raises(ExampleSetError) as info:
+        load_character(edited(small_glb(), khr), label="avatar.glb")
+
+    assert info.value.code == "unsupported_extension"
+    assert "EXT_meshopt_compression" in str(info.value)
