@@ -36,7 +36,10 @@ DRACO = "KHR_draco_mesh_compression"
 QUANTIZATION = "KHR_mesh_quantization"
 
 _MODES = ("ATTRIBUTES", "TRIANGLES", "INDICES")
-_FILTERS = ("NONE", "OCTAHEDRAL", "QUATERNION", "EXPONENTIAL", "COLOR")
+# EXT_meshopt_compression's filters and vertex codec (header 0xa0): the COLOR filter and
+# codec version 1 are KHR_meshopt_compression's, which the pages' decoder cannot read.
+_FILTERS = ("NONE", "OCTAHEDRAL", "QUATERNION", "EXPONENTIAL")
+_VERTEX_HEADER = 0xA0
 
 #: A Draco primitive's decoded geometry: positions (V, 3) float64 and, for a mesh, the
 #: triangle corners (3F,) int64 (None for a point cloud).
@@ -125,6 +128,13 @@ def decode_meshopt_view(
             f"{label}: a meshopt view runs past its buffer ({offset} + {length} > {len(data)})",
             code="bad_compression",
         )
+    if mode == "ATTRIBUTES" and length and data[offset] != _VERTEX_HEADER:
+        raise ExampleSetError(
+            f"{label}: a meshopt view's vertex stream starts with {data[offset]:#x}, not "
+            f"{_VERTEX_HEADER:#x} (EXT_meshopt_compression's codec; version 1 is "
+            "KHR_meshopt_compression's, which the pages cannot decode)",
+            code="bad_compression",
+        )
     try:
         rows = meshopt.decode_gltf_buffer(
             data[offset : offset + length],
@@ -156,7 +166,7 @@ def _meshopt_rule(mode: str, chosen: str, stride: int, count: int, view_length: 
         return f"of {mode} has byteStride {stride} and filter {chosen} (2 or 4, NONE)"
     if mode == "TRIANGLES" and count % 3:
         return f"of TRIANGLES has {count} indices, not triangles"
-    if (chosen in ("OCTAHEDRAL", "COLOR") and stride not in (4, 8)) or (
+    if (chosen == "OCTAHEDRAL" and stride not in (4, 8)) or (
         chosen == "QUATERNION" and stride != 8
     ):
         return f"filtered {chosen} has byteStride {stride}"

@@ -105,12 +105,20 @@ def _meshopt_cut(doc, blob) -> None:
 
 def _meshopt_scrambled(doc, blob) -> None:
     ext = _face_position_view(doc)["extensions"]["EXT_meshopt_compression"]
-    start = ext["byteOffset"]
-    blob[start : start + ext["byteLength"]] = b"\xff" * ext["byteLength"]
+    start = ext["byteOffset"] + 1  # past the codec's header byte
+    blob[start : start + ext["byteLength"] - 1] = b"\xff" * (ext["byteLength"] - 1)
 
 
 def _meshopt_bad_filter(doc, blob) -> None:
     _face_position_view(doc)["extensions"]["EXT_meshopt_compression"]["filter"] = "ZIP"
+
+
+def _meshopt_codec_v1(doc, blob) -> None:
+    blob[_face_position_view(doc)["extensions"]["EXT_meshopt_compression"]["byteOffset"]] = 0xA1
+
+
+def _meshopt_color(doc, blob) -> None:
+    _face_position_view(doc)["extensions"]["EXT_meshopt_compression"]["filter"] = "COLOR"
 
 
 def _meshopt_miscounted(doc, blob) -> None:
@@ -145,6 +153,8 @@ def _draco_missing_attribute(doc, blob) -> None:
         ("meshopt", _meshopt_scrambled, "does not decode"),
         ("meshopt", _meshopt_bad_filter, "'ZIP'"),
         ("meshopt", _meshopt_miscounted, "its bufferView holds"),
+        ("meshopt", _meshopt_codec_v1, "version 1 is KHR_meshopt_compression's"),
+        ("meshopt", _meshopt_color, "'COLOR'"),
         ("meshopt", _meshopt_octahedral_positions, "filtered OCTAHEDRAL has byteStride 12"),
         ("draco", _draco_scrambled, "does not decode"),
         ("draco", _draco_miscounted, "its accessor declares 15344"),
