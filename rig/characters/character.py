@@ -287,7 +287,8 @@ def load_character(source: Path | bytes, *, label: str = "character") -> Charact
         folder, or any external URI in a GLB or bytes), ``texture_too_large`` (a header
         declaring more than ``MAX_TEXTURE_SIDE`` a side or ``MAX_TEXTURE_PIXELS`` in all),
         ``bad_image``, ``bad_vrm_bind``, ``morph_vertex_mismatch``, ``too_large``,
-        ``unsupported_extension``, ``no_mesh``, ``missing_file``.
+        ``bad_compression`` (meshopt or Draco data that does not decode to what its
+        accessors declare), ``no_mesh``, ``missing_file``.
     """
     try:
         return _load(source, label)
@@ -324,6 +325,7 @@ def _load(source: Path | bytes, label: str) -> Character:
         for e in entries
     ] + vrm_entries
     reader = BufferReader(gltf, None, label)
+    reader.decode_all()  # a compressed part that does not decode is refused now (bounded)
     still = _still_expressions(found, gltf, reader, label)
     entries = [
         dataclasses.replace(e, reason=f"{e.reason}; {still[e.expression]}")

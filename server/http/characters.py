@@ -30,7 +30,13 @@ from ..storage.characters import (
     pack_character,
 )
 from ..storage.rig_store import RIG_ID_PATTERN, RigStore, valid_rig_id
-from .character_upload import character_record, pairing_view, read_character_upload
+from .character_upload import (
+    character_record,
+    check_character_size,
+    pairing_view,
+    read_character_upload,
+)
+from .downloads import stream_file
 from .rigs import CharacterFitOptions, archive_limits, fit_slot, read_body, run_fit
 from .transfer import start_transfer
 
@@ -123,7 +129,9 @@ async def put_character(
             "markers and names choose how expressions are transferred: add expressions=transfer",
         )
     settings = request.app.state.settings
-    job = _CharacterJob(archive_limits(settings), options, _store(request).scratch)
+    job = _CharacterJob(
+        archive_limits(settings), options, _store(request).scratch, settings.max_character_bytes
+    )
     with fit_slot(request, principal):
         data = await read_body(request, settings.max_upload_bytes)
         try:
@@ -178,17 +186,17 @@ async def get_character(request: Request, rig_id: str, principal: Reader) -> Res
     # The rig itself must exist: ``x@nobody`` shows no character, even if ``x`` has one.
     if not await anyio.to_thread.run_sync(_store(request).exists, rig_id):
         raise ApiError(404, "rig_not_found", f"no rig with id {rig_id!r}")
-    stored = await anyio.to_thread.run_sync(
-        lambda: _store(request).character(base_id(rig_id), with_glb=True)
-    )
-    if stored is None:
+    opened = await anyio.to_thread.run_sync(_store(request).open_character, base_id(rig_id))
+    if opened is None:
         raise ApiError(
             404,
             "no_character",
             f"rig {rig_id!r} has no character file (it was not uploaded with "
             "PUT /v1/characters/{id}); its mesh is GET /v1/rigs/{id}/model.glb",
         )
+    stored, fh, size = opened
     if character_not_served(stored.meta, anonymous=principal is ANONYMOUS):
+        fh.close()
         raise ApiError(
             403,
             "character_not_redistributable",
@@ -196,27 +204,29 @@ async def get_character(request: Request, rig_id: str, principal: Reader) -> Res
             "it is served only to callers with a token (the viewer role); its mesh is "
             f"GET /v1/rigs/{rig_id}/model.glb",
         )
-    return Response(
-        stored.glb,
-        media_type="model/gltf-binary",
-        headers={
-            "Cache-Control": "no-store"
-            if stored.meta.get("redistribution") is False
-            else "no-cache"
-        },
+    # Streamed from disk in chunks (``downloads``): a slow viewer holds one, not the file.
+    return stream_file(
+        fh,
+        size,
+        "model/gltf-binary",
+        {"Cache-Control": "no-store" if stored.meta.get("redistribution") is False else "no-cache"},
     )
 
 
 class _CharacterJob:
     """Unpack (an archive), load, pair with the generic source set and fit (a worker thread)."""
 
-    def __init__(self, limits: ArchiveLimits, options: dict[str, Any], scratch: Path) -> None:
+    def __init__(
+        self, limits: ArchiveLimits, options: dict[str, Any], scratch: Path, max_bytes: int
+    ) -> None:
         self.limits = limits
         self.options = options
         self.scratch = scratch
+        self.max_bytes = max_bytes
 
     def __call__(self, data: bytes) -> tuple[Rig, bytes, dict[str, Any], str]:
         character, _ = read_character_upload(data, self.limits, self.scratch)
+        check_character_size(character, self.max_bytes)
         example_set, report = character_example_set(character)
         rig = fit(example_set, **self.options)
         return (
