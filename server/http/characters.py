@@ -103,6 +103,14 @@ async def put_character(
             "(default all the character lacks)",
         ),
     ] = None,
+    rights_holder: Annotated[
+        bool,
+        Query(
+            description="the uploader declares they hold the rights to show this character: "
+            "a VRM whose licence forbids redistribution is then served to viewers without a "
+            "token too (default false: only to token holders)"
+        ),
+    ] = False,
 ) -> JSONResponse:
     _check_id(rig_id)
     if PERFORMER_SEPARATOR in rig_id:
@@ -114,7 +122,13 @@ async def put_character(
         )
     if expressions == "transfer":
         return await start_transfer(
-            request, rig_id, principal, options, markers=markers, names=names
+            request,
+            rig_id,
+            principal,
+            options,
+            markers=markers,
+            names=names,
+            rights_holder=rights_holder,
         )
     if markers is not None or names is not None:
         raise ApiError(
@@ -123,7 +137,9 @@ async def put_character(
             "markers and names choose how expressions are transferred: add expressions=transfer",
         )
     settings = request.app.state.settings
-    job = _CharacterJob(archive_limits(settings), options, _store(request).scratch)
+    job = _CharacterJob(
+        archive_limits(settings), options, _store(request).scratch, rights_holder=rights_holder
+    )
     with fit_slot(request, principal):
         data = await read_body(request, settings.max_upload_bytes)
         try:
@@ -151,6 +167,7 @@ async def put_character(
             "rig": rig_id,
             "bytes": len(data),
             "format": fmt,
+            "rights_holder": rights_holder,
             "by": principal.name,
         },
     )
@@ -188,13 +205,16 @@ async def get_character(request: Request, rig_id: str, principal: Reader) -> Res
             f"rig {rig_id!r} has no character file (it was not uploaded with "
             "PUT /v1/characters/{id}); its mesh is GET /v1/rigs/{id}/model.glb",
         )
-    if character_not_served(stored.meta, anonymous=principal is ANONYMOUS):
+    if character_not_served(
+        stored.meta, anonymous=principal is ANONYMOUS, rights_holder=stored.rights_holder
+    ):
         raise ApiError(
             403,
             "character_not_redistributable",
             f"the character of rig {rig_id!r} is a VRM whose licence forbids redistribution: "
-            "it is served only to callers with a token (the viewer role); its mesh is "
-            f"GET /v1/rigs/{rig_id}/model.glb",
+            "it is served only to callers with a token (the viewer role), unless its uploader "
+            "declares they hold the rights to show it (?rights_holder=true on the upload); "
+            f"its mesh is GET /v1/rigs/{rig_id}/model.glb",
         )
     return Response(
         stored.glb,
@@ -210,10 +230,18 @@ async def get_character(request: Request, rig_id: str, principal: Reader) -> Res
 class _CharacterJob:
     """Unpack (an archive), load, pair with the generic source set and fit (a worker thread)."""
 
-    def __init__(self, limits: ArchiveLimits, options: dict[str, Any], scratch: Path) -> None:
+    def __init__(
+        self,
+        limits: ArchiveLimits,
+        options: dict[str, Any],
+        scratch: Path,
+        *,
+        rights_holder: bool = False,
+    ) -> None:
         self.limits = limits
         self.options = options
         self.scratch = scratch
+        self.rights_holder = rights_holder
 
     def __call__(self, data: bytes) -> tuple[Rig, bytes, dict[str, Any], str]:
         character, _ = read_character_upload(data, self.limits, self.scratch)
@@ -221,7 +249,9 @@ class _CharacterJob:
         rig = fit(example_set, **self.options)
         return (
             rig,
-            pack_character(character.glb, character_record(character)),
+            pack_character(
+                character.glb, character_record(character, rights_holder=self.rights_holder)
+            ),
             pairing_view(report),
             character.format,
         )

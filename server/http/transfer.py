@@ -106,8 +106,11 @@ async def start_transfer(
     *,
     markers: str | None,
     names: str | None,
+    rights_holder: bool = False,
 ) -> JSONResponse:
-    """Check the upload, record a queued job and start it: 202 with the record."""
+    """Check the upload, record a queued job and start it: 202 with the record.
+
+    ``rights_holder``: kept in the stored character's record (``character_record``)."""
     settings: Settings = request.app.state.settings
     store = _store(request)
     archive = _source_path(settings)
@@ -147,7 +150,7 @@ async def start_transfer(
             await anyio.to_thread.run_sync(store.jobs.write, rig_id, record)
             job = _TransferJob(
                 rig_id, record["job"], plan, source, options, store,
-                request.app.state.transfer_cancel,
+                request.app.state.transfer_cancel, rights_holder=rights_holder,
             )  # fmt: skip
             executor: ThreadPoolExecutor = request.app.state.transfer_executor
             future = executor.submit(job.run, slot)
@@ -255,8 +258,11 @@ class _TransferJob:
         options: dict[str, Any],
         store: RigStore,
         cancel: threading.Event,
+        *,
+        rights_holder: bool = False,
     ) -> None:
         self.rig_id = rig_id
+        self.rights_holder = rights_holder
         self.job = job
         self.plan = plan
         self.source = source
@@ -308,7 +314,8 @@ class _TransferJob:
         character = load_character(glb, label="the character with its transferred expressions")
         example_set, report = character_example_set(character)
         rig = fit(example_set, **self.options)
-        packed = pack_character(character.glb, character_record(character))
+        record = character_record(character, rights_holder=self.rights_holder)
+        packed = pack_character(character.glb, record)
         if self.cancel.is_set():
             raise _Interrupted
         # The record is read again just before storing: a character deleted or uploaded
