@@ -100,6 +100,9 @@ async function loadModel(params, view) {
       stats.character = { format: character.format, meta: character.meta, ...shown };
       hud.character(
         metaText(character.meta, character.format) +
+          (character.rights_holder && character.meta && character.meta.redistribution === false
+            ? " — shown to everyone: its uploader holds the rights"
+            : "") +
           (shown.vrmError ? ` — shown as plain glTF (three-vrm refused it: ${shown.vrmError})` : ""),
       );
       return { names: described.names, vertexCount: described.num_vertices };
