@@ -190,16 +190,13 @@ def _vrm_entries(
             )
             continue
         if not binds:
-            report.append(
-                PairingEntry(
-                    vrm.name,
-                    origin,
-                    meshes,
-                    None,
-                    False,
-                    "binds no morph target (material changes only)",
-                )
-            )
+            if vrm.binds:
+                why = "its morph binds all have weight 0: it moves nothing"
+            elif vrm.materials:
+                why = "binds no morph target (material changes only)"
+            else:
+                why = "binds nothing (no morph target, no material): an empty expression"
+            report.append(PairingEntry(vrm.name, origin, meshes, None, False, why))
             continue
         found[name] = _Found(binds, "vrm")
         report.append(PairingEntry(vrm.name, origin, meshes, name, False, how))

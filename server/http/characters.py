@@ -32,7 +32,7 @@ from ..storage.characters import (
 from ..storage.rig_store import RIG_ID_PATTERN, RigStore, valid_rig_id
 from .character_upload import character_record, pairing_view, read_character_upload
 from .rigs import CharacterFitOptions, archive_limits, fit_slot, read_body, run_fit
-from .transfer import start_transfer
+from .transfer import start_transfer, transfer_available
 
 if TYPE_CHECKING:
     from facecast.rig import Rig
@@ -149,13 +149,20 @@ async def put_character(
         except ExampleSetError as exc:
             if exc.code != "no_expressions":
                 raise
-            raise ApiError(
-                422,
-                exc.code,
-                f"{exc.message}. Or let this server make them: upload it again with "
-                f"?expressions=transfer (`facecast rigs put URL {rig_id} FILE --expressions "
-                "transfer`)",
-            ) from None
+            # Only a server that has expressions to transfer (transfer_source) is offered:
+            # any other answers ?expressions=transfer with 503 transfer_unavailable.
+            if await anyio.to_thread.run_sync(transfer_available, settings):
+                remedy = (
+                    "Or let this server make them: upload it again with ?expressions=transfer "
+                    f"(`facecast rigs put URL {rig_id} FILE --expressions transfer`)"
+                )
+            else:
+                remedy = (
+                    "This server has no expressions to transfer (setting transfer_source): "
+                    "make them with `facecast expressions FILE -o FOLDER` where ICT-FaceKit "
+                    "is, then upload the example set"
+                )
+            raise ApiError(422, exc.code, f"{exc.message}. {remedy}") from None
     rig, packed, pairing, fmt = fitted
     created = await anyio.to_thread.run_sync(
         lambda: _store(request).put_rig(rig_id, rig, character=packed)

@@ -89,6 +89,16 @@ def _source_path(settings: Settings) -> Path:
     return Path(archive)
 
 
+def transfer_available(settings: Settings) -> bool:
+    """Whether this server can transfer expressions (``transfer_source`` found): what an
+    upload with none may be told to ask for."""
+    try:
+        _source_path(settings)
+    except ApiError:
+        return False
+    return True
+
+
 def _names(text: str | None) -> list[str] | None:
     if text is None:
         return None

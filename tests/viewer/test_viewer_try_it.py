@@ -407,3 +407,34 @@ def test_rights_holder_without_the_admin_role_is_refused_and_stores_nothing(tmp_
     assert (after.status_code, after.json()["code"]) == (404, "rig_not_found")
     assert accepted.status_code == 201
     assert accepted.json()["character"]["rights_holder"] is True
+
+
+def _without_morphs(glb: bytes) -> bytes:
+    """The GLB with every morph target (and VRM expression) taken out: a neutral-only file."""
+    length = struct.unpack_from("<I", glb, 12)[0]
+    gltf = json.loads(glb[20 : 20 + length])
+    for mesh in gltf["meshes"]:
+        mesh.pop("extras", None)
+        for primitive in mesh["primitives"]:
+            primitive.pop("targets", None)
+        mesh.pop("weights", None)
+    text = json.dumps(gltf).encode()
+    text += b" " * (-len(text) % 4)
+    body = struct.pack("<II", len(text), 0x4E4F534A) + text + glb[20 + length :]
+    return struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body
+
+
+def test_a_neutral_only_upload_is_offered_a_transfer_only_by_a_server_that_has_one(tmp_path):
+    settings = Settings(
+        rigs_dir=tmp_path / "rigs", transfer_source="off", access_log=False, log_level="warning"
+    )
+    with serving(settings) as base_url:
+        answer = httpx.put(
+            f"{base_url}/v1/characters/head",
+            content=_without_morphs(build_character("gltf").glb),
+            timeout=120,
+        )
+
+    assert (answer.status_code, answer.json()["code"]) == (422, "no_expressions")
+    assert "?expressions=transfer" not in answer.json()["detail"]
+    assert "facecast expressions FILE -o FOLDER" in answer.json()["detail"]
