@@ -438,3 +438,24 @@ def test_a_neutral_only_upload_is_offered_a_transfer_only_by_a_server_that_has_o
     assert (answer.status_code, answer.json()["code"]) == (422, "no_expressions")
     assert "?expressions=transfer" not in answer.json()["detail"]
     assert "facecast expressions FILE -o FOLDER" in answer.json()["detail"]
+
+
+def test_watch_on_a_rig_of_another_point_count_says_the_cause(server, tmp_path, capsys):
+    watched: list[int] = []
+    watcher = threading.Thread(
+        target=lambda: watched.append(
+            main(["watch", server, "mismatch", "--rig", "face", "-o", str(tmp_path / "w.npz"),
+                  "--timeout", "60"])
+        ),
+    )  # fmt: skip
+    watcher.start()
+    _wait_viewers(server, "mismatch", 1)
+    published = _cli(
+        ["publish", server, "mismatch", "demo", "--rig", "demo", "--seconds", "1", "-q"]
+    )
+    watcher.join(90)
+    err = capsys.readouterr().err
+
+    assert published == 0 and watched and watched[0] != 0
+    assert "no result received from channel 'mismatch': the server said wrong_point_count" in err
+    assert "rig_mismatch" in err
