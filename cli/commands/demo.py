@@ -126,8 +126,8 @@ def _run(args: argparse.Namespace) -> int:
             print(f"overlay (OBS browser source): {url}/overlay?rig={DEMO_RIG_ID}")
             print(f"every rig and live channel, the API docs: {url}/")
             if not args.exit:
-                print("serving; press Ctrl-C to stop")
                 try:
+                    print("serving; press Ctrl-C to stop", flush=True)
                     threading.Event().wait()
                 except KeyboardInterrupt:
                     print("stopping")
