@@ -83,8 +83,8 @@ def _demo_performance(num_points: int, seconds: float, expected_by: str) -> Sour
     """The demo performance on the points a rig of ``num_points`` takes: the procedural
     demo's 21 (the demo rig), or the generic ARKit set's 20 (a character uploaded as a
     file, an ICT-FaceKit import: the same performance acted as ARKit weights)."""
+    from facecast.rig.characters.generic import generic_sources
     from facecast.rig.demo import DEMO_FEATURE_NAMES, arkit_demo_animation, demo_animation
-    from facecast.rig.sources.generic import generic_sources
 
     generic = generic_sources().points.shape[1]
     if num_points == len(DEMO_FEATURE_NAMES):

@@ -53,7 +53,7 @@ def register(subparsers: Subparsers) -> None:
         "ARKit set: a character file)",
         source_rig_help="ARKit-named source shapes that turn a Live Link Face CSV's blendshape "
         "weights into feature points: 'generic' (facecast's generic ARKit set, "
-        "rig/sources/generic_arkit/points.npz, for a rig fitted from a character file), an "
+        "rig/characters/generic_arkit/points.npz, for a rig fitted from a character file), an "
         "example-set folder from 'facecast import', or ICT's npz",
     )
     parser.add_argument(

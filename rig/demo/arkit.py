@@ -14,9 +14,9 @@ from typing import Final
 
 import numpy as np
 
-from ..io.expression_names import ARKIT_NAMES
+from ..characters.expression_names import ARKIT_NAMES
+from ..characters.generic import generic_sources
 from ..sources.animation import SourceAnimation
-from ..sources.generic import generic_sources
 from ..sources.source_rig import generic_source_rig
 from .scene import DEMO_NAMES, demo_activations, demo_example_set
 

@@ -30,11 +30,11 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from ..characters.expression_names import ARKIT_NAMES
+from ..characters.generic import GENERIC_SOURCE_NAME, generic_sources, is_generic_layout
+from ..characters.loaders import load_example_set
 from ..errors import ExampleSetError, InputError
 from ..examples import ExampleSet
-from ..io.expression_names import ARKIT_NAMES
-from ..io.loaders import load_example_set
-from .generic import GENERIC_SOURCE_NAME, generic_sources, is_generic_layout
 from .ict import ict_example_set
 
 __all__ = [
@@ -331,7 +331,7 @@ def _is_ict_archive(path: Path) -> bool:
 
 
 def generic_source_rig() -> SourceRig:
-    """facecast's shipped generic ARKit source set (``sources.generic``) as a source rig.
+    """facecast's shipped generic ARKit source set (``characters.generic``) as a source rig.
 
     Its 20 points are the ones a character uploaded as a file is paired with, so ARKit
     weights turned into points by it drive any such character (``tongueOut`` has no shape).

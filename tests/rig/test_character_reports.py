@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import struct
 
-from facecast.rig.io.character import character_example_set, load_character
+from facecast.rig.characters.character import character_example_set, load_character
 
 from ..viewer._character import build_character
 

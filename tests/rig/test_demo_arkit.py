@@ -8,6 +8,10 @@ import numpy as np
 import pytest
 
 from facecast.rig import fit
+from facecast.rig.characters.character import character_example_set, load_character
+from facecast.rig.characters.character_examples import character_fit_options
+from facecast.rig.characters.expression_names import ARKIT_NAMES
+from facecast.rig.characters.generic import generic_sources
 from facecast.rig.demo import (
     DEMO_NAMES,
     arkit_demo_animation,
@@ -17,16 +21,12 @@ from facecast.rig.demo import (
     performance_for,
 )
 from facecast.rig.errors import ExampleSetError
-from facecast.rig.io.character import character_example_set, load_character
-from facecast.rig.io.character_examples import character_fit_options
-from facecast.rig.io.expression_names import ARKIT_NAMES
-from facecast.rig.sources.generic import generic_sources
 from facecast.rig.sources.loading import load_source_animation
 from facecast.rig.sources.source_rig import generic_source_rig, load_source_rig
 
 from ..viewer._character import build_character
 
-GENERIC_NPZ = Path(__file__).parents[2] / "rig" / "sources" / "generic_arkit" / "points.npz"
+GENERIC_NPZ = Path(__file__).parents[2] / "rig" / "characters" / "generic_arkit" / "points.npz"
 TAKE = Path(__file__).parents[1] / "data" / "livelink" / "llv_dao.csv"
 
 

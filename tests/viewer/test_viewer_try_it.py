@@ -21,10 +21,10 @@ import pytest
 from facecast.cli.main import main
 from facecast.cli.snapshot import serving, write_demo_rig
 from facecast.rig import fit, load_rig
+from facecast.rig.characters.expression_names import ARKIT_NAMES
+from facecast.rig.characters.generic import generic_sources
 from facecast.rig.demo import arkit_demo_animation, arkit_demo_weights
 from facecast.rig.examples import ExampleSet
-from facecast.rig.io.expression_names import ARKIT_NAMES
-from facecast.rig.sources.generic import generic_sources
 from facecast.server.settings import Settings
 from facecast.server.storage.rig_store import RigStore
 
@@ -265,7 +265,7 @@ def test_publish_the_bundled_livelink_take_on_the_generic_source(server, tmp_pat
     published = _cli(
         ["publish", server, "take", str(TAKE), "--source-rig", "generic", "--rig", "face", "-q"]
     )
-    shipped = Path(__file__).parents[2] / "rig" / "sources" / "generic_arkit" / "points.npz"
+    shipped = Path(__file__).parents[2] / "rig" / "characters" / "generic_arkit" / "points.npz"
     by_path = _cli(
         ["publish", server, "take", str(TAKE), "--source-rig", str(shipped), "--rig", "face", "-q"]
     )

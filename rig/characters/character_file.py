@@ -16,8 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ExampleSetError
-from .gltf import pack_glb
-from .image_headers import image_size, sniff_mime
+from ..io.gltf import pack_glb
+from ..io.image_headers import image_size, sniff_mime
 
 __all__ = ["MAX_CHARACTER_BYTES", "MAX_TEXTURE_PIXELS", "MAX_TEXTURE_SIDE", "read_character_file"]
 
