@@ -52,6 +52,10 @@ LAZY: dict[tuple[str, str], str] = {
         "optional dependency: Playwright (the `test` extra) drives Chromium for `facecast "
         "track` only; without it the command says what to install"
     ),
+    ("facecast.cli.bench.live", "playwright.*"): (
+        "optional dependency: Playwright (the `test` extra) drives Chromium for `facecast bench "
+        "live` only; the other benchmarks run without it"
+    ),
     ("facecast.cli.facetrack", "cv2"): "optional dependency: the `perform` extra",
     ("facecast.cli.facetrack", "mediapipe.*"): "optional dependency: the `perform` extra",
     ("facecast.server.channels.bus", "redis.asyncio"): (
@@ -264,8 +268,8 @@ def test_no_import_cycle_counting_type_only_imports(graphs):
 
 #: The server's rooms, lowest first: a module imports only from its own room or a lower one
 #: (server/SERVER.md, "Modules"). Rooms on one rank do not import each other; the base
-#: modules at the top level (names, errors, settings, logs) are one room.
-SERVER_BASE = frozenset({"names", "errors", "settings", "logs"})
+#: modules at the top level (names, errors, settings, logs, daemon_pool) are one room.
+SERVER_BASE = frozenset({"names", "errors", "settings", "logs", "daemon_pool"})
 SERVER_ROOMS: tuple[tuple[str, ...], ...] = (
     ("base",),
     ("compute",),

@@ -30,7 +30,13 @@ from ..storage.characters import (
     pack_character,
 )
 from ..storage.rig_store import RIG_ID_PATTERN, RigStore, valid_rig_id
-from .character_upload import character_record, pairing_view, read_character_upload
+from .character_upload import (
+    character_record,
+    check_character_size,
+    pairing_view,
+    read_character_upload,
+)
+from .downloads import stream_file
 from .rigs import CharacterFitOptions, archive_limits, fit_slot, read_body, run_fit
 from .transfer import start_transfer, transfer_available
 
@@ -138,7 +144,11 @@ async def put_character(
         )
     settings = request.app.state.settings
     job = _CharacterJob(
-        archive_limits(settings), options, _store(request).scratch, rights_holder=rights_holder
+        archive_limits(settings),
+        options,
+        _store(request).scratch,
+        settings.max_character_bytes,
+        rights_holder=rights_holder,
     )
     with fit_slot(request, principal):
         data = await read_body(request, settings.max_upload_bytes)
@@ -202,19 +212,19 @@ async def get_character(request: Request, rig_id: str, principal: Reader) -> Res
     # The rig itself must exist: ``x@nobody`` shows no character, even if ``x`` has one.
     if not await anyio.to_thread.run_sync(_store(request).exists, rig_id):
         raise ApiError(404, "rig_not_found", f"no rig with id {rig_id!r}")
-    stored = await anyio.to_thread.run_sync(
-        lambda: _store(request).character(base_id(rig_id), with_glb=True)
-    )
-    if stored is None:
+    opened = await anyio.to_thread.run_sync(_store(request).open_character, base_id(rig_id))
+    if opened is None:
         raise ApiError(
             404,
             "no_character",
             f"rig {rig_id!r} has no character file (it was not uploaded with "
             "PUT /v1/characters/{id}); its mesh is GET /v1/rigs/{id}/model.glb",
         )
+    stored, fh, size = opened
     if character_not_served(
         stored.meta, anonymous=principal is ANONYMOUS, rights_holder=stored.rights_holder
     ):
+        fh.close()
         raise ApiError(
             403,
             "character_not_redistributable",
@@ -223,14 +233,12 @@ async def get_character(request: Request, rig_id: str, principal: Reader) -> Res
             "declares they hold the rights to show it (?rights_holder=true on the upload); "
             f"its mesh is GET /v1/rigs/{rig_id}/model.glb",
         )
-    return Response(
-        stored.glb,
-        media_type="model/gltf-binary",
-        headers={
-            "Cache-Control": "no-store"
-            if stored.meta.get("redistribution") is False
-            else "no-cache"
-        },
+    # Streamed from disk in chunks (``downloads``): a slow viewer holds one, not the file.
+    return stream_file(
+        fh,
+        size,
+        "model/gltf-binary",
+        {"Cache-Control": "no-store" if stored.meta.get("redistribution") is False else "no-cache"},
     )
 
 
@@ -242,16 +250,19 @@ class _CharacterJob:
         limits: ArchiveLimits,
         options: dict[str, Any],
         scratch: Path,
+        max_bytes: int,
         *,
         rights_holder: bool = False,
     ) -> None:
         self.limits = limits
         self.options = options
         self.scratch = scratch
+        self.max_bytes = max_bytes
         self.rights_holder = rights_holder
 
     def __call__(self, data: bytes) -> tuple[Rig, bytes, dict[str, Any], str]:
         character, _ = read_character_upload(data, self.limits, self.scratch)
+        check_character_size(character, self.max_bytes)
         example_set, report = character_example_set(character)
         rig = fit(example_set, **self.options)
         return (

@@ -44,7 +44,12 @@ from ..storage.archive import ArchiveError, ArchiveLimits
 from ..storage.characters import character_view, pack_character
 from ..storage.jobs import FINISHED
 from ..storage.rig_store import RIG_ID_PATTERN, RigStore, valid_rig_id
-from .character_upload import character_record, pairing_view, read_character_upload
+from .character_upload import (
+    character_record,
+    check_character_size,
+    pairing_view,
+    read_character_upload,
+)
 from .rigs import archive_limits, fit_slot, read_body, run_fit
 
 __all__ = ["router", "start_transfer"]
@@ -243,11 +248,13 @@ class _Prepare:
         self.scratch = scratch
         self.archive = archive
         self.max_vertices = settings.max_transfer_vertices
+        self.max_bytes = settings.max_character_bytes
 
     def __call__(
         self, data: bytes, markers: str | None, names: list[str] | None
     ) -> tuple[TransferPlan, SourceExpressions]:
         character, found = read_character_upload(data, self.limits, self.scratch)
+        check_character_size(character, self.max_bytes)
         if found is not None and markers is not None:
             raise ApiError(
                 422,
@@ -263,6 +270,11 @@ class _Prepare:
             names=names,
             max_vertices=self.max_vertices,
             label="the uploaded character",
+        )
+        # The job's file grows by its morph targets (float32 xyz a vertex and expression,
+        # an accessor each): checked at the size it will be stored at, before the 202.
+        check_character_size(
+            character, self.max_bytes, adding=len(plan.names) * (plan.vertices * 12 + 256)
         )
         return plan, source
 
