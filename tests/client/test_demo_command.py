@@ -47,20 +47,27 @@ def test_demo_refuses_a_bad_port(capsys):
 
 def test_demo_stopped_by_sigterm_removes_its_temporary_folder(tmp_path):
     """Like Ctrl-C: the rig folder under TMPDIR is gone and the exit is clean."""
-    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    env = {**os.environ, "TMPDIR": str(scratch)}
+    err = (tmp_path / "stderr.txt").open("w+")
     process = subprocess.Popen(
         [sys.executable, "-m", "facecast.cli", "demo", "--port", "0", "--seconds", "1"],
         stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
+        stderr=err,
         text=True,
         env=env,
     )
     try:
         assert process.stdout is not None
+        seen = []
         for line in process.stdout:  # serving: the folder exists now
+            seen.append(line)
             if line.startswith("serving;"):
                 break
-        assert list(tmp_path.glob("facecast-demo-*")), "no temporary folder while serving"
+        err.seek(0)
+        assert seen and seen[-1].startswith("serving;"), ("".join(seen), err.read()[-2000:])
+        assert list(scratch.glob("facecast-demo-*")), "no temporary folder while serving"
         process.send_signal(signal.SIGTERM)
         status = process.wait(timeout=60)
     finally:
@@ -69,4 +76,4 @@ def test_demo_stopped_by_sigterm_removes_its_temporary_folder(tmp_path):
             process.wait()
 
     assert status == 0
-    assert list(tmp_path.glob("facecast-demo-*")) == []
+    assert list(scratch.glob("facecast-demo-*")) == []
