@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -198,16 +198,13 @@ def _vrm_entries(
             )
             continue
         if not binds:
-            report.append(
-                PairingEntry(
-                    vrm.name,
-                    origin,
-                    meshes,
-                    None,
-                    False,
-                    "binds no morph target (material changes only)",
-                )
-            )
+            if vrm.binds:
+                why = "its morph binds all have weight 0: it moves nothing"
+            elif vrm.materials:
+                why = "binds no morph target (material changes only)"
+            else:
+                why = "binds nothing (no morph target, no material): an empty expression"
+            report.append(PairingEntry(vrm.name, origin, meshes, None, False, why))
             continue
         found[name] = _Found(binds, "vrm")
         report.append(PairingEntry(vrm.name, origin, meshes, name, False, how))
@@ -302,6 +299,33 @@ def load_character(source: Path | bytes, *, label: str = "character") -> Charact
         ) from None
 
 
+def _driven_through_vrm(
+    entries: list[PairingEntry],
+    names: list[list[str]],
+    found: dict[str, _Found],
+    paired: dict[str, str],
+) -> list[PairingEntry]:
+    """Morph-target entries whose own name pairs with nothing but whose morph a paired VRM
+    expression binds (a VRM ``A`` binding ``vrc.v_aa``) say so: their motion is live,
+    driven by that expression's weight, though the name itself has no source points."""
+    through: dict[str, list[str]] = {}
+    for name, expression in found.items():
+        if expression.origin != "vrm" or name not in paired:
+            continue
+        for b in expression.bindings:
+            authored = names[b.mesh][b.morph]
+            if name not in through.setdefault(authored, []):
+                through[authored].append(name)
+    out = []
+    for e in entries:
+        via = through.get(e.authored, [])
+        if e.origin == "morph target" and e.expression not in paired and via:
+            listed = ", ".join(repr(v) for v in via)
+            e = replace(e, reason=f"{e.reason}; moved through the paired VRM expression {listed}")
+        out.append(e)
+    return out
+
+
 def _load(source: Path | bytes, label: str) -> Character:
     """``load_character`` but for turning stray exceptions into ``bad_gltf``."""
     doc, _, glb = read_character_file(source, label)
@@ -346,6 +370,7 @@ def _load(source: Path | bytes, label: str) -> Character:
         displacement.flags.writeable = False
         expressions[name] = Expression(name, bindings, displacement, found[name].origin)
     paired, unpaired = generic_pairing(expressions)
+    reported = _driven_through_vrm(entries, names, found, paired)
     vertices.flags.writeable = False
     return Character(
         glb=glb,
@@ -358,6 +383,6 @@ def _load(source: Path | bytes, label: str) -> Character:
         expressions=expressions,
         names=tuple(entries),
         report=pair_report(
-            entries, paired, unpaired, source=GENERIC_ATTRIBUTION, face_mesh=mesh_names[face]
+            reported, paired, unpaired, source=GENERIC_ATTRIBUTION, face_mesh=mesh_names[face]
         ),
     )
