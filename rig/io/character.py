@@ -34,7 +34,7 @@ from .character_model import (
     pair_report,
 )
 from .expression_names import ARKIT_NAMES, VRM_PRESETS, half_of, normalise_name, vrm0_preset
-from .gltf import BufferReader, load_document, read_mesh, target_names
+from .gltf import BufferReader, GltfLimits, read_mesh, target_names
 from .vrm import VrmExpression, vrm_expressions, vrm_format, vrm_meta
 
 __all__ = [
@@ -65,7 +65,7 @@ class _Found:
     origin: str
 
 
-def _mesh_targets(doc: dict[str, Any], gltf: Any, label: str) -> tuple[list[int], list[list[str]]]:
+def _mesh_targets(doc: dict[str, Any], label: str) -> tuple[list[int], list[list[str]]]:
     """Per mesh: its number of morph targets and their names, every target's vertex count
     checked against its primitive's (``morph_vertex_mismatch``)."""
     accessors = doc.get("accessors") or []
@@ -114,7 +114,7 @@ def _mesh_targets(doc: dict[str, Any], gltf: Any, label: str) -> tuple[list[int]
             )
         m = sizes.pop()
         counts.append(m)
-        names.append(target_names(gltf.meshes[number], m))
+        names.append(target_names(mesh, m))
     return counts, names
 
 
@@ -206,7 +206,7 @@ def _vrm_entries(
     return report
 
 
-def _face_mesh(found: dict[str, _Found], doc: dict[str, Any], gltf: Any, label: str) -> int:
+def _face_mesh(found: dict[str, _Found], doc: dict[str, Any], label: str) -> int:
     """The mesh with the most expressions bound; ties: more vertices, then the earlier."""
     meshes = doc.get("meshes") or []
     if not meshes:
@@ -223,7 +223,9 @@ def _face_mesh(found: dict[str, _Found], doc: dict[str, Any], gltf: Any, label: 
     return min(range(len(meshes)), key=lambda i: (-bound[i], -vertices[i], i))
 
 
-def load_character(source: Path | bytes, *, label: str = "character") -> Character:
+def load_character(
+    source: Path | bytes, *, label: str = "character", limits: GltfLimits | None = None
+) -> Character:
     """Read a .glb, .vrm (VRM 0.x or 1.0) or .gltf (with its files beside it) as authored.
 
     Parameters
@@ -232,6 +234,8 @@ def load_character(source: Path | bytes, *, label: str = "character") -> Charact
         The file, or its bytes (a .gltf given as bytes must embed its buffers and images).
     label : str
         What errors call the file; never a path is put in a message.
+    limits : GltfLimits, optional
+        The most the file may declare (``gltf_check``; its defaults without).
 
     Returns
     -------
@@ -248,10 +252,11 @@ def load_character(source: Path | bytes, *, label: str = "character") -> Charact
         folder, or any external URI in a GLB or bytes), ``texture_too_large`` (a header
         declaring more than ``MAX_TEXTURE_SIDE`` a side or ``MAX_TEXTURE_PIXELS`` in all),
         ``bad_image``, ``bad_vrm_bind``, ``morph_vertex_mismatch``, ``too_large``,
+        ``gltf_exceeds_limits`` (a count over ``limits``, checked before anything is read),
         ``unsupported_extension``, ``no_mesh``, ``missing_file``.
     """
     try:
-        return _load(source, label)
+        return _load(source, label, limits)
     except ExampleSetError:
         raise
     except (AttributeError, TypeError, KeyError, IndexError, ValueError, RecursionError) as exc:
@@ -262,11 +267,11 @@ def load_character(source: Path | bytes, *, label: str = "character") -> Charact
         ) from None
 
 
-def _load(source: Path | bytes, label: str) -> Character:
+def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Character:
     """``load_character`` but for turning stray exceptions into ``bad_gltf``."""
-    doc, _, glb = read_character_file(source, label)
-    gltf = load_document(glb, label)
-    counts, names = _mesh_targets(doc, gltf, label)
+    document, glb = read_character_file(source, label, limits)
+    doc = document.json
+    counts, names = _mesh_targets(doc, label)
     mesh_names = tuple(_mesh_name(doc, i) for i in range(len(counts)))
     found, entries = _morph_expressions(names, mesh_names)
     vrm_entries = _vrm_entries(vrm_expressions(doc, counts, label), mesh_names, found)
@@ -284,9 +289,9 @@ def _load(source: Path | bytes, label: str) -> Character:
         else e
         for e in entries
     ] + vrm_entries
-    face = _face_mesh(found, doc, gltf, label)
-    reader = BufferReader(gltf, None, label)
-    vertices, faces, deltas, _ = read_mesh(gltf.meshes[face], reader, label)
+    face = _face_mesh(found, doc, label)
+    reader = BufferReader(document, label)
+    vertices, faces, deltas, _ = read_mesh(doc["meshes"][face], reader, label)
     expressions = {}
     for name in sorted(found, key=lambda n: _ORDER.get(n, len(_ORDER))):
         bindings = tuple(found[name].bindings)
