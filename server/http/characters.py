@@ -18,6 +18,7 @@ from fastapi.responses import JSONResponse
 from facecast.rig import fit
 from facecast.rig.errors import ExampleSetError
 from facecast.rig.io.character import character_example_set
+from facecast.rig.io.gltf import GltfLimits
 
 from ..errors import ApiError
 from ..guards.auth import ANONYMOUS, READ_ROLES, Principal, requires
@@ -30,7 +31,12 @@ from ..storage.characters import (
     pack_character,
 )
 from ..storage.rig_store import RIG_ID_PATTERN, RigStore, valid_rig_id
-from .character_upload import character_record, pairing_view, read_character_upload
+from .character_upload import (
+    character_record,
+    gltf_limits,
+    pairing_view,
+    read_character_upload,
+)
 from .rigs import CharacterFitOptions, archive_limits, fit_slot, read_body, run_fit
 from .transfer import start_transfer
 
@@ -123,7 +129,9 @@ async def put_character(
             "markers and names choose how expressions are transferred: add expressions=transfer",
         )
     settings = request.app.state.settings
-    job = _CharacterJob(archive_limits(settings), options, _store(request).scratch)
+    job = _CharacterJob(
+        archive_limits(settings), gltf_limits(settings), options, _store(request).scratch
+    )
     with fit_slot(request, principal):
         data = await read_body(request, settings.max_upload_bytes)
         try:
@@ -210,13 +218,16 @@ async def get_character(request: Request, rig_id: str, principal: Reader) -> Res
 class _CharacterJob:
     """Unpack (an archive), load, pair with the generic source set and fit (a worker thread)."""
 
-    def __init__(self, limits: ArchiveLimits, options: dict[str, Any], scratch: Path) -> None:
+    def __init__(
+        self, limits: ArchiveLimits, gltf: GltfLimits, options: dict[str, Any], scratch: Path
+    ) -> None:
         self.limits = limits
+        self.gltf = gltf
         self.options = options
         self.scratch = scratch
 
     def __call__(self, data: bytes) -> tuple[Rig, bytes, dict[str, Any], str]:
-        character, _ = read_character_upload(data, self.limits, self.scratch)
+        character, _ = read_character_upload(data, self.limits, self.scratch, self.gltf)
         example_set, report = character_example_set(character)
         rig = fit(example_set, **self.options)
         return (

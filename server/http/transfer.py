@@ -42,7 +42,12 @@ from ..storage.archive import ArchiveError, ArchiveLimits
 from ..storage.characters import character_view, pack_character
 from ..storage.jobs import FINISHED
 from ..storage.rig_store import RIG_ID_PATTERN, RigStore, valid_rig_id
-from .character_upload import character_record, pairing_view, read_character_upload
+from .character_upload import (
+    character_record,
+    gltf_limits,
+    pairing_view,
+    read_character_upload,
+)
 from .rigs import archive_limits, fit_slot, read_body, run_fit
 
 __all__ = ["router", "start_transfer"]
@@ -218,12 +223,14 @@ class _Prepare:
         self.limits = limits
         self.scratch = scratch
         self.archive = archive
+        self.gltf = gltf_limits(settings)
         self.max_vertices = settings.max_transfer_vertices
+        self.max_faces = settings.max_transfer_faces
 
     def __call__(
         self, data: bytes, markers: str | None, names: list[str] | None
     ) -> tuple[TransferPlan, SourceExpressions]:
-        character, found = read_character_upload(data, self.limits, self.scratch)
+        character, found = read_character_upload(data, self.limits, self.scratch, self.gltf)
         if found is not None and markers is not None:
             raise ApiError(
                 422,
@@ -238,6 +245,7 @@ class _Prepare:
             markers=given,
             names=names,
             max_vertices=self.max_vertices,
+            max_faces=self.max_faces,
             label="the uploaded character",
         )
         return plan, source
