@@ -295,9 +295,12 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
     expressions = {}
     for name in sorted(found, key=lambda n: _ORDER.get(n, len(_ORDER))):
         bindings = tuple(found[name].bindings)
-        displacement = np.zeros_like(vertices)
-        for b in bindings:
-            if b.mesh == face:
+        on_face = [b for b in bindings if b.mesh == face]
+        if len(on_face) == 1 and on_face[0].weight == 1.0:
+            displacement = deltas[on_face[0].morph]  # a view: most expressions are one morph
+        else:
+            displacement = np.zeros_like(vertices)
+            for b in on_face:
                 displacement += b.weight * deltas[b.morph]
         displacement.flags.writeable = False
         expressions[name] = Expression(name, bindings, displacement, found[name].origin)

@@ -298,10 +298,12 @@ def read_mesh(
             )
         faces.append(tri.reshape(-1, 3) + first_vertex[pos_index])
 
-    neutral = np.concatenate(positions)
-    all_faces = np.concatenate(faces)
-    names = target_names(mesh, m)
-    return neutral, all_faces, np.concatenate(deltas, axis=1), names
+    # One primitive's arrays as they are: concatenating one copies it (the morph
+    # deltas are the largest arrays a character upload makes).
+    neutral = positions[0] if len(positions) == 1 else np.concatenate(positions)
+    all_faces = faces[0] if len(faces) == 1 else np.concatenate(faces)
+    all_deltas = deltas[0] if len(deltas) == 1 else np.concatenate(deltas, axis=1)
+    return neutral, all_faces, all_deltas, target_names(mesh, m)
 
 
 def target_names(mesh: dict[str, Any], m: int) -> list[str]:

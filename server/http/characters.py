@@ -228,11 +228,11 @@ class _CharacterJob:
 
     def __call__(self, data: bytes) -> tuple[Rig, bytes, dict[str, Any], str]:
         character, _ = read_character_upload(data, self.limits, self.scratch, self.gltf)
+        glb, record, fmt = character.glb, character_record(character), character.format
         example_set, report = character_example_set(character)
+        # The largest arrays go as soon as they are used (SERVER.md "What an upload can
+        # cost"): the character's displacements once in the example set, that once fitted.
+        del character
         rig = fit(example_set, **self.options)
-        return (
-            rig,
-            pack_character(character.glb, character_record(character)),
-            pairing_view(report),
-            character.format,
-        )
+        del example_set
+        return rig, pack_character(glb, record), pairing_view(report), fmt
