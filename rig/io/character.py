@@ -292,15 +292,31 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
     face = _face_mesh(found, doc, label)
     reader = BufferReader(document, label)
     vertices, faces, deltas, _ = read_mesh(doc["meshes"][face], reader, label)
+    on_face = {name: [b for b in e.bindings if b.mesh == face] for name, e in found.items()}
+    # An expression of one morph at weight 1 is a view of it; a VRM expression mixing
+    # morphs or weighting one needs an array of its own: bounded as the morphs are, or
+    # a thousand binds at weight 0.5 would each allocate the whole face.
+    mixed = sum(1 for b in on_face.values() if len(b) > 1 or (b and b[0].weight != 1.0))
+    limit = (limits or GltfLimits()).morph_values
+    if mixed * len(vertices) > limit:
+        raise ExampleSetError(
+            f"{label}: {mixed} expressions mixing morph targets of a {len(vertices)}-vertex "
+            f"face declare more than {limit} values (limit max_gltf_morph_values)",
+            code="gltf_exceeds_limits",
+        )
+    still = np.zeros_like(vertices)
+    still.flags.writeable = False
     expressions = {}
     for name in sorted(found, key=lambda n: _ORDER.get(n, len(_ORDER))):
         bindings = tuple(found[name].bindings)
-        on_face = [b for b in bindings if b.mesh == face]
-        if len(on_face) == 1 and on_face[0].weight == 1.0:
-            displacement = deltas[on_face[0].morph]  # a view: most expressions are one morph
+        mine = on_face[name]
+        if not mine:
+            displacement = still  # moves other meshes only: one shared array of zeros
+        elif len(mine) == 1 and mine[0].weight == 1.0:
+            displacement = deltas[mine[0].morph]  # a view: most expressions are one morph
         else:
             displacement = np.zeros_like(vertices)
-            for b in on_face:
+            for b in mine:
                 displacement += b.weight * deltas[b.morph]
         displacement.flags.writeable = False
         expressions[name] = Expression(name, bindings, displacement, found[name].origin)

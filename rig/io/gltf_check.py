@@ -49,7 +49,8 @@ class GltfLimits:
     meshes together); ``vertices``: every distinct POSITION accessor's count summed;
     ``faces``: triangles of every primitive summed (a primitive's index count / 3);
     ``morph_targets``: per mesh; ``morph_values``: morph targets x vertices, summed over
-    meshes (what reading them allocates); ``accessor_values``: count x components summed
+    meshes (what reading them allocates; ``load_character`` bounds VRM expressions that
+    mix morphs x face vertices by it too); ``accessor_values``: count x components summed
     over every accessor (with or without a bufferView).
     """
 
@@ -61,7 +62,7 @@ class GltfLimits:
     vertices: int = 1_000_000
     faces: int = 2_000_000
     morph_targets: int = 1_000
-    morph_values: int = 8_000_000
+    morph_values: int = 4_000_000
     accessor_values: int = 64_000_000
 
     def __post_init__(self) -> None:

@@ -349,3 +349,27 @@ async def test_each_limit_is_its_setting_at_the_limit_and_one_past(tmp_path):
         problem = response.json()
         assert (response.status_code, problem["code"]) == (422, "gltf_exceeds_limits"), name
         assert name in problem["detail"], (name, problem)
+
+
+def mixing_expressions(count: int) -> bytes:
+    """A VRM 1.0 triangle with ``count`` expressions each binding its morph at 0.5: every
+    one needs a face-sized array of its own."""
+
+    def edit(doc: dict[str, Any]) -> None:
+        binds = [{"node": 0, "index": 0, "weight": 0.5}]
+        custom = {f"half{i}": {"morphTargetBinds": binds} for i in range(count)}
+        doc["extensions"] = {"VRMC_vrm": {"specVersion": "1.0", "expressions": {"custom": custom}}}
+
+    return edited(edit)
+
+
+async def test_expressions_mixing_morphs_are_bounded_as_morph_values(tmp_path):
+    # The triangle's 3 vertices: 10 mixing expressions are 30 values, 11 are 33.
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_gltf_morph_values=30)
+    async with run_server(settings) as server, client(server) as http:
+        at_limit = await http.put("/v1/characters/mix", content=mixing_expressions(10))
+        past = await http.put("/v1/characters/mix", content=mixing_expressions(11))
+
+    assert at_limit.status_code == 201, at_limit.json()  # its jawOpen morph is fitted
+    assert (past.status_code, past.json()["code"]) == (422, "gltf_exceeds_limits")
+    assert "max_gltf_morph_values" in past.json()["detail"]
