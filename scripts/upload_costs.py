@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from hostile_costs import start, stop
 
-from facecast.rig.io.expression_names import ARKIT_NAMES
+from facecast.rig.characters.expression_names import ARKIT_NAMES
 from facecast.rig.io.gltf import export_glb
 
 MiB = 1 << 20

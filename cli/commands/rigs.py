@@ -190,7 +190,7 @@ def _follow_job(get_job: Any, job: dict[str, Any], *, interval: float = 0.5) -> 
     """Poll the job until it ends, a progress line on stderr; its final record."""
     import time
 
-    while job["state"] not in ("done", "failed"):
+    while job["state"] not in ("done", "failed", "cancelled"):
         progress = job.get("progress") or {}
         stage = job.get("stage") or job["state"]
         print(
@@ -295,10 +295,11 @@ def run(args: argparse.Namespace) -> int:
                 f"{job['vertices']} vertices ({job['correspondence']} correspondence)"
             )
             job = _follow_job(lambda: call("GET", f"/v1/characters/{args.name}/job").json(), job)
-            if job["state"] == "failed":
+            if job["state"] in ("failed", "cancelled"):
                 error = job.get("error") or {}
                 raise CommandError(
-                    f"transfer failed: {error.get('code', 'error')}: {error.get('message', '')}"
+                    f"transfer {job['state']}: {error.get('code', 'error')}: "
+                    f"{error.get('message', '')}"
                 )
             result = job["result"]
             seconds = result["transfer"]["seconds"]

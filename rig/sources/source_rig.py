@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from ..characters.expression_names import ARKIT_NAMES
+from ..characters.loaders import load_example_set
 from ..errors import ExampleSetError, InputError
 from ..examples import ExampleSet
-from ..io.expression_names import ARKIT_NAMES
-from ..io.loaders import load_example_set
 from .ict import ict_example_set
 
 __all__ = [

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from facecast.rig.io.character import Character, PairingReport, load_character
+from facecast.rig.characters.character import Character, PairingReport, load_character
 from facecast.rig.io.gltf import GltfLimits
 from facecast.rig.transfer import read_markers
 

@@ -1,6 +1,6 @@
 """Characters as files: ``PUT /v1/characters/{id}`` fits a rig from a glTF/VRM as uploaded.
 
-The file is paired with the generic ARKit source set (``facecast.rig.io.character``),
+The file is paired with the generic ARKit source set (``facecast.rig.characters.character``),
 fitted in the fit pool, and stored beside the rig (``storage.characters``); the rig's
 description and ``GET /v1/rigs/{id}/character.glb`` give it to the pages.
 """
@@ -16,8 +16,8 @@ from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import JSONResponse
 
 from facecast.rig import fit
+from facecast.rig.characters.character import character_example_set
 from facecast.rig.errors import ExampleSetError
-from facecast.rig.io.character import character_example_set
 from facecast.rig.io.gltf import GltfLimits
 
 from ..errors import ApiError

@@ -12,7 +12,7 @@ import logging
 import tempfile
 from collections import Counter
 from collections.abc import Awaitable, Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar
 
@@ -21,8 +21,10 @@ from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import JSONResponse
 
 from facecast.rig import fit
-from facecast.rig.io.character_examples import character_fit_options as character_fit_options_for
-from facecast.rig.io.loaders import load_example_set
+from facecast.rig.characters.character_examples import (
+    character_fit_options as character_fit_options_for,
+)
+from facecast.rig.characters.loaders import load_example_set
 
 from ..errors import ApiError, upload_paths_hidden
 from ..guards.auth import READ_ROLES, Principal, requires
@@ -203,7 +205,7 @@ async def run_fit(request: Request, job: Callable[[], T]) -> T:
     """Run ``job`` (a fit) in the app's fit executor; the caller holds a ``fit_slot``."""
     # Fitting is seconds of numpy: it runs in the dedicated fit executor, never on the
     # event loop and never in the pool that clones frames.
-    executor: ThreadPoolExecutor = request.app.state.fit_executor
+    executor: Executor = request.app.state.fit_executor
     return await unless_stopping(request, asyncio.wrap_future(executor.submit(job)))
 
 
@@ -301,7 +303,7 @@ FitOptions = Annotated[dict[str, Any], Depends(fit_options)]
 def character_fit_options(request: Request, options: FitOptions) -> dict[str, Any]:
     """``fit_options`` for a character paired with the generic ARKit set: without a
     ``noise`` query, the rig side's live defaults (``character_examples.character_fit_options``:
-    ``sources.generic.CHARACTER_FIT_DEFAULTS``, docs/characters.md "Fit defaults")."""
+    ``characters.generic.CHARACTER_FIT_DEFAULTS``, docs/characters.md "Fit defaults")."""
     given = {k: v for k, v in options.items() if k != "noise" or "noise" in request.query_params}
     return character_fit_options_for(given)
 

@@ -10,12 +10,14 @@ stored as any character. ``GET /v1/characters/{id}/job`` follows it.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import secrets
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -24,8 +26,8 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse
 
 from facecast.rig import fit
+from facecast.rig.characters.character import character_example_set, load_character
 from facecast.rig.errors import RigError
-from facecast.rig.io.character import character_example_set, load_character
 from facecast.rig.sources.ict import locate_ict
 from facecast.rig.transfer import (
     SourceExpressions,
@@ -35,7 +37,7 @@ from facecast.rig.transfer import (
     with_transferred_expressions,
 )
 
-from ..errors import ApiError
+from ..errors import ApiError, StoreClosedError
 from ..guards.auth import READ_ROLES, Principal, requires
 from ..settings import Settings
 from ..storage.archive import ArchiveError, ArchiveLimits
@@ -61,6 +63,16 @@ Reader = Annotated[Principal, Depends(requires(*READ_ROLES))]
 
 class _Interrupted(Exception):
     """The server began to stop while the job ran."""
+
+
+class _Superseded(Exception):
+    """The character was deleted or replaced while the job ran (its record says so)."""
+
+
+#: ``app.state``'s key of a callable a transfer job calls with a stage's name as it enters
+#: it ("transfer", "fit", "store"; before it changes anything in that stage). None in
+#: service: it is the tests' seam to hold a job at a stage, with no sleeps.
+STAGE_HOOK = "transfer_stage_hook"
 
 
 def _store(request: Request) -> RigStore:
@@ -152,9 +164,9 @@ async def start_transfer(
             await anyio.to_thread.run_sync(store.jobs.write, rig_id, record)
             job = _TransferJob(
                 rig_id, record["job"], plan, source, options, store,
-                request.app.state.transfer_cancel,
+                request.app.state.transfer_cancel, getattr(request.app.state, STAGE_HOOK, None),
             )  # fmt: skip
-            executor: ThreadPoolExecutor = request.app.state.transfer_executor
+            executor: Executor = request.app.state.transfer_executor
             future = executor.submit(job.run, slot)
             # Cancelled before it ran (the server stopping): the slot is still this one's.
             future.add_done_callback(lambda f: f.cancelled() and store.jobs.release(slot))
@@ -199,9 +211,7 @@ async def get_job(request: Request, rig_id: str, _: Reader) -> dict[str, Any]:
                 "message": "the server stopped while the job ran; upload it again",
             },
         }
-        await anyio.to_thread.run_sync(
-            lambda: store.jobs.update(rig_id, job, interrupted, unfinished=True)
-        )
+        await anyio.to_thread.run_sync(lambda: store.jobs.update(rig_id, job, interrupted))
         record = await anyio.to_thread.run_sync(store.jobs.read, rig_id)
     if record is None:
         raise ApiError(
@@ -263,8 +273,10 @@ class _TransferJob:
         options: dict[str, Any],
         store: RigStore,
         cancel: threading.Event,
+        stage_hook: Callable[[str], object] | None = None,
     ) -> None:
         self.rig_id = rig_id
+        self.stage_hook = stage_hook
         self.job = job
         self.plan = plan
         self.source = source
@@ -273,8 +285,18 @@ class _TransferJob:
         self.cancel = cancel
         self.done = 0
 
-    def _update(self, **changes: Any) -> bool:
-        return self.store.jobs.update(self.rig_id, self.job, {**changes, "updated": time.time()})
+    def _update(self, **changes: Any) -> None:
+        """Change the record, or raise ``_Superseded`` when it is no longer this job's
+        running one (the character deleted or replaced: the record says so already)."""
+        if not self.store.jobs.update(self.rig_id, self.job, {**changes, "updated": time.time()}):
+            raise _Superseded
+
+    def _enter(self, stage: str) -> None:
+        if self.cancel.is_set():
+            raise _Interrupted
+        self._update(state="running", stage=stage)
+        if self.stage_hook is not None:
+            self.stage_hook(stage)
 
     def _step(self, count: int) -> None:
         self.done += count
@@ -283,13 +305,26 @@ class _TransferJob:
         total = len(self.plan.names)
         self._update(progress={"done": self.done, "total": total})
 
+    def _end(self, **changes: Any) -> None:
+        # A cancelled record keeps its reason; a closed store (the server stopped) is
+        # read as interrupted by the free slot.
+        with contextlib.suppress(_Superseded, StoreClosedError):
+            self._update(**changes)
+
     def run(self, slot: int) -> None:
         try:
             self._run()
+        except _Superseded:
+            log.info(
+                "transfer cancelled",
+                extra={"event": "character.transfer_cancelled", "rig": self.rig_id},
+            )
+        except StoreClosedError:
+            pass  # the server stopped under it: the free slot marks the record interrupted
         except RigError as exc:
-            self._update(state="failed", error={"code": exc.code, "message": exc.message})
+            self._end(state="failed", error={"code": exc.code, "message": exc.message})
         except _Interrupted:
-            self._update(
+            self._end(
                 state="failed",
                 error={"code": "interrupted", "message": "the server stopped; upload it again"},
             )
@@ -298,7 +333,7 @@ class _TransferJob:
                 "transfer failed",
                 extra={"event": "character.transfer_failed", "rig": self.rig_id},
             )
-            self._update(
+            self._end(
                 state="failed",
                 error={"code": "internal_error", "message": f"{type(exc).__name__}"},
             )
@@ -307,23 +342,20 @@ class _TransferJob:
 
     def _run(self) -> None:
         started = time.perf_counter()
-        if not self._update(state="running", stage="transfer"):
-            return  # deleted or replaced before it began
+        self._enter("transfer")
         glb, generated = with_transferred_expressions(self.plan, self.source, progress=self._step)
         transferred = time.perf_counter()
-        if not self._update(stage="fit"):
-            return
+        self._enter("fit")
         character = load_character(glb, label="the character with its transferred expressions")
         example_set, report = character_example_set(character)
         rig = fit(example_set, **self.options)
         packed = pack_character(character.glb, character_record(character))
-        if self.cancel.is_set():
-            raise _Interrupted
-        # The record is read again just before storing: a character deleted or uploaded
-        # anew since then keeps what it has now.
-        if self.store.jobs.read(self.rig_id) is None or not self._update(stage="store"):
-            return
-        created = self.store.put_rig(self.rig_id, rig, character=packed, keep_job=True)
+        self._enter("store")
+        # Checked and stored in one step (the store's change lock): a character deleted
+        # or uploaded anew since keeps what it has now, and the record says why.
+        created = self.store.put_job_result(self.rig_id, self.job, rig, packed)
+        if created is None:
+            raise _Superseded
         stored = self.store.character(self.rig_id, with_glb=False)
         result = {
             "id": self.rig_id,
@@ -343,7 +375,7 @@ class _TransferJob:
                 },
             },
         }
-        self._update(state="done", stage=None, result=result)
+        self._end(state="done", stage=None, result=result)
         log.info(
             "character transferred",
             extra={

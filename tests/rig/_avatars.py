@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 import pygltflib
 
+from facecast.rig.characters.generic import VRM_COMPOSITIONS
 from facecast.rig.io.gltf import vertex_normals
-from facecast.rig.sources.generic import VRM_COMPOSITIONS
 from facecast.rig.sources.ict import locate_ict
 from facecast.rig.sources.source_rig import arkit_from_ict
 

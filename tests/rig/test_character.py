@@ -1,5 +1,5 @@
 """Characters as authored: expressions from every mesh and VRM binds, names normalised,
-paired with the generic ARKit source set, fitted (facecast.rig.io.character)."""
+paired with the generic ARKit source set, fitted (facecast.rig.characters.character)."""
 
 from __future__ import annotations
 
@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 
 from facecast.rig import fit
-from facecast.rig.io.character import load_character
-from facecast.rig.io.character_examples import character_example_set
-from facecast.rig.io.expression_names import ARKIT_NAMES
+from facecast.rig.characters.character import load_character
+from facecast.rig.characters.character_examples import character_example_set
+from facecast.rig.characters.expression_names import ARKIT_NAMES
+from facecast.rig.characters.generic import generic_sources
+from facecast.rig.characters.loaders import load_example_set
 from facecast.rig.io.gltf import pack_glb
-from facecast.rig.io.loaders import load_example_set
-from facecast.rig.sources.generic import generic_sources
 
 from ._avatars import (
     FCL_CLIPS,

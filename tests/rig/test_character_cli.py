@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from facecast.cli.main import main
+from facecast.rig.characters.character import load_character
+from facecast.rig.characters.character_examples import character_example_set
+from facecast.rig.characters.generic import CHARACTER_FIT_DEFAULTS, generic_sources
+from facecast.rig.characters.loaders import load_example_set
 from facecast.rig.errors import ExampleSetError
-from facecast.rig.io.character import load_character
-from facecast.rig.io.character_examples import character_example_set
-from facecast.rig.io.loaders import load_example_set
-from facecast.rig.io.rigfile import load_rig
-from facecast.rig.sources.generic import CHARACTER_FIT_DEFAULTS, generic_sources
+from facecast.rig.rigfile import load_rig
 
 from ._avatars import avatar
 

@@ -14,7 +14,7 @@ from _server_helpers import open_session
 
 from facecast.protocol import Frame, Result, decode_server, encode
 from facecast.rig import ExampleSet, fit, rig_from_bytes
-from facecast.rig.sources.generic import (
+from facecast.rig.characters.generic import (
     CHARACTER_FIT_DEFAULTS,
     VRM_COMPOSITIONS,
     generic_sources,

@@ -54,8 +54,10 @@ export class Hud {
     if (!this.el.stats) return;
     const ms = (v) => (v === null ? "–" : `${v.toFixed(1)} ms`);
     const latencyLabel = s.mode === "demo" ? "latency" : "age";
+    // Capture → drawn, when the publisher stamps its frames (PROTOCOL.md §5.4).
+    const glass = s.glassMs === null || s.glassMs === undefined ? "" : `capture→drawn ${ms(s.glassMs)} · `;
     this.el.stats.textContent =
-      `${s.fps.toFixed(1)} fps · ${latencyLabel} ${ms(s.latencyMs)} · rtt ${ms(s.rttMs)} · ` +
+      `${s.fps.toFixed(1)} fps · ${glass}${latencyLabel} ${ms(s.latencyMs)} · rtt ${ms(s.rttMs)} · ` +
       `frames ${s.frames} · dropped ${s.dropped} · connects ${s.connects}`;
   }
 

@@ -3,6 +3,7 @@
 
 import { DemoPlayer } from "./demo.js";
 import { Hud } from "./hud.js";
+import { LiveLatency } from "./latency.js";
 import { Link } from "./link.js";
 import { authHeaders, readParams, socketTarget } from "./params.js";
 import { decodeAnimation, encodeHello, ErrorCode, errorName } from "./protocol.js";
@@ -24,6 +25,7 @@ const stats = {
   connects: 0,
   fps: 0,
   latencyMs: null,
+  glassMs: null, // capture → drawn, p50 of the recent frames (channel mode, stamped frames)
   rttMs: null,
   seq: null,
   demoTime: null, // demo mode: seconds into the performance of the frame shown
@@ -215,6 +217,7 @@ async function main() {
         case "result": {
           stats.frames += 1;
           stats.seq = msg.seq;
+          live.receive(msg, performance.now());
           stats.dropped = msg.dropped;
           let latency = null;
           if (player) {
@@ -255,7 +258,19 @@ async function main() {
       }
     },
   });
+  // Glass to glass (PROTOCOL.md §5.4): the stamped results' stages, received to drawn.
+  const live = new LiveLatency(link.clock);
+  window.liveLatency = (detail = false) => live.report(detail);
   link.start();
+
+  // What a draw holds the page: from render() to the next task, which runs after the
+  // draw's commit (without a GPU, Chromium reads the WebGL canvas back there).
+  const after = new MessageChannel();
+  let costFrom = null;
+  after.port1.onmessage = () => {
+    live.drawCost(performance.now() - costFrom);
+    costFrom = null;
+  };
 
   // Apply at most one pose per display frame: results can outpace the screen.
   let fpsFrames = 0;
@@ -275,13 +290,21 @@ async function main() {
     }
     pendingWeights = pendingVertices = pendingHead = null;
     if (view.dirty) {
+      const started = performance.now();
       view.render();
       stats.rendered += 1;
+      const submitted = performance.now();
+      live.drawn(submitted, submitted - started); // the newest result is drawn
+      if (costFrom === null) {
+        costFrom = started;
+        after.port2.postMessage(null);
+      }
     }
     if (now - fpsSince >= 500) {
       stats.fps = ((stats.frames - fpsFrames) * 1000) / (now - fpsSince);
       fpsFrames = stats.frames;
       fpsSince = now;
+      stats.glassMs = live.median();
       hud.stats(stats);
     }
     requestAnimationFrame(tick);

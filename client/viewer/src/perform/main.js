@@ -57,6 +57,8 @@ const stats = {
   posesDrawn: 0, // of those, how many were applied before the last finished draw began
   drawCostMs: null, // what a draw of the character blocks the page: draw -> next task (mean)
   frameSource: null, // "processor" (MediaStreamTrackProcessor) or "video" (frame callbacks)
+  captureSource: null, // where frames' capture times come from (camera.js CaptureTimes)
+  cameraFrames: 0, // frames the camera's <video> presented (requestVideoFrameCallback's count)
   points: null, // the last published points, K*3
   head: null, // {yaw, pitch, roll} of the last frame, degrees
   eyes: null,
@@ -386,8 +388,10 @@ async function main() {
   for (;;) {
     const tWait = performance.now();
     let result;
+    let capturedMs;
     try {
-      const { frame } = await frames.next();
+      const { frame, capturedMs: captured } = await frames.next();
+      capturedMs = captured;
       waiting.push(performance.now() - tWait);
       try {
         result = frame ? await pipeline.trackFrame(frame) : await pipeline.track(video);
@@ -412,8 +416,11 @@ async function main() {
       const eyes = eyeOpenness(result.mesh, layout);
       if (publishing && generic && !stats.rebased) stats.heldForNeutral += 1;
       else if (publishing && link.bufferedAmount < MAX_BUFFERED_BYTES) {
-        // The head pose goes in its own field (§5.3): the points stay pose-free.
-        if (link.send(encodePerformFrame(seq, performance.now() / 1000, points, result.head))) {
+        // The head pose goes in its own field (§5.3): the points stay pose-free. The
+        // stamps (§5.4) are on the server's clock as the link estimates it.
+        const clock = link.clock;
+        const stamps = { captured: clock.toServer(capturedMs), tracked: clock.toServer(tLandmarks), sent: clock.toServer(performance.now()) };
+        if (link.send(encodePerformFrame(seq, performance.now() / 1000, points, result.head, stamps))) {
           stats.seq = seq;
           seq += 1;
           stats.published += 1;
@@ -456,6 +463,8 @@ async function main() {
       stats.renderMs = render.mean();
       stats.waitMs = waiting.mean();
       stats.drawCostMs = drawCosts.mean();
+      stats.captureSource = frames.times.source;
+      stats.cameraFrames = frames.times.presented;
       paintStats(result);
     }
   }

@@ -12,8 +12,8 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ExampleSetError
-from .gltf import pack_glb
-from .gltf_check import (
+from ..io.gltf import pack_glb
+from ..io.gltf_check import (
     GltfLimits,
     check_document,
     decode_data_uri,
@@ -21,8 +21,8 @@ from .gltf_check import (
     parse_json,
     split_glb,
 )
-from .gltf_read import GltfDocument
-from .image_headers import image_size, sniff_mime
+from ..io.gltf_read import GltfDocument
+from ..io.image_headers import image_size, sniff_mime
 
 __all__ = ["MAX_CHARACTER_BYTES", "MAX_TEXTURE_PIXELS", "MAX_TEXTURE_SIDE", "read_character_file"]
 

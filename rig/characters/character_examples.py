@@ -1,6 +1,6 @@
 """A character's expressions paired with source points: the example set a rig is fitted from.
 
-Pairs with facecast's generic ARKit source set (``sources.generic``) or a folder of point
+Pairs with facecast's generic ARKit source set (``characters.generic``) or a folder of point
 files named by expression; the target side is the character's face mesh. It must not fit,
 read the character file again or write anything.
 """
@@ -17,10 +17,10 @@ import numpy as np
 
 from ..errors import ExampleSetError
 from ..examples import ExampleSet, check_stable_points
-from ..sources.generic import CHARACTER_FIT_DEFAULTS, GENERIC_ATTRIBUTION, generic_sources
+from ..io.meshio import read_points
 from .character_model import Character, PairingReport, pair_report
 from .expression_names import normalise_name
-from .meshio import read_points
+from .generic import CHARACTER_FIT_DEFAULTS, GENERIC_ATTRIBUTION, generic_sources
 
 __all__ = [
     "character_example_set",
@@ -49,7 +49,7 @@ def character_fit_options(given: Mapping[str, Any] | None = None) -> dict[str, A
 
     ``given`` holds the options its uploader chose (``fit``'s keywords; a key absent or None
     is not chosen). Without a ``noise``, the rig is fitted for the noise of a live tracker,
-    ``sources.generic.CHARACTER_FIT_DEFAULTS`` (and bounded as it says unless a ``clamp`` is
+    ``characters.generic.CHARACTER_FIT_DEFAULTS`` (and bounded as it says unless a ``clamp`` is
     given), so the character is live the moment it is uploaded; a given ``noise`` (0 too:
     exact interpolation) keeps ``fit``'s own default bound for it.
     """

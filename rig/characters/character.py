@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ExampleSetError
-from ..sources.generic import GENERIC_ATTRIBUTION
+from ..io.gltf import BufferReader, GltfLimits, read_mesh, target_names
 from .character_examples import character_example_set, generic_pairing
 from .character_file import (
     MAX_CHARACTER_BYTES,
@@ -34,7 +34,7 @@ from .character_model import (
     pair_report,
 )
 from .expression_names import ARKIT_NAMES, VRM_PRESETS, half_of, normalise_name, vrm0_preset
-from .gltf import BufferReader, GltfLimits, read_mesh, target_names
+from .generic import GENERIC_ATTRIBUTION
 from .vrm import VrmExpression, vrm_expressions, vrm_format, vrm_meta
 
 __all__ = [
