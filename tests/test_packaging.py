@@ -61,6 +61,7 @@ def test_wheel_holds_the_viewer_pages_and_every_built_viewer_file(wheel):
     built_files = [p.relative_to(viewer).as_posix() for p in dist.rglob("*") if p.is_file()]
     missing = [f for f in built_files if f"facecast/client/viewer/{f}" not in names]
     assert "dist/perform/facemesh.bin" in built_files and not missing
+    assert "dist/draco/draco_decoder.wasm" in built_files  # compressed characters (Draco)
 
 
 def test_wheel_holds_every_package_and_the_protocol_spec(wheel):

@@ -9,6 +9,7 @@ re-exported here) or render; docs/characters.md explains it.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,6 +53,13 @@ __all__ = [
 
 # Expression order: ARKit's, then VRM's presets, then the rest as found.
 _ORDER = {name: i for i, name in enumerate((*ARKIT_NAMES, *VRM_PRESETS))}
+
+#: An expression moves nothing visible when no bound morph target (times its bind weight)
+#: moves a vertex by more than this fraction of its mesh's bounding-box diagonal: 30 µm on
+#: a 30 cm head, a tenth of a pixel with the face 1000 px tall. Exported files carry such
+#: targets (VRoid's Perfect Sync ``jawOpen`` and ``tongueOut`` written as zeros): paired,
+#: a rig would give them the weight of a motion the character never shows.
+STILL_RELATIVE = 1e-4
 
 
 # -- expressions ------------------------------------------------------------------------
@@ -223,6 +231,35 @@ def _face_mesh(found: dict[str, _Found], doc: dict[str, Any], label: str) -> int
     return min(range(len(meshes)), key=lambda i: (-bound[i], -vertices[i], i))
 
 
+def _still_expressions(
+    found: dict[str, _Found], doc: dict[str, Any], reader: BufferReader, label: str
+) -> dict[str, str]:
+    """``{name: why}`` of the expressions no bound morph target moves visibly
+    (``STILL_RELATIVE``); each mesh they bind is read once."""
+    largest: dict[int, tuple[np.ndarray, float]] = {}
+
+    def moves(binding: Binding) -> float:
+        if binding.mesh not in largest:
+            vertices, _, deltas, _ = read_mesh(doc["meshes"][binding.mesh], reader, label)
+            extent = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
+            offsets = np.linalg.norm(deltas, axis=2).max(axis=1) if deltas.size else deltas
+            largest[binding.mesh] = (np.asarray(offsets).reshape(-1), extent)
+        offsets, extent = largest[binding.mesh]
+        if binding.morph >= offsets.size:
+            return 0.0
+        return float(binding.weight * offsets[binding.morph]) / max(extent, 1e-30)
+
+    still = {}
+    for name, expression in found.items():
+        share = max((moves(b) for b in expression.bindings), default=0.0)
+        if share <= STILL_RELATIVE:
+            still[name] = (
+                f"moves no vertex visibly (its largest offset is {share:.1g} of its mesh's "
+                f"size, at most {STILL_RELATIVE:g}): not paired, a rig would drive nothing"
+            )
+    return still
+
+
 def load_character(
     source: Path | bytes, *, label: str = "character", limits: GltfLimits | None = None
 ) -> Character:
@@ -253,7 +290,8 @@ def load_character(
         declaring more than ``MAX_TEXTURE_SIDE`` a side or ``MAX_TEXTURE_PIXELS`` in all),
         ``bad_image``, ``bad_vrm_bind``, ``morph_vertex_mismatch``, ``too_large``,
         ``gltf_exceeds_limits`` (a count over ``limits``, checked before anything is read),
-        ``unsupported_extension``, ``no_mesh``, ``missing_file``.
+        ``bad_compression`` (meshopt or Draco data that does not decode to what its
+        accessors declare), ``no_mesh``, ``missing_file``.
     """
     try:
         return _load(source, label, limits)
@@ -289,8 +327,17 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
         else e
         for e in entries
     ] + vrm_entries
-    face = _face_mesh(found, doc, label)
     reader = BufferReader(document, label)
+    reader.decode_all()  # a compressed part that does not decode is refused now (bounded)
+    still = _still_expressions(found, doc, reader, label)
+    entries = [
+        dataclasses.replace(e, reason=f"{e.reason}; {still[e.expression]}")
+        if e.expression in still
+        else e
+        for e in entries
+    ]
+    found = {name: f for name, f in found.items() if name not in still}
+    face = _face_mesh(found, doc, label)
     vertices, faces, deltas, _ = read_mesh(doc["meshes"][face], reader, label)
     on_face = {name: [b for b in e.bindings if b.mesh == face] for name, e in found.items()}
     # An expression of one morph at weight 1 is a view of it; a VRM expression mixing
@@ -304,14 +351,14 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
             f"face declare more than {limit} values (limit max_gltf_morph_values)",
             code="gltf_exceeds_limits",
         )
-    still = np.zeros_like(vertices)
-    still.flags.writeable = False
+    unmoved = np.zeros_like(vertices)
+    unmoved.flags.writeable = False
     expressions = {}
     for name in sorted(found, key=lambda n: _ORDER.get(n, len(_ORDER))):
         bindings = tuple(found[name].bindings)
         mine = on_face[name]
         if not mine:
-            displacement = still  # moves other meshes only: one shared array of zeros
+            displacement = unmoved  # moves other meshes only: one shared array of zeros
         elif len(mine) == 1 and mine[0].weight == 1.0:
             displacement = deltas[mine[0].morph]  # a view: most expressions are one morph
         else:

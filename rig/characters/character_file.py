@@ -21,6 +21,7 @@ from ..io.gltf_check import (
     parse_json,
     split_glb,
 )
+from ..io.gltf_compression import MESHOPT
 from ..io.gltf_read import GltfDocument
 from ..io.image_headers import image_size, sniff_mime
 
@@ -32,22 +33,6 @@ MAX_CHARACTER_BYTES = 256 * 2**20
 MAX_TEXTURE_SIDE = 8192
 #: All textures together, in pixels: 2^27 is 512 MiB decoded as RGBA in a viewer.
 MAX_TEXTURE_PIXELS = 2**27
-
-_UNSUPPORTED = ("KHR_draco_mesh_compression", "EXT_meshopt_compression", "KHR_mesh_quantization")
-
-
-def _parse_json(text: bytes, limits: GltfLimits, label: str) -> dict[str, Any]:
-    doc = parse_json(text, limits, label)
-    required = doc.get("extensionsRequired") or []
-    blocked = [e for e in required if e in _UNSUPPORTED] if isinstance(required, list) else []
-    if blocked:
-        raise ExampleSetError(
-            f"{label}: uses {blocked[0]}, which facecast cannot read: export without mesh "
-            "compression or quantisation",
-            code="unsupported_extension",
-        )
-    checked: dict[str, Any] = doc
-    return checked
 
 
 def _read_uri(uri: str, folder: Path | None, label: str, budget: list[int]) -> bytes:
@@ -81,26 +66,45 @@ def _read_uri(uri: str, folder: Path | None, label: str, budget: list[int]) -> b
         ) from None
 
 
+def _is_fallback(buffer: object) -> bool:
+    """An ``EXT_meshopt_compression`` fallback buffer: no bytes, only a size to stand for."""
+    if not isinstance(buffer, dict) or "uri" in buffer:
+        return False
+    extensions = buffer.get("extensions")
+    ext = extensions.get(MESHOPT) if isinstance(extensions, dict) else None
+    return isinstance(ext, dict) and ext.get("fallback") is True
+
+
+def _is_int(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
 def _pack_gltf(doc: dict[str, Any], folder: Path | None, label: str, budget: list[int]) -> bytes:
-    """The .gltf as one GLB: its buffers concatenated in one BIN chunk, images embedded."""
+    """The .gltf as one GLB: its buffers concatenated in one BIN chunk, images embedded;
+    meshopt's fallback buffers (no bytes) stay buffers of their own after it."""
     buffers = doc.get("buffers") or []
     if not isinstance(buffers, list):
         raise ExampleSetError(f"{label}: buffers is not a list", code="bad_gltf")
     parts: list[bytes] = []
-    starts: list[int] = []
-    lengths: list[int] = []
+    starts: dict[int, int] = {}
+    lengths: dict[int, int] = {}
+    fallbacks: dict[int, int] = {}  # old index -> its place among the fallback buffers
     size = 0
-    for buffer in buffers:
+    for number, buffer in enumerate(buffers):
+        if _is_fallback(buffer):
+            fallbacks[number] = len(fallbacks)
+            continue
         uri = buffer.get("uri") if isinstance(buffer, dict) else None
         if not isinstance(uri, str):
             raise ExampleSetError(f"{label}: a .gltf buffer without a uri", code="bad_gltf")
         data = _read_uri(uri, folder, label, budget)
-        starts.append(size)
-        lengths.append(len(data))
+        starts[number] = size
+        lengths[number] = len(data)
         pad = (-len(data)) % 4  # keeps every buffer's views aligned as they were
         parts.append(data + b"\0" * pad)
         size += len(data) + pad
     views = doc.setdefault("bufferViews", [])
+    moved: list[dict[str, Any]] = []  # views in fallback buffers: renumbered once known
     for view in views:
         if (
             not isinstance(view, dict)
@@ -108,8 +112,20 @@ def _pack_gltf(doc: dict[str, Any], folder: Path | None, label: str, budget: lis
             or not 0 <= view["buffer"] < len(buffers)
         ):
             raise ExampleSetError(f"{label}: a bufferView names no buffer", code="bad_gltf")
+        extensions = view.get("extensions")
+        ext = extensions.get(MESHOPT) if isinstance(extensions, dict) else None
+        if isinstance(ext, dict):  # its compressed bytes move with their buffer
+            if ext.get("buffer") not in starts:
+                raise ExampleSetError(
+                    f"{label}: a meshopt view names no buffer with bytes", code="bad_gltf"
+                )
+            ext["byteOffset"] = int(ext.get("byteOffset", 0)) + starts[ext["buffer"]]
+            ext["buffer"] = 0
+        if view["buffer"] in fallbacks:
+            moved.append(view)
+            continue
         offset, length = view.get("byteOffset", 0), view.get("byteLength")
-        if not isinstance(offset, int) or not isinstance(length, int) or isinstance(offset, bool):
+        if not _is_int(offset) or not _is_int(length):
             raise ExampleSetError(f"{label}: a bufferView's offset or length", code="bad_gltf")
         if offset + length > lengths[view["buffer"]]:
             # Packed, it would reach into the next buffer: refuse it as it stands.
@@ -127,10 +143,12 @@ def _pack_gltf(doc: dict[str, Any], folder: Path | None, label: str, budget: lis
             image["bufferView"] = len(views) - 1
             parts.append(data + b"\0" * ((-len(data)) % 4))
             size += len(data) + (-len(data)) % 4
-    if parts:
-        doc["buffers"] = [{"byteLength": size}]
-    else:
-        doc.pop("buffers", None)
+    first = [{"byteLength": size}] if parts else []
+    for view in moved:
+        view["buffer"] = len(first) + fallbacks[view["buffer"]]
+    doc["buffers"] = first + [buffers[number] for number in fallbacks]
+    if not doc["buffers"]:
+        doc.pop("buffers")
     return pack_glb(doc, b"".join(parts))
 
 
@@ -179,8 +197,8 @@ def read_character_file(
     ------
     ExampleSetError
         ``truncated_file``, ``bad_gltf``, ``external_uri``, ``gltf_exceeds_limits``,
-        ``texture_too_large``, ``bad_image``, ``too_large``, ``unsupported_extension``,
-        ``missing_file``.
+        ``texture_too_large``, ``bad_image``, ``too_large``, ``missing_file``. Compressed
+        geometry (meshopt, Draco) is not decoded here: ``gltf_read`` decodes it, bounded.
     """
     limits = GltfLimits() if limits is None else limits
     folder: Path | None = None
@@ -206,10 +224,10 @@ def read_character_file(
                 f"{label}: not a glTF, GLB or VRM file (a character is a .glb, .vrm or .gltf)",
                 code="bad_gltf",
             )
-        doc = _parse_json(data, limits, label)
+        doc = parse_json(data, limits, label)
         data = _pack_gltf(doc, folder, label, [MAX_CHARACTER_BYTES - len(data)])
     text, blob = split_glb(data, label)
-    doc = _parse_json(text, limits, label)
+    doc = parse_json(text, limits, label)
     document = GltfDocument(doc, check_document(doc, blob, limits, label))
     _check_textures(document, label)
     return document, data

@@ -17,6 +17,7 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 from ..errors import ExampleSetError
+from .gltf_compression import MESHOPT, draco_extension, meshopt_extension
 
 __all__ = [
     "COMPONENT_SIZES",
@@ -223,18 +224,31 @@ def decode_data_uri(uri: str, label: str) -> bytes:
         raise _bad(label, f"malformed data URI {uri[:60]!r}") from None
 
 
+def _is_fallback(buffer: dict[str, Any]) -> bool:
+    """An ``EXT_meshopt_compression`` fallback buffer: a size with no bytes behind it."""
+    extensions = buffer.get("extensions")
+    ext = extensions.get(MESHOPT) if isinstance(extensions, dict) else None
+    return isinstance(ext, dict) and ext.get("fallback") is True
+
+
 def _buffers(
     doc: dict[str, Any],
     blob: bytes | None,
     resolve: Callable[[str], bytes] | None,
     label: str,
-) -> list[bytes]:
-    """Each buffer's bytes: the BIN chunk, a data URI, or what ``resolve`` gives for a file."""
+) -> tuple[list[bytes], list[int]]:
+    """Each buffer's bytes (the BIN chunk, a data URI, or what ``resolve`` gives for a
+    file; none for a meshopt fallback buffer), and the size its views may span."""
     found: list[bytes] = []
+    sizes: list[int] = []
     for number, buffer in enumerate(_list(doc, "buffers", label)):
         where = f"buffer {number}"
         declared = _int(buffer.get("byteLength"), f"{where} byteLength", label, low=1)
         uri = buffer.get("uri")
+        if uri is None and not (number == 0 and blob is not None) and _is_fallback(buffer):
+            found.append(b"")  # only meshopt views may lie in it: they decode their bytes
+            sizes.append(declared)
+            continue
         if uri is None:
             if number != 0 or blob is None:
                 raise _bad(label, f"{where} has no uri and is not the GLB's BIN chunk")
@@ -254,22 +268,38 @@ def _buffers(
         if declared > len(data):
             raise _bad(label, f"{where} declares {declared} bytes; it holds {len(data)}")
         found.append(data)
-    return found
+        sizes.append(len(data))
+    return found, sizes
 
 
-def _views(doc: dict[str, Any], buffers: list[bytes], label: str) -> list[dict[str, Any]]:
+def _views(
+    doc: dict[str, Any], buffers: list[bytes], sizes: list[int], label: str
+) -> list[dict[str, Any]]:
     views = _list(doc, "bufferViews", label)
     for number, view in enumerate(views):
         where = f"bufferView {number}"
         buffer = _index(view.get("buffer"), len(buffers), f"{where} buffer", label)
         offset = _int(view.get("byteOffset", 0), f"{where} byteOffset", label)
         length = _int(view.get("byteLength"), f"{where} byteLength", label, low=1)
-        if offset + length > len(buffers[buffer]):
+        if offset + length > sizes[buffer]:
             raise _bad(
                 label,
                 f"{where} spans bytes {offset}..{offset + length} of buffer {buffer}, "
-                f"which holds {len(buffers[buffer])}",
+                f"which holds {sizes[buffer]}",
             )
+        compressed = meshopt_extension(view)
+        if len(buffers[buffer]) < sizes[buffer] and compressed is None:
+            raise _bad(label, f"{where} lies in a meshopt fallback buffer but is not compressed")
+        if compressed is not None:
+            # Its compressed bytes: in a buffer with bytes (gltf_compression checks the
+            # rest of the extension, and the decoded size against byteLength, before decoding).
+            source = _index(
+                compressed.get("buffer"), len(buffers), f"{where} meshopt buffer", label
+            )
+            start = _int(compressed.get("byteOffset", 0), f"{where} meshopt byteOffset", label)
+            size = _int(compressed.get("byteLength"), f"{where} meshopt byteLength", label, low=1)
+            if start + size > len(buffers[source]):
+                raise _bad(label, f"{where}'s compressed bytes run past buffer {source}")
         stride = view.get("byteStride")
         if stride is not None and (
             not _is_int(stride) or not 4 <= stride <= 252 or stride % 4 != 0
@@ -379,6 +409,10 @@ def _meshes(
                 i = _index(index, len(accessors), f"{where} attribute {name}", label)
                 if accessors[i]["count"] != count:
                     raise _bad(label, f"{where} attribute {name} has a count unlike POSITION's")
+            draco = draco_extension(prim)
+            if draco is not None:
+                views = len(doc.get("bufferViews", []))
+                _index(draco.get("bufferView"), views, f"{where} Draco bufferView", label)
             mode = _int(prim.get("mode", 4), f"{where} mode", label)
             if mode > 6:
                 raise _bad(label, f"{where} mode {mode} is not 0..6")
@@ -531,8 +565,8 @@ def check_document(
         for uri in _uris(doc):
             if not uri.startswith("data:"):
                 raise external_uri_error(uri, label)
-    buffers = _buffers(doc, blob, resolve, label)
-    views = _views(doc, buffers, label)
+    buffers, sizes = _buffers(doc, blob, resolve, label)
+    views = _views(doc, buffers, sizes, label)
     accessors = _accessors(doc, views, limits, label)
     _meshes(doc, accessors, limits, label)
     _node_tree(doc, limits, label)

@@ -2,8 +2,10 @@
 
 Bounded reading of untrusted files: the document is checked whole first (``gltf_check``:
 every count, index and extent against its bytes and ``GltfLimits``), then read as plain
-JSON, in time linear in its size; errors are ``ExampleSetError`` with a code. It does no
-writing (gltf_export.py), fitting or blending.
+JSON, in time linear in its size; compressed views and primitives (meshopt, Draco:
+gltf_compression.py) are checked against MAX_DECODED_BYTES and their accessors before they
+are decoded; quantised attributes (KHR_mesh_quantization) are read as stored. Errors are
+``ExampleSetError`` with a code. It does no writing (gltf_export.py), fitting or blending.
 """
 
 from __future__ import annotations
@@ -25,8 +27,16 @@ from .gltf_check import (
     parse_json,
     split_glb,
 )
+from .gltf_compression import (
+    DracoGeometry,
+    decode_draco,
+    decode_meshopt_view,
+    draco_extension,
+    meshopt_extension,
+)
 
 __all__ = [
+    "MAX_DECODED_BYTES",
     "TRIANGLES",
     "TYPE_SIZES",
     "BufferReader",
@@ -50,6 +60,9 @@ _COMPONENT_DTYPES: dict[int, type[np.generic]] = {
     5125: np.uint32,
     5126: np.float32,
 }
+#: Most bytes one read decodes out of compressed views (meshopt): 10^8 float32 values.
+#: Each view's declared size is checked against what is left before it is decoded.
+MAX_DECODED_BYTES = 400_000_000
 
 
 #: What the reader takes: a file's path or its bytes.
@@ -112,6 +125,9 @@ class BufferReader:
         self.doc = document.json
         self.buffers = document.buffers
         self.label = label
+        self.decoded: dict[int, bytes] = {}
+        self.decoded_left = MAX_DECODED_BYTES
+        self.draco: dict[int, DracoGeometry] = {}
 
     def _view(
         self, view_index: int, offset: int, count: int, dtype: type[np.generic], ncomp: int
@@ -119,14 +135,71 @@ class BufferReader:
         view = self.doc["bufferViews"][view_index]
         itemsize = np.dtype(dtype).itemsize
         stride = view.get("byteStride") or itemsize * ncomp
-        start = view.get("byteOffset", 0) + offset
+        if meshopt_extension(view) is not None:
+            data, start = self.view_bytes(view_index), offset
+        else:
+            data, start = self.buffers[view["buffer"]], view.get("byteOffset", 0) + offset
         return np.ndarray(
-            (count, ncomp),
-            dtype=dtype,
-            buffer=self.buffers[view["buffer"]],
-            offset=start,
-            strides=(stride, itemsize),
+            (count, ncomp), dtype=dtype, buffer=data, offset=start, strides=(stride, itemsize)
         ).copy()
+
+    def view_bytes(self, view_index: int) -> bytes:
+        """A meshopt-compressed view's bytes, decoded once (bounded by ``decoded_left``)."""
+        if view_index not in self.decoded:
+            view = self.doc["bufferViews"][view_index]
+            ext = meshopt_extension(view)
+            assert ext is not None
+            if view.get("byteStride") is not None and view["byteStride"] != ext.get("byteStride"):
+                raise ExampleSetError(
+                    f"{self.label}: bufferView {view_index} byteStride {view['byteStride']} is "
+                    f"not its meshopt byteStride {ext.get('byteStride')}",
+                    code="bad_compression",
+                )
+            data = decode_meshopt_view(
+                ext, view["byteLength"], self.buffers.__getitem__, self.decoded_left, self.label
+            )
+            self.decoded_left -= len(data)
+            self.decoded[view_index] = data
+        return self.decoded[view_index]
+
+    def draco_geometry(self, primitive: dict[str, Any]) -> DracoGeometry | None:
+        """A Draco primitive's (positions, triangle corners), decoded once; None if the
+        primitive is not Draco-compressed. Its accessors' counts were bounded by the check."""
+        ext = draco_extension(primitive)
+        if ext is None:
+            return None
+        view_index = ext.get("bufferView")
+        attributes = ext.get("attributes")
+        if not isinstance(view_index, int) or not isinstance(attributes, dict):
+            raise ExampleSetError(
+                f"{self.label}: a Draco primitive names no bufferView or attributes",
+                code="bad_compression",
+            )
+        if view_index not in self.draco:
+            position_id = attributes.get("POSITION")
+            if not isinstance(position_id, int):
+                raise ExampleSetError(
+                    f"{self.label}: a Draco primitive without POSITION", code="bad_compression"
+                )
+            accessors = self.doc["accessors"]
+            vertices = accessors[primitive["attributes"]["POSITION"]]["count"]
+            indices = primitive.get("indices")
+            corners = None if indices is None else accessors[indices]["count"]
+            view = self.doc["bufferViews"][view_index]
+            start = view.get("byteOffset", 0)
+            data = self.buffers[view["buffer"]][start : start + view["byteLength"]]
+            self.draco[view_index] = decode_draco(data, position_id, vertices, corners, self.label)
+        return self.draco[view_index]
+
+    def decode_all(self) -> None:
+        """Decode every compressed view and primitive of the file (each bounded), so that a
+        part that does not decode is found now, not by a viewer."""
+        for index, view in enumerate(self.doc.get("bufferViews", [])):
+            if meshopt_extension(view) is not None:
+                self.view_bytes(index)
+        for mesh in self.doc.get("meshes", []):
+            for primitive in mesh["primitives"]:
+                self.draco_geometry(primitive)
 
     def accessor(self, index: int) -> np.ndarray:
         """Decode accessor ``index`` into a (count, ncomp) array (float64 or int64)."""
@@ -264,8 +337,10 @@ def read_mesh(
                 code="bad_gltf",
             )
         pos_index = prim["attributes"]["POSITION"]
+        draco = reader.draco_geometry(prim)
         if pos_index not in first_vertex:
-            pos = reader.accessor(pos_index)
+            # Quantised positions (KHR_mesh_quantization) come as integers: as floats here.
+            pos = (reader.accessor(pos_index) if draco is None else draco[0]).astype(np.float64)
             if pos.shape[1] != 3:
                 raise ExampleSetError(f"{label}: POSITION is not VEC3", code="bad_gltf")
             first_vertex[pos_index] = total
@@ -286,13 +361,15 @@ def read_mesh(
             deltas.append(prim_deltas)
         if prim.get("indices") is None:
             tri = np.arange(vertex_count[pos_index], dtype=np.int64)
+        elif draco is not None and draco[1] is not None:
+            tri = draco[1]
         else:
             tri = reader.accessor(prim["indices"])[:, 0]
         if tri.size % 3:
             raise ExampleSetError(
                 f"{label}: primitive {number} index count is not a multiple of 3", code="bad_gltf"
             )
-        if tri.size and tri.max() >= vertex_count[pos_index]:
+        if tri.size and (tri.min() < 0 or tri.max() >= vertex_count[pos_index]):
             raise ExampleSetError(
                 f"{label}: primitive {number} has triangle indices out of range", code="bad_gltf"
             )

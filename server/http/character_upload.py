@@ -25,6 +25,7 @@ __all__ = [
     "CHARACTER_SUFFIXES",
     "MARKERS_FILE",
     "character_record",
+    "check_character_size",
     "gltf_limits",
     "pairing_view",
     "read_character_upload",
@@ -89,6 +90,20 @@ def read_character_upload(
             beside = found.parent / MARKERS_FILE
             markers = read_markers(beside) if beside.is_file() else None
     return character, markers
+
+
+def check_character_size(character: Character, max_bytes: int, *, adding: int = 0) -> None:
+    """422 ``character_too_large`` for a character file larger than the store keeps
+    (``adding``: bytes a transfer job will add to it)."""
+    size = len(character.glb) + adding
+    if size > max_bytes:
+        raise ApiError(
+            422,
+            "character_too_large",
+            f"the character file is {size} bytes as stored (a .gltf folder "
+            f"packed into one GLB), over the limit of {max_bytes} (setting "
+            "max_character_bytes): shrink its textures or meshes",
+        )
 
 
 def _find_character(dest: Path) -> Path:

@@ -33,10 +33,12 @@ from ..storage.characters import (
 from ..storage.rig_store import RIG_ID_PATTERN, RigStore, valid_rig_id
 from .character_upload import (
     character_record,
+    check_character_size,
     gltf_limits,
     pairing_view,
     read_character_upload,
 )
+from .downloads import stream_file
 from .rigs import CharacterFitOptions, archive_limits, fit_slot, read_body, run_fit
 from .transfer import start_transfer
 
@@ -130,7 +132,11 @@ async def put_character(
         )
     settings = request.app.state.settings
     job = _CharacterJob(
-        archive_limits(settings), gltf_limits(settings), options, _store(request).scratch
+        archive_limits(settings),
+        gltf_limits(settings),
+        options,
+        _store(request).scratch,
+        settings.max_character_bytes,
     )
     with fit_slot(request, principal):
         data = await read_body(request, settings.max_upload_bytes)
@@ -186,17 +192,17 @@ async def get_character(request: Request, rig_id: str, principal: Reader) -> Res
     # The rig itself must exist: ``x@nobody`` shows no character, even if ``x`` has one.
     if not await anyio.to_thread.run_sync(_store(request).exists, rig_id):
         raise ApiError(404, "rig_not_found", f"no rig with id {rig_id!r}")
-    stored = await anyio.to_thread.run_sync(
-        lambda: _store(request).character(base_id(rig_id), with_glb=True)
-    )
-    if stored is None:
+    opened = await anyio.to_thread.run_sync(_store(request).open_character, base_id(rig_id))
+    if opened is None:
         raise ApiError(
             404,
             "no_character",
             f"rig {rig_id!r} has no character file (it was not uploaded with "
             "PUT /v1/characters/{id}); its mesh is GET /v1/rigs/{id}/model.glb",
         )
+    stored, fh, size = opened
     if character_not_served(stored.meta, anonymous=principal is ANONYMOUS):
+        fh.close()
         raise ApiError(
             403,
             "character_not_redistributable",
@@ -204,14 +210,12 @@ async def get_character(request: Request, rig_id: str, principal: Reader) -> Res
             "it is served only to callers with a token (the viewer role); its mesh is "
             f"GET /v1/rigs/{rig_id}/model.glb",
         )
-    return Response(
-        stored.glb,
-        media_type="model/gltf-binary",
-        headers={
-            "Cache-Control": "no-store"
-            if stored.meta.get("redistribution") is False
-            else "no-cache"
-        },
+    # Streamed from disk in chunks (``downloads``): a slow viewer holds one, not the file.
+    return stream_file(
+        fh,
+        size,
+        "model/gltf-binary",
+        {"Cache-Control": "no-store" if stored.meta.get("redistribution") is False else "no-cache"},
     )
 
 
@@ -219,15 +223,22 @@ class _CharacterJob:
     """Unpack (an archive), load, pair with the generic source set and fit (a worker thread)."""
 
     def __init__(
-        self, limits: ArchiveLimits, gltf: GltfLimits, options: dict[str, Any], scratch: Path
+        self,
+        limits: ArchiveLimits,
+        gltf: GltfLimits,
+        options: dict[str, Any],
+        scratch: Path,
+        max_bytes: int,
     ) -> None:
         self.limits = limits
         self.gltf = gltf
         self.options = options
         self.scratch = scratch
+        self.max_bytes = max_bytes
 
     def __call__(self, data: bytes) -> tuple[Rig, bytes, dict[str, Any], str]:
         character, _ = read_character_upload(data, self.limits, self.scratch, self.gltf)
+        check_character_size(character, self.max_bytes)
         glb, record, fmt = character.glb, character_record(character), character.format
         example_set, report = character_example_set(character)
         # The largest arrays go as soon as they are used (SERVER.md "What an upload can

@@ -32,6 +32,7 @@ from ..settings import Settings
 from ..storage.archive import ArchiveError, ArchiveLimits, extract_archive, find_example_root
 from ..storage.characters import base_id, character_view, looks_like_character
 from ..storage.rig_store import RIG_ID_PATTERN, RigNotFoundError, RigStore, valid_rig_id
+from .downloads import stream_file
 
 if TYPE_CHECKING:
     from facecast.rig import Rig
@@ -425,13 +426,15 @@ async def get_model(request: Request, rig_id: str, _: Reader) -> Response:
 async def download_rig(request: Request, rig_id: str, _: Downloader) -> Response:
     _check_id(rig_id)
     try:
-        data = await anyio.to_thread.run_sync(_store(request).get_bytes, rig_id)
+        fh, size = await anyio.to_thread.run_sync(_store(request).open_rig_file, rig_id)
     except RigNotFoundError:
         raise _not_found(rig_id) from None
-    return Response(
-        data,
-        media_type="application/octet-stream",
-        headers={"Content-Disposition": f'attachment; filename="{rig_id}.rig"'},
+    # Streamed from disk in chunks (``downloads``), as the character file is.
+    return stream_file(
+        fh,
+        size,
+        "application/octet-stream",
+        {"Content-Disposition": f'attachment; filename="{rig_id}.rig"'},
     )
 
 

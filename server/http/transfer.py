@@ -46,6 +46,7 @@ from ..storage.jobs import FINISHED
 from ..storage.rig_store import RIG_ID_PATTERN, RigStore, valid_rig_id
 from .character_upload import (
     character_record,
+    check_character_size,
     gltf_limits,
     pairing_view,
     read_character_upload,
@@ -236,11 +237,13 @@ class _Prepare:
         self.gltf = gltf_limits(settings)
         self.max_vertices = settings.max_transfer_vertices
         self.max_faces = settings.max_transfer_faces
+        self.max_bytes = settings.max_character_bytes
 
     def __call__(
         self, data: bytes, markers: str | None, names: list[str] | None
     ) -> tuple[TransferPlan, SourceExpressions]:
         character, found = read_character_upload(data, self.limits, self.scratch, self.gltf)
+        check_character_size(character, self.max_bytes)
         if found is not None and markers is not None:
             raise ApiError(
                 422,
@@ -257,6 +260,11 @@ class _Prepare:
             max_vertices=self.max_vertices,
             max_faces=self.max_faces,
             label="the uploaded character",
+        )
+        # The job's file grows by its morph targets (float32 xyz a vertex and expression,
+        # an accessor each): checked at the size it will be stored at, before the 202.
+        check_character_size(
+            character, self.max_bytes, adding=len(plan.names) * (plan.vertices * 12 + 256)
         )
         return plan, source
 

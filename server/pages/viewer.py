@@ -1,4 +1,5 @@
-"""The web viewer's routes: ``/viewer``, ``/overlay``, their built script, and the demo performance.
+"""The web viewer's routes: ``/viewer``, ``/overlay``, their built script, Draco's decoder, and the
+demo performance.
 
 Serves files built by ``npm run build`` in client/viewer (never builds or imports client
 code) and ``GET /v1/demo/animation``; the pages authenticate from the browser themselves.
@@ -22,7 +23,13 @@ from ..errors import ApiError
 from ..guards.auth import READ_ROLES, requires
 from ..settings import Settings
 
-__all__ = ["DEMO_ANIMATION_PATH", "demo_animation_bytes", "mount_viewer", "viewer_dir"]
+__all__ = [
+    "DEMO_ANIMATION_PATH",
+    "DRACO_ASSETS",
+    "demo_animation_bytes",
+    "mount_viewer",
+    "viewer_dir",
+]
 
 DEMO_ANIMATION_PATH = "/v1/demo/animation"
 #: The only files under /viewer/assets/; anything else is 404 (no directory serving).
@@ -30,6 +37,15 @@ _ASSETS = {
     "viewer.js": "text/javascript; charset=utf-8",
     "viewer.js.map": "application/json",
     "viewer.js.LEGAL.txt": "text/plain; charset=utf-8",
+}
+#: The only files under /viewer/assets/draco/: three.js's build of Draco's decoder, which the
+#: pages' DRACOLoader fetches for KHR_draco_mesh_compression characters (build.mjs copies
+#: them into dist/draco/; nothing is fetched from elsewhere).
+DRACO_ASSETS = {
+    "draco_decoder.js": "text/javascript; charset=utf-8",
+    "draco_wasm_wrapper.js": "text/javascript; charset=utf-8",
+    "draco_decoder.wasm": "application/wasm",
+    "README.md": "text/markdown; charset=utf-8",
 }
 _PAGES = {"viewer": "viewer.html", "overlay": "overlay.html"}
 _NOT_BUILT = """<!doctype html><meta charset="utf-8"><title>facecast viewer not built</title>
@@ -65,7 +81,8 @@ def demo_animation_bytes() -> bytes:
 
 
 def mount_viewer(app: FastAPI, settings: Settings) -> None:
-    """Add ``/viewer``, ``/overlay``, ``/viewer/assets/{name}`` and ``GET /v1/demo/animation``.
+    """Add ``/viewer``, ``/overlay``, ``/viewer/assets/{name}``, ``/viewer/assets/draco/{name}``
+    and ``GET /v1/demo/animation``.
 
     The pages themselves need no token (they hold no data); the browser presents the
     ``?token=`` of the page URL to the API and the WebSocket.
@@ -92,6 +109,14 @@ def mount_viewer(app: FastAPI, settings: Settings) -> None:
         path = dist / name
         if media_type is None or not path.is_file():
             raise ApiError(404, "not_found", f"no viewer asset {name[:80]!r}")
+        return FileResponse(path, media_type=media_type, headers={"Cache-Control": "no-cache"})
+
+    @router.get("/viewer/assets/draco/{name}")
+    async def draco_asset(name: str) -> Response:
+        media_type = DRACO_ASSETS.get(name)
+        path = dist / "draco" / name
+        if media_type is None or not path.is_file():
+            raise ApiError(404, "not_found", f"no Draco decoder file {name[:80]!r}")
         return FileResponse(path, media_type=media_type, headers={"Cache-Control": "no-cache"})
 
     @router.get(

@@ -4,11 +4,24 @@
 // pose (the head bone). Knows nothing of sockets or the protocol.
 
 import * as THREE from "three";
+import { DRACOLoader } from "three/addons/loaders/DRACOLoader.js";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
+import { MeshoptDecoder } from "three/addons/libs/meshopt_decoder.module.js";
 import { VRMLoaderPlugin, VRMUtils } from "@pixiv/three-vrm";
+
+// Compressed files (KHR_draco_mesh_compression, EXT_meshopt_compression) are decoded by
+// three.js's own decoders, served by facecast: Draco's from /viewer/assets/draco/ (copied
+// out of three's examples/jsm/libs/draco/gltf by build.mjs; relative, so the pages work
+// under a proxy's prefix too), meshoptimizer's bundled into this script.
+// KHR_mesh_quantization needs no decoder. One DRACOLoader (its workers) for every file.
+export const DRACO_PATH = "viewer/assets/draco/";
+let draco = null;
 
 function parse(glb, withVrm) {
   const loader = new GLTFLoader();
+  draco ||= new DRACOLoader().setDecoderPath(DRACO_PATH);
+  loader.setDRACOLoader(draco);
+  loader.setMeshoptDecoder(MeshoptDecoder);
   if (withVrm) loader.register((parser) => new VRMLoaderPlugin(parser));
   return new Promise((resolve, reject) =>
     loader.parse(glb, "", resolve, (err) => reject(new Error(`character.glb: ${err.message || err}`))),
