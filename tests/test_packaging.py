@@ -121,3 +121,13 @@ def test_installed_wheel_imports_and_fits_the_demo(wheel, tmp_path):
     )
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "13"
+
+
+def test_the_licence_is_an_spdx_expression_without_a_deprecation_warning(built):
+    path, output = built
+    with zipfile.ZipFile(path) as wheel:
+        metadata = next(n for n in wheel.namelist() if n.endswith(".dist-info/METADATA"))
+        text = wheel.read(metadata).decode()
+
+    assert "License-Expression: MIT" in text.splitlines()
+    assert "project.license` as a TOML table is deprecated" not in output

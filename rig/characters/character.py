@@ -10,8 +10,8 @@ re-exported here) or render; docs/characters.md explains it.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +50,9 @@ __all__ = [
     "character_example_set",
     "load_character",
 ]
+
+#: What ``gltf.read_mesh`` gives: vertices, faces, morph deltas, target names.
+MeshData = tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]
 
 # Expression order: ARKit's, then VRM's presets, then the rest as found.
 _ORDER = {name: i for i, name in enumerate((*ARKIT_NAMES, *VRM_PRESETS))}
@@ -198,16 +201,13 @@ def _vrm_entries(
             )
             continue
         if not binds:
-            report.append(
-                PairingEntry(
-                    vrm.name,
-                    origin,
-                    meshes,
-                    None,
-                    False,
-                    "binds no morph target (material changes only)",
-                )
-            )
+            if vrm.binds:
+                why = "its morph binds all have weight 0: it moves nothing"
+            elif vrm.materials:
+                why = "binds no morph target (material changes only)"
+            else:
+                why = "binds nothing (no morph target, no material): an empty expression"
+            report.append(PairingEntry(vrm.name, origin, meshes, None, False, why))
             continue
         found[name] = _Found(binds, "vrm")
         report.append(PairingEntry(vrm.name, origin, meshes, name, False, how))
@@ -231,16 +231,14 @@ def _face_mesh(found: dict[str, _Found], doc: dict[str, Any], label: str) -> int
     return min(range(len(meshes)), key=lambda i: (-bound[i], -vertices[i], i))
 
 
-def _still_expressions(
-    found: dict[str, _Found], doc: dict[str, Any], reader: BufferReader, label: str
-) -> dict[str, str]:
+def _still_expressions(found: dict[str, _Found], read: Callable[[int], MeshData]) -> dict[str, str]:
     """``{name: why}`` of the expressions no bound morph target moves visibly
-    (``STILL_RELATIVE``); each mesh they bind is read once."""
+    (``STILL_RELATIVE``); ``read(mesh)`` gives a mesh's vertices, faces and deltas."""
     largest: dict[int, tuple[np.ndarray, float]] = {}
 
     def moves(binding: Binding) -> float:
         if binding.mesh not in largest:
-            vertices, _, deltas, _ = read_mesh(doc["meshes"][binding.mesh], reader, label)
+            vertices, _, deltas, _ = read(binding.mesh)
             extent = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
             offsets = np.linalg.norm(deltas, axis=2).max(axis=1) if deltas.size else deltas
             largest[binding.mesh] = (np.asarray(offsets).reshape(-1), extent)
@@ -305,6 +303,33 @@ def load_character(
         ) from None
 
 
+def _driven_through_vrm(
+    entries: list[PairingEntry],
+    names: list[list[str]],
+    found: dict[str, _Found],
+    paired: dict[str, str],
+) -> list[PairingEntry]:
+    """Morph-target entries whose own name pairs with nothing but whose morph a paired VRM
+    expression binds (a VRM ``A`` binding ``vrc.v_aa``) say so: their motion is live,
+    driven by that expression's weight, though the name itself has no source points."""
+    through: dict[str, list[str]] = {}
+    for name, expression in found.items():
+        if expression.origin != "vrm" or name not in paired:
+            continue
+        for b in expression.bindings:
+            authored = names[b.mesh][b.morph]
+            if name not in through.setdefault(authored, []):
+                through[authored].append(name)
+    out = []
+    for e in entries:
+        via = through.get(e.authored, [])
+        if e.origin == "morph target" and e.expression not in paired and via:
+            listed = ", ".join(repr(v) for v in via)
+            e = replace(e, reason=f"{e.reason}; moved through the paired VRM expression {listed}")
+        out.append(e)
+    return out
+
+
 def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Character:
     """``load_character`` but for turning stray exceptions into ``bad_gltf``."""
     document, glb = read_character_file(source, label, limits)
@@ -329,7 +354,15 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
     ] + vrm_entries
     reader = BufferReader(document, label)
     reader.decode_all()  # a compressed part that does not decode is refused now (bounded)
-    still = _still_expressions(found, doc, reader, label)
+    meshes: dict[int, MeshData] = {}
+
+    def read(index: int) -> MeshData:
+        """Each mesh read once: the still check and the face share the face's read."""
+        if index not in meshes:
+            meshes[index] = read_mesh(doc["meshes"][index], reader, label)
+        return meshes[index]
+
+    still = _still_expressions(found, read)
     entries = [
         dataclasses.replace(e, reason=f"{e.reason}; {still[e.expression]}")
         if e.expression in still
@@ -338,7 +371,8 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
     ]
     found = {name: f for name, f in found.items() if name not in still}
     face = _face_mesh(found, doc, label)
-    vertices, faces, deltas, _ = read_mesh(doc["meshes"][face], reader, label)
+    vertices, faces, deltas, _ = read(face)
+    meshes.clear()
     on_face = {name: [b for b in e.bindings if b.mesh == face] for name, e in found.items()}
     # An expression of one morph at weight 1 is a view of it; a VRM expression mixing
     # morphs or weighting one needs an array of its own: bounded as the morphs are, or
@@ -368,6 +402,7 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
         displacement.flags.writeable = False
         expressions[name] = Expression(name, bindings, displacement, found[name].origin)
     paired, unpaired = generic_pairing(expressions)
+    reported = _driven_through_vrm(entries, names, found, paired)
     vertices.flags.writeable = False
     return Character(
         glb=glb,
@@ -380,6 +415,6 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
         expressions=expressions,
         names=tuple(entries),
         report=pair_report(
-            entries, paired, unpaired, source=GENERIC_ATTRIBUTION, face_mesh=mesh_names[face]
+            reported, paired, unpaired, source=GENERIC_ATTRIBUTION, face_mesh=mesh_names[face]
         ),
     )

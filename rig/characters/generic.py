@@ -5,7 +5,9 @@ scripts/make_generic_sources.py from ICT-FaceKit, MIT, see generic_arkit/LICENSE
 and composes source points for VRM presets that have no ARKit twin (the table is
 docs/characters.md), from this set's shapes or from a performer's captured ones
 (``composed_captures``); ``CHARACTER_FIT_DEFAULTS`` are the fit options of a character
-paired with it. It must not read characters, fit or touch the network.
+paired with it, ``GAZE_SHAPES``, ``DRIVEN_SHARE`` and ``DEPENDENT_RELATIVE`` what it leaves
+unpaired so that what shows moves at full strength. It must not read characters, fit or
+touch the network.
 """
 
 from __future__ import annotations
@@ -27,11 +29,13 @@ __all__ = [
     "DRIVEN_SHARE",
     "GAZE_SHAPES",
     "GENERIC_ATTRIBUTION",
+    "GENERIC_SOURCE_NAME",
     "PRESET_CHECK_ORDER",
     "VRM_COMPOSITIONS",
     "GenericSources",
     "composed_captures",
     "generic_sources",
+    "is_generic_layout",
 ]
 
 GENERIC_ATTRIBUTION: Final = (
@@ -175,13 +179,23 @@ class GenericSources:
         return {n: i for i, n in enumerate(self.names)}
 
 
+#: What ``--source-rig`` and ``load_source_rig`` take as the word for this set.
+GENERIC_SOURCE_NAME: Final = "generic"
+_KEYS = ("names", "points", "landmarks68", "stable_points")
+
+
+def is_generic_layout(keys: Iterable[str]) -> bool:
+    """Whether an .npz's arrays are this set's layout (``generic_arkit/points.npz``'s)."""
+    return set(_KEYS) <= set(keys)
+
+
 @functools.cache
 def generic_sources() -> GenericSources:
     """The packaged set, read once and shared (its arrays are read-only)."""
     path = resources.files(__package__).joinpath("generic_arkit", "points.npz")
     try:
         with path.open("rb") as handle, np.load(handle, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in ("names", "points", "landmarks68", "stable_points")}
+            arrays = {k: data[k] for k in _KEYS}
     except (OSError, KeyError, ValueError) as exc:
         raise ExampleSetError(
             f"facecast's generic source set is missing or damaged ({type(exc).__name__}); "

@@ -59,10 +59,33 @@ export async function parseCharacter(glb, { format = "gltf" } = {}) {
     if (!association || association.meshes === undefined) return;
     if (!meshesByIndex.has(association.meshes)) meshesByIndex.set(association.meshes, []);
     meshesByIndex.get(association.meshes).push(node);
+    // three.js names morphs from mesh.extras.targetNames only; many exporters put them on
+    // the primitive (as the server's reader accepts): name them from there too.
+    const names = primitiveTargetNames(gltf.parser.json, association);
+    if (names && node.morphTargetInfluences && names.length === node.morphTargetInfluences.length) {
+      node.morphTargetDictionary = Object.fromEntries(names.map((name, index) => [name, index]));
+    }
     // Morphs and skinning move vertices outside the rest pose's bounds.
     node.frustumCulled = false;
   });
   return { root, vrm, meshesByIndex, vrmError };
+}
+
+/**
+ * The morph target names of the primitive `association` ({meshes, primitives}, the
+ * loader's) when only a primitive carries them (`primitives[i].extras.targetNames`, else
+ * the first primitive's), as the server's reader takes them; null when the mesh itself
+ * names them (three.js did) or nothing does.
+ */
+export function primitiveTargetNames(json, association) {
+  const mesh = (json.meshes || [])[association.meshes];
+  if (!mesh || (mesh.extras && Array.isArray(mesh.extras.targetNames))) return null;
+  const primitives = mesh.primitives || [];
+  for (const primitive of [primitives[association.primitives ?? 0], primitives[0]]) {
+    const names = primitive && primitive.extras && primitive.extras.targetNames;
+    if (Array.isArray(names) && names.every((name) => typeof name === "string")) return names;
+  }
+  return null;
 }
 
 /**
