@@ -10,7 +10,7 @@ re-exported here) or render; docs/characters.md explains it.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -50,6 +50,9 @@ __all__ = [
     "character_example_set",
     "load_character",
 ]
+
+#: What ``gltf.read_mesh`` gives: vertices, faces, morph deltas, target names.
+MeshData = tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]
 
 # Expression order: ARKit's, then VRM's presets, then the rest as found.
 _ORDER = {name: i for i, name in enumerate((*ARKIT_NAMES, *VRM_PRESETS))}
@@ -228,16 +231,14 @@ def _face_mesh(found: dict[str, _Found], doc: dict[str, Any], gltf: Any, label: 
     return min(range(len(meshes)), key=lambda i: (-bound[i], -vertices[i], i))
 
 
-def _still_expressions(
-    found: dict[str, _Found], gltf: Any, reader: BufferReader, label: str
-) -> dict[str, str]:
+def _still_expressions(found: dict[str, _Found], read: Callable[[int], MeshData]) -> dict[str, str]:
     """``{name: why}`` of the expressions no bound morph target moves visibly
-    (``STILL_RELATIVE``); each mesh they bind is read once."""
+    (``STILL_RELATIVE``); ``read(mesh)`` gives a mesh's vertices, faces and deltas."""
     largest: dict[int, tuple[np.ndarray, float]] = {}
 
     def moves(binding: Binding) -> float:
         if binding.mesh not in largest:
-            vertices, _, deltas, _ = read_mesh(gltf.meshes[binding.mesh], reader, label)
+            vertices, _, deltas, _ = read(binding.mesh)
             extent = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
             offsets = np.linalg.norm(deltas, axis=2).max(axis=1) if deltas.size else deltas
             largest[binding.mesh] = (np.asarray(offsets).reshape(-1), extent)
@@ -350,7 +351,15 @@ def _load(source: Path | bytes, label: str) -> Character:
     ] + vrm_entries
     reader = BufferReader(gltf, None, label)
     reader.decode_all()  # a compressed part that does not decode is refused now (bounded)
-    still = _still_expressions(found, gltf, reader, label)
+    meshes: dict[int, MeshData] = {}
+
+    def read(index: int) -> MeshData:
+        """Each mesh read once: the still check and the face share the face's read."""
+        if index not in meshes:
+            meshes[index] = read_mesh(gltf.meshes[index], reader, label)
+        return meshes[index]
+
+    still = _still_expressions(found, read)
     entries = [
         dataclasses.replace(e, reason=f"{e.reason}; {still[e.expression]}")
         if e.expression in still
@@ -359,7 +368,8 @@ def _load(source: Path | bytes, label: str) -> Character:
     ]
     found = {name: f for name, f in found.items() if name not in still}
     face = _face_mesh(found, doc, gltf, label)
-    vertices, faces, deltas, _ = read_mesh(gltf.meshes[face], reader, label)
+    vertices, faces, deltas, _ = read(face)
+    meshes.clear()
     expressions = {}
     for name in sorted(found, key=lambda n: _ORDER.get(n, len(_ORDER))):
         bindings = tuple(found[name].bindings)

@@ -13,7 +13,7 @@ import tarfile
 import time
 import zipfile
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
@@ -212,6 +212,9 @@ def server_process(
         env=full_env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
+        # Its own process group: a supervisor killed (by the test, or here when it never got
+        # ready) leaves its --workers behind, and they would go on running after the test.
+        start_new_session=True,
     )
     try:
         wait_ready(f"http://127.0.0.1:{port}", process)
@@ -220,6 +223,8 @@ def server_process(
         if process.poll() is None:
             process.kill()
         process.wait(10)
+        with suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGKILL)
         if process.stderr:
             process.stderr.close()
 
