@@ -29,7 +29,7 @@ from facecast.cli.report import write_json
 from facecast.cli.track import track_video
 from facecast.rig import fit
 from facecast.rig.evaluation.evaluate import cloning_error
-from facecast.rig.evaluation.takes import ARKIT_TARGET_IDENTITY, arkit_example_set, take_experiment
+from facecast.rig.evaluation.takes import take_experiment
 from facecast.rig.evaluation.webcam import (
     KEY_HOLD_FRAMES,
     KEY_RAMP_FRAMES,
@@ -42,6 +42,7 @@ from facecast.rig.evaluation.webcam import (
     webcam_rows,
 )
 from facecast.rig.sources.ict import ict_regions, locate_ict
+from facecast.rig.sources.ict_arkit import ARKIT_TARGET_IDENTITY, arkit_example_set
 from facecast.rig.sources.trackers import read_livelink_csv
 from facecast.server.storage.profiles import held_noise
 

@@ -44,7 +44,7 @@ __all__ = [
 ]
 
 #: The face rendered as the performer: neither ICT's generic face (the generic rig's source)
-#: nor ``takes.ARKIT_TARGET_IDENTITY`` (the character).
+#: nor ``sources.ict_arkit.ARKIT_TARGET_IDENTITY`` (the character).
 PERFORMER_IDENTITY = "person07"
 #: A key clip: the face goes from rest to the key-expression in KEY_RAMP_FRAMES frames
 #: (smoothstep), then holds it KEY_HOLD_FRAMES frames, which are the capture.

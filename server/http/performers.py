@@ -18,8 +18,8 @@ from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import JSONResponse
 
 from facecast.rig import Rig
+from facecast.rig.characters.generic import composed_captures
 from facecast.rig.retarget import NEUTRAL, fit_performer, shared_names
-from facecast.rig.sources.generic import composed_captures
 from facecast.rig.sources.layouts import load_layout
 
 from ..errors import ApiError

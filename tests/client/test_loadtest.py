@@ -82,12 +82,11 @@ def test_bench_transport_smoke_writes_its_json_keys(tmp_path, monkeypatch):
     assert {"min_client_fps", "mb_per_s", "latency_ms", "pass"} <= figures["vertices"].keys()
     # The server path is driven by the bare client; the library's round trip is apart.
     assert figures["library_client"]["rtt_ms"]["count"] > 0
-    assert figures["servers"]["facecast"]["pipelined_dropped"] >= 0
-    # Attributed: CPU of every server (in /proc's 10 ms ticks: 0 for a short run is
-    # possible), facecast's time by stage, floors of the same run.
+    assert isinstance(figures["servers"]["facecast"]["pipelined_dropped"], int)
+    # Attributed: CPU of every server (the scheduler's nanosecond run time, which every
+    # message adds to: never 0 on Linux), facecast's time by stage, floors of the same run.
     for name in ("websockets", "fastapi", "facecast"):
-        assert math.isfinite(figures["servers"][name]["server_cpu_us_per_message"])
-        assert figures["servers"][name]["server_cpu_us_per_message"] >= 0
+        assert 0 < figures["servers"][name]["server_cpu_us_per_message"] < math.inf
     assert figures["weights_stages"]["per_result_us"]["weights"] > 0
     assert set(figures["whole_mesh"]) == {"exact", "bounded"}
     moving = figures["moving"]

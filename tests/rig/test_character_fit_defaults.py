@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 
 from facecast.rig import fit
-from facecast.rig.examples import ExampleSet
-from facecast.rig.io.character_examples import character_fit_options
-from facecast.rig.sources.generic import (
+from facecast.rig.characters.character_examples import character_fit_options
+from facecast.rig.characters.generic import (
     CHARACTER_FIT_DEFAULTS,
     VRM_COMPOSITIONS,
     composed_captures,
     generic_sources,
 )
+from facecast.rig.examples import ExampleSet
 
 
 def test_no_noise_given_takes_the_live_defaults_a_given_noise_keeps_fits_bound():

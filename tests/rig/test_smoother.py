@@ -303,14 +303,13 @@ def test_smooth_take_passes_an_exact_rig_none_and_short_takes_through(demo_rigs)
     points = exact.source_neutral + rng.normal(0.0, 0.2, (30, exact.num_points, 3))
     t = np.arange(30) / 30.0
 
-    for take in (
-        smooth_take(exact, points, t),
-        smooth_take(noise_rig, points, t, smoothing="none"),
-        smooth_take(noise_rig, points[:2], t[:2]),
+    for take, rig, method in (
+        (smooth_take(exact, points, t), exact, "none"),
+        (smooth_take(noise_rig, points, t, smoothing="none"), noise_rig, "none"),
+        (smooth_take(noise_rig, points[:2], t[:2]), noise_rig, "rts"),
     ):
         np.testing.assert_array_equal(take.points, points[: len(take.points)])
-        assert take.rig is exact or take.rig is noise_rig
-    assert smooth_take(exact, points, t).method == "none"
+        assert take.rig is rig and take.method == method
 
 
 def test_smooth_take_refuses_rts_without_a_noise_or_an_unknown_method(demo_rigs):
