@@ -72,6 +72,10 @@ class Settings:
     max_upload_bytes: int = 64 * MiB
     max_extracted_bytes: int = 256 * MiB
     max_archive_members: int = 2000
+    #: Largest character file stored (the GLB as kept: a .gltf folder's packed into one);
+    #: a larger one is 422 ``character_too_large`` before it is fitted. Downloads stream
+    #: from disk in chunks whatever the size; this bounds the disk each character takes.
+    max_character_bytes: int = 64 * MiB
     #: Largest allowed (total uncompressed size / archive size): zip-bomb guard.
     max_compression_ratio: float = 200.0
     #: Fits (and rig uploads) waiting or running at once; more get 503 ``server_busy``.
@@ -216,6 +220,7 @@ class Settings:
             "max_upload_bytes",
             "max_extracted_bytes",
             "max_archive_members",
+            "max_character_bytes",
             "max_compression_ratio",
             "max_pending_fits",
             "body_timeout",

@@ -309,7 +309,7 @@ def _targetable(doc: Any, mesh: int) -> tuple[dict[int, int], int]:
     for number, prim in enumerate(primitives):
         attributes = prim.get("attributes") if isinstance(prim, dict) else None
         position = attributes.get("POSITION") if isinstance(attributes, dict) else None
-        if not _index(position, len(accessors)):
+        if not isinstance(position, int) or not _index(position, len(accessors)):
             raise _bad(f"mesh {mesh} primitive {number} has no valid POSITION accessor")
         if not isinstance(prim.get("targets", []), list):
             raise _bad(f"mesh {mesh} primitive {number}: targets is not an array")

@@ -23,6 +23,7 @@ __all__ = [
     "CHARACTER_SUFFIXES",
     "MARKERS_FILE",
     "character_record",
+    "check_character_size",
     "pairing_view",
     "read_character_upload",
 ]
@@ -68,6 +69,20 @@ def read_character_upload(
     return character, markers
 
 
+def check_character_size(character: Character, max_bytes: int, *, adding: int = 0) -> None:
+    """422 ``character_too_large`` for a character file larger than the store keeps
+    (``adding``: bytes a transfer job will add to it)."""
+    size = len(character.glb) + adding
+    if size > max_bytes:
+        raise ApiError(
+            422,
+            "character_too_large",
+            f"the character file is {size} bytes as stored (a .gltf folder "
+            f"packed into one GLB), over the limit of {max_bytes} (setting "
+            "max_character_bytes): shrink its textures or meshes",
+        )
+
+
 def _find_character(dest: Path) -> Path:
     """The one .gltf/.glb/.vrm in an unpacked upload (at its top or one folder down)."""
     found = [
@@ -90,11 +105,13 @@ def _find_character(dest: Path) -> Path:
     return found[0]
 
 
-def character_record(character: Character) -> dict[str, Any]:
-    """What ``<id>.character`` keeps beside the GLB: format, VRM meta, bindings by name."""
+def character_record(character: Character, *, rights_holder: bool = False) -> dict[str, Any]:
+    """What ``<id>.character`` keeps beside the GLB: format, VRM meta, the uploader's
+    ``rights_holder`` declaration, bindings by name."""
     return {
         "format": character.format,
         "meta": character.meta,
+        "rights_holder": rights_holder,
         "bindings": {
             name: [[b.mesh, b.morph, b.weight] for b in expression.bindings]
             for name, expression in character.expressions.items()

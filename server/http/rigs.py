@@ -30,8 +30,9 @@ from ..errors import ApiError, upload_paths_hidden
 from ..guards.auth import READ_ROLES, Principal, requires
 from ..settings import Settings
 from ..storage.archive import ArchiveError, ArchiveLimits, extract_archive, find_example_root
-from ..storage.characters import base_id, character_view, looks_like_character
+from ..storage.characters import audience, base_id, character_view, looks_like_character
 from ..storage.rig_store import RIG_ID_PATTERN, RigNotFoundError, RigStore, valid_rig_id
+from .downloads import stream_file
 
 if TYPE_CHECKING:
     from facecast.rig import Rig
@@ -215,8 +216,26 @@ def _described(rig_id: str, rig: Rig) -> dict[str, Any]:
 
 @router.get("/rigs", summary="List stored rigs")
 async def list_rigs(request: Request, _: Reader) -> dict[str, Any]:
-    infos = await anyio.to_thread.run_sync(_store(request).list)
-    return {"rigs": [{"id": i.id, "size": i.size, "modified": i.modified} for i in infos]}
+    return {"rigs": await anyio.to_thread.run_sync(_listed, _store(request))}
+
+
+def _listed(store: RigStore) -> list[dict[str, Any]]:
+    """Each stored rig: id, size, modified, and its character's format, name and who is
+    shown it (``storage.characters.audience``), null for a rig without one."""
+    out: list[dict[str, Any]] = []
+    for info in store.list():
+        stored = store.character(base_id(info.id), with_glb=False)
+        character = None
+        if stored is not None:
+            character = {
+                "format": stored.format,
+                "name": stored.meta.get("name"),
+                **audience(stored.meta, rights_holder=stored.rights_holder),
+            }
+        out.append(
+            {"id": info.id, "size": info.size, "modified": info.modified, "character": character}
+        )
+    return out
 
 
 @router.get("/rigs/{rig_id}", summary="Describe a rig (Rig.summary())")
@@ -425,13 +444,15 @@ async def get_model(request: Request, rig_id: str, _: Reader) -> Response:
 async def download_rig(request: Request, rig_id: str, _: Downloader) -> Response:
     _check_id(rig_id)
     try:
-        data = await anyio.to_thread.run_sync(_store(request).get_bytes, rig_id)
+        fh, size = await anyio.to_thread.run_sync(_store(request).open_rig_file, rig_id)
     except RigNotFoundError:
         raise _not_found(rig_id) from None
-    return Response(
-        data,
-        media_type="application/octet-stream",
-        headers={"Content-Disposition": f'attachment; filename="{rig_id}.rig"'},
+    # Streamed from disk in chunks (``downloads``), as the character file is.
+    return stream_file(
+        fh,
+        size,
+        "application/octet-stream",
+        {"Content-Disposition": f'attachment; filename="{rig_id}.rig"'},
     )
 
 

@@ -44,7 +44,12 @@ from ..storage.archive import ArchiveError, ArchiveLimits
 from ..storage.characters import character_view, pack_character
 from ..storage.jobs import FINISHED
 from ..storage.rig_store import RIG_ID_PATTERN, RigStore, valid_rig_id
-from .character_upload import character_record, pairing_view, read_character_upload
+from .character_upload import (
+    character_record,
+    check_character_size,
+    pairing_view,
+    read_character_upload,
+)
 from .rigs import archive_limits, fit_slot, read_body, run_fit
 
 __all__ = ["router", "start_transfer"]
@@ -101,6 +106,16 @@ def _source_path(settings: Settings) -> Path:
     return Path(archive)
 
 
+def transfer_available(settings: Settings) -> bool:
+    """Whether this server can transfer expressions (``transfer_source`` found): what an
+    upload with none may be told to ask for."""
+    try:
+        _source_path(settings)
+    except ApiError:
+        return False
+    return True
+
+
 def _names(text: str | None) -> list[str] | None:
     if text is None:
         return None
@@ -118,8 +133,11 @@ async def start_transfer(
     *,
     markers: str | None,
     names: str | None,
+    rights_holder: bool = False,
 ) -> JSONResponse:
-    """Check the upload, record a queued job and start it: 202 with the record."""
+    """Check the upload, record a queued job and start it: 202 with the record.
+
+    ``rights_holder``: kept in the stored character's record (``character_record``)."""
     settings: Settings = request.app.state.settings
     store = _store(request)
     archive = _source_path(settings)
@@ -160,6 +178,7 @@ async def start_transfer(
             job = _TransferJob(
                 rig_id, record["job"], plan, source, options, store,
                 request.app.state.transfer_cancel, getattr(request.app.state, STAGE_HOOK, None),
+                rights_holder=rights_holder,
             )  # fmt: skip
             executor: Executor = request.app.state.transfer_executor
             future = executor.submit(job.run, slot)
@@ -229,11 +248,13 @@ class _Prepare:
         self.scratch = scratch
         self.archive = archive
         self.max_vertices = settings.max_transfer_vertices
+        self.max_bytes = settings.max_character_bytes
 
     def __call__(
         self, data: bytes, markers: str | None, names: list[str] | None
     ) -> tuple[TransferPlan, SourceExpressions]:
         character, found = read_character_upload(data, self.limits, self.scratch)
+        check_character_size(character, self.max_bytes)
         if found is not None and markers is not None:
             raise ApiError(
                 422,
@@ -249,6 +270,11 @@ class _Prepare:
             names=names,
             max_vertices=self.max_vertices,
             label="the uploaded character",
+        )
+        # The job's file grows by its morph targets (float32 xyz a vertex and expression,
+        # an accessor each): checked at the size it will be stored at, before the 202.
+        check_character_size(
+            character, self.max_bytes, adding=len(plan.names) * (plan.vertices * 12 + 256)
         )
         return plan, source
 
@@ -266,9 +292,12 @@ class _TransferJob:
         store: RigStore,
         cancel: threading.Event,
         stage_hook: Callable[[str], object] | None = None,
+        *,
+        rights_holder: bool = False,
     ) -> None:
         self.rig_id = rig_id
         self.stage_hook = stage_hook
+        self.rights_holder = rights_holder
         self.job = job
         self.plan = plan
         self.source = source
@@ -341,7 +370,8 @@ class _TransferJob:
         character = load_character(glb, label="the character with its transferred expressions")
         example_set, report = character_example_set(character)
         rig = fit(example_set, **self.options)
-        packed = pack_character(character.glb, character_record(character))
+        record = character_record(character, rights_holder=self.rights_holder)
+        packed = pack_character(character.glb, record)
         self._enter("store")
         # Checked and stored in one step (the store's change lock): a character deleted
         # or uploaded anew since keeps what it has now, and the record says why.

@@ -18,7 +18,7 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, BinaryIO
 
 from facecast.protocol import Limits
 from facecast.rig.errors import RigFileError
@@ -318,6 +318,31 @@ class RigStore:
                 return unpack_character(fh, with_glb=with_glb)
             except ValueError:
                 return None
+
+    def open_character(self, rig_id: str) -> tuple[StoredCharacter, BinaryIO, int] | None:
+        """The character's record (``glb`` empty), its file open at the GLB and the GLB's
+        size, for streaming; ``None`` as ``character``. The caller closes the file; a
+        replace meanwhile leaves it reading the version it opened."""
+        self._path(rig_id)  # validates the id
+        try:
+            fh = (self.directory / f"{rig_id}{CHARACTER_SUFFIX}").open("rb")
+        except FileNotFoundError:
+            return None
+        try:
+            stored = unpack_character(fh, with_glb=False)
+            size = os.fstat(fh.fileno()).st_size - fh.tell()
+        except (ValueError, OSError):
+            fh.close()
+            return None
+        return stored, fh, size
+
+    def open_rig_file(self, rig_id: str) -> tuple[BinaryIO, int]:
+        """The rig file open for streaming and its size; ``RigNotFoundError``."""
+        try:
+            fh = self._path(rig_id).open("rb")
+        except FileNotFoundError:
+            raise RigNotFoundError(rig_id) from None
+        return fh, os.fstat(fh.fileno()).st_size
 
     def delete(self, rig_id: str) -> None:
         """Delete the rig, its character and its transfer job record (a job still running
