@@ -28,6 +28,7 @@ from facecast.cli.errors import CommandError
 from facecast.cli.report import write_json
 from facecast.cli.track import track_video
 from facecast.rig import fit
+from facecast.rig.errors import ExampleSetError
 from facecast.rig.evaluation.evaluate import cloning_error
 from facecast.rig.evaluation.eyes import EYES_IDENTITY, EyesClip, eyes_clip, eyes_rows
 from facecast.rig.evaluation.takes import take_experiment
@@ -43,7 +44,7 @@ from facecast.rig.evaluation.webcam import (
     superposition,
     webcam_rows,
 )
-from facecast.rig.sources.ict import ict_regions, locate_ict
+from facecast.rig.sources.ict import DEFAULT_LANDMARKS, ict_regions, locate_ict
 from facecast.rig.sources.ict_arkit import ARKIT_TARGET_IDENTITY, arkit_example_set
 from facecast.rig.sources.trackers import read_livelink_csv
 from facecast.server.storage.profiles import held_noise
@@ -105,9 +106,15 @@ def _setup(args: argparse.Namespace) -> _Setup:
     weights = take.weights if args.frames is None else take.weights[: args.frames]
     if len(weights) < 3:
         raise CommandError(f"the take has {len(weights)} frames; at least 3 are needed")
-    examples = arkit_example_set(archive, identity=target_id)
-    performer = ict_performer(archive, identity=performer_id)
-    eyes_performer = ict_performer(archive, identity=eyes_id)
+    landmarks = DEFAULT_LANDMARKS if args.landmarks is None else tuple(args.landmarks)
+    if landmarks != DEFAULT_LANDMARKS and not args.exact_only:
+        raise CommandError("--landmarks needs --exact-only: the tracker gives the page's layout")
+    try:
+        examples = arkit_example_set(archive, identity=target_id, landmarks=landmarks)
+    except ExampleSetError as error:
+        raise CommandError(f"--landmarks: {error}") from None
+    performer = ict_performer(archive, identity=performer_id, landmarks=landmarks)
+    eyes_performer = ict_performer(archive, identity=eyes_id, landmarks=landmarks)
     clips = key_clips(
         performer.names,
         keys=args.keys,

@@ -177,6 +177,10 @@ def register(subparsers: Subparsers) -> None:
     webcam.add_argument("--eyes-only", action="store_true",
                         help="only the eyes clip: skip the take and its performer's keys")  # fmt: skip
     webcam.add_argument("--no-eyes", action="store_true", help="skip the eyes clip")
+    webcam.add_argument("--landmarks", metavar="N,...",
+                        type=lambda text: [int(n) for n in text.split(",")],
+                        help="with --exact-only: the feature points, as positions in ICT's "
+                        "68 landmarks (Multi-PIE order; default the page's 20)")  # fmt: skip
     webcam.add_argument("--kalman", metavar="A,...",
                         type=lambda text: [float(a) for a in text.split(",")],
                         help="the eyes clip's live Kalman rows: accelerations in landmark-noise "

@@ -206,6 +206,7 @@ def test_bench_eyes_clip_on_exact_landmarks_scores_each_event_on_both_paths(tmp_
         (["--eyes-performer", "person07"], "another face"),
         (["--eyes-only", "--no-eyes"], "nothing to measure"),
         (["--kalman", "0"], "finite and > 0"),
+        (["--landmarks", "17,70"], "positions must lie in [0, 68)"),
     ],
 )
 def test_bench_refuses_bad_arguments_with_a_message(argv, message, capsys):
