@@ -1,6 +1,7 @@
 """Suite-wide set-up: one BLAS thread (as the CLI sets it) before numpy is imported, the
-anyio backend and uvicorn's WebSocket implementations for the tests of real servers, and the
-perform venv's interpreter for the tests that run MediaPipe (``tests._perform_venv``)."""
+anyio backend and uvicorn's WebSocket implementations for the tests of real servers, the
+perform venv's interpreter for the tests that run MediaPipe (``tests._perform_venv``), and
+under CI=true every skip turned into a failure (``tests._requires``; tests/README.md)."""
 
 import os
 
@@ -15,6 +16,7 @@ from facecast.server.testing import WS_IMPLEMENTATIONS  # noqa: E402
 
 from ._ci_skips import fails_on_ci  # noqa: E402
 from ._perform_venv import require_perform_venv  # noqa: E402
+from ._requires import pytest_make_collect_report, pytest_runtest_makereport  # noqa: E402, F401
 
 
 @pytest.fixture
