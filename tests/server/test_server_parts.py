@@ -24,6 +24,7 @@ from facecast.server.storage.archive import (
     ArchiveLimits,
     extract_archive,
 )
+from facecast.server.storage.jobs import JOBS_DIR
 from facecast.server.storage.rig_store import SCRATCH_DIR, RigNotFoundError, RigStore
 
 # -- settings -----------------------------------------------------------------------------
@@ -169,7 +170,10 @@ def _rig_dir_entries(store: RigStore) -> list[str]:
     but for its lock: no temp file left behind."""
     leftovers = [p.name for p in store.scratch.iterdir() if p.name != ".lock"]
     assert leftovers == []
-    return sorted(p.name for p in store.directory.iterdir() if p.name != SCRATCH_DIR)
+    # The store's own folders: scratch, and .jobs (its change lock, job records).
+    return sorted(
+        p.name for p in store.directory.iterdir() if p.name not in (SCRATCH_DIR, JOBS_DIR)
+    )
 
 
 def test_concurrent_writes_of_one_id_leave_one_whole_rig(store, rig):
@@ -288,7 +292,11 @@ def test_a_closed_store_leaves_no_scratch_behind(tmp_path, rig):
     store.close()
 
     assert not scratch.exists()
-    assert sorted(p.name for p in (tmp_path / "rigs").iterdir()) == [SCRATCH_DIR, "face.rig"]
+    assert sorted(p.name for p in (tmp_path / "rigs").iterdir()) == [
+        JOBS_DIR,  # the change lock's file
+        SCRATCH_DIR,
+        "face.rig",
+    ]
 
 
 # -- archives -------------------------------------------------------------------------------
