@@ -182,7 +182,8 @@ def track_video(
         )
     if importlib.util.find_spec("playwright") is None:
         raise CommandError(
-            "facecast track drives Chromium through Playwright: pip install 'facecast[track]'"
+            "facecast track drives Chromium through Playwright: run ./scripts/setup --track "
+            "(or pip install 'facecast[track]')"
         )
     frames = video.num_frames
     # Playwright's sync API refuses a thread with a running event loop (Jupyter, an async

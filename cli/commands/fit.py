@@ -60,7 +60,7 @@ def register(subparsers: Subparsers) -> None:
         metavar="SIGMA",
         help="expected landmark noise (std per coordinate, source units); 0 = exact "
         "interpolation, the default for an example set; a character paired with the generic "
-        "ARKit set is fitted by default for a live tracker's noise, 0.05 cm with --clamp "
+        "ARKit set is fitted by default for a live tracker's noise, 0.035 cm with --clamp "
         "unit (facecast.rig.characters.generic.CHARACTER_FIT_DEFAULTS, the same as "
         "PUT /v1/characters/{id}; docs/characters.md)",
     )

@@ -9,8 +9,9 @@ re-exported here) or render; docs/characters.md explains it.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +53,13 @@ __all__ = [
 
 # Expression order: ARKit's, then VRM's presets, then the rest as found.
 _ORDER = {name: i for i, name in enumerate((*ARKIT_NAMES, *VRM_PRESETS))}
+
+#: An expression moves nothing visible when no bound morph target (times its bind weight)
+#: moves a vertex by more than this fraction of its mesh's bounding-box diagonal: 30 µm on
+#: a 30 cm head, a tenth of a pixel with the face 1000 px tall. Exported files carry such
+#: targets (VRoid's Perfect Sync ``jawOpen`` and ``tongueOut`` written as zeros): paired,
+#: a rig would give them the weight of a motion the character never shows.
+STILL_RELATIVE = 1e-4
 
 
 # -- expressions ------------------------------------------------------------------------
@@ -190,16 +198,13 @@ def _vrm_entries(
             )
             continue
         if not binds:
-            report.append(
-                PairingEntry(
-                    vrm.name,
-                    origin,
-                    meshes,
-                    None,
-                    False,
-                    "binds no morph target (material changes only)",
-                )
-            )
+            if vrm.binds:
+                why = "its morph binds all have weight 0: it moves nothing"
+            elif vrm.materials:
+                why = "binds no morph target (material changes only)"
+            else:
+                why = "binds nothing (no morph target, no material): an empty expression"
+            report.append(PairingEntry(vrm.name, origin, meshes, None, False, why))
             continue
         found[name] = _Found(binds, "vrm")
         report.append(PairingEntry(vrm.name, origin, meshes, name, False, how))
@@ -223,6 +228,35 @@ def _face_mesh(found: dict[str, _Found], doc: dict[str, Any], gltf: Any, label: 
     return min(range(len(meshes)), key=lambda i: (-bound[i], -vertices[i], i))
 
 
+def _still_expressions(
+    found: dict[str, _Found], gltf: Any, reader: BufferReader, label: str
+) -> dict[str, str]:
+    """``{name: why}`` of the expressions no bound morph target moves visibly
+    (``STILL_RELATIVE``); each mesh they bind is read once."""
+    largest: dict[int, tuple[np.ndarray, float]] = {}
+
+    def moves(binding: Binding) -> float:
+        if binding.mesh not in largest:
+            vertices, _, deltas, _ = read_mesh(gltf.meshes[binding.mesh], reader, label)
+            extent = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
+            offsets = np.linalg.norm(deltas, axis=2).max(axis=1) if deltas.size else deltas
+            largest[binding.mesh] = (np.asarray(offsets).reshape(-1), extent)
+        offsets, extent = largest[binding.mesh]
+        if binding.morph >= offsets.size:
+            return 0.0
+        return float(binding.weight * offsets[binding.morph]) / max(extent, 1e-30)
+
+    still = {}
+    for name, expression in found.items():
+        share = max((moves(b) for b in expression.bindings), default=0.0)
+        if share <= STILL_RELATIVE:
+            still[name] = (
+                f"moves no vertex visibly (its largest offset is {share:.1g} of its mesh's "
+                f"size, at most {STILL_RELATIVE:g}): not paired, a rig would drive nothing"
+            )
+    return still
+
+
 def load_character(source: Path | bytes, *, label: str = "character") -> Character:
     """Read a .glb, .vrm (VRM 0.x or 1.0) or .gltf (with its files beside it) as authored.
 
@@ -239,7 +273,9 @@ def load_character(source: Path | bytes, *, label: str = "character") -> Charact
         Expressions from every mesh's morph targets (one name on several meshes is one
         expression binding them all) and from the VRM expressions' morph binds (which
         replace a morph-named expression of the same normalised name), names normalised by
-        ``expression_names.normalise_name``; the report pairs them with the generic set.
+        ``expression_names.normalise_name``, less those that move no vertex visibly
+        (``STILL_RELATIVE``; the report names them); the report pairs them with the
+        generic set.
 
     Raises
     ------
@@ -248,7 +284,8 @@ def load_character(source: Path | bytes, *, label: str = "character") -> Charact
         folder, or any external URI in a GLB or bytes), ``texture_too_large`` (a header
         declaring more than ``MAX_TEXTURE_SIDE`` a side or ``MAX_TEXTURE_PIXELS`` in all),
         ``bad_image``, ``bad_vrm_bind``, ``morph_vertex_mismatch``, ``too_large``,
-        ``unsupported_extension``, ``no_mesh``, ``missing_file``.
+        ``bad_compression`` (meshopt or Draco data that does not decode to what its
+        accessors declare), ``no_mesh``, ``missing_file``.
     """
     try:
         return _load(source, label)
@@ -260,6 +297,33 @@ def load_character(source: Path | bytes, *, label: str = "character") -> Charact
         raise ExampleSetError(
             f"{label}: malformed glTF ({type(exc).__name__})", code="bad_gltf"
         ) from None
+
+
+def _driven_through_vrm(
+    entries: list[PairingEntry],
+    names: list[list[str]],
+    found: dict[str, _Found],
+    paired: dict[str, str],
+) -> list[PairingEntry]:
+    """Morph-target entries whose own name pairs with nothing but whose morph a paired VRM
+    expression binds (a VRM ``A`` binding ``vrc.v_aa``) say so: their motion is live,
+    driven by that expression's weight, though the name itself has no source points."""
+    through: dict[str, list[str]] = {}
+    for name, expression in found.items():
+        if expression.origin != "vrm" or name not in paired:
+            continue
+        for b in expression.bindings:
+            authored = names[b.mesh][b.morph]
+            if name not in through.setdefault(authored, []):
+                through[authored].append(name)
+    out = []
+    for e in entries:
+        via = through.get(e.authored, [])
+        if e.origin == "morph target" and e.expression not in paired and via:
+            listed = ", ".join(repr(v) for v in via)
+            e = replace(e, reason=f"{e.reason}; moved through the paired VRM expression {listed}")
+        out.append(e)
+    return out
 
 
 def _load(source: Path | bytes, label: str) -> Character:
@@ -284,8 +348,17 @@ def _load(source: Path | bytes, label: str) -> Character:
         else e
         for e in entries
     ] + vrm_entries
-    face = _face_mesh(found, doc, gltf, label)
     reader = BufferReader(gltf, None, label)
+    reader.decode_all()  # a compressed part that does not decode is refused now (bounded)
+    still = _still_expressions(found, gltf, reader, label)
+    entries = [
+        dataclasses.replace(e, reason=f"{e.reason}; {still[e.expression]}")
+        if e.expression in still
+        else e
+        for e in entries
+    ]
+    found = {name: f for name, f in found.items() if name not in still}
+    face = _face_mesh(found, doc, gltf, label)
     vertices, faces, deltas, _ = read_mesh(gltf.meshes[face], reader, label)
     expressions = {}
     for name in sorted(found, key=lambda n: _ORDER.get(n, len(_ORDER))):
@@ -297,6 +370,7 @@ def _load(source: Path | bytes, label: str) -> Character:
         displacement.flags.writeable = False
         expressions[name] = Expression(name, bindings, displacement, found[name].origin)
     paired, unpaired = generic_pairing(expressions)
+    reported = _driven_through_vrm(entries, names, found, paired)
     vertices.flags.writeable = False
     return Character(
         glb=glb,
@@ -309,6 +383,6 @@ def _load(source: Path | bytes, label: str) -> Character:
         expressions=expressions,
         names=tuple(entries),
         report=pair_report(
-            entries, paired, unpaired, source=GENERIC_ATTRIBUTION, face_mesh=mesh_names[face]
+            reported, paired, unpaired, source=GENERIC_ATTRIBUTION, face_mesh=mesh_names[face]
         ),
     )

@@ -17,6 +17,7 @@ from typing import Any
 
 from ..errors import ExampleSetError
 from ..io.gltf import pack_glb
+from ..io.gltf_compression import MESHOPT
 from ..io.image_headers import image_size, sniff_mime
 
 __all__ = ["MAX_CHARACTER_BYTES", "MAX_TEXTURE_PIXELS", "MAX_TEXTURE_SIDE", "read_character_file"]
@@ -30,9 +31,6 @@ MAX_TEXTURE_PIXELS = 2**27
 
 _GLB_HEADER = struct.Struct("<4sII")
 _CHUNK = struct.Struct("<I4s")
-_GLB_HEADER = struct.Struct("<4sII")
-_CHUNK = struct.Struct("<I4s")
-_UNSUPPORTED = ("KHR_draco_mesh_compression", "EXT_meshopt_compression", "KHR_mesh_quantization")
 
 
 def _split_glb(data: bytes, label: str) -> tuple[bytes, bytes | None]:
@@ -80,14 +78,6 @@ def _parse_json(text: bytes, label: str) -> dict[str, Any]:
     asset = doc.get("asset") if isinstance(doc, dict) else None
     if not isinstance(asset, dict) or not str(asset.get("version", "")).startswith("2"):
         raise ExampleSetError(f"{label}: not a glTF 2.0 document", code="bad_gltf")
-    required = doc.get("extensionsRequired") or []
-    blocked = [e for e in required if e in _UNSUPPORTED] if isinstance(required, list) else []
-    if blocked:
-        raise ExampleSetError(
-            f"{label}: uses {blocked[0]}, which facecast cannot read: export without mesh "
-            "compression or quantisation",
-            code="unsupported_extension",
-        )
     checked: dict[str, Any] = doc
     return checked
 
@@ -130,24 +120,39 @@ def _read_uri(uri: str, folder: Path | None, label: str, budget: list[int]) -> b
         ) from None
 
 
+def _is_fallback(buffer: object) -> bool:
+    """An ``EXT_meshopt_compression`` fallback buffer: no bytes, only a size to stand for."""
+    if not isinstance(buffer, dict) or "uri" in buffer:
+        return False
+    extensions = buffer.get("extensions")
+    ext = extensions.get(MESHOPT) if isinstance(extensions, dict) else None
+    return isinstance(ext, dict) and ext.get("fallback") is True
+
+
 def _pack_gltf(doc: dict[str, Any], folder: Path | None, label: str, budget: list[int]) -> bytes:
-    """The .gltf as one GLB: its buffers concatenated in one BIN chunk, images embedded."""
+    """The .gltf as one GLB: its buffers concatenated in one BIN chunk, images embedded;
+    meshopt's fallback buffers (no bytes) stay buffers of their own after it."""
     buffers = doc.get("buffers") or []
     if not isinstance(buffers, list):
         raise ExampleSetError(f"{label}: buffers is not a list", code="bad_gltf")
     parts: list[bytes] = []
-    starts: list[int] = []
+    starts: dict[int, int] = {}
+    fallbacks: dict[int, int] = {}  # old index -> its place among the fallback buffers
     size = 0
-    for buffer in buffers:
+    for number, buffer in enumerate(buffers):
+        if _is_fallback(buffer):
+            fallbacks[number] = len(fallbacks)
+            continue
         uri = buffer.get("uri") if isinstance(buffer, dict) else None
         if not isinstance(uri, str):
             raise ExampleSetError(f"{label}: a .gltf buffer without a uri", code="bad_gltf")
         data = _read_uri(uri, folder, label, budget)
-        starts.append(size)
+        starts[number] = size
         pad = (-len(data)) % 4  # keeps every buffer's views aligned as they were
         parts.append(data + b"\0" * pad)
         size += len(data) + pad
     views = doc.setdefault("bufferViews", [])
+    moved: list[dict[str, Any]] = []  # views in fallback buffers: renumbered once known
     for view in views:
         if (
             not isinstance(view, dict)
@@ -155,6 +160,18 @@ def _pack_gltf(doc: dict[str, Any], folder: Path | None, label: str, budget: lis
             or not 0 <= view["buffer"] < len(buffers)
         ):
             raise ExampleSetError(f"{label}: a bufferView names no buffer", code="bad_gltf")
+        extensions = view.get("extensions")
+        ext = extensions.get(MESHOPT) if isinstance(extensions, dict) else None
+        if isinstance(ext, dict):  # its compressed bytes move with their buffer
+            if ext.get("buffer") not in starts:
+                raise ExampleSetError(
+                    f"{label}: a meshopt view names no buffer with bytes", code="bad_gltf"
+                )
+            ext["byteOffset"] = int(ext.get("byteOffset", 0)) + starts[ext["buffer"]]
+            ext["buffer"] = 0
+        if view["buffer"] in fallbacks:
+            moved.append(view)
+            continue
         view["byteOffset"] = int(view.get("byteOffset", 0)) + starts[view["buffer"]]
         view["buffer"] = 0
     for image in doc.get("images") or []:
@@ -165,10 +182,12 @@ def _pack_gltf(doc: dict[str, Any], folder: Path | None, label: str, budget: lis
             image["bufferView"] = len(views) - 1
             parts.append(data + b"\0" * ((-len(data)) % 4))
             size += len(data) + (-len(data)) % 4
-    if parts:
-        doc["buffers"] = [{"byteLength": size}]
-    else:
-        doc.pop("buffers", None)
+    first = [{"byteLength": size}] if parts else []
+    for view in moved:
+        view["buffer"] = len(first) + fallbacks[view["buffer"]]
+    doc["buffers"] = first + [buffers[number] for number in fallbacks]
+    if not doc["buffers"]:
+        doc.pop("buffers")
     return pack_glb(doc, b"".join(parts))
 
 
@@ -217,7 +236,8 @@ def read_character_file(source: Path | bytes, label: str) -> tuple[dict[str, Any
     ------
     ExampleSetError
         ``truncated_file``, ``bad_gltf``, ``external_uri``, ``texture_too_large``,
-        ``bad_image``, ``too_large``, ``unsupported_extension``, ``missing_file``.
+        ``bad_image``, ``too_large``, ``missing_file``. Compressed geometry (meshopt,
+        Draco) is not decoded here: ``gltf_read`` decodes it, bounded.
     """
     folder: Path | None = None
     if isinstance(source, bytes | bytearray | memoryview):

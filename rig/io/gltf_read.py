@@ -1,8 +1,10 @@
 """Reading glTF 2.0 (JSON or GLB): a document, its buffers, and a mesh with its morph targets.
 
 Bounded reading of untrusted files: every accessor is checked against its buffer and
-MAX_VALUES before an array is made; errors are ``ExampleSetError`` with a code. It does no
-writing (gltf_export.py), fitting or blending.
+MAX_VALUES before an array is made, compressed views and primitives (meshopt, Draco:
+gltf_compression.py) against MAX_DECODED_BYTES and their accessors before they are decoded;
+quantised attributes (KHR_mesh_quantization) are read as stored. Errors are
+``ExampleSetError`` with a code. It does no writing (gltf_export.py), fitting or blending.
 """
 
 from __future__ import annotations
@@ -18,8 +20,16 @@ import numpy.typing as npt
 import pygltflib
 
 from ..errors import ExampleSetError
+from .gltf_compression import (
+    DracoGeometry,
+    decode_draco,
+    decode_meshopt_view,
+    draco_extension,
+    meshopt_extension,
+)
 
 __all__ = [
+    "MAX_DECODED_BYTES",
     "MAX_VALUES",
     "TRIANGLES",
     "TYPE_SIZES",
@@ -45,6 +55,9 @@ _COMPONENT_DTYPES = {
 # Largest array (in values) the reader will allocate: ~20x the ICT head's 57 targets, so a
 # corrupted count cannot make it ask for terabytes.
 MAX_VALUES = 100_000_000
+#: Most bytes one read decodes out of compressed views (meshopt): MAX_VALUES float32 values.
+#: Each view's declared size is checked against what is left before it is decoded.
+MAX_DECODED_BYTES = 4 * MAX_VALUES
 TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 
 
@@ -87,6 +100,9 @@ class BufferReader:
         self.base = base
         self.label = label
         self.cache: dict[int, bytes] = {}
+        self.decoded: dict[int, bytes] = {}
+        self.decoded_left = MAX_DECODED_BYTES
+        self.draco: dict[int, DracoGeometry] = {}
 
     def buffer(self, index: int) -> bytes:
         if index in self.cache:
@@ -99,6 +115,13 @@ class BufferReader:
             ) from None
         uri = buf.uri
         data: bytes | None
+        if uri is None and index != 0:
+            # A meshopt fallback buffer, say: only a GLB's first buffer is its BIN chunk.
+            raise ExampleSetError(
+                f"{self.label}: buffer {index} has no bytes (no uri, and only buffer 0 is a "
+                "GLB's binary chunk)",
+                code="bad_gltf",
+            )
         if uri is None:
             data = self.gltf.binary_blob()
             if data is None:
@@ -133,18 +156,94 @@ class BufferReader:
         self, view_index: int, offset: int, count: int, dtype: npt.DTypeLike, ncomp: int
     ) -> np.ndarray:
         view = self.gltf.bufferViews[view_index]
-        data = self.buffer(view.buffer)
         itemsize = np.dtype(dtype).itemsize
         stride = view.byteStride or itemsize * ncomp
-        start = (view.byteOffset or 0) + offset
         need = stride * (count - 1) + itemsize * ncomp if count else 0
-        if start + need > min(len(data), (view.byteOffset or 0) + view.byteLength):
+        if meshopt_extension(view) is not None:
+            data, start, end = self.view_bytes(view_index), offset, view.byteLength
+        else:
+            data = self.buffer(view.buffer)
+            start = (view.byteOffset or 0) + offset
+            end = (view.byteOffset or 0) + view.byteLength
+        if start + need > min(len(data), end):
             raise ExampleSetError(
                 f"{self.label}: accessor runs past its buffer view", code="bad_gltf"
             )
         return np.ndarray(
             (count, ncomp), dtype=dtype, buffer=data, offset=start, strides=(stride, itemsize)
         ).copy()
+
+    def view_bytes(self, view_index: int) -> bytes:
+        """A meshopt-compressed view's bytes, decoded once (bounded by ``decoded_left``)."""
+        if view_index not in self.decoded:
+            view = self.gltf.bufferViews[view_index]
+            ext = meshopt_extension(view)
+            assert ext is not None
+            if view.byteStride is not None and view.byteStride != ext.get("byteStride"):
+                raise ExampleSetError(
+                    f"{self.label}: bufferView {view_index} byteStride {view.byteStride} is "
+                    f"not its meshopt byteStride {ext.get('byteStride')}",
+                    code="bad_compression",
+                )
+            data = decode_meshopt_view(
+                ext, int(view.byteLength), self.buffer, self.decoded_left, self.label
+            )
+            self.decoded_left -= len(data)
+            self.decoded[view_index] = data
+        return self.decoded[view_index]
+
+    def draco_geometry(self, primitive: pygltflib.Primitive) -> DracoGeometry | None:
+        """A Draco primitive's (positions, triangle corners), decoded once; None if the
+        primitive is not Draco-compressed. Its accessors' counts are bounded first."""
+        ext = draco_extension(primitive)
+        if ext is None:
+            return None
+        view_index = ext.get("bufferView")
+        attributes = ext.get("attributes")
+        if not isinstance(view_index, int) or not isinstance(attributes, dict):
+            raise ExampleSetError(
+                f"{self.label}: a Draco primitive names no bufferView or attributes",
+                code="bad_compression",
+            )
+        if view_index not in self.draco:
+            position_id = attributes.get("POSITION")
+            if not isinstance(position_id, int) or primitive.attributes.POSITION is None:
+                raise ExampleSetError(
+                    f"{self.label}: a Draco primitive without POSITION", code="bad_compression"
+                )
+            vertices = self._declared(primitive.attributes.POSITION, 3)
+            corners = None if primitive.indices is None else self._declared(primitive.indices, 1)
+            view = self.gltf.bufferViews[view_index]
+            data = self.buffer(view.buffer)
+            start = view.byteOffset or 0
+            if start + view.byteLength > len(data):
+                raise ExampleSetError(
+                    f"{self.label}: a Draco primitive's view runs past its buffer",
+                    code="bad_compression",
+                )
+            self.draco[view_index] = decode_draco(
+                data[start : start + view.byteLength], position_id, vertices, corners, self.label
+            )
+        return self.draco[view_index]
+
+    def _declared(self, index: int, ncomp: int) -> int:
+        """Accessor ``index``'s count, checked against MAX_VALUES (before any decoding)."""
+        count = int(self.gltf.accessors[index].count)
+        if count < 0 or count * ncomp > MAX_VALUES:
+            raise ExampleSetError(
+                f"{self.label}: accessor {index} count {count} is out of bounds", code="bad_gltf"
+            )
+        return count
+
+    def decode_all(self) -> None:
+        """Decode every compressed view and primitive of the file (each bounded), so that a
+        part that does not decode is found now, not by a viewer."""
+        for index, view in enumerate(self.gltf.bufferViews or []):
+            if meshopt_extension(view) is not None:
+                self.view_bytes(index)
+        for mesh in self.gltf.meshes or []:
+            for primitive in mesh.primitives or []:
+                self.draco_geometry(primitive)
 
     def accessor(self, index: int) -> np.ndarray:
         """Decode accessor ``index`` into a (count, ncomp) array (float64 or int64)."""
@@ -304,8 +403,10 @@ def read_mesh(
         pos_index = prim.attributes.POSITION
         if pos_index is None:
             raise ExampleSetError(f"{label}: primitive {number} has no POSITION", code="bad_gltf")
+        draco = reader.draco_geometry(prim)
         if pos_index not in first_vertex:
-            pos = reader.accessor(pos_index)
+            # Quantised positions (KHR_mesh_quantization) come as integers: as floats here.
+            pos = (reader.accessor(pos_index) if draco is None else draco[0]).astype(np.float64)
             if pos.shape[1] != 3:
                 raise ExampleSetError(f"{label}: POSITION is not VEC3", code="bad_gltf")
             first_vertex[pos_index] = total
@@ -333,6 +434,8 @@ def read_mesh(
             deltas.append(prim_deltas)
         if prim.indices is None:
             tri = np.arange(vertex_count[pos_index], dtype=np.int64)
+        elif draco is not None and draco[1] is not None:
+            tri = draco[1]
         else:
             tri = reader.accessor(prim.indices)[:, 0]
         if tri.size % 3:

@@ -13,7 +13,7 @@ import json
 import struct
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 import numpy.typing as npt
@@ -283,7 +283,7 @@ def _numbers(value: Any) -> bool:
     )
 
 
-def _index(value: Any, length: int) -> bool:
+def _index(value: Any, length: int) -> TypeGuard[int]:
     return isinstance(value, int) and not isinstance(value, bool) and 0 <= value < length
 
 

@@ -105,11 +105,13 @@ def _find_character(dest: Path) -> Path:
     return found[0]
 
 
-def character_record(character: Character) -> dict[str, Any]:
-    """What ``<id>.character`` keeps beside the GLB: format, VRM meta, bindings by name."""
+def character_record(character: Character, *, rights_holder: bool = False) -> dict[str, Any]:
+    """What ``<id>.character`` keeps beside the GLB: format, VRM meta, the uploader's
+    ``rights_holder`` declaration, bindings by name."""
     return {
         "format": character.format,
         "meta": character.meta,
+        "rights_holder": rights_holder,
         "bindings": {
             name: [[b.mesh, b.morph, b.weight] for b in expression.bindings]
             for name, expression in character.expressions.items()

@@ -38,7 +38,7 @@ from .character_upload import (
 )
 from .downloads import stream_file
 from .rigs import CharacterFitOptions, archive_limits, fit_slot, read_body, run_fit
-from .transfer import start_transfer
+from .transfer import start_transfer, transfer_available
 
 if TYPE_CHECKING:
     from facecast.rig import Rig
@@ -109,6 +109,14 @@ async def put_character(
             "(default all the character lacks)",
         ),
     ] = None,
+    rights_holder: Annotated[
+        bool,
+        Query(
+            description="the uploader declares they hold the rights to show this character: "
+            "a VRM whose licence forbids redistribution is then served to viewers without a "
+            "token too (default false: only to token holders)"
+        ),
+    ] = False,
 ) -> JSONResponse:
     _check_id(rig_id)
     if PERFORMER_SEPARATOR in rig_id:
@@ -120,7 +128,13 @@ async def put_character(
         )
     if expressions == "transfer":
         return await start_transfer(
-            request, rig_id, principal, options, markers=markers, names=names
+            request,
+            rig_id,
+            principal,
+            options,
+            markers=markers,
+            names=names,
+            rights_holder=rights_holder,
         )
     if markers is not None or names is not None:
         raise ApiError(
@@ -130,7 +144,11 @@ async def put_character(
         )
     settings = request.app.state.settings
     job = _CharacterJob(
-        archive_limits(settings), options, _store(request).scratch, settings.max_character_bytes
+        archive_limits(settings),
+        options,
+        _store(request).scratch,
+        settings.max_character_bytes,
+        rights_holder=rights_holder,
     )
     with fit_slot(request, principal):
         data = await read_body(request, settings.max_upload_bytes)
@@ -141,13 +159,20 @@ async def put_character(
         except ExampleSetError as exc:
             if exc.code != "no_expressions":
                 raise
-            raise ApiError(
-                422,
-                exc.code,
-                f"{exc.message}. Or let this server make them: upload it again with "
-                f"?expressions=transfer (`facecast rigs put URL {rig_id} FILE --expressions "
-                "transfer`)",
-            ) from None
+            # Only a server that has expressions to transfer (transfer_source) is offered:
+            # any other answers ?expressions=transfer with 503 transfer_unavailable.
+            if await anyio.to_thread.run_sync(transfer_available, settings):
+                remedy = (
+                    "Or let this server make them: upload it again with ?expressions=transfer "
+                    f"(`facecast rigs put URL {rig_id} FILE --expressions transfer`)"
+                )
+            else:
+                remedy = (
+                    "This server has no expressions to transfer (setting transfer_source): "
+                    "make them with `facecast expressions FILE -o FOLDER` where ICT-FaceKit "
+                    "is, then upload the example set"
+                )
+            raise ApiError(422, exc.code, f"{exc.message}. {remedy}") from None
     rig, packed, pairing, fmt = fitted
     created = await anyio.to_thread.run_sync(
         lambda: _store(request).put_rig(rig_id, rig, character=packed)
@@ -159,6 +184,7 @@ async def put_character(
             "rig": rig_id,
             "bytes": len(data),
             "format": fmt,
+            "rights_holder": rights_holder,
             "by": principal.name,
         },
     )
@@ -195,14 +221,17 @@ async def get_character(request: Request, rig_id: str, principal: Reader) -> Res
             "PUT /v1/characters/{id}); its mesh is GET /v1/rigs/{id}/model.glb",
         )
     stored, fh, size = opened
-    if character_not_served(stored.meta, anonymous=principal is ANONYMOUS):
+    if character_not_served(
+        stored.meta, anonymous=principal is ANONYMOUS, rights_holder=stored.rights_holder
+    ):
         fh.close()
         raise ApiError(
             403,
             "character_not_redistributable",
             f"the character of rig {rig_id!r} is a VRM whose licence forbids redistribution: "
-            "it is served only to callers with a token (the viewer role); its mesh is "
-            f"GET /v1/rigs/{rig_id}/model.glb",
+            "it is served only to callers with a token (the viewer role), unless its uploader "
+            "declares they hold the rights to show it (?rights_holder=true on the upload); "
+            f"its mesh is GET /v1/rigs/{rig_id}/model.glb",
         )
     # Streamed from disk in chunks (``downloads``): a slow viewer holds one, not the file.
     return stream_file(
@@ -217,12 +246,19 @@ class _CharacterJob:
     """Unpack (an archive), load, pair with the generic source set and fit (a worker thread)."""
 
     def __init__(
-        self, limits: ArchiveLimits, options: dict[str, Any], scratch: Path, max_bytes: int
+        self,
+        limits: ArchiveLimits,
+        options: dict[str, Any],
+        scratch: Path,
+        max_bytes: int,
+        *,
+        rights_holder: bool = False,
     ) -> None:
         self.limits = limits
         self.options = options
         self.scratch = scratch
         self.max_bytes = max_bytes
+        self.rights_holder = rights_holder
 
     def __call__(self, data: bytes) -> tuple[Rig, bytes, dict[str, Any], str]:
         character, _ = read_character_upload(data, self.limits, self.scratch)
@@ -231,7 +267,9 @@ class _CharacterJob:
         rig = fit(example_set, **self.options)
         return (
             rig,
-            pack_character(character.glb, character_record(character)),
+            pack_character(
+                character.glb, character_record(character, rights_holder=self.rights_holder)
+            ),
             pairing_view(report),
             character.format,
         )

@@ -30,7 +30,7 @@ from ..errors import ApiError, upload_paths_hidden
 from ..guards.auth import READ_ROLES, Principal, requires
 from ..settings import Settings
 from ..storage.archive import ArchiveError, ArchiveLimits, extract_archive, find_example_root
-from ..storage.characters import base_id, character_view, looks_like_character
+from ..storage.characters import audience, base_id, character_view, looks_like_character
 from ..storage.rig_store import RIG_ID_PATTERN, RigNotFoundError, RigStore, valid_rig_id
 from .downloads import stream_file
 
@@ -221,8 +221,26 @@ def _described(rig_id: str, rig: Rig) -> dict[str, Any]:
 
 @router.get("/rigs", summary="List stored rigs")
 async def list_rigs(request: Request, _: Reader) -> dict[str, Any]:
-    infos = await anyio.to_thread.run_sync(_store(request).list)
-    return {"rigs": [{"id": i.id, "size": i.size, "modified": i.modified} for i in infos]}
+    return {"rigs": await anyio.to_thread.run_sync(_listed, _store(request))}
+
+
+def _listed(store: RigStore) -> list[dict[str, Any]]:
+    """Each stored rig: id, size, modified, and its character's format, name and who is
+    shown it (``storage.characters.audience``), null for a rig without one."""
+    out: list[dict[str, Any]] = []
+    for info in store.list():
+        stored = store.character(base_id(info.id), with_glb=False)
+        character = None
+        if stored is not None:
+            character = {
+                "format": stored.format,
+                "name": stored.meta.get("name"),
+                **audience(stored.meta, rights_holder=stored.rights_holder),
+            }
+        out.append(
+            {"id": info.id, "size": info.size, "modified": info.modified, "character": character}
+        )
+    return out
 
 
 @router.get("/rigs/{rig_id}", summary="Describe a rig (Rig.summary())")

@@ -106,6 +106,16 @@ def _source_path(settings: Settings) -> Path:
     return Path(archive)
 
 
+def transfer_available(settings: Settings) -> bool:
+    """Whether this server can transfer expressions (``transfer_source`` found): what an
+    upload with none may be told to ask for."""
+    try:
+        _source_path(settings)
+    except ApiError:
+        return False
+    return True
+
+
 def _names(text: str | None) -> list[str] | None:
     if text is None:
         return None
@@ -123,8 +133,11 @@ async def start_transfer(
     *,
     markers: str | None,
     names: str | None,
+    rights_holder: bool = False,
 ) -> JSONResponse:
-    """Check the upload, record a queued job and start it: 202 with the record."""
+    """Check the upload, record a queued job and start it: 202 with the record.
+
+    ``rights_holder``: kept in the stored character's record (``character_record``)."""
     settings: Settings = request.app.state.settings
     store = _store(request)
     archive = _source_path(settings)
@@ -167,6 +180,7 @@ async def start_transfer(
             job = _TransferJob(
                 rig_id, record["job"], plan, source, options, store,
                 request.app.state.transfer_cancel, getattr(request.app.state, STAGE_HOOK, None),
+                rights_holder=rights_holder,
             )  # fmt: skip
             executor: Executor = request.app.state.transfer_executor
             future = executor.submit(job.run, slot)
@@ -280,9 +294,12 @@ class _TransferJob:
         store: RigStore,
         cancel: threading.Event,
         stage_hook: Callable[[str], object] | None = None,
+        *,
+        rights_holder: bool = False,
     ) -> None:
         self.rig_id = rig_id
         self.stage_hook = stage_hook
+        self.rights_holder = rights_holder
         self.job = job
         self.plan = plan
         self.source = source
@@ -355,7 +372,8 @@ class _TransferJob:
         character = load_character(glb, label="the character with its transferred expressions")
         example_set, report = character_example_set(character)
         rig = fit(example_set, **self.options)
-        packed = pack_character(character.glb, character_record(character))
+        record = character_record(character, rights_holder=self.rights_holder)
+        packed = pack_character(character.glb, record)
         self._enter("store")
         # Checked and stored in one step (the store's change lock): a character deleted
         # or uploaded anew since keeps what it has now, and the record says why.

@@ -2,27 +2,12 @@
 
 from __future__ import annotations
 
-import importlib
 import json
 
 import pytest
 
 from facecast.cli import main as cli
 from facecast.cli.bench import broadcast
-
-
-def _importable(name: str) -> bool:
-    try:
-        importlib.import_module(f"facecast.cli.commands.{name}")
-    except ModuleNotFoundError:
-        return False
-    return True
-
-
-@pytest.fixture(autouse=True)
-def _available_commands(monkeypatch):
-    present = tuple(name for name in cli.COMMAND_MODULES if _importable(name))
-    monkeypatch.setattr(cli, "COMMAND_MODULES", present)
 
 
 def test_bench_engine_writes_every_figure_with_baseline_and_verdict(tmp_path, capsys):

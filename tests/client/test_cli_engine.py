@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import json
 
 import numpy as np
@@ -15,31 +14,10 @@ from facecast.rig import KERNELS, load_rig
 from facecast.rig.sources.ict import locate_ict
 
 
-def _importable(name: str) -> bool:
-    try:
-        importlib.import_module(f"facecast.cli.commands.{name}")
-    except ModuleNotFoundError:
-        return False
-    return True
-
-
-def _present_commands() -> tuple[str, ...]:
-    # While some command modules are still being written, build the parser from those
-    # that exist; once all do, this changes nothing.
-    return tuple(name for name in cli.COMMAND_MODULES if _importable(name))
-
-
-@pytest.fixture(autouse=True)
-def _available_commands(monkeypatch):
-    monkeypatch.setattr(cli, "COMMAND_MODULES", _present_commands())
-
-
 @pytest.fixture(scope="module")
 def demo_rig(tmp_path_factory):
     path = tmp_path_factory.mktemp("rig") / "demo.rig"
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(cli, "COMMAND_MODULES", _present_commands())
-        assert cli.main(["fit", "demo", "-o", str(path)]) == 0
+    assert cli.main(["fit", "demo", "-o", str(path)]) == 0
     return path
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import importlib.util
 import io
 import logging
 import os
@@ -14,7 +13,7 @@ import tarfile
 import time
 import zipfile
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
@@ -196,27 +195,10 @@ def client_protocol() -> ClientProtocol:
 # -- subprocess servers ----------------------------------------------------------------
 
 
-_SERVE_ONLY = (
-    "import argparse, sys\n"
-    "from facecast.cli.commands import serve\n"
-    "parser = argparse.ArgumentParser(prog='facecast')\n"
-    "serve.register(parser.add_subparsers(dest='command', required=True))\n"
-    "args = parser.parse_args(sys.argv[1:])\n"
-    "sys.exit(args.func(args))\n"
-)
-
-
 def serve_argv(*args: str) -> list[str]:
-    """The command line starting ``facecast serve`` in a fresh interpreter.
-
-    The full CLI imports every command module; while some are still missing from the
-    tree, the serve command is driven on its own (same parser, same ``run``).
-    """
-    from facecast.cli.main import COMMAND_MODULES
-
-    if all(importlib.util.find_spec(f"facecast.cli.commands.{name}") for name in COMMAND_MODULES):
-        return [sys.executable, "-m", "facecast.cli", "serve", *args]
-    return [sys.executable, "-c", _SERVE_ONLY, "serve", *args]
+    """The command line starting ``facecast serve`` in a fresh interpreter (the full CLI:
+    a command module that fails to import fails the server's start, as it would a user's)."""
+    return [sys.executable, "-m", "facecast.cli", "serve", *args]
 
 
 @contextmanager
@@ -235,6 +217,9 @@ def server_process(
         env=full_env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
+        # Its own process group: a supervisor killed (by the test, or here when it never got
+        # ready) leaves its --workers behind, and they would go on running after the test.
+        start_new_session=True,
     )
     try:
         wait_ready(f"http://127.0.0.1:{port}", process, ready_timeout)
@@ -243,6 +228,8 @@ def server_process(
         if process.poll() is None:
             process.kill()
         process.wait(10)
+        with suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGKILL)
         if process.stderr:
             process.stderr.close()
 

@@ -4,6 +4,9 @@
 const STATE_CLASSES = ["connecting", "live", "idle", "waiting", "failed"];
 // Widest weight label; longer names are cut with an ellipsis.
 const LABEL_MAX_CH = 16;
+// More weights than this go in two columns of shorter rows (viewer.html's "many"):
+// an ARKit character's 52-63 then fit a 540 px window.
+const ONE_COLUMN_MAX = 24;
 
 export class Hud {
   constructor(doc, { showStats }) {
@@ -69,6 +72,9 @@ export class Hud {
     // into the labels however large the weight.
     const longest = names.reduce((n, name) => Math.max(n, name.length), 1);
     this.el.weights.style.setProperty("--label-ch", `${Math.min(longest, LABEL_MAX_CH)}ch`);
+    const many = names.length > ONE_COLUMN_MAX;
+    this.el.weights.classList.toggle("many", many);
+    this.doc.body.classList.toggle("many-weights", many && this.showStats);
     this.bars = names.map((name) => {
       const row = this.doc.createElement("div");
       row.className = "weight";

@@ -75,7 +75,9 @@ async function fetchBinary(params, path, what, read = (response) => response.arr
       const detail = problem.detail || response.statusText;
       if (response.status === 401) throw new Permanent(`Authentication failed (401 ${problem.code || "unauthorized"}): ${detail}`);
       if (response.status === 403) throw new Permanent(`Not allowed (403 ${problem.code || "forbidden"}): ${detail}`, problem.code);
-      if (response.status === 404 || response.status === 400) throw new Permanent(`${what}: ${detail}`);
+      if (response.status === 404 || response.status === 400 || response.status === 409) {
+        throw new Permanent(`${what}: ${detail}`, problem.code);
+      }
       setState("waiting", "waiting for the server", `${what}: HTTP ${response.status} ${detail}`);
     }
     const delay = Math.min(RETRY_MAX_MS, RETRY_FIRST_MS * 2 ** attempt++);
@@ -100,6 +102,9 @@ async function loadModel(params, view) {
       stats.character = { format: character.format, meta: character.meta, ...shown };
       hud.character(
         metaText(character.meta, character.format) +
+          (character.rights_holder && character.meta && character.meta.redistribution === false
+            ? " — shown to everyone: its uploader holds the rights"
+            : "") +
           (shown.vrmError ? ` — shown as plain glTF (three-vrm refused it: ${shown.vrmError})` : ""),
       );
       return { names: described.names, vertexCount: described.num_vertices };
@@ -145,7 +150,11 @@ async function main() {
   try {
     const [loaded, animation] = await Promise.all([
       loadModel(params, view),
-      params.mode === "demo" ? fetchBinary(params, "/v1/demo/animation", "demo animation") : null,
+      // The performance on the rig's own source points: the demo rig's, or the generic
+      // ARKit set's for a character uploaded as a file (server/pages/viewer.py).
+      params.mode === "demo"
+        ? fetchBinary(params, `/v1/demo/animation?rig=${encodeURIComponent(params.rig)}`, "demo animation")
+        : null,
     ]);
     model = loaded;
     if (animation) player = new DemoPlayer(decodeAnimation(animation), { start: params.start });
@@ -198,6 +207,7 @@ async function main() {
             return;
           }
           hud.names(rig.names);
+          view.resize(); // the panel widens for many weights (viewer.html), the stage narrows
           link.healthy();
           hud.clearError();
           stats.error = null;
@@ -205,7 +215,7 @@ async function main() {
             if (rig.k !== player.animation.k) {
               link.fail(
                 `the demo performance has ${player.animation.k} points per frame but rig ${rig.id} needs ${rig.k}: ` +
-                  "play the demo on the demo rig, or watch a channel instead",
+                  "reload the page (the rig was replaced), or watch a channel instead",
               );
               return;
             }
