@@ -426,3 +426,20 @@ def test_extracted_bytes_are_counted_not_the_declared_sizes(tmp_path):
         extract_archive(bytes(data), tmp_path, limits)
 
     assert caught.value.code == "archive_too_large"
+
+
+def test_a_deleted_character_s_running_job_is_cancelled_for_good(tmp_path, rig):
+    store = RigStore(tmp_path / "rigs")
+    store.open()
+    try:
+        store.jobs.write("ava", {"id": "ava", "job": "j1", "state": "running", "updated": 0.0})
+        store.delete("ava")  # no rig yet: the job's record alone makes it a character
+        late = store.jobs.update("ava", "j1", {"state": "done"})
+        stored = store.put_job_result("ava", "j1", rig, b"character")
+        record = store.jobs.read("ava")
+    finally:
+        store.close()
+
+    assert record["state"] == "cancelled" and record["error"]["code"] == "character_deleted"
+    assert not late and stored is None
+    assert not store.exists("ava")
