@@ -273,9 +273,10 @@ def _buffers(
 
 
 def _views(
-    doc: dict[str, Any], buffers: list[bytes], sizes: list[int], label: str
+    doc: dict[str, Any], buffers: list[bytes], sizes: list[int], limits: GltfLimits, label: str
 ) -> list[dict[str, Any]]:
     views = _list(doc, "bufferViews", label)
+    decoded = 0  # bytes meshopt views decode to: as many as accessor_values float32 values
     for number, view in enumerate(views):
         where = f"bufferView {number}"
         buffer = _index(view.get("buffer"), len(buffers), f"{where} buffer", label)
@@ -300,6 +301,12 @@ def _views(
             size = _int(compressed.get("byteLength"), f"{where} meshopt byteLength", label, low=1)
             if start + size > len(buffers[source]):
                 raise _bad(label, f"{where}'s compressed bytes run past buffer {source}")
+            decoded += length
+            if decoded > 4 * limits.accessor_values:
+                raise _over(
+                    label, "bytes of meshopt views to decode or more", decoded,
+                    4 * limits.accessor_values, "accessor_values (x 4 bytes)",
+                )  # fmt: skip
         stride = view.get("byteStride")
         if stride is not None and (
             not _is_int(stride) or not 4 <= stride <= 252 or stride % 4 != 0
@@ -566,7 +573,7 @@ def check_document(
             if not uri.startswith("data:"):
                 raise external_uri_error(uri, label)
     buffers, sizes = _buffers(doc, blob, resolve, label)
-    views = _views(doc, buffers, sizes, label)
+    views = _views(doc, buffers, sizes, limits, label)
     accessors = _accessors(doc, views, limits, label)
     _meshes(doc, accessors, limits, label)
     _node_tree(doc, limits, label)

@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 from facecast.rig.characters.character import Character, load_character
 from facecast.rig.errors import ExampleSetError
 from facecast.rig.io.gltf import pack_glb, read_glb_morph_targets
+from facecast.rig.io.gltf_check import GltfLimits
 from facecast.rig.io.gltf_read import MAX_DECODED_BYTES
 
 from . import _avatars
@@ -199,11 +200,18 @@ def test_a_meshopt_view_declaring_more_than_the_bound_is_refused_before_decoding
         view["byteLength"] = count * 12
         doc["buffers"][view["buffer"]]["byteLength"] = view.get("byteOffset", 0) + count * 12
 
+    data = edited(twin_and("meshopt")[1], huge)
+    # Within the limits gltf_check holds decoded views to (4 bytes an accessor value), the
+    # reader's own MAX_DECODED_BYTES is the bound; under the defaults the limits are.
+    loose = GltfLimits(accessor_values=MAX_DECODED_BYTES)
     with pytest.raises(ExampleSetError) as info:
-        load_character(edited(twin_and("meshopt")[1], huge), label="avatar.glb")
+        load_character(data, label="avatar.glb", limits=loose)
+    with pytest.raises(ExampleSetError) as by_default:
+        load_character(data, label="avatar.glb")
 
     assert info.value.code == "too_large"
     assert f"{count} x 12 bytes" in str(info.value)
+    assert by_default.value.code == "gltf_exceeds_limits"
 
 
 def test_a_draco_primitive_declaring_more_than_the_bound_is_refused_before_decoding():
@@ -384,3 +392,24 @@ def test_khr_meshopt_compression_is_refused_by_name_as_the_pages_cannot_show_it(
 
     assert info.value.code == "unsupported_extension"
     assert "EXT_meshopt_compression" in str(info.value)
+
+
+def test_meshopt_views_decoding_to_more_than_the_accessor_bound_exceed_the_limits():
+    # The small grid's accessors hold 1,590 values; its position view now declares twice
+    # the rows it has, 8,088 decoded bytes in all: past 4 bytes a value allowed, refused by
+    # gltf_check before anything is decoded, though every accessor fits its bound.
+    def doubled(doc, blob):
+        view = doc["bufferViews"][0]
+        view["extensions"]["EXT_meshopt_compression"]["count"] *= 2
+        view["byteLength"] *= 2
+
+    data = edited(small("meshopt"), doubled)
+    doc, _ = split_glb(data)
+    values = sum(a["count"] * {"VEC3": 3, "SCALAR": 1}[a["type"]] for a in doc["accessors"])
+    assert values == 1590
+
+    with pytest.raises(ExampleSetError) as info:
+        load_character(data, label="avatar.glb", limits=GltfLimits(accessor_values=values))
+
+    assert info.value.code == "gltf_exceeds_limits"
+    assert "8088 bytes of meshopt views" in str(info.value)
