@@ -84,6 +84,10 @@ class Settings:
     #: is 408 ``body_timeout``, so a trickled body cannot hold an upload slot for long.
     body_timeout: float = 120.0
     fit_threads: int = 1
+    #: Uploads up to this size (and performer captures) are parsed and fitted in a lane of
+    #: their own (one thread, ``fit_threads`` do the rest): a small upload or a
+    #: calibration never queues behind a large file's parse. 0: one lane for all.
+    small_upload_bytes: int = 1 * MiB
     #: Fit slots (of ``max_pending_fits``) one token without the admin role may hold at
     #: once; one more is 429 ``too_many_fits``. 0: no per-token cap.
     max_fits_per_token: int = 1
@@ -296,6 +300,7 @@ class Settings:
             "max_connections_per_address",
             "publisher_slots",
             "max_fits_per_token",
+            "small_upload_bytes",
         ):
             if getattr(self, name) < 0:
                 raise SettingsError(f"{name}: must be >= 0, got {getattr(self, name)!r}")

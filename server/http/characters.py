@@ -156,7 +156,7 @@ async def put_character(
     with fit_slot(request, principal):
         data = await read_body(request, settings.max_upload_bytes)
         try:
-            fitted = await run_fit(request, lambda: job(data))
+            fitted = await run_fit(request, lambda: job(data), size=len(data))
         except ArchiveError as exc:
             raise ApiError(exc.status, exc.code, str(exc)) from None
         except ExampleSetError as exc:

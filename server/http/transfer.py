@@ -157,7 +157,9 @@ async def start_transfer(
             data = await read_body(request, settings.max_upload_bytes)
             prepare = _Prepare(archive_limits(settings), store.scratch, archive, settings)
             try:
-                plan, source = await run_fit(request, lambda: prepare(data, markers, wanted))
+                plan, source = await run_fit(
+                    request, lambda: prepare(data, markers, wanted), size=len(data)
+                )
             except ArchiveError as exc:
                 raise ApiError(exc.status, exc.code, str(exc)) from None
             now = time.time()
