@@ -1,8 +1,9 @@
 """Expression names as characters spell them, normalised to one vocabulary.
 
 Maps ARKit camelCase, Perfect Sync capitals, ``_L``/``_R`` suffixes, VRM 0.x and 1.0
-presets, VRoid's ``Fcl_`` clips and Oculus visemes onto ARKit's 52 names or VRM 1.0's preset names (the
-table is docs/characters.md); it reads no file and knows nothing of meshes.
+presets, VRoid's ``Fcl_`` clips, Oculus and VRChat visemes onto ARKit's 52 names or VRM
+1.0's preset names (the table is docs/characters.md); it reads no file and knows nothing of
+meshes.
 """
 
 from __future__ import annotations

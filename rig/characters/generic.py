@@ -131,7 +131,7 @@ GAZE_SHAPES: Final = tuple(
 #: share of (``GenericSources.driven_share``) is left unpaired: paired too, it would drive
 #: the same motion twice (a mouth-only smile became VRoid's whole-face ``Fcl_ALL_Joy``).
 #: Below it the preset drives what those shapes lack (``aa`` beside a ``jawOpen`` that
-#: moves nothing and a ``mouthLowerDown`` that carries 7 % of it).
+#: moves nothing). VRoid's part clips count as their shapes for an emotion holding them all.
 DRIVEN_SHARE: Final = 0.5
 
 #: A composed preset whose displacement at these landmarks lies within this fraction (of
