@@ -26,6 +26,7 @@ from .generic import (
     DRIVEN_SHARE,
     GAZE_SHAPES,
     GENERIC_ATTRIBUTION,
+    PART_COMPOSITIONS,
     PRESET_CHECK_ORDER,
     generic_sources,
 )
@@ -186,6 +187,9 @@ def _pair_generic(
                 "eye came out half open); the character's look-at turns its eyes"
             )
     own = [n for n in names if n in generic.names and n != "neutral" and n not in left_out]
+    # VRoid's part clips drive the shapes of their part: a whole-face emotion they mostly
+    # carry is left out as one the ARKit shapes carry is.
+    clips = [n for n in names if n in PART_COMPOSITIONS]
     for name in names:
         share = generic.driven_share(name, own)
         if name not in left_out and share >= DRIVEN_SHARE:
@@ -193,6 +197,18 @@ def _pair_generic(
             left_out[name] = (
                 f"driven by the character's own ARKit shapes ({carried}: {share:.0%} of its "
                 "motion at the generic landmarks); paired too, it would drive that motion twice"
+            )
+            continue
+        shapes = generic.composition(name) or {}
+        parts = [c for c in clips if c != name and set(PART_COMPOSITIONS[c]) <= set(shapes)]
+        share = generic.driven_share(
+            name, [*own, *(s for c in parts for s in PART_COMPOSITIONS[c])]
+        )
+        if name not in left_out and name not in clips and parts and share >= DRIVEN_SHARE:
+            left_out[name] = (
+                f"driven by the character's own part clips ({', '.join(parts)}: with its ARKit "
+                f"shapes, {share:.0%} of its motion at the generic landmarks); paired too, it would "
+                "drive that motion twice"
             )
     neutral = generic.points[0]
     kept = [(generic.points[generic.names.index(n)] - neutral).ravel() for n in own]

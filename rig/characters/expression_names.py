@@ -1,8 +1,9 @@
 """Expression names as characters spell them, normalised to one vocabulary.
 
 Maps ARKit camelCase, Perfect Sync capitals, ``_L``/``_R`` suffixes, VRM 0.x and 1.0
-presets, VRoid's ``Fcl_`` clips and Oculus visemes onto ARKit's 52 names or VRM 1.0's preset names (the
-table is docs/characters.md); it reads no file and knows nothing of meshes.
+presets, VRoid's ``Fcl_`` clips, Oculus and VRChat visemes onto ARKit's 52 names or VRM
+1.0's preset names (the table is docs/characters.md); it reads no file and knows nothing of
+meshes.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from dataclasses import dataclass
 __all__ = [
     "ARKIT_NAMES",
     "VRM_PRESETS",
+    "VROID_PART_CLIPS",
     "NameMatch",
     "half_of",
     "normalise_name",
@@ -41,6 +43,16 @@ ARKIT_NAMES: tuple[str, ...] = (
     "tongueOut",
 )  # fmt: skip
 
+#: VRoid Studio's part clips that move one part of a whole-face emotion (mouth, eyes or
+#: brows), kept under their own name: the generic set composes each from that part of the
+#: emotion's ARKit shapes (``generic.PART_COMPOSITIONS``), so a smile drives the mouth's
+#: ``Fcl_MTH_Joy`` rather than the whole face's ``Fcl_ALL_Joy``.
+VROID_PART_CLIPS: tuple[str, ...] = (
+    "Fcl_MTH_Joy", "Fcl_MTH_Fun", "Fcl_MTH_Sorrow", "Fcl_MTH_Angry",
+    "Fcl_EYE_Joy", "Fcl_EYE_Surprised",
+    "Fcl_BRW_Angry", "Fcl_BRW_Sorrow", "Fcl_BRW_Surprised",
+)  # fmt: skip
+
 #: VRM 1.0's expression presets (VRMC_vrm.expressions.preset), "neutral" included.
 VRM_PRESETS: tuple[str, ...] = (
     "happy", "angry", "sad", "relaxed", "surprised",
@@ -60,8 +72,9 @@ _VRM0_PRESETS = {
 }  # fmt: skip
 
 # VRoid Studio's face clips (morph targets of its Face mesh) that match a VRM preset. Its
-# other Fcl_ clips move one part (Fcl_BRW_*, Fcl_EYE_Joy, Fcl_MTH_Large, Fcl_HA_*) or hide
-# one (Fcl_EYE_Iris_Hide): no ARKit shape or preset matches them, so they stay unpaired.
+# part clips (VROID_PART_CLIPS) move one part of an emotion and keep their own names (the
+# generic set composes them from that part of the emotion); its other Fcl_ clips
+# (Fcl_MTH_Large, Fcl_HA_*, Fcl_EYE_Iris_Hide) match no ARKit shape or preset.
 _FCL_CLIPS = {
     "fcl_all_neutral": "neutral",
     "fcl_all_joy": "happy", "fcl_all_angry": "angry", "fcl_all_sorrow": "sad",
@@ -72,12 +85,18 @@ _FCL_CLIPS = {
 }  # fmt: skip
 
 # Oculus (Meta) visemes, as Ready Player Me and other lip-sync rigs name their morph
-# targets: the five vowels are VRM's (aa あ, E え, I い, O お, U う); silence is the rest
-# pose. The consonants (viseme_PP, _FF, _TH, _DD, _kk, _CH, _SS, _nn, _RR) have no preset
-# and keep their own names.
+# targets, and VRChat's (vrc.v_aa ...), the same 15 under other names: the five vowels are
+# VRM's (aa あ, E え, I い, O お, U う); silence is the rest pose. The consonants (viseme_PP,
+# _FF, _TH, _DD, _kk, _CH, _SS, _nn, _RR; vrc.v_pp ...) have no preset and keep their names.
 _VISEMES = {
-    "viseme_sil": "neutral",
-    "viseme_aa": "aa", "viseme_e": "ee", "viseme_i": "ih", "viseme_o": "oh", "viseme_u": "ou",
+    "viseme_sil": ("neutral", "Oculus viseme"),
+    "viseme_aa": ("aa", "Oculus viseme"), "viseme_e": ("ee", "Oculus viseme"),
+    "viseme_i": ("ih", "Oculus viseme"), "viseme_o": ("oh", "Oculus viseme"),
+    "viseme_u": ("ou", "Oculus viseme"),
+    "vrc.v_sil": ("neutral", "VRChat viseme"),
+    "vrc.v_aa": ("aa", "VRChat viseme"), "vrc.v_e": ("ee", "VRChat viseme"),
+    "vrc.v_ih": ("ih", "VRChat viseme"), "vrc.v_oh": ("oh", "VRChat viseme"),
+    "vrc.v_ou": ("ou", "VRChat viseme"),
 }  # fmt: skip
 
 # Side suffixes, tried on the key (lower case, separators kept): _L, .L, -L, Left, _Left...
@@ -116,8 +135,9 @@ def vrm0_preset(preset: str) -> str | None:
 def normalise_name(name: str) -> NameMatch:
     """The ARKit name or VRM preset ``name`` stands for, and which rule matched.
 
-    Rules, in order: a VRoid ``Fcl_`` clip with a preset twin; an Oculus vowel viseme
-    (``viseme_aa``, ``viseme_E``, ``viseme_I``, ``viseme_O``, ``viseme_U``); an ARKit name compared
+    Rules, in order: a VRoid ``Fcl_`` clip with a preset twin; an Oculus or VRChat vowel
+    viseme (``viseme_aa``, ``viseme_E``, ``viseme_I``, ``viseme_O``, ``viseme_U``;
+    ``vrc.v_aa``, ``vrc.v_e``, ``vrc.v_ih``, ``vrc.v_oh``, ``vrc.v_ou``); an ARKit name compared
     without case, separators and with ``_L``/``_R``/``Left``/``Right`` suffixes unified
     (``JawOpen``, ``eyeBlink_L``, ``EyeBlinkLeft``); a VRM 1.0 preset or a VRM 0.x preset
     name (``A``, ``Joy``, ``Blink_L``); the same after dropping an exporter's prefix up to
@@ -132,7 +152,13 @@ def normalise_name(name: str) -> NameMatch:
         return NameMatch(fcl, "VRoid Fcl_ clip")
     viseme = _VISEMES.get(stripped.lower())
     if viseme is not None:
-        return NameMatch(viseme, "Oculus viseme")
+        return NameMatch(*viseme)
+    if stripped.lower().startswith("vrc.v_"):
+        return NameMatch(None, "VRChat consonant viseme (no VRM preset twin)")
+    if stripped in VROID_PART_CLIPS:
+        return NameMatch(
+            None, "VRoid Fcl_ part clip: kept under its own name, it moves one part of a preset"
+        )
     if stripped.lower().startswith("fcl_"):
         return NameMatch(
             None,

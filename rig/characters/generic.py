@@ -30,6 +30,7 @@ __all__ = [
     "GAZE_SHAPES",
     "GENERIC_ATTRIBUTION",
     "GENERIC_SOURCE_NAME",
+    "PART_COMPOSITIONS",
     "PRESET_CHECK_ORDER",
     "VRM_COMPOSITIONS",
     "GenericSources",
@@ -70,10 +71,13 @@ def _both(shape: str, weight: float) -> dict[str, float]:
 #: reading of each (happy: AU6+12, angry: AU4+9, sad: AU1+15, surprised: AU1+2+5+26).
 VRM_COMPOSITIONS: Final = MappingProxyType(
     {
-        "aa": {"jawOpen": 0.6, **_both("mouthLowerDown", 0.3)},
+        # The jaw alone: aa is the open mouth, the other vowels shape it (a jaw-open pose
+        # reads as aa; composed as jawOpen 0.6 + mouthLowerDown 0.3, it needed ee 0.69 too).
+        "aa": {"jawOpen": 1.0},
         "ih": {"jawOpen": 0.15, **_both("mouthStretch", 0.5), **_both("mouthSmile", 0.3)},
         "ou": {"jawOpen": 0.15, "mouthPucker": 0.9, "mouthFunnel": 0.3},
-        "ee": {"jawOpen": 0.35, **_both("mouthStretch", 0.4)},
+        # The lower lip down too: else ee lay in the span of aa, ih and a smile.
+        "ee": {"jawOpen": 0.35, **_both("mouthStretch", 0.4), **_both("mouthLowerDown", 0.3)},
         "oh": {"jawOpen": 0.45, "mouthFunnel": 0.7},
         "blink": _both("eyeBlink", 1.0),
         "blinkLeft": {"eyeBlinkLeft": 1.0},
@@ -92,6 +96,26 @@ VRM_COMPOSITIONS: Final = MappingProxyType(
 )  # fmt: skip
 
 
+#: VRoid Studio's part clips (``expression_names.VROID_PART_CLIPS``), each the part of its
+#: emotion's composition above that it moves: ``Fcl_MTH_Joy`` the mouth of ``happy`` (a full
+#: smile), ``Fcl_EYE_Joy`` its eyes, ``Fcl_BRW_Angry`` the brows of ``angry``... Paired, a
+#: smile drives the mouth-only clip; the whole-face ``Fcl_ALL_*`` emotion is then a mix of
+#: its parts (or mostly driven by them) and is left out.
+PART_COMPOSITIONS: Final = MappingProxyType(
+    {
+        "Fcl_MTH_Joy": _both("mouthSmile", 1.0),
+        "Fcl_MTH_Fun": _both("mouthSmile", 0.5),
+        "Fcl_MTH_Sorrow": _both("mouthFrown", 0.7),
+        "Fcl_MTH_Angry": {**_both("noseSneer", 0.4), **_both("mouthFrown", 0.3)},
+        "Fcl_EYE_Joy": {**_both("cheekSquint", 0.5), **_both("eyeSquint", 0.3)},
+        "Fcl_EYE_Surprised": _both("eyeWide", 0.8),
+        "Fcl_BRW_Angry": _both("browDown", 0.9),
+        "Fcl_BRW_Sorrow": {"browInnerUp": 0.9},
+        "Fcl_BRW_Surprised": {"browInnerUp": 0.8, **_both("browOuterUp", 0.8)},
+    }
+)  # fmt: skip
+_COMPOSED: Final = MappingProxyType({**VRM_COMPOSITIONS, **PART_COMPOSITIONS})
+
 #: ARKit shapes the generic set leaves unpaired: gaze. Its 20 landmarks hold two lid points
 #: per eye and no iris, so it sees a gaze only by the lids it drags: eyeLookDown lowers
 #: the upper lid 0.64 cm where eyeBlink lowers it 0.79 cm. Paired, a rig fitted for
@@ -107,7 +131,7 @@ GAZE_SHAPES: Final = tuple(
 #: share of (``GenericSources.driven_share``) is left unpaired: paired too, it would drive
 #: the same motion twice (a mouth-only smile became VRoid's whole-face ``Fcl_ALL_Joy``).
 #: Below it the preset drives what those shapes lack (``aa`` beside a ``jawOpen`` that
-#: moves nothing and a ``mouthLowerDown`` that carries 7 % of it).
+#: moves nothing). VRoid's part clips count as their shapes for an emotion holding them all.
 DRIVEN_SHARE: Final = 0.5
 
 #: A composed preset whose displacement at these landmarks lies within this fraction (of
@@ -120,9 +144,10 @@ DRIVEN_SHARE: Final = 0.5
 DEPENDENT_RELATIVE: Final = 1e-6
 
 #: The order presets are checked in against ``DEPENDENT_RELATIVE``: one-sided blinks before
-#: both (each eye its own weight), the mouth-only visemes before the whole-face emotions.
+#: both (each eye its own weight), the mouth-only visemes and VRoid's part clips before the
+#: whole-face emotions.
 PRESET_CHECK_ORDER: Final = (
-    "blinkLeft", "blinkRight", "aa", "ih", "ou", "ee", "oh",
+    "blinkLeft", "blinkRight", "aa", "ih", "ou", "ee", "oh", *PART_COMPOSITIONS,
     "happy", "angry", "sad", "relaxed", "surprised", "blink",
     "lookUp", "lookDown", "lookLeft", "lookRight",
 )  # fmt: skip
@@ -139,12 +164,13 @@ class GenericSources:
     stable_points: np.ndarray
 
     def source_points(self, name: str) -> np.ndarray | None:
-        """(K, 3) points of an ARKit shape or a composed VRM preset; None if it has none."""
+        """(K, 3) points of an ARKit shape, a composed VRM preset or a VRoid part clip; None
+        if it has none."""
         index = self._index.get(name)
         if index is not None:
             points: np.ndarray = self.points[index]
             return points
-        composition = VRM_COMPOSITIONS.get(name)
+        composition = _COMPOSED.get(name)
         if composition is None:
             return None
         neutral = self.points[0]
@@ -157,7 +183,7 @@ class GenericSources:
         """How much of composed preset ``name``'s motion at these landmarks ``shapes`` (ARKit
         shapes) carry: the sum of weight x |shape displacement| over the composition's
         shapes among them, over that sum for all its shapes. 0 for a name not composed."""
-        composition = VRM_COMPOSITIONS.get(name)
+        composition = _COMPOSED.get(name)
         if composition is None or name in self._index:
             return 0.0
         given = set(shapes)
@@ -171,7 +197,7 @@ class GenericSources:
         """The ARKit weights a composed preset stands for, or {name: 1} for a shape."""
         if name in self._index and name != "neutral":
             return {name: 1.0}
-        found = VRM_COMPOSITIONS.get(name)
+        found = _COMPOSED.get(name)
         return None if found is None else dict(found)
 
     @functools.cached_property
@@ -205,7 +231,7 @@ def generic_sources() -> GenericSources:
     points = arrays["points"].astype(np.float64)
     points.flags.writeable = False
     names = tuple(str(n) for n in arrays["names"])
-    missing = sorted({s for c in VRM_COMPOSITIONS.values() for s in c} - set(names))
+    missing = sorted({s for c in _COMPOSED.values() for s in c} - set(names))
     if missing or names[0] != "neutral" or points.shape[0] != len(names):
         raise ExampleSetError(
             f"facecast's generic source set does not match this facecast (missing {missing})",
@@ -225,7 +251,7 @@ def composed_captures(
     """A performer's points for the VRM presets among ``names`` they did not capture.
 
     The generic set's rule on the performer's own face: a preset ``captured`` lacks whose
-    every ARKit shape in ``VRM_COMPOSITIONS`` it holds is ``captured["neutral"]`` plus the
+    every ARKit shape in ``VRM_COMPOSITIONS`` (or ``PART_COMPOSITIONS``) it holds is ``captured["neutral"]`` plus the
     composition's weights times those shapes' displacements, so a calibration captured on
     an ARKit character drives a VRM / VRoid one's presets too. Presets with a shape not
     captured, a preset equal to one of its shapes the rig has as well (``blinkLeft``
@@ -240,7 +266,7 @@ def composed_captures(
     wanted = tuple(names)
     out: dict[str, np.ndarray] = {}
     for name in wanted:
-        composition = VRM_COMPOSITIONS.get(name)
+        composition = _COMPOSED.get(name)
         if name in captured or composition is None:
             continue
         shapes = [captured.get(shape) for shape in composition]

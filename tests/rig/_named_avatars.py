@@ -21,11 +21,26 @@ from facecast.rig.characters.expression_names import ARKIT_NAMES
 #: The kinds, as tests.rig._avatars names its ICT-FaceKit variants of the same kind.
 KINDS = (
     "arkit", "perfect_sync", "vrm0", "vrm1", "visemes", "fcl", "vrm0_presets", "vroid_sync",
+    "vrchat",
 )  # fmt: skip
+#: A VRoid Studio export's face clips, as it names them (whole face, brows, eyes, mouth, fangs).
 _FCL = (
-    "Fcl_ALL_Neutral", "Fcl_ALL_Joy", "Fcl_ALL_Angry", "Fcl_ALL_Sorrow", "Fcl_ALL_Fun",
-    "Fcl_ALL_Surprised", "Fcl_MTH_A", "Fcl_MTH_I", "Fcl_MTH_U", "Fcl_MTH_E", "Fcl_MTH_O",
-    "Fcl_EYE_Close", "Fcl_EYE_Close_L", "Fcl_EYE_Close_R", "Fcl_BRW_Fun", "Fcl_MTH_Large",
+    "Fcl_ALL_Neutral", "Fcl_ALL_Angry", "Fcl_ALL_Fun", "Fcl_ALL_Joy", "Fcl_ALL_Sorrow",
+    "Fcl_ALL_Surprised",
+    "Fcl_BRW_Angry", "Fcl_BRW_Fun", "Fcl_BRW_Joy", "Fcl_BRW_Sorrow", "Fcl_BRW_Surprised",
+    "Fcl_EYE_Natural", "Fcl_EYE_Angry", "Fcl_EYE_Close", "Fcl_EYE_Close_R", "Fcl_EYE_Close_L",
+    "Fcl_EYE_Fun", "Fcl_EYE_Joy", "Fcl_EYE_Joy_R", "Fcl_EYE_Joy_L", "Fcl_EYE_Sorrow",
+    "Fcl_EYE_Surprised", "Fcl_EYE_Spread", "Fcl_EYE_Iris_Hide", "Fcl_EYE_Highlight_Hide",
+    "Fcl_MTH_Close", "Fcl_MTH_Up", "Fcl_MTH_Down", "Fcl_MTH_Angry", "Fcl_MTH_Small",
+    "Fcl_MTH_Large", "Fcl_MTH_Neutral", "Fcl_MTH_Fun", "Fcl_MTH_Joy", "Fcl_MTH_Sorrow",
+    "Fcl_MTH_Surprised", "Fcl_MTH_A", "Fcl_MTH_I", "Fcl_MTH_U", "Fcl_MTH_E", "Fcl_MTH_O",
+    "Fcl_HA_Hide", "Fcl_HA_Fung1",
+)  # fmt: skip
+#: A VRChat avatar's visemes (its lip-sync names them vrc.v_*) and eye and smile shapes.
+_VRCHAT = (
+    "vrc.v_sil", "vrc.v_pp", "vrc.v_ff", "vrc.v_th", "vrc.v_dd", "vrc.v_kk", "vrc.v_ch",
+    "vrc.v_ss", "vrc.v_nn", "vrc.v_rr", "vrc.v_aa", "vrc.v_e", "vrc.v_ih", "vrc.v_oh",
+    "vrc.v_ou", "Blink_L", "Blink_R", "Joy",
 )  # fmt: skip
 #: VRM 0.x presetName -> the morph VRoid binds it to.
 _FCL_GROUPS = {
@@ -63,6 +78,7 @@ def _morph_names(kind: str) -> list[str]:
         "fcl": list(_FCL),
         "vrm0_presets": list(_VRM0_PRESETS),
         "vroid_sync": [*_FCL, *sync],
+        "vrchat": list(_VRCHAT),
     }[kind]
 
 

@@ -12,6 +12,7 @@ from facecast.rig.characters.character_examples import character_fit_options
 from facecast.rig.characters.generic import (
     CHARACTER_FIT_DEFAULTS,
     GAZE_SHAPES,
+    PART_COMPOSITIONS,
     PRESET_CHECK_ORDER,
     VRM_COMPOSITIONS,
     composed_captures,
@@ -96,7 +97,7 @@ def test_presets_not_captured_are_composed_from_the_performers_own_shapes():
 
 
 def test_every_composed_preset_is_checked_and_gaze_is_the_eight_look_shapes():
-    assert sorted(PRESET_CHECK_ORDER) == sorted(VRM_COMPOSITIONS)
+    assert sorted(PRESET_CHECK_ORDER) == sorted({**VRM_COMPOSITIONS, **PART_COMPOSITIONS})
     generic = generic_sources()
     assert set(GAZE_SHAPES) == {n for n in generic.names if n.startswith("eyeLook")}
     assert len(GAZE_SHAPES) == 8

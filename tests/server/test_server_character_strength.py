@@ -35,17 +35,23 @@ KINDS = {
     "vrm0": _ARKIT,  # ARKit shapes and VRM 0.x presets binding them
     "vrm1": _ARKIT,
     "visemes": _ARKIT,  # ARKit shapes and Oculus visemes, as Ready Player Me writes them
-    "fcl": _PRESETS,  # VRoid's Fcl_ clips through VRM 0.x presets, nothing else
+    # VRoid's Fcl_ clips through VRM 0.x presets, nothing else: its mouth-only clip smiles.
+    "fcl": {**_PRESETS, "smile": ("Fcl_MTH_Joy",)},
     "vrm0_presets": _PRESETS,  # VRM 0.x presets only, look presets included
     # VRoid clips and Perfect Sync shapes, its JawOpen all zeros: VRoid's A opens the mouth.
     "vroid_sync": {**_ARKIT, "mouth open": ("aa",)},
+    "vrchat": _PRESETS,  # VRChat's vrc.v_* visemes, one-eyed blinks and a smile
 }
 #: The thresholds of issue 32: a closed eye's blink, the mouth-open morph, the smile;
 #: every expression at the exact neutral.
 AT_LEAST = {"blink": 0.9, "mouth open": 0.9, "smile": 0.8}
 NEUTRAL_AT_MOST = 0.03
-#: Presets that would drive a whole face: never paired beside the ARKit shapes they mix.
+#: Presets that would drive a whole face: never paired beside the ARKit shapes or the VRoid
+#: part clips they mix.
 WHOLE_FACE = ("happy", "relaxed", "angry", "sad", "surprised", "blink")
+#: An open jaw reads as aa: every other vowel and the lower lip's shapes at most this.
+OTHER_MOUTH_AT_MOST = 0.3
+_OTHER_MOUTH = ("ee", "ih", "oh", "ou", "mouthLowerDownLeft", "mouthLowerDownRight")
 
 
 def exact_poses() -> dict[str, np.ndarray]:
@@ -122,10 +128,34 @@ def test_the_exact_neutral_drives_no_expression(received, kind):
 def test_a_smile_stays_on_the_mouth_where_the_avatar_has_mouth_only_shapes(received, kind):
     got = received[kind]
     weights = weights_of(got, "smile")
+    eyes = KINDS[kind]["blink"]
 
     assert not set(WHOLE_FACE) & set(got["upload"]["names"]), got["upload"]["names"]
-    assert max(weights[n] for n in ("eyeBlinkLeft", "eyeBlinkRight")) <= NEUTRAL_AT_MOST
+    assert max(weights[n] for n in eyes) <= NEUTRAL_AT_MOST, weights
     assert weights["jawOpen" if "jawOpen" in weights else "aa"] <= NEUTRAL_AT_MOST
+    eye_parts = [n for n in weights if n.startswith("Fcl_EYE_")]
+    assert max((weights[n] for n in eye_parts), default=0.0) <= NEUTRAL_AT_MOST, weights
+
+
+@pytest.mark.parametrize("kind", [k for k, v in KINDS.items() if v["mouth open"] == ("aa",)])
+def test_an_open_jaw_reads_as_aa_alone(received, kind):
+    weights = weights_of(received[kind], "mouth open")
+
+    others = {n: weights[n] for n in _OTHER_MOUTH if n in weights}
+    assert others and max(others.values()) <= OTHER_MOUTH_AT_MOST, (kind, weights)
+
+
+def test_vroid_part_clips_pair_and_whole_face_clips_do_not(received):
+    entries = {e["authored"]: e for e in received["fcl"]["upload"]["pairing"]["entries"]}
+
+    for clip in ("Fcl_MTH_Joy", "Fcl_EYE_Joy", "Fcl_BRW_Angry", "Fcl_MTH_Sorrow"):
+        assert entries[clip]["paired"], entries[clip]
+    # Fcl_MTH_Fun is a weaker Fcl_MTH_Joy: a rig cannot tell them apart.
+    assert not entries["Fcl_MTH_Fun"]["paired"], entries["Fcl_MTH_Fun"]
+    for clip in ("Fcl_ALL_Joy", "Fcl_ALL_Sorrow", "Fcl_ALL_Angry", "Fcl_ALL_Surprised"):
+        assert entries[clip]["expression"] in WHOLE_FACE and not entries[clip]["paired"], entries[
+            clip
+        ]
 
 
 def test_the_upload_reports_what_moves_nothing_and_maps_visemes(received):
@@ -137,6 +167,12 @@ def test_the_upload_reports_what_moves_nothing_and_maps_visemes(received):
     still = entries["vroid_sync"]["JawOpen"]
     assert not still["paired"] and "moves no vertex" in still["reason"], still
     assert "jawOpen" not in received["vroid_sync"]["upload"]["names"]
+    vrchat = {e["authored"]: e for e in received["vrchat"]["upload"]["pairing"]["entries"]}
+    for viseme, preset in {"vrc.v_aa": "aa", "vrc.v_e": "ee", "vrc.v_ih": "ih"}.items():
+        entry = vrchat[viseme]
+        assert entry["expression"] == preset and "VRChat viseme" in entry["reason"], entry
+    assert vrchat["vrc.v_aa"]["paired"], vrchat["vrc.v_aa"]
+    assert vrchat["vrc.v_sil"]["expression"] is None, vrchat["vrc.v_sil"]
     vowels = {"viseme_aa": "aa", "viseme_E": "ee", "viseme_I": "ih", "viseme_O": "oh"}
     for viseme, preset in {**vowels, "viseme_U": "ou"}.items():
         entry = entries["visemes"][viseme]
