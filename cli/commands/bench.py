@@ -171,6 +171,20 @@ def register(subparsers: Subparsers) -> None:
     webcam.add_argument("--videos", metavar="DIR",
                         help="keep the rendered videos and tracked points in DIR (reused when "
                         "there and made with the same settings)")  # fmt: skip
+    webcam.add_argument("--eyes-performer", default=None, metavar="PERSON",
+                        help="the ICT identity performing its keys and then the eyes clip "
+                        "(quick blinks, winks, gaze holds, jaw + smile; default person12)")  # fmt: skip
+    webcam.add_argument("--eyes-only", action="store_true",
+                        help="only the eyes clip: skip the take and its performer's keys")  # fmt: skip
+    webcam.add_argument("--no-eyes", action="store_true", help="skip the eyes clip")
+    webcam.add_argument("--landmarks", metavar="N,...",
+                        type=lambda text: [int(n) for n in text.split(",")],
+                        help="with --exact-only: the feature points, as positions in ICT's "
+                        "68 landmarks (Multi-PIE order; default the page's 20)")  # fmt: skip
+    webcam.add_argument("--kalman", metavar="A,...",
+                        type=lambda text: [float(a) for a in text.split(",")],
+                        help="the eyes clip's live Kalman rows: accelerations in landmark-noise "
+                        "units per s^2 (default 480, the live default)")  # fmt: skip
     webcam.add_argument("--backend", default="wasm", help="the tracker's TensorFlow.js backend")
     webcam.add_argument("--by-name", action="store_true",
                         help="also print each path's RMS weight error per ARKit name")  # fmt: skip
