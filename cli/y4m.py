@@ -20,13 +20,26 @@ import numpy.typing as npt
 
 from facecast.errors import FacecastError
 
-__all__ = ["ACCEPTED", "Y4MError", "Y4MVideo", "Y4MWriter", "open_y4m", "rgb_to_i420"]
+__all__ = [
+    "ACCEPTED",
+    "MAX_FPS",
+    "MAX_NUMBER",
+    "MAX_SIDE",
+    "Y4MError",
+    "Y4MVideo",
+    "Y4MWriter",
+    "open_y4m",
+    "rgb_to_i420",
+]
 
 _MAGIC = b"YUV4MPEG2"
 #: A header or a frame header longer than this is not a Y4M file.
 MAX_HEADER_BYTES = 4096
-#: Frame sizes beyond this are refused (16384 x 16384 would be 400 MB a frame at 4:2:0).
-MAX_SIDE = 8192
+#: Frame sizes beyond this are refused: what ``facecast track``'s Chromium page takes.
+#: Measured (issue 31, 2026-12-04, 2-core VM under load): 4096^2 tracks, 5120^2 tracked
+#: once in 285 s, 6144^2 did not end in 400 s, and at 8192^2 the page's process died
+#: after 87-117 s (Playwright's TargetClosedError).
+MAX_SIDE = 4096
 #: The largest number of a header's N:D (frame rate, pixel aspect): a 32-bit int's, as
 #: ffmpeg reads them.
 MAX_NUMBER = 2**31 - 1

@@ -79,6 +79,8 @@ def create_app(settings: Settings) -> FastAPI:
         # Uploads' parses and fits: daemon threads, which a stopping process abandons
         # rather than waits for (``daemon_pool``).
         app.state.fit_executor = DaemonPool(settings.fit_threads, "facecast-fit")
+        # ... and small ones (``small_upload_bytes``) in a lane of their own.
+        app.state.small_fit_executor = DaemonPool(1, "facecast-fit-small")
         # Deformation transfer jobs (minutes of scipy for big meshes): their own thread, so
         # they never hold up fits; one at a time (the slot in ``storage.jobs``).
         app.state.transfer_executor = DaemonPool(1, "facecast-transfer")
@@ -108,6 +110,7 @@ def create_app(settings: Settings) -> FastAPI:
             await app.state.channels.close()
             app.state.clone_executor.shutdown(wait=False, cancel_futures=True)
             app.state.fit_executor.shutdown(wait=False, cancel_futures=True)
+            app.state.small_fit_executor.shutdown(wait=False, cancel_futures=True)
             app.state.transfer_cancel.set()  # a running transfer stops after its expression
             app.state.transfer_executor.shutdown(wait=False, cancel_futures=True)
             # A job checks the event between expressions and stages: given a moment, it

@@ -16,7 +16,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pytest
+
+from ._requires import skip_or_fail
 
 REPO = Path(__file__).resolve().parent.parent
 PERFORM_PYTHON = REPO / ".venv-perform" / "bin" / "python"
@@ -61,9 +62,7 @@ def require_perform_venv(
     CI's (CI=true: scripts/test made the venv, so its absence is a bug), skip it elsewhere."""
     problem = perform_venv_problem(python)
     if problem is not None:
-        if environ.get("CI") == "true":
-            pytest.fail(f"CI needs the perform venv: {problem}", pytrace=False)
-        pytest.skip(problem)
+        skip_or_fail(f"the perform venv: {problem}", environ)
     return python
 
 

@@ -15,7 +15,7 @@ from ._perform_venv import perform_venv_problem, require_perform_venv
 
 
 def test_a_missing_perform_venv_fails_under_ci(tmp_path):
-    with pytest.raises(pytest.fail.Exception, match=r"CI needs.*scripts/setup --test"):
+    with pytest.raises(pytest.fail.Exception, match=r"CI=true needs it.*scripts/setup --test"):
         require_perform_venv(tmp_path / "bin" / "python", {"CI": "true"})
 
 

@@ -27,6 +27,7 @@ from facecast.cli.bench.harness import facecast_serve, python_server
 from facecast.cli.errors import CommandError
 from facecast.cli.report import write_json
 from facecast.cli.snapshot import CHROMIUM_ARGS, chromium_path
+from facecast.cli.y4m import open_y4m
 from facecast.rig import fit
 from facecast.rig.demo import demo_example_set
 from facecast.rig.evaluation.webcam import ict_performer
@@ -277,7 +278,7 @@ def _delta(before: dict[str, Any], after: dict[str, Any], key: str) -> float:
 
 
 def _figures(
-    measured: dict[str, Any], hops: list[float], args: argparse.Namespace
+    measured: dict[str, Any], hops: list[float], args: argparse.Namespace, camera_fps: float
 ) -> dict[str, Any]:
     records = measured["records"]
     seconds = measured["seconds"]
@@ -286,7 +287,10 @@ def _figures(
     p_before, p_after = measured["perform"]
     v_before, v_after = measured["viewers"]
     n = len(v_after)
-    camera = _delta(p_before, p_after, "cameraFrames")
+    # The fake camera plays the file at its rate; the <video>'s presented-frame count is
+    # reported beside it (Chromium's count ran ~1.5x the file's rate: not the camera's).
+    presented = _delta(p_before, p_after, "cameraFrames")
+    camera = camera_fps * seconds
     tracked = _delta(p_before, p_after, "tracked")
     published = _delta(p_before, p_after, "published")
 
@@ -315,7 +319,8 @@ def _figures(
             "viewer_not_drawn": per_viewer("superseded"),  # received, replaced before a draw
         },
         "fps": {
-            "camera": camera / seconds,
+            "camera": camera_fps,
+            "presented": presented / seconds,
             "tracked": tracked / seconds,
             "published": published / seconds,
             "received": per_viewer("received") / seconds,
@@ -405,6 +410,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"rendering the camera's video ({VIDEO_SECONDS} s at {VIDEO_FPS} fps) …")
             partial = video.with_name(video.name + ".partial")
             _write_video(partial, archive).replace(video)
+        camera_fps = open_y4m(video).fps
         run_ = _Run(args, folder, video)
         try:
             print(f"opening /perform and {args.viewers} /{args.page} pages …")
@@ -417,7 +423,7 @@ def run(args: argparse.Namespace) -> int:
             hops = _hop_floor(run_)
         finally:
             run_.close()
-    figures = _figures(measured, hops, args)
+    figures = _figures(measured, hops, args, camera_fps)
     checks = _report(figures)
     figures["goals"] = [{"goal": text, "met": ok} for text, ok in checks]
     if args.json:

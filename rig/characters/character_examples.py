@@ -300,9 +300,12 @@ def character_example_set(
         )
     names = ["neutral", *chosen]
     sources = [neutral, *chosen.values()]
-    targets = [character.face_vertices] + [
-        character.face_vertices + character.expressions[n].face_displacement for n in chosen
-    ]
+    # Filled in place: a list of M arrays then stacked held the targets twice (the
+    # largest allocation of a character upload, SERVER.md "What an upload can cost").
+    targets = np.empty((len(names), *character.face_vertices.shape))
+    targets[:] = character.face_vertices
+    for row, name in enumerate(chosen, start=1):
+        targets[row] += character.expressions[name].face_displacement
     report = pair_report(
         character.names,
         paired,
@@ -322,7 +325,7 @@ def character_example_set(
     example_set = ExampleSet(
         names=tuple(names),
         source_points=np.stack(sources),
-        target_vertices=np.stack(targets),
+        target_vertices=targets,
         target_faces=character.face_faces,
         stable_points=stable,
     )

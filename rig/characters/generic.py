@@ -5,7 +5,9 @@ scripts/make_generic_sources.py from ICT-FaceKit, MIT, see generic_arkit/LICENSE
 and composes source points for VRM presets that have no ARKit twin (the table is
 docs/characters.md), from this set's shapes or from a performer's captured ones
 (``composed_captures``); ``CHARACTER_FIT_DEFAULTS`` are the fit options of a character
-paired with it. It must not read characters, fit or touch the network.
+paired with it, ``GAZE_SHAPES``, ``DRIVEN_SHARE`` and ``DEPENDENT_RELATIVE`` what it leaves
+unpaired so that what shows moves at full strength. It must not read characters, fit or
+touch the network.
 """
 
 from __future__ import annotations

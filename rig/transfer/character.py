@@ -71,6 +71,7 @@ def plan_transfer(
     markers: npt.ArrayLike | str | None = None,
     names: Sequence[str] | None = None,
     max_vertices: int | None = None,
+    max_faces: int | None = None,
     label: str = "character",
 ) -> TransferPlan:
     """Check a transfer onto ``character``'s face mesh; cheap next to the transfer itself.
@@ -87,13 +88,14 @@ def plan_transfer(
     names : sequence of str, optional
         Source expressions to make; default all. Those the character already has are
         skipped: an authored expression is never replaced.
-    max_vertices : int, optional
-        Largest face mesh the transfer takes.
+    max_vertices, max_faces : int, optional
+        Largest face mesh the transfer takes, in vertices and in triangles.
 
     Raises
     ------
     ExampleSetError
-        ``too_many_vertices``; ``bad_gltf`` (``check_targetable``); ``expressions_complete`` (nothing left to make);
+        ``too_many_vertices``, ``too_many_faces``; ``bad_gltf`` (``check_targetable``);
+        ``expressions_complete`` (nothing left to make);
         ``unknown_expression``.
     MeshError, MarkerError
         The face mesh is not a manifold triangle mesh; markers bad, or needed.
@@ -106,6 +108,14 @@ def plan_transfer(
             "here: decimate it, or run `facecast expressions` on your own machine and fit "
             "the folder it writes",
             code="too_many_vertices",
+        )
+    if max_faces is not None and faces.shape[0] > max_faces:
+        raise ExampleSetError(
+            f"{label}: its face mesh {character.mesh_names[character.face_mesh]!r} has "
+            f"{faces.shape[0]} triangles, more than the {max_faces} a transfer takes here: "
+            "decimate it, or run `facecast expressions` on your own machine and fit the "
+            "folder it writes",
+            code="too_many_faces",
         )
     check_targetable(character.glb, character.face_mesh)
     known = set(source.names[1:])

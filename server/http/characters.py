@@ -18,6 +18,7 @@ from fastapi.responses import JSONResponse
 from facecast.rig import fit
 from facecast.rig.characters.character import character_example_set
 from facecast.rig.errors import ExampleSetError
+from facecast.rig.io.gltf import GltfLimits
 
 from ..errors import ApiError
 from ..guards.auth import ANONYMOUS, READ_ROLES, Principal, requires
@@ -33,6 +34,7 @@ from ..storage.rig_store import RIG_ID_PATTERN, RigStore, valid_rig_id
 from .character_upload import (
     character_record,
     check_character_size,
+    gltf_limits,
     pairing_view,
     read_character_upload,
 )
@@ -145,6 +147,7 @@ async def put_character(
     settings = request.app.state.settings
     job = _CharacterJob(
         archive_limits(settings),
+        gltf_limits(settings),
         options,
         _store(request).scratch,
         settings.max_character_bytes,
@@ -153,7 +156,7 @@ async def put_character(
     with fit_slot(request, principal):
         data = await read_body(request, settings.max_upload_bytes)
         try:
-            fitted = await run_fit(request, lambda: job(data))
+            fitted = await run_fit(request, lambda: job(data), size=len(data))
         except ArchiveError as exc:
             raise ApiError(exc.status, exc.code, str(exc)) from None
         except ExampleSetError as exc:
@@ -248,6 +251,7 @@ class _CharacterJob:
     def __init__(
         self,
         limits: ArchiveLimits,
+        gltf: GltfLimits,
         options: dict[str, Any],
         scratch: Path,
         max_bytes: int,
@@ -255,21 +259,21 @@ class _CharacterJob:
         rights_holder: bool = False,
     ) -> None:
         self.limits = limits
+        self.gltf = gltf
         self.options = options
         self.scratch = scratch
         self.max_bytes = max_bytes
         self.rights_holder = rights_holder
 
     def __call__(self, data: bytes) -> tuple[Rig, bytes, dict[str, Any], str]:
-        character, _ = read_character_upload(data, self.limits, self.scratch)
+        character, _ = read_character_upload(data, self.limits, self.scratch, self.gltf)
         check_character_size(character, self.max_bytes)
+        record = character_record(character, rights_holder=self.rights_holder)
+        glb, fmt = character.glb, character.format
         example_set, report = character_example_set(character)
+        # The largest arrays go as soon as they are used (SERVER.md "What an upload can
+        # cost"): the character's displacements once in the example set, that once fitted.
+        del character
         rig = fit(example_set, **self.options)
-        return (
-            rig,
-            pack_character(
-                character.glb, character_record(character, rights_holder=self.rights_holder)
-            ),
-            pairing_view(report),
-            character.format,
-        )
+        del example_set
+        return rig, pack_character(glb, record), pairing_view(report), fmt

@@ -202,11 +202,16 @@ def fit_slot(request: Request, principal: Principal) -> Iterator[None]:
             del held[principal.name]
 
 
-async def run_fit(request: Request, job: Callable[[], T]) -> T:
-    """Run ``job`` (a fit) in the app's fit executor; the caller holds a ``fit_slot``."""
+async def run_fit(request: Request, job: Callable[[], T], *, size: int) -> T:
+    """Run ``job`` (a parse and a fit of an upload of ``size`` bytes) in the app's fit
+    executor, or its small lane up to ``small_upload_bytes``; the caller holds a ``fit_slot``."""
     # Fitting is seconds of numpy: it runs in the dedicated fit executor, never on the
-    # event loop and never in the pool that clones frames.
-    executor: Executor = request.app.state.fit_executor
+    # event loop and never in the pool that clones frames. Small uploads and captures
+    # have a lane of their own: they never queue behind a large file's parse.
+    state = request.app.state
+    limit = _settings(request).small_upload_bytes
+    small = limit > 0 and size <= limit
+    executor: Executor = state.small_fit_executor if small else state.fit_executor
     return await unless_stopping(request, asyncio.wrap_future(executor.submit(job)))
 
 
@@ -374,7 +379,9 @@ async def put_examples(
         data = await read_body(request, settings.max_upload_bytes)
         refuse_character(data, rig_id)
         try:
-            rig = await run_fit(request, _FitJob(data, limits, options, _scratch(request)))
+            rig = await run_fit(
+                request, _FitJob(data, limits, options, _scratch(request)), size=len(data)
+            )
         except ArchiveError as exc:
             raise ApiError(exc.status, exc.code, str(exc)) from None
     created = await anyio.to_thread.run_sync(_store(request).put_rig, rig_id, rig)

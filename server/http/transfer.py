@@ -47,6 +47,7 @@ from ..storage.rig_store import RIG_ID_PATTERN, RigStore, valid_rig_id
 from .character_upload import (
     character_record,
     check_character_size,
+    gltf_limits,
     pairing_view,
     read_character_upload,
 )
@@ -156,7 +157,9 @@ async def start_transfer(
             data = await read_body(request, settings.max_upload_bytes)
             prepare = _Prepare(archive_limits(settings), store.scratch, archive, settings)
             try:
-                plan, source = await run_fit(request, lambda: prepare(data, markers, wanted))
+                plan, source = await run_fit(
+                    request, lambda: prepare(data, markers, wanted), size=len(data)
+                )
             except ArchiveError as exc:
                 raise ApiError(exc.status, exc.code, str(exc)) from None
             now = time.time()
@@ -247,13 +250,15 @@ class _Prepare:
         self.limits = limits
         self.scratch = scratch
         self.archive = archive
+        self.gltf = gltf_limits(settings)
         self.max_vertices = settings.max_transfer_vertices
+        self.max_faces = settings.max_transfer_faces
         self.max_bytes = settings.max_character_bytes
 
     def __call__(
         self, data: bytes, markers: str | None, names: list[str] | None
     ) -> tuple[TransferPlan, SourceExpressions]:
-        character, found = read_character_upload(data, self.limits, self.scratch)
+        character, found = read_character_upload(data, self.limits, self.scratch, self.gltf)
         check_character_size(character, self.max_bytes)
         if found is not None and markers is not None:
             raise ApiError(
@@ -269,6 +274,7 @@ class _Prepare:
             markers=given,
             names=names,
             max_vertices=self.max_vertices,
+            max_faces=self.max_faces,
             label="the uploaded character",
         )
         # The job's file grows by its morph targets (float32 xyz a vertex and expression,

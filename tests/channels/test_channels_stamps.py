@@ -6,17 +6,17 @@ A real server; the clients speak the protocol over plain websockets.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
 import pytest
 
 from facecast.protocol import Frame, Result, Stamps
+from facecast.server.channels.fanout import ChannelFrame
 from facecast.server.testing import run_server
 
 from ._helpers import Publisher, Watcher, points
-
-pytestmark = pytest.mark.anyio
 
 
 async def _send(publisher: Publisher, seq: int, pts: np.ndarray, stamps: Stamps | None) -> None:
@@ -24,6 +24,7 @@ async def _send(publisher: Publisher, seq: int, pts: np.ndarray, stamps: Stamps 
     await publisher.ws.send(publisher.protocol.send(frame))
 
 
+@pytest.mark.anyio
 async def test_every_watcher_gets_the_stamps_and_the_servers_arrival(settings, rigs, ws_impl):
     async with run_server(settings, ws=ws_impl) as server:
         watchers = [
@@ -47,6 +48,7 @@ async def test_every_watcher_gets_the_stamps_and_the_servers_arrival(settings, r
         assert now <= result.stamps.server_in <= result.server_ts <= after
 
 
+@pytest.mark.anyio
 async def test_a_stamp_from_the_future_or_the_far_past_is_not_relayed(settings, rigs, ws_impl):
     async with run_server(settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "stage", "beta")
@@ -61,6 +63,7 @@ async def test_a_stamp_from_the_future_or_the_far_past_is_not_relayed(settings, 
     assert past.stamps is None  # nothing plausible: no stamps at all, the result as before
 
 
+@pytest.mark.anyio
 async def test_a_publisher_without_stamps_is_served_as_before(settings, rigs, ws_impl):
     async with run_server(settings, ws=ws_impl) as server:
         watcher = await Watcher.open(server.ws_url, "stage", "beta")
@@ -69,3 +72,12 @@ async def test_a_publisher_without_stamps_is_served_as_before(settings, rigs, ws
         result = await watcher.result_with_seq(0)
     assert isinstance(result, Result) and result.stamps is None
     assert result.weights is not None and result.server_ts is not None
+
+
+def test_stamps_cross_processes_with_the_frame() -> None:
+    # What another process (through Redis) clones from: the same stamps, bit for bit.
+    stamps = Stamps(captured=1.25, tracked=1.5, sent=1.75, server_in=2.0)
+    frame = ChannelFrame(seq=3, ts=1.0, points=np.zeros((2, 3), np.float32), stamps=stamps)
+    assert ChannelFrame.from_bytes(frame.to_bytes(), max_points=16).stamps == stamps
+    plain = dataclasses.replace(frame, stamps=None)
+    assert ChannelFrame.from_bytes(plain.to_bytes(), max_points=16).stamps is None

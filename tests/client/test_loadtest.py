@@ -6,7 +6,10 @@ import argparse
 import json
 import math
 
+import pytest
+
 from facecast.cli.main import main
+from facecast.rig.sources.ict import locate_ict
 
 from ._stream_fixtures import RIG_ID, demo_rig, live_server, rigs_dir
 
@@ -59,13 +62,27 @@ def test_loadtest_against_an_unreachable_server_exits_2(capsys):
     assert "cannot reach the server" in capsys.readouterr().err
 
 
-def test_bench_transport_smoke_writes_its_json_keys(tmp_path, monkeypatch):
+@pytest.mark.parametrize(
+    "vertices_rig",
+    [
+        # As on a machine without ICT-FaceKit (a fresh checkout): every phase on the demo rig.
+        "demo",
+        # The default wherever ICT-FaceKit is (CI): the vertices phases on ICT's rigs.
+        pytest.param(
+            "ict",
+            marks=[
+                pytest.mark.ict,
+                pytest.mark.skipif(locate_ict() is None, reason="ICT-FaceKit not found"),
+            ],
+        ),
+    ],
+)
+def test_bench_transport_smoke_writes_its_json_keys(tmp_path, monkeypatch, vertices_rig):
     from facecast.cli.bench import transport
 
     out = tmp_path / "transport.json"
-    # As on a machine without ICT-FaceKit (a fresh checkout): every phase on the demo rig,
-    # a path the suite runs nowhere else (and ~2 s cheaper than fitting ICT's rigs).
-    monkeypatch.setattr(transport, "locate_ict", lambda: None)
+    if vertices_rig == "demo":
+        monkeypatch.setattr(transport, "locate_ict", lambda: None)
 
     status = transport.run(
         # The warm-ups too as short as the phases (2 s each, 3 of them, by default).
@@ -80,6 +97,8 @@ def test_bench_transport_smoke_writes_its_json_keys(tmp_path, monkeypatch):
     assert set(figures["rtt_p50_ms"]) == {"websockets", "fastapi", "facecast"}
     assert {"rtt_pass", "throughput_pass", "vertices_pass"} <= figures["goals"].keys()
     assert {"min_client_fps", "mb_per_s", "latency_ms", "pass"} <= figures["vertices"].keys()
+    assert figures["vertices"]["rig"] == vertices_rig
+    assert figures["vertices"]["received"] > 0 and not figures["vertices"]["errors"]
     # The server path is driven by the bare client; the library's round trip is apart.
     assert figures["library_client"]["rtt_ms"]["count"] > 0
     assert isinstance(figures["servers"]["facecast"]["pipelined_dropped"], int)

@@ -105,6 +105,7 @@ def test_the_command_says_what_is_wrong_with_the_video(tmp_path, capsys):
         b"W" + b"4" * 5000 + b" H4 F25:1",  # past int()'s digit limit
         b"W4 H4 F25:1 A" + b"1" * 400 + b":1",
         b"W4 H4 F25:1 A1",
+        b"W4097 H4 F25:1",  # over MAX_SIDE: more than the tracker's page takes
     ],
 )
 def test_every_header_number_is_checked(tmp_path, fields):

@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
 import pytest
 
 from facecast.cli.main import main
 from facecast.server.runner import uvicorn_config
 from facecast.server.settings import Settings, SettingsError
+
+SERVER_MD = Path(__file__).resolve().parents[2] / "server" / "SERVER.md"
 
 POSITIVE = (
     "request_idle_timeout",
@@ -39,12 +44,25 @@ def test_the_limits_come_from_the_environment():
     assert (settings.max_pending_connections, settings.max_connections_per_address) == (7, 3)
 
 
+def _documented_limit() -> tuple[int, int]:
+    """SERVER.md's rule for uvicorn's ``limit_concurrency``: (HTTP headroom, default)."""
+    row = next(
+        line for line in SERVER_MD.read_text().splitlines()
+        if line.startswith("| uvicorn's `limit_concurrency` |")
+    )  # fmt: skip
+    found = re.search(r"`publisher_slots` \+ (\d+) \+ `max_pending_connections` \((\d+)\)", row)
+    assert found is not None, row
+    return int(found[1]), int(found[2])
+
+
 def test_pending_connections_get_room_of_their_own_in_uvicorns_limit():
     settings = Settings(max_connections=10, publisher_slots=2, max_pending_connections=30)
     config = uvicorn_config(settings, app=None)
+    headroom, default = _documented_limit()
 
-    # 64: HTTP requests beyond the WebSocket sessions, as before pending ones had room.
-    assert config.limit_concurrency == 10 + 2 + 64 + 30
+    # As documented: sessions, publisher slots, HTTP requests beyond them, pending ones.
+    assert config.limit_concurrency == 10 + 2 + headroom + 30
+    assert uvicorn_config(Settings(), app=None).limit_concurrency == default
     assert config.timeout_keep_alive == settings.request_idle_timeout
 
 

@@ -3,7 +3,8 @@
 One browser for the whole package (the fake camera is a browser flag): each test writes
 the video it needs to the camera file, and a page opened afterwards plays it from the
 start (Chromium opens the file anew for each getUserMedia). Skips, with the reason, when
-Chromium, the studio's build or scikit-image is missing.
+Chromium, the studio's build or scikit-image is missing (fails under CI=true:
+tests/_requires.py).
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ import pytest
 
 from facecast.rig.characters.character import load_character
 from facecast.rig.errors import ExampleSetError
-from facecast.rig.io.gltf import MAX_VALUES, pack_glb, read_glb_morph_targets
+from facecast.rig.io.gltf import pack_glb, read_glb_morph_targets
 from facecast.rig.io.gltf_read import MAX_DECODED_BYTES
 
 from . import _avatars
@@ -126,10 +126,10 @@ def _draco_scrambled(doc, blob) -> None:
 
 
 def _draco_miscounted(doc, blob) -> None:
-    position = doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"]
-    doc["accessors"][position]["count"] -= 1
-    for target in doc["meshes"][0]["primitives"][0]["targets"]:
-        doc["accessors"][target["POSITION"]]["count"] -= 1
+    # Every attribute one vertex short (a count unlike POSITION's is refused before Draco).
+    prim = doc["meshes"][0]["primitives"][0]
+    for index in {*prim["attributes"].values(), *(t["POSITION"] for t in prim["targets"])}:
+        doc["accessors"][index]["count"] -= 1
 
 
 def _draco_missing_attribute(doc, blob) -> None:
@@ -181,9 +181,11 @@ def test_a_meshopt_view_declaring_more_than_the_bound_is_refused_before_decoding
     _avatars.require_ict()
     count = MAX_DECODED_BYTES // 12 + 1  # one row past the bound
 
-    def huge(doc, blob):  # consistent: the view as long as the count says
-        _face_position_view(doc)["extensions"]["EXT_meshopt_compression"]["count"] = count
-        _face_position_view(doc)["byteLength"] = count * 12
+    def huge(doc, blob):  # consistent: the view (and its fallback buffer) as the count says
+        view = _face_position_view(doc)
+        view["extensions"]["EXT_meshopt_compression"]["count"] = count
+        view["byteLength"] = count * 12
+        doc["buffers"][view["buffer"]]["byteLength"] = view.get("byteOffset", 0) + count * 12
 
     with pytest.raises(ExampleSetError) as info:
         load_character(edited(twin_and("meshopt")[1], huge), label="avatar.glb")
@@ -197,13 +199,14 @@ def test_a_draco_primitive_declaring_more_than_the_bound_is_refused_before_decod
 
     def huge(doc, blob):
         prim = doc["meshes"][2]["primitives"][0]  # the eyes: no morph target to mismatch
-        doc["accessors"][prim["attributes"]["POSITION"]]["count"] = MAX_VALUES // 3 + 1
+        doc["accessors"][prim["attributes"]["POSITION"]]["count"] = 33_333_334  # 10^8 values
 
     with pytest.raises(ExampleSetError) as info:
         load_character(edited(twin_and("draco")[1], huge), label="avatar.glb")
 
-    assert info.value.code == "bad_gltf"
-    assert f"count {MAX_VALUES // 3 + 1} is out of bounds" in str(info.value)
+    # Refused by the document check (gltf_check), before Draco decodes anything.
+    assert info.value.code == "gltf_exceeds_limits"
+    assert "max_gltf_accessor_values" in str(info.value)
 
 
 def test_a_meshopt_gltf_folder_is_packed_with_its_fallback_buffer_and_reads_as_the_glb(tmp_path):
@@ -243,7 +246,7 @@ def test_a_plain_view_in_a_fallback_buffer_is_bad_gltf_not_the_binary_chunk_read
     with pytest.raises(ExampleSetError) as info:
         load_character(edited(twin_and("meshopt")[1], plain), label="avatar.glb")
 
-    assert info.value.code == "bad_gltf" and "buffer 1 has no bytes" in str(info.value)
+    assert info.value.code == "bad_gltf" and "lies in a meshopt fallback buffer" in str(info.value)
 
 
 @pytest.mark.skipif(GLTFPACK_MISSING is not None, reason=str(GLTFPACK_MISSING))

@@ -203,9 +203,14 @@ def serve_argv(*args: str) -> list[str]:
 
 @contextmanager
 def server_process(
-    port: int, rigs: Path, *extra: str, env: dict[str, str] | None = None
+    port: int,
+    rigs: Path,
+    *extra: str,
+    env: dict[str, str] | None = None,
+    ready_timeout: float = 20.0,
 ) -> Iterator[subprocess.Popen]:
-    """A ``facecast serve`` subprocess on 127.0.0.1:``port``; ready when this yields."""
+    """A ``facecast serve`` subprocess on 127.0.0.1:``port``; ready when this yields
+    (within ``ready_timeout`` s: a machine busy with other suites starts it slowly)."""
     full_env = {**os.environ, **(env or {})}
     process = subprocess.Popen(
         serve_argv("--host", "127.0.0.1", "--port", str(port), "--rigs", str(rigs), *extra),
@@ -217,7 +222,7 @@ def server_process(
         start_new_session=True,
     )
     try:
-        wait_ready(f"http://127.0.0.1:{port}", process)
+        wait_ready(f"http://127.0.0.1:{port}", process, ready_timeout)
         yield process
     finally:
         if process.poll() is None:

@@ -1,23 +1,26 @@
 """Full strength where it shows (issue 32): the generic source's exact poses, published to a
 channel of a real uvicorn, reach each kind of uploaded avatar's watcher at full strength.
 
-Every avatar is built here from ICT-FaceKit (``tests.rig._avatars``), uploaded through
-``PUT /v1/characters/{id}`` and fitted there with the defaults a user gets; one publisher
-sends the poses, one watcher per avatar receives its weights. docs/characters.md's "Full
-strength" table holds the figures.
+Every avatar is the suite's own, named as that kind of avatar names its morph targets and
+VRM expressions (``tests.rig._named_avatars``: no ICT-FaceKit needed, since a rig's weights
+depend on which names pair, and the ICT-FaceKit avatars of ``tests.rig._avatars`` give the
+same figures), uploaded through ``PUT /v1/characters/{id}`` and fitted there with the
+defaults a user gets; one publisher sends the poses, one watcher per avatar receives its
+weights. docs/characters.md's "Full strength" table holds the figures.
 """
 
 from __future__ import annotations
 
+import anyio
 import httpx
 import numpy as np
 import pytest
 
 from facecast.rig.characters.generic import generic_sources
+from facecast.server.settings import Settings
 from facecast.server.testing import run_server
 from tests.channels._helpers import Publisher, Watcher
-
-pytestmark = pytest.mark.ict
+from tests.rig._named_avatars import avatar
 
 _ARKIT = {
     "blink": ("eyeBlinkLeft", "eyeBlinkRight"),
@@ -64,12 +67,7 @@ def exact_poses() -> dict[str, np.ndarray]:
 @pytest.fixture(scope="module")
 def received(tmp_path_factory) -> dict[str, dict]:
     """Per avatar kind: its upload's answer and, per pose, the weights its watcher got."""
-    import anyio
 
-    from facecast.server.settings import Settings
-    from tests.rig._avatars import avatar, require_ict
-
-    require_ict()
     settings = Settings(rigs_dir=tmp_path_factory.mktemp("rigs"))
 
     async def run() -> dict[str, dict]:

@@ -24,6 +24,7 @@ from facecast.server.settings import Settings
 from facecast.server.storage.jobs import JOBS_DIR, JobStore
 from facecast.server.storage.rig_store import RigStore
 from facecast.server.testing import run_server
+from tests._requires import skip_or_fail
 
 pytestmark = [
     pytest.mark.anyio,
@@ -69,7 +70,7 @@ async def follow(http: httpx.AsyncClient, rig_id: str, timeout: float = 120.0) -
 
 async def test_a_neutral_only_character_becomes_live_through_a_transfer_job(settings, tmp_path):
     from tests.rig._avatars import ict_parts
-    from tests.rig.test_character import _validator_available, validate
+    from tests.rig.test_character import _validator_available, needs_validator, validate
 
     async with run_server(settings) as server, client(server) as http:
         put = await http.put("/v1/characters/ava", content=neutral_only(), params=TRANSFER)
@@ -103,10 +104,11 @@ async def test_a_neutral_only_character_becomes_live_through_a_transfer_job(sett
     assert np.linalg.norm(moved - truth, axis=1)[reach].mean() < 0.25 * size[reach].mean()
     # ... and the file is still valid glTF (the Khronos validator, where it is installed;
     # checked here rather than in a test of its own: a second job would cost seconds).
-    if _validator_available():
-        (tmp_path / "ava.glb").write_bytes(served.content)
-        issues = validate(tmp_path / "ava.glb")
-        assert issues["numErrors"] == 0, issues["messages"]
+    if not _validator_available():
+        skip_or_fail(needs_validator.kwargs["reason"])
+    (tmp_path / "ava.glb").write_bytes(served.content)
+    issues = validate(tmp_path / "ava.glb")
+    assert issues["numErrors"] == 0, issues["messages"]
 
 
 async def test_deleting_the_character_removes_its_job_record(settings):

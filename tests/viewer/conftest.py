@@ -1,7 +1,8 @@
 """Fixtures of the viewer tests: the built viewer, a demo rig, a real server, a real Chromium.
 
 Skips (with the reason) when Debian's chromium or the viewer's build output is missing;
-CI has both (scripts/setup --test builds the viewer and installs chromium).
+under CI=true that fails instead (tests/_requires.py): scripts/setup --test builds the
+viewer and installs chromium.
 """
 
 from __future__ import annotations

@@ -1,7 +1,5 @@
-"""The overlay watching a broadcast channel that a real publisher streams the demo into.
-
-Dormant (skipped) until the server has the channel routes (PROTOCOL.md §2.1).
-"""
+"""The overlay watching a broadcast channel (PROTOCOL.md §2.1) that a real publisher
+streams the demo into."""
 
 from __future__ import annotations
 

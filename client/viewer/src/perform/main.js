@@ -16,7 +16,10 @@ import { FacePipeline, LAYOUT as layout } from "./pipeline.js";
 import { Studio } from "./studio.js";
 import { Rolling } from "./timing.js";
 const K = layout.features.length;
-const MAX_BUFFERED_BYTES = 64 * 1024; // a stalled socket drops frames instead of queueing them
+// Newest frame only at the publisher's socket: a frame is sent only when the socket holds
+// nothing unsent, so at most the frame being sent waits there; a stalled socket drops frames
+// (counted in `skipped`) instead of queueing them (was 64 KiB: ~140 frames, 4 s at 30 fps).
+const MAX_BUFFERED_BYTES = 1;
 const WINDOW = 120; // frames in the rolling timing statistics
 const DRAW_SHARE = 0.1; // of the page's time the character's drawing may block it
 
