@@ -147,7 +147,11 @@ def register(subparsers: Subparsers) -> None:
             "facecast track; fit the performer's own rig from the tracked keys onto another "
             "identity, clone the tracked take and report eq. 4.1 per axis and jitter against "
             "the truth, beside NNLS on the same points, the generic rig re-based on the "
-            "tracked neutral, and the same pipeline on the exact landmarks."
+            "tracked neutral, and the same pipeline on the exact landmarks. Then another "
+            "identity performs its keys and an eyes clip (quick 5-frame blinks, a wink each "
+            "side, gaze holds up, down, left and right, jaw open + smile), scored per event "
+            "on the personal and generic paths: live as /perform publishes, through the live "
+            "Kalman filter, and offline."
         ),
     )
     _add_ict(webcam)

@@ -190,6 +190,10 @@ def test_bench_eyes_clip_on_exact_landmarks_scores_each_event_on_both_paths(tmp_
         assert max(w["other"] for w in row["winks"]) < 0.05, row["winks"]
     personal = rows["personal live"]
     assert min(v for b in personal["blinks"] for v in b.values()) > 0.6
+    # Each filter is run: the live Kalman and the offline smoother move the peaks.
+    for path in ("personal", "generic"):
+        live = rows[f"{path} live"]["winks"]
+        assert rows[f"{path} live kalman 480"]["winks"] != live != rows[f"{path} offline"]["winks"]
     assert "personal live kalman 2000" in capsys.readouterr().out
 
 
