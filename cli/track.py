@@ -172,7 +172,7 @@ def track_video(
         raise CommandError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     if max_frames is not None and max_frames < 1:
         raise CommandError(f"max_frames must be at least 1, got {max_frames}")
-    video = open_y4m(path)
+    video = open_y4m(path, max_frames=max_frames)  # only the frames it will track
     files = _assets()
     executable = chromium or chromium_path()
     if executable is None:
@@ -182,9 +182,10 @@ def track_video(
         )
     if importlib.util.find_spec("playwright") is None:
         raise CommandError(
-            "facecast track drives Chromium through Playwright: pip install 'facecast[track]'"
+            "facecast track drives Chromium through Playwright: run ./scripts/setup --track "
+            "(or pip install 'facecast[track]')"
         )
-    frames = video.num_frames if max_frames is None else min(max_frames, video.num_frames)
+    frames = video.num_frames
     # Playwright's sync API refuses a thread with a running event loop (Jupyter, an async
     # app, another sync Playwright session): the browser gets a thread of its own.
     with ThreadPoolExecutor(1, thread_name_prefix="facecast-track") as pool:
@@ -232,10 +233,18 @@ def _run(
             with bar:
                 for index in range(frames):
                     following = f"/frames/{index + 1}" if index + 1 < frames else None
-                    tracked = page.evaluate(
-                        "([url, shape, next]) => window.facecastTrack.track(url, shape, next)",
-                        [f"/frames/{index}", shape, following],
-                    )
+                    try:
+                        tracked = page.evaluate(
+                            "([url, shape, next]) => window.facecastTrack.track(url, shape, next)",
+                            [f"/frames/{index}", shape, following],
+                        )
+                    except PlaywrightError as exc:
+                        # The page's process died (out of memory, a crash): said, not a
+                        # traceback (before: a TargetClosedError after minutes at 8192^2).
+                        raise CommandError(
+                            f"Chromium's page failed on frame {index} ({video.width} x "
+                            f"{video.height}): {str(exc).splitlines()[0][:200]}"
+                        ) from None
                     faces[index] = tracked["faces"]
                     model_ms[index] = tracked["modelMs"]
                     if tracked["points"] is not None:

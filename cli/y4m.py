@@ -1,6 +1,7 @@
 """YUV4MPEG2 (.y4m) video files, read frame by frame as raw planar 8-bit YUV, and written.
 
-The header is validated up front and every frame located before any is read; frames are
+The header is validated up front (every number in it) and every frame wanted located
+before any is read; frames are
 returned as their bytes, never converted to RGB here (``facecast track`` hands them to
 Chromium, which converts them as it converts its camera's frames). ``Y4MWriter`` writes
 RGB frames as 4:2:0 in the colour space the tracker tags them with (BT.601, limited
@@ -9,7 +10,6 @@ range), for rendered test videos.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -20,13 +20,31 @@ import numpy.typing as npt
 
 from facecast.errors import FacecastError
 
-__all__ = ["ACCEPTED", "Y4MError", "Y4MVideo", "Y4MWriter", "open_y4m", "rgb_to_i420"]
+__all__ = [
+    "ACCEPTED",
+    "MAX_FPS",
+    "MAX_NUMBER",
+    "MAX_SIDE",
+    "Y4MError",
+    "Y4MVideo",
+    "Y4MWriter",
+    "open_y4m",
+    "rgb_to_i420",
+]
 
 _MAGIC = b"YUV4MPEG2"
 #: A header or a frame header longer than this is not a Y4M file.
 MAX_HEADER_BYTES = 4096
-#: Frame sizes beyond this are refused (16384 x 16384 would be 400 MB a frame at 4:2:0).
-MAX_SIDE = 8192
+#: Frame sizes beyond this are refused: what ``facecast track``'s Chromium page takes.
+#: Measured (issue 31, 2026-12-04, 2-core VM under load): 4096^2 tracks, 5120^2 tracked
+#: once in 285 s, 6144^2 did not end in 400 s, and at 8192^2 the page's process died
+#: after 87-117 s (Playwright's TargetClosedError).
+MAX_SIDE = 4096
+#: The largest number of a header's N:D (frame rate, pixel aspect): a 32-bit int's, as
+#: ffmpeg reads them.
+MAX_NUMBER = 2**31 - 1
+#: Frame rates above this are refused (no camera or encoder makes one).
+MAX_FPS = 1000
 #: Y4M colour spaces read (the ``C`` tag; none means 420jpeg) -> the planar layout, as
 #: WebCodecs names it, and the chroma planes' subsampling (x, y).
 ACCEPTED: dict[str, tuple[str, int, int]] = {
@@ -95,27 +113,43 @@ class Y4MVideo:
         return data
 
 
+def _number(text: str, what: str, path: Path, *, most: int = MAX_NUMBER) -> int:
+    """A header number: 1 to ``most``, plain ASCII digits (no sign, no ``_``, no spaces:
+    ``int`` takes all three, and any length up to Python's digit limit)."""
+    if not (text.isascii() and text.isdigit() and len(text) <= len(str(most))):
+        raise Y4MError(f"{path}: {what} {text[:40]!r} is not a whole number 1..{most}")
+    value = int(text)
+    if not 1 <= value <= most:
+        raise Y4MError(f"{path}: {what} {value} is outside 1..{most}")
+    return value
+
+
 def _parse_fps(value: str, path: Path) -> float:
-    try:
-        num, _, den = value.partition(":")
-        rate = Fraction(int(num), int(den or "1"))
-    except (ValueError, ZeroDivisionError):
-        raise Y4MError(f"{path}: frame rate F{value} is not N:D") from None
-    if not (rate > 0 and math.isfinite(float(rate))):
-        raise Y4MError(f"{path}: frame rate F{value} must be positive")
+    num, colon, den = value.partition(":")
+    if not colon:
+        raise Y4MError(f"{path}: frame rate F{value[:40]} is not N:D")
+    rate = Fraction(
+        _number(num, "frame rate numerator", path), _number(den, "frame rate denominator", path)
+    )
+    if rate > MAX_FPS:
+        raise Y4MError(f"{path}: frame rate F{value} is over {MAX_FPS} frames a second")
     return float(rate)
 
 
 def _parse_header(line: bytes, path: Path) -> tuple[int, int, float, str]:
     fields = line.decode("ascii", errors="replace").split()[1:]
     tags = {field[0]: field[1:] for field in fields if field}
-    try:
-        width, height = int(tags["W"]), int(tags["H"])
-    except (KeyError, ValueError):
-        raise Y4MError(f"{path}: the Y4M header needs W and H: {line[:200]!r}") from None
-    if not (1 <= width <= MAX_SIDE and 1 <= height <= MAX_SIDE):
-        raise Y4MError(f"{path}: frame size {width} x {height} outside 1..{MAX_SIDE}")
+    if "W" not in tags or "H" not in tags:
+        raise Y4MError(f"{path}: the Y4M header needs W and H: {line[:200]!r}")
+    width = _number(tags["W"], "width W", path, most=MAX_SIDE)
+    height = _number(tags["H"], "height H", path, most=MAX_SIDE)
     fps = _parse_fps(tags.get("F", "25:1"), path)  # a Y4M without F: 25 fps, as ffmpeg reads it
+    if "A" in tags and tags["A"] not in ("0:0", ""):
+        aspect_num, colon, aspect_den = tags["A"].partition(":")
+        if not colon:
+            raise Y4MError(f"{path}: pixel aspect A{tags['A'][:40]} is not N:D")
+        _number(aspect_num, "pixel aspect numerator", path)
+        _number(aspect_den, "pixel aspect denominator", path)
     colour = tags.get("C", "420jpeg")
     if colour not in ACCEPTED:
         raise Y4MError(
@@ -125,8 +159,9 @@ def _parse_header(line: bytes, path: Path) -> tuple[int, int, float, str]:
     return width, height, fps, colour
 
 
-def open_y4m(path: str | Path) -> Y4MVideo:
-    """Validate ``path``'s header and locate every frame.
+def open_y4m(path: str | Path, *, max_frames: int | None = None) -> Y4MVideo:
+    """Validate ``path``'s header and locate every frame, or the first ``max_frames``
+    (the rest of the file is then never read, nor checked).
 
     Raises
     ------
@@ -149,7 +184,7 @@ def open_y4m(path: str | Path) -> Y4MVideo:
         frame_bytes = width * height + 2 * chroma
         offsets: list[int] = []
         position = len(header)
-        while position < size:
+        while position < size and (max_frames is None or len(offsets) < max_frames):
             handle.seek(position)
             line = handle.readline(MAX_HEADER_BYTES)
             if not (line.startswith(b"FRAME") and line.endswith(b"\n")):

@@ -42,6 +42,7 @@ from facecast.protocol.messages import (
     ServerMessage,
     Smoothing,
 )
+from facecast.protocol.stamps import Stamps
 from facecast.protocol.transport import (
     BEARER_SUBPROTOCOL_PREFIX,
     PUBLISH_PATH,
@@ -96,6 +97,7 @@ __all__ = [
     "ServerProtocol",
     "ServerState",
     "Smoothing",
+    "Stamps",
     "array_from_wire",
     "array_to_wire",
     "bearer_token",

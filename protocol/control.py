@@ -140,9 +140,37 @@ class Error(Message):
 
 @dataclass(frozen=True, kw_only=True)
 class Pong(_Probe):
-    """Answer to a `Ping` (§5.2.4): ``id`` and ``ts`` echoed unchanged."""
+    """Answer to a `Ping` (§5.2.4): ``id`` and ``ts`` echoed unchanged.
+
+    Attributes
+    ----------
+    server_ts : float or None
+        The server's wall clock when it answered, seconds since the Unix epoch: with the
+        round trip, a client's estimate of its clock's offset to the server's (§5.4).
+        None: not sent (servers before it; the bytes are then as before).
+    """
 
     TYPE: ClassVar[str] = "pong"
+    server_ts: float | None = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.server_ts is not None:
+            object.__setattr__(self, "server_ts", check_float(self.server_ts, "pong.server_ts"))
+
+    def serialize(self) -> dict[str, Any]:
+        out = super().serialize()
+        if self.server_ts is not None:
+            out["server_ts"] = self.server_ts
+        return out
+
+    @classmethod
+    def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Self:
+        return cls(
+            id=read_uint(obj, "id", "pong.id"),
+            ts=read_float(obj, "ts", "pong.ts"),
+            server_ts=read_float(obj, "server_ts", "pong.server_ts", None),
+        )
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -72,4 +72,4 @@ def decode_frame(data: bytes, limits: Limits) -> Frame | None:
     points = np.ndarray((rows, 3), dtype, data, offset=start)
     if not all_finite(points):
         return None
-    return _checked(Frame, seq=seq, ts=stamp, points=points, head=None)
+    return _checked(Frame, seq=seq, ts=stamp, points=points, head=None, stamps=None)

@@ -27,10 +27,13 @@ from facecast.protocol.message import (
     _ArrayMessage,
     _check_array,
     _check_head,
+    _check_stamps,
     _checked,
     _header,
     _read_head,
+    _read_stamps,
 )
+from facecast.protocol.stamps import Stamps
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -47,6 +50,9 @@ class Frame(_ArrayMessage):
         Feature points; decoded frames hold a read-only view of the message bytes.
     head : Head or None
         The performer's head pose (§5.3), relayed to a channel's watchers; None: not sent.
+    stamps : Stamps or None
+        The frame's times along the path so far (§5.4: captured, tracked, sent), on the
+        server's clock as the sender estimates it; None: not sent.
     """
 
     TYPE: ClassVar[str] = "frame"
@@ -54,12 +60,14 @@ class Frame(_ArrayMessage):
     ts: float
     points: np.ndarray
     head: Head | None = None
+    stamps: Stamps | None = None
 
     def __post_init__(self) -> None:
         check_uint(self.seq, "frame.seq")
         object.__setattr__(self, "ts", check_float(self.ts, "frame.ts"))
         _check_array(self.points, "frame.points", (3,))
         _check_head(self.head, "frame.head")
+        _check_stamps(self.stamps, "frame.stamps")
 
     def serialize(self) -> dict[str, Any]:
         out = {
@@ -70,6 +78,8 @@ class Frame(_ArrayMessage):
         }
         if self.head is not None:  # absent otherwise: a frame without one keeps its bytes
             out["head"] = self.head.serialize()
+        if self.stamps is not None:  # likewise
+            out["stamps"] = self.stamps.serialize()
         return out
 
     @classmethod
@@ -82,6 +92,7 @@ class Frame(_ArrayMessage):
                 obj.get("points"), "frame.points", trailing=(3,), max_rows=limits.max_points
             ),
             head=_read_head(obj, "frame.head"),
+            stamps=_read_stamps(obj, "frame.stamps"),
         )
 
 
@@ -114,6 +125,9 @@ class Result(_ArrayMessage):
         The server's wall clock when encoded (channel endpoints, §2.4).
     head : Head or None
         The frame's head pose as published, on channel endpoints (§5.3).
+    stamps : Stamps or None
+        The frame's times along the path (§5.4): the publisher's plausible ones and the
+        server's ``server_in``, on channel endpoints when the frame had stamps.
     """
 
     TYPE: ClassVar[str] = "result"
@@ -126,6 +140,7 @@ class Result(_ArrayMessage):
     dropped: int = 0
     server_ts: float | None = None
     head: Head | None = None
+    stamps: Stamps | None = None
 
     def __post_init__(self) -> None:
         # On the server's per-frame path: a handful of type checks, no array scans.
@@ -134,6 +149,7 @@ class Result(_ArrayMessage):
         check_uint(self.proc_us, "result.proc_us")
         check_uint(self.dropped, "result.dropped")
         _check_head(self.head, "result.head")
+        _check_stamps(self.stamps, "result.stamps")
         if self.server_ts is not None:
             object.__setattr__(self, "server_ts", check_float(self.server_ts, "result.server_ts"))
         present = [name for name in _RESULT_ARRAYS if getattr(self, name) is not None]
@@ -170,6 +186,8 @@ class Result(_ArrayMessage):
             out["server_ts"] = self.server_ts
         if self.head is not None:
             out["head"] = self.head.serialize()
+        if self.stamps is not None:
+            out["stamps"] = self.stamps.serialize()
         return out
 
     @classmethod
@@ -197,4 +215,5 @@ class Result(_ArrayMessage):
             dropped=read_uint(obj, "dropped", "result.dropped"),
             server_ts=read_float(obj, "server_ts", "result.server_ts", None),
             head=_read_head(obj, "result.head"),
+            stamps=_read_stamps(obj, "result.stamps"),
         )

@@ -18,6 +18,7 @@ from facecast.protocol.fields import (
 )
 from facecast.protocol.head import Head
 from facecast.protocol.limits import Limits
+from facecast.protocol.stamps import Stamps
 
 PROTOCOL_VERSION: Final = 1
 
@@ -113,3 +114,13 @@ def _check_head(value: Any, where: str) -> None:
 def _read_head(obj: Mapping[str, Any], where: str) -> Head | None:
     value = obj.get("head")
     return None if value is None else Head.parse(value, where)
+
+
+def _check_stamps(value: Any, where: str) -> None:
+    if value is not None and not isinstance(value, Stamps):
+        raise _fail(where, "nil or Stamps", value)
+
+
+def _read_stamps(obj: Mapping[str, Any], where: str) -> Stamps | None:
+    value = obj.get("stamps")
+    return None if value is None else Stamps.parse(value, where)

@@ -4,18 +4,18 @@ Pure numpy/scipy plus mesh-format libraries; it imports nothing from protocol, s
 or client, and does no networking.
 """
 
+from .characters.loaders import load_example_set
 from .errors import ExampleSetError, FitError, InputError, RigError, RigFileError
 from .examples import ExampleSet
 from .fit import FitReport, IdentifiabilityWarning, fit, refit_noise
 from .io.gltf import export_glb, read_glb_morph_targets
-from .io.loaders import load_example_set
 from .io.meshio import read_obj, read_obj_vertices, read_points, write_obj
-from .io.rigfile import load_rig, rig_from_bytes
 from .noise import estimate_noise
 from .pose import align_points, similarity_transform
 from .radial import KERNELS
 from .regions import Region, fit_regions, split_masks
 from .rig import Rig
+from .rigfile import load_rig, rig_from_bytes
 from .smoothing import SMOOTHING_CHOICES, SmoothedTake, smooth_take
 from .sources.animation import SourceAnimation, write_clone_output
 from .sources.loading import load_source_animation

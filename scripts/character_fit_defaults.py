@@ -29,13 +29,14 @@ import numpy as np
 
 from facecast.cli.bench import webcam as bench
 from facecast.rig import fit
-from facecast.rig.evaluation.takes import arkit_example_set, take_experiment
+from facecast.rig.characters.generic import generic_sources
+from facecast.rig.evaluation.takes import take_experiment
 from facecast.rig.evaluation.webcam import captured_keys, hold_last_found
 from facecast.rig.examples import ExampleSet
 from facecast.rig.rebase import calibrate
 from facecast.rig.retarget import fit_performer
-from facecast.rig.sources.generic import generic_sources
 from facecast.rig.sources.ict import locate_ict
+from facecast.rig.sources.ict_arkit import arkit_example_set
 from facecast.rig.sources.trackers import read_livelink_csv
 from facecast.server.storage.profiles import held_noise
 

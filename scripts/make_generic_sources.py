@@ -1,4 +1,4 @@
-"""Write facecast's generic ARKit source set (rig/sources/generic_arkit/) from ICT-FaceKit.
+"""Write facecast's generic ARKit source set (rig/characters/generic_arkit/) from ICT-FaceKit.
 
 Run once from the repository (``.venv/bin/python scripts/make_generic_sources.py``); the
 output is committed as package data. Reads ../shared/data/ict-facekit (or $FACECAST_ICT).

@@ -28,6 +28,7 @@ from .channels.hub import ChannelHub
 from .channels.routes import router as channel_router
 from .compute.blending import BlendBatcher
 from .connection.registry import SessionRegistry
+from .daemon_pool import DaemonPool
 from .errors import LogOnce, install_error_handlers, problem
 from .guards.auth import authorize_request
 from .guards.origins import OriginGuard
@@ -55,6 +56,8 @@ SESSIONS_STATE_KEY = "facecast_sessions"
 #: Key of the app's ``stopping`` event in the lifespan state: ``runner`` sets it when a
 #: shutdown begins, and requests still reading a body or waiting for a fit answer 503.
 STOPPING_STATE_KEY = "facecast_stopping"
+#: How long a stopping server waits for a running transfer job to record its end.
+TRANSFER_STOP_SECONDS = 0.5
 #: Environment variable carrying serialised settings to worker processes.
 SETTINGS_ENV = "FACECAST_SETTINGS_JSON"
 
@@ -73,12 +76,14 @@ def create_app(settings: Settings) -> FastAPI:
         app.state.clone_executor = ThreadPoolExecutor(
             settings.clone_threads, thread_name_prefix="facecast-clone"
         )
-        app.state.fit_executor = ThreadPoolExecutor(
-            settings.fit_threads, thread_name_prefix="facecast-fit"
-        )
+        # Uploads' parses and fits: daemon threads, which a stopping process abandons
+        # rather than waits for (``daemon_pool``).
+        app.state.fit_executor = DaemonPool(settings.fit_threads, "facecast-fit")
+        # ... and small ones (``small_upload_bytes``) in a lane of their own.
+        app.state.small_fit_executor = DaemonPool(1, "facecast-fit-small")
         # Deformation transfer jobs (minutes of scipy for big meshes): their own thread, so
         # they never hold up fits; one at a time (the slot in ``storage.jobs``).
-        app.state.transfer_executor = ThreadPoolExecutor(1, thread_name_prefix="facecast-transfer")
+        app.state.transfer_executor = DaemonPool(1, "facecast-transfer")
         app.state.transfer_cancel = threading.Event()
         # One per app, so frames of all its stream sessions on one rig blend together.
         app.state.blend_batcher = BlendBatcher(
@@ -105,8 +110,13 @@ def create_app(settings: Settings) -> FastAPI:
             await app.state.channels.close()
             app.state.clone_executor.shutdown(wait=False, cancel_futures=True)
             app.state.fit_executor.shutdown(wait=False, cancel_futures=True)
+            app.state.small_fit_executor.shutdown(wait=False, cancel_futures=True)
             app.state.transfer_cancel.set()  # a running transfer stops after its expression
             app.state.transfer_executor.shutdown(wait=False, cancel_futures=True)
+            # A job checks the event between expressions and stages: given a moment, it
+            # records its end ("interrupted") itself; past it, it is abandoned (its record
+            # reads so anyway: the slot is free) and the store closes under it.
+            await anyio.to_thread.run_sync(app.state.transfer_executor.idle, TRANSFER_STOP_SECONDS)
             await anyio.to_thread.run_sync(app.state.store.close)
             log.info("server stopped", extra={"event": "server.stop", "pid": os.getpid()})
 

@@ -9,6 +9,7 @@ class's ``code`` is its default, and the module that raises each re-exports it):
     ApiError(status, code, detail)                 "api_error"          code: the problem's
     SettingsError(ValueError)                      "bad_setting"        raised by settings.py
     RigNotFoundError(LookupError)                  "rig_not_found"      store.py
+    StoreClosedError(OSError)                      "store_closed"       rig_store.py
     ProfileNotFoundError(LookupError)              "profile_not_found"  performers.py
     ArchiveError(ValueError)(status, code, ...)    "bad_archive"        archive.py
     BusUnavailable(ConnectionError)                "bus_unavailable"    bus.py
@@ -118,6 +119,12 @@ class RigNotFoundError(FacecastError, LookupError):
     def __init__(self, rig_id: str) -> None:
         super().__init__(f"no rig with id {rig_id!r}")
         self.rig_id = rig_id
+
+
+class StoreClosedError(FacecastError, OSError):
+    """The rig store was closed (the server stopping): work abandoned then writes nothing."""
+
+    code: str = "store_closed"
 
 
 #: Set in a request's scope by the 500 handler once it has logged the failure.

@@ -72,6 +72,10 @@ class Settings:
     max_upload_bytes: int = 64 * MiB
     max_extracted_bytes: int = 256 * MiB
     max_archive_members: int = 2000
+    #: Largest character file stored (the GLB as kept: a .gltf folder's packed into one);
+    #: a larger one is 422 ``character_too_large`` before it is fitted. Downloads stream
+    #: from disk in chunks whatever the size; this bounds the disk each character takes.
+    max_character_bytes: int = 64 * MiB
     #: Largest allowed (total uncompressed size / archive size): zip-bomb guard.
     max_compression_ratio: float = 200.0
     #: Fits (and rig uploads) waiting or running at once; more get 503 ``server_busy``.
@@ -80,9 +84,38 @@ class Settings:
     #: is 408 ``body_timeout``, so a trickled body cannot hold an upload slot for long.
     body_timeout: float = 120.0
     fit_threads: int = 1
+    #: Uploads up to this size (and performer captures) are parsed and fitted in a lane of
+    #: their own (one thread, ``fit_threads`` do the rest): a small upload or a
+    #: calibration never queues behind a large file's parse. 0: one lane for all.
+    small_upload_bytes: int = 1 * MiB
     #: Fit slots (of ``max_pending_fits``) one token without the admin role may hold at
     #: once; one more is 429 ``too_many_fits``. 0: no per-token cap.
     max_fits_per_token: int = 1
+
+    # -- character files (glTF, GLB, VRM; rig/io/gltf_check.py) ---------------------------
+    #: The most an uploaded character (PUT /v1/characters/{id}, with or without
+    #: ``expressions=transfer``) may declare, checked before anything is allocated; one
+    #: more is 422 ``gltf_exceeds_limits`` naming the setting. JSON values (objects,
+    #: arrays, strings, numbers) in its JSON, counted before it is parsed.
+    max_gltf_json_values: int = 1_000_000
+    #: Nodes, and levels of the node tree (a root alone is 1): the nodes must form a tree.
+    max_gltf_nodes: int = 20_000
+    max_gltf_depth: int = 256
+    #: Meshes, and primitives of all meshes together.
+    max_gltf_meshes: int = 1_000
+    max_gltf_primitives: int = 10_000
+    #: Vertices (every distinct POSITION accessor) and triangles (every primitive's) of
+    #: all meshes together.
+    max_gltf_vertices: int = 1_000_000
+    max_gltf_faces: int = 2_000_000
+    #: Morph targets of one mesh, and morph targets x vertices summed over the meshes
+    #: (reading them allocates 24 bytes each; 4 M: 52 ARKit targets on a 76,000-vertex
+    #: face), also VRM expressions mixing morphs x the face's vertices.
+    max_gltf_morph_targets: int = 1_000
+    max_gltf_morph_values: int = 4_000_000
+    #: Values (count x components) of all accessors together, with or without a bufferView
+    #: (one without is all zeros, which a few bytes can declare).
+    max_gltf_accessor_values: int = 64_000_000
 
     # -- deformation transfer jobs (server/http/transfer.py) ------------------------------
     #: Largest character face mesh (vertices) ``PUT /v1/characters/{id}?expressions=transfer``
@@ -90,6 +123,9 @@ class Settings:
     #: shapes take about a minute of one core). One transfer runs per server at a time;
     #: another is 503 ``transfer_busy``.
     max_transfer_vertices: int = 50_000
+    #: Its largest face mesh in triangles (a closed mesh has about twice as many as
+    #: vertices); a larger one is 422 ``too_many_faces``.
+    max_transfer_faces: int = 150_000
     #: Finished transfer job records kept under ``<rigs_dir>/.jobs``; older ones are pruned
     #: (a character's record also goes when the character is deleted or replaced).
     max_job_records: int = 64
@@ -216,12 +252,24 @@ class Settings:
             "max_upload_bytes",
             "max_extracted_bytes",
             "max_archive_members",
+            "max_character_bytes",
             "max_compression_ratio",
             "max_pending_fits",
             "body_timeout",
             "fit_threads",
             "max_capture_bytes",
             "max_transfer_vertices",
+            "max_transfer_faces",
+            "max_gltf_json_values",
+            "max_gltf_nodes",
+            "max_gltf_depth",
+            "max_gltf_meshes",
+            "max_gltf_primitives",
+            "max_gltf_vertices",
+            "max_gltf_faces",
+            "max_gltf_morph_targets",
+            "max_gltf_morph_values",
+            "max_gltf_accessor_values",
             "max_job_records",
             "max_connections",
             "max_fps",
@@ -252,6 +300,7 @@ class Settings:
             "max_connections_per_address",
             "publisher_slots",
             "max_fits_per_token",
+            "small_upload_bytes",
         ):
             if getattr(self, name) < 0:
                 raise SettingsError(f"{name}: must be >= 0, got {getattr(self, name)!r}")

@@ -52,6 +52,10 @@ LAZY: dict[tuple[str, str], str] = {
         "optional dependency: Playwright (the `test` extra) drives Chromium for `facecast "
         "track` only; without it the command says what to install"
     ),
+    ("facecast.cli.bench.live", "playwright.*"): (
+        "optional dependency: Playwright (the `test` extra) drives Chromium for `facecast bench "
+        "live` only; the other benchmarks run without it"
+    ),
     ("facecast.cli.facetrack", "cv2"): "optional dependency: the `perform` extra",
     ("facecast.cli.facetrack", "mediapipe.*"): "optional dependency: the `perform` extra",
     ("facecast.server.channels.bus", "redis.asyncio"): (
@@ -264,8 +268,8 @@ def test_no_import_cycle_counting_type_only_imports(graphs):
 
 #: The server's rooms, lowest first: a module imports only from its own room or a lower one
 #: (server/SERVER.md, "Modules"). Rooms on one rank do not import each other; the base
-#: modules at the top level (names, errors, settings, logs) are one room.
-SERVER_BASE = frozenset({"names", "errors", "settings", "logs"})
+#: modules at the top level (names, errors, settings, logs, daemon_pool) are one room.
+SERVER_BASE = frozenset({"names", "errors", "settings", "logs", "daemon_pool"})
 SERVER_ROOMS: tuple[tuple[str, ...], ...] = (
     ("base",),
     ("compute",),
@@ -302,6 +306,30 @@ def test_server_rooms_import_one_way(graphs):
         if (other := _room(target)) and other != room and rank[other] >= rank[room]
     ]
     assert upward == []
+
+
+def _rig_folder(module: str) -> str | None:
+    """The room of ``rig/`` a module lives in: its subfolder, else its own top-level file."""
+    parts = module.split(".")
+    if parts[:2] != ["facecast", "rig"] or len(parts) < 3:
+        return None
+    return parts[2]
+
+
+def test_rig_folders_import_each_other_without_a_cycle(graphs):
+    # Folder level (rig/io, rig/characters, rig/sources, ..., each top-level module its own
+    # room), type-only imports counted: two rooms that import each other are one concept
+    # split in two places, whichever modules carry the arrows.
+    _, edges, _ = graphs
+    rooms: dict[str, set[str]] = {}
+    for module, targets in edges.items():
+        if (room := _rig_folder(module)) is None:
+            continue
+        rooms.setdefault(room, set()).update(
+            other for t in targets if (other := _rig_folder(t)) not in (None, room)
+        )
+    assert {"io", "characters", "sources", "transfer", "evaluation"} <= set(rooms)
+    assert _cycles(rooms) == []
 
 
 def test_rig_imports_nothing_of_protocol_server_or_client(graph):

@@ -61,6 +61,7 @@ def test_wheel_holds_the_viewer_pages_and_every_built_viewer_file(wheel):
     built_files = [p.relative_to(viewer).as_posix() for p in dist.rglob("*") if p.is_file()]
     missing = [f for f in built_files if f"facecast/client/viewer/{f}" not in names]
     assert "dist/perform/facemesh.bin" in built_files and not missing
+    assert "dist/draco/draco_decoder.wasm" in built_files  # compressed characters (Draco)
 
 
 def test_wheel_holds_every_package_and_the_protocol_spec(wheel):
@@ -71,8 +72,8 @@ def test_wheel_holds_every_package_and_the_protocol_spec(wheel):
         "facecast/protocol/codec.py",
         "facecast/rig/fit.py",
         "facecast/rig/sources/layouts/mediapipe_face_mesh.json",
-        "facecast/rig/sources/generic_arkit/points.npz",
-        "facecast/rig/sources/generic_arkit/LICENSE-ICT-FaceKit",
+        "facecast/rig/characters/generic_arkit/points.npz",
+        "facecast/rig/characters/generic_arkit/LICENSE-ICT-FaceKit",
         "facecast/rig/demo/scene.py",
         "facecast/server/app.py",
         "facecast/client/connection.py",
@@ -120,3 +121,13 @@ def test_installed_wheel_imports_and_fits_the_demo(wheel, tmp_path):
     )
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "13"
+
+
+def test_the_licence_is_an_spdx_expression_without_a_deprecation_warning(built):
+    path, output = built
+    with zipfile.ZipFile(path) as wheel:
+        metadata = next(n for n in wheel.namelist() if n.endswith(".dist-info/METADATA"))
+        text = wheel.read(metadata).decode()
+
+    assert "License-Expression: MIT" in text.splitlines()
+    assert "project.license` as a TOML table is deprecated" not in output

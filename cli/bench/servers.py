@@ -30,6 +30,7 @@ __all__ = [
     "serve_broadcast_floor",
     "serve_facecast",
     "serve_fastapi_echo",
+    "serve_relay_floor",
     "serve_vertices_floor",
     "serve_websockets_echo",
 ]
@@ -50,6 +51,27 @@ def serve_websockets_echo(port: int) -> None:
 
     async def main() -> None:
         async with serve(echo, "127.0.0.1", port, compression=None, max_size=_MAX_SIZE):
+            await asyncio.Future()
+
+    uvloop.run(main())
+
+
+def serve_relay_floor(port: int) -> None:
+    """A bare ``websockets`` relay: each message from one connection goes to every other,
+    as it comes (the least a server between a publisher page and a viewer page can do)."""
+    members: set[ServerConnection] = set()
+
+    async def relay(ws: ServerConnection) -> None:
+        members.add(ws)
+        try:
+            async for message in ws:
+                broadcast([m for m in members if m is not ws], message)
+        finally:
+            members.discard(ws)
+
+    async def main() -> None:
+        async with serve(relay, "127.0.0.1", port, compression=None, max_size=1 << 20,
+                         ping_interval=None):  # fmt: skip
             await asyncio.Future()
 
     uvloop.run(main())

@@ -23,10 +23,10 @@ from facecast.cli.bench.engine import _paired_seconds
 from facecast.cli.errors import CommandError
 from facecast.cli.render import save_side_by_side
 from facecast.rig.evaluation.remesh import carry_shapes, decimate, sqrt3_retriangulate
-from facecast.rig.evaluation.takes import arkit_example_set
 from facecast.rig.evaluation.transfer import end_to_end, score_transfer
 from facecast.rig.examples import ExampleSet
 from facecast.rig.sources.ict import ict_example_set, locate_ict
+from facecast.rig.sources.ict_arkit import arkit_example_set
 from facecast.rig.sources.trackers import read_livelink_csv
 from facecast.rig.transfer import (
     CorrespondenceWeights,

@@ -61,11 +61,13 @@ def load_line(label: str, f: dict[str, Any]) -> str:
         parts = ", ".join(
             f"{k} {v:.0f}" for k, v in stages["per_result_us"].items() if v is not None
         )
-        text += (
-            f"\n{'':13}server us/result by stage: {parts}; blend batches of "
-            f"{stages['mean_batch_frames'] if stages['mean_batch_frames'] is not None else '-'} "
-            "frames on average"
+        batch = stages["mean_batch_frames"]
+        blends = (
+            f"blend batches of {batch} frames on average"
+            if batch is not None
+            else f"no blends ({f['output']} output: nothing blended on the server)"
         )
+        text += f"\n{'':13}server us/result by stage: {parts}; {blends}"
     return text
 
 

@@ -23,17 +23,20 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from facecast.cli.bench.facevideo import head_scene, write_video
+from facecast.cli.bench.facevideo import HeadScene, head_scene, write_video
 from facecast.cli.errors import CommandError
 from facecast.cli.report import write_json
 from facecast.cli.track import track_video
 from facecast.rig import fit
+from facecast.rig.errors import ExampleSetError
 from facecast.rig.evaluation.evaluate import cloning_error
-from facecast.rig.evaluation.takes import ARKIT_TARGET_IDENTITY, arkit_example_set, take_experiment
+from facecast.rig.evaluation.eyes import EYES_IDENTITY, EyesClip, eyes_clip, eyes_rows
+from facecast.rig.evaluation.takes import take_experiment
 from facecast.rig.evaluation.webcam import (
     KEY_HOLD_FRAMES,
     KEY_RAMP_FRAMES,
     PERFORMER_IDENTITY,
+    Performer,
     captured_keys,
     hold_last_found,
     ict_performer,
@@ -41,13 +44,14 @@ from facecast.rig.evaluation.webcam import (
     superposition,
     webcam_rows,
 )
-from facecast.rig.sources.ict import ict_regions, locate_ict
+from facecast.rig.sources.ict import DEFAULT_LANDMARKS, ict_regions, locate_ict
+from facecast.rig.sources.ict_arkit import ARKIT_TARGET_IDENTITY, arkit_example_set
 from facecast.rig.sources.trackers import read_livelink_csv
 from facecast.server.storage.profiles import held_noise
 
 if TYPE_CHECKING:
     from facecast.rig.evaluation.takes import TakeExperiment
-    from facecast.rig.evaluation.webcam import KeyClips, Performer
+    from facecast.rig.evaluation.webcam import KeyClips
     from facecast.rig.examples import ExampleSet
     from facecast.rig.rig import Rig
 
@@ -57,6 +61,8 @@ BUNDLED_TAKE = Path(__file__).resolve().parents[2] / "tests" / "data" / "livelin
 KEY_FPS = 30.0
 #: The paths scored, in the table's order; generic rows follow ``_generic_rigs``.
 PERSONAL, NNLS = "personal", "nnls"
+#: The eyes clip's live Kalman accelerations scored by default (noise units per s^2).
+EYES_KALMAN = (480.0,)
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,6 +77,9 @@ class _Setup:
     take_name: str
     performer_id: str
     target_id: str
+    eyes_performer: Performer  # another identity: performs its keys, then the eyes clip
+    eyes_id: str
+    eyes: EyesClip
 
 
 def _setup(args: argparse.Namespace) -> _Setup:
@@ -89,12 +98,23 @@ def _setup(args: argparse.Namespace) -> _Setup:
     if performer_id == target_id:
         raise CommandError(f"--performer and --target are both {performer_id}: the benchmark "
                            "clones one face onto another")  # fmt: skip
+    eyes_id = args.eyes_performer or EYES_IDENTITY
+    if eyes_id in (performer_id, target_id):
+        raise CommandError(f"--eyes-performer {eyes_id} is the take's performer or the "
+                           "target: the eyes clip is performed by another face")  # fmt: skip
     take = read_livelink_csv(take_path)
     weights = take.weights if args.frames is None else take.weights[: args.frames]
     if len(weights) < 3:
         raise CommandError(f"the take has {len(weights)} frames; at least 3 are needed")
-    examples = arkit_example_set(archive, identity=target_id)
-    performer = ict_performer(archive, identity=performer_id)
+    landmarks = DEFAULT_LANDMARKS if args.landmarks is None else tuple(args.landmarks)
+    if landmarks != DEFAULT_LANDMARKS and not args.exact_only:
+        raise CommandError("--landmarks needs --exact-only: the tracker gives the page's layout")
+    try:
+        examples = arkit_example_set(archive, identity=target_id, landmarks=landmarks)
+    except ExampleSetError as error:
+        raise CommandError(f"--landmarks: {error}") from None
+    performer = ict_performer(archive, identity=performer_id, landmarks=landmarks)
+    eyes_performer = ict_performer(archive, identity=eyes_id, landmarks=landmarks)
     clips = key_clips(
         performer.names,
         keys=args.keys,
@@ -113,6 +133,9 @@ def _setup(args: argparse.Namespace) -> _Setup:
         take_name=take_path.name,
         performer_id=performer_id,
         target_id=target_id,
+        eyes_performer=eyes_performer,
+        eyes_id=eyes_id,
+        eyes=eyes_clip(eyes_performer.names),
     )
 
 
@@ -166,6 +189,66 @@ def _score_landmarks(
     }
 
 
+def _eyes_filters(args: argparse.Namespace) -> dict[str, tuple[str, float | None]]:
+    """The eyes clip's rows per path: as /perform publishes (no ``smoothing``), through the
+    live Kalman filter at each --kalman acceleration, and offline (``clone``'s RTS)."""
+    filters: dict[str, tuple[str, float | None]] = {"live": ("none", None)}
+    for acceleration in args.kalman or EYES_KALMAN:
+        filters[f"live kalman {acceleration:g}"] = ("kalman", acceleration)
+    filters["offline"] = ("rts", None)
+    return filters
+
+
+def _score_eyes(
+    setup: _Setup, args: argparse.Namespace, points: np.ndarray, found: np.ndarray | None
+) -> dict[str, Any]:
+    """The eyes video's points (its keys, then the clip) scored per event on every path."""
+    split = len(setup.clips.activations)
+    keys, held = captured_keys(
+        points[:split], setup.clips, None if found is None else found[:split]
+    )
+    noise, _ = held_noise(held)
+    clip_found = np.ones(len(points) - split, bool) if found is None else found[split:]
+    if not clip_found.any():
+        raise CommandError("the tracker found no face in the eyes clip's video")
+    clip_points = hold_last_found(points[split:], clip_found)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # fit's advice on the bounded rigs: chosen settings
+        rows = eyes_rows(setup.character, setup.eyes, clip_points, keys, noise=noise,
+                         fps=KEY_FPS, filters=_eyes_filters(args))  # fmt: skip
+    return {
+        "performer": setup.eyes_id,
+        "noise": noise,
+        "keys_captured": len(keys),
+        "clip_frames": len(clip_points),
+        "clip_found": int(clip_found.sum()),
+        "rows": rows,
+    }
+
+
+def _print_eyes(title: str, scored: dict[str, Any]) -> None:
+    print(
+        f"\neyes clip, {title}: performed by ICT {scored['performer']} ({scored['clip_frames']} "
+        f"frames at {KEY_FPS:g} fps, {scored['keys_captured']} keys captured); blink peaks "
+        "per eye as a share of the truth (min, mean), winks' own eye (min) and other eye "
+        "(max; truth 1 and 0), gaze holds seen in the right direction, jaw + smile as % of "
+        "the truth, and the goals passed (b w g c)"
+    )
+    print(f"  {'path':<26}{'blink min':>10}{'mean':>7}{'wink':>7}{'other':>7}{'gaze':>6}"
+          f"{'jaw %':>7}{'smile %':>8}  goals")  # fmt: skip
+    for label, row in scored["rows"].items():
+        peaks = [v for blink in row["blinks"] for v in blink.values()]
+        winks, gaze, combo = row["winks"], row["gaze"], row["combo"][0]
+        right = sum(g["right"] for g in gaze)
+        goals = " ".join("+" if ok else "-" for ok in row["goals"].values())
+        print(
+            f"  {label:<26}{min(peaks):>10.2f}{np.mean(peaks):>7.2f}"
+            f"{min(w['peak'] for w in winks):>7.2f}{max(w['other'] for w in winks):>7.2f}"
+            f"{right:>4}/{len(gaze)}{100 * combo['jawOpen']:>7.0f}{100 * combo['smile']:>8.0f}"
+            f"  {goals}"
+        )
+
+
 def _video_paths(folder: Path, args: argparse.Namespace, setup: _Setup) -> dict[str, Path]:
     """Where each video goes, named by everything its frames depend on (so a kept video
     is reused only for the same settings)."""
@@ -176,45 +259,72 @@ def _video_paths(folder: Path, args: argparse.Namespace, setup: _Setup) -> dict[
     take = f"{setup.take_name.rsplit('.', 1)[0]}-{len(setup.experiment.activations)}"
     performed = zlib.crc32(",".join(clips.names).encode())
     keys = f"keys{len(clips.names)}-{performed:08x}-ramp{ramp}-hold{hold}"
-    return {"take": folder / f"{take}-{face}.y4m", "keys": folder / f"{keys}-{face}.y4m"}
+    eyes = f"eyes{len(setup.eyes.activations)}-{keys}-{setup.eyes_id}-sway{args.sway:g}"
+    return {
+        "take": folder / f"{take}-{face}.y4m",
+        "keys": folder / f"{keys}-{face}.y4m",
+        "eyes": folder / f"{eyes}.y4m",
+    }
+
+
+def eyes_activations(setup: _Setup) -> np.ndarray:
+    """The eyes video's weights: the eyes performer's key clips, then the eyes clip."""
+    return np.concatenate([setup.clips.activations, setup.eyes.activations])
 
 
 def _tracked(args: argparse.Namespace, setup: _Setup, folder: Path) -> dict[str, Any]:
-    """Render both videos (unless kept from an earlier run) and track every frame of each."""
+    """Render the videos (unless kept from an earlier run) and track every frame of each:
+    the take and the keys (unless --eyes-only), the eyes video (unless --no-eyes)."""
 
     archive = locate_ict(args.ict) if args.ict else locate_ict()
     assert archive is not None  # run() found it before anything was rendered
     regions, landmarks68 = ict_regions(archive)
-    scene = head_scene(setup.performer, regions, landmarks68)
     paths = _video_paths(folder, args, setup)
-    plan = {
-        "take": (setup.experiment.activations, setup.experiment.fps),
-        "keys": (setup.clips.activations, KEY_FPS),
-    }
+    plan: dict[str, tuple[Performer, np.ndarray, float]] = {}
+    if not args.eyes_only:
+        plan["take"] = (setup.performer, setup.experiment.activations, setup.experiment.fps)
+        plan["keys"] = (setup.performer, setup.clips.activations, KEY_FPS)
+    if not args.no_eyes:
+        plan["eyes"] = (setup.eyes_performer, eyes_activations(setup), KEY_FPS)
     out: dict[str, Any] = {"videos": {}, "render_seconds": {}, "track_seconds": {}}
-    for name, (activations, fps) in plan.items():
-        path = paths[name]
-        points_path = path.with_name(f"{path.stem}-{args.backend}.npz")
-        if not path.is_file():
-            started = time.perf_counter()
-            partial = path.with_name(path.name + ".partial")  # a cut-short run leaves no video
-            write_video(partial, scene, setup.performer, activations, fps=fps,
-                        sway_degrees=args.sway)  # fmt: skip
-            partial.replace(path)
-            out["render_seconds"][name] = time.perf_counter() - started
-        if points_path.is_file():
-            with np.load(points_path) as kept:
-                points, found = kept["points"], kept["found"]
-        else:
-            started = time.perf_counter()
-            result = track_video(path, backend=args.backend)
-            out["track_seconds"][name] = time.perf_counter() - started
-            partial = points_path.with_name(points_path.name + ".partial")
-            result.save(partial).replace(points_path)
-            points, found = result.points, result.found
-        out[name] = (points.astype(np.float64), found.astype(bool))
-        out["videos"][name] = str(path)
+    for name, (performer, activations, fps) in plan.items():
+        scene = head_scene(performer, regions, landmarks68)
+        out[name] = _render_and_track(name, paths[name], scene, performer, activations, fps,
+                                      args, out)  # fmt: skip
     return out
+
+
+def _render_and_track(
+    name: str,
+    path: Path,
+    scene: HeadScene,
+    performer: Performer,
+    activations: np.ndarray,
+    fps: float,
+    args: argparse.Namespace,
+    out: dict[str, Any],
+) -> tuple[np.ndarray, np.ndarray]:
+    """One video rendered (unless kept) and tracked (unless kept): its points and found
+    flags; the seconds each took go into ``out`` under ``name``."""
+    points_path = path.with_name(f"{path.stem}-{args.backend}.npz")
+    if not path.is_file():
+        started = time.perf_counter()
+        partial = path.with_name(path.name + ".partial")  # a cut-short run leaves no video
+        write_video(partial, scene, performer, activations, fps=fps, sway_degrees=args.sway)
+        partial.replace(path)
+        out["render_seconds"][name] = time.perf_counter() - started
+    if points_path.is_file():
+        with np.load(points_path) as kept:
+            points, found = kept["points"], kept["found"]
+    else:
+        started = time.perf_counter()
+        result = track_video(path, backend=args.backend)
+        out["track_seconds"][name] = time.perf_counter() - started
+        partial = points_path.with_name(points_path.name + ".partial")
+        result.save(partial).replace(points_path)
+        points, found = result.points, result.found
+    out["videos"][name] = str(path)
+    return points.astype(np.float64), found.astype(bool)
 
 
 def _row_text(label: str, row: dict[str, Any]) -> str:
@@ -266,6 +376,10 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--frames must be at least 3, got {args.frames}")
     if not (0.0 <= args.sway <= 10.0):
         raise CommandError(f"--sway must lie in [0, 10] degrees, got {args.sway}")
+    if any(not (np.isfinite(a) and a > 0) for a in args.kalman or ()):
+        raise CommandError(f"--kalman accelerations must be finite and > 0, got {args.kalman}")
+    if args.eyes_only and args.no_eyes:
+        raise CommandError("--eyes-only and --no-eyes leave nothing to measure")
     started = time.perf_counter()
     setup = _setup(args)
     experiment = setup.experiment
@@ -280,12 +394,6 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     performer = setup.performer
-    exact = _score_landmarks(
-        setup,
-        performer.landmark_points(experiment.activations),
-        performer.landmark_points(setup.clips.activations),
-        None,
-    )
     report: dict[str, Any] = {
         "take": setup.take_name,
         "frames": len(experiment.activations),
@@ -293,11 +401,24 @@ def run(args: argparse.Namespace) -> int:
         "truth_jitter_percent": truth_jitter,
         "key_clip_frames": len(setup.clips.activations),
         "sway_degrees": args.sway,
-        "exact": exact,
     }
-    _print_table("exact landmarks (the ICT landmark vertices, head frame)", exact)
-    if args.by_name and args.exact_only:
-        _print_by_name("exact landmarks", exact)
+    if not args.eyes_only:
+        exact = _score_landmarks(
+            setup,
+            performer.landmark_points(experiment.activations),
+            performer.landmark_points(setup.clips.activations),
+            None,
+        )
+        report["exact"] = exact
+        _print_table("exact landmarks (the ICT landmark vertices, head frame)", exact)
+        if args.by_name and args.exact_only:
+            _print_by_name("exact landmarks", exact)
+    if not args.no_eyes:
+        eyes = _score_eyes(
+            setup, args, setup.eyes_performer.landmark_points(eyes_activations(setup)), None
+        )
+        report["eyes_exact"] = eyes
+        _print_eyes("exact landmarks", eyes)
     if not args.exact_only:
         if args.videos:
             folder = Path(args.videos)
@@ -306,6 +427,13 @@ def run(args: argparse.Namespace) -> int:
         else:
             with tempfile.TemporaryDirectory(prefix="facecast-webcam-") as scratch:
                 tracked_raw = _tracked(args, setup, Path(scratch))
+        if not args.no_eyes:
+            eyes = _score_eyes(setup, args, *tracked_raw["eyes"])
+            eyes["render_seconds"] = tracked_raw["render_seconds"].get("eyes")
+            eyes["track_seconds"] = tracked_raw["track_seconds"].get("eyes")
+            report["eyes_tracked"] = eyes
+            _print_eyes("tracked landmarks (facecast track)", eyes)
+    if not args.exact_only and not args.eyes_only:
         take_points, take_found = tracked_raw["take"]
         key_points, key_found = tracked_raw["keys"]
         if not take_found.any():
@@ -325,6 +453,7 @@ def run(args: argparse.Namespace) -> int:
             tracked,
         )
         personal, nnls = tracked["rows"][PERSONAL], tracked["rows"][NNLS]
+        exact = report["exact"]
         share = 1.0 - _max_axis(exact["rows"][PERSONAL]) / max(_max_axis(personal), 1e-12)
         report["tracker_share_personal"] = share
         if args.by_name:

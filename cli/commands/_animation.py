@@ -21,7 +21,10 @@ if TYPE_CHECKING:  # numpy and the rig load when a command runs, not for --help
     from facecast.rig.sources.animation import SourceAnimation
 
 #: --source-rig's help in the commands that leave its full description to 'facecast clone'.
-SOURCE_RIG_HELP = "ARKit-named source shapes for a Live Link Face CSV take (see 'facecast clone')"
+SOURCE_RIG_HELP = (
+    "ARKit-named source shapes for a Live Link Face CSV take: 'generic' (facecast's own "
+    "generic ARKit set, for a character uploaded as a file) or a path (see 'facecast clone')"
+)
 
 
 def add_source_arguments(
@@ -47,7 +50,8 @@ def load_animation(
     ----------
     spec : str
         A file or folder ``load_source_animation`` reads, or ``'demo'`` (the procedural
-        performance, ``seconds`` long).
+        performance, ``seconds`` long, on the demo rig's points when ``num_points`` is
+        theirs, else on the generic ARKit set's: ``facecast.rig.demo.arkit``).
     feature_indices : callable
         Returns the rig's feature indices (or None); called only for a file source, as
         mesh sources need them and getting them may mean asking the server.
@@ -56,9 +60,7 @@ def load_animation(
     """
 
     if spec == "demo":
-        from facecast.rig.demo import demo_animation
-
-        animation = demo_animation(seconds, with_vertices=False)
+        animation = _demo_performance(num_points, seconds, expected_by)
     else:
         from facecast.rig.sources.loading import load_source_animation
 
@@ -75,6 +77,25 @@ def load_animation(
             f"{spec}: {animation.num_points} feature points per frame, {expected_by} {num_points}"
         )
     return animation
+
+
+def _demo_performance(num_points: int, seconds: float, expected_by: str) -> SourceAnimation:
+    """The demo performance on the points a rig of ``num_points`` takes: the procedural
+    demo's 21 (the demo rig), or the generic ARKit set's 20 (a character uploaded as a
+    file, an ICT-FaceKit import: the same performance acted as ARKit weights)."""
+    from facecast.rig.characters.generic import generic_sources
+    from facecast.rig.demo import DEMO_FEATURE_NAMES, arkit_demo_animation, demo_animation
+
+    generic = generic_sources().points.shape[1]
+    if num_points == len(DEMO_FEATURE_NAMES):
+        return demo_animation(seconds, with_vertices=False)
+    if num_points == generic:
+        return arkit_demo_animation(seconds)
+    raise CommandError(
+        f"demo: the demo performance comes on the demo rig's {len(DEMO_FEATURE_NAMES)} points "
+        f"and on the generic ARKit set's {generic} (characters uploaded as files), "
+        f"{expected_by} {num_points}: give the rig's own source animation instead"
+    )
 
 
 def write_cloned(

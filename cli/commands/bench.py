@@ -1,4 +1,4 @@
-"""``facecast bench``: the benchmarks (engine, transport, broadcast, transfer, webcam) as sub-commands.
+"""``facecast bench``: the benchmarks (engine, transport, broadcast, transfer, webcam, live) as sub-commands.
 
 Only parses arguments and hands over to ``facecast.cli.bench.<name>.run(args)``; it must
 not measure anything itself.
@@ -171,11 +171,51 @@ def register(subparsers: Subparsers) -> None:
     webcam.add_argument("--videos", metavar="DIR",
                         help="keep the rendered videos and tracked points in DIR (reused when "
                         "there and made with the same settings)")  # fmt: skip
+    webcam.add_argument("--eyes-performer", default=None, metavar="PERSON",
+                        help="the ICT identity performing its keys and then the eyes clip "
+                        "(quick blinks, winks, gaze holds, jaw + smile; default person12)")  # fmt: skip
+    webcam.add_argument("--eyes-only", action="store_true",
+                        help="only the eyes clip: skip the take and its performer's keys")  # fmt: skip
+    webcam.add_argument("--no-eyes", action="store_true", help="skip the eyes clip")
+    webcam.add_argument("--landmarks", metavar="N,...",
+                        type=lambda text: [int(n) for n in text.split(",")],
+                        help="with --exact-only: the feature points, as positions in ICT's "
+                        "68 landmarks (Multi-PIE order; default the page's 20)")  # fmt: skip
+    webcam.add_argument("--kalman", metavar="A,...",
+                        type=lambda text: [float(a) for a in text.split(",")],
+                        help="the eyes clip's live Kalman rows: accelerations in landmark-noise "
+                        "units per s^2 (default 480, the live default)")  # fmt: skip
     webcam.add_argument("--backend", default="wasm", help="the tracker's TensorFlow.js backend")
     webcam.add_argument("--by-name", action="store_true",
                         help="also print each path's RMS weight error per ARKit name")  # fmt: skip
     webcam.add_argument("--json", metavar="FILE", help="write every figure as JSON")
     webcam.set_defaults(func=_runner("webcam"))
+
+    live = sub.add_parser(
+        "live",
+        help="glass to glass: /perform on a fake camera, a real server, N viewer pages",
+        description=(
+            "Render an ICT-FaceKit face as Chromium's fake camera, run /perform on it, a real "
+            "facecast serve and N viewer pages in another browser context; report each "
+            "stage's p50/p95/p99 (captured, tracked, sent, server in, server out, received, "
+            "drawn: PROTOCOL.md §5.4) and capture → drawn, frames lost per stage and the "
+            "fps, beside a floor from the same run: the face model's time a frame + a bare "
+            "WebSocket hop page to page + a viewer's render() call."
+        ),
+    )
+    _add_ict(live)
+    live.add_argument("--viewers", type=int, default=10, metavar="N",
+                      help="viewer pages (default 10)")  # fmt: skip
+    live.add_argument("--page", choices=("viewer", "overlay"), default="viewer",
+                      help="which page the viewers open (default viewer)")  # fmt: skip
+    live.add_argument("--duration", type=float, default=20.0, metavar="S",
+                      help="seconds measured (default 20)")  # fmt: skip
+    live.add_argument("--load", type=int, nargs="?", const=2, default=0, metavar="N",
+                      help="run N busy loops (default with the flag: 2) while measuring")  # fmt: skip
+    live.add_argument("--video", metavar="Y4M",
+                      help="the camera video to play (rendered there first when missing)")  # fmt: skip
+    live.add_argument("--json", metavar="FILE", help="write the figures as JSON")
+    live.set_defaults(func=_runner("live"))
 
 
 def _viewer_counts(text: str) -> list[int]:

@@ -62,9 +62,11 @@ def _add_tracker_arguments(parser: argparse.ArgumentParser, port: int, why: str)
     """The options of a tracker bridge in: --source-rig, --listen, --head-pose, --vmc-head."""
     parser.add_argument(
         "--source-rig",
-        required=True,
+        default="generic",
         metavar="PATH",
-        help="ARKit-named example set (e.g. from 'facecast import ict-facekit') or ICT archive",
+        help="the ARKit-named shapes that turn the tracker's weights into points: 'generic' "
+        "(the default: facecast's generic ARKit set, which characters uploaded as files are "
+        "paired with), an example set (e.g. from 'facecast import ict-facekit') or ICT archive",
     )
     parser.add_argument(
         "--listen",

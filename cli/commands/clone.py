@@ -49,10 +49,12 @@ def register(subparsers: Subparsers) -> None:
         parser,
         source_help="source animation: .npz (points or vertices), .npy points, a folder of OBJ "
         "frames, a Live Link Face .csv take (with --source-rig), a MediaPipe .ndjson, or "
-        "'demo' (the procedural performance; for a rig fitted on 'demo')",
+        "'demo' (the procedural performance, for a rig fitted on 'demo' or on the generic "
+        "ARKit set: a character file)",
         source_rig_help="ARKit-named source shapes that turn a Live Link Face CSV's blendshape "
-        "weights into feature points (an example-set folder from 'facecast import', or ICT's "
-        "npz)",
+        "weights into feature points: 'generic' (facecast's generic ARKit set, "
+        "rig/characters/generic_arkit/points.npz, for a rig fitted from a character file), an "
+        "example-set folder from 'facecast import', or ICT's npz",
     )
     parser.add_argument(
         "-o", "--output", required=True, metavar="OUT", help=".npz, .glb, or a folder"

@@ -8,6 +8,7 @@ offline cloning and prints the viewer's URL. It needs nothing but this package.
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import tempfile
 import threading
@@ -56,6 +57,27 @@ def register(subparsers: Subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if not 0 <= args.port <= 65535:
+        raise CommandError(f"--port must be in 0..65535, got {args.port}")
+    if not 0 < args.seconds <= 600:
+        raise CommandError(f"--seconds must be in (0, 600], got {args.seconds}")
+
+    # SIGTERM (a service manager, `kill`) stops it as Ctrl-C does, so the temporary rig
+    # folder is removed either way (the default action would leave it behind).
+    if threading.current_thread() is not threading.main_thread():
+        return _run(args)  # only the main thread may set a signal handler
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        return _run(args)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def _run(args: argparse.Namespace) -> int:
     import asyncio
 
     import numpy as np
@@ -64,11 +86,6 @@ def run(args: argparse.Namespace) -> int:
     from facecast.rig import load_rig
     from facecast.rig.demo import demo_animation
     from facecast.server.settings import Settings
-
-    if not 0 <= args.port <= 65535:
-        raise CommandError(f"--port must be in 0..65535, got {args.port}")
-    if not 0 < args.seconds <= 600:
-        raise CommandError(f"--seconds must be in (0, 600], got {args.seconds}")
 
     with tempfile.TemporaryDirectory(prefix="facecast-demo-") as scratch:
         rigs_dir = Path(args.rigs) if args.rigs else Path(scratch)
@@ -109,8 +126,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"overlay (OBS browser source): {url}/overlay?rig={DEMO_RIG_ID}")
             print(f"every rig and live channel, the API docs: {url}/")
             if not args.exit:
-                print("serving; press Ctrl-C to stop")
                 try:
+                    print("serving; press Ctrl-C to stop", flush=True)
                     threading.Event().wait()
                 except KeyboardInterrupt:
                     print("stopping")

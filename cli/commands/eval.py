@@ -162,13 +162,10 @@ def _ict(args: argparse.Namespace) -> _Data:
 
 
 def _take(args: argparse.Namespace) -> _Data:
-    from facecast.rig.evaluation.takes import (
-        ARKIT_TARGET_IDENTITY,
-        arkit_example_set,
-        take_experiment,
-    )
+    from facecast.rig.evaluation.takes import take_experiment
     from facecast.rig.sources.animation import SourceAnimation
     from facecast.rig.sources.ict import locate_ict
+    from facecast.rig.sources.ict_arkit import ARKIT_TARGET_IDENTITY, arkit_example_set
     from facecast.rig.sources.trackers import read_livelink_csv
 
     archive = locate_ict(args.ict or None)

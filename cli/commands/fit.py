@@ -19,8 +19,8 @@ if TYPE_CHECKING:
     from collections.abc import Sequence
 
     from facecast.cli.commands import Subparsers
+    from facecast.rig.characters.character_model import PairingReport
     from facecast.rig.examples import ExampleSet
-    from facecast.rig.io.character_model import PairingReport
 
 # The engine's kernel names (facecast.rig.radial.KERNELS), spelled out so --help does
 # not import numpy; a test keeps the two equal.
@@ -60,8 +60,8 @@ def register(subparsers: Subparsers) -> None:
         metavar="SIGMA",
         help="expected landmark noise (std per coordinate, source units); 0 = exact "
         "interpolation, the default for an example set; a character paired with the generic "
-        "ARKit set is fitted by default for a live tracker's noise, 0.05 cm with --clamp "
-        "unit (facecast.rig.sources.generic.CHARACTER_FIT_DEFAULTS, the same as "
+        "ARKit set is fitted by default for a live tracker's noise, 0.035 cm with --clamp "
+        "unit (facecast.rig.characters.generic.CHARACTER_FIT_DEFAULTS, the same as "
         "PUT /v1/characters/{id}; docs/characters.md)",
     )
     parser.add_argument(
@@ -123,8 +123,8 @@ def _stable_points(text: str | None) -> list[int] | None:
 
 def load_character_examples(path: Path) -> tuple[ExampleSet, PairingReport]:
     """A character file's example set with the generic ARKit set, and its pairing report."""
-    from facecast.rig.io.character import load_character
-    from facecast.rig.io.character_examples import character_example_set
+    from facecast.rig.characters.character import load_character
+    from facecast.rig.characters.character_examples import character_example_set
 
     character = load_character(path, label=path.name)
     return character_example_set(character, label=path.name)
@@ -137,7 +137,7 @@ def load_examples(spec: str, source: str | None = None) -> ExampleSet:
         from facecast.rig.demo import demo_example_set
 
         return demo_example_set()
-    from facecast.rig.io.loaders import load_example_set
+    from facecast.rig.characters.loaders import load_example_set
 
     path = Path(spec)
     if not path.exists():
@@ -244,7 +244,7 @@ def _bounds_line(report: dict[str, Any]) -> list[str]:
 def run(args: argparse.Namespace) -> int:
 
     from facecast.rig import fit
-    from facecast.rig.io.character_examples import character_fit_options
+    from facecast.rig.characters.character_examples import character_fit_options
 
     output = Path(args.output)
     if not output.parent.exists():

@@ -7,7 +7,7 @@ example set. Reads and writes files only; it must not fit or serve anything.
 Input: a checkout of the public ICT-VGL/ICT-FaceKit repository (its ``FaceXModel``
 folder: ``generic_neutral_mesh.obj``, one OBJ per expression, ``vertex_indices.json``)
 or the converted ``ict_facekit.npz`` / its folder. Shapes are renamed by
-``source_rig.arkit_from_ict`` (as ``rig.evaluation.takes`` does): ICT's left/right
+``source_rig.arkit_from_ict`` (as ``rig.sources.ict_arkit`` does): ICT's left/right
 ``browInnerUp`` and ``cheekPuff`` halves are summed into ARKit's single shapes; ICT has no
 ``tongueOut``, so the set has 51 ARKit shapes.
 

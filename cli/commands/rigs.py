@@ -49,7 +49,8 @@ def register(subparsers: Subparsers) -> None:
         "put",
         "store a rig: a character file (.glb, .vrm, or .gltf with its files; fitted on the "
         "server with the generic ARKit source set), an example-set folder or archive (fitted "
-        "on the server) or a rig file",
+        "on the server), a rig file, or 'demo' (the built-in demo set, fitted here as "
+        "'facecast fit demo' does)",
         "name",
         "path",
     )
@@ -68,6 +69,13 @@ def register(subparsers: Subparsers) -> None:
         default=None,
         metavar="S",
         help="fit, with --clamp: the sparsity prior (default 0, the plain projection)",
+    )
+    put.add_argument(
+        "--rights-holder",
+        action="store_true",
+        help="a character file: you hold the rights to show it, so a VRM whose licence "
+        "forbids redistribution is shown to viewers without a token too (default: only to "
+        "viewers with one); kept with the character",
     )
     put.add_argument(
         "--expressions",
@@ -190,7 +198,7 @@ def _follow_job(get_job: Any, job: dict[str, Any], *, interval: float = 0.5) -> 
     """Poll the job until it ends, a progress line on stderr; its final record."""
     import time
 
-    while job["state"] not in ("done", "failed"):
+    while job["state"] not in ("done", "failed", "cancelled"):
         progress = job.get("progress") or {}
         stage = job.get("stage") or job["state"]
         print(
@@ -224,8 +232,41 @@ def _print_character_fit(name: str, summary: dict[str, Any]) -> None:
     )
     for line in summary.get("pairing", {}).get("text", []):
         print(line)
+    if character.get("licence_note"):
+        print(f"licence: {character['licence_note']}")
     for message in summary.get("warnings", []):
         print(f"warning: {message}", file=sys.stderr)
+
+
+def _put_demo(args: argparse.Namespace, call: Any, rig_path: str) -> None:
+    """``rigs put URL ID demo``: the built-in demo set fitted here, as ``facecast fit demo``
+    fits it (with the fit options given), stored as a rig file."""
+    from facecast.rig import fit
+    from facecast.rig.demo import demo_example_set
+
+    if args.expressions or args.markers or args.names or args.rights_holder:
+        raise CommandError(
+            "demo: --expressions, --markers, --names and --rights-holder are for a character "
+            "file; the demo is an example set"
+        )
+    options: dict[str, Any] = {
+        k: v
+        for k, v in (
+            ("noise", args.noise),
+            ("pca_threshold", args.pca_threshold),
+            ("clamp", args.clamp),
+            ("sparsity", args.sparsity),
+        )
+        if v is not None
+    }
+    if args.kernel is not None:
+        options["kernel"] = args.kernel
+    rig = fit(demo_example_set(), **options)
+    response = call("PUT", rig_path, content=rig.to_bytes())
+    print(
+        f"{'created' if response.status_code == 201 else 'replaced'} {args.name}: the demo "
+        f"set fitted here, M={rig.num_examples} K={rig.num_points} V={rig.num_vertices}"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -263,8 +304,11 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(call("GET", rig_path).json(), indent=2))
     elif args.action == "put":
         path = Path(args.path)
+        if args.path == "demo" and not path.exists():
+            _put_demo(args, call, rig_path)
+            return 0
         if not path.exists():
-            raise CommandError(f"{path}: no such file or folder")
+            raise CommandError(f"{path}: no such file or folder (or 'demo')")
         params = {
             k: v
             for k, v in (
@@ -278,6 +322,13 @@ def run(args: argparse.Namespace) -> int:
         }
         if args.expressions is None and (args.markers or args.names):
             raise CommandError("--markers and --names go with --expressions transfer")
+        if args.rights_holder:
+            if not _is_character(path):
+                raise CommandError(
+                    f"{path}: --rights-holder is about a character file's licence "
+                    "(.glb, .vrm, .gltf); a rig or an example set carries none"
+                )
+            params["rights_holder"] = "true"
         if args.expressions == "transfer":
             if not _is_character(path):
                 raise CommandError(
@@ -295,10 +346,11 @@ def run(args: argparse.Namespace) -> int:
                 f"{job['vertices']} vertices ({job['correspondence']} correspondence)"
             )
             job = _follow_job(lambda: call("GET", f"/v1/characters/{args.name}/job").json(), job)
-            if job["state"] == "failed":
+            if job["state"] in ("failed", "cancelled"):
                 error = job.get("error") or {}
                 raise CommandError(
-                    f"transfer failed: {error.get('code', 'error')}: {error.get('message', '')}"
+                    f"transfer {job['state']}: {error.get('code', 'error')}: "
+                    f"{error.get('message', '')}"
                 )
             result = job["result"]
             seconds = result["transfer"]["seconds"]

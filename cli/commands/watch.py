@@ -48,11 +48,13 @@ async def record(args: argparse.Namespace) -> dict[str, Any]:
     import asyncio
 
     from facecast.client.channel import channel_url, watch_channel
-    from facecast.protocol import ChannelIdle, ChannelLive, Ready, Result
+    from facecast.protocol import ChannelIdle, ChannelLive, Error, Ready, Result
 
     query = {"rig": args.rig, "output": args.output, "dtype": args.dtype}
     url = channel_url(args.url, args.channel, "watch", query)
-    got: dict[str, Any] = {"ready": None, "values": [], "seq": [], "t": []}
+    # "error": the server's last non-fatal error to this watcher (a frame that does not
+    # fit the rig watched), said if no result comes.
+    got: dict[str, Any] = {"ready": None, "values": [], "seq": [], "t": [], "error": None}
     was_live = False
 
     async def consume() -> None:
@@ -66,6 +68,8 @@ async def record(args: argparse.Namespace) -> dict[str, Any]:
                     was_live = True
                 elif isinstance(message, ChannelIdle) and was_live:
                     return
+                elif isinstance(message, Error):
+                    got["error"] = message
                 elif isinstance(message, Result):
                     got["values"].append(message.values)
                     got["seq"].append(message.seq)
@@ -100,7 +104,18 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, ConnectionFailed) as exc:
         raise CommandError(str(exc)) from None
     if not got or not got["values"]:
-        raise CommandError(f"no result received from channel {args.channel!r}")
+        error = got["error"] if got else None
+        cause = ""
+        if error is not None:
+            code = getattr(error.code, "name", str(error.code)).lower()
+            cause = f": the server said {code}: {error.message}"
+            if code == "wrong_point_count":
+                cause += (
+                    " (rig_mismatch: the publisher's frames have another number of feature "
+                    f"points than rig {args.rig!r}; watch on a rig of the same source, e.g. "
+                    "one fitted from a character file for a publisher on the generic ARKit set)"
+                )
+        raise CommandError(f"no result received from channel {args.channel!r}{cause}")
     values = np.stack(got["values"]).astype(np.float32)
     ready = got["ready"]
     seq = np.asarray(got["seq"], dtype=np.int64)

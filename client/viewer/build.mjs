@@ -2,8 +2,9 @@
 // script viewer.html and overlay.html load, and src/perform/main.js into dist/perform.js
 // for perform.html, next to the face model's weights and WebAssembly binaries copied out
 // of their npm packages (dist/perform/: served by facecast, never fetched from elsewhere).
-// src/landing.js becomes dist/landing.js for index.html (the landing page at /), and Swagger
-// UI's files are copied out of swagger-ui-dist into dist/docs/ for the API docs at /docs.
+// src/landing.js becomes dist/landing.js for index.html (the landing page at /), Swagger
+// UI's files are copied out of swagger-ui-dist into dist/docs/ for the API docs at /docs,
+// and Draco's decoder out of three into dist/draco/ for compressed characters.
 // Run by `npm run build` (scripts/setup does).
 import { copyFile, mkdir } from "node:fs/promises";
 import { join } from "node:path";
@@ -45,6 +46,16 @@ for (const [pkg, files] of Object.entries(PERFORM_ASSETS)) {
     await copyFile(join(packageDir(pkg), file), join("dist/perform", file.split("/").pop()));
   }
 }
+
+// Draco's decoder for compressed characters (src/character.js: DRACOLoader fetches these
+// from /viewer/assets/draco/, which server/pages/viewer.py serves), the build three.js
+// names for glTF, with its README (its licence, Apache 2.0).
+const DRACO_ASSETS = ["draco_decoder.js", "draco_decoder.wasm", "draco_wasm_wrapper.js"];
+await mkdir("dist/draco", { recursive: true });
+for (const file of DRACO_ASSETS) {
+  await copyFile(join(packageDir("three"), "examples/jsm/libs/draco/gltf", file), join("dist/draco", file));
+}
+await copyFile(join(packageDir("three"), "examples/jsm/libs/draco/README.md"), "dist/draco/README.md");
 
 // Swagger UI for /docs (server/api_docs.py serves exactly these names), with its licence.
 const DOCS_ASSETS = ["swagger-ui-bundle.js", "swagger-ui.css", "favicon-32x32.png", "LICENSE", "NOTICE"];

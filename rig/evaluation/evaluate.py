@@ -20,6 +20,7 @@ from ..errors import FitError, InputError
 from ..examples import ExampleSet
 from ..filters import OneEuroFilter
 from ..fit import fit
+from ..fit_options import NOISE_CLAMP
 from ..radial import KERNELS
 from ..rig import Rig
 from .error_metrics import CHUNK, ErrorSums, cloning_error, jitter, sanitize_frames, truth_terms
@@ -71,7 +72,8 @@ def default_settings(noise: float = 0.0, kernels: Sequence[str] = KERNELS) -> li
 
     The thesis's rig (B-spline, no regularisation); with noise, the regularised unbounded
     rig (``clamp`` "none") at noise/2, noise and 2 noise; every other kernel in ``kernels``
-    (with fit's default bounds); the bounded rigs
+    (with fit's default bounds, named in its label: ``clamp`` nonneg with noise); the
+    bounded rigs
     (``clamp`` nonneg and unit, the plain metric projection, the default) at the input noise
     and twice it; and, with noise, the nonneg rig with a sparsity prior of rate 1 and with
     its rate estimated from the stream (``sparsity`` "stream"), to show what a prior adds.
@@ -82,7 +84,10 @@ def default_settings(noise: float = 0.0, kernels: Sequence[str] = KERNELS) -> li
         settings += [{"clamp": "none", "noise": s * noise} for s in (0.5, 1.0, 2.0)]
     for kernel in kernels:
         if kernel != "bspline":
-            settings.append({"kernel": kernel, "noise": noise})
+            # fit's default bound, named: with noise it is nonneg, whose projection can make
+            # kernels' rows alike (the demo's three are identical), and the label says why.
+            bound = {"clamp": NOISE_CLAMP} if noise > 0 else {}
+            settings.append({"kernel": kernel, **bound, "noise": noise})
     for clamp in ("nonneg", "unit"):
         settings.append({"clamp": clamp, "noise": noise})
         if noise > 0:

@@ -7,7 +7,6 @@ ideal clone. Builds arrays only; it must not fit, evaluate or print.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,45 +14,9 @@ import numpy.typing as npt
 
 from ..errors import InputError
 from ..examples import ExampleSet
-from ..sources.ict import ict_example_set
-from ..sources.source_rig import ARKIT_NAMES, arkit_from_ict
+from ..sources.source_rig import ARKIT_NAMES
 
-__all__ = ["ARKIT_TARGET_IDENTITY", "TakeExperiment", "arkit_example_set", "take_experiment"]
-
-#: The default target: another person than ICT's generic face (20 ship with the archive).
-ARKIT_TARGET_IDENTITY = "person01"
-# The face area of ICT's topology ([0, 9409), see shared/data/ict-facekit/README.md): the
-# rest of the head hardly moves, and leaving it out keeps (F, V, 3) truths small.
-_FACE_VERTICES = 9409
-
-
-def arkit_example_set(
-    path: str | os.PathLike[str], *, identity: str | None = ARKIT_TARGET_IDENTITY
-) -> ExampleSet:
-    """ICT-FaceKit's shapes under their ARKit names: the generic face -> ``identity``'s face.
-
-    ICT's left and right halves of ``browInnerUp`` and ``cheekPuff`` are summed into the
-    one ARKit shape; ``tongueOut`` has no ICT shape and is left out: 51 examples after the
-    neutral. The source is ICT's default 20 landmarks; the target the face area (the first
-    9,409 vertices) of ``identity`` (None: the generic face itself).
-
-    Returns
-    -------
-    ExampleSet
-        ``names`` ("neutral", ARKit names in ``ARKIT_NAMES`` order).
-    """
-    ict = ict_example_set(path, identity=identity)
-    count = min(_FACE_VERTICES, ict.num_vertices)
-    points, vertices = ict.source_points, ict.target_vertices[:, :count]
-    names, source_points = arkit_from_ict(ict.names[1:], points[0], points[1:])
-    _, target_vertices = arkit_from_ict(ict.names[1:], vertices[0], vertices[1:])
-    faces = ict.target_faces[(ict.target_faces < count).all(axis=1)]
-    return ExampleSet(
-        names=names,
-        source_points=source_points,
-        target_vertices=target_vertices,
-        target_faces=faces,
-    )
+__all__ = ["TakeExperiment", "take_experiment"]
 
 
 @dataclass(frozen=True, eq=False)

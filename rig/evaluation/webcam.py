@@ -23,7 +23,7 @@ from ..rebase import calibrate
 from ..retarget import fit_performer, target_examples
 from ..rig import Rig
 from ..sources.capture import robust_example
-from ..sources.ict import ict_example_set
+from ..sources.ict import DEFAULT_LANDMARKS, ict_example_set
 from ..sources.source_rig import arkit_from_ict
 from .evaluate import cloning_error, nnls_weights
 
@@ -44,7 +44,7 @@ __all__ = [
 ]
 
 #: The face rendered as the performer: neither ICT's generic face (the generic rig's source)
-#: nor ``takes.ARKIT_TARGET_IDENTITY`` (the character).
+#: nor ``sources.ict_arkit.ARKIT_TARGET_IDENTITY`` (the character).
 PERFORMER_IDENTITY = "person07"
 #: A key clip: the face goes from rest to the key-expression in KEY_RAMP_FRAMES frames
 #: (smoothstep), then holds it KEY_HOLD_FRAMES frames, which are the capture.
@@ -99,9 +99,14 @@ class Performer:
         return out
 
 
-def ict_performer(path: str | os.PathLike[str], identity: str = PERFORMER_IDENTITY) -> Performer:
-    """ICT-FaceKit's ``identity`` with every ARKit shape (``arkit_from_ict``), whole head."""
-    ict = ict_example_set(path, identity=identity)
+def ict_performer(
+    path: str | os.PathLike[str],
+    identity: str = PERFORMER_IDENTITY,
+    landmarks: Sequence[int] = DEFAULT_LANDMARKS,
+) -> Performer:
+    """ICT-FaceKit's ``identity`` with every ARKit shape (``arkit_from_ict``), whole head;
+    its feature points ``landmarks`` (positions in ICT's ``landmarks68``)."""
+    ict = ict_example_set(path, identity=identity, landmarks=landmarks)
     names, meshes = arkit_from_ict(ict.names[1:], ict.target_vertices[0], ict.target_vertices[1:])
     neutral = meshes[0]
     deltas = (meshes[1:] - neutral).reshape(len(names) - 1, -1).astype(np.float32)

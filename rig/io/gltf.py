@@ -8,8 +8,9 @@ from __future__ import annotations
 
 from .gltf_export import export_glb, pack_glb, vertex_normals
 from .gltf_read import (
-    MAX_VALUES,
     BufferReader,
+    GltfDocument,
+    GltfLimits,
     GltfSource,
     load_document,
     read_glb_morph_targets,
@@ -19,8 +20,9 @@ from .gltf_read import (
 )
 
 __all__ = [
-    "MAX_VALUES",
     "BufferReader",
+    "GltfDocument",
+    "GltfLimits",
     "GltfSource",
     "export_glb",
     "load_document",

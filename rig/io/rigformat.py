@@ -4,7 +4,7 @@ A rig file is one ``.npz`` (no pickles) with a format version and a content chec
 This module reads nothing and imports no engine class: a ``Rig`` is read by attribute,
 through the ``SavedRig`` protocol below, so ``Rig.save``, ``Rig.to_bytes`` and
 ``Rig.checksum`` use it without an import cycle, type-only imports included; reading a file
-back into a ``Rig`` is ``facecast.rig.io.rigfile``.
+back into a ``Rig`` is ``facecast.rig.rigfile``.
 """
 
 from __future__ import annotations

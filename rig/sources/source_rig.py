@@ -30,10 +30,11 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from ..characters.expression_names import ARKIT_NAMES
+from ..characters.generic import GENERIC_SOURCE_NAME, generic_sources, is_generic_layout
+from ..characters.loaders import load_example_set
 from ..errors import ExampleSetError, InputError
 from ..examples import ExampleSet
-from ..io.expression_names import ARKIT_NAMES
-from ..io.loaders import load_example_set
 from .ict import ict_example_set
 
 __all__ = [
@@ -44,6 +45,7 @@ __all__ = [
     "SourceRig",
     "arkit_from_ict",
     "arkit_index",
+    "generic_source_rig",
     "head_rotation",
     "load_source_rig",
 ]
@@ -262,7 +264,7 @@ class SourceRig:
             ``ambiguous_shape_name`` when two names differ only in case.
         """
         names = example_set.names
-        matched, unused = _match(names)
+        matched, _ = _match(names)
         if not any(matched):
             raise ExampleSetError(
                 f"source rig: none of the examples ({', '.join(names[1:6])}"
@@ -270,14 +272,7 @@ class SourceRig:
                 "(e.g. eyeBlinkLeft or ICT's eyeBlink_L)",
                 code="no_arkit_shapes",
             )
-        points = example_set.source_points
-        neutral = points[0]
-        deltas = np.zeros((NUM_ARKIT, *neutral.shape))
-        for k, picks in enumerate(matched):
-            for i in picks:
-                deltas[k] += points[i] - neutral
-        shapes = tuple(tuple(names[i] for i in picks) for picks in matched)
-        return cls(neutral=neutral, deltas=deltas, shapes=shapes, unused=unused)
+        return _from_named_points(names, example_set.source_points)
 
     @property
     def num_points(self) -> int:
@@ -335,21 +330,78 @@ def _is_ict_archive(path: Path) -> bool:
     return (path / "ict_facekit.npz").is_file() and not (path / "facecast.toml").exists()
 
 
+def generic_source_rig() -> SourceRig:
+    """facecast's shipped generic ARKit source set (``characters.generic``) as a source rig.
+
+    Its 20 points are the ones a character uploaded as a file is paired with, so ARKit
+    weights turned into points by it drive any such character (``tongueOut`` has no shape).
+    """
+    generic = generic_sources()
+    return _from_named_points(generic.names, generic.points)
+
+
+def _from_named_points(names: Sequence[str], points: np.ndarray) -> SourceRig:
+    neutral = points[0]
+    matched, unused = _match(names)
+    deltas = np.zeros((NUM_ARKIT, *neutral.shape))
+    for k, picks in enumerate(matched):
+        for i in picks:
+            deltas[k] += points[i] - neutral
+    shapes = tuple(tuple(names[i] for i in picks) for picks in matched)
+    if not any(shapes):
+        raise ExampleSetError(
+            "source rig: none of the set's names is an ARKit blendshape", code="no_arkit_shapes"
+        )
+    return SourceRig(neutral=neutral, deltas=deltas, shapes=shapes, unused=unused)
+
+
+def _generic_layout_rig(path: Path) -> SourceRig | None:
+    """A source rig from an .npz in the generic set's layout (``names``, ``points`` ...),
+    such as ``generic_arkit/points.npz`` itself; None for any other file."""
+    if not (path.is_file() and path.suffix.lower() == ".npz"):
+        return None
+    try:
+        with path.open("rb") as handle, np.load(handle, allow_pickle=False) as data:
+            if not is_generic_layout(data.files):
+                return None
+            names = tuple(str(n) for n in data["names"])
+            points = np.asarray(data["points"], dtype=np.float64)
+    except (OSError, ValueError) as exc:
+        raise ExampleSetError(
+            f"{path.name}: not a readable source set ({type(exc).__name__})", code="bad_file"
+        ) from None
+    if points.ndim != 3 or points.shape[0] != len(names) or points.shape[2] != 3 or not names:
+        raise ExampleSetError(
+            f"{path.name}: points must be (len(names), K, 3), got {points.shape}",
+            code="bad_file",
+        )
+    if names[0] != "neutral":
+        raise ExampleSetError(f"{path.name}: the first name must be 'neutral'", code="bad_file")
+    return _from_named_points(names, points)
+
+
 def load_source_rig(path: str | os.PathLike[str]) -> SourceRig:
-    """A source rig from an ARKit-named example set on disk.
+    """A source rig from an ARKit-named example set on disk, or facecast's generic set.
 
     Parameters
     ----------
     path : path-like
-        Anything ``load_example_set`` reads (e.g. the folder ``facecast import
-        ict-facekit`` writes), or the ICT-FaceKit archive ``ict_facekit.npz`` / its
-        folder (ICT's own shape names, default landmarks).
+        ``"generic"`` (facecast's shipped generic ARKit set, what characters uploaded as
+        files are paired with), an .npz in that set's layout (``generic_arkit/points.npz``),
+        anything ``load_example_set`` reads (e.g. the folder ``facecast import
+        ict-facekit`` writes), or the ICT-FaceKit archive ``ict_facekit.npz`` / its folder
+        (ICT's own shape names, default landmarks).
 
     Raises
     ------
     ExampleSetError
     """
+    if str(path) == GENERIC_SOURCE_NAME and not Path(path).exists():
+        return generic_source_rig()
     path = Path(path)
     if _is_ict_archive(path):
         return SourceRig.from_example_set(ict_example_set(path))
+    generic_layout = _generic_layout_rig(path)
+    if generic_layout is not None:
+        return generic_layout
     return SourceRig.from_example_set(load_example_set(path))

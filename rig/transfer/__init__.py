@@ -8,6 +8,7 @@ target neutral of any topology; ``write_expression_set`` writes them as an examp
 from .character import (
     TransferPlan,
     add_morph_targets,
+    check_targetable,
     plan_transfer,
     with_transferred_expressions,
 )
@@ -45,6 +46,7 @@ __all__ = [
     "check_markers",
     "check_mesh",
     "check_still",
+    "check_targetable",
     "fit_correspondence",
     "ict_source_expressions",
     "identity_correspondence",

@@ -13,19 +13,25 @@ import json
 import struct
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 import numpy.typing as npt
 
+from ..characters.character import Character
 from ..errors import ExampleSetError, MarkerError
-from ..io.character import Character
 from .correspondence import check_markers, identity_correspondence
 from .expressions import GeneratedExpressions, SourceExpressions, transfer_expressions, weld
 from .mesh import check_mesh
 from .solve import STILL
 
-__all__ = ["TransferPlan", "add_morph_targets", "plan_transfer", "with_transferred_expressions"]
+__all__ = [
+    "TransferPlan",
+    "add_morph_targets",
+    "check_targetable",
+    "plan_transfer",
+    "with_transferred_expressions",
+]
 
 _GLB_HEADER = struct.Struct("<4sII")
 _CHUNK = struct.Struct("<I4s")
@@ -65,6 +71,7 @@ def plan_transfer(
     markers: npt.ArrayLike | str | None = None,
     names: Sequence[str] | None = None,
     max_vertices: int | None = None,
+    max_faces: int | None = None,
     label: str = "character",
 ) -> TransferPlan:
     """Check a transfer onto ``character``'s face mesh; cheap next to the transfer itself.
@@ -81,13 +88,14 @@ def plan_transfer(
     names : sequence of str, optional
         Source expressions to make; default all. Those the character already has are
         skipped: an authored expression is never replaced.
-    max_vertices : int, optional
-        Largest face mesh the transfer takes.
+    max_vertices, max_faces : int, optional
+        Largest face mesh the transfer takes, in vertices and in triangles.
 
     Raises
     ------
     ExampleSetError
-        ``too_many_vertices``; ``expressions_complete`` (nothing left to make);
+        ``too_many_vertices``, ``too_many_faces``; ``bad_gltf`` (``check_targetable``);
+        ``expressions_complete`` (nothing left to make);
         ``unknown_expression``.
     MeshError, MarkerError
         The face mesh is not a manifold triangle mesh; markers bad, or needed.
@@ -101,6 +109,15 @@ def plan_transfer(
             "the folder it writes",
             code="too_many_vertices",
         )
+    if max_faces is not None and faces.shape[0] > max_faces:
+        raise ExampleSetError(
+            f"{label}: its face mesh {character.mesh_names[character.face_mesh]!r} has "
+            f"{faces.shape[0]} triangles, more than the {max_faces} a transfer takes here: "
+            "decimate it, or run `facecast expressions` on your own machine and fit the "
+            "folder it writes",
+            code="too_many_faces",
+        )
+    check_targetable(character.glb, character.face_mesh)
     known = set(source.names[1:])
     asked = list(source.names[1:]) if names is None else list(dict.fromkeys(names))
     unknown = [n for n in asked if n not in known]
@@ -199,19 +216,11 @@ def add_morph_targets(
     """
     doc, binary = _split_glb(glb)
     deltas = np.asarray(displacements, dtype=np.float32)
-    meshes = doc.get("meshes") or []
-    if not 0 <= mesh < len(meshes):
-        raise ExampleSetError(f"mesh {mesh}: the file has {len(meshes)} meshes", code="bad_gltf")
+    starts, total = _targetable(doc, mesh)
+    meshes = doc["meshes"]
     primitives = meshes[mesh]["primitives"]
-    accessors = doc.setdefault("accessors", [])
+    accessors = doc["accessors"]
     views = doc.setdefault("bufferViews", [])
-    starts: dict[int, int] = {}
-    total = 0
-    for prim in primitives:
-        position = prim["attributes"]["POSITION"]
-        if position not in starts:
-            starts[position] = total
-            total += int(accessors[position]["count"])
     if deltas.shape != (len(names), total, 3):
         raise ExampleSetError(
             f"displacements: expected shape ({len(names)}, {total}, 3), got {deltas.shape}",
@@ -265,6 +274,73 @@ def add_morph_targets(
         buffers.append({})
     buffers[0]["byteLength"] = len(blob)
     return _join_glb(doc, bytes(blob))
+
+
+def check_targetable(glb: bytes, mesh: int) -> None:
+    """Raise ``ExampleSetError`` (``bad_gltf``) unless ``add_morph_targets`` can write
+    targets into mesh ``mesh`` of ``glb``: every part of the document it reads or grows
+    has the type glTF gives it. Cheap (the JSON only): run it before a transfer starts."""
+    _targetable(_split_glb(glb)[0], mesh)
+
+
+def _bad(message: str) -> ExampleSetError:
+    return ExampleSetError(f"the file cannot take morph targets: {message}", code="bad_gltf")
+
+
+def _numbers(value: Any) -> bool:
+    return isinstance(value, list) and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
+    )
+
+
+def _index(value: Any, length: int) -> TypeGuard[int]:
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value < length
+
+
+def _targetable(doc: Any, mesh: int) -> tuple[dict[int, int], int]:
+    """Check what ``add_morph_targets`` touches; each POSITION accessor's first row, and
+    the rows in all (``gltf.read_mesh``'s order)."""
+    if not isinstance(doc, dict):
+        raise _bad("its JSON is not an object")
+    meshes, accessors = doc.get("meshes"), doc.get("accessors")
+    if not isinstance(meshes, list) or not _index(mesh, len(meshes)):
+        raise _bad(f"no mesh {mesh}")
+    if not isinstance(accessors, list):
+        raise _bad("accessors is not an array")
+    for key in ("bufferViews", "buffers", "nodes"):
+        if not isinstance(doc.get(key, []), list):
+            raise _bad(f"{key} is not an array")
+    entry = meshes[mesh]
+    primitives = entry.get("primitives") if isinstance(entry, dict) else None
+    if not isinstance(primitives, list) or not primitives:
+        raise _bad(f"mesh {mesh} has no primitives array")
+    starts: dict[int, int] = {}
+    total = 0
+    for number, prim in enumerate(primitives):
+        attributes = prim.get("attributes") if isinstance(prim, dict) else None
+        position = attributes.get("POSITION") if isinstance(attributes, dict) else None
+        if not isinstance(position, int) or not _index(position, len(accessors)):
+            raise _bad(f"mesh {mesh} primitive {number} has no valid POSITION accessor")
+        if not isinstance(prim.get("targets", []), list):
+            raise _bad(f"mesh {mesh} primitive {number}: targets is not an array")
+        if position not in starts:
+            accessor = accessors[position]
+            count = accessor.get("count") if isinstance(accessor, dict) else None
+            if not isinstance(count, int) or isinstance(count, bool) or count < 0:
+                raise _bad(f"accessor {position}: count is not a non-negative integer")
+            starts[position] = total
+            total += count
+    if "weights" in entry and not _numbers(entry["weights"]):
+        raise _bad(f"mesh {mesh}: weights is not an array of numbers")
+    for number, node in enumerate(doc.get("nodes", [])):
+        if not isinstance(node, dict):
+            raise _bad(f"node {number} is not an object")
+        if node.get("mesh") == mesh and "weights" in node and not _numbers(node["weights"]):
+            raise _bad(f"node {number}: weights is not an array of numbers")
+    buffers = doc.get("buffers", [])
+    if buffers and not isinstance(buffers[0], dict):
+        raise _bad("buffer 0 is not an object")
+    return starts, total
 
 
 def _split_glb(glb: bytes) -> tuple[dict[str, Any], bytes]:

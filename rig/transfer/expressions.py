@@ -17,10 +17,10 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import ExampleSetError, MarkerError, MeshError
-from ..evaluation.takes import arkit_example_set
 from ..io.gltf import read_gltf_mesh
 from ..io.meshio import read_obj
 from ..sources.ict import DEFAULT_LANDMARKS, stable_positions
+from ..sources.ict_arkit import arkit_example_set
 from .correspondence import (
     Correspondence,
     CorrespondenceWeights,

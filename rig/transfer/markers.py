@@ -15,12 +15,15 @@ import numpy.typing as npt
 
 from ..errors import MarkerError
 
-__all__ = ["MIN_MARKERS", "check_markers", "read_markers"]
+__all__ = ["MAX_VERTEX_INDEX", "MIN_MARKERS", "check_markers", "read_markers"]
 
 #: Markers needed at least: three points not on a line fix the similarity that first
 #: places the source on the target. A face needs more to be fitted well (around 20:
 #: eye and mouth corners, lids, nose, brows, chin, ear roots).
 MIN_MARKERS = 3
+#: The largest vertex index a markers file may name (the largest int32): no mesh a
+#: glTF can carry (indices are at most uint32) has more, and every index then fits int64.
+MAX_VERTEX_INDEX = 2**31 - 1
 
 
 def read_markers(path: str | os.PathLike[str]) -> np.ndarray:
@@ -32,7 +35,8 @@ def read_markers(path: str | os.PathLike[str]) -> np.ndarray:
     Raises
     ------
     MarkerError
-        Missing or unreadable file, a line that is not two integers (with its number).
+        Missing or unreadable file, a line that is not two integers (with its number),
+        an index below 0 or above ``MAX_VERTEX_INDEX`` (``marker_out_of_range``).
     """
     path = Path(path)
     try:
@@ -56,6 +60,13 @@ def read_markers(path: str | os.PathLike[str]) -> np.ndarray:
                 f"{path}, line {number}: expected two vertex indices "
                 f"'source_vertex target_vertex', got {raw.strip()!r}"
             )
+        if not all(0 <= v <= MAX_VERTEX_INDEX for v in values):
+            # int64 holds no more; a mesh with as many vertices cannot be loaded anyway.
+            raise MarkerError(
+                f"{path}, line {number}: vertex index out of range [0, {MAX_VERTEX_INDEX}] "
+                f"in {raw.strip()[:80]!r}",
+                code="marker_out_of_range",
+            )
         pairs.append((values[0], values[1]))
     return np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
 
@@ -70,7 +81,7 @@ def check_markers(
     """
     try:
         pairs = np.asarray(markers)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:
         raise MarkerError(f"markers: not an array ({exc})") from None
     if pairs.size and (
         pairs.ndim != 2 or pairs.shape[1] != 2 or not np.issubdtype(pairs.dtype, np.integer)

@@ -16,7 +16,15 @@ from typing import TYPE_CHECKING
 import msgpack
 import numpy as np
 
-from facecast.protocol import Head, Result, Smoothing, array_from_wire, array_to_wire, encode
+from facecast.protocol import (
+    Head,
+    Result,
+    Smoothing,
+    Stamps,
+    array_from_wire,
+    array_to_wire,
+    encode,
+)
 from facecast.protocol.arrays import check_result_finite
 from facecast.protocol.fields import read_float
 from facecast.rig.errors import InputError, RigError
@@ -58,6 +66,9 @@ class ChannelFrame:
         every key re-bases its rig noise-aware with it (``rig.rebase``); None: exactly
     neutral_id : changes whenever ``neutral`` does (keys cache their calibrated rig by it)
     head : the frame's head pose (PROTOCOL.md §5.3), relayed unchanged in every key's result
+    stamps : the frame's stage stamps as the server relays them (PROTOCOL.md §5.4: the
+        publisher's plausible ones and ``server_in``), in every key's result of it; None:
+        the publisher sent none
     """
 
     seq: int
@@ -72,6 +83,7 @@ class ChannelFrame:
     neutral_noise: float | None = None
     neutral_id: str = ""
     head: Head | None = None
+    stamps: Stamps | None = None
 
     def to_bytes(self) -> bytes:
         data: bytes = msgpack.packb(
@@ -88,6 +100,7 @@ class ChannelFrame:
                 "neutral_noise": self.neutral_noise,
                 "neutral_id": self.neutral_id,
                 "head": None if self.head is None else self.head.serialize(),
+                "stamps": None if self.stamps is None else self.stamps.serialize(),
             },
             use_bin_type=True,
         )
@@ -103,6 +116,7 @@ class ChannelFrame:
         raw = obj.get("raw_points")
         smoothing = obj.get("smoothing")
         head = obj.get("head")
+        stamps = obj.get("stamps")
         return cls(
             seq=int(obj["seq"]),
             ts=float(obj["ts"]),
@@ -120,6 +134,7 @@ class ChannelFrame:
             neutral_noise=read_float(obj, "neutral_noise", "channel frame neutral_noise", None),
             neutral_id=str(obj.get("neutral_id", "")),
             head=None if head is None else Head.parse(head, "head"),
+            stamps=None if stamps is None else Stamps.parse(stamps, "stamps"),
         )
 
 
@@ -225,8 +240,10 @@ class KeyState(_Key):
             weights = self._smooth(weights, frame)
             self.last_weights = weights
             data = self._encode(
-                rig, weights, frame.seq, frame.ts, frame.dropped, arrived, frame.head
-            )
+                rig, weights, frame.seq, frame.ts, frame.dropped, arrived, frame.head,
+                # A late joiner's catch-up is no live frame: its age is not the path's.
+                frame.stamps if count else None,
+            )  # fmt: skip
             self._keep(data, frame.seq, count)
             return data
 
@@ -256,6 +273,7 @@ class KeyState(_Key):
         dropped: int,
         arrived: float,
         head: Head | None = None,
+        stamps: Stamps | None = None,
     ) -> bytes:
         dtype = _DTYPES[self.dtype]
         # An overflow to infinity is caught below, as RESULT_NOT_FINITE, not warned about.
@@ -275,6 +293,7 @@ class KeyState(_Key):
             dropped=dropped,
             server_ts=time.time(),
             head=head,  # eased results (no frame) carry none: the receiver keeps the last
+            stamps=stamps,  # nor stamps: they are not a frame's
         )
         return encode(result)
 
@@ -312,6 +331,7 @@ class PointsKeyState(_Key):
             dropped=frame.dropped,
             server_ts=time.time(),
             head=frame.head,
+            stamps=frame.stamps if count else None,
         )
         data = encode(result)
         with self._lock:

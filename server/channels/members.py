@@ -170,6 +170,7 @@ class PublisherMember(Member):
 
     async def _publish(self, frame: Frame, now: float) -> None:
         """Check ``frame`` (rate, neutral, range), smooth its points, hand it to the channel."""
+        arrived = time.time()  # the frame's server_in (§5.4), on the clock pongs tell
         core = self.core
         if not core.frame_allowed(frame, now):
             self.directory.metrics_dropped("rate_limited")
@@ -200,6 +201,8 @@ class PublisherMember(Member):
                 neutral_id=core.neutral_id,
                 raw_points=frame.points if self._point_filter is not None else None,
                 head=frame.head,
+                # Figures only (PROTOCOL.md §5.4): the plausible ones, with our arrival.
+                stamps=None if frame.stamps is None else frame.stamps.arrived(arrived),
             )
         )  # fmt: skip
         # Its result (the newest frame's is never superseded) carries this total.

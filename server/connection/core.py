@@ -11,6 +11,7 @@ threads and writes.
 from __future__ import annotations
 
 import secrets
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NoReturn
@@ -98,6 +99,8 @@ class ConnectionCore:
     idle_timeout : seconds without a message before IDLE_TIMEOUT; None: no idle rule
     metrics : the app's collectors, counted into along with ``counters`` (errors by code,
         frames in and out, frames dropped); None: ``counters`` only
+    wall_clock : the server's wall clock (seconds since the Unix epoch) that a ``pong``
+        tells, for the clients' offset estimates (PROTOCOL.md §5.4)
     """
 
     def __init__(
@@ -108,8 +111,10 @@ class ConnectionCore:
         *,
         idle_timeout: float | None,
         metrics: Metrics | None = None,
+        wall_clock: Callable[[], float] = time.time,
     ) -> None:
         self.protocol = protocol
+        self.wall_clock = wall_clock
         self.metrics = metrics
         self.settings = settings
         self.counters = Counters()
@@ -171,7 +176,7 @@ class ConnectionCore:
         its RATE_LIMITED error is in `data_to_send`.
         """
         if isinstance(message, Ping):
-            self.send(Pong(id=message.id, ts=message.ts))
+            self.send(Pong(id=message.id, ts=message.ts, server_ts=self.wall_clock()))
         elif isinstance(message, Hello):
             self.check_hello(message)
             self.waiting += 1

@@ -1,6 +1,6 @@
 """Characters as files: ``PUT /v1/characters/{id}`` fits a rig from a glTF/VRM as uploaded.
 
-The file is paired with the generic ARKit source set (``facecast.rig.io.character``),
+The file is paired with the generic ARKit source set (``facecast.rig.characters.character``),
 fitted in the fit pool, and stored beside the rig (``storage.characters``); the rig's
 description and ``GET /v1/rigs/{id}/character.glb`` give it to the pages.
 """
@@ -16,8 +16,9 @@ from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import JSONResponse
 
 from facecast.rig import fit
+from facecast.rig.characters.character import character_example_set
 from facecast.rig.errors import ExampleSetError
-from facecast.rig.io.character import character_example_set
+from facecast.rig.io.gltf import GltfLimits
 
 from ..errors import ApiError
 from ..guards.auth import ANONYMOUS, READ_ROLES, Principal, requires
@@ -30,9 +31,16 @@ from ..storage.characters import (
     pack_character,
 )
 from ..storage.rig_store import RIG_ID_PATTERN, RigStore, valid_rig_id
-from .character_upload import character_record, pairing_view, read_character_upload
+from .character_upload import (
+    character_record,
+    check_character_size,
+    gltf_limits,
+    pairing_view,
+    read_character_upload,
+)
+from .downloads import stream_file
 from .rigs import CharacterFitOptions, archive_limits, fit_slot, read_body, run_fit
-from .transfer import start_transfer
+from .transfer import start_transfer, transfer_available
 
 if TYPE_CHECKING:
     from facecast.rig import Rig
@@ -103,6 +111,14 @@ async def put_character(
             "(default all the character lacks)",
         ),
     ] = None,
+    rights_holder: Annotated[
+        bool,
+        Query(
+            description="the uploader declares they hold the rights to show this character: "
+            "a VRM whose licence forbids redistribution is then served to viewers without a "
+            "token too (default false: only to token holders)"
+        ),
+    ] = False,
 ) -> JSONResponse:
     _check_id(rig_id)
     if PERFORMER_SEPARATOR in rig_id:
@@ -114,7 +130,13 @@ async def put_character(
         )
     if expressions == "transfer":
         return await start_transfer(
-            request, rig_id, principal, options, markers=markers, names=names
+            request,
+            rig_id,
+            principal,
+            options,
+            markers=markers,
+            names=names,
+            rights_holder=rights_holder,
         )
     if markers is not None or names is not None:
         raise ApiError(
@@ -123,23 +145,37 @@ async def put_character(
             "markers and names choose how expressions are transferred: add expressions=transfer",
         )
     settings = request.app.state.settings
-    job = _CharacterJob(archive_limits(settings), options, _store(request).scratch)
+    job = _CharacterJob(
+        archive_limits(settings),
+        gltf_limits(settings),
+        options,
+        _store(request).scratch,
+        settings.max_character_bytes,
+        rights_holder=rights_holder,
+    )
     with fit_slot(request, principal):
         data = await read_body(request, settings.max_upload_bytes)
         try:
-            fitted = await run_fit(request, lambda: job(data))
+            fitted = await run_fit(request, lambda: job(data), size=len(data))
         except ArchiveError as exc:
             raise ApiError(exc.status, exc.code, str(exc)) from None
         except ExampleSetError as exc:
             if exc.code != "no_expressions":
                 raise
-            raise ApiError(
-                422,
-                exc.code,
-                f"{exc.message}. Or let this server make them: upload it again with "
-                f"?expressions=transfer (`facecast rigs put URL {rig_id} FILE --expressions "
-                "transfer`)",
-            ) from None
+            # Only a server that has expressions to transfer (transfer_source) is offered:
+            # any other answers ?expressions=transfer with 503 transfer_unavailable.
+            if await anyio.to_thread.run_sync(transfer_available, settings):
+                remedy = (
+                    "Or let this server make them: upload it again with ?expressions=transfer "
+                    f"(`facecast rigs put URL {rig_id} FILE --expressions transfer`)"
+                )
+            else:
+                remedy = (
+                    "This server has no expressions to transfer (setting transfer_source): "
+                    "make them with `facecast expressions FILE -o FOLDER` where ICT-FaceKit "
+                    "is, then upload the example set"
+                )
+            raise ApiError(422, exc.code, f"{exc.message}. {remedy}") from None
     rig, packed, pairing, fmt = fitted
     created = await anyio.to_thread.run_sync(
         lambda: _store(request).put_rig(rig_id, rig, character=packed)
@@ -151,6 +187,7 @@ async def put_character(
             "rig": rig_id,
             "bytes": len(data),
             "format": fmt,
+            "rights_holder": rights_holder,
             "by": principal.name,
         },
     )
@@ -178,50 +215,65 @@ async def get_character(request: Request, rig_id: str, principal: Reader) -> Res
     # The rig itself must exist: ``x@nobody`` shows no character, even if ``x`` has one.
     if not await anyio.to_thread.run_sync(_store(request).exists, rig_id):
         raise ApiError(404, "rig_not_found", f"no rig with id {rig_id!r}")
-    stored = await anyio.to_thread.run_sync(
-        lambda: _store(request).character(base_id(rig_id), with_glb=True)
-    )
-    if stored is None:
+    opened = await anyio.to_thread.run_sync(_store(request).open_character, base_id(rig_id))
+    if opened is None:
         raise ApiError(
             404,
             "no_character",
             f"rig {rig_id!r} has no character file (it was not uploaded with "
             "PUT /v1/characters/{id}); its mesh is GET /v1/rigs/{id}/model.glb",
         )
-    if character_not_served(stored.meta, anonymous=principal is ANONYMOUS):
+    stored, fh, size = opened
+    if character_not_served(
+        stored.meta, anonymous=principal is ANONYMOUS, rights_holder=stored.rights_holder
+    ):
+        fh.close()
         raise ApiError(
             403,
             "character_not_redistributable",
             f"the character of rig {rig_id!r} is a VRM whose licence forbids redistribution: "
-            "it is served only to callers with a token (the viewer role); its mesh is "
-            f"GET /v1/rigs/{rig_id}/model.glb",
+            "it is served only to callers with a token (the viewer role), unless its uploader "
+            "declares they hold the rights to show it (?rights_holder=true on the upload); "
+            f"its mesh is GET /v1/rigs/{rig_id}/model.glb",
         )
-    return Response(
-        stored.glb,
-        media_type="model/gltf-binary",
-        headers={
-            "Cache-Control": "no-store"
-            if stored.meta.get("redistribution") is False
-            else "no-cache"
-        },
+    # Streamed from disk in chunks (``downloads``): a slow viewer holds one, not the file.
+    return stream_file(
+        fh,
+        size,
+        "model/gltf-binary",
+        {"Cache-Control": "no-store" if stored.meta.get("redistribution") is False else "no-cache"},
     )
 
 
 class _CharacterJob:
     """Unpack (an archive), load, pair with the generic source set and fit (a worker thread)."""
 
-    def __init__(self, limits: ArchiveLimits, options: dict[str, Any], scratch: Path) -> None:
+    def __init__(
+        self,
+        limits: ArchiveLimits,
+        gltf: GltfLimits,
+        options: dict[str, Any],
+        scratch: Path,
+        max_bytes: int,
+        *,
+        rights_holder: bool = False,
+    ) -> None:
         self.limits = limits
+        self.gltf = gltf
         self.options = options
         self.scratch = scratch
+        self.max_bytes = max_bytes
+        self.rights_holder = rights_holder
 
     def __call__(self, data: bytes) -> tuple[Rig, bytes, dict[str, Any], str]:
-        character, _ = read_character_upload(data, self.limits, self.scratch)
+        character, _ = read_character_upload(data, self.limits, self.scratch, self.gltf)
+        check_character_size(character, self.max_bytes)
+        record = character_record(character, rights_holder=self.rights_holder)
+        glb, fmt = character.glb, character.format
         example_set, report = character_example_set(character)
+        # The largest arrays go as soon as they are used (SERVER.md "What an upload can
+        # cost"): the character's displacements once in the example set, that once fitted.
+        del character
         rig = fit(example_set, **self.options)
-        return (
-            rig,
-            pack_character(character.glb, character_record(character)),
-            pairing_view(report),
-            character.format,
-        )
+        del example_set
+        return rig, pack_character(glb, record), pairing_view(report), fmt

@@ -18,8 +18,8 @@ from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import JSONResponse
 
 from facecast.rig import Rig
+from facecast.rig.characters.generic import composed_captures
 from facecast.rig.retarget import NEUTRAL, fit_performer, shared_names
-from facecast.rig.sources.generic import composed_captures
 from facecast.rig.sources.layouts import load_layout
 
 from ..errors import ApiError
@@ -137,7 +137,8 @@ async def _fit_and_store(
 ) -> tuple[dict[str, Any], bool]:
     store = request.app.state.store
     job = _PerformerFit(store, rig_id, capture, shared_only=refit)
-    rig, skipped, composed = await run_fit(request, job)
+    # A capture (at most max_capture_bytes, parsed already): the small lane.
+    rig, skipped, composed = await run_fit(request, job, size=0)
     new_id = performer_rig_id(rig_id, performer)
     created = await anyio.to_thread.run_sync(store.put_rig, new_id, rig)
     log.info(

@@ -12,7 +12,7 @@ import logging
 import tempfile
 from collections import Counter
 from collections.abc import Awaitable, Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar
 
@@ -21,15 +21,18 @@ from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import JSONResponse
 
 from facecast.rig import fit
-from facecast.rig.io.character_examples import character_fit_options as character_fit_options_for
-from facecast.rig.io.loaders import load_example_set
+from facecast.rig.characters.character_examples import (
+    character_fit_options as character_fit_options_for,
+)
+from facecast.rig.characters.loaders import load_example_set
 
 from ..errors import ApiError, upload_paths_hidden
 from ..guards.auth import READ_ROLES, Principal, requires
 from ..settings import Settings
 from ..storage.archive import ArchiveError, ArchiveLimits, extract_archive, find_example_root
-from ..storage.characters import base_id, character_view, looks_like_character
+from ..storage.characters import audience, base_id, character_view, looks_like_character
 from ..storage.rig_store import RIG_ID_PATTERN, RigNotFoundError, RigStore, valid_rig_id
+from .downloads import stream_file
 
 if TYPE_CHECKING:
     from facecast.rig import Rig
@@ -199,11 +202,16 @@ def fit_slot(request: Request, principal: Principal) -> Iterator[None]:
             del held[principal.name]
 
 
-async def run_fit(request: Request, job: Callable[[], T]) -> T:
-    """Run ``job`` (a fit) in the app's fit executor; the caller holds a ``fit_slot``."""
+async def run_fit(request: Request, job: Callable[[], T], *, size: int) -> T:
+    """Run ``job`` (a parse and a fit of an upload of ``size`` bytes) in the app's fit
+    executor, or its small lane up to ``small_upload_bytes``; the caller holds a ``fit_slot``."""
     # Fitting is seconds of numpy: it runs in the dedicated fit executor, never on the
-    # event loop and never in the pool that clones frames.
-    executor: ThreadPoolExecutor = request.app.state.fit_executor
+    # event loop and never in the pool that clones frames. Small uploads and captures
+    # have a lane of their own: they never queue behind a large file's parse.
+    state = request.app.state
+    limit = _settings(request).small_upload_bytes
+    small = limit > 0 and size <= limit
+    executor: Executor = state.small_fit_executor if small else state.fit_executor
     return await unless_stopping(request, asyncio.wrap_future(executor.submit(job)))
 
 
@@ -213,8 +221,26 @@ def _described(rig_id: str, rig: Rig) -> dict[str, Any]:
 
 @router.get("/rigs", summary="List stored rigs")
 async def list_rigs(request: Request, _: Reader) -> dict[str, Any]:
-    infos = await anyio.to_thread.run_sync(_store(request).list)
-    return {"rigs": [{"id": i.id, "size": i.size, "modified": i.modified} for i in infos]}
+    return {"rigs": await anyio.to_thread.run_sync(_listed, _store(request))}
+
+
+def _listed(store: RigStore) -> list[dict[str, Any]]:
+    """Each stored rig: id, size, modified, and its character's format, name and who is
+    shown it (``storage.characters.audience``), null for a rig without one."""
+    out: list[dict[str, Any]] = []
+    for info in store.list():
+        stored = store.character(base_id(info.id), with_glb=False)
+        character = None
+        if stored is not None:
+            character = {
+                "format": stored.format,
+                "name": stored.meta.get("name"),
+                **audience(stored.meta, rights_holder=stored.rights_holder),
+            }
+        out.append(
+            {"id": info.id, "size": info.size, "modified": info.modified, "character": character}
+        )
+    return out
 
 
 @router.get("/rigs/{rig_id}", summary="Describe a rig (Rig.summary())")
@@ -301,7 +327,7 @@ FitOptions = Annotated[dict[str, Any], Depends(fit_options)]
 def character_fit_options(request: Request, options: FitOptions) -> dict[str, Any]:
     """``fit_options`` for a character paired with the generic ARKit set: without a
     ``noise`` query, the rig side's live defaults (``character_examples.character_fit_options``:
-    ``sources.generic.CHARACTER_FIT_DEFAULTS``, docs/characters.md "Fit defaults")."""
+    ``characters.generic.CHARACTER_FIT_DEFAULTS``, docs/characters.md "Fit defaults")."""
     given = {k: v for k, v in options.items() if k != "noise" or "noise" in request.query_params}
     return character_fit_options_for(given)
 
@@ -353,7 +379,9 @@ async def put_examples(
         data = await read_body(request, settings.max_upload_bytes)
         refuse_character(data, rig_id)
         try:
-            rig = await run_fit(request, _FitJob(data, limits, options, _scratch(request)))
+            rig = await run_fit(
+                request, _FitJob(data, limits, options, _scratch(request)), size=len(data)
+            )
         except ArchiveError as exc:
             raise ApiError(exc.status, exc.code, str(exc)) from None
     created = await anyio.to_thread.run_sync(_store(request).put_rig, rig_id, rig)
@@ -423,13 +451,15 @@ async def get_model(request: Request, rig_id: str, _: Reader) -> Response:
 async def download_rig(request: Request, rig_id: str, _: Downloader) -> Response:
     _check_id(rig_id)
     try:
-        data = await anyio.to_thread.run_sync(_store(request).get_bytes, rig_id)
+        fh, size = await anyio.to_thread.run_sync(_store(request).open_rig_file, rig_id)
     except RigNotFoundError:
         raise _not_found(rig_id) from None
-    return Response(
-        data,
-        media_type="application/octet-stream",
-        headers={"Content-Disposition": f'attachment; filename="{rig_id}.rig"'},
+    # Streamed from disk in chunks (``downloads``), as the character file is.
+    return stream_file(
+        fh,
+        size,
+        "application/octet-stream",
+        {"Content-Disposition": f'attachment; filename="{rig_id}.rig"'},
     )
 
 

@@ -10,12 +10,14 @@ stored as any character. ``GET /v1/characters/{id}/job`` follows it.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import secrets
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -24,8 +26,8 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse
 
 from facecast.rig import fit
+from facecast.rig.characters.character import character_example_set, load_character
 from facecast.rig.errors import RigError
-from facecast.rig.io.character import character_example_set, load_character
 from facecast.rig.sources.ict import locate_ict
 from facecast.rig.transfer import (
     SourceExpressions,
@@ -35,14 +37,20 @@ from facecast.rig.transfer import (
     with_transferred_expressions,
 )
 
-from ..errors import ApiError
+from ..errors import ApiError, StoreClosedError
 from ..guards.auth import READ_ROLES, Principal, requires
 from ..settings import Settings
 from ..storage.archive import ArchiveError, ArchiveLimits
 from ..storage.characters import character_view, pack_character
 from ..storage.jobs import FINISHED
 from ..storage.rig_store import RIG_ID_PATTERN, RigStore, valid_rig_id
-from .character_upload import character_record, pairing_view, read_character_upload
+from .character_upload import (
+    character_record,
+    check_character_size,
+    gltf_limits,
+    pairing_view,
+    read_character_upload,
+)
 from .rigs import archive_limits, fit_slot, read_body, run_fit
 
 __all__ = ["router", "start_transfer"]
@@ -56,6 +64,16 @@ Reader = Annotated[Principal, Depends(requires(*READ_ROLES))]
 
 class _Interrupted(Exception):
     """The server began to stop while the job ran."""
+
+
+class _Superseded(Exception):
+    """The character was deleted or replaced while the job ran (its record says so)."""
+
+
+#: ``app.state``'s key of a callable a transfer job calls with a stage's name as it enters
+#: it ("transfer", "fit", "store"; before it changes anything in that stage). None in
+#: service: it is the tests' seam to hold a job at a stage, with no sleeps.
+STAGE_HOOK = "transfer_stage_hook"
 
 
 def _store(request: Request) -> RigStore:
@@ -89,6 +107,16 @@ def _source_path(settings: Settings) -> Path:
     return Path(archive)
 
 
+def transfer_available(settings: Settings) -> bool:
+    """Whether this server can transfer expressions (``transfer_source`` found): what an
+    upload with none may be told to ask for."""
+    try:
+        _source_path(settings)
+    except ApiError:
+        return False
+    return True
+
+
 def _names(text: str | None) -> list[str] | None:
     if text is None:
         return None
@@ -106,8 +134,11 @@ async def start_transfer(
     *,
     markers: str | None,
     names: str | None,
+    rights_holder: bool = False,
 ) -> JSONResponse:
-    """Check the upload, record a queued job and start it: 202 with the record."""
+    """Check the upload, record a queued job and start it: 202 with the record.
+
+    ``rights_holder``: kept in the stored character's record (``character_record``)."""
     settings: Settings = request.app.state.settings
     store = _store(request)
     archive = _source_path(settings)
@@ -126,7 +157,9 @@ async def start_transfer(
             data = await read_body(request, settings.max_upload_bytes)
             prepare = _Prepare(archive_limits(settings), store.scratch, archive, settings)
             try:
-                plan, source = await run_fit(request, lambda: prepare(data, markers, wanted))
+                plan, source = await run_fit(
+                    request, lambda: prepare(data, markers, wanted), size=len(data)
+                )
             except ArchiveError as exc:
                 raise ApiError(exc.status, exc.code, str(exc)) from None
             now = time.time()
@@ -147,9 +180,10 @@ async def start_transfer(
             await anyio.to_thread.run_sync(store.jobs.write, rig_id, record)
             job = _TransferJob(
                 rig_id, record["job"], plan, source, options, store,
-                request.app.state.transfer_cancel,
+                request.app.state.transfer_cancel, getattr(request.app.state, STAGE_HOOK, None),
+                rights_holder=rights_holder,
             )  # fmt: skip
-            executor: ThreadPoolExecutor = request.app.state.transfer_executor
+            executor: Executor = request.app.state.transfer_executor
             future = executor.submit(job.run, slot)
             # Cancelled before it ran (the server stopping): the slot is still this one's.
             future.add_done_callback(lambda f: f.cancelled() and store.jobs.release(slot))
@@ -194,9 +228,7 @@ async def get_job(request: Request, rig_id: str, _: Reader) -> dict[str, Any]:
                 "message": "the server stopped while the job ran; upload it again",
             },
         }
-        await anyio.to_thread.run_sync(
-            lambda: store.jobs.update(rig_id, job, interrupted, unfinished=True)
-        )
+        await anyio.to_thread.run_sync(lambda: store.jobs.update(rig_id, job, interrupted))
         record = await anyio.to_thread.run_sync(store.jobs.read, rig_id)
     if record is None:
         raise ApiError(
@@ -218,12 +250,16 @@ class _Prepare:
         self.limits = limits
         self.scratch = scratch
         self.archive = archive
+        self.gltf = gltf_limits(settings)
         self.max_vertices = settings.max_transfer_vertices
+        self.max_faces = settings.max_transfer_faces
+        self.max_bytes = settings.max_character_bytes
 
     def __call__(
         self, data: bytes, markers: str | None, names: list[str] | None
     ) -> tuple[TransferPlan, SourceExpressions]:
-        character, found = read_character_upload(data, self.limits, self.scratch)
+        character, found = read_character_upload(data, self.limits, self.scratch, self.gltf)
+        check_character_size(character, self.max_bytes)
         if found is not None and markers is not None:
             raise ApiError(
                 422,
@@ -238,7 +274,13 @@ class _Prepare:
             markers=given,
             names=names,
             max_vertices=self.max_vertices,
+            max_faces=self.max_faces,
             label="the uploaded character",
+        )
+        # The job's file grows by its morph targets (float32 xyz a vertex and expression,
+        # an accessor each): checked at the size it will be stored at, before the 202.
+        check_character_size(
+            character, self.max_bytes, adding=len(plan.names) * (plan.vertices * 12 + 256)
         )
         return plan, source
 
@@ -255,8 +297,13 @@ class _TransferJob:
         options: dict[str, Any],
         store: RigStore,
         cancel: threading.Event,
+        stage_hook: Callable[[str], object] | None = None,
+        *,
+        rights_holder: bool = False,
     ) -> None:
         self.rig_id = rig_id
+        self.stage_hook = stage_hook
+        self.rights_holder = rights_holder
         self.job = job
         self.plan = plan
         self.source = source
@@ -265,8 +312,18 @@ class _TransferJob:
         self.cancel = cancel
         self.done = 0
 
-    def _update(self, **changes: Any) -> bool:
-        return self.store.jobs.update(self.rig_id, self.job, {**changes, "updated": time.time()})
+    def _update(self, **changes: Any) -> None:
+        """Change the record, or raise ``_Superseded`` when it is no longer this job's
+        running one (the character deleted or replaced: the record says so already)."""
+        if not self.store.jobs.update(self.rig_id, self.job, {**changes, "updated": time.time()}):
+            raise _Superseded
+
+    def _enter(self, stage: str) -> None:
+        if self.cancel.is_set():
+            raise _Interrupted
+        self._update(state="running", stage=stage)
+        if self.stage_hook is not None:
+            self.stage_hook(stage)
 
     def _step(self, count: int) -> None:
         self.done += count
@@ -275,13 +332,26 @@ class _TransferJob:
         total = len(self.plan.names)
         self._update(progress={"done": self.done, "total": total})
 
+    def _end(self, **changes: Any) -> None:
+        # A cancelled record keeps its reason; a closed store (the server stopped) is
+        # read as interrupted by the free slot.
+        with contextlib.suppress(_Superseded, StoreClosedError):
+            self._update(**changes)
+
     def run(self, slot: int) -> None:
         try:
             self._run()
+        except _Superseded:
+            log.info(
+                "transfer cancelled",
+                extra={"event": "character.transfer_cancelled", "rig": self.rig_id},
+            )
+        except StoreClosedError:
+            pass  # the server stopped under it: the free slot marks the record interrupted
         except RigError as exc:
-            self._update(state="failed", error={"code": exc.code, "message": exc.message})
+            self._end(state="failed", error={"code": exc.code, "message": exc.message})
         except _Interrupted:
-            self._update(
+            self._end(
                 state="failed",
                 error={"code": "interrupted", "message": "the server stopped; upload it again"},
             )
@@ -290,7 +360,7 @@ class _TransferJob:
                 "transfer failed",
                 extra={"event": "character.transfer_failed", "rig": self.rig_id},
             )
-            self._update(
+            self._end(
                 state="failed",
                 error={"code": "internal_error", "message": f"{type(exc).__name__}"},
             )
@@ -299,23 +369,21 @@ class _TransferJob:
 
     def _run(self) -> None:
         started = time.perf_counter()
-        if not self._update(state="running", stage="transfer"):
-            return  # deleted or replaced before it began
+        self._enter("transfer")
         glb, generated = with_transferred_expressions(self.plan, self.source, progress=self._step)
         transferred = time.perf_counter()
-        if not self._update(stage="fit"):
-            return
+        self._enter("fit")
         character = load_character(glb, label="the character with its transferred expressions")
         example_set, report = character_example_set(character)
         rig = fit(example_set, **self.options)
-        packed = pack_character(character.glb, character_record(character))
-        if self.cancel.is_set():
-            raise _Interrupted
-        # The record is read again just before storing: a character deleted or uploaded
-        # anew since then keeps what it has now.
-        if self.store.jobs.read(self.rig_id) is None or not self._update(stage="store"):
-            return
-        created = self.store.put_rig(self.rig_id, rig, character=packed, keep_job=True)
+        record = character_record(character, rights_holder=self.rights_holder)
+        packed = pack_character(character.glb, record)
+        self._enter("store")
+        # Checked and stored in one step (the store's change lock): a character deleted
+        # or uploaded anew since keeps what it has now, and the record says why.
+        created = self.store.put_job_result(self.rig_id, self.job, rig, packed)
+        if created is None:
+            raise _Superseded
         stored = self.store.character(self.rig_id, with_glb=False)
         result = {
             "id": self.rig_id,
@@ -335,7 +403,7 @@ class _TransferJob:
                 },
             },
         }
-        self._update(state="done", stage=None, result=result)
+        self._end(state="done", stage=None, result=result)
         log.info(
             "character transferred",
             extra={

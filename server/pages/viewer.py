@@ -1,4 +1,5 @@
-"""The web viewer's routes: ``/viewer``, ``/overlay``, their built script, and the demo performance.
+"""The web viewer's routes: ``/viewer``, ``/overlay``, their built script, Draco's decoder, and the
+demo performance.
 
 Serves files built by ``npm run build`` in client/viewer (never builds or imports client
 code) and ``GET /v1/demo/animation``; the pages authenticate from the browser themselves.
@@ -10,10 +11,11 @@ import functools
 import importlib.util
 from collections.abc import Awaitable, Callable
 from pathlib import Path
+from typing import Annotated
 
 import anyio
 import msgpack
-from fastapi import APIRouter, Depends, FastAPI, Request, Response
+from fastapi import APIRouter, Depends, FastAPI, Query, Request, Response
 from fastapi.responses import FileResponse, HTMLResponse
 
 from facecast.protocol import array_to_wire
@@ -21,8 +23,16 @@ from facecast.protocol import array_to_wire
 from ..errors import ApiError
 from ..guards.auth import READ_ROLES, requires
 from ..settings import Settings
+from ..storage.rig_store import RIG_ID_PATTERN, RigNotFoundError, RigStore, valid_rig_id
 
-__all__ = ["DEMO_ANIMATION_PATH", "demo_animation_bytes", "mount_viewer", "viewer_dir"]
+__all__ = [
+    "DEMO_ANIMATION_PATH",
+    "DRACO_ASSETS",
+    "demo_animation_bytes",
+    "mount_viewer",
+    "performance_of",
+    "viewer_dir",
+]
 
 DEMO_ANIMATION_PATH = "/v1/demo/animation"
 #: The only files under /viewer/assets/; anything else is 404 (no directory serving).
@@ -30,6 +40,15 @@ _ASSETS = {
     "viewer.js": "text/javascript; charset=utf-8",
     "viewer.js.map": "application/json",
     "viewer.js.LEGAL.txt": "text/plain; charset=utf-8",
+}
+#: The only files under /viewer/assets/draco/: three.js's build of Draco's decoder, which the
+#: pages' DRACOLoader fetches for KHR_draco_mesh_compression characters (build.mjs copies
+#: them into dist/draco/; nothing is fetched from elsewhere).
+DRACO_ASSETS = {
+    "draco_decoder.js": "text/javascript; charset=utf-8",
+    "draco_wasm_wrapper.js": "text/javascript; charset=utf-8",
+    "draco_decoder.wasm": "application/wasm",
+    "README.md": "text/markdown; charset=utf-8",
 }
 _PAGES = {"viewer": "viewer.html", "overlay": "overlay.html"}
 _NOT_BUILT = """<!doctype html><meta charset="utf-8"><title>facecast viewer not built</title>
@@ -47,25 +66,62 @@ def viewer_dir() -> Path:
     return Path(next(iter(spec.submodule_search_locations))) / "viewer"
 
 
-@functools.lru_cache(maxsize=1)
-def demo_animation_bytes() -> bytes:
-    """The demo performance as one msgpack map (built once, ~0.5 s, then cached).
+@functools.lru_cache(maxsize=2)
+def demo_animation_bytes(performance: str = "demo") -> bytes:
+    """A demo performance as one msgpack map (built once, ~0.5 s each, then cached).
 
-    ``{"v": 1, "type": "animation", "fps": float, "points": array (F, K, 3) f32}``, the
-    array in the wire format of PROTOCOL.md §4; K is the demo rig's point count.
+    ``{"v": 1, "type": "animation", "fps": float, "points": array (F, K, 3) f32,
+    "performance": "demo" | "generic"}``, the array in the wire format of PROTOCOL.md §4:
+    ``"demo"`` on the demo rig's 21 points, ``"generic"`` the same performance acted as
+    ARKit weights on the generic ARKit set's 20 points (``facecast.rig.demo.arkit``).
     """
-    from facecast.rig.demo import demo_animation
+    from facecast.rig.demo import arkit_demo_animation, demo_animation
 
-    animation = demo_animation(with_vertices=False)
+    if performance == "generic":
+        animation = arkit_demo_animation()
+    else:
+        animation = demo_animation(with_vertices=False)
     points = animation.points.astype("<f4")
     data: bytes = msgpack.packb(
-        {"v": 1, "type": "animation", "fps": float(animation.fps), "points": array_to_wire(points)}
+        {
+            "v": 1,
+            "type": "animation",
+            "fps": float(animation.fps),
+            "points": array_to_wire(points),
+            "performance": performance,
+        }
     )
     return data
 
 
+def performance_of(store: RigStore, rig_id: str) -> str:
+    """The demo performance rig ``rig_id`` takes (``rig.demo.performance_for``), or an
+    ApiError: 404 for no such rig, 409 ``no_demo_performance`` for a rig on other points."""
+    from facecast.rig.demo import performance_for
+
+    if not valid_rig_id(rig_id):
+        raise ApiError(400, "invalid_rig_id", f"rig id {rig_id[:80]!r} must match {RIG_ID_PATTERN}")
+    try:
+        rig = store.get(rig_id)
+    except RigNotFoundError:
+        raise ApiError(404, "rig_not_found", f"no rig with id {rig_id!r}") from None
+    neutral = rig.model.source_neutral if rig.calibration is None else rig.calibration
+    performance = performance_for(neutral)
+    if performance is None:
+        raise ApiError(
+            409,
+            "no_demo_performance",
+            f"rig {rig_id!r} takes {rig.num_points} feature points of its own source (a "
+            "tracker's, a performer's calibration): the demo performance comes on the demo "
+            "rig's points and on the generic ARKit set's (characters uploaded as files); "
+            "watch a channel its performer publishes to instead",
+        )
+    return performance
+
+
 def mount_viewer(app: FastAPI, settings: Settings) -> None:
-    """Add ``/viewer``, ``/overlay``, ``/viewer/assets/{name}`` and ``GET /v1/demo/animation``.
+    """Add ``/viewer``, ``/overlay``, ``/viewer/assets/{name}``, ``/viewer/assets/draco/{name}``
+    and ``GET /v1/demo/animation``.
 
     The pages themselves need no token (they hold no data); the browser presents the
     ``?token=`` of the page URL to the API and the WebSocket.
@@ -94,17 +150,41 @@ def mount_viewer(app: FastAPI, settings: Settings) -> None:
             raise ApiError(404, "not_found", f"no viewer asset {name[:80]!r}")
         return FileResponse(path, media_type=media_type, headers={"Cache-Control": "no-cache"})
 
+    @router.get("/viewer/assets/draco/{name}")
+    async def draco_asset(name: str) -> Response:
+        media_type = DRACO_ASSETS.get(name)
+        path = dist / "draco" / name
+        if media_type is None or not path.is_file():
+            raise ApiError(404, "not_found", f"no Draco decoder file {name[:80]!r}")
+        return FileResponse(path, media_type=media_type, headers={"Cache-Control": "no-cache"})
+
     @router.get(
         DEMO_ANIMATION_PATH,
         include_in_schema=True,
         tags=["demo"],
-        summary="The demo performance's feature points (msgpack; see server/pages/viewer.py)",
+        summary="The demo performance's feature points, for the demo rig or ?rig= (msgpack; "
+        "see server/pages/viewer.py)",
         response_class=Response,
         responses={200: {"content": {"application/vnd.msgpack": {}}}},
         dependencies=[Depends(requires(*READ_ROLES))],
     )
-    async def demo_animation(request: Request) -> Response:
-        data = await anyio.to_thread.run_sync(demo_animation_bytes)
+    async def demo_animation(
+        request: Request,
+        rig: Annotated[
+            str | None,
+            Query(
+                max_length=300,
+                description="the rig to play it on: the performance on that rig's source "
+                "points (the demo rig's, or the generic ARKit set's for a character "
+                "uploaded as a file); 409 no_demo_performance for a rig on other points",
+            ),
+        ] = None,
+    ) -> Response:
+        performance = "demo"
+        if rig is not None:
+            store: RigStore = request.app.state.store
+            performance = await anyio.to_thread.run_sync(performance_of, store, rig)
+        data = await anyio.to_thread.run_sync(demo_animation_bytes, performance)
         return Response(
             data,
             media_type="application/vnd.msgpack",

@@ -18,6 +18,7 @@ from ..names import PERFORMER_SEPARATOR
 __all__ = [
     "CHARACTER_SUFFIX",
     "StoredCharacter",
+    "audience",
     "base_id",
     "character_not_served",
     "character_view",
@@ -37,9 +38,11 @@ _HEADER = struct.Struct("<4sII")  # magic, version, JSON byte length
 class StoredCharacter:
     """A stored character: ``glb`` as uploaded and its record.
 
-    ``record``: ``{"format": "gltf"|"vrm0"|"vrm1", "meta": {...}, "bindings": {name:
-    [[mesh, morph, weight], ...]}}`` — bindings by the rig's example (expression) names,
-    ``mesh`` the index in the glTF ``meshes`` array, ``morph`` the morph target's index.
+    ``record``: ``{"format": "gltf"|"vrm0"|"vrm1", "meta": {...}, "rights_holder": bool,
+    "bindings": {name: [[mesh, morph, weight], ...]}}`` — bindings by the rig's example
+    (expression) names, ``mesh`` the index in the glTF ``meshes`` array, ``morph`` the
+    morph target's index; ``rights_holder`` (absent in older records: false) the
+    uploader's declaration that they may show it to everyone.
     """
 
     glb: bytes
@@ -53,6 +56,11 @@ class StoredCharacter:
     def meta(self) -> dict[str, Any]:
         meta = self.record.get("meta") or {}
         return dict(meta)
+
+    @property
+    def rights_holder(self) -> bool:
+        """Whether the uploader declared they hold the rights to show it (``rights_holder``)."""
+        return self.record.get("rights_holder") is True
 
     def bindings_for(self, names: Sequence[str]) -> list[list[dict[str, Any]]]:
         """One list of ``{"mesh", "morph", "weight"}`` per weight, in ``names``' order.
@@ -82,7 +90,40 @@ def character_view(
         "format": stored.format,
         "url": f"/v1/rigs/{rig_id}/character.glb",
         "meta": stored.meta,
+        **audience(stored.meta, rights_holder=stored.rights_holder),
         "bindings": stored.bindings_for(names),
+    }
+
+
+def audience(meta: dict[str, Any], *, rights_holder: bool) -> dict[str, Any]:
+    """Who is shown the character file under its licence, for the uploader and the pages.
+
+    ``{"rights_holder": bool, "shown_to": "everyone" | "token_holders", "licence_note":
+    str}``: ``token_holders`` when ``character_not_served`` withholds it from anonymous
+    callers (the rule is that function's), the note saying why and what to do.
+    """
+    withheld = character_not_served(meta, anonymous=True, rights_holder=rights_holder)
+    if withheld:
+        note = (
+            "shown only to viewers with a token: its VRM licence forbids redistribution "
+            "(viewers without a token see the rig's plain mesh). If you hold the rights to "
+            "show it, upload it again with --rights-holder (?rights_holder=true)"
+        )
+    elif meta.get("redistribution") is False:
+        note = (
+            "shown to everyone: its VRM licence forbids redistribution, and the uploader "
+            "declared they hold the rights to show it (rights_holder)"
+        )
+    elif meta.get("redistribution") is True:
+        note = "shown to everyone: its VRM licence allows redistribution"
+    elif meta.get("vrm"):
+        note = "shown to everyone: its VRM licence does not forbid redistribution"
+    else:
+        note = "shown to everyone: a glTF file carries no licence to hold it back"
+    return {
+        "rights_holder": rights_holder,
+        "shown_to": "token_holders" if withheld else "everyone",
+        "licence_note": note,
     }
 
 
@@ -116,15 +157,18 @@ def unpack_character(source: BinaryIO, *, with_glb: bool = True) -> StoredCharac
     return StoredCharacter(source.read() if with_glb else b"", record)
 
 
-def character_not_served(meta: dict[str, Any], *, anonymous: bool) -> bool:
+def character_not_served(
+    meta: dict[str, Any], *, anonymous: bool, rights_holder: bool = False
+) -> bool:
     """Whether the file is withheld: a VRM whose meta forbids redistribution, to an anonymous caller.
 
     ``redistribution`` False (VRM 1.0 ``allowRedistribution: false``, VRM 0.x licence
     ``Redistribution_Prohibited``) withholds the file from callers without a token (a
     server with auth off has only those); a token holding a read role gets it. Unknown
-    (``None``) or plain glTF: served.
+    (``None``) or plain glTF: served. ``rights_holder``: the uploader (admin) declared
+    they hold the rights to show it (``?rights_holder=true``): served to everyone.
     """
-    return anonymous and meta.get("redistribution") is False
+    return anonymous and not rights_holder and meta.get("redistribution") is False
 
 
 def looks_like_character(data: bytes) -> bool:

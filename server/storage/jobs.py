@@ -4,10 +4,14 @@ server-wide transfer slot.
 A record is written whole (``write_atomically``) by the job as it goes; every worker
 process reads the same files, so ``GET /v1/characters/{id}/job`` answers wherever it
 lands. Bounded: a character's record goes with the character (``RigStore`` removes it on
-delete and replace) and finished records beyond ``max_records`` are pruned. The slot is
-an ``flock`` on ``.jobs/transfer.lock``: the kernel drops it when its process dies, so a
-record still "running" while nobody holds the slot was interrupted. Blocking calls: run
-them in a thread.
+delete and replace: a job still running is marked ``cancelled`` instead, saying why) and
+finished records beyond ``max_records`` are pruned. The slot is an ``flock`` on
+``.jobs/transfer.lock``: the kernel drops it when its process dies, so a record still
+"running" while nobody holds the slot was interrupted. Every change of a record, and every
+change of a character (``RigStore``'s stores and deletes), happens under ``locked()``, an
+``flock`` on ``.jobs/changes.lock``: a job checks that its record is still its own and
+unfinished and stores its result in one step, so a DELETE or a replace always wins.
+Blocking calls: run them in a thread.
 """
 
 from __future__ import annotations
@@ -16,21 +20,26 @@ import contextlib
 import fcntl
 import json
 import os
-from collections.abc import Callable
+import threading
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 from ..names import valid_rig_id
 from .atomic import write_atomically
 
-__all__ = ["FINISHED", "JOBS_DIR", "JobStore"]
+__all__ = ["CANCELLED", "FINISHED", "JOBS_DIR", "JobStore"]
 
 #: Under the rig directory.
 JOBS_DIR = ".jobs"
+#: A job whose character was deleted or replaced while it ran: its result is dropped.
+CANCELLED = "cancelled"
 #: States a job ends in; "queued" and "running" are the others.
-FINISHED = frozenset({"done", "failed"})
+FINISHED = frozenset({"done", "failed", CANCELLED})
 _SUFFIX = ".json"
 _LOCK = "transfer.lock"
+_CHANGES_LOCK = "changes.lock"
 
 
 class JobStore:
@@ -40,6 +49,30 @@ class JobStore:
         self.directory = Path(directory)
         self._scratch = scratch
         self.max_records = max_records
+        self._held = threading.local()  # this thread's depth inside ``locked()``
+
+    @contextlib.contextmanager
+    def locked(self) -> Iterator[None]:
+        """Hold the store's change lock (all processes); re-entrant within a thread."""
+        depth = getattr(self._held, "depth", 0)
+        if depth:
+            self._held.depth = depth + 1
+            try:
+                yield
+            finally:
+                self._held.depth = depth
+            return
+        self.directory.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.directory / _CHANGES_LOCK, os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            self._held.depth = 1
+            try:
+                yield
+            finally:
+                self._held.depth = 0
+        finally:
+            os.close(fd)  # drops the flock
 
     def _path(self, rig_id: str) -> Path:
         if not valid_rig_id(rig_id):
@@ -61,31 +94,66 @@ class JobStore:
         if record.get("state") in FINISHED:
             self.prune()
 
-    def update(
-        self, rig_id: str, job: str, changes: dict[str, Any], *, unfinished: bool = False
-    ) -> bool:
-        """Apply ``changes`` to the record if it is still job ``job``'s; whether it was.
+    def update(self, rig_id: str, job: str, changes: dict[str, Any]) -> bool:
+        """Apply ``changes`` to the record if it is still job ``job``'s and unfinished;
+        whether it was.
 
-        A record deleted or replaced meanwhile (the character deleted, or uploaded again)
-        is left alone: the job's result is no longer wanted. ``unfinished``: only while
-        the record is not yet done or failed (a reader marking a dead job must not
-        overwrite the end a live one wrote just before it let go of the slot).
+        A record deleted, replaced or cancelled meanwhile (the character deleted, or
+        uploaded again) is left alone: the job's result is no longer wanted. A finished
+        record never changes again (a reader marking a dead job must not overwrite the end
+        a live one wrote just before it let go of the slot).
         """
+        with self.locked():
+            if not self.is_running(rig_id, job):
+                return False
+            record = self.read(rig_id)
+            assert record is not None  # is_running, under the lock
+            self.write(rig_id, {**record, **changes})
+            return True
+
+    def is_running(self, rig_id: str, job: str) -> bool:
+        """Whether ``rig_id``'s record is job ``job``'s and unfinished (hold ``locked()``
+        for the answer to stay true)."""
         record = self.read(rig_id)
-        if record is None or record.get("job") != job:
-            return False
-        if unfinished and record.get("state") in FINISHED:
-            return False
-        self.write(rig_id, {**record, **changes})
-        return True
+        return (
+            record is not None and record.get("job") == job and record.get("state") not in FINISHED
+        )
+
+    def settle(self, rig_id: str, *, deleted: bool) -> bool:
+        """The character ``rig_id`` is being deleted (or replaced): a running job's record
+        becomes ``cancelled`` with the reason, a finished one goes; whether there was one.
+
+        Callers hold ``locked()`` around this and the change itself.
+        """
+        with self.locked():
+            record = self.read(rig_id)
+            if record is None or record.get("state") in FINISHED:
+                return self.remove(rig_id)
+            what = "deleted" if deleted else "replaced"
+            self.write(
+                rig_id,
+                {
+                    **record,
+                    "state": CANCELLED,
+                    "stage": None,
+                    "updated": time.time(),
+                    "error": {
+                        "code": f"character_{what}",
+                        "message": f"the character was {what} while the job ran; its result "
+                        "was dropped",
+                    },
+                },
+            )
+            return True
 
     def remove(self, rig_id: str) -> bool:
         """Delete ``rig_id``'s record; whether there was one."""
-        try:
-            self._path(rig_id).unlink()
-        except FileNotFoundError:
-            return False
-        return True
+        with self.locked():
+            try:
+                self._path(rig_id).unlink()
+            except FileNotFoundError:
+                return False
+            return True
 
     def prune(self) -> None:
         """Delete finished records beyond the newest ``max_records`` (by last update)."""

@@ -18,14 +18,14 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, BinaryIO
 
 from facecast.protocol import Limits
 from facecast.rig.errors import RigFileError
 from facecast.rig.io.gltf import export_glb
-from facecast.rig.io.rigfile import rig_from_bytes
+from facecast.rig.rigfile import rig_from_bytes
 
-from ..errors import RigNotFoundError
+from ..errors import RigNotFoundError, StoreClosedError
 from ..names import (
     NAME_PATTERN,
     PERFORMER_SEPARATOR,
@@ -48,6 +48,7 @@ __all__ = [
     "RigInfo",
     "RigNotFoundError",
     "RigStore",
+    "StoreClosedError",
     "check_servable",
     "fsync_directory",
     "performer_rig_id",
@@ -69,6 +70,8 @@ _TEMP_PREFIX = ".tmp-"
 _STALE_TEMP_SECONDS = 3600.0
 #: A scratch folder without its lock file is being created, or its creator died doing so.
 _UNLOCKED_GRACE_SECONDS = 60.0
+#: Removals of the scratch folder at close, for a thread still writing into it.
+_CLOSE_TRIES = 5
 
 
 def check_servable(rig: Rig, limits: Limits, source: str) -> None:
@@ -116,8 +119,8 @@ class RigStore:
     """Rig files in ``directory``; ``cache_size`` loaded rigs kept per process.
 
     ``max_rig_bytes`` bounds a rig file's unpacked size; ``jobs`` holds transfer job
-    records (``max_job_records`` finished ones), a character's removed when the character
-    is deleted or replaced. Thread-safe; a rig id must satisfy ``valid_rig_id`` (callers check it first and
+    records (``max_job_records`` finished ones), a character's settled when the character
+    is deleted or replaced (``JobStore.settle``). Thread-safe; a rig id must satisfy ``valid_rig_id`` (callers check it first and
     answer with their own error; here an invalid id is a ``ValueError``).
     """
 
@@ -138,6 +141,7 @@ class RigStore:
         self.limits = Limits()
         self._scratch: Path | None = None
         self._scratch_lock: int | None = None  # the fd holding the scratch folder's flock
+        self._closed = False
         self.jobs = JobStore(
             self.directory / JOBS_DIR, scratch=lambda: self.scratch, max_records=max_job_records
         )
@@ -149,6 +153,8 @@ class RigStore:
         Every scratch folder no live store holds (partial rig writes, unpacked uploads of
         a process killed mid-request) goes, at once; legacy ``.tmp-*`` files after an hour.
         """
+        with self._lock:
+            self._closed = False
         self.directory.mkdir(parents=True, exist_ok=True)
         now = time.time()
         for path in self.directory.glob(f"{_TEMP_PREFIX}*"):
@@ -163,19 +169,32 @@ class RigStore:
         _ = self.scratch
 
     def close(self) -> None:
-        """Remove this store's scratch folder and release it (at shutdown)."""
+        """Remove this store's scratch folder and release it (at shutdown).
+
+        Closed for good: ``scratch`` then raises ``StoreClosedError``, so work the server
+        abandons (a parse, a transfer job: daemon threads) can neither make a new scratch
+        folder nor write through one. One such thread may still be writing into the old
+        folder as it goes: removed again until it is gone (a few tries).
+        """
         with self._lock:
             scratch, fd = self._scratch, self._scratch_lock
             self._scratch = self._scratch_lock = None
+            self._closed = True
         if scratch is not None:
-            shutil.rmtree(scratch, ignore_errors=True)
+            for _ in range(_CLOSE_TRIES):
+                shutil.rmtree(scratch, ignore_errors=True)
+                if not scratch.exists():
+                    break
         if fd is not None:
             os.close(fd)
 
     @property
     def scratch(self) -> Path:
-        """This store's own folder for temp files (created, and locked, on first use)."""
+        """This store's own folder for temp files (created, and locked, on first use);
+        ``StoreClosedError`` once the store is closed."""
         with self._lock:
+            if self._closed:
+                raise StoreClosedError("the rig store is closed: the server is stopping")
             if self._scratch is None:
                 self._scratch, self._scratch_lock = _claim_scratch(self.directory / SCRATCH_DIR)
             return self._scratch
@@ -243,25 +262,39 @@ class RigStore:
         """
         rig = rig_from_bytes(data, source=f"rig {rig_id!r}", max_bytes=self.max_rig_bytes)
         check_servable(rig, self.limits, f"rig {rig_id!r}")
-        self._remove_character(rig_id)
-        self.jobs.remove(rig_id)
-        created = self._write(rig_id, data)
+        with self.jobs.locked():
+            self.jobs.settle(rig_id, deleted=False)
+            self._remove_character(rig_id)
+            created = self._write(rig_id, data)
         return rig, created
 
-    def put_rig(
-        self, rig_id: str, rig: Rig, *, character: bytes | None = None, keep_job: bool = False
-    ) -> bool:
+    def put_rig(self, rig_id: str, rig: Rig, *, character: bytes | None = None) -> bool:
         """Store a fitted rig, with its character file or without one; returns whether the id is new.
 
         ``character`` (``characters.pack_character``'s bytes) is written first, then
         the rig, each atomically; without one, a character the id had is removed, so a
-        rig never shows another rig's file. The id's transfer job record goes too (the
-        character was replaced), unless ``keep_job`` (the job storing its own result).
+        rig never shows another rig's file. The id's transfer job is settled (a finished
+        one's record goes, a running one is cancelled: the character was replaced).
         Raises ``RigFileError`` (nothing written) for a rig the protocol cannot carry.
         """
         check_servable(rig, self.limits, f"rig {rig_id!r}")
-        if not keep_job:
-            self.jobs.remove(rig_id)
+        with self.jobs.locked():
+            self.jobs.settle(rig_id, deleted=False)
+            return self._store(rig_id, rig, character)
+
+    def put_job_result(self, rig_id: str, job: str, rig: Rig, character: bytes) -> bool | None:
+        """Store transfer job ``job``'s rig and character if its record is still its own
+        and running; whether the id is new, or None (deleted or replaced meanwhile:
+        nothing written). Check and store are one step under the change lock, so a DELETE
+        or a replace is either seen here or comes after, and wins either way.
+        """
+        check_servable(rig, self.limits, f"rig {rig_id!r}")
+        with self.jobs.locked():
+            if not self.jobs.is_running(rig_id, job):
+                return None
+            return self._store(rig_id, rig, character)
+
+    def _store(self, rig_id: str, rig: Rig, character: bytes | None) -> bool:
         if character is None:
             self._remove_character(rig_id)
         else:
@@ -286,18 +319,45 @@ class RigStore:
             except ValueError:
                 return None
 
+    def open_character(self, rig_id: str) -> tuple[StoredCharacter, BinaryIO, int] | None:
+        """The character's record (``glb`` empty), its file open at the GLB and the GLB's
+        size, for streaming; ``None`` as ``character``. The caller closes the file; a
+        replace meanwhile leaves it reading the version it opened."""
+        self._path(rig_id)  # validates the id
+        try:
+            fh = (self.directory / f"{rig_id}{CHARACTER_SUFFIX}").open("rb")
+        except FileNotFoundError:
+            return None
+        try:
+            stored = unpack_character(fh, with_glb=False)
+            size = os.fstat(fh.fileno()).st_size - fh.tell()
+        except (ValueError, OSError):
+            fh.close()
+            return None
+        return stored, fh, size
+
+    def open_rig_file(self, rig_id: str) -> tuple[BinaryIO, int]:
+        """The rig file open for streaming and its size; ``RigNotFoundError``."""
+        try:
+            fh = self._path(rig_id).open("rb")
+        except FileNotFoundError:
+            raise RigNotFoundError(rig_id) from None
+        return fh, os.fstat(fh.fileno()).st_size
+
     def delete(self, rig_id: str) -> None:
         """Delete the rig, its character and its transfer job record (a job still running
-        then drops its result); ``RigNotFoundError`` when there was none of rig and record."""
+        is cancelled: its record says so, and its result is never stored);
+        ``RigNotFoundError`` when there was none of rig and record."""
         path = self._path(rig_id)
-        had_job = self.jobs.remove(rig_id)
-        try:
-            path.unlink()
-        except FileNotFoundError:
-            if not had_job:
-                raise RigNotFoundError(rig_id) from None
-        self._remove_character(rig_id)
-        fsync_directory(self.directory)
+        with self.jobs.locked():
+            had_job = self.jobs.settle(rig_id, deleted=True)
+            try:
+                path.unlink()
+            except FileNotFoundError:
+                if not had_job:
+                    raise RigNotFoundError(rig_id) from None
+            self._remove_character(rig_id)
+            fsync_directory(self.directory)
         with self._lock:
             self._cache.pop(rig_id, None)
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from facecast.cli.errors import CommandError
+from facecast.rig.characters.loaders import load_example_set
 from facecast.rig.errors import ExampleSetError
-from facecast.rig.io.loaders import load_example_set
 from facecast.rig.sources.source_rig import ARKIT_NAMES, load_source_rig
 
 from ._helpers import run_command

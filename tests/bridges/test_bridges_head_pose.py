@@ -23,7 +23,7 @@ from facecast.client.channel import channel_url, watch_channel
 from facecast.client.connection import Reconnect
 from facecast.protocol import Result
 from facecast.rig import fit, load_rig
-from facecast.rig.io.loaders import load_example_set
+from facecast.rig.characters.loaders import load_example_set
 from facecast.rig.sources.ict import DEFAULT_LANDMARKS, DEFAULT_STABLE_LANDMARKS, locate_ict
 from facecast.rig.sources.source_rig import ARKIT_NAMES, load_source_rig
 from facecast.server.settings import Settings

@@ -8,8 +8,8 @@ import pytest
 
 from facecast.cli.main import main
 from facecast.rig import fit
+from facecast.rig.characters.loaders import load_example_set
 from facecast.rig.errors import ExampleSetError
-from facecast.rig.io.loaders import load_example_set
 from facecast.rig.io.meshio import read_obj_vertices, write_obj
 from facecast.rig.sources.ict import locate_ict
 from facecast.rig.transfer import (
@@ -154,7 +154,7 @@ def test_a_non_manifold_target_is_refused_before_anything_is_written(tmp_path, c
 @pytest.mark.ict
 @needs_ict
 def test_command_on_ict_topology_writes_a_set_that_fits(tmp_path, capsys):
-    from facecast.rig.evaluation.takes import arkit_example_set
+    from facecast.rig.sources.ict_arkit import arkit_example_set
 
     truth = arkit_example_set(ARCHIVE, identity="person01")
     target = tmp_path / "person01.obj"

@@ -88,3 +88,56 @@ def test_the_command_says_what_is_wrong_with_the_video(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "facecast track: error:" in err and "not a YUV4MPEG2 video" in err
     assert not (tmp_path / "p.npz").exists()
+
+
+@pytest.mark.parametrize(
+    "fields",
+    [
+        b"W4 H4 F" + b"9" * 400 + b":1",  # float() of it overflowed: a traceback (issue 31)
+        b"W4 H4 F25:" + b"7" * 400,
+        b"W4 H4 F25:0",
+        b"W4 H4 F-25:1",
+        b"W4 H4 F25",
+        b"W4 H4 F1001:1",  # over MAX_FPS
+        b"W4 H4 F2147483648:1",  # over a 32-bit int
+        b"W+4 H4 F25:1",
+        b"W4 H4_0 F25:1",
+        b"W" + b"4" * 5000 + b" H4 F25:1",  # past int()'s digit limit
+        b"W4 H4 F25:1 A" + b"1" * 400 + b":1",
+        b"W4 H4 F25:1 A1",
+        b"W4097 H4 F25:1",  # over MAX_SIDE: more than the tracker's page takes
+    ],
+)
+def test_every_header_number_is_checked(tmp_path, fields):
+    path = tmp_path / "bad.y4m"
+    path.write_bytes(b"YUV4MPEG2 " + fields + b"\nFRAME\n" + bytes(24))
+
+    with pytest.raises(Y4MError) as caught:
+        open_y4m(path)
+    assert caught.value.code == "bad_video"
+
+
+def test_the_command_refuses_a_header_number_with_exit_2(tmp_path, capsys):
+    path = tmp_path / "huge_rate.y4m"
+    path.write_bytes(b"YUV4MPEG2 W4 H4 F" + b"9" * 400 + b":1\nFRAME\n" + bytes(24))
+
+    status = main(["track", str(path), "-o", str(tmp_path / "p.npz")])
+
+    assert status == 2
+    err = capsys.readouterr().err
+    assert "facecast track: error:" in err and "frame rate numerator" in err
+    assert "Traceback" not in err
+
+
+def test_max_frames_locates_only_the_frames_asked_for(tmp_path):
+    frame = b"FRAME\n" + bytes(24)
+    path = tmp_path / "clip.y4m"
+    # Two good frames, then what would fail a full read: a frame cut short.
+    path.write_bytes(b"YUV4MPEG2 W4 H4 F25:1\n" + frame * 2 + b"JUNK\n" + bytes(5))
+
+    video = open_y4m(path, max_frames=2)
+
+    assert video.num_frames == 2
+    assert video.read(1) == bytes(24)
+    with pytest.raises(Y4MError):
+        open_y4m(path)

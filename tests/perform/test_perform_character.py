@@ -12,6 +12,7 @@ from facecast.server.storage.characters import pack_character
 from facecast.server.storage.rig_store import RigStore
 
 from ..rig import _avatars as ict_avatars
+from ..rig._compressed import compressed, split_glb
 from ..viewer._character import build_character
 from ..viewer.test_viewer_character import SHOTS, canvas_png, iris, lips, loaded_character, teeth
 from ..viewer.test_viewer_pages import pixels
@@ -114,4 +115,33 @@ def test_the_studio_shows_an_uploaded_vrm_through_three_vrm_and_poses_both_meshe
     assert lips(neutral_px) > 100 and iris(neutral_px) > 10
     assert teeth(jaw_px).sum() > teeth(neutral_px).sum() + 200
     assert "ICT test head" in page.locator("#stage-meta").inner_text()
+    assert page.errors == []
+
+
+def test_the_studio_shows_a_draco_compressed_upload_through_facecasts_own_decoder(
+    browser, server, pages
+):
+    # /perform fetches Draco's decoder from /viewer/assets/draco/ as the viewer does.
+    ict_avatars.require_ict()
+    data = compressed(ict_avatars.avatar("arkit"), "draco")
+    response = httpx.put(
+        f"{server}/v1/characters/ict-draco",
+        content=data,
+        params={"noise": 0.05, "clamp": "unit"},
+        timeout=120,
+    )
+    assert response.status_code == 201, response.text
+    doc, _ = split_glb(data)
+    declared = [
+        (mesh["name"], doc["accessors"][mesh["primitives"][0]["attributes"]["POSITION"]]["count"])
+        for mesh in doc["meshes"]
+    ]
+
+    page = open_page(browser, f"{server}/perform?rig=ict-draco&channel=studio-draco")
+    pages.append(page)
+    status = loaded_character(page)
+    state = page.evaluate("window.characterState()")
+
+    assert status == "gltf", page.evaluate("window.facecastStats.error")
+    assert [(m["name"], m["vertices"]) for m in state["meshes"]] == declared
     assert page.errors == []

@@ -16,6 +16,7 @@ import pytest
 
 from facecast.cli.main import main
 from facecast.cli.track import track_video
+from facecast.cli.y4m import MAX_SIDE
 from facecast.rig.sources.layouts import load_layout
 
 from .conftest import CHARACTER, FacePose, open_page, watching
@@ -134,3 +135,16 @@ def test_clone_puts_a_tracked_video_on_a_rig(clip_points, rigs_dir, tmp_path, ca
     glb = tmp_path / "out.glb"
     assert main(["clone", str(rigs_dir / f"{CHARACTER}.rig"), str(tracked), "-o", str(glb)]) == 0
     assert glb.read_bytes()[:4] == b"glTF"
+
+
+def test_the_largest_frame_the_reader_takes_is_tracked(tmp_path):
+    """``MAX_SIDE`` is what the page can take: at 8192^2, the old maximum, Chromium's page
+    died after minutes (a TargetClosedError traceback, issue 31)."""
+    side = MAX_SIDE
+    path = tmp_path / "largest.y4m"
+    planes = bytes([90]) * (side * side) + bytes([128]) * (side * side // 2)
+    path.write_bytes(f"YUV4MPEG2 W{side} H{side} F25:1\nFRAME\n".encode() + planes)
+
+    result = track_video(path, progress=False)
+
+    assert result.num_frames == 1 and result.faces.tolist() == [0]

@@ -61,7 +61,14 @@ def test_bench_on_tracked_videos_scores_every_path_and_reuses_what_it_kept(tmp_p
     assert set(first["rows"]) == {
         "personal", "nnls", "personal on keys' mix", "generic", "generic exact", "generic noise"
     }  # fmt: skip
-    assert set(first["render_seconds"]) == set(first["track_seconds"]) == {"take", "keys"}
+    assert set(first["render_seconds"]) == set(first["track_seconds"]) == {"take", "keys", "eyes"}
+    # The eyes clip, its own video (another face's keys, then the clip), tracked once too.
+    eyes = reports[0]["eyes_tracked"]
+    assert eyes["performer"] == "person12" and eyes["keys_captured"] == 4
+    assert eyes["clip_found"] == eyes["clip_frames"] and eyes["render_seconds"] > 0
+    assert {len(row["gaze"]) for row in eyes["rows"].values()} == {4}
     # The second run renders and tracks nothing: it scores the kept points, to the same figures.
     assert again["render_seconds"] == again["track_seconds"] == {}
     assert again["rows"] == first["rows"]
+    assert reports[1]["eyes_tracked"]["rows"] == eyes["rows"]
+    assert reports[1]["eyes_tracked"]["render_seconds"] is None

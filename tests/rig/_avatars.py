@@ -21,12 +21,17 @@ from typing import Any
 import numpy as np
 import pygltflib
 
+from facecast.rig.characters.generic import VRM_COMPOSITIONS
 from facecast.rig.io.gltf import vertex_normals
-from facecast.rig.sources.generic import VRM_COMPOSITIONS
 from facecast.rig.sources.ict import locate_ict
 from facecast.rig.sources.source_rig import arkit_from_ict
 
-VARIANTS = ("arkit", "teeth_first", "perfect_sync", "vrm0", "vrm1", "fcl", "neutral_only")
+VARIANTS = (
+    "arkit", "teeth_first", "perfect_sync", "vrm0", "vrm1", "fcl", "neutral_only",
+    "vrm0_presets", "vroid_sync", "visemes",
+)  # fmt: skip
+#: The variants that are VRM 0.x files (facing -z).
+VRM0_VARIANTS = ("vrm0", "fcl", "vrm0_presets", "vroid_sync")
 #: Skin, brow and lip colours painted into the skin texture (RGB), the iris colour.
 SKIN, BROW, LIPS, IRIS = (224, 172, 140), (60, 36, 20), (190, 40, 60), (40, 90, 220)
 #: ICT's teeth region moves in these shapes only (its README): the teeth's morphs.
@@ -39,6 +44,23 @@ FCL_CLIPS = {
     "Fcl_EYE_Close": "blink", "Fcl_EYE_Close_L": "blinkLeft", "Fcl_EYE_Close_R": "blinkRight",
 }  # fmt: skip
 FCL_UNPAIRED = ("Fcl_BRW_Fun", "Fcl_MTH_Large")
+#: The presets-only VRM 0.x variant: a morph per VRM 0.x preset, named as the preset (as
+#: UniVRM exports of hand-made avatars often are), look-at by blend shapes included.
+VRM0_PRESET_MORPHS = {
+    "A": "aa", "I": "ih", "U": "ou", "E": "ee", "O": "oh",
+    "Blink": "blink", "Blink_L": "blinkLeft", "Blink_R": "blinkRight",
+    "Joy": "happy", "Angry": "angry", "Sorrow": "sad", "Fun": "relaxed", "Surprised": "surprised",
+    "LookUp": "lookUp", "LookDown": "lookDown", "LookLeft": "lookLeft", "LookRight": "lookRight",
+}  # fmt: skip
+#: Perfect Sync shapes the VRoid-style ``vroid_sync`` variant exports as all zeros, as a
+#: real VRoid export did (its jawOpen moved nothing: issue 32).
+STILL_SHAPES = ("JawOpen", "TongueOut")
+#: The Oculus visemes of the ``visemes`` variant (ARKit shapes besides, as Ready Player Me
+#: writes them): the vowels as the VRM presets they stand for, silence as all zeros.
+VISEMES = {
+    "viseme_sil": None, "viseme_aa": "aa", "viseme_E": "ee", "viseme_I": "ih",
+    "viseme_O": "oh", "viseme_U": "ou",
+}  # fmt: skip
 
 _CM = 0.01
 _HEAD_Y = 1.45  # metres: the ICT head's origin placed at a standing character's head height
@@ -279,10 +301,17 @@ def _morphs(
     shapes = parts["shapes"]
     if variant == "neutral_only":
         return {}
-    if variant in ("fcl",):
+
+    def composed(preset: str) -> np.ndarray:
+        return sum(w * shapes[s][index] for s, w in VRM_COMPOSITIONS[preset].items())
+
+    if variant == "vrm0_presets":
+        made = {name: composed(preset) for name, preset in VRM0_PRESET_MORPHS.items()}
+        return {n: d for n, d in made.items() if not teeth or np.abs(d).max() > 1e-6}
+    if variant in ("fcl", "vroid_sync"):
         clips = {}
         for clip, preset in FCL_CLIPS.items():
-            delta = sum(w * shapes[s][index] for s, w in VRM_COMPOSITIONS[preset].items())
+            delta = composed(preset)
             if not teeth or np.abs(delta).max() > 1e-6:
                 clips[clip] = delta
         if not teeth:
@@ -290,10 +319,22 @@ def _morphs(
                 0.5 * (shapes["browOuterUpLeft"] + shapes["browOuterUpRight"])[index]
             )
             clips["Fcl_MTH_Large"] = 1.0 * shapes["jawOpen"][index]
+        if variant == "vroid_sync":  # Perfect Sync shapes added to VRoid's clips
+            names = TEETH_SHAPES if teeth else (*shapes, "tongueOut")
+            for name in names:
+                sync = name[0].upper() + name[1:]
+                still = sync in STILL_SHAPES
+                clips[sync] = np.zeros((len(index), 3)) if still else shapes[name][index]
         return clips
     names = TEETH_SHAPES if teeth else tuple(shapes)
     rename = (lambda n: n[0].upper() + n[1:]) if variant == "perfect_sync" else (lambda n: n)
-    return {rename(n): shapes[n][index] for n in names}
+    morphs = {rename(n): shapes[n][index] for n in names}
+    if variant == "visemes":
+        for viseme, preset in VISEMES.items():
+            delta = np.zeros((len(index), 3)) if preset is None else composed(preset)
+            if not teeth or np.abs(delta).max() > 1e-6:
+                morphs[viseme] = delta
+    return morphs
 
 
 def _mesh(
@@ -410,7 +451,7 @@ def _build(variant: str, *, redistribution: bool) -> bytes:
         meshes = [meshes[1], meshes[0], meshes[2]]
     # VRM 0.x characters face -z (three-vrm's rotateVRM0 turns them round): meshes,
     # morphs and bones turned half a turn about y.
-    turn = np.array([-1.0, 1.0, -1.0]) if variant in ("vrm0", "fcl") else np.ones(3)
+    turn = np.array([-1.0, 1.0, -1.0]) if variant in VRM0_VARIANTS else np.ones(3)
     meshes = [
         (n, v * turn, f, uv, {k: d * turn for k, d in m.items()}, mat)
         for n, v, f, uv, m, mat in meshes
@@ -452,8 +493,9 @@ def _build(variant: str, *, redistribution: bool) -> bytes:
     morph_index = {m[0]: {n: j for j, n in enumerate(m[4])} for m in meshes}
     if variant == "vrm1":
         _vrm1(gltf, mesh_index, morph_index, redistribution)
-    elif variant in ("vrm0", "fcl"):
-        _vrm0(gltf, mesh_index, morph_index, redistribution, fcl=variant == "fcl")
+    elif variant in VRM0_VARIANTS:
+        clips = {"fcl": FCL_CLIPS, "vroid_sync": FCL_CLIPS, "vrm0_presets": VRM0_PRESET_MORPHS}
+        _vrm0(gltf, mesh_index, morph_index, redistribution, clips=clips.get(variant))
     blob = writer.blob()
     gltf.buffers = [pygltflib.Buffer(byteLength=len(blob))]
     gltf.set_binary_blob(blob)
@@ -553,12 +595,14 @@ def _vrm1(gltf, mesh_index, morph_index, redistribution: bool) -> None:
     }
 
 
-def _vrm0(gltf, mesh_index, morph_index, redistribution: bool, *, fcl: bool) -> None:
-    if fcl:
+def _vrm0(gltf, mesh_index, morph_index, redistribution: bool, *, clips=None) -> None:
+    """VRM 0.x blocks; ``clips`` (morph name -> VRM 1.0 preset): a group per clip binding
+    that morph at 100 on each mesh having it, else ``VRM_BINDS``'s presets."""
+    if clips is not None:
         groups = [
-            {"name": preset, "presetName": {"aa": "a", "ih": "i", "ou": "u", "ee": "e", "oh": "o", "happy": "joy", "sad": "sorrow", "relaxed": "fun", "blinkLeft": "blink_l", "blinkRight": "blink_r"}.get(preset, preset),
+            {"name": preset, "presetName": {"aa": "a", "ih": "i", "ou": "u", "ee": "e", "oh": "o", "happy": "joy", "sad": "sorrow", "relaxed": "fun", "blinkLeft": "blink_l", "blinkRight": "blink_r"}.get(preset, preset.lower()),
              "binds": [{"mesh": mesh_index[mesh], "index": morph_index[mesh][clip], "weight": 100} for mesh in ("face", "teeth") if clip in morph_index[mesh]], "isBinary": False}
-            for clip, preset in FCL_CLIPS.items()
+            for clip, preset in clips.items()
         ]  # fmt: skip
     else:
         groups = [

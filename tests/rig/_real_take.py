@@ -12,8 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from facecast.rig import Rig, fit
-from facecast.rig.evaluation.takes import TakeExperiment, arkit_example_set, take_experiment
+from facecast.rig.evaluation.takes import TakeExperiment, take_experiment
 from facecast.rig.sources.ict import locate_ict
+from facecast.rig.sources.ict_arkit import arkit_example_set
 from facecast.rig.sources.trackers import read_livelink_csv
 
 ARCHIVE = locate_ict()

@@ -1,5 +1,5 @@
 """Characters as authored: expressions from every mesh and VRM binds, names normalised,
-paired with the generic ARKit source set, fitted (facecast.rig.io.character)."""
+paired with the generic ARKit source set, fitted (facecast.rig.characters.character)."""
 
 from __future__ import annotations
 
@@ -14,17 +14,18 @@ import numpy as np
 import pytest
 
 from facecast.rig import fit
-from facecast.rig.io.character import load_character
-from facecast.rig.io.character_examples import character_example_set
-from facecast.rig.io.expression_names import ARKIT_NAMES
+from facecast.rig.characters.character import STILL_RELATIVE, load_character
+from facecast.rig.characters.character_examples import character_example_set, generic_pairing
+from facecast.rig.characters.expression_names import ARKIT_NAMES
+from facecast.rig.characters.generic import GAZE_SHAPES, generic_sources
+from facecast.rig.characters.loaders import load_example_set
 from facecast.rig.io.gltf import pack_glb
-from facecast.rig.io.loaders import load_example_set
-from facecast.rig.sources.generic import generic_sources
 
 from ._avatars import (
     FCL_CLIPS,
     TEETH_SHAPES,
     VARIANTS,
+    VRM0_VARIANTS,
     VRM_BINDS,
     avatar,
     face_mesh,
@@ -34,13 +35,23 @@ from ._avatars import (
 pytestmark = pytest.mark.ict
 
 ICT_ARKIT = tuple(n for n in ARKIT_NAMES if n != "tongueOut")  # ICT has no tongue shape
+#: What the generic set pairs of them: no gaze (its landmarks see lids, not eyes).
+ICT_PAIRED = set(ICT_ARKIT) - set(GAZE_SHAPES)
+#: Presets-only characters: no look preset (gaze), no ``blink`` (blinkLeft + blinkRight).
+PRESETS_PAIRED = set(FCL_CLIPS.values()) - {"blink"}
 EXPECTED = {
-    "arkit": set(ICT_ARKIT),
-    "teeth_first": set(ICT_ARKIT),
-    "perfect_sync": set(ICT_ARKIT),
-    "vrm0": set(ICT_ARKIT) | set(VRM_BINDS),
-    "vrm1": set(ICT_ARKIT) | set(VRM_BINDS),
-    "fcl": set(FCL_CLIPS.values()),
+    "arkit": ICT_PAIRED,
+    "teeth_first": ICT_PAIRED,
+    "perfect_sync": ICT_PAIRED,
+    # The presets bind ARKit morphs the character has: those drive, the presets do not.
+    "vrm0": ICT_PAIRED,
+    "vrm1": ICT_PAIRED,
+    "fcl": PRESETS_PAIRED,
+    "vrm0_presets": PRESETS_PAIRED,
+    # Its JawOpen moves nothing: aa (Fcl_MTH_A) opens the mouth instead, the other
+    # presets are its Perfect Sync shapes' motion (or aa's plus theirs).
+    "vroid_sync": (ICT_PAIRED - {"jawOpen"}) | {"aa"},
+    "visemes": ICT_PAIRED,
 }
 
 
@@ -81,7 +92,8 @@ def test_report_says_why_the_others_are_not_paired(variant):
         assert "rest pose" in reasons["neutral"]
     else:
         assert "without an ARKit or VRM preset twin" in reasons["Fcl_BRW_Fun"]
-        assert set(reasons) == {"Fcl_BRW_Fun", "Fcl_MTH_Large", "Neutral"}
+        assert "a mix of blinkLeft, blinkRight" in reasons["Fcl_EYE_Close"]
+        assert set(reasons) == {"Fcl_BRW_Fun", "Fcl_MTH_Large", "Neutral", "Fcl_EYE_Close", "blink"}
 
 
 def test_perfect_sync_capitals_are_reported_as_such():
@@ -221,7 +233,7 @@ def test_each_variant_fits_and_reproduces_its_examples(variant):
     assert example_set.stable_points.tolist() == generic_sources().stable_points.tolist()
 
 
-def test_vrm_preset_equal_to_an_arkit_shape_is_left_out_as_its_twin():
+def test_vrm_preset_equal_to_an_arkit_shape_is_left_out_as_driven_by_it():
     def add_blink_left(doc):
         face = next(i for i, m in enumerate(doc["meshes"]) if m["name"] == "face")
         morph = doc["meshes"][face]["extras"]["targetNames"].index("eyeBlinkLeft")
@@ -235,7 +247,7 @@ def test_vrm_preset_equal_to_an_arkit_shape_is_left_out_as_its_twin():
 
     assert "eyeBlinkLeft" in example_set.names and "blinkLeft" not in example_set.names
     entry = next(e for e in report.entries if e.authored == "blinkLeft")
-    assert not entry.paired and "same source points as 'eyeBlinkLeft'" in entry.reason
+    assert not entry.paired and "own ARKit shapes (eyeBlinkLeft: 100%" in entry.reason
     assert character.report.to_dict() == report.to_dict()
 
 
@@ -394,7 +406,7 @@ def test_test_avatars_pass_the_khronos_validator(variant, tmp_path):
     issues = validate(path)
 
     warnings_ = [m for m in issues["messages"] if m["severity"] == 1]
-    allowed = {VRM0_NAME_WARNING} if variant in ("vrm0", "fcl") else set()
+    allowed = {VRM0_NAME_WARNING} if variant in VRM0_VARIANTS else set()
     assert issues["numErrors"] == 0, issues["messages"][:5]
     assert {m["code"] for m in warnings_} <= allowed, warnings_[:5]
 
@@ -453,3 +465,49 @@ def test_errors_for_a_file_on_disk_name_no_path(tmp_path, spoil, code):
 
     assert info.value.code == code
     assert "scratch" not in str(info.value) and "upload-1234" not in str(info.value)
+
+
+# -- what the generic set leaves unpaired, so what shows moves at full strength -----------
+
+
+def test_an_expression_moving_no_vertex_visibly_is_reported_and_not_an_expression():
+    face = face_mesh()
+    smile = ict_parts()["shapes"]["mouthSmileLeft"][face["ict"]]
+    extent = float(np.linalg.norm(np.ptp(face["vertices"], axis=0)))
+    threshold = STILL_RELATIVE * extent / float(np.linalg.norm(smile, axis=1).max())
+
+    def add_faint_and_slight(doc):
+        mesh = next(i for i, m in enumerate(doc["meshes"]) if m["name"] == "face")
+        morph = doc["meshes"][mesh]["extras"]["targetNames"].index("mouthSmileLeft")
+        node = next(i for i, n in enumerate(doc["nodes"]) if n.get("mesh") == mesh)
+        custom = doc["extensions"]["VRMC_vrm"]["expressions"]["custom"]
+        for name, weight in (("Faint", 0.9 * threshold), ("Slight", 1.1 * threshold)):
+            custom[name] = {"morphTargetBinds": [{"node": node, "index": morph, "weight": weight}]}
+
+    character = load_character(edited("vrm1", add_faint_and_slight))
+
+    assert "Faint" not in character.expressions and "Slight" in character.expressions
+    faint = next(e for e in character.report.entries if e.authored == "Faint")
+    assert not faint.paired and "moves no vertex visibly" in faint.reason
+
+
+def test_a_preset_half_driven_by_the_characters_arkit_shapes_is_left_out():
+    # mouthSmile carries most of happy's motion at the landmarks (cheek and eye squint the
+    # rest): happy would smile a second time. mouthLowerDown carries 7 % of aa's: aa stays
+    # to open the mouth of a character whose jawOpen is missing.
+    paired, unpaired = generic_pairing(
+        ["mouthSmileLeft", "mouthSmileRight", "mouthLowerDownLeft", "mouthLowerDownRight",
+         "happy", "aa"]
+    )  # fmt: skip
+
+    assert "aa" in paired and "happy" in unpaired
+    assert "own ARKit shapes (mouthSmileLeft, mouthSmileRight: 85%" in unpaired["happy"]
+
+
+def test_gaze_is_left_to_the_look_at():
+    names = ["eyeBlinkLeft", "eyeLookDownLeft", "eyeLookUpRight", "lookLeft", "lookUp"]
+
+    paired, unpaired = generic_pairing(names)
+
+    assert list(paired) == ["eyeBlinkLeft"]
+    assert all(unpaired[n].startswith("gaze") for n in names[1:])

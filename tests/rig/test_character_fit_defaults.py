@@ -8,14 +8,16 @@ import numpy as np
 import pytest
 
 from facecast.rig import fit
-from facecast.rig.examples import ExampleSet
-from facecast.rig.io.character_examples import character_fit_options
-from facecast.rig.sources.generic import (
+from facecast.rig.characters.character_examples import character_fit_options
+from facecast.rig.characters.generic import (
     CHARACTER_FIT_DEFAULTS,
+    GAZE_SHAPES,
+    PRESET_CHECK_ORDER,
     VRM_COMPOSITIONS,
     composed_captures,
     generic_sources,
 )
+from facecast.rig.examples import ExampleSet
 
 
 def test_no_noise_given_takes_the_live_defaults_a_given_noise_keeps_fits_bound():
@@ -91,3 +93,31 @@ def test_presets_not_captured_are_composed_from_the_performers_own_shapes():
     np.testing.assert_array_equal(composed["blinkLeft"], captured["eyeBlinkLeft"])
     assert "blinkLeft" not in composed_captures((*wanted, "eyeBlinkLeft"), captured)
     assert composed_captures(wanted, {k: v for k, v in captured.items() if k != "neutral"}) == {}
+
+
+def test_every_composed_preset_is_checked_and_gaze_is_the_eight_look_shapes():
+    assert sorted(PRESET_CHECK_ORDER) == sorted(VRM_COMPOSITIONS)
+    generic = generic_sources()
+    assert set(GAZE_SHAPES) == {n for n in generic.names if n.startswith("eyeLook")}
+    assert len(GAZE_SHAPES) == 8
+
+
+def test_the_default_noise_keeps_the_generic_sets_own_poses_at_full_strength():
+    # The generic set's own exact poses, gaze unpaired as characters pair it: a closed eye,
+    # an open jaw and a smile reach their shapes (docs/characters.md "Full strength").
+    generic = generic_sources()
+    keep = [i for i, n in enumerate(generic.names) if n not in GAZE_SHAPES]
+    names = tuple(generic.names[i] for i in keep)
+    points = generic.points[keep]
+    examples = ExampleSet(names, points, points.copy(), np.array([[0, 1, 2]]))
+    rig = fit(examples, **character_fit_options())
+    neutral = points[0]
+
+    def weight(shapes: tuple[str, ...]) -> np.ndarray:
+        pose = neutral + sum(points[names.index(s)] - neutral for s in shapes)
+        return rig.weights(pose)[[names.index(s) for s in shapes]]
+
+    assert weight(("eyeBlinkLeft", "eyeBlinkRight")).min() >= 0.9
+    assert weight(("jawOpen",)).min() >= 0.9
+    assert weight(("mouthSmileLeft", "mouthSmileRight")).min() >= 0.8
+    assert np.abs(rig.weights(neutral)[1:]).max() <= 0.03

@@ -12,12 +12,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from facecast.rig.characters.character import load_character
+from facecast.rig.characters.expression_names import ARKIT_NAMES, half_of, normalise_name
+from facecast.rig.characters.generic import VRM_COMPOSITIONS, generic_sources
 from facecast.rig.errors import ExampleSetError
-from facecast.rig.io.character import load_character
-from facecast.rig.io.expression_names import ARKIT_NAMES, half_of, normalise_name
 from facecast.rig.io.gltf import export_glb, pack_glb
 from facecast.rig.io.image_headers import image_size
-from facecast.rig.sources.generic import VRM_COMPOSITIONS, generic_sources
 
 
 @pytest.mark.parametrize(

@@ -134,7 +134,7 @@ def test_default_settings_bracket_the_input_noise_and_cover_the_kernels():
     assert {s["noise"] for s in unbounded} == {
         0.0, 0.05, 0.1, 0.2,
     }  # fmt: skip
-    assert {"kernel": "gaussian", "noise": 0.1} in chosen
+    assert {"kernel": "gaussian", "clamp": "nonneg", "noise": 0.1} in chosen  # fit's bound, named
     assert {"clamp": "unit", "noise": 0.1} in chosen
 
 
@@ -226,3 +226,21 @@ def test_one_euro_filter_reduces_the_jitter_of_a_noisy_clone():
     report = smoothing_report(rig, animation.points, noisy, truth, fps=60.0, min_cutoff=1.0)
     assert report["noisy"]["jitter"] > 3.0 * report["clean"]["jitter"]
     assert report["filtered"]["jitter"] < 0.25 * report["noisy"]["jitter"]
+
+
+def test_default_settings_name_the_bound_of_every_kernel_row_with_noise():
+    example_set = _linear_set()
+    _, points, truth = _linear_mix(example_set, 10)
+    settings = default_settings(0.01, ("bspline", "gaussian", "linear"))
+
+    report = evaluate(example_set, points, truth, settings=settings, noise=0.01)
+    clean = evaluate(
+        example_set, points, truth, settings=default_settings(0.0, ("bspline", "gaussian"))
+    )
+
+    assert "rig gaussian clamp=nonneg noise=0.01" in report["methods"]
+    assert "rig linear clamp=nonneg noise=0.01" in report["methods"]
+    assert report["methods"]["rig gaussian clamp=nonneg noise=0.01"]["settings"]["clamp"] == (
+        "nonneg"
+    )
+    assert "rig gaussian noise=0" in clean["methods"]

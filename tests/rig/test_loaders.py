@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from facecast.rig.characters.loaders import load_example_set
 from facecast.rig.errors import ExampleSetError
 from facecast.rig.examples import ExampleSet
 from facecast.rig.io.gltf import export_glb
-from facecast.rig.io.loaders import load_example_set
 from facecast.rig.io.meshio import points_to_csv, write_obj
 
 EXAMPLES = ("happy", "sad", "surprise")

@@ -10,10 +10,11 @@ import pytest
 
 from facecast.rig import fit
 from facecast.rig.evaluation.evaluate import cloning_error, least_squares_weights, nnls_weights
-from facecast.rig.evaluation.takes import arkit_example_set, take_experiment
+from facecast.rig.evaluation.takes import take_experiment
 from facecast.rig.examples import ExampleSet
 from facecast.rig.fit import resolution_threshold
 from facecast.rig.sources.ict import ict_example_set, locate_ict
+from facecast.rig.sources.ict_arkit import arkit_example_set
 from facecast.rig.sources.trackers import read_livelink_csv
 
 ARCHIVE = locate_ict()

@@ -10,9 +10,10 @@ import pytest
 from facecast.protocol.messages import Smoothing
 from facecast.rig import fit
 from facecast.rig.errors import InputError
-from facecast.rig.evaluation.takes import arkit_example_set, take_experiment
+from facecast.rig.evaluation.takes import take_experiment
 from facecast.rig.evaluation.temporal import best_under_one_frame, lag_frames, temporal_tradeoff
 from facecast.rig.filters import KALMAN_ACCELERATION, KalmanFilter, OneEuroFilter
+from facecast.rig.sources.ict_arkit import arkit_example_set
 from facecast.rig.sources.trackers import read_livelink_csv
 
 from ._real_take import ARCHIVE, TAKE, noisy_take

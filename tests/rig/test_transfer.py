@@ -470,7 +470,7 @@ def test_a_target_of_the_same_topology_scaled_and_moved_gets_the_displacement_in
 
 
 def test_transferred_shapes_are_appended_as_named_morph_targets_the_loader_reads_back():
-    from facecast.rig.io.character import load_character
+    from facecast.rig.characters.character import load_character
     from facecast.rig.io.gltf import export_glb
     from facecast.rig.transfer import add_morph_targets
 
@@ -492,8 +492,8 @@ def test_transferred_shapes_are_appended_as_named_morph_targets_the_loader_reads
 @pytest.mark.ict
 @pytest.mark.skipif(locate_ict() is None, reason="ICT-FaceKit not found")
 def test_plan_transfer_makes_only_what_the_character_lacks_and_bounds_its_size():
+    from facecast.rig.characters.character import load_character
     from facecast.rig.errors import ExampleSetError
-    from facecast.rig.io.character import load_character
     from facecast.rig.transfer import plan_transfer
     from tests.rig._avatars import avatar
 

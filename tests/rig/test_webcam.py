@@ -143,11 +143,12 @@ def test_bench_on_exact_landmarks_scores_every_path(tmp_path, capsys):
 
     status = main(
         ["bench", "webcam", "--exact-only", "--frames", "12", "--ramp", "1", "--hold", "3",
-         "--json", str(out)]
+         "--no-eyes", "--json", str(out)]
     )  # fmt: skip
 
     assert status == 0
     report = json.loads(out.read_text())
+    assert "eyes_exact" not in report
     rows = report["exact"]["rows"]
     assert list(rows) == [
         "personal", "nnls", "personal on keys' mix", "generic", "generic exact", "generic noise"
@@ -166,6 +167,34 @@ def test_bench_on_exact_landmarks_scores_every_path(tmp_path, capsys):
 
 @pytest.mark.ict
 @needs_ict
+def test_bench_eyes_clip_on_exact_landmarks_scores_each_event_on_both_paths(tmp_path, capsys):
+    out = tmp_path / "webcam.json"
+
+    status = main(["bench", "webcam", "--exact-only", "--eyes-only", "--ramp", "1", "--hold", "3",
+                   "--kalman", "480,2000", "--json", str(out)])  # fmt: skip
+
+    assert status == 0
+    report = json.loads(out.read_text())
+    assert "exact" not in report  # --eyes-only: no take
+    eyes = report["eyes_exact"]
+    assert eyes["performer"] == "person12" and eyes["keys_captured"] == 52
+    rows = eyes["rows"]
+    assert list(rows) == [
+        f"{path} {label}" for path in ("personal", "generic")
+        for label in ("live", "live kalman 480", "live kalman 2000", "offline")
+    ]  # fmt: skip
+    for row in rows.values():
+        assert len(row["blinks"]) == 3 and len(row["winks"]) == 2 and len(row["gaze"]) == 4
+        # Exact landmarks: every gaze hold reads the right way, and a wink stays on its eye.
+        assert all(g["right"] for g in row["gaze"]), row["gaze"]
+        assert max(w["other"] for w in row["winks"]) < 0.05, row["winks"]
+    personal = rows["personal live"]
+    assert min(v for b in personal["blinks"] for v in b.values()) > 0.6
+    assert "personal live kalman 2000" in capsys.readouterr().out
+
+
+@pytest.mark.ict
+@needs_ict
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
@@ -174,6 +203,10 @@ def test_bench_on_exact_landmarks_scores_every_path(tmp_path, capsys):
         (["--performer", "nobody"], "no ICT identity named 'nobody'"),
         (["--frames", "2"], "at least 3"),
         (["--sway", "30"], "--sway"),
+        (["--eyes-performer", "person07"], "another face"),
+        (["--eyes-only", "--no-eyes"], "nothing to measure"),
+        (["--kalman", "0"], "finite and > 0"),
+        (["--landmarks", "17,70"], "positions must lie in [0, 68)"),
     ],
 )
 def test_bench_refuses_bad_arguments_with_a_message(argv, message, capsys):

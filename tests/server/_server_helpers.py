@@ -13,7 +13,7 @@ import tarfile
 import time
 import zipfile
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
@@ -203,23 +203,33 @@ def serve_argv(*args: str) -> list[str]:
 
 @contextmanager
 def server_process(
-    port: int, rigs: Path, *extra: str, env: dict[str, str] | None = None
+    port: int,
+    rigs: Path,
+    *extra: str,
+    env: dict[str, str] | None = None,
+    ready_timeout: float = 20.0,
 ) -> Iterator[subprocess.Popen]:
-    """A ``facecast serve`` subprocess on 127.0.0.1:``port``; ready when this yields."""
+    """A ``facecast serve`` subprocess on 127.0.0.1:``port``; ready when this yields
+    (within ``ready_timeout`` s: a machine busy with other suites starts it slowly)."""
     full_env = {**os.environ, **(env or {})}
     process = subprocess.Popen(
         serve_argv("--host", "127.0.0.1", "--port", str(port), "--rigs", str(rigs), *extra),
         env=full_env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
+        # Its own process group: a supervisor killed (by the test, or here when it never got
+        # ready) leaves its --workers behind, and they would go on running after the test.
+        start_new_session=True,
     )
     try:
-        wait_ready(f"http://127.0.0.1:{port}", process)
+        wait_ready(f"http://127.0.0.1:{port}", process, ready_timeout)
         yield process
     finally:
         if process.poll() is None:
             process.kill()
         process.wait(10)
+        with suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGKILL)
         if process.stderr:
             process.stderr.close()
 

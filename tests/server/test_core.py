@@ -127,11 +127,12 @@ def test_text_message_is_fatal_before_hello_and_an_error_after(rig):
     assert error.code is ErrorCode.TEXT_NOT_SUPPORTED
 
 
-def test_ping_is_answered_with_its_id_and_ts_even_before_hello():
+def test_ping_is_answered_with_its_id_and_ts_and_the_servers_clock_even_before_hello():
     core = stream_core()
+    core.wall_clock = lambda: 1_700_000_000.5
     assert core.handle(core.receive(encode(Ping(id=7, ts=1.5)), 0.0), 0.0) is None
 
-    assert sent(core) == [Pong(id=7, ts=1.5)]
+    assert sent(core) == [Pong(id=7, ts=1.5, server_ts=1_700_000_000.5)]
 
 
 def test_bind_with_align_scale_leaves_the_given_rig_unchanged(rig):

@@ -18,7 +18,7 @@ import httpx
 import numpy as np
 import pytest
 
-from facecast.rig.io.character import load_character
+from facecast.rig.characters.character import load_character
 from facecast.rig.sources.ict import locate_ict
 from facecast.server.settings import Settings
 from facecast.server.storage.jobs import JOBS_DIR, JobStore
@@ -216,6 +216,6 @@ def test_marking_a_dead_job_never_overwrites_the_end_a_live_one_wrote(tmp_path):
     jobs.write("ava", {"id": "ava", "job": "j1", "state": "done", "updated": 1.0})
     failed = {"state": "failed", "error": {"code": "interrupted", "message": "..."}}
 
-    marked = jobs.update("ava", "j1", failed, unfinished=True)
+    marked = jobs.update("ava", "j1", failed)
 
     assert not marked and jobs.read("ava")["state"] == "done"

@@ -24,6 +24,7 @@ from facecast.server.storage.archive import (
     ArchiveLimits,
     extract_archive,
 )
+from facecast.server.storage.jobs import JOBS_DIR
 from facecast.server.storage.rig_store import SCRATCH_DIR, RigNotFoundError, RigStore
 
 # -- settings -----------------------------------------------------------------------------
@@ -169,7 +170,10 @@ def _rig_dir_entries(store: RigStore) -> list[str]:
     but for its lock: no temp file left behind."""
     leftovers = [p.name for p in store.scratch.iterdir() if p.name != ".lock"]
     assert leftovers == []
-    return sorted(p.name for p in store.directory.iterdir() if p.name != SCRATCH_DIR)
+    # The store's own folders: scratch, and .jobs (its change lock, job records).
+    return sorted(
+        p.name for p in store.directory.iterdir() if p.name not in (SCRATCH_DIR, JOBS_DIR)
+    )
 
 
 def test_concurrent_writes_of_one_id_leave_one_whole_rig(store, rig):
@@ -288,7 +292,11 @@ def test_a_closed_store_leaves_no_scratch_behind(tmp_path, rig):
     store.close()
 
     assert not scratch.exists()
-    assert sorted(p.name for p in (tmp_path / "rigs").iterdir()) == [SCRATCH_DIR, "face.rig"]
+    assert sorted(p.name for p in (tmp_path / "rigs").iterdir()) == [
+        JOBS_DIR,  # the change lock's file
+        SCRATCH_DIR,
+        "face.rig",
+    ]
 
 
 # -- archives -------------------------------------------------------------------------------
@@ -418,3 +426,20 @@ def test_extracted_bytes_are_counted_not_the_declared_sizes(tmp_path):
         extract_archive(bytes(data), tmp_path, limits)
 
     assert caught.value.code == "archive_too_large"
+
+
+def test_a_deleted_character_s_running_job_is_cancelled_for_good(tmp_path, rig):
+    store = RigStore(tmp_path / "rigs")
+    store.open()
+    try:
+        store.jobs.write("ava", {"id": "ava", "job": "j1", "state": "running", "updated": 0.0})
+        store.delete("ava")  # no rig yet: the job's record alone makes it a character
+        late = store.jobs.update("ava", "j1", {"state": "done"})
+        stored = store.put_job_result("ava", "j1", rig, b"character")
+        record = store.jobs.read("ava")
+    finally:
+        store.close()
+
+    assert record["state"] == "cancelled" and record["error"]["code"] == "character_deleted"
+    assert not late and stored is None
+    assert not store.exists("ava")

@@ -272,7 +272,7 @@ def ict_poses(character_server) -> np.ndarray:
     """Uploads each ICT avatar as ``ict-<variant>``; the generic set's neutral and jawOpen."""
     import httpx
 
-    from facecast.rig.sources.generic import generic_sources
+    from facecast.rig.characters.generic import generic_sources
 
     ict_avatars.require_ict()
     for variant in ICT_VARIANTS:

@@ -4,11 +4,24 @@
 // pose (the head bone). Knows nothing of sockets or the protocol.
 
 import * as THREE from "three";
+import { DRACOLoader } from "three/addons/loaders/DRACOLoader.js";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
+import { MeshoptDecoder } from "three/addons/libs/meshopt_decoder.module.js";
 import { VRMLoaderPlugin, VRMUtils } from "@pixiv/three-vrm";
+
+// Compressed files (KHR_draco_mesh_compression, EXT_meshopt_compression) are decoded by
+// three.js's own decoders, served by facecast: Draco's from /viewer/assets/draco/ (copied
+// out of three's examples/jsm/libs/draco/gltf by build.mjs; relative, so the pages work
+// under a proxy's prefix too), meshoptimizer's bundled into this script.
+// KHR_mesh_quantization needs no decoder. One DRACOLoader (its workers) for every file.
+export const DRACO_PATH = "viewer/assets/draco/";
+let draco = null;
 
 function parse(glb, withVrm) {
   const loader = new GLTFLoader();
+  draco ||= new DRACOLoader().setDecoderPath(DRACO_PATH);
+  loader.setDRACOLoader(draco);
+  loader.setMeshoptDecoder(MeshoptDecoder);
   if (withVrm) loader.register((parser) => new VRMLoaderPlugin(parser));
   return new Promise((resolve, reject) =>
     loader.parse(glb, "", resolve, (err) => reject(new Error(`character.glb: ${err.message || err}`))),
@@ -46,10 +59,33 @@ export async function parseCharacter(glb, { format = "gltf" } = {}) {
     if (!association || association.meshes === undefined) return;
     if (!meshesByIndex.has(association.meshes)) meshesByIndex.set(association.meshes, []);
     meshesByIndex.get(association.meshes).push(node);
+    // three.js names morphs from mesh.extras.targetNames only; many exporters put them on
+    // the primitive (as the server's reader accepts): name them from there too.
+    const names = primitiveTargetNames(gltf.parser.json, association);
+    if (names && node.morphTargetInfluences && names.length === node.morphTargetInfluences.length) {
+      node.morphTargetDictionary = Object.fromEntries(names.map((name, index) => [name, index]));
+    }
     // Morphs and skinning move vertices outside the rest pose's bounds.
     node.frustumCulled = false;
   });
   return { root, vrm, meshesByIndex, vrmError };
+}
+
+/**
+ * The morph target names of the primitive `association` ({meshes, primitives}, the
+ * loader's) when only a primitive carries them (`primitives[i].extras.targetNames`, else
+ * the first primitive's), as the server's reader takes them; null when the mesh itself
+ * names them (three.js did) or nothing does.
+ */
+export function primitiveTargetNames(json, association) {
+  const mesh = (json.meshes || [])[association.meshes];
+  if (!mesh || (mesh.extras && Array.isArray(mesh.extras.targetNames))) return null;
+  const primitives = mesh.primitives || [];
+  for (const primitive of [primitives[association.primitives ?? 0], primitives[0]]) {
+    const names = primitive && primitive.extras && primitive.extras.targetNames;
+    if (Array.isArray(names) && names.every((name) => typeof name === "string")) return names;
+  }
+  return null;
 }
 
 /**

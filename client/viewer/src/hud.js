@@ -4,6 +4,9 @@
 const STATE_CLASSES = ["connecting", "live", "idle", "waiting", "failed"];
 // Widest weight label; longer names are cut with an ellipsis.
 const LABEL_MAX_CH = 16;
+// More weights than this go in two columns of shorter rows (viewer.html's "many"):
+// an ARKit character's 52-63 then fit a 540 px window.
+const ONE_COLUMN_MAX = 24;
 
 export class Hud {
   constructor(doc, { showStats }) {
@@ -54,8 +57,10 @@ export class Hud {
     if (!this.el.stats) return;
     const ms = (v) => (v === null ? "–" : `${v.toFixed(1)} ms`);
     const latencyLabel = s.mode === "demo" ? "latency" : "age";
+    // Capture → drawn, when the publisher stamps its frames (PROTOCOL.md §5.4).
+    const glass = s.glassMs === null || s.glassMs === undefined ? "" : `capture→drawn ${ms(s.glassMs)} · `;
     this.el.stats.textContent =
-      `${s.fps.toFixed(1)} fps · ${latencyLabel} ${ms(s.latencyMs)} · rtt ${ms(s.rttMs)} · ` +
+      `${s.fps.toFixed(1)} fps · ${glass}${latencyLabel} ${ms(s.latencyMs)} · rtt ${ms(s.rttMs)} · ` +
       `frames ${s.frames} · dropped ${s.dropped} · connects ${s.connects}`;
   }
 
@@ -67,6 +72,9 @@ export class Hud {
     // into the labels however large the weight.
     const longest = names.reduce((n, name) => Math.max(n, name.length), 1);
     this.el.weights.style.setProperty("--label-ch", `${Math.min(longest, LABEL_MAX_CH)}ch`);
+    const many = names.length > ONE_COLUMN_MAX;
+    this.el.weights.classList.toggle("many", many);
+    this.doc.body.classList.toggle("many-weights", many && this.showStats);
     this.bars = names.map((name) => {
       const row = this.doc.createElement("div");
       row.className = "weight";

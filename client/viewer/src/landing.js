@@ -53,7 +53,8 @@ function link(text, href) {
 function fill(table, rows, emptyText) {
   const body = table.tBodies[0];
   if (rows.length === 0) {
-    rows = [element("tr", {}, [element("td", { colSpan: 4, className: "empty", textContent: emptyText })])];
+    const columns = table.tHead.rows[0].cells.length;
+    rows = [element("tr", {}, [element("td", { colSpan: columns, className: "empty", textContent: emptyText })])];
   }
   body.replaceChildren(...rows);
 }
@@ -72,11 +73,28 @@ const watchRig = document.getElementById("watch-rig");
 const performChannel = document.getElementById("perform-channel");
 const performer = document.getElementById("performer");
 
+const FORMATS = { gltf: "glTF", vrm0: "VRM 0.x", vrm1: "VRM 1.0" };
+
+/** A rig's character file and who is shown it under its licence (GET /v1/rigs). */
+export function characterCell(character) {
+  if (!character) return element("td", { className: "character", textContent: "—" });
+  const name = character.name ? ` “${character.name}”` : "";
+  const who = character.shown_to === "everyone"
+    ? (character.rights_holder ? "shown to everyone (rights holder)" : "shown to everyone")
+    : "token holders only (licence)";
+  return element("td", {
+    className: `character ${character.shown_to === "everyone" ? "open" : "held"}`,
+    textContent: `${FORMATS[character.format] || character.format}${name} · ${who}`,
+    title: character.licence_note || "",
+  });
+}
+
 function renderRigs() {
   const rows = state.rigs.map((rig) => {
     const perform = { channel: performChannel.value || "stage", rig: rig.id, performer: performer.value || "performer" };
     return element("tr", {}, [
       element("td", { className: "id", textContent: rig.id }),
+      characterCell(rig.character),
       element("td", { textContent: size(rig.size) }),
       element("td", { textContent: when(rig.modified) }),
       element("td", { className: "links" }, [

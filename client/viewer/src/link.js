@@ -1,18 +1,21 @@
 // One WebSocket to the facecast server that comes back by itself: reconnects with
 // exponential backoff after a drop; stops for good only on errors retrying cannot fix.
 
+import { ServerClock } from "./clock.js";
 import { decodeServer, encodePing, ErrorCode, errorName, ProtocolError } from "./protocol.js";
 
 const BACKOFF_FIRST_MS = 250;
 const BACKOFF_MAX_MS = 5000;
 const PING_INTERVAL_MS = 5000; // keeps a watch session (which sends nothing else) alive
+// A few pings right after opening: the server clock's offset is known within a second.
+const FIRST_PINGS_MS = [250, 500, 750];
 // Errors that another attempt with the same page settings would only repeat.
 const PERMANENT = new Set([ErrorCode.UNAUTHORIZED, ErrorCode.FORBIDDEN, ErrorCode.UNSUPPORTED_VERSION]);
 
 /**
  * handlers: onOpen(link) after the socket opens (send hello there), onMessage(msg, link),
  * onState(state, detail) with state one of connecting | open | waiting | failed,
- * onPong(rttMs).
+ * onPong(rttMs). `clock` is the server's clock as estimated from the pongs (clock.js).
  */
 export class Link {
   constructor(target, handlers) {
@@ -27,6 +30,7 @@ export class Link {
     this.pingId = 0;
     this.pings = new Map();
     this.lastError = null;
+    this.clock = new ServerClock();
   }
 
   start() {
@@ -76,6 +80,7 @@ export class Link {
       this.handlers.onState("open", "");
       this.handlers.onOpen(this);
       this._ping();
+      for (const ms of FIRST_PINGS_MS) setTimeout(() => ws === this.ws && this._ping(), ms);
       this.pinger = setInterval(() => this._ping(), PING_INTERVAL_MS);
     };
     ws.onmessage = (event) => this._receive(event.data);
@@ -99,7 +104,10 @@ export class Link {
     if (msg.type === "pong") {
       const sent = this.pings.get(msg.id);
       this.pings.delete(msg.id);
-      if (sent !== undefined && this.handlers.onPong) this.handlers.onPong(performance.now() - sent);
+      if (sent === undefined) return;
+      const now = performance.now();
+      this.clock.sample(sent, now, msg.server_ts);
+      if (this.handlers.onPong) this.handlers.onPong(now - sent);
       return;
     }
     if (msg.type === "error" && msg.fatal) {

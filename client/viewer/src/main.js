@@ -3,6 +3,7 @@
 
 import { DemoPlayer } from "./demo.js";
 import { Hud } from "./hud.js";
+import { LiveLatency } from "./latency.js";
 import { Link } from "./link.js";
 import { authHeaders, readParams, socketTarget } from "./params.js";
 import { decodeAnimation, encodeHello, ErrorCode, errorName } from "./protocol.js";
@@ -24,6 +25,7 @@ const stats = {
   connects: 0,
   fps: 0,
   latencyMs: null,
+  glassMs: null, // capture → drawn, p50 of the recent frames (channel mode, stamped frames)
   rttMs: null,
   seq: null,
   demoTime: null, // demo mode: seconds into the performance of the frame shown
@@ -73,7 +75,9 @@ async function fetchBinary(params, path, what, read = (response) => response.arr
       const detail = problem.detail || response.statusText;
       if (response.status === 401) throw new Permanent(`Authentication failed (401 ${problem.code || "unauthorized"}): ${detail}`);
       if (response.status === 403) throw new Permanent(`Not allowed (403 ${problem.code || "forbidden"}): ${detail}`, problem.code);
-      if (response.status === 404 || response.status === 400) throw new Permanent(`${what}: ${detail}`);
+      if (response.status === 404 || response.status === 400 || response.status === 409) {
+        throw new Permanent(`${what}: ${detail}`, problem.code);
+      }
       setState("waiting", "waiting for the server", `${what}: HTTP ${response.status} ${detail}`);
     }
     const delay = Math.min(RETRY_MAX_MS, RETRY_FIRST_MS * 2 ** attempt++);
@@ -98,6 +102,9 @@ async function loadModel(params, view) {
       stats.character = { format: character.format, meta: character.meta, ...shown };
       hud.character(
         metaText(character.meta, character.format) +
+          (character.rights_holder && character.meta && character.meta.redistribution === false
+            ? " — shown to everyone: its uploader holds the rights"
+            : "") +
           (shown.vrmError ? ` — shown as plain glTF (three-vrm refused it: ${shown.vrmError})` : ""),
       );
       return { names: described.names, vertexCount: described.num_vertices };
@@ -143,7 +150,11 @@ async function main() {
   try {
     const [loaded, animation] = await Promise.all([
       loadModel(params, view),
-      params.mode === "demo" ? fetchBinary(params, "/v1/demo/animation", "demo animation") : null,
+      // The performance on the rig's own source points: the demo rig's, or the generic
+      // ARKit set's for a character uploaded as a file (server/pages/viewer.py).
+      params.mode === "demo"
+        ? fetchBinary(params, `/v1/demo/animation?rig=${encodeURIComponent(params.rig)}`, "demo animation")
+        : null,
     ]);
     model = loaded;
     if (animation) player = new DemoPlayer(decodeAnimation(animation), { start: params.start });
@@ -196,6 +207,7 @@ async function main() {
             return;
           }
           hud.names(rig.names);
+          view.resize(); // the panel widens for many weights (viewer.html), the stage narrows
           link.healthy();
           hud.clearError();
           stats.error = null;
@@ -203,7 +215,7 @@ async function main() {
             if (rig.k !== player.animation.k) {
               link.fail(
                 `the demo performance has ${player.animation.k} points per frame but rig ${rig.id} needs ${rig.k}: ` +
-                  "play the demo on the demo rig, or watch a channel instead",
+                  "reload the page (the rig was replaced), or watch a channel instead",
               );
               return;
             }
@@ -215,6 +227,7 @@ async function main() {
         case "result": {
           stats.frames += 1;
           stats.seq = msg.seq;
+          live.receive(msg, performance.now());
           stats.dropped = msg.dropped;
           let latency = null;
           if (player) {
@@ -255,7 +268,19 @@ async function main() {
       }
     },
   });
+  // Glass to glass (PROTOCOL.md §5.4): the stamped results' stages, received to drawn.
+  const live = new LiveLatency(link.clock);
+  window.liveLatency = (detail = false) => live.report(detail);
   link.start();
+
+  // What a draw holds the page: from render() to the next task, which runs after the
+  // draw's commit (without a GPU, Chromium reads the WebGL canvas back there).
+  const after = new MessageChannel();
+  let costFrom = null;
+  after.port1.onmessage = () => {
+    live.drawCost(performance.now() - costFrom);
+    costFrom = null;
+  };
 
   // Apply at most one pose per display frame: results can outpace the screen.
   let fpsFrames = 0;
@@ -275,13 +300,21 @@ async function main() {
     }
     pendingWeights = pendingVertices = pendingHead = null;
     if (view.dirty) {
+      const started = performance.now();
       view.render();
       stats.rendered += 1;
+      const submitted = performance.now();
+      live.drawn(submitted, submitted - started); // the newest result is drawn
+      if (costFrom === null) {
+        costFrom = started;
+        after.port2.postMessage(null);
+      }
     }
     if (now - fpsSince >= 500) {
       stats.fps = ((stats.frames - fpsFrames) * 1000) / (now - fpsSince);
       fpsFrames = stats.frames;
       fpsSince = now;
+      stats.glassMs = live.median();
       hud.stats(stats);
     }
     requestAnimationFrame(tick);

@@ -242,6 +242,8 @@ const PARSERS = {
       if (rotation.length !== 4) throw new ProtocolError(ErrorCode.INVALID_ARRAY, "result: head.rotation must have 4 values");
       out.head = { rotation };
     } else delete out.head;
+    // §5.4: stage stamps, figures only (latency.js checks each value).
+    if (!isMap(m.stamps)) delete out.stamps;
     return out;
   },
   error(m) {

@@ -145,8 +145,9 @@ export class FaceView {
 
   /**
    * What the character shown is and how it is posed now, for tests and the curious
-   * (window.characterState()): its meshes and morph targets, which of three-vrm's parts
-   * exist, the head bone's rotation, where the eyes look, the morph influences in effect.
+   * (window.characterState()): its meshes (with their vertex counts as decoded) and morph
+   * targets, which of three-vrm's parts exist, the head bone's rotation, where the eyes
+   * look, the morph influences in effect.
    */
   characterState() {
     const c = this.character;
@@ -159,7 +160,8 @@ export class FaceView {
     this.root.traverse((node) => {
       if (!node.isMesh) return;
       const weights = node.morphTargetInfluences || [];
-      state.meshes.push({ name: node.name, morphs: weights.length, skinned: Boolean(node.isSkinnedMesh) });
+      const vertices = node.geometry.attributes.position ? node.geometry.attributes.position.count : 0;
+      state.meshes.push({ name: node.name, morphs: weights.length, skinned: Boolean(node.isSkinnedMesh), vertices });
       state.morphs += weights.length;
       const names = Object.entries(node.morphTargetDictionary || {});
       for (const [name, index] of names) {

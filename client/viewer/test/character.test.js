@@ -3,7 +3,14 @@
 import assert from "node:assert/strict";
 import { test } from "node:test";
 
-import { applyWeights, bindMorphs, headQuaternion, metaText, springsMoving } from "../src/character.js";
+import {
+  applyWeights,
+  bindMorphs,
+  headQuaternion,
+  metaText,
+  primitiveTargetNames,
+  springsMoving,
+} from "../src/character.js";
 
 function mesh(id, morphs) {
   return { id, morphTargetInfluences: new Array(morphs).fill(0.5) };
@@ -56,4 +63,20 @@ test("spring bones count as moving until no joint turns by more than the toleran
   assert.equal(springsMoving(joints, last), true);
   [...joints][1].bone.quaternion.x += 1e-6; // below the tolerance
   assert.equal(springsMoving(joints, last), false);
+});
+
+test("morph names only on a primitive's extras name that primitive's morphs", () => {
+  const json = {
+    meshes: [
+      { primitives: [{ extras: { targetNames: ["jawOpen", "eyeBlinkLeft"] } }, {}] },
+      { extras: { targetNames: ["jawOpen"] }, primitives: [{}] },
+      { primitives: [{ extras: { targetNames: [3] } }] },
+    ],
+  };
+
+  assert.deepEqual(primitiveTargetNames(json, { meshes: 0, primitives: 0 }), ["jawOpen", "eyeBlinkLeft"]);
+  // A primitive without names of its own takes the first primitive's, as the server does.
+  assert.deepEqual(primitiveTargetNames(json, { meshes: 0, primitives: 1 }), ["jawOpen", "eyeBlinkLeft"]);
+  assert.equal(primitiveTargetNames(json, { meshes: 1, primitives: 0 }), null); // three.js named them
+  assert.equal(primitiveTargetNames(json, { meshes: 2, primitives: 0 }), null); // not names
 });

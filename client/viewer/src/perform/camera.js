@@ -25,18 +25,85 @@ export async function openCamera(video) {
   return stream;
 }
 
-/** Resolves when `video` presents its next frame (each animation frame where unsupported). */
+/**
+ * Resolves when `video` presents its next frame (each animation frame where unsupported),
+ * with the frame's metadata (requestVideoFrameCallback's; null without it).
+ */
 export function nextVideoFrame(video) {
   return new Promise((resolve) => {
-    if (video.requestVideoFrameCallback) video.requestVideoFrameCallback(() => resolve());
-    else requestAnimationFrame(() => resolve());
+    if (video.requestVideoFrameCallback) video.requestVideoFrameCallback((now, metadata) => resolve(metadata));
+    else requestAnimationFrame(() => resolve(null));
   });
+}
+
+const MAX_CAPTURE_AGE_MS = 1000; // a capture time older than this at arrival is not believed
+const LOCK_VOTES = 3; // equal offsets seen before the processor's timestamps are trusted
+
+/** A capture time (performance.now() ms) if plausible at `arrivedMs`, else the arrival. */
+function plausible(capturedMs, arrivedMs) {
+  return typeof capturedMs === "number" && capturedMs <= arrivedMs && capturedMs >= arrivedMs - MAX_CAPTURE_AGE_MS ? capturedMs : arrivedMs;
+}
+
+/**
+ * The camera frames' capture times on performance.now()'s clock (PROTOCOL.md §5.4).
+ * requestVideoFrameCallback gives them (`captureTime`, else `presentationTime`) for the
+ * <video>'s frames. A MediaStreamTrackProcessor's VideoFrame has only its `timestamp`, on
+ * the browser's own monotonic clock (Chromium: a constant away from performance.now()):
+ * the offset is learnt from the <video>'s frames, the same camera frames: at each read
+ * the smallest timestamp − captureTime over recent captures is this frame's own once its
+ * capture is among them; once the same offset has come LOCK_VOTES times it is used.
+ * Until then, and whenever a time is implausible, the frame's arrival stands in.
+ */
+export class CaptureTimes {
+  constructor(video) {
+    this.captures = []; // recent captureTime of the <video>'s frames
+    this.offsetMs = null;
+    this.votes = new Map();
+    this.source = "arrival";
+    this.presented = 0; // frames the <video> has presented (its metadata's count)
+    if (!video.requestVideoFrameCallback) return;
+    const seen = (now, metadata) => {
+      this.presented = metadata.presentedFrames ?? this.presented + 1;
+      const t = metadata.captureTime ?? metadata.presentationTime;
+      if (typeof t === "number") {
+        this.captures.push(t);
+        if (this.captures.length > 8) this.captures.shift();
+      }
+      video.requestVideoFrameCallback(seen);
+    };
+    video.requestVideoFrameCallback(seen);
+  }
+
+  /** A <video> frame's capture time from its callback's metadata, arrived at `arrivedMs`. */
+  ofVideo(metadata, arrivedMs) {
+    const t = metadata ? (metadata.captureTime ?? metadata.presentationTime) : undefined;
+    this.source = typeof t === "number" ? "video metadata" : "arrival";
+    return plausible(t, arrivedMs);
+  }
+
+  /** A VideoFrame's capture time from its `timestamp` (µs), read at `arrivedMs`. */
+  ofFrame(frame, arrivedMs) {
+    const ts = frame.timestamp / 1000;
+    if (this.offsetMs === null && this.captures.length) {
+      let d = Infinity;
+      for (const c of this.captures) if (ts - c < d) d = ts - c;
+      const key = Math.round(d * 10) / 10;
+      const votes = (this.votes.get(key) || 0) + 1;
+      this.votes.set(key, votes);
+      if (votes >= LOCK_VOTES) this.offsetMs = key;
+      if (this.votes.size > 256) this.votes.clear();
+    }
+    if (this.offsetMs === null) return arrivedMs;
+    this.source = "frame timestamp";
+    return plausible(ts - this.offsetMs, arrivedMs);
+  }
 }
 
 /**
  * The camera's frames as the tracker takes them: `next()` resolves with the newest frame
  * not yet tracked, `{frame}` (a VideoFrame the caller closes) where the browser has
- * MediaStreamTrackProcessor, else `{video}` (the element, on its next presented frame).
+ * MediaStreamTrackProcessor, else `{video}` (the element, on its next presented frame);
+ * either with `capturedMs`, its capture time on performance.now()'s clock (CaptureTimes).
  *
  * The processor hands over the camera's frames as they arrive, outside the page's
  * rendering steps (where the <video> element's frame callbacks run), and as VideoFrames,
@@ -47,27 +114,31 @@ export function nextVideoFrame(video) {
  */
 export function cameraFrames(stream, video) {
   const [track] = stream.getVideoTracks();
+  const times = new CaptureTimes(video);
   if (typeof MediaStreamTrackProcessor === "function" && track) {
     const processor = new MediaStreamTrackProcessor({ track, maxBufferSize: 1 });
     const reader = processor.readable.getReader();
     return {
       kind: "processor",
+      times,
       async next() {
         const { value, done } = await reader.read();
         if (done) throw new Error("the camera stopped");
-        return { frame: value };
+        return { frame: value, capturedMs: times.ofFrame(value, performance.now()) };
       },
     };
   }
   let pending = nextVideoFrame(video);
   return {
     kind: "video",
+    times,
     async next() {
-      await pending;
+      const metadata = await pending;
+      const capturedMs = times.ofVideo(metadata, performance.now());
       // Ask for the frame after this one now: one presented while the model runs is
       // tracked as soon as the model is done.
       pending = nextVideoFrame(video);
-      return { video };
+      return { video, capturedMs };
     },
   };
 }

@@ -80,7 +80,7 @@ export function headQuaternion(frame, out = new Float32Array(4)) {
  * Float32Array 4 of headQuaternion) is given, the head pose (§5.3). Without it, the bytes
  * are protocol.js's encodeFrame's.
  */
-export function encodePerformFrame(seq, ts, points, rotation = null) {
+export function encodePerformFrame(seq, ts, points, rotation = null, stamps = null) {
   if (!Number.isInteger(seq) || seq < 0) throw new RangeError("seq must be a non-negative integer");
   const message = {
     v: PROTOCOL_VERSION,
@@ -90,5 +90,7 @@ export function encodePerformFrame(seq, ts, points, rotation = null) {
     points: arrayToWire(points, [points.length / 3, 3]),
   };
   if (rotation) message.head = { rotation: arrayToWire(rotation, [4]) };
+  // §5.4: the stages' times on the server's clock (captured, tracked, sent).
+  if (stamps) message.stamps = stamps;
   return msgpackEncode(message);
 }

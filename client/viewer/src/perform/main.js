@@ -16,7 +16,10 @@ import { FacePipeline, LAYOUT as layout } from "./pipeline.js";
 import { Studio } from "./studio.js";
 import { Rolling } from "./timing.js";
 const K = layout.features.length;
-const MAX_BUFFERED_BYTES = 64 * 1024; // a stalled socket drops frames instead of queueing them
+// Newest frame only at the publisher's socket: a frame is sent only when the socket holds
+// nothing unsent, so at most the frame being sent waits there; a stalled socket drops frames
+// (counted in `skipped`) instead of queueing them (was 64 KiB: ~140 frames, 4 s at 30 fps).
+const MAX_BUFFERED_BYTES = 1;
 const WINDOW = 120; // frames in the rolling timing statistics
 const DRAW_SHARE = 0.1; // of the page's time the character's drawing may block it
 
@@ -57,6 +60,8 @@ const stats = {
   posesDrawn: 0, // of those, how many were applied before the last finished draw began
   drawCostMs: null, // what a draw of the character blocks the page: draw -> next task (mean)
   frameSource: null, // "processor" (MediaStreamTrackProcessor) or "video" (frame callbacks)
+  captureSource: null, // where frames' capture times come from (camera.js CaptureTimes)
+  cameraFrames: 0, // frames the camera's <video> presented (requestVideoFrameCallback's count)
   points: null, // the last published points, K*3
   head: null, // {yaw, pitch, roll} of the last frame, degrees
   eyes: null,
@@ -386,8 +391,10 @@ async function main() {
   for (;;) {
     const tWait = performance.now();
     let result;
+    let capturedMs;
     try {
-      const { frame } = await frames.next();
+      const { frame, capturedMs: captured } = await frames.next();
+      capturedMs = captured;
       waiting.push(performance.now() - tWait);
       try {
         result = frame ? await pipeline.trackFrame(frame) : await pipeline.track(video);
@@ -412,8 +419,11 @@ async function main() {
       const eyes = eyeOpenness(result.mesh, layout);
       if (publishing && generic && !stats.rebased) stats.heldForNeutral += 1;
       else if (publishing && link.bufferedAmount < MAX_BUFFERED_BYTES) {
-        // The head pose goes in its own field (§5.3): the points stay pose-free.
-        if (link.send(encodePerformFrame(seq, performance.now() / 1000, points, result.head))) {
+        // The head pose goes in its own field (§5.3): the points stay pose-free. The
+        // stamps (§5.4) are on the server's clock as the link estimates it.
+        const clock = link.clock;
+        const stamps = { captured: clock.toServer(capturedMs), tracked: clock.toServer(tLandmarks), sent: clock.toServer(performance.now()) };
+        if (link.send(encodePerformFrame(seq, performance.now() / 1000, points, result.head, stamps))) {
           stats.seq = seq;
           seq += 1;
           stats.published += 1;
@@ -456,6 +466,8 @@ async function main() {
       stats.renderMs = render.mean();
       stats.waitMs = waiting.mean();
       stats.drawCostMs = drawCosts.mean();
+      stats.captureSource = frames.times.source;
+      stats.cameraFrames = frames.times.presented;
       paintStats(result);
     }
   }

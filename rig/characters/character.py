@@ -9,15 +9,16 @@ re-exported here) or render; docs/characters.md explains it.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
-from dataclasses import dataclass
+import dataclasses
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..errors import ExampleSetError
-from ..sources.generic import GENERIC_ATTRIBUTION
+from ..io.gltf import BufferReader, GltfLimits, read_mesh, target_names
 from .character_examples import character_example_set, generic_pairing
 from .character_file import (
     MAX_CHARACTER_BYTES,
@@ -34,7 +35,7 @@ from .character_model import (
     pair_report,
 )
 from .expression_names import ARKIT_NAMES, VRM_PRESETS, half_of, normalise_name, vrm0_preset
-from .gltf import BufferReader, load_document, read_mesh, target_names
+from .generic import GENERIC_ATTRIBUTION
 from .vrm import VrmExpression, vrm_expressions, vrm_format, vrm_meta
 
 __all__ = [
@@ -50,8 +51,18 @@ __all__ = [
     "load_character",
 ]
 
+#: What ``gltf.read_mesh`` gives: vertices, faces, morph deltas, target names.
+MeshData = tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]
+
 # Expression order: ARKit's, then VRM's presets, then the rest as found.
 _ORDER = {name: i for i, name in enumerate((*ARKIT_NAMES, *VRM_PRESETS))}
+
+#: An expression moves nothing visible when no bound morph target (times its bind weight)
+#: moves a vertex by more than this fraction of its mesh's bounding-box diagonal: 30 µm on
+#: a 30 cm head, a tenth of a pixel with the face 1000 px tall. Exported files carry such
+#: targets (VRoid's Perfect Sync ``jawOpen`` and ``tongueOut`` written as zeros): paired,
+#: a rig would give them the weight of a motion the character never shows.
+STILL_RELATIVE = 1e-4
 
 
 # -- expressions ------------------------------------------------------------------------
@@ -65,7 +76,7 @@ class _Found:
     origin: str
 
 
-def _mesh_targets(doc: dict[str, Any], gltf: Any, label: str) -> tuple[list[int], list[list[str]]]:
+def _mesh_targets(doc: dict[str, Any], label: str) -> tuple[list[int], list[list[str]]]:
     """Per mesh: its number of morph targets and their names, every target's vertex count
     checked against its primitive's (``morph_vertex_mismatch``)."""
     accessors = doc.get("accessors") or []
@@ -114,7 +125,7 @@ def _mesh_targets(doc: dict[str, Any], gltf: Any, label: str) -> tuple[list[int]
             )
         m = sizes.pop()
         counts.append(m)
-        names.append(target_names(gltf.meshes[number], m))
+        names.append(target_names(mesh, m))
     return counts, names
 
 
@@ -190,23 +201,20 @@ def _vrm_entries(
             )
             continue
         if not binds:
-            report.append(
-                PairingEntry(
-                    vrm.name,
-                    origin,
-                    meshes,
-                    None,
-                    False,
-                    "binds no morph target (material changes only)",
-                )
-            )
+            if vrm.binds:
+                why = "its morph binds all have weight 0: it moves nothing"
+            elif vrm.materials:
+                why = "binds no morph target (material changes only)"
+            else:
+                why = "binds nothing (no morph target, no material): an empty expression"
+            report.append(PairingEntry(vrm.name, origin, meshes, None, False, why))
             continue
         found[name] = _Found(binds, "vrm")
         report.append(PairingEntry(vrm.name, origin, meshes, name, False, how))
     return report
 
 
-def _face_mesh(found: dict[str, _Found], doc: dict[str, Any], gltf: Any, label: str) -> int:
+def _face_mesh(found: dict[str, _Found], doc: dict[str, Any], label: str) -> int:
     """The mesh with the most expressions bound; ties: more vertices, then the earlier."""
     meshes = doc.get("meshes") or []
     if not meshes:
@@ -223,7 +231,36 @@ def _face_mesh(found: dict[str, _Found], doc: dict[str, Any], gltf: Any, label: 
     return min(range(len(meshes)), key=lambda i: (-bound[i], -vertices[i], i))
 
 
-def load_character(source: Path | bytes, *, label: str = "character") -> Character:
+def _still_expressions(found: dict[str, _Found], read: Callable[[int], MeshData]) -> dict[str, str]:
+    """``{name: why}`` of the expressions no bound morph target moves visibly
+    (``STILL_RELATIVE``); ``read(mesh)`` gives a mesh's vertices, faces and deltas."""
+    largest: dict[int, tuple[np.ndarray, float]] = {}
+
+    def moves(binding: Binding) -> float:
+        if binding.mesh not in largest:
+            vertices, _, deltas, _ = read(binding.mesh)
+            extent = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
+            offsets = np.linalg.norm(deltas, axis=2).max(axis=1) if deltas.size else deltas
+            largest[binding.mesh] = (np.asarray(offsets).reshape(-1), extent)
+        offsets, extent = largest[binding.mesh]
+        if binding.morph >= offsets.size:
+            return 0.0
+        return float(binding.weight * offsets[binding.morph]) / max(extent, 1e-30)
+
+    still = {}
+    for name, expression in found.items():
+        share = max((moves(b) for b in expression.bindings), default=0.0)
+        if share <= STILL_RELATIVE:
+            still[name] = (
+                f"moves no vertex visibly (its largest offset is {share:.1g} of its mesh's "
+                f"size, at most {STILL_RELATIVE:g}): not paired, a rig would drive nothing"
+            )
+    return still
+
+
+def load_character(
+    source: Path | bytes, *, label: str = "character", limits: GltfLimits | None = None
+) -> Character:
     """Read a .glb, .vrm (VRM 0.x or 1.0) or .gltf (with its files beside it) as authored.
 
     Parameters
@@ -232,6 +269,8 @@ def load_character(source: Path | bytes, *, label: str = "character") -> Charact
         The file, or its bytes (a .gltf given as bytes must embed its buffers and images).
     label : str
         What errors call the file; never a path is put in a message.
+    limits : GltfLimits, optional
+        The most the file may declare (``gltf_check``; its defaults without).
 
     Returns
     -------
@@ -248,10 +287,12 @@ def load_character(source: Path | bytes, *, label: str = "character") -> Charact
         folder, or any external URI in a GLB or bytes), ``texture_too_large`` (a header
         declaring more than ``MAX_TEXTURE_SIDE`` a side or ``MAX_TEXTURE_PIXELS`` in all),
         ``bad_image``, ``bad_vrm_bind``, ``morph_vertex_mismatch``, ``too_large``,
-        ``unsupported_extension``, ``no_mesh``, ``missing_file``.
+        ``gltf_exceeds_limits`` (a count over ``limits``, checked before anything is read),
+        ``bad_compression`` (meshopt or Draco data that does not decode to what its
+        accessors declare), ``no_mesh``, ``missing_file``.
     """
     try:
-        return _load(source, label)
+        return _load(source, label, limits)
     except ExampleSetError:
         raise
     except (AttributeError, TypeError, KeyError, IndexError, ValueError, RecursionError) as exc:
@@ -262,11 +303,38 @@ def load_character(source: Path | bytes, *, label: str = "character") -> Charact
         ) from None
 
 
-def _load(source: Path | bytes, label: str) -> Character:
+def _driven_through_vrm(
+    entries: list[PairingEntry],
+    names: list[list[str]],
+    found: dict[str, _Found],
+    paired: dict[str, str],
+) -> list[PairingEntry]:
+    """Morph-target entries whose own name pairs with nothing but whose morph a paired VRM
+    expression binds (a VRM ``A`` binding ``vrc.v_aa``) say so: their motion is live,
+    driven by that expression's weight, though the name itself has no source points."""
+    through: dict[str, list[str]] = {}
+    for name, expression in found.items():
+        if expression.origin != "vrm" or name not in paired:
+            continue
+        for b in expression.bindings:
+            authored = names[b.mesh][b.morph]
+            if name not in through.setdefault(authored, []):
+                through[authored].append(name)
+    out = []
+    for e in entries:
+        via = through.get(e.authored, [])
+        if e.origin == "morph target" and e.expression not in paired and via:
+            listed = ", ".join(repr(v) for v in via)
+            e = replace(e, reason=f"{e.reason}; moved through the paired VRM expression {listed}")
+        out.append(e)
+    return out
+
+
+def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Character:
     """``load_character`` but for turning stray exceptions into ``bad_gltf``."""
-    doc, _, glb = read_character_file(source, label)
-    gltf = load_document(glb, label)
-    counts, names = _mesh_targets(doc, gltf, label)
+    document, glb = read_character_file(source, label, limits)
+    doc = document.json
+    counts, names = _mesh_targets(doc, label)
     mesh_names = tuple(_mesh_name(doc, i) for i in range(len(counts)))
     found, entries = _morph_expressions(names, mesh_names)
     vrm_entries = _vrm_entries(vrm_expressions(doc, counts, label), mesh_names, found)
@@ -284,19 +352,57 @@ def _load(source: Path | bytes, label: str) -> Character:
         else e
         for e in entries
     ] + vrm_entries
-    face = _face_mesh(found, doc, gltf, label)
-    reader = BufferReader(gltf, None, label)
-    vertices, faces, deltas, _ = read_mesh(gltf.meshes[face], reader, label)
+    reader = BufferReader(document, label)
+    reader.decode_all()  # a compressed part that does not decode is refused now (bounded)
+    meshes: dict[int, MeshData] = {}
+
+    def read(index: int) -> MeshData:
+        """Each mesh read once: the still check and the face share the face's read."""
+        if index not in meshes:
+            meshes[index] = read_mesh(doc["meshes"][index], reader, label)
+        return meshes[index]
+
+    still = _still_expressions(found, read)
+    entries = [
+        dataclasses.replace(e, reason=f"{e.reason}; {still[e.expression]}")
+        if e.expression in still
+        else e
+        for e in entries
+    ]
+    found = {name: f for name, f in found.items() if name not in still}
+    face = _face_mesh(found, doc, label)
+    vertices, faces, deltas, _ = read(face)
+    meshes.clear()
+    on_face = {name: [b for b in e.bindings if b.mesh == face] for name, e in found.items()}
+    # An expression of one morph at weight 1 is a view of it; a VRM expression mixing
+    # morphs or weighting one needs an array of its own: bounded as the morphs are, or
+    # a thousand binds at weight 0.5 would each allocate the whole face.
+    mixed = sum(1 for b in on_face.values() if len(b) > 1 or (b and b[0].weight != 1.0))
+    limit = (limits or GltfLimits()).morph_values
+    if mixed * len(vertices) > limit:
+        raise ExampleSetError(
+            f"{label}: {mixed} expressions mixing morph targets of a {len(vertices)}-vertex "
+            f"face declare more than {limit} values (limit max_gltf_morph_values)",
+            code="gltf_exceeds_limits",
+        )
+    unmoved = np.zeros_like(vertices)
+    unmoved.flags.writeable = False
     expressions = {}
     for name in sorted(found, key=lambda n: _ORDER.get(n, len(_ORDER))):
         bindings = tuple(found[name].bindings)
-        displacement = np.zeros_like(vertices)
-        for b in bindings:
-            if b.mesh == face:
+        mine = on_face[name]
+        if not mine:
+            displacement = unmoved  # moves other meshes only: one shared array of zeros
+        elif len(mine) == 1 and mine[0].weight == 1.0:
+            displacement = deltas[mine[0].morph]  # a view: most expressions are one morph
+        else:
+            displacement = np.zeros_like(vertices)
+            for b in mine:
                 displacement += b.weight * deltas[b.morph]
         displacement.flags.writeable = False
         expressions[name] = Expression(name, bindings, displacement, found[name].origin)
     paired, unpaired = generic_pairing(expressions)
+    reported = _driven_through_vrm(entries, names, found, paired)
     vertices.flags.writeable = False
     return Character(
         glb=glb,
@@ -309,6 +415,6 @@ def _load(source: Path | bytes, label: str) -> Character:
         expressions=expressions,
         names=tuple(entries),
         report=pair_report(
-            entries, paired, unpaired, source=GENERIC_ATTRIBUTION, face_mesh=mesh_names[face]
+            reported, paired, unpaired, source=GENERIC_ATTRIBUTION, face_mesh=mesh_names[face]
         ),
     )

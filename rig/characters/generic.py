@@ -5,7 +5,9 @@ scripts/make_generic_sources.py from ICT-FaceKit, MIT, see generic_arkit/LICENSE
 and composes source points for VRM presets that have no ARKit twin (the table is
 docs/characters.md), from this set's shapes or from a performer's captured ones
 (``composed_captures``); ``CHARACTER_FIT_DEFAULTS`` are the fit options of a character
-paired with it. It must not read characters, fit or touch the network.
+paired with it, ``GAZE_SHAPES``, ``DRIVEN_SHARE`` and ``DEPENDENT_RELATIVE`` what it leaves
+unpaired so that what shows moves at full strength. It must not read characters, fit or
+touch the network.
 """
 
 from __future__ import annotations
@@ -23,11 +25,17 @@ from ..errors import ExampleSetError
 
 __all__ = [
     "CHARACTER_FIT_DEFAULTS",
+    "DEPENDENT_RELATIVE",
+    "DRIVEN_SHARE",
+    "GAZE_SHAPES",
     "GENERIC_ATTRIBUTION",
+    "GENERIC_SOURCE_NAME",
+    "PRESET_CHECK_ORDER",
     "VRM_COMPOSITIONS",
     "GenericSources",
     "composed_captures",
     "generic_sources",
+    "is_generic_layout",
 ]
 
 GENERIC_ATTRIBUTION: Final = (
@@ -40,10 +48,14 @@ GENERIC_ATTRIBUTION: Final = (
 #: Exact interpolation (noise 0) of these 20 points amplifies landmark noise ~3000-fold
 #: (noise gain 3174): live, tracker noise became weights of 7 to 190. Measured on the
 #: ground-truth webcam benchmark and the bundled real take (docs/characters.md, "Fit
-#: defaults"): 0.05 cm with weights bounded to [0, 1] is the lowest weight error on tracked
-#: landmarks, costs nothing on /perform's noise-aware calibrate and keeps every weight in
-#: [0, 1]; its noise gain is 9.2.
-CHARACTER_FIT_DEFAULTS: Final = MappingProxyType({"noise": 0.05, "clamp": "unit"})
+#: defaults"): 0.05 cm with weights bounded to [0, 1] had the lowest weight error on tracked
+#: landmarks (0.03 cm: +0.004 to +0.007), cost nothing on /perform's noise-aware calibrate
+#: and kept every weight in [0, 1]. It held the generic source's own exact poses below full
+#: strength, though (the ridge it stands for shrinks a closed eye's 0.79 cm lid motion to
+#: eyeBlink 0.85, gaze already unpaired); 0.035 cm gives 0.92, and on the bundled take
+#: a lower weight error on exact and Gaussian-noisy landmarks ("Full strength"); its noise
+#: gain is 13.6.
+CHARACTER_FIT_DEFAULTS: Final = MappingProxyType({"noise": 0.035, "clamp": "unit"})
 
 _L, _R = "Left", "Right"
 
@@ -80,6 +92,42 @@ VRM_COMPOSITIONS: Final = MappingProxyType(
 )  # fmt: skip
 
 
+#: ARKit shapes the generic set leaves unpaired: gaze. Its 20 landmarks hold two lid points
+#: per eye and no iris, so it sees a gaze only by the lids it drags: eyeLookDown lowers
+#: the upper lid 0.64 cm where eyeBlink lowers it 0.79 cm. Paired, a rig fitted for
+#: tracker noise (``CHARACTER_FIT_DEFAULTS``) split the exact "both eyes closed" pose into
+#: eyeBlink 0.57 + eyeLookDown 0.37 (half-open eyes), and a VRM's look presets, whose
+#: lid motion is within that noise of the rest pose, took 0.02-0.07 at the exact neutral.
+#: Gaze is the character's look-at's (its eye bones), not these points'.
+GAZE_SHAPES: Final = tuple(
+    f"eyeLook{way}{side}" for side in (_L, _R) for way in ("Down", "In", "Out", "Up")
+)
+
+#: A composed VRM preset whose motion the character's own ARKit shapes carry at least this
+#: share of (``GenericSources.driven_share``) is left unpaired: paired too, it would drive
+#: the same motion twice (a mouth-only smile became VRoid's whole-face ``Fcl_ALL_Joy``).
+#: Below it the preset drives what those shapes lack (``aa`` beside a ``jawOpen`` that
+#: moves nothing and a ``mouthLowerDown`` that carries 7 % of it).
+DRIVEN_SHARE: Final = 0.5
+
+#: A composed preset whose displacement at these landmarks lies within this fraction (of
+#: its length) of the span of those paired before it (the character's ARKit shapes, then
+#: presets in ``PRESET_CHECK_ORDER``) is left unpaired: it is a mix of them, to rounding
+#: (``blink`` is ``blinkLeft`` + ``blinkRight``; ``ee`` beside ``aa`` on a character whose
+#: ``jawOpen`` moves nothing is ``aa`` plus its ARKit shapes). Paired, the rig's examples
+#: would be linearly dependent, and the fit cannot then keep the neutral exact (a rig took
+#: 0.07 of eyeSquint and 0.44 in all at the exact neutral).
+DEPENDENT_RELATIVE: Final = 1e-6
+
+#: The order presets are checked in against ``DEPENDENT_RELATIVE``: one-sided blinks before
+#: both (each eye its own weight), the mouth-only visemes before the whole-face emotions.
+PRESET_CHECK_ORDER: Final = (
+    "blinkLeft", "blinkRight", "aa", "ih", "ou", "ee", "oh",
+    "happy", "angry", "sad", "relaxed", "surprised", "blink",
+    "lookUp", "lookDown", "lookLeft", "lookRight",
+)  # fmt: skip
+
+
 @dataclass(frozen=True, eq=False)
 class GenericSources:
     """The generic set: ``names`` (neutral first), ``points`` (M, K, 3) in centimetres,
@@ -105,6 +153,20 @@ class GenericSources:
             out += weight * (self.points[self._index[shape]] - neutral)
         return out
 
+    def driven_share(self, name: str, shapes: Iterable[str]) -> float:
+        """How much of composed preset ``name``'s motion at these landmarks ``shapes`` (ARKit
+        shapes) carry: the sum of weight x |shape displacement| over the composition's
+        shapes among them, over that sum for all its shapes. 0 for a name not composed."""
+        composition = VRM_COMPOSITIONS.get(name)
+        if composition is None or name in self._index:
+            return 0.0
+        given = set(shapes)
+        neutral = self.points[0]
+        size = {s: w * float(np.linalg.norm(self.points[self._index[s]] - neutral))
+                for s, w in composition.items()}  # fmt: skip
+        total = sum(size.values())
+        return sum(v for s, v in size.items() if s in given) / total if total > 0 else 0.0
+
     def composition(self, name: str) -> dict[str, float] | None:
         """The ARKit weights a composed preset stands for, or {name: 1} for a shape."""
         if name in self._index and name != "neutral":
@@ -117,13 +179,23 @@ class GenericSources:
         return {n: i for i, n in enumerate(self.names)}
 
 
+#: What ``--source-rig`` and ``load_source_rig`` take as the word for this set.
+GENERIC_SOURCE_NAME: Final = "generic"
+_KEYS = ("names", "points", "landmarks68", "stable_points")
+
+
+def is_generic_layout(keys: Iterable[str]) -> bool:
+    """Whether an .npz's arrays are this set's layout (``generic_arkit/points.npz``'s)."""
+    return set(_KEYS) <= set(keys)
+
+
 @functools.cache
 def generic_sources() -> GenericSources:
     """The packaged set, read once and shared (its arrays are read-only)."""
     path = resources.files(__package__).joinpath("generic_arkit", "points.npz")
     try:
         with path.open("rb") as handle, np.load(handle, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in ("names", "points", "landmarks68", "stable_points")}
+            arrays = {k: data[k] for k in _KEYS}
     except (OSError, KeyError, ValueError) as exc:
         raise ExampleSetError(
             f"facecast's generic source set is missing or damaged ({type(exc).__name__}); "

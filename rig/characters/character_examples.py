@@ -1,6 +1,6 @@
 """A character's expressions paired with source points: the example set a rig is fitted from.
 
-Pairs with facecast's generic ARKit source set (``sources.generic``) or a folder of point
+Pairs with facecast's generic ARKit source set (``characters.generic``) or a folder of point
 files named by expression; the target side is the character's face mesh. It must not fit,
 read the character file again or write anything.
 """
@@ -17,10 +17,18 @@ import numpy as np
 
 from ..errors import ExampleSetError
 from ..examples import ExampleSet, check_stable_points
-from ..sources.generic import CHARACTER_FIT_DEFAULTS, GENERIC_ATTRIBUTION, generic_sources
+from ..io.meshio import read_points
 from .character_model import Character, PairingReport, pair_report
 from .expression_names import normalise_name
-from .meshio import read_points
+from .generic import (
+    CHARACTER_FIT_DEFAULTS,
+    DEPENDENT_RELATIVE,
+    DRIVEN_SHARE,
+    GAZE_SHAPES,
+    GENERIC_ATTRIBUTION,
+    PRESET_CHECK_ORDER,
+    generic_sources,
+)
 
 __all__ = [
     "character_example_set",
@@ -49,7 +57,7 @@ def character_fit_options(given: Mapping[str, Any] | None = None) -> dict[str, A
 
     ``given`` holds the options its uploader chose (``fit``'s keywords; a key absent or None
     is not chosen). Without a ``noise``, the rig is fitted for the noise of a live tracker,
-    ``sources.generic.CHARACTER_FIT_DEFAULTS`` (and bounded as it says unless a ``clamp`` is
+    ``characters.generic.CHARACTER_FIT_DEFAULTS`` (and bounded as it says unless a ``clamp`` is
     given), so the character is live the moment it is uploaded; a given ``noise`` (0 too:
     exact interpolation) keeps ``fit``'s own default bound for it.
     """
@@ -162,12 +170,62 @@ def _pair(
 def _pair_generic(
     expressions: Iterable[str],
 ) -> tuple[dict[str, np.ndarray], dict[str, str], dict[str, str]]:
-    """``_pair`` with facecast's generic ARKit set (VRM presets composed)."""
+    """``_pair`` with facecast's generic ARKit set (VRM presets composed), gaze and presets
+    the character's own ARKit shapes drive left out (``generic.GAZE_SHAPES``,
+    ``generic.DRIVEN_SHARE``)."""
     generic = generic_sources()
     names = list(expressions)
-    available = {n: p for n in names if (p := generic.source_points(n)) is not None}
+    gaze = set(GAZE_SHAPES)
+    left_out: dict[str, str] = {}
+    for name in names:
+        shapes = generic.composition(name) or {}
+        if name in gaze or gaze & set(shapes):
+            left_out[name] = (
+                "gaze: the generic set's landmarks see the eyelids, not the eyes (a look down "
+                "lowers the upper lid almost as a blink does, and fitted together a closed "
+                "eye came out half open); the character's look-at turns its eyes"
+            )
+    own = [n for n in names if n in generic.names and n != "neutral" and n not in left_out]
+    for name in names:
+        share = generic.driven_share(name, own)
+        if name not in left_out and share >= DRIVEN_SHARE:
+            carried = ", ".join(s for s in generic.composition(name) or {} if s in own)
+            left_out[name] = (
+                f"driven by the character's own ARKit shapes ({carried}: {share:.0%} of its "
+                "motion at the generic landmarks); paired too, it would drive that motion twice"
+            )
+    neutral = generic.points[0]
+    kept = [(generic.points[generic.names.index(n)] - neutral).ravel() for n in own]
+    kept_names = list(own)
+    checked = sorted(
+        (n for n in names if n not in left_out and n in PRESET_CHECK_ORDER and n not in own),
+        key=PRESET_CHECK_ORDER.index,
+    )
+    for name in checked:
+        points = generic.source_points(name)
+        assert points is not None  # every name of PRESET_CHECK_ORDER is composed
+        displacement = (points - neutral).ravel()
+        if kept:
+            basis = np.stack(kept, axis=1)
+            mix = np.linalg.lstsq(basis, displacement, rcond=None)[0]
+            residual = displacement - basis @ mix
+            if np.linalg.norm(residual) <= DEPENDENT_RELATIVE * np.linalg.norm(displacement):
+                parts = [n for n, c in zip(kept_names, mix, strict=True) if abs(c) > 1e-3]
+                named = ", ".join(parts[:6]) + (
+                    f" and {len(parts) - 6} more" if len(parts) > 6 else ""
+                )
+                left_out[name] = (
+                    f"the same motion at the generic landmarks as a mix of {named}: a rig "
+                    "cannot tell them apart"
+                )
+                continue
+        kept.append(displacement)
+        kept_names.append(name)
+    available = {
+        n: p for n in names if n not in left_out and (p := generic.source_points(n)) is not None
+    }
     chosen, paired, unpaired = _pair(
-        names,
+        [n for n in names if n not in left_out],
         available,
         generic.points[0],
         GENERIC_ATTRIBUTION,
@@ -177,7 +235,7 @@ def _pair_generic(
         unpaired["tongueOut"] = (
             "no source: ICT-FaceKit has no tongue shape (and a tongue moves no landmark)"
         )
-    return chosen, paired, unpaired
+    return chosen, paired, {**unpaired, **left_out}
 
 
 def generic_pairing(expressions: Iterable[str]) -> tuple[dict[str, str], dict[str, str]]:
@@ -211,8 +269,10 @@ def character_example_set(
     (ExampleSet, PairingReport)
         Examples named "neutral" then the paired expressions in the character's order;
         targets are the face mesh plus each expression's ``face_displacement``. An
-        expression whose source points equal an earlier one's (VRM ``blinkLeft`` beside
-        ARKit ``eyeBlinkLeft``) is left out: a rig could not tell the two apart.
+        expression whose source points equal an earlier one's is left out: a rig could
+        not tell the two apart. With the generic set, gaze is left out too, and so are
+        presets the character's own ARKit shapes drive or that mix those paired before
+        them (VRM ``blinkLeft`` beside ARKit ``eyeBlinkLeft``; ``_pair_generic``).
 
     Raises
     ------
@@ -240,9 +300,12 @@ def character_example_set(
         )
     names = ["neutral", *chosen]
     sources = [neutral, *chosen.values()]
-    targets = [character.face_vertices] + [
-        character.face_vertices + character.expressions[n].face_displacement for n in chosen
-    ]
+    # Filled in place: a list of M arrays then stacked held the targets twice (the
+    # largest allocation of a character upload, SERVER.md "What an upload can cost").
+    targets = np.empty((len(names), *character.face_vertices.shape))
+    targets[:] = character.face_vertices
+    for row, name in enumerate(chosen, start=1):
+        targets[row] += character.expressions[name].face_displacement
     report = pair_report(
         character.names,
         paired,
@@ -262,7 +325,7 @@ def character_example_set(
     example_set = ExampleSet(
         names=tuple(names),
         source_points=np.stack(sources),
-        target_vertices=np.stack(targets),
+        target_vertices=targets,
         target_faces=character.face_faces,
         stable_points=stable,
     )

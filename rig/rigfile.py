@@ -16,10 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import RigFileError
-from ..radial import KERNELS
-from ..rig import Rig, WeightModel
-from .rigformat import (
+from .errors import RigFileError
+from .io.rigformat import (
     DEFAULT_MAX_BYTES,
     FORMAT_NAME,
     FORMAT_VERSION,
@@ -30,6 +28,8 @@ from .rigformat import (
     rig_to_bytes,
     save_rig,
 )
+from .radial import KERNELS
+from .rig import Rig, WeightModel
 
 __all__ = [
     "FORMAT_NAME",

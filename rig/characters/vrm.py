@@ -34,12 +34,21 @@ _MAX_ITEMS = 50
 @dataclass(frozen=True)
 class VrmExpression:
     """One VRM expression: ``name`` as authored, ``preset`` (VRM 1.0 name) or None for a
-    custom one, and its morph binds as ``(mesh index, morph index, weight in [0, 1])``."""
+    custom one, and its morph binds as ``(mesh index, morph index, weight in [0, 1])``;
+    ``materials``: whether it changes materials too (VRM 1.0 ``materialColorBinds`` or
+    ``textureTransformBinds``, VRM 0.x ``materialValues``), for the pairing report."""
 
     name: str
     preset: str | None
     binds: tuple[tuple[int, int, float], ...]
     version: Literal["vrm0", "vrm1"]
+    materials: bool = False
+
+
+def _has_items(expression: object, *keys: str) -> bool:
+    return isinstance(expression, dict) and any(
+        isinstance(expression.get(k), list) and expression.get(k) for k in keys
+    )
 
 
 def vrm_format(doc: dict[str, Any]) -> Literal["gltf", "vrm0", "vrm1"]:
@@ -159,7 +168,11 @@ def _vrm1(
                 )
             found.append(
                 VrmExpression(
-                    str(name), str(name) if group == "preset" else None, tuple(checked), "vrm1"
+                    str(name),
+                    str(name) if group == "preset" else None,
+                    tuple(checked),
+                    "vrm1",
+                    _has_items(expression, "materialColorBinds", "textureTransformBinds"),
                 )
             )
     return tuple(found)
@@ -200,6 +213,7 @@ def _vrm0(block: dict[str, Any], targets: list[int], label: str) -> tuple[VrmExp
                 str(preset) if isinstance(preset, str) and preset.lower() != "unknown" else None,
                 tuple(checked),
                 "vrm0",
+                _has_items(group, "materialValues"),
             )
         )
     return tuple(found)

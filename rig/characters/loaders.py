@@ -19,10 +19,10 @@ import numpy as np
 
 from ..errors import ExampleSetError
 from ..examples import ExampleSet
+from ..io.meshio import read_obj, read_obj_vertices, read_points
 from .character import load_character
 from .character_examples import character_example_set, folder_stable_points
 from .expression_names import normalise_name
-from .meshio import read_obj, read_obj_vertices, read_points
 
 __all__ = ["load_example_set"]
 

@@ -1,7 +1,7 @@
 """Expression names as characters spell them, normalised to one vocabulary.
 
 Maps ARKit camelCase, Perfect Sync capitals, ``_L``/``_R`` suffixes, VRM 0.x and 1.0
-presets and VRoid's ``Fcl_`` clips onto ARKit's 52 names or VRM 1.0's preset names (the
+presets, VRoid's ``Fcl_`` clips and Oculus visemes onto ARKit's 52 names or VRM 1.0's preset names (the
 table is docs/characters.md); it reads no file and knows nothing of meshes.
 """
 
@@ -71,6 +71,15 @@ _FCL_CLIPS = {
     "fcl_eye_close": "blink", "fcl_eye_close_l": "blinkLeft", "fcl_eye_close_r": "blinkRight",
 }  # fmt: skip
 
+# Oculus (Meta) visemes, as Ready Player Me and other lip-sync rigs name their morph
+# targets: the five vowels are VRM's (aa あ, E え, I い, O お, U う); silence is the rest
+# pose. The consonants (viseme_PP, _FF, _TH, _DD, _kk, _CH, _SS, _nn, _RR) have no preset
+# and keep their own names.
+_VISEMES = {
+    "viseme_sil": "neutral",
+    "viseme_aa": "aa", "viseme_e": "ee", "viseme_i": "ih", "viseme_o": "oh", "viseme_u": "ou",
+}  # fmt: skip
+
 # Side suffixes, tried on the key (lower case, separators kept): _L, .L, -L, Left, _Left...
 _SIDE = re.compile(r"(?:[_.\- ]?(left|right)|[_.\-](l|r))$")
 
@@ -107,7 +116,8 @@ def vrm0_preset(preset: str) -> str | None:
 def normalise_name(name: str) -> NameMatch:
     """The ARKit name or VRM preset ``name`` stands for, and which rule matched.
 
-    Rules, in order: a VRoid ``Fcl_`` clip with a preset twin; an ARKit name compared
+    Rules, in order: a VRoid ``Fcl_`` clip with a preset twin; an Oculus vowel viseme
+    (``viseme_aa``, ``viseme_E``, ``viseme_I``, ``viseme_O``, ``viseme_U``); an ARKit name compared
     without case, separators and with ``_L``/``_R``/``Left``/``Right`` suffixes unified
     (``JawOpen``, ``eyeBlink_L``, ``EyeBlinkLeft``); a VRM 1.0 preset or a VRM 0.x preset
     name (``A``, ``Joy``, ``Blink_L``); the same after dropping an exporter's prefix up to
@@ -120,6 +130,9 @@ def normalise_name(name: str) -> NameMatch:
     fcl = _FCL_CLIPS.get(stripped.lower())
     if fcl is not None:
         return NameMatch(fcl, "VRoid Fcl_ clip")
+    viseme = _VISEMES.get(stripped.lower())
+    if viseme is not None:
+        return NameMatch(viseme, "Oculus viseme")
     if stripped.lower().startswith("fcl_"):
         return NameMatch(
             None,

@@ -1,0 +1,388 @@
+"""Hostile glTF/GLB uploads (issue #31 part A): sizes declared in a few bytes, node graphs
+that are not trees, URIs leaving the file, wrongly typed fields.
+
+Each body is a tiny GLB written here with struct and json, sent to a real server on both
+upload paths (a character with expressions, and a transfer job's): every one is refused
+with a named 4xx before anything is allocated for it, nothing is stored, and the server's
+peak memory (VmHWM, reset before each upload) hardly moves.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from facecast.rig.sources.ict import locate_ict
+from facecast.server.settings import Settings
+from facecast.server.testing import run_server
+from tests.viewer._character import build_character
+
+pytestmark = pytest.mark.anyio
+
+MiB = 1 << 20
+
+
+def glb(doc: dict[str, Any], blob: bytes = b"") -> bytes:
+    """A glTF binary: the JSON chunk, and a BIN chunk when ``blob`` is given."""
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    blob += b"\0" * (-len(blob) % 4)
+    chunks = struct.pack("<I4s", len(text), b"JSON") + text
+    if blob:
+        chunks += struct.pack("<I4s", len(blob), b"BIN\0") + blob
+    return struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks
+
+
+def triangle() -> tuple[dict[str, Any], bytes]:
+    """One triangle with a ``jawOpen`` morph target: the document and its BIN chunk."""
+    positions = struct.pack("<9f", 0, 0, 0, 1, 0, 0, 0, 1, 0)
+    delta = struct.pack("<9f", 0, 0, 0.1, 0, 0, 0.1, 0, 0, 0.1)
+    doc = {
+        "asset": {"version": "2.0"},
+        "buffers": [{"byteLength": 72}],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": 36},
+            {"buffer": 0, "byteOffset": 36, "byteLength": 36},
+        ],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3"},
+            {"bufferView": 1, "componentType": 5126, "count": 3, "type": "VEC3"},
+        ],
+        "meshes": [
+            {
+                "primitives": [{"attributes": {"POSITION": 0}, "targets": [{"POSITION": 1}]}],
+                "extras": {"targetNames": ["jawOpen"]},
+            }
+        ],
+        "nodes": [{"mesh": 0}],
+        "scenes": [{"nodes": [0]}],
+        "scene": 0,
+    }
+    return doc, positions + delta
+
+
+def zeros_position(count: int) -> bytes:
+    """The issue's 396-byte body: POSITION (and its morph) without a bufferView, ``count``
+    vertices of zeros."""
+    doc, _ = triangle()
+    doc.pop("buffers"), doc.pop("bufferViews")
+    for accessor in doc["accessors"]:
+        accessor.pop("bufferView")
+        accessor["count"] = count
+    return glb(doc)
+
+
+def edited(edit) -> bytes:
+    doc, blob = triangle()
+    edit(doc)
+    return glb(doc, blob)
+
+
+def zero_indices(count: int) -> Any:
+    def edit(doc: dict[str, Any]) -> None:
+        doc["accessors"].append({"componentType": 5125, "count": count, "type": "SCALAR"})
+        doc["meshes"][0]["primitives"][0]["indices"] = 2
+
+    return edit
+
+
+def many_targets(doc: dict[str, Any]) -> None:
+    # 5,000 targets of 3 vertices, each an accessor of zeros declaring 2,000 vertices.
+    doc["accessors"][0]["count"] = 3
+    doc["accessors"].append({"componentType": 5126, "count": 3, "type": "VEC3"})
+    doc["meshes"][0]["primitives"][0]["targets"] = [{"POSITION": 2}] * 5000
+
+
+def nodes(count: int) -> Any:
+    return lambda doc: doc.update(nodes=[{"mesh": 0}] + [{} for _ in range(count - 1)])
+
+
+def chain(depth: int) -> Any:
+    def edit(doc: dict[str, Any]) -> None:
+        doc["nodes"] = [{"children": [i + 1]} for i in range(depth - 1)] + [{"mesh": 0}]
+
+    return edit
+
+
+#: Bodies declaring more than a default ``max_gltf_*`` allows: (body, the setting named).
+OVER_LIMITS = {
+    "33M zero vertices": (zeros_position(33_300_000), "max_gltf_accessor_values"),
+    "2M zero vertices": (zeros_position(2_000_000), "max_gltf_vertices"),
+    "99,999,999 indices": (edited(zero_indices(99_999_999)), "max_gltf_accessor_values"),
+    "2M + 1 triangles": (edited(zero_indices(6_000_003)), "max_gltf_faces"),
+    "5000 morph targets": (edited(many_targets), "max_gltf_morph_targets"),
+    "200,000 nodes": (edited(nodes(200_000)), "max_gltf_nodes"),
+    "a 20,000-deep chain": (edited(chain(20_000)), "max_gltf_depth"),
+    "[{},{},...] JSON": (
+        glb({"asset": {"version": "2.0"}, "extras": [{}] * 2_000_000}),
+        "max_gltf_json_values",
+    ),
+}
+
+
+def _second_mesh_on(uri: str) -> Any:
+    """A second mesh whose POSITION lies in buffer 1 (or 0) named by ``uri``."""
+
+    def edit(doc: dict[str, Any]) -> None:
+        doc["buffers"].append({"byteLength": 36, "uri": uri})
+        doc["bufferViews"].append({"buffer": 1, "byteLength": 36})
+        doc["accessors"].append(
+            {"bufferView": 2, "componentType": 5126, "count": 3, "type": "VEC3"}
+        )
+        doc["meshes"].append({"primitives": [{"attributes": {"POSITION": 2}}]})
+        doc["nodes"].append({"mesh": 1})
+        doc["scenes"][0]["nodes"].append(1)
+
+    return edit
+
+
+def _buffer_zero_uri(doc: dict[str, Any]) -> None:
+    # The issue's body: a BIN chunk, yet buffers[0] also names a URL a second mesh uses.
+    doc["buffers"][0]["uri"] = "http://127.0.0.1:9/steal.bin"
+    doc["buffers"][0]["byteLength"] = 108
+    doc["bufferViews"].append({"buffer": 0, "byteOffset": 72, "byteLength": 36})
+    doc["accessors"].append({"bufferView": 2, "componentType": 5126, "count": 3, "type": "VEC3"})
+    doc["meshes"].append({"primitives": [{"attributes": {"POSITION": 2}}]})
+    doc["nodes"].append({"mesh": 1})
+
+
+#: Malformed bodies: (edit of the triangle, the code, a phrase of the detail).
+MALFORMED = {
+    "buffer 0 with a BIN chunk and a URL": (_buffer_zero_uri, "external_uri", "127.0.0.1:9"),
+    "buffer 1 a URL": (_second_mesh_on("https://example.com/b.bin"), "external_uri", "example"),
+    "an image URL": (
+        lambda doc: doc.update(images=[{"uri": "http://example.com/skin.png"}]),
+        "external_uri",
+        "skin.png",
+    ),
+    "a URI in an extension": (
+        lambda doc: doc.update(extensions={"KHR_audio": {"audio": [{"uri": "//x.example/a"}]}}),
+        "external_uri",
+        "x.example",
+    ),
+    "buffer 0 with a BIN chunk and a data URI": (
+        lambda doc: doc["buffers"][0].update(uri="data:application/octet-stream;base64,AAAA"),
+        "bad_gltf",
+        "BIN chunk",
+    ),
+    "bufferView byteLength 2^40": (
+        lambda doc: doc["bufferViews"][0].update(byteLength=2**40),
+        "bad_gltf",
+        "bufferView 0",
+    ),
+    "count as a string": (
+        lambda doc: doc["accessors"][0].update(count="3"),
+        "bad_gltf",
+        "not an integer",
+    ),
+    "accessor past its view": (
+        lambda doc: doc["accessors"][1].update(byteOffset=4),
+        "bad_gltf",
+        "runs past its bufferView",
+    ),
+    "nodes 0 <-> 1": (
+        lambda doc: doc.update(nodes=[{"mesh": 0, "children": [1]}, {"children": [0]}]),
+        "bad_gltf",
+        "tree",
+    ),
+    "a self-loop": (
+        lambda doc: doc.update(nodes=[{"mesh": 0}, {"children": [1]}]),
+        "bad_gltf",
+        "tree",
+    ),
+    "a node with two parents": (
+        lambda doc: doc.update(nodes=[{"mesh": 0}, {"children": [0]}, {"children": [0]}]),
+        "bad_gltf",
+        "two parents",
+    ),
+    "weights not a list": (
+        lambda doc: doc["nodes"][0].update(weights=5),
+        "bad_gltf",
+        "weights",
+    ),
+}
+
+
+def client(server) -> httpx.AsyncClient:
+    return httpx.AsyncClient(base_url=server.base_url, timeout=60)
+
+
+def reset_peak() -> int:
+    """Reset this process's peak RSS (the server runs in it) and return the current RSS."""
+    Path("/proc/self/clear_refs").write_text("5")
+    return _status("VmRSS")
+
+
+def _status(field: str) -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) * 1024
+    raise AssertionError(f"no {field} in /proc/self/status")
+
+
+async def test_declared_sizes_over_the_limits_are_refused_before_anything_is_allocated(
+    tmp_path,
+):
+    settings = Settings(rigs_dir=tmp_path / "rigs")
+    async with run_server(settings) as server, client(server) as http:
+        answers = {}
+        for name, (body, _) in OVER_LIMITS.items():
+            before = reset_peak()
+            started = time.perf_counter()
+            response = await http.put("/v1/characters/hostile", content=body)
+            seconds = time.perf_counter() - started
+            answers[name] = (response, seconds, _status("VmHWM") - before, len(body))
+        listed = (await http.get("/v1/rigs")).json()
+
+    for name, (response, seconds, grown, size) in answers.items():
+        problem = response.json()
+        assert (response.status_code, problem["code"]) == (422, "gltf_exceeds_limits"), (
+            name,
+            problem,
+        )
+        assert OVER_LIMITS[name][1] in problem["detail"], (name, problem)
+        # Refused from what the file declares: time and memory of the order of its bytes
+        # (the 33 M vertices took 4.7 GB and 15 s; 200,000 nodes took minutes).
+        assert seconds < 5, (name, seconds)
+        assert grown < 64 * MiB + 20 * size, (name, grown / MiB)
+    assert listed["rigs"] == []
+    assert not list(settings.rigs_dir.glob("*.character"))
+
+
+async def test_a_file_at_the_node_limit_is_read_in_linear_time(tmp_path):
+    # pygltflib's objects cost ~0.33 ms a node, twice per upload: 20,000 took 14 s.
+    body = edited(nodes(20_000))
+    settings = Settings(rigs_dir=tmp_path / "rigs")
+    async with run_server(settings) as server, client(server) as http:
+        started = time.perf_counter()
+        response = await http.put("/v1/characters/many", content=body)
+        seconds = time.perf_counter() - started
+
+    assert response.status_code == 201, response.json()
+    assert seconds < 5, seconds
+
+
+@pytest.mark.parametrize("name", sorted(MALFORMED))
+async def test_malformed_declarations_are_refused_with_a_code_and_nothing_stored(name, tmp_path):
+    edit, code, phrase = MALFORMED[name]
+    settings = Settings(rigs_dir=tmp_path / "rigs")
+    async with run_server(settings) as server, client(server) as http:
+        response = await http.put("/v1/characters/hostile", content=edited(edit))
+        listed = (await http.get("/v1/rigs")).json()
+
+    problem = response.json()
+    assert (response.status_code, problem["code"]) == (422, code), problem
+    assert phrase in problem["detail"], problem
+    assert listed["rigs"] == []
+
+
+@pytest.mark.ict
+@pytest.mark.skipif(locate_ict() is None, reason="ICT-FaceKit not found")
+async def test_the_transfer_path_refuses_the_same_before_any_job(tmp_path):
+    settings = Settings(rigs_dir=tmp_path / "rigs")
+    transfer = {"expressions": "transfer"}
+    async with run_server(settings) as server, client(server) as http:
+        before = reset_peak()
+        started = time.perf_counter()
+        zeros = await http.put(
+            "/v1/characters/hostile", params=transfer, content=zeros_position(33_300_000)
+        )
+        seconds = time.perf_counter() - started
+        grown = _status("VmHWM") - before
+        faces = await http.put(
+            "/v1/characters/hostile", params=transfer, content=edited(zero_indices(6_000_003))
+        )
+        cycle = await http.put(
+            "/v1/characters/hostile", params=transfer, content=edited(MALFORMED["nodes 0 <-> 1"][0])
+        )
+        job = await http.get("/v1/characters/hostile/job")
+
+    assert (zeros.status_code, zeros.json()["code"]) == (422, "gltf_exceeds_limits")
+    assert (faces.status_code, faces.json()["code"]) == (422, "gltf_exceeds_limits")
+    assert "max_gltf_faces" in faces.json()["detail"]
+    assert (cycle.status_code, cycle.json()["code"]) == (422, "bad_gltf")
+    assert (job.status_code, job.json()["code"]) == (404, "no_job")  # no job ever existed
+    assert seconds < 5 and grown < 64 * MiB, (seconds, grown / MiB)
+
+
+def declared(doc: dict[str, Any], text: bytes) -> dict[str, int]:
+    """What a document declares, counted as ``GltfLimits`` documents each limit."""
+    sizes = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+    accessors = doc["accessors"]
+    children = {c for node in doc["nodes"] for c in node.get("children", [])}
+    level = [i for i in range(len(doc["nodes"])) if i not in children]
+    depth = 0
+    while level:
+        depth += 1
+        level = [c for i in level for c in doc["nodes"][i].get("children", [])]
+    prims = [p for mesh in doc["meshes"] for p in mesh["primitives"]]
+    per_mesh = [{p["attributes"]["POSITION"] for p in mesh["primitives"]} for mesh in doc["meshes"]]
+    targets = [max(len(p.get("targets", [])) for p in m["primitives"]) for m in doc["meshes"]]
+    return {
+        "json_values": sum(text.count(c) for c in (b"[", b",", b":", b"{")) + 1,
+        "nodes": len(doc["nodes"]),
+        "depth": depth,
+        "meshes": len(doc["meshes"]),
+        "primitives": len(prims),
+        "vertices": sum(accessors[i]["count"] for i in set().union(*per_mesh)),
+        "faces": sum(
+            (accessors[p["indices"]]["count"] if "indices" in p else 0) // 3 for p in prims
+        ),
+        "morph_targets": max(targets),
+        "morph_values": sum(
+            t * sum(accessors[i]["count"] for i in used)
+            for t, used in zip(targets, per_mesh, strict=True)
+        ),
+        "accessor_values": sum(a["count"] * sizes[a["type"]] for a in accessors),
+    }
+
+
+async def test_each_limit_is_its_setting_at_the_limit_and_one_past(tmp_path):
+    body = build_character("gltf").glb
+    (length,) = struct.unpack_from("<I", body, 12)
+    text = body[20 : 20 + length]
+    exact = {f"max_gltf_{k}": v for k, v in declared(json.loads(text), text).items()}
+    at_limit = Settings(rigs_dir=tmp_path / "rigs", **exact)
+    async with run_server(at_limit) as server, client(server) as http:
+        stored = await http.put("/v1/characters/ok", content=body)
+    past = {}
+    for name, value in exact.items():
+        one_past = Settings(rigs_dir=tmp_path / name, **{**exact, name: value - 1})
+        async with run_server(one_past) as server, client(server) as http:
+            past[name] = await http.put("/v1/characters/ok", content=body)
+
+    assert stored.status_code == 201, stored.json()
+    for name, response in past.items():
+        problem = response.json()
+        assert (response.status_code, problem["code"]) == (422, "gltf_exceeds_limits"), name
+        assert name in problem["detail"], (name, problem)
+
+
+def mixing_expressions(count: int) -> bytes:
+    """A VRM 1.0 triangle with ``count`` expressions each binding its morph at 0.5: every
+    one needs a face-sized array of its own."""
+
+    def edit(doc: dict[str, Any]) -> None:
+        binds = [{"node": 0, "index": 0, "weight": 0.5}]
+        custom = {f"half{i}": {"morphTargetBinds": binds} for i in range(count)}
+        doc["extensions"] = {"VRMC_vrm": {"specVersion": "1.0", "expressions": {"custom": custom}}}
+
+    return edited(edit)
+
+
+async def test_expressions_mixing_morphs_are_bounded_as_morph_values(tmp_path):
+    # The triangle's 3 vertices: 10 mixing expressions are 30 values, 11 are 33.
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_gltf_morph_values=30)
+    async with run_server(settings) as server, client(server) as http:
+        at_limit = await http.put("/v1/characters/mix", content=mixing_expressions(10))
+        past = await http.put("/v1/characters/mix", content=mixing_expressions(11))
+
+    assert at_limit.status_code == 201, at_limit.json()  # its jawOpen morph is fitted
+    assert (past.status_code, past.json()["code"]) == (422, "gltf_exceeds_limits")
+    assert "max_gltf_morph_values" in past.json()["detail"]

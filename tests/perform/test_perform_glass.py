@@ -1,0 +1,169 @@
+"""Glass to glass through the real pages (PROTOCOL.md §5.4): /perform on a fake camera, a real
+server, /viewer pages in another browser context reading `window.liveLatency()`.
+"""
+
+from __future__ import annotations
+
+import time
+
+import httpx
+import numpy as np
+import pytest
+from websockets.sync.client import connect
+
+from facecast.protocol import SUBPROTOCOL, Frame, Hello, Ready, decode_server, encode
+from facecast.rig import fit
+from facecast.rig.demo import demo_example_set
+from facecast.rig.examples import ExampleSet
+from facecast.rig.sources.layouts import load_layout
+from facecast.server.channels.outbox import MAX_OUTBOX
+
+from .conftest import CHARACTER, FacePose, open_page
+
+#: A performer's own rig (the id has "@"): /perform publishes to it at once, no neutral asked.
+RIG = f"{CHARACTER}@glass"
+STAGES = ("track", "publish", "uplink", "server", "downlink", "draw")
+
+
+@pytest.fixture(scope="module")
+def glass_rig(rigs_dir) -> str:
+    demo = demo_example_set()
+    k = load_layout().num_features
+    examples = ExampleSet(
+        demo.names, demo.source_points[:, :k], demo.target_vertices, demo.target_faces
+    )
+    fit(examples).save(rigs_dir / f"{RIG}.rig")
+    return RIG
+
+
+def _perform(browser, server: str, channel: str, rig: str):
+    page = open_page(browser, f"{server}/perform?channel={channel}&rig={rig}")
+    page.wait_for_function("window.facecastStats.publish === 'live'")
+    page.wait_for_function("window.facecastStats.published > 0", timeout=90_000)
+    return page
+
+
+def _viewer(browser, server: str, channel: str, rig: str):
+    return open_page(browser, f"{server}/viewer?channel={channel}&rig={rig}", camera=False)
+
+
+def _drawn(page, frames: int) -> dict:
+    page.wait_for_function(
+        f"window.liveLatency && window.liveLatency().frames >= {frames}", timeout=90_000
+    )
+    return page.evaluate("window.liveLatency()")
+
+
+def test_the_stamps_survive_the_path_and_add_up_to_capture_to_drawn(
+    browser, server, camera, pages, glass_rig
+):
+    camera.show([FacePose()] * 25 + [FacePose(mouth=14.0)] * 25)
+    pages.append(perform := _perform(browser, server, "glass", glass_rig))
+    pages.append(viewer := _viewer(browser, server, "glass", glass_rig))
+    report = _drawn(viewer, 30)
+    performer = perform.evaluate("window.facecastStats")
+
+    glass = report["glassToGlass"]
+    assert 0 < glass["p50"] <= glass["p99"] < 10_000
+    for name in STAGES:
+        assert report["stages"][name]["n"] >= 30, name
+    # The tracker's stage holds the face model's run: capture really precedes tracking.
+    assert report["stages"]["track"]["p50"] >= 0.5 * performer["modelMs"]
+    # Every stage lies within capture → drawn; together they make it up (medians of
+    # sums are not sums of medians, so within a loose factor).
+    stage_sum = sum(report["stages"][name]["p50"] for name in STAGES)
+    assert 0.5 * glass["p50"] <= stage_sum <= 2.0 * glass["p50"]
+    # One machine: the estimated clock offset is about 0 (pongs since the page opened).
+    assert abs(report["clockOffsetMs"]) < 50
+    assert performer["captureSource"] in ("frame timestamp", "video metadata")
+    # The HUD shows the figure.
+    viewer.wait_for_function(
+        "document.getElementById('stats').textContent.includes('capture→drawn')"
+    )
+
+
+def test_a_publisher_without_stamps_still_drives_the_viewer(browser, server, pages, glass_rig):
+    # An older publisher (no stamps): the viewer draws its frames and has no figures.
+    neutral = demo_example_set().source_points[0, : load_layout().num_features]
+    pages.append(viewer := _viewer(browser, server, "old", glass_rig))
+    viewer.wait_for_function("window.facecastStats.state === 'idle'")
+    ws_url = server.replace("http", "ws") + "/v1/channels/old/publish"
+    with connect(ws_url, subprotocols=[SUBPROTOCOL]) as ws:
+        ws.send(encode(Hello(rig=glass_rig)))
+        assert isinstance(decode_server(ws.recv(timeout=10)), Ready)
+        for seq in range(5):
+            points = neutral.astype(np.float32)
+            ws.send(encode(Frame(seq=seq, ts=float(seq), points=points)))
+        viewer.wait_for_function("window.facecastStats.frames >= 1")
+        viewer.wait_for_function("window.facecastStats.rendered >= 2")
+    report = viewer.evaluate("window.liveLatency()")
+    assert (report["frames"], report["received"]) == (0, 0)
+    assert viewer.errors == []
+
+
+def _freeze(page, seconds_of_frames: int, perform) -> None:
+    """Freeze ``page`` (CDP: no task runs, as in a background tab Chromium froze) while
+    ``perform`` publishes ``seconds_of_frames`` more frames, then thaw it."""
+    session = page.context.new_cdp_session(page)
+    published = perform.evaluate("window.facecastStats.published")
+    session.send("Page.setWebLifecycleState", {"state": "frozen"})
+    try:
+        perform.wait_for_function(
+            f"window.facecastStats.published >= {published + seconds_of_frames}",
+            timeout=90_000,
+        )
+    finally:
+        session.send("Page.setWebLifecycleState", {"state": "active"})
+        session.detach()
+
+
+def test_a_frozen_viewer_holds_nothing_back_and_draws_the_newest_frame_on_return(
+    browser, server, camera, pages, glass_rig
+):
+    camera.show([FacePose()] * 25 + [FacePose(mouth=14.0)] * 25)
+    pages.append(perform := _perform(browser, server, "frozen", glass_rig))
+    pages.append(awake := _viewer(browser, server, "frozen", glass_rig))
+    pages.append(frozen := _viewer(browser, server, "frozen", glass_rig))
+    _drawn(frozen, 5)
+    awake_before = awake.evaluate("window.liveLatency().drawn")
+
+    _freeze(frozen, 60, perform)
+    drawn = frozen.evaluate("window.liveLatency().drawn")
+    frozen.wait_for_function(f"window.liveLatency().drawn >= {drawn + 3}", timeout=60_000)
+    report = frozen.evaluate("window.liveLatency(true)")
+    channel = httpx.get(f"{server}/v1/channels/frozen").json()
+
+    # The backlog the browser held while frozen is replaced, not drawn: what is drawn
+    # next is a fresh frame (its capture under 2 s old), and the page's queue stayed bound.
+    latest = report["records"][-1]
+    assert latest["e2eMs"] is not None and latest["e2eMs"] < 2000
+    assert report["superseded"] >= 20
+    assert frozen.evaluate("window.liveLatency().drawn") - drawn >= 3
+    # The other viewer went on meanwhile; the server held no more than its bound for anyone.
+    assert awake.evaluate("window.liveLatency().drawn") > awake_before
+    assert channel["outbox_max"] <= MAX_OUTBOX
+    assert frozen.errors == [] and awake.errors == []
+
+
+def test_a_stalled_performer_page_sends_the_newest_camera_frame_when_it_returns(
+    browser, server, camera, pages, glass_rig
+):
+    # The tracker stalls (its page frozen) while the camera goes on: on return it takes
+    # the newest camera frame, not the one that waited since the stall.
+    camera.show([FacePose()] * 25 + [FacePose(mouth=14.0)] * 25)
+    pages.append(perform := _perform(browser, server, "stall", glass_rig))
+    pages.append(viewer := _viewer(browser, server, "stall", glass_rig))
+    _drawn(viewer, 5)
+    session = perform.context.new_cdp_session(perform)
+    session.send("Page.setWebLifecycleState", {"state": "frozen"})
+    # The stall itself is the stimulus: it lasts until the server has said face_lost
+    # and 3 s more (a stale frame would then be over 3 s old when drawn).
+    viewer.wait_for_function("window.facecastStats.state === 'idle'", timeout=60_000)
+    viewer.wait_for_function(f"Date.now() > {int(time.time() * 1000) + 3000}")
+    session.send("Page.setWebLifecycleState", {"state": "active"})
+    drawn = viewer.evaluate("window.liveLatency().drawn")
+    viewer.wait_for_function(f"window.liveLatency().drawn >= {drawn + 5}", timeout=60_000)
+    records = viewer.evaluate("window.liveLatency(true).records")[-5:]
+
+    for record in records:
+        assert record["e2eMs"] is not None and record["e2eMs"] < 2000, record
