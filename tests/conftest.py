@@ -14,7 +14,6 @@ import pytest  # noqa: E402
 
 from facecast.server.testing import WS_IMPLEMENTATIONS  # noqa: E402
 
-from ._ci_skips import fails_on_ci  # noqa: E402
 from ._perform_venv import require_perform_venv  # noqa: E402
 from ._requires import pytest_make_collect_report, pytest_runtest_makereport  # noqa: E402, F401
 
@@ -35,18 +34,3 @@ def perform_python() -> Path:
     """The interpreter of .venv-perform, checked once a session (a missing one fails the
     test under CI=true and skips it elsewhere)."""
     return require_perform_venv()
-
-
-@pytest.hookimpl(hookwrapper=True)
-def pytest_runtest_makereport(item, call):
-    """A test skipped for want of ICT-FaceKit fails under CI=true (``_ci_skips``)."""
-    outcome = yield
-    report = outcome.get_result()
-    if not report.skipped or hasattr(report, "wasxfail"):
-        return
-    longrepr = report.longrepr
-    reason = longrepr[2] if isinstance(longrepr, tuple) and len(longrepr) == 3 else str(longrepr)
-    message = fails_on_ci(str(reason), os.environ)
-    if message is not None:
-        report.outcome = "failed"
-        report.longrepr = message
