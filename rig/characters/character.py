@@ -240,7 +240,10 @@ def _still_expressions(found: dict[str, _Found], read: Callable[[int], MeshData]
         if binding.mesh not in largest:
             vertices, _, deltas, _ = read(binding.mesh)
             extent = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
-            offsets = np.linalg.norm(deltas, axis=2).max(axis=1) if deltas.size else deltas
+            # Squared lengths by einsum: norm(axis=2) squared all of (M, V, 3) in a
+            # temporary as large as the deltas (the peak of a large upload's read).
+            squared = np.einsum("mvk,mvk->mv", deltas, deltas) if deltas.size else deltas
+            offsets = np.sqrt(squared.max(axis=1)) if deltas.size else deltas
             largest[binding.mesh] = (np.asarray(offsets).reshape(-1), extent)
         offsets, extent = largest[binding.mesh]
         if binding.morph >= offsets.size:
