@@ -47,7 +47,14 @@ from .settings import Settings
 from .storage.rig_store import RigStore
 from .stream.route import router as stream_router
 
-__all__ = ["SESSIONS_STATE_KEY", "SETTINGS_ENV", "STOPPING_STATE_KEY", "app_from_env", "create_app"]
+__all__ = [
+    "SESSIONS_STATE_KEY",
+    "SETTINGS_ENV",
+    "STOPPING_STATE_KEY",
+    "abandoned_work",
+    "app_from_env",
+    "create_app",
+]
 
 log = logging.getLogger("facecast.server")
 
@@ -173,6 +180,17 @@ def create_app(settings: Settings) -> FastAPI:
     # send on untouched): it must see uvicorn's own send (server/transport.py).
     app.add_middleware(TransportSeam)
     return app
+
+
+def abandoned_work(app: FastAPI) -> list[str]:
+    """The daemon pools of a stopped app still running work (a parse, a fit, a job).
+
+    Their threads are daemons so that the process need not wait for them; but an
+    interpreter that finalises while one runs can fail its own exit (a flush of stdout
+    under a running thread exited 120), so ``runner.serve`` ends such a process at once.
+    """
+    pools = ("fit_executor", "small_fit_executor", "transfer_executor")
+    return [name for name in pools if getattr(app.state, name).busy()]
 
 
 def app_from_env() -> FastAPI:

@@ -26,6 +26,10 @@ T = TypeVar("T")
 _Item = tuple[Future[Any], Callable[..., Any], tuple[Any, ...], dict[str, Any]]
 
 
+#: How long an idle thread is given to take its stop sign from the queue and end.
+_SETTLE_SECONDS = 0.2
+
+
 class DaemonPool(Executor):
     """``threads`` daemon threads named ``name_<i>``, started on first use, FIFO."""
 
@@ -84,6 +88,11 @@ class DaemonPool(Executor):
         if wait:
             for thread in threads:
                 thread.join()
+
+    def busy(self) -> bool:
+        """Whether a thread is still running work (after ``shutdown``, idle ones end at
+        once: this asks whether any had work to abandon)."""
+        return not self.idle(_SETTLE_SECONDS)
 
     def idle(self, timeout: float) -> bool:
         """Whether every thread has ended within ``timeout`` s (after ``shutdown``)."""

@@ -13,6 +13,7 @@ import os
 import shutil
 import signal
 import socket
+import sys
 import tempfile
 import threading
 import time
@@ -25,7 +26,7 @@ import uvicorn
 from fastapi import FastAPI
 from prometheus_client.multiprocess import mark_process_dead
 
-from .app import SESSIONS_STATE_KEY, SETTINGS_ENV, STOPPING_STATE_KEY, create_app
+from .app import SESSIONS_STATE_KEY, SETTINGS_ENV, STOPPING_STATE_KEY, abandoned_work, create_app
 from .logs import uvicorn_log_config
 from .serving.http_guard import HTTP_IMPLEMENTATIONS, PendingConnections, guarded_http_protocol
 from .serving.ws_guard import guarded_ws_protocol
@@ -192,11 +193,26 @@ def serve(settings: Settings, *, ws: str = "auto") -> int:
     """Run the server in the foreground until SIGINT/SIGTERM; returns an exit status."""
     settings.check_startable()
     if settings.workers == 1:
-        server = FacecastServer(uvicorn_config(settings, create_app(settings), ws=ws))
+        app = create_app(settings)
+        server = FacecastServer(uvicorn_config(settings, app, ws=ws))
         with _signals_end_in_status():
             server.run()
-        return 0 if server.started else 1
+        status = 0 if server.started else 1
+        if server.started and (busy := abandoned_work(app)):
+            _exit_abandoning(status, busy)
+        return status
     return _serve_workers(settings, ws)
+
+
+def _exit_abandoning(status: int, busy: list[str]) -> None:
+    """End the process now, its logs flushed: work still runs in ``busy`` daemon pools,
+    and finalising the interpreter under them is not safe (``app.abandoned_work``)."""
+    log.info("exiting with work abandoned", extra={"event": "server.abandon", "pools": busy})
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(status)
 
 
 @contextlib.contextmanager

@@ -3,7 +3,8 @@
 Run by test_hostile_shutdown as ``python -m tests.hostile._held_fit_server RIGS PORT``: once
 the server is up, the app's fit pool is given work that blocks (a stand-in for the longest
 parse or fit an upload can cause, which no limit makes shorter than a shutdown should
-take), and ``held`` is printed when it has begun. Everything else is the real server.
+take), and ``held`` is printed when it has begun, ``queued`` when an upload's work has
+been queued behind it. Everything else is the real server.
 """
 
 from __future__ import annotations
@@ -39,7 +40,16 @@ def main() -> int:
     def occupy() -> None:
         while not (made and hasattr(made[0].state, "fit_executor")):
             threading.Event().wait(0.01)  # lifespan start-up: no event to wait on
-        made[0].state.fit_executor.submit(hold)
+        pool = made[0].state.fit_executor
+        pool.submit(hold)
+        submit = pool.submit
+
+        def submit_said(fn, /, *args, **kwargs):  # type: ignore[no-untyped-def]
+            future = submit(fn, *args, **kwargs)
+            print("queued", flush=True)  # an upload read whole, behind the held work
+            return future
+
+        pool.submit = submit_said
 
     threading.Thread(target=occupy, daemon=True).start()
     settings = Settings(host="127.0.0.1", port=port, rigs_dir=rigs, log_level="info")

@@ -23,6 +23,10 @@ pytestmark = pytest.mark.anyio
 
 #: asyncio's default high-water mark: a transport buffers this much before it pauses.
 HIGH_WATER = 64 * 1024
+#: asyncio's selector transports read at most this much at once (``max_size``), and the
+#: WebSocket protocol answers every ping of a read before the guard sees the first: the
+#: pongs of one read (never larger than their pings) go out in one write.
+READ_SIZE = 256 * 1024
 
 
 def refusal_bound(settings: Settings) -> float:
@@ -53,8 +57,9 @@ async def test_a_ping_flood_that_never_reads_cannot_grow_the_server_buffer(auth_
                 await asyncio.wait([flood], timeout=0.002)
             await flood
 
-    # 200 000 pongs would be 25 MB; the cap is the backlog allowed beyond a paused buffer.
-    assert peak <= auth_settings.max_pong_backlog + HIGH_WATER + 4096, peak
+    # 200 000 pongs would be 25 MB; the cap is the backlog allowed beyond a paused buffer,
+    # plus the pongs of the one read that paused it (seen: 155,424 bytes under load).
+    assert peak <= auth_settings.max_pong_backlog + HIGH_WATER + READ_SIZE, peak
 
 
 async def test_a_refused_connection_that_floods_pings_is_closed_in_bounded_time(

@@ -42,10 +42,10 @@ def test_a_morph_of_its_own_name_moved_by_a_paired_vrm_expression_says_so():
     def rename(gltf):  # the jawOpen morphs (face, teeth) under a name of their own, which
         # VRM aa binds: no ARKit jawOpen left to drive that motion, so aa is paired
         for mesh in gltf["meshes"][:2]:
-            mesh["extras"]["targetNames"][0] = "vrc.v_aa"
+            mesh["extras"]["targetNames"][0] = "MouthOpenTalk"
 
     character = load_character(_edited(build_character("vrm1").glb, rename), label="face.vrm")
-    entry = next(e for e in character.report.entries if e.authored == "vrc.v_aa")
+    entry = next(e for e in character.report.entries if e.authored == "MouthOpenTalk")
     other = next(e for e in character.report.entries if e.authored == "eyeBlinkLeft")
 
     assert not entry.paired
