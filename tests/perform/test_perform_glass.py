@@ -73,8 +73,10 @@ def test_the_stamps_survive_the_path_and_add_up_to_capture_to_drawn(
     # sums are not sums of medians, so within a loose factor).
     stage_sum = sum(report["stages"][name]["p50"] for name in STAGES)
     assert 0.5 * glass["p50"] <= stage_sum <= 2.0 * glass["p50"]
-    # One machine: the estimated clock offset is about 0 (pongs since the page opened).
-    assert abs(report["clockOffsetMs"]) < 50
+    # One machine: the true offset is about 0, and the estimate (the server's clock read
+    # somewhere inside the round trip it came from) is off by at most half that round trip
+    # (seen: 87 ms off on a 2-core machine under load, from a long round trip).
+    assert abs(report["clockOffsetMs"]) <= report["clockRttMs"] / 2 + 5
     assert performer["captureSource"] in ("frame timestamp", "video metadata")
     # The HUD shows the figure.
     viewer.wait_for_function(
