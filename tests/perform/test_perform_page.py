@@ -322,7 +322,9 @@ def test_a_lost_face_stops_publishing_and_watchers_get_face_lost(
         recorder.stop.set()
 
     assert stats["withFace"] < stats["tracked"]
-    assert stats["published"] == stats["withFace"]  # nothing is sent for a frame without a face
+    # Nothing is sent for a frame without a face; a frame with one is sent, or skipped while
+    # the socket still holds the one before (newest frame only, docs/latency.md).
+    assert stats["published"] + stats["skipped"] == stats["withFace"]
     assert "no face in view" in page.text_content("#track-state")
 
 
