@@ -160,15 +160,23 @@ class _Run:
         self.relay.wait_listening()
         self.loops: list[subprocess.Popen[bytes]] = []
         self._pw = sync_playwright().start()
+        chromium = _chromium_args(args.gpu_compositing)
+        # The performer and the audience are other machines: each its own browser, so its
+        # own GPU process (the face model's WebGL and the viewers' draws do not share one).
         self.browser = self._pw.chromium.launch(
             executable_path=chromium_path(), headless=True,
-            args=[*CHROMIUM_ARGS, "--use-fake-device-for-media-stream",
+            args=[*chromium, "--use-fake-device-for-media-stream",
                   f"--use-file-for-fake-video-capture={video}"],
         )  # fmt: skip
+        self.viewer_browser = self._pw.chromium.launch(
+            executable_path=chromium_path(), headless=True, args=list(chromium)
+        )
         self.performer_context = self.browser.new_context(
             viewport={"width": 960, "height": 540}, permissions=["camera"]
         )
-        self.viewer_context = self.browser.new_context(viewport={"width": 640, "height": 480})
+        self.viewer_context = self.viewer_browser.new_context(
+            viewport={"width": 640, "height": 480}
+        )
         self.perform = self.performer_context.new_page()
         self.viewers: list[Any] = []
 
@@ -186,10 +194,25 @@ class _Run:
         self.stop_loops()
         try:
             self.browser.close()
+            self.viewer_browser.close()
             self._pw.stop()
         finally:
             self.relay.stop()
             self.server.stop()
+
+
+def _chromium_args(gpu_compositing: bool) -> tuple[str, ...]:
+    """Chromium's flags for the pages: CHROMIUM_ARGS (WebGL through SwiftShader, pages
+    composited in software), or with ``gpu_compositing`` without ``--disable-gpu``.
+
+    In software, Chromium reads every WebGL canvas back on its page's main thread after a
+    draw (0.3-1.3 s a draw with 3-10 viewers on 2 cores), which no viewer with a GPU pays.
+    With GPU compositing SwiftShader composites in the GPU process, off the pages' main
+    threads (a draw then holds its page ~4 ms), but the same process also runs the face
+    model's WebGL, which it then slows 3-4x on 2 cores (docs/latency.md)."""
+    if not gpu_compositing:
+        return CHROMIUM_ARGS
+    return tuple(arg for arg in CHROMIUM_ARGS if arg != "--disable-gpu")
 
 
 def _open_pages(run: _Run, args: argparse.Namespace) -> None:
@@ -328,6 +351,7 @@ def _figures(
         },
         "viewers": n,
         "page": args.page,
+        "compositing": "gpu process (SwiftShader)" if args.gpu_compositing else "software",
         "load_loops": args.load,
         "seconds": seconds,
         "capture_source": p_after.get("captureSource"),
@@ -354,7 +378,8 @@ def _report(figures: dict[str, Any]) -> list[tuple[str, bool]]:
     parts = figures["floor_parts_ms"]
     print(
         f"\nglass to glass, {figures['viewers']} /{figures['page']} pages, "
-        f"{figures['seconds']:.0f} s, {figures['load_loops']} busy loops "
+        f"{figures['seconds']:.0f} s, {figures['load_loops']} busy loops, "
+        f"compositing: {figures['compositing']} "
         f"(capture times: {figures['capture_source']}, frames: {figures['frame_source']})"
     )
     print(f"{'stage':<10} {'p50':>8} {'p95':>8} {'p99':>8}   n")

@@ -200,7 +200,8 @@ def register(subparsers: Subparsers) -> None:
         help="glass to glass: /perform on a fake camera, a real server, N viewer pages",
         description=(
             "Render an ICT-FaceKit face as Chromium's fake camera, run /perform on it, a real "
-            "facecast serve and N viewer pages in another browser context; report each "
+            "facecast serve and N viewer pages in another browser (the audience's machine); "
+            "report each "
             "stage's p50/p95/p99 (captured, tracked, sent, server in, server out, received, "
             "drawn: PROTOCOL.md §5.4) and capture → drawn, frames lost per stage and the "
             "fps, beside a floor from the same run: the face model's time a frame + a bare "
@@ -218,6 +219,10 @@ def register(subparsers: Subparsers) -> None:
                       help="run N busy loops (default with the flag: 2) while measuring")  # fmt: skip
     live.add_argument("--video", metavar="Y4M",
                       help="the camera video to play (rendered there first when missing)")  # fmt: skip
+    live.add_argument("--gpu-compositing", action="store_true",
+                      help="composite the pages in Chromium's GPU process (SwiftShader) "
+                           "instead of in software, where each WebGL draw is read back on "
+                           "its page's main thread (docs/latency.md)")  # fmt: skip
     live.add_argument("--json", metavar="FILE", help="write the figures as JSON")
     live.set_defaults(func=_runner("live"))
 
