@@ -240,11 +240,13 @@ def _still_expressions(found: dict[str, _Found], read: Callable[[int], MeshData]
         if binding.mesh not in largest:
             vertices, _, deltas, _ = read(binding.mesh)
             extent = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
-            # Squared lengths by einsum: norm(axis=2) squared all of (M, V, 3) in a
-            # temporary as large as the deltas (the peak of a large upload's read).
-            squared = np.einsum("mvk,mvk->mv", deltas, deltas) if deltas.size else deltas
-            offsets = np.sqrt(squared.max(axis=1)) if deltas.size else deltas
-            largest[binding.mesh] = (np.asarray(offsets).reshape(-1), extent)
+            # One morph at a time, in float64: a temporary of all (M, V) squared lengths
+            # was the peak of a large upload's read (norm(axis=2) made one of (M, V, 3)).
+            offsets = np.zeros(len(deltas) if deltas.size else 0)
+            for t in range(len(offsets)):
+                one = deltas[t : t + 1].astype(np.float64)
+                offsets[t] = np.sqrt(np.einsum("mvk,mvk->mv", one, one).max())
+            largest[binding.mesh] = (offsets, extent)
         offsets, extent = largest[binding.mesh]
         if binding.morph >= offsets.size:
             return 0.0
@@ -400,8 +402,8 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
             displacement = deltas[mine[0].morph]  # a view: most expressions are one morph
         else:
             displacement = np.zeros_like(vertices)
-            for b in mine:
-                displacement += b.weight * deltas[b.morph]
+            for b in mine:  # in float64 whatever the deltas' dtype (read_mesh)
+                displacement += b.weight * deltas[b.morph].astype(np.float64)
         displacement.flags.writeable = False
         expressions[name] = Expression(name, bindings, displacement, found[name].origin)
     paired, unpaired = generic_pairing(expressions)

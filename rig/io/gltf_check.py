@@ -22,6 +22,7 @@ from .gltf_compression import MESHOPT, draco_extension, meshopt_extension
 __all__ = [
     "COMPONENT_SIZES",
     "TYPE_SIZES",
+    "Buffer",
     "GltfLimits",
     "check_document",
     "decode_data_uri",
@@ -35,6 +36,9 @@ COMPONENT_SIZES = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
 #: Components of each accessor type.
 TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 _INDEX_TYPES = (5121, 5123, 5125)
+#: A buffer's bytes: the GLB's BIN chunk is a view of the file's bytes (never a copy of
+#: them: it is most of a 64 MiB upload), a data URI's or a file's are bytes of their own.
+Buffer = bytes | memoryview
 
 _GLB_HEADER = struct.Struct("<4sII")
 _CHUNK = struct.Struct("<I4s")
@@ -96,8 +100,9 @@ def external_uri_error(uri: str, label: str, where: str = "outside the file") ->
 # -- the container ----------------------------------------------------------------------
 
 
-def split_glb(data: bytes, label: str) -> tuple[bytes, bytes | None]:
-    """The JSON and BIN chunks of a GLB, every length checked against the bytes there."""
+def split_glb(data: bytes, label: str) -> tuple[bytes, memoryview | None]:
+    """The JSON and BIN chunks of a GLB, every length checked against the bytes there; the
+    BIN chunk is a read-only view of ``data``, not a copy."""
     if len(data) < _GLB_HEADER.size:
         raise ExampleSetError(f"{label}: GLB cut short in its header", code="truncated_file")
     _magic, version, length = _GLB_HEADER.unpack_from(data)
@@ -109,7 +114,8 @@ def split_glb(data: bytes, label: str) -> tuple[bytes, bytes | None]:
             "(upload the whole file)",
             code="truncated_file",
         )
-    chunks: list[tuple[bytes, bytes]] = []
+    chunks: list[tuple[bytes, memoryview]] = []
+    whole = memoryview(data).toreadonly()
     pos = _GLB_HEADER.size
     while pos < length:
         if pos + _CHUNK.size > length:
@@ -123,12 +129,12 @@ def split_glb(data: bytes, label: str) -> tuple[bytes, bytes | None]:
                 f"{label}: GLB cut short: a chunk of {size} bytes runs past the end",
                 code="truncated_file",
             )
-        chunks.append((kind, data[start : start + size]))
+        chunks.append((kind, whole[start : start + size]))
         pos = start + size + (-size) % 4
     if not chunks or chunks[0][0] != b"JSON":
         raise ExampleSetError(f"{label}: GLB without a JSON chunk first", code="bad_gltf")
     blob = next((c for k, c in chunks[1:] if k == b"BIN\0"), None)
-    return chunks[0][1], blob
+    return bytes(chunks[0][1]), blob
 
 
 def parse_json(text: bytes, limits: GltfLimits, label: str) -> dict[str, Any]:
@@ -233,13 +239,13 @@ def _is_fallback(buffer: dict[str, Any]) -> bool:
 
 def _buffers(
     doc: dict[str, Any],
-    blob: bytes | None,
+    blob: Buffer | None,
     resolve: Callable[[str], bytes] | None,
     label: str,
-) -> tuple[list[bytes], list[int]]:
+) -> tuple[list[Buffer], list[int]]:
     """Each buffer's bytes (the BIN chunk, a data URI, or what ``resolve`` gives for a
     file; none for a meshopt fallback buffer), and the size its views may span."""
-    found: list[bytes] = []
+    found: list[Buffer] = []
     sizes: list[int] = []
     for number, buffer in enumerate(_list(doc, "buffers", label)):
         where = f"buffer {number}"
@@ -252,7 +258,7 @@ def _buffers(
         if uri is None:
             if number != 0 or blob is None:
                 raise _bad(label, f"{where} has no uri and is not the GLB's BIN chunk")
-            data = blob
+            data: Buffer = blob
         elif not isinstance(uri, str):
             raise _bad(label, f"{where} uri is not a string")
         elif number == 0 and blob is not None:
@@ -273,7 +279,7 @@ def _buffers(
 
 
 def _views(
-    doc: dict[str, Any], buffers: list[bytes], sizes: list[int], limits: GltfLimits, label: str
+    doc: dict[str, Any], buffers: list[Buffer], sizes: list[int], limits: GltfLimits, label: str
 ) -> list[dict[str, Any]]:
     views = _list(doc, "bufferViews", label)
     decoded = 0  # bytes meshopt views decode to: as many as accessor_values float32 values
@@ -531,19 +537,19 @@ def _images(doc: dict[str, Any], views: list[dict[str, Any]], label: str) -> Non
 
 def check_document(
     doc: dict[str, Any],
-    blob: bytes | None,
+    blob: Buffer | None,
     limits: GltfLimits,
     label: str,
     *,
     resolve: Callable[[str], bytes] | None = None,
-) -> list[bytes]:
+) -> list[Buffer]:
     """Check a parsed glTF document against its bytes and ``limits``; its buffers' bytes.
 
     Parameters
     ----------
     doc : dict
         The glTF JSON (``parse_json``).
-    blob : bytes or None
+    blob : bytes, memoryview or None
         The GLB's BIN chunk (buffer 0 when that has no uri); None for a .gltf.
     limits : GltfLimits
     label : str
@@ -555,8 +561,8 @@ def check_document(
 
     Returns
     -------
-    list of bytes
-        Each buffer's bytes: after this every bufferView lies in its buffer, every
+    list of Buffer
+        Each buffer's bytes (``blob`` itself for the BIN chunk): after this every bufferView lies in its buffer, every
         accessor (and sparse part) in its bufferView, every index is in range and of the
         right type, and the node graph is a tree.
 

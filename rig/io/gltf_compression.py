@@ -75,7 +75,7 @@ def draco_extension(primitive: Any) -> Mapping[str, Any] | None:
 def decode_meshopt_view(
     ext: Mapping[str, Any],
     view_length: int,
-    buffer: Callable[[int], bytes],
+    buffer: Callable[[int], bytes | memoryview],
     max_bytes: int,
     label: str,
 ) -> bytes:
@@ -137,7 +137,7 @@ def decode_meshopt_view(
         )
     try:
         rows = meshopt.decode_gltf_buffer(
-            data[offset : offset + length],
+            bytes(data[offset : offset + length]),
             count,
             stride,
             mode,
@@ -174,7 +174,7 @@ def _meshopt_rule(mode: str, chosen: str, stride: int, count: int, view_length: 
 
 
 def decode_draco(
-    data: bytes, position_id: int, vertices: int, corners: int | None, label: str
+    data: bytes | memoryview, position_id: int, vertices: int, corners: int | None, label: str
 ) -> DracoGeometry:
     """A Draco primitive's positions and triangle corners, checked against its accessors.
 

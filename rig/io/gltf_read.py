@@ -21,6 +21,7 @@ import numpy as np
 from ..errors import ExampleSetError
 from .gltf_check import (
     TYPE_SIZES,
+    Buffer,
     GltfLimits,
     check_document,
     external_uri_error,
@@ -51,6 +52,7 @@ __all__ = [
 ]
 
 TRIANGLES = 4
+_FLOAT = 5126
 
 _COMPONENT_DTYPES: dict[int, type[np.generic]] = {
     5120: np.int8,
@@ -74,7 +76,7 @@ class GltfDocument:
     """A checked glTF document: its JSON and each buffer's bytes (``check_document``)."""
 
     json: dict[str, Any]
-    buffers: list[bytes]
+    buffers: list[Buffer]
 
 
 def load_document(
@@ -93,7 +95,7 @@ def load_document(
             raise ExampleSetError(f"{label}: file not found", code="missing_file") from None
         except OSError as exc:
             raise ExampleSetError(f"{label}: cannot read ({exc})", code="missing_file") from None
-    blob: bytes | None = None
+    blob: memoryview | None = None
     if data[:4] == b"glTF":
         text, blob = split_glb(data, label)
     else:
@@ -201,8 +203,9 @@ class BufferReader:
             for primitive in mesh["primitives"]:
                 self.draco_geometry(primitive)
 
-    def accessor(self, index: int) -> np.ndarray:
-        """Decode accessor ``index`` into a (count, ncomp) array (float64 or int64)."""
+    def accessor(self, index: int, floats: type[np.floating[Any]] = np.float64) -> np.ndarray:
+        """Decode accessor ``index`` into a (count, ncomp) array: int64, or ``floats``
+        (float32 reads a float32 accessor as stored, without a float64 copy)."""
         acc = self.doc["accessors"][index]
         dtype = _COMPONENT_DTYPES[acc["componentType"]]
         ncomp = TYPE_SIZES[acc["type"]]
@@ -226,7 +229,7 @@ class BufferReader:
                 )
             out[where.astype(np.int64)] = found
         if np.issubdtype(dtype, np.floating):
-            return out.astype(np.float64)
+            return out.astype(floats, copy=False)
         if acc.get("normalized", False):
             # glTF 2.0 §3.11: normalized integers map to [0, 1] or [-1, 1].
             info = np.iinfo(out.dtype)
@@ -264,7 +267,8 @@ def read_glb_morph_targets(
         Unreadable file, no mesh with morph targets, non-triangle primitives, or
         primitives that disagree on the number of targets.
     """
-    return _read_chosen_mesh(path_or_bytes, _morph_mesh)
+    neutral, faces, deltas, names = _read_chosen_mesh(path_or_bytes, _morph_mesh)
+    return neutral, faces, deltas.astype(np.float64, copy=False), names
 
 
 def read_gltf_mesh(path_or_bytes: GltfSource) -> tuple[np.ndarray, np.ndarray]:
@@ -312,7 +316,16 @@ def read_mesh(
     mesh: dict[str, Any], reader: BufferReader, label: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
     """All triangle primitives of ``mesh`` (a mesh of the checked document ``reader``
-    reads) concatenated, with its morph targets (maybe 0)."""
+    reads) concatenated, with its morph targets (maybe 0).
+
+    Returns
+    -------
+    neutral : (V, 3) float64
+    faces : (F, 3) int64
+    deltas : (M, V, 3) float32 when every morph target is stored as float32 (the values
+        as stored), else float64
+    names : list of M str
+    """
     primitives = mesh["primitives"]
     num_targets = {len(p.get("targets", [])) for p in primitives}
     if len(num_targets) != 1:
@@ -322,9 +335,22 @@ def read_mesh(
             code="bad_gltf",
         )
     m = num_targets.pop()
+    accessors = reader.doc["accessors"]
+    # The deltas are the largest arrays a character upload makes: one array filled in
+    # place (no per-primitive arrays concatenated), float32 when every target is stored
+    # so (its values as they are, in half float64's bytes), else float64.
+    stored = [
+        accessors[target["POSITION"]]["componentType"]
+        for prim in primitives
+        for target in prim.get("targets", [])
+        if target.get("POSITION") is not None
+    ]
+    dtype = np.float32 if all(kind == _FLOAT for kind in stored) else np.float64
+    counts = {p["attributes"]["POSITION"]: accessors[p["attributes"]["POSITION"]]["count"]
+              for p in primitives}  # fmt: skip
+    all_deltas = np.zeros((m, sum(counts.values()), 3), dtype=dtype)
 
     positions: list[np.ndarray] = []
-    deltas: list[np.ndarray] = []
     faces: list[np.ndarray] = []
     first_vertex: dict[int, int] = {}
     vertex_count: dict[int, int] = {}
@@ -341,7 +367,7 @@ def read_mesh(
         if pos_index not in first_vertex:
             # Quantised positions (KHR_mesh_quantization) come as integers: as floats here.
             pos = (reader.accessor(pos_index) if draco is None else draco[0]).astype(np.float64)
-            if pos.shape[1] != 3:
+            if pos.shape[1] != 3 or pos.shape[0] != counts[pos_index]:
                 raise ExampleSetError(f"{label}: POSITION is not VEC3", code="bad_gltf")
             if not np.isfinite(pos).all():  # a float accessor, or a decoded one, may hold NaN
                 raise ExampleSetError(
@@ -351,11 +377,11 @@ def read_mesh(
             vertex_count[pos_index] = pos.shape[0]
             total += pos.shape[0]
             positions.append(pos)
-            prim_deltas = np.zeros((m, pos.shape[0], 3))
+            rows = slice(first_vertex[pos_index], total)
             for t, target in enumerate(prim.get("targets", [])):
                 t_pos = target.get("POSITION")
                 if t_pos is not None:
-                    d = reader.accessor(t_pos)
+                    d = reader.accessor(t_pos, floats=dtype)
                     if d.shape != pos.shape:
                         raise ExampleSetError(
                             f"{label}: morph target {t} is not VEC3 as POSITION is",
@@ -365,8 +391,7 @@ def read_mesh(
                         raise ExampleSetError(
                             f"{label}: morph target {t} has NaN or Inf offsets", code="non_finite"
                         )
-                    prim_deltas[t] = d
-            deltas.append(prim_deltas)
+                    all_deltas[t, rows] = d
         if prim.get("indices") is None:
             tri = np.arange(vertex_count[pos_index], dtype=np.int64)
         elif draco is not None and draco[1] is not None:
@@ -383,11 +408,8 @@ def read_mesh(
             )
         faces.append(tri.reshape(-1, 3) + first_vertex[pos_index])
 
-    # One primitive's arrays as they are: concatenating one copies it (the morph
-    # deltas are the largest arrays a character upload makes).
     neutral = positions[0] if len(positions) == 1 else np.concatenate(positions)
     all_faces = faces[0] if len(faces) == 1 else np.concatenate(faces)
-    all_deltas = deltas[0] if len(deltas) == 1 else np.concatenate(deltas, axis=1)
     return neutral, all_faces, all_deltas, target_names(mesh, m)
 
 
