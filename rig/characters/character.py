@@ -384,6 +384,18 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
     # a thousand binds at weight 0.5 would each allocate the whole face.
     mixed = sum(1 for b in on_face.values() if len(b) > 1 or (b and b[0].weight != 1.0))
     limit = (limits or GltfLimits()).morph_values
+    order = sorted(found, key=lambda n: _ORDER.get(n, len(_ORDER)))
+    paired, unpaired = generic_pairing(order)
+    # The fit's example set holds the face once per paired expression (float64 rows,
+    # character_example_set): bounded as morph targets are, or VRM expressions binding
+    # one morph under fifty names would each cost the whole face (a 1 M-vertex face: GBs).
+    if len(paired) * len(vertices) > limit:
+        raise ExampleSetError(
+            f"{label}: {len(paired)} expressions paired on a {len(vertices)}-vertex face "
+            f"declare more than {limit} values to fit, each a copy of the face (limit "
+            "max_gltf_morph_values)",
+            code="gltf_exceeds_limits",
+        )
     if mixed * len(vertices) > limit:
         raise ExampleSetError(
             f"{label}: {mixed} expressions mixing morph targets of a {len(vertices)}-vertex "
@@ -393,7 +405,7 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
     unmoved = np.zeros_like(vertices)
     unmoved.flags.writeable = False
     expressions = {}
-    for name in sorted(found, key=lambda n: _ORDER.get(n, len(_ORDER))):
+    for name in order:
         bindings = tuple(found[name].bindings)
         mine = on_face[name]
         if not mine:
@@ -406,7 +418,6 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
                 displacement += b.weight * deltas[b.morph].astype(np.float64)
         displacement.flags.writeable = False
         expressions[name] = Expression(name, bindings, displacement, found[name].origin)
-    paired, unpaired = generic_pairing(expressions)
     reported = _driven_through_vrm(entries, names, found, paired)
     vertices.flags.writeable = False
     return Character(

@@ -134,6 +134,7 @@ class BufferReader:
     def _view(
         self, view_index: int, offset: int, count: int, dtype: type[np.generic], ncomp: int
     ) -> np.ndarray:
+        """The elements as they lie in the file's bytes: a read-only view, not a copy."""
         view = self.doc["bufferViews"][view_index]
         itemsize = np.dtype(dtype).itemsize
         stride = view.get("byteStride") or itemsize * ncomp
@@ -143,7 +144,7 @@ class BufferReader:
             data, start = self.buffers[view["buffer"]], view.get("byteOffset", 0) + offset
         return np.ndarray(
             (count, ncomp), dtype=dtype, buffer=data, offset=start, strides=(stride, itemsize)
-        ).copy()
+        )
 
     def view_bytes(self, view_index: int) -> bytes:
         """A meshopt-compressed view's bytes, decoded once (bounded by ``decoded_left``)."""
@@ -210,12 +211,16 @@ class BufferReader:
         dtype = _COMPONENT_DTYPES[acc["componentType"]]
         ncomp = TYPE_SIZES[acc["type"]]
         count = acc["count"]
-        if acc.get("bufferView") is None:
-            out = np.zeros((count, ncomp), dtype=dtype)
-        else:
+        # A view of the file's bytes is copied once, by the conversion to what is returned.
+        stored = acc.get("bufferView") is not None
+        if stored:
             out = self._view(acc["bufferView"], acc.get("byteOffset", 0), count, dtype, ncomp)
+        else:
+            out = np.zeros((count, ncomp), dtype=dtype)
         sparse = acc.get("sparse")
         if sparse is not None:
+            if stored:
+                out, stored = out.copy(), False
             indices, values, n = sparse["indices"], sparse["values"], sparse["count"]
             idx_dtype = _COMPONENT_DTYPES[indices["componentType"]]
             where = self._view(
@@ -229,12 +234,13 @@ class BufferReader:
                 )
             out[where.astype(np.int64)] = found
         if np.issubdtype(dtype, np.floating):
-            return out.astype(floats, copy=False)
+            return out.astype(floats, copy=stored)
         if acc.get("normalized", False):
             # glTF 2.0 §3.11: normalized integers map to [0, 1] or [-1, 1].
-            info = np.iinfo(out.dtype)
-            return np.maximum(out.astype(np.float64) / info.max, -1.0)
-        return out.astype(np.int64)
+            scaled = out.astype(np.float64)
+            scaled /= np.iinfo(out.dtype).max
+            return np.maximum(scaled, -1.0, out=scaled)
+        return out.astype(np.int64, copy=stored)
 
 
 def read_glb_morph_targets(
@@ -349,9 +355,17 @@ def read_mesh(
     counts = {p["attributes"]["POSITION"]: accessors[p["attributes"]["POSITION"]]["count"]
               for p in primitives}  # fmt: skip
     all_deltas = np.zeros((m, sum(counts.values()), 3), dtype=dtype)
+    # The triangles too (F x 3 int64): one primitive's as read, several filled in place.
+    corners = [
+        accessors[p["indices"]]["count"] if p.get("indices") is not None else counts[pos]
+        for p in primitives
+        for pos in [p["attributes"]["POSITION"]]
+    ]
+    several = len(primitives) > 1
+    all_faces = np.empty((sum(c // 3 for c in corners) if several else 0, 3), dtype=np.int64)
+    row = 0
 
     positions: list[np.ndarray] = []
-    faces: list[np.ndarray] = []
     first_vertex: dict[int, int] = {}
     vertex_count: dict[int, int] = {}
     total = 0
@@ -366,7 +380,8 @@ def read_mesh(
         draco = reader.draco_geometry(prim)
         if pos_index not in first_vertex:
             # Quantised positions (KHR_mesh_quantization) come as integers: as floats here.
-            pos = (reader.accessor(pos_index) if draco is None else draco[0]).astype(np.float64)
+            read = reader.accessor(pos_index) if draco is None else draco[0].copy()
+            pos = read.astype(np.float64, copy=False)
             if pos.shape[1] != 3 or pos.shape[0] != counts[pos_index]:
                 raise ExampleSetError(f"{label}: POSITION is not VEC3", code="bad_gltf")
             if not np.isfinite(pos).all():  # a float accessor, or a decoded one, may hold NaN
@@ -395,7 +410,7 @@ def read_mesh(
         if prim.get("indices") is None:
             tri = np.arange(vertex_count[pos_index], dtype=np.int64)
         elif draco is not None and draco[1] is not None:
-            tri = draco[1]
+            tri = draco[1].copy()  # the reader keeps the decoded corners
         else:
             tri = reader.accessor(prim["indices"])[:, 0]
         if tri.size % 3:
@@ -406,10 +421,15 @@ def read_mesh(
             raise ExampleSetError(
                 f"{label}: primitive {number} has triangle indices out of range", code="bad_gltf"
             )
-        faces.append(tri.reshape(-1, 3) + first_vertex[pos_index])
+        tri = tri.reshape(-1, 3)
+        tri += first_vertex[pos_index]
+        if not several:
+            all_faces = tri
+        else:
+            all_faces[row : row + len(tri)] = tri
+            row += len(tri)
 
     neutral = positions[0] if len(positions) == 1 else np.concatenate(positions)
-    all_faces = faces[0] if len(faces) == 1 else np.concatenate(faces)
     return neutral, all_faces, all_deltas, target_names(mesh, m)
 
 

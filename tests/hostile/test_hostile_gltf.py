@@ -1,7 +1,7 @@
 """Hostile glTF/GLB uploads (issue #31 part A): sizes declared in a few bytes, node graphs
 that are not trees, URIs leaving the file, wrongly typed fields.
 
-Each body is a tiny GLB written here with struct and json, sent to a real server on both
+Each body is a tiny GLB written with struct and json (``_glb``), sent to a real server on both
 upload paths (a character with expressions, and a transfer job's): every one is refused
 with a named 4xx before anything is allocated for it, nothing is stored, and the server's
 peak memory (VmHWM, reset before each upload) hardly moves.
@@ -21,22 +21,12 @@ import pytest
 from facecast.rig.sources.ict import locate_ict
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
+from tests.hostile._glb import aliased, glb
 from tests.viewer._character import build_character
 
 pytestmark = pytest.mark.anyio
 
 MiB = 1 << 20
-
-
-def glb(doc: dict[str, Any], blob: bytes = b"") -> bytes:
-    """A glTF binary: the JSON chunk, and a BIN chunk when ``blob`` is given."""
-    text = json.dumps(doc).encode()
-    text += b" " * (-len(text) % 4)
-    blob += b"\0" * (-len(blob) % 4)
-    chunks = struct.pack("<I4s", len(text), b"JSON") + text
-    if blob:
-        chunks += struct.pack("<I4s", len(blob), b"BIN\0") + blob
-    return struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks
 
 
 def triangle() -> tuple[dict[str, Any], bytes]:
@@ -387,4 +377,20 @@ async def test_expressions_mixing_morphs_are_bounded_as_morph_values(tmp_path):
 
     assert at_limit.status_code == 201, at_limit.json()  # its jawOpen morph is fitted
     assert (past.status_code, past.json()["code"]) == (422, "gltf_exceeds_limits")
+    assert "max_gltf_morph_values" in past.json()["detail"]
+
+
+async def test_expressions_aliasing_one_morph_are_bounded_as_morph_values(tmp_path):
+    # Each ARKit-named VRM expression binds the one morph at weight 1: no array of its own
+    # when read, but a copy of the face in the fit (a 1 M-vertex face: 1.6 GB for 46 MB).
+    # 2,500 vertices: 10 paired expressions are 25,000 values, 11 are 27,500.
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_gltf_morph_values=25_000)
+    async with run_server(settings) as server, client(server) as http:
+        at_limit = await http.put("/v1/characters/alias", content=aliased(2_500, 10))
+        past = await http.put("/v1/characters/alias", content=aliased(2_500, 11))
+
+    assert at_limit.status_code == 201, at_limit.json()
+    assert len(at_limit.json()["names"]) == 11  # the neutral and the 10 expressions
+    assert (past.status_code, past.json()["code"]) == (422, "gltf_exceeds_limits"), past.json()
+    assert "11 expressions paired" in past.json()["detail"]
     assert "max_gltf_morph_values" in past.json()["detail"]
