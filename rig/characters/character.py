@@ -357,7 +357,7 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
         else e
         for e in entries
     ] + vrm_entries
-    reader = BufferReader(document, label)
+    reader = BufferReader(document, label, limits)
     reader.decode_all()  # a compressed part that does not decode is refused now (bounded)
     meshes: dict[int, MeshData] = {}
 

@@ -27,6 +27,7 @@ __all__ = [
     "check_document",
     "decode_data_uri",
     "external_uri_error",
+    "max_decoded_bytes",
     "parse_json",
     "split_glb",
 ]
@@ -75,6 +76,13 @@ class GltfLimits:
             value = getattr(self, f.name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"GltfLimits.{f.name}: expected an int >= 1, got {value!r}")
+
+
+def max_decoded_bytes(limits: GltfLimits) -> int:
+    """Most bytes the meshopt views of one document may decode to: 4 (a float32 or uint32)
+    for each value ``limits.accessor_values`` lets its accessors hold. The check holds the
+    views' declared sizes to it, and the reader (gltf_read.BufferReader) what it decodes."""
+    return 4 * limits.accessor_values
 
 
 def _bad(label: str, message: str) -> ExampleSetError:
@@ -282,7 +290,7 @@ def _views(
     doc: dict[str, Any], buffers: list[Buffer], sizes: list[int], limits: GltfLimits, label: str
 ) -> list[dict[str, Any]]:
     views = _list(doc, "bufferViews", label)
-    decoded = 0  # bytes meshopt views decode to: as many as accessor_values float32 values
+    decoded = 0  # bytes meshopt views decode to, at most max_decoded_bytes
     for number, view in enumerate(views):
         where = f"bufferView {number}"
         buffer = _index(view.get("buffer"), len(buffers), f"{where} buffer", label)
@@ -308,10 +316,10 @@ def _views(
             if start + size > len(buffers[source]):
                 raise _bad(label, f"{where}'s compressed bytes run past buffer {source}")
             decoded += length
-            if decoded > 4 * limits.accessor_values:
+            if decoded > max_decoded_bytes(limits):
                 raise _over(
                     label, "bytes of meshopt views to decode or more", decoded,
-                    4 * limits.accessor_values, "accessor_values (x 4 bytes)",
+                    max_decoded_bytes(limits), "accessor_values (x 4 bytes)",
                 )  # fmt: skip
         stride = view.get("byteStride")
         if stride is not None and (

@@ -78,7 +78,7 @@ def decode_meshopt_view(
     buffer: Callable[[int], bytes | memoryview],
     max_bytes: int,
     label: str,
-) -> bytes:
+) -> memoryview:
     """The bytes of a buffer view that ``EXT_meshopt_compression`` stores compressed.
 
     Parameters
@@ -97,8 +97,9 @@ def decode_meshopt_view(
 
     Returns
     -------
-    bytes
-        ``count * byteStride`` bytes, the view as it would be uncompressed.
+    memoryview
+        ``count * byteStride`` bytes, the view as it would be uncompressed (the decoder's
+        array, not a copy of it).
     """
     index = _int(ext.get("buffer"), "the meshopt view's buffer", label)
     offset = _int(ext.get("byteOffset", 0), "the meshopt view's byteOffset", label)
@@ -147,7 +148,8 @@ def decode_meshopt_view(
         raise ExampleSetError(
             f"{label}: a meshopt view does not decode ({exc})", code="bad_compression"
         ) from None
-    decoded = np.ascontiguousarray(rows).tobytes()
+    # The decoder's array itself, as bytes: a copy (tobytes) held it twice.
+    decoded = np.ascontiguousarray(rows).reshape(-1).view(np.uint8).data
     if len(decoded) != count * stride:  # the decoder's promise, checked rather than trusted
         raise ExampleSetError(
             f"{label}: a meshopt view decoded to {len(decoded)} bytes, not {count * stride}",

@@ -3,8 +3,8 @@
 Bounded reading of untrusted files: the document is checked whole first (``gltf_check``:
 every count, index and extent against its bytes and ``GltfLimits``), then read as plain
 JSON, in time linear in its size; compressed views and primitives (meshopt, Draco:
-gltf_compression.py) are checked against MAX_DECODED_BYTES and their accessors before they
-are decoded; quantised attributes (KHR_mesh_quantization) are read as stored. Errors are
+gltf_compression.py) are checked against ``max_decoded_bytes`` of the limits and their
+accessors before they are decoded; quantised attributes (KHR_mesh_quantization) are read as stored. Errors are
 ``ExampleSetError`` with a code. It does no writing (gltf_export.py), fitting or blending.
 """
 
@@ -25,6 +25,7 @@ from .gltf_check import (
     GltfLimits,
     check_document,
     external_uri_error,
+    max_decoded_bytes,
     parse_json,
     split_glb,
 )
@@ -37,7 +38,6 @@ from .gltf_compression import (
 )
 
 __all__ = [
-    "MAX_DECODED_BYTES",
     "TRIANGLES",
     "TYPE_SIZES",
     "BufferReader",
@@ -62,9 +62,6 @@ _COMPONENT_DTYPES: dict[int, type[np.generic]] = {
     5125: np.uint32,
     5126: np.float32,
 }
-#: Most bytes one read decodes out of compressed views (meshopt): 10^8 float32 values.
-#: Each view's declared size is checked against what is left before it is decoded.
-MAX_DECODED_BYTES = 400_000_000
 
 
 #: What the reader takes: a file's path or its bytes.
@@ -121,14 +118,21 @@ def _folder_reader(folder: Path, label: str) -> Callable[[str], bytes]:
 
 
 class BufferReader:
-    """Accessors of a checked document as arrays (every extent was checked before)."""
+    """Accessors of a checked document as arrays (every extent was checked before).
 
-    def __init__(self, document: GltfDocument, label: str) -> None:
+    Meshopt views are decoded within ``max_decoded_bytes(limits)`` (the limits the
+    document was checked with; their defaults without), each view's declared size
+    checked against what is left before it is decoded.
+    """
+
+    def __init__(
+        self, document: GltfDocument, label: str, limits: GltfLimits | None = None
+    ) -> None:
         self.doc = document.json
         self.buffers = document.buffers
         self.label = label
-        self.decoded: dict[int, bytes] = {}
-        self.decoded_left = MAX_DECODED_BYTES
+        self.decoded: dict[int, Buffer] = {}
+        self.decoded_left = max_decoded_bytes(GltfLimits() if limits is None else limits)
         self.draco: dict[int, DracoGeometry] = {}
 
     def _view(
@@ -146,24 +150,28 @@ class BufferReader:
             (count, ncomp), dtype=dtype, buffer=data, offset=start, strides=(stride, itemsize)
         )
 
-    def view_bytes(self, view_index: int) -> bytes:
-        """A meshopt-compressed view's bytes, decoded once (bounded by ``decoded_left``)."""
+    def view_bytes(self, view_index: int) -> Buffer:
+        """A meshopt-compressed view's bytes, decoded once and kept (bounded by
+        ``decoded_left``)."""
         if view_index not in self.decoded:
-            view = self.doc["bufferViews"][view_index]
-            ext = meshopt_extension(view)
-            assert ext is not None
-            if view.get("byteStride") is not None and view["byteStride"] != ext.get("byteStride"):
-                raise ExampleSetError(
-                    f"{self.label}: bufferView {view_index} byteStride {view['byteStride']} is "
-                    f"not its meshopt byteStride {ext.get('byteStride')}",
-                    code="bad_compression",
-                )
-            data = decode_meshopt_view(
-                ext, view["byteLength"], self.buffers.__getitem__, self.decoded_left, self.label
-            )
+            data = self._decode(view_index)
             self.decoded_left -= len(data)
             self.decoded[view_index] = data
         return self.decoded[view_index]
+
+    def _decode(self, view_index: int) -> Buffer:
+        view = self.doc["bufferViews"][view_index]
+        ext = meshopt_extension(view)
+        assert ext is not None
+        if view.get("byteStride") is not None and view["byteStride"] != ext.get("byteStride"):
+            raise ExampleSetError(
+                f"{self.label}: bufferView {view_index} byteStride {view['byteStride']} is "
+                f"not its meshopt byteStride {ext.get('byteStride')}",
+                code="bad_compression",
+            )
+        return decode_meshopt_view(
+            ext, view["byteLength"], self.buffers.__getitem__, self.decoded_left, self.label
+        )
 
     def draco_geometry(self, primitive: dict[str, Any]) -> DracoGeometry | None:
         """A Draco primitive's (positions, triangle corners), decoded once; None if the
@@ -196,10 +204,12 @@ class BufferReader:
 
     def decode_all(self) -> None:
         """Decode every compressed view and primitive of the file (each bounded), so that a
-        part that does not decode is found now, not by a viewer."""
+        part that does not decode is found now, not by a viewer. A meshopt view is decoded,
+        checked and let go (one at a time): only those an accessor is read from are kept
+        (``view_bytes``), not the normals, UVs and skins no fit reads."""
         for index, view in enumerate(self.doc.get("bufferViews", [])):
-            if meshopt_extension(view) is not None:
-                self.view_bytes(index)
+            if meshopt_extension(view) is not None and index not in self.decoded:
+                self._decode(index)
         for mesh in self.doc.get("meshes", []):
             for primitive in mesh["primitives"]:
                 self.draco_geometry(primitive)
@@ -421,13 +431,13 @@ def read_mesh(
             raise ExampleSetError(
                 f"{label}: primitive {number} has triangle indices out of range", code="bad_gltf"
             )
-        tri = tri.reshape(-1, 3)
-        tri += first_vertex[pos_index]
+        triangles = tri.reshape(-1, 3)
+        triangles += first_vertex[pos_index]
         if not several:
-            all_faces = tri
+            all_faces = triangles
         else:
-            all_faces[row : row + len(tri)] = tri
-            row += len(tri)
+            all_faces[row : row + len(triangles)] = triangles
+            row += len(triangles)
 
     neutral = positions[0] if len(positions) == 1 else np.concatenate(positions)
     return neutral, all_faces, all_deltas, target_names(mesh, m)

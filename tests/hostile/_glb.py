@@ -18,6 +18,7 @@ from facecast.rig.io.gltf import export_glb
 
 #: ARKit's gaze shapes: the generic pairing leaves them out (generic.GAZE_SHAPES).
 _GAZE = ("eyeLook",)
+_MESHOPT = "EXT_meshopt_compression"
 
 
 def glb(doc: dict[str, Any], blob: bytes = b"") -> bytes:
@@ -138,4 +139,51 @@ def aliased(vertices: int, expressions: int) -> bytes:
     custom = {name: {"morphTargetBinds": bind} for name in names[: expressions - 1]}
     doc["extensionsUsed"] = [*doc.get("extensionsUsed", []), "VRMC_vrm"]
     doc["extensions"] = {"VRMC_vrm": {"specVersion": "1.0", "expressions": {"custom": custom}}}
+    return glb(doc, blob)
+
+
+def meshopt_zeros(decoded: int, stride: int = 16) -> bytes:
+    """A 3-vertex face with a morph target, plus a bufferView that EXT_meshopt_compression
+    stores compressed: ``decoded`` bytes of zeros (rounded down to ``stride``) in about
+    ``decoded / 64`` bytes, in a fallback buffer, named by no accessor."""
+    import meshopt  # facecast's own dependency (rig/io/gltf_compression.py)
+
+    count = decoded // stride
+    positions = struct.pack("<9f", 0, 0, 0, 1, 0, 0, 0, 1, 0)
+    delta = struct.pack("<9f", 0, 0, 0.1, 0, 0, 0.1, 0, 0, 0.1)
+    encoded = meshopt.encode_gltf_buffer(np.zeros((count, stride), np.uint8), "ATTRIBUTES")
+    blob = positions + delta + encoded
+    compressed = {
+        "buffer": 0, "byteOffset": 72, "byteLength": len(encoded), "byteStride": stride,
+        "count": count, "mode": "ATTRIBUTES",
+    }  # fmt: skip
+    doc = {
+        "asset": {"version": "2.0"},
+        "extensionsUsed": ["EXT_meshopt_compression"],
+        "buffers": [
+            {"byteLength": len(blob)},
+            {"byteLength": count * stride, "extensions": {_MESHOPT: {"fallback": True}}},
+        ],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": 36},
+            {"buffer": 0, "byteOffset": 36, "byteLength": 36},
+            {
+                "buffer": 1,
+                "byteLength": count * stride,
+                "byteStride": stride,
+                "extensions": {_MESHOPT: compressed},
+            },
+        ],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3"},
+            {"bufferView": 1, "componentType": 5126, "count": 3, "type": "VEC3"},
+        ],
+        "meshes": [
+            {
+                "primitives": [{"attributes": {"POSITION": 0}, "targets": [{"POSITION": 1}]}],
+                "extras": {"targetNames": ["jawOpen"]},
+            }
+        ],
+        "nodes": [{"mesh": 0}],
+    }
     return glb(doc, blob)

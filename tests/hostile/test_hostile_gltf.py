@@ -18,10 +18,12 @@ from typing import Any
 import httpx
 import pytest
 
+from facecast.rig.io.gltf_check import max_decoded_bytes
 from facecast.rig.sources.ict import locate_ict
+from facecast.server.http.character_upload import gltf_limits
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
-from tests.hostile._glb import aliased, glb
+from tests.hostile._glb import aliased, glb, meshopt_zeros
 from tests.viewer._character import build_character
 
 pytestmark = pytest.mark.anyio
@@ -394,3 +396,23 @@ async def test_expressions_aliasing_one_morph_are_bounded_as_morph_values(tmp_pa
     assert (past.status_code, past.json()["code"]) == (422, "gltf_exceeds_limits"), past.json()
     assert "11 expressions paired" in past.json()["detail"]
     assert "max_gltf_morph_values" in past.json()["detail"]
+
+
+async def test_a_meshopt_view_at_the_decode_limit_is_held_once(tmp_path):
+    # 1 MB of meshopt stream decode to max_gltf_accessor_values x 4 bytes of zeros (64 MB
+    # here, 256 MB at the defaults): the reader checks that view and lets it go (no
+    # accessor reads it), and never copies the decoder's array. Copied and kept, the
+    # default's took +493 MB.
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_gltf_accessor_values=16_000_000)
+    decoded = max_decoded_bytes(gltf_limits(settings)) // 16 * 16
+    body = meshopt_zeros(decoded)
+    size = len(body)
+    async with run_server(settings) as server, client(server) as http:
+        before = reset_peak()
+        response = await http.put("/v1/characters/zeros", content=body)
+        grown = _status("VmHWM") - before
+
+    assert response.status_code == 201, response.json()
+    assert size < decoded / 50
+    # The view once, the body, and less than half the view besides (a triangle's fit).
+    assert grown < decoded + size + 32 * MiB, grown / MiB
