@@ -56,7 +56,7 @@ class GltfLimits:
     ``faces``: triangles of every primitive summed (a primitive's index count / 3);
     ``morph_targets``: per mesh; ``morph_values``: morph targets x vertices, summed over
     meshes (what reading them allocates; ``load_character`` bounds VRM expressions that
-    mix morphs x face vertices by it too); ``accessor_values``: count x components summed
+    mix morphs x face vertices, and expressions paired x face vertices, by it too); ``accessor_values``: count x components summed
     over every accessor (with or without a bufferView).
     """
 
