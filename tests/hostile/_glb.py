@@ -142,37 +142,16 @@ def aliased(vertices: int, expressions: int) -> bytes:
     return glb(doc, blob)
 
 
-def meshopt_zeros(decoded: int, stride: int = 16) -> bytes:
-    """A 3-vertex face with a morph target, plus a bufferView that EXT_meshopt_compression
-    stores compressed: ``decoded`` bytes of zeros (rounded down to ``stride``) in about
-    ``decoded / 64`` bytes, in a fallback buffer, named by no accessor."""
-    import meshopt  # facecast's own dependency (rig/io/gltf_compression.py)
-
-    count = decoded // stride
+def triangle() -> tuple[dict[str, Any], bytes]:
+    """One triangle with a ``jawOpen`` morph target: the document and its BIN chunk."""
     positions = struct.pack("<9f", 0, 0, 0, 1, 0, 0, 0, 1, 0)
     delta = struct.pack("<9f", 0, 0, 0.1, 0, 0, 0.1, 0, 0, 0.1)
-    encoded = meshopt.encode_gltf_buffer(np.zeros((count, stride), np.uint8), "ATTRIBUTES")
-    blob = positions + delta + encoded
-    compressed = {
-        "buffer": 0, "byteOffset": 72, "byteLength": len(encoded), "byteStride": stride,
-        "count": count, "mode": "ATTRIBUTES",
-    }  # fmt: skip
     doc = {
         "asset": {"version": "2.0"},
-        "extensionsUsed": ["EXT_meshopt_compression"],
-        "buffers": [
-            {"byteLength": len(blob)},
-            {"byteLength": count * stride, "extensions": {_MESHOPT: {"fallback": True}}},
-        ],
+        "buffers": [{"byteLength": 72}],
         "bufferViews": [
             {"buffer": 0, "byteOffset": 0, "byteLength": 36},
             {"buffer": 0, "byteOffset": 36, "byteLength": 36},
-            {
-                "buffer": 1,
-                "byteLength": count * stride,
-                "byteStride": stride,
-                "extensions": {_MESHOPT: compressed},
-            },
         ],
         "accessors": [
             {"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3"},
@@ -185,5 +164,36 @@ def meshopt_zeros(decoded: int, stride: int = 16) -> bytes:
             }
         ],
         "nodes": [{"mesh": 0}],
+        "scenes": [{"nodes": [0]}],
+        "scene": 0,
     }
-    return glb(doc, blob)
+    return doc, positions + delta
+
+
+def meshopt_zeros(decoded: int, stride: int = 16) -> bytes:
+    """``triangle`` plus a bufferView that EXT_meshopt_compression stores compressed:
+    ``decoded`` bytes of zeros (rounded down to ``stride``) in about ``decoded / 64``
+    bytes, in a fallback buffer, named by no accessor."""
+    import meshopt  # facecast's own dependency (rig/io/gltf_compression.py)
+
+    count = decoded // stride
+    doc, blob = triangle()
+    encoded = meshopt.encode_gltf_buffer(np.zeros((count, stride), np.uint8), "ATTRIBUTES")
+    compressed = {
+        "buffer": 0, "byteOffset": len(blob), "byteLength": len(encoded), "byteStride": stride,
+        "count": count, "mode": "ATTRIBUTES",
+    }  # fmt: skip
+    doc["extensionsUsed"] = ["EXT_meshopt_compression"]
+    doc["buffers"] = [
+        {"byteLength": len(blob) + len(encoded)},
+        {"byteLength": count * stride, "extensions": {_MESHOPT: {"fallback": True}}},
+    ]
+    doc["bufferViews"].append(
+        {
+            "buffer": 1,
+            "byteLength": count * stride,
+            "byteStride": stride,
+            "extensions": {_MESHOPT: compressed},
+        }
+    )
+    return glb(doc, blob + encoded)

@@ -23,40 +23,12 @@ from facecast.rig.sources.ict import locate_ict
 from facecast.server.http.character_upload import gltf_limits
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
-from tests.hostile._glb import aliased, glb, meshopt_zeros
+from tests.hostile._glb import aliased, glb, meshopt_zeros, triangle
 from tests.viewer._character import build_character
 
 pytestmark = pytest.mark.anyio
 
 MiB = 1 << 20
-
-
-def triangle() -> tuple[dict[str, Any], bytes]:
-    """One triangle with a ``jawOpen`` morph target: the document and its BIN chunk."""
-    positions = struct.pack("<9f", 0, 0, 0, 1, 0, 0, 0, 1, 0)
-    delta = struct.pack("<9f", 0, 0, 0.1, 0, 0, 0.1, 0, 0, 0.1)
-    doc = {
-        "asset": {"version": "2.0"},
-        "buffers": [{"byteLength": 72}],
-        "bufferViews": [
-            {"buffer": 0, "byteOffset": 0, "byteLength": 36},
-            {"buffer": 0, "byteOffset": 36, "byteLength": 36},
-        ],
-        "accessors": [
-            {"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3"},
-            {"bufferView": 1, "componentType": 5126, "count": 3, "type": "VEC3"},
-        ],
-        "meshes": [
-            {
-                "primitives": [{"attributes": {"POSITION": 0}, "targets": [{"POSITION": 1}]}],
-                "extras": {"targetNames": ["jawOpen"]},
-            }
-        ],
-        "nodes": [{"mesh": 0}],
-        "scenes": [{"nodes": [0]}],
-        "scene": 0,
-    }
-    return doc, positions + delta
 
 
 def zeros_position(count: int) -> bytes:
