@@ -109,8 +109,9 @@ class Settings:
     max_gltf_vertices: int = 1_000_000
     max_gltf_faces: int = 2_000_000
     #: Morph targets of one mesh, and morph targets x vertices summed over the meshes
-    #: (reading them allocates 24 bytes each; 4 M: 52 ARKit targets on a 76,000-vertex
-    #: face), also VRM expressions mixing morphs x the face's vertices.
+    #: (reading them allocates 12 bytes each, 24 quantised; 4 M: 52 ARKit targets on a
+    #: 76,000-vertex face), also VRM expressions mixing morphs x the face's vertices, and
+    #: expressions paired x the face's vertices (each a float64 copy of the face to fit).
     max_gltf_morph_targets: int = 1_000
     max_gltf_morph_values: int = 4_000_000
     #: Values (count x components) of all accessors together, with or without a bufferView

@@ -240,11 +240,13 @@ def _still_expressions(found: dict[str, _Found], read: Callable[[int], MeshData]
         if binding.mesh not in largest:
             vertices, _, deltas, _ = read(binding.mesh)
             extent = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
-            # Squared lengths by einsum: norm(axis=2) squared all of (M, V, 3) in a
-            # temporary as large as the deltas (the peak of a large upload's read).
-            squared = np.einsum("mvk,mvk->mv", deltas, deltas) if deltas.size else deltas
-            offsets = np.sqrt(squared.max(axis=1)) if deltas.size else deltas
-            largest[binding.mesh] = (np.asarray(offsets).reshape(-1), extent)
+            # One morph at a time, in float64: a temporary of all (M, V) squared lengths
+            # was the peak of a large upload's read (norm(axis=2) made one of (M, V, 3)).
+            offsets = np.zeros(len(deltas) if deltas.size else 0)
+            for t in range(len(offsets)):
+                one = deltas[t : t + 1].astype(np.float64)
+                offsets[t] = np.sqrt(np.einsum("mvk,mvk->mv", one, one).max())
+            largest[binding.mesh] = (offsets, extent)
         offsets, extent = largest[binding.mesh]
         if binding.morph >= offsets.size:
             return 0.0
@@ -355,7 +357,7 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
         else e
         for e in entries
     ] + vrm_entries
-    reader = BufferReader(document, label)
+    reader = BufferReader(document, label, limits)
     reader.decode_all()  # a compressed part that does not decode is refused now (bounded)
     meshes: dict[int, MeshData] = {}
 
@@ -382,6 +384,18 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
     # a thousand binds at weight 0.5 would each allocate the whole face.
     mixed = sum(1 for b in on_face.values() if len(b) > 1 or (b and b[0].weight != 1.0))
     limit = (limits or GltfLimits()).morph_values
+    order = sorted(found, key=lambda n: _ORDER.get(n, len(_ORDER)))
+    paired, unpaired = generic_pairing(order)
+    # The fit's example set holds the face once per paired expression (float64 rows,
+    # character_example_set): bounded as morph targets are, or VRM expressions binding
+    # one morph under fifty names would each cost the whole face (a 1 M-vertex face: GBs).
+    if len(paired) * len(vertices) > limit:
+        raise ExampleSetError(
+            f"{label}: {len(paired)} expressions paired on a {len(vertices)}-vertex face "
+            f"declare more than {limit} values to fit, each a copy of the face (limit "
+            "max_gltf_morph_values)",
+            code="gltf_exceeds_limits",
+        )
     if mixed * len(vertices) > limit:
         raise ExampleSetError(
             f"{label}: {mixed} expressions mixing morph targets of a {len(vertices)}-vertex "
@@ -391,7 +405,7 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
     unmoved = np.zeros_like(vertices)
     unmoved.flags.writeable = False
     expressions = {}
-    for name in sorted(found, key=lambda n: _ORDER.get(n, len(_ORDER))):
+    for name in order:
         bindings = tuple(found[name].bindings)
         mine = on_face[name]
         if not mine:
@@ -400,11 +414,10 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
             displacement = deltas[mine[0].morph]  # a view: most expressions are one morph
         else:
             displacement = np.zeros_like(vertices)
-            for b in mine:
-                displacement += b.weight * deltas[b.morph]
+            for b in mine:  # in float64 whatever the deltas' dtype (read_mesh)
+                displacement += b.weight * deltas[b.morph].astype(np.float64)
         displacement.flags.writeable = False
         expressions[name] = Expression(name, bindings, displacement, found[name].origin)
-    paired, unpaired = generic_pairing(expressions)
     reported = _driven_through_vrm(entries, names, found, paired)
     vertices.flags.writeable = False
     return Character(

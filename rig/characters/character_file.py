@@ -179,13 +179,14 @@ def _check_textures(document: GltfDocument, label: str) -> None:
     total = 0
     for number, image in enumerate(doc.get("images", [])):
         where = f"{label}: image {number}"
+        data: bytes | memoryview
         if image.get("bufferView") is None:
             data = decode_data_uri(image["uri"], label)
         else:
             view = views[image["bufferView"]]
             start = view.get("byteOffset", 0)
             data = document.buffers[view["buffer"]][start : start + view["byteLength"]]
-        width, height = image_size(data[: 1 << 20], where)
+        width, height = image_size(bytes(data[: 1 << 20]), where)
         if max(width, height) > MAX_TEXTURE_SIDE or width < 1 or height < 1:
             raise ExampleSetError(
                 f"{where} declares {width} x {height} pixels; textures may be at most "

@@ -29,7 +29,8 @@ class Binding:
 class Expression:
     """One expression of the character: the morphs it sets, and what it does to the face.
 
-    ``face_displacement`` (V, 3) float64 is the face mesh's vertex offsets at weight 1.
+    ``face_displacement`` (V, 3) is the face mesh's vertex offsets at weight 1: float32 for
+    one float32 morph target at weight 1 (a view of the deltas as stored), else float64.
     ``origin`` is "morph" (morph targets of that name) or "vrm" (a VRM expression's binds).
     """
 

@@ -22,10 +22,12 @@ from .gltf_compression import MESHOPT, draco_extension, meshopt_extension
 __all__ = [
     "COMPONENT_SIZES",
     "TYPE_SIZES",
+    "Buffer",
     "GltfLimits",
     "check_document",
     "decode_data_uri",
     "external_uri_error",
+    "max_decoded_bytes",
     "parse_json",
     "split_glb",
 ]
@@ -35,6 +37,9 @@ COMPONENT_SIZES = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
 #: Components of each accessor type.
 TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 _INDEX_TYPES = (5121, 5123, 5125)
+#: A buffer's bytes: the GLB's BIN chunk is a view of the file's bytes (never a copy of
+#: them: it is most of a 64 MiB upload), a data URI's or a file's are bytes of their own.
+Buffer = bytes | memoryview
 
 _GLB_HEADER = struct.Struct("<4sII")
 _CHUNK = struct.Struct("<I4s")
@@ -51,7 +56,7 @@ class GltfLimits:
     ``faces``: triangles of every primitive summed (a primitive's index count / 3);
     ``morph_targets``: per mesh; ``morph_values``: morph targets x vertices, summed over
     meshes (what reading them allocates; ``load_character`` bounds VRM expressions that
-    mix morphs x face vertices by it too); ``accessor_values``: count x components summed
+    mix morphs x face vertices, and expressions paired x face vertices, by it too); ``accessor_values``: count x components summed
     over every accessor (with or without a bufferView).
     """
 
@@ -71,6 +76,13 @@ class GltfLimits:
             value = getattr(self, f.name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"GltfLimits.{f.name}: expected an int >= 1, got {value!r}")
+
+
+def max_decoded_bytes(limits: GltfLimits) -> int:
+    """Most bytes the meshopt views of one document may decode to: 4 (a float32 or uint32)
+    for each value ``limits.accessor_values`` lets its accessors hold. The check holds the
+    views' declared sizes to it, and the reader (gltf_read.BufferReader) what it decodes."""
+    return 4 * limits.accessor_values
 
 
 def _bad(label: str, message: str) -> ExampleSetError:
@@ -96,8 +108,9 @@ def external_uri_error(uri: str, label: str, where: str = "outside the file") ->
 # -- the container ----------------------------------------------------------------------
 
 
-def split_glb(data: bytes, label: str) -> tuple[bytes, bytes | None]:
-    """The JSON and BIN chunks of a GLB, every length checked against the bytes there."""
+def split_glb(data: bytes, label: str) -> tuple[bytes, memoryview | None]:
+    """The JSON and BIN chunks of a GLB, every length checked against the bytes there; the
+    BIN chunk is a read-only view of ``data``, not a copy."""
     if len(data) < _GLB_HEADER.size:
         raise ExampleSetError(f"{label}: GLB cut short in its header", code="truncated_file")
     _magic, version, length = _GLB_HEADER.unpack_from(data)
@@ -109,7 +122,8 @@ def split_glb(data: bytes, label: str) -> tuple[bytes, bytes | None]:
             "(upload the whole file)",
             code="truncated_file",
         )
-    chunks: list[tuple[bytes, bytes]] = []
+    chunks: list[tuple[bytes, memoryview]] = []
+    whole = memoryview(data).toreadonly()
     pos = _GLB_HEADER.size
     while pos < length:
         if pos + _CHUNK.size > length:
@@ -123,12 +137,12 @@ def split_glb(data: bytes, label: str) -> tuple[bytes, bytes | None]:
                 f"{label}: GLB cut short: a chunk of {size} bytes runs past the end",
                 code="truncated_file",
             )
-        chunks.append((kind, data[start : start + size]))
+        chunks.append((kind, whole[start : start + size]))
         pos = start + size + (-size) % 4
     if not chunks or chunks[0][0] != b"JSON":
         raise ExampleSetError(f"{label}: GLB without a JSON chunk first", code="bad_gltf")
     blob = next((c for k, c in chunks[1:] if k == b"BIN\0"), None)
-    return chunks[0][1], blob
+    return bytes(chunks[0][1]), blob
 
 
 def parse_json(text: bytes, limits: GltfLimits, label: str) -> dict[str, Any]:
@@ -233,13 +247,13 @@ def _is_fallback(buffer: dict[str, Any]) -> bool:
 
 def _buffers(
     doc: dict[str, Any],
-    blob: bytes | None,
+    blob: Buffer | None,
     resolve: Callable[[str], bytes] | None,
     label: str,
-) -> tuple[list[bytes], list[int]]:
+) -> tuple[list[Buffer], list[int]]:
     """Each buffer's bytes (the BIN chunk, a data URI, or what ``resolve`` gives for a
     file; none for a meshopt fallback buffer), and the size its views may span."""
-    found: list[bytes] = []
+    found: list[Buffer] = []
     sizes: list[int] = []
     for number, buffer in enumerate(_list(doc, "buffers", label)):
         where = f"buffer {number}"
@@ -252,7 +266,7 @@ def _buffers(
         if uri is None:
             if number != 0 or blob is None:
                 raise _bad(label, f"{where} has no uri and is not the GLB's BIN chunk")
-            data = blob
+            data: Buffer = blob
         elif not isinstance(uri, str):
             raise _bad(label, f"{where} uri is not a string")
         elif number == 0 and blob is not None:
@@ -273,10 +287,10 @@ def _buffers(
 
 
 def _views(
-    doc: dict[str, Any], buffers: list[bytes], sizes: list[int], limits: GltfLimits, label: str
+    doc: dict[str, Any], buffers: list[Buffer], sizes: list[int], limits: GltfLimits, label: str
 ) -> list[dict[str, Any]]:
     views = _list(doc, "bufferViews", label)
-    decoded = 0  # bytes meshopt views decode to: as many as accessor_values float32 values
+    decoded = 0  # bytes meshopt views decode to, at most max_decoded_bytes
     for number, view in enumerate(views):
         where = f"bufferView {number}"
         buffer = _index(view.get("buffer"), len(buffers), f"{where} buffer", label)
@@ -302,10 +316,10 @@ def _views(
             if start + size > len(buffers[source]):
                 raise _bad(label, f"{where}'s compressed bytes run past buffer {source}")
             decoded += length
-            if decoded > 4 * limits.accessor_values:
+            if decoded > max_decoded_bytes(limits):
                 raise _over(
                     label, "bytes of meshopt views to decode or more", decoded,
-                    4 * limits.accessor_values, "accessor_values (x 4 bytes)",
+                    max_decoded_bytes(limits), "accessor_values (x 4 bytes)",
                 )  # fmt: skip
         stride = view.get("byteStride")
         if stride is not None and (
@@ -531,19 +545,19 @@ def _images(doc: dict[str, Any], views: list[dict[str, Any]], label: str) -> Non
 
 def check_document(
     doc: dict[str, Any],
-    blob: bytes | None,
+    blob: Buffer | None,
     limits: GltfLimits,
     label: str,
     *,
     resolve: Callable[[str], bytes] | None = None,
-) -> list[bytes]:
+) -> list[Buffer]:
     """Check a parsed glTF document against its bytes and ``limits``; its buffers' bytes.
 
     Parameters
     ----------
     doc : dict
         The glTF JSON (``parse_json``).
-    blob : bytes or None
+    blob : bytes, memoryview or None
         The GLB's BIN chunk (buffer 0 when that has no uri); None for a .gltf.
     limits : GltfLimits
     label : str
@@ -555,8 +569,8 @@ def check_document(
 
     Returns
     -------
-    list of bytes
-        Each buffer's bytes: after this every bufferView lies in its buffer, every
+    list of Buffer
+        Each buffer's bytes (``blob`` itself for the BIN chunk): after this every bufferView lies in its buffer, every
         accessor (and sparse part) in its bufferView, every index is in range and of the
         right type, and the node graph is a tree.
 

@@ -75,10 +75,10 @@ def draco_extension(primitive: Any) -> Mapping[str, Any] | None:
 def decode_meshopt_view(
     ext: Mapping[str, Any],
     view_length: int,
-    buffer: Callable[[int], bytes],
+    buffer: Callable[[int], bytes | memoryview],
     max_bytes: int,
     label: str,
-) -> bytes:
+) -> memoryview:
     """The bytes of a buffer view that ``EXT_meshopt_compression`` stores compressed.
 
     Parameters
@@ -97,8 +97,9 @@ def decode_meshopt_view(
 
     Returns
     -------
-    bytes
-        ``count * byteStride`` bytes, the view as it would be uncompressed.
+    memoryview
+        ``count * byteStride`` bytes, the view as it would be uncompressed (the decoder's
+        array, not a copy of it).
     """
     index = _int(ext.get("buffer"), "the meshopt view's buffer", label)
     offset = _int(ext.get("byteOffset", 0), "the meshopt view's byteOffset", label)
@@ -137,7 +138,7 @@ def decode_meshopt_view(
         )
     try:
         rows = meshopt.decode_gltf_buffer(
-            data[offset : offset + length],
+            bytes(data[offset : offset + length]),
             count,
             stride,
             mode,
@@ -147,7 +148,8 @@ def decode_meshopt_view(
         raise ExampleSetError(
             f"{label}: a meshopt view does not decode ({exc})", code="bad_compression"
         ) from None
-    decoded = np.ascontiguousarray(rows).tobytes()
+    # The decoder's array itself, as bytes: a copy (tobytes) held it twice.
+    decoded = np.ascontiguousarray(rows).reshape(-1).view(np.uint8).data
     if len(decoded) != count * stride:  # the decoder's promise, checked rather than trusted
         raise ExampleSetError(
             f"{label}: a meshopt view decoded to {len(decoded)} bytes, not {count * stride}",
@@ -174,7 +176,7 @@ def _meshopt_rule(mode: str, chosen: str, stride: int, count: int, view_length: 
 
 
 def decode_draco(
-    data: bytes, position_id: int, vertices: int, corners: int | None, label: str
+    data: bytes | memoryview, position_id: int, vertices: int, corners: int | None, label: str
 ) -> DracoGeometry:
     """A Draco primitive's positions and triangle corners, checked against its accessors.
 

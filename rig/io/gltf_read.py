@@ -3,8 +3,8 @@
 Bounded reading of untrusted files: the document is checked whole first (``gltf_check``:
 every count, index and extent against its bytes and ``GltfLimits``), then read as plain
 JSON, in time linear in its size; compressed views and primitives (meshopt, Draco:
-gltf_compression.py) are checked against MAX_DECODED_BYTES and their accessors before they
-are decoded; quantised attributes (KHR_mesh_quantization) are read as stored. Errors are
+gltf_compression.py) are checked against ``max_decoded_bytes`` of the limits and their
+accessors before they are decoded; quantised attributes (KHR_mesh_quantization) are read as stored. Errors are
 ``ExampleSetError`` with a code. It does no writing (gltf_export.py), fitting or blending.
 """
 
@@ -21,9 +21,11 @@ import numpy as np
 from ..errors import ExampleSetError
 from .gltf_check import (
     TYPE_SIZES,
+    Buffer,
     GltfLimits,
     check_document,
     external_uri_error,
+    max_decoded_bytes,
     parse_json,
     split_glb,
 )
@@ -36,7 +38,6 @@ from .gltf_compression import (
 )
 
 __all__ = [
-    "MAX_DECODED_BYTES",
     "TRIANGLES",
     "TYPE_SIZES",
     "BufferReader",
@@ -51,6 +52,7 @@ __all__ = [
 ]
 
 TRIANGLES = 4
+_FLOAT = 5126
 
 _COMPONENT_DTYPES: dict[int, type[np.generic]] = {
     5120: np.int8,
@@ -60,9 +62,6 @@ _COMPONENT_DTYPES: dict[int, type[np.generic]] = {
     5125: np.uint32,
     5126: np.float32,
 }
-#: Most bytes one read decodes out of compressed views (meshopt): 10^8 float32 values.
-#: Each view's declared size is checked against what is left before it is decoded.
-MAX_DECODED_BYTES = 400_000_000
 
 
 #: What the reader takes: a file's path or its bytes.
@@ -74,7 +73,7 @@ class GltfDocument:
     """A checked glTF document: its JSON and each buffer's bytes (``check_document``)."""
 
     json: dict[str, Any]
-    buffers: list[bytes]
+    buffers: list[Buffer]
 
 
 def load_document(
@@ -93,7 +92,7 @@ def load_document(
             raise ExampleSetError(f"{label}: file not found", code="missing_file") from None
         except OSError as exc:
             raise ExampleSetError(f"{label}: cannot read ({exc})", code="missing_file") from None
-    blob: bytes | None = None
+    blob: memoryview | None = None
     if data[:4] == b"glTF":
         text, blob = split_glb(data, label)
     else:
@@ -119,19 +118,27 @@ def _folder_reader(folder: Path, label: str) -> Callable[[str], bytes]:
 
 
 class BufferReader:
-    """Accessors of a checked document as arrays (every extent was checked before)."""
+    """Accessors of a checked document as arrays (every extent was checked before).
 
-    def __init__(self, document: GltfDocument, label: str) -> None:
+    Meshopt views are decoded within ``max_decoded_bytes(limits)`` (the limits the
+    document was checked with; their defaults without), each view's declared size
+    checked against what is left before it is decoded.
+    """
+
+    def __init__(
+        self, document: GltfDocument, label: str, limits: GltfLimits | None = None
+    ) -> None:
         self.doc = document.json
         self.buffers = document.buffers
         self.label = label
-        self.decoded: dict[int, bytes] = {}
-        self.decoded_left = MAX_DECODED_BYTES
+        self.decoded: dict[int, Buffer] = {}
+        self.decoded_left = max_decoded_bytes(GltfLimits() if limits is None else limits)
         self.draco: dict[int, DracoGeometry] = {}
 
     def _view(
         self, view_index: int, offset: int, count: int, dtype: type[np.generic], ncomp: int
     ) -> np.ndarray:
+        """The elements as they lie in the file's bytes: a read-only view, not a copy."""
         view = self.doc["bufferViews"][view_index]
         itemsize = np.dtype(dtype).itemsize
         stride = view.get("byteStride") or itemsize * ncomp
@@ -141,26 +148,30 @@ class BufferReader:
             data, start = self.buffers[view["buffer"]], view.get("byteOffset", 0) + offset
         return np.ndarray(
             (count, ncomp), dtype=dtype, buffer=data, offset=start, strides=(stride, itemsize)
-        ).copy()
+        )
 
-    def view_bytes(self, view_index: int) -> bytes:
-        """A meshopt-compressed view's bytes, decoded once (bounded by ``decoded_left``)."""
+    def view_bytes(self, view_index: int) -> Buffer:
+        """A meshopt-compressed view's bytes, decoded once and kept (bounded by
+        ``decoded_left``)."""
         if view_index not in self.decoded:
-            view = self.doc["bufferViews"][view_index]
-            ext = meshopt_extension(view)
-            assert ext is not None
-            if view.get("byteStride") is not None and view["byteStride"] != ext.get("byteStride"):
-                raise ExampleSetError(
-                    f"{self.label}: bufferView {view_index} byteStride {view['byteStride']} is "
-                    f"not its meshopt byteStride {ext.get('byteStride')}",
-                    code="bad_compression",
-                )
-            data = decode_meshopt_view(
-                ext, view["byteLength"], self.buffers.__getitem__, self.decoded_left, self.label
-            )
+            data = self._decode(view_index)
             self.decoded_left -= len(data)
             self.decoded[view_index] = data
         return self.decoded[view_index]
+
+    def _decode(self, view_index: int) -> Buffer:
+        view = self.doc["bufferViews"][view_index]
+        ext = meshopt_extension(view)
+        assert ext is not None
+        if view.get("byteStride") is not None and view["byteStride"] != ext.get("byteStride"):
+            raise ExampleSetError(
+                f"{self.label}: bufferView {view_index} byteStride {view['byteStride']} is "
+                f"not its meshopt byteStride {ext.get('byteStride')}",
+                code="bad_compression",
+            )
+        return decode_meshopt_view(
+            ext, view["byteLength"], self.buffers.__getitem__, self.decoded_left, self.label
+        )
 
     def draco_geometry(self, primitive: dict[str, Any]) -> DracoGeometry | None:
         """A Draco primitive's (positions, triangle corners), decoded once; None if the
@@ -193,26 +204,33 @@ class BufferReader:
 
     def decode_all(self) -> None:
         """Decode every compressed view and primitive of the file (each bounded), so that a
-        part that does not decode is found now, not by a viewer."""
+        part that does not decode is found now, not by a viewer. A meshopt view is decoded,
+        checked and let go (one at a time): only those an accessor is read from are kept
+        (``view_bytes``), not the normals, UVs and skins no fit reads."""
         for index, view in enumerate(self.doc.get("bufferViews", [])):
-            if meshopt_extension(view) is not None:
-                self.view_bytes(index)
+            if meshopt_extension(view) is not None and index not in self.decoded:
+                self._decode(index)
         for mesh in self.doc.get("meshes", []):
             for primitive in mesh["primitives"]:
                 self.draco_geometry(primitive)
 
-    def accessor(self, index: int) -> np.ndarray:
-        """Decode accessor ``index`` into a (count, ncomp) array (float64 or int64)."""
+    def accessor(self, index: int, floats: type[np.floating[Any]] = np.float64) -> np.ndarray:
+        """Decode accessor ``index`` into a (count, ncomp) array: int64, or ``floats``
+        (float32 reads a float32 accessor as stored, without a float64 copy)."""
         acc = self.doc["accessors"][index]
         dtype = _COMPONENT_DTYPES[acc["componentType"]]
         ncomp = TYPE_SIZES[acc["type"]]
         count = acc["count"]
-        if acc.get("bufferView") is None:
-            out = np.zeros((count, ncomp), dtype=dtype)
-        else:
+        # A view of the file's bytes is copied once, by the conversion to what is returned.
+        stored = acc.get("bufferView") is not None
+        if stored:
             out = self._view(acc["bufferView"], acc.get("byteOffset", 0), count, dtype, ncomp)
+        else:
+            out = np.zeros((count, ncomp), dtype=dtype)
         sparse = acc.get("sparse")
         if sparse is not None:
+            if stored:
+                out, stored = out.copy(), False
             indices, values, n = sparse["indices"], sparse["values"], sparse["count"]
             idx_dtype = _COMPONENT_DTYPES[indices["componentType"]]
             where = self._view(
@@ -226,12 +244,13 @@ class BufferReader:
                 )
             out[where.astype(np.int64)] = found
         if np.issubdtype(dtype, np.floating):
-            return out.astype(np.float64)
+            return out.astype(floats, copy=stored)
         if acc.get("normalized", False):
             # glTF 2.0 §3.11: normalized integers map to [0, 1] or [-1, 1].
-            info = np.iinfo(out.dtype)
-            return np.maximum(out.astype(np.float64) / info.max, -1.0)
-        return out.astype(np.int64)
+            scaled = out.astype(np.float64)
+            scaled /= np.iinfo(out.dtype).max
+            return np.maximum(scaled, -1.0, out=scaled)
+        return out.astype(np.int64, copy=stored)
 
 
 def read_glb_morph_targets(
@@ -264,7 +283,8 @@ def read_glb_morph_targets(
         Unreadable file, no mesh with morph targets, non-triangle primitives, or
         primitives that disagree on the number of targets.
     """
-    return _read_chosen_mesh(path_or_bytes, _morph_mesh)
+    neutral, faces, deltas, names = _read_chosen_mesh(path_or_bytes, _morph_mesh)
+    return neutral, faces, deltas.astype(np.float64, copy=False), names
 
 
 def read_gltf_mesh(path_or_bytes: GltfSource) -> tuple[np.ndarray, np.ndarray]:
@@ -312,7 +332,16 @@ def read_mesh(
     mesh: dict[str, Any], reader: BufferReader, label: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
     """All triangle primitives of ``mesh`` (a mesh of the checked document ``reader``
-    reads) concatenated, with its morph targets (maybe 0)."""
+    reads) concatenated, with its morph targets (maybe 0).
+
+    Returns
+    -------
+    neutral : (V, 3) float64
+    faces : (F, 3) int64
+    deltas : (M, V, 3) float32 when every morph target is stored as float32 (the values
+        as stored), else float64
+    names : list of M str
+    """
     primitives = mesh["primitives"]
     num_targets = {len(p.get("targets", [])) for p in primitives}
     if len(num_targets) != 1:
@@ -322,10 +351,31 @@ def read_mesh(
             code="bad_gltf",
         )
     m = num_targets.pop()
+    accessors = reader.doc["accessors"]
+    # The deltas are the largest arrays a character upload makes: one array filled in
+    # place (no per-primitive arrays concatenated), float32 when every target is stored
+    # so (its values as they are, in half float64's bytes), else float64.
+    stored = [
+        accessors[target["POSITION"]]["componentType"]
+        for prim in primitives
+        for target in prim.get("targets", [])
+        if target.get("POSITION") is not None
+    ]
+    dtype = np.float32 if all(kind == _FLOAT for kind in stored) else np.float64
+    counts = {p["attributes"]["POSITION"]: accessors[p["attributes"]["POSITION"]]["count"]
+              for p in primitives}  # fmt: skip
+    all_deltas = np.zeros((m, sum(counts.values()), 3), dtype=dtype)
+    # The triangles too (F x 3 int64): one primitive's as read, several filled in place.
+    corners = [
+        accessors[p["indices"]]["count"] if p.get("indices") is not None else counts[pos]
+        for p in primitives
+        for pos in [p["attributes"]["POSITION"]]
+    ]
+    several = len(primitives) > 1
+    all_faces = np.empty((sum(c // 3 for c in corners) if several else 0, 3), dtype=np.int64)
+    row = 0
 
     positions: list[np.ndarray] = []
-    deltas: list[np.ndarray] = []
-    faces: list[np.ndarray] = []
     first_vertex: dict[int, int] = {}
     vertex_count: dict[int, int] = {}
     total = 0
@@ -340,8 +390,9 @@ def read_mesh(
         draco = reader.draco_geometry(prim)
         if pos_index not in first_vertex:
             # Quantised positions (KHR_mesh_quantization) come as integers: as floats here.
-            pos = (reader.accessor(pos_index) if draco is None else draco[0]).astype(np.float64)
-            if pos.shape[1] != 3:
+            read = reader.accessor(pos_index) if draco is None else draco[0].copy()
+            pos = read.astype(np.float64, copy=False)
+            if pos.shape[1] != 3 or pos.shape[0] != counts[pos_index]:
                 raise ExampleSetError(f"{label}: POSITION is not VEC3", code="bad_gltf")
             if not np.isfinite(pos).all():  # a float accessor, or a decoded one, may hold NaN
                 raise ExampleSetError(
@@ -351,11 +402,11 @@ def read_mesh(
             vertex_count[pos_index] = pos.shape[0]
             total += pos.shape[0]
             positions.append(pos)
-            prim_deltas = np.zeros((m, pos.shape[0], 3))
+            rows = slice(first_vertex[pos_index], total)
             for t, target in enumerate(prim.get("targets", [])):
                 t_pos = target.get("POSITION")
                 if t_pos is not None:
-                    d = reader.accessor(t_pos)
+                    d = reader.accessor(t_pos, floats=dtype)
                     if d.shape != pos.shape:
                         raise ExampleSetError(
                             f"{label}: morph target {t} is not VEC3 as POSITION is",
@@ -365,12 +416,11 @@ def read_mesh(
                         raise ExampleSetError(
                             f"{label}: morph target {t} has NaN or Inf offsets", code="non_finite"
                         )
-                    prim_deltas[t] = d
-            deltas.append(prim_deltas)
+                    all_deltas[t, rows] = d
         if prim.get("indices") is None:
             tri = np.arange(vertex_count[pos_index], dtype=np.int64)
         elif draco is not None and draco[1] is not None:
-            tri = draco[1]
+            tri = draco[1].copy()  # the reader keeps the decoded corners
         else:
             tri = reader.accessor(prim["indices"])[:, 0]
         if tri.size % 3:
@@ -381,13 +431,15 @@ def read_mesh(
             raise ExampleSetError(
                 f"{label}: primitive {number} has triangle indices out of range", code="bad_gltf"
             )
-        faces.append(tri.reshape(-1, 3) + first_vertex[pos_index])
+        triangles = tri.reshape(-1, 3)
+        triangles += first_vertex[pos_index]
+        if not several:
+            all_faces = triangles
+        else:
+            all_faces[row : row + len(triangles)] = triangles
+            row += len(triangles)
 
-    # One primitive's arrays as they are: concatenating one copies it (the morph
-    # deltas are the largest arrays a character upload makes).
     neutral = positions[0] if len(positions) == 1 else np.concatenate(positions)
-    all_faces = faces[0] if len(faces) == 1 else np.concatenate(faces)
-    all_deltas = deltas[0] if len(deltas) == 1 else np.concatenate(deltas, axis=1)
     return neutral, all_faces, all_deltas, target_names(mesh, m)
 
 

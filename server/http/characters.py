@@ -25,6 +25,7 @@ from ..guards.auth import ANONYMOUS, READ_ROLES, Principal, requires
 from ..names import PERFORMER_SEPARATOR
 from ..storage.archive import ArchiveError, ArchiveLimits
 from ..storage.characters import (
+    PackedCharacter,
     base_id,
     character_not_served,
     character_view,
@@ -265,7 +266,7 @@ class _CharacterJob:
         self.max_bytes = max_bytes
         self.rights_holder = rights_holder
 
-    def __call__(self, data: bytes) -> tuple[Rig, bytes, dict[str, Any], str]:
+    def __call__(self, data: bytes) -> tuple[Rig, PackedCharacter, dict[str, Any], str]:
         character, _ = read_character_upload(data, self.limits, self.scratch, self.gltf)
         check_character_size(character, self.max_bytes)
         record = character_record(character, rights_holder=self.rights_holder)

@@ -9,13 +9,17 @@ from __future__ import annotations
 import contextlib
 import os
 import secrets
+from collections.abc import Sequence
 from pathlib import Path
 
 __all__ = ["fsync_directory", "write_atomically"]
 
 
-def write_atomically(directory: Path, name: str, data: bytes, *, scratch: Path) -> bool:
-    """Write ``directory / name`` whole or not at all; returns whether it is new.
+def write_atomically(
+    directory: Path, name: str, data: bytes | Sequence[bytes], *, scratch: Path
+) -> bool:
+    """Write ``directory / name`` whole or not at all (``data``, or its parts one after
+    the other); returns whether it is new.
 
     Temp file in ``scratch`` (a rig store's scratch folder, on the same file system, so
     the rename stays atomic and a writer killed mid-write leaves nothing the next start
@@ -29,7 +33,8 @@ def write_atomically(directory: Path, name: str, data: bytes, *, scratch: Path) 
     fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
     try:
         with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
+            for part in (data,) if isinstance(data, bytes) else data:
+                fh.write(part)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(temp, path)

@@ -17,6 +17,7 @@ from ..names import PERFORMER_SEPARATOR
 
 __all__ = [
     "CHARACTER_SUFFIX",
+    "PackedCharacter",
     "StoredCharacter",
     "audience",
     "base_id",
@@ -127,10 +128,17 @@ def audience(meta: dict[str, Any], *, rights_holder: bool) -> dict[str, Any]:
     }
 
 
-def pack_character(glb: bytes, record: dict[str, Any]) -> bytes:
-    """The bytes of ``<id>.character`` for ``glb`` and its JSON-able ``record``."""
+#: ``pack_character``'s parts: the header with the record, then the GLB.
+PackedCharacter = tuple[bytes, bytes]
+
+
+def pack_character(glb: bytes, record: dict[str, Any]) -> PackedCharacter:
+    """The bytes of ``<id>.character`` for ``glb`` and its JSON-able ``record``: the header
+    with the record, then ``glb`` itself, to be written one after the other
+    (``write_atomically`` takes both): joined, they would copy the GLB, most of a 64 MiB
+    upload, while the fitted rig is held (SERVER.md "What an upload can cost")."""
     text = json.dumps(record, separators=(",", ":"), allow_nan=False).encode()
-    return _HEADER.pack(_MAGIC, _VERSION, len(text)) + text + glb
+    return _HEADER.pack(_MAGIC, _VERSION, len(text)) + text, glb
 
 
 def unpack_character(source: BinaryIO, *, with_glb: bool = True) -> StoredCharacter:

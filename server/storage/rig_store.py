@@ -35,7 +35,7 @@ from ..names import (
     valid_rig_id,
 )
 from .atomic import fsync_directory, write_atomically
-from .characters import CHARACTER_SUFFIX, StoredCharacter, unpack_character
+from .characters import CHARACTER_SUFFIX, PackedCharacter, StoredCharacter, unpack_character
 from .jobs import JOBS_DIR, JobStore
 
 if TYPE_CHECKING:
@@ -268,7 +268,7 @@ class RigStore:
             created = self._write(rig_id, data)
         return rig, created
 
-    def put_rig(self, rig_id: str, rig: Rig, *, character: bytes | None = None) -> bool:
+    def put_rig(self, rig_id: str, rig: Rig, *, character: PackedCharacter | None = None) -> bool:
         """Store a fitted rig, with its character file or without one; returns whether the id is new.
 
         ``character`` (``characters.pack_character``'s bytes) is written first, then
@@ -282,7 +282,9 @@ class RigStore:
             self.jobs.settle(rig_id, deleted=False)
             return self._store(rig_id, rig, character)
 
-    def put_job_result(self, rig_id: str, job: str, rig: Rig, character: bytes) -> bool | None:
+    def put_job_result(
+        self, rig_id: str, job: str, rig: Rig, character: PackedCharacter
+    ) -> bool | None:
         """Store transfer job ``job``'s rig and character if its record is still its own
         and running; whether the id is new, or None (deleted or replaced meanwhile:
         nothing written). Check and store are one step under the change lock, so a DELETE
@@ -294,7 +296,7 @@ class RigStore:
                 return None
             return self._store(rig_id, rig, character)
 
-    def _store(self, rig_id: str, rig: Rig, character: bytes | None) -> bool:
+    def _store(self, rig_id: str, rig: Rig, character: PackedCharacter | None) -> bool:
         if character is None:
             self._remove_character(rig_id)
         else:

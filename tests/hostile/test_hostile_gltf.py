@@ -1,7 +1,7 @@
 """Hostile glTF/GLB uploads (issue #31 part A): sizes declared in a few bytes, node graphs
 that are not trees, URIs leaving the file, wrongly typed fields.
 
-Each body is a tiny GLB written here with struct and json, sent to a real server on both
+Each body is a tiny GLB written with struct and json (``_glb``), sent to a real server on both
 upload paths (a character with expressions, and a transfer job's): every one is refused
 with a named 4xx before anything is allocated for it, nothing is stored, and the server's
 peak memory (VmHWM, reset before each upload) hardly moves.
@@ -18,53 +18,17 @@ from typing import Any
 import httpx
 import pytest
 
+from facecast.rig.io.gltf_check import max_decoded_bytes
 from facecast.rig.sources.ict import locate_ict
+from facecast.server.http.character_upload import gltf_limits
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
+from tests.hostile._glb import aliased, glb, meshopt_zeros, triangle
 from tests.viewer._character import build_character
 
 pytestmark = pytest.mark.anyio
 
 MiB = 1 << 20
-
-
-def glb(doc: dict[str, Any], blob: bytes = b"") -> bytes:
-    """A glTF binary: the JSON chunk, and a BIN chunk when ``blob`` is given."""
-    text = json.dumps(doc).encode()
-    text += b" " * (-len(text) % 4)
-    blob += b"\0" * (-len(blob) % 4)
-    chunks = struct.pack("<I4s", len(text), b"JSON") + text
-    if blob:
-        chunks += struct.pack("<I4s", len(blob), b"BIN\0") + blob
-    return struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks
-
-
-def triangle() -> tuple[dict[str, Any], bytes]:
-    """One triangle with a ``jawOpen`` morph target: the document and its BIN chunk."""
-    positions = struct.pack("<9f", 0, 0, 0, 1, 0, 0, 0, 1, 0)
-    delta = struct.pack("<9f", 0, 0, 0.1, 0, 0, 0.1, 0, 0, 0.1)
-    doc = {
-        "asset": {"version": "2.0"},
-        "buffers": [{"byteLength": 72}],
-        "bufferViews": [
-            {"buffer": 0, "byteOffset": 0, "byteLength": 36},
-            {"buffer": 0, "byteOffset": 36, "byteLength": 36},
-        ],
-        "accessors": [
-            {"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3"},
-            {"bufferView": 1, "componentType": 5126, "count": 3, "type": "VEC3"},
-        ],
-        "meshes": [
-            {
-                "primitives": [{"attributes": {"POSITION": 0}, "targets": [{"POSITION": 1}]}],
-                "extras": {"targetNames": ["jawOpen"]},
-            }
-        ],
-        "nodes": [{"mesh": 0}],
-        "scenes": [{"nodes": [0]}],
-        "scene": 0,
-    }
-    return doc, positions + delta
 
 
 def zeros_position(count: int) -> bytes:
@@ -388,3 +352,39 @@ async def test_expressions_mixing_morphs_are_bounded_as_morph_values(tmp_path):
     assert at_limit.status_code == 201, at_limit.json()  # its jawOpen morph is fitted
     assert (past.status_code, past.json()["code"]) == (422, "gltf_exceeds_limits")
     assert "max_gltf_morph_values" in past.json()["detail"]
+
+
+async def test_expressions_aliasing_one_morph_are_bounded_as_morph_values(tmp_path):
+    # Each ARKit-named VRM expression binds the one morph at weight 1: no array of its own
+    # when read, but a copy of the face in the fit (a 1 M-vertex face: 1.6 GB for 46 MB).
+    # 2,500 vertices: 10 paired expressions are 25,000 values, 11 are 27,500.
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_gltf_morph_values=25_000)
+    async with run_server(settings) as server, client(server) as http:
+        at_limit = await http.put("/v1/characters/alias", content=aliased(2_500, 10))
+        past = await http.put("/v1/characters/alias", content=aliased(2_500, 11))
+
+    assert at_limit.status_code == 201, at_limit.json()
+    assert len(at_limit.json()["names"]) == 11  # the neutral and the 10 expressions
+    assert (past.status_code, past.json()["code"]) == (422, "gltf_exceeds_limits"), past.json()
+    assert "11 expressions paired" in past.json()["detail"]
+    assert "max_gltf_morph_values" in past.json()["detail"]
+
+
+async def test_a_meshopt_view_at_the_decode_limit_is_held_once(tmp_path):
+    # 1 MB of meshopt stream decode to max_gltf_accessor_values x 4 bytes of zeros (64 MB
+    # here, 256 MB at the defaults): the reader checks that view and lets it go (no
+    # accessor reads it), and never copies the decoder's array. Copied and kept, the
+    # default's took +493 MB.
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_gltf_accessor_values=16_000_000)
+    decoded = max_decoded_bytes(gltf_limits(settings)) // 16 * 16
+    body = meshopt_zeros(decoded)
+    size = len(body)
+    async with run_server(settings) as server, client(server) as http:
+        before = reset_peak()
+        response = await http.put("/v1/characters/zeros", content=body)
+        grown = _status("VmHWM") - before
+
+    assert response.status_code == 201, response.json()
+    assert size < decoded / 50
+    # The view once, the body, and less than half the view besides (a triangle's fit).
+    assert grown < decoded + size + 32 * MiB, grown / MiB

@@ -16,8 +16,9 @@ from hypothesis import strategies as st
 from facecast.rig.characters.character import Character, load_character
 from facecast.rig.errors import ExampleSetError
 from facecast.rig.io.gltf import pack_glb, read_glb_morph_targets
-from facecast.rig.io.gltf_check import GltfLimits
-from facecast.rig.io.gltf_read import MAX_DECODED_BYTES
+from facecast.rig.io.gltf_check import GltfLimits, max_decoded_bytes
+from facecast.rig.io.gltf_read import BufferReader, load_document
+from tests.hostile._glb import meshopt_zeros
 
 from . import _avatars
 from ._compressed import GLTFPACK_MISSING, KINDS, compressed, gltfpack, split_glb
@@ -190,28 +191,36 @@ def test_a_broken_compressed_mesh_other_than_the_face_is_refused_too():
     assert info.value.code == "bad_compression"
 
 
-def test_a_meshopt_view_declaring_more_than_the_bound_is_refused_before_decoding():
-    _avatars.require_ict()
-    count = MAX_DECODED_BYTES // 12 + 1  # one row past the bound
+def test_meshopt_views_decode_within_the_accessor_values_limit_at_it_and_one_past():
+    # 100 rows of 16 bytes decoded: 1,600 bytes, 4 for each of 400 accessor values.
+    data = meshopt_zeros(1_600)
+    at_limit = GltfLimits(accessor_values=400)
+    one_past = GltfLimits(accessor_values=399)
 
-    def huge(doc, blob):  # consistent: the view (and its fallback buffer) as the count says
-        view = _face_position_view(doc)
-        view["extensions"]["EXT_meshopt_compression"]["count"] = count
-        view["byteLength"] = count * 12
-        doc["buffers"][view["buffer"]]["byteLength"] = view.get("byteOffset", 0) + count * 12
-
-    data = edited(twin_and("meshopt")[1], huge)
-    # Within the limits gltf_check holds decoded views to (4 bytes an accessor value), the
-    # reader's own MAX_DECODED_BYTES is the bound; under the defaults the limits are.
-    loose = GltfLimits(accessor_values=MAX_DECODED_BYTES)
+    character = load_character(data, label="avatar.glb", limits=at_limit)
     with pytest.raises(ExampleSetError) as info:
-        load_character(data, label="avatar.glb", limits=loose)
-    with pytest.raises(ExampleSetError) as by_default:
-        load_character(data, label="avatar.glb")
+        load_character(data, label="avatar.glb", limits=one_past)
 
+    assert list(character.expressions) == ["jawOpen"]
+    assert info.value.code == "gltf_exceeds_limits"
+    assert "1600 bytes of meshopt views" in str(info.value)
+    assert "max_gltf_accessor_values" in str(info.value)
+
+
+def test_the_reader_decodes_no_more_than_its_limits_allow_whatever_the_check_allowed():
+    # The reader's bound is the limits' (max_decoded_bytes), not a constant of its own: a
+    # document checked under looser limits is refused by a reader given tighter ones,
+    # before the decoder runs.
+    document = load_document(meshopt_zeros(1_600), "avatar.glb", GltfLimits(accessor_values=400))
+    tight = GltfLimits(accessor_values=399)
+
+    with pytest.raises(ExampleSetError) as info:
+        BufferReader(document, "avatar.glb", tight).decode_all()
+    BufferReader(document, "avatar.glb", GltfLimits(accessor_values=400)).decode_all()
+
+    assert max_decoded_bytes(tight) == 1_596  # 4 bytes a value: a float32 or uint32
     assert info.value.code == "too_large"
-    assert f"{count} x 12 bytes" in str(info.value)
-    assert by_default.value.code == "gltf_exceeds_limits"
+    assert "100 x 16 bytes, more than the reader's limit of 1596" in str(info.value)
 
 
 def test_a_draco_primitive_declaring_more_than_the_bound_is_refused_before_decoding():
