@@ -225,6 +225,9 @@ async def test_livelink_head_pose_reaches_the_viewer_as_the_unmoved_weights(
                 await process.wait()
             for task in results.values():
                 task.cancel()
+            # A cancelled reader must have left its generator before the generator closes
+            # (else aclose() fails "already running" and hides what went wrong).
+            await asyncio.gather(*results.values(), return_exceptions=True)
             for messages in watchers.values():
                 await messages.aclose()
 

@@ -12,8 +12,8 @@ from facecast.cli.bench import broadcast
 pytestmark = pytest.mark.slow
 
 
-def _ramps(tmp_path, *, floor_down: bool = False) -> tuple[dict, dict]:
-    """facecast's and its floor's ramp over 6 and 12 viewers, 0.5 s a step; their results.
+def _ramps(tmp_path, *, steps=(6, 12), floor_down: bool = False) -> tuple[dict, dict]:
+    """facecast's and its floor's ramp over ``steps`` viewers, 0.5 s a step; their results.
 
     ``floor_down``: the floor is stopped before the ramp (it takes no viewers).
     """
@@ -27,7 +27,7 @@ def _ramps(tmp_path, *, floor_down: bool = False) -> tuple[dict, dict]:
         if floor_down:
             broadcast._stop(floor)
         ramps = broadcast._ramp_beside_floor(
-            port, server.pid, floor_port, floor.pid, frames, 0.5, lambda line: None, steps=(6, 12)
+            port, server.pid, floor_port, floor.pid, frames, 0.5, lambda line: None, steps=steps
         )
         return asyncio.run(ramps)
     finally:
@@ -37,11 +37,13 @@ def _ramps(tmp_path, *, floor_down: bool = False) -> tuple[dict, dict]:
 
 
 def test_facecast_and_its_floor_are_measured_in_turn_at_every_step(tmp_path):
-    facecast, bare = _ramps(tmp_path)
+    # Few viewers a step, so that both hold each on a loaded 2-core machine (what this test
+    # is about is the turns and the ratio per step, not the machine's capacity).
+    facecast, bare = _ramps(tmp_path, steps=(2, 4))
 
     # Both held every step: the ratio stands at each viewer count.
-    assert facecast["held"] == bare["held"] == 12
-    assert set(broadcast._floor_ratios(facecast, bare)["per_step"]) == {6, 12}
+    assert facecast["held"] == bare["held"] == 4
+    assert set(broadcast._floor_ratios(facecast, bare)["per_step"]) == {2, 4}
     # In the order measured (a second attempt of a step stays within its turn): a step
     # each, facecast first at the first step, the floor first at the next.
     measured = sorted(
@@ -49,7 +51,7 @@ def test_facecast_and_its_floor_are_measured_in_turn_at_every_step(tmp_path):
         + [(step["measured_at"], "floor", step["viewers"]) for step in bare["steps"]]
     )
     turns = [turn for turn, _ in itertools.groupby(target for _, *target in measured)]
-    assert turns == [["facecast", 6], ["floor", 6], ["floor", 12], ["facecast", 12]]
+    assert turns == [["facecast", 2], ["floor", 2], ["floor", 4], ["facecast", 4]]
 
 
 def test_a_target_that_fails_a_step_leaves_and_the_other_goes_on(tmp_path):

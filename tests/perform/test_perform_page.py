@@ -432,6 +432,9 @@ def test_a_generic_rig_gets_no_frame_until_it_is_rebased_on_the_captured_neutral
 
     page.click("#calibrate")
     page.click("#capture")
+    page.wait_for_function("window.facecastStats.calibration.captures.neutral !== undefined")
+    neutral = page.evaluate("window.facecastStats.calibration.captures.neutral")
+    assert neutral["ok"], neutral
     # The server answers the page's calibrate (PROTOCOL.md §5.1.3) with calibrated; only
     # then do frames go out.
     page.wait_for_function("window.facecastStats.rebased === true")

@@ -7,8 +7,10 @@ import { decodeServer, encodePing, ErrorCode, errorName, ProtocolError } from ".
 const BACKOFF_FIRST_MS = 250;
 const BACKOFF_MAX_MS = 5000;
 const PING_INTERVAL_MS = 5000; // keeps a watch session (which sends nothing else) alive
-// A few pings right after opening: the server clock's offset is known within a second.
-const FIRST_PINGS_MS = [250, 500, 750];
+// A few pings right after opening: the server clock's offset is known within a second,
+// and more chances in the first seconds (a page busy loading its character handles pongs
+// late; clock.js keeps the best).
+const FIRST_PINGS_MS = [250, 500, 750, 1500, 2500, 3500];
 // Errors that another attempt with the same page settings would only repeat.
 const PERMANENT = new Set([ErrorCode.UNAUTHORIZED, ErrorCode.FORBIDDEN, ErrorCode.UNSUPPORTED_VERSION]);
 

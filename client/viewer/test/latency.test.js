@@ -36,6 +36,24 @@ test("the clock keeps the offset of the shortest round trip", () => {
   assert.ok(Math.abs(clock.toServer(5000) - (origin + 5250) / 1000) < 1e-5);
 });
 
+test("one quiet pong outlasts a run of late ones, until drift makes a new one better", () => {
+  const clock = new ServerClock();
+  const origin = performance.timeOrigin;
+  clock.sample(1000, 1002, (origin + 1001 + 250) / 1000); // quiet: 2 ms round trip
+  // Then 40 pongs 5 s apart, each handled 1.3 s late (a draw held the page): the old
+  // window of 8 kept only these, 650 ms off.
+  for (let i = 1; i <= 40; i++) {
+    const sent = 1000 + 5000 * i;
+    clock.sample(sent, sent + 1302, (origin + sent + 1 + 250) / 1000);
+  }
+  assert.ok(Math.abs(clock.offsetMs - 250) < 0.01, `offset ${clock.offsetMs}`);
+  assert.equal(clock.rttMs, 2);
+  // 201 s on, the quiet pong's bound (1 + 20.1 ms of drift) loses to a fresh 10 ms one (5).
+  clock.sample(202000, 202010, (origin + 202005 + 251) / 1000);
+  assert.ok(Math.abs(clock.offsetMs - 251) < 0.01, `offset ${clock.offsetMs}`);
+  assert.equal(clock.rttMs, 10);
+});
+
 test("a pong without server_ts changes nothing", () => {
   const clock = new ServerClock();
   clock.sample(0, 1, undefined);

@@ -4,7 +4,7 @@ import assert from "node:assert/strict";
 import { readFileSync } from "node:fs";
 import { test } from "node:test";
 
-import { expectsEyesShut, heldFrames, heldNoise, HELD_CAPTURES, noiseText, summariseCapture } from "../src/perform/capture.js";
+import { CAPTURE_LIMITS, captureDone, expectsEyesShut, heldFrames, heldNoise, HELD_CAPTURES, noiseText, summariseCapture } from "../src/perform/capture.js";
 import {
   checkLayout,
   eyeOpenness,
@@ -202,4 +202,16 @@ test("a capture where the head moves, the face is missing or the shape wobbles i
   assert.match(summariseCapture(moving, 30, "neutral").reason, /head moved/);
   assert.match(summariseCapture(frames(5), 30, "neutral").reason, /found in 5 of 30 frames/);
   assert.match(summariseCapture(frames(30, { sigma: 0.5 }), 30, "neutral").reason, /held loosely/);
+});
+
+test("a capture ends at its time with enough frames, or at its deadline for a slow tracker", () => {
+  const frames = (n) => Array.from({ length: n }, () => ({}));
+  const rec = (n) => ({ samples: frames(n), until: 1000, deadline: 4000 });
+  const enough = CAPTURE_LIMITS.minFrames;
+  assert.equal(captureDone(rec(enough), 999), false); // its time not yet up
+  assert.equal(captureDone(rec(enough), 1000), true);
+  assert.equal(captureDone(rec(enough - 1), 1000), false); // a slow tracker: held on
+  assert.equal(captureDone(rec(enough - 1), 3999), false);
+  assert.equal(captureDone(rec(enough - 1), 4000), true); // then summarised (and refused)
+  assert.equal(captureDone(rec(0), 4000), true);
 });

@@ -18,6 +18,16 @@ export const CAPTURE_LIMITS = Object.freeze({
   maxSpread: 0.25, // layout units (≈ cm): held worse than this is a refusal, not a capture
 });
 
+/**
+ * Whether a capture in progress has what it needs: its time (`until`) and the frames with a
+ * face that a capture needs at the least, or, for a tracker too slow for those, its
+ * `deadline` (the summary then says what was missing).
+ */
+export function captureDone(recording, now, limits = CAPTURE_LIMITS) {
+  if (now >= recording.deadline) return true;
+  return now >= recording.until && recording.samples.length >= limits.minFrames;
+}
+
 // Names of expressions made with the eyes shut: for those, shut eyes are the point.
 const EYES_SHUT_NAMES = /blink|eyes?[_ -]?(closed?|shut)|sleep/i;
 

@@ -2,9 +2,13 @@
 // examples shown posed on the character; capture ~1 s of each, redo or skip any, then
 // fit the performer's own rig on the server. DOM and fetch; the math is in capture.js.
 
-import { heldFrames, heldNoise, noiseText, summariseCapture } from "./capture.js";
+import { captureDone, heldFrames, heldNoise, noiseText, summariseCapture } from "./capture.js";
 
 export const CAPTURE_MS = 1000;
+// A slow tracker (under capture.js's minFrames frames a second: a busy laptop, a software
+// GPU) holds the capture on until it has those frames, up to this long, rather than be
+// refused for too few frames every time.
+export const CAPTURE_MAX_MS = 4000;
 
 /**
  * host: {stats, params, layoutName, authHeaders(), problemText(response, problem, role, what),
@@ -22,7 +26,7 @@ export class Studio {
     this.doc = doc;
     this.steps = [];
     this.current = -1;
-    this.recording = null; // {name, samples, seen, until, resolve}
+    this.recording = null; // {name, samples, seen, until, deadline, resolve}
     this.stats = host.stats.calibration = { active: false, step: null, captures: {}, fit: null, fitError: null, noise: null };
     this.el.calibrate.addEventListener("click", () => this.start());
     this.el.capture.addEventListener("click", () => this.capture());
@@ -81,7 +85,7 @@ export class Studio {
     if (!rec) return;
     rec.seen += 1;
     if (sample) rec.samples.push(sample);
-    if (performance.now() >= rec.until) {
+    if (captureDone(rec, performance.now())) {
       this.recording = null;
       rec.resolve(rec);
     }
@@ -93,7 +97,10 @@ export class Studio {
     this.el.capture.disabled = this.el.skip.disabled = true;
     this.verdict(`capturing ${step.name}… hold it`);
     const rec = await new Promise((resolve) => {
-      this.recording = { name: step.name, samples: [], seen: 0, until: performance.now() + CAPTURE_MS, resolve };
+      const start = performance.now();
+      this.recording = {
+        name: step.name, samples: [], seen: 0, until: start + CAPTURE_MS, deadline: start + CAPTURE_MAX_MS, resolve,
+      };
     });
     const neutral = this.steps[0];
     const reference = step.name !== "neutral" && neutral.status === "ok" ? neutral.result : null;
