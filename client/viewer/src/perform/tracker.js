@@ -1,6 +1,7 @@
-// The face-landmark model: @vladmandic/human's BlazeFace + FaceMesh (468 points) on
-// TensorFlow.js's WebAssembly backend, weights and .wasm files served by facecast itself
-// (/perform/assets/, copied from the npm packages at build time). See docs/perform.md.
+// The face-landmark model: @vladmandic/human's BlazeFace + FaceMesh (468 points; the lids
+// refined by its iris model, eyelids.js) on TensorFlow.js's WebAssembly backend, weights and
+// .wasm files served by facecast itself (/perform/assets/, copied from the npm packages at
+// build time). See docs/perform.md.
 
 import { Human } from "@vladmandic/human";
 
