@@ -35,8 +35,9 @@ __all__ = [
 MAX_CLIENTS = 1000
 MAX_DURATION = 3600.0
 MAX_FPS = 1000.0
-#: After the last frame, how long to wait for results still in flight.
-_DRAIN_SECONDS = 2.0
+#: After the last frame, how long to wait for results still in flight (a loaded machine
+#: can hold the last one for seconds; what is still out then is counted ``unanswered``).
+_DRAIN_SECONDS = 10.0
 #: How long the sessions may take to connect before the schedule starts without them.
 _CONNECT_SECONDS = 30.0
 #: Frames of motion precomputed per client (cycled).
@@ -51,6 +52,8 @@ class ClientTally:
     received: int = 0
     payload_bytes: int = 0
     dropped: int = 0
+    #: Frames still without a result when the drain after the last frame ran out.
+    unanswered: int = 0
     reconnects: int = 0
     errors: Counter[str] = field(default_factory=Counter)
     rtts: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -102,6 +105,7 @@ class LoadReport:
             "sent": sum(t.sent for t in self.tallies),
             "received": received,
             "dropped": sum(t.dropped for t in self.tallies),
+            "unanswered": sum(t.unanswered for t in self.tallies),
             "reconnects": sum(t.reconnects for t in self.tallies),
             "max_burst": max((t.max_burst for t in self.tallies), default=0),
             "errors": dict(sorted(errors.items())),
@@ -207,6 +211,7 @@ async def _one_client(
     finally:
         if session is not None:
             tally.dropped = session.dropped
+            tally.unanswered = session.latency.in_flight
             tally.reconnects = session.reconnects
             tally.rtts = session.latency.samples()
             await session.close()

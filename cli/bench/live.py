@@ -332,7 +332,10 @@ def _figures(
         "seconds": seconds,
         "capture_source": p_after.get("captureSource"),
         "frame_source": p_after.get("frameSource"),
+        # Each page's estimate of the server's clock (one machine: the truth is about 0,
+        # so these are the estimates' errors, which every stage between pages carries).
         "clock_offsets_ms": [v.get("clockOffsetMs") for v in v_after],
+        "performer_clock_offset_ms": p_after.get("clockOffsetMs"),
         "server_rss_mb": {
             "first": rss[0] if rss else None,
             "last": rss[-1] if rss else None,
@@ -368,6 +371,11 @@ def _report(figures: dict[str, Any]) -> list[tuple[str, bool]]:
     fps = figures["fps"]
     print("fps: " + ", ".join(f"{k} {v:.1f}" for k, v in fps.items()) + " (a viewer's: mean)")
     print("frames lost: " + ", ".join(f"{k} {v:.0f}" for k, v in figures["lost"].items()))
+    offsets = [abs(o) for o in figures["clock_offsets_ms"] if o is not None]
+    print(
+        f"clock estimates (one machine, truth ≈ 0): performer {_fmt(figures['performer_clock_offset_ms'])} ms, "
+        f"viewers up to {_fmt(max(offsets) if offsets else None)} ms off"
+    )
     rss = figures["server_rss_mb"]
     print(f"server RSS {_fmt(rss['first'])} → {_fmt(rss['last'])} MB (max {_fmt(rss['max'])})")
     checks: list[tuple[str, bool]] = []

@@ -286,12 +286,12 @@ class RedisBus(Bus):
                         self._deliver(message["channel"], message["data"])
             except asyncio.CancelledError:
                 with contextlib.suppress(Exception):
-                    await pubsub.aclose()  # type: ignore[no-untyped-call]  # redis-py: unannotated
+                    await pubsub.aclose()
                 raise
             except Exception as exc:  # connection refused/reset, timeouts: heal below
                 self._down(exc)
                 with contextlib.suppress(Exception):
-                    await pubsub.aclose()  # type: ignore[no-untyped-call]  # redis-py: unannotated
+                    await pubsub.aclose()
                 # Re-subscribe everything on the next connection.
                 self._dirty.set()
                 await asyncio.sleep(backoff)

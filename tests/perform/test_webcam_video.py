@@ -1,70 +1,114 @@
-"""The webcam benchmark's rendered face through ``facecast track``: found, and followed.
+"""The webcam benchmark through ``facecast track``: the face found, followed, and cloned.
 
-A short clip of the benchmark's camera video (an ICT head, Lambert on grey) tracked by the
-/perform page's own pipeline in a real Chromium: the face is found in every frame and the
-tracked points move the way the rendered face does.
+``facecast bench webcam`` renders its camera videos (an ICT head, Lambert on grey) and
+tracks them with the /perform page's own pipeline in a real Chromium, once for the module
+(its slowest test): every path is scored against the known truth within a bound, a second
+run reuses the kept videos and points, and the keys video's tracked points move the way
+the rendered face does.
 """
 
 from __future__ import annotations
 
 import json
+from pathlib import Path
+from typing import Any
 
 import numpy as np
+import pytest
 
-from facecast.cli.bench.facevideo import head_scene, write_video
 from facecast.cli.main import main
-from facecast.cli.track import track_video
-from facecast.rig.evaluation.webcam import ict_performer
-from facecast.rig.sources.ict import ict_regions
+from facecast.rig.evaluation.webcam import ict_performer, key_clips
 
 from .conftest import ICT_ARCHIVE as ARCHIVE
 from .conftest import ICT_TRACKING
 
 pytestmark = ICT_TRACKING
-HOLD = 4
+#: The take's first 20 frames (a third of a second at 60 fps: the brows and eyes rise, the
+#: jaw opens); three keys, of which the take uses the first two, so the personal path
+#: clones something (on the first 8 frames it did no better than the neutral).
+KEYS = ("browInnerUp", "jawOpen", "eyeBlinkLeft")
+FRAMES, HOLD = 20, 3
 #: Feature positions of the inner upper and lower lip (Multi-PIE 62, 66) in the layout.
 INNER_UPPER, INNER_LOWER = 17, 18
 
 
-def test_the_rendered_face_is_found_in_every_frame_and_its_mouth_followed(tmp_path):
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory) -> tuple[list[dict[str, Any]], Path]:
+    """Two runs of ``bench webcam`` on one ``--videos`` folder (the second reuses what the
+    first kept): their JSON reports and the folder."""
+    folder = tmp_path_factory.mktemp("webcam")
+    argv = ["bench", "webcam", "--frames", str(FRAMES), "--keys", ",".join(KEYS),
+            "--ramp", "0", "--hold", str(HOLD), "--videos", str(folder / "kept")]  # fmt: skip
+    reports = []
+    for run in ("first", "again"):
+        out = folder / f"{run}.json"
+        assert main([*argv, "--json", str(out)]) == 0
+        reports.append(json.loads(out.read_text()))
+    return reports, folder / "kept"
+
+
+def test_the_rendered_face_is_found_in_every_frame_and_its_mouth_followed(bench):
+    # The keys video as the benchmark tracked it (facecast track's .npz): the neutral held,
+    # then each key held at 1, the jaw's among them.
+    (points_file,) = bench[1].glob("keys*.npz")
     performer = ict_performer(ARCHIVE)
-    regions, landmarks68 = ict_regions(ARCHIVE)
-    act = np.zeros((2 * HOLD, len(performer.names)))
-    act[HOLD:, performer.names.index("jawOpen")] = 0.6
-    path = write_video(tmp_path / "clip.y4m", head_scene(performer, regions, landmarks68),
-                       performer, act, fps=30.0, sway_degrees=1.5, progress=False)  # fmt: skip
+    act = key_clips(performer.names, keys=KEYS, ramp=0, hold=HOLD).activations
+    jaw = act[:, performer.names.index("jawOpen")] == 1.0
 
-    result = track_video(path, progress=False)
+    with np.load(points_file) as tracked:
+        found, points = tracked["found"], tracked["points"]
 
-    assert result.found.all()
-    gap = result.points[:, INNER_UPPER, 1] - result.points[:, INNER_LOWER, 1]
+    assert len(found) == len(act) and found.all()
+    gap = points[:, INNER_UPPER, 1] - points[:, INNER_LOWER, 1]
     exact = performer.landmark_points(act)
     exact_gap = exact[:, INNER_UPPER, 1] - exact[:, INNER_LOWER, 1]
     # The tracker's face frame is about centimetres (eye-centre distance 6.3), as ICT's.
-    opened = gap[HOLD:].mean() - gap[:HOLD].mean()
+    opened = gap[jaw].mean() - gap[:HOLD].mean()
     assert 0.5 * np.ptp(exact_gap) < opened < 2.0 * np.ptp(exact_gap)
 
 
-def test_bench_on_tracked_videos_scores_every_path_and_reuses_what_it_kept(tmp_path):
-    argv = ["bench", "webcam", "--frames", "8", "--keys", "jawOpen,mouthSmileLeft,eyeBlinkLeft",
-            "--ramp", "0", "--hold", "3", "--videos", str(tmp_path / "kept")]  # fmt: skip
+#: Upper bounds on each path's error against the truth: eq. 4.1's worst axis, %, as the
+#: benchmark prints it. Measured on 3 runs, identical to 4 decimals (the render and the
+#: tracker are deterministic here): tracked personal 1.454, generic 1.645; exact personal
+#: 1.417, generic 0.379. Broken paths, measured on the same videos: weights zeroed (the
+#: neutral) 2.37 on every row; the take's points shuffled: tracked personal 2.63, generic
+#: 26; every point (keys' and take's) shuffled: generic 2.36 tracked, 2.37 exact (the
+#: personal rig, fitted on the same points, cannot tell a consistent relabelling); landmark
+#: 5 read as 6: generic 2.04 tracked, 1.84 exact; the inner lips swapped: exact generic
+#: 0.815 (tracked 1.70, under its bound: caught on exact landmarks only); the take played
+#: backwards: personal 2.93 tracked, 3.04 exact.
+BOUNDS = {
+    "tracked": {"personal": 1.75, "generic": 1.8},
+    "exact": {"personal": 1.6, "generic": 0.6},
+}
 
-    reports = []
-    for run in ("first", "again"):
-        out = tmp_path / f"{run}.json"
-        assert main([*argv, "--json", str(out)]) == 0
-        reports.append(json.loads(out.read_text()))
+
+def max_axis(row: dict[str, Any]) -> float:
+    return max(row["eq41_percent"].values())
+
+
+def test_bench_on_tracked_videos_scores_every_path_near_the_truth_and_reuses_what_it_kept(bench):
+    reports, _ = bench
 
     first, again = (report["tracked"] for report in reports)
-    assert first["take_found"] == 8 and first["key_found"] == 3 + 3 * 3
-    assert first["keys_captured"] == 4  # the neutral and the three keys
+    assert first["take_found"] == FRAMES and first["key_found"] == HOLD * (1 + len(KEYS))
+    assert first["keys_captured"] == 1 + len(KEYS)  # the neutral and the keys
     assert set(first["rows"]) == {
         "personal", "nnls", "personal on keys' mix", "generic", "generic exact", "generic noise"
     }  # fmt: skip
+    errors = {
+        landmarks: {path: max_axis(reports[0][landmarks]["rows"][path]) for path in bounds}
+        for landmarks, bounds in BOUNDS.items()
+    }
+    assert all(
+        errors[landmarks][path] < bound
+        for landmarks, bounds in BOUNDS.items()
+        for path, bound in bounds.items()
+    ), errors
     assert set(first["render_seconds"]) == set(first["track_seconds"]) == {"take", "keys", "eyes"}
     # The eyes clip, its own video (another face's keys, then the clip), tracked once too.
     eyes = reports[0]["eyes_tracked"]
-    assert eyes["performer"] == "person12" and eyes["keys_captured"] == 4
+    assert eyes["performer"] == "person12" and eyes["keys_captured"] == 1 + len(KEYS)
     assert eyes["clip_found"] == eyes["clip_frames"] and eyes["render_seconds"] > 0
     assert {len(row["gaze"]) for row in eyes["rows"].values()} == {4}
     # The second run renders and tracks nothing: it scores the kept points, to the same figures.

@@ -207,7 +207,7 @@ def server_process(
     rigs: Path,
     *extra: str,
     env: dict[str, str] | None = None,
-    ready_timeout: float = 20.0,
+    ready_timeout: float = 60.0,
 ) -> Iterator[subprocess.Popen]:
     """A ``facecast serve`` subprocess on 127.0.0.1:``port``; ready when this yields
     (within ``ready_timeout`` s: a machine busy with other suites starts it slowly)."""
@@ -234,7 +234,7 @@ def server_process(
             process.stderr.close()
 
 
-def wait_ready(base_url: str, process: subprocess.Popen, timeout: float = 20.0) -> None:
+def wait_ready(base_url: str, process: subprocess.Popen, timeout: float = 60.0) -> None:
     """Poll ``/healthz`` until it answers; fail early if the process died (with its stderr)."""
 
     def exited() -> str | None:

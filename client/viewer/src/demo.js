@@ -39,7 +39,7 @@ export class DemoPlayer {
       const frame = points.subarray(index * k * 3, (index + 1) * k * 3);
       const sentAt = performance.now();
       if (link.send(encodeFrame(this.seq, sentAt / 1000, frame))) {
-        this.sentAt.set(this.seq, { sentAt, elapsed });
+        this.sentAt.set(this.seq, { sentAt, elapsed, index });
         this.seq += 1;
       }
     }, 1000 / fps / 2);
@@ -51,8 +51,9 @@ export class DemoPlayer {
   }
 
   /**
-   * Account for the result of frame `seq`: {latencyMs, demoTime} (ms from sending it to
-   * now; seconds into the performance, not wrapped), or null if the frame is not ours.
+   * Account for the result of frame `seq`: {latencyMs, demoTime, index} (ms from sending
+   * it to now; seconds into the performance, not wrapped; the performance's frame sent),
+   * or null if the frame is not ours.
    */
   received(seq) {
     this.lastResultSeq = Math.max(this.lastResultSeq, seq);
@@ -62,6 +63,7 @@ export class DemoPlayer {
       if (key > seq) break;
       this.sentAt.delete(key);
     }
-    return sent === undefined ? null : { latencyMs: performance.now() - sent.sentAt, demoTime: sent.elapsed };
+    if (sent === undefined) return null;
+    return { latencyMs: performance.now() - sent.sentAt, demoTime: sent.elapsed, index: sent.index };
   }
 }

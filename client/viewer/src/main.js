@@ -143,6 +143,13 @@ async function main() {
   if (view.controls) view.controls.addEventListener("change", () => (view.dirty = true));
   // Tests (and the curious) read what is shown and how it is posed (FaceView.characterState).
   window.characterState = () => view.characterState();
+  // What the rig's mesh was last posed with, for tests and the curious (read-only, like
+  // facecastStats; docs/viewer.md): the seq of the last result applied, the demo
+  // performance's frame index it answers (null when watching a channel), and the mesh as
+  // posed — its vertex positions and its morph influences by target name. null until a
+  // result is applied.
+  let applied = null; // {seq, frame} of the last result applied to the view
+  window.facecastApplied = () => applied && { ...applied, output: params.output, ...view.meshState() };
 
   setState("connecting", "loading", `rig ${params.rig}`);
   let model;
@@ -168,6 +175,7 @@ async function main() {
   let pendingWeights = null;
   let pendingVertices = null;
   let pendingHead = null;
+  let pendingResult = null; // {seq, frame} of the result pending*, applied at the next tick
   let moving = null; // output "moving": the indices of the vertices results carry
 
   const link = new Link(socketTarget(params), {
@@ -230,11 +238,13 @@ async function main() {
           live.receive(msg, performance.now());
           stats.dropped = msg.dropped;
           let latency = null;
+          pendingResult = { seq: msg.seq, frame: null };
           if (player) {
             const frame = player.received(msg.seq);
             if (frame) {
               latency = frame.latencyMs;
               stats.demoTime = frame.demoTime;
+              pendingResult.frame = frame.index;
             }
           } else if (typeof msg.server_ts === "number") latency = Date.now() - msg.server_ts * 1000;
           if (latency !== null) {
@@ -295,10 +305,11 @@ async function main() {
       if (pendingVertices && moving) view.setMovingVertices(moving, pendingVertices);
       else if (pendingVertices) view.setVertices(pendingVertices);
       if (pendingWeights) hud.weights(pendingWeights);
+      if (pendingWeights || pendingVertices) applied = pendingResult;
     } catch (err) {
       link.fail(err.message);
     }
-    pendingWeights = pendingVertices = pendingHead = null;
+    pendingWeights = pendingVertices = pendingHead = pendingResult = null;
     if (view.dirty) {
       const started = performance.now();
       view.render();

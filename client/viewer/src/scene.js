@@ -291,6 +291,18 @@ export class FaceView {
     this.dirty = true;
   }
 
+  /**
+   * The rig's mesh as posed now (window.facecastApplied()): `positions`, its V*3 vertex
+   * positions (the neutral's until vertices are applied), and `influences`, its morph
+   * targets' weights by name; {} while a character file is shown instead.
+   */
+  meshState() {
+    if (!this.mesh) return {};
+    const influences = {};
+    this.names.forEach((name, j) => (influences[name] = this.mesh.morphTargetInfluences[j]));
+    return { positions: Array.from(this.mesh.geometry.attributes.position.array), influences };
+  }
+
   render() {
     if (this.controls) this.controls.update();
     const c = this.character;

@@ -65,6 +65,8 @@ const stats = {
   points: null, // the last published points, K*3
   head: null, // {yaw, pitch, roll} of the last frame, degrees
   eyes: null,
+  clockOffsetMs: 0, // the server's clock − this page's, as the link estimates it (§5.4)
+  clockRttMs: null, // the round trip of the pong that estimate comes from
   rebased: false, // a generic rig re-based on the performer's captured neutral (calibrated)
   neutralNoise: null, // σ of the neutral capture's held frames, sent with the calibrate
   rig: null,
@@ -249,6 +251,10 @@ async function main() {
   };
   let latencyEma = null;
   const link = new Link(socketTarget(params), {
+    onPong() {
+      stats.clockOffsetMs = link.clock.offsetMs;
+      stats.clockRttMs = link.clock.rttMs;
+    },
     onOpen(l) {
       setPublish("connecting", "opening session", `channel ${params.channel}, rig ${params.rig}`);
       l.send(encodeHello({ rig: params.rig, output: "weights", dtype: "f32" }));
