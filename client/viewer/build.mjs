@@ -33,7 +33,7 @@ await build({ ...common, entryPoints: ["src/landing.js"], outfile: "dist/landing
 // Human's package.json exports neither itself nor its models: read them from node_modules.
 const packageDir = (name) => join("node_modules", name);
 const PERFORM_ASSETS = {
-  "@vladmandic/human": ["models/blazeface.json", "models/blazeface.bin", "models/facemesh.json", "models/facemesh.bin"],
+  "@vladmandic/human": ["models/blazeface.json", "models/blazeface.bin", "models/facemesh.json", "models/facemesh.bin", "models/iris.json", "models/iris.bin"],
   "@tensorflow/tfjs-backend-wasm": [
     "dist/tfjs-backend-wasm.wasm",
     "dist/tfjs-backend-wasm-simd.wasm",

@@ -32,6 +32,8 @@ PERFORM_ASSETS: dict[str, tuple[str, str]] = {
     "blazeface.bin": ("perform/blazeface.bin", _BIN),
     "facemesh.json": ("perform/facemesh.json", _JSON),
     "facemesh.bin": ("perform/facemesh.bin", _BIN),
+    "iris.json": ("perform/iris.json", _JSON),
+    "iris.bin": ("perform/iris.bin", _BIN),
     "tfjs-backend-wasm.wasm": ("perform/tfjs-backend-wasm.wasm", _WASM),
     "tfjs-backend-wasm-simd.wasm": ("perform/tfjs-backend-wasm-simd.wasm", _WASM),
     "tfjs-backend-wasm-threaded-simd.wasm": ("perform/tfjs-backend-wasm-threaded-simd.wasm", _WASM),

@@ -40,6 +40,7 @@ def test_page_loads_without_a_token_and_points_at_its_script(settings):
         ("facemesh.json", "application/json"),
         ("facemesh.bin", "application/octet-stream"),
         ("blazeface.bin", "application/octet-stream"),
+        ("iris.bin", "application/octet-stream"),
         ("tfjs-backend-wasm-simd.wasm", "application/wasm"),
     ],
 )
@@ -58,14 +59,14 @@ def test_the_model_weights_are_the_npm_package_files_not_urls():
     # The graph model's manifest names weight files that are served here, beside it.
     import json
 
-    for model in ("blazeface", "facemesh"):
+    for model in ("blazeface", "facemesh", "iris"):
         manifest = json.loads((viewer_dir() / "dist" / "perform" / f"{model}.json").read_text())
         paths = [p for group in manifest["weightsManifest"] for p in group["paths"]]
         assert paths == [f"{model}.bin"]
         assert (viewer_dir() / "dist" / "perform" / f"{model}.bin").stat().st_size > 100_000
 
 
-@pytest.mark.parametrize("name", ["package.json", "..%2Fperform.html", "%2E%2E", "iris.json"])
+@pytest.mark.parametrize("name", ["package.json", "..%2Fperform.html", "%2E%2E", "emotion.json"])
 def test_only_the_listed_assets_are_served(settings, name):
     with serving(settings) as base_url:
         response = httpx.get(f"{base_url}/perform/assets/{name}")

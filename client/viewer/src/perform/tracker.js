@@ -1,10 +1,17 @@
-// The face-landmark model: @vladmandic/human's BlazeFace + FaceMesh (468 points) on
-// TensorFlow.js's WebAssembly backend, weights and .wasm files served by facecast itself
-// (/perform/assets/, copied from the npm packages at build time). See docs/perform.md.
+// The face-landmark model: @vladmandic/human's BlazeFace + FaceMesh (468 points; the lids
+// refined by its iris model, eyelids.js) on TensorFlow.js's WebAssembly backend, weights and
+// .wasm files served by facecast itself (/perform/assets/, copied from the npm packages at
+// build time). See docs/perform.md.
 
 import { Human } from "@vladmandic/human";
 
+import { EyelidModel } from "./eyelids.js";
 import { largestFace } from "./facemesh.js";
+
+/** Whether FaceMesh's eyelids are refined by the iris model (eyelids.js): FaceMesh's own
+ * lids close a fifth of the way on a blink and move both eyes alike on a wink (README, "The
+ * eyes clip"). The page, `facecast track` and `facecast perform`'s page all take it from here. */
+export const REFINE_EYELIDS = true;
 
 /** Where build.mjs puts the models and the WebAssembly binaries, relative to the page. */
 export const ASSETS = "perform/assets/";
@@ -24,7 +31,7 @@ function config(base, backend) {
       enabled: true,
       detector: { modelPath: "blazeface.json", rotation: false, maxDetected: 2, minConfidence: 0.5, return: false },
       mesh: { enabled: true, modelPath: "facemesh.json" },
-      iris: { enabled: false },
+      iris: { enabled: false }, // the lids are refined by eyelids.js instead (see there)
       attention: { enabled: false },
       description: { enabled: false },
       emotion: { enabled: false },
@@ -40,8 +47,9 @@ function config(base, backend) {
 }
 
 export class Tracker {
-  constructor({ base = ASSETS, backend = "wasm" } = {}) {
+  constructor({ base = ASSETS, backend = "wasm", eyelids = REFINE_EYELIDS } = {}) {
     this.human = new Human(config(base, backend));
+    this.eyelids = eyelids ? new EyelidModel(this.human.tf, `${base}iris.json`) : null;
     this.backend = null;
     this.features = {};
   }
@@ -56,6 +64,13 @@ export class Tracker {
     const loaded = this.human.models.loaded().join(" ");
     const missing = ["blazeface", "facemesh"].filter((name) => !loaded.includes(name));
     if (missing.length) throw new Error(`could not load ${missing.join(" and ")} from ${ASSETS} (is the server up?)`);
+    if (this.eyelids) {
+      try {
+        await this.eyelids.load();
+      } catch (err) {
+        throw new Error(`could not load iris from ${ASSETS} (is the server up?): ${err.message}`);
+      }
+    }
     this.backend = this.human.tf.getBackend();
     const wasm = this.human.env.wasm || {};
     // What really runs: the backend TensorFlow.js settled on and, for wasm, which binary.
@@ -73,6 +88,7 @@ export class Tracker {
     const best = largestFace(faces);
     if (best < 0) return { faces: 0, face: null };
     const face = faces[best];
+    if (this.eyelids) await this.eyelids.refine(video, face.mesh);
     return { faces: faces.length, face: { landmarks: face.mesh, box: face.box, score: face.faceScore ?? face.score } };
   }
 }
