@@ -30,7 +30,10 @@ def test_bench_live_reports_each_stage_and_capture_to_drawn_beside_its_floor(tmp
     assert set(report["stages"]) == {"track", "publish", "uplink", "server", "downlink", "draw"}
     assert all(stage["n"] > 0 for stage in report["stages"].values())
     assert report["fps"]["tracked"] > 0 and report["fps"]["drawn"] > 0
-    assert report["lost"]["server_to_viewer"] >= 0
+    # Frames a viewer never got (the server keeps the newest for a slow one): a count per
+    # viewer within what was published.
+    published = report["fps"]["published"] * report["seconds"]
+    assert 0 <= report["lost"]["server_to_viewer"] <= published
     assert report["capture_source"] in ("frame timestamp", "video metadata")
 
 
