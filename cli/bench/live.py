@@ -151,6 +151,21 @@ class _Run:
         from playwright.sync_api import sync_playwright  # an optional dependency (test extra)
 
         self.args = args
+        self.loops: list[subprocess.Popen[bytes]] = []
+        self.server: Any = None
+        self.relay: Any = None
+        self._pw: Any = None
+        self.browser: Any = None
+        self.viewer_browser: Any = None
+        try:
+            self._start(args, folder, video, sync_playwright)
+        except BaseException:
+            self.close()  # what started before the failure must not outlive the run
+            raise
+
+    def _start(
+        self, args: argparse.Namespace, folder: Path, video: Path, sync_playwright: Any
+    ) -> None:
         self.server = facecast_serve(folder / "rigs", "--log-level", "warning",
                                      log_path=folder / "serve.log").start()  # fmt: skip
         self.server.wait_ready(timeout=60)
@@ -158,7 +173,6 @@ class _Run:
             "facecast.cli.bench.servers:serve_relay_floor", log_path=folder / "relay.log"
         ).start()
         self.relay.wait_listening()
-        self.loops: list[subprocess.Popen[bytes]] = []
         self._pw = sync_playwright().start()
         chromium = _chromium_args(args.gpu_compositing)
         # The performer and the audience are other machines: each its own browser, so its
@@ -193,12 +207,15 @@ class _Run:
     def close(self) -> None:
         self.stop_loops()
         try:
-            self.browser.close()
-            self.viewer_browser.close()
-            self._pw.stop()
+            for browser in (self.browser, self.viewer_browser):
+                if browser is not None:
+                    browser.close()
+            if self._pw is not None:
+                self._pw.stop()
         finally:
-            self.relay.stop()
-            self.server.stop()
+            for process in (self.relay, self.server):
+                if process is not None:
+                    process.stop()
 
 
 def _chromium_args(gpu_compositing: bool) -> tuple[str, ...]:
