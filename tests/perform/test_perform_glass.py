@@ -177,10 +177,13 @@ def test_a_stalled_performer_page_sends_the_newest_camera_frame_when_it_returns(
         session.detach()
     stalled_s = time.monotonic() - stalled_at
     drawn = viewer.evaluate("window.liveLatency().drawn")
-    viewer.wait_for_function(f"window.liveLatency().drawn >= {drawn + 5}", timeout=60_000)
-    records = viewer.evaluate("window.liveLatency(true).records")[-5:]
+    viewer.wait_for_function(f"window.liveLatency().drawn >= {drawn + 6}", timeout=60_000)
+    records = viewer.evaluate("window.liveLatency(true).records")[-6:]
 
-    # A frame captured before the stall would be at least as old as the stall.
+    # A frame captured before the stall is at least as old as the stall. One may come
+    # through: the frame the tracker had in hand when the page stopped (seen once on 3
+    # loaded workers), finished on return; never one that waited for the tracker meanwhile.
     assert stalled_s > 3
-    for record in records:
-        assert record["e2eMs"] is not None and record["e2eMs"] < 1000 * stalled_s, record
+    assert all(record["e2eMs"] is not None for record in records), records
+    stale = [i for i, record in enumerate(records) if record["e2eMs"] >= 1000 * stalled_s]
+    assert stale in ([], [0]), records
