@@ -79,9 +79,10 @@ export class EyelidModel {
     const values = tf.tidy(() => {
       const pixels = tf.browser.fromPixels(image);
       const [h, w] = pixels.shape;
-      const batch = tf.div(tf.expandDims(tf.cast(pixels, "float32"), 0), 255);
       const crop = (b) => [b.y / h, b.x / w, (b.y + b.size) / h, (b.x + b.size) / w];
-      const crops = tf.image.cropAndResize(batch, [crop(boxes.right), crop(boxes.left)], [0, 0], [this.input, this.input]);
+      // Crop the two eyes first, then scale them to [0, 1]: not the whole frame each frame.
+      const eyes = tf.image.cropAndResize(tf.expandDims(pixels, 0), [crop(boxes.right), crop(boxes.left)], [0, 0], [this.input, this.input]);
+      const crops = tf.div(eyes, 255);
       // The model takes right eyes (the image's left one): the left eye goes in mirrored.
       const [right, left] = tf.split(crops, 2, 0);
       const input = tf.concat([right, tf.reverse(left, 2)], 0);
