@@ -1,6 +1,7 @@
 // The eyelids refined by MediaPipe's iris model (@vladmandic/human's iris.json): each eye
-// cropped from the image around FaceMesh's own corners, its 71-point contour predicted, and
-// FaceMesh's lid points replaced by it. No DOM; the weights come from the page's own server.
+// cropped from the image around FaceMesh's own corners (where the last frames put them,
+// EyeBoxes), its 71-point contour predicted, and FaceMesh's lid points replaced by it. No
+// DOM; the weights come from the page's own server.
 //
 // Why not Human's own `face.iris`: it also replaces the eye corners (the face frame's
 // points, facemesh.js) and the brows with the iris model's guesses, which moved the brows
