@@ -1,9 +1,10 @@
-// The eyelid refinement's arithmetic (src/perform/eyelids.js): where an eye is cropped and
-// how the iris model's contour, given in crop pixels, lands back on FaceMesh's lid points.
+// The eyelid refinement's arithmetic (src/perform/eyelids.js): where an eye is cropped (one
+// frame's corners, and the crops' median over the frames) and how the iris model's contour,
+// given in crop pixels, lands back on FaceMesh's lid points.
 import assert from "node:assert/strict";
 import { test } from "node:test";
 
-import { eyeBox, replaceLids } from "../src/perform/eyelids.js";
+import { EYE_BOX_ANCHOR, EYE_BOX_FRAMES, EyeBoxes, eyeBox, replaceLids } from "../src/perform/eyelids.js";
 
 const INPUT = 64;
 
@@ -45,4 +46,68 @@ test("the left eye went in mirrored and comes back un-mirrored in its box", () =
   assert.deepEqual(landmarks[373], [300 + (INPUT - 3), 20 + 32 + 3, 373]);
   for (const corner of [263, 362]) assert.deepEqual(landmarks[corner], [-1, -1, corner]);
   for (const index of [33, 133, 159, 145, 160, 144]) assert.deepEqual(landmarks[index], [-1, -1, index]);
+});
+
+/** FaceMesh's points for one frame: the nose tip at `nose`, each eye's corners `drop` px
+ * below where they sit at rest (FaceMesh's upper face moving down on a blink), the head
+ * rolled by `roll` radians about the nose tip and `zoom` times as large. */
+function face(nose = [320, 250], drop = 0, roll = 0, zoom = 1) {
+  const landmarks = Array.from({ length: 468 }, () => [0, 0, 0]);
+  const [c, s] = [Math.cos(roll), Math.sin(roll)];
+  const at = (dx, dy) => [nose[0] + zoom * (c * dx - s * dy), nose[1] + zoom * (s * dx + c * dy), 0];
+  landmarks[EYE_BOX_ANCHOR] = at(0, 0);
+  landmarks[33] = at(-55, -40 + drop); // the right eye's outer and inner corners
+  landmarks[133] = at(-22, -40 + drop);
+  landmarks[263] = at(55, -40 + drop); // the left eye's
+  landmarks[362] = at(22, -40 + drop);
+  return landmarks;
+}
+
+/** Boxes equal to a millionth of a pixel. */
+function sameBox(got, want) {
+  for (const key of ["x", "y", "size"]) assert.ok(Math.abs(got[key] - want[key]) < 1e-6, `${key}: ${got[key]} != ${want[key]}`);
+}
+
+test("a blink's corners, moved for fewer than half the frames, do not move the crops", () => {
+  const boxes = new EyeBoxes();
+  let rest;
+  for (let i = 0; i < EYE_BOX_FRAMES; i++) rest = boxes.place(face());
+  sameBox(rest.right, eyeBox([265, 210], [298, 210]));
+  // FaceMesh moves the corners 5 px down for the 4 frames of a quick blink: the crops stay.
+  for (let i = 0; i < 4; i++) {
+    const blink = boxes.place(face([320, 250], 5));
+    sameBox(blink.right, rest.right);
+    sameBox(blink.left, rest.left);
+  }
+  sameBox(boxes.place(face()).right, rest.right);
+});
+
+test("the crops follow the head's shift, roll and zoom at once", () => {
+  const boxes = new EyeBoxes();
+  for (let i = 0; i < EYE_BOX_FRAMES; i++) boxes.place(face());
+  // The head moves 30 px, rolls a quarter turn and comes twice as close: this very frame's
+  // crops are where its own corners put them.
+  const moved = face([350, 262], 0, Math.PI / 2, 2);
+  const crops = boxes.place(moved);
+  sameBox(crops.right, eyeBox(moved[33], moved[133]));
+  sameBox(crops.left, eyeBox(moved[263], moved[362]));
+});
+
+test("a lasting change of the corners is followed once it is most of the frames", () => {
+  const boxes = new EyeBoxes();
+  for (let i = 0; i < EYE_BOX_FRAMES; i++) boxes.place(face());
+  const rest = boxes.place(face()).left;
+  // The corners lie 6 px lower from now on (the head pitches): the 5th frame of 9 follows.
+  const ys = [];
+  for (let i = 0; i < EYE_BOX_FRAMES; i++) ys.push(boxes.place(face([320, 250], 6)).left.y);
+  const followed = ys.findIndex((y) => Math.abs(y - (rest.y + 6)) < 1e-6);
+  assert.equal(followed, (EYE_BOX_FRAMES + 1) / 2 - 1);
+  assert.ok(ys.slice(0, followed).every((y) => y < rest.y + 6 - 1e-6));
+});
+
+test("a face lost and found again is cropped from its own corners, not the last face's", () => {
+  const boxes = new EyeBoxes();
+  for (let i = 0; i < EYE_BOX_FRAMES; i++) boxes.place(face([320, 250], 20));
+  boxes.reset();
+  sameBox(boxes.place(face()).right, eyeBox([265, 210], [298, 210]));
 });

@@ -1,6 +1,7 @@
 // The eyelids refined by MediaPipe's iris model (@vladmandic/human's iris.json): each eye
-// cropped from the image around FaceMesh's own corners, its 71-point contour predicted, and
-// FaceMesh's lid points replaced by it. No DOM; the weights come from the page's own server.
+// cropped from the image around FaceMesh's own corners (where the last frames put them,
+// EyeBoxes), its 71-point contour predicted, and FaceMesh's lid points replaced by it. No
+// DOM; the weights come from the page's own server.
 //
 // Why not Human's own `face.iris`: it also replaces the eye corners (the face frame's
 // points, facemesh.js) and the brows with the iris model's guesses, which moved the brows
@@ -20,6 +21,12 @@ const LOWER_CONTOUR = [0, 1, 2, 3, 4, 5, 6, 7, 8];
 const EYE_VALUES = 76 * 3;
 /** The crop: the corners' box enlarged this much, made square (Human's default). */
 export const EYE_CROP_SCALE = 2.3;
+/** Frames over which each crop's place and size are the median: a quick blink (3–5 frames at
+ * 30 fps) is fewer than half of them, so it never moves the crop. */
+export const EYE_BOX_FRAMES = 9;
+/** FaceMesh's nose tip, the point the crops are placed from: FaceMesh moves its whole upper
+ * face, the eye corners included, 4–7 px down when both eyes close, never its nose tip. */
+export const EYE_BOX_ANCHOR = 4;
 
 /**
  * The square crop around one eye, in image pixels: {x, y, size} (top-left corner, side),
@@ -30,6 +37,58 @@ export function eyeBox(a, b, scale = EYE_CROP_SCALE) {
   const cy = (a[1] + b[1]) / 2;
   const size = scale * Math.max(Math.abs(a[0] - b[0]), Math.abs(a[1] - b[1]));
   return { x: cx - size / 2, y: cy - size / 2, size };
+}
+
+function median(values) {
+  const sorted = [...values].sort((a, b) => a - b);
+  const mid = sorted.length >> 1;
+  return sorted.length % 2 ? sorted[mid] : (sorted[mid - 1] + sorted[mid]) / 2;
+}
+
+/**
+ * Where the eyes are cropped, frame after frame. FaceMesh's corners, which `eyeBox` crops
+ * around, move 4–5 px down with its lids when both eyes close, and the iris model's lids
+ * depend on where the eye lies in its crop (a quick blink closed the subject's right eye
+ * to 0.55 of its gap at rest, where the same eye in the same crop as a wink's closed to
+ * 0.40): so each crop is the median, over the last `frames` frames, of `eyeBox`'s place and
+ * size in the face's own axes — from the nose tip, along the line through the outer eye
+ * corners, in units of their distance — put back at this frame's nose tip and axes. The
+ * head's motion in the image (a shift, a roll, a zoom) moves the crops at once; a blink
+ * does not last long enough to move the median. `reset` when the face is lost.
+ */
+export class EyeBoxes {
+  constructor(frames = EYE_BOX_FRAMES) {
+    this.frames = frames;
+    this.reset();
+  }
+
+  reset() {
+    this.history = { right: [], left: [] };
+  }
+
+  /** This frame's crops {right, left} ({x, y, size} each) from FaceMesh's `landmarks`. */
+  place(landmarks) {
+    const [ox, oy] = landmarks[EYE_BOX_ANCHOR];
+    const a = landmarks[LOWER.right[0]];
+    const b = landmarks[LOWER.left[0]];
+    const span = Math.hypot(b[0] - a[0], b[1] - a[1]);
+    const u = [(b[0] - a[0]) / span, (b[1] - a[1]) / span]; // along the eyes
+    const v = [-u[1], u[0]]; // across them
+    const boxes = {};
+    for (const side of ["right", "left"]) {
+      const box = eyeBox(landmarks[LOWER[side][0]], landmarks[LOWER[side][8]]);
+      const dx = box.x + box.size / 2 - ox;
+      const dy = box.y + box.size / 2 - oy;
+      const history = this.history[side];
+      history.push([(dx * u[0] + dy * u[1]) / span, (dx * v[0] + dy * v[1]) / span, box.size / span]);
+      if (history.length > this.frames) history.shift();
+      const [along, across, size] = [0, 1, 2].map((j) => span * median(history.map((h) => h[j])));
+      const cx = ox + along * u[0] + across * v[0];
+      const cy = oy + along * u[1] + across * v[1];
+      boxes[side] = { x: cx - size / 2, y: cy - size / 2, size };
+    }
+    return boxes;
+  }
 }
 
 /**
@@ -58,6 +117,7 @@ export class EyelidModel {
     this.url = url;
     this.model = null;
     this.input = 64;
+    this.boxes = new EyeBoxes();
   }
 
   async load() {
@@ -66,16 +126,19 @@ export class EyelidModel {
     if (shape && shape[1] > 0) this.input = shape[1];
   }
 
+  /** The face was lost: the next face's crops start afresh. */
+  reset() {
+    this.boxes.reset();
+  }
+
   /**
    * Refine the lids of `landmarks` (FaceMesh's, image pixels; changed in place and
-   * returned) from `image` (what was tracked: a canvas, a video, an ImageData...).
+   * returned) from `image` (what was tracked: a canvas, a video, an ImageData...), the
+   * frames of one face in order (EyeBoxes).
    */
   async refine(image, landmarks) {
     const tf = this.tf;
-    const boxes = {
-      right: eyeBox(landmarks[LOWER.right[0]], landmarks[LOWER.right[8]]),
-      left: eyeBox(landmarks[LOWER.left[0]], landmarks[LOWER.left[8]]),
-    };
+    const boxes = this.boxes.place(landmarks);
     const values = tf.tidy(() => {
       const pixels = tf.browser.fromPixels(image);
       const [h, w] = pixels.shape;

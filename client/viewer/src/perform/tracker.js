@@ -86,7 +86,10 @@ export class Tracker {
     const result = await this.human.detect(video);
     const faces = result.face.filter((f) => f.mesh && f.mesh.length >= 468);
     const best = largestFace(faces);
-    if (best < 0) return { faces: 0, face: null };
+    if (best < 0) {
+      if (this.eyelids) this.eyelids.reset();
+      return { faces: 0, face: null };
+    }
     const face = faces[best];
     if (this.eyelids) await this.eyelids.refine(video, face.mesh);
     return { faces: faces.length, face: { landmarks: face.mesh, box: face.box, score: face.faceScore ?? face.score } };
