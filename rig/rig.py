@@ -126,15 +126,17 @@ class Rig:
         ``stable_points`` are checked as an example set's are (``check_stable_points``):
         ``fit`` takes them from its caller as well as from the example set. ``blend_basis``
         is ``build_blend_basis(target_vertices)`` when the caller has built it already
-        (``fit`` builds it beside its math); None builds it here.
+        (``fit`` builds it beside its math; then ``target_vertices`` may hold the neutral
+        alone, (1, V, 3)); None builds it here. The rig's float32 neutral is the basis's
+        row 0 (the same values), not a copy of it.
         """
-        m, v, _ = target_vertices.shape
+        m, v = len(names), target_vertices.shape[1]
         if blend_basis is not None and blend_basis.shape != (m, 3 * v):
             raise ValueError(
                 f"Expected a blend basis of shape {(m, 3 * v)}, got {blend_basis.shape}"
             )
-        neutral = np.ascontiguousarray(target_vertices[0], dtype=np.float32)
         basis = build_blend_basis(target_vertices) if blend_basis is None else blend_basis
+        neutral = basis[0].reshape(v, 3)
         stable = (
             None if stable_points is None else check_stable_points(stable_points, model.num_points)
         )

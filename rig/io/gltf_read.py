@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ExampleSetError
+from ..examples import face_index_dtype
 from .gltf_check import (
     TYPE_SIZES,
     Buffer,
@@ -214,9 +215,16 @@ class BufferReader:
             for primitive in mesh["primitives"]:
                 self.draco_geometry(primitive)
 
-    def accessor(self, index: int, floats: type[np.floating[Any]] = np.float64) -> np.ndarray:
-        """Decode accessor ``index`` into a (count, ncomp) array: int64, or ``floats``
-        (float32 reads a float32 accessor as stored, without a float64 copy)."""
+    def accessor(
+        self,
+        index: int,
+        floats: type[np.floating[Any]] = np.float64,
+        integers: type[np.signedinteger[Any]] = np.int64,
+    ) -> np.ndarray:
+        """Decode accessor ``index`` into a (count, ncomp) array: ``integers`` (int64 by
+        default; a uint32 index past int32's range read as int32 wraps to a negative one,
+        which a range check refuses), or ``floats`` (float32 reads a float32 accessor as
+        stored, without a float64 copy)."""
         acc = self.doc["accessors"][index]
         dtype = _COMPONENT_DTYPES[acc["componentType"]]
         ncomp = TYPE_SIZES[acc["type"]]
@@ -250,7 +258,7 @@ class BufferReader:
             scaled = out.astype(np.float64)
             scaled /= np.iinfo(out.dtype).max
             return np.maximum(scaled, -1.0, out=scaled)
-        return out.astype(np.int64, copy=stored)
+        return out.astype(integers, copy=stored)
 
 
 def read_glb_morph_targets(
@@ -270,7 +278,7 @@ def read_glb_morph_targets(
     Returns
     -------
     neutral : (V, 3) float64
-    faces : (F, 3) int64
+    faces : (F, 3) int32 (int64 from 2^31 vertices on: ``face_index_dtype``)
     deltas : (M', V, 3) float64
         POSITION offsets of each morph target.
     names : list of M' str
@@ -289,7 +297,8 @@ def read_glb_morph_targets(
 
 def read_gltf_mesh(path_or_bytes: GltfSource) -> tuple[np.ndarray, np.ndarray]:
     """The neutral of a glTF/GLB/VRM file's face: its first mesh with morph targets, else its
-    first mesh, as (V, 3) float64 vertices and (F, 3) int64 triangles (mesh space).
+    first mesh, as (V, 3) float64 vertices and (F, 3) int32 triangles (mesh space; int64
+    from 2^31 vertices on, ``face_index_dtype``).
 
     Raises
     ------
@@ -337,7 +346,7 @@ def read_mesh(
     Returns
     -------
     neutral : (V, 3) float64
-    faces : (F, 3) int64
+    faces : (F, 3) int32 (int64 from 2^31 vertices on: ``face_index_dtype``)
     deltas : (M, V, 3) float32 when every morph target is stored as float32 (the values
         as stored), else float64
     names : list of M str
@@ -365,14 +374,16 @@ def read_mesh(
     counts = {p["attributes"]["POSITION"]: accessors[p["attributes"]["POSITION"]]["count"]
               for p in primitives}  # fmt: skip
     all_deltas = np.zeros((m, sum(counts.values()), 3), dtype=dtype)
-    # The triangles too (F x 3 int64): one primitive's as read, several filled in place.
+    # The triangles too (F x 3, int32 below 2^31 vertices, as ``face_index_dtype``): one
+    # primitive's as read, several filled in place; never an int64 copy of them all.
     corners = [
         accessors[p["indices"]]["count"] if p.get("indices") is not None else counts[pos]
         for p in primitives
         for pos in [p["attributes"]["POSITION"]]
     ]
+    index_dtype = face_index_dtype(sum(counts.values()))
     several = len(primitives) > 1
-    all_faces = np.empty((sum(c // 3 for c in corners) if several else 0, 3), dtype=np.int64)
+    all_faces = np.empty((sum(c // 3 for c in corners) if several else 0, 3), dtype=index_dtype)
     row = 0
 
     positions: list[np.ndarray] = []
@@ -418,11 +429,11 @@ def read_mesh(
                         )
                     all_deltas[t, rows] = d
         if prim.get("indices") is None:
-            tri = np.arange(vertex_count[pos_index], dtype=np.int64)
+            tri = np.arange(vertex_count[pos_index], dtype=index_dtype)
         elif draco is not None and draco[1] is not None:
-            tri = draco[1].copy()  # the reader keeps the decoded corners
+            tri = draco[1].astype(index_dtype)  # a copy: the reader keeps the decoded corners
         else:
-            tri = reader.accessor(prim["indices"])[:, 0]
+            tri = reader.accessor(prim["indices"], integers=index_dtype)[:, 0]
         if tri.size % 3:
             raise ExampleSetError(
                 f"{label}: primitive {number} index count is not a multiple of 3", code="bad_gltf"
