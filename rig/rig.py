@@ -8,7 +8,7 @@ The weight functions are weight_model.py's, the frames a rig accepts point_range
 from __future__ import annotations
 
 import os
-from typing import Any, TypedDict
+from typing import Any, BinaryIO, TypedDict
 
 import numpy as np
 import numpy.typing as npt
@@ -17,7 +17,7 @@ from .basis import build_blend_basis
 from .blend import Placement, blend_into, moving_vertices
 from .errors import InputError
 from .examples import check_stable_points
-from .io.rigformat import content_checksum, rig_to_bytes, save_rig
+from .io.rigformat import content_checksum, rig_to_bytes, save_rig, write_rig
 from .point_range import CALIBRATION_RANGE, POINT_RANGE, PointRange, check_calibration_range
 from .pose import (
     POSE_REFINE_MAX_CONDITION,
@@ -565,6 +565,10 @@ class Rig:
 
     def to_bytes(self) -> bytes:
         return rig_to_bytes(self)
+
+    def write(self, file: BinaryIO) -> None:
+        """Write the rig's file to an open, seekable binary file, without a copy in memory."""
+        write_rig(self, file)
 
     def __repr__(self) -> str:
         return (
