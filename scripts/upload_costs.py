@@ -43,6 +43,9 @@ SCENARIOS: dict[str, Callable[[int], bytes]] = {
     "issue: 99,999,999 indices (zeros)": lambda _: zeros(3, 1, indices=99_999_999),
     "200,000 nodes (2.2 MB)": lambda _: zeros(3, 1, nodes=200_000),
     "20,000 nodes, the limit": lambda _: zeros(3, 1, nodes=20_000),
+    "one triangle padded to 2 MiB (the large uploads' lane: a fit's constant)": lambda _: padded(
+        zeros(3, 1), 2 * MiB
+    ),
     "JSON: 499,990 empty objects, at max_gltf_json_values": lambda _: json_values(499_990),
     "morph values at the limit: 76,923 vertices x 52 sparse targets (2 kB)": lambda _: zeros(
         76_923, 52

@@ -417,17 +417,7 @@ def read_mesh(
             for t, target in enumerate(prim.get("targets", [])):
                 t_pos = target.get("POSITION")
                 if t_pos is not None:
-                    d = reader.accessor(t_pos, floats=dtype)
-                    if d.shape != pos.shape:
-                        raise ExampleSetError(
-                            f"{label}: morph target {t} is not VEC3 as POSITION is",
-                            code="bad_gltf",
-                        )
-                    if not np.isfinite(d).all():
-                        raise ExampleSetError(
-                            f"{label}: morph target {t} has NaN or Inf offsets", code="non_finite"
-                        )
-                    all_deltas[t, rows] = d
+                    _read_target(reader, t_pos, t, all_deltas[t, rows], label)
         if prim.get("indices") is None:
             tri = np.arange(vertex_count[pos_index], dtype=index_dtype)
         elif draco is not None and draco[1] is not None:
@@ -452,6 +442,23 @@ def read_mesh(
 
     neutral = positions[0] if len(positions) == 1 else np.concatenate(positions)
     return neutral, all_faces, all_deltas, target_names(mesh, m)
+
+
+def _read_target(
+    reader: BufferReader, accessor: int, number: int, out: np.ndarray, label: str
+) -> None:
+    """Morph target ``number``'s POSITION offsets (accessor ``accessor``) into ``out`` (V, 3):
+    what it is read into goes when it is copied, before the next target is read."""
+    deltas = reader.accessor(accessor, floats=out.dtype.type)
+    if deltas.shape != out.shape:
+        raise ExampleSetError(
+            f"{label}: morph target {number} is not VEC3 as POSITION is", code="bad_gltf"
+        )
+    if not np.isfinite(deltas).all():
+        raise ExampleSetError(
+            f"{label}: morph target {number} has NaN or Inf offsets", code="non_finite"
+        )
+    out[:] = deltas
 
 
 def target_names(mesh: dict[str, Any], m: int) -> list[str]:
