@@ -29,6 +29,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from hostile_costs import start, stop
 
+from facecast.rig.io.gltf_check import max_decoded_bytes
+from facecast.server.http.character_upload import gltf_limits
+from facecast.server.settings import Settings
 from tests.hostile._glb import aliased, dense, glb, meshopt_zeros, padded, zeros
 
 MiB = 1 << 20
@@ -37,6 +40,13 @@ MiB = 1 << 20
 def json_values(count: int) -> bytes:
     return glb({"asset": {"version": "2.0"}, "extras": [{}] * count})
 
+
+#: The limits the largest faces are built at (the settings' defaults).
+VERTICES = Settings().max_gltf_vertices
+FACES = Settings().max_gltf_faces
+MORPH_VALUES = Settings().max_gltf_morph_values
+#: The meshopt decode limit (4 bytes a value of max_gltf_accessor_values), in whole rows.
+DECODED = max_decoded_bytes(gltf_limits(Settings())) // 16 * 16
 
 SCENARIOS: dict[str, Callable[[int], bytes]] = {
     "issue: POSITION of 33.3 M zeros (396 B)": lambda _: zeros(33_300_000, 1),
@@ -51,18 +61,29 @@ SCENARIOS: dict[str, Callable[[int], bytes]] = {
         76_923, 52
     ),
     "a dense face at the limit (52 float32 targets) padded to max_upload_bytes": dense,
-    "1 M vertices, 2 M triangles, 4 sparse targets (2 kB): vertices, faces, morph values at "
-    "their limits": lambda _: zeros(1_000_000, 4, indices=6_000_000),
-    "the same, the targets int16 (quantised), padded to max_upload_bytes": lambda limit: padded(
-        zeros(1_000_000, 4, indices=6_000_000, quantized=True), limit
+    f"{VERTICES:,} vertices, {FACES:,} triangles, {MORPH_VALUES // VERTICES} sparse float32 "
+    "targets (2 kB): vertices, faces, morph values at their limits": lambda _: zeros(
+        VERTICES, MORPH_VALUES // VERTICES, indices=3 * FACES
     ),
-    "meshopt: a view of 255 MB of zeros in 4 MB, max_gltf_accessor_values x 4 bytes": (
-        lambda _: meshopt_zeros(255_999_984)
+    "the same padded to max_upload_bytes": lambda limit: padded(
+        zeros(VERTICES, MORPH_VALUES // VERTICES, indices=3 * FACES), limit
     ),
+    f"the same with {MORPH_VALUES // VERTICES // 2} int16 (quantised, counted twice) targets, "
+    "padded to max_upload_bytes": lambda limit: padded(
+        zeros(VERTICES, MORPH_VALUES // VERTICES // 2, indices=3 * FACES, quantized=True), limit
+    ),
+    "1 M vertices, 2 M triangles, 4 sparse float32 targets, padded to max_upload_bytes "
+    "(over the limits since 2026-12-04)": lambda limit: padded(
+        zeros(1_000_000, 4, indices=6_000_000), limit
+    ),
+    f"meshopt: a view of {DECODED / 1e6:.0f} MB of zeros in {DECODED // 64 / 1e6:.0f} MB, "
+    "max_gltf_accessor_values x 4 bytes": lambda _: meshopt_zeros(DECODED),
     "VRM: 44 expressions binding one morph of a 90,909-vertex face, at the limit": lambda _: (
         aliased(90_909, 44)
     ),
-    "VRM: 44 expressions binding one morph of a 1 M-vertex face": lambda _: aliased(1_000_000, 44),
+    f"VRM: 44 expressions binding one morph of a {VERTICES:,}-vertex face": lambda _: aliased(
+        VERTICES, 44
+    ),
 }
 
 

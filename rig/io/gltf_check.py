@@ -69,11 +69,11 @@ class GltfLimits:
     depth: int = 256
     meshes: int = 1_000
     primitives: int = 10_000
-    vertices: int = 1_000_000
-    faces: int = 2_000_000
+    vertices: int = 500_000
+    faces: int = 1_000_000
     morph_targets: int = 1_000
     morph_values: int = 4_000_000
-    accessor_values: int = 64_000_000
+    accessor_values: int = 32_000_000
 
     def __post_init__(self) -> None:
         for f in fields(self):
