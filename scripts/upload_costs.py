@@ -29,10 +29,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from hostile_costs import start, stop
 
+from facecast.rig.evaluation.remesh import decimate, sqrt3_retriangulate
 from facecast.rig.io.gltf_check import max_decoded_bytes
+from facecast.rig.sources.ict import locate_ict
+from facecast.rig.transfer import ict_source_expressions
 from facecast.server.http.character_upload import gltf_limits
 from facecast.server.settings import Settings
 from tests.hostile._glb import aliased, dense, glb, meshopt_zeros, padded, zeros
+from tests.rig._avatars import avatar
 
 MiB = 1 << 20
 
@@ -86,6 +90,52 @@ SCENARIOS: dict[str, Callable[[int], bytes]] = {
     ),
 }
 
+#: Uploads with ``?expressions=transfer&markers=auto`` (the server given ICT-FaceKit as its
+#: transfer source): the peak covers the request and the transfer job it starts, to its end.
+TRANSFERS: dict[str, Callable[[int], bytes]] = {
+    f"transfer: a neutral-only face of {VERTICES:,} vertices and {FACES:,} triangles, padded "
+    "to max_upload_bytes (over max_transfer_vertices)": lambda limit: padded(
+        zeros(VERTICES, 0, indices=3 * FACES), limit
+    ),
+    "transfer: the ICT test avatar without expressions (its 14,062-vertex face)": lambda _: avatar(
+        "neutral_only"
+    ),
+    "transfer: ICT's face remeshed to ~10,000 vertices, no expressions (automatic "
+    "correspondence)": lambda _: remeshed_face(3400, 1),
+    "transfer: ICT's face remeshed to ~50,000 vertices (max_transfer_vertices), no "
+    "expressions": lambda _: remeshed_face(5600, 2),
+}
+
+
+def remeshed_face(kept: int, times: int) -> bytes:
+    """ICT's neutral face decimated to ``kept`` vertices and retriangulated ``times`` (as
+    `facecast bench transfer` makes its ~10k and ~50k targets): a neutral-only GLB whose
+    topology is not ICT's (the transfer fits its correspondence)."""
+    archive = locate_ict()
+    assert archive is not None
+    source = ict_source_expressions(archive)
+    twice = decimate(source.vertices[0], source.faces, kept)
+    for _ in range(times):
+        twice = sqrt3_retriangulate(twice.vertices, twice.faces)
+    positions = twice.vertices.astype("<f4")
+    blob = positions.tobytes() + twice.faces.astype("<u4").tobytes()
+    doc = {
+        "asset": {"version": "2.0"},
+        "buffers": [{"byteLength": len(blob)}],
+        "bufferViews": [
+            {"buffer": 0, "byteLength": positions.nbytes},
+            {"buffer": 0, "byteOffset": positions.nbytes, "byteLength": twice.faces.size * 4},
+        ],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": len(positions), "type": "VEC3",
+             "min": positions.min(0).tolist(), "max": positions.max(0).tolist()},
+            {"bufferView": 1, "componentType": 5125, "count": twice.faces.size, "type": "SCALAR"},
+        ],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}],
+        "nodes": [{"mesh": 0}],
+    }  # fmt: skip
+    return glb(doc, blob)
+
 
 def peak_reset(pid: int) -> None:
     Path(f"/proc/{pid}/clear_refs").write_text("5")
@@ -98,11 +148,17 @@ def status(pid: int, field: str) -> float:
     return float("nan")
 
 
-def measure(name: str, body: bytes, limit: int) -> None:
+def measure(name: str, body: bytes, limit: int, transfer: str = "") -> None:
     """One upload to a server of its own, warmed up by a small character's (the modules a
-    fit imports and the generic source set are loaded once per process, not per upload)."""
+    fit imports and the generic source set are loaded once per process, not per upload);
+    ``transfer``: ICT-FaceKit's path, the upload a transfer's, waited for to its end."""
+    env = [f"FACECAST_MAX_UPLOAD_BYTES={limit}"]
+    params = {}
+    if transfer:
+        env.append(f"FACECAST_TRANSFER_SOURCE={transfer}")
+        params = {"expressions": "transfer", "markers": "auto"}
     with tempfile.TemporaryDirectory() as tmp:
-        process, port = start("websockets-sansio", Path(tmp), f"FACECAST_MAX_UPLOAD_BYTES={limit}")
+        process, port = start("websockets-sansio", Path(tmp), *env)
         try:
             with httpx.Client(
                 base_url=f"http://127.0.0.1:{port}", timeout=600,
@@ -110,10 +166,17 @@ def measure(name: str, body: bytes, limit: int) -> None:
             ) as http:  # fmt: skip
                 warm = http.put("/v1/characters/warm", content=zeros(3, 1))
                 assert warm.status_code == 201, warm.text
+                if transfer:  # the source's expressions are read once per process
+                    warm = http.put("/v1/characters/warm", content=avatar("neutral_only"),
+                                    params=params)  # fmt: skip
+                    assert warm.status_code == 202, warm.text
+                    finish(http, "warm")
                 before = status(process.pid, "VmRSS")
                 peak_reset(process.pid)
                 started = time.perf_counter()
-                response = http.put("/v1/characters/measured", content=body)
+                response = http.put("/v1/characters/measured", content=body, params=params)
+                if response.status_code == 202:
+                    response = finish(http, "measured")
                 seconds = time.perf_counter() - started
                 grown = status(process.pid, "VmHWM") - before
         finally:
@@ -135,6 +198,25 @@ def main() -> None:
     for name, make in SCENARIOS.items():
         if args.only in name:
             measure(name, make(args.limit), args.limit)
+    ict = locate_ict()
+    for name, make in TRANSFERS.items():
+        if args.only in name:
+            if ict is None:
+                print(f"{name}: not measured (no ICT-FaceKit: ../shared/data/ict-facekit)")
+                continue
+            measure(name, make(args.limit), args.limit, str(ict))
+
+
+def finish(http: httpx.Client, rig_id: str) -> httpx.Response:
+    """The transfer job of ``rig_id`` waited for, its record as the answer it stands for:
+    201, or its error."""
+    while (job := http.get(f"/v1/characters/{rig_id}/job").json())["state"] not in (
+        "done", "failed", "cancelled"
+    ):  # fmt: skip
+        time.sleep(0.5)
+    if job["state"] == "done":
+        return httpx.Response(201, json=job)
+    return httpx.Response(422, json={"code": f"job {job['state']}: {job['error']['code']}"})
 
 
 if __name__ == "__main__":
