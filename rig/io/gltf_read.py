@@ -174,9 +174,12 @@ class BufferReader:
             ext, view["byteLength"], self.buffers.__getitem__, self.decoded_left, self.label
         )
 
-    def draco_geometry(self, primitive: dict[str, Any]) -> DracoGeometry | None:
-        """A Draco primitive's (positions, triangle corners), decoded once; None if the
-        primitive is not Draco-compressed. Its accessors' counts were bounded by the check."""
+    def draco_geometry(
+        self, primitive: dict[str, Any], *, keep: bool = True
+    ) -> DracoGeometry | None:
+        """A Draco primitive's (positions, triangle corners), decoded once and kept (``keep``
+        False: decoded, or the kept one, and not kept); None if the primitive is not
+        Draco-compressed. Its accessors' counts were bounded by the check."""
         ext = draco_extension(primitive)
         if ext is None:
             return None
@@ -200,20 +203,24 @@ class BufferReader:
             view = self.doc["bufferViews"][view_index]
             start = view.get("byteOffset", 0)
             data = self.buffers[view["buffer"]][start : start + view["byteLength"]]
-            self.draco[view_index] = decode_draco(data, position_id, vertices, corners, self.label)
+            geometry = decode_draco(data, position_id, vertices, corners, self.label)
+            if not keep:
+                return geometry
+            self.draco[view_index] = geometry
         return self.draco[view_index]
 
     def decode_all(self) -> None:
         """Decode every compressed view and primitive of the file (each bounded), so that a
-        part that does not decode is found now, not by a viewer. A meshopt view is decoded,
-        checked and let go (one at a time): only those an accessor is read from are kept
-        (``view_bytes``), not the normals, UVs and skins no fit reads."""
+        part that does not decode is found now, not by a viewer. Each is decoded, checked and
+        let go (one at a time): only the meshopt views an accessor is read from
+        (``view_bytes``) and the Draco primitives of meshes read (``draco_geometry``, which
+        decodes them again) are kept, not the normals, UVs, skins and meshes no fit reads."""
         for index, view in enumerate(self.doc.get("bufferViews", [])):
             if meshopt_extension(view) is not None and index not in self.decoded:
                 self._decode(index)
         for mesh in self.doc.get("meshes", []):
             for primitive in mesh["primitives"]:
-                self.draco_geometry(primitive)
+                self.draco_geometry(primitive, keep=False)
 
     def accessor(
         self,
