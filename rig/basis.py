@@ -11,7 +11,12 @@ import time
 
 import numpy as np
 
-__all__ = ["BASIS_BUFFER", "BASIS_CHUNK_BYTES", "BasisBuild", "build_blend_basis"]
+__all__ = ["BASIS_BUFFER", "BASIS_CHUNK_BYTES", "BasisBuild", "Targets", "build_blend_basis"]
+
+#: Target examples as the basis reads them: (M, V, 3) float64, or the neutral T_B (V, 3)
+#: float64 and M - 1 displacements (V, 3) float32 or float64 (``ExampleSet.targets``),
+#: target i being ``T_B + displacements[i - 1]`` added in float64.
+Targets = np.ndarray | tuple[np.ndarray, tuple[np.ndarray, ...]]
 
 #: Values in each chunk of the basis's buffered cast: 16 kB of float64, which stays in a
 #: core's L1 data cache beside the chunk of float32 it is rounded into.
@@ -23,32 +28,64 @@ BASIS_BUFFER = 2048
 BASIS_CHUNK_BYTES = 10 << 20
 
 
-def build_blend_basis(target_vertices: np.ndarray) -> np.ndarray:
+def build_blend_basis(target_vertices: Targets) -> np.ndarray:
     """The blend basis of target examples: row 0 T_B, rows i > 0 T_i - T_B (eq. 3.14).
 
     Parameters
     ----------
-    target_vertices : (M, V, 3) float64
+    target_vertices : (M, V, 3) float64, or (T_B, displacements) (``Targets``)
         The target examples, the neutral T_B first.
 
     Returns
     -------
-    (M, 3V) float32, each row equal to ``(T_i - T_B).astype(np.float32)`` bit for bit.
+    (M, 3V) float32, each row equal to ``(T_i - T_B).astype(np.float32)`` bit for bit,
+    T_i the float64 target whichever way it is given.
     """
     basis = _new_basis(target_vertices)
     _fill_rows(target_vertices, basis, 1, len(basis))
     return basis
 
 
-def _new_basis(target_vertices: np.ndarray) -> np.ndarray:
-    m, v, _ = target_vertices.shape
+def _new_basis(target_vertices: Targets) -> np.ndarray:
+    if isinstance(target_vertices, tuple):
+        neutral, displacements = target_vertices
+        m, v = len(displacements) + 1, len(neutral)
+    else:
+        neutral = target_vertices[0]
+        m, v, _ = target_vertices.shape
     basis = np.empty((m, 3 * v), dtype=np.float32)
-    basis[0] = target_vertices[0].reshape(-1)
+    basis[0] = neutral.reshape(-1)
     return basis
 
 
-def _fill_rows(target_vertices: np.ndarray, basis: np.ndarray, start: int, stop: int) -> None:
+#: float64 values of a displaced target made at a time (``_fill_displaced``): 512 kB.
+DISPLACED_CHUNK = 1 << 16
+
+
+def _fill_displaced(
+    neutral: np.ndarray, displacements: tuple[np.ndarray, ...], basis: np.ndarray, start: int,
+    stop: int,
+) -> None:  # fmt: skip
+    """Rows start:stop of the basis of a displaced set, example by example and a chunk of
+    ``DISPLACED_CHUNK`` values at a time: T_i = T_B + D_i in float64 (as a whole set's
+    target is made, ``ExampleSet.target_examples``), then T_i - T_B rounded once to
+    float32, so the rows equal a whole set's bit for bit with no float64 copy of a target."""
+    flat = neutral.reshape(-1)
+    scratch = np.empty(min(DISPLACED_CHUNK, flat.size))
+    for row in range(start, stop):
+        displacement = displacements[row - 1].reshape(-1)
+        for at in range(0, flat.size, DISPLACED_CHUNK):
+            part = slice(at, at + DISPLACED_CHUNK)
+            made = scratch[: flat[part].size]
+            np.add(flat[part], displacement[part], out=made)
+            np.subtract(made, flat[part], out=basis[row, part], casting="same_kind")
+
+
+def _fill_rows(target_vertices: Targets, basis: np.ndarray, start: int, stop: int) -> None:
     """Rows start:stop (start >= 1) of the basis: T_i - T_B rounded once to float32."""
+    if isinstance(target_vertices, tuple):
+        _fill_displaced(*target_vertices, basis, start, stop)
+        return
     flat = target_vertices.reshape(len(target_vertices), -1)
     # Subtracted in float64 and rounded once into float32 (as (T_i - T_B).astype would),
     # in one ufunc call whose buffered cast goes through BASIS_BUFFER float64 at a time:
@@ -76,12 +113,12 @@ class BasisBuild:
 
     Parameters
     ----------
-    target_vertices : (M, V, 3) float64
+    target_vertices : (M, V, 3) float64, or (T_B, displacements) (``Targets``)
     thread : bool
         False: no worker; ``help`` builds the whole basis in the caller's thread.
     """
 
-    def __init__(self, target_vertices: np.ndarray, *, thread: bool) -> None:
+    def __init__(self, target_vertices: Targets, *, thread: bool) -> None:
         self._target_vertices = target_vertices
         self._basis = _new_basis(target_vertices)
         m = len(self._basis)

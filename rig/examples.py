@@ -9,13 +9,14 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from .errors import ExampleSetError
 
-__all__ = ["MIN_NEUTRAL_RADIUS", "ExampleSet", "check_stable_points"]
+__all__ = ["MIN_NEUTRAL_RADIUS", "ExampleSet", "check_stable_points", "face_index_dtype"]
 
 #: The source neutral must have extent: its radius (the RMS distance of its K points from
 #: their centroid) must exceed this fraction of its largest coordinate's magnitude, else
@@ -25,6 +26,13 @@ __all__ = ["MIN_NEUTRAL_RADIUS", "ExampleSet", "check_stable_points"]
 #: multiple of that radius) refuses every frame but the neutral itself. A face's neutral
 #: is about 0.3 of its largest coordinate near the origin, 0.05 two metres away from it.
 MIN_NEUTRAL_RADIUS = 1e-5
+
+
+def face_index_dtype(num_vertices: int) -> type[np.signedinteger[Any]]:
+    """The smallest signed integer type that indexes ``num_vertices`` vertices: int32 below
+    2^31 (every mesh the limits let in), else int64. Triangles are held in it from the
+    reader to the rig: a 2 M-triangle face is 24 MB of int32, 48 of int64."""
+    return np.int32 if num_vertices <= np.iinfo(np.int32).max else np.int64
 
 
 def _finite_array(
@@ -37,6 +45,29 @@ def _finite_array(
     if array.ndim != ndim:
         raise ExampleSetError(f"{name}{where}: expected {ndim} dimensions, got shape {array.shape}")
     return array
+
+
+def _face_array(name: str, value: npt.ArrayLike, num_vertices: int, where: str) -> np.ndarray:
+    """(F, 3) triangles with indices in [0, num_vertices), as ``face_index_dtype``.
+
+    Integer arrays are checked as given and converted once (int32 ones are not copied);
+    anything else goes through int64, as it always did."""
+    try:
+        array = np.asarray(value)
+        if not np.issubdtype(array.dtype, np.integer):
+            array = np.asarray(value, dtype=np.int64)
+    except (TypeError, ValueError) as exc:
+        raise ExampleSetError(f"{name}: not a numeric array ({exc})") from None
+    if array.ndim != 2:
+        raise ExampleSetError(f"{name}: expected 2 dimensions, got shape {array.shape}")
+    if array.size and array.shape[1] != 3:
+        raise ExampleSetError(f"{name}: expected shape (F, 3), got {array.shape}")
+    if array.size and (array.min() < 0 or array.max() >= num_vertices):
+        raise ExampleSetError(
+            f"{name}: indices must lie in [0, {num_vertices}){where}, "
+            f"got [{array.min()}, {array.max()}]"
+        )
+    return array.astype(face_index_dtype(num_vertices), copy=False).reshape(-1, 3)
 
 
 def _check_finite(name: str, array: np.ndarray, names: Sequence[str] | None = None) -> None:
@@ -92,6 +123,42 @@ def check_stable_points(value: npt.ArrayLike, num_points: int) -> np.ndarray:
     return stable.astype(np.int64)
 
 
+def _magnitude(array: np.ndarray) -> float:
+    """The largest magnitude in ``array`` (NaN if it holds one), without a temporary."""
+    return float(np.maximum(array.max(initial=0.0), -array.min(initial=0.0)))
+
+
+def _displacements(
+    given: Sequence[npt.ArrayLike], neutral: np.ndarray, names: Sequence[str]
+) -> tuple[np.ndarray, ...]:
+    """``target_displacements`` checked: M - 1 finite (V, 3) float arrays (float32 kept as
+    float32, not copied), each of which keeps ``neutral + displacement`` finite."""
+    if len(given) != len(names) - 1:
+        raise ExampleSetError(
+            f"target_displacements: expected {len(names) - 1} for {len(names)} examples, "
+            f"got {len(given)}"
+        )
+    reach = _magnitude(neutral)
+    out = []
+    for name, value in zip(names[1:], given, strict=True):
+        array = np.asarray(value)
+        if array.dtype not in (np.float32, np.float64):
+            array = _finite_array("target_displacements", array, np.float64, 2)
+        if array.shape != neutral.shape:
+            raise ExampleSetError(
+                f"target_displacements: {name!r} has shape {array.shape}, the neutral "
+                f"{neutral.shape}"
+            )
+        # Finite, and finite once added to the neutral (float64): their largest magnitudes'
+        # sum bounds every sum's, without a temporary of the sums.
+        if not np.isfinite(reach + _magnitude(array)):
+            raise ExampleSetError(
+                f"target_vertices: example {name!r} has NaN or Inf coordinates", code="non_finite"
+            )
+        out.append(array)
+    return tuple(out)
+
+
 @dataclass(frozen=True, eq=False)
 class ExampleSet:
     """M paired key-expressions; example 0 is always the neutral pair.
@@ -106,7 +173,8 @@ class ExampleSet:
     target_vertices : (M, V, 3) float
         Each target example's vertices; ``target_vertices[0]`` is the target base T_B.
     target_faces : (F, 3) int
-        Triangles of the target mesh, 0-based.
+        Triangles of the target mesh, 0-based; held as ``face_index_dtype`` (int32 below
+        2^31 vertices).
     source_vertices : (M, Vs, 3) float, optional
         Full source meshes, when known (used for pictures and to select feature
         points from source animations given as meshes).
@@ -117,6 +185,13 @@ class ExampleSet:
         Positions among the K feature points that expressions move least (no jaw, no
         lips), S >= 3: where head-pose removal aligns each frame first (``fit`` keeps them
         on the rig).
+    target_displacements : tuple of M - 1 (V, 3) float, optional
+        The targets as displacements of the neutral, which is then ``target_vertices``'s
+        only row (shape (1, V, 3)): target i is ``T_B + target_displacements[i - 1]``,
+        added in float64. Each is kept as given (float32 or float64, not copied), so a set
+        built from a character holds its morph targets once, not a float64 copy of the
+        face per example; ``fit`` reads them example by example (``targets``), and
+        ``target_examples`` makes the (M, V, 3) array for whoever needs it whole.
     """
 
     names: tuple[str, ...]
@@ -127,6 +202,7 @@ class ExampleSet:
     source_faces: np.ndarray | None = None
     feature_indices: np.ndarray | None = None
     stable_points: np.ndarray | None = None
+    target_displacements: tuple[np.ndarray, ...] | None = None
 
     def __post_init__(self) -> None:
         names = tuple(str(n) for n in self.names)
@@ -154,20 +230,17 @@ class ExampleSet:
         _check_finite("source_points", src, names)
 
         tgt = _finite_array("target_vertices", self.target_vertices, np.float64, 3)
-        if tgt.shape[0] != m or tgt.shape[2] != 3:
+        displacements = self.target_displacements
+        rows = m if displacements is None else 1
+        if tgt.shape[0] != rows or tgt.shape[2] != 3:
             raise ExampleSetError(
-                f"target_vertices: expected shape ({m}, V, 3) for {m} examples, got {tgt.shape}"
+                f"target_vertices: expected shape ({rows}, V, 3) for {m} examples, got {tgt.shape}"
             )
         _check_finite("target_vertices", tgt, names)
+        if displacements is not None:
+            displacements = _displacements(displacements, tgt[0], names)
 
-        faces = _finite_array("target_faces", self.target_faces, np.int64, 2)
-        if faces.size and (faces.shape[1] != 3):
-            raise ExampleSetError(f"target_faces: expected shape (F, 3), got {faces.shape}")
-        if faces.size and (faces.min() < 0 or faces.max() >= tgt.shape[1]):
-            raise ExampleSetError(
-                f"target_faces: indices must lie in [0, {tgt.shape[1]}), "
-                f"got [{faces.min()}, {faces.max()}]"
-            )
+        faces = _face_array("target_faces", self.target_faces, tgt.shape[1], "")
 
         src_vertices = self.source_vertices
         src_faces = self.source_faces
@@ -180,11 +253,11 @@ class ExampleSet:
                 )
             _check_finite("source_vertices", src_vertices, names)
         if src_faces is not None:
-            src_faces = _finite_array("source_faces", src_faces, np.int64, 2)
             if src_vertices is None:
                 raise ExampleSetError("source_faces given without source_vertices")
-            if src_faces.size and (src_faces.min() < 0 or src_faces.max() >= src_vertices.shape[1]):
-                raise ExampleSetError("source_faces: indices out of range of source_vertices")
+            src_faces = _face_array(
+                "source_faces", src_faces, src_vertices.shape[1], " (of source_vertices)"
+            )
         if indices is not None:
             indices = _finite_array("feature_indices", indices, np.int64, 1)
             if indices.shape[0] != src.shape[1]:
@@ -209,11 +282,12 @@ class ExampleSet:
         object.__setattr__(self, "names", names)
         object.__setattr__(self, "source_points", src)
         object.__setattr__(self, "target_vertices", tgt)
-        object.__setattr__(self, "target_faces", faces.reshape(-1, 3))
+        object.__setattr__(self, "target_faces", faces)
         object.__setattr__(self, "source_vertices", src_vertices)
         object.__setattr__(self, "source_faces", src_faces)
         object.__setattr__(self, "feature_indices", indices)
         object.__setattr__(self, "stable_points", stable)
+        object.__setattr__(self, "target_displacements", displacements)
 
     @classmethod
     def from_source_meshes(
@@ -244,11 +318,9 @@ class ExampleSet:
             names=tuple(names),
             source_points=src[:, idx, :],
             target_vertices=_finite_array("target_vertices", target_vertices, np.float64, 3),
-            target_faces=_finite_array("target_faces", target_faces, np.int64, 2),
+            target_faces=np.asarray(target_faces),
             source_vertices=src,
-            source_faces=None
-            if source_faces is None
-            else _finite_array("source_faces", source_faces, np.int64, 2),
+            source_faces=None if source_faces is None else np.asarray(source_faces),
             feature_indices=idx,
             stable_points=None
             if stable_points is None
@@ -280,6 +352,26 @@ class ExampleSet:
         neutral: np.ndarray = self.target_vertices[0]
         return neutral
 
+    @property
+    def targets(self) -> np.ndarray | tuple[np.ndarray, tuple[np.ndarray, ...]]:
+        """The target examples as ``basis.build_blend_basis`` reads them: (M, V, 3) float64,
+        or (T_B, displacements) for a set of ``target_displacements``."""
+        if self.target_displacements is None:
+            return self.target_vertices
+        return self.target_vertices[0], self.target_displacements
+
+    def target_examples(self) -> np.ndarray:
+        """(M, V, 3) float64 target examples: ``target_vertices``, or made from the neutral
+        and ``target_displacements`` (a new array each call)."""
+        if self.target_displacements is None:
+            return self.target_vertices
+        neutral = self.target_vertices[0]
+        out = np.empty((self.num_examples, *neutral.shape))
+        out[:] = neutral
+        for row, displacement in enumerate(self.target_displacements, start=1):
+            out[row] += displacement
+        return out
+
     def subset(self, names: Sequence[str]) -> ExampleSet:
         """A new set keeping the neutral and the named examples, in the given order."""
         index = {n: i for i, n in enumerate(self.names)}
@@ -288,23 +380,27 @@ class ExampleSet:
             raise ExampleSetError(f"no example named {missing[0]!r}")
         keep = [0] + [index[n] for n in names if index[n] != 0]
         pick = np.asarray(keep)
+        displacements = self.target_displacements
         return ExampleSet(
             names=tuple(self.names[i] for i in keep),
             source_points=self.source_points[pick],
-            target_vertices=self.target_vertices[pick],
+            target_vertices=self.target_vertices[pick] if displacements is None else
+            self.target_vertices,
             target_faces=self.target_faces,
             source_vertices=None if self.source_vertices is None else self.source_vertices[pick],
             source_faces=self.source_faces,
             feature_indices=self.feature_indices,
             stable_points=self.stable_points,
-        )
+            target_displacements=None if displacements is None else
+            tuple(displacements[i - 1] for i in keep[1:]),
+        )  # fmt: skip
 
     def save_npz(self, path: str | os.PathLike[str]) -> None:
         """Write the set as one ``.npz`` (no pickles), readable by ``load_example_set``."""
         arrays = {
             "names": np.asarray(self.names, dtype=str),
             "source_points": self.source_points,
-            "target_vertices": self.target_vertices.astype(np.float32),
+            "target_vertices": self.target_examples().astype(np.float32),
             "target_faces": self.target_faces.astype(np.int32),
         }
         if self.source_vertices is not None:

@@ -126,7 +126,7 @@ def fit(
     kernel, noise, pca_threshold, ridge, clamp, sparsity = sanitize_fit_options(
         example_set, kernel, noise, pca_threshold, ridge, clamp, sparsity
     )
-    building = BasisBuild(example_set.target_vertices, thread=basis_thread)
+    building = BasisBuild(example_set.targets, thread=basis_thread)
     try:
         model, report = _fit_weights(
             example_set.names,

@@ -88,7 +88,7 @@ def fit_regions(example_set: ExampleSet, regions: Sequence[Region], **fit_option
 
     models, columns, names = [], [], ["neutral"]
     rows = [example_set.target_neutral.reshape(-1)]
-    deltas = (example_set.target_vertices - example_set.target_neutral).reshape(
+    deltas = (example_set.target_examples() - example_set.target_neutral).reshape(
         example_set.num_examples, v, 3
     )
     neutral_points = example_set.source_neutral
@@ -101,7 +101,7 @@ def fit_regions(example_set: ExampleSet, regions: Sequence[Region], **fit_option
         frozen[np.asarray(region.feature_points)] = False
         source = subset.source_points.copy()
         source[:, frozen] = neutral_points[frozen]
-        local = ExampleSet(subset.names, source, subset.target_vertices, subset.target_faces)
+        local = ExampleSet(subset.names, source, subset.target_examples(), subset.target_faces)
         try:
             region_rig = fit(local, **fit_options)
         except FitError as exc:

@@ -8,7 +8,7 @@ The weight functions are weight_model.py's, the frames a rig accepts point_range
 from __future__ import annotations
 
 import os
-from typing import Any, TypedDict
+from typing import Any, BinaryIO, TypedDict
 
 import numpy as np
 import numpy.typing as npt
@@ -17,7 +17,7 @@ from .basis import build_blend_basis
 from .blend import Placement, blend_into, moving_vertices
 from .errors import InputError
 from .examples import check_stable_points
-from .io.rigformat import content_checksum, rig_to_bytes, save_rig
+from .io.rigformat import content_checksum, rig_to_bytes, save_rig, write_rig
 from .point_range import CALIBRATION_RANGE, POINT_RANGE, PointRange, check_calibration_range
 from .pose import (
     POSE_REFINE_MAX_CONDITION,
@@ -126,15 +126,17 @@ class Rig:
         ``stable_points`` are checked as an example set's are (``check_stable_points``):
         ``fit`` takes them from its caller as well as from the example set. ``blend_basis``
         is ``build_blend_basis(target_vertices)`` when the caller has built it already
-        (``fit`` builds it beside its math); None builds it here.
+        (``fit`` builds it beside its math; then ``target_vertices`` may hold the neutral
+        alone, (1, V, 3)); None builds it here. The rig's float32 neutral is the basis's
+        row 0 (the same values), not a copy of it.
         """
-        m, v, _ = target_vertices.shape
+        m, v = len(names), target_vertices.shape[1]
         if blend_basis is not None and blend_basis.shape != (m, 3 * v):
             raise ValueError(
                 f"Expected a blend basis of shape {(m, 3 * v)}, got {blend_basis.shape}"
             )
-        neutral = np.ascontiguousarray(target_vertices[0], dtype=np.float32)
         basis = build_blend_basis(target_vertices) if blend_basis is None else blend_basis
+        neutral = basis[0].reshape(v, 3)
         stable = (
             None if stable_points is None else check_stable_points(stable_points, model.num_points)
         )
@@ -563,6 +565,10 @@ class Rig:
 
     def to_bytes(self) -> bytes:
         return rig_to_bytes(self)
+
+    def write(self, file: BinaryIO) -> None:
+        """Write the rig's file to an open, seekable binary file, without a copy in memory."""
+        write_rig(self, file)
 
     def __repr__(self) -> str:
         return (

@@ -105,18 +105,25 @@ class Settings:
     max_gltf_meshes: int = 1_000
     max_gltf_primitives: int = 10_000
     #: Vertices (every distinct POSITION accessor) and triangles (every primitive's) of
-    #: all meshes together.
-    max_gltf_vertices: int = 1_000_000
-    max_gltf_faces: int = 2_000_000
+    #: all meshes together: a fit holds 24 bytes a vertex and 12 a triangle beside the
+    #: body, its morph targets and its basis. Over ten times the heaviest avatars published
+    #: (a VRoid model ~30,000 vertices; VRChat ranks 70,000 triangles "Very Poor"); at
+    #: 1 M and 2 M an upload could cost 3.7x max_upload_bytes (docs/characters.md "What a
+    #: file may declare", SERVER.md "What an upload can cost the server").
+    max_gltf_vertices: int = 500_000
+    max_gltf_faces: int = 1_000_000
     #: Morph targets of one mesh, and morph targets x vertices summed over the meshes
-    #: (reading them allocates 12 bytes each, 24 quantised; 4 M: 52 ARKit targets on a
-    #: 76,000-vertex face), also VRM expressions mixing morphs x the face's vertices, and
-    #: expressions paired x the face's vertices (each a float64 copy of the face to fit).
+    #: (reading them allocates 12 bytes each; quantised ones count twice, read as float64;
+    #: 4 M: 52 ARKit targets on a 76,000-vertex face), with VRM expressions mixing morphs x
+    #: the face's vertices (twice: float64), and expressions paired x the face's vertices
+    #: (each a row of the fit's float32 basis).
     max_gltf_morph_targets: int = 1_000
     max_gltf_morph_values: int = 4_000_000
     #: Values (count x components) of all accessors together, with or without a bufferView
-    #: (one without is all zeros, which a few bytes can declare).
-    max_gltf_accessor_values: int = 64_000_000
+    #: (one without is all zeros, which a few bytes can declare); meshopt views decode to at
+    #: most 4 bytes each (128 MB: twice max_upload_bytes; at 64 M one 4 MB upload decoded
+    #: 256 MB, 3.9x). A face at max_gltf_morph_values with morph normals is ~26 M.
+    max_gltf_accessor_values: int = 32_000_000
 
     # -- deformation transfer jobs (server/http/transfer.py) ------------------------------
     #: Largest character face mesh (vertices) ``PUT /v1/characters/{id}?expressions=transfer``

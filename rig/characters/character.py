@@ -63,6 +63,8 @@ _ORDER = {name: i for i, name in enumerate((*ARKIT_NAMES, *VRM_PRESETS))}
 #: targets (VRoid's Perfect Sync ``jawOpen`` and ``tongueOut`` written as zeros): paired,
 #: a rig would give them the weight of a motion the character never shows.
 STILL_RELATIVE = 1e-4
+#: Vertices of a morph target measured at a time by that check (1.5 MB of float64).
+_STILL_CHUNK = 1 << 16
 
 
 # -- expressions ------------------------------------------------------------------------
@@ -240,12 +242,17 @@ def _still_expressions(found: dict[str, _Found], read: Callable[[int], MeshData]
         if binding.mesh not in largest:
             vertices, _, deltas, _ = read(binding.mesh)
             extent = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
-            # One morph at a time, in float64: a temporary of all (M, V) squared lengths
-            # was the peak of a large upload's read (norm(axis=2) made one of (M, V, 3)).
+            # One morph and _STILL_CHUNK vertices at a time, in float64: a temporary of
+            # all (M, V) squared lengths was the peak of a large upload's read
+            # (norm(axis=2) made one of (M, V, 3)), then the float64 copy of a morph of a
+            # 1 M-vertex face and its squares (46 MB).
             offsets = np.zeros(len(deltas) if deltas.size else 0)
             for t in range(len(offsets)):
-                one = deltas[t : t + 1].astype(np.float64)
-                offsets[t] = np.sqrt(np.einsum("mvk,mvk->mv", one, one).max())
+                most = 0.0
+                for at in range(0, deltas.shape[1], _STILL_CHUNK):
+                    one = deltas[t : t + 1, at : at + _STILL_CHUNK].astype(np.float64)
+                    most = max(most, float(np.einsum("mvk,mvk->mv", one, one).max()))
+                offsets[t] = np.sqrt(most)
             largest[binding.mesh] = (offsets, extent)
         offsets, extent = largest[binding.mesh]
         if binding.morph >= offsets.size:
@@ -396,10 +403,16 @@ def _load(source: Path | bytes, label: str, limits: GltfLimits | None) -> Charac
             "max_gltf_morph_values)",
             code="gltf_exceeds_limits",
         )
-    if mixed * len(vertices) > limit:
+    # Each mixed expression is a float64 array of the face (24 bytes a vertex, a morph
+    # value's twice), held with the face's morph targets (float32, or float64 when
+    # quantised): together bounded as the file's morph targets are.
+    held = deltas.size // 3 * deltas.itemsize // 4 + 2 * mixed * len(vertices)
+    if mixed and held > limit:
         raise ExampleSetError(
             f"{label}: {mixed} expressions mixing morph targets of a {len(vertices)}-vertex "
-            f"face declare more than {limit} values (limit max_gltf_morph_values)",
+            f"face, each a float64 copy of it, with its {len(deltas)} morph targets declare "
+            f"more than {limit} values (limit max_gltf_morph_values; a float64 value counts "
+            "twice)",
             code="gltf_exceeds_limits",
         )
     unmoved = np.zeros_like(vertices)

@@ -266,6 +266,7 @@ def character_example_set(
     source: str | os.PathLike[str] | None = None,
     *,
     label: str = "character",
+    displaced: bool = False,
 ) -> tuple[ExampleSet, PairingReport]:
     """The character's expressions paired with source points, ready for ``fit``.
 
@@ -279,6 +280,11 @@ def character_example_set(
         ARKit set (composing VRM presets without an ARKit twin), with its stable points.
     label : str
         What errors call the character.
+    displaced : bool
+        Give the targets as the face mesh and each expression's ``face_displacement``
+        (``ExampleSet.target_displacements``, views of the character's morph targets)
+        instead of a float64 copy of the face per expression: for a caller that fits the
+        set and nothing else (the server's uploads). The fitted rig is the same bit for bit.
 
     Returns
     -------
@@ -316,12 +322,17 @@ def character_example_set(
         )
     names = ["neutral", *chosen]
     sources = [neutral, *chosen.values()]
-    # Filled in place: a list of M arrays then stacked held the targets twice (the
-    # largest allocation of a character upload, SERVER.md "What an upload can cost").
-    targets = np.empty((len(names), *character.face_vertices.shape))
-    targets[:] = character.face_vertices
-    for row, name in enumerate(chosen, start=1):
-        targets[row] += character.expressions[name].face_displacement
+    displacements = tuple(character.expressions[name].face_displacement for name in chosen)
+    if displaced:
+        # The largest arrays of a character upload (SERVER.md "What an upload can cost"):
+        # the fit makes each target from these, a chunk at a time (basis.py).
+        targets = character.face_vertices[None]
+    else:
+        # Filled in place: a list of M arrays then stacked held the targets twice.
+        targets = np.empty((len(names), *character.face_vertices.shape))
+        targets[:] = character.face_vertices
+        for row, displacement in enumerate(displacements, start=1):
+            targets[row] += displacement
     report = pair_report(
         character.names,
         paired,
@@ -344,5 +355,6 @@ def character_example_set(
         target_vertices=targets,
         target_faces=character.face_faces,
         stable_points=stable,
+        target_displacements=displacements if displaced else None,
     )
     return example_set, report

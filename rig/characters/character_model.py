@@ -118,7 +118,7 @@ class Character:
     ``meta`` the VRM licence meta (``vrm.vrm_meta``; {} for glTF); ``mesh_names`` one per
     glTF mesh; ``face_mesh`` the index of the mesh vertex outputs blend (the one with the
     most expressions bound; ties: more vertices, then the earlier); ``face_vertices``
-    (V, 3) float64 and ``face_faces`` (F, 3) int64 its neutral in mesh space;
+    (V, 3) float64 and ``face_faces`` (F, 3) int32 its neutral in mesh space;
     ``expressions`` by normalised name in ARKit, VRM preset, then file order; ``report``
     the names as paired with facecast's generic ARKit source set; ``names`` the same
     entries before pairing.

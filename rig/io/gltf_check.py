@@ -37,6 +37,7 @@ COMPONENT_SIZES = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
 #: Components of each accessor type.
 TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 _INDEX_TYPES = (5121, 5123, 5125)
+_FLOAT = 5126
 #: A buffer's bytes: the GLB's BIN chunk is a view of the file's bytes (never a copy of
 #: them: it is most of a 64 MiB upload), a data URI's or a file's are bytes of their own.
 Buffer = bytes | memoryview
@@ -55,9 +56,12 @@ class GltfLimits:
     meshes together); ``vertices``: every distinct POSITION accessor's count summed;
     ``faces``: triangles of every primitive summed (a primitive's index count / 3);
     ``morph_targets``: per mesh; ``morph_values``: morph targets x vertices, summed over
-    meshes (what reading them allocates; ``load_character`` bounds VRM expressions that
-    mix morphs x face vertices, and expressions paired x face vertices, by it too); ``accessor_values``: count x components summed
-    over every accessor (with or without a bufferView).
+    meshes, counted twice for a mesh whose morph targets are not all float32 (what reading
+    them allocates: 12 bytes a value as float32, 24 quantised, read as float64;
+    ``load_character`` bounds the face's morph values with VRM expressions that mix
+    morphs x face vertices, counted twice (float64), and expressions paired x face
+    vertices, by it too); ``accessor_values``: count x components summed over every
+    accessor (with or without a bufferView).
     """
 
     json_values: int = 1_000_000
@@ -65,11 +69,11 @@ class GltfLimits:
     depth: int = 256
     meshes: int = 1_000
     primitives: int = 10_000
-    vertices: int = 1_000_000
-    faces: int = 2_000_000
+    vertices: int = 500_000
+    faces: int = 1_000_000
     morph_targets: int = 1_000
     morph_values: int = 4_000_000
-    accessor_values: int = 64_000_000
+    accessor_values: int = 32_000_000
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -419,6 +423,7 @@ def _meshes(
         mesh_vertices = 0
         mesh_positions: set[int] = set()
         targets = 0
+        quantised = False  # a morph target not stored as float32: all are read as float64
         for p, prim in enumerate(prims):
             where = f"mesh {number} primitive {p}"
             attributes = prim.get("attributes")
@@ -462,6 +467,7 @@ def _meshes(
             for t, target in enumerate(prim_targets):
                 for name, index in target.items():
                     i = _index(index, len(accessors), f"{where} target {t} {name}", label)
+                    quantised |= name == "POSITION" and accessors[i]["componentType"] != _FLOAT
                     if accessors[i]["count"] != count:
                         called = mesh.get("name")
                         called = called[:200] if isinstance(called, str) else f"mesh {number}"
@@ -479,11 +485,11 @@ def _meshes(
                 vertices += count
                 if vertices > limits.vertices:
                     raise _over(label, "vertices or more", vertices, limits.vertices, "vertices")
-        morph_values += targets * mesh_vertices
+        morph_values += targets * mesh_vertices * (2 if quantised else 1)
         if morph_values > limits.morph_values:
             raise _over(
-                label, "morph target values (targets x vertices) or more", morph_values,
-                limits.morph_values, "morph_values",
+                label, "morph target values (targets x vertices, twice for quantised "
+                "targets) or more", morph_values, limits.morph_values, "morph_values",
             )  # fmt: skip
 
 

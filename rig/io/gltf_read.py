@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ExampleSetError
+from ..examples import face_index_dtype
 from .gltf_check import (
     TYPE_SIZES,
     Buffer,
@@ -173,9 +174,12 @@ class BufferReader:
             ext, view["byteLength"], self.buffers.__getitem__, self.decoded_left, self.label
         )
 
-    def draco_geometry(self, primitive: dict[str, Any]) -> DracoGeometry | None:
-        """A Draco primitive's (positions, triangle corners), decoded once; None if the
-        primitive is not Draco-compressed. Its accessors' counts were bounded by the check."""
+    def draco_geometry(
+        self, primitive: dict[str, Any], *, keep: bool = True
+    ) -> DracoGeometry | None:
+        """A Draco primitive's (positions, triangle corners), decoded once and kept (``keep``
+        False: decoded, or the kept one, and not kept); None if the primitive is not
+        Draco-compressed. Its accessors' counts were bounded by the check."""
         ext = draco_extension(primitive)
         if ext is None:
             return None
@@ -199,24 +203,35 @@ class BufferReader:
             view = self.doc["bufferViews"][view_index]
             start = view.get("byteOffset", 0)
             data = self.buffers[view["buffer"]][start : start + view["byteLength"]]
-            self.draco[view_index] = decode_draco(data, position_id, vertices, corners, self.label)
+            geometry = decode_draco(data, position_id, vertices, corners, self.label)
+            if not keep:
+                return geometry
+            self.draco[view_index] = geometry
         return self.draco[view_index]
 
     def decode_all(self) -> None:
         """Decode every compressed view and primitive of the file (each bounded), so that a
-        part that does not decode is found now, not by a viewer. A meshopt view is decoded,
-        checked and let go (one at a time): only those an accessor is read from are kept
-        (``view_bytes``), not the normals, UVs and skins no fit reads."""
+        part that does not decode is found now, not by a viewer. Each is decoded, checked and
+        let go (one at a time): only the meshopt views an accessor is read from
+        (``view_bytes``) and the Draco primitives of meshes read (``draco_geometry``, which
+        decodes them again) are kept, not the normals, UVs, skins and meshes no fit reads."""
         for index, view in enumerate(self.doc.get("bufferViews", [])):
             if meshopt_extension(view) is not None and index not in self.decoded:
                 self._decode(index)
         for mesh in self.doc.get("meshes", []):
             for primitive in mesh["primitives"]:
-                self.draco_geometry(primitive)
+                self.draco_geometry(primitive, keep=False)
 
-    def accessor(self, index: int, floats: type[np.floating[Any]] = np.float64) -> np.ndarray:
-        """Decode accessor ``index`` into a (count, ncomp) array: int64, or ``floats``
-        (float32 reads a float32 accessor as stored, without a float64 copy)."""
+    def accessor(
+        self,
+        index: int,
+        floats: type[np.floating[Any]] = np.float64,
+        integers: type[np.signedinteger[Any]] = np.int64,
+    ) -> np.ndarray:
+        """Decode accessor ``index`` into a (count, ncomp) array: ``integers`` (int64 by
+        default; a uint32 index past int32's range read as int32 wraps to a negative one,
+        which a range check refuses), or ``floats`` (float32 reads a float32 accessor as
+        stored, without a float64 copy)."""
         acc = self.doc["accessors"][index]
         dtype = _COMPONENT_DTYPES[acc["componentType"]]
         ncomp = TYPE_SIZES[acc["type"]]
@@ -250,7 +265,7 @@ class BufferReader:
             scaled = out.astype(np.float64)
             scaled /= np.iinfo(out.dtype).max
             return np.maximum(scaled, -1.0, out=scaled)
-        return out.astype(np.int64, copy=stored)
+        return out.astype(integers, copy=stored)
 
 
 def read_glb_morph_targets(
@@ -270,7 +285,7 @@ def read_glb_morph_targets(
     Returns
     -------
     neutral : (V, 3) float64
-    faces : (F, 3) int64
+    faces : (F, 3) int32 (int64 from 2^31 vertices on: ``face_index_dtype``)
     deltas : (M', V, 3) float64
         POSITION offsets of each morph target.
     names : list of M' str
@@ -289,7 +304,8 @@ def read_glb_morph_targets(
 
 def read_gltf_mesh(path_or_bytes: GltfSource) -> tuple[np.ndarray, np.ndarray]:
     """The neutral of a glTF/GLB/VRM file's face: its first mesh with morph targets, else its
-    first mesh, as (V, 3) float64 vertices and (F, 3) int64 triangles (mesh space).
+    first mesh, as (V, 3) float64 vertices and (F, 3) int32 triangles (mesh space; int64
+    from 2^31 vertices on, ``face_index_dtype``).
 
     Raises
     ------
@@ -337,7 +353,7 @@ def read_mesh(
     Returns
     -------
     neutral : (V, 3) float64
-    faces : (F, 3) int64
+    faces : (F, 3) int32 (int64 from 2^31 vertices on: ``face_index_dtype``)
     deltas : (M, V, 3) float32 when every morph target is stored as float32 (the values
         as stored), else float64
     names : list of M str
@@ -365,14 +381,16 @@ def read_mesh(
     counts = {p["attributes"]["POSITION"]: accessors[p["attributes"]["POSITION"]]["count"]
               for p in primitives}  # fmt: skip
     all_deltas = np.zeros((m, sum(counts.values()), 3), dtype=dtype)
-    # The triangles too (F x 3 int64): one primitive's as read, several filled in place.
+    # The triangles too (F x 3, int32 below 2^31 vertices, as ``face_index_dtype``): one
+    # primitive's as read, several filled in place; never an int64 copy of them all.
     corners = [
         accessors[p["indices"]]["count"] if p.get("indices") is not None else counts[pos]
         for p in primitives
         for pos in [p["attributes"]["POSITION"]]
     ]
+    index_dtype = face_index_dtype(sum(counts.values()))
     several = len(primitives) > 1
-    all_faces = np.empty((sum(c // 3 for c in corners) if several else 0, 3), dtype=np.int64)
+    all_faces = np.empty((sum(c // 3 for c in corners) if several else 0, 3), dtype=index_dtype)
     row = 0
 
     positions: list[np.ndarray] = []
@@ -406,23 +424,13 @@ def read_mesh(
             for t, target in enumerate(prim.get("targets", [])):
                 t_pos = target.get("POSITION")
                 if t_pos is not None:
-                    d = reader.accessor(t_pos, floats=dtype)
-                    if d.shape != pos.shape:
-                        raise ExampleSetError(
-                            f"{label}: morph target {t} is not VEC3 as POSITION is",
-                            code="bad_gltf",
-                        )
-                    if not np.isfinite(d).all():
-                        raise ExampleSetError(
-                            f"{label}: morph target {t} has NaN or Inf offsets", code="non_finite"
-                        )
-                    all_deltas[t, rows] = d
+                    _read_target(reader, t_pos, t, all_deltas[t, rows], label)
         if prim.get("indices") is None:
-            tri = np.arange(vertex_count[pos_index], dtype=np.int64)
+            tri = np.arange(vertex_count[pos_index], dtype=index_dtype)
         elif draco is not None and draco[1] is not None:
-            tri = draco[1].copy()  # the reader keeps the decoded corners
+            tri = draco[1].astype(index_dtype)  # a copy: the reader keeps the decoded corners
         else:
-            tri = reader.accessor(prim["indices"])[:, 0]
+            tri = reader.accessor(prim["indices"], integers=index_dtype)[:, 0]
         if tri.size % 3:
             raise ExampleSetError(
                 f"{label}: primitive {number} index count is not a multiple of 3", code="bad_gltf"
@@ -441,6 +449,23 @@ def read_mesh(
 
     neutral = positions[0] if len(positions) == 1 else np.concatenate(positions)
     return neutral, all_faces, all_deltas, target_names(mesh, m)
+
+
+def _read_target(
+    reader: BufferReader, accessor: int, number: int, out: np.ndarray, label: str
+) -> None:
+    """Morph target ``number``'s POSITION offsets (accessor ``accessor``) into ``out`` (V, 3):
+    what it is read into goes when it is copied, before the next target is read."""
+    deltas = reader.accessor(accessor, floats=out.dtype.type)
+    if deltas.shape != out.shape:
+        raise ExampleSetError(
+            f"{label}: morph target {number} is not VEC3 as POSITION is", code="bad_gltf"
+        )
+    if not np.isfinite(deltas).all():
+        raise ExampleSetError(
+            f"{label}: morph target {number} has NaN or Inf offsets", code="non_finite"
+        )
+    out[:] = deltas
 
 
 def target_names(mesh: dict[str, Any], m: int) -> list[str]:

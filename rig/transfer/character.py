@@ -189,7 +189,11 @@ def with_transferred_expressions(
         still=still,
         progress=progress,
     )
-    displacements = generated.target_vertices[1:] - generated.target_vertices[0]
+    made = generated.target_vertices
+    # float32 as the file stores them, each the float64 difference rounded once (as
+    # ``(made[1:] - made[0]).astype(np.float32)``), without that float64 array.
+    displacements = np.empty((len(made) - 1, *made.shape[1:]), dtype=np.float32)
+    np.subtract(made[1:], made[0], out=displacements, casting="same_kind")
     glb = add_morph_targets(character.glb, character.face_mesh, generated.names[1:], displacements)
     return glb, generated
 
@@ -226,18 +230,23 @@ def add_morph_targets(
             f"displacements: expected shape ({len(names)}, {total}, 3), got {deltas.shape}",
             code="bad_gltf",
         )
-    blob = bytearray(binary)
+    # The new BIN chunk as its pieces (the old one, padding, each target's rows: views, not
+    # copies), joined once with the rest of the file by ``_join_glb``.
+    pieces: list[bytes | memoryview] = [binary]
+    size = len(binary)
     made: dict[tuple[int, int], int] = {}  # (POSITION accessor, expression) -> new accessor
     for position, start in starts.items():
         count = int(accessors[position]["count"])
         for index in range(len(names)):
             rows = np.ascontiguousarray(deltas[index, start : start + count])
-            blob += b"\0" * (-len(blob) % 4)
+            pieces.append(b"\0" * (-size % 4))
+            size += -size % 4
             views.append(
-                {"buffer": 0, "byteOffset": len(blob), "byteLength": rows.nbytes,
+                {"buffer": 0, "byteOffset": size, "byteLength": rows.nbytes,
                  "target": _ARRAY_BUFFER}
             )  # fmt: skip
-            blob += rows.tobytes()
+            pieces.append(rows.data.cast("B") if rows.size else b"")
+            size += rows.nbytes
             accessors.append(
                 {
                     "bufferView": len(views) - 1,
@@ -268,12 +277,13 @@ def add_morph_targets(
     for node in doc.get("nodes") or []:
         if node.get("mesh") == mesh and "weights" in node:
             node["weights"] = [*node["weights"], *[0.0] * len(names)]
-    blob += b"\0" * (-len(blob) % 4)
+    pieces.append(b"\0" * (-size % 4))
+    size += -size % 4
     buffers = doc.setdefault("buffers", [])
     if not buffers:
         buffers.append({})
-    buffers[0]["byteLength"] = len(blob)
-    return _join_glb(doc, bytes(blob))
+    buffers[0]["byteLength"] = size
+    return _join_glb(doc, pieces)
 
 
 def check_targetable(glb: bytes, mesh: int) -> None:
@@ -343,8 +353,9 @@ def _targetable(doc: Any, mesh: int) -> tuple[dict[int, int], int]:
     return starts, total
 
 
-def _split_glb(glb: bytes) -> tuple[dict[str, Any], bytes]:
-    """The JSON document and the BIN chunk (empty if none) of a glTF binary."""
+def _split_glb(glb: bytes) -> tuple[dict[str, Any], memoryview]:
+    """The JSON document and the BIN chunk (empty if none; a view of ``glb``) of a glTF
+    binary."""
     magic, version, _ = _GLB_HEADER.unpack_from(glb)
     if magic != b"glTF" or version != 2:
         raise ExampleSetError("not a glTF 2.0 binary", code="bad_gltf")
@@ -354,11 +365,11 @@ def _split_glb(glb: bytes) -> tuple[dict[str, Any], bytes]:
         raise ExampleSetError("the GLB's first chunk is not JSON", code="bad_gltf")
     doc = json.loads(glb[offset + _CHUNK.size : offset + _CHUNK.size + length])
     offset += _CHUNK.size + length
-    binary = b""
+    binary = memoryview(b"")
     if offset + _CHUNK.size <= len(glb):
         length, kind = _CHUNK.unpack_from(glb, offset)
         if kind == b"BIN\0":
-            binary = glb[offset + _CHUNK.size : offset + _CHUNK.size + length]
+            binary = memoryview(glb)[offset + _CHUNK.size : offset + _CHUNK.size + length]
     buffers = doc.get("buffers") or []
     if buffers and "uri" in buffers[0]:
         raise ExampleSetError(
@@ -368,10 +379,14 @@ def _split_glb(glb: bytes) -> tuple[dict[str, Any], bytes]:
     return doc, binary
 
 
-def _join_glb(doc: dict[str, Any], binary: bytes) -> bytes:
+def _join_glb(doc: dict[str, Any], binary: list[bytes | memoryview]) -> bytes:
+    """The glTF binary of ``doc`` and the BIN chunk made of ``binary``'s pieces, joined in
+    one copy."""
     text = json.dumps(doc, separators=(",", ":"), ensure_ascii=False).encode()
     text += b" " * (-len(text) % 4)
-    chunks = _CHUNK.pack(len(text), b"JSON") + text
-    if binary:
-        chunks += _CHUNK.pack(len(binary), b"BIN\0") + binary
-    return _GLB_HEADER.pack(b"glTF", 2, _GLB_HEADER.size + len(chunks)) + chunks
+    size = sum(len(piece) for piece in binary)
+    chunks: list[bytes | memoryview] = [_CHUNK.pack(len(text), b"JSON"), text]
+    if size:
+        chunks += [_CHUNK.pack(size, b"BIN\0"), *binary]
+    total = _GLB_HEADER.size + sum(len(chunk) for chunk in chunks)
+    return b"".join([_GLB_HEADER.pack(b"glTF", 2, total), *chunks])

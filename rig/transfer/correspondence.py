@@ -170,7 +170,9 @@ def identity_correspondence(
 def _triangle_keys(faces: np.ndarray, count: int) -> np.ndarray:
     """One integer per triangle, equal for the same vertices in the same cyclic order."""
     start = np.argmin(faces, axis=1)
+    # int64 whatever the faces' type: the key is up to count^3 (int32 faces overflow it).
     turned = np.take_along_axis(faces, (start[:, None] + np.arange(3)) % 3, axis=1)
+    turned = turned.astype(np.int64, copy=False)
     keys: np.ndarray = (turned[:, 0] * count + turned[:, 1]) * count + turned[:, 2]
     return keys
 

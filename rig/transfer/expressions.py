@@ -252,7 +252,8 @@ def transfer_expressions(
     solved = time.perf_counter()
     vertices = np.empty((len(picked), *target.shape))
     vertices[0] = target
-    vertices[1:] = moved[:, welded_index]
+    np.take(moved, welded_index, axis=1, out=vertices[1:])  # no temporary of them all
+    del moved
     return GeneratedExpressions(
         names=tuple(source.names[i] for i in picked),
         target_vertices=vertices,

@@ -271,7 +271,7 @@ class _CharacterJob:
         check_character_size(character, self.max_bytes)
         record = character_record(character, rights_holder=self.rights_holder)
         glb, fmt = character.glb, character.format
-        example_set, report = character_example_set(character)
+        example_set, report = character_example_set(character, displaced=True)
         # The largest arrays go as soon as they are used (SERVER.md "What an upload can
         # cost"): the character's displacements once in the example set, that once fitted.
         del character

@@ -374,7 +374,7 @@ class _TransferJob:
         transferred = time.perf_counter()
         self._enter("fit")
         character = load_character(glb, label="the character with its transferred expressions")
-        example_set, report = character_example_set(character)
+        example_set, report = character_example_set(character, displaced=True)
         rig = fit(example_set, **self.options)
         record = character_record(character, rights_holder=self.rights_holder)
         packed = pack_character(character.glb, record)

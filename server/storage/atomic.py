@@ -9,17 +9,23 @@ from __future__ import annotations
 import contextlib
 import os
 import secrets
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import BinaryIO
 
 __all__ = ["fsync_directory", "write_atomically"]
 
 
 def write_atomically(
-    directory: Path, name: str, data: bytes | Sequence[bytes], *, scratch: Path
+    directory: Path,
+    name: str,
+    data: bytes | Sequence[bytes] | Callable[[BinaryIO], None],
+    *,
+    scratch: Path,
 ) -> bool:
-    """Write ``directory / name`` whole or not at all (``data``, or its parts one after
-    the other); returns whether it is new.
+    """Write ``directory / name`` whole or not at all (``data``, its parts one after the
+    other, or what a function writes to the open file: a rig written array by array, not
+    copied into bytes first); returns whether it is new.
 
     Temp file in ``scratch`` (a rig store's scratch folder, on the same file system, so
     the rename stays atomic and a writer killed mid-write leaves nothing the next start
@@ -33,8 +39,11 @@ def write_atomically(
     fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
     try:
         with os.fdopen(fd, "wb") as fh:
-            for part in (data,) if isinstance(data, bytes) else data:
-                fh.write(part)
+            if callable(data):
+                data(fh)
+            else:
+                for part in (data,) if isinstance(data, bytes) else data:
+                    fh.write(part)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(temp, path)

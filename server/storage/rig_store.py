@@ -16,6 +16,7 @@ import shutil
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
@@ -303,7 +304,7 @@ class RigStore:
             write_atomically(
                 self.directory, f"{rig_id}{CHARACTER_SUFFIX}", character, scratch=self.scratch
             )
-        return self._write(rig_id, rig.to_bytes())
+        return self._write(rig_id, rig.write)  # array by array: no copy of the rig
 
     def character(self, rig_id: str, *, with_glb: bool = True) -> StoredCharacter | None:
         """The character stored beside rig ``rig_id``; ``None`` when it has none or it is unreadable.
@@ -374,7 +375,7 @@ class RigStore:
         with contextlib.suppress(FileNotFoundError):
             (self.directory / f"{rig_id}{CHARACTER_SUFFIX}").unlink()
 
-    def _write(self, rig_id: str, data: bytes) -> bool:
+    def _write(self, rig_id: str, data: bytes | Callable[[BinaryIO], None]) -> bool:
         self._path(rig_id)  # validates the id
         return write_atomically(self.directory, f"{rig_id}{SUFFIX}", data, scratch=self.scratch)
 

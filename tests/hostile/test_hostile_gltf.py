@@ -23,7 +23,7 @@ from facecast.rig.sources.ict import locate_ict
 from facecast.server.http.character_upload import gltf_limits
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
-from tests.hostile._glb import aliased, glb, meshopt_zeros, triangle
+from tests.hostile._glb import aliased, glb, meshopt_zeros, triangle, zeros
 from tests.viewer._character import build_character
 
 pytestmark = pytest.mark.anyio
@@ -290,6 +290,11 @@ def declared(doc: dict[str, Any], text: bytes) -> dict[str, int]:
     prims = [p for mesh in doc["meshes"] for p in mesh["primitives"]]
     per_mesh = [{p["attributes"]["POSITION"] for p in mesh["primitives"]} for mesh in doc["meshes"]]
     targets = [max(len(p.get("targets", [])) for p in m["primitives"]) for m in doc["meshes"]]
+    quantised = [
+        any(accessors[t["POSITION"]]["componentType"] != 5126 for p in m["primitives"]
+            for t in p.get("targets", []))
+        for m in doc["meshes"]
+    ]  # fmt: skip
     return {
         "json_values": sum(text.count(c) for c in (b"[", b",", b":", b"{")) + 1,
         "nodes": len(doc["nodes"]),
@@ -302,8 +307,8 @@ def declared(doc: dict[str, Any], text: bytes) -> dict[str, int]:
         ),
         "morph_targets": max(targets),
         "morph_values": sum(
-            t * sum(accessors[i]["count"] for i in used)
-            for t, used in zip(targets, per_mesh, strict=True)
+            t * sum(accessors[i]["count"] for i in used) * (2 if quantised else 1)
+            for t, used, quantised in zip(targets, per_mesh, quantised, strict=True)
         ),
         "accessor_values": sum(a["count"] * sizes[a["type"]] for a in accessors),
     }
@@ -343,8 +348,9 @@ def mixing_expressions(count: int) -> bytes:
 
 
 async def test_expressions_mixing_morphs_are_bounded_as_morph_values(tmp_path):
-    # The triangle's 3 vertices: 10 mixing expressions are 30 values, 11 are 33.
-    settings = Settings(rigs_dir=tmp_path / "rigs", max_gltf_morph_values=30)
+    # The triangle's 3 vertices: its morph is 3 values, and each mixing expression a float64
+    # copy of the face that counts twice, 6: with 10 of them 63 values, with 11, 69.
+    settings = Settings(rigs_dir=tmp_path / "rigs", max_gltf_morph_values=63)
     async with run_server(settings) as server, client(server) as http:
         at_limit = await http.put("/v1/characters/mix", content=mixing_expressions(10))
         past = await http.put("/v1/characters/mix", content=mixing_expressions(11))
@@ -352,6 +358,22 @@ async def test_expressions_mixing_morphs_are_bounded_as_morph_values(tmp_path):
     assert at_limit.status_code == 201, at_limit.json()  # its jawOpen morph is fitted
     assert (past.status_code, past.json()["code"]) == (422, "gltf_exceeds_limits")
     assert "max_gltf_morph_values" in past.json()["detail"]
+
+
+async def test_quantised_morph_targets_count_twice_as_morph_values(tmp_path):
+    # Read as float64 (so that the rig is what the file says), a quantised morph value
+    # costs what two float32 ones do: 4 int16 targets on 999 vertices are 7,992 values.
+    body = zeros(999, 4, quantized=True)
+    at = Settings(rigs_dir=tmp_path / "at", max_gltf_morph_values=7_992)
+    past = Settings(rigs_dir=tmp_path / "past", max_gltf_morph_values=7_991)
+    async with run_server(at) as server, client(server) as http:
+        stored = await http.put("/v1/characters/q", content=body)
+    async with run_server(past) as server, client(server) as http:
+        refused = await http.put("/v1/characters/q", content=body)
+
+    assert stored.status_code == 201, stored.json()
+    assert (refused.status_code, refused.json()["code"]) == (422, "gltf_exceeds_limits")
+    assert "max_gltf_morph_values" in refused.json()["detail"]
 
 
 async def test_expressions_aliasing_one_morph_are_bounded_as_morph_values(tmp_path):
