@@ -127,13 +127,15 @@ class Settings:
 
     # -- deformation transfer jobs (server/http/transfer.py) ------------------------------
     #: Largest character face mesh (vertices) ``PUT /v1/characters/{id}?expressions=transfer``
-    #: takes; a larger one is 422 ``too_many_vertices`` (at 50k the correspondence and 51
-    #: shapes take about a minute of one core). One transfer runs per server at a time;
-    #: another is 503 ``transfer_busy``.
-    max_transfer_vertices: int = 50_000
+    #: takes; a larger one is 422 ``too_many_vertices``. 35,000 (was 50,000) holds the job's
+    #: memory to the uploads' bound, 3x max_upload_bytes + 4 MiB (SERVER.md, "What an upload
+    #: can cost the server": its sparse factors grow faster than the face, +233 MB at 48,972
+    #: vertices), over eight times a VRoid face mesh (4,083) and twice ICT's head (14,062).
+    #: One transfer runs per server at a time; another is 503 ``transfer_busy``.
+    max_transfer_vertices: int = 35_000
     #: Its largest face mesh in triangles (a closed mesh has about twice as many as
     #: vertices); a larger one is 422 ``too_many_faces``.
-    max_transfer_faces: int = 150_000
+    max_transfer_faces: int = 105_000
     #: Finished transfer job records kept under ``<rigs_dir>/.jobs``; older ones are pruned
     #: (a character's record also goes when the character is deleted or replaced).
     max_job_records: int = 64
