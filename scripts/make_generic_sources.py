@@ -21,7 +21,7 @@ from facecast.rig.sources.ict import (
 )
 from facecast.rig.sources.source_rig import arkit_from_ict
 
-OUT = Path(__file__).resolve().parents[1] / "rig" / "sources" / "generic_arkit" / "points.npz"
+OUT = Path(__file__).resolve().parents[1] / "rig" / "characters" / "generic_arkit" / "points.npz"
 
 
 def generic_arrays(archive: Path) -> dict[str, np.ndarray]:
