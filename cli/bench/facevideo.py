@@ -1,7 +1,8 @@
 """An ICT-FaceKit head as a webcam sees it: the webcam benchmark's camera videos.
 
 Colours ICT's parts (skin, brows, lips, eyes with iris and pupil, teeth, the mouth's inside),
-shades them with plain Lambert light, sways the head gently as a seated performer does, and
+shades them with plain Lambert light, sways the head gently as a seated performer does, turns
+the eyeballs by the eye-look weights when asked (ICT's own shapes move the lids only), and
 draws each frame through ``facecast.cli.raster`` to a 640 x 480 Y4M file. Frames only: it
 must not track, fit or score.
 """
@@ -30,7 +31,7 @@ from facecast.cli.raster import (
 from facecast.cli.y4m import Y4MWriter
 from facecast.rig.evaluation.webcam import Performer
 
-__all__ = ["CAMERA", "HeadScene", "head_scene", "render_frames", "write_video"]
+__all__ = ["CAMERA", "GAZE_NAMES", "HeadScene", "head_scene", "render_frames", "write_video"]
 
 #: A webcam's view: 640 x 480, about 56 degrees across, 47 cm in front of the nose tip.
 CAMERA = PinholeCamera(width=640, height=480, focal=600.0, position=(0.0, 1.0, 60.0))
@@ -66,6 +67,15 @@ _HIDDEN = (
 )  # fmt: skip
 #: Thin sheets seen from both sides; every other part is drawn where it faces the camera.
 _TWO_SIDED = ("eyelashes_left", "eyelashes_right")
+#: Per eyeball region: the ARKit eye-look names that turn it (out, in, up, down) and the
+#: sign of x towards which "out" turns it (ICT's +x is the subject's left).
+GAZE_NAMES = {
+    "eyeball_left": (("eyeLookOutLeft", "eyeLookInLeft", "eyeLookUpLeft", "eyeLookDownLeft"), 1.0),
+    "eyeball_right": (
+        ("eyeLookOutRight", "eyeLookInRight", "eyeLookUpRight", "eyeLookDownRight"),
+        -1.0,
+    ),
+}
 _IRIS = ((0.32, 0.21, 0.12), 0.95)  # colour, cosine of the angle from the eye's axis
 _PUPIL = ((0.04, 0.04, 0.04), 0.985)
 _BROW_HALF_WIDTH = 0.45  # cm either side of the brow landmarks' line
@@ -85,6 +95,9 @@ class HeadScene:
         Triangles drawn only where they face the camera.
     operator : (V, F) sparse
         ``normals_operator`` of ``faces``.
+    eyeballs : tuple of (start, stop, centre (3,), region name)
+        Each eyeball's vertices [start, stop) and the centre it turns about (the sphere
+        that fits them best), for a gaze (``render_frames``' ``gaze_degrees``).
     """
 
     faces: np.ndarray
@@ -92,6 +105,7 @@ class HeadScene:
     cull: np.ndarray
     operator: scipy.sparse.csr_matrix
     camera: PinholeCamera = CAMERA
+    eyeballs: tuple[tuple[int, int, np.ndarray, str], ...] = ()
 
 
 def _segment_distance(points: np.ndarray, line: np.ndarray) -> np.ndarray:
@@ -134,6 +148,34 @@ def _albedo(
     return albedo
 
 
+def _sphere_centre(points: np.ndarray) -> np.ndarray:
+    """(3,) the centre of the sphere nearest ``points`` (N, 3), by linear least squares."""
+    design = np.column_stack([2.0 * points, np.ones(len(points))])
+    solution, *_ = np.linalg.lstsq(design, (points * points).sum(axis=1), rcond=None)
+    centre: np.ndarray = solution[:3]
+    return centre
+
+
+def _eye_rotations(
+    performer: Performer, act: np.ndarray, region: str, degrees: float
+) -> np.ndarray:
+    """(F, 3, 3) each frame's turn of one eyeball: yaw by out - in, pitch by up - down,
+    ``degrees`` at a weight of 1 (a name the performer lacks counts as 0)."""
+    names, out_sign = GAZE_NAMES[region]
+    column = {name: i for i, name in enumerate(performer.names)}
+    out, inward, up, down = (
+        act[:, column[name]] if name in column else np.zeros(len(act)) for name in names
+    )
+    yaw = math.radians(degrees) * out_sign * (out - inward)  # about +y: +z turns to +x
+    pitch = math.radians(degrees) * (up - down)  # +z turns to +y: about -x
+    cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
+    zero, one = np.zeros(len(act)), np.ones(len(act))
+    about_y = np.stack([cy, zero, sy, zero, one, zero, -sy, zero, cy], 1).reshape(-1, 3, 3)
+    about_x = np.stack([one, zero, zero, zero, cp, sp, zero, -sp, cp], 1).reshape(-1, 3, 3)
+    rotations: np.ndarray = about_x @ about_y
+    return rotations
+
+
 def head_scene(
     performer: Performer, regions: dict[str, tuple[int, int]], landmarks68: npt.ArrayLike
 ) -> HeadScene:
@@ -151,6 +193,10 @@ def head_scene(
         albedo=_albedo(performer.neutral, regions, marks),
         cull=~two_sided[faces].any(axis=1),
         operator=normals_operator(faces, len(performer.neutral)),
+        eyeballs=tuple(
+            (*regions[name], _sphere_centre(performer.neutral[slice(*regions[name])]), name)
+            for name in GAZE_NAMES
+        ),
     )
 
 
@@ -180,11 +226,14 @@ def render_frames(
     fps: float,
     sway_degrees: float = 1.5,
     rotations: npt.ArrayLike | None = None,
+    gaze_degrees: float = 0.0,
 ) -> Iterator[np.ndarray]:
     """Each frame of ``performer`` making ``activations`` (F, M): (480, 640, 3) uint8 RGB.
 
     ``rotations``: (F, 3, 3) head rotations about the neck (``PIVOT``), applied to column
     vectors in ICT's frame, in place of the sway (the head-pose tests' known poses).
+    ``gaze_degrees``: how far each eyeball turns at an ARKit eye-look weight of 1 (0: never,
+    as ICT's own shapes, which move the lids only and leave the iris where it is).
     """
     act = np.asarray(activations, dtype=np.float64)
     if rotations is None:
@@ -196,8 +245,15 @@ def render_frames(
     pivot = np.asarray(PIVOT)
     camera = scene.camera
     size = (camera.width, camera.height)
+    eyes = [
+        (start, stop, centre, _eye_rotations(performer, act, name, gaze_degrees))
+        for start, stop, centre, name in scene.eyeballs
+        if gaze_degrees
+    ]
     for index in range(len(act)):
         vertices = performer.vertices(act[index : index + 1])[0].astype(np.float64)
+        for start, stop, centre, turns in eyes:
+            vertices[start:stop] = (vertices[start:stop] - centre) @ turns[index].T + centre
         vertices = (vertices - pivot) @ rotations[index].T + pivot
         normals = vertex_normals(vertices, scene.faces, scene.operator)
         # Two-sided light: a normal turned away from the camera is flipped towards it.
@@ -224,6 +280,7 @@ def write_video(
     fps: float,
     sway_degrees: float = 1.5,
     rotations: npt.ArrayLike | None = None,  # as for render_frames
+    gaze_degrees: float = 0.0,  # as for render_frames
     progress: bool = True,
 ) -> Path:
     """Render ``activations`` (F, M) to a Y4M video at ``path``; returns the path."""
@@ -231,7 +288,13 @@ def write_video(
     act = np.asarray(activations, dtype=np.float64)
     camera = scene.camera
     frames = render_frames(
-        scene, performer, act, fps=fps, sway_degrees=sway_degrees, rotations=rotations
+        scene,
+        performer,
+        act,
+        fps=fps,
+        sway_degrees=sway_degrees,
+        rotations=rotations,
+        gaze_degrees=gaze_degrees,
     )
     with Y4MWriter(path, camera.width, camera.height, fps) as writer:
         for image in tqdm(frames, total=len(act), unit="frame", desc=f"rendering {Path(path).name}",

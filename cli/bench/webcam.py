@@ -255,11 +255,12 @@ def _video_paths(folder: Path, args: argparse.Namespace, setup: _Setup) -> dict[
     clips = setup.clips
     ramp = clips.held[1][0] - clips.held[0][1] if len(clips.held) > 1 else 0
     hold = clips.held[0][1] - clips.held[0][0]
-    face = f"{setup.performer_id}-sway{args.sway:g}"
+    gaze = f"-gaze{args.gaze_degrees:g}" if args.gaze_degrees else ""  # 0: the names as before
+    face = f"{setup.performer_id}-sway{args.sway:g}{gaze}"
     take = f"{setup.take_name.rsplit('.', 1)[0]}-{len(setup.experiment.activations)}"
     performed = zlib.crc32(",".join(clips.names).encode())
     keys = f"keys{len(clips.names)}-{performed:08x}-ramp{ramp}-hold{hold}"
-    eyes = f"eyes{len(setup.eyes.activations)}-{keys}-{setup.eyes_id}-sway{args.sway:g}"
+    eyes = f"eyes{len(setup.eyes.activations)}-{keys}-{setup.eyes_id}-sway{args.sway:g}{gaze}"
     return {
         "take": folder / f"{take}-{face}.y4m",
         "keys": folder / f"{keys}-{face}.y4m",
@@ -310,7 +311,8 @@ def _render_and_track(
     if not path.is_file():
         started = time.perf_counter()
         partial = path.with_name(path.name + ".partial")  # a cut-short run leaves no video
-        write_video(partial, scene, performer, activations, fps=fps, sway_degrees=args.sway)
+        write_video(partial, scene, performer, activations, fps=fps, sway_degrees=args.sway,
+                    gaze_degrees=args.gaze_degrees)  # fmt: skip
         partial.replace(path)
         out["render_seconds"][name] = time.perf_counter() - started
     if points_path.is_file():
@@ -376,6 +378,8 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--frames must be at least 3, got {args.frames}")
     if not (0.0 <= args.sway <= 10.0):
         raise CommandError(f"--sway must lie in [0, 10] degrees, got {args.sway}")
+    if not (0.0 <= args.gaze_degrees <= 45.0):
+        raise CommandError(f"--gaze-degrees must lie in [0, 45], got {args.gaze_degrees}")
     if any(not (np.isfinite(a) and a > 0) for a in args.kalman or ()):
         raise CommandError(f"--kalman accelerations must be finite and > 0, got {args.kalman}")
     if args.eyes_only and args.no_eyes:
@@ -401,6 +405,7 @@ def run(args: argparse.Namespace) -> int:
         "truth_jitter_percent": truth_jitter,
         "key_clip_frames": len(setup.clips.activations),
         "sway_degrees": args.sway,
+        "gaze_degrees": args.gaze_degrees,
     }
     if not args.eyes_only:
         exact = _score_landmarks(

@@ -170,6 +170,9 @@ def register(subparsers: Subparsers) -> None:
                         "the others are skipped, as in the page's walk-through")  # fmt: skip
     webcam.add_argument("--sway", type=float, default=1.5, metavar="DEG",
                         help="head sway amplitude in degrees (default 1.5; 0: a still head)")  # fmt: skip
+    webcam.add_argument("--gaze-degrees", type=float, default=0.0, metavar="DEG",
+                        help="turn the rendered eyeballs by DEG at an eye-look weight of 1 "
+                        "(default 0: ICT's shapes move the lids only, the iris stays)")  # fmt: skip
     webcam.add_argument("--exact-only", action="store_true",
                         help="skip rendering and tracking: the exact-landmark rows only")  # fmt: skip
     webcam.add_argument("--videos", metavar="DIR",

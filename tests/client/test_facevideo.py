@@ -88,3 +88,47 @@ def test_a_clip_is_written_as_y4m_at_its_rate(scene, tmp_path):
 
     video = open_y4m(path)
     assert (video.width, video.height, video.num_frames, video.fps) == (640, 480, 2, 30.0)
+
+
+def _iris_shift(still: np.ndarray, turned: np.ndarray, columns: slice) -> np.ndarray:
+    """(dy, dx) pixels from where the dark iris left to where it arrived, in one eye's box."""
+    change = turned[195:225, columns].astype(int).sum(axis=2) - still[195:225, columns].sum(axis=2)
+    arrived, left = np.argwhere(change < -150), np.argwhere(change > 150)
+    assert len(arrived) > 10 and len(left) > 10  # the iris moved, not a pixel's noise
+    shift: np.ndarray = arrived.mean(axis=0) - left.mean(axis=0)
+    return shift
+
+
+@pytest.mark.parametrize(
+    ("weights", "direction"),
+    [
+        ({"eyeLookUpLeft": 0.5, "eyeLookUpRight": 0.5}, (-1, 0)),  # image y grows downwards
+        ({"eyeLookOutLeft": 0.5, "eyeLookInRight": 0.5}, (0, 1)),  # the subject's left: +x
+        ({"eyeLookInLeft": 0.5, "eyeLookOutRight": 0.5}, (0, -1)),
+    ],
+)
+def test_a_gaze_turns_both_irises_its_way(scene, weights, direction):
+    performer, head = scene
+    act = _activations(performer, **weights)
+    still = next(render_frames(head, performer, act, fps=30.0, sway_degrees=0.0))
+    turned = next(render_frames(head, performer, act, fps=30.0, sway_degrees=0.0,
+                                gaze_degrees=20.0))  # fmt: skip
+
+    for eye in (slice(250, 320), slice(320, 390)):  # the subject's right eye, then left
+        shift = _iris_shift(still, turned, eye)
+        along = shift @ np.asarray(direction, dtype=float)
+        assert along > 2.0  # pixels, the weights' way
+        assert along > 2.0 * abs(shift @ np.asarray(direction[::-1], dtype=float))  # not across
+
+
+def test_a_look_up_and_down_at_once_leave_the_irises_where_they_were(scene):
+    # (a look down alone hides the iris's motion under the lowered lid: this is its check)
+    performer, head = scene
+    act = _activations(performer, eyeLookUpLeft=0.5, eyeLookUpRight=0.5, eyeLookDownLeft=0.5,
+                       eyeLookDownRight=0.5)  # fmt: skip
+    still = next(render_frames(head, performer, act, fps=30.0, sway_degrees=0.0))
+    turned = next(render_frames(head, performer, act, fps=30.0, sway_degrees=0.0,
+                                gaze_degrees=20.0))  # fmt: skip
+
+    changed = np.abs(turned.astype(int) - still).sum(axis=2) > 30
+    assert changed.sum() < 5
