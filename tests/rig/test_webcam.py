@@ -207,6 +207,7 @@ def test_bench_eyes_clip_on_exact_landmarks_scores_each_event_on_both_paths(tmp_
         (["--performer", "nobody"], "no ICT identity named 'nobody'"),
         (["--frames", "2"], "at least 3"),
         (["--sway", "30"], "--sway"),
+        (["--gaze-degrees", "50"], "--gaze-degrees"),
         (["--eyes-performer", "person07"], "another face"),
         (["--eyes-only", "--no-eyes"], "nothing to measure"),
         (["--kalman", "0"], "finite and > 0"),
