@@ -17,7 +17,7 @@ import tempfile
 import time
 import warnings
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -41,9 +41,11 @@ from facecast.rig.evaluation.webcam import (
     hold_last_found,
     ict_performer,
     key_clips,
+    source_on_neutral,
     superposition,
     webcam_rows,
 )
+from facecast.rig.sources.capture import robust_example
 from facecast.rig.sources.ict import DEFAULT_LANDMARKS, ict_regions, locate_ict
 from facecast.rig.sources.ict_arkit import ARKIT_TARGET_IDENTITY, arkit_example_set
 from facecast.rig.sources.trackers import read_livelink_csv
@@ -63,6 +65,9 @@ KEY_FPS = 30.0
 PERSONAL, NNLS = "personal", "nnls"
 #: The eyes clip's live Kalman accelerations scored by default (noise units per s^2).
 EYES_KALMAN = (480.0,)
+#: ``--generic-neutral tracked``: frames of ICT's generic face at rest rendered and tracked,
+#: and the first of them left out (the page's eye crops settle over 9 frames, eyelids.js).
+GENERIC_NEUTRAL_FRAMES, GENERIC_NEUTRAL_SETTLE = 30, 10
 
 
 @dataclass(frozen=True, eq=False)
@@ -137,6 +142,31 @@ def _setup(args: argparse.Namespace) -> _Setup:
         eyes_id=eyes_id,
         eyes=eyes_clip(eyes_performer.names),
     )
+
+
+def _on_tracked_generic_neutral(setup: _Setup, args: argparse.Namespace, folder: Path) -> _Setup:
+    """``setup`` with the character's source neutral as ``facecast track`` sees ICT's generic
+    face at rest (rendered as the performers are; kept in ``folder``): the generic rows'
+    source, each shape keeping ICT's own displacements (``webcam.source_on_neutral``)."""
+    archive = locate_ict(args.ict) if args.ict else locate_ict()
+    assert archive is not None  # _setup found it
+    regions, landmarks68 = ict_regions(archive)
+    face = ict_performer(archive, identity=None)
+    rest = np.zeros((GENERIC_NEUTRAL_FRAMES, len(face.names)))
+    gaze = f"-gaze{args.gaze_degrees:g}" if args.gaze_degrees else ""
+    path = folder / f"generic-neutral{GENERIC_NEUTRAL_FRAMES}-sway{args.sway:g}{gaze}.y4m"
+    scene = head_scene(face, regions, landmarks68)
+    points, found = _render_and_track("generic neutral", path, scene, face, rest, KEY_FPS, args,
+                                      {"videos": {}, "render_seconds": {}, "track_seconds": {}})  # fmt: skip
+    held = points[GENERIC_NEUTRAL_SETTLE:][found[GENERIC_NEUTRAL_SETTLE:]]
+    if len(held) < 3:
+        raise CommandError("the tracker found no face in ICT's generic face at rest")
+    neutral, _, _ = robust_example(held)
+    examples = source_on_neutral(setup.examples, neutral)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the exact ICT rig warns to fit with noise: known
+        character = fit(examples)
+    return replace(setup, examples=examples, character=character)
 
 
 def _generic_rigs(setup: _Setup, noise: float) -> dict[str, tuple[Rig, float | None]]:
@@ -384,8 +414,18 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--kalman accelerations must be finite and > 0, got {args.kalman}")
     if args.eyes_only and args.no_eyes:
         raise CommandError("--eyes-only and --no-eyes leave nothing to measure")
+    if args.generic_neutral == "tracked" and args.exact_only:
+        raise CommandError("--generic-neutral tracked renders and tracks ICT's generic face: "
+                           "not with --exact-only")  # fmt: skip
     started = time.perf_counter()
     setup = _setup(args)
+    if args.generic_neutral == "tracked":
+        if args.videos:
+            Path(args.videos).mkdir(parents=True, exist_ok=True)
+            setup = _on_tracked_generic_neutral(setup, args, Path(args.videos))
+        else:
+            with tempfile.TemporaryDirectory(prefix="facecast-webcam-") as scratch:
+                setup = _on_tracked_generic_neutral(setup, args, Path(scratch))
     experiment = setup.experiment
     truth_jitter = cloning_error(experiment.truth, experiment.truth)["jitter_percent"]
     print(
@@ -406,6 +446,7 @@ def run(args: argparse.Namespace) -> int:
         "key_clip_frames": len(setup.clips.activations),
         "sway_degrees": args.sway,
         "gaze_degrees": args.gaze_degrees,
+        "generic_neutral": args.generic_neutral,
     }
     if not args.eyes_only:
         exact = _score_landmarks(

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -19,6 +19,7 @@ import numpy.typing as npt
 
 from ..errors import InputError
 from ..examples import ExampleSet
+from ..pose import similarity_transform
 from ..rebase import calibrate
 from ..retarget import fit_performer, target_examples
 from ..rig import Rig
@@ -39,6 +40,7 @@ __all__ = [
     "ict_performer",
     "key_clips",
     "score",
+    "source_on_neutral",
     "superposition",
     "webcam_rows",
 ]
@@ -101,11 +103,12 @@ class Performer:
 
 def ict_performer(
     path: str | os.PathLike[str],
-    identity: str = PERFORMER_IDENTITY,
+    identity: str | None = PERFORMER_IDENTITY,
     landmarks: Sequence[int] = DEFAULT_LANDMARKS,
 ) -> Performer:
-    """ICT-FaceKit's ``identity`` with every ARKit shape (``arkit_from_ict``), whole head;
-    its feature points ``landmarks`` (positions in ICT's ``landmarks68``)."""
+    """ICT-FaceKit's ``identity`` (None: its generic face) with every ARKit shape
+    (``arkit_from_ict``), whole head; its feature points ``landmarks`` (positions in ICT's
+    ``landmarks68``)."""
     ict = ict_example_set(path, identity=identity, landmarks=landmarks)
     names, meshes = arkit_from_ict(ict.names[1:], ict.target_vertices[0], ict.target_vertices[1:])
     neutral = meshes[0]
@@ -245,6 +248,27 @@ def hold_last_found(points: npt.ArrayLike, found: npt.ArrayLike) -> np.ndarray:
     index[index < 0] = int(np.argmax(ok))
     out: np.ndarray = x[index]
     return out
+
+
+def source_on_neutral(examples: ExampleSet, neutral: npt.ArrayLike) -> ExampleSet:
+    """``examples`` with every source example moved onto another view of its neutral.
+
+    ``neutral`` (K, 3), e.g. the source face's neutral as a tracker sees it (its points lie
+    millimetres from the face's landmark vertices: two definitions of the same landmarks),
+    is put into the source's frame by the best similarity, and each source example becomes
+    it plus the example's own displacement: the shapes' motion is kept, only the rest pose
+    changes (README, "The eyes clip", option (k)).
+    """
+    points = examples.source_points
+    x = np.asarray(neutral, dtype=np.float64)
+    if x.shape != points.shape[1:] or not np.isfinite(x).all():
+        raise InputError(
+            f"neutral: expected finite points of shape {points.shape[1:]}, got {x.shape}",
+            code="wrong_point_count",
+        )
+    rotation, scales, translation = similarity_transform(x[None], points[0], scale=True)
+    placed = scales[0] * x @ rotation[0].T + translation[0]
+    return replace(examples, source_points=points - points[0] + placed)
 
 
 def generic_rig(character: Rig, neutral: npt.ArrayLike, noise: float | None) -> Rig:

@@ -15,8 +15,10 @@ from facecast.rig.evaluation.webcam import (
     hold_last_found,
     ict_performer,
     key_clips,
+    source_on_neutral,
     superposition,
 )
+from facecast.rig.examples import ExampleSet
 from facecast.rig.sources.ict import ict_regions, locate_ict
 
 ARCHIVE = locate_ict()
@@ -208,6 +210,7 @@ def test_bench_eyes_clip_on_exact_landmarks_scores_each_event_on_both_paths(tmp_
         (["--frames", "2"], "at least 3"),
         (["--sway", "30"], "--sway"),
         (["--gaze-degrees", "50"], "--gaze-degrees"),
+        (["--generic-neutral", "tracked"], "not with --exact-only"),
         (["--eyes-performer", "person07"], "another face"),
         (["--eyes-only", "--no-eyes"], "nothing to measure"),
         (["--kalman", "0"], "finite and > 0"),
@@ -231,3 +234,31 @@ def test_ict_regions_tile_the_mesh_and_name_its_landmarks():
     assert all(a[1] == b[0] for a, b in itertools.pairwise(ranges))  # no gap
     assert {"face", "teeth", "eyeball_left", "eyelashes_right"} <= set(regions)
     assert landmarks68.shape == (68,) and (landmarks68 < regions["face"][1]).all()
+
+
+def _turned(points: np.ndarray, degrees: float, scale: float, shift) -> np.ndarray:
+    angle = np.radians(degrees)
+    turn = np.array(
+        [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
+    )
+    return scale * points @ turn.T + np.asarray(shift)
+
+
+def test_source_on_neutral_keeps_each_shape_and_takes_the_other_rest_pose():
+    rng = np.random.default_rng(3)
+    source = rng.normal(size=(4, 6, 3))
+    examples = ExampleSet(names=("neutral", "a", "b", "c"), source_points=source,
+                          target_vertices=source, target_faces=np.array([[0, 1, 2]]))  # fmt: skip
+    seen = source[0].copy()
+    seen[2] += (0.3, -0.2, 0.1)  # one landmark defined elsewhere by the tracker
+
+    # The same face seen turned, larger and elsewhere (a tracker's frame and unit).
+    moved = source_on_neutral(examples, _turned(seen, 30.0, 2.5, (1.0, -4.0, 7.0)))
+
+    out = moved.source_points
+    np.testing.assert_allclose(out - out[0], source - source[0], atol=1e-12)  # shapes kept
+    offset = np.linalg.norm(out[0] - source[0], axis=1)
+    assert offset[2] > 0.5 * np.linalg.norm((0.3, -0.2, 0.1))  # the one defined elsewhere
+    assert np.delete(offset, 2).max() < 0.5 * offset[2]  # moved most (the fit spreads some)
+    same = source_on_neutral(examples, _turned(source[0], -20.0, 0.5, (3.0, 0.0, 0.0)))
+    np.testing.assert_allclose(same.source_points, source, atol=1e-9)
