@@ -181,6 +181,9 @@ def register(subparsers: Subparsers) -> None:
     webcam.add_argument("--eyes-only", action="store_true",
                         help="only the eyes clip: skip the take and its performer's keys")  # fmt: skip
     webcam.add_argument("--no-eyes", action="store_true", help="skip the eyes clip")
+    webcam.add_argument("--eyes-short", action="store_true",
+                        help="the eyes clip with one blink and every hold 3 frames (102 frames, "
+                        "not 221): checks the path, its scores are not to compare")  # fmt: skip
     webcam.add_argument("--landmarks", metavar="N,...",
                         type=lambda text: [int(n) for n in text.split(",")],
                         help="with --exact-only: the feature points, as positions in ICT's "
