@@ -19,7 +19,8 @@ from ..filters import KALMAN_ACCELERATION, KalmanFilter, OneEuroFilter
 from ..rig import Rig
 from ..smoother import RTSSmoother
 from ..smoothing import smooth_take
-from .evaluate import cloning_error, jitter
+from .error_metrics import AXES
+from .evaluate import jitter
 
 __all__ = [
     "DEFAULT_KALMAN_ACCELERATIONS",
@@ -169,6 +170,8 @@ def temporal_tradeoff(
                     model(noise, acceleration * noise),
                 )
             )
+    # Eq. 4.1's denominators depend on the truth alone: once for every row.
+    denominator = np.abs(truth).sum(axis=1)
     rows = []
     for family, label, settings, smoother in candidates:
         if smoother is None:
@@ -178,7 +181,7 @@ def temporal_tradeoff(
         else:
             filtered = smoother.filter_series(channels, times)
         vertices = rig.clone(filtered.reshape(points.shape))
-        rows.append(_row(family, label, settings, vertices, truth, scale))
+        rows.append(_row(family, label, settings, vertices, truth, denominator, scale))
     # What `facecast clone` does by default: RTS along the take's principal directions at
     # their most likely accelerations, cloned by the rig regularised for the noise left.
     take = smooth_take(rig, points, times, smoothing="rts", noise=noise)
@@ -189,7 +192,8 @@ def temporal_tradeoff(
         f"clone default: RTS, a {np.min(units):.0f}-{np.max(units):.0f} (estimated), rig "
         f"noise {take.noise / noise:.2f} x"
     )
-    rows.append(_row("clone", label, settings, take.rig.clone(take.points), truth, scale))
+    clone = take.rig.clone(take.points)
+    rows.append(_row("clone", label, settings, clone, truth, denominator, scale))
     return {"truth_jitter": jitter(truth) * scale, "fps": float(fps), "rows": rows}
 
 
@@ -199,11 +203,15 @@ def _row(
     settings: dict[str, float],
     vertices: np.ndarray,
     truth: np.ndarray,
+    denominator: np.ndarray,
     scale: float,
 ) -> dict[str, Any]:
-    """One row of ``temporal_tradeoff``: the clone's jitter, lag and errors."""
+    """One row of ``temporal_tradeoff``: the clone's jitter, lag and errors (``denominator``:
+    eq. 4.1's per frame and axis, sum_j |v_j| of the truth, (F, 3))."""
     diff = vertices.astype(np.float64) - truth
-    eq41 = cloning_error(truth, vertices)["eq41_percent"]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        per_frame = 100.0 * np.abs(diff).sum(axis=1) / denominator  # as `cloning_error`'s
+    eq41 = {axis: float(v) for axis, v in zip(AXES, per_frame.mean(axis=0), strict=True)}
     return {
         "family": family,
         "label": label,
