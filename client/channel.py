@@ -41,7 +41,7 @@ from facecast.protocol import (
 )
 
 from .errors import ConnectionFailed
-from .handshake import await_ready, open_websocket
+from .handshake import await_ready, close_websocket, open_websocket
 from .reconnect import (
     OPEN_ERRORS,
     RETRYABLE_CODES,
@@ -398,7 +398,7 @@ class FramePublisher:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._supervisor
         if self._ws is not None:
-            await self._ws.close()
+            await close_websocket(self._ws)
             self._ws = None
 
     async def __aenter__(self) -> FramePublisher:
@@ -486,7 +486,7 @@ async def watch_channel(
         except (ConnectionClosed, OSError):
             pass
         finally:
-            await ws.close()
+            await close_websocket(ws)
         if fatal is not None and fatal.code not in RETRYABLE_CODES:
             raise fatal
         ws, protocol, ready = await reopen_with_backoff(

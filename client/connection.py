@@ -55,7 +55,7 @@ from facecast.protocol import (
 )
 
 from .errors import ConnectionFailed
-from .handshake import await_ready, open_websocket
+from .handshake import await_ready, close_websocket, open_websocket
 from .latency import LatencyTracker
 from .reconnect import (
     OPEN_ERRORS,
@@ -380,6 +380,12 @@ class StreamSession:
         return self._next_seq
 
     @property
+    def close_code(self) -> int | None:
+        """How the last connection ended: 1000 when both sides closed it, 1006 when the
+        closing handshake did not complete; None while it is open or before one opened."""
+        return None if self._ws is None else self._ws.close_code
+
+    @property
     def connected(self) -> bool:
         """True while a connection is open (False while reconnecting or after failure)."""
         return self._connected.is_set()
@@ -570,7 +576,7 @@ class StreamSession:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._supervisor
         if self._ws is not None:
-            await self._ws.close()
+            await close_websocket(self._ws)
         self._connected.clear()
 
     async def __aenter__(self) -> StreamSession:

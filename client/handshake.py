@@ -1,4 +1,4 @@
-"""Opening one facecast WebSocket: the client's connect options and the wait for ``ready``.
+"""Opening and closing one facecast WebSocket: the connect options, the wait for ``ready``.
 
 Shared by stream sessions and channel publishers and watchers (PROTOCOL.md §2, §5.2); it
 opens a single connection and never retries (`facecast.client.reconnect` does).
@@ -6,8 +6,12 @@ opens a single connection and never retries (`facecast.client.reconnect` does).
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+
 from websockets.asyncio.client import ClientConnection
 from websockets.asyncio.client import connect as ws_connect
+from websockets.exceptions import ConnectionClosed
 
 from facecast.protocol import (
     SUBPROTOCOL,
@@ -19,7 +23,7 @@ from facecast.protocol import (
     Ready,
 )
 
-__all__ = ["await_ready", "open_websocket"]
+__all__ = ["await_ready", "close_websocket", "open_websocket"]
 
 
 async def open_websocket(
@@ -48,3 +52,21 @@ async def await_ready(ws: ClientConnection, protocol: ClientProtocol) -> Ready:
             return message
         if isinstance(message, Error):
             raise message.to_exception()
+
+
+async def close_websocket(ws: ClientConnection) -> None:
+    """Close ``ws``, discarding what the server still sends until its close frame comes.
+
+    Results in flight when a client stops reading (a pipelined session's window, a
+    channel's 60 fps) fill websockets' incoming queue, which then stops reading the socket
+    and with it the server's close frame: the closing handshake waited out websockets'
+    ``close_timeout``, 10 s, and ended abnormally (python-websockets/websockets#1555).
+    Nothing else may be reading ``ws`` meanwhile.
+    """
+    closing = asyncio.ensure_future(ws.close())
+    try:
+        with contextlib.suppress(ConnectionClosed):
+            async for _ in ws:
+                pass
+    finally:
+        await closing

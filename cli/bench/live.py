@@ -188,8 +188,9 @@ class _Run:
         self.performer_context = self.browser.new_context(
             viewport={"width": 960, "height": 540}, permissions=["camera"]
         )
+        width, height = args.window
         self.viewer_context = self.viewer_browser.new_context(
-            viewport={"width": 640, "height": 480}
+            viewport={"width": width, "height": height}
         )
         self.perform = self.performer_context.new_page()
         self.viewers: list[Any] = []
@@ -368,6 +369,7 @@ def _figures(
         },
         "viewers": n,
         "page": args.page,
+        "window": list(args.window),
         "compositing": "gpu process (SwiftShader)" if args.gpu_compositing else "software",
         "load_loops": args.load,
         "seconds": seconds,

@@ -135,7 +135,7 @@ def _setup(args: argparse.Namespace) -> _Setup:
         target_id=target_id,
         eyes_performer=eyes_performer,
         eyes_id=eyes_id,
-        eyes=eyes_clip(eyes_performer.names),
+        eyes=eyes_clip(eyes_performer.names, short=args.eyes_short),
     )
 
 
@@ -218,6 +218,7 @@ def _score_eyes(
                          fps=KEY_FPS, filters=_eyes_filters(args))  # fmt: skip
     return {
         "performer": setup.eyes_id,
+        "short": args.eyes_short,
         "noise": noise,
         "keys_captured": len(keys),
         "clip_frames": len(clip_points),
@@ -228,7 +229,8 @@ def _score_eyes(
 
 def _print_eyes(title: str, scored: dict[str, Any]) -> None:
     print(
-        f"\neyes clip, {title}: performed by ICT {scored['performer']} ({scored['clip_frames']} "
+        f"\neyes clip{' (short: not scores to compare)' if scored['short'] else ''}, {title}: "
+        f"performed by ICT {scored['performer']} ({scored['clip_frames']} "
         f"frames at {KEY_FPS:g} fps, {scored['keys_captured']} keys captured); blink peaks "
         "per eye as a share of the truth (min, mean), winks' own eye (min) and other eye "
         "(max; truth 1 and 0), gaze holds seen in the right direction, jaw + smile as % of "

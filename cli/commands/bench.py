@@ -181,6 +181,9 @@ def register(subparsers: Subparsers) -> None:
     webcam.add_argument("--eyes-only", action="store_true",
                         help="only the eyes clip: skip the take and its performer's keys")  # fmt: skip
     webcam.add_argument("--no-eyes", action="store_true", help="skip the eyes clip")
+    webcam.add_argument("--eyes-short", action="store_true",
+                        help="the eyes clip with one blink and every hold 3 frames (102 frames, "
+                        "not 221): checks the path, its scores are not to compare")  # fmt: skip
     webcam.add_argument("--landmarks", metavar="N,...",
                         type=lambda text: [int(n) for n in text.split(",")],
                         help="with --exact-only: the feature points, as positions in ICT's "
@@ -213,6 +216,9 @@ def register(subparsers: Subparsers) -> None:
                       help="viewer pages (default 10)")  # fmt: skip
     live.add_argument("--page", choices=("viewer", "overlay"), default="viewer",
                       help="which page the viewers open (default viewer)")  # fmt: skip
+    live.add_argument("--window", type=_window_size, default=(640, 480), metavar="WxH",
+                      help="each viewer's window, CSS pixels (default 640x480; an OBS source "
+                      "is often 1920x1080: without a GPU every pixel drawn is CPU)")  # fmt: skip
     live.add_argument("--duration", type=float, default=20.0, metavar="S",
                       help="seconds measured (default 20)")  # fmt: skip
     live.add_argument("--load", type=int, nargs="?", const=2, default=0, metavar="N",
@@ -236,6 +242,17 @@ def _viewer_counts(text: str) -> list[int]:
     if not counts or min(counts) < 1:
         raise argparse.ArgumentTypeError(f"viewer counts must be positive, got {text!r}")
     return counts
+
+
+def _window_size(text: str) -> tuple[int, int]:
+    """``--window``: WxH in CSS pixels, each 16..4096."""
+    try:
+        width, height = (int(part) for part in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxH, e.g. 1920x1080, got {text!r}") from None
+    if not (16 <= width <= 4096 and 16 <= height <= 4096):
+        raise argparse.ArgumentTypeError(f"width and height must be 16..4096, got {text!r}")
+    return width, height
 
 
 def _runner(name: str) -> Callable[[argparse.Namespace], int]:

@@ -90,6 +90,21 @@ def test_async_for_yields_every_result_of_a_windowed_stream(live_server, frames)
     assert asyncio.run(run()) == list(range(10))
 
 
+def test_closing_with_results_unread_completes_the_closing_handshake(live_server, frames):
+    # A hundred results the application never reads, one of them held by the session:
+    # the rest fill websockets' own queue, which stops reading the socket. Closing must
+    # still read through to the server's close frame (1000), not wait out websockets'
+    # close_timeout and drop the connection (1006).
+    async def run() -> int | None:
+        session = await connect(live_server.base_url, RIG_ID, max_queue=1)
+        for points in np.resize(frames, (100, *frames.shape[1:])):
+            await session.send(points)
+        await session.close()
+        return session.close_code
+
+    assert asyncio.run(run()) == 1000
+
+
 def test_streamed_vertices_in_f16_match_offline_clone_within_f16_tolerance(
     live_server, demo_rig, frames
 ):

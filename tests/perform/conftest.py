@@ -130,10 +130,12 @@ def server(rigs_dir) -> Iterator[str]:
         yield base_url
 
 
-def open_page(browser, url: str, *, camera: bool = True):
-    """A page in its own context (camera allowed or not) recording its errors in ``errors``."""
+def open_page(browser, url: str, *, camera: bool = True, size: tuple[int, int] = (960, 540)):
+    """A page in its own context (camera allowed or not) recording its errors in ``errors``;
+    ``size``, its window's CSS pixels (what a page draws costs SwiftShader by the pixel)."""
     context = browser.new_context(
-        viewport={"width": 960, "height": 540}, permissions=["camera"] if camera else []
+        viewport={"width": size[0], "height": size[1]},
+        permissions=["camera"] if camera else [],
     )
     page = context.new_page()
     page.errors = []

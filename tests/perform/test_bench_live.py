@@ -23,7 +23,8 @@ def test_bench_live_reports_each_stage_and_capture_to_drawn_beside_its_floor(tmp
     # asyncio loop that this package's browser fixture leaves running in the test process.
     run = subprocess.run(
         [sys.executable, "-m", "facecast.cli", "bench", "live", "--viewers", "2",
-         "--duration", "4", "--page", "overlay", "--video", str(tmp_path / "camera.y4m"),
+         "--duration", "4", "--page", "overlay", "--window", "320x180",
+         "--video", str(tmp_path / "camera.y4m"),
          "--json", str(out)],
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
@@ -32,6 +33,7 @@ def test_bench_live_reports_each_stage_and_capture_to_drawn_beside_its_floor(tmp
     report = json.loads(out.read_text())
     glass = report["glass_to_glass_ms"]
     assert report["viewers"] == 2 and report["page"] == "overlay"
+    assert report["window"] == [320, 180]
     assert glass["n"] > 0 and 0 < glass["p50"] <= glass["p95"] <= glass["p99"] < 10_000
     parts = report["floor_parts_ms"]
     assert report["floor_ms"] == pytest.approx(parts["model"] + parts["hop"] + parts["draw"])
@@ -49,3 +51,11 @@ def test_bench_live_reports_each_stage_and_capture_to_drawn_beside_its_floor(tmp
 def test_bench_live_refuses_no_viewers_with_a_clear_error(capsys):
     assert main(["bench", "live", "--viewers", "0"]) != 0
     assert "--viewers must be ≥ 1" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("window", ["320", "0x100", "320x180x2", "5000x100"])
+def test_bench_live_refuses_a_window_size_out_of_range(window, capsys):
+    with pytest.raises(SystemExit) as exited:
+        main(["bench", "live", "--window", window])
+    assert exited.value.code == 2
+    assert "--window" in capsys.readouterr().err

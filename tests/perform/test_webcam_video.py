@@ -38,7 +38,8 @@ def bench(tmp_path_factory) -> tuple[list[dict[str, Any]], Path]:
     first kept): their JSON reports and the folder."""
     folder = tmp_path_factory.mktemp("webcam")
     argv = ["bench", "webcam", "--frames", str(FRAMES), "--keys", ",".join(KEYS),
-            "--ramp", "0", "--hold", str(HOLD), "--videos", str(folder / "kept")]  # fmt: skip
+            "--ramp", "0", "--hold", str(HOLD), "--eyes-short",
+            "--videos", str(folder / "kept")]  # fmt: skip
     reports = []
     for run in ("first", "again"):
         out = folder / f"{run}.json"
@@ -109,6 +110,7 @@ def test_bench_on_tracked_videos_scores_every_path_near_the_truth_and_reuses_wha
     # The eyes clip, its own video (another face's keys, then the clip), tracked once too.
     eyes = reports[0]["eyes_tracked"]
     assert eyes["performer"] == "person12" and eyes["keys_captured"] == 1 + len(KEYS)
+    assert eyes["short"] and eyes["clip_frames"] == 102  # one of each event, 3-frame holds
     assert eyes["clip_found"] == eyes["clip_frames"] and eyes["render_seconds"] > 0
     assert {len(row["gaze"]) for row in eyes["rows"].values()} == {4}
     # The second run renders and tracks nothing: it scores the kept points, to the same figures.

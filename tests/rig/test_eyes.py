@@ -26,6 +26,21 @@ def test_the_clip_holds_each_event_where_it_says():
     assert (clip.activations[:10] == 0).all()  # a neutral to calibrate on
 
 
+def test_the_short_clip_has_each_kind_of_event_once_held_three_frames_apart():
+    clip = eyes_clip(NAMES, short=True)
+
+    assert [event.kind for event in clip.events] == ["blink", "wink", "wink", *["gaze"] * 4,
+                                                     "combo"]  # fmt: skip
+    assert [event.stop - event.start for event in clip.events] == [5] + [3] * 7
+    # Each event back at rest for 3 frames between its ramp down and the next one's ramp up.
+    for event, after in zip(clip.events, clip.events[1:], strict=False):
+        down = 0 if event.kind == "blink" else 3  # a blink is its whole profile
+        rest = clip.activations[event.stop + down : after.start - 3]
+        assert len(rest) == 3 and (rest == 0).all()
+        assert clip.activations[after.start - 3].max() > 0  # the ramp up
+    assert len(clip.activations) == 102
+
+
 def test_the_truth_scores_perfectly():
     clip = eyes_clip(NAMES)
 
