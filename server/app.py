@@ -32,7 +32,7 @@ from .daemon_pool import DaemonPool
 from .errors import LogOnce, install_error_handlers, problem
 from .guards.auth import authorize_request
 from .guards.origins import OriginGuard
-from .heap import fix_mmap_threshold
+from .heap import serve_frames
 from .http.characters import router as character_router
 from .http.performers import profile_store
 from .http.performers import router as performer_router
@@ -77,8 +77,8 @@ def create_app(settings: Settings) -> FastAPI:
     without tokens), so every way of starting the app refuses them.
     """
     settings.check_startable()
-    # The arrays a large upload frees go back to the system, not to a thread's heap (heap.py).
-    fix_mmap_threshold()
+    # glibc's malloc set for frames; uploads set theirs while they run (heap.py).
+    serve_frames()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[dict[str, Any]]:

@@ -1,43 +1,113 @@
-"""Large blocks the server frees go back to the system at once (glibc's mmap threshold).
+"""glibc's malloc set for the two kinds of work a server does: frames, and uploads' parses
+and fits. Nothing here knows what is allocated; on another C library it does nothing.
 
-glibc maps a block of at least its mmap threshold on its own and unmaps it when freed, but
-raises the threshold (up to 32 MiB) to the largest such block freed: after one large
-upload the next one's arrays of a few MB come from a thread's heap, which keeps them when
-freed. A 500,000-vertex face's read left 12 MB so, beside the fit's arrays at the upload's
-peak (SERVER.md "What an upload can cost the server"). Fixing the threshold stops that.
-Nothing here knows what is allocated.
+Frames (the serving mode): blocks under 16 MiB come from the heaps and are used again, and a
+heap keeps up to 32 MiB free at its top. The frame path makes blocks of several MB per
+batch (ICT's: a (B, V, 3) blend scratch of 6-10 MB, a 5 MB product, a 14 MB gathered
+basis); mapped anew each time, they are page faults and fresh zeroed pages every batch.
 
-It costs the frame path: `facecast bench transport --duration 3 --max-streams 60`, two
-pairs run in turn (2026-12-04 15:15 UTC, 2-core VM), 20 clients of the ICT rig's vertices:
-latency p50 7.2 / 8.4 ms and p99 32 / 29 ms with it, 3.1 / 5.9 and 12 / 18 without; the
-round trip's ratio to bare websockets 1.16 / 1.23 against 1.14 / 1.18. Fixing the
-threshold also stops glibc's dynamic trim threshold (a likely cause, not measured apart).
-Without it the upload memory test measured +214 MB once (over its 3.25x bound). Open:
-issue 31.
+Uploads (while any ``upload()`` scope is open: every fit slot, every transfer job): blocks
+of 4 MiB or more are mapped on their own and unmapped when freed, and a heap keeps at most
+128 kB at its top, so an upload's large arrays go back to the system when freed instead of
+staying in a thread's heap beside the fit's (SERVER.md "What an upload can cost the
+server"). mallopt is process-wide, so the mode is the process's: scopes are counted (the
+last one out sets the serving mode again), and frames served meanwhile pay the upload mode.
+glibc cannot go back to its dynamic thresholds once one is set, so both modes are fixed.
+A threshold decides only what is newly mapped: glibc serves a request from a free chunk of
+the heap when it has one (tests/server/_heap_probe.py measures in a fresh interpreter).
+
+Measured 2026-12-04 on the shared, loaded 2-core VM (spreads of runs in turn):
+- The 4 MiB threshold fixed for the whole process (this module before) cost 20 ICT
+  vertices clients 63-88 page faults a result (median 72), 0.1-0.5 now (glibc's dynamic
+  thresholds: 0.1-0.8), and server CPU 1,392-1,717 us a result against 1,306-1,506 now
+  (6 pairs; `facecast bench transport`, 3 pairs: 860-1,063 against 645-682 us a result for
+  its exact vertices phase; its latencies moved more with the machine's load than between
+  the two).
+- Serving at 32 MiB (glibc's dynamic ceiling) held that server at 495 MB against 384 with
+  the dynamic thresholds (blocks of 16-32 MiB, such as a read rig file, stayed in the
+  heaps); at 16 MiB, 377-397 MB, as the dynamic thresholds (369-391); the fixed 4 MiB:
+  324-330.
+- The costliest face's upload: +185 MB in 8 runs of 8 (+203 MB with the 4 MiB threshold
+  fixed for the whole process, 4 of 4; +202 serving during the upload).
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
+import threading
+from collections.abc import Iterator
+from typing import Any
 
-__all__ = ["MMAP_THRESHOLD", "fix_mmap_threshold"]
+__all__ = [
+    "SERVING_MMAP_THRESHOLD",
+    "SERVING_TRIM_THRESHOLD",
+    "UPLOAD_MMAP_THRESHOLD",
+    "UPLOAD_TRIM_THRESHOLD",
+    "serve_frames",
+    "upload",
+]
 
-#: Blocks of this size or more are mapped on their own, and unmapped when freed. Below it
-#: (the frame path's buffers: a 26,719-vertex ICT result is 320 kB) blocks come from the
-#: heaps as before, though the heaps are trimmed sooner (above); above, each block costs its page faults anew (an ICT character's upload and fit: ~2,400
-#: more, ~10 MB of fresh pages; a float32 vertices frame of a rig over ~350,000 vertices
-#: would pay them every frame).
-MMAP_THRESHOLD = 4 << 20
-#: mallopt's parameter number for it (malloc.h).
+#: Serving: over the frame path's blocks for ICT's rig (the largest 14 MB; a rig with
+#: larger ones pays for them, as it did over 32 MiB with glibc's dynamic threshold), under
+#: the read of its 20 MB rig file; the heaps' tops at twice it, as glibc's dynamic trim
+#: threshold is.
+SERVING_MMAP_THRESHOLD = 16 << 20
+SERVING_TRIM_THRESHOLD = 32 << 20
+#: While an upload is read or fitted: its arrays of 4 MiB or more are mapped on their own
+#: (a 26,719-vertex ICT frame is 320 kB: the frame path's single frames stay in the
+#: heaps), and heaps are trimmed at glibc's default of 128 kB.
+UPLOAD_MMAP_THRESHOLD = 4 << 20
+UPLOAD_TRIM_THRESHOLD = 128 << 10
+#: mallopt's parameter numbers (malloc.h).
+_M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
 
 
-def fix_mmap_threshold(size: int = MMAP_THRESHOLD) -> bool:
-    """Set glibc's mmap threshold to ``size`` for the whole process, which also stops its
-    dynamic growth; whether the C library took it (False without glibc: musl, macOS)."""
+def _load_libc() -> Any:
     try:
-        mallopt = ctypes.CDLL(ctypes.util.find_library("c")).mallopt
+        libc = ctypes.CDLL(ctypes.util.find_library("c"))
+        libc.mallopt  # noqa: B018 - glibc's, absent from musl and macOS
     except (OSError, AttributeError, TypeError):
+        return None
+    return libc
+
+
+_libc = _load_libc()
+# The mode is the process's (mallopt is), whatever number of apps it serves: one count.
+_lock = threading.Lock()
+_uploads = 0
+
+
+def _set(mmap_threshold: int, trim_threshold: int) -> bool:
+    if _libc is None:
         return False
-    return bool(mallopt(_M_MMAP_THRESHOLD, size))
+    return bool(_libc.mallopt(_M_MMAP_THRESHOLD, mmap_threshold)) and bool(
+        _libc.mallopt(_M_TRIM_THRESHOLD, trim_threshold)
+    )
+
+
+def serve_frames() -> bool:
+    """Set the serving mode unless an upload is in flight; whether glibc took it (False
+    without glibc, or while an upload holds the upload mode)."""
+    with _lock:
+        return _uploads == 0 and _set(SERVING_MMAP_THRESHOLD, SERVING_TRIM_THRESHOLD)
+
+
+@contextlib.contextmanager
+def upload() -> Iterator[None]:
+    """The upload mode while this scope is open (any thread; nested and concurrent scopes
+    are counted: the last one out sets the serving mode again)."""
+    global _uploads
+    with _lock:
+        _uploads += 1
+        if _uploads == 1:
+            _set(UPLOAD_MMAP_THRESHOLD, UPLOAD_TRIM_THRESHOLD)
+    try:
+        yield
+    finally:
+        with _lock:
+            _uploads -= 1
+            if _uploads == 0:
+                _set(SERVING_MMAP_THRESHOLD, SERVING_TRIM_THRESHOLD)

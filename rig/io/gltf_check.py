@@ -335,21 +335,30 @@ def _views(
 
 def _extent(
     views: list[dict[str, Any]], view_index: object, offset: object, count: int, size: int,
-    where: str, label: str,
+    where: str, label: str, reads: dict[int, int],
 ) -> None:  # fmt: skip
-    """Raise unless ``count`` elements of ``size`` bytes at ``offset`` fit in the view."""
-    view = views[_index(view_index, len(views), f"{where} bufferView", label)]
+    """Raise unless ``count`` elements of ``size`` bytes at ``offset`` fit in the view;
+    ``reads[view]``: the furthest byte of the view read so far."""
+    number = _index(view_index, len(views), f"{where} bufferView", label)
+    view = views[number]
     start = _int(offset if offset is not None else 0, f"{where} byteOffset", label)
     stride = view.get("byteStride") or size
     if stride < size:
         raise _bad(label, f"{where}: elements of {size} bytes in a view with stride {stride}")
-    if start + stride * (count - 1) + size > view["byteLength"]:
+    end = start + stride * (count - 1) + size
+    if end > view["byteLength"]:
         raise _bad(label, f"{where} runs past its bufferView ({view['byteLength']} bytes)")
+    reads[number] = max(reads.get(number, 0), end)
 
 
 def _accessors(
-    doc: dict[str, Any], views: list[dict[str, Any]], limits: GltfLimits, label: str
+    doc: dict[str, Any],
+    views: list[dict[str, Any]],
+    limits: GltfLimits,
+    label: str,
+    reads: dict[int, int],
 ) -> list[dict[str, Any]]:
+    """The accessors, checked; ``reads`` gets the furthest byte each bufferView is read to."""
     accessors = _list(doc, "accessors", label)
     total = 0
     for number, acc in enumerate(accessors):
@@ -371,18 +380,21 @@ def _accessors(
             )
         size = COMPONENT_SIZES[component] * ncomp
         if acc.get("bufferView") is not None:
-            _extent(views, acc["bufferView"], acc.get("byteOffset"), count, size, where, label)
+            _extent(
+                views, acc["bufferView"], acc.get("byteOffset"), count, size, where, label, reads
+            )
         elif acc.get("byteOffset", 0) != 0:
             raise _bad(label, f"{where} has a byteOffset but no bufferView")
         sparse = acc.get("sparse")
         if sparse is not None:
-            _sparse(sparse, views, count, size, where, label)
+            _sparse(sparse, views, count, size, where, label, reads)
     return accessors
 
 
 def _sparse(
-    sparse: object, views: list[dict[str, Any]], count: int, size: int, where: str, label: str
-) -> None:
+    sparse: object, views: list[dict[str, Any]], count: int, size: int, where: str, label: str,
+    reads: dict[int, int],
+) -> None:  # fmt: skip
     indices = sparse.get("indices") if isinstance(sparse, dict) else None
     values = sparse.get("values") if isinstance(sparse, dict) else None
     if not isinstance(indices, dict) or not isinstance(values, dict):
@@ -396,11 +408,11 @@ def _sparse(
         raise _bad(label, f"{where} sparse indices componentType {str(component)[:40]!r}")
     _extent(
         views, indices.get("bufferView"), indices.get("byteOffset"), n,
-        COMPONENT_SIZES[component], f"{where} sparse indices", label,
+        COMPONENT_SIZES[component], f"{where} sparse indices", label, reads,
     )  # fmt: skip
     _extent(
         views, values.get("bufferView"), values.get("byteOffset"), n, size,
-        f"{where} sparse values", label,
+        f"{where} sparse values", label, reads,
     )  # fmt: skip
 
 
@@ -541,10 +553,37 @@ def _node_tree(doc: dict[str, Any], limits: GltfLimits, label: str) -> None:
         _index(doc["scene"], len(doc.get("scenes") or []), "scene", label)
 
 
-def _images(doc: dict[str, Any], views: list[dict[str, Any]], label: str) -> None:
+def _meshopt_reads(views: list[dict[str, Any]], reads: dict[int, int], label: str) -> None:
+    """Each meshopt view decodes to no more than what reads it needs: its accessors' (and
+    images') furthest byte, to a whole element of its byteStride. Within the document's
+    decode budget (``max_decoded_bytes``) a view named by a 3-vertex accessor could
+    otherwise decode megabytes that nothing reads, or a view nothing names at all."""
+    for number, view in enumerate(views):
+        compressed = meshopt_extension(view)
+        if compressed is None:
+            continue
+        declared = compressed.get("byteStride")
+        # (A byteStride that is no positive integer is refused when the view is decoded.)
+        stride = declared if isinstance(declared, int) and declared >= 1 else 1
+        read = reads.get(number, 0)
+        needed = -(-read // stride) * stride
+        if view["byteLength"] > needed:
+            raise ExampleSetError(
+                f"{label}: bufferView {number} decodes to {view['byteLength']} bytes "
+                "(EXT_meshopt_compression), but "
+                + (f"its accessors read {read} of them" if read else "no accessor reads it")
+                + ": a compressed view may hold only what its accessors read",
+                code="bad_compression",
+            )
+
+
+def _images(
+    doc: dict[str, Any], views: list[dict[str, Any]], label: str, reads: dict[int, int]
+) -> None:
     for number, image in enumerate(_list(doc, "images", label)):
         if image.get("bufferView") is not None:
-            _index(image["bufferView"], len(views), f"image {number} bufferView", label)
+            view = _index(image["bufferView"], len(views), f"image {number} bufferView", label)
+            reads[view] = views[view]["byteLength"]  # an image is its whole view
         elif not isinstance(image.get("uri"), str):
             raise _bad(label, f"image {number} has neither a uri nor a bufferView")
 
@@ -584,7 +623,8 @@ def check_document(
     ------
     ExampleSetError
         ``gltf_exceeds_limits`` for a count over ``limits`` (naming the limit),
-        ``external_uri``, ``bad_gltf`` for everything else malformed.
+        ``external_uri``, ``bad_compression`` for a meshopt view decoding to more than its
+        accessors read, ``bad_gltf`` for everything else malformed.
     """
     # A file on disk read by the CLI may name files beside it (``resolve`` reads its
     # buffers; images are not read): only an upload must hold everything it uses.
@@ -594,8 +634,10 @@ def check_document(
                 raise external_uri_error(uri, label)
     buffers, sizes = _buffers(doc, blob, resolve, label)
     views = _views(doc, buffers, sizes, limits, label)
-    accessors = _accessors(doc, views, limits, label)
+    reads: dict[int, int] = {}
+    accessors = _accessors(doc, views, limits, label, reads)
     _meshes(doc, accessors, limits, label)
     _node_tree(doc, limits, label)
-    _images(doc, views, label)
+    _images(doc, views, label, reads)
+    _meshopt_reads(views, reads, label)
     return buffers

@@ -28,6 +28,7 @@ from facecast.rig.characters.loaders import load_example_set
 
 from ..errors import ApiError, upload_paths_hidden
 from ..guards.auth import READ_ROLES, Principal, requires
+from ..heap import upload as upload_heap
 from ..settings import Settings
 from ..storage.archive import ArchiveError, ArchiveLimits, extract_archive, find_example_root
 from ..storage.characters import audience, base_id, character_view, looks_like_character
@@ -194,7 +195,9 @@ def fit_slot(request: Request, principal: Principal) -> Iterator[None]:
     state.pending_fits += 1
     held[principal.name] += 1
     try:
-        yield
+        # glibc's upload mode while the body is read and fitted (heap.py).
+        with upload_heap():
+            yield
     finally:
         state.pending_fits -= 1
         held[principal.name] -= 1

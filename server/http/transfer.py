@@ -39,6 +39,7 @@ from facecast.rig.transfer import (
 
 from ..errors import ApiError, StoreClosedError
 from ..guards.auth import READ_ROLES, Principal, requires
+from ..heap import upload as upload_heap
 from ..settings import Settings
 from ..storage.archive import ArchiveError, ArchiveLimits
 from ..storage.characters import character_view, pack_character
@@ -117,6 +118,12 @@ def transfer_available(settings: Settings) -> bool:
     return True
 
 
+def _as_upload(run: Callable[[int], None], slot: int) -> None:
+    """``run(slot)`` in glibc's upload mode (heap.py): a job's arrays are an upload's."""
+    with upload_heap():
+        run(slot)
+
+
 def _names(text: str | None) -> list[str] | None:
     if text is None:
         return None
@@ -184,7 +191,8 @@ async def start_transfer(
                 rights_holder=rights_holder,
             )  # fmt: skip
             executor: Executor = request.app.state.transfer_executor
-            future = executor.submit(job.run, slot)
+            # The job allocates as an upload does (heap.py), for its minutes.
+            future = executor.submit(_as_upload, job.run, slot)
             # Cancelled before it ran (the server stopping): the slot is still this one's.
             future.add_done_callback(lambda f: f.cancelled() and store.jobs.release(slot))
         except BaseException:

@@ -170,10 +170,11 @@ def triangle() -> tuple[dict[str, Any], bytes]:
     return doc, positions + delta
 
 
-def meshopt_zeros(decoded: int, stride: int = 16) -> bytes:
+def meshopt_zeros(decoded: int, stride: int = 16, read_rows: int | None = None) -> bytes:
     """``triangle`` plus a bufferView that EXT_meshopt_compression stores compressed:
     ``decoded`` bytes of zeros (rounded down to ``stride``) in about ``decoded / 64``
-    bytes, in a fallback buffer, named by no accessor."""
+    bytes, in a fallback buffer, and an accessor no mesh uses reading the first byte of
+    each of its first ``read_rows`` rows (every row by default; 0: no accessor)."""
     import meshopt  # facecast's own dependency (rig/io/gltf_compression.py)
 
     count = decoded // stride
@@ -196,4 +197,10 @@ def meshopt_zeros(decoded: int, stride: int = 16) -> bytes:
             "extensions": {_MESHOPT: compressed},
         }
     )
+    rows = count if read_rows is None else read_rows
+    if rows:
+        view = len(doc["bufferViews"]) - 1
+        doc["accessors"].append(
+            {"bufferView": view, "componentType": 5121, "count": rows, "type": "SCALAR"}
+        )
     return glb(doc, blob + encoded)

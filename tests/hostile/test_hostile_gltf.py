@@ -394,8 +394,8 @@ async def test_expressions_aliasing_one_morph_are_bounded_as_morph_values(tmp_pa
 
 async def test_a_meshopt_view_at_the_decode_limit_is_held_once(tmp_path):
     # 1 MB of meshopt stream decode to max_gltf_accessor_values x 4 bytes of zeros (64 MB
-    # here, 256 MB at the defaults): the reader checks that view and lets it go (no
-    # accessor reads it), and never copies the decoder's array. Copied and kept, the
+    # here, 128 MB at the defaults), all read by an accessor no mesh uses: the reader
+    # checks that view and lets it go, and never copies the decoder's array. Copied and kept, the
     # default's took +493 MB.
     settings = Settings(rigs_dir=tmp_path / "rigs", max_gltf_accessor_values=16_000_000)
     decoded = max_decoded_bytes(gltf_limits(settings)) // 16 * 16
@@ -410,3 +410,22 @@ async def test_a_meshopt_view_at_the_decode_limit_is_held_once(tmp_path):
     assert size < decoded / 50
     # The view once, the body, and less than half the view besides (a triangle's fit).
     assert grown < decoded + size + 32 * MiB, grown / MiB
+
+
+async def test_a_meshopt_view_decoding_more_than_its_accessors_read_is_refused_undecoded(tmp_path):
+    # Within the document's decode budget, 1 MB of meshopt stream declare 64 MB of zeros
+    # that one accessor of 3 values reads 33 bytes of: before issue 31's per-view bound
+    # it was stored (201), the view decoded (+64 MB) for nothing.
+    settings = Settings(rigs_dir=tmp_path / "rigs")
+    decoded = 64 * MiB
+    assert decoded < max_decoded_bytes(gltf_limits(settings))
+    body = meshopt_zeros(decoded, read_rows=3)
+    async with run_server(settings) as server, client(server) as http:
+        before = reset_peak()
+        response = await http.put("/v1/characters/zeros", content=body)
+        grown = _status("VmHWM") - before
+
+    assert (response.status_code, response.json()["code"]) == (422, "bad_compression")
+    assert "decodes to 67108864 bytes" in response.json()["detail"]
+    assert "its accessors read 33 of them" in response.json()["detail"]
+    assert grown < decoded / 4, grown / MiB  # refused before the decoder ran

@@ -211,6 +211,26 @@ def test_meshopt_views_decode_within_the_accessor_values_limit_at_it_and_one_pas
     assert "max_gltf_accessor_values" in str(info.value)
 
 
+@pytest.mark.parametrize("read_rows", [99, 0], ids=["one-row-short", "unread"])
+def test_a_meshopt_view_decoding_more_than_its_accessors_read_is_refused(read_rows):
+    # 100 rows of 16 bytes: an accessor reading the first byte of all 100 needs them all
+    # (16 x 99 + 1 bytes, to a whole row); reading 99 (16 x 98 + 1) leaves a row no one reads, and a
+    # view no accessor names decodes for nothing. Refused by the check, before decoding.
+    needed = meshopt_zeros(1_600, read_rows=100)
+    data = meshopt_zeros(1_600, read_rows=read_rows)
+
+    character = load_character(needed, label="avatar.glb")
+    with pytest.raises(ExampleSetError) as info:
+        load_document(data, "avatar.glb", GltfLimits())
+
+    assert list(character.expressions) == ["jawOpen"]
+    assert info.value.code == "bad_compression"
+    read = "its accessors read 1569 of them" if read_rows else "no accessor reads it"
+    assert f"bufferView 2 decodes to 1600 bytes (EXT_meshopt_compression), but {read}" in str(
+        info.value
+    )
+
+
 def test_the_reader_decodes_no_more_than_its_limits_allow_whatever_the_check_allowed():
     # The reader's bound is the limits' (max_decoded_bytes), not a constant of its own: a
     # document checked under looser limits is refused by a reader given tighter ones,
