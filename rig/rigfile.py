@@ -28,6 +28,7 @@ from .io.rigformat import (
     rig_to_bytes,
     save_rig,
 )
+from .npy_reads import NPY_READS
 from .radial import KERNELS
 from .rig import Rig, WeightModel
 
@@ -74,7 +75,7 @@ def rig_from_bytes(data: bytes, *, source: str = "rig", max_bytes: int = DEFAULT
                     f"{source}: unpacks to {total} bytes, over the limit of {max_bytes}",
                     code="rig_too_large",
                 )
-        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+        with NPY_READS, np.load(io.BytesIO(data), allow_pickle=False) as npz:
             contents = {name: npz[name] for name in npz.files}
     except RigFileError:
         raise

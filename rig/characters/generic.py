@@ -22,6 +22,7 @@ from typing import Final
 import numpy as np
 
 from ..errors import ExampleSetError
+from ..npy_reads import NPY_READS
 
 __all__ = [
     "CHARACTER_FIT_DEFAULTS",
@@ -220,7 +221,7 @@ def generic_sources() -> GenericSources:
     """The packaged set, read once and shared (its arrays are read-only)."""
     path = resources.files(__package__).joinpath("generic_arkit", "points.npz")
     try:
-        with path.open("rb") as handle, np.load(handle, allow_pickle=False) as data:
+        with NPY_READS, path.open("rb") as handle, np.load(handle, allow_pickle=False) as data:
             arrays = {k: data[k] for k in _KEYS}
     except (OSError, KeyError, ValueError) as exc:
         raise ExampleSetError(

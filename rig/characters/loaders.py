@@ -20,6 +20,7 @@ import numpy as np
 from ..errors import ExampleSetError
 from ..examples import ExampleSet
 from ..io.meshio import read_obj, read_obj_vertices, read_points
+from ..npy_reads import NPY_READS
 from .character import load_character
 from .character_examples import character_example_set, folder_stable_points
 from .expression_names import normalise_name
@@ -399,7 +400,7 @@ def _build(
 def _load_npz(path: Path) -> ExampleSet:
     try:
         # Our own handle: np.load leaks its file when the zip is corrupt.
-        with path.open("rb") as handle, np.load(handle, allow_pickle=False) as archive:
+        with NPY_READS, path.open("rb") as handle, np.load(handle, allow_pickle=False) as archive:
             missing = [k for k in _NPZ_REQUIRED if k not in archive.files]
             if missing:
                 raise ExampleSetError(

@@ -15,6 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import ExampleSetError
+from ..npy_reads import NPY_READS
 
 __all__ = [
     "format_faces",
@@ -279,7 +280,7 @@ def read_points(path: str | os.PathLike[str]) -> np.ndarray:
 
 def _read_npy(path: Path) -> np.ndarray:
     try:
-        with path.open("rb") as handle:
+        with NPY_READS, path.open("rb") as handle:
             array = np.load(handle, allow_pickle=False)
     except FileNotFoundError:
         raise ExampleSetError(f"{path}: file not found", code="missing_file") from None

@@ -21,6 +21,7 @@ import numpy.typing as npt
 
 from ..errors import ExampleSetError, InputError
 from ..examples import ExampleSet
+from ..npy_reads import NPY_READS
 from .animation import SourceAnimation
 from .synthetic import frame_count, smooth_bump
 
@@ -77,7 +78,7 @@ def _archive_path(path: str | os.PathLike[str]) -> Path:
 def _read(path: Path) -> dict[str, np.ndarray]:
     keys = ("neutral", "faces", "expressions", "expression_names", "landmarks68")
     try:
-        with np.load(path, allow_pickle=False) as archive:
+        with NPY_READS, np.load(path, allow_pickle=False) as archive:
             return {k: archive[k] for k in keys}
     except KeyError as exc:
         raise ExampleSetError(f"{path}: not an ICT-FaceKit archive (missing {exc})") from None
@@ -88,7 +89,7 @@ def _read(path: Path) -> dict[str, np.ndarray]:
 
 
 def _identity(path: Path, name: str) -> np.ndarray:
-    with np.load(path, allow_pickle=False) as archive:
+    with NPY_READS, np.load(path, allow_pickle=False) as archive:
         if "identity_names" not in archive.files:
             raise ExampleSetError(f"{path}: holds no identities", code="unknown_identity")
         names = [str(n) for n in archive["identity_names"]]
@@ -126,7 +127,7 @@ def ict_regions(path: str | os.PathLike[str]) -> tuple[dict[str, tuple[int, int]
     """
     archive = _archive_path(path)
     try:
-        with np.load(archive, allow_pickle=False) as data:
+        with NPY_READS, np.load(archive, allow_pickle=False) as data:
             names = [str(n) for n in data["region_names"]]
             ranges = data["region_ranges"].astype(np.int64)
             landmarks: np.ndarray = data["landmarks68"].astype(np.int64)

@@ -15,6 +15,7 @@ import numpy.typing as npt
 
 from ..errors import ExampleSetError, InputError
 from ..io.meshio import read_obj_vertices
+from ..npy_reads import NPY_READS
 from .animation import DEFAULT_FPS, FPS_FILE, SourceAnimation, check_fps, check_frames_finite
 from .source_rig import SourceRig, load_source_rig
 from .trackers import livelink_csv_animation, mediapipe_animation
@@ -137,7 +138,7 @@ def _load_tracker_take(
 def _load_array(path: Path, key: str | None) -> np.ndarray:
     try:
         # Our own handle: np.load leaks its file when a zip is corrupt.
-        with path.open("rb") as handle:
+        with NPY_READS, path.open("rb") as handle:
             if key is None:
                 array = np.load(handle, allow_pickle=False)
             else:
@@ -163,7 +164,7 @@ def _load_npz(
     path: Path, feature_indices: npt.ArrayLike | None, keep_vertices: bool
 ) -> SourceAnimation:
     try:
-        with path.open("rb") as handle, np.load(handle, allow_pickle=False) as archive:
+        with NPY_READS, path.open("rb") as handle, np.load(handle, allow_pickle=False) as archive:
             keys = set(archive.files)
             fps = archive["fps"] if "fps" in keys else DEFAULT_FPS
             timestamps = archive["timestamps"] if "timestamps" in keys else None

@@ -35,6 +35,7 @@ from ..characters.generic import GENERIC_SOURCE_NAME, generic_sources, is_generi
 from ..characters.loaders import load_example_set
 from ..errors import ExampleSetError, InputError
 from ..examples import ExampleSet
+from ..npy_reads import NPY_READS
 from .ict import ict_example_set
 
 __all__ = [
@@ -361,7 +362,7 @@ def _generic_layout_rig(path: Path) -> SourceRig | None:
     if not (path.is_file() and path.suffix.lower() == ".npz"):
         return None
     try:
-        with path.open("rb") as handle, np.load(handle, allow_pickle=False) as data:
+        with NPY_READS, path.open("rb") as handle, np.load(handle, allow_pickle=False) as data:
             if not is_generic_layout(data.files):
                 return None
             names = tuple(str(n) for n in data["names"])
