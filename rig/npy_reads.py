@@ -7,9 +7,9 @@ by its threads: when a garbage collection inside one thread's parse runs Python 
 AST constructor recursion depth mismatch". Seen once in the suite: a viewer's
 ``/v1/demo/animation`` answered 500 while another request of the same server loaded a rig
 in another thread; four threads parsing a header in a loop beside cyclic garbage with
-finalizers failed 503 times in 20 s. Every array read that a server's threads can reach
-holds this lock while numpy parses (reads of the same file are not long: the rig files
-are the largest, ~20 MB).
+finalizers failed 503 times in 20 s. Every array read in ``facecast.rig`` holds this lock
+for its whole read, headers and data (the largest files read, rigs, are ~20 MB: reads wait
+for each other, frames never do).
 """
 
 from __future__ import annotations

@@ -19,6 +19,8 @@ __all__ = [
     "CHUNK",
     "ErrorSums",
     "cloning_error",
+    "eq41_frames",
+    "eq41_means",
     "jitter",
     "sanitize_frames",
     "truth_terms",
@@ -86,13 +88,12 @@ class ErrorSums:
     def result(
         self, eq41_denominator: np.ndarray, diagonal: float, *, series: bool = True
     ) -> dict[str, Any]:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            per_axis = 100.0 * self.eq41_numerator / eq41_denominator  # eq. 4.1, (F, 3)
+        per_axis = eq41_frames(self.eq41_numerator, eq41_denominator)
         scale = 100.0 / diagonal if diagonal > 0 else float("nan")
         rms_frames = np.sqrt(self.mean_sq) * scale
         max_frames = self.max_dist * scale
         out = {
-            "eq41_percent": {a: float(v) for a, v in zip(AXES, per_axis.mean(axis=0), strict=True)},
+            "eq41_percent": eq41_means(per_axis),
             "rms_percent": float(np.sqrt(self.mean_sq.mean()) * scale),
             "max_percent": float(max_frames.max()),
             # RMS second difference of the cloned vertices (``jitter``), % of the diagonal.
@@ -109,6 +110,19 @@ class ErrorSums:
                 "max_percent": _rounded(max_frames),
             }
         return out
+
+
+def eq41_frames(numerator: np.ndarray, denominator: np.ndarray) -> np.ndarray:
+    """(F, 3) eq. 4.1 per frame and axis, %: sum_j |v_j - v'_j| over sum_j |v_j| (each (F, 3);
+    the denominators are ``truth_terms``')."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out: np.ndarray = 100.0 * numerator / denominator
+    return out
+
+
+def eq41_means(per_frame: np.ndarray) -> dict[str, float]:
+    """``eq41_frames`` averaged over the frames, by axis name: ``eq41_percent``."""
+    return {a: float(v) for a, v in zip(AXES, per_frame.mean(axis=0), strict=True)}
 
 
 def _rounded(array: np.ndarray) -> list[Any]:

@@ -102,15 +102,14 @@ def eyes_clip(names: Sequence[str], *, blinks: int = 3, short: bool = False) -> 
         once, in 102 frames instead of 221, to check the path end to end; its scores are
         not the benchmark's (a hold of 3 frames is mostly a live filter's lag).
     """
-    if short:
-        blinks = 1
+    blinks, rest = (1, SHORT) if short else (blinks, REST_FRAMES)
+    wink, gaze, combo = ((SHORT, SHORT),) * 3 if short else (WINK, GAZE, COMBO)
     column = {name: i for i, name in enumerate(names)}
     needed = {"eyeBlinkLeft", "eyeBlinkRight", *COMBO_WEIGHTS}
     needed.update(n for pair in GAZE_WEIGHTS.values() for n in pair)
     missing = sorted(needed - set(column))
     if missing:
         raise InputError(f"the eyes clip needs ARKit {missing[0]!r}", code="unknown_expression")
-    rest = SHORT if short else REST_FRAMES
     rows: list[np.ndarray] = [np.zeros((LEAD_FRAMES, len(names)))]
     events: list[EyesEvent] = []
     frame = LEAD_FRAMES
@@ -128,17 +127,18 @@ def eyes_clip(names: Sequence[str], *, blinks: int = 3, short: bool = False) -> 
     blink = np.array(BLINK_PROFILE)
     for _ in range(blinks):
         add("blink", {"eyeBlinkLeft": 1.0, "eyeBlinkRight": 1.0}, blink, (0, len(blink)))
+
+    def held(kind: str, weights: Mapping[str, float], timing: tuple[int, int],
+             detail: str = "") -> None:  # fmt: skip
+        ramp, hold = timing
+        profile = np.concatenate([_ramp(ramp), np.ones(hold), _ramp(ramp)[::-1]])
+        add(kind, weights, profile, (ramp, ramp + hold), detail)
+
     for side in ("Left", "Right"):
-        ramp, hold = (SHORT, SHORT) if short else WINK
-        profile = np.concatenate([_ramp(ramp), np.ones(hold), _ramp(ramp)[::-1]])
-        add("wink", {f"eyeBlink{side}": 1.0}, profile, (ramp, ramp + hold), side)
+        held("wink", {f"eyeBlink{side}": 1.0}, wink, side)
     for direction, pair in GAZE_WEIGHTS.items():
-        ramp, hold = (SHORT, SHORT) if short else GAZE
-        profile = np.concatenate([_ramp(ramp), np.ones(hold), _ramp(ramp)[::-1]])
-        add("gaze", dict.fromkeys(pair, GAZE_AMOUNT), profile, (ramp, ramp + hold), direction)
-    ramp, hold = (SHORT, SHORT) if short else COMBO
-    profile = np.concatenate([_ramp(ramp), np.ones(hold), _ramp(ramp)[::-1]])
-    add("combo", COMBO_WEIGHTS, profile, (ramp, ramp + hold))
+        held("gaze", dict.fromkeys(pair, GAZE_AMOUNT), gaze, direction)
+    held("combo", COMBO_WEIGHTS, combo)
     return EyesClip(tuple(names), np.concatenate(rows), tuple(events))
 
 

@@ -19,7 +19,7 @@ from ..filters import KALMAN_ACCELERATION, KalmanFilter, OneEuroFilter
 from ..rig import Rig
 from ..smoother import RTSSmoother
 from ..smoothing import smooth_take
-from .error_metrics import AXES
+from .error_metrics import eq41_frames, eq41_means, truth_terms
 from .evaluate import jitter
 
 __all__ = [
@@ -171,7 +171,7 @@ def temporal_tradeoff(
                 )
             )
     # Eq. 4.1's denominators depend on the truth alone: once for every row.
-    denominator = np.abs(truth).sum(axis=1)
+    denominator, _ = truth_terms(truth)
     rows = []
     for family, label, settings, smoother in candidates:
         if smoother is None:
@@ -209,9 +209,7 @@ def _row(
     """One row of ``temporal_tradeoff``: the clone's jitter, lag and errors (``denominator``:
     eq. 4.1's per frame and axis, sum_j |v_j| of the truth, (F, 3))."""
     diff = vertices.astype(np.float64) - truth
-    with np.errstate(divide="ignore", invalid="ignore"):
-        per_frame = 100.0 * np.abs(diff).sum(axis=1) / denominator  # as `cloning_error`'s
-    eq41 = {axis: float(v) for axis, v in zip(AXES, per_frame.mean(axis=0), strict=True)}
+    eq41 = eq41_means(eq41_frames(np.abs(diff).sum(axis=1), denominator))
     return {
         "family": family,
         "label": label,

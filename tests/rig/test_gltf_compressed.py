@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import functools
 import json
-import tracemalloc
 
 import numpy as np
 import pytest
@@ -24,6 +23,7 @@ from tests.hostile._glb import glb, grid_face, meshopt_zeros, split
 
 from . import _avatars
 from ._compressed import GLTFPACK_MISSING, KINDS, compressed, gltfpack, split_glb
+from ._memory import traced_peak
 
 MiB = 1 << 20
 
@@ -480,12 +480,7 @@ def _peak_of_reading(data: bytes) -> int:
     """The most bytes numpy and Python hold at once while ``load_character`` reads ``data``
     (read once before, so that imports and caches are not counted)."""
     load_character(data)
-    tracemalloc.start()
-    try:
-        load_character(data)
-        return tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    return traced_peak(lambda: load_character(data))
 
 
 def test_a_draco_mesh_no_expression_moves_is_decoded_checked_and_let_go():

@@ -3,8 +3,6 @@ correspondence, one factorisation for every expression, and every bad input's er
 
 from __future__ import annotations
 
-import tracemalloc
-
 import numpy as np
 import pytest
 
@@ -26,6 +24,8 @@ from facecast.rig.transfer import (
 )
 from facecast.rig.transfer.mesh import closest_points
 from tests.hostile._glb import grid_face
+
+from ._memory import traced_peak
 
 
 def grid(columns: int, rows: int | None = None, *, bump: float = 0.3) -> tuple:
@@ -521,12 +521,7 @@ def test_plan_transfer_makes_only_what_the_character_lacks_and_bounds_its_size()
 def _closest_points_peak(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> int:
     """The most bytes numpy holds at once while ``closest_points`` finds ``points``'s."""
     normals = np.tile([0.0, 0.0, 1.0], (len(points), 1))
-    tracemalloc.start()
-    try:
-        closest_points(points, vertices, faces, normals=normals)
-        return tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    return traced_peak(lambda: closest_points(points, vertices, faces, normals=normals))
 
 
 def test_closest_points_of_many_points_hold_the_memory_of_a_few():
