@@ -2,8 +2,9 @@
 
 Per-vertex error relative to the true displacement, per expression and overall, for
 deformation transfer and for copying each target vertex's nearest corresponding source
-vertex's displacement; and the end-to-end cloning error (eq. 4.1) of a take cloned
-through generated versus true examples. Computes and returns numbers; it must not print.
+vertex's displacement; the lids' gap a transferred blink leaves; and the end-to-end cloning
+error (eq. 4.1) of a take cloned through generated versus true examples. Computes and
+returns numbers; it must not print.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from scipy.spatial import cKDTree
 
 from ..examples import ExampleSet
 from ..fit import fit
@@ -25,8 +27,12 @@ from .evaluate import cloning_error
 from .takes import take_experiment
 
 __all__ = [
+    "LidGap",
     "TransferScore",
+    "closing_pairs",
     "end_to_end",
+    "gap_share",
+    "lids_gap",
     "naive_transfer",
     "relative_errors",
     "score_transfer",
@@ -91,6 +97,83 @@ def score_transfer(
     per_dt, all_dt = relative_errors(generated.target_vertices, true)
     per_naive, all_naive = relative_errors(naive, true)
     return TransferScore(generated.names[1:], per_dt, per_naive, all_dt, all_naive)
+
+
+#: The blinks whose lids' gap ``lids_gap`` measures.
+BLINKS = ("eyeBlinkLeft", "eyeBlinkRight")
+
+
+def closing_pairs(
+    neutral: npt.ArrayLike, closed: npt.ArrayLike, *, meet: float, apart: float
+) -> np.ndarray:
+    """(P, 2) vertex pairs ``closed`` brings together: within ``meet`` there, ``apart`` at neutral.
+
+    ``neutral``, ``closed`` : (V, 3), one mesh's vertices (the mesh's units). Pairs at least
+    ``apart`` apart at neutral, so neighbours on one lid (or a seam's twins) do not count.
+    """
+    rest = np.asarray(neutral, dtype=np.float64)
+    shut = np.asarray(closed, dtype=np.float64)
+    pairs = cKDTree(shut).query_pairs(meet, output_type="ndarray").reshape(-1, 2)
+    distance = np.linalg.norm(rest[pairs[:, 0]] - rest[pairs[:, 1]], axis=1)
+    kept: np.ndarray = pairs[distance >= apart]
+    return kept
+
+
+def gap_share(neutral: npt.ArrayLike, deformed: npt.ArrayLike, pairs: np.ndarray) -> float:
+    """The pairs' mean distance in ``deformed`` over their mean distance in ``neutral``
+    (NaN without pairs): 1 leaves the gap as it was, 0 closes it."""
+    if len(pairs) == 0:
+        return float("nan")
+    rest = np.asarray(neutral, dtype=np.float64)
+    moved = np.asarray(deformed, dtype=np.float64)
+    now = np.linalg.norm(moved[pairs[:, 0]] - moved[pairs[:, 1]], axis=1).mean()
+    before = np.linalg.norm(rest[pairs[:, 0]] - rest[pairs[:, 1]], axis=1).mean()
+    return float(now / before)
+
+
+@dataclass(frozen=True)
+class LidGap:
+    """One blink's lids' gap as a share of the neutral's: truth's and the transfer's."""
+
+    name: str
+    pairs: int
+    truth: float
+    generated: float
+
+
+def lids_gap(
+    generated: GeneratedExpressions,
+    truth: npt.ArrayLike,
+    *,
+    names: Sequence[str] = BLINKS,
+    meet: float = 0.03,
+    apart: float = 0.3,
+) -> list[LidGap]:
+    """The gap each blink leaves between the lids, on the vertex pairs the true shape closes.
+
+    ``truth`` (M, Vt, 3) as in ``score_transfer``. For each of ``names`` (skipped when not
+    generated): the target vertex pairs the true shape brings within ``meet`` that lie at
+    least ``apart`` apart at neutral (``closing_pairs``; defaults in ICT's centimetres:
+    0.3 mm and 3 mm), and their ``gap_share`` in the true and in the generated shape.
+    Without such pairs (the truth leaves every pair apart) both are NaN.
+    """
+    true = np.asarray(truth, dtype=np.float64)
+    neutral = true[0]
+    gaps = []
+    for name in names:
+        if name not in generated.names:
+            continue
+        index = generated.names.index(name)
+        pairs = closing_pairs(neutral, true[index], meet=meet, apart=apart)
+        gaps.append(
+            LidGap(
+                name,
+                len(pairs),
+                gap_share(neutral, true[index], pairs),
+                gap_share(neutral, generated.target_vertices[index], pairs),
+            )
+        )
+    return gaps
 
 
 def end_to_end(

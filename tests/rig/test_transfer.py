@@ -8,11 +8,12 @@ import pytest
 
 from facecast.rig.errors import CorrespondenceError, InputError, MarkerError, MeshError
 from facecast.rig.evaluation.remesh import carry_shapes, decimate, sqrt3_retriangulate
-from facecast.rig.evaluation.transfer import naive_transfer, relative_errors
+from facecast.rig.evaluation.transfer import lids_gap, naive_transfer, relative_errors
 from facecast.rig.sources.ict import locate_ict
 from facecast.rig.transfer import (
     CorrespondenceWeights,
     DeformationTransfer,
+    GeneratedExpressions,
     SourceExpressions,
     check_markers,
     check_mesh,
@@ -219,6 +220,42 @@ def test_transfer_onto_a_decimated_surface_carries_a_bump_better_than_the_naive_
     per_naive, _ = relative_errors(naive, truth)
     assert per_transfer[0] < 0.1
     assert per_transfer[0] < per_naive[0]
+
+
+def lids(columns: int = 6, rows: int = 3, *, gap: float = 1.0) -> tuple:
+    """Two lids: an upper and a lower strip (rows x columns, 0.5 apart) with ``gap`` between
+    their margins (row 0 of each, the margins' vertices paired column by column)."""
+    vertices, faces = grid(columns, rows, bump=0.0)
+    vertices = vertices * np.array([0.5 * (columns - 1), 0.5 * (rows - 1), 0.0])
+    apart = np.array([0.0, gap / 2, 0.0])
+    upper = vertices + apart
+    lower = vertices * np.array([1.0, -1.0, 1.0]) - apart
+    both = np.concatenate([upper, lower])
+    return both, np.concatenate([faces, faces[:, ::-1] + len(vertices)]), len(vertices)
+
+
+def test_the_lids_gap_is_measured_on_the_pairs_the_true_blink_closes():
+    neutral, faces, half = lids()
+    # Each lid moves as a whole towards the other: the truth closes the margins, the
+    # transfer stops at 40 % of the gap (each lid 0.3 short).
+    truth = neutral.copy()
+    truth[:half, 1] -= 0.5
+    truth[half:, 1] += 0.5
+    transferred = neutral.copy()
+    transferred[:half, 1] -= 0.3
+    transferred[half:, 1] += 0.3
+    generated = GeneratedExpressions(
+        names=("neutral", "eyeBlinkLeft"),
+        target_vertices=np.stack([neutral, transferred]),
+        target_faces=faces,
+        source_points=np.zeros((2, 3, 3)),
+        stable_points=None,
+        correspondence=identity_correspondence(neutral, faces, neutral, faces),
+    )
+    (gap,) = lids_gap(generated, np.stack([neutral, truth]))
+    assert (gap.name, gap.pairs) == ("eyeBlinkLeft", 6)  # one pair per margin column
+    assert gap.truth == pytest.approx(0.0, abs=1e-12)
+    assert gap.generated == pytest.approx(0.4)
 
 
 def test_without_markers_the_source_finds_a_scaled_and_moved_decimated_copy_of_itself():
