@@ -8,7 +8,12 @@ import pytest
 
 from facecast.rig.errors import CorrespondenceError, InputError, MarkerError, MeshError
 from facecast.rig.evaluation.remesh import carry_shapes, decimate, sqrt3_retriangulate
-from facecast.rig.evaluation.transfer import lids_gap, naive_transfer, relative_errors
+from facecast.rig.evaluation.transfer import (
+    closing_pairs,
+    lids_gap,
+    naive_transfer,
+    relative_errors,
+)
 from facecast.rig.sources.ict import locate_ict
 from facecast.rig.transfer import (
     CorrespondenceWeights,
@@ -256,6 +261,15 @@ def test_the_lids_gap_is_measured_on_the_pairs_the_true_blink_closes():
     assert (gap.name, gap.pairs) == ("eyeBlinkLeft", 6)  # one pair per margin column
     assert gap.truth == pytest.approx(0.0, abs=1e-12)
     assert gap.generated == pytest.approx(0.4)
+
+
+def test_vertices_together_at_neutral_are_not_a_pair_the_blink_closes():
+    # A seam's twins (0, 1) stay together; the lids' margins (2, 3) meet.
+    neutral = np.array([[0.0, 2.0, 0.0], [0.0, 2.0, 0.0], [1.0, 0.5, 0.0], [1.0, -0.5, 0.0]])
+    closed = neutral.copy()
+    closed[2:, 1] = 0.0
+    pairs = closing_pairs(neutral, closed, meet=0.03, apart=0.3)
+    assert np.sort(pairs, axis=1).tolist() == [[2, 3]]
 
 
 def test_without_markers_the_source_finds_a_scaled_and_moved_decimated_copy_of_itself():
