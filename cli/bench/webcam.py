@@ -48,6 +48,7 @@ from facecast.rig.evaluation.webcam import (
 from facecast.rig.sources.capture import robust_example
 from facecast.rig.sources.ict import DEFAULT_LANDMARKS, ict_regions, locate_ict
 from facecast.rig.sources.ict_arkit import ARKIT_TARGET_IDENTITY, arkit_example_set
+from facecast.rig.sources.layouts import load_layout
 from facecast.rig.sources.trackers import read_livelink_csv
 from facecast.server.storage.profiles import held_noise
 
@@ -339,7 +340,10 @@ def _render_and_track(
 ) -> tuple[np.ndarray, np.ndarray]:
     """One video rendered (unless kept) and tracked (unless kept): its points and found
     flags; the seconds each took go into ``out`` under ``name``."""
-    points_path = path.with_name(f"{path.stem}-{args.backend}.npz")
+    # Kept points are the layout's: its feature count in the name, so a layout that grew
+    # (20 -> 24 points) tracks the kept videos again instead of reading the old points.
+    k = load_layout().num_features
+    points_path = path.with_name(f"{path.stem}-{args.backend}-k{k}.npz")
     if not path.is_file():
         started = time.perf_counter()
         partial = path.with_name(path.name + ".partial")  # a cut-short run leaves no video

@@ -140,12 +140,14 @@ async def perform(args: argparse.Namespace) -> PerformStats:
         async with FramePublisher(url, hello, token=args.token) as publisher:
             ready = publisher.ready
             assert ready is not None
-            if ready.num_points != layout.num_features:
+            if not layout.drives(ready.num_points):
                 raise CommandError(
                     f"rig {args.rig!r} has {ready.num_points} feature points but the "
                     f"{layout.name} layout has {layout.num_features}: perform on a rig "
                     "fitted with that layout's points (facecast import ict-facekit)"
                 )
+            # A rig of the layout's earlier version takes the first k points.
+            k = ready.num_points
             neutral: list[np.ndarray] = []
             if calibrate:
                 say(f"calibrating: keep a neutral face for {args.neutral_frames} frames")
@@ -172,6 +174,7 @@ async def perform(args: argparse.Namespace) -> PerformStats:
                 stats.found += 1
                 points = tracked.points
                 assert points is not None  # found
+                points = points[:k]
                 if calibrate and len(neutral) < args.neutral_frames:
                     neutral.append(points)
                     if len(neutral) < args.neutral_frames:

@@ -1,4 +1,4 @@
-"""facecast's generic ARKit source set: ICT-FaceKit's 20 landmarks for each ARKit shape.
+"""facecast's generic ARKit source set: ICT-FaceKit's 24 landmarks for each ARKit shape.
 
 Reads the package data ``generic_arkit/points.npz`` (written by
 scripts/make_generic_sources.py from ICT-FaceKit, MIT, see generic_arkit/LICENSE-ICT-FaceKit)
@@ -41,13 +41,13 @@ __all__ = [
 ]
 
 GENERIC_ATTRIBUTION: Final = (
-    "generic ARKit source set: 20 landmarks of the ICT Face Model (ICT-FaceKit, "
+    "generic ARKit source set: 24 landmarks of the ICT Face Model (ICT-FaceKit, "
     "USC Institute for Creative Technologies, MIT licence)"
 )
 
 #: ``fit`` options of a character paired with this set when its uploader gives no noise:
 #: the landmark noise (centimetres, this set's units) and the bound the rig is fitted for.
-#: Exact interpolation (noise 0) of these 20 points amplifies landmark noise ~3000-fold
+#: Exact interpolation (noise 0) of the 20 points (the layout then) amplifies noise ~3000-fold
 #: (noise gain 3174): live, tracker noise became weights of 7 to 190. Measured on the
 #: ground-truth webcam benchmark and the bundled real take (docs/characters.md, "Fit
 #: defaults"): 0.05 cm with weights bounded to [0, 1] had the lowest weight error on tracked
@@ -117,9 +117,10 @@ PART_COMPOSITIONS: Final = MappingProxyType(
 )  # fmt: skip
 _COMPOSED: Final = MappingProxyType({**VRM_COMPOSITIONS, **PART_COMPOSITIONS})
 
-#: ARKit shapes the generic set leaves unpaired: gaze. Its 20 landmarks hold two lid points
-#: per eye and no iris, so it sees a gaze only by the lids it drags: eyeLookDown lowers
-#: the upper lid 0.64 cm where eyeBlink lowers it 0.79 cm. Paired, a rig fitted for
+#: ARKit shapes the generic set leaves unpaired: gaze. Its landmarks hold lid points (two
+#: per eye in the 20-point layout these figures were measured on, four now) and no iris,
+#: so it sees a gaze only by the lids it drags: eyeLookDown lowers the outer upper lid
+#: point 0.64 cm where eyeBlink lowers it 0.79 cm. Paired, a rig fitted for
 #: tracker noise (``CHARACTER_FIT_DEFAULTS``) split the exact "both eyes closed" pose into
 #: eyeBlink 0.57 + eyeLookDown 0.37 (half-open eyes), and a VRM's look presets, whose
 #: lid motion is within that noise of the rest pose, took 0.02-0.07 at the exact neutral.

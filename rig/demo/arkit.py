@@ -17,6 +17,7 @@ import numpy as np
 from ..characters.expression_names import ARKIT_NAMES
 from ..characters.generic import generic_sources
 from ..sources.animation import SourceAnimation
+from ..sources.layouts import load_layout
 from ..sources.source_rig import generic_source_rig
 from .scene import DEMO_NAMES, demo_activations, demo_example_set
 
@@ -82,7 +83,7 @@ def arkit_demo_weights(seconds: float = 12.0, fps: float = 60.0, *, seed: int = 
 def arkit_demo_animation(
     seconds: float = 12.0, fps: float = 60.0, *, seed: int = 7
 ) -> SourceAnimation:
-    """The demo performance on the generic ARKit set's 20 points, (F, 20, 3) centimetres.
+    """The demo performance on the generic ARKit set's 24 points, (F, 24, 3) centimetres.
 
     Drives any character paired with the generic set (one uploaded as a .glb/.vrm) as the
     procedural demo drives the demo rig: the same emotions, visemes and blinks, at the
@@ -104,13 +105,22 @@ def performance_for(source_neutral: np.ndarray) -> str | None:
     """Which demo performance a rig with this source neutral (K, 3) takes, or None.
 
     ``"demo"`` for the procedural demo's points (the demo rig), ``"generic"`` for the
-    generic ARKit set's (characters uploaded as files, ICT-FaceKit's 20 default
-    landmarks), None for any other source (its own tracker's points).
+    generic ARKit set's (characters uploaded as files, ICT-FaceKit's 24 default
+    landmarks, or the first 20 of them: a character fitted before the layout grew, which
+    takes the performance's first 20 points), None for any other source (its own
+    tracker's points).
     """
     neutral = np.asarray(source_neutral, dtype=np.float64)
     for name, reference in _reference_neutrals():
-        if neutral.shape == reference.shape and np.allclose(
-            neutral, reference, rtol=0.0, atol=1e-4 * float(np.ptp(reference))
-        ):
-            return name
+        if neutral.ndim != 2 or neutral.shape[1:] != reference.shape[1:]:
+            continue
+        k = neutral.shape[0]
+        if name == "generic" and not load_layout().drives(k):
+            continue
+        if k == reference.shape[0] or name == "generic":
+            part = reference[:k]
+            if part.shape == neutral.shape and np.allclose(
+                neutral, part, rtol=0.0, atol=1e-4 * float(np.ptp(part))
+            ):
+                return name
     return None

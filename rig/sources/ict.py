@@ -3,7 +3,7 @@
 Reads the converted ``ict_facekit.npz`` (see shared/data/ict-facekit/README.md) and builds
 arrays; it must not fit, evaluate or write anything.
 
-The default feature points are 20 of the Multi-PIE 68 landmarks (brows, eye lids, nose,
+The default feature points are 24 of the Multi-PIE 68 landmarks (brows, eye lids, nose,
 mouth corners and lips, chin). With them every ICT expression except ``PupilDilate_L`` and
 ``PupilDilate_R`` (which move no vertex of the face surface) moves some feature point, so
 those two are left out by default. The nearest pair left is eyeWide / eyeLookUp (about
@@ -40,12 +40,19 @@ __all__ = [
 ICT_FILE = "ict_facekit.npz"
 
 # Positions in ICT's ``landmarks68`` (Multi-PIE order): brows 17, 19, 21 / 22, 24, 26;
-# upper and lower lids 37, 41 / 44, 46; nose tip and wings 30, 31, 35; mouth corners 48, 54;
-# outer upper and lower lip 51, 57; inner upper and lower lip 62, 66; chin 8. Both lids of
-# each eye are needed to tell blinks, squints, wides and looks apart; the inner lips to
-# tell rolls and presses from the outer-lip shapes.
+# upper and lower lids' outer thirds 37, 41 / 44, 46; nose tip and wings 30, 31, 35; mouth
+# corners 48, 54; outer upper and lower lip 51, 57; inner upper and lower lip 62, 66; chin 8;
+# then the lids' inner thirds 38, 40 / 43, 47. Both lids of each eye are needed to tell
+# blinks, squints, wides and looks apart; the inner lips to tell rolls and presses from the
+# outer-lip shapes; two points a lid to tell a blink from a look down (issue 34: with one
+# a lid, ICT's eyeLookDown moves the upper lid point 0.64 cm where eyeBlink moves it 0.79,
+# and a noise-aware fit splits the two; on the eyes clip's exact landmarks the personal
+# path's blink peaks rise 0.74 -> 0.94 with the second, README "The eyes clip"). The last
+# four were appended (the layout's 20-point version is its prefix), so rigs and captures
+# of 20 points stay usable with the first 20.
 DEFAULT_LANDMARKS: tuple[int, ...] = (
     17, 19, 21, 22, 24, 26, 37, 41, 44, 46, 30, 31, 35, 48, 51, 54, 57, 62, 66, 8,
+    38, 40, 43, 47,
 )  # fmt: skip
 
 # Multi-PIE 68 positions that expressions move least, relative to how far a head rotation

@@ -16,6 +16,10 @@ A layout file is one JSON object::
     frame           {"left", "right", "bottom", "top": [indices], "span": float}: the
                     face-fixed frame of ``facecast.rig.sources.facemesh`` (see there)
     source          str, optional: where the correspondences come from
+    earlier_counts  [int], optional: the feature counts of this layout's earlier versions.
+                    A layout only grows by appending features, so a rig fitted on an
+                    earlier version (K points) is driven by the first K of today's points
+                    (``Layout.prefix``); captures and rigs stored before stay usable.
 """
 
 from __future__ import annotations
@@ -50,6 +54,7 @@ _KNOWN_KEYS = {
     "eyes",
     "frame",
     "source",
+    "earlier_counts",
 }
 _MAX_TRACKER_POINTS = 100_000
 _MAX_FILE_BYTES = 1 << 20
@@ -80,10 +85,21 @@ class Layout:
     frame: dict[str, np.ndarray]
     span: float
     source: str = ""
+    earlier_counts: tuple[int, ...] = ()
 
     @property
     def num_features(self) -> int:
         return int(self.features.size)
+
+    @property
+    def counts(self) -> tuple[int, ...]:
+        """The feature counts a rig of this layout may have: earlier versions', then K."""
+        return (*self.earlier_counts, self.num_features)
+
+    def drives(self, k: int) -> bool:
+        """Whether a rig of ``k`` feature points takes this layout's points: ``k`` is its
+        feature count, or an earlier version's (then the first ``k`` points)."""
+        return k in self.counts
 
     def to_dict(self) -> dict[str, Any]:
         """The layout as the JSON object it was read from."""
@@ -103,6 +119,8 @@ class Layout:
             doc["multipie68"] = list(self.multipie68)
         if self.source:
             doc["source"] = self.source
+        if self.earlier_counts:
+            doc["earlier_counts"] = list(self.earlier_counts)
         return doc
 
 
@@ -188,6 +206,14 @@ def layout_from_dict(doc: object, where: str = "<dict>") -> Layout:
     source = doc.get("source", "")
     if not isinstance(source, str):
         raise _fail(where, "source must be a string")
+    earlier = doc.get("earlier_counts", [])
+    if (
+        not isinstance(earlier, list)
+        or any(isinstance(c, bool) or not isinstance(c, int) for c in earlier)
+        or any(not 0 < c < k for c in earlier)
+        or sorted(set(earlier)) != earlier
+    ):
+        raise _fail(where, f"earlier_counts must be increasing feature counts in [1, {k})")
     for array in (features, stable, *frame.values()):
         array.flags.writeable = False  # layouts are shared (load_layout caches them)
     return Layout(
@@ -201,6 +227,7 @@ def layout_from_dict(doc: object, where: str = "<dict>") -> Layout:
         frame=frame,
         span=float(span),
         source=source,
+        earlier_counts=tuple(earlier),
     )
 
 

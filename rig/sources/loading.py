@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ from ..errors import ExampleSetError, InputError
 from ..io.meshio import read_obj_vertices
 from ..npy_reads import NPY_READS
 from .animation import DEFAULT_FPS, FPS_FILE, SourceAnimation, check_fps, check_frames_finite
+from .layouts import Layout, load_layout
 from .source_rig import SourceRig, load_source_rig
 from .trackers import livelink_csv_animation, mediapipe_animation
 
@@ -112,11 +114,39 @@ def load_source_animation(
             code="bad_animation",
         )
     if num_points is not None and animation.num_points != num_points:
-        raise InputError(
-            f"{path}: expected {num_points} feature points per frame, got {animation.num_points}",
-            code="point_count_mismatch",
-        )
+        layout = _tracked_layout(path)
+        if not (
+            layout is not None
+            and num_points < animation.num_points
+            and layout.drives(num_points)
+            and layout.drives(animation.num_points)
+        ):
+            raise InputError(
+                f"{path}: expected {num_points} feature points per frame, got "
+                f"{animation.num_points}",
+                code="point_count_mismatch",
+            )
+        # Tracked in a layout that has grown since the rig was fitted on its earlier
+        # version: the rig takes the first num_points, as /perform sends it.
+        animation = replace(animation, points=animation.points[:, :num_points])
     return animation
+
+
+def _tracked_layout(path: Path) -> Layout | None:
+    """The landmark layout a tracked take follows: an .npz's ``layout`` (``facecast
+    track``'s), MediaPipe's for .ndjson; None when the file names none."""
+    if path.suffix.lower() in (".ndjson", ".jsonl"):
+        return load_layout("mediapipe_face_mesh")  # the MediaPipe reader's (trackers.py)
+    if path.suffix.lower() != ".npz":
+        return None
+    with NPY_READS, path.open("rb") as handle, np.load(handle, allow_pickle=False) as archive:
+        if "layout" not in archive.files:
+            return None
+        name = str(archive["layout"])
+    try:
+        return load_layout(name)
+    except InputError:
+        return None  # a layout this facecast does not ship: the counts must agree
 
 
 def _load_tracker_take(

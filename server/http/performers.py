@@ -112,14 +112,19 @@ class _PerformerFit:
         except RigNotFoundError:
             raise ApiError(404, "rig_not_found", f"no rig with id {self.rig_id!r}") from None
         layout = load_layout(self.capture.layout)
-        if layout.num_features != base.num_points:
+        k = base.num_points
+        counts = " or ".join(map(str, layout.counts))
+        if not layout.drives(k):
             raise ApiError(
                 422,
                 "layout_mismatch",
-                f"layout {layout.name} has {layout.num_features} feature points but rig "
-                f"{self.rig_id!r} has {base.num_points}",
+                f"layout {layout.name} gives {counts} feature points but rig {self.rig_id!r} "
+                f"has {k}",
             )
         points = self.capture.points
+        if self.capture.num_points > k and layout.drives(self.capture.num_points):
+            # A rig fitted on the layout's earlier version takes the first k points.
+            points = {name: p[:k] for name, p in points.items()}
         # VRM presets the performer did not make, from the ARKit shapes they did.
         composed = composed_captures(base.names, points)
         if self.shared_only:

@@ -66,14 +66,15 @@ def viewer_dir() -> Path:
     return Path(next(iter(spec.submodule_search_locations))) / "viewer"
 
 
-@functools.lru_cache(maxsize=2)
-def demo_animation_bytes(performance: str = "demo") -> bytes:
+@functools.lru_cache(maxsize=4)
+def demo_animation_bytes(performance: str = "demo", num_points: int | None = None) -> bytes:
     """A demo performance as one msgpack map (built once, ~0.5 s each, then cached).
 
     ``{"v": 1, "type": "animation", "fps": float, "points": array (F, K, 3) f32,
     "performance": "demo" | "generic"}``, the array in the wire format of PROTOCOL.md §4:
     ``"demo"`` on the demo rig's 21 points, ``"generic"`` the same performance acted as
-    ARKit weights on the generic ARKit set's 20 points (``facecast.rig.demo.arkit``).
+    ARKit weights on the generic ARKit set's 24 points (``facecast.rig.demo.arkit``), or
+    its first ``num_points`` (a character fitted on the layout's earlier 20).
     """
     from facecast.rig.demo import arkit_demo_animation, demo_animation
 
@@ -81,7 +82,7 @@ def demo_animation_bytes(performance: str = "demo") -> bytes:
         animation = arkit_demo_animation()
     else:
         animation = demo_animation(with_vertices=False)
-    points = animation.points.astype("<f4")
+    points = animation.points[:, :num_points].astype("<f4")
     data: bytes = msgpack.packb(
         {
             "v": 1,
@@ -94,9 +95,10 @@ def demo_animation_bytes(performance: str = "demo") -> bytes:
     return data
 
 
-def performance_of(store: RigStore, rig_id: str) -> str:
-    """The demo performance rig ``rig_id`` takes (``rig.demo.performance_for``), or an
-    ApiError: 404 for no such rig, 409 ``no_demo_performance`` for a rig on other points."""
+def performance_of(store: RigStore, rig_id: str) -> tuple[str, int]:
+    """The demo performance rig ``rig_id`` takes (``rig.demo.performance_for``) and its
+    point count, or an ApiError: 404 for no such rig, 409 ``no_demo_performance`` for a rig
+    on other points."""
     from facecast.rig.demo import performance_for
 
     if not valid_rig_id(rig_id):
@@ -116,7 +118,7 @@ def performance_of(store: RigStore, rig_id: str) -> str:
             "rig's points and on the generic ARKit set's (characters uploaded as files); "
             "watch a channel its performer publishes to instead",
         )
-    return performance
+    return performance, rig.num_points
 
 
 def mount_viewer(app: FastAPI, settings: Settings) -> None:
@@ -180,11 +182,13 @@ def mount_viewer(app: FastAPI, settings: Settings) -> None:
             ),
         ] = None,
     ) -> Response:
-        performance = "demo"
+        performance, num_points = "demo", None
         if rig is not None:
             store: RigStore = request.app.state.store
-            performance = await anyio.to_thread.run_sync(performance_of, store, rig)
-        data = await anyio.to_thread.run_sync(demo_animation_bytes, performance)
+            performance, num_points = await anyio.to_thread.run_sync(performance_of, store, rig)
+        if performance == "demo":
+            num_points = None  # one cached copy of the demo rig's
+        data = await anyio.to_thread.run_sync(demo_animation_bytes, performance, num_points)
         return Response(
             data,
             media_type="application/vnd.msgpack",

@@ -35,7 +35,7 @@ def test_import_writes_an_example_set_that_load_example_set_reads(imported):
     example_set = load_example_set(imported)
     assert example_set.names[0] == "neutral"
     assert set(example_set.names[1:]) == set(ARKIT_NAMES) - {"tongueOut"}
-    assert example_set.num_points == 20 and example_set.num_vertices == 9409
+    assert example_set.num_points == 24 and example_set.num_vertices == 9409
 
 
 @pytest.mark.ict

@@ -167,7 +167,7 @@ def test_command_on_ict_topology_writes_a_set_that_fits(tmp_path, capsys):
     assert "same topology (identity)" in printed and "wrote 2 expression(s)" in printed
     examples = load_example_set(out)
     assert examples.names == ("neutral", "jawOpen", "mouthSmileLeft")
-    assert examples.num_points == 20
+    assert examples.num_points == 24
     # Where ICT's own jawOpen moves a vertex by more than a centimetre, the transferred one
     # moves it to within a few millimetres of the same place.
     jaw = examples.target_vertices[1] - examples.target_vertices[0]

@@ -20,6 +20,7 @@ import pytest
 from facecast.cli.snapshot import CHROMIUM_ARGS, chromium_path, serving, write_demo_rig
 from facecast.protocol import SUBPROTOCOL, decode_server
 from facecast.rig import fit
+from facecast.rig.characters.generic import generic_sources
 from facecast.rig.demo import demo_example_set
 from facecast.rig.examples import ExampleSet
 from facecast.rig.sources.ict import locate_ict
@@ -99,26 +100,45 @@ def browser(camera_file):
             browser.close()
 
 
-#: The demo character in a rig that takes the layout's 20 points (the demo rig takes 21):
-#: a character the page can publish for and calibrate on without ICT-FaceKit's data.
+#: The demo character in a rig that takes the layout's first 20 points (the demo rig takes
+#: 21, the layout gives 24): a character the page can publish for and calibrate on without
+#: ICT-FaceKit's data, fitted as a rig of the layout's earlier 20-point version was, so the
+#: page tests drive that path (the page sends such a rig the first 20 of its points).
 CHARACTER = "cartoon"
 
 
 def _write_character_rig(rigs: Path) -> None:
     demo = demo_example_set()
-    k = load_layout().num_features
+    (k,) = load_layout().earlier_counts
     examples = ExampleSet(
         demo.names, demo.source_points[:, :k], demo.target_vertices, demo.target_faces
     )
     fit(examples).save(rigs / f"{CHARACTER}.rig")
 
 
+#: A rig on the layout's full 24 points, for tests of what the page publishes (a points
+#: watcher reads the frames as sent): the generic ARKit set's points, its target the same
+#: points as a mesh (no ICT-FaceKit data needed).
+LAYOUT_RIG = "points24"
+
+
+def _write_layout_rig(rigs: Path) -> None:
+    generic = generic_sources()
+    k = generic.points.shape[1]
+    assert k == load_layout().num_features
+    faces = [[i, i + 1, i + 2] for i in range(k - 2)]
+    examples = ExampleSet(generic.names, generic.points, generic.points, faces)
+    fit(examples, noise=0.035, clamp="unit").save(rigs / f"{LAYOUT_RIG}.rig")
+
+
 @pytest.fixture(scope="package")
 def rigs_dir(tmp_path_factory) -> Path:
-    """The demo rig (``demo``, K = 21) and the demo character for this layout (``cartoon``)."""
+    """The demo rig (``demo``, K = 21), the demo character for this layout's earlier 20
+    points (``cartoon``) and a rig on its 24 (``points24``)."""
     rigs = tmp_path_factory.mktemp("perform-rigs")
     write_demo_rig(rigs)
     _write_character_rig(rigs)
+    _write_layout_rig(rigs)
     return rigs
 
 

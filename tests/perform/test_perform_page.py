@@ -181,7 +181,7 @@ def test_a_rig_of_another_point_count_is_not_published_to_and_says_why(
     tracking(page, 20)
 
     stats = page.evaluate("window.facecastStats")
-    assert "takes 21 feature points, this page's layout gives 20" in stats["publishDetail"]
+    assert "takes 21 feature points, this page's layout gives 24" in stats["publishDetail"]
     assert stats["published"] == 0
 
 
@@ -240,9 +240,13 @@ def test_a_scripted_calibration_fits_the_performers_rig(server, performer_rig):
     assert calibration["fitError"] is None, calibration["fitError"]
     fit = calibration["fit"]
     rig = httpx.get(f"{server}/v1/rigs/{RIG}").json()
+    profile = httpx.get(f"{server}/v1/performers/tester").json()
 
     assert fit["id"] == RIG
-    assert rig["num_points"] == len(NAMES)
+    # The page captures the layout's 24 points and the profile keeps them all (for a refit
+    # onto a character of 24); the cartoon, fitted on the layout's earlier 20, takes 20.
+    assert profile["num_points"] == len(NAMES) == 24
+    assert rig["num_points"] == LAYOUT.earlier_counts[0] == 20
     assert rig["names"][:2] == ["neutral", "aa"]  # what was captured, in the rig's order
     assert "happy" not in calibration["captures"]  # skipped
     assert 0 < calibration["noise"] < 0.1  # measured by the server, about cm

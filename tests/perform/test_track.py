@@ -23,7 +23,7 @@ from facecast.cli.track import track_video
 from facecast.cli.y4m import MAX_SIDE
 from facecast.rig.sources.layouts import load_layout
 
-from .conftest import CHARACTER, FacePose, open_page, watching
+from .conftest import CHARACTER, LAYOUT_RIG, FacePose, open_page, watching
 from .facevideo import write_y4m
 
 K = load_layout().num_features
@@ -69,8 +69,9 @@ def test_track_gives_the_points_the_live_page_publishes(
     browser, server, rigs_dir, camera, clip_points, pages
 ):
     _, result = clip_points
-    rig = f"{CHARACTER}@agree"  # a performer's own rig: published from the first frame
-    shutil.copy(rigs_dir / f"{CHARACTER}.rig", rigs_dir / f"{rig}.rig")
+    # A performer's own rig (published from the first frame) on the layout's 24 points.
+    rig = f"{LAYOUT_RIG}@agree"
+    shutil.copy(rigs_dir / f"{LAYOUT_RIG}.rig", rigs_dir / f"{rig}.rig")
     distinct = result.points[HOLD - 1 :: HOLD]  # each image's last frame: settled
     camera.show([pose for pose in POSES for _ in range(LIVE_HOLD)])
     recorder, thread = watching(server, "agree", rig, "points")
@@ -153,7 +154,9 @@ def test_clone_puts_a_tracked_video_on_a_rig(clip_points, rigs_dir, tmp_path, ca
     points = result.points.copy()
     points[~found] = np.nan
     tracked = tmp_path / "tracked.npz"
-    np.savez(tracked, points=points, found=found, fps=result.fps)
+    # As ``facecast track`` writes it: 24 points in the layout it names; the cartoon rig,
+    # fitted on the layout's earlier 20, takes the first 20.
+    np.savez(tracked, points=points, found=found, fps=result.fps, layout=np.str_(result.layout))
     out = tmp_path / "out.npz"
 
     status = main(["clone", str(rigs_dir / f"{CHARACTER}.rig"), str(tracked), "-o", str(out)])

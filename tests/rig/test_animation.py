@@ -57,6 +57,25 @@ def test_npz_with_points_and_fps(tmp_path):
     np.testing.assert_allclose(animation.times, np.arange(5) / 24.0)
 
 
+def test_a_take_tracked_in_the_grown_layout_drives_a_rig_of_its_earlier_version(tmp_path):
+    """``facecast track`` writes the layout it tracked in; the layout grew 20 -> 24 points
+    by appending, so a rig fitted on 20 takes the first 20 (as /perform sends it). A file
+    naming no layout, or a count that is no version of its layout, stays an error."""
+    points = mesh_frames(4, 24)
+    tracked, bare = tmp_path / "tracked.npz", tmp_path / "bare.npz"
+    np.savez(tracked, points=points, layout=np.str_("mediapipe_face_mesh"))
+    np.savez(bare, points=points)
+
+    animation = load_source_animation(tracked, num_points=20)
+
+    np.testing.assert_array_equal(animation.points, points[:, :20])
+    assert load_source_animation(tracked, num_points=24).points.shape == (4, 24, 3)
+    for path, k in ((bare, 20), (tracked, 21), (tracked, 25)):
+        with pytest.raises(InputError) as info:
+            load_source_animation(path, num_points=k)
+        assert info.value.code == "point_count_mismatch", (path.name, k)
+
+
 def test_npz_without_fps_defaults_to_60(tmp_path):
     path = tmp_path / "perf.npz"
     np.savez(path, points=mesh_frames(2, 3))

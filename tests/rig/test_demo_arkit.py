@@ -73,9 +73,9 @@ def test_a_generic_layout_npz_whose_first_name_is_not_neutral_is_refused(tmp_pat
 
 
 def test_the_bundled_livelink_take_loads_on_the_shipped_generic_file():
-    animation = load_source_animation(TAKE, source_rig=str(GENERIC_NPZ), num_points=20)
+    animation = load_source_animation(TAKE, source_rig=str(GENERIC_NPZ), num_points=24)
 
-    assert animation.points.shape == (180, 20, 3)
+    assert animation.points.shape == (180, 24, 3)
     assert np.isfinite(animation.points).all()
 
 
@@ -94,7 +94,7 @@ def test_arkit_demo_weights_follow_the_demo_activations_within_unit_bounds():
 def test_the_arkit_demo_is_on_the_generic_sets_points():
     animation = arkit_demo_animation(2.0, 30.0)
 
-    assert animation.points.shape == (60, 20, 3)
+    assert animation.points.shape == (60, 24, 3)
     assert animation.fps == 30.0
     assert performance_for(generic_sources().points[0]) == "generic"
     assert performance_for(demo_example_set().source_points[0]) == "demo"

@@ -48,7 +48,7 @@ def test_default_set_leaves_out_only_the_pupil_shapes(example_set):
     assert len(example_set.names) == 56
     assert "PupilDilate_L" not in example_set.names
     assert "PupilDilate_R" not in example_set.names
-    assert example_set.num_points == len(DEFAULT_LANDMARKS) == 20
+    assert example_set.num_points == len(DEFAULT_LANDMARKS) == 24
 
 
 @pytest.mark.ict
@@ -158,7 +158,7 @@ def test_animation_keeps_activations_in_unit_range_with_mouth_close_under_jaw_op
     activations, animation = ict_animation(example_set, seconds=20.0, fps=30.0, seed=1)
     names = example_set.names
 
-    assert activations.shape == (600, 56) and animation.points.shape == (600, 20, 3)
+    assert activations.shape == (600, 56) and animation.points.shape == (600, 24, 3)
     assert activations.min() >= 0.0 and activations.max() <= 1.0
     assert np.all(activations[:, 0] == 0.0)
     close, jaw = names.index("mouthClose"), names.index("jawOpen")

@@ -44,6 +44,41 @@ def test_stable_points_avoid_brows_lids_lips_and_chin(layout):
         assert set(layout.frame[part].tolist()) <= set(layout.stable.tolist())
 
 
+def test_the_layout_grew_by_appending_so_twenty_point_rigs_take_its_prefix(layout):
+    """The 24-point layout (two points a lid) is the 20-point one with 4 lid points
+    appended: a rig or capture of 20 points is driven by the first 20, any other count not."""
+    assert layout.earlier_counts == (20,) and layout.counts == (20, 24)
+    assert layout.drives(20) and layout.drives(24)
+    assert not any(layout.drives(k) for k in (0, 19, 21, 23, 25, 68))
+    first20 = [
+        70,
+        105,
+        107,
+        336,
+        334,
+        300,
+        160,
+        144,
+        387,
+        373,
+        4,
+        75,
+        305,
+        61,
+        0,
+        291,
+        17,
+        13,
+        14,
+        152,
+    ]
+    assert layout.features[:20].tolist() == first20  # the 20-point version, unchanged
+    lids = {layout.feature_names[i]: int(layout.features[i]) for i in range(20, 24)}
+    # FaceMesh's upper / lower lid a third in from each inner corner (Multi-PIE 38, 40 / 43, 47)
+    assert lids == {"right_upper_lid_inner": 158, "right_lower_lid_inner": 153,
+                    "left_upper_lid_inner": 385, "left_lower_lid_inner": 380}  # fmt: skip
+
+
 def test_layout_round_trips_through_its_dict(layout):
     again = layout_from_dict(layout.to_dict())
     assert again.to_dict() == layout.to_dict()
@@ -73,7 +108,11 @@ def _broken(layout, path, value):
         (("features",), [70, 70], "twice"),
         (("features",), [70, 468], "outside [0, 468)"),
         (("features",), [70, 1.5], "integer"),
-        (("feature_names",), ["a"], "name the 20 features"),
+        (("feature_names",), ["a"], "name the 24 features"),
+        (("earlier_counts",), [24], "earlier_counts"),
+        (("earlier_counts",), [20, 12], "earlier_counts"),
+        (("earlier_counts",), [0], "earlier_counts"),
+        (("earlier_counts",), 20, "earlier_counts"),
         (("stable",), [1, 2], "at least 3"),
         (("eyes", "left", "upper"), KeyError, "eyes.left"),
         (("frame", "span"), 0, "frame.span"),
@@ -135,7 +174,7 @@ def test_normalised_eye_span_is_the_layout_span(layout):
     frame_points = np.concatenate([mesh[layout.frame["left"]], mesh[layout.frame["right"]]])
     extended = np.vstack([mesh, frame_points])  # the 478-point mesh carries extra points
     features = normalise_mesh(extended, layout)
-    assert features.shape == (20, 3)
+    assert features.shape == (24, 3)
     # The eye centres are not features; map them through the same frame by hand.
     left = mesh[layout.frame["left"]].mean(axis=0)
     right = mesh[layout.frame["right"]].mean(axis=0)
@@ -170,7 +209,7 @@ def test_bad_meshes_are_refused_by_code(layout, mutate, code):
 def test_layout_points_land_on_icts_landmarks_on_a_real_tracked_face(
     layout, perform_python, tmp_path
 ):
-    """MediaPipe's mesh of a real photo, aligned onto ICT's neutral by the 20 features:
+    """MediaPipe's mesh of a real photo, aligned onto ICT's neutral by the 24 features:
     each feature lands near its ICT landmark, and for the parts a smile does not move
     (brows, lids, nose, chin, eye corners) no other mesh point is much nearer to it (a
     wrong index - the other lid, the other side - would be centimetres off)."""

@@ -19,7 +19,7 @@ from facecast.rig.evaluation.webcam import (
     superposition,
 )
 from facecast.rig.examples import ExampleSet
-from facecast.rig.sources.ict import ict_regions, locate_ict
+from facecast.rig.sources.ict import DEFAULT_LANDMARKS, ict_regions, locate_ict
 
 ARCHIVE = locate_ict()
 needs_ict = pytest.mark.skipif(
@@ -134,7 +134,7 @@ def test_performer_landmarks_are_its_mesh_vertices():
     points = performer.landmark_points(activations)
 
     assert np.allclose(points, vertices[:, performer.landmarks], atol=1e-4)
-    chin = -1  # DEFAULT_LANDMARKS ends with Multi-PIE 8, the chin
+    chin = DEFAULT_LANDMARKS.index(8)  # Multi-PIE 8, the chin
     assert points[1, chin, 1] < points[0, chin, 1] - 1.0  # the jaw opens downwards (cm)
 
 
@@ -190,8 +190,16 @@ def test_bench_eyes_clip_on_exact_landmarks_scores_each_event_on_both_paths(tmp_
         # Exact landmarks: every gaze hold reads the right way, and a wink stays on its eye.
         assert all(g["right"] for g in row["gaze"]), row["gaze"]
         assert max(w["other"] for w in row["winks"]) < 0.05, row["winks"]
-    personal = rows["personal live"]
-    assert min(v for b in personal["blinks"] for v in b.values()) > 0.6
+
+    # Two points a lid (the 24-point layout) tell a blink from a look down: the personal
+    # path's live blinks and winks reach 0.94 of the truth (0.74 with one point a lid, the
+    # 20-point layout), the generic path's 0.52 live (0.37) and all of it offline (0.80).
+    def least_blink(row: str) -> float:
+        return min(v for blink in rows[row]["blinks"] for v in blink.values())
+
+    assert least_blink("personal live") > 0.9
+    assert min(w["peak"] for w in rows["personal live"]["winks"]) > 0.9
+    assert least_blink("generic live") > 0.45 and least_blink("generic offline") > 0.95
     # Each filter is run: the live Kalman and the offline smoother move the peaks.
     for path in ("personal", "generic"):
         live = rows[f"{path} live"]["winks"]

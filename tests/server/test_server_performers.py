@@ -20,29 +20,29 @@ from facecast.server.testing import run_server
 
 pytestmark = pytest.mark.anyio
 
-K = 20  # the mediapipe_face_mesh layout's feature points
+K = 20  # the mediapipe_face_mesh layout's earlier version's feature points (24 now)
 NAMES = ("neutral", "smile", "frown", "jawOpen", "browUp")
 
 
-def character(names=NAMES, seed: int = 0, num_vertices: int = 30) -> ExampleSet:
-    """A character whose source face has the layout's 20 feature points."""
+def character(names=NAMES, seed: int = 0, num_vertices: int = 30, k: int = K) -> ExampleSet:
+    """A character whose source face has ``k`` feature points (the layout's 20 or 24)."""
     rng = np.random.default_rng(seed)
     m = len(names)
-    source = np.repeat(rng.normal(scale=3.0, size=(1, K, 3)), m, axis=0)
-    source[1:] += rng.normal(scale=0.5, size=(m - 1, K, 3))
+    source = np.repeat(rng.normal(scale=3.0, size=(1, k, 3)), m, axis=0)
+    source[1:] += rng.normal(scale=0.5, size=(m - 1, k, 3))
     target = np.repeat(rng.normal(size=(1, num_vertices, 3)), m, axis=0)
     target[1:] += rng.normal(scale=0.3, size=(m - 1, num_vertices, 3))
     faces = np.array([[i, i + 1, i + 2] for i in range(num_vertices - 2)])
     return ExampleSet(names, source, target, faces)
 
 
-def performer_points(names=NAMES, seed: int = 11) -> dict[str, np.ndarray]:
+def performer_points(names=NAMES, seed: int = 11, k: int = K) -> dict[str, np.ndarray]:
     """Another face making the expressions: its own neutral and its own displacements."""
     rng = np.random.default_rng(seed)
-    neutral = rng.normal(scale=3.0, size=(K, 3))
+    neutral = rng.normal(scale=3.0, size=(k, 3))
     points = {"neutral": neutral}
     for name in names[1:]:
-        points[name] = neutral + rng.normal(scale=0.6, size=(K, 3))
+        points[name] = neutral + rng.normal(scale=0.6, size=(k, 3))
     return points
 
 
@@ -61,6 +61,7 @@ async def server(settings):
         store.put_rig("hero", fit(character()))
         store.put_rig("other", fit(character(("neutral", "jawOpen", "smile", "pout"), seed=5)))
         store.put_rig("tiny", tiny_rig())
+        store.put_rig("hero24", fit(character(k=24)))
         yield running
 
 
@@ -88,6 +89,33 @@ async def test_capture_fits_a_rig_whose_weights_are_cardinal_on_the_captured_poi
     np.testing.assert_allclose(
         rig.clone(points["smile"]), hero.blend(np.eye(len(NAMES))[1]), atol=1e-5
     )
+
+
+async def test_a_rig_of_the_layouts_earlier_twenty_points_fits_a_capture_by_its_prefix(server):
+    """The layout grew 20 -> 24 points by appending: a capture of today's 24 fits a rig of
+    the earlier 20 (a character uploaded before) on its first 20, as the rig takes them; a
+    capture of 20 cannot give a 24-point rig its lid points and is refused."""
+    twenty = performer_points()
+    full = {n: np.concatenate([p, p[:4] + 0.5]) for n, p in twenty.items()}  # 24 points
+    async with http(server) as client:
+        response = await client.put("/v1/rigs/hero/performer/carol", json=capture_body(full))
+        rig_file = await client.get("/v1/rigs/hero@carol/rig")
+        short = await client.put("/v1/rigs/hero24/performer/carol", json=capture_body(twenty))
+        odd = await client.put(
+            "/v1/rigs/hero/performer/dave",
+            json=capture_body({n: np.concatenate([p, p[:2]]) for n, p in twenty.items()}),
+        )
+
+    assert response.status_code == 201, response.text
+    from facecast.rig import rig_from_bytes
+
+    rig = rig_from_bytes(rig_file.content)
+    assert rig.num_points == K
+    weights = rig.weights(np.stack([twenty[n] for n in NAMES]))
+    np.testing.assert_allclose(weights, np.eye(len(NAMES)), atol=1e-8)
+    # 20 points for a 24-point rig, 22 (no version of the layout) for a 20-point one.
+    for answer in (short, odd):
+        assert (answer.status_code, answer.json()["code"]) == (422, "wrong_point_count")
 
 
 async def test_msgpack_capture_gives_the_same_rig_and_a_second_put_answers_200(server):

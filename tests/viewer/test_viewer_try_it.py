@@ -80,6 +80,13 @@ def server(tmp_path_factory) -> Iterator[str]:
     # A rig on points of its own (the test character's own source set): no demo for it.
     store.put_rig("own-points", fit(build_character().examples))
     store.put_rig("arkit52", fit(_arkit_rig_set(), noise=0.05, clamp="unit"))
+    # A character fitted before the layout grew 20 -> 24 points (the generic set's first 20).
+    old = _arkit_rig_set()
+    store.put_rig(
+        "arkit20",
+        fit(ExampleSet(old.names, old.source_points[:, :20], old.target_vertices,
+                       old.target_faces), noise=0.05, clamp="unit"),
+    )  # fmt: skip
     store.close()
     settings = Settings(rigs_dir=rigs, access_log=False, log_level="warning")
     with serving(settings) as base_url:
@@ -113,11 +120,15 @@ def test_demo_animation_comes_on_the_points_of_the_rig_asked_for(server):
     plain = _animation(server)
     demo = _animation(server, rig="demo")
     character = _animation(server, rig="face")
+    earlier = _animation(server, rig="arkit20")
     generic = generic_sources()
 
     assert (plain["performance"], plain["points"].shape[1]) == ("demo", 21)
     assert (demo["performance"], demo["points"].shape[1]) == ("demo", 21)
-    assert (character["performance"], character["points"].shape[1]) == ("generic", 20)
+    assert (character["performance"], character["points"].shape[1]) == ("generic", 24)
+    # A character of the layout's earlier version gets the same performance's first 20.
+    assert (earlier["performance"], earlier["points"].shape[1]) == ("generic", 20)
+    np.testing.assert_array_equal(earlier["points"], character["points"][:, :20])
     # The generic performance's rest frames are the generic set's neutral.
     rest = np.abs(character["points"] - generic.points[0]).max(axis=(1, 2)).min()
     assert rest < 1e-4

@@ -12,6 +12,15 @@
 
 export class FaceMeshError extends Error {}
 
+/**
+ * Whether a rig of `k` feature points takes this layout's points: `k` is its feature count or
+ * an earlier version's (the layout only grows by appending, so such a rig takes the first k),
+ * as facecast.rig.sources.layouts.Layout.drives.
+ */
+export function drives(layout, k) {
+  return k === layout.features.length || (layout.earlier_counts ?? []).includes(k);
+}
+
 /** Check a layout table once (shape, index ranges); returns it frozen. */
 export function checkLayout(layout) {
   const n = layout.tracker_points;
@@ -27,6 +36,10 @@ export function checkLayout(layout) {
     }
   }
   if (!(layout.frame.span > 0)) throw new FaceMeshError(`layout ${layout.name}: frame.span must be > 0`);
+  const earlier = layout.earlier_counts ?? [];
+  if (!earlier.every((c, i) => Number.isInteger(c) && c > 0 && c < layout.features.length && (i === 0 || c > earlier[i - 1]))) {
+    throw new FaceMeshError(`layout ${layout.name}: earlier_counts must be increasing counts below ${layout.features.length}`);
+  }
   return Object.freeze(layout);
 }
 

@@ -9,7 +9,7 @@ import { encodeCalibrate, encodeHello, ErrorCode, errorName } from "../protocol.
 import { metaText } from "../character.js";
 import { FaceView } from "../scene.js";
 import { cameraFrames, drawPoints, openCamera } from "./camera.js";
-import { eyeOpenness, headAngles } from "./facemesh.js";
+import { drives, eyeOpenness, headAngles } from "./facemesh.js";
 import { encodePerformFrame } from "./headpose.js";
 import { readPerformParams } from "./params.js";
 import { FacePipeline, LAYOUT as layout } from "./pipeline.js";
@@ -62,7 +62,8 @@ const stats = {
   frameSource: null, // "processor" (MediaStreamTrackProcessor) or "video" (frame callbacks)
   captureSource: null, // where frames' capture times come from (camera.js CaptureTimes)
   cameraFrames: 0, // frames the camera's <video> presented (requestVideoFrameCallback's count)
-  points: null, // the last published points, K*3
+  points: null, // the last tracked points, K*3 (a rig of an earlier count gets the first rigK)
+  rigK: null, // the points a frame the connected rig takes (K, or the layout's earlier count)
   head: null, // {yaw, pitch, roll} of the last frame, degrees
   eyes: null,
   clockOffsetMs: 0, // the server's clock − this page's, as the link estimates it (§5.4)
@@ -243,11 +244,13 @@ async function main() {
     `rig ${params.rig} is not fitted on your face: press Calibrate and capture your neutral ` +
     "first; until then no frame is published (the character would be distorted)";
   let neutral = null;
+  // The points the rig takes: K, or an earlier version's count of this layout (its prefix).
+  let rigK = K;
   // The landmark noise of the neutral's held frames: with it the server re-bases the rig
   // noise-aware and bounded (weights in [0, 1]), never extrapolating for viewers.
   let neutralNoise = null;
   const rebase = (l) => {
-    if (neutral && publishing && generic) l.send(encodeCalibrate(neutral, neutralNoise));
+    if (neutral && publishing && generic) l.send(encodeCalibrate(neutral.subarray(0, rigK * 3), neutralNoise));
   };
   let latencyEma = null;
   const link = new Link(socketTarget(params), {
@@ -273,7 +276,7 @@ async function main() {
     },
     onMessage(msg, l) {
       if (msg.type === "ready") {
-        if (msg.rig.k !== K) {
+        if (!drives(layout, msg.rig.k)) {
           l.fail("");
           setPublish(
             "unsuitable",
@@ -283,6 +286,10 @@ async function main() {
           );
           return;
         }
+        // A rig fitted on the layout's earlier version takes its first k points (the
+        // layout only grows by appending); its eyes have fewer points: re-capture for more.
+        rigK = msg.rig.k;
+        stats.rigK = rigK;
         l.healthy();
         rigNames = msg.rig.names;
         bindView();
@@ -292,11 +299,11 @@ async function main() {
           // Uncalibrated points far from the rig's neutral make its exact weights
           // extrapolate: every viewer would see a distorted character. Hold the frames.
           setPublish("waiting", "waiting for your neutral", NEUTRAL_FIRST);
-        } else setPublish("live", `live · ${params.channel}`, `rig ${msg.rig.id}, ${K} points a frame`);
+        } else setPublish("live", `live · ${params.channel}`, `rig ${msg.rig.id}, ${rigK} points a frame`);
         rebase(l);
       } else if (msg.type === "calibrated") {
         stats.rebased = msg.active === true;
-        if (stats.rebased) setPublish("live", `live · ${params.channel}`, `rig ${params.rig} re-based on your neutral, ${K} points a frame`);
+        if (stats.rebased) setPublish("live", `live · ${params.channel}`, `rig ${params.rig} re-based on your neutral, ${rigK} points a frame`);
       } else if (msg.type === "result") {
         stats.results += 1;
         if (typeof msg.server_ts === "number") {
@@ -429,7 +436,8 @@ async function main() {
         // stamps (§5.4) are on the server's clock as the link estimates it.
         const clock = link.clock;
         const stamps = { captured: clock.toServer(capturedMs), tracked: clock.toServer(tLandmarks), sent: clock.toServer(performance.now()) };
-        if (link.send(encodePerformFrame(seq, performance.now() / 1000, points, result.head, stamps))) {
+        const sent = rigK === K ? points : points.subarray(0, rigK * 3);
+        if (link.send(encodePerformFrame(seq, performance.now() / 1000, sent, result.head, stamps))) {
           stats.seq = seq;
           seq += 1;
           stats.published += 1;
