@@ -15,6 +15,7 @@ from typing import Annotated
 
 import anyio
 import msgpack
+import numpy as np
 from fastapi import APIRouter, Depends, FastAPI, Query, Request, Response
 from fastapi.responses import FileResponse, HTMLResponse
 
@@ -76,23 +77,30 @@ def demo_animation_bytes(performance: str = "demo", num_points: int | None = Non
     ARKit weights on the generic ARKit set's 24 points (``facecast.rig.demo.arkit``), or
     its first ``num_points`` (a character fitted on the layout's earlier 20).
     """
+    fps, points = _demo_performance(performance)
+    data: bytes = msgpack.packb(
+        {
+            "v": 1,
+            "type": "animation",
+            "fps": fps,
+            "points": array_to_wire(points[:, :num_points]),
+            "performance": performance,
+        }
+    )
+    return data
+
+
+@functools.lru_cache(maxsize=2)
+def _demo_performance(performance: str) -> tuple[float, np.ndarray]:
+    """A demo performance's frame rate and points (F, K, 3) little-endian f32, built once
+    (each point count of it is a slice)."""
     from facecast.rig.demo import arkit_demo_animation, demo_animation
 
     if performance == "generic":
         animation = arkit_demo_animation()
     else:
         animation = demo_animation(with_vertices=False)
-    points = animation.points[:, :num_points].astype("<f4")
-    data: bytes = msgpack.packb(
-        {
-            "v": 1,
-            "type": "animation",
-            "fps": float(animation.fps),
-            "points": array_to_wire(points),
-            "performance": performance,
-        }
-    )
-    return data
+    return float(animation.fps), animation.points.astype("<f4")
 
 
 def performance_of(store: RigStore, rig_id: str) -> tuple[str, int]:

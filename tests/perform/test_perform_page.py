@@ -4,6 +4,7 @@ the real face model on the WebAssembly backend, a real server and real channel w
 
 from __future__ import annotations
 
+import shutil
 import time
 from collections.abc import Iterator
 
@@ -304,6 +305,41 @@ def test_on_the_performers_rig_the_open_mouth_weighs_clearly_more(
 
 
 # -- faults: face lost, server gone, wrong token ------------------------------------------
+
+
+def test_a_rig_of_the_layouts_earlier_twenty_points_is_sent_the_first_twenty(
+    browser, server, rigs_dir, camera, pages
+):
+    """The layout grew 20 -> 24 points by appending: the page tracks 24 and sends a rig
+    fitted on the earlier 20 (the cartoon) the first 20 of them, and says so."""
+    rig = f"{CHARACTER}@first20"  # a performer's own rig: published from the first frame
+    shutil.copy(rigs_dir / f"{CHARACTER}.rig", rigs_dir / f"{rig}.rig")
+    camera.show([FacePose()] * 5)
+    recorder, thread = watching(server, "first20", rig, "points")
+    try:
+        page = open_page(browser, perform_url(server, "first20", rig))
+        pages.append(page)
+        page.wait_for_function("window.facecastStats.published >= 12")
+        stats = page.evaluate("window.facecastStats")
+        shown = page.text_content("#published")
+        with recorder.arrived:
+            assert recorder.arrived.wait_for(lambda: len(recorder.results) >= 10, timeout=15)
+            sent = np.array([r.points for _, r in recorder.results], dtype=np.float32)
+    finally:
+        recorder.stop.set()
+        thread.join(5)
+
+    assert stats["rigK"] == 20 and len(stats["points"]) == 24 * 3
+    assert sent.shape[1:] == (20, 3)
+    # A still image: once the eye crops settle, every frame is the page's last points' first 20.
+    tracked = np.array(stats["points"], dtype=np.float32).reshape(24, 3)
+    assert np.abs(sent[-1] - tracked[:20]).max() <= 1e-5
+    assert (
+        "24 points (mediapipe_face_mesh, head pose removed, ≈ cm): the rig takes the first 20"
+        in shown
+    )
+    chin = tracked[NAMES.index("chin")]
+    assert f"chin ({', '.join(f'{v:.2f}' for v in chin)})" in shown
 
 
 def test_a_lost_face_stops_publishing_and_watchers_get_face_lost(

@@ -16,6 +16,7 @@ import { FacePipeline, LAYOUT as layout } from "./pipeline.js";
 import { Studio } from "./studio.js";
 import { Rolling } from "./timing.js";
 const K = layout.features.length;
+const CHIN = layout.feature_names.indexOf("chin"); // shown live (the layout's last point no more)
 // Newest frame only at the publisher's socket: a frame is sent only when the socket holds
 // nothing unsent, so at most the frame being sent waits there; a stalled socket drops frames
 // (counted in `skipped`) instead of queueing them (was 64 KiB: ~140 frames, 4 s at 30 fps).
@@ -504,8 +505,8 @@ function paintStats(result) {
     stats.publish === "live"
       ? [
           `${stats.publishFps} frames/s · seq ${stats.seq ?? "–"} · ${stats.skipped} dropped`,
-          `${K} points (${layout.name}, head pose removed, ≈ cm)`,
-          p && result.face ? `chin (${p.slice(-3).map((v) => v.toFixed(2)).join(", ")})` : "face lost: nothing sent (viewers see face_lost)",
+          `${K} points (${layout.name}, head pose removed, ≈ cm)${stats.rigK !== K ? `: the rig takes the first ${stats.rigK}` : ""}`,
+          p && result.face ? `chin (${p.slice(3 * CHIN, 3 * CHIN + 3).map((v) => v.toFixed(2)).join(", ")})` : "face lost: nothing sent (viewers see face_lost)",
         ].join("\n")
       : "";
 }
