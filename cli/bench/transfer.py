@@ -201,7 +201,7 @@ def _accuracy(
 
     livelink = read_livelink_csv(take)
     face = source.vertices[0]
-    # (label, truth, markers, target faces, the 20 landmarks' true places on the target)
+    # (label, truth, markers, target faces, the landmarks' true places on the target)
     cases: list[tuple[str, ExampleSet, Any, np.ndarray, np.ndarray | None]] = []
     for identity in ("person01", "person10"):
         truth = arkit_example_set(archive, identity=identity)
@@ -284,7 +284,7 @@ def _accuracy(
         ]
         landmark_mm = None
         if isinstance(markers, str) and true_landmarks is not None:
-            # The automatic fit's 20 landmarks against their true places (ICT's cm -> mm).
+            # The automatic fit's landmarks against their true places (ICT's cm -> mm).
             fitted = generated.correspondence.fitted_source[landmarks]
             landmark_mm = 10.0 * np.linalg.norm(fitted - true_landmarks, axis=1)
         gaps = lids_gap(generated, truth_vertices)
@@ -309,7 +309,7 @@ def _accuracy(
         print(f"  {label}")
         if landmark_mm is not None:
             print(
-                f"    automatic fit: the 20 landmarks {np.median(landmark_mm):.2f} mm from their "
+                f"    automatic fit: the {len(landmark_mm)} landmarks {np.median(landmark_mm):.2f} mm from their "
                 f"true places (median; {landmark_mm.max():.2f} mm at most), residual "
                 f"{generated.correspondence.residual:.3f} target edges"
             )

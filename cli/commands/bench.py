@@ -43,7 +43,7 @@ def register(subparsers: Subparsers) -> None:
         "engine",
         help="weights, blending and fit times on the ICT rig, against baselines",
         description=(
-            "On the ICT-FaceKit target (its expressions as examples, K = 20 landmarks) time "
+            "On the ICT-FaceKit target (its expressions as examples, K = 24 landmarks) time "
             "single-frame and batched weights, blending against a bare weights @ deltas "
             "product, the fit, and weights against scipy's RBFInterpolator; median of "
             "--repeat runs. Falls back to the procedural demo when ICT is absent."

@@ -79,7 +79,7 @@ def register(subparsers: Subparsers) -> None:
         "--landmarks",
         metavar="LIST",
         help="comma-separated Multi-PIE 68 positions (0-67) to use as feature points "
-        "(default the 20 of facecast.rig.sources.ict.DEFAULT_LANDMARKS)",
+        "(default the 24 of facecast.rig.sources.ict.DEFAULT_LANDMARKS)",
     )
     ict.add_argument(
         "--target",

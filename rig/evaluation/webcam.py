@@ -67,7 +67,7 @@ class Performer:
         Each shape minus the neutral, flattened.
     faces : (F, 3) int64
     landmarks : (K,) int64
-        Vertex indices of the feature points (ICT's default 20 landmarks).
+        Vertex indices of the feature points (ICT's default 24 landmarks).
     """
 
     names: tuple[str, ...]

@@ -1,6 +1,6 @@
 """ICT-FaceKit's shapes under their ARKit names, as an example set: the generic face -> an identity.
 
-The source is ICT's default 20 landmarks, the target the face area of one identity; takes,
+The source is ICT's default 24 landmarks, the target the face area of one identity; takes,
 the transfer's truth and the webcam benchmark all start from it. Builds arrays only.
 """
 
@@ -32,7 +32,7 @@ def arkit_example_set(
 
     ICT's left and right halves of ``browInnerUp`` and ``cheekPuff`` are summed into the
     one ARKit shape; ``tongueOut`` has no ICT shape and is left out: 51 examples after the
-    neutral. The source is ICT's default 20 landmarks (or ``landmarks``, positions in its
+    neutral. The source is ICT's default 24 landmarks (or ``landmarks``, positions in its
     ``landmarks68`` as ``ict_example_set``'s); the target the face area (the first 9,409
     vertices) of ``identity`` (None: the generic face itself).
 

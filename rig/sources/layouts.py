@@ -19,7 +19,7 @@ A layout file is one JSON object::
     earlier_counts  [int], optional: the feature counts of this layout's earlier versions.
                     A layout only grows by appending features, so a rig fitted on an
                     earlier version (K points) is driven by the first K of today's points
-                    (``Layout.prefix``); captures and rigs stored before stay usable.
+                    (``Layout.drives``); captures and rigs stored before stay usable.
 """
 
 from __future__ import annotations

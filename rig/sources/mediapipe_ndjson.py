@@ -144,7 +144,7 @@ def read_mediapipe_ndjson(
     Parameters
     ----------
     mapping : sequence of K int, optional
-        MediaPipe landmark index of each feature point; default the 20 of
+        MediaPipe landmark index of each feature point; default the 24 of
         ``MEDIAPIPE_FEATURES``.
     y_up : bool
         MediaPipe's normalised image coordinates have y down and z into the screen;

@@ -69,7 +69,7 @@ def ict_source_expressions(path: str | os.PathLike[str]) -> SourceExpressions:
     """ICT-FaceKit's generic face area with its ARKit-named shapes (``arkit_example_set``).
 
     51 shapes after the neutral (no ``tongueOut``) on the face area's 9,409 vertices (ICT's
-    ``face`` region: the skin, ears included), with ICT's default 20 landmarks as feature
+    ``face`` region: the skin, ears included), with ICT's default 24 landmarks as feature
     points. Eyes, teeth, gums, the mouth socket and ICT's ``head_and_neck`` region are not
     part of it, so target triangles there pair with nothing and keep their neutral.
     """
