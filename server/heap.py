@@ -28,7 +28,9 @@ Measured 2026-12-04 on the shared, loaded 2-core VM (spreads of runs in turn):
   heaps); at 16 MiB, 377-397 MB, as the dynamic thresholds (369-391); the fixed 4 MiB:
   324-330.
 - The costliest face's upload: +185 MB in 8 runs of 8 (+203 MB with the 4 MiB threshold
-  fixed for the whole process, 4 of 4; +202 serving during the upload).
+  fixed for the whole process, 4 of 4; +202 serving during the upload); later the same
+  day +203 MB in 5 runs of 13 without a change here, +185 in 14 of 14 with
+  ``release_freed`` between the read and the fit.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ __all__ = [
     "SERVING_TRIM_THRESHOLD",
     "UPLOAD_MMAP_THRESHOLD",
     "UPLOAD_TRIM_THRESHOLD",
+    "release_freed",
     "serve_frames",
     "upload",
 ]
@@ -86,6 +89,19 @@ def _set(mmap_threshold: int, trim_threshold: int) -> bool:
     return bool(_libc.mallopt(_M_MMAP_THRESHOLD, mmap_threshold)) and bool(
         _libc.mallopt(_M_TRIM_THRESHOLD, trim_threshold)
     )
+
+
+def release_freed() -> bool:
+    """Give the heaps' free memory back to the system now (glibc's ``malloc_trim(0)``: every
+    arena, the free pages inside a heap too, not only its top); False without glibc.
+
+    An upload calls it between its read and its fit: the read's freed blocks under the
+    upload mode's 4 MiB threshold lie in whichever arenas the threads that made them used,
+    and which arena a thread gets depends on timing, so without it the costliest face's
+    upload peaked at +185 MB in some runs and +203 MB (over 3 bodies and the constant) in
+    others: 5 of 13 on 2026-12-04 (tests/hostile/test_hostile_upload_memory.py); with it,
+    +185.0 to +185.4 MB in 14 of 14."""
+    return _libc is not None and bool(_libc.malloc_trim(0))
 
 
 def serve_frames() -> bool:

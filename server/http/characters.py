@@ -22,6 +22,7 @@ from facecast.rig.io.gltf import GltfLimits
 
 from ..errors import ApiError
 from ..guards.auth import ANONYMOUS, READ_ROLES, Principal, requires
+from ..heap import release_freed
 from ..names import PERFORMER_SEPARATOR
 from ..storage.archive import ArchiveError, ArchiveLimits
 from ..storage.characters import (
@@ -275,6 +276,7 @@ class _CharacterJob:
         # The largest arrays go as soon as they are used (SERVER.md "What an upload can
         # cost"): the character's displacements once in the example set, that once fitted.
         del character
+        release_freed()  # the read's freed blocks, before the fit's peak (heap.py)
         rig = fit(example_set, **self.options)
         del example_set
         return rig, pack_character(glb, record), pairing_view(report), fmt
