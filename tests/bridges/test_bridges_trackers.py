@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from facecast.rig.errors import InputError
+from facecast.rig.sources.loading import load_source_animation
 from facecast.rig.sources.source_rig import ARKIT_NAMES, HEAD_POSE_NAMES, arkit_index
 from facecast.rig.sources.trackers import (
     MEDIAPIPE_FEATURES,
@@ -209,6 +210,22 @@ def test_mediapipe_animation_has_one_frame_per_line(tmp_path):
     docs = [{"landmarks": _landmarks(i).tolist()} for i in range(4)]
     animation = mediapipe_animation(_ndjson(tmp_path, ["", *docs]), fps=30.0)
     assert animation.points.shape == (4, len(MEDIAPIPE_FEATURES), 3) and animation.fps == 30.0
+
+
+def test_a_mediapipe_take_drives_a_rig_of_the_layouts_earlier_twenty_points(tmp_path):
+    """An NDJSON take gives the layout's 24 points; a rig fitted on its earlier 20 (the
+    layout grew by appending) takes the first 20, as /perform sends them."""
+    docs = [{"landmarks": _landmarks(i).tolist()} for i in range(3)]
+    path = _ndjson(tmp_path, docs)
+
+    full = load_source_animation(path, num_points=len(MEDIAPIPE_FEATURES))
+    first = load_source_animation(path, num_points=20)
+
+    assert full.points.shape == (3, 24, 3)
+    np.testing.assert_array_equal(first.points, full.points[:, :20])
+    with pytest.raises(InputError) as info:
+        load_source_animation(path, num_points=21)
+    assert info.value.code == "point_count_mismatch"
 
 
 @pytest.mark.parametrize(
