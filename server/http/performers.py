@@ -113,8 +113,8 @@ class _PerformerFit:
             raise ApiError(404, "rig_not_found", f"no rig with id {self.rig_id!r}") from None
         layout = load_layout(self.capture.layout)
         k = base.num_points
-        counts = " or ".join(map(str, layout.counts))
         if not layout.drives(k):
+            counts = " or ".join(map(str, layout.counts))
             raise ApiError(
                 422,
                 "layout_mismatch",

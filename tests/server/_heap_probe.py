@@ -76,5 +76,31 @@ def threads() -> dict[str, object]:
     return {"glibc": glibc, "refused": refused, "during": during, "after": given_back()}
 
 
+def trim() -> dict[str, object]:
+    """An upload's thread frees blocks under the upload mode's threshold below one it keeps
+    (a read's arrays under the fit's): they stay in its arena's heap, whose top is in use,
+    until ``release_freed``."""
+    glibc = heap.serve_frames()
+    figures: dict[str, int] = {}
+
+    def read_then_fit() -> None:
+        with heap.upload():
+            blocks = [np.full(MiB, 1, np.uint8) for _ in range(40)]
+            kept = blocks.pop()  # the top of the heap stays in use
+            held = _rss()
+            del blocks
+            figures["freed"] = held - _rss()
+            held = _rss()
+            heap.release_freed()
+            figures["released"] = held - _rss()
+            del kept
+
+    worker = threading.Thread(target=read_then_fit)
+    worker.start()
+    worker.join()
+    return {"glibc": glibc, **figures}
+
+
 if __name__ == "__main__":
-    print(json.dumps({"serving": serving, "nested": nested, "threads": threads}[sys.argv[1]]()))
+    scenarios = {"serving": serving, "nested": nested, "threads": threads, "trim": trim}
+    print(json.dumps(scenarios[sys.argv[1]]()))
