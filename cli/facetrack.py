@@ -77,6 +77,10 @@ class FaceTracker:
         identical frames of an open jaw, while detecting each frame held them still).
     min_confidence : float
         Detection and tracking confidence in (0, 1].
+    iris : bool
+        MediaPipe's attention mesh (its ``refine_landmarks``), the default: 478 points, the
+        iris centres among them (the layout's last two features), its lids and lips
+        refined. False: the 468-point mesh, which gives the layout's first 24 points.
     """
 
     def __init__(
@@ -86,6 +90,7 @@ class FaceTracker:
         max_faces: int = 2,
         static: bool = True,
         min_confidence: float = 0.5,
+        iris: bool = True,
     ) -> None:
         _, face_mesh = _modules()
         self.layout = layout or load_layout("mediapipe_face_mesh")
@@ -96,7 +101,7 @@ class FaceTracker:
         self._model = face_mesh.FaceMesh(
             static_image_mode=static,
             max_num_faces=max_faces,
-            refine_landmarks=False,
+            refine_landmarks=iris,
             min_detection_confidence=min_confidence,
             min_tracking_confidence=min_confidence,
         )

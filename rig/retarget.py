@@ -68,6 +68,7 @@ def _sanitize(
             code="unknown_expression",
         )
     clean: dict[str, np.ndarray] = {}
+    count: int | None = None  # the capture's own point count, k or more
     for name, value in points.items():
         try:
             array = np.asarray(value, dtype=np.float64)
@@ -75,12 +76,19 @@ def _sanitize(
             raise InputError(
                 f"points[{name!r}] is not a list of [x, y, z] numbers", code="wrong_point_count"
             ) from None
-        if array.shape != (k, 3):
+        if array.ndim != 2 or array.shape[1] != 3 or array.shape[0] < k:
             raise InputError(
-                f"points[{name!r}]: expected shape ({k}, 3) for this rig's {k} feature points, "
-                f"got {array.shape}",
+                f"points[{name!r}]: expected shape ({k}, 3) for this rig's {k} feature points "
+                f"(or more: a later layout's), got {array.shape}",
                 code="wrong_point_count",
             )
+        if count is not None and array.shape[0] != count:
+            raise InputError(
+                f"points[{name!r}] has {array.shape[0]} feature points, the capture's others "
+                f"{count}",
+                code="wrong_point_count",
+            )
+        count = array.shape[0]
         if not np.isfinite(array).all():
             raise InputError(f"points[{name!r}] holds NaN or Inf", code="non_finite")
         clean[rig.names[0] if name == neutral_key else name] = array
@@ -104,9 +112,12 @@ def fit_performer(rig: Rig, points: Mapping[str, object], *, noise: float | None
     rig : Rig
         The character: its names, target examples (from the blend basis), kernel, stable
         points and alignment settings are kept.
-    points : mapping of name -> (K, 3) float
+    points : mapping of name -> (K', 3) float
         The performer's feature points for ``"neutral"`` and any of the rig's
-        key-expressions (skipped ones are left out of the fit).
+        key-expressions (skipped ones are left out of the fit). K' is the rig's K, or more:
+        a later version of its layout appends points (the iris centres), which the
+        performer's rig is fitted on too (its first K are the rig's, so its stable points
+        and a stream's first K stay as they were).
     noise : float, optional
         The capture's measured landmark spread (standard deviation per coordinate, in the
         points' units). Given and above 0: the fit is regularised for it and the weights
@@ -116,7 +127,8 @@ def fit_performer(rig: Rig, points: Mapping[str, object], *, noise: float | None
     Returns
     -------
     Rig
-        Its names are the captured subset, in the rig's order, the neutral first.
+        Its names are the captured subset, in the rig's order, the neutral first; its
+        feature points the capture's K'.
 
     Raises
     ------

@@ -8,7 +8,9 @@ Commands::
 
     video SPEC.json PHOTO.npy OUT.avi   the fake-camera video (see make_video)
     track-video VIDEO OUT.npz           every frame of VIDEO through FaceTracker
-    track-images IMAGES.npz OUT.npz     each image "0", "1", ... through FaceTracker
+    track-images IMAGES.npz OUT.npz [--no-iris]
+                                        each image "0", "1", ... through FaceTracker (with
+                                        --no-iris: FaceMesh's 468 points, no attention mesh)
 """
 
 from __future__ import annotations
@@ -24,8 +26,8 @@ import numpy as np
 from facecast.cli.facetrack import FaceTracker, VideoSource
 from facecast.rig.sources.layouts import load_layout
 
-#: Mesh points of the legacy FaceMesh (no iris refinement).
-MESH_POINTS = 468
+#: Mesh points of the legacy FaceMesh with its attention mesh (the iris refined) / without.
+MESH_POINTS = {True: 478, False: 468}
 
 
 def _similarity(image, angle, scale, dx, dy):
@@ -68,22 +70,24 @@ def make_video(spec: dict, photo: np.ndarray, out: Path) -> None:
     writer.release()
 
 
-def track(images: Iterable[np.ndarray], out: Path) -> None:
-    """Track each RGB image; save ``points`` (N, K, 3), ``meshes`` (N, 468, 3), both NaN
+def track(images: Iterable[np.ndarray], out: Path, *, iris: bool = True) -> None:
+    """Track each RGB image; save ``points`` (N, K, 3), ``meshes`` (N, 478, 3), both NaN
     where no face was found, and ``faces`` (N,) to ``out``."""
     layout = load_layout("mediapipe_face_mesh")
+    n = MESH_POINTS[iris]
+    k = layout.count_within(n)
     points, meshes, faces = [], [], []
-    with FaceTracker(layout) as tracker:
+    with FaceTracker(layout, iris=iris) as tracker:
         for rgb in images:
             tracked = tracker.track(rgb)
             found = tracked.points is not None
-            points.append(tracked.points if found else np.full((layout.num_features, 3), np.nan))
-            meshes.append(tracked.mesh if found else np.full((MESH_POINTS, 3), np.nan))
+            points.append(tracked.points if found else np.full((k, 3), np.nan))
+            meshes.append(tracked.mesh if found else np.full((n, 3), np.nan))
             faces.append(tracked.faces)
     np.savez(
         out,
-        points=np.reshape(points, (-1, layout.num_features, 3)),
-        meshes=np.reshape(meshes, (-1, MESH_POINTS, 3)),
+        points=np.reshape(points, (-1, k, 3)),
+        meshes=np.reshape(meshes, (-1, n, 3)),
         faces=np.array(faces, dtype=np.int64),
     )
 
@@ -98,9 +102,10 @@ def main(argv: list[str]) -> int:
         with VideoSource(video) as source:
             track(source.frames(), Path(out))
     elif command == "track-images":
-        images, out = paths
+        images, out, *flags = paths
         with np.load(images) as data:
-            track((data[str(i)] for i in range(len(data.files))), Path(out))
+            images_in = (data[str(i)] for i in range(len(data.files)))
+            track(images_in, Path(out), iris="--no-iris" not in flags)
     else:
         raise SystemExit(f"unknown command {command!r}")
     return 0

@@ -263,15 +263,19 @@ def eyes_rows(
     """
     x = np.asarray(points, dtype=np.float64)
     times = np.arange(len(x)) / fps
+    # Points after the character's (a later layout's: the iris centres) are the performer's:
+    # the personal rig is fitted on them too, the generic one takes the first K, as the
+    # page sends each rig its own count.
+    k = character.num_points
     rigs = {
         "personal": fit_performer(character, keys, noise=noise),
-        "generic": generic_rig(character, keys["neutral"], noise),
+        "generic": generic_rig(character, keys["neutral"][:k], noise),
     }
     rows: dict[str, dict[str, Any]] = {}
     for path, rig in rigs.items():
         for label, (method, acceleration) in filters.items():
-            take = smooth_take(rig, x, times, smoothing=method, noise=noise,
-                               acceleration=acceleration)  # fmt: skip
+            take = smooth_take(rig, x[:, : rig.num_points], times, smoothing=method,
+                               noise=noise, acceleration=acceleration)  # fmt: skip
             weights = take.rig.weights(take.points)
             rows[f"{path} {label}"] = eyes_scores(weights, take.rig.names, clip)
     return rows

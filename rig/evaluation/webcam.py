@@ -392,7 +392,9 @@ def webcam_rows(
     take_points : (F, K, 3)
         The take's feature points (tracked or exact; no NaN).
     keys : {name: (K, 3)}
-        The captured key-expressions (``captured_keys``), the neutral included.
+        The captured key-expressions (``captured_keys``), the neutral included. K may
+        exceed the character's points (a later layout's: ``fit_performer`` fits the
+        personal rig on all K, a generic rig takes the first of them, as the page sends).
     noise : float
         The landmark noise the personal rig is fitted with (the server measures it from the
         held frames: ``server.performers.held_noise``).
@@ -428,6 +430,7 @@ def webcam_rows(
         weights = personal.weights(np.asarray(other, dtype=np.float64))
         rows[f"personal on {label}"] = score(truth, personal, weights, activations, names)
     for label, (rig, rebase_noise) in (generic or {}).items():
-        rebased = generic_rig(rig, keys["neutral"], rebase_noise)
-        rows[label] = score(truth, rebased, rebased.weights(points), activations, names)
+        k = rig.num_points  # a take of a later layout (the iris after 24): the first k
+        rebased = generic_rig(rig, keys["neutral"][:k], rebase_noise)
+        rows[label] = score(truth, rebased, rebased.weights(points[:, :k]), activations, names)
     return rows

@@ -55,12 +55,14 @@ def _sanitize(mesh: npt.ArrayLike, layout: Layout) -> tuple[np.ndarray, bool]:
     single = x.ndim == 2
     if single:
         x = x[None]
-    if x.ndim != 3 or x.shape[2] != 3 or x.shape[1] < layout.tracker_points:
+    if x.ndim != 3 or x.shape[2] != 3:
         raise InputError(
-            f"expected a mesh of shape (N, 3) or (B, N, 3) with N >= {layout.tracker_points} "
-            f"(layout {layout.name}), got {np.shape(mesh)}",
+            f"expected a mesh of shape (N, 3) or (B, N, 3) (layout {layout.name}: N = "
+            f"{layout.tracker_points}), got {np.shape(mesh)}",
             code="wrong_landmark_count",
         )
+    if x.shape[1] < layout.tracker_points:
+        layout.count_within(x.shape[1])  # refuses a mesh without the frame's points
     if not np.isfinite(x).all():
         raise InputError("the mesh holds NaN or Inf", code="non_finite")
     return x, single
@@ -120,7 +122,9 @@ def normalise_mesh(mesh: npt.ArrayLike, layout: Layout) -> np.ndarray:
     ----------
     mesh : (N, 3) or (B, N, 3) float
         Isotropic, y-up mesh coordinates (``image_to_mesh``), N >= ``tracker_points``
-        (MediaPipe's 478-point mesh carries 10 iris points after the 468).
+        (MediaPipe's 478-point mesh carries 10 iris points after the 468). A mesh of
+        fewer points gives the layout's earlier count its points reach
+        (``Layout.count_within``: the first 24 of a 468-point mesh).
 
     Returns
     -------
@@ -130,7 +134,10 @@ def normalise_mesh(mesh: npt.ArrayLike, layout: Layout) -> np.ndarray:
     """
     x, single = _sanitize(mesh, layout)
     rotation, origin, scale = face_frame(x, layout)
-    picked = x[:, layout.features] - origin[:, None, :]
+    features = layout.features
+    if x.shape[1] < layout.tracker_points:
+        features = features[: layout.count_within(x.shape[1])]
+    picked = x[:, features] - origin[:, None, :]
     out: np.ndarray = np.einsum("bkj,bij->bki", picked, rotation)
     out *= scale[:, None, None]
     return out[0] if single else out

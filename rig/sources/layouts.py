@@ -9,8 +9,10 @@ A layout file is one JSON object::
     tracker_points  int N, points of the tracker's mesh (indices lie in [0, N))
     features        K mesh indices: the feature points, in the order of the rig's points
     feature_names   K str
-    multipie68      K int, optional: the Multi-PIE 68 position of each feature, so the
-                    table maps onto ``facecast.rig.sources.ict.DEFAULT_LANDMARKS``
+    multipie68      K int or null, optional: the Multi-PIE 68 position of each feature, so
+                    the table maps onto ``facecast.rig.sources.ict.DEFAULT_LANDMARKS``;
+                    null for a feature the 68 do not have (an iris centre), only after
+                    every feature that has one
     stable          mesh indices that expressions barely move (head-pose removal)
     eyes            {"left"|"right": {"upper", "lower", "outer", "inner": index}}
     frame           {"left", "right", "bottom", "top": [indices], "span": float}: the
@@ -20,6 +22,9 @@ A layout file is one JSON object::
                     A layout only grows by appending features, so a rig fitted on an
                     earlier version (K points) is driven by the first K of today's points
                     (``Layout.drives``); captures and rigs stored before stay usable.
+                    A mesh with fewer than ``tracker_points`` points (MediaPipe's 468
+                    without the iris) gives the longest of these counts whose features it
+                    has (``Layout.count_within``).
 """
 
 from __future__ import annotations
@@ -79,7 +84,7 @@ class Layout:
     tracker_points: int
     features: np.ndarray
     feature_names: tuple[str, ...]
-    multipie68: tuple[int, ...] | None
+    multipie68: tuple[int | None, ...] | None
     stable: np.ndarray
     eyes: dict[str, dict[str, int]]
     frame: dict[str, np.ndarray]
@@ -100,6 +105,37 @@ class Layout:
         """Whether a rig of ``k`` feature points takes this layout's points: ``k`` is its
         feature count, or an earlier version's (then the first ``k`` points)."""
         return k in self.counts
+
+    @property
+    def multipie_count(self) -> int:
+        """How many leading features have a Multi-PIE 68 position (0 without the table)."""
+        if self.multipie68 is None:
+            return 0
+        return sum(1 for position in self.multipie68 if position is not None)
+
+    def count_within(self, n: int) -> int:
+        """The most feature points a mesh of ``n`` points gives: the largest of ``counts``
+        whose features all lie below ``n``.
+
+        Raises
+        ------
+        InputError
+            ``wrong_landmark_count``: the mesh lacks a point of the face frame or the
+            stable set, or of the layout's first version's features.
+        """
+        frame = max(
+            int(self.stable.max()),
+            *(int(f.max()) for f in self.frame.values()),
+            *(i for parts in self.eyes.values() for i in parts.values()),
+        )
+        least = 1 + max(frame, int(self.features[: self.counts[0]].max()))
+        if n < least:
+            raise InputError(
+                f"a mesh of {n} points is too few for layout {self.name}: it needs "
+                f"{self.tracker_points} ({least} for its first {self.counts[0]} features)",
+                code="wrong_landmark_count",
+            )
+        return next(k for k in reversed(self.counts) if int(self.features[:k].max()) < n)
 
     def to_dict(self) -> dict[str, Any]:
         """The layout as the JSON object it was read from."""
@@ -181,7 +217,13 @@ def layout_from_dict(doc: object, where: str = "<dict>") -> Layout:
     if multipie is not None:
         if not isinstance(multipie, list) or len(multipie) != k:
             raise _fail(where, f"multipie68 must list {k} positions, one per feature")
-        multipie = tuple(_index(v, 68, where, f"multipie68[{i}]") for i, v in enumerate(multipie))
+        multipie = tuple(
+            None if v is None else _index(v, 68, where, f"multipie68[{i}]")
+            for i, v in enumerate(multipie)
+        )
+        known = [v for v in multipie if v is not None]
+        if not known or any(v is None for v in multipie[: len(known)]):
+            raise _fail(where, "multipie68's nulls (features the 68 lack) must come last")
     stable = _indices(doc["stable"], n, where, "stable", minimum=3)
     eyes_doc = doc["eyes"]
     if not isinstance(eyes_doc, dict) or set(eyes_doc) != {"left", "right"}:

@@ -6,7 +6,8 @@ error; it must not fit, clone or touch the network.
 MediaPipe face-landmarker NDJSON: one JSON object per line,
 ``{"landmarks": [[x, y, z] x 478], "transform": [16 floats], "t": seconds}``
 (``transform``, the row-major 4x4 facial transformation matrix, and ``t`` optional;
-468-landmark meshes without irises are accepted too). Blank lines are skipped.
+468-landmark meshes without irises are accepted too: they give the layout's first 24
+feature points, the iris centres being the last two). Blank lines are skipped.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import json
 import math
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NoReturn
@@ -40,13 +41,14 @@ __all__ = [
 #: Longest NDJSON line accepted, characters (478 landmarks at full precision is ~40 KB).
 MAX_LINE_CHARS = 1 << 20
 
-#: MediaPipe face-mesh landmark for each of the 20 standard feature points, in the order
-#: of ``facecast.rig.sources.ict.DEFAULT_LANDMARKS`` (Multi-PIE 68 positions), so a MediaPipe take
-#: drives a rig imported from ICT-FaceKit with the default landmarks: (feature, Multi-PIE
-#: 68 position, MediaPipe landmark), read from the one table the /perform page uses too,
+#: MediaPipe face-mesh landmark for each of the layout's feature points, the first 24 in the
+#: order of ``facecast.rig.sources.ict.DEFAULT_LANDMARKS`` (Multi-PIE 68 positions), so a
+#: MediaPipe take drives a rig imported from ICT-FaceKit with the default landmarks, then
+#: the two iris centres (no Multi-PIE position: None): (feature, Multi-PIE 68 position,
+#: MediaPipe landmark), read from the one table the /perform page uses too,
 #: ``facecast/rig/sources/layouts/mediapipe_face_mesh.json``; "right" is the subject's right.
 _LAYOUT = load_layout("mediapipe_face_mesh")
-MEDIAPIPE_FEATURES: tuple[tuple[str, int, int], ...] = tuple(
+MEDIAPIPE_FEATURES: tuple[tuple[str, int | None, int], ...] = tuple(
     zip(_LAYOUT.feature_names, _LAYOUT.multipie68 or (), _LAYOUT.features.tolist(), strict=True)
 )
 _DEFAULT_MEDIAPIPE = tuple(_LAYOUT.features.tolist())
@@ -206,7 +208,9 @@ def read_mediapipe_ndjson(
                     f"{path} line {line_no}: more than {max_frames} frames", code="too_many_frames"
                 )
             where = f"{path} line {line_no}"
-            points, stamp, transform = _parse_mediapipe_line(line, indices, where)
+            points, stamp, transform = _parse_mediapipe_line(
+                line, indices, where, shorter=None if mapping is not None else _shorter
+            )
             if face_frame:
                 try:
                     points = normalise_mesh(image_to_mesh(points, width, height), _LAYOUT)
@@ -215,6 +219,12 @@ def read_mediapipe_ndjson(
             if stamp is not None and stamps and stamps[-1] is not None and stamp < stamps[-1]:
                 raise InputError(
                     f"{where}: t={stamp} is earlier than the line before", code="bad_time"
+                )
+            if frames and points.shape != frames[0].shape:
+                raise InputError(
+                    f"{where}: {len(points)} feature points where the lines before gave "
+                    f"{len(frames[0])} (a take's meshes all have or all lack the iris)",
+                    code="wrong_landmark_count",
                 )
             frames.append(points)
             stamps.append(stamp)
@@ -233,8 +243,19 @@ def read_mediapipe_ndjson(
     return MediaPipeTake(points=points, timestamps=times, transforms=mats)
 
 
+def _shorter(indices: np.ndarray, n: int) -> np.ndarray:
+    """The default mapping's (or a face frame's whole mesh's) indices for a mesh of ``n``
+    points, MediaPipe's 468 without the iris: the layout's earlier count its points reach."""
+    if indices.size == _LAYOUT.tracker_points:  # the whole mesh, for the face frame
+        return indices[:n]
+    return indices[: _LAYOUT.count_within(n)]
+
+
 def _parse_mediapipe_line(
-    line: str, indices: np.ndarray, where: str
+    line: str,
+    indices: np.ndarray,
+    where: str,
+    shorter: Callable[[np.ndarray, int], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, float | None, np.ndarray | None]:
     try:
         # NaN/Infinity literals are not JSON; refuse them as non-finite, by name.
@@ -253,6 +274,8 @@ def _parse_mediapipe_line(
             f"{where}: {len(marks)} landmarks, expected 478 (or 468 without irises)",
             code="wrong_landmark_count",
         )
+    if indices.max() >= len(marks) and shorter is not None:
+        indices = shorter(indices, len(marks))
     if indices.max() >= len(marks):
         raise InputError(
             f"{where}: the mapping uses landmark {int(indices.max())} but the line has "

@@ -122,9 +122,17 @@ class _PerformerFit:
                 f"has {k}",
             )
         points = self.capture.points
-        if self.capture.num_points > k and layout.drives(self.capture.num_points):
-            # A rig fitted on the layout's earlier version takes the first k points.
-            points = {name: p[:k] for name, p in points.items()}
+        if self.capture.num_points != k and not layout.drives(self.capture.num_points):
+            counts = " or ".join(map(str, layout.counts))
+            raise ApiError(
+                422,
+                "wrong_point_count",
+                f"the capture has {self.capture.num_points} feature points; layout "
+                f"{layout.name} gives {counts}",
+            )
+        # A capture of more points than a rig fitted on the layout's earlier version (the
+        # iris centres after its 24) keeps them: the performer's rig is fitted on all its
+        # points, its first k the character's (fit_performer). Fewer: wrong_point_count.
         # VRM presets the performer did not make, from the ARKit shapes they did.
         composed = composed_captures(base.names, points)
         if self.shared_only:

@@ -195,6 +195,27 @@ def test_mediapipe_face_frame_is_the_shared_normalisation_and_ignores_head_turns
     np.testing.assert_allclose(take.points[1], take.points[0], atol=1e-6)
 
 
+@pytest.mark.parametrize("face_frame", [False, True])
+def test_a_mediapipe_take_without_irises_gives_the_layouts_first_24_points(tmp_path, face_frame):
+    """468-landmark lines (MediaPipe without its iris refinement) have no iris centres,
+    the layout's last two features: they give the first 24, what the same lines with the
+    iris give first; a take mixing the two is refused by the line that changes."""
+    marks = [_landmarks(i) for i in range(2)]
+    full = read_mediapipe_ndjson(
+        _ndjson(tmp_path, [{"landmarks": m.tolist()} for m in marks]), face_frame=face_frame
+    )
+    short = read_mediapipe_ndjson(
+        _ndjson(tmp_path, [{"landmarks": m[:468].tolist()} for m in marks], "short.ndjson"),
+        face_frame=face_frame,
+    )
+    assert full.points.shape == (2, 26, 3) and short.points.shape == (2, 24, 3)
+    np.testing.assert_allclose(short.points, full.points[:, :24], atol=1e-12)
+    mixed = [{"landmarks": marks[0].tolist()}, {"landmarks": marks[1][:468].tolist()}]
+    with pytest.raises(InputError) as info:
+        read_mediapipe_ndjson(_ndjson(tmp_path, mixed, "mixed.ndjson"), face_frame=face_frame)
+    assert info.value.code == "wrong_landmark_count" and "line 2" in info.value.message
+
+
 def test_mediapipe_face_frame_refuses_a_mapping_and_a_degenerate_mesh(tmp_path):
     flat = np.zeros((468, 3))
     path = _ndjson(tmp_path, [{"landmarks": flat.tolist()}])
@@ -213,16 +234,18 @@ def test_mediapipe_animation_has_one_frame_per_line(tmp_path):
 
 
 def test_a_mediapipe_take_drives_a_rig_of_the_layouts_earlier_twenty_points(tmp_path):
-    """An NDJSON take gives the layout's 24 points; a rig fitted on its earlier 20 (the
-    layout grew by appending) takes the first 20, as /perform sends them."""
+    """An NDJSON take gives the layout's 26 points; a rig fitted on its earlier 20 or 24 (the
+    layout grew by appending) takes the first 20 or 24, as /perform sends them."""
     docs = [{"landmarks": _landmarks(i).tolist()} for i in range(3)]
     path = _ndjson(tmp_path, docs)
 
     full = load_source_animation(path, num_points=len(MEDIAPIPE_FEATURES))
     first = load_source_animation(path, num_points=20)
+    lids = load_source_animation(path, num_points=24)
 
-    assert full.points.shape == (3, 24, 3)
+    assert full.points.shape == (3, 26, 3)
     np.testing.assert_array_equal(first.points, full.points[:, :20])
+    np.testing.assert_array_equal(lids.points, full.points[:, :24])
     with pytest.raises(InputError) as info:
         load_source_animation(path, num_points=21)
     assert info.value.code == "point_count_mismatch"

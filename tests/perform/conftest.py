@@ -15,6 +15,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from facecast.cli.snapshot import CHROMIUM_ARGS, chromium_path, serving, write_demo_rig
@@ -101,7 +102,7 @@ def browser(camera_file):
 
 
 #: The demo character in a rig that takes the layout's first 20 points (the demo rig takes
-#: 21, the layout gives 24): a character the page can publish for and calibrate on without
+#: 21, the layout gives 26): a character the page can publish for and calibrate on without
 #: ICT-FaceKit's data, fitted as a rig of the layout's earlier 20-point version was, so the
 #: page tests drive that path (the page sends such a rig the first 20 of its points).
 CHARACTER = "cartoon"
@@ -109,32 +110,42 @@ CHARACTER = "cartoon"
 
 def _write_character_rig(rigs: Path) -> None:
     demo = demo_example_set()
-    (k,) = load_layout().earlier_counts
+    k = load_layout().earlier_counts[0]
     examples = ExampleSet(
         demo.names, demo.source_points[:, :k], demo.target_vertices, demo.target_faces
     )
     fit(examples).save(rigs / f"{CHARACTER}.rig")
 
 
-#: A rig on the layout's full 24 points, for tests of what the page publishes (a points
-#: watcher reads the frames as sent): the generic ARKit set's points, its target the same
-#: points as a mesh (no ICT-FaceKit data needed).
-LAYOUT_RIG = "points24"
+#: A rig on the layout's full 26 points, for tests of what the page publishes (a points
+#: watcher reads the frames as sent): the generic ARKit set's 24 points (the layout's
+#: earlier count: ICT has no iris) and each eye's four lid points' mean standing in for its
+#: iris centre, its target the same points as a mesh (no ICT-FaceKit data needed).
+LAYOUT_RIG = "points26"
 
 
 def _write_layout_rig(rigs: Path) -> None:
     generic = generic_sources()
-    k = generic.points.shape[1]
-    assert k == load_layout().num_features
+    layout = load_layout()
+    names = list(layout.feature_names)
+    lids = {
+        side: [names.index(f"{side}_{lid}") for lid in
+               ("upper_lid", "lower_lid", "upper_lid_inner", "lower_lid_inner")]
+        for side in ("right", "left")
+    }  # fmt: skip
+    irises = np.stack([generic.points[:, lids[s]].mean(axis=1) for s in ("right", "left")], 1)
+    points = np.concatenate([generic.points, irises], axis=1)
+    k = points.shape[1]
+    assert k == layout.num_features and names[-2:] == ["right_iris", "left_iris"]
     faces = [[i, i + 1, i + 2] for i in range(k - 2)]
-    examples = ExampleSet(generic.names, generic.points, generic.points, faces)
+    examples = ExampleSet(generic.names, points, points, faces)
     fit(examples, noise=0.035, clamp="unit").save(rigs / f"{LAYOUT_RIG}.rig")
 
 
 @pytest.fixture(scope="package")
 def rigs_dir(tmp_path_factory) -> Path:
     """The demo rig (``demo``, K = 21), the demo character for this layout's earlier 20
-    points (``cartoon``) and a rig on its 24 (``points24``)."""
+    points (``cartoon``) and a rig on its 26 (``points26``)."""
     rigs = tmp_path_factory.mktemp("perform-rigs")
     write_demo_rig(rigs)
     _write_character_rig(rigs)

@@ -182,7 +182,7 @@ def test_a_rig_of_another_point_count_is_not_published_to_and_says_why(
     tracking(page, 20)
 
     stats = page.evaluate("window.facecastStats")
-    assert "takes 21 feature points, this page's layout gives 24" in stats["publishDetail"]
+    assert "takes 21 feature points, this page's layout gives 26" in stats["publishDetail"]
     assert stats["published"] == 0
 
 
@@ -244,10 +244,11 @@ def test_a_scripted_calibration_fits_the_performers_rig(server, performer_rig):
     profile = httpx.get(f"{server}/v1/performers/tester").json()
 
     assert fit["id"] == RIG
-    # The page captures the layout's 24 points and the profile keeps them all (for a refit
-    # onto a character of 24); the cartoon, fitted on the layout's earlier 20, takes 20.
-    assert profile["num_points"] == len(NAMES) == 24
-    assert rig["num_points"] == LAYOUT.earlier_counts[0] == 20
+    # The page captures the layout's 26 points and the profile keeps them all; the cartoon
+    # was fitted on the layout's earlier 20, and the performer's own rig on all 26 (its
+    # first 20 the cartoon's: the lids' second points and the irises are the performer's).
+    assert profile["num_points"] == len(NAMES) == 26
+    assert rig["num_points"] == 26 and LAYOUT.earlier_counts[0] == 20
     assert rig["names"][:2] == ["neutral", "aa"]  # what was captured, in the rig's order
     assert "happy" not in calibration["captures"]  # skipped
     assert 0 < calibration["noise"] < 0.1  # measured by the server, about cm
@@ -310,8 +311,8 @@ def test_on_the_performers_rig_the_open_mouth_weighs_clearly_more(
 def test_a_rig_of_the_layouts_earlier_twenty_points_is_sent_the_first_twenty(
     browser, server, rigs_dir, camera, pages
 ):
-    """The layout grew 20 -> 24 points by appending: the page tracks 24 and sends a rig
-    fitted on the earlier 20 (the cartoon) the first 20 of them, and says so."""
+    """The layout grew 20 -> 24 -> 26 points by appending: the page tracks 26 and sends a
+    rig fitted on the earlier 20 (the cartoon) the first 20 of them, and says so."""
     rig = f"{CHARACTER}@first20"  # a performer's own rig: published from the first frame
     shutil.copy(rigs_dir / f"{CHARACTER}.rig", rigs_dir / f"{rig}.rig")
     camera.show([FacePose()] * 5)
@@ -329,13 +330,13 @@ def test_a_rig_of_the_layouts_earlier_twenty_points_is_sent_the_first_twenty(
         recorder.stop.set()
         thread.join(5)
 
-    assert stats["rigK"] == 20 and len(stats["points"]) == 24 * 3
+    assert stats["rigK"] == 20 and len(stats["points"]) == 26 * 3
     assert sent.shape[1:] == (20, 3)
     # A still image: once the eye crops settle, every frame is the page's last points' first 20.
-    tracked = np.array(stats["points"], dtype=np.float32).reshape(24, 3)
+    tracked = np.array(stats["points"], dtype=np.float32).reshape(26, 3)
     assert np.abs(sent[-1] - tracked[:20]).max() <= 1e-5
     assert (
-        "24 points (mediapipe_face_mesh, head pose removed, ≈ cm): the rig takes the first 20"
+        "26 points (mediapipe_face_mesh, head pose removed, ≈ cm): the rig takes the first 20"
         in shown
     )
     chin = tracked[NAMES.index("chin")]

@@ -69,7 +69,7 @@ def test_track_gives_the_points_the_live_page_publishes(
     browser, server, rigs_dir, camera, clip_points, pages
 ):
     _, result = clip_points
-    # A performer's own rig (published from the first frame) on the layout's 24 points.
+    # A performer's own rig (published from the first frame) on the layout's 26 points.
     rig = f"{LAYOUT_RIG}@agree"
     shutil.copy(rigs_dir / f"{LAYOUT_RIG}.rig", rigs_dir / f"{rig}.rig")
     distinct = result.points[HOLD - 1 :: HOLD]  # each image's last frame: settled
@@ -154,7 +154,7 @@ def test_clone_puts_a_tracked_video_on_a_rig(clip_points, rigs_dir, tmp_path, ca
     points = result.points.copy()
     points[~found] = np.nan
     tracked = tmp_path / "tracked.npz"
-    # As ``facecast track`` writes it: 24 points in the layout it names; the cartoon rig,
+    # As ``facecast track`` writes it: 26 points in the layout it names; the cartoon rig,
     # fitted on the layout's earlier 20, takes the first 20.
     np.savez(tracked, points=points, found=found, fps=result.fps, layout=np.str_(result.layout))
     out = tmp_path / "out.npz"

@@ -48,6 +48,20 @@ def test_performer_rig_is_cardinal_on_the_captured_points(character):
     np.testing.assert_allclose(weights, np.eye(len(NAMES)), atol=1e-9)
 
 
+def test_points_after_the_characters_are_the_performers_own_and_fitted_too(character):
+    """A later layout appends points (the iris centres after the lids): a capture of more
+    points than the character's fits a rig of the capture's count, its first K the
+    character's - here the appended points alone tell the smile from the neutral."""
+    _, rig = character
+    points = {n: np.vstack([p, p[:2] + 0.1]) for n, p in _performer().items()}
+    points["smile"] = points["neutral"].copy()
+    points["smile"][6:] += [0.5, 0.0, 0.0]
+    mine = fit_performer(rig, points)
+    assert mine.num_points == 8 and rig.num_points == 6
+    weights = mine.weights(np.stack([points[n] for n in NAMES]))
+    np.testing.assert_allclose(weights, np.eye(len(NAMES)), atol=1e-9)
+
+
 def test_noise_bounds_the_weights_and_is_recorded(character):
     _, rig = character
     mine = fit_performer(rig, _performer(), noise=0.02)
@@ -68,6 +82,7 @@ def test_skipped_expressions_are_left_out_in_the_rigs_order(character):
         (lambda p: p.pop("neutral"), "no_neutral"),
         (lambda p: p.update(wink=p["smile"]), "unknown_expression"),
         (lambda p: p.update(smile=p["smile"][:5]), "wrong_point_count"),
+        (lambda p: p.update(smile=np.vstack([p["smile"], p["smile"][:1]])), "wrong_point_count"),
         (lambda p: p.update(smile=np.full((6, 3), np.nan)), "non_finite"),
         (lambda p: [p.pop(n) for n in NAMES[1:]], "too_few_examples"),
     ],

@@ -20,7 +20,7 @@ from facecast.server.testing import run_server
 
 pytestmark = pytest.mark.anyio
 
-K = 20  # the mediapipe_face_mesh layout's earlier version's feature points (24 now)
+K = 20  # the mediapipe_face_mesh layout's first version's feature points (26 now)
 NAMES = ("neutral", "smile", "frown", "jawOpen", "browUp")
 
 
@@ -91,28 +91,43 @@ async def test_capture_fits_a_rig_whose_weights_are_cardinal_on_the_captured_poi
     )
 
 
-async def test_a_rig_of_the_layouts_earlier_twenty_points_fits_a_capture_by_its_prefix(server):
-    """The layout grew 20 -> 24 points by appending: a capture of today's 24 fits a rig of
-    the earlier 20 (a character uploaded before) on its first 20, as the rig takes them; a
-    capture of 20 cannot give a 24-point rig its lid points and is refused."""
-    twenty = performer_points()
-    full = {n: np.concatenate([p, p[:4] + 0.5]) for n, p in twenty.items()}  # 24 points
+async def test_a_capture_of_a_later_layout_fits_a_rig_of_its_earlier_count_on_every_point(
+    server,
+):
+    """The layout grew 20 -> 24 -> 26 points by appending (lid points, then the iris
+    centres): a capture of today's points fits a rig of an earlier count (a character
+    uploaded before, or made from ICT's 68 landmarks, which have no iris) on all of them,
+    the performer's rig taking the capture's count; here the iris is all that tells two
+    expressions apart. A capture of fewer points than the rig, or of a count no version of
+    the layout had, is refused."""
+    base = performer_points(k=24)
+    shift = np.array([0.0, -0.1, 0.0])
+    full = {n: np.concatenate([p, p[6:10:2] + shift]) for n, p in base.items()}
+    full["smile"] = full["neutral"].copy()
+    full["smile"][24:] += [0.4, 0.0, 0.0]  # only the irises move (the eyes turn)
     async with http(server) as client:
-        response = await client.put("/v1/rigs/hero/performer/carol", json=capture_body(full))
-        rig_file = await client.get("/v1/rigs/hero@carol/rig")
-        short = await client.put("/v1/rigs/hero24/performer/carol", json=capture_body(twenty))
+        response = await client.put("/v1/rigs/hero24/performer/carol", json=capture_body(full))
+        rig_file = await client.get("/v1/rigs/hero24@carol/rig")
+        lids = await client.put(
+            "/v1/rigs/hero/performer/erin",
+            json=capture_body({n: p[:24] for n, p in full.items() if n != "smile"}),
+        )
+        short = await client.put(
+            "/v1/rigs/hero24/performer/carol", json=capture_body(performer_points())
+        )
         odd = await client.put(
             "/v1/rigs/hero/performer/dave",
-            json=capture_body({n: np.concatenate([p, p[:2]]) for n, p in twenty.items()}),
+            json=capture_body({n: p[:22] for n, p in full.items()}),
         )
 
     assert response.status_code == 201, response.text
     from facecast.rig import rig_from_bytes
 
     rig = rig_from_bytes(rig_file.content)
-    assert rig.num_points == K
-    weights = rig.weights(np.stack([twenty[n] for n in NAMES]))
+    assert rig.num_points == 26 and response.json()["num_points"] == 26
+    weights = rig.weights(np.stack([full[n] for n in NAMES]))
     np.testing.assert_allclose(weights, np.eye(len(NAMES)), atol=1e-8)
+    assert lids.status_code == 201 and lids.json()["num_points"] == 24, lids.text
     # 20 points for a 24-point rig, 22 (no version of the layout) for a 20-point one.
     for answer in (short, odd):
         assert (answer.status_code, answer.json()["code"]) == (422, "wrong_point_count")

@@ -19,6 +19,11 @@ const UPPER_CONTOUR = [9, 10, 11, 12, 13, 14, 15];
 const LOWER_CONTOUR = [0, 1, 2, 3, 4, 5, 6, 7, 8];
 /** Numbers the model gives per eye: 71 contour and 5 iris points, x y z each. */
 const EYE_VALUES = 76 * 3;
+/** Where the iris points go after FaceMesh's 468, as in MediaPipe's 478-point mesh: the
+ * subject's right eye's 5 at 468-472, the left's at 473-477, each eye's centre first (the
+ * model gives its 5 iris points after its 71 contour points in that order). */
+export const IRIS_MESH = { right: 468, left: 473 };
+const IRIS_CONTOUR = 71;
 /** The crop: the corners' box enlarged this much, made square (Human's default). */
 export const EYE_CROP_SCALE = 2.3;
 /** Frames over which each crop's place and size are the median: a quick blink (3–5 frames at
@@ -95,6 +100,8 @@ export class EyeBoxes {
  * One eye's model output (`values`, the eye's EYE_VALUES numbers in crop pixels of an
  * `input`-sided crop) written into `landmarks` (image pixels, [x, y, z] each): the lid
  * points' x and y; the corners and z stay FaceMesh's (the model's depth is its crop's).
+ * And the eye's 5 iris points appended where MediaPipe's 478-point mesh has them
+ * (IRIS_MESH), their z the lid centres' (the layout's iris features: README, option (n)).
  * `mirrored`: the crop was flipped left-right before the model saw it.
  */
 export function replaceLids(landmarks, side, values, box, input, mirrored) {
@@ -107,6 +114,12 @@ export function replaceLids(landmarks, side, values, box, input, mirrored) {
   UPPER[side].forEach((index, j) => place(index, UPPER_CONTOUR[j]));
   // The lower contour's first and last points are the corners: kept (the face frame's).
   for (let j = 1; j < LOWER[side].length - 1; j++) place(LOWER[side][j], LOWER_CONTOUR[j]);
+  const z = (landmarks[UPPER[side][3]][2] + landmarks[LOWER[side][4]][2]) / 2;
+  for (let j = 0; j < 5; j++) {
+    const u = values[3 * (IRIS_CONTOUR + j)] / input;
+    const v = values[3 * (IRIS_CONTOUR + j) + 1] / input;
+    landmarks[IRIS_MESH[side] + j] = [box.x + (mirrored ? 1 - u : u) * box.size, box.y + v * box.size, z];
+  }
   return landmarks;
 }
 

@@ -10,7 +10,9 @@ import { largestFace } from "./facemesh.js";
 
 /** Whether FaceMesh's eyelids are refined by the iris model (eyelids.js): FaceMesh's own
  * lids close a fifth of the way on a blink and move both eyes alike on a wink (README, "The
- * eyes clip"). The page, `facecast track` and `facecast perform`'s page all take it from here. */
+ * eyes clip"). The page, `facecast track` and `facecast perform`'s page all take it from here.
+ * The same model gives the iris centres, the layout's last two features (the mesh then has
+ * MediaPipe's 478 points): without it the mesh has 468, which the layout refuses. */
 export const REFINE_EYELIDS = true;
 
 /** Where build.mjs puts the models and the WebAssembly binaries, relative to the page. */
