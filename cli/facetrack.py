@@ -61,6 +61,31 @@ class Tracked:
     seconds: float
 
 
+#: Points of FaceMesh's own mesh; the attention mesh appends 10 iris points (5 an eye).
+FACEMESH_POINTS = 468
+#: FaceMesh's lid contours without the eye corners (MediaPipe's FACEMESH_RIGHT_EYE /
+#: FACEMESH_LEFT_EYE; the points the page's eyelids.js replaces too), the subject's right
+#: eye's upper then lower lid, then the left's: taken from the attention mesh.
+LIDS = np.array(
+    [
+        *(246, 161, 160, 159, 158, 157, 173, 7, 163, 144, 145, 153, 154, 155),
+        *(466, 388, 387, 386, 385, 384, 398, 249, 390, 373, 374, 380, 381, 382),
+    ]
+)
+#: FaceMesh's nose tip, which pairs a face of the attention mesh with FaceMesh's.
+_NOSE = 4
+
+
+def _meshes(model: object, rgb: np.ndarray) -> list[np.ndarray]:
+    """Every face ``model`` (a MediaPipe FaceMesh) finds in ``rgb``: normalised image
+    coordinates, (N, 3) each."""
+    found = model.process(rgb)  # type: ignore[attr-defined]
+    return [
+        np.array([(p.x, p.y, p.z) for p in face.landmark], dtype=np.float64)
+        for face in found.multi_face_landmarks or []
+    ]
+
+
 class FaceTracker:
     """MediaPipe FaceMesh on RGB frames, the largest face normalised through ``layout``.
 
@@ -78,9 +103,13 @@ class FaceTracker:
     min_confidence : float
         Detection and tracking confidence in (0, 1].
     iris : bool
-        MediaPipe's attention mesh (its ``refine_landmarks``), the default: 478 points, the
-        iris centres among them (the layout's last two features), its lids and lips
-        refined. False: the 468-point mesh, which gives the layout's first 24 points.
+        The eyes refined, the default: a second model, MediaPipe's attention mesh (its
+        ``refine_landmarks``), gives the lids (``LIDS``) and the 10 iris points (the
+        layout's last two features are the iris centres) of the 478-point mesh, the rest
+        being FaceMesh's own 468 - as the /perform page refines FaceMesh's lids and adds
+        the iris from the iris model. The attention mesh's own lips and brows superpose
+        expressions worse (README, "The eyes clip", option (o)). False: FaceMesh's 468
+        points alone, which give the layout's first 24.
     """
 
     def __init__(
@@ -98,13 +127,18 @@ class FaceTracker:
             raise InputError(f"max_faces must be 1-8, got {max_faces!r}")
         if not 0 < min_confidence <= 1:
             raise InputError(f"min_confidence must be in (0, 1], got {min_confidence!r}")
-        self._model = face_mesh.FaceMesh(
-            static_image_mode=static,
-            max_num_faces=max_faces,
-            refine_landmarks=iris,
-            min_detection_confidence=min_confidence,
-            min_tracking_confidence=min_confidence,
-        )
+
+        def model(refine: bool) -> object:
+            return face_mesh.FaceMesh(
+                static_image_mode=static,
+                max_num_faces=max_faces,
+                refine_landmarks=refine,
+                min_detection_confidence=min_confidence,
+                min_tracking_confidence=min_confidence,
+            )
+
+        self._model = model(False)
+        self._eyes = model(True) if iris else None
 
     def track(self, rgb: np.ndarray) -> Tracked:
         """Track one (H, W, 3) uint8 RGB frame."""
@@ -112,24 +146,32 @@ class FaceTracker:
             raise InputError(f"expected an (H, W, 3) RGB frame, got {np.shape(rgb)}")
         started = time.perf_counter()
         height, width = rgb.shape[:2]
-        found = self._model.process(np.ascontiguousarray(rgb, dtype=np.uint8))
-        faces = found.multi_face_landmarks or []
-        if not faces:
+        frame = np.ascontiguousarray(rgb, dtype=np.uint8)
+        meshes = _meshes(self._model, frame)
+        if not meshes:
             return Tracked(None, 0, None, time.perf_counter() - started)
-        meshes = [
-            np.array([(p.x, p.y, p.z) for p in face.landmark], dtype=np.float64) for face in faces
-        ]
         # Two faces: follow the one nearest the camera, i.e. largest in the image.
         areas = [np.ptp(m[:, 0]) * width * np.ptp(m[:, 1]) * height for m in meshes]
-        mesh = image_to_mesh(meshes[int(np.argmax(areas))], width, height)
+        face = meshes[int(np.argmax(areas))]
+        if self._eyes is not None:
+            # The same face in the attention mesh: the one whose nose tip is nearest.
+            refined = _meshes(self._eyes, frame)
+            if not refined:  # no eyes to give: no face, rather than a frame of other points
+                return Tracked(None, len(meshes), None, time.perf_counter() - started)
+            eyes = min(refined, key=lambda m: float(np.linalg.norm(m[_NOSE, :2] - face[_NOSE, :2])))
+            face = np.concatenate([face, eyes[FACEMESH_POINTS:]])
+            face[LIDS] = eyes[LIDS]
+        mesh = image_to_mesh(face, width, height)
         try:
             points = normalise_mesh(mesh, self.layout)
         except InputError:  # a degenerate mesh is no face
-            return Tracked(None, len(faces), None, time.perf_counter() - started)
-        return Tracked(points, len(faces), mesh, time.perf_counter() - started)
+            return Tracked(None, len(meshes), None, time.perf_counter() - started)
+        return Tracked(points, len(meshes), mesh, time.perf_counter() - started)
 
     def close(self) -> None:
-        self._model.close()
+        for model in (self._model, self._eyes):
+            if model is not None:
+                model.close()  # type: ignore[attr-defined]
 
     def __enter__(self) -> FaceTracker:
         return self

@@ -8,9 +8,7 @@ Commands::
 
     video SPEC.json PHOTO.npy OUT.avi   the fake-camera video (see make_video)
     track-video VIDEO OUT.npz           every frame of VIDEO through FaceTracker
-    track-images IMAGES.npz OUT.npz [--no-iris]
-                                        each image "0", "1", ... through FaceTracker (with
-                                        --no-iris: FaceMesh's 468 points, no attention mesh)
+    track-images IMAGES.npz OUT.npz     each image "0", "1", ... through FaceTracker
 """
 
 from __future__ import annotations
@@ -26,8 +24,8 @@ import numpy as np
 from facecast.cli.facetrack import FaceTracker, VideoSource
 from facecast.rig.sources.layouts import load_layout
 
-#: Mesh points of the legacy FaceMesh with its attention mesh (the iris refined) / without.
-MESH_POINTS = {True: 478, False: 468}
+#: Mesh points FaceTracker gives: FaceMesh's 468 and the attention mesh's 10 iris points.
+MESH_POINTS = 478
 
 
 def _similarity(image, angle, scale, dx, dy):
@@ -70,14 +68,13 @@ def make_video(spec: dict, photo: np.ndarray, out: Path) -> None:
     writer.release()
 
 
-def track(images: Iterable[np.ndarray], out: Path, *, iris: bool = True) -> None:
+def track(images: Iterable[np.ndarray], out: Path) -> None:
     """Track each RGB image; save ``points`` (N, K, 3), ``meshes`` (N, 478, 3), both NaN
     where no face was found, and ``faces`` (N,) to ``out``."""
     layout = load_layout("mediapipe_face_mesh")
-    n = MESH_POINTS[iris]
-    k = layout.count_within(n)
+    n, k = MESH_POINTS, layout.num_features
     points, meshes, faces = [], [], []
-    with FaceTracker(layout, iris=iris) as tracker:
+    with FaceTracker(layout) as tracker:
         for rgb in images:
             tracked = tracker.track(rgb)
             found = tracked.points is not None
@@ -102,10 +99,9 @@ def main(argv: list[str]) -> int:
         with VideoSource(video) as source:
             track(source.frames(), Path(out))
     elif command == "track-images":
-        images, out, *flags = paths
+        images, out = paths
         with np.load(images) as data:
-            images_in = (data[str(i)] for i in range(len(data.files)))
-            track(images_in, Path(out), iris="--no-iris" not in flags)
+            track((data[str(i)] for i in range(len(data.files))), Path(out))
     else:
         raise SystemExit(f"unknown command {command!r}")
     return 0

@@ -74,7 +74,7 @@ class Finished:
     err: str
 
 
-def run_worker(python: Path, command: str, *paths: Path | str) -> None:
+def run_worker(python: Path, command: str, *paths: Path) -> None:
     """Run ``_facetrack_worker.py COMMAND PATHS...`` in the perform venv; raise if it fails."""
     done = subprocess.run(
         [str(python), str(WORKER), command, *map(str, paths)],
@@ -87,16 +87,12 @@ def run_worker(python: Path, command: str, *paths: Path | str) -> None:
         raise AssertionError(f"worker {command} failed ({done.returncode}):\n{done.stderr}")
 
 
-def track_images(
-    python: Path, images: list[np.ndarray], work: Path, *, iris: bool = True
-) -> dict[str, np.ndarray]:
+def track_images(python: Path, images: list[np.ndarray], work: Path) -> dict[str, np.ndarray]:
     """Each (H, W, 3) uint8 RGB image through the real FaceTracker: ``points`` (N, K, 3),
-    ``meshes`` (N, 478, 3), NaN where no face was found, and ``faces`` (N,). ``iris``
-    False: FaceMesh's own 468 points (K = 24), without the attention mesh."""
+    ``meshes`` (N, 478, 3), NaN where no face was found, and ``faces`` (N,)."""
     work.mkdir(parents=True, exist_ok=True)
     np.savez(work / "images.npz", **{str(i): image for i, image in enumerate(images)})
-    flags = () if iris else ("--no-iris",)
-    run_worker(python, "track-images", work / "images.npz", work / "tracked.npz", *flags)
+    run_worker(python, "track-images", work / "images.npz", work / "tracked.npz")
     with np.load(work / "tracked.npz") as tracked:
         return {name: tracked[name] for name in tracked.files}
 

@@ -225,19 +225,14 @@ def test_bad_meshes_are_refused_by_code(layout, mutate, code):
 
 
 @pytest.mark.ict
-def test_layout_points_land_on_icts_landmarks_on_a_real_tracked_face(
-    layout, perform_python, tmp_path
-):
+def test_layout_points_land_on_icts_landmarks_on_a_real_tracked_face(layout, photo_mesh):
     """MediaPipe's mesh of a real photo, aligned onto ICT's neutral by the 24 features:
     each feature lands near its ICT landmark, and for the parts a smile does not move
     (brows, lids, nose, chin, eye corners) no other mesh point is much nearer to it (a
-    wrong index - the other lid, the other side - would be centimetres off).
-
-    The table is checked on FaceMesh's own 468-point mesh, the one it was drawn for;
-    MediaPipe's attention mesh (``facecast perform``'s, for the iris) moves points 1-2 px
-    on this 90 px face and its nose wings 0.95 -> 1.10 cm from ICT's (measured)."""
-    mesh = _aligned_photo_mesh(layout, perform_python, tmp_path, iris=False)
-    aligned, ict68 = mesh["aligned"], mesh["ict68"]
+    wrong index - the other lid, the other side - would be centimetres off). The mesh is
+    ``facecast perform``'s: FaceMesh's 468 points, the lids and irises the attention
+    mesh's (its own nose wings land 1.10 cm from ICT's, FaceMesh's 0.95: measured)."""
+    aligned, ict68 = photo_mesh["aligned"], photo_mesh["ict68"]
     k = layout.multipie_count  # the features with a Multi-PIE position (not the irises)
     multipie = np.asarray(layout.multipie68[:k])
     features = layout.features[:k]
@@ -257,9 +252,10 @@ def test_layout_points_land_on_icts_landmarks_on_a_real_tracked_face(
         assert distance[mesh_index] - distance.min() < 0.4, (mesh_index, landmark)
 
 
-def _aligned_photo_mesh(layout, perform_python, tmp_path, *, iris):
-    """The astronaut photo's MediaPipe mesh aligned onto ICT's neutral 68 landmarks by the
-    layout's features that have a Multi-PIE position."""
+@pytest.fixture(scope="module")
+def photo_mesh(layout, perform_python, tmp_path_factory):
+    """The astronaut photo's mesh through ``facecast perform``'s tracker, aligned onto ICT's
+    neutral 68 landmarks by the layout's features that have a Multi-PIE position."""
     from skimage import data as skimage_data
 
     from facecast.rig.pose import similarity_transform
@@ -272,7 +268,7 @@ def _aligned_photo_mesh(layout, perform_python, tmp_path, *, iris):
         ict68 = data["neutral"][data["landmarks68"]].astype(np.float64)
     # MediaPipe runs in the perform venv (numpy < 2), never in this process.
     photo = [skimage_data.astronaut()]
-    mesh = track_images(perform_python, photo, tmp_path, iris=iris)["meshes"][0]
+    mesh = track_images(perform_python, photo, tmp_path_factory.mktemp("photo"))["meshes"][0]
     k = layout.multipie_count
     features, multipie = layout.features[:k], np.asarray(layout.multipie68[:k])
     rotation, scale, shift = similarity_transform(mesh[None, features], ict68[multipie], scale=True)
@@ -280,14 +276,11 @@ def _aligned_photo_mesh(layout, perform_python, tmp_path, *, iris):
 
 
 @pytest.mark.ict
-def test_the_iris_features_lie_in_their_own_eyes_on_a_real_tracked_face(
-    layout, perform_python, tmp_path
-):
+def test_the_iris_features_lie_in_their_own_eyes_on_a_real_tracked_face(layout, photo_mesh):
     """The layout's last two features, MediaPipe's iris centres (``facecast perform``'s
     attention mesh): each lies inside its own eye's ICT landmarks - between the corners,
     between the lids - on a photo looking at the camera (the other eye is 6 cm away)."""
-    mesh = _aligned_photo_mesh(layout, perform_python, tmp_path, iris=True)
-    aligned, ict68 = mesh["aligned"], mesh["ict68"]
+    aligned, ict68 = photo_mesh["aligned"], photo_mesh["ict68"]
     assert aligned.shape[0] == 478
     eyes = {"right_iris": range(36, 42), "left_iris": range(42, 48)}  # Multi-PIE, subject's
     for name, landmarks in eyes.items():
