@@ -45,8 +45,9 @@ LIDS = {
 DIRECTIONS = ("left", "right", "up", "down")
 POSES = {"rest": {}, **{d: dict.fromkeys(GAZE_WEIGHTS[d], 1.0) for d in DIRECTIONS}}
 HOLD = 10
-#: How far an eye-look weight of 1 turns the eyeball: the iris centre (1.2 cm before the
-#: eyeball's centre) moves about 4 mm; 6.3-6.5 px in the 640 x 480 image, every direction.
+#: How far an eye-look weight of 1 turns the eyeball: the iris centre (the pole of ICT's
+#: eyeball, 1.6 cm from the centre it turns about) moves 5.4-5.5 mm; 6.3-6.5 px in the 640 x
+#: 480 image, every direction.
 GAZE_DEGREES = 20.0
 #: Which hold turns each eye towards the nose.
 NASAL = {"right": "left", "left": "right"}
@@ -59,16 +60,17 @@ NASAL = {"right": "left", "left": "right"}
 #   up        -0.1 +1.5 / -0.3 -1.8
 #   down      +1.4 -1.3 / -1.8 -2.0    (the eyes nearly shut: ICT's eyeLookDown)
 #
-# The iris model follows a turn towards the nose (80 / 75 % of the image's 6.4 px) and one
-# towards the ear weakly (35 / 8 %; on the left eye's, FaceMesh's eye corners move more, and
-# the face-frame x comes out 0.7 mm the wrong way): the same in the model's own frame for
-# both eyes, as the mirroring wants (with the left eye fed in unmirrored, its weak side
-# became the nose's). So the nasal turn and the swing from left to right are pinned, not
-# each turn from rest.
-# Up and down: FaceMesh moves its upper face, and so the face frame, with the lids (2 px up
-# on the up hold, 3-4 px down on the down one), as much as the iris model moves the iris in
-# the image on the left eye's up hold (1.0 px): in the face frame that eye's iris goes 1.8
-# mm *down* when it looks up. Only the down hold moves both the right way; pinned.
+# In the image (the iris's truth moves 6.3-6.5 px) the iris model follows a turn towards
+# the nose (5.3 / 4.9 px) and one towards the ear weakly (2.2 / 0.5 px): the same side of
+# its own input for both eyes, as the mirroring wants (fed the left eye unmirrored, that
+# eye's weak side became the nose's). FaceMesh's eye corners, and with them the face frame,
+# move 1-2 px to the subject's left on the left hold, so that eye's turn to the ear comes
+# out 0.7 mm the wrong way. Pinned: the turn towards the nose (the truth's 5.5 mm: 60 / 51 %)
+# and the swing from the left hold to the right (the truth's 11 mm: 46 / 19 %).
+# Up and down: the iris moves up 4.4 / 1.0 px, down 4.8 / 5.4 px in the image, and FaceMesh
+# moves its upper face (the frame) with the lids, 2 px up on the up hold, 3-4 px down on the
+# down one: in the face frame the left eye's iris goes 1.8 mm *down* when it looks up.
+# Pinned: the down hold lowers both.
 NASAL_MOVE = 0.15  # measured 0.33 / 0.28
 SWING = 0.10  # x on the left hold minus x on the right: measured 0.51 / 0.21
 DOWN_MOVE = 0.06  # measured 0.13 / 0.20
