@@ -40,7 +40,7 @@ import { readFileSync } from "node:fs";
 import { checkLayout, eyeOpenness, headAngles, imageToMesh, normaliseMesh } from "./src/perform/facemesh.js";
 import { encodeFrame } from "./src/protocol.js";
 const layout = checkLayout(JSON.parse(readFileSync("../../rig/sources/layouts/mediapipe_face_mesh.json")));
-const landmarks = Array.from({ length: 468 }, (_, i) => [200 + (i % 23) * 3, 150 + (i % 19) * 4, (i % 7) - 3]);
+const landmarks = Array.from({ length: layout.tracker_points }, (_, i) => [200 + (i % 23) * 3, 150 + (i % 19) * 4, (i % 7) - 3]);
 for (const [part, x, y] of [["right", 215, 160], ["left", 265, 160], ["top", 240, 110], ["bottom", 240, 200]]) {
   for (const i of layout.frame[part]) landmarks[i] = [x, y, 0];
 }

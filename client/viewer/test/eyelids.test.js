@@ -4,7 +4,7 @@
 import assert from "node:assert/strict";
 import { test } from "node:test";
 
-import { EYE_BOX_ANCHOR, EYE_BOX_FRAMES, EyeBoxes, eyeBox, replaceLids } from "../src/perform/eyelids.js";
+import { EYE_BOX_ANCHOR, EYE_BOX_FRAMES, EyeBoxes, IRIS_MESH, eyeBox, replaceLids } from "../src/perform/eyelids.js";
 
 const INPUT = 64;
 
@@ -46,6 +46,21 @@ test("the left eye went in mirrored and comes back un-mirrored in its box", () =
   assert.deepEqual(landmarks[373], [300 + (INPUT - 3), 20 + 32 + 3, 373]);
   for (const corner of [263, 362]) assert.deepEqual(landmarks[corner], [-1, -1, corner]);
   for (const index of [33, 133, 159, 145, 160, 144]) assert.deepEqual(landmarks[index], [-1, -1, index]);
+});
+
+test("each eye's 5 iris points land after FaceMesh's 468, where MediaPipe's 478-point mesh has them", () => {
+  const landmarks = mesh();
+  replaceLids(landmarks, "right", output(), { x: 10, y: 20, size: 128 }, INPUT, false);
+  replaceLids(landmarks, "left", output(), { x: 300, y: 20, size: 64 }, INPUT, true);
+  assert.deepEqual(IRIS_MESH, { right: 468, left: 473 });
+  assert.equal(landmarks.length, 478);
+  // The iris points are the model's 72nd to 76th (after the 71 contour points); their depth
+  // the mean of the eye's middle upper and lower lid points' (159 / 145, 386 / 374).
+  for (let j = 0; j < 5; j++) {
+    const c = 71 + j;
+    assert.deepEqual(landmarks[468 + j], [10 + 2 * c, 20 + 2 * (32 + c), (159 + 145) / 2]);
+    assert.deepEqual(landmarks[473 + j], [300 + (INPUT - c), 20 + 32 + c, (386 + 374) / 2]);
+  }
 });
 
 /** FaceMesh's points for one frame: the nose tip at `nose`, each eye's corners `drop` px
