@@ -223,7 +223,10 @@ def layout_from_dict(doc: object, where: str = "<dict>") -> Layout:
         )
         known = [v for v in multipie if v is not None]
         if not known or any(v is None for v in multipie[: len(known)]):
-            raise _fail(where, "multipie68's nulls (features the 68 lack) must come last")
+            raise _fail(
+                where,
+                "multipie68 starts with positions; its nulls (features the 68 lack) come last",
+            )
     stable = _indices(doc["stable"], n, where, "stable", minimum=3)
     eyes_doc = doc["eyes"]
     if not isinstance(eyes_doc, dict) or set(eyes_doc) != {"left", "right"}:
