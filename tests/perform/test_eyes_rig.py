@@ -8,7 +8,7 @@ path, each frame as it comes: ``eyes.eyes_rows``' "personal live").
 
 The layout's last two points are the iris centres (client/viewer/src/perform/eyelids.js);
 the personal rig is fitted on all 26. What they are worth, measured on these frames
-(2026-12-04 21:50 UTC; the same capture cut to its first 24 points, the layout before):
+(2026-12-04 21:25 UTC; the same capture cut to its first 24 points, the layout before):
 
                          26 points            24 points
   blink, left / right    0.72 / 0.79          0.67 / 0.52
