@@ -23,8 +23,10 @@ from .webcam import generic_rig
 
 __all__ = [
     "EYES_IDENTITY",
+    "SHORT_TIMING",
     "EyesClip",
     "EyesEvent",
+    "EyesTiming",
     "eyes_clip",
     "eyes_goals",
     "eyes_rows",
@@ -88,31 +90,56 @@ def _ramp(frames: int) -> np.ndarray:
     return out
 
 
-def eyes_clip(names: Sequence[str], *, blinks: int = 3, short: bool = False) -> EyesClip:
-    """Rest, ``blinks`` quick blinks, a wink each side, gaze up, down, left, right, then jaw
-    open + smile, each followed by ``REST_FRAMES`` at rest (30 fps frames).
+@dataclass(frozen=True)
+class EyesTiming:
+    """The clip's frames (30 fps): ``lead`` at rest first, ``blinks`` quick blinks, then
+    each wink, gaze hold and the jaw + smile as (ramp each way, hold); ``rest`` at rest
+    after every event. ``combo`` None leaves the jaw + smile out."""
+
+    blinks: int = 3
+    lead: int = LEAD_FRAMES
+    rest: int = REST_FRAMES
+    wink: tuple[int, int] = WINK
+    gaze: tuple[int, int] = GAZE
+    combo: tuple[int, int] | None = COMBO
+
+
+#: One blink, and every ramp, hold and rest ``SHORT`` frames: each kind of event once, in
+#: 102 frames instead of 221, to check the path end to end; its scores are not the
+#: benchmark's (a hold of 3 frames is mostly a live filter's lag).
+SHORT_TIMING = EyesTiming(
+    blinks=1, rest=SHORT, wink=(SHORT, SHORT), gaze=(SHORT, SHORT), combo=(SHORT, SHORT)
+)
+
+
+def eyes_clip(
+    names: Sequence[str], *, short: bool = False, timing: EyesTiming | None = None
+) -> EyesClip:
+    """Rest, quick blinks, a wink each side, gaze up, down, left, right, then jaw open +
+    smile, each followed by frames at rest (30 fps frames; ``EyesTiming``'s defaults: three
+    blinks, ``REST_FRAMES`` between events, 221 frames).
 
     Parameters
     ----------
     names : sequence of str
-        The face's expressions, the neutral first; the ARKit eye, jaw and smile names
-        must be among them.
+        The face's expressions, the neutral first; the ARKit eye names (and jaw and smile
+        names, unless ``timing`` leaves the combination out) must be among them.
     short : bool
-        One blink, and every ramp, hold and rest ``SHORT`` frames: each kind of event
-        once, in 102 frames instead of 221, to check the path end to end; its scores are
-        not the benchmark's (a hold of 3 frames is mostly a live filter's lag).
+        ``SHORT_TIMING``.
+    timing : EyesTiming, optional
+        Other frame counts (``short`` then does not apply).
     """
-    blinks, rest = (1, SHORT) if short else (blinks, REST_FRAMES)
-    wink, gaze, combo = ((SHORT, SHORT),) * 3 if short else (WINK, GAZE, COMBO)
+    timing = timing or (SHORT_TIMING if short else EyesTiming())
+    rest = timing.rest
     column = {name: i for i, name in enumerate(names)}
-    needed = {"eyeBlinkLeft", "eyeBlinkRight", *COMBO_WEIGHTS}
+    needed = {"eyeBlinkLeft", "eyeBlinkRight", *(COMBO_WEIGHTS if timing.combo else ())}
     needed.update(n for pair in GAZE_WEIGHTS.values() for n in pair)
     missing = sorted(needed - set(column))
     if missing:
         raise InputError(f"the eyes clip needs ARKit {missing[0]!r}", code="unknown_expression")
-    rows: list[np.ndarray] = [np.zeros((LEAD_FRAMES, len(names)))]
+    rows: list[np.ndarray] = [np.zeros((timing.lead, len(names)))]
     events: list[EyesEvent] = []
-    frame = LEAD_FRAMES
+    frame = timing.lead
 
     def add(kind: str, weights: Mapping[str, float], profile: np.ndarray, full: tuple[int, int],
             detail: str = "") -> None:  # fmt: skip
@@ -125,7 +152,7 @@ def eyes_clip(names: Sequence[str], *, blinks: int = 3, short: bool = False) -> 
         frame += len(block)
 
     blink = np.array(BLINK_PROFILE)
-    for _ in range(blinks):
+    for _ in range(timing.blinks):
         add("blink", {"eyeBlinkLeft": 1.0, "eyeBlinkRight": 1.0}, blink, (0, len(blink)))
 
     def held(kind: str, weights: Mapping[str, float], timing: tuple[int, int],
@@ -135,10 +162,11 @@ def eyes_clip(names: Sequence[str], *, blinks: int = 3, short: bool = False) -> 
         add(kind, weights, profile, (ramp, ramp + hold), detail)
 
     for side in ("Left", "Right"):
-        held("wink", {f"eyeBlink{side}": 1.0}, wink, side)
+        held("wink", {f"eyeBlink{side}": 1.0}, timing.wink, side)
     for direction, pair in GAZE_WEIGHTS.items():
-        held("gaze", dict.fromkeys(pair, GAZE_AMOUNT), gaze, direction)
-    held("combo", COMBO_WEIGHTS, combo)
+        held("gaze", dict.fromkeys(pair, GAZE_AMOUNT), timing.gaze, direction)
+    if timing.combo is not None:
+        held("combo", COMBO_WEIGHTS, timing.combo)
     return EyesClip(tuple(names), np.concatenate(rows), tuple(events))
 
 

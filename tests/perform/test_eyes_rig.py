@@ -37,12 +37,11 @@ from facecast.cli.bench.facevideo import head_scene, write_video
 from facecast.cli.track import track_video
 from facecast.rig import fit
 from facecast.rig.evaluation.eyes import (
-    BLINK_PROFILE,
     EYES_IDENTITY,
-    GAZE_AMOUNT,
     GAZE_WEIGHTS,
     EyesClip,
-    EyesEvent,
+    EyesTiming,
+    eyes_clip,
     eyes_rows,
 )
 from facecast.rig.evaluation.webcam import captured_keys, ict_performer, key_clips
@@ -80,40 +79,10 @@ WINK_EYE = 0.8  # the winking eye: 1.00 each side
 WINK_OTHER = 0.15  # the other eye: 0.01 each side (24 points: 0.02 / 0.07)
 
 
-def _rise(frames: int) -> np.ndarray:
-    rise = np.arange(1, frames + 1) / (frames + 1.0)
-    out: np.ndarray = rise * rise * (3.0 - 2.0 * rise)  # smoothstep, as the eyes clip's
-    return out
-
-
-def short_eyes_clip(names: tuple[str, ...]) -> EyesClip:
-    """The eyes clip's events, each once, with holds the page's eye crops settle in."""
-    column = {name: i for i, name in enumerate(names)}
-    blocks = [np.zeros((LEAD, len(names)))]
-    events = []
-    frame = LEAD
-
-    def add(kind: str, weights: dict[str, float], profile: np.ndarray, full: tuple[int, int],
-            detail: str = "") -> None:  # fmt: skip
-        nonlocal frame
-        block = np.zeros((len(profile) + REST, len(names)))
-        for name, value in weights.items():
-            block[: len(profile), column[name]] = value * profile
-        blocks.append(block)
-        events.append(EyesEvent(kind, frame + full[0], frame + full[1], detail))
-        frame += len(block)
-
-    def held(kind: str, weights: dict[str, float], hold: int, detail: str) -> None:
-        profile = np.concatenate([_rise(RAMP), np.ones(hold), _rise(RAMP)[::-1]])
-        add(kind, weights, profile, (RAMP, RAMP + hold), detail)
-
-    add("blink", {"eyeBlinkLeft": 1.0, "eyeBlinkRight": 1.0}, np.array(BLINK_PROFILE),
-        (0, len(BLINK_PROFILE)))  # fmt: skip
-    for side in ("Left", "Right"):
-        held("wink", {f"eyeBlink{side}": 1.0}, WINK_HOLD, side)
-    for direction, pair in GAZE_WEIGHTS.items():
-        held("gaze", dict.fromkeys(pair, GAZE_AMOUNT), GAZE_HOLD, direction)
-    return EyesClip(names, np.concatenate(blocks), tuple(events))
+#: The short clip: one quick blink, a wink each side, the four gaze holds (no jaw + smile).
+CLIP_TIMING = EyesTiming(
+    blinks=1, lead=LEAD, rest=REST, wink=(RAMP, WINK_HOLD), gaze=(RAMP, GAZE_HOLD), combo=None
+)
 
 
 @dataclass(frozen=True, eq=False)
@@ -130,7 +99,7 @@ def tracked(tmp_path_factory) -> Tracked:
     performer = ict_performer(ARCHIVE, identity=EYES_IDENTITY)
     regions, landmarks68 = ict_regions(ARCHIVE)
     clips = key_clips(performer.names, keys=KEYS, ramp=KEY_RAMP, hold=KEY_HOLD)
-    clip = short_eyes_clip(performer.names)
+    clip = eyes_clip(performer.names, timing=CLIP_TIMING)
     path = write_video(tmp_path_factory.mktemp("eyes-rig") / "eyes.y4m",
                        head_scene(performer, regions, landmarks68), performer,
                        np.concatenate([clips.activations, clip.activations]), fps=FPS,
