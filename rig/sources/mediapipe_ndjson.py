@@ -16,7 +16,7 @@ import json
 import math
 import os
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NoReturn
@@ -177,12 +177,19 @@ def read_mediapipe_ndjson(
     indices = np.asarray(
         _DEFAULT_MEDIAPIPE if mapping is None else _check_mapping(list(mapping), "mapping")
     )
+    # The landmarks read from a line of each count MediaPipe gives. The face frame needs
+    # the stable points too: every mesh point of a line. The default mapping takes the
+    # layout's earlier count from a line without the iris (468: the first 24 features); a
+    # custom one is the caller's, the same for both.
     if face_frame:
-        # The frame needs the stable points too: keep every mesh point of a line.
-        indices = np.arange(_LAYOUT.tracker_points)
+        indices_for = {n: np.arange(n) for n in _MEDIAPIPE_COUNTS}
         width, height = (float(v) for v in image_size)
         if not (math.isfinite(width) and math.isfinite(height) and width > 0 and height > 0):
             raise InputError(f"image_size must be positive, got {image_size}", code="bad_input")
+    elif mapping is None:
+        indices_for = {n: indices[: _LAYOUT.count_within(n)] for n in _MEDIAPIPE_COUNTS}
+    else:
+        indices_for = dict.fromkeys(_MEDIAPIPE_COUNTS, indices)
     frames: list[np.ndarray] = []
     stamps: list[float | None] = []
     transforms: list[np.ndarray | None] = []
@@ -208,9 +215,7 @@ def read_mediapipe_ndjson(
                     f"{path} line {line_no}: more than {max_frames} frames", code="too_many_frames"
                 )
             where = f"{path} line {line_no}"
-            points, stamp, transform = _parse_mediapipe_line(
-                line, indices, where, shorter=None if mapping is not None else _shorter
-            )
+            points, stamp, transform = _parse_mediapipe_line(line, indices_for, where)
             if face_frame:
                 try:
                     points = normalise_mesh(image_to_mesh(points, width, height), _LAYOUT)
@@ -243,19 +248,8 @@ def read_mediapipe_ndjson(
     return MediaPipeTake(points=points, timestamps=times, transforms=mats)
 
 
-def _shorter(indices: np.ndarray, n: int) -> np.ndarray:
-    """The default mapping's (or a face frame's whole mesh's) indices for a mesh of ``n``
-    points, MediaPipe's 468 without the iris: the layout's earlier count its points reach."""
-    if indices.size == _LAYOUT.tracker_points:  # the whole mesh, for the face frame
-        return indices[:n]
-    return indices[: _LAYOUT.count_within(n)]
-
-
 def _parse_mediapipe_line(
-    line: str,
-    indices: np.ndarray,
-    where: str,
-    shorter: Callable[[np.ndarray, int], np.ndarray] | None = None,
+    line: str, indices_for: Mapping[int, np.ndarray], where: str
 ) -> tuple[np.ndarray, float | None, np.ndarray | None]:
     try:
         # NaN/Infinity literals are not JSON; refuse them as non-finite, by name.
@@ -274,8 +268,7 @@ def _parse_mediapipe_line(
             f"{where}: {len(marks)} landmarks, expected 478 (or 468 without irises)",
             code="wrong_landmark_count",
         )
-    if indices.max() >= len(marks) and shorter is not None:
-        indices = shorter(indices, len(marks))
+    indices = indices_for[len(marks)]
     if indices.max() >= len(marks):
         raise InputError(
             f"{where}: the mapping uses landmark {int(indices.max())} but the line has "

@@ -112,27 +112,25 @@ class _PerformerFit:
         except RigNotFoundError:
             raise ApiError(404, "rig_not_found", f"no rig with id {self.rig_id!r}") from None
         layout = load_layout(self.capture.layout)
-        k = base.num_points
+        k, captured = base.num_points, self.capture.num_points
+        counts = " or ".join(map(str, layout.counts))
         if not layout.drives(k):
-            counts = " or ".join(map(str, layout.counts))
             raise ApiError(
                 422,
                 "layout_mismatch",
                 f"layout {layout.name} gives {counts} feature points but rig {self.rig_id!r} "
                 f"has {k}",
             )
-        points = self.capture.points
-        if self.capture.num_points != k and not layout.drives(self.capture.num_points):
-            counts = " or ".join(map(str, layout.counts))
+        if not layout.drives(captured):
             raise ApiError(
                 422,
                 "wrong_point_count",
-                f"the capture has {self.capture.num_points} feature points; layout "
-                f"{layout.name} gives {counts}",
+                f"the capture has {captured} feature points; layout {layout.name} gives {counts}",
             )
-        # A capture of more points than a rig fitted on the layout's earlier version (the
-        # iris centres after its 24) keeps them: the performer's rig is fitted on all its
-        # points, its first k the character's (fit_performer). Fewer: wrong_point_count.
+        # A capture of more points than a rig of the layout's earlier version (the iris
+        # centres after its 24) keeps them: the performer's rig is fitted on all of them,
+        # its first k the character's (fit_performer, which refuses fewer than k).
+        points = self.capture.points
         # VRM presets the performer did not make, from the ARKit shapes they did.
         composed = composed_captures(base.names, points)
         if self.shared_only:
