@@ -87,8 +87,8 @@ _VIEWER_COUNTS = """() => {
 
 def _write_rig(rigs: Path) -> None:
     """The demo character as the performer's own rig, on as many of the /perform layout's
-    points as the demo face has: its earlier version's 20 (the demo has 21, the layout
-    24), which the page sends as the first 20 of its 24."""
+    points as the demo face has: its earliest version's 20 (the demo has 21, the layout
+    26), which the page sends as the first 20 of its 26."""
     demo = demo_example_set()
     k = max(c for c in load_layout().counts if c <= demo.num_points)
     examples = ExampleSet(
