@@ -23,7 +23,7 @@ def register(subparsers: Subparsers) -> None:
         description=(
             "Transfer ICT-FaceKit's ARKit-named expressions onto a target neutral (Sumner & "
             "Popovic 2004) and write an example-set folder ready for `facecast fit`: "
-            "facecast.toml, source/<name>.csv (ICT's 20 feature points) and target/<name>.obj "
+            "facecast.toml, source/<name>.csv (ICT's 24 feature points) and target/<name>.obj "
             "(the target's own topology). A target sharing ICT's face topology needs no "
             "markers; any other needs --markers: a file, or auto for a fit without them. Needs ICT-FaceKit ($FACECAST_ICT or "
             "../shared/data/ict-facekit). A target example already in the folder is kept "
