@@ -3,6 +3,8 @@
 Carries small channel events (frames of points, live/idle, heartbeats) and presence
 (publisher locks, per-process reports); it never clones, never holds sockets of clients.
 Redis going away must not stop the process: every call fails fast and the bus heals itself.
+One failed call does not make Redis down (a stall of this process's loop fails every call
+it caught in flight): a call started after that failure must fail too (`RedisBus`).
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 import os
 import secrets
 import socket
@@ -25,6 +28,8 @@ from ..errors import BusUnavailable
 from ..settings import SettingsError
 
 __all__ = [
+    "DOWN_WITHIN",
+    "PROBE_INTERVAL",
     "SHUTDOWN_STOP_SECONDS",
     "Bus",
     "BusUnavailable",
@@ -44,10 +49,15 @@ LOCK_TTL_MS = 5000
 REPORT_TTL_MS = 5000
 #: Bounds every single Redis call: a hung Redis must not hang a session.
 _CALL_TIMEOUT = 1.0
+#: How often the bus pings Redis without traffic (and at once after a failed call).
+PROBE_INTERVAL = 0.5
+#: The longest a Redis that stopped answering is taken for up: the probe's next ping, its
+#: 1 s bound, and the 1 s of the ping that confirms it (SERVER.md, "Redis outages and
+#: loop stalls"). A Redis that refuses or resets connections is down within the interval.
+DOWN_WITHIN = PROBE_INTERVAL + 2 * _CALL_TIMEOUT
 #: Frames and events waiting to be published; the oldest go first when Redis is slow.
 _MAX_OUTBOX = 256
 _BACKOFF_FIRST, _BACKOFF_MAX = 0.1, 2.0
-_PROBE_INTERVAL = 0.5
 
 #: How often `stop_tasks` cancels a task again that has not ended.
 _RECANCEL_INTERVAL = 0.05
@@ -174,6 +184,13 @@ class RedisBus(Bus):
     ``facecast:channel:{name}:publisher`` (SET NX PX, refreshed); each process's report
     is ``facecast:proc:{id}`` (JSON, with a TTL). A reader task and a sender task
     reconnect with backoff; ``not_ready_reason`` says when Redis is unreachable.
+
+    Redis is declared down (``bus.down``, ``not_ready_reason``) when a call fails that
+    started after an earlier failure was seen: a failure only raises a doubt and wakes the
+    probe, whose ping at once confirms it or clears it. Every call caught in flight by one
+    stall of this process's loop fails with a timeout, though Redis answered in time; the
+    probe's ping after the stall succeeds. A Redis that stopped answering is down within
+    ``DOWN_WITHIN``.
     """
 
     distributed = True
@@ -209,6 +226,10 @@ class RedisBus(Bus):
         self._tasks: list[asyncio.Task[None]] = []
         self._up = False
         self._reason: str | None = "redis: not connected yet"
+        #: When a failure while up was seen and no ping has answered since (loop time).
+        self._doubt_since: float | None = None
+        #: Wakes the probe to ping at once (a failure to confirm).
+        self._check = asyncio.Event()
         self.dropped = 0
 
     # -- lifecycle ------------------------------------------------------------------------
@@ -229,11 +250,27 @@ class RedisBus(Bus):
     def not_ready_reason(self) -> str | None:
         return None if self._up else self._reason
 
+    def _failed(self, exc: BaseException, started: float = -math.inf) -> None:
+        """A call started at ``started`` (loop time; -inf: unknown) failed with ``exc``."""
+        doubt = self._doubt_since
+        if not self._up or (doubt is not None and started >= doubt):
+            self._down(exc)
+            return
+        if doubt is None:
+            self._doubt_since = asyncio.get_running_loop().time()
+            log.info("redis call failed; pinging", extra={"event": "bus.doubt",
+                                                          "error": repr(exc)})  # fmt: skip
+        self._check.set()
+
     def _down(self, exc: BaseException) -> None:
         if self._up:
             log.warning("redis unreachable", extra={"event": "bus.down", "error": repr(exc)})
         self._up = False
-        self._reason = f"redis at {self._safe_url()} unreachable: {type(exc).__name__}"
+        self._doubt_since = None
+        self._reason = self._unreachable(exc)
+
+    def _unreachable(self, exc: BaseException) -> str:
+        return f"redis at {self._safe_url()} unreachable: {type(exc).__name__}"
 
     def _safe_url(self) -> str:
         # Never log a password embedded in the URL.
@@ -241,17 +278,22 @@ class RedisBus(Bus):
         return f"{self.url.split('://')[0]}://***@{tail}" if sep else self.url
 
     async def _probe(self) -> None:
-        """Ping Redis periodically: readiness follows it even without traffic."""
+        """Ping Redis periodically, and at once after a failed call: readiness follows it."""
+        loop = asyncio.get_running_loop()
         while True:
+            self._check.clear()
+            started = loop.time()
             try:
                 async with asyncio.timeout(_CALL_TIMEOUT):
                     await self._redis.ping()
                 if not self._up:
                     log.info("redis reachable", extra={"event": "bus.up"})
-                self._up, self._reason = True, None
+                self._up, self._reason, self._doubt_since = True, None, None
             except Exception as exc:  # any failure means "not usable now"
-                self._down(exc)
-            await asyncio.sleep(_PROBE_INTERVAL)
+                self._failed(exc, started)
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(PROBE_INTERVAL):
+                    await self._check.wait()
 
     # -- pub/sub --------------------------------------------------------------------------
     def subscribe(self, name: str) -> None:
@@ -289,7 +331,7 @@ class RedisBus(Bus):
                     await pubsub.aclose()
                 raise
             except Exception as exc:  # connection refused/reset, timeouts: heal below
-                self._down(exc)
+                self._failed(exc)
                 with contextlib.suppress(Exception):
                     await pubsub.aclose()
                 # Re-subscribe everything on the next connection.
@@ -325,23 +367,25 @@ class RedisBus(Bus):
             self._has_mail.clear()
             while self._outbox:
                 name, data = self._outbox.popleft()
+                started = asyncio.get_running_loop().time()
                 try:
                     async with asyncio.timeout(_CALL_TIMEOUT):
                         await self._publisher.publish(frames_channel(name), data)
                 except Exception as exc:
                     # Live data: what cannot go now is stale later. Drop and move on.
-                    self._down(exc)
+                    self._failed(exc, started)
                     self.dropped += 1 + len(self._outbox)
                     self._outbox.clear()
 
     # -- presence -------------------------------------------------------------------------
     async def _call(self, fn: Callable[[], Awaitable[T]]) -> T:
+        started = asyncio.get_running_loop().time()
         try:
             async with asyncio.timeout(_CALL_TIMEOUT):
                 return await fn()
         except Exception as exc:
-            self._down(exc)
-            raise BusUnavailable(self._reason or "redis unreachable") from exc
+            self._failed(exc, started)
+            raise BusUnavailable(self._unreachable(exc)) from exc
 
     async def claim(self, name: str, owner: str) -> bool:
         ok = await self._call(

@@ -11,6 +11,7 @@ import contextlib
 import dataclasses
 import logging
 import math
+import time
 from concurrent.futures import Executor
 from typing import TYPE_CHECKING, Any
 
@@ -24,6 +25,7 @@ from .bus import LOCK_TTL_MS, SHUTDOWN_STOP_SECONDS, Bus, BusUnavailable, make_b
 from .channel import Channel
 from .context import ChannelContext, ChannelMetrics, EmptiedChannel
 from .members import STALE_AFTER
+from .stalls import StallClock, tick_forever
 
 if TYPE_CHECKING:
     from ..metrics import Metrics
@@ -70,7 +72,11 @@ class ChannelHub:
         #: a takeover shorten them on a running server instead of waiting out 6.5 s.
         self.stale_after = STALE_AFTER
         self.reclaim_wait = RECLAIM_WAIT
+        #: This process's loop stalls, which a publisher's silence does not count (ticked
+        #: from ``start`` on: without ticks all time is taken for a stall).
+        self.stalls = StallClock(time.monotonic())
         self._maintenance: asyncio.Task[None] | None = None
+        self._ticker: asyncio.Task[None] | None = None
         self._stopping: set[asyncio.Task[None]] = set()
 
     @property
@@ -91,12 +97,13 @@ class ChannelHub:
                 "viewers meet only on the same worker",
                 extra={"event": "channels.no_redis"},
             )
+        self._ticker = asyncio.create_task(tick_forever(self.stalls), name="facecast-stalls")
         await self.bus.start(self._on_bus)
         self._maintenance = asyncio.create_task(self._maintain(), name="facecast-channels")
 
     async def close(self) -> None:
-        if self._maintenance is not None:
-            await stop_tasks([self._maintenance], timeout=SHUTDOWN_STOP_SECONDS)
+        tasks = [task for task in (self._maintenance, self._ticker) if task is not None]
+        await stop_tasks(tasks, timeout=SHUTDOWN_STOP_SECONDS)
         for channel in list(self.channels.values()):
             await channel.stop()
         await self.bus.close()
@@ -149,12 +156,12 @@ class ChannelHub:
         A publisher that is leaving (its connection closed, its lock on its way out, here
         or on another process) is waited for, at most ``RELEASE_WAIT``. With auth on, an
         older connection of the same token (a connection that blipped, not yet noticed
-        gone) is ended once it has been silent for ``members.STALE_AFTER``, here or
-        through the bus on another process, and waited for, at most ``RECLAIM_WAIT``; one
-        that keeps sending keeps the channel (two pages of one performer do not take it
-        from each other in turn). Raises fatal CHANNEL_BUSY when another publisher keeps
-        the channel past that, OVERLOADED (retry later) when the shared registry cannot be
-        reached to check.
+        gone) is ended once it has been silent for ``members.STALE_AFTER`` (this process's
+        loop stalls not counted), here or through the bus on another process, and waited
+        for, at most ``RECLAIM_WAIT``; one that keeps sending keeps the channel (two pages
+        of one performer do not take it from each other in turn). Raises fatal
+        CHANNEL_BUSY when another publisher keeps the channel past that, OVERLOADED (retry
+        later) when the shared registry cannot be reached to check.
         """
         loop = asyncio.get_running_loop()
         started = loop.time()

@@ -37,6 +37,7 @@ from ..settings import Settings
 from .channel import Channel
 from .fanout import ChannelFrame
 from .outbox import Member
+from .stalls import StallClock
 
 __all__ = ["Directory", "PublisherMember", "WatcherMember"]
 
@@ -45,6 +46,7 @@ log = logging.getLogger("facecast.server.channels")
 #: Seconds without a message after which a publisher is taken for a connection that
 #: blipped: a newer connection with its token may then take its channel (``supersede``).
 #: A publisher that sends (frames, pings) keeps its channel against its own token too.
+#: Counted while this process's loop runs: its stalls (``stalls``) are not silence.
 STALE_AFTER = 1.0
 
 
@@ -62,6 +64,9 @@ class Directory(Protocol):
 
     @property
     def stale_after(self) -> float: ...
+
+    @property
+    def stalls(self) -> StallClock: ...
 
     async def load_rig(self, rig_id: str) -> Rig: ...
 
@@ -215,8 +220,15 @@ class PublisherMember(Member):
         """End this connection if it is silent (the directory's ``stale_after``, ``STALE_AFTER``):
         a newer one with the same token takes its channel. False: it is alive, and keeps
         the channel.
+
+        Silent while this process's loop ran: during a stall of the loop the publisher's
+        frames wait unread in the socket, and what wakes first after it (a claim, a bus
+        ``evict``) would see the whole stall as silence. A stall of 1.5 s under a loaded
+        CI run ended a live publisher that way.
         """
-        if time.monotonic() - self.core.last_message < self.directory.stale_after:
+        now = time.monotonic()
+        silent = self.directory.stalls.running(self.core.last_message, now)
+        if silent < self.directory.stale_after:
             return False
         self.end(ProtocolError(ErrorCode.CHANNEL_BUSY, "a newer connection with the same "
                                "token took over the channel", fatal=True))  # fmt: skip
