@@ -31,8 +31,8 @@ class StallClock:
     than ``interval + slack`` after the previous one records a stall from when it was due
     to ``now``. ``running(since, now)`` is the time in between minus the stalls in it, the
     one still going at ``now`` (no tick yet since the loop came back) included.
-    A stall is estimated short by at most ``interval``: where in the late tick's wait the
-    loop stopped is not known.
+    A stall is estimated short by at most ``interval`` (where in the late tick's wait the
+    loop stopped is not known), or missed when no longer than ``interval + slack``.
     """
 
     def __init__(
