@@ -223,8 +223,8 @@ class PublisherMember(Member):
 
         Silent while this process's loop ran: during a stall of the loop the publisher's
         frames wait unread in the socket, and what wakes first after it (a claim, a bus
-        ``evict``) would see the whole stall as silence. A stall of 1.5 s under a loaded
-        CI run ended a live publisher that way.
+        ``evict``) would see the whole stall as silence. A stall of over a second under a
+        loaded CI run ended a live publisher that way.
         """
         now = time.monotonic()
         silent = self.directory.stalls.running(self.core.last_message, now)
