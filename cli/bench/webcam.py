@@ -33,6 +33,7 @@ from facecast.rig.evaluation.evaluate import cloning_error
 from facecast.rig.evaluation.eyes import EYES_IDENTITY, EyesClip, eyes_clip, eyes_rows
 from facecast.rig.evaluation.takes import take_experiment
 from facecast.rig.evaluation.webcam import (
+    CLOSURE_LEVEL,
     KEY_HOLD_FRAMES,
     KEY_RAMP_FRAMES,
     PERFORMER_IDENTITY,
@@ -389,6 +390,28 @@ def _print_table(title: str, scored: dict[str, Any]) -> None:
         f"weights' mix of the captured keys ({scored['superposition_slow_rms'] * 10:.2f} mm "
         'of it slow: a 7-frame average); "personal on keys\' mix" clones that mix'
     )
+    _print_closures(scored["rows"])
+
+
+def _print_closures(rows: dict[str, Any]) -> None:
+    """The take's real eye closures per path: each eye's peak shares (least-most) and r."""
+    first = next(iter(rows.values()))["closures"]
+    if not any(c["events"] for c in first.values()):
+        return
+    counts = ", ".join(f"{len(c['events'])} {name.removeprefix('eyeBlink').lower()}"
+                       for name, c in first.items())  # fmt: skip
+    print(
+        f"  the take's eye closures (its true eyeBlink at least {CLOSURE_LEVEL}, the real "
+        f"performer's: {counts}): each eye's peak as a share of the truth (least-most), and r"
+    )
+    for label, row in rows.items():
+        cells = []
+        for name, c in row["closures"].items():
+            shares = [e["share"] for e in c["events"]]
+            r = "-" if c["correlation"] is None else f"{c['correlation']:.2f}"
+            span = f"{min(shares):.2f}-{max(shares):.2f}" if shares else "none"
+            cells.append(f"{name.removeprefix('eyeBlink').lower()} {span} r {r}")
+        print(f"  {label:<24}" + "   ".join(cells))
 
 
 def _print_by_name(title: str, scored: dict[str, Any]) -> None:

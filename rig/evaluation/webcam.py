@@ -35,6 +35,7 @@ __all__ = [
     "KeyClips",
     "Performer",
     "captured_keys",
+    "eye_closures",
     "generic_rig",
     "hold_last_found",
     "ict_performer",
@@ -52,6 +53,14 @@ PERFORMER_IDENTITY = "person07"
 #: (smoothstep), then holds it KEY_HOLD_FRAMES frames, which are the capture.
 KEY_RAMP_FRAMES = 4
 KEY_HOLD_FRAMES = 10
+#: A real take's eye closures: the runs of frames where its true ``eyeBlink*`` is at least
+#: this (ARKit's reading of a real performer's blinks and winks).
+CLOSURE_LEVEL = 0.5
+#: Frames either side of a closure its peaks are looked for in: a causal filter lags, a
+#: tracker may close early.
+CLOSURE_MARGIN = 3
+#: The names whose closures a take's score reports.
+CLOSURE_NAMES = ("eyeBlinkLeft", "eyeBlinkRight")
 
 
 @dataclass(frozen=True, eq=False)
@@ -302,8 +311,9 @@ def score(
     Returns
     -------
     dict (JSON-able)
-        ``cloning_error``'s figures without the series, and ``weight_rms`` {name: RMS over
-        the frames of the weight's error}, for every name but the neutral.
+        ``cloning_error``'s figures without the series, ``weight_rms`` {name: RMS over
+        the frames of the weight's error}, for every name but the neutral, and ``closures``
+        {eyeBlinkLeft / eyeBlinkRight: ``eye_closures``} for those of ``names``.
     """
     vertices = rig.blend(np.asarray(weights, dtype=np.float64))
     errors = cloning_error(truth, vertices)
@@ -314,7 +324,58 @@ def score(
         got = weights[:, column[name]] if name in column else 0.0
         rms[name] = float(np.sqrt(np.mean((got - activations[:, j]) ** 2)))
     errors["weight_rms"] = rms
+    errors["closures"] = {
+        name: eye_closures(weights[:, column[name]] if name in column else np.zeros(len(weights)),
+                           activations[:, names.index(name)])
+        for name in CLOSURE_NAMES
+        if name in names
+    }  # fmt: skip
     return errors
+
+
+def eye_closures(
+    estimated: npt.ArrayLike,
+    truth: npt.ArrayLike,
+    *,
+    level: float = CLOSURE_LEVEL,
+    margin: int = CLOSURE_MARGIN,
+) -> dict[str, Any]:
+    """A take's eye closures (the runs of frames where ``truth`` >= ``level``), each with
+    the estimate's peak as a share of the truth's, and the whole series' correlation.
+
+    The eyes clip's blinks are made, 5 frames each; a real take's are a real performer's,
+    as long and as one-sided as they came (ARKit's reading of them).
+
+    Parameters
+    ----------
+    estimated, truth : (F,) float
+        One weight's estimate and truth, frame by frame.
+
+    Returns
+    -------
+    dict (JSON-able)
+        ``events``: per closure its ``start`` frame, ``frames`` (the run's length) and
+        ``share`` (the estimate's peak over the truth's, both over the run and ``margin``
+        frames either side); ``correlation``: Pearson's r of the two series, None when
+        either is constant.
+    """
+    got = np.asarray(estimated, dtype=np.float64)
+    true = np.asarray(truth, dtype=np.float64)
+    if got.ndim != 1 or got.shape != true.shape:
+        raise InputError(
+            f"closures: expected two series of one length, got {got.shape} and {true.shape}",
+            code="bad_input",
+        )
+    closed = np.concatenate([[False], true >= level, [False]])
+    edges = np.flatnonzero(np.diff(closed.astype(np.int8)))
+    events = []
+    for start, stop in zip(edges[::2], edges[1::2], strict=True):
+        around = slice(max(0, start - margin), min(len(true), stop + margin))
+        events.append({"start": int(start), "frames": int(stop - start),
+                       "share": float(got[around].max() / true[around].max())})  # fmt: skip
+    steady = got.std() == 0 or true.std() == 0
+    correlation = None if steady else float(np.corrcoef(got, true)[0, 1])
+    return {"events": events, "correlation": correlation}
 
 
 def superposition(

@@ -12,6 +12,7 @@ from facecast.cli.main import main
 from facecast.rig.errors import InputError
 from facecast.rig.evaluation.webcam import (
     captured_keys,
+    eye_closures,
     hold_last_found,
     ict_performer,
     key_clips,
@@ -164,6 +165,7 @@ def test_bench_on_exact_landmarks_scores_every_path(tmp_path, capsys):
     assert 0 < max(rows["personal"]["eq41_percent"].values()) < 1.0
     for row in rows.values():
         assert set(row["weight_rms"]) == set(ict_performer(ARCHIVE).names[1:])
+        assert set(row["closures"]) == {"eyeBlinkLeft", "eyeBlinkRight"}
     assert "personal" in capsys.readouterr().out
 
 
@@ -279,3 +281,31 @@ def test_source_on_neutral_keeps_each_shape_and_takes_the_other_rest_pose():
     assert np.delete(offset, 2).max() < 0.5 * offset[2]  # moved most (the fit spreads some)
     same = source_on_neutral(examples, _turned(source[0], -20.0, 0.5, (3.0, 0.0, 0.0)))
     np.testing.assert_allclose(same.source_points, source, atol=1e-9)
+
+
+def test_eye_closures_finds_each_run_and_its_peak_share_within_the_margin():
+    truth = np.zeros(40)
+    truth[5:9] = [0.6, 0.9, 0.9, 0.6]  # a closure of 4 frames
+    truth[20:30] = 0.8  # a held one
+    truth[38:] = 0.7  # cut by the take's end
+    late = np.zeros(40)
+    late[2:] = 0.5 * truth[:-2]  # half as far, two frames late (within the margin)
+    late[38:] = 0.35  # the cut one: half as far, on time
+
+    got = eye_closures(late, truth)
+
+    assert [(e["start"], e["frames"]) for e in got["events"]] == [(5, 4), (20, 10), (38, 2)]
+    assert [e["share"] for e in got["events"]] == pytest.approx([0.5, 0.5, 0.5])
+    assert 0.5 < got["correlation"] < 1.0
+    # A closure missed entirely reads 0; a steady estimate has no correlation.
+    flat = eye_closures(np.zeros(40), truth)
+    assert [e["share"] for e in flat["events"]] == [0.0, 0.0, 0.0]
+    assert flat["correlation"] is None
+    # Frames below the level are no closure; the peak is looked for `margin` frames out only.
+    later = np.zeros(40)
+    later[8:] = truth[:-8]  # the first closure starts after its run and margin have ended
+    assert eye_closures(later, truth, margin=3)["events"][0]["share"] == 0.0
+    assert eye_closures(later, truth, margin=8)["events"][0]["share"] == 1.0
+    assert eye_closures(truth, truth * 0.4)["events"] == []
+    with pytest.raises(InputError, match="closures"):
+        eye_closures(np.zeros(3), np.zeros(4))
