@@ -76,7 +76,7 @@ def register(subparsers: Subparsers) -> None:
 
 
 def add_solve_arguments(parser: argparse.ArgumentParser) -> None:
-    """--still F | --paper-solve (here and in ``facecast bench transfer``)."""
+    """--still F | --paper-solve, --no-lid-contact (here and in ``facecast bench transfer``)."""
     solve = parser.add_mutually_exclusive_group()
     solve.add_argument(
         "--still", type=float, default=0.01, metavar="F",
@@ -86,8 +86,21 @@ def add_solve_arguments(parser: argparse.ArgumentParser) -> None:
     solve.add_argument(
         "--paper-solve", action="store_true",
         help="the paper's solve instead: one factorisation for every expression, nothing held "
-        "but one vertex per piece (faster; the still parts drift)",
+        "but one vertex per piece (faster; the still parts drift; no lid contact)",
     )  # fmt: skip
+    parser.add_argument(
+        "--no-lid-contact", action="store_true",
+        help="do not pull the blinks' lids together where the source's lids meet (by default "
+        "a wider eye's lids meet as the source's do, where the target's lids are meshed at "
+        "least as finely as the source's)",
+    )  # fmt: skip
+
+
+def lid_contact_names(args: argparse.Namespace) -> tuple[str, ...]:
+    """The expressions whose lids are pulled together: the blinks, or none."""
+    from facecast.rig.transfer.contact import LID_CONTACT
+
+    return () if args.no_lid_contact else LID_CONTACT
 
 
 def run(args: argparse.Namespace) -> int:
@@ -130,7 +143,7 @@ def run(args: argparse.Namespace) -> int:
             weights=CorrespondenceWeights(
                 marker_weight=None if args.hold_markers else args.marker_weight
             ),
-            still=still,
+            still=still, lid_contact=lid_contact_names(args),
         )  # fmt: skip
     written = write_expression_set(
         args.output,

@@ -16,10 +16,10 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial import cKDTree
 
 from ..examples import ExampleSet
 from ..fit import fit
+from ..transfer.contact import closing_pairs
 from ..transfer.correspondence import Correspondence
 from ..transfer.expressions import GeneratedExpressions, SourceExpressions
 from ..transfer.mesh import nearest_vertices
@@ -101,22 +101,6 @@ def score_transfer(
 
 #: The blinks whose lids' gap ``lids_gap`` measures.
 BLINKS = ("eyeBlinkLeft", "eyeBlinkRight")
-
-
-def closing_pairs(
-    neutral: npt.ArrayLike, closed: npt.ArrayLike, *, meet: float, apart: float
-) -> np.ndarray:
-    """(P, 2) vertex pairs ``closed`` brings together: within ``meet`` there, ``apart`` at neutral.
-
-    ``neutral``, ``closed`` : (V, 3), one mesh's vertices (the mesh's units). Pairs at least
-    ``apart`` apart at neutral, so neighbours on one lid (or a seam's twins) do not count.
-    """
-    rest = np.asarray(neutral, dtype=np.float64)
-    shut = np.asarray(closed, dtype=np.float64)
-    pairs = cKDTree(shut).query_pairs(meet, output_type="ndarray").reshape(-1, 2)
-    distance = np.linalg.norm(rest[pairs[:, 0]] - rest[pairs[:, 1]], axis=1)
-    kept: np.ndarray = pairs[distance >= apart]
-    return kept
 
 
 def gap_share(neutral: npt.ArrayLike, deformed: npt.ArrayLike, pairs: np.ndarray) -> float:

@@ -21,6 +21,7 @@ from ..io.gltf import read_gltf_mesh
 from ..io.meshio import read_obj
 from ..sources.ict import DEFAULT_LANDMARKS, stable_positions
 from ..sources.ict_arkit import arkit_example_set
+from .contact import LID_CONTACT
 from .correspondence import (
     Correspondence,
     CorrespondenceWeights,
@@ -171,6 +172,7 @@ def transfer_expressions(
     names: Sequence[str] | None = None,
     weights: CorrespondenceWeights | None = None,
     still: float | None = STILL,
+    lid_contact: Sequence[str] = LID_CONTACT,
     progress: Callable[[int], object] | None = None,
 ) -> GeneratedExpressions:
     """Transfer the source's expressions onto a target neutral (Sumner & Popović 2004).
@@ -193,6 +195,10 @@ def transfer_expressions(
         Target points whose source point moves less than this fraction of the
         expression's largest motion are held there (``DeformationTransfer``'s ``still``;
         None: the paper's system, factored once for every expression).
+    lid_contact : sequence of str
+        With ``still``: the expressions whose closing vertex pairs (lids meeting) are kept
+        together on the target, closed by the share the source closes them
+        (``contact.contacts``; default the blinks, so a taller eye's lids meet; empty: none).
     progress : callable, optional
         Called with 1 after each expression.
 
@@ -246,9 +252,11 @@ def transfer_expressions(
         rotation=correspondence.rotation,
         scale=correspondence.scale,
         still=still,
+        source_on_target=correspondence.fitted_source,
     )
     factored = time.perf_counter()
-    moved = transfer.transfer(source.vertices[picked[1:]], progress=progress)
+    touching = [still is not None and source.names[i] in lid_contact for i in picked[1:]]
+    moved = transfer.transfer(source.vertices[picked[1:]], contact=touching, progress=progress)
     solved = time.perf_counter()
     vertices = np.empty((len(picked), *target.shape))
     vertices[0] = target

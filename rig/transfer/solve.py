@@ -5,7 +5,8 @@ of its triangles' transformations to those of their corresponding source triangl
 matrix depends only on the target neutral and the correspondence, so the paper's system is
 factored once and every expression is one back-substitution; with ``still`` each
 expression holds the target points whose source point barely moves and factors what is
-left. It must not read files or find the correspondence (that is ``correspondence``).
+left, and may keep the pairs it brings together together (``contact``). It must not read
+files or find the correspondence (that is ``correspondence``).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import SuperLU, splu
 
 from ..errors import CorrespondenceError, InputError
+from .contact import CONTACT_WEIGHT, contacts
 from .mesh import check_mesh, frame_inverses, triangle_frames, vertex_components
 
 __all__ = ["STILL", "DeformationTransfer", "check_still", "frame_rows", "source_gradients"]
@@ -105,6 +107,12 @@ class DeformationTransfer:
         not fit elsewhere); the rest is solved with those held, one factorisation per
         expression of the unknowns they leave. None: the paper's system, factored once,
         one vertex held per connected piece and each piece then placed by the median.
+    source_on_target : (Vs, 3) float, optional
+        The source's vertices placed on the target (``Correspondence.fitted_source``); with
+        ``still``, ``transfer(..., contact=...)`` keeps the pairs an expression brings
+        together together there (``contact.contacts``).
+    contact_weight : float
+        Each contact pair's weight, times the median diagonal entry of the normal matrix.
 
     Notes
     -----
@@ -126,6 +134,8 @@ class DeformationTransfer:
         rotation: npt.ArrayLike | None = None,
         scale: float = 1.0,
         still: float | None = None,
+        source_on_target: npt.ArrayLike | None = None,
+        contact_weight: float = CONTACT_WEIGHT,
     ) -> None:
         self.source_neutral, self.source_faces = check_mesh(
             source_neutral, source_faces, what="source mesh"
@@ -164,6 +174,16 @@ class DeformationTransfer:
         still = check_still(still)
         self.vertex_map = None if vertex_map is None else sp.csr_matrix(vertex_map)
         self.still = None if self.vertex_map is None else still
+        self.source_on_target = (
+            None
+            if source_on_target is None
+            else np.asarray(source_on_target, dtype=np.float64).reshape(vs, 3)
+        )
+        if not (np.isfinite(contact_weight) and contact_weight > 0):
+            raise CorrespondenceError(
+                f"contact_weight: expected > 0, got {contact_weight!r}", code="bad_weights"
+            )
+        self.contact_weight = float(contact_weight)
         self._source_inverses = frame_inverses(self.source_neutral, self.source_faces)
         # Sums of source transformations per target triangle: G = P (S - I).
         self._pair_sum = sp.csr_matrix(
@@ -184,6 +204,7 @@ class DeformationTransfer:
         self._first = first
         self._rows_t = rows.T.tocsr()  # (Vt + Ft, 3Ft): rhs = Aᵀ W r
         self._normal = (self._rows_t @ sp.diags(weights) @ rows).tocsr()
+        self._typical = float(np.median(self._normal.diagonal()))
         self.factorizations = 0
         # The held solve factors its own systems: the whole one only when asked for.
         self._lu: SuperLU | None = None
@@ -218,6 +239,7 @@ class DeformationTransfer:
         self,
         source_deformed: npt.ArrayLike,
         *,
+        contact: npt.ArrayLike | None = None,
         progress: Callable[[int], object] | None = None,
     ) -> np.ndarray:
         """The target's vertices under each source deformation.
@@ -226,6 +248,9 @@ class DeformationTransfer:
         ----------
         source_deformed : (Vs, 3) or (M, Vs, 3) float
             Deformed source meshes (the source neutral's topology).
+        contact : (M,) bool, optional
+            The meshes whose closing vertex pairs are kept together on the target
+            (``contact.contacts``); needs ``still`` and ``source_on_target``.
         progress : callable, optional
             Called with the number of meshes done after each batch of them (a tqdm bar's
             ``update``).
@@ -245,10 +270,19 @@ class DeformationTransfer:
             )
         if not np.isfinite(deformed).all():
             raise InputError("source_deformed: NaN or Inf coordinates", code="non_finite")
+        touching = np.zeros(deformed.shape[0], dtype=bool)
+        if contact is not None:
+            touching[:] = np.asarray(contact, dtype=bool).reshape(-1)
+            if touching.any() and (self.still is None or self.source_on_target is None):
+                raise InputError(
+                    "contact: needs the held solve (still) and the source placed on the "
+                    "target (source_on_target)",
+                    code="no_contact",
+                )
         out = np.empty((deformed.shape[0], *self.target_neutral.shape))
         if self.still is not None:
             for index, shape in enumerate(deformed):
-                out[index] = self._transfer_held(shape)
+                out[index] = self._transfer_held(shape, contact=bool(touching[index]))
                 if progress is not None:
                     progress(1)
             return out[0] if single else out
@@ -276,7 +310,7 @@ class DeformationTransfer:
         rhs: np.ndarray = self._rows_t @ summed.transpose(0, 3, 1, 2).reshape(3 * ft, 3 * c)
         return rhs
 
-    def _transfer_held(self, source_deformed: np.ndarray) -> np.ndarray:
+    def _transfer_held(self, source_deformed: np.ndarray, *, contact: bool = False) -> np.ndarray:
         """(Vt, 3) for one deformed source, the vertices where the source is still held.
 
         Held: each mapped target vertex whose corresponding source point moves less than
@@ -284,6 +318,7 @@ class DeformationTransfer:
         with no such vertex, its first vertex (the piece then placed by the median, as
         without ``still``). Unknowns: the other vertices and the fourth vertices of the
         triangles that touch them (a triangle whose corners are all held moves as they do).
+        With ``contact``, the closing pairs' terms are added to the least squares.
         """
         assert self.vertex_map is not None and self.still is not None
         vt, ft = self.target_neutral.shape[0], self.target_faces.shape[0]
@@ -305,7 +340,24 @@ class DeformationTransfer:
         if unknown.size:
             rhs = self._target_rhs(source_deformed[None])
             rhs = rhs[unknown] - self._normal[unknown][:, known] @ displacement[known]
-            lu = self._factor(self._normal[unknown][:, unknown].tocsc())
+            normal = self._normal[unknown][:, unknown]
+            terms = None
+            if contact:
+                assert self.source_on_target is not None
+                terms = contacts(
+                    self.source_neutral, source_deformed, self.source_on_target,
+                    self.target_neutral, self.target_faces, rotation=self.rotation,
+                    scale=self.scale, source_faces=self.source_faces,
+                )  # fmt: skip
+            if terms is not None:
+                # Pairs' places are on the target's vertices: zero columns for fourth vertices.
+                rows = sp.hstack([terms.rows, sp.csr_matrix((len(terms.offsets), ft))]).tocsc()
+                weight = self.contact_weight * self._typical
+                on_unknown = rows[:, unknown]
+                offsets = terms.offsets - rows[:, known] @ displacement[known]
+                normal = normal + weight * (on_unknown.T @ on_unknown)
+                rhs = rhs + weight * (on_unknown.T @ offsets)
+            lu = self._factor(normal.tocsc())
             displacement[unknown] = lu.solve(rhs)
         moved = displacement[:vt]
         if free_pieces.size:
