@@ -10,6 +10,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from .closure import closure_ranges
 from .errors import InputError
 from .examples import ExampleSet
 from .fit import fit
@@ -121,8 +122,10 @@ def fit_performer(rig: Rig, points: Mapping[str, object], *, noise: float | None
     noise : float, optional
         The capture's measured landmark spread (standard deviation per coordinate, in the
         points' units). Given and above 0: the fit is regularised for it and the weights
-        are bounded to [0, 1] (``fit(noise=..., clamp="unit")``); else exact
-        interpolation, unbounded, as the thesis.
+        are bounded to [0, 1] (``fit(noise=..., clamp="unit")``), and each captured blink
+        is read as closed: the new rig's reading of the performer's own captured blink maps
+        to 1 and of their neutral to 0 (``closure``; its ``fit_report["closure"]``); else
+        exact interpolation, unbounded, as the thesis.
 
     Returns
     -------
@@ -153,7 +156,7 @@ def fit_performer(rig: Rig, points: Mapping[str, object], *, noise: float | None
         target_faces=rig.target_faces,
     )
     bounded = noise is not None and noise > 0
-    return fit(
+    fitted = fit(
         example_set,
         noise=noise or 0.0,
         kernel=rig.model.kernel,
@@ -161,3 +164,12 @@ def fit_performer(rig: Rig, points: Mapping[str, object], *, noise: float | None
         stable_points=rig.stable_points,
         align_scale=rig.align_scale,
     )
+    if not bounded:
+        return fitted  # exact interpolation reads every key as itself
+    readings = {
+        NEUTRAL if i == 0 else name: fitted.weights(clean[name]) for i, name in enumerate(names)
+    }
+    ranges = closure_ranges(readings, fitted.names)
+    if not ranges:
+        return fitted
+    return fitted.with_weight_models(fitted.models, {**fitted.fit_report, "closure": ranges})

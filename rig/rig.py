@@ -15,6 +15,7 @@ import numpy.typing as npt
 
 from .basis import build_blend_basis
 from .blend import Placement, blend_into, moving_vertices
+from .closure import ClosureMap
 from .errors import InputError
 from .examples import check_stable_points
 from .io.rigformat import content_checksum, rig_to_bytes, save_rig, write_rig
@@ -90,7 +91,7 @@ class Rig:
         self.source_preview = source_preview
         self.stable_points = stable_points
         self.align_scale = bool(align_scale)
-        self.fit_report = report
+        self.fit_report = report  # also sets the blink weights' map (``closure``)
         self.calibration = calibration
         reference = self.model.source_neutral if calibration is None else calibration
         #: The frames this rig accepts (see POINT_RANGE); its bounds as plain attributes too,
@@ -105,6 +106,17 @@ class Rig:
         # The moving vertices and their basis columns, found on first use (a scan of the
         # basis) and shared with the rigs derived from this one (same basis).
         self._moving = {} if _moving is None else _moving
+
+    @property
+    def fit_report(self) -> dict[str, Any]:
+        """What the fit measured and chose (JSON-able); its ``"closure"`` entry, when there,
+        maps the blink weights (``rig.closure``)."""
+        return self._fit_report
+
+    @fit_report.setter
+    def fit_report(self, report: dict[str, Any]) -> None:
+        self._fit_report = report
+        self._closure = ClosureMap.from_report(report, self.names)
 
     @classmethod
     def from_fit(
@@ -266,7 +278,9 @@ class Rig:
                 w = None
             if w is not None:
                 box = self.model._box
-                return w if box is None else self.model._bounded(w[None])[0]
+                if box is not None:
+                    w = self.model._bounded(w[None])[0]
+                return w if self._closure is None else self._closure.apply(w)
         x, single = self._points(points)
         self._check_range(x, single=single)
         if align:
@@ -294,6 +308,8 @@ class Rig:
                 "coefficients or the head-pose alignment overflow float64",
                 code="non_finite",
             )
+        if self._closure is not None:
+            self._closure.apply(w)
         return w[0] if single else w
 
     def check_range(self, points: npt.ArrayLike) -> None:

@@ -1,0 +1,97 @@
+"""Eye closures read as closed: each blink weight mapped by the performer's own closed eye.
+
+A rig fitted for landmark noise shrinks its weights towards the neutral (the ridge M σ²),
+and a blink's points move nearly as a look down's do, so the noise-aware fit splits the two:
+a performer's own captured ``eyeBlinkLeft`` key reads about 0.74 on their own rig, and a
+quick blink through a webcam less (README, issue 34's option (x)). The capture says what
+closed is: the rig's reading of the performer's closed eye maps to 1 and their neutral's
+to 0, linearly, clipped to [0, 1]. Applied to the blink weights only, after the rig's
+bounds. The map travels in the rig's fit report (``"closure"``), so a stored rig, a rig
+refitted for another noise and a rig re-based keep it. Pure array code.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+__all__ = ["CLOSURE_NAMES", "MIN_CLOSED", "ClosureMap", "closure_ranges"]
+
+#: The weights mapped: the two blinks (ARKit names).
+CLOSURE_NAMES = ("eyeBlinkLeft", "eyeBlinkRight")
+#: A closed eye the rig reads below this (above the neutral's reading) is not mapped: the
+#: map would multiply that weight's noise by more than 1 / MIN_CLOSED.
+MIN_CLOSED = 0.2
+
+
+def closure_ranges(
+    weights_of_keys: Mapping[str, np.ndarray], names: Sequence[str]
+) -> dict[str, list[float]]:
+    """{name: [open, closed]} for each blink a capture holds: the rig's reading of that
+    blink's weight on the captured neutral and on the captured blink itself.
+
+    ``weights_of_keys`` : {key name: (M,) the rig's weights of that key's points}, the
+    neutral's under ``"neutral"``; ``names`` the rig's names (column order). A blink whose
+    closed reading is less than ``MIN_CLOSED`` above the open one is left out.
+    """
+    ranges: dict[str, list[float]] = {}
+    if "neutral" not in weights_of_keys:
+        return ranges
+    for name in CLOSURE_NAMES:
+        if name not in names or name not in weights_of_keys:
+            continue
+        column = list(names).index(name)
+        opened = max(0.0, float(weights_of_keys["neutral"][column]))
+        closed = float(weights_of_keys[name][column])
+        if np.isfinite(opened) and np.isfinite(closed) and closed - opened >= MIN_CLOSED:
+            ranges[name] = [opened, closed]
+    return ranges
+
+
+class ClosureMap:
+    """The map of a rig's blink weights: (w − open) / (closed − open), clipped to [0, 1].
+
+    Column 0 (the neutral) is kept at 1 minus the others, so the weights still sum to 1.
+    """
+
+    def __init__(self, columns: np.ndarray, opened: np.ndarray, closed: np.ndarray) -> None:
+        self.columns = columns
+        self.opened = opened
+        self.scale = 1.0 / (closed - opened)
+
+    @classmethod
+    def from_report(
+        cls, report: Mapping[str, Any] | None, names: Sequence[str]
+    ) -> ClosureMap | None:
+        """The map a fit report's ``"closure"`` entry describes, or None (no entry, or none
+        of its names among ``names``, or a range that is not one)."""
+        ranges = (report or {}).get("closure")
+        if not isinstance(ranges, Mapping):
+            return None
+        columns, opened, closed = [], [], []
+        for name, pair in ranges.items():
+            if name not in names:
+                continue
+            try:
+                low, high = (float(v) for v in pair)
+            except (TypeError, ValueError):
+                return None
+            if not (np.isfinite(low) and np.isfinite(high) and high - low >= MIN_CLOSED):
+                return None
+            columns.append(list(names).index(name))
+            opened.append(low)
+            closed.append(high)
+        if not columns:
+            return None
+        return cls(np.asarray(columns), np.asarray(opened), np.asarray(closed))
+
+    def apply(self, weights: np.ndarray) -> np.ndarray:
+        """(M,) or (B, M) weights mapped (in place when they are a float array; returned)."""
+        w = weights if weights.ndim == 2 else weights[None]
+        mapped = (w[:, self.columns] - self.opened) * self.scale
+        np.clip(mapped, 0.0, 1.0, out=mapped)
+        w[:, self.columns] = mapped
+        w[:, 0] = 1.0 - w[:, 1:].sum(axis=1)
+        return weights

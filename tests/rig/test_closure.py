@@ -1,0 +1,108 @@
+"""A performer's own closed eye read as closed: the blink weights' map (issue 34)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from facecast.rig import fit, load_rig
+from facecast.rig.closure import MIN_CLOSED, ClosureMap, closure_ranges
+from facecast.rig.evaluation.webcam import ict_performer
+from facecast.rig.fit import refit_noise
+from facecast.rig.retarget import fit_performer
+from facecast.rig.sources.ict import locate_ict
+from facecast.rig.sources.ict_arkit import arkit_example_set
+
+NAMES = ("neutral", "eyeBlinkLeft", "eyeLookDownLeft", "eyeBlinkRight")
+
+
+def test_ranges_are_the_readings_of_the_neutral_and_each_captured_blink():
+    readings = {
+        "neutral": np.array([1.0, -0.02, 0.01, 0.03]),
+        "eyeBlinkLeft": np.array([0.2, 0.74, 0.06, 0.0]),
+        "eyeBlinkRight": np.array([0.9, 0.0, 0.0, 0.03 + MIN_CLOSED / 2]),  # barely moves
+    }
+    ranges = closure_ranges(readings, NAMES)
+    # The neutral's negative reading counts as 0; a blink read less than MIN_CLOSED above
+    # the neutral is left alone (the map would multiply its noise by more than 5).
+    assert ranges == {"eyeBlinkLeft": [0.0, 0.74]}
+    assert closure_ranges({"eyeBlinkLeft": readings["eyeBlinkLeft"]}, NAMES) == {}
+
+
+def test_the_map_reads_the_closed_eye_as_1_clips_and_keeps_the_sum():
+    closure = ClosureMap.from_report({"closure": {"eyeBlinkLeft": [0.1, 0.6]}}, NAMES)
+    assert closure is not None
+    weights = np.array([[0.3, 0.6, 0.1, 0.0], [0.2, 0.35, 0.1, 0.35], [0.0, 0.9, 0.1, 0.0]])
+    mapped = closure.apply(weights.copy())
+    np.testing.assert_allclose(mapped[:, 1], [1.0, 0.5, 1.0])  # (w - 0.1) / 0.5, clipped
+    np.testing.assert_allclose(mapped[:, 2:], weights[:, 2:])  # other weights untouched
+    np.testing.assert_allclose(mapped.sum(axis=1), 1.0)
+
+
+@pytest.mark.parametrize(
+    "report",
+    [None, {}, {"closure": "x"}, {"closure": {"other": [0, 1]}},
+     {"closure": {"eyeBlinkLeft": [0.5, 0.55]}}, {"closure": {"eyeBlinkLeft": ["a", 1]}}],
+)  # fmt: skip
+def test_no_map_without_a_usable_closure_entry(report):
+    assert ClosureMap.from_report(report, NAMES) is None
+
+
+needs_ict = pytest.mark.skipif(locate_ict() is None, reason="ICT-FaceKit not found")
+SIGMA = 0.033  # cm: the tracker's landmark noise on the webcam benchmark's held frames
+
+
+@pytest.fixture(scope="module")
+def performer_rig():
+    """ICT person12's exact keys (a held capture's leftover noise on each) fitted onto
+    person01 at the tracker's measured noise, and person12's exact key points."""
+    archive = locate_ict()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the exact ICT rig warns to fit with noise: known
+        character = fit(arkit_example_set(archive, identity="person01"))
+    performer = ict_performer(archive, identity="person12")
+    exact = performer.landmark_points(np.eye(len(performer.names)))  # row i: key i alone
+    rng = np.random.default_rng(0)
+    keys = {("neutral" if i == 0 else name): exact[i] + rng.normal(0.0, 0.4 * SIGMA, exact[i].shape)
+            for i, name in enumerate(performer.names)}  # fmt: skip
+    return fit_performer(character, keys, noise=SIGMA), performer, exact
+
+
+@pytest.mark.ict
+@needs_ict
+def test_a_noisy_performers_wink_reads_closed_and_stays_one_sided(performer_rig):
+    rig, performer, exact = performer_rig
+    assert set(rig.fit_report["closure"]) == {"eyeBlinkLeft", "eyeBlinkRight"}
+    unmapped = rig.with_weight_models(
+        rig.models, {k: v for k, v in rig.fit_report.items() if k != "closure"}
+    )
+    left, right = rig.names.index("eyeBlinkLeft"), rig.names.index("eyeBlinkRight")
+    rng = np.random.default_rng(1)
+    wink = exact[performer.names.index("eyeBlinkLeft")] + rng.normal(
+        0.0, SIGMA, (50, *exact[0].shape)
+    )
+    rest = exact[0] + rng.normal(0.0, SIGMA, (50, *exact[0].shape))
+
+    mapped, plain = rig.weights(wink), unmapped.weights(wink)
+    # Fitted for the noise, the rig reads the performer's own closed eye at about 0.8 (it
+    # splits the lids' motion with the look down's); the map reads it closed.
+    assert plain[:, left].mean() < 0.8  # measured 0.756
+    assert mapped[:, left].mean() > 0.9  # measured 0.925
+    assert mapped[:, right].max() < 0.15  # the other eye stays open (0.090; 0.071 unmapped)
+    assert rig.weights(rest)[:, left].max() < 0.15  # and so does a resting face (0.086)
+    np.testing.assert_allclose(mapped.sum(axis=1), 1.0)
+
+
+@pytest.mark.ict
+@needs_ict
+def test_the_map_travels_with_the_rig_file_and_a_refit(performer_rig, tmp_path):
+    rig, performer, exact = performer_rig
+    frames = exact[[performer.names.index("eyeBlinkLeft"), 0]]
+    path = tmp_path / "performer.rig"
+    rig.save(path)
+    np.testing.assert_allclose(load_rig(path).weights(frames), rig.weights(frames), atol=1e-6)
+    refitted = refit_noise(rig, SIGMA / 2)
+    assert refitted.fit_report["closure"] == rig.fit_report["closure"]
+    assert rig.with_clamp("unit").fit_report["closure"] == rig.fit_report["closure"]
