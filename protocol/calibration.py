@@ -30,6 +30,9 @@ from facecast.protocol.message import (
     _header,
 )
 
+#: The names ``calibrate.blinks`` takes: ARKit's two blinks (the eyes' closures).
+BLINK_NAMES = ("eyeBlinkLeft", "eyeBlinkRight")
+
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class Calibrate(_ArrayMessage):
@@ -45,12 +48,17 @@ class Calibrate(_ArrayMessage):
         The performer's landmark noise (standard deviation per coordinate, in the points'
         units), e.g. measured over the frames the neutral was held; >= 0. Given, the server
         re-bases the rig noise-aware and bounded; None: exactly, as before the field.
+    blinks : {name: (K, 3) float array} or None
+        The performer's captured closed eyes, under ``BLINK_NAMES`` (one or both), each with
+        as many points as ``points``; needs ``points`` and ``noise``. The server maps each
+        blink weight so that the re-based rig reads the performer's closed eye as 1.
     """
 
     TYPE: ClassVar[str] = "calibrate"
     points: np.ndarray | None = None
     reset: bool = False
     noise: float | None = None
+    blinks: Mapping[str, np.ndarray] | None = None
 
     def __post_init__(self) -> None:
         check_bool(self.reset, "calibrate.reset")
@@ -73,6 +81,32 @@ class Calibrate(_ArrayMessage):
                     "calibrate.noise and calibrate.reset exclude each other",
                 )
             object.__setattr__(self, "noise", noise)
+        if self.blinks is not None:
+            self._check_blinks(self.blinks)
+
+    def _check_blinks(self, blinks: Any) -> None:
+        if not isinstance(blinks, Mapping) or not blinks:
+            raise ProtocolError(
+                ErrorCode.INVALID_FIELD, "calibrate.blinks must be a non-empty map of arrays"
+            )
+        unknown = sorted(str(name) for name in blinks if name not in BLINK_NAMES)
+        if unknown:
+            raise ProtocolError(
+                ErrorCode.INVALID_FIELD,
+                f"calibrate.blinks: {unknown[0][:64]!r} is not one of {', '.join(BLINK_NAMES)}",
+            )
+        if self.points is None or self.noise is None:
+            raise ProtocolError(
+                ErrorCode.INVALID_FIELD, "calibrate.blinks needs calibrate.points and .noise"
+            )
+        for name, array in blinks.items():
+            _check_array(array, f"calibrate.blinks.{name}", (3,))
+            if array.shape != self.points.shape:
+                raise ProtocolError(
+                    ErrorCode.INVALID_FIELD,
+                    f"calibrate.blinks.{name} has {array.shape[0]} points, calibrate.points "
+                    f"{self.points.shape[0]}",
+                )
 
     def serialize(self) -> dict[str, Any]:
         out = {
@@ -83,6 +117,8 @@ class Calibrate(_ArrayMessage):
         # Absent unless given: a calibrate without it keeps its bytes (§10.4).
         if self.noise is not None:
             out["noise"] = self.noise
+        if self.blinks is not None:  # absent unless given, as noise
+            out["blinks"] = {name: array_to_wire(a) for name, a in self.blinks.items()}
         return out
 
     @classmethod
@@ -96,7 +132,30 @@ class Calibrate(_ArrayMessage):
             ),
             reset=read_bool(obj, "reset", "calibrate.reset", False),
             noise=read_float(obj, "noise", "calibrate.noise", None),
+            blinks=_read_blinks(obj.get("blinks"), limits),
         )
+
+
+def _read_blinks(value: Any, limits: Limits) -> dict[str, np.ndarray] | None:
+    """``calibrate.blinks`` from the wire: a map of at most ``BLINK_NAMES`` to arrays."""
+    if value is None:
+        return None
+    if not isinstance(value, Mapping) or len(value) > len(BLINK_NAMES):
+        raise ProtocolError(
+            ErrorCode.INVALID_FIELD,
+            f"calibrate.blinks must be a map of at most {len(BLINK_NAMES)} arrays",
+        )
+    blinks = {}
+    for name, array in value.items():
+        if name not in BLINK_NAMES:
+            raise ProtocolError(
+                ErrorCode.INVALID_FIELD,
+                f"calibrate.blinks: {str(name)[:64]!r} is not one of {', '.join(BLINK_NAMES)}",
+            )
+        blinks[name] = array_from_wire(
+            array, f"calibrate.blinks.{name}", trailing=(3,), max_rows=limits.max_points
+        )
+    return blinks
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -53,6 +53,8 @@ def _check_array(value: Any, where: str, trailing: tuple[int, ...]) -> None:
 
 
 def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, Mapping) and isinstance(b, Mapping):  # of arrays (calibrate.blinks)
+        return a.keys() == b.keys() and all(_same(a[key], b[key]) for key in a)
     if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
         return (
             isinstance(a, np.ndarray)

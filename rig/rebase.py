@@ -8,9 +8,12 @@ I/O; it must not change the rig it is given.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 import numpy.typing as npt
 
+from .closure import CLOSURE_NAMES, closure_ranges
 from .errors import InputError
 from .fit import fit_weight_model
 from .pose import similarity_transform
@@ -204,12 +207,36 @@ def _refit(
     return refitted
 
 
-def calibrate(rig: Rig, neutral: npt.ArrayLike, noise: float | None = None) -> Rig:
+def calibrate(
+    rig: Rig,
+    neutral: npt.ArrayLike,
+    noise: float | None = None,
+    blinks: Mapping[str, npt.ArrayLike] | None = None,
+) -> Rig:
     """A session's re-base on a performer's neutral: exact without ``noise``, else ``rebase``.
 
     What a ``calibrate`` message asks for (PROTOCOL.md §5.1.3): without its ``noise`` the
-    rig is ``rig.calibrated(neutral)``, exact as fitted; with it, noise-aware and bounded.
+    rig is ``rig.calibrated(neutral)``, exact as fitted; with it, noise-aware and bounded,
+    and with ``blinks`` ({"eyeBlinkLeft" / "eyeBlinkRight": (K, 3)}, the performer's
+    captured closed eyes, some or both) each blink weight is mapped so that the re-based
+    rig reads the performer's own closed eye as 1 and their neutral as 0 (``closure``, as
+    ``fit_performer`` does with a personal capture). Names the rig lacks are ignored.
     """
     if noise is None:
         return rig.calibrated(neutral)
-    return rebase(rig, neutral, noise=noise)
+    rebased = rebase(rig, neutral, noise=noise)
+    if not blinks:
+        return rebased
+    k = rebased.num_points
+    unknown = sorted(set(blinks) - set(CLOSURE_NAMES))
+    if unknown:
+        raise InputError(
+            f"blinks: {unknown[0]!r} is not one of {', '.join(CLOSURE_NAMES)}", code="bad_input"
+        )
+    readings = {"neutral": rebased.weights(np.asarray(neutral, dtype=np.float64)[:k])}
+    for name, points in blinks.items():
+        readings[name] = rebased.weights(np.asarray(points, dtype=np.float64)[:k])
+    ranges = closure_ranges(readings, rebased.names)
+    if not ranges:
+        return rebased
+    return rebased.with_weight_models(rebased.models, {**rebased.fit_report, "closure": ranges})

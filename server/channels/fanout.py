@@ -64,6 +64,8 @@ class ChannelFrame:
     neutral : (K, 3) or None, the performer's calibrated neutral
     neutral_noise : the landmark noise the neutral came with (calibrate ``noise``, §5.1.3):
         every key re-bases its rig noise-aware with it (``rig.rebase``); None: exactly
+    neutral_blinks : {name: (K, 3)} or None, the performer's closed eyes the neutral came
+        with (calibrate ``blinks``, §5.1.3): every key reads them as closed on its rig
     neutral_id : changes whenever ``neutral`` does (keys cache their calibrated rig by it)
     head : the frame's head pose (PROTOCOL.md §5.3), relayed unchanged in every key's result
     stamps : the frame's stage stamps as the server relays them (PROTOCOL.md §5.4: the
@@ -81,6 +83,7 @@ class ChannelFrame:
     smoothing: Smoothing | None = None
     neutral: np.ndarray | None = None
     neutral_noise: float | None = None
+    neutral_blinks: dict[str, np.ndarray] | None = None
     neutral_id: str = ""
     head: Head | None = None
     stamps: Stamps | None = None
@@ -98,6 +101,9 @@ class ChannelFrame:
                 "smoothing": None if self.smoothing is None else self.smoothing.serialize(),
                 "neutral": None if self.neutral is None else array_to_wire(self.neutral),
                 "neutral_noise": self.neutral_noise,
+                "neutral_blinks": None
+                if self.neutral_blinks is None
+                else {name: array_to_wire(a) for name, a in self.neutral_blinks.items()},
                 "neutral_id": self.neutral_id,
                 "head": None if self.head is None else self.head.serialize(),
                 "stamps": None if self.stamps is None else self.stamps.serialize(),
@@ -113,6 +119,9 @@ class ChannelFrame:
         if not isinstance(obj, dict):
             raise ValueError("channel frame: not a map")
         neutral = obj.get("neutral")
+        blinks = obj.get("neutral_blinks")
+        if blinks is not None and (not isinstance(blinks, dict) or len(blinks) > 2):
+            raise ValueError("channel frame: neutral_blinks is not a map of at most 2 arrays")
         raw = obj.get("raw_points")
         smoothing = obj.get("smoothing")
         head = obj.get("head")
@@ -132,6 +141,12 @@ class ChannelFrame:
             if neutral is None
             else array_from_wire(neutral, "neutral", trailing=(3,), max_rows=max_points),
             neutral_noise=read_float(obj, "neutral_noise", "channel frame neutral_noise", None),
+            neutral_blinks=None
+            if blinks is None
+            else {
+                str(name): array_from_wire(a, "neutral_blinks", trailing=(3,), max_rows=max_points)
+                for name, a in blinks.items()
+            },
             neutral_id=str(obj.get("neutral_id", "")),
             head=None if head is None else Head.parse(head, "head"),
             stamps=None if stamps is None else Stamps.parse(stamps, "stamps"),
@@ -199,7 +214,9 @@ class KeyState(_Key):
             rig = self.rig
             if frame.neutral is not None:
                 try:
-                    rig = calibrate_rig(rig, frame.neutral, frame.neutral_noise)
+                    rig = calibrate_rig(
+                        rig, frame.neutral, frame.neutral_noise, frame.neutral_blinks
+                    )
                 except RigError as exc:
                     # The publisher's rig accepted this neutral; this one cannot: serve it
                     # uncalibrated rather than not at all.

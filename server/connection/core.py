@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import secrets
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import NoReturn
 
@@ -297,12 +297,13 @@ class ConnectionCore:
         *,
         points: np.ndarray | None = None,
         noise: float | None = None,
+        blinks: Mapping[str, np.ndarray] | None = None,
     ) -> None:
         """The calibration asked for gave ``rig``; ``seq``: the frame taken as neutral.
 
         Only a calibration `handle` asked for (``seq`` None) ends a wait: a frame's
-        neutral (`take_neutral`) is fitted while the reader goes on reading. ``points``
-        and ``noise`` (what it was fitted on) matter to a channel's publisher only.
+        neutral (`take_neutral`) is fitted while the reader goes on reading. ``points``,
+        ``noise`` and ``blinks`` (what it was fitted on) matter to a channel's publisher only.
         """
         if seq is None:
             self._done_waiting(now)
@@ -432,6 +433,8 @@ class PublisherCore(ConnectionCore):
         self.neutral: np.ndarray | None = None
         #: The landmark noise the neutral was re-based with (None: exactly; §5.1.3).
         self.neutral_noise: float | None = None
+        #: The performer's closed eyes the neutral came with (calibrate ``blinks``, §5.1.3).
+        self.neutral_blinks: dict[str, np.ndarray] | None = None
         #: Names the neutral, so keys see a new one even if its points are equal.
         self.neutral_id = ""
         #: Frames of this publisher the channel discarded (superseded): ``channel.dropped``.
@@ -473,17 +476,23 @@ class PublisherCore(ConnectionCore):
         *,
         points: np.ndarray | None = None,
         noise: float | None = None,
+        blinks: Mapping[str, np.ndarray] | None = None,
     ) -> None:
-        """As `ConnectionCore.calibrated`; ``points`` (the neutral) and the ``noise`` it was
-        re-based with go to the channel, whose every key re-bases its own rig the same way."""
+        """As `ConnectionCore.calibrated`; ``points`` (the neutral), the ``noise`` and the
+        closed eyes (``blinks``) it was re-based with go to the channel, whose every key
+        re-bases its own rig the same way."""
         assert points is not None
         self.neutral, self.neutral_noise = np.array(points, copy=True), noise
+        self.neutral_blinks = (
+            None if not blinks else {name: np.array(a, copy=True) for name, a in blinks.items()}
+        )
         self.neutral_id = secrets.token_hex(6)
         super().calibrated(rig, now, seq)
 
     def reset_calibration(self) -> None:
         super().reset_calibration()
         self.neutral, self.neutral_noise, self.neutral_id = None, None, ""
+        self.neutral_blinks = None
 
 
 class WatcherCore(ConnectionCore):

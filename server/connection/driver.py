@@ -14,7 +14,7 @@ import contextlib
 import logging
 import math
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from concurrent.futures import Executor
 from typing import Any
 
@@ -261,15 +261,22 @@ class Driver:
             await self._open(work)
         elif work is not None:
             assert work.points is not None  # the core hands over only calibrates with points
-            await self._calibrate(work.points, None, work.noise)
+            await self._calibrate(work.points, None, work.noise, work.blinks)
         self._deliver()
         self.arm()  # a wait for the rig or a neutral suspended the idle deadline
 
-    async def _calibrate(self, points: np.ndarray, seq: int | None, noise: float | None) -> bool:
+    async def _calibrate(
+        self,
+        points: np.ndarray,
+        seq: int | None,
+        noise: float | None,
+        blinks: Mapping[str, np.ndarray] | None = None,
+    ) -> bool:
         """Fit the neutral ``points`` (a ``calibrate`` message's, or frame ``seq``'s).
 
         ``noise``: the calibrate's landmark noise, for a noise-aware, bounded re-base
-        (``rig.rebase``); None re-bases exactly. The core queues its ``calibrated`` or its
+        (``rig.rebase``); None re-bases exactly. ``blinks``: the calibrate's closed eyes,
+        read as closed (``rig.rebase.calibrate``). The core queues its ``calibrated`` or its
         CALIBRATION_FAILED error; False if failed.
         """
         core = self.core
@@ -279,12 +286,12 @@ class Driver:
             # Re-fitting the projection (or, with noise, the weight model) is milliseconds:
             # in the clone pool.
             rig = await self._loop.run_in_executor(
-                self.executor, calibrate_rig, base, points, noise
+                self.executor, calibrate_rig, base, points, noise, blinks
             )
         except RigError as exc:
             core.calibration_failed(exc, time.monotonic(), seq)
             return False
-        core.calibrated(rig, time.monotonic(), seq, points=points, noise=noise)
+        core.calibrated(rig, time.monotonic(), seq, points=points, noise=noise, blinks=blinks)
         return True
 
     # -- writing -------------------------------------------------------------------------

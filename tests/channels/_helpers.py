@@ -34,19 +34,29 @@ K = 5
 RIG_IDS = ("alpha", "beta", "gamma")
 
 
-def tiny_rig(
-    seed: int, num_vertices: int = 12, k: int = K, target_scale: float = 1.0, noise: float = 0.0
-):
-    """4 examples, ``k`` feature points, a small target (times ``target_scale``), fitted
-    with landmark ``noise``."""
+def tiny_examples(
+    seed: int,
+    num_vertices: int = 12,
+    k: int = K,
+    target_scale: float = 1.0,
+    names: tuple[str, ...] = NAMES,
+) -> ExampleSet:
+    """4 examples, ``k`` feature points, a small target (times ``target_scale``)."""
     rng = np.random.default_rng(seed)
-    m = len(NAMES)
+    m = len(names)
     source = np.repeat(rng.normal(size=(1, k, 3)), m, axis=0)
     source[1:] += rng.normal(scale=0.3, size=(m - 1, k, 3))
     target = np.repeat(rng.normal(size=(1, num_vertices, 3)), m, axis=0)
     target[1:] += rng.normal(scale=0.3, size=(m - 1, num_vertices, 3))
     faces = np.array([[i, i + 1, i + 2] for i in range(num_vertices - 2)])
-    return fit(ExampleSet(NAMES, source, target * target_scale, faces), noise=noise)
+    return ExampleSet(names, source, target * target_scale, faces)
+
+
+def tiny_rig(
+    seed: int, num_vertices: int = 12, k: int = K, target_scale: float = 1.0, noise: float = 0.0
+):
+    """``tiny_examples`` fitted with landmark ``noise``."""
+    return fit(tiny_examples(seed, num_vertices, k, target_scale), noise=noise)
 
 
 def write_rigs(directory: Path, rigs: dict[str, Any]) -> None:

@@ -25,11 +25,14 @@ from facecast.protocol import (
     decode_server,
     encode,
 )
+from facecast.rig import fit
+from facecast.rig.rebase import calibrate as calibrate_rig
 from facecast.rig.rebase import rebase
 from facecast.server.channels.fanout import ChannelFrame, key_state
+from facecast.server.settings import Settings
 from facecast.server.testing import run_server
 
-from ._helpers import RIG_IDS, Publisher, Watcher, points, wait_for
+from ._helpers import RIG_IDS, Publisher, Watcher, points, tiny_examples, wait_for, write_rigs
 
 pytestmark = pytest.mark.anyio
 
@@ -72,6 +75,55 @@ async def test_calibration_with_noise_rebases_every_watched_rig_bounded(settings
     np.testing.assert_array_equal(received, expected)
     assert received[:, 1:].min() >= 0.0 and received[:, 1:].max() <= 1.0
     assert exact[:, 1:].min() < 0.0 or exact[:, 1:].max() > 1.0  # what it was without
+
+
+async def test_the_publishers_closed_eye_is_read_as_closed_on_every_watched_rig(
+    tmp_path, rigs, ws_impl
+):
+    # The page sends the performer's captured closed eyes with the neutral (§5.1.3
+    # blinks): every watched rig that has the blink reads them as closed, as
+    # rig.rebase.calibrate does; a rig without it is re-based as before.
+    examples = tiny_examples(7, names=("neutral", "eyeBlinkLeft", "frown", "jaw"))
+    blinky = fit(examples)
+    write_rigs(tmp_path / "rigs", {"alpha": rigs["alpha"], "blinky": blinky})
+    source = examples.source_points.astype(np.float32)
+    neutral = source[0] + np.float32(0.5)  # the performer's face: another place
+    # The performer's closed eye: most of the way to the blink's source example, on their face.
+    closed = neutral + np.float32(0.7) * (source[1] - source[0])
+    calibrate = Calibrate(points=neutral, noise=0.01, blinks={"eyeBlinkLeft": closed})
+    settings = Settings(rigs_dir=tmp_path / "rigs", face_lost_after=30.0)
+    async with run_server(settings, ws=ws_impl) as server:
+        watcher = await Watcher.open(server.ws_url, "stage", "blinky")
+        other = await Watcher.open(server.ws_url, "stage", "alpha")
+        publisher = await Publisher.open(server.ws_url, "stage", "alpha")
+        await publisher.ws.send(publisher.protocol.send(calibrate))
+        while not isinstance(await publisher.queue.get(), Calibrated):
+            pass
+        await publisher.send(0, closed)
+        result = await watcher.result_with_seq(0)
+        unblinking = await other.result_with_seq(0)
+
+    read_closed = calibrate_rig(blinky, neutral, 0.01, {"eyeBlinkLeft": closed})
+    np.testing.assert_array_equal(result.weights, read_closed.weights(closed).astype(np.float32))
+    assert result.weights[1] == pytest.approx(1.0, abs=1e-6)
+    assert rebase(blinky, neutral, noise=0.01).weights(closed)[1] < 0.9  # what it was without
+    expected = rebase(rigs["alpha"], neutral, noise=0.01).weights(closed).astype(np.float32)
+    np.testing.assert_array_equal(unblinking.weights, expected)
+
+
+def test_a_channel_frame_carries_the_neutrals_closed_eyes_across_processes():
+    closed = np.arange(6, dtype=np.float32).reshape(2, 3)
+    frame = ChannelFrame(seq=1, ts=0.5, points=closed, neutral=closed + 1, neutral_noise=0.01,
+                         neutral_blinks={"eyeBlinkRight": closed}, neutral_id="n1")  # fmt: skip
+    back = ChannelFrame.from_bytes(frame.to_bytes(), max_points=8)
+    assert list(back.neutral_blinks) == ["eyeBlinkRight"]
+    np.testing.assert_array_equal(back.neutral_blinks["eyeBlinkRight"], closed)
+    assert (
+        ChannelFrame.from_bytes(
+            ChannelFrame(seq=1, ts=0.5, points=closed).to_bytes(), max_points=8
+        ).neutral_blinks
+        is None
+    )
 
 
 async def test_a_frame_publishers_calibrate_rebases_the_channel_before_its_next_frame(

@@ -6,6 +6,7 @@ import re
 from importlib import resources
 
 import msgpack
+import numpy as np
 import pytest
 from _protocol_samples import SAMPLES
 
@@ -41,7 +42,7 @@ GOLDEN = {
 }
 
 #: Further examples in PROTOCOL.md, of message variants (test_protocol_moving checks them).
-VARIANTS = ("ready_moving", "result_moving", "calibrate_noise")
+VARIANTS = ("ready_moving", "result_moving", "calibrate_noise", "calibrate_blinks")
 
 # Examples in PROTOCOL.md look like: <!-- example: frame --> then a fenced block of hex.
 _EXAMPLE = re.compile(r"<!-- example: (\w+) -->\s*```[a-z]*\n(.*?)```", re.DOTALL)
@@ -88,6 +89,45 @@ def test_calibrate_with_noise_is_the_spec_example_and_round_trips() -> None:
 
     assert _spec_examples()["calibrate_noise"] == data
     assert decode_client(data) == message
+
+
+def test_calibrate_with_blinks_is_the_spec_example_and_round_trips() -> None:
+    message = Calibrate(
+        points=np.zeros((1, 3), np.float32),
+        noise=0.015625,
+        blinks={"eyeBlinkLeft": np.array([[0.0, -0.25, 0.0]], np.float32)},
+    )
+    data = encode(message)
+
+    assert _spec_examples()["calibrate_blinks"] == data
+    assert decode_client(data) == message
+    assert b"blinks" not in encode(Calibrate(noise=0.015625))  # absent unless given
+
+
+def _calibrate_body(**fields):
+    point = {"dtype": "f32", "shape": [1, 3], "data": bytes(12)}
+    return {"v": 1, "type": "calibrate", "points": point, "reset": False, "noise": 0.01,
+            "blinks": {"eyeBlinkLeft": point}, **fields}  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("fields", "message"),
+    [
+        ({"noise": None}, "needs calibrate.points and .noise"),
+        ({"points": None}, "needs calibrate.points and .noise"),
+        ({"blinks": {}}, "non-empty map"),
+        ({"blinks": {"jawOpen": {"dtype": "f32", "shape": [1, 3], "data": bytes(12)}}}, "not one of"),
+        ({"blinks": [1]}, "map of at most 2"),
+        ({"blinks": {"eyeBlinkLeft": {"dtype": "f32", "shape": [2, 3], "data": bytes(24)}}},
+         "has 2 points"),
+    ],
+)  # fmt: skip
+def test_a_bad_calibrate_blinks_is_refused_with_invalid_field(fields, message) -> None:
+    with pytest.raises(ProtocolError) as raised:
+        decode_client(msgpack.packb(_calibrate_body(**fields)))
+
+    assert raised.value.code == ErrorCode.INVALID_FIELD
+    assert message in str(raised.value)
 
 
 def test_calibrate_without_noise_keeps_its_bytes_and_reads_none() -> None:

@@ -193,6 +193,33 @@ async def test_calibrate_with_noise_rebases_noise_aware_and_bounded(served, rig)
     assert result.weights[1:].min() >= 0.0 and result.weights[1:].max() <= 1.0
 
 
+def _blink_rig():
+    """The tiny rig with its first expression named as a blink (the closure maps that one)."""
+    names = ("neutral", "eyeBlinkLeft", "frown", "jaw")
+    return fit(dataclasses.replace(tiny_example_set(), names=names))
+
+
+async def test_calibrate_with_the_performers_closed_eye_reads_it_as_closed(served):
+    served.app.state.store.put_rig("blinky", blinky := _blink_rig())
+    source = tiny_example_set().source_points.astype(np.float32)
+    neutral = source[0] + np.float32(0.5)  # the performer's face: another place
+    # Their closed eye: most of the way to the rig's own blink, on their face.
+    closed = neutral + np.float32(0.7) * (source[1] - source[0])
+    async with connect(served) as ws:
+        await open_session(ws, "blinky")
+        await ws.send(
+            encode(Calibrate(points=neutral, noise=0.01, blinks={"eyeBlinkLeft": closed}))
+        )
+        ack = await recv_message(ws)
+        await ws.send(frame(0, closed))
+        result = await next_result(ws)
+
+    assert ack == Calibrated(active=True, seq=None)
+    assert rebase(blinky, neutral, noise=0.01).weights(closed)[1] < 0.9  # part-way, plain
+    assert result.weights[1] == pytest.approx(1.0, abs=1e-6)  # read as closed
+    assert result.weights.sum() == pytest.approx(1.0, abs=1e-5)
+
+
 # -- results that would not be finite (issue 13, item 3) ----------------------------------
 
 
