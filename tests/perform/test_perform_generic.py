@@ -16,11 +16,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from facecast.cli.bench.facevideo import head_scene, write_video
 from facecast.cli.main import main as facecast
 from facecast.rig import fit, load_example_set
-from facecast.rig.sources.ict import locate_ict
+from facecast.rig.evaluation.eyes import EYES_IDENTITY
+from facecast.rig.evaluation.webcam import ict_performer
+from facecast.rig.sources.ict import ict_regions, locate_ict
 
-from .conftest import CHARACTER, FacePose, open_page, watching
+from .conftest import CHARACTER, FPS, FacePose, open_page, watching
 from .test_perform_page import HOLD, _capture, lip_gap, perform_url, tracking
 
 ARCHIVE = locate_ict()
@@ -122,3 +125,100 @@ def test_on_the_cartoon_every_frame_viewers_get_is_plausible(browser, server, ca
     run = _perform_generic(browser, server, camera, CHARACTER, "generic-cartoon")
 
     _assert_plausible(run["received"])
+
+
+# -- the walk-through's closed eye, read as closed (issue 34, PROTOCOL.md §5.1.3 blinks) --
+
+#: Frames of the wink video's each phase (eyes open, then the left eye shut), 25 fps: long
+#: enough for a one-second capture after the switch is seen.
+EYES_HOLD = 50
+#: Resolves on the first tracked frame whose eye openness (stats.eyes) jumped the way asked
+#: from the one before: the wink video's switch between its phases.
+AWAIT_EYES = """async (want) => {
+  const s = window.facecastStats;
+  let last = s.tracked;
+  let previous = null;
+  for (;;) {
+    await new Promise((resolve) => requestAnimationFrame(resolve));
+    if (s.tracked === last) continue;
+    last = s.tracked;
+    if (!s.faceFound || s.eyes === null) { previous = null; continue; }
+    if (previous !== null && (want === "shut" ? s.eyes < 0.8 * previous : s.eyes > 1.25 * previous)) return s.eyes;
+    previous = s.eyes;
+  }
+}"""
+
+
+def _capture_eyes(page, name: str, want: str) -> None:
+    """Wait for the wink video to switch to ``want`` ("open" / "shut"), capture ``name``."""
+    for _attempt in range(3):
+        page.evaluate(AWAIT_EYES, want)
+        page.click(f'#steps button[data-name="{name}"]')
+        page.click("#capture")
+        page.wait_for_function(
+            f"(c => c && c.captures[{name!r}] !== undefined && "
+            "document.getElementById('capture').disabled === false)"
+            "(window.facecastStats.calibration)"
+        )
+        result = page.evaluate(f"window.facecastStats.calibration.captures[{name!r}]")
+        if result["ok"]:
+            return
+    raise AssertionError(f"{name} was refused three times: {result['reason']}")
+
+
+@pytest.mark.ict
+@pytest.mark.skipif(ARCHIVE is None, reason="ICT-FaceKit not found ($FACECAST_ICT)")
+def test_the_walkthroughs_closed_eye_is_read_as_closed_on_the_generic_rig(
+    browser, server, camera_file, pages, ict_rig
+):
+    # An ICT head (not the imported face's identity) with eyes open, then its left eye
+    # shut, looped on the fake camera. Calibrated on the neutral alone, the re-based rig
+    # reads the shut eye part-way; once the walk-through's eyeBlinkLeft is captured the
+    # page sends it with the neutral and the same rig reads it closed, the other eye open.
+    performer = ict_performer(ARCHIVE, identity=EYES_IDENTITY)
+    regions, landmarks68 = ict_regions(ARCHIVE)
+    opened = np.zeros((EYES_HOLD, len(performer.names)))
+    shut = opened.copy()
+    shut[:, performer.names.index("eyeBlinkLeft")] = 1.0
+    write_video(camera_file, head_scene(performer, regions, landmarks68), performer,
+                np.concatenate([opened, shut]), fps=FPS, sway_degrees=0.0, progress=False)  # fmt: skip
+    names = _names(server, ict_rig)
+    left, right = names.index("eyeBlinkLeft"), names.index("eyeBlinkRight")
+    weights, weights_thread = watching(server, "generic-wink", ict_rig, "weights")
+    page = open_page(browser, perform_url(server, "generic-wink", ict_rig))
+    pages.append(page)
+    try:
+        page.wait_for_function("window.facecastStats.publish === 'waiting'")
+        page.wait_for_selector('#steps button[data-name="eyeBlinkLeft"]')
+        tracking(page)
+        page.click("#calibrate")
+        _capture_eyes(page, "neutral", "open")
+        page.wait_for_function("window.facecastStats.rebased === true")
+        rebased_at = page.evaluate("window.facecastStats.published")
+        _capture_eyes(page, "eyeBlinkLeft", "shut")
+        page.wait_for_function("window.facecastStats.closedEyes.length === 1")
+        read_closed_at = page.evaluate("window.facecastStats.published")
+        page.wait_for_function(  # two loops of the video
+            f"window.facecastStats.published >= {read_closed_at + 60}", timeout=120_000
+        )
+        with weights.arrived:
+            weights.arrived.wait_for(
+                lambda: any(r.seq >= read_closed_at + 60 for _, r in weights.results), timeout=30
+            )
+        stats = page.evaluate("window.facecastStats")
+    finally:
+        weights.stop.set()
+        page.context.close()
+        weights_thread.join(5)
+
+    assert stats["closedEyes"] == ["eyeBlinkLeft"]
+    received = [(r.seq, np.asarray(r.weights, dtype=float)) for _, r in weights.results]
+    # Both windows hold shut-eye frames: the capture itself was made on one.
+    before = np.stack([w for seq, w in received if rebased_at <= seq < read_closed_at])
+    after = np.stack([w for seq, w in received if seq > read_closed_at + 5])
+    print(f"\neyeBlinkLeft at most {before[:, left].max():.2f} on the neutral alone, "
+          f"{after[:, left].max():.2f} with the closed eye; eyeBlinkRight {after[:, right].max():.2f}")  # fmt: skip
+    assert before[:, left].max() < 0.85
+    assert after[:, left].max() > 0.95
+    assert after[:, left].max() > before[:, left].max() + 0.15
+    assert after[:, right].max() < 0.3  # a wink stays one-sided

@@ -165,9 +165,18 @@ export function encodeFrame(seq, ts, points) {
 
 /** §5.1.3: re-base the session's rig on this neutral (`points`: Float32Array K*3); with
  * `noise` (the performer's landmark σ, a number ≥ 0) noise-aware and bounded. */
-export function encodeCalibrate(points, noise = null) {
+/**
+ * A calibrate with the neutral `points` (Float32Array, K×3 flat), the held frames' `noise`
+ * and, with the noise, the performer's captured closed eyes: `blinks` {eyeBlinkLeft?,
+ * eyeBlinkRight?: Float32Array K×3} (PROTOCOL.md §5.1.3; absent on the wire unless given).
+ */
+export function encodeCalibrate(points, noise = null, blinks = null) {
   const message = { v: PROTOCOL_VERSION, type: "calibrate", points: arrayToWire(points, [points.length / 3, 3]), reset: false };
-  if (typeof noise === "number" && Number.isFinite(noise) && noise >= 0) message.noise = noise;
+  if (typeof noise === "number" && Number.isFinite(noise) && noise >= 0) {
+    message.noise = noise;
+    const closed = Object.entries(blinks || {}).filter(([, p]) => p && p.length === points.length);
+    if (closed.length) message.blinks = Object.fromEntries(closed.map(([name, p]) => [name, arrayToWire(p, [p.length / 3, 3])]));
+  }
   return msgpackEncode(message);
 }
 

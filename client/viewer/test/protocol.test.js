@@ -40,6 +40,25 @@ test("calibrate carries its noise only when given (PROTOCOL.md §5.1.3)", () => 
   assert.equal("noise" in decode(encodeCalibrate(points, Number.NaN)), false);
 });
 
+test("calibrate with the closed eyes encodes to the bytes of PROTOCOL.md §10.4", () => {
+  const expected = hex(`86 a1 76 01 a4 74 79 70 65 a9 63 61 6c 69 62 72
+    61 74 65 a6 70 6f 69 6e 74 73 83 a5 64 74 79 70
+    65 a3 66 33 32 a5 73 68 61 70 65 92 01 03 a4 64
+    61 74 61 c4 0c 00 00 00 00 00 00 00 00 00 00 00
+    00 a5 72 65 73 65 74 c2 a5 6e 6f 69 73 65 cb 3f
+    90 00 00 00 00 00 00 a6 62 6c 69 6e 6b 73 81 ac
+    65 79 65 42 6c 69 6e 6b 4c 65 66 74 83 a5 64 74
+    79 70 65 a3 66 33 32 a5 73 68 61 70 65 92 01 03
+    a4 64 61 74 61 c4 0c 00 00 00 00 00 00 80 be 00
+    00 00 00`);
+  const blinks = { eyeBlinkLeft: new Float32Array([0, -0.25, 0]) };
+  assert.deepEqual(encodeCalibrate(new Float32Array(3), 0.015625, blinks), expected);
+  // Without the noise, or of another point count, the closed eyes are not sent.
+  assert.equal("blinks" in decode(encodeCalibrate(new Float32Array(3), null, blinks)), false);
+  const other = { eyeBlinkLeft: new Float32Array(6) };
+  assert.equal("blinks" in decode(encodeCalibrate(new Float32Array(3), 0.01, other)), false);
+});
+
 test("ping encodes to the bytes of PROTOCOL.md §10.5", () => {
   const expected = hex(`84 a1 76 01 a4 74 79 70 65 a4 70 69 6e 67 a2 69
     64 01 a2 74 73 cb 40 0a 00 00 00 00 00 00`);

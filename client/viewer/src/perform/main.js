@@ -71,6 +71,7 @@ const stats = {
   clockRttMs: null, // the round trip of the pong that estimate comes from
   rebased: false, // a generic rig re-based on the performer's captured neutral (calibrated)
   neutralNoise: null, // σ of the neutral capture's held frames, sent with the calibrate
+  closedEyes: [], // the captured closed eyes sent with it (eyeBlinkLeft / eyeBlinkRight)
   rig: null,
   channel: null,
   character: null, // the rig's character file as shown: {format, meshes, vrm, bound, head, meta}
@@ -221,6 +222,13 @@ async function main() {
       stats.neutralNoise = noise;
       rebase(link);
     },
+    keyCaptured(name, points) {
+      // The walk-through's closed eyes go with the neutral: the server reads them as closed
+      // on the re-based rig (PROTOCOL.md §5.1.3 blinks), so a quick blink reads whole.
+      if (!CLOSED_EYES.includes(name)) return;
+      closedEyes[name] = Float32Array.from(points.flat());
+      rebase(link);
+    },
   });
   const modelLoad = loadModel(params, view)
     .then((model) => {
@@ -250,8 +258,14 @@ async function main() {
   // The landmark noise of the neutral's held frames: with it the server re-bases the rig
   // noise-aware and bounded (weights in [0, 1]), never extrapolating for viewers.
   let neutralNoise = null;
+  // The performer's captured closed eyes, by blink name: sent with the neutral.
+  const CLOSED_EYES = ["eyeBlinkLeft", "eyeBlinkRight"];
+  const closedEyes = {};
   const rebase = (l) => {
-    if (neutral && publishing && generic) l.send(encodeCalibrate(neutral.subarray(0, rigK * 3), neutralNoise));
+    if (!(neutral && publishing && generic)) return;
+    const blinks = Object.fromEntries(Object.entries(closedEyes).map(([name, p]) => [name, p.subarray(0, rigK * 3)]));
+    stats.closedEyes = neutralNoise === null ? [] : Object.keys(blinks);
+    l.send(encodeCalibrate(neutral.subarray(0, rigK * 3), neutralNoise, blinks));
   };
   let latencyEma = null;
   const link = new Link(socketTarget(params), {

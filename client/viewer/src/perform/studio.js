@@ -13,7 +13,8 @@ export const CAPTURE_MAX_MS = 4000;
 /**
  * host: {stats, params, layoutName, authHeaders(), problemText(response, problem, role, what),
  *        performHref(rigId), showExample(name), showLive(),
- *        neutralCaptured(points K×3, noise: σ of its held frames)}
+ *        neutralCaptured(points K×3, noise: σ of its held frames),
+ *        keyCaptured(name, points K×3): any other accepted capture}
  */
 export class Studio {
   constructor(doc, host) {
@@ -121,6 +122,7 @@ export class Studio {
     };
     if (summary.ok) {
       if (step.name === "neutral") this.host.neutralCaptured(summary.points, heldNoise(summary.held));
+      else this.host.keyCaptured?.(step.name, summary.points);
       this.verdict(
         `${step.name}: held well — spread ${(summary.spread * 10).toFixed(2)} mm, head yaw ${summary.head.yaw.toFixed(0)}° ` +
           `pitch ${summary.head.pitch.toFixed(0)}° (moved ${summary.headMotion.toFixed(1)}°), ${summary.kept} frames kept, ` +
