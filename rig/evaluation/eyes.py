@@ -297,7 +297,7 @@ def eyes_rows(
     k = character.num_points
     rigs = {
         "personal": fit_performer(character, keys, noise=noise),
-        "generic": generic_rig(character, keys["neutral"][:k], noise),
+        "generic": generic_rig(character, keys["neutral"][:k], noise, keys),
     }
     rows: dict[str, dict[str, Any]] = {}
     for path, rig in rigs.items():

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from ..closure import CLOSURE_NAMES
 from ..errors import InputError
 from ..examples import ExampleSet
 from ..pose import similarity_transform
@@ -59,8 +60,7 @@ CLOSURE_LEVEL = 0.5
 #: Frames either side of a closure its peaks are looked for in: a causal filter lags, a
 #: tracker may close early.
 CLOSURE_MARGIN = 3
-#: The names whose closures a take's score reports.
-CLOSURE_NAMES = ("eyeBlinkLeft", "eyeBlinkRight")
+# The names whose closures a take's score reports: CLOSURE_NAMES, the blinks (rig.closure).
 
 
 @dataclass(frozen=True, eq=False)
@@ -280,12 +280,23 @@ def source_on_neutral(examples: ExampleSet, neutral: npt.ArrayLike) -> ExampleSe
     return replace(examples, source_points=points - points[0] + placed)
 
 
-def generic_rig(character: Rig, neutral: npt.ArrayLike, noise: float | None) -> Rig:
+def generic_rig(
+    character: Rig,
+    neutral: npt.ArrayLike,
+    noise: float | None,
+    keys: Mapping[str, np.ndarray] | None = None,
+) -> Rig:
     """The generic path: the character's own rig re-based on the performer's captured
     neutral, as a ``calibrate`` carrying the held frames' ``noise`` asks the server to
-    (/perform sends one for a rig that is not the performer's): ``rebase.calibrate``.
+    (/perform sends one for a rig that is not the performer's): ``rebase.calibrate``. With
+    ``keys`` (a capture), its closed eyes go with it (``blinks``), as /perform sends the
+    walk-through's captured ``eyeBlinkLeft`` / ``eyeBlinkRight`` with the neutral.
     """
-    return calibrate(character, neutral, noise)
+    if noise is None or keys is None:
+        return calibrate(character, neutral, noise)
+    k = np.asarray(neutral).shape[0]
+    blinks = {name: keys[name][:k] for name in CLOSURE_NAMES if name in keys}
+    return calibrate(character, neutral, noise, blinks or None)
 
 
 def score(
@@ -492,6 +503,6 @@ def webcam_rows(
         rows[f"personal on {label}"] = score(truth, personal, weights, activations, names)
     for label, (rig, rebase_noise) in (generic or {}).items():
         k = rig.num_points  # a take of a later layout (the iris after 24): the first k
-        rebased = generic_rig(rig, keys["neutral"][:k], rebase_noise)
+        rebased = generic_rig(rig, keys["neutral"][:k], rebase_noise, keys)
         rows[label] = score(truth, rebased, rebased.weights(points[:, :k]), activations, names)
     return rows

@@ -195,7 +195,9 @@ def test_bench_eyes_clip_on_exact_landmarks_scores_each_event_on_both_paths(tmp_
 
     # Two points a lid (the 24-point layout) tell a blink from a look down: the personal
     # path's live blinks and winks reach 0.94 of the truth (0.74 with one point a lid, the
-    # 20-point layout), the generic path's 0.61 (0.37; 0.52 at half the identity residual),
+    # 20-point layout; 1.00 since each captured blink is read as closed), the generic
+    # path's 0.61 (0.37; 0.52 at half the identity residual; 1.00 since the captured closed
+    # eyes go with its neutral, PROTOCOL.md §5.1.3 blinks),
     # offline too: the offline smoother keeps the re-base's identity share, as live
     # (refitted without it, offline reached 1.00 on these exact points and 0.03 on the
     # tracked ones).
