@@ -373,16 +373,26 @@ class FramePublisher:
         self.stats.sent += 1
         return seq
 
-    async def calibrate(self, points: np.ndarray, noise: float | None = None) -> None:
+    async def calibrate(
+        self,
+        points: np.ndarray,
+        noise: float | None = None,
+        blinks: Mapping[str, np.ndarray] | None = None,
+    ) -> None:
         """Re-base the channel's rigs on the performer's neutral ``points`` (K, 3).
 
         ``noise``: the landmark noise measured while the neutral was held; given, every
         watched rig is re-based noise-aware and bounded (PROTOCOL.md §5.1.3), as the
-        /perform page asks. Frames sent after this use the neutral (the server handles a
-        publisher's messages in order); it is sent again after every reconnection. The
-        server's ``calibrated`` is not awaited; a refusal is logged as any error is.
+        /perform page asks, and ``blinks`` ({"eyeBlinkLeft" / "eyeBlinkRight": (K, 3)},
+        the performer's captured closed eyes) are read as closed on each. Frames sent after
+        this use the neutral (the server handles a publisher's messages in order); it is
+        sent again after every reconnection. The server's ``calibrated`` is not awaited; a
+        refusal is logged as any error is.
         """
-        message = Calibrate(points=np.asarray(points, dtype=np.float32), noise=noise)
+        closed = None if not blinks else {
+            name: np.asarray(p, dtype=np.float32) for name, p in blinks.items()
+        }  # fmt: skip
+        message = Calibrate(points=np.asarray(points, dtype=np.float32), noise=noise, blinks=closed)
         self._calibration = message
         ws, protocol = self._ws, self._protocol
         if ws is None or protocol is None:

@@ -144,6 +144,25 @@ async def test_a_frame_publishers_calibrate_rebases_the_channel_before_its_next_
     np.testing.assert_array_equal(results[-1].weights, expected)
 
 
+async def test_a_frame_publishers_calibrate_carries_the_closed_eyes(tmp_path, rigs, ws_impl):
+    # FramePublisher.calibrate(..., blinks=...): the library's way to send them (§5.1.3).
+    examples = tiny_examples(7, names=("neutral", "eyeBlinkLeft", "frown", "jaw"))
+    write_rigs(tmp_path / "rigs", {"blinky": fit(examples)})
+    source = examples.source_points.astype(np.float32)
+    neutral = source[0] + np.float32(0.5)
+    closed = neutral + np.float32(0.7) * (source[1] - source[0])
+    results = []
+    settings = Settings(rigs_dir=tmp_path / "rigs", face_lost_after=30.0)
+    async with run_server(settings, ws=ws_impl) as server:
+        url = channel_url(server.base_url, "stage", "publish")
+        async with FramePublisher(url, Hello(rig="blinky"), on_result=results.append) as pub:
+            await pub.calibrate(neutral, 0.01, blinks={"eyeBlinkLeft": closed})
+            await pub.send(closed, 0.0)
+            assert await pub.drain(10.0)
+
+    assert results[-1].weights[1] == pytest.approx(1.0, abs=1e-6)
+
+
 async def test_a_frame_publisher_closed_leaves_its_channel_at_once(settings, rigs, ws_impl):
     # close() closes the socket itself: the server sees the publisher leave then, not when
     # its connection times out (facecast publish/record waited ~10 s for it).
