@@ -250,7 +250,17 @@ def render_frames(
         for start, stop, centre, name in scene.eyeballs
         if gaze_degrees
     ]
+    # A frame that repeats the one before (a held key, a still head) is that image again:
+    # the same inputs rasterise to the same pixels, so it is not drawn twice.
+    previous: tuple[bytes, ...] | None = None
+    image: np.ndarray | None = None
     for index in range(len(act)):
+        inputs = (act[index].tobytes(), rotations[index].tobytes(),
+                  *(turns[index].tobytes() for *_, turns in eyes))  # fmt: skip
+        if inputs == previous and image is not None:
+            yield image
+            continue
+        previous = inputs
         vertices = performer.vertices(act[index : index + 1])[0].astype(np.float64)
         for start, stop, centre, turns in eyes:
             vertices[start:stop] = (vertices[start:stop] - centre) @ turns[index].T + centre
@@ -268,7 +278,8 @@ def render_frames(
             vertex_colors=scene.albedo * shade[:, None],
             cull=scene.cull,
         )
-        yield (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        image = (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        yield image
 
 
 def write_video(

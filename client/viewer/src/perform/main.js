@@ -72,6 +72,7 @@ const stats = {
   rebased: false, // a generic rig re-based on the performer's captured neutral (calibrated)
   neutralNoise: null, // σ of the neutral capture's held frames, sent with the calibrate
   closedEyes: [], // the captured closed eyes sent with it (eyeBlinkLeft / eyeBlinkRight)
+  calibrateSentAt: null, // frames published before the last calibrate was sent
   rig: null,
   channel: null,
   character: null, // the rig's character file as shown: {format, meshes, vrm, bound, head, meta}
@@ -265,6 +266,7 @@ async function main() {
     if (!(neutral && publishing && generic)) return;
     const blinks = Object.fromEntries(Object.entries(closedEyes).map(([name, p]) => [name, p.subarray(0, rigK * 3)]));
     stats.closedEyes = neutralNoise === null ? [] : Object.keys(blinks);
+    stats.calibrateSentAt = stats.published;
     l.send(encodeCalibrate(neutral.subarray(0, rigK * 3), neutralNoise, blinks));
   };
   let latencyEma = null;
