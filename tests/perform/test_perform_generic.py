@@ -231,12 +231,14 @@ def test_the_walkthroughs_closed_eye_is_read_as_closed_on_the_generic_rig(
                 lambda: any(r.seq >= read_closed_at + 60 for _, r in weights.results), timeout=30
             )
         stats = page.evaluate("window.facecastStats")
+        detail = page.text_content("#publish-detail")
     finally:
         weights.stop.set()
         page.context.close()
         weights_thread.join(5)
 
     assert stats["closedEyes"] == ["eyeBlinkLeft"]
+    assert "re-based on your neutral and your closed eyes (eyeBlinkLeft)" in detail
     received = [(r.seq, np.asarray(r.weights, dtype=float)) for _, r in weights.results]
     # Both windows hold shut-eye frames: the capture itself was made on one.
     before = np.stack([w for seq, w in received if rebased_at <= seq < read_closed_at])

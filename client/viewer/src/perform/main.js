@@ -320,7 +320,11 @@ async function main() {
         rebase(l);
       } else if (msg.type === "calibrated") {
         stats.rebased = msg.active === true;
-        if (stats.rebased) setPublish("live", `live · ${params.channel}`, `rig ${params.rig} re-based on your neutral, ${rigK} points a frame`);
+        if (stats.rebased) {
+          // Which captured closed eyes went with it: those blinks read closed (§5.1.3 blinks).
+          const eyes = stats.closedEyes.length ? ` and your closed eyes (${stats.closedEyes.join(", ")})` : "";
+          setPublish("live", `live · ${params.channel}`, `rig ${params.rig} re-based on your neutral${eyes}, ${rigK} points a frame`);
+        }
       } else if (msg.type === "result") {
         stats.results += 1;
         if (typeof msg.server_ts === "number") {
