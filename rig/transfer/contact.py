@@ -18,7 +18,7 @@ import numpy.typing as npt
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from .mesh import closest_points
+from .mesh import closest_points, edge_length
 
 __all__ = [
     "APART",
@@ -30,7 +30,6 @@ __all__ = [
     "Contacts",
     "closing_pairs",
     "contacts",
-    "surface_places",
 ]
 
 #: The expressions whose closing pairs are kept together on the target by default: the
@@ -70,15 +69,10 @@ def closing_pairs(
     return kept
 
 
-def surface_places(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
-    """(P, V) barycentric weights of each point's closest point on the mesh's surface."""
-    near = closest_points(points, vertices, faces)
-    return _barycentric_rows(near.triangle, near.barycentric, faces, vertices.shape[0])
-
-
 def _barycentric_rows(
     triangle: np.ndarray, barycentric: np.ndarray, faces: np.ndarray, count: int
 ) -> sp.csr_matrix:
+    """(P, count) each point's barycentric weights on the corners of its triangle."""
     corners = faces[triangle]
     return sp.csr_matrix(
         (barycentric.ravel(), (np.repeat(np.arange(len(triangle)), 3), corners.ravel())),
@@ -86,24 +80,17 @@ def _barycentric_rows(
     )
 
 
-def _mean_edges(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(T,) each triangle's mean edge length."""
-    corners = vertices[triangles]
-    edges: np.ndarray = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).mean(axis=1)
-    return edges
+def _mean_edges(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F,) each triangle's mean edge length."""
+    mean: np.ndarray = edge_length(vertices, faces).reshape(3, -1).mean(axis=0)
+    return mean
 
 
 def _vertex_edges(vertices: np.ndarray, faces: np.ndarray, which: np.ndarray) -> np.ndarray:
     """(W,) the mean edge length of the triangles around each of the vertices ``which``."""
-    around = np.isin(faces, which)
-    touching = np.flatnonzero(around.any(axis=1))
-    lengths = _mean_edges(vertices, faces[touching])
-    rows = np.repeat(touching, 3)[around[touching].ravel()]
-    corners = faces[touching][around[touching]]
-    total = np.zeros(vertices.shape[0])
-    count = np.zeros(vertices.shape[0])
-    np.add.at(total, corners, lengths[np.searchsorted(touching, rows)])
-    np.add.at(count, corners, 1.0)
+    around = np.repeat(_mean_edges(vertices, faces), 3)
+    total = np.bincount(faces.ravel(), weights=around, minlength=len(vertices))
+    count = np.bincount(faces.ravel(), minlength=len(vertices))
     mean: np.ndarray = total[which] / count[which]
     return mean
 
