@@ -13,7 +13,7 @@ from collections.abc import Mapping
 import numpy as np
 import numpy.typing as npt
 
-from .closure import CLOSURE_NAMES, closure_ranges
+from .closure import CLOSURE_NAMES, read_closed
 from .errors import InputError
 from .fit import fit_weight_model
 from .pose import similarity_transform
@@ -227,16 +227,9 @@ def calibrate(
     rebased = rebase(rig, neutral, noise=noise)
     if not blinks:
         return rebased
-    k = rebased.num_points
     unknown = sorted(set(blinks) - set(CLOSURE_NAMES))
     if unknown:
         raise InputError(
             f"blinks: {unknown[0]!r} is not one of {', '.join(CLOSURE_NAMES)}", code="bad_input"
         )
-    readings = {"neutral": rebased.weights(np.asarray(neutral, dtype=np.float64)[:k])}
-    for name, points in blinks.items():
-        readings[name] = rebased.weights(np.asarray(points, dtype=np.float64)[:k])
-    ranges = closure_ranges(readings, rebased.names)
-    if not ranges:
-        return rebased
-    return rebased.with_weight_models(rebased.models, {**rebased.fit_report, "closure": ranges})
+    return read_closed(rebased, neutral, blinks)

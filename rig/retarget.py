@@ -10,7 +10,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from .closure import closure_ranges
+from .closure import read_closed
 from .errors import InputError
 from .examples import ExampleSet
 from .fit import fit
@@ -166,10 +166,4 @@ def fit_performer(rig: Rig, points: Mapping[str, object], *, noise: float | None
     )
     if not bounded:
         return fitted  # exact interpolation reads every key as itself
-    readings = {
-        NEUTRAL if i == 0 else name: fitted.weights(clean[name]) for i, name in enumerate(names)
-    }
-    ranges = closure_ranges(readings, fitted.names)
-    if not ranges:
-        return fitted
-    return fitted.with_weight_models(fitted.models, {**fitted.fit_report, "closure": ranges})
+    return read_closed(fitted, clean[names[0]], {name: clean[name] for name in names[1:]})

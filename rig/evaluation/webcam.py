@@ -60,7 +60,6 @@ CLOSURE_LEVEL = 0.5
 #: Frames either side of a closure its peaks are looked for in: a causal filter lags, a
 #: tracker may close early.
 CLOSURE_MARGIN = 3
-# The names whose closures a take's score reports: CLOSURE_NAMES, the blinks (rig.closure).
 
 
 @dataclass(frozen=True, eq=False)

@@ -197,8 +197,8 @@ def transfer_expressions(
         None: the paper's system, factored once for every expression).
     lid_contact : sequence of str
         With ``still``: the expressions whose closing vertex pairs (lids meeting) are kept
-        together on the target, closed by the share the source closes them
-        (``contact.contacts``; default the blinks, so a taller eye's lids meet; empty: none).
+        together on the target, ending as the source's pairs end (``contact.contacts``;
+        default the blinks, so a taller eye's lids meet; empty: none).
     progress : callable, optional
         Called with 1 after each expression.
 
