@@ -74,13 +74,19 @@ def read_closed(rig: Rig, neutral: npt.ArrayLike, closed: Mapping[str, npt.Array
 class ClosureMap:
     """The map of a rig's blink weights: (w − open) / (closed − open), clipped to [0, 1].
 
-    Column 0 (the neutral) is kept at 1 minus the others, so the weights still sum to 1.
+    Column 0 (the neutral) takes up the change, so the weights still sum to 1.
     """
 
     def __init__(self, columns: np.ndarray, opened: np.ndarray, closed: np.ndarray) -> None:
         self.columns = columns
         self.opened = opened
         self.scale = 1.0 / (closed - opened)
+        # A single frame (the live path) maps its two weights as Python floats: numpy's
+        # fancy indexing would cost more than the rest of the frame's map.
+        self._single = [
+            (int(j), float(low), float(gain))
+            for j, low, gain in zip(columns, opened, self.scale, strict=True)
+        ]
 
     @classmethod
     def from_report(
@@ -109,10 +115,17 @@ class ClosureMap:
         return cls(np.asarray(columns), np.asarray(opened), np.asarray(closed))
 
     def apply(self, weights: np.ndarray) -> np.ndarray:
-        """(M,) or (B, M) weights mapped (in place when they are a float array; returned)."""
-        w = weights if weights.ndim == 2 else weights[None]
-        mapped = (w[:, self.columns] - self.opened) * self.scale
-        np.clip(mapped, 0.0, 1.0, out=mapped)
-        w[:, self.columns] = mapped
-        w[:, 0] = 1.0 - w[:, 1:].sum(axis=1)
+        """(M,) or (B, M) weights mapped in place (and returned); the neutral's weight takes
+        up the change, so the weights still sum to what they did."""
+        if weights.ndim == 1:
+            for j, low, gain in self._single:
+                old = float(weights[j])
+                new = min(1.0, max(0.0, (old - low) * gain))
+                weights[j] = new
+                weights[0] += old - new
+            return weights
+        before = weights[:, self.columns]
+        after = np.clip((before - self.opened) * self.scale, 0.0, 1.0)
+        weights[:, self.columns] = after
+        weights[:, 0] += (before - after).sum(axis=1)
         return weights

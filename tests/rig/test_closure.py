@@ -39,6 +39,8 @@ def test_the_map_reads_the_closed_eye_as_1_clips_and_keeps_the_sum():
     np.testing.assert_allclose(mapped[:, 1], [1.0, 0.5, 1.0])  # (w - 0.1) / 0.5, clipped
     np.testing.assert_allclose(mapped[:, 2:], weights[:, 2:])  # other weights untouched
     np.testing.assert_allclose(mapped.sum(axis=1), 1.0)
+    # A single frame (the live path's own branch) maps as the batch does.
+    np.testing.assert_allclose([closure.apply(w.copy()) for w in weights], mapped, atol=1e-15)
 
 
 @pytest.mark.parametrize(
