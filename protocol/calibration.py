@@ -89,12 +89,9 @@ class Calibrate(_ArrayMessage):
             raise ProtocolError(
                 ErrorCode.INVALID_FIELD, "calibrate.blinks must be a non-empty map of arrays"
             )
-        unknown = sorted(str(name) for name in blinks if name not in BLINK_NAMES)
+        unknown = [name for name in blinks if name not in BLINK_NAMES]
         if unknown:
-            raise ProtocolError(
-                ErrorCode.INVALID_FIELD,
-                f"calibrate.blinks: {unknown[0][:64]!r} is not one of {', '.join(BLINK_NAMES)}",
-            )
+            raise _not_a_blink(unknown[0])
         if self.points is None or self.noise is None:
             raise ProtocolError(
                 ErrorCode.INVALID_FIELD, "calibrate.blinks needs calibrate.points and .noise"
@@ -136,6 +133,13 @@ class Calibrate(_ArrayMessage):
         )
 
 
+def _not_a_blink(name: Any) -> ProtocolError:
+    return ProtocolError(
+        ErrorCode.INVALID_FIELD,
+        f"calibrate.blinks: {str(name)[:64]!r} is not one of {', '.join(BLINK_NAMES)}",
+    )
+
+
 def _read_blinks(value: Any, limits: Limits) -> dict[str, np.ndarray] | None:
     """``calibrate.blinks`` from the wire: a map of at most ``BLINK_NAMES`` to arrays."""
     if value is None:
@@ -147,11 +151,8 @@ def _read_blinks(value: Any, limits: Limits) -> dict[str, np.ndarray] | None:
         )
     blinks = {}
     for name, array in value.items():
-        if name not in BLINK_NAMES:
-            raise ProtocolError(
-                ErrorCode.INVALID_FIELD,
-                f"calibrate.blinks: {str(name)[:64]!r} is not one of {', '.join(BLINK_NAMES)}",
-            )
+        if name not in BLINK_NAMES:  # before the key names anything in an error
+            raise _not_a_blink(name)
         blinks[name] = array_from_wire(
             array, f"calibrate.blinks.{name}", trailing=(3,), max_rows=limits.max_points
         )
