@@ -13,15 +13,11 @@ refitted for another noise and a rig re-based keep it. No I/O.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
-if TYPE_CHECKING:
-    from .rig import Rig
-
-__all__ = ["CLOSURE_NAMES", "MIN_CLOSED", "ClosureMap", "closure_ranges", "read_closed"]
+__all__ = ["CLOSURE_NAMES", "MIN_CLOSED", "ClosureMap", "closure_ranges"]
 
 #: The weights mapped: the two blinks (ARKit names).
 CLOSURE_NAMES = ("eyeBlinkLeft", "eyeBlinkRight")
@@ -52,23 +48,6 @@ def closure_ranges(
         if np.isfinite(opened) and np.isfinite(closed) and closed - opened >= MIN_CLOSED:
             ranges[name] = [opened, closed]
     return ranges
-
-
-def read_closed(rig: Rig, neutral: npt.ArrayLike, closed: Mapping[str, npt.ArrayLike]) -> Rig:
-    """``rig`` reading the performer's closed eyes as closed: its ``"closure"`` entry set from
-    its own readings of ``neutral`` and of each of ``closed`` ({name: (K, 3)}; names other
-    than ``CLOSURE_NAMES`` are not read). ``rig`` itself when no blink reads closed enough
-    (``closure_ranges``). What ``fit_performer`` and ``rebase.calibrate`` both do.
-    """
-    k = rig.num_points
-    readings = {"neutral": rig.weights(np.asarray(neutral, dtype=np.float64)[:k])}
-    for name, points in closed.items():
-        if name in CLOSURE_NAMES:
-            readings[name] = rig.weights(np.asarray(points, dtype=np.float64)[:k])
-    ranges = closure_ranges(readings, rig.names)
-    if not ranges:
-        return rig
-    return rig.with_weight_models(rig.models, {**rig.fit_report, "closure": ranges})
 
 
 class ClosureMap:

@@ -13,7 +13,7 @@ from collections.abc import Mapping
 import numpy as np
 import numpy.typing as npt
 
-from .closure import CLOSURE_NAMES, read_closed
+from .closure import CLOSURE_NAMES
 from .errors import InputError
 from .fit import fit_weight_model
 from .pose import similarity_transform
@@ -232,4 +232,4 @@ def calibrate(
         raise InputError(
             f"blinks: {unknown[0]!r} is not one of {', '.join(CLOSURE_NAMES)}", code="bad_input"
         )
-    return read_closed(rebased, neutral, blinks)
+    return rebased.with_closed_eyes(neutral, blinks)

@@ -10,7 +10,6 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from .closure import read_closed
 from .errors import InputError
 from .examples import ExampleSet
 from .fit import fit
@@ -166,4 +165,4 @@ def fit_performer(rig: Rig, points: Mapping[str, object], *, noise: float | None
     )
     if not bounded:
         return fitted  # exact interpolation reads every key as itself
-    return read_closed(fitted, clean[names[0]], {name: clean[name] for name in names[1:]})
+    return fitted.with_closed_eyes(clean[names[0]], {name: clean[name] for name in names[1:]})

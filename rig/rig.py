@@ -8,6 +8,7 @@ The weight functions are weight_model.py's, the frames a rig accepts point_range
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from typing import Any, BinaryIO, TypedDict
 
 import numpy as np
@@ -15,7 +16,7 @@ import numpy.typing as npt
 
 from .basis import build_blend_basis
 from .blend import Placement, blend_into, moving_vertices
-from .closure import ClosureMap
+from .closure import CLOSURE_NAMES, ClosureMap, closure_ranges
 from .errors import InputError
 from .examples import check_stable_points
 from .io.rigformat import content_checksum, rig_to_bytes, save_rig, write_rig
@@ -531,6 +532,23 @@ class Rig:
         rig = self._derive(models, calibration=self.calibration, align_scale=self.align_scale)
         rig.fit_report = report
         return rig
+
+    def with_closed_eyes(self, neutral: npt.ArrayLike, closed: Mapping[str, npt.ArrayLike]) -> Rig:
+        """This rig reading the performer's closed eyes as closed (``closure``): its
+        ``"closure"`` entry set from its own readings of ``neutral`` and of each of ``closed``
+        ({name: (K, 3)}; names other than ``CLOSURE_NAMES`` are not read). This rig itself
+        when no blink reads closed enough (``closure_ranges``). What ``fit_performer`` and
+        ``rebase.calibrate`` both do.
+        """
+        k = self.num_points
+        readings = {"neutral": self.weights(np.asarray(neutral, dtype=np.float64)[:k])}
+        for name, points in closed.items():
+            if name in CLOSURE_NAMES:
+                readings[name] = self.weights(np.asarray(points, dtype=np.float64)[:k])
+        ranges = closure_ranges(readings, self.names)
+        if not ranges:
+            return self
+        return self.with_weight_models(self.models, {**self.fit_report, "closure": ranges})
 
     def with_align_scale(self, align_scale: bool) -> Rig:
         """The same rig, removing (or not) uniform scale with the head pose (``align``).
