@@ -19,23 +19,38 @@ from ._perform_venv import require_perform_venv  # noqa: E402
 from ._requires import pytest_make_collect_report, pytest_runtest_makereport  # noqa: E402, F401
 
 #: Test files that drive a real Chromium, render and track videos, build wheels or run
-#: long searches: tens of seconds each, the longest first (CI replica, 2026-12-05).
-#: pytest-xdist's ``--dist loadfile`` hands files out in collection order, so these go
-#: first and the short ones fill in at the end, rather than one worker finishing a long file
-#: alone while the others idle (scripts/test).
+#: long searches: tens of seconds each, the longest first (their summed durations in a CI
+#: replica, 2026-12-05). scripts/test runs pytest-xdist's ``--dist loadfile`` with
+#: ``--no-loadscope-reorder``, so files are handed out in collection order: these first,
+#: the short ones filling in at the end, rather than one worker finishing a long file alone
+#: while the others idle. (Without that flag xdist hands out the files with the most tests
+#: first: in the replica of 2026-12-05 the eyes rig and the generic page tests, ~100 s
+#: each, started at 98 % of the run.)
 _LONG_FIRST = (
-    "tests/perform/test_eyes_rig.py",
-    "tests/perform/test_webcam_video.py",
-    "tests/protocol/test_protocol_fuzz.py",
-    "tests/perform/test_bench_live.py",
-    "tests/perform/test_perform_generic.py",
     "tests/perform/test_perform_page.py",
+    "tests/perform/test_perform_generic.py",
+    "tests/perform/test_eyes_rig.py",
+    "tests/perform/test_track.py",
+    "tests/perform/test_bench_live.py",
+    "tests/protocol/test_protocol_fuzz.py",
+    "tests/viewer/test_viewer_compressed.py",
+    "tests/viewer/test_viewer_character.py",
+    "tests/bridges/test_bridges_head_pose.py",
+    "tests/perform/test_perform_glass.py",
+    "tests/viewer/test_viewer_pages.py",
+    "tests/perform/test_webcam_video.py",
+    "tests/perform/test_eyelids.py",
     "tests/rig/test_temporal.py",
+    "tests/viewer/test_viewer_try_it.py",
+    "tests/channels/test_channels_processes.py",
+    "tests/client/test_loadtest.py",
+    "tests/viewer/test_viewer_framing.py",
+    "tests/server/test_server_process.py",
     "tests/perform/",
     "tests/viewer/",
-    "tests/channels/test_channels_processes.py",
     "tests/client/test_bench_broadcast.py",
-    "tests/client/test_loadtest.py",
+    "tests/protocol/test_protocol_fastframe.py",
+    "tests/hostile/test_hostile_connections.py",
     "tests/test_packaging.py",
 )
 

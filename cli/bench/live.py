@@ -97,12 +97,12 @@ def _write_rig(rigs: Path) -> None:
     fit(examples).save(rigs / f"{RIG}.rig")
 
 
-def _write_video(path: Path, archive: Path) -> Path:
-    """An ICT face opening and closing its jaw, gently swaying: the fake camera's loop."""
+def _write_video(path: Path, archive: Path, seconds: float = VIDEO_SECONDS) -> Path:
+    """An ICT face opening and closing its jaw twice, gently swaying: the fake camera's loop."""
     performer = ict_performer(archive)
     regions, landmarks68 = ict_regions(archive)
     scene = head_scene(performer, regions, landmarks68)
-    frames = VIDEO_FPS * VIDEO_SECONDS
+    frames = round(VIDEO_FPS * seconds)
     jaw = 0.5 - 0.5 * np.cos(2 * np.pi * 2 * np.arange(frames) / frames)
     activations = np.zeros((frames, len(performer.names)))
     activations[:, 0] = 1.0 - jaw

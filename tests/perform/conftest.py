@@ -176,6 +176,13 @@ def open_page(browser, url: str, *, camera: bool = True, size: tuple[int, int] =
     return page
 
 
+def done(page) -> None:
+    """Close a page a test has read all it needs from, before it opens the next: an open
+    /perform page goes on tracking, a core's worth of the machine (``pages`` closes every
+    page at the end of the test anyway; closing twice is harmless)."""
+    page.context.close()
+
+
 @pytest.fixture
 def pages(browser) -> Iterator[list]:
     """Pages a test opens through ``open_page``; their contexts close after the test."""

@@ -14,7 +14,7 @@ import pytest
 
 from facecast.rig.sources.layouts import load_layout
 
-from .conftest import CHARACTER, FacePose, open_page, watching
+from .conftest import CHARACTER, FacePose, done, open_page, watching
 
 LAYOUT = load_layout()
 NAMES = list(LAYOUT.feature_names)
@@ -107,6 +107,7 @@ def test_points_move_when_the_mouth_opens(browser, server, camera, pages):
         pages.append(page)
         tracking(page)
         points = points_of(collect(page, 15))
+        done(page)
         gaps[state] = np.median(lip_gap(points))
         upper[state] = np.median(points, axis=0)
 
@@ -122,6 +123,7 @@ def test_points_stay_put_when_the_head_turns_and_moves(browser, server, camera, 
     pages.append(page)
     tracking(page)
     still = points_of(collect(page, 15))
+    done(page)
 
     turns = [
         FacePose(
@@ -159,6 +161,7 @@ def test_two_faces_the_largest_is_tracked_and_the_page_says_so(browser, server, 
             "document.getElementById('track-state').textContent.includes('tracking the largest')"
         )
         gaps[state] = np.median(lip_gap(points_of(collect(page, 10))))
+        done(page)
 
     # As with one face (test_points_move_when_the_mouth_opens): the larger face's lips part.
     assert gaps["open"] - gaps["closed"] > 0.4
