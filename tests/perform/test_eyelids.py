@@ -26,7 +26,7 @@ from facecast.rig.sources.ict import ict_regions
 from facecast.rig.sources.layouts import load_layout
 
 from .._perform_venv import run_worker
-from .conftest import FPS, ICT_TRACKING, open_page
+from .conftest import FPS, ICT_TRACKING, done, open_page
 from .conftest import ICT_ARCHIVE as ARCHIVE
 from .test_perform_page import collect, perform_url, tracking
 
@@ -207,6 +207,7 @@ def test_the_live_page_on_the_camera_publishes_the_same_lids(
         assert samples, f"no face in the live page's frames of {pose}"
         published.append(np.mean([s["points"] for s in samples], axis=0).reshape(-1, 3))
         assert page.errors == []
+        done(page)
     live = shares(np.stack(published))
     live_inner = shares(np.stack(published), INNER_LIDS)
     print(f"\nlive lid gap / rest: {live}; each lid's second point: {live_inner}")

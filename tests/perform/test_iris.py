@@ -23,7 +23,7 @@ from facecast.rig.evaluation.webcam import Performer, ict_performer
 from facecast.rig.sources.ict import ict_regions
 from facecast.rig.sources.layouts import load_layout
 
-from .conftest import FPS, ICT_TRACKING, open_page
+from .conftest import FPS, ICT_TRACKING, done, open_page
 from .conftest import ICT_ARCHIVE as ARCHIVE
 from .test_perform_page import collect, perform_url, tracking
 
@@ -177,6 +177,7 @@ def test_the_live_page_on_the_camera_publishes_the_same_irises(
         assert samples, f"no face in the live page's frames of {pose}"
         live[pose] = np.mean([s["points"] for s in samples], axis=0).reshape(-1, 3)
         assert page.errors == []
+        done(page)
     for side in SIDES:
         swing = live["left"][IRIS[side]] - live["right"][IRIS[side]]
         print(f"\nlive {side} iris swing, mm: {np.round(10 * swing, 2).tolist()}")

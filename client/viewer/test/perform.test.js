@@ -215,3 +215,26 @@ test("a capture ends at its time with enough frames, or at its deadline for a sl
   assert.equal(captureDone(rec(enough - 1), 4000), true); // then summarised (and refused)
   assert.equal(captureDone(rec(0), 4000), true);
 });
+
+test("a capture left short of steady frames by an outlier is held on for more, to its deadline", () => {
+  const n = CAPTURE_LIMITS.minFrames;
+  const samples = frames(n + 1);
+  samples[2].points = samples[2].points.map((v) => v + 1.5); // a tracking glitch
+  const first = samples.slice(0, n); // a tracker at n frames a second, 1 s in
+  const rec = { samples: first, until: 1000, deadline: 4000 };
+  const short = summariseCapture(first, n, "aa");
+  assert.equal(short.ok, false);
+  assert.ok(short.short);
+  assert.match(short.reason, new RegExp(`only ${n - 1} steady frames`));
+  assert.equal(captureDone(rec, 1000, CAPTURE_LIMITS, short), false);
+  assert.equal(captureDone(rec, 4000, CAPTURE_LIMITS, short), true); // then refused
+  const more = summariseCapture(samples, n + 1, "aa"); // one frame more
+  assert.ok(more.ok, more.reason);
+  assert.equal(captureDone({ ...rec, samples }, 1100, CAPTURE_LIMITS, more), true);
+  // A refusal more frames would not mend ends the capture at its time.
+  const turned = summariseCapture(frames(n, { head: { yaw: 28, pitch: -10, roll: 0 } }), n, "neutral");
+  assert.equal(turned.short, false);
+  assert.equal(captureDone(rec, 1000, CAPTURE_LIMITS, turned), true);
+  assert.equal(summariseCapture(frames(3), 3, "aa").short, true); // found too few: more may come
+  assert.equal(summariseCapture(frames(10), 30, "aa").short, false); // the face was lost
+});

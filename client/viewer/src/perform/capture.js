@@ -21,11 +21,15 @@ export const CAPTURE_LIMITS = Object.freeze({
 /**
  * Whether a capture in progress has what it needs: its time (`until`) and the frames with a
  * face that a capture needs at the least, or, for a tracker too slow for those, its
- * `deadline` (the summary then says what was missing).
+ * `deadline` (the summary then says what was missing). `summary`, what `summariseCapture`
+ * makes of the frames so far: one refused as `short` (too few frames, once blinks and
+ * outliers are out) is held on for more, to the deadline: a tracker at 8 frames a second
+ * lost one outlier of its 8 and was refused on every try, where a ninth frame would do.
  */
-export function captureDone(recording, now, limits = CAPTURE_LIMITS) {
+export function captureDone(recording, now, limits = CAPTURE_LIMITS, summary = null) {
   if (now >= recording.deadline) return true;
-  return now >= recording.until && recording.samples.length >= limits.minFrames;
+  if (now < recording.until || recording.samples.length < limits.minFrames) return false;
+  return summary === null || !summary.short;
 }
 
 // Names of expressions made with the eyes shut: for those, shut eyes are the point.
@@ -78,13 +82,15 @@ function headTurnReason(head, reference, limits) {
  * Returns {ok, reason, points: K×3 arrays (the robust average), spread (RMS per-coordinate
  * σ of the kept frames, layout units), held (the kept frames, in order, each K×3 arrays: the
  * server measures the landmark noise from them), kept, blinks, outliers, head, headMotion,
- * eyes}.
+ * eyes, short (refused for too few frames alone: `captureDone` holds such a capture on)}.
  */
 export function summariseCapture(samples, seen, name, reference = null, limits = CAPTURE_LIMITS) {
-  const result = { ok: false, reason: null, points: null, spread: null, kept: 0, blinks: 0, outliers: 0 };
+  // short: refused for too few frames alone, which more frames of the same would mend.
+  const result = { ok: false, reason: null, points: null, spread: null, kept: 0, blinks: 0, outliers: 0, short: false };
   const found = samples.length;
   if (found < limits.minFrames || found < limits.minFoundShare * seen) {
     result.reason = `the face was found in ${found} of ${seen} frames: stay in view and redo`;
+    result.short = found < limits.minFrames && found >= limits.minFoundShare * seen;
     return result;
   }
   const head = headOf(samples);
@@ -130,6 +136,7 @@ export function summariseCapture(samples, seen, name, reference = null, limits =
   result.kept = kept.length;
   if (kept.length < limits.minFrames) {
     result.reason = `only ${kept.length} steady frames (blinks ${result.blinks}, outliers ${result.outliers}): hold the expression and redo`;
+    result.short = true;
     return result;
   }
   let variance = 0;

@@ -2,7 +2,7 @@
 // examples shown posed on the character; capture ~1 s of each, redo or skip any, then
 // fit the performer's own rig on the server. DOM and fetch; the math is in capture.js.
 
-import { captureDone, heldFrames, heldNoise, noiseText, summariseCapture } from "./capture.js";
+import { CAPTURE_LIMITS, captureDone, heldFrames, heldNoise, noiseText, summariseCapture } from "./capture.js";
 
 export const CAPTURE_MS = 1000;
 // A slow tracker (under capture.js's minFrames frames a second: a busy laptop, a software
@@ -86,10 +86,22 @@ export class Studio {
     if (!rec) return;
     rec.seen += 1;
     if (sample) rec.samples.push(sample);
-    if (captureDone(rec, performance.now())) {
+    const now = performance.now();
+    // Once its time is up with frames enough, whether blinks and outliers leave enough.
+    const summary =
+      now >= rec.until && rec.samples.length >= CAPTURE_LIMITS.minFrames
+        ? summariseCapture(rec.samples, rec.seen, rec.name, this.reference(rec.name))
+        : null;
+    if (captureDone(rec, now, CAPTURE_LIMITS, summary)) {
       this.recording = null;
       rec.resolve(rec);
     }
+  }
+
+  /** What a capture of `name` is checked against: the accepted neutral's, or null. */
+  reference(name) {
+    const neutral = this.steps[0];
+    return name !== "neutral" && neutral.status === "ok" ? neutral.result : null;
   }
 
   async capture() {
@@ -103,9 +115,7 @@ export class Studio {
         name: step.name, samples: [], seen: 0, until: start + CAPTURE_MS, deadline: start + CAPTURE_MAX_MS, resolve,
       };
     });
-    const neutral = this.steps[0];
-    const reference = step.name !== "neutral" && neutral.status === "ok" ? neutral.result : null;
-    const summary = summariseCapture(rec.samples, rec.seen, step.name, reference);
+    const summary = summariseCapture(rec.samples, rec.seen, step.name, this.reference(step.name));
     step.result = summary;
     step.status = summary.ok ? "ok" : "refused";
     this.stats.captures[step.name] = {
