@@ -20,6 +20,8 @@ if TYPE_CHECKING:
 
 #: Frames of the held neutral face whose robust average starts a calibrated performance.
 NEUTRAL_FRAMES = 15
+#: Frames of each held wink (``--winks``) whose robust average is that eye closed.
+WINK_FRAMES = 8
 
 
 def register(subparsers: Subparsers) -> None:
@@ -66,6 +68,20 @@ def register(subparsers: Subparsers) -> None:
         default=NEUTRAL_FRAMES,
         metavar="N",
         help=f"calibration: frames of your neutral face to average (default {NEUTRAL_FRAMES})",
+    )
+    parser.add_argument(
+        "--winks",
+        action="store_true",
+        help="calibration: after the neutral, wink your left eye, then your right, each "
+        "held until captured (prompted): a rig re-based on your neutral then reads your own "
+        "closed eyes as closed (as /perform's walk-through does)",
+    )
+    parser.add_argument(
+        "--wink-frames",
+        type=int,
+        default=WINK_FRAMES,
+        metavar="N",
+        help=f"calibration: frames of each wink to average (default {WINK_FRAMES})",
     )
     parser.add_argument(
         "--frames", type=int, default=None, metavar="N", help="stop after N frames read"
@@ -121,7 +137,7 @@ async def perform(args: argparse.Namespace) -> PerformStats:
     from facecast.client.channel import FramePublisher, channel_url
     from facecast.protocol import Hello
     from facecast.rig import estimate_noise
-    from facecast.rig.sources.capture import robust_example
+    from facecast.rig.sources.capture import WinkCapture, robust_example
     from facecast.rig.sources.layouts import DEFAULT_LAYOUT, load_layout
 
     say = _Say(args.quiet)
@@ -149,6 +165,10 @@ async def perform(args: argparse.Namespace) -> PerformStats:
             # A rig of the layout's earlier version takes the first k points.
             k = ready.num_points
             neutral: list[np.ndarray] = []
+            winks: WinkCapture | None = None
+            names = layout.feature_names
+            lids = {side: (names.index(f"{side}_upper_lid"), names.index(f"{side}_lower_lid"))
+                    for side in ("left", "right")}  # fmt: skip
             if calibrate:
                 say(f"calibrating: keep a neutral face for {args.neutral_frames} frames")
             face_was_found = None
@@ -186,6 +206,18 @@ async def perform(args: argparse.Namespace) -> PerformStats:
                     noise = estimate_noise(held)
                     await publisher.calibrate(points, noise)
                     say(f"neutral captured (spread {spread:.3f}, landmark noise {noise:.4f})")
+                    if args.winks:
+                        rest = (points, noise)
+                        winks = WinkCapture(points, lids, frames=args.wink_frames)
+                        say("now wink: close your left eye and hold it")
+                elif winks is not None and winks.wanted is not None:
+                    captured = winks.add(points)
+                    if captured is not None and winks.wanted is not None:
+                        say(f"{captured} captured; now close your right eye and hold it")
+                    elif captured is not None:
+                        # The neutral again, with the closed eyes it goes with.
+                        await publisher.calibrate(*rest, blinks=winks.closed)
+                        say("both winks captured: your closed eyes now read as closed")
                 seq = await publisher.send(points.astype(np.float32), time.time())
                 if seq is None:
                     stats.dropped += 1
@@ -203,6 +235,13 @@ def run(args: argparse.Namespace) -> int:
 
     if args.neutral_frames < 3:
         raise CommandError("--neutral-frames must be at least 3")
+    if args.wink_frames < 3:
+        raise CommandError("--wink-frames must be at least 3")
+    if args.winks and not (("@" not in args.rig) if args.calibrate is None else args.calibrate):
+        raise CommandError(
+            "--winks are captured after the neutral: not without calibrating (--no-calibrate, "
+            "or a performer's own rig, ID@PERFORMER)"
+        )
     if args.frames is not None and args.frames < 1:
         raise CommandError("--frames must be at least 1")
     if args.seconds is not None and not args.seconds > 0:
