@@ -127,6 +127,12 @@ class _Say:
             print(f"facecast perform: {message}", file=sys.stderr, flush=True)
 
 
+def _calibrates(args: argparse.Namespace) -> bool:
+    """Whether the performance starts with a neutral (by default unless the rig is a
+    performer's own, ID@PERFORMER)."""
+    return ("@" not in args.rig) if args.calibrate is None else bool(args.calibrate)
+
+
 async def perform(args: argparse.Namespace) -> PerformStats:
     """Track and publish until the video ends, ``--frames``/``--seconds``, or Ctrl-C."""
     import asyncio
@@ -142,7 +148,7 @@ async def perform(args: argparse.Namespace) -> PerformStats:
 
     say = _Say(args.quiet)
     layout = load_layout(DEFAULT_LAYOUT)
-    calibrate = ("@" not in args.rig) if args.calibrate is None else args.calibrate
+    calibrate = _calibrates(args)
     url = channel_url(args.url, args.channel, "publish")
     source = VideoSource(args.video if args.video is not None else args.camera)
     tracker = FaceTracker(layout, static=not args.track_between_frames)
@@ -237,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("--neutral-frames must be at least 3")
     if args.wink_frames < 3:
         raise CommandError("--wink-frames must be at least 3")
-    if args.winks and not (("@" not in args.rig) if args.calibrate is None else args.calibrate):
+    if args.winks and not _calibrates(args):
         raise CommandError(
             "--winks are captured after the neutral: not without calibrating (--no-calibrate, "
             "or a performer's own rig, ID@PERFORMER)"

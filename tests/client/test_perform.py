@@ -223,6 +223,19 @@ async def test_an_absent_camera_is_a_clear_error(perform_python):
     assert finished.code == 2 and "cannot open camera 9" in finished.err
 
 
+@pytest.mark.parametrize(
+    ("extra", "said"),
+    [
+        (["--wink-frames", "2"], "--wink-frames must be at least 3"),
+        (["--winks", "--no-calibrate"], "--winks are captured after the neutral"),
+        (["--winks", "--rig", "hero@ann"], "--winks are captured after the neutral"),
+    ],
+)
+def test_winks_without_a_neutral_or_frames_enough_are_refused(extra, said, capsys):
+    code = main(["perform", "http://127.0.0.1:9", "--channel", "x", "--rig", "hero", *extra])
+    assert code == 2 and said in capsys.readouterr().err
+
+
 @pytest.mark.skipif(
     importlib.util.find_spec("mediapipe") is not None,
     reason="this .venv has the perform extra (scripts/setup --perform)",
