@@ -10,9 +10,10 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from ..closure import CLOSURE_NAMES
 from ..errors import InputError
 
-__all__ = ["MAD_TO_SIGMA", "WINK_NAMES", "WinkCapture", "robust_example"]
+__all__ = ["MAD_TO_SIGMA", "WinkCapture", "robust_example"]
 
 #: Median absolute deviation -> standard deviation for normally distributed noise.
 MAD_TO_SIGMA = 1.4826
@@ -64,10 +65,6 @@ def robust_example(frames: npt.ArrayLike) -> tuple[np.ndarray, float, np.ndarray
     return points, spread, kept
 
 
-#: The winks captured, in order: the ARKit blinks, each closing the subject's own eye.
-WINK_NAMES = ("eyeBlinkLeft", "eyeBlinkRight")
-
-
 class WinkCapture:
     """A wink of each eye, captured from a performance after its neutral (the subject's
     left eye first): the closed eyes a re-based rig reads as closed (``calibrate.blinks``,
@@ -105,7 +102,7 @@ class WinkCapture:
         if not all(gap > 0 for gap in self.rest.values()):
             raise InputError("the neutral's eyes are shut: no wink can be told from it")
         self.frames, self.shut, self.opened = frames, shut, opened
-        self.pending = list(WINK_NAMES)
+        self.pending = list(CLOSURE_NAMES)  # the ARKit blinks, each the subject's own eye
         self.held: list[np.ndarray] = []
         self.closed: dict[str, np.ndarray] = {}
 

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from facecast.rig.closure import CLOSURE_NAMES
 from facecast.rig.errors import InputError
-from facecast.rig.sources.capture import WINK_NAMES, WinkCapture
+from facecast.rig.sources.capture import WinkCapture
 
 #: Four points: each eye's upper and lower lid (the subject's left eye first).
 LIDS = {"left": (0, 1), "right": (2, 3)}
@@ -33,7 +34,7 @@ def test_each_wink_is_the_robust_average_of_its_own_frames_left_eye_first():
     )
     for frame in frames:
         seen.append(capture.add(frame))
-    assert [name for name in seen if name] == list(WINK_NAMES)
+    assert [name for name in seen if name] == list(CLOSURE_NAMES)
     assert seen.index("eyeBlinkLeft") == 5 + 3 + 3  # its 4th frame
     assert capture.wanted is None and capture.add(eyes(0.2, 1.0)) is None
     np.testing.assert_allclose(capture.closed["eyeBlinkLeft"], eyes(0.2, 1.0), atol=0.02)
