@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import importlib.util
 import json
 import re
@@ -127,13 +128,16 @@ def _perform_stats(err: str) -> dict[str, int]:
     return dict(zip(("read", "found", "published"), map(int, match.groups()), strict=True))
 
 
-def _performed(messages: list) -> list[Result]:
-    """The results a watcher got of published frames: those before any ``face_lost``.
+#: The channel's ``face_lost_after`` for these performances. On a loaded machine the
+#: tracker can stall past the default 0.5 s between two face frames (CI: a gap after the
+#: 4th published frame, the channel eased to neutral before the jaw dropped); these tests
+#: are about what is performed, so only the blank frames at the end may be a lost face.
+FACE_LOST_AFTER = 30.0
 
-    After the last face frame the performer reads the blank ones and leaves; when that
-    takes longer than ``face_lost_after`` (a loaded machine), the channel rightly eases
-    to the neutral pose, and those results say nothing about the performance.
-    """
+
+def _performed(messages: list) -> list[Result]:
+    """The results a watcher got of published frames: those before any ``face_lost``
+    (results after one are the channel easing to the neutral pose)."""
     lost = next((i for i, m in enumerate(messages) if isinstance(m, FaceLost)), len(messages))
     return [m for m in messages[:lost] if isinstance(m, Result)]
 
@@ -142,7 +146,7 @@ async def _perform_to_channel(python, settings, rig, argv_extra, video):
     """Run ``facecast perform`` (perform venv) on ``video`` to channel "stage" of a real
     server while a watcher of the channel on rig "hero" records what it is sent, up to
     the result of the last frame published."""
-    async with run_server(settings) as server:
+    async with run_server(dataclasses.replace(settings, face_lost_after=FACE_LOST_AFTER)) as server:
         server.app.state.store.put_rig("hero", rig)
         url = channel_url(server.base_url, "stage", "watch", {"rig": "hero"})
         recorder = _Recorder()
