@@ -141,3 +141,36 @@ def test_max_frames_locates_only_the_frames_asked_for(tmp_path):
     assert video.read(1) == bytes(24)
     with pytest.raises(Y4MError):
         open_y4m(path)
+
+
+def test_the_tracker_serves_its_files_and_frames_under_its_random_path_alone(tmp_path):
+    """``facecast track``'s loopback server (the browser's only source): the page and each
+    frame under the run's random path, nothing else, and the socket closed after."""
+    import urllib.error
+    import urllib.request
+
+    from facecast.cli.track import _serving
+
+    frames = [_planes(6, 4, v) for v in (10, 20)]
+    video = open_y4m(_write(tmp_path / "a.y4m", b"YUV4MPEG2 W6 H4 F25:1\n", frames))
+    page = tmp_path / "track.html"
+    page.write_text("<!doctype html>")
+
+    def get(url: str) -> tuple[int, bytes]:
+        try:
+            with urllib.request.urlopen(url, timeout=10) as response:
+                return response.status, response.read()
+        except urllib.error.HTTPError as error:
+            return error.code, b""
+
+    with _serving(video, {"/track": (page, "text/html")}) as url:
+        base = url.removesuffix("track")
+        origin = base.split("/", 3)
+        assert url.startswith("http://127.0.0.1:") and len(origin[3]) > 16  # a token path
+        assert get(url) == (200, b"<!doctype html>")
+        assert [get(f"{base}frames/{i}") for i in (0, 1)] == [(200, f) for f in frames]
+        for wrong in (f"{base}frames/2", f"{base}frames/x", f"{base}other",
+                      "/".join(origin[:3]) + "/track", "/".join(origin[:3]) + "/frames/0"):  # fmt: skip
+            assert get(wrong) == (404, b""), wrong
+    with pytest.raises(urllib.error.URLError):
+        urllib.request.urlopen(url, timeout=5)
