@@ -21,7 +21,12 @@ NAMES = list(LAYOUT.feature_names)
 UPPER_LIP, LOWER_LIP = NAMES.index("upper_lip_inner"), NAMES.index("lower_lip_inner")
 UPPER_FACE = [i for i, name in enumerate(NAMES) if "brow" in name or "nose" in name]
 RIG = f"{CHARACTER}@tester"  # the performer's own rig the calibration makes
-HOLD = 75  # frames (3 s at 25 fps) each expression of the calibration video is held
+#: Frames (5 s at 25 fps) each expression of the calibration video is held: longer than a
+#: capture can last (studio.js's CAPTURE_MAX_MS, 4 s, to which a slow tracker holds it on)
+#: after the switch it waits for, so a capture never takes in the next expression. Held
+#: 3 s, a loaded replica's generic ICT page once read every open mouth as eyeLookDownLeft,
+#: as a neutral taken partly open would be (the likeliest cause found; not reproduced).
+HOLD = 125
 
 # Collects the next n tracked frames' published points, head angles and eye openness
 # in the page (waits on the page's own frame counter, never on a clock).
