@@ -28,6 +28,7 @@ from facecast.cli.errors import CommandError
 from facecast.cli.report import write_json
 from facecast.cli.track import track_video
 from facecast.rig import fit
+from facecast.rig.characters.generic import generic_sources
 from facecast.rig.errors import ExampleSetError
 from facecast.rig.evaluation.evaluate import cloning_error
 from facecast.rig.evaluation.eyes import EYES_IDENTITY, EyesClip, eyes_clip, eyes_rows
@@ -81,6 +82,7 @@ class _Setup:
     experiment: TakeExperiment
     clips: KeyClips
     character: Rig  # the character's rig as imported (exact)
+    generic: Rig  # the tracked generic rows' rig: the character on facecast's shipped source
     take_name: str
     performer_id: str
     target_id: str
@@ -131,12 +133,14 @@ def _setup(args: argparse.Namespace) -> _Setup:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the exact ICT rig warns to fit with noise: known
         character = fit(examples)
+        generic = character if args.generic_neutral != "shipped" else fit(_on_shipped(examples))
     return _Setup(
         performer=performer,
         examples=examples,
         experiment=take_experiment(examples, weights, take.fps),
         clips=clips,
         character=character,
+        generic=generic,
         take_name=take_path.name,
         performer_id=performer_id,
         target_id=target_id,
@@ -144,6 +148,19 @@ def _setup(args: argparse.Namespace) -> _Setup:
         eyes_id=eyes_id,
         eyes=eyes_clip(eyes_performer.names, short=args.eyes_short),
     )
+
+
+def _on_shipped(examples: ExampleSet) -> ExampleSet:
+    """``examples`` (ICT's shapes, exact landmarks) on facecast's shipped generic source:
+    ICT's landmarks with the lids and the iris centres as the tracker sees ICT's generic
+    face (``scripts/make_generic_sources.py``, README option (z)); what a character
+    uploaded as a file is paired with."""
+    shipped = generic_sources()
+    points = {name: shipped.source_points(name) for name in examples.names}
+    found = {name: p for name, p in points.items() if p is not None}
+    if len(found) < len(points):
+        raise CommandError(f"the shipped generic set lacks {sorted(set(points) - set(found))}")
+    return replace(examples, source_points=np.stack([found[n] for n in examples.names]))
 
 
 def _on_tracked_generic_neutral(setup: _Setup, args: argparse.Namespace, folder: Path) -> _Setup:
@@ -168,27 +185,43 @@ def _on_tracked_generic_neutral(setup: _Setup, args: argparse.Namespace, folder:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the exact ICT rig warns to fit with noise: known
         character = fit(examples)
-    return replace(setup, examples=examples, character=character)
+    return replace(setup, examples=examples, character=character, generic=character)
 
 
-def _generic_rigs(setup: _Setup, noise: float) -> dict[str, tuple[Rig, float | None]]:
+def _generic_rigs(
+    setup: _Setup, noise: float, shipped: bool
+) -> dict[str, tuple[Rig, float | None]]:
     """The generic path's rows: the character as ``facecast import`` + ``rigs put`` store it
     (exact), re-based as the page does (a ``calibrate`` carrying the held frames' noise),
     and, for comparison, exactly as a calibrate without noise did before; and the rig
-    fitted with the measured noise, bounded, re-based exactly."""
+    fitted with the measured noise, bounded, re-based exactly. With ``shipped`` (tracked
+    landmarks: the shipped source has the layout's 26 points) the ``generic`` row is the
+    character on facecast's shipped generic source and ``generic (ICT landmarks)`` the
+    character on ICT's exact landmarks, the row before option (z)."""
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         bounded = fit(setup.examples, noise=noise, clamp="nonneg")
+    rows: dict[str, tuple[Rig, float | None]] = {"generic": (setup.character, noise)}
+    if shipped and setup.generic is not setup.character:
+        rows = {
+            "generic": (setup.generic, noise),
+            "generic (ICT landmarks)": (setup.character, noise),
+        }
     return {
-        "generic": (setup.character, noise),
+        **rows,
         "generic exact": (setup.character, None),
         "generic noise": (bounded, None),
     }
 
 
 def _score_landmarks(
-    setup: _Setup, take_points: np.ndarray, key_points: np.ndarray, key_found: np.ndarray | None
+    setup: _Setup,
+    take_points: np.ndarray,
+    key_points: np.ndarray,
+    key_found: np.ndarray | None,
+    *,
+    shipped: bool = False,
 ) -> dict[str, Any]:
     """Every path on one kind of landmarks (exact or tracked): the rows and the capture."""
 
@@ -207,7 +240,7 @@ def _score_landmarks(
             take_points,
             keys,
             noise=noise,
-            generic=_generic_rigs(setup, noise),
+            generic=_generic_rigs(setup, noise, shipped),
             personal_also={"keys' mix": mix},
         )
     return {
@@ -232,7 +265,12 @@ def _eyes_filters(args: argparse.Namespace) -> dict[str, tuple[str, float | None
 
 
 def _score_eyes(
-    setup: _Setup, args: argparse.Namespace, points: np.ndarray, found: np.ndarray | None
+    setup: _Setup,
+    args: argparse.Namespace,
+    points: np.ndarray,
+    found: np.ndarray | None,
+    *,
+    shipped: bool = False,
 ) -> dict[str, Any]:
     """The eyes video's points (its keys, then the clip) scored per event on every path."""
     split = len(setup.clips.activations)
@@ -247,7 +285,8 @@ def _score_eyes(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # fit's advice on the bounded rigs: chosen settings
         rows = eyes_rows(setup.character, setup.eyes, clip_points, keys, noise=noise,
-                         fps=KEY_FPS, filters=_eyes_filters(args))  # fmt: skip
+                         fps=KEY_FPS, filters=_eyes_filters(args),
+                         generic=setup.generic if shipped else None)  # fmt: skip
     return {
         "performer": setup.eyes_id,
         "short": args.eyes_short,
@@ -503,7 +542,7 @@ def run(args: argparse.Namespace) -> int:
             with tempfile.TemporaryDirectory(prefix="facecast-webcam-") as scratch:
                 tracked_raw = _tracked(args, setup, Path(scratch))
         if not args.no_eyes:
-            eyes = _score_eyes(setup, args, *tracked_raw["eyes"])
+            eyes = _score_eyes(setup, args, *tracked_raw["eyes"], shipped=True)
             eyes["render_seconds"] = tracked_raw["render_seconds"].get("eyes")
             eyes["track_seconds"] = tracked_raw["track_seconds"].get("eyes")
             report["eyes_tracked"] = eyes
@@ -514,7 +553,7 @@ def run(args: argparse.Namespace) -> int:
         if not take_found.any():
             raise CommandError("the tracker found no face in the take's video")
         tracked = _score_landmarks(
-            setup, hold_last_found(take_points, take_found), key_points, key_found
+            setup, hold_last_found(take_points, take_found), key_points, key_found, shipped=True
         )
         tracked["take_found"] = int(take_found.sum())
         tracked["key_found"] = int(key_found.sum())

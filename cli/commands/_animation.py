@@ -81,16 +81,25 @@ def load_animation(
 
 def _demo_performance(num_points: int, seconds: float, expected_by: str) -> SourceAnimation:
     """The demo performance on the points a rig of ``num_points`` takes: the procedural
-    demo's 21 (the demo rig), or the generic ARKit set's 20 (a character uploaded as a
-    file, an ICT-FaceKit import: the same performance acted as ARKit weights)."""
+    demo's 21 (the demo rig), or the generic ARKit set's 26 (a character uploaded as a
+    file), or their first 24 or 20 (an ICT-FaceKit import, a rig fitted before the layout
+    grew): the same performance acted as ARKit weights."""
+    from dataclasses import replace
+
     from facecast.rig.characters.generic import generic_sources
     from facecast.rig.demo import DEMO_FEATURE_NAMES, arkit_demo_animation, demo_animation
+    from facecast.rig.sources.layouts import load_layout
 
     generic = generic_sources().points.shape[1]
     if num_points == len(DEMO_FEATURE_NAMES):
         return demo_animation(seconds, with_vertices=False)
     if num_points == generic:
         return arkit_demo_animation(seconds)
+    if num_points < generic and load_layout().drives(num_points):
+        # A rig fitted on the layout's earlier version (an ICT-FaceKit import's 24 points):
+        # the first of the set's points, as /perform sends it.
+        animation = arkit_demo_animation(seconds)
+        return replace(animation, points=animation.points[:, :num_points])
     raise CommandError(
         f"demo: the demo performance comes on the demo rig's {len(DEMO_FEATURE_NAMES)} points "
         f"and on the generic ARKit set's {generic} (characters uploaded as files), "

@@ -174,10 +174,13 @@ def register(subparsers: Subparsers) -> None:
     webcam.add_argument("--gaze-degrees", type=float, default=0.0, metavar="DEG",
                         help="turn the rendered eyeballs by DEG at an eye-look weight of 1 "
                         "(default 0: ICT's shapes move the lids only, the iris stays)")  # fmt: skip
-    webcam.add_argument("--generic-neutral", choices=("ict", "tracked"), default="ict",
-                        help="the generic rows' source neutral: ICT's landmark vertices "
-                        "(default, as shipped) or ICT's generic face rendered at rest and "
-                        "tracked, each shape keeping ICT's own displacements")  # fmt: skip
+    webcam.add_argument("--generic-neutral", choices=("shipped", "ict", "tracked"),
+                        default="shipped",
+                        help="the generic rows' source: facecast's shipped generic set on "
+                        "tracked landmarks (default: ICT's landmark vertices with the lids and "
+                        "iris centres as the tracker sees ICT's generic face; exact rows use "
+                        "ICT's), ICT's landmark vertices, or ICT's generic face rendered at "
+                        "rest and tracked, each shape keeping ICT's own displacements")  # fmt: skip
     webcam.add_argument("--exact-only", action="store_true",
                         help="skip rendering and tracking: the exact-landmark rows only")  # fmt: skip
     webcam.add_argument("--videos", metavar="DIR",

@@ -278,6 +278,8 @@ def _run_tracker(
     from facecast.client.channel import FramePublisher
     from facecast.client.connection import ConnectionFailed
     from facecast.protocol import Hello
+    from facecast.rig.characters.generic import GENERIC_SOURCE_NAME
+    from facecast.rig.sources.layouts import load_layout
     from facecast.rig.sources.source_rig import load_source_rig
 
     source_rig = load_source_rig(args.source_rig)
@@ -297,15 +299,23 @@ def _run_tracker(
         try:
             async with FramePublisher(url, hello, token=args.token) as publisher:
                 assert publisher.ready is not None
-                if publisher.ready.num_points != source_rig.num_points:
+                k = publisher.ready.num_points
+                if (k < source_rig.num_points and args.source_rig == GENERIC_SOURCE_NAME
+                        and load_layout().drives(k)):  # fmt: skip
+                    # A rig fitted on the layout's earlier version (24 or 20 points): the
+                    # generic set's first k, as /perform sends such a rig.
+                    rig_points = source_rig.first(k)
+                else:
+                    rig_points = source_rig
+                if publisher.ready.num_points != rig_points.num_points:
                     raise CommandError(
                         f"rig {args.rig!r} needs K={publisher.ready.num_points} points, the "
-                        f"source rig makes {source_rig.num_points}"
+                        f"source rig makes {rig_points.num_points}"
                     )
                 host, port = receiver.address
                 print(
                     f"facecast bridge: {what} on udp://{host}:{port} -> channel "
-                    f"{args.channel!r} (rig {args.rig}, K={source_rig.num_points})",
+                    f"{args.channel!r} (rig {args.rig}, K={rig_points.num_points})",
                     file=sys.stderr,
                 )
                 if start is not None:
@@ -316,7 +326,7 @@ def _run_tracker(
                     head_sender.send(vmc_head_bundle(head, args.vmc_head_position))
 
                 on_head = None if head_sender is None else send_head
-                stats = await run_bridge(receiver, source_rig, publisher, on_head)
+                stats = await run_bridge(receiver, rig_points, publisher, on_head)
                 last = receiver.last_error
                 print(
                     f"facecast bridge: {stats.published} frames published, "

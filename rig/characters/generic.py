@@ -1,7 +1,9 @@
-"""facecast's generic ARKit source set: ICT-FaceKit's 24 landmarks for each ARKit shape.
+"""facecast's generic ARKit source set: ICT-FaceKit's face for each ARKit shape, 26 points.
 
 Reads the package data ``generic_arkit/points.npz`` (written by
-scripts/make_generic_sources.py from ICT-FaceKit, MIT, see generic_arkit/LICENSE-ICT-FaceKit)
+scripts/make_generic_sources.py from ICT-FaceKit, MIT, see generic_arkit/LICENSE-ICT-FaceKit:
+ICT's 24 default landmarks, the lids and the two iris centres as facecast's tracker sees
+ICT's generic face; README, option (z))
 and composes source points for VRM presets that have no ARKit twin (the table is
 docs/characters.md), from this set's shapes or from a performer's captured ones
 (``composed_captures``); ``CHARACTER_FIT_DEFAULTS`` are the fit options of a character
@@ -41,8 +43,9 @@ __all__ = [
 ]
 
 GENERIC_ATTRIBUTION: Final = (
-    "generic ARKit source set: 24 landmarks of the ICT Face Model (ICT-FaceKit, "
-    "USC Institute for Creative Technologies, MIT licence)"
+    "generic ARKit source set: 24 landmarks of the ICT Face Model and 2 iris centres, its "
+    "lids and irises as facecast's tracker sees it (ICT-FaceKit, USC Institute for Creative "
+    "Technologies, MIT licence)"
 )
 
 #: ``fit`` options of a character paired with this set when its uploader gives no noise:
@@ -160,7 +163,8 @@ PRESET_CHECK_ORDER: Final = (
 @dataclass(frozen=True, eq=False)
 class GenericSources:
     """The generic set: ``names`` (neutral first), ``points`` (M, K, 3) in centimetres,
-    ``landmarks68`` (K,) the Multi-PIE position of each point, ``stable_points`` (S,)."""
+    ``landmarks68`` (K,) the Multi-PIE position of each point (-1: none, the iris
+    centres), ``stable_points`` (S,)."""
 
     names: tuple[str, ...]
     points: np.ndarray

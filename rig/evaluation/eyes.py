@@ -266,6 +266,7 @@ def eyes_rows(
     noise: float,
     fps: float,
     filters: Mapping[str, tuple[str, float | None]],
+    generic: Rig | None = None,
 ) -> dict[str, dict[str, Any]]:
     """The eyes clip cloned by the personal and the generic path, each through ``filters``.
 
@@ -284,6 +285,9 @@ def eyes_rows(
         publishes without a ``smoothing``; "kalman": the live filter at ``acceleration``
         (None: its default) and the measured noise; "rts": ``facecast clone``'s offline
         smoother) and its acceleration.
+    generic : Rig, optional
+        The generic path's rig before its re-base (default ``character``): the same
+        targets on another source (``bench webcam``'s shipped generic set).
 
     Returns
     -------
@@ -294,10 +298,11 @@ def eyes_rows(
     # Points after the character's (a later layout's: the iris centres) are the performer's:
     # the personal rig is fitted on them too, the generic one takes the first K, as the
     # page sends each rig its own count.
-    k = character.num_points
+    source = character if generic is None else generic
+    k = source.num_points
     rigs = {
         "personal": fit_performer(character, keys, noise=noise),
-        "generic": generic_rig(character, keys["neutral"][:k], noise, keys),
+        "generic": generic_rig(source, keys["neutral"][:k], noise, keys),
     }
     rows: dict[str, dict[str, Any]] = {}
     for path, rig in rigs.items():

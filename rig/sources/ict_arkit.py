@@ -1,7 +1,8 @@
 """ICT-FaceKit's shapes under their ARKit names, as an example set: the generic face -> an identity.
 
 The source is ICT's default 24 landmarks, the target the face area of one identity; takes,
-the transfer's truth and the webcam benchmark all start from it. Builds arrays only.
+the transfer's truth and the webcam benchmark all start from it; ``with_tracked_eyes`` gives
+the generic set its eyes as the tracker sees them. Builds arrays only.
 """
 
 from __future__ import annotations
@@ -9,11 +10,15 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 
+import numpy as np
+import numpy.typing as npt
+
 from ..examples import ExampleSet
+from ..pose import similarity_transform
 from .ict import DEFAULT_LANDMARKS, ict_example_set
 from .source_rig import arkit_from_ict
 
-__all__ = ["ARKIT_TARGET_IDENTITY", "FACE_VERTICES", "arkit_example_set"]
+__all__ = ["ARKIT_TARGET_IDENTITY", "FACE_VERTICES", "arkit_example_set", "with_tracked_eyes"]
 
 #: The default target: another person than ICT's generic face (20 ship with the archive).
 ARKIT_TARGET_IDENTITY = "person01"
@@ -53,3 +58,47 @@ def arkit_example_set(
         target_vertices=target_vertices,
         target_faces=faces,
     )
+
+
+def with_tracked_eyes(
+    exact: npt.ArrayLike, tracked: npt.ArrayLike, eyes: Sequence[int]
+) -> np.ndarray:
+    """A source set's exact points with its eyes as a tracker sees the same face.
+
+    ``tracked`` is the face making the same examples, tracked (its layout may append
+    points, the iris centres, after the exact ones). It is carried into ``exact``'s frame
+    by the similarity (rotation, uniform scale, shift) that best takes its neutral's first
+    K points onto ``exact``'s neutral; then each example's points ``eyes`` (indices among
+    the K: the lids) move from ``exact``'s neutral by the tracked example's displacement,
+    and the appended points are the tracked ones. The rest keeps ``exact``.
+
+    Why: FaceMesh's lids and iris do not move as the mesh's vertices do (a closed eye's
+    lid gap closes a fifth of the way less, a look up moves the tracked iris with the lids
+    down; README, option (z)). A generic rig fitted on exact lids reads a tracked blink
+    at 0.8 and a gaze only by the lids it drags; on the lids and iris as tracked it reads
+    the blink at 0.8-0.9 and the gaze from the iris.
+
+    Parameters
+    ----------
+    exact : (M, K, 3)
+        The examples' exact points, the neutral first.
+    tracked : (M, L, 3), L >= K
+        The same examples tracked, in the same order.
+    eyes : sequence of int
+        Which of the K points take the tracked displacements.
+
+    Returns
+    -------
+    (M, L, 3) float64
+    """
+    ex = np.asarray(exact, dtype=np.float64)
+    tr = np.asarray(tracked, dtype=np.float64)
+    m, k, _ = ex.shape
+    if ex.ndim != 3 or tr.ndim != 3 or tr.shape[0] != m or tr.shape[1] < k or tr.shape[2] != 3:
+        raise ValueError(f"exact (M, K, 3) and tracked (M, L >= K, 3), got {ex.shape}, {tr.shape}")
+    rotation, scales, shift = similarity_transform(tr[:1, :k], ex[0], scale=True)
+    moved = scales[0] * tr @ rotation[0].T + shift[0]
+    out = np.concatenate([ex, moved[:, k:]], axis=1)
+    index = np.asarray(eyes, dtype=np.int64)
+    out[:, index] = ex[:1, index] + (moved[:, index] - moved[:1, index])
+    return out

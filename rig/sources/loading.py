@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from ..characters.generic import GENERIC_SOURCE_NAME, is_generic_layout
 from ..errors import ExampleSetError, InputError
 from ..io.meshio import read_obj_vertices
 from ..npy_reads import NPY_READS
@@ -114,7 +115,7 @@ def load_source_animation(
             code="bad_animation",
         )
     if num_points is not None and animation.num_points != num_points:
-        layout = _tracked_layout(path)
+        layout = _tracked_layout(path, source_rig)
         if not (
             layout is not None
             and num_points < animation.num_points
@@ -132,11 +133,17 @@ def load_source_animation(
     return animation
 
 
-def _tracked_layout(path: Path) -> Layout | None:
+def _tracked_layout(
+    path: Path, source_rig: SourceRig | str | os.PathLike[str] | None = None
+) -> Layout | None:
     """The landmark layout a tracked take follows: an .npz's ``layout`` (``facecast
-    track``'s), MediaPipe's for .ndjson; None when the file names none."""
+    track``'s), MediaPipe's for .ndjson, and for a Live Link .csv turned into points by
+    facecast's generic set (by name or its file: it holds the layout's points, in order);
+    None when the file names none."""
     if path.suffix.lower() in (".ndjson", ".jsonl"):
         return load_layout("mediapipe_face_mesh")  # the MediaPipe reader's (trackers.py)
+    if path.suffix.lower() == ".csv":
+        return load_layout() if _is_generic_set(source_rig) else None
     if path.suffix.lower() != ".npz":
         return None
     with NPY_READS, path.open("rb") as handle, np.load(handle, allow_pickle=False) as archive:
@@ -147,6 +154,19 @@ def _tracked_layout(path: Path) -> Layout | None:
         return load_layout(name)
     except InputError:
         return None  # a layout this facecast does not ship: the counts must agree
+
+
+def _is_generic_set(source_rig: SourceRig | str | os.PathLike[str] | None) -> bool:
+    """Whether ``source_rig`` names facecast's generic set or is a file in its layout."""
+    if source_rig is None or isinstance(source_rig, SourceRig):
+        return False
+    if str(source_rig) == GENERIC_SOURCE_NAME and not Path(source_rig).exists():
+        return True
+    path = Path(source_rig)
+    if not (path.is_file() and path.suffix.lower() == ".npz"):
+        return False
+    with NPY_READS, path.open("rb") as handle, np.load(handle, allow_pickle=False) as archive:
+        return is_generic_layout(archive.files)
 
 
 def _load_tracker_take(

@@ -234,6 +234,13 @@ class SourceRig:
     _flat: np.ndarray = field(init=False, repr=False)
     _centroid: np.ndarray = field(init=False, repr=False)
 
+    def first(self, k: int) -> SourceRig:
+        """This rig on its first ``k`` points: a layout's earlier version (the generic set
+        has the layout's 26 points; a rig fitted on its first 24 or 20 takes those)."""
+        if not 1 <= k <= self.num_points:
+            raise ExampleSetError(f"source rig: {k} of its {self.num_points} points")
+        return SourceRig(self.neutral[:k], self.deltas[:, :k], self.shapes, self.unused)
+
     def __post_init__(self) -> None:
         neutral = np.asarray(self.neutral, dtype=np.float64)
         deltas = np.asarray(self.deltas, dtype=np.float64)

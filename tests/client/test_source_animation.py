@@ -40,7 +40,7 @@ def test_points_file_loads_with_the_rigs_feature_indices(tmp_path):
 def test_point_count_mismatch_names_who_expects_how_many():
     expected = (
         r"^demo: the demo performance comes on the demo rig's 21 points and on the generic "
-        r"ARKit set's 24 \(characters uploaded as files\), rig 'x' needs 5: give the rig's own "
+        r"ARKit set's 26 \(characters uploaded as files\), rig 'x' needs 5: give the rig's own "
         r"source animation instead$"
     )
     with pytest.raises(CommandError, match=expected):

@@ -15,7 +15,6 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from facecast.cli.snapshot import CHROMIUM_ARGS, chromium_path, serving, write_demo_rig
@@ -118,25 +117,18 @@ def _write_character_rig(rigs: Path) -> None:
 
 
 #: A rig on the layout's full 26 points, for tests of what the page publishes (a points
-#: watcher reads the frames as sent): the generic ARKit set's 24 points (the layout's
-#: earlier count: ICT has no iris) and each eye's four lid points' mean standing in for its
-#: iris centre, its target the same points as a mesh (no ICT-FaceKit data needed).
+#: watcher reads the frames as sent): the generic ARKit set's 26 points (ICT's landmarks,
+#: its lids and irises as the tracker sees them), its target the same points as a mesh (no
+#: ICT-FaceKit data needed).
 LAYOUT_RIG = "points26"
 
 
 def _write_layout_rig(rigs: Path) -> None:
     generic = generic_sources()
     layout = load_layout()
-    names = list(layout.feature_names)
-    lids = {
-        side: [names.index(f"{side}_{lid}") for lid in
-               ("upper_lid", "lower_lid", "upper_lid_inner", "lower_lid_inner")]
-        for side in ("right", "left")
-    }  # fmt: skip
-    irises = np.stack([generic.points[:, lids[s]].mean(axis=1) for s in ("right", "left")], 1)
-    points = np.concatenate([generic.points, irises], axis=1)
+    points = generic.points
     k = points.shape[1]
-    assert k == layout.num_features and names[-2:] == ["right_iris", "left_iris"]
+    assert k == layout.num_features and layout.feature_names[-2:] == ("right_iris", "left_iris")
     faces = [[i, i + 1, i + 2] for i in range(k - 2)]
     examples = ExampleSet(generic.names, points, points, faces)
     fit(examples, noise=0.035, clamp="unit").save(rigs / f"{LAYOUT_RIG}.rig")

@@ -47,9 +47,12 @@ def _mixes(names, points, frames: int = 200, seed: int = 0):
     return mixed, weights
 
 
+#: Exact interpolation (noise 0) of the shipped set amplifies 0.2 mm of noise into weights
+#: 0.26 RMS off (noise gain 98; 1,099 and 2.18 on the 24 exact landmarks before the eyes
+#: were taken as tracked, option (z)); the defaults keep them 0.07 off (gain 12).
 @pytest.mark.parametrize(
     ("options", "gain", "error"),
-    [({"noise": 0.0}, (1e3, np.inf), (1.0, np.inf)), (None, (0, 20), (0, 0.15))],
+    [({"noise": 0.0}, (50, np.inf), (0.2, np.inf)), (None, (0, 20), (0, 0.15))],
 )
 def test_the_defaults_keep_tracker_noise_out_of_the_weights(options, gain, error):
     generic = generic_sources()

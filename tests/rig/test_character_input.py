@@ -104,7 +104,7 @@ def test_generic_set_has_the_arkit_shapes_but_tongue_out_and_composes_vrm_preset
 
     assert generic.names[0] == "neutral"
     assert set(generic.names[1:]) == set(ARKIT_NAMES) - {"tongueOut"}
-    assert generic.points.shape == (52, 24, 3) and generic.stable_points.tolist() == [
+    assert generic.points.shape == (52, 26, 3) and generic.stable_points.tolist() == [
         2,
         3,
         7,

@@ -94,7 +94,7 @@ def test_arkit_demo_weights_follow_the_demo_activations_within_unit_bounds():
 def test_the_arkit_demo_is_on_the_generic_sets_points():
     animation = arkit_demo_animation(2.0, 30.0)
 
-    assert animation.points.shape == (60, 24, 3)
+    assert animation.points.shape == (60, 26, 3)
     assert animation.fps == 30.0
     assert performance_for(generic_sources().points[0]) == "generic"
     assert performance_for(demo_example_set().source_points[0]) == "demo"

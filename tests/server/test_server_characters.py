@@ -187,7 +187,7 @@ async def test_a_character_file_uploads_as_it_is_and_is_fitted_and_served(
     assert "jawOpen" in pairing["paired"] and "eyeBlinkLeft" in pairing["paired"]
     assert pairing["face_mesh"] and pairing["entries"] and pairing["text"][0].startswith("pairing")
     assert body["names"][0] == "neutral" and set(body["names"][1:]) <= set(pairing["paired"])
-    assert body["num_points"] == 24  # the generic ARKit source set's landmarks
+    assert body["num_points"] == 26  # the generic ARKit source set: 24 landmarks and 2 irises
     fmt = {"arkit": "gltf"}.get(variant, variant)
     assert described["character"]["format"] == fmt
     jaw = described["character"]["bindings"][described["names"].index("jawOpen")]

@@ -165,7 +165,7 @@ async def test_rigs_put_of_a_character_file_fits_it_and_prints_the_pairing(
 
     out = capsys.readouterr().out
     assert code == 0
-    assert "fitted ava from a vrm1 character: M=" in out and "K=24" in out
+    assert "fitted ava from a vrm1 character: M=" in out and "K=26" in out
     assert "pairing with" in out and "paired   morph target 'jawOpen'" in out
     assert '"format": "vrm1"' in out  # rigs show: the character's description
 
@@ -226,7 +226,7 @@ async def test_rigs_put_with_expressions_transfer_waits_for_the_job_and_prints_i
     )
     assert "transferring: " in captured.err  # the progress line
     assert "transferred 2 expression(s) in" in captured.out
-    assert "fitted ava from a gltf character: M=3 K=24" in captured.out
+    assert "fitted ava from a gltf character: M=3 K=26" in captured.out
 
 
 @pytest.mark.ict

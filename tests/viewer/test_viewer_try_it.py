@@ -127,7 +127,7 @@ def test_demo_animation_comes_on_the_points_of_the_rig_asked_for(server):
 
     assert (plain["performance"], plain["points"].shape[1]) == ("demo", 21)
     assert (demo["performance"], demo["points"].shape[1]) == ("demo", 21)
-    assert (character["performance"], character["points"].shape[1]) == ("generic", 24)
+    assert (character["performance"], character["points"].shape[1]) == ("generic", 26)
     # A character of the layout's earlier version gets the same performance's first 20.
     assert (earlier["performance"], earlier["points"].shape[1]) == ("generic", 20)
     np.testing.assert_array_equal(earlier["points"], character["points"][:, :20])
