@@ -57,12 +57,16 @@ def test_facecast_and_its_floor_are_measured_in_turn_at_every_step(tmp_path, mon
     assert turns == [["facecast", 2], ["floor", 2], ["floor", 4], ["facecast", 4]]
 
 
-def test_a_target_that_fails_a_step_leaves_and_the_other_goes_on(tmp_path):
+def test_a_target_that_fails_a_step_leaves_and_the_other_goes_on(tmp_path, monkeypatch):
+    # As the turn-taking test: a step holds when its viewers all connected, whatever their
+    # p99 (a loaded replica, 2026-12-05, held facecast's 6 viewers over the 50 ms goal, and
+    # its ramp rightly stopped there: the machine's capacity, not what this test is about).
+    monkeypatch.setattr(broadcast, "GOAL_P99_MS", float("inf"))
+    monkeypatch.setattr(broadcast, "MIN_DELIVERY", 0.0)
     facecast, bare = _ramps(tmp_path, floor_down=True)
 
     assert [(step["viewers"], step["ok"]) for step in bare["steps"]] == [(6, False), (6, False)]
     assert bare["held"] == 0
-    # facecast went on to the next step without its floor (whether it then holds 12 viewers
-    # is the machine's capacity, which a loaded test machine does not promise: 6 seen).
+    # facecast went on to the next step without its floor.
     assert [step["viewers"] for step in facecast["steps"]][:1] == [6]
     assert 12 in {step["viewers"] for step in facecast["steps"]}
