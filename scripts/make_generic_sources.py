@@ -73,10 +73,16 @@ def tracked_keys(
 
 
 def generic_arrays(
-    archive: Path, tracked: Path | None = None, keep: Path | None = None
+    archive: Path,
+    tracked: Path | None = None,
+    keep: Path | None = None,
+    tracked_keys_points: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """The set's arrays: names, points (M, 26, 3) cm, landmarks68 (-1 past the 24
-    landmarks: the iris centres), stable positions."""
+    landmarks: the iris centres), stable positions, and ``tracked``: the generic face's
+    tracked keys the eyes were taken from (M, 26, 3, the tracker's face frame), kept so
+    that the suite checks the set against ICT without rendering and tracking 724 frames.
+    ``tracked_keys_points``: those keys given (no video made)."""
     with np.load(archive, allow_pickle=False) as ict:
         neutral = ict["neutral"].astype(np.float64)
         feature = ict["landmarks68"][list(DEFAULT_LANDMARKS)].astype(np.int64)
@@ -85,7 +91,12 @@ def generic_arrays(
     arkit_names, exact = arkit_from_ict(names, neutral[feature], shapes)
     features = load_layout().feature_names[: len(DEFAULT_LANDMARKS)]
     eyes = [i for i, name in enumerate(features) if "_lid" in name]
-    points = with_tracked_eyes(exact, tracked_keys(archive, list(arkit_names), tracked, keep), eyes)
+    seen = (
+        tracked_keys(archive, list(arkit_names), tracked, keep)
+        if tracked_keys_points is None
+        else np.asarray(tracked_keys_points, dtype=np.float64)
+    )
+    points = with_tracked_eyes(exact, seen, eyes)
     stable = stable_positions(DEFAULT_LANDMARKS)
     assert stable is not None
     extra = points.shape[1] - len(DEFAULT_LANDMARKS)
@@ -94,6 +105,7 @@ def generic_arrays(
         "points": points,
         "landmarks68": np.asarray([*DEFAULT_LANDMARKS, *[-1] * extra], dtype=np.int64),
         "stable_points": np.asarray(stable, dtype=np.int64),
+        "tracked": seen,
     }
 
 
