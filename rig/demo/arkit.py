@@ -1,7 +1,7 @@
 """The demo performance on facecast's generic ARKit source set: any character, at once.
 
 The same activations as the procedural demo (``scene.demo_activations``: emotions, visemes,
-blinks) acted as ARKit blendshape weights (``DEMO_ARKIT``), turned into the generic set's 20
+blinks) acted as ARKit blendshape weights (``DEMO_ARKIT``), turned into the generic set's 26
 points (``sources.source_rig.generic_source_rig``), which every character uploaded as a
 file is paired with. Reads only facecast's packaged generic set; no fitting, no network.
 """
@@ -105,10 +105,10 @@ def performance_for(source_neutral: np.ndarray) -> str | None:
     """Which demo performance a rig with this source neutral (K, 3) takes, or None.
 
     ``"demo"`` for the procedural demo's points (the demo rig), ``"generic"`` for the
-    generic ARKit set's (characters uploaded as files, ICT-FaceKit's 24 default
-    landmarks, or the first 20 of them: a character fitted before the layout grew, which
-    takes the performance's first 20 points), None for any other source (its own
-    tracker's points).
+    generic ARKit set's (characters uploaded as files: its 26 points, or its first 24 or
+    20, ICT-FaceKit's default landmarks, for a character fitted before the set or the
+    layout grew, which takes the performance's first 24 or 20 points), None for any other
+    source (its own tracker's points).
     """
     neutral = np.asarray(source_neutral, dtype=np.float64)
     k = len(neutral)
