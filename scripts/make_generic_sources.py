@@ -20,6 +20,7 @@ import io
 import sys
 import tempfile
 import zipfile
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -45,10 +46,10 @@ OUT = Path(__file__).resolve().parents[1] / "rig" / "characters" / "generic_arki
 FPS, SWAY_DEGREES, GAZE_DEGREES = 30.0, 1.5, 35.0
 
 
-def tracked_keys(
-    archive: Path, names: list[str], tracked: Path | None, keep: Path | None
-) -> np.ndarray:
-    """(M, L, 3): ICT's generic face making each of ``names`` (the neutral first), tracked."""
+def tracked_keys(archive: Path, tracked: Path | None, keep: Path | None) -> dict[str, np.ndarray]:
+    """ICT's generic face making each ARKit shape (the neutral too), tracked: {name: (L, 3)}.
+    ``tracked``: a ``facecast track`` output of that video, else it is rendered and tracked
+    (kept in ``keep``)."""
     face = ict_performer(archive, identity=None)
     clips = key_clips(face.names)
     if tracked is None:
@@ -66,37 +67,28 @@ def tracked_keys(
             f"{tracked}: {len(points)} frames, the clips have {len(clips.activations)}"
         )
     keys, _ = captured_keys(points, clips, found)
-    missing = [n for n in names if n not in keys]
-    if missing:
-        raise SystemExit(f"the tracker lost the generic face in {missing}")
-    return np.stack([keys[n] for n in names])
+    return keys
 
 
-def generic_arrays(
-    archive: Path,
-    tracked: Path | None = None,
-    keep: Path | None = None,
-    tracked_keys_points: np.ndarray | None = None,
-) -> dict[str, np.ndarray]:
+def generic_arrays(archive: Path, seen: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The set's arrays: names, points (M, 26, 3) cm, landmarks68 (-1 past the 24
-    landmarks: the iris centres), stable positions, and ``tracked``: the generic face's
-    tracked keys the eyes were taken from (M, 26, 3, the tracker's face frame), kept so
-    that the suite checks the set against ICT without rendering and tracking 724 frames.
-    ``tracked_keys_points``: those keys given (no video made)."""
+    landmarks: the iris centres), stable positions, and ``tracked``: ``seen``, the generic
+    face's tracked keys by name (``tracked_keys``) the eyes are taken from (M, 26, 3, the
+    tracker's face frame), kept so that the suite checks the set against ICT without
+    rendering and tracking 724 frames."""
     with np.load(archive, allow_pickle=False) as ict:
         neutral = ict["neutral"].astype(np.float64)
         feature = ict["landmarks68"][list(DEFAULT_LANDMARKS)].astype(np.int64)
         names = [str(n) for n in ict["expression_names"]]
         shapes = ict["expressions"][:, feature, :].astype(np.float64)
     arkit_names, exact = arkit_from_ict(names, neutral[feature], shapes)
+    missing = [n for n in arkit_names if n not in seen]
+    if missing:
+        raise SystemExit(f"the tracker lost the generic face in {missing}")
+    tracked = np.stack([np.asarray(seen[n], dtype=np.float64) for n in arkit_names])
     features = load_layout().feature_names[: len(DEFAULT_LANDMARKS)]
     eyes = [i for i, name in enumerate(features) if "_lid" in name]
-    seen = (
-        tracked_keys(archive, list(arkit_names), tracked, keep)
-        if tracked_keys_points is None
-        else np.asarray(tracked_keys_points, dtype=np.float64)
-    )
-    points = with_tracked_eyes(exact, seen, eyes)
+    points = with_tracked_eyes(exact, tracked, eyes)
     stable = stable_positions(DEFAULT_LANDMARKS)
     assert stable is not None
     extra = points.shape[1] - len(DEFAULT_LANDMARKS)
@@ -105,7 +97,7 @@ def generic_arrays(
         "points": points,
         "landmarks68": np.asarray([*DEFAULT_LANDMARKS, *[-1] * extra], dtype=np.int64),
         "stable_points": np.asarray(stable, dtype=np.int64),
-        "tracked": seen,
+        "tracked": tracked,
     }
 
 
@@ -131,7 +123,7 @@ def main() -> int:
     if archive is None:
         print(f"no {ICT_FILE}: set FACECAST_ICT or put ../shared/data/ict-facekit beside the repo")
         return 1
-    arrays = generic_arrays(archive, args.tracked, args.keep)
+    arrays = generic_arrays(archive, tracked_keys(archive, args.tracked, args.keep))
     write_npz(arrays, OUT)
     print(f"wrote {OUT} ({OUT.stat().st_size} bytes, {len(arrays['names'])} examples)")
     return 0

@@ -28,7 +28,6 @@ from facecast.cli.errors import CommandError
 from facecast.cli.report import write_json
 from facecast.cli.track import track_video
 from facecast.rig import fit
-from facecast.rig.characters.generic import generic_sources
 from facecast.rig.errors import ExampleSetError
 from facecast.rig.evaluation.evaluate import cloning_error
 from facecast.rig.evaluation.eyes import EYES_IDENTITY, EyesClip, eyes_clip, eyes_rows
@@ -43,6 +42,7 @@ from facecast.rig.evaluation.webcam import (
     hold_last_found,
     ict_performer,
     key_clips,
+    on_generic_set,
     source_on_neutral,
     superposition,
     webcam_rows,
@@ -133,7 +133,7 @@ def _setup(args: argparse.Namespace) -> _Setup:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the exact ICT rig warns to fit with noise: known
         character = fit(examples)
-        generic = character if args.generic_neutral != "shipped" else fit(_on_shipped(examples))
+        generic = character if args.generic_neutral != "shipped" else fit(on_generic_set(examples))
     return _Setup(
         performer=performer,
         examples=examples,
@@ -148,19 +148,6 @@ def _setup(args: argparse.Namespace) -> _Setup:
         eyes_id=eyes_id,
         eyes=eyes_clip(eyes_performer.names, short=args.eyes_short),
     )
-
-
-def _on_shipped(examples: ExampleSet) -> ExampleSet:
-    """``examples`` (ICT's shapes, exact landmarks) on facecast's shipped generic source:
-    ICT's landmarks with the lids and the iris centres as the tracker sees ICT's generic
-    face (``scripts/make_generic_sources.py``, README option (z)); what a character
-    uploaded as a file is paired with."""
-    shipped = generic_sources()
-    points = {name: shipped.source_points(name) for name in examples.names}
-    found = {name: p for name, p in points.items() if p is not None}
-    if len(found) < len(points):
-        raise CommandError(f"the shipped generic set lacks {sorted(set(points) - set(found))}")
-    return replace(examples, source_points=np.stack([found[n] for n in examples.names]))
 
 
 def _on_tracked_generic_neutral(setup: _Setup, args: argparse.Namespace, folder: Path) -> _Setup:

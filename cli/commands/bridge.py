@@ -278,9 +278,8 @@ def _run_tracker(
     from facecast.client.channel import FramePublisher
     from facecast.client.connection import ConnectionFailed
     from facecast.protocol import Hello
-    from facecast.rig.characters.generic import GENERIC_SOURCE_NAME
     from facecast.rig.sources.layouts import load_layout
-    from facecast.rig.sources.source_rig import load_source_rig
+    from facecast.rig.sources.source_rig import load_source_rig, names_generic_set
 
     source_rig = load_source_rig(args.source_rig)
     if source_rig.missing:
@@ -300,17 +299,16 @@ def _run_tracker(
             async with FramePublisher(url, hello, token=args.token) as publisher:
                 assert publisher.ready is not None
                 k = publisher.ready.num_points
-                if (k < source_rig.num_points and args.source_rig == GENERIC_SOURCE_NAME
+                rig_points = source_rig
+                if (k < source_rig.num_points and names_generic_set(args.source_rig)
                         and load_layout().drives(k)):  # fmt: skip
                     # A rig fitted on the layout's earlier version (24 or 20 points): the
                     # generic set's first k, as /perform sends such a rig.
                     rig_points = source_rig.first(k)
-                else:
-                    rig_points = source_rig
-                if publisher.ready.num_points != rig_points.num_points:
+                if k != rig_points.num_points:
                     raise CommandError(
-                        f"rig {args.rig!r} needs K={publisher.ready.num_points} points, the "
-                        f"source rig makes {rig_points.num_points}"
+                        f"rig {args.rig!r} needs K={k} points, the source rig makes "
+                        f"{rig_points.num_points}"
                     )
                 host, port = receiver.address
                 print(

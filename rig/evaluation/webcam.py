@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from ..characters.generic import generic_sources
 from ..closure import CLOSURE_NAMES
 from ..errors import InputError
 from ..examples import ExampleSet
@@ -41,6 +42,7 @@ __all__ = [
     "hold_last_found",
     "ict_performer",
     "key_clips",
+    "on_generic_set",
     "score",
     "source_on_neutral",
     "superposition",
@@ -256,6 +258,19 @@ def hold_last_found(points: npt.ArrayLike, found: npt.ArrayLike) -> np.ndarray:
     index[index < 0] = int(np.argmax(ok))
     out: np.ndarray = x[index]
     return out
+
+
+def on_generic_set(examples: ExampleSet) -> ExampleSet:
+    """``examples`` (ICT's shapes under ARKit names) on facecast's shipped generic set:
+    ICT's landmarks with the lids and the iris centres as the tracker sees ICT's generic
+    face (README, option (z)), what a character uploaded as a file is paired with."""
+    shipped = generic_sources()
+    found = {name: shipped.source_points(name) for name in examples.names}
+    points = [p for p in found.values() if p is not None]
+    if len(points) < len(found):
+        missing = sorted(name for name, p in found.items() if p is None)
+        raise InputError(f"facecast's generic set has no {missing}", code="missing_examples")
+    return replace(examples, source_points=np.stack(points))
 
 
 def source_on_neutral(examples: ExampleSet, neutral: npt.ArrayLike) -> ExampleSet:

@@ -14,13 +14,12 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from ..characters.generic import GENERIC_SOURCE_NAME, is_generic_layout
 from ..errors import ExampleSetError, InputError
 from ..io.meshio import read_obj_vertices
 from ..npy_reads import NPY_READS
 from .animation import DEFAULT_FPS, FPS_FILE, SourceAnimation, check_fps, check_frames_finite
 from .layouts import Layout, load_layout
-from .source_rig import SourceRig, load_source_rig
+from .source_rig import SourceRig, load_source_rig, names_generic_set
 from .trackers import livelink_csv_animation, mediapipe_animation
 
 __all__ = ["load_source_animation"]
@@ -143,7 +142,7 @@ def _tracked_layout(
     if path.suffix.lower() in (".ndjson", ".jsonl"):
         return load_layout("mediapipe_face_mesh")  # the MediaPipe reader's (trackers.py)
     if path.suffix.lower() == ".csv":
-        return load_layout() if _is_generic_set(source_rig) else None
+        return load_layout() if names_generic_set(source_rig) else None
     if path.suffix.lower() != ".npz":
         return None
     with NPY_READS, path.open("rb") as handle, np.load(handle, allow_pickle=False) as archive:
@@ -154,19 +153,6 @@ def _tracked_layout(
         return load_layout(name)
     except InputError:
         return None  # a layout this facecast does not ship: the counts must agree
-
-
-def _is_generic_set(source_rig: SourceRig | str | os.PathLike[str] | None) -> bool:
-    """Whether ``source_rig`` names facecast's generic set or is a file in its layout."""
-    if source_rig is None or isinstance(source_rig, SourceRig):
-        return False
-    if str(source_rig) == GENERIC_SOURCE_NAME and not Path(source_rig).exists():
-        return True
-    path = Path(source_rig)
-    if not (path.is_file() and path.suffix.lower() == ".npz"):
-        return False
-    with NPY_READS, path.open("rb") as handle, np.load(handle, allow_pickle=False) as archive:
-        return is_generic_layout(archive.files)
 
 
 def _load_tracker_take(

@@ -49,6 +49,7 @@ __all__ = [
     "generic_source_rig",
     "head_rotation",
     "load_source_rig",
+    "names_generic_set",
 ]
 
 NUM_ARKIT = len(ARKIT_NAMES)
@@ -386,6 +387,24 @@ def _generic_layout_rig(path: Path) -> SourceRig | None:
     if names[0] != "neutral":
         raise ExampleSetError(f"{path.name}: the first name must be 'neutral'", code="bad_file")
     return _from_named_points(names, points)
+
+
+def names_generic_set(spec: SourceRig | str | os.PathLike[str] | None) -> bool:
+    """Whether ``spec`` (as ``load_source_rig`` takes it) is facecast's generic set: its
+    word, or an .npz in its layout. Such a set's points are the landmark layout's, in
+    order, so a rig fitted on the layout's earlier version takes its first K."""
+    if spec is None or isinstance(spec, SourceRig):
+        return False
+    if str(spec) == GENERIC_SOURCE_NAME and not Path(spec).exists():
+        return True
+    path = Path(spec)
+    if not (path.is_file() and path.suffix.lower() == ".npz"):
+        return False
+    try:
+        with NPY_READS, path.open("rb") as handle, np.load(handle, allow_pickle=False) as data:
+            return is_generic_layout(data.files)
+    except (OSError, ValueError):
+        return False
 
 
 def load_source_rig(path: str | os.PathLike[str]) -> SourceRig:

@@ -29,7 +29,7 @@ option (n)).
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -38,7 +38,6 @@ import pytest
 from facecast.cli.bench.facevideo import head_scene, write_video
 from facecast.cli.track import track_video
 from facecast.rig import fit
-from facecast.rig.characters.generic import generic_sources
 from facecast.rig.evaluation.eyes import (
     EYES_IDENTITY,
     GAZE_WEIGHTS,
@@ -47,7 +46,7 @@ from facecast.rig.evaluation.eyes import (
     eyes_clip,
     eyes_rows,
 )
-from facecast.rig.evaluation.webcam import captured_keys, ict_performer, key_clips
+from facecast.rig.evaluation.webcam import captured_keys, ict_performer, key_clips, on_generic_set
 from facecast.rig.sources.ict import DEFAULT_LANDMARKS, ict_regions
 from facecast.rig.sources.ict_arkit import ARKIT_TARGET_IDENTITY, arkit_example_set
 from facecast.rig.sources.layouts import load_layout
@@ -149,12 +148,10 @@ def generic_scores(tracked) -> dict[str, Any]:
     source (ICT's landmarks with the lids and irises as tracked, option (z)), re-based on
     the captured neutral with its noise and the captured blinks, as /perform's calibrate."""
     examples = arkit_example_set(ARCHIVE, identity=ARKIT_TARGET_IDENTITY)
-    shipped = generic_sources()
-    source = np.stack([shipped.source_points(name) for name in examples.names])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         character = fit(examples)
-        generic = fit(replace(examples, source_points=source))
+        generic = fit(on_generic_set(examples))
         rows = eyes_rows(character, tracked.clip, tracked.points, tracked.keys, noise=tracked.noise,
                          fps=FPS, filters={"live": ("none", None)}, generic=generic)  # fmt: skip
     out: dict[str, Any] = rows["generic live"]

@@ -138,8 +138,8 @@ def test_generic_set_is_what_the_script_makes_from_ict():
     # set keeps the tracked keys they were taken from, and the script's arithmetic on them
     # and on ICT must give the shipped points.
     with np.load(module.OUT) as shipped:
-        seen = shipped["tracked"]
-    arrays = module.generic_arrays(archive, tracked_keys_points=seen)
+        seen = dict(zip(shipped["names"].tolist(), shipped["tracked"], strict=True))
+    arrays = module.generic_arrays(archive, seen)
 
     generic = generic_sources()
     assert tuple(arrays["names"]) == generic.names

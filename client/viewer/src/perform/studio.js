@@ -27,7 +27,7 @@ export class Studio {
     this.doc = doc;
     this.steps = [];
     this.current = -1;
-    this.recording = null; // {name, samples, seen, until, deadline, resolve}
+    this.recording = null; // {name, samples, seen, until, deadline, summary, resolve}
     this.stats = host.stats.calibration = { active: false, step: null, captures: {}, fit: null, fitError: null, noise: null };
     this.el.calibrate.addEventListener("click", () => this.start());
     this.el.capture.addEventListener("click", () => this.capture());
@@ -87,12 +87,13 @@ export class Studio {
     rec.seen += 1;
     if (sample) rec.samples.push(sample);
     const now = performance.now();
-    // Once its time is up with frames enough, whether blinks and outliers leave enough.
-    const summary =
+    // Once its time is up with frames enough, whether blinks and outliers leave enough;
+    // the capture's verdict when it ends here (made on these very frames).
+    rec.summary =
       now >= rec.until && rec.samples.length >= CAPTURE_LIMITS.minFrames
         ? summariseCapture(rec.samples, rec.seen, rec.name, this.reference(rec.name))
         : null;
-    if (captureDone(rec, now, CAPTURE_LIMITS, summary)) {
+    if (captureDone(rec, now, CAPTURE_LIMITS, rec.summary)) {
       this.recording = null;
       rec.resolve(rec);
     }
@@ -112,10 +113,10 @@ export class Studio {
     const rec = await new Promise((resolve) => {
       const start = performance.now();
       this.recording = {
-        name: step.name, samples: [], seen: 0, until: start + CAPTURE_MS, deadline: start + CAPTURE_MAX_MS, resolve,
+        name: step.name, samples: [], seen: 0, until: start + CAPTURE_MS, deadline: start + CAPTURE_MAX_MS, summary: null, resolve,
       };
     });
-    const summary = summariseCapture(rec.samples, rec.seen, step.name, this.reference(step.name));
+    const summary = rec.summary ?? summariseCapture(rec.samples, rec.seen, step.name, this.reference(step.name));
     step.result = summary;
     step.status = summary.ok ? "ok" : "refused";
     this.stats.captures[step.name] = {
