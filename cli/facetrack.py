@@ -16,6 +16,7 @@ from types import ModuleType
 import numpy as np
 
 from facecast.cli.errors import TrackerUnavailable
+from facecast.cli.eyelids import EyelidModel
 from facecast.rig.errors import InputError
 from facecast.rig.sources.facemesh import image_to_mesh, normalise_mesh
 from facecast.rig.sources.layouts import Layout, load_layout
@@ -61,8 +62,6 @@ class Tracked:
     seconds: float
 
 
-#: Points of FaceMesh's own mesh; the attention mesh appends 10 iris points (5 an eye).
-FACEMESH_POINTS = 468
 #: FaceMesh's lid contours without the eye corners (MediaPipe's FACEMESH_RIGHT_EYE /
 #: FACEMESH_LEFT_EYE; the points the page's eyelids.js replaces too), the subject's right
 #: eye's upper then lower lid, then the left's: taken from the attention mesh.
@@ -103,13 +102,15 @@ class FaceTracker:
     min_confidence : float
         Detection and tracking confidence in (0, 1].
     iris : bool
-        The eyes refined, the default: a second model, MediaPipe's attention mesh (its
-        ``refine_landmarks``), gives the lids (``LIDS``) and the 10 iris points (the
-        layout's last two features are the iris centres) of the 478-point mesh, the rest
-        being FaceMesh's own 468 - as the /perform page refines FaceMesh's lids and adds
-        the iris from the iris model. The attention mesh's own lips and brows superpose
-        expressions worse (README, "The eyes clip", option (o)). False: FaceMesh's 468
-        points alone, which give the layout's first 24.
+        The eyes refined, the default: MediaPipe's attention mesh (its
+        ``refine_landmarks``) gives the lids (``LIDS``), and MediaPipe's iris model on a
+        crop of each eye (``facecast.cli.eyelids``, as the /perform page runs it) the 10
+        iris points of the 478-point mesh (the layout's last two features are the iris
+        centres), the rest being FaceMesh's own 468. The attention mesh's own lips and
+        brows superpose expressions worse (README, "The eyes clip", option (o)); its irises
+        barely move when both eyes close, where the iris model's (and the page's, which
+        the shipped generic set's irises are: README, option (z)) follow the lids down.
+        False: FaceMesh's 468 points alone, which give the layout's first 24.
     """
 
     def __init__(
@@ -139,6 +140,12 @@ class FaceTracker:
 
         self._model = model(False)
         self._eyes = model(True) if iris else None
+        try:
+            self._irises = EyelidModel() if iris else None
+        except ImportError as exc:
+            raise TrackerUnavailable(
+                f"facecast perform's iris model needs ai-edge-litert: pip install '{EXTRA}' ({exc})"
+            ) from None
 
     def track(self, rgb: np.ndarray) -> Tracked:
         """Track one (H, W, 3) uint8 RGB frame."""
@@ -149,6 +156,8 @@ class FaceTracker:
         frame = np.ascontiguousarray(rgb, dtype=np.uint8)
         meshes = _meshes(self._model, frame)
         if not meshes:
+            if self._irises is not None:
+                self._irises.reset()
             return Tracked(None, 0, None, time.perf_counter() - started)
         # Two faces: follow the one nearest the camera, i.e. largest in the image.
         areas = [np.ptp(m[:, 0]) * width * np.ptp(m[:, 1]) * height for m in meshes]
@@ -159,8 +168,11 @@ class FaceTracker:
             if not refined:  # no eyes to give: no face, rather than a frame of other points
                 return Tracked(None, len(meshes), None, time.perf_counter() - started)
             eyes = min(refined, key=lambda m: float(np.linalg.norm(m[_NOSE, :2] - face[_NOSE, :2])))
-            face = np.concatenate([face, eyes[FACEMESH_POINTS:]])
+            face = face.copy()
             face[LIDS] = eyes[LIDS]
+            assert self._irises is not None  # made with the attention mesh
+            size = [width, height, width]
+            face = self._irises.refine(frame, face * size, lids=False) / size
         mesh = image_to_mesh(face, width, height)
         try:
             points = normalise_mesh(mesh, self.layout)

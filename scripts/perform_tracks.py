@@ -32,9 +32,10 @@ def main(argv: list[str]) -> int:
     if len(argv) != 1 or not Path(argv[0]).is_dir():
         print(__doc__, file=sys.stderr)
         return 2
-    with FaceTracker(max_faces=1) as tracker:
-        k = tracker.layout.num_features
-        for video in sorted(Path(argv[0]).glob("*.y4m")):
+    for video in sorted(Path(argv[0]).glob("*.y4m")):
+        # A tracker a video: the iris model's crops follow the last frames of one face.
+        with FaceTracker(max_faces=1) as tracker:
+            k = tracker.layout.num_features
             out = video.with_name(f"{video.stem}-{BACKEND}-k{k}.npz")
             if out.is_file():
                 continue

@@ -24,7 +24,7 @@ import numpy as np
 from facecast.cli.facetrack import FaceTracker, VideoSource
 from facecast.rig.sources.layouts import load_layout
 
-#: Mesh points FaceTracker gives: FaceMesh's 468 and the attention mesh's 10 iris points.
+#: Mesh points FaceTracker gives: FaceMesh's 468 and the iris model's 10 iris points.
 MESH_POINTS = 478
 
 

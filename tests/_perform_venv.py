@@ -30,7 +30,8 @@ RUN_TIMEOUT = 240.0
 #: Imports the perform venv must manage, and where its facecast lives (it must be this
 #: checkout's, installed editable, or the tests would test other code).
 _PROBE = (
-    "import cv2, mediapipe.python.solutions.face_mesh, facecast.cli.facetrack as f; "
+    "import cv2, mediapipe.python.solutions.face_mesh, ai_edge_litert.interpreter, "
+    "facecast.cli.facetrack as f; "
     "print(f.__file__)"
 )
 

@@ -278,7 +278,7 @@ def photo_mesh(layout, perform_python, tmp_path_factory):
 @pytest.mark.ict
 def test_the_iris_features_lie_in_their_own_eyes_on_a_real_tracked_face(layout, photo_mesh):
     """The layout's last two features, MediaPipe's iris centres (``facecast perform``'s
-    attention mesh): each lies inside its own eye's ICT landmarks - between the corners,
+    iris model): each lies inside its own eye's ICT landmarks - between the corners,
     between the lids - on a photo looking at the camera (the other eye is 6 cm away)."""
     aligned, ict68 = photo_mesh["aligned"], photo_mesh["ict68"]
     assert aligned.shape[0] == 478
