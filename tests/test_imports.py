@@ -58,6 +58,8 @@ LAZY: dict[tuple[str, str], str] = {
     ),
     ("facecast.cli.facetrack", "cv2"): "optional dependency: the `perform` extra",
     ("facecast.cli.facetrack", "mediapipe.*"): "optional dependency: the `perform` extra",
+    ("facecast.cli.eyelids", "mediapipe"): "optional dependency: the `perform` extra",
+    ("facecast.cli.eyelids", "ai_edge_litert.*"): "optional dependency: the `perform` extra",
     ("facecast.server.channels.bus", "redis.asyncio"): (
         "start-up time: redis.asyncio (~0.2 s) only for a server given a Redis URL"
     ),
