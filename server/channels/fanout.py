@@ -30,13 +30,14 @@ from facecast.protocol.fields import read_float
 from facecast.rig.errors import InputError, RigError
 from facecast.rig.filters import OneEuroFilter
 from facecast.rig.rebase import calibrate as calibrate_rig
+from facecast.rig.sources.layouts import load_layout
 
 from ..compute.cloning import Smoother
 
 if TYPE_CHECKING:
     from facecast.rig import Rig
 
-__all__ = ["ChannelFrame", "Key", "KeyState", "PointsKeyState", "key_state"]
+__all__ = ["ChannelFrame", "Key", "KeyState", "PointsKeyState", "key_state", "layout_first"]
 
 log = logging.getLogger("facecast.server.channels")
 
@@ -44,6 +45,24 @@ log = logging.getLogger("facecast.server.channels")
 Key = tuple[str, str, str]
 
 _DTYPES = {"f32": np.float32, "f16": np.float16, "f64": np.float64}
+#: The feature counts of the tracker layout (its earlier versions' and today's, e.g. 20,
+#: 24, 26): a watched rig of one of them takes the first of a larger one's points.
+_LAYOUT_COUNTS = load_layout().counts
+
+
+def layout_first(points: np.ndarray, k: int) -> np.ndarray:
+    """A frame's ``points`` (or its neutral, a blink) for a watched rig of ``k`` points.
+
+    Unchanged, unless the frame has one of the tracker layout's feature counts and the rig
+    an earlier, smaller one: then its first ``k`` (a layout's earlier version is its first
+    points, in order; the /perform page sends such a rig the same, docs/perform.md). So a
+    performer publishing the layout's 26 points drives viewers on 24- and 20-point
+    characters too (PROTOCOL.md §2.4). Any other mismatch stays one, for the rig to refuse.
+    """
+    n = points.shape[0]
+    if k < n and n in _LAYOUT_COUNTS and k in _LAYOUT_COUNTS:
+        return points[:k]
+    return points
 
 
 @dataclass(frozen=True)
@@ -213,9 +232,13 @@ class KeyState(_Key):
         if wanted != self._rig_for:
             rig = self.rig
             if frame.neutral is not None:
+                k = rig.num_points
+                blinks = frame.neutral_blinks
+                if blinks is not None:
+                    blinks = {name: layout_first(b, k) for name, b in blinks.items()}
                 try:
                     rig = calibrate_rig(
-                        rig, frame.neutral, frame.neutral_noise, frame.neutral_blinks
+                        rig, layout_first(frame.neutral, k), frame.neutral_noise, blinks
                     )
                 except RigError as exc:
                     # The publisher's rig accepted this neutral; this one cannot: serve it
@@ -253,7 +276,8 @@ class KeyState(_Key):
         """
         with self._lock:
             rig = self._rig(frame)
-            weights = np.asarray(rig.weights(frame.points, align=frame.align), dtype=np.float64)
+            points = layout_first(frame.points, rig.num_points)
+            weights = np.asarray(rig.weights(points, align=frame.align), dtype=np.float64)
             weights = self._smooth(weights, frame)
             self.last_weights = weights
             data = self._encode(
@@ -319,8 +343,8 @@ class PointsKeyState(_Key):
     """The ``output=points`` key (PROTOCOL.md §2.4): the published frame itself, encoded once.
 
     Same interface as `KeyState` for the channel's pump, but no rig is evaluated: the
-    rig only fixes K (a frame with another K raises ``InputError``, reported to this
-    key's watchers like any rig mismatch). A lost face is not eased: there is no frame
+    rig only fixes K (``layout_first``; a frame with another K raises ``InputError``,
+    reported to this key's watchers like any rig mismatch). A lost face is not eased: there is no frame
     to invent, so ``ease`` gives nothing.
     """
 
@@ -332,6 +356,7 @@ class PointsKeyState(_Key):
     def clone(self, frame: ChannelFrame, arrived: float, *, count: bool = True) -> bytes:
         """The encoded ``points`` result of ``frame``: its raw points in this key's dtype."""
         points = frame.points if frame.raw_points is None else frame.raw_points
+        points = layout_first(points, self.rig.num_points)
         if points.shape[0] != self.rig.num_points:
             raise InputError(
                 f"frame has {points.shape[0]} points, rig {self.rig_id!r} has K="

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import httpx
 import numpy as np
 import pytest
@@ -28,6 +30,7 @@ from facecast.protocol import (
 from facecast.rig import fit
 from facecast.rig.rebase import calibrate as calibrate_rig
 from facecast.rig.rebase import rebase
+from facecast.rig.sources.layouts import load_layout
 from facecast.server.channels.fanout import ChannelFrame, key_state
 from facecast.server.settings import Settings
 from facecast.server.testing import run_server
@@ -290,3 +293,51 @@ def test_a_keys_weight_smoothing_starts_afresh_when_ts_goes_back(rigs):
 
     np.testing.assert_array_equal(back, fresh)
     assert not np.allclose(back, before[-1])  # a new pose, not the old one held
+
+
+async def test_a_performer_on_the_layouts_26_points_drives_rigs_of_its_earlier_24_and_20(
+    tmp_path, ws_impl
+):
+    # PROTOCOL.md §2.4: a rig of one of the tracker layout's earlier counts is its first
+    # points, so a channel publishing the layout's 26 (a performer's own rig) is watched on
+    # 24- and 20-point characters (ICT's landmarks, the cartoon) with the first 24 / 20
+    # points - the neutral and the closed eyes of a calibrate too - as the /perform page
+    # sends them to such a rig. A rig of a count the layout never had is still refused.
+    counts = load_layout().counts
+    assert counts[-1] == 26 and {20, 24} <= set(counts)
+    names = ("neutral", "eyeBlinkLeft", "frown", "jaw", "smile")
+    examples = tiny_examples(11, names=names, k=26)
+    rigs = {f"k{k}": fit(dataclasses.replace(examples, source_points=examples.source_points[:, :k]))
+            for k in (26, 24, 20)}  # fmt: skip
+    rigs["k25"] = fit(dataclasses.replace(examples, source_points=examples.source_points[:, :25]))
+    write_rigs(tmp_path / "rigs", rigs)
+    source = examples.source_points.astype(np.float32)
+    neutral = source[0] + np.float32(0.3)
+    closed = neutral + np.float32(0.8) * (source[1] - source[0])
+    frames = [neutral + np.float32(0.6) * (source[i] - source[0]) for i in (1, 3, 4)]
+    calibrate = Calibrate(points=neutral, noise=0.01, blinks={"eyeBlinkLeft": closed})
+    settings = Settings(rigs_dir=tmp_path / "rigs", face_lost_after=30.0)
+    async with run_server(settings, ws=ws_impl) as server:
+        watchers = {k: await Watcher.open(server.ws_url, "stage", f"k{k}") for k in (26, 24, 20)}
+        raw = await Watcher.open(server.ws_url, "stage", "k20", output="points")
+        misfit = await Watcher.open(server.ws_url, "stage", "k25")
+        publisher = await Publisher.open(server.ws_url, "stage", "k26")
+        await publisher.ws.send(publisher.protocol.send(calibrate))
+        while not isinstance(await publisher.queue.get(), Calibrated):
+            pass
+        received = {k: [] for k in watchers}
+        for seq, frame in enumerate(frames):
+            await publisher.send(seq, frame)
+            for k, watcher in watchers.items():
+                received[k].append((await watcher.result_with_seq(seq)).weights)
+        first_points = await raw.result_with_seq(0)
+        told = await misfit.next(Error)
+
+    for k, got in received.items():
+        rig = calibrate_rig(rigs[f"k{k}"], neutral[:k], 0.01, {"eyeBlinkLeft": closed[:k]})
+        expected = rig.weights(np.stack(frames)[:, :k]).astype(np.float32)
+        np.testing.assert_array_equal(np.stack(got), expected)
+    # The 24- and 20-point rigs read what the 26-point one reads (one example set cut).
+    assert np.abs(np.stack(received[20]) - np.stack(received[26])).max() < 0.05
+    np.testing.assert_array_equal(first_points.points, frames[0][:20])
+    assert told.code == ErrorCode.WRONG_POINT_COUNT and not told.fatal
