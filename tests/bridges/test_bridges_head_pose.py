@@ -51,6 +51,12 @@ def imported(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
+def examples(imported):
+    """The imported folder, loaded once (it holds ICT's 52 target meshes)."""
+    return load_example_set(imported)
+
+
+@pytest.fixture(scope="module")
 def fitted(imported, tmp_path_factory):
     """``facecast fit`` of the imported folder: (rig, the report it printed)."""
     path = tmp_path_factory.mktemp("rig") / "ict.rig"
@@ -61,11 +67,11 @@ def fitted(imported, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def noise_rig(imported):
+def noise_rig(examples):
     """The rig ``fit`` recommends for tracked input (0.1 mm landmark noise, bounded)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return fit(load_example_set(imported), noise=0.01, clamp="nonneg")
+        return fit(examples, noise=0.01, clamp="nonneg")
 
 
 class _Capture:
@@ -85,14 +91,14 @@ def _moved(points: np.ndarray) -> np.ndarray:
     return points @ rotation.T + SHIFT
 
 
-def test_import_names_stable_points_off_the_jaw_and_lips(imported):
+def test_import_names_stable_points_off_the_jaw_and_lips(imported, examples):
     with (imported / "facecast.toml").open("rb") as handle:
         stable = tomllib.load(handle)["source"]["stable_points"]
     landmarks = [DEFAULT_LANDMARKS[i] for i in stable]
     assert landmarks == list(DEFAULT_STABLE_LANDMARKS)
     jaw_and_lips = set(range(0, 17)) | set(range(48, 68))
     assert not jaw_and_lips & set(landmarks)
-    assert load_example_set(imported).stable_points.tolist() == stable
+    assert examples.stable_points.tolist() == stable
 
 
 def test_import_without_the_stable_landmarks_says_so(tmp_path, capsys):
@@ -109,17 +115,17 @@ def test_import_without_the_stable_landmarks_says_so(tmp_path, capsys):
     assert load_example_set(out).stable_points is None
 
 
-def test_fit_says_which_points_it_aligns_on(fitted, imported):
+def test_fit_says_which_points_it_aligns_on(fitted, examples):
     rig, printed = fitted
-    stable = load_example_set(imported).stable_points
+    stable = examples.stable_points
     assert rig.stable_points.tolist() == stable.tolist()
     assert f"on stable points {', '.join(map(str, stable.tolist()))}" in printed
     assert "refined against the examples' span" in printed
 
 
-def test_each_example_under_rigid_motion_gives_the_unmoved_weights(fitted, imported):
+def test_each_example_under_rigid_motion_gives_the_unmoved_weights(fitted, examples):
     rig, _ = fitted
-    points = load_example_set(imported).source_points
+    points = examples.source_points
     unmoved = rig.weights(points)
     np.testing.assert_allclose(unmoved, np.eye(rig.num_examples), atol=1e-8)
     # Without alignment the motion ruins them; with it they come back.
@@ -127,15 +133,15 @@ def test_each_example_under_rigid_motion_gives_the_unmoved_weights(fitted, impor
     np.testing.assert_allclose(rig.weights(_moved(points), align=True), unmoved, atol=1e-3)
 
 
-def test_unmoved_examples_keep_their_weights_under_alignment(fitted, imported):
+def test_unmoved_examples_keep_their_weights_under_alignment(fitted, examples):
     # The issue's offline case: align=True with no rotation at all gave jawOpen -20.8.
     rig, _ = fitted
-    points = load_example_set(imported).source_points
+    points = examples.source_points
     np.testing.assert_allclose(rig.weights(points, align=True), rig.weights(points), atol=1e-3)
 
 
-def test_bounded_noise_rig_gives_the_unmoved_weights_too(noise_rig, imported):
-    points = load_example_set(imported).source_points
+def test_bounded_noise_rig_gives_the_unmoved_weights_too(noise_rig, examples):
+    points = examples.source_points
     np.testing.assert_allclose(
         noise_rig.weights(_moved(points), align=True), noise_rig.weights(points), atol=1e-3
     )
