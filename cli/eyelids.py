@@ -3,11 +3,13 @@
 The same model (``iris_landmark.tflite``, which mediapipe 0.10.21's wheel ships; the page
 runs @vladmandic/human's conversion of it, ``iris.json``) on the same crops, written into
 FaceMesh's 468-point mesh the same way: a port of the page's ``eyelids.js`` (its comments
-say why each choice), so that ``facecast perform`` gives a rig the eyes the page gives it.
-The shipped generic source set's lids and irises are the page's tracker's view of ICT's
-generic face (README, option (z)): MediaPipe's attention mesh, which ``facecast perform``
-used before, barely moved the irises when both eyes closed (0.06-0.13 against the page's
-0.31-0.45 on the eyelids clip), so a character on that set read its quick blink at 0.46.
+say why each choice; ``tests/perform/test_eyelids_js.py`` runs both on the same numbers).
+``facecast perform`` takes the irises from it (``refine(..., lids=False)``) and keeps the
+attention mesh's lids: the shipped generic source set's irises are the page's tracker's
+view of ICT's generic face (README, option (z)), and the attention mesh barely moved its
+irises when both eyes closed (0.06-0.13 against the page's 0.31-0.45 on the eyelids clip),
+so a character on that set read its quick blink at 0.46; with this model's lids too, a rig
+on ICT's 24 landmarks read it at 0.13 (the attention mesh's: 0.83).
 
 Runs the model with LiteRT (``ai-edge-litert``, the ``facecast[perform]`` extra).
 """
@@ -18,7 +20,16 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["EYE_BOX_ANCHOR", "EYE_BOX_FRAMES", "EYE_CROP_SCALE", "EyeBoxes", "EyelidModel"]
+__all__ = [
+    "EYE_BOX_ANCHOR",
+    "EYE_BOX_FRAMES",
+    "EYE_CROP_SCALE",
+    "EyeBoxes",
+    "EyelidModel",
+    "crop_and_resize",
+    "eye_box",
+    "replace_lids",
+]
 
 #: FaceMesh's lid contours, outer corner first, and which of the model's 71 contour points
 #: each is (eyelids.js: UPPER, LOWER, UPPER_CONTOUR, LOWER_CONTOUR).
