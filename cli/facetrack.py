@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from types import ModuleType
@@ -62,6 +63,8 @@ class Tracked:
     seconds: float
 
 
+#: Points of FaceMesh's own mesh; the attention mesh appends 10 iris points (5 an eye).
+FACEMESH_POINTS = 468
 #: FaceMesh's lid contours without the eye corners (MediaPipe's FACEMESH_RIGHT_EYE /
 #: FACEMESH_LEFT_EYE; the points the page's eyelids.js replaces too), the subject's right
 #: eye's upper then lower lid, then the left's: taken from the attention mesh.
@@ -110,7 +113,9 @@ class FaceTracker:
         brows superpose expressions worse (README, "The eyes clip", option (o)); its irises
         barely move when both eyes close, where the iris model's (and the page's, which
         the shipped generic set's irises are: README, option (z)) follow the lids down.
-        False: FaceMesh's 468 points alone, which give the layout's first 24.
+        Without LiteRT (no wheel for Intel macOS) the irises are the attention mesh's,
+        with a ``RuntimeWarning``. False: FaceMesh's 468 points alone, which give the
+        layout's first 24.
     """
 
     def __init__(
@@ -140,12 +145,19 @@ class FaceTracker:
 
         self._model = model(False)
         self._eyes = model(True) if iris else None
-        try:
-            self._irises = EyelidModel() if iris else None
-        except ImportError as exc:
-            raise TrackerUnavailable(
-                f"facecast perform's iris model needs ai-edge-litert: pip install '{EXTRA}' ({exc})"
-            ) from None
+        self._irises: EyelidModel | None = None
+        if iris:
+            try:
+                self._irises = EyelidModel()
+            except ImportError as exc:
+                # LiteRT has no wheel for every platform mediapipe has (Intel macOS).
+                warnings.warn(
+                    f"no iris model ({exc}): the irises are the attention mesh's, which barely "
+                    "move on a blink, so a character on facecast's generic set reads blinks "
+                    "weaker (README, option (z)); pip install ai-edge-litert where it has a wheel",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
 
     def track(self, rgb: np.ndarray) -> Tracked:
         """Track one (H, W, 3) uint8 RGB frame."""
@@ -168,11 +180,11 @@ class FaceTracker:
             if not refined:  # no eyes to give: no face, rather than a frame of other points
                 return Tracked(None, len(meshes), None, time.perf_counter() - started)
             eyes = min(refined, key=lambda m: float(np.linalg.norm(m[_NOSE, :2] - face[_NOSE, :2])))
-            face = face.copy()
+            face = np.concatenate([face, eyes[FACEMESH_POINTS:]])
             face[LIDS] = eyes[LIDS]
-            assert self._irises is not None  # made with the attention mesh
-            size = [width, height, width]
-            face = self._irises.refine(frame, face * size, lids=False) / size
+            if self._irises is not None:  # the page's irises in place of the attention mesh's
+                size = [width, height, width]
+                face = self._irises.refine(frame, face * size, lids=False) / size
         mesh = image_to_mesh(face, width, height)
         try:
             points = normalise_mesh(mesh, self.layout)

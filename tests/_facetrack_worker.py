@@ -9,12 +9,17 @@ Commands::
     video SPEC.json PHOTO.npy OUT.avi   the fake-camera video (see make_video)
     track-video VIDEO OUT.npz           every frame of VIDEO through FaceTracker
     track-images IMAGES.npz OUT.npz     each image "0", "1", ... through FaceTracker
+    track-video-without-litert VIDEO OUT.npz
+                                        as track-video, LiteRT made unimportable (Intel
+                                        macOS has no wheel of it); OUT also holds
+                                        ``warnings``, the tracker's RuntimeWarnings
 """
 
 from __future__ import annotations
 
 import json
 import sys
+import warnings
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -70,11 +75,14 @@ def make_video(spec: dict, photo: np.ndarray, out: Path) -> None:
 
 def track(images: Iterable[np.ndarray], out: Path) -> None:
     """Track each RGB image; save ``points`` (N, K, 3), ``meshes`` (N, 478, 3), both NaN
-    where no face was found, and ``faces`` (N,) to ``out``."""
+    where no face was found, ``faces`` (N,) and ``warnings`` (the tracker's) to ``out``."""
     layout = load_layout("mediapipe_face_mesh")
     n, k = MESH_POINTS, layout.num_features
     points, meshes, faces = [], [], []
-    with FaceTracker(layout) as tracker:
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always", RuntimeWarning)
+        tracker = FaceTracker(layout)
+    with tracker:
         for rgb in images:
             tracked = tracker.track(rgb)
             found = tracked.points is not None
@@ -86,6 +94,7 @@ def track(images: Iterable[np.ndarray], out: Path) -> None:
         points=np.reshape(points, (-1, k, 3)),
         meshes=np.reshape(meshes, (-1, n, 3)),
         faces=np.array(faces, dtype=np.int64),
+        warnings=np.array([str(w.message) for w in said], dtype=str),
     )
 
 
@@ -96,6 +105,11 @@ def main(argv: list[str]) -> int:
         make_video(json.loads(Path(spec).read_text()), np.load(photo), Path(out))
     elif command == "track-video":
         video, out = paths
+        with VideoSource(video) as source:
+            track(source.frames(), Path(out))
+    elif command == "track-video-without-litert":
+        video, out = paths
+        sys.modules["ai_edge_litert"] = None  # type: ignore[assignment]  # import fails
         with VideoSource(video) as source:
             track(source.frames(), Path(out))
     elif command == "track-images":
