@@ -344,8 +344,8 @@ class PointsKeyState(_Key):
 
     Same interface as `KeyState` for the channel's pump, but no rig is evaluated: the
     rig only fixes K (``layout_first``; a frame with another K raises ``InputError``,
-    reported to this key's watchers like any rig mismatch). A lost face is not eased: there is no frame
-    to invent, so ``ease`` gives nothing.
+    reported to this key's watchers like any rig mismatch). A lost face is not eased:
+    there is no frame to invent, so ``ease`` gives nothing.
     """
 
     CLONES = False
