@@ -47,6 +47,7 @@ from facecast.rig.evaluation.webcam import (
     superposition,
     webcam_rows,
 )
+from facecast.rig.filters import KalmanFilter
 from facecast.rig.sources.capture import robust_example
 from facecast.rig.sources.ict import DEFAULT_LANDMARKS, ict_regions, locate_ict
 from facecast.rig.sources.ict_arkit import ARKIT_TARGET_IDENTITY, arkit_example_set
@@ -209,8 +210,15 @@ def _score_landmarks(
     key_found: np.ndarray | None,
     *,
     shipped: bool = False,
+    kalman: tuple[float, ...] = EYES_KALMAN,
 ) -> dict[str, Any]:
-    """Every path on one kind of landmarks (exact or tracked): the rows and the capture."""
+    """Every path on one kind of landmarks (exact or tracked): the rows and the capture.
+
+    And the personal and the generic path on the take's points through the live Kalman
+    filter at each ``kalman`` acceleration (noise units per s^2, the held frames' noise),
+    as a channel filters a publisher's frames with ``smoothing`` (PROTOCOL.md §5.1.1):
+    rows ``"<path> live kalman <a>"``; /perform sends no ``smoothing``, so its viewers get
+    the unfiltered rows."""
 
     keys, held = captured_keys(key_points, setup.clips, key_found)
     noise, held_frames = held_noise(held)
@@ -230,6 +238,16 @@ def _score_landmarks(
             generic=_generic_rigs(setup, noise, shipped),
             personal_also={"keys' mix": mix},
         )
+        generic = _generic_rigs(setup, noise, shipped)["generic"]
+        times = np.arange(len(take_points)) / experiment.fps
+        flat = np.asarray(take_points, dtype=np.float64).reshape(len(take_points), -1)
+        for acceleration in kalman:
+            live = KalmanFilter(noise=noise, acceleration=acceleration * noise)
+            filtered = live.filter_series(flat, times).reshape(np.shape(take_points))
+            through = webcam_rows(setup.character, experiment.truth, experiment.activations,
+                                  filtered, keys, noise=noise, generic={"generic": generic})  # fmt: skip
+            for path in (PERSONAL, "generic"):
+                rows[f"{path} live kalman {acceleration:g}"] = through[path]
     return {
         "superposition_rms": residual,
         "superposition_slow_rms": slow,
@@ -509,6 +527,7 @@ def run(args: argparse.Namespace) -> int:
             performer.landmark_points(experiment.activations),
             performer.landmark_points(setup.clips.activations),
             None,
+            kalman=tuple(args.kalman or EYES_KALMAN),
         )
         report["exact"] = exact
         _print_table("exact landmarks (the ICT landmark vertices, head frame)", exact)
@@ -540,7 +559,12 @@ def run(args: argparse.Namespace) -> int:
         if not take_found.any():
             raise CommandError("the tracker found no face in the take's video")
         tracked = _score_landmarks(
-            setup, hold_last_found(take_points, take_found), key_points, key_found, shipped=True
+            setup,
+            hold_last_found(take_points, take_found),
+            key_points,
+            key_found,
+            shipped=True,
+            kalman=tuple(args.kalman or EYES_KALMAN),
         )
         tracked["take_found"] = int(take_found.sum())
         tracked["key_found"] = int(key_found.sum())

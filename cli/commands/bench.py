@@ -201,8 +201,9 @@ def register(subparsers: Subparsers) -> None:
                         "68 landmarks (Multi-PIE order; default the page's 20)")  # fmt: skip
     webcam.add_argument("--kalman", metavar="A,...",
                         type=lambda text: [float(a) for a in text.split(",")],
-                        help="the eyes clip's live Kalman rows: accelerations in landmark-noise "
-                        "units per s^2 (default 480, the live default)")  # fmt: skip
+                        help="the live Kalman rows (the eyes clip's, the take's personal and "
+                        "generic paths): accelerations in landmark-noise units per s^2 "
+                        "(default 480, the live default)")  # fmt: skip
     webcam.add_argument("--backend", default="wasm", help="the tracker's TensorFlow.js backend")
     webcam.add_argument("--by-name", action="store_true",
                         help="also print each path's RMS weight error per ARKit name")  # fmt: skip

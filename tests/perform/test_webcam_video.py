@@ -97,8 +97,13 @@ def test_bench_on_tracked_videos_scores_every_path_near_the_truth_and_reuses_wha
     assert first["keys_captured"] == 1 + len(KEYS)  # the neutral and the keys
     assert set(first["rows"]) == {
         "personal", "nnls", "personal on keys' mix", "generic", "generic (ICT landmarks)",
-        "generic exact", "generic noise",
+        "generic exact", "generic noise", "personal live kalman 480", "generic live kalman 480",
     }  # fmt: skip
+    # The live Kalman filter, as a channel with ``smoothing`` runs it on the published
+    # points: less jitter on both paths (the full take: 0.242 -> 0.076 personal).
+    for path in ("personal", "generic"):
+        live = first["rows"][f"{path} live kalman 480"]
+        assert live["jitter_percent"] < first["rows"][path]["jitter_percent"], path
     errors = {
         landmarks: {path: max_axis(reports[0][landmarks]["rows"][path]) for path in bounds}
         for landmarks, bounds in BOUNDS.items()

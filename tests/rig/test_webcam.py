@@ -154,7 +154,8 @@ def test_bench_on_exact_landmarks_scores_every_path(tmp_path, capsys):
     assert "eyes_exact" not in report
     rows = report["exact"]["rows"]
     assert list(rows) == [
-        "personal", "nnls", "personal on keys' mix", "generic", "generic exact", "generic noise"
+        "personal", "nnls", "personal on keys' mix", "generic", "generic exact", "generic noise",
+        "personal live kalman 480", "generic live kalman 480",
     ]  # fmt: skip
     assert report["exact"]["superposition_rms"] < 1e-9  # exact points are the keys' mix
     assert report["exact"]["keys_captured"] == report["exact"]["keys"] == 52
