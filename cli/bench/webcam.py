@@ -235,10 +235,10 @@ def _score_landmarks(
             take_points,
             keys,
             noise=noise,
-            generic=_generic_rigs(setup, noise, shipped),
+            generic=(generic_rigs := _generic_rigs(setup, noise, shipped)),
             personal_also={"keys' mix": mix},
         )
-        generic = _generic_rigs(setup, noise, shipped)["generic"]
+        generic = generic_rigs["generic"]
         times = np.arange(len(take_points)) / experiment.fps
         flat = np.asarray(take_points, dtype=np.float64).reshape(len(take_points), -1)
         for acceleration in kalman:
