@@ -95,7 +95,7 @@ def _demo_performance(num_points: int, seconds: float, expected_by: str) -> Sour
         return demo_animation(seconds, with_vertices=False)
     if num_points == generic:
         return arkit_demo_animation(seconds)
-    if num_points < generic and load_layout().drives(num_points):
+    if load_layout().takes_first(generic, num_points):
         # A rig fitted on the layout's earlier version (an ICT-FaceKit import's 24 points):
         # the first of the set's points, as /perform sends it.
         animation = arkit_demo_animation(seconds)

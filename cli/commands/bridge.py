@@ -300,8 +300,9 @@ def _run_tracker(
                 assert publisher.ready is not None
                 k = publisher.ready.num_points
                 rig_points = source_rig
-                if (k < source_rig.num_points and names_generic_set(args.source_rig)
-                        and load_layout().drives(k)):  # fmt: skip
+                if names_generic_set(args.source_rig) and load_layout().takes_first(
+                    source_rig.num_points, k
+                ):
                     # A rig fitted on the layout's earlier version (24 or 20 points): the
                     # generic set's first k, as /perform sends such a rig.
                     rig_points = source_rig.first(k)

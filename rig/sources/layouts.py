@@ -106,6 +106,12 @@ class Layout:
         feature count, or an earlier version's (then the first ``k`` points)."""
         return k in self.counts
 
+    def takes_first(self, points: int, k: int) -> bool:
+        """Whether a rig of ``k`` feature points takes the first ``k`` of ``points`` points
+        of this layout: both are its counts and ``k`` is smaller (an earlier version's
+        features are the first of a later one's, in order)."""
+        return k < points and self.drives(k) and self.drives(points)
+
     @property
     def multipie_count(self) -> int:
         """How many leading features have a Multi-PIE 68 position (0 without the table)."""

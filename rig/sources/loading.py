@@ -115,12 +115,7 @@ def load_source_animation(
         )
     if num_points is not None and animation.num_points != num_points:
         layout = _tracked_layout(path, source_rig)
-        if not (
-            layout is not None
-            and num_points < animation.num_points
-            and layout.drives(num_points)
-            and layout.drives(animation.num_points)
-        ):
+        if not (layout is not None and layout.takes_first(animation.num_points, num_points)):
             raise InputError(
                 f"{path}: expected {num_points} feature points per frame, got "
                 f"{animation.num_points}",

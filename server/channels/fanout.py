@@ -45,9 +45,9 @@ log = logging.getLogger("facecast.server.channels")
 Key = tuple[str, str, str]
 
 _DTYPES = {"f32": np.float32, "f16": np.float16, "f64": np.float64}
-#: The feature counts of the tracker layout (its earlier versions' and today's, e.g. 20,
-#: 24, 26): a watched rig of one of them takes the first of a larger one's points.
-_LAYOUT_COUNTS = load_layout().counts
+#: The tracker layout: a watched rig of one of its earlier feature counts (20, 24 of 26)
+#: takes the first of a frame's points.
+_LAYOUT = load_layout()
 
 
 def layout_first(points: np.ndarray, k: int) -> np.ndarray:
@@ -59,10 +59,7 @@ def layout_first(points: np.ndarray, k: int) -> np.ndarray:
     performer publishing the layout's 26 points drives viewers on 24- and 20-point
     characters too (PROTOCOL.md §2.4). Any other mismatch stays one, for the rig to refuse.
     """
-    n = points.shape[0]
-    if k < n and n in _LAYOUT_COUNTS and k in _LAYOUT_COUNTS:
-        return points[:k]
-    return points
+    return points[:k] if _LAYOUT.takes_first(points.shape[0], k) else points
 
 
 @dataclass(frozen=True)

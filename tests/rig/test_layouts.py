@@ -67,6 +67,9 @@ def test_the_layout_grew_by_appending_so_twenty_point_rigs_take_its_prefix(layou
     assert layout.earlier_counts == (20, 24) and layout.counts == (20, 24, 26)
     assert layout.drives(20) and layout.drives(24) and layout.drives(26)
     assert not any(layout.drives(k) for k in (0, 19, 21, 23, 25, 27, 68))
+    # A rig of an earlier count takes the first of a later count's points; nothing else does.
+    takes = {(n, k) for n in range(30) for k in range(30) if layout.takes_first(n, k)}
+    assert takes == {(24, 20), (26, 20), (26, 24)}
     first20 = [
         70,
         105,
