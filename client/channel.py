@@ -26,6 +26,7 @@ from facecast.protocol import (
     STREAM_PATH,
     WATCH_PATH,
     Calibrate,
+    Calibrated,
     ClientProtocol,
     Error,
     ErrorCode,
@@ -149,6 +150,10 @@ class FramePublisher:
         self.limits = limits or Limits()
         self.stats = PublisherStats()
         self.ready: Ready | None = None
+        #: The filter the server runs on the points (PROTOCOL.md §5.1.1): ``ready``'s,
+        #: then the last ``calibrated``'s (an auto smoothing turns Kalman at a calibrate
+        #: with a noise, §5.2.5); None without smoothing.
+        self.smoothing: str | None = None
         self.last_result: Result | None = None
         self._ws: ClientConnection | None = None
         self._protocol: ClientProtocol | None = None
@@ -194,6 +199,7 @@ class FramePublisher:
                 await ws.close()
                 raise
         self.ready = ready
+        self.smoothing = ready.smoothing
         self._dropped_before += self._session_dropped
         self._session_dropped = 0
         self._ws, self._protocol = ws, protocol
@@ -248,6 +254,9 @@ class FramePublisher:
                 self._answer.set()
                 if self.on_result is not None:
                     self.on_result(message)
+            elif isinstance(message, Calibrated):
+                if message.smoothing is not None:
+                    self.smoothing = message.smoothing
             elif isinstance(message, Error):
                 if message.dropped is not None:
                     # RATE_LIMITED carries the running total too: the only report of a

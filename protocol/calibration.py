@@ -16,9 +16,11 @@ from facecast.protocol.errors import ErrorCode, ProtocolError
 from facecast.protocol.fields import (
     check_bool,
     check_float,
+    check_str,
     check_uint,
     read_bool,
     read_float,
+    read_str,
     read_uint,
 )
 from facecast.protocol.limits import Limits
@@ -169,23 +171,34 @@ class Calibrated(Message):
         True when a neutral is now captured, False after a reset.
     seq : int or None
         The frame whose points became the neutral, or None (explicit points, reset).
+    smoothing : str or None
+        The filter the session's ``hello.smoothing`` runs from here on, as
+        ``ready.smoothing``: a calibrate's ``noise`` turns an auto smoothing that had no
+        noise into the Kalman filter (§5.2.5). None (absent) without smoothing.
     """
 
     TYPE: ClassVar[str] = "calibrated"
     active: bool
     seq: int | None = None
+    smoothing: str | None = None
 
     def __post_init__(self) -> None:
         check_bool(self.active, "calibrated.active")
         if self.seq is not None:
             check_uint(self.seq, "calibrated.seq")
+        if self.smoothing is not None:
+            check_str(self.smoothing, "calibrated.smoothing", None)
 
     def serialize(self) -> dict[str, Any]:
-        return {**_header(self.TYPE), "active": self.active, "seq": self.seq}
+        out = {**_header(self.TYPE), "active": self.active, "seq": self.seq}
+        if self.smoothing is not None:  # absent without smoothing: §10's bytes stay
+            out["smoothing"] = self.smoothing
+        return out
 
     @classmethod
     def parse(cls, obj: Mapping[str, Any], limits: Limits = _DEFAULT_LIMITS) -> Calibrated:
         return cls(
             active=read_bool(obj, "active", "calibrated.active"),
             seq=read_uint(obj, "seq", "calibrated.seq", None),
+            smoothing=read_str(obj, "smoothing", "calibrated.smoothing", limits, None),
         )

@@ -22,6 +22,9 @@ if TYPE_CHECKING:
 NEUTRAL_FRAMES = 15
 #: Frames of each held wink (``--winks``) whose robust average is that eye closed.
 WINK_FRAMES = 8
+#: Seconds to wait at the end for the server's answers to the frames sent (a lost
+#: connection's are not waited for): a performance ends with its last frames seen.
+DRAIN_SECONDS = 2.0
 
 
 def register(subparsers: Subparsers) -> None:
@@ -84,6 +87,14 @@ def register(subparsers: Subparsers) -> None:
         help=f"calibration: frames of each wink to average (default {WINK_FRAMES})",
     )
     parser.add_argument(
+        "--smoothing",
+        choices=("auto", "off"),
+        default="auto",
+        help="the server's live filter of the published points: auto (default: the Kalman "
+        "filter, on the rig's fitted noise or, on a character's own rig, on your neutral's; "
+        "PROTOCOL.md §5.1.1) or off (viewers get the tracked points as they are)",
+    )
+    parser.add_argument(
         "--frames", type=int, default=None, metavar="N", help="stop after N frames read"
     )
     parser.add_argument(
@@ -107,14 +118,18 @@ class PerformStats:
     dropped: int = 0
     track_seconds: list[float] = field(default_factory=list)
     started: float = field(default_factory=time.perf_counter)
+    #: The server's filter of the points at the end (``FramePublisher.smoothing``).
+    smoothing: str | None = None
 
     def line(self) -> str:
         elapsed = max(time.perf_counter() - self.started, 1e-9)
         track_ms = 1000.0 * sum(self.track_seconds) / max(len(self.track_seconds), 1)
+        filtered = "unfiltered" if self.smoothing is None else f"{self.smoothing}-filtered"
         return (
             f"facecast perform: {self.read} frames read, face found in {self.found}, "
             f"{self.published} published ({self.read / elapsed:.1f} fps, tracking "
-            f"{track_ms:.1f} ms a frame), dropped while reconnecting {self.dropped}"
+            f"{track_ms:.1f} ms a frame), dropped while reconnecting {self.dropped}; "
+            f"viewers got the points {filtered}"
         )
 
 
@@ -141,7 +156,7 @@ async def perform(args: argparse.Namespace) -> PerformStats:
 
     from facecast.cli.facetrack import FaceTracker, VideoSource
     from facecast.client.channel import FramePublisher, channel_url
-    from facecast.protocol import Hello
+    from facecast.protocol import Hello, Smoothing
     from facecast.rig import estimate_noise
     from facecast.rig.sources.capture import WinkCapture, robust_example
     from facecast.rig.sources.layouts import DEFAULT_LAYOUT, load_layout
@@ -156,7 +171,10 @@ async def perform(args: argparse.Namespace) -> PerformStats:
     # The neutral goes in a calibrate with its measured noise (below), not as the first
     # frame (hello.calibration): a rig not fitted on this face is then re-based
     # noise-aware and bounded, never extrapolating for viewers (PROTOCOL.md §5.1.3).
-    hello = Hello(rig=args.rig)
+    # Auto smoothing: the server's Kalman filter on the rig's fitted noise, or from the
+    # calibrate on with the neutral's (§5.1.1); the viewers' jitter falls ~3x (README, (a″)).
+    smoothing = None if args.smoothing == "off" else Smoothing()
+    hello = Hello(rig=args.rig, smoothing=smoothing)
     deadline = None if args.seconds is None else time.monotonic() + args.seconds
     with source, tracker:
         async with FramePublisher(url, hello, token=args.token) as publisher:
@@ -229,6 +247,9 @@ async def perform(args: argparse.Namespace) -> PerformStats:
                     stats.dropped += 1
                 else:
                     stats.published += 1
+            # The last frames' answers (and a calibrate's, saying the filter) before leaving.
+            await publisher.drain(DRAIN_SECONDS)
+            stats.smoothing = publisher.smoothing
     return stats
 
 

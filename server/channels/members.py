@@ -30,6 +30,7 @@ from facecast.protocol import (
 )
 from facecast.rig import Rig
 from facecast.rig.errors import InputError
+from facecast.rig.filters import KalmanFilter
 
 from ..compute.cloning import Smoother, frame_error
 from ..connection.core import PublisherCore, WatcherCore
@@ -169,6 +170,9 @@ class PublisherMember(Member):
         log.info("publisher joined",
                  extra={"event": "channel.publish", "channel": self.name, "rig": hello.rig,
                         "by": self.principal})  # fmt: skip
+
+    def _filter_points(self, kalman: KalmanFilter) -> None:
+        self._point_filter = Smoother(kalman, "points")
 
     def _on_frame(self, frame: Frame, now: float, in_burst: bool) -> Awaitable[None]:
         return self._publish(frame, now)

@@ -20,6 +20,7 @@ __all__ = [
     "Outputs",
     "Smoother",
     "blend_seconds",
+    "calibrated_filter",
     "clone_frame",
     "frame_error",
     "frame_weights",
@@ -77,6 +78,34 @@ def smoothing_filter(smoothing: Smoothing, rig: Rig) -> OneEuroFilter | KalmanFi
             fatal=True,
         )
     return KalmanFilter(noise=noise, acceleration=smoothing.acceleration * noise)
+
+
+def calibrated_filter(
+    smoothing: Smoothing | None, rig: Rig, calibrated: Rig
+) -> KalmanFilter | None:
+    """The Kalman filter an auto smoothing runs once a calibrate with a ``noise`` has
+    re-based ``rig`` noise-aware into ``calibrated`` (PROTOCOL.md §5.1.1, §5.2.5), or None
+    where nothing changes.
+
+    Auto (``smoothing.filter`` None) on points picks the Kalman filter where a noise is
+    known; on a rig fitted exactly (a generic character) and without ``smoothing.noise``
+    none is at the ``hello``, so it starts as the one-euro filter. The noise-aware re-base
+    knows one: its σ (``fit_report["rebase"]["noise"]``: the largest of the calibrate's
+    measured noise, the identity share and the rig's own, in the performer's units), which
+    is the Kalman's. (At an acceleration given in σ units the filter's output does not
+    depend on σ, only on one being known: a still camera's measured 0 does as well.) None:
+    no smoothing, a filter named, target "weights", a noise known at the ``hello`` (the
+    Kalman runs already), or an exact re-base (a calibrate without ``noise``).
+    """
+    if smoothing is None or smoothing.filter is not None or smoothing.target != "points":
+        return None
+    if _noise(smoothing, rig) > 0:
+        return None
+    rebase = calibrated.fit_report.get("rebase")
+    sigma = float(rebase.get("noise", 0.0) or 0.0) if isinstance(rebase, dict) else 0.0
+    if not sigma > 0:
+        return None
+    return KalmanFilter(noise=sigma, acceleration=smoothing.acceleration * sigma)
 
 
 def _noise(smoothing: Smoothing, rig: Rig) -> float:

@@ -39,7 +39,7 @@ from facecast.rig import Rig
 from facecast.rig.errors import RigError
 from facecast.rig.filters import KalmanFilter, OneEuroFilter
 
-from ..compute.cloning import Smoother, smoothing_filter
+from ..compute.cloning import Smoother, calibrated_filter, smoothing_filter, smoothing_name
 from ..guards.calibrate_rate import CalibrateRateLimit
 from ..guards.frame_rate import FrameRateLimit
 from ..metrics import Metrics
@@ -130,6 +130,10 @@ class ConnectionCore:
         self.calibrate_next = False
         #: The landmark noise that ``calibrate`` gave for it (None: an exact re-base).
         self.calibrate_noise: float | None = None
+        #: The filter ``hello.smoothing`` runs (``ready.smoothing``, ``calibrated.smoothing``).
+        self.smoothing_running: str | None = None
+        #: The re-base's σ an auto smoothing's Kalman filter runs on (None: none).
+        self.filter_noise: float | None = None
         #: Work asked for and not yet answered (a rig load, a calibration).
         self.waiting = 0
         self.last_message = now
@@ -185,7 +189,7 @@ class ConnectionCore:
             if message.reset:
                 self.calibrate_next = False
                 self.reset_calibration()
-                self.send(Calibrated(active=False))
+                self.send(Calibrated(active=False, smoothing=self.smoothing_running))
             elif message.points is None and self.calibrate_next:
                 pass  # the next frame is already to become the neutral: no second fit
             elif self._calibration_refused(now):
@@ -220,6 +224,8 @@ class ConnectionCore:
         self.base_rig = self.rig = rig
         self.calibrate_next = hello.calibration
         self.calibrate_noise = None
+        sm = hello.smoothing
+        self.smoothing_running = None if sm is None else smoothing_name(sm, rig)
         self.send(ready_message(session_id, hello, rig, self.protocol.limits, self.settings))
 
     def failed(self, now: float) -> None:
@@ -308,7 +314,22 @@ class ConnectionCore:
         if seq is None:
             self._done_waiting(now)
         self.rig = rig
-        self.send(Calibrated(active=True, seq=seq))
+        self.send(Calibrated(active=True, seq=seq, smoothing=self.smoothing_running))
+
+    def calibrated_filter(self, calibrated: Rig) -> KalmanFilter | None:
+        """The Kalman filter ``hello``'s auto smoothing switches to once a calibrate with a
+        noise re-based the rig into ``calibrated`` (``compute.cloning.calibrated_filter``:
+        a rig fitted exactly and no ``smoothing.noise``), or None; the ``calibrated`` then
+        says "kalman". None too when the filter already runs on that noise (a calibrate
+        again with the closed eyes, the same neutral): it goes on, with no restart."""
+        hello, base = self.hello, self.base_rig
+        if hello is None or base is None:
+            return None
+        kalman = calibrated_filter(hello.smoothing, base, calibrated)
+        if kalman is None or kalman.noise == self.filter_noise:
+            return None
+        self.smoothing_running, self.filter_noise = "kalman", kalman.noise
+        return kalman
 
     def calibration_failed(self, exc: RigError, now: float, seq: int | None = None) -> None:
         """The calibration asked for was refused by the rig: CALIBRATION_FAILED, not fatal."""

@@ -23,6 +23,7 @@ from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from facecast.protocol import ClientMessage, Frame, Hello, ProtocolError
 from facecast.rig.errors import RigError
+from facecast.rig.filters import KalmanFilter
 from facecast.rig.rebase import calibrate as calibrate_rig
 
 from ..compute.stages import CPU_CLOCK, StageTimes
@@ -291,8 +292,18 @@ class Driver:
         except RigError as exc:
             core.calibration_failed(exc, time.monotonic(), seq)
             return False
+        kalman = core.calibrated_filter(rig)
+        if kalman is not None:
+            self._filter_points(kalman)
         core.calibrated(rig, time.monotonic(), seq, points=points, noise=noise, blinks=blinks)
         return True
+
+    def _filter_points(self, kalman: KalmanFilter) -> None:
+        """Filter the points with ``kalman`` from the next frame on: an auto smoothing's
+        filter once a calibrate gave the noise it lacked (``core.calibrated_filter``).
+        Connections that take calibrates (a stream session, a channel's publisher) hold the
+        filter and override this; the core asks for it only when ``hello`` has smoothing."""
+        raise NotImplementedError(f"{type(self).__name__} takes no calibrate")
 
     # -- writing -------------------------------------------------------------------------
     def _deliver(self) -> None:

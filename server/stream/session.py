@@ -19,6 +19,7 @@ from starlette.websockets import WebSocket
 
 from facecast.protocol import Frame, Hello, Limits, ProtocolError, ServerProtocol
 from facecast.rig.errors import InputError
+from facecast.rig.filters import KalmanFilter
 
 from ..compute.blending import BlendBatcher
 from ..compute.cloning import (
@@ -264,6 +265,9 @@ class Session(Driver):
         if outbox.idle:
             outbox.wake()
         return None
+
+    def _filter_points(self, kalman: KalmanFilter) -> None:
+        self._smoother = Smoother(kalman, "points")
 
     async def _open(self, hello: Hello) -> None:
         """Load, bind and warm the rig ``hello`` names (off the loop), then open the core."""

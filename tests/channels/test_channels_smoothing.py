@@ -1,4 +1,5 @@
-"""A publisher's smoothing (PROTOCOL.md §5.1.1) through a real channel: Kalman, auto, refusal."""
+"""A publisher's smoothing (PROTOCOL.md §5.1.1) through a real channel: Kalman, auto, refusal,
+and auto taking a calibrate's noise (§5.2.5)."""
 
 from __future__ import annotations
 
@@ -6,8 +7,9 @@ import numpy as np
 import pytest
 
 from facecast.client.channel import channel_url
-from facecast.protocol import ChannelLive, ErrorCode, Hello, Smoothing
+from facecast.protocol import Calibrate, Calibrated, ChannelLive, ErrorCode, Hello, Smoothing
 from facecast.rig.filters import KALMAN_ACCELERATION, KalmanFilter, OneEuroFilter
+from facecast.rig.rebase import rebase
 from facecast.server.testing import run_server
 
 from ._helpers import Publisher, Watcher, points, refused, tiny_rig, write_rigs
@@ -107,3 +109,82 @@ async def test_a_publishers_point_filter_starts_afresh_when_ts_goes_back(setting
 
     np.testing.assert_allclose(result.weights, rig.weights(frames[-1][0]).astype(np.float32),
                                atol=1e-6)  # fmt: skip
+
+
+async def _calibrated_then_published(settings, ws_impl, rig_id, neutral, noise, frames):
+    """A publisher with an auto smoothing (the page's ``hello``) on ``rig_id`` that
+    calibrates on ``neutral`` with ``noise``, then publishes ``frames``: its ``ready``, its
+    ``calibrated`` and a watcher's result for the last frame."""
+    async with run_server(settings, ws=ws_impl) as server:
+        watcher = await Watcher.open(server.ws_url, "stage", rig_id)
+        publisher = await Publisher.open(server.ws_url, "stage", rig_id, smoothing=Smoothing())
+        await watcher.next(ChannelLive)
+        calibrate = Calibrate(points=neutral, noise=noise)
+        await publisher.ws.send(publisher.protocol.send(calibrate))
+        while not isinstance(calibrated := await publisher.queue.get(), Calibrated):
+            pass
+        for seq, (p, ts) in enumerate(frames):
+            await publisher.send(seq, p, ts=ts)
+        result = await watcher.result_with_seq(len(frames) - 1)
+        await publisher.close()
+        await watcher.close()
+    return publisher.ready, calibrated, result
+
+
+async def test_an_auto_smoothing_on_an_exact_rig_takes_the_calibrates_noise(
+    settings, rigs, ws_impl
+):
+    # The page's and `facecast perform`'s case: a generic character is fitted exactly, so
+    # at the hello no noise is known and auto starts as the one-euro filter; a calibrate
+    # with a noise re-bases it noise-aware, and that σ is the Kalman's (PROTOCOL.md
+    # §5.2.5): the watchers get the points filtered by it, on their rig re-based as the
+    # calibrate says.
+    rig = rigs["alpha"]  # fitted exactly
+    neutral = points(rig, 99)
+    frames = [(points(rig, seed), 0.1 * seed) for seed in range(5)]
+    rebased = rebase(rig, neutral, noise=0.02)
+    sigma = rebased.fit_report["rebase"]["noise"]  # the re-base's σ: the Kalman's
+    kalman = KalmanFilter(noise=sigma, acceleration=KALMAN_ACCELERATION * sigma)
+    expected = _filtered_weights(rebased, frames, kalman)
+
+    ready, calibrated, result = await _calibrated_then_published(
+        settings, ws_impl, "alpha", neutral, 0.02, frames
+    )
+
+    assert ready.smoothing == "one-euro"
+    assert calibrated.active and calibrated.smoothing == "kalman"
+    np.testing.assert_allclose(result.weights, expected.astype(np.float32), atol=1e-6)
+    one_euro = _filtered_weights(rebased, frames, OneEuroFilter())
+    assert not np.allclose(result.weights, one_euro, atol=1e-4)
+
+
+async def test_a_calibrate_without_noise_leaves_the_one_euro_filter(settings, rigs, ws_impl):
+    rig = rigs["alpha"]
+    neutral = points(rig, 99)
+    frames = [(points(rig, seed), 0.1 * seed) for seed in range(5)]
+    expected = _filtered_weights(rig.calibrated(neutral), frames, OneEuroFilter())
+
+    _, calibrated, result = await _calibrated_then_published(
+        settings, ws_impl, "alpha", neutral, None, frames
+    )
+
+    assert calibrated.smoothing == "one-euro"
+    np.testing.assert_allclose(result.weights, expected.astype(np.float32), atol=1e-6)
+
+
+async def test_a_noise_rigs_kalman_keeps_its_own_noise_at_a_calibrate(settings, ws_impl):
+    # A rig fitted with noise (the performer's own) runs the Kalman on its fitted noise from
+    # the hello on; a calibrate's noise does not change that filter.
+    rig = tiny_rig(7, noise=0.05)
+    write_rigs(settings.rigs_dir, {"noisy": rig})
+    neutral = points(rig, 99)
+    frames = [(points(rig, seed), 0.1 * seed) for seed in range(5)]
+    kalman = KalmanFilter(noise=0.05, acceleration=KALMAN_ACCELERATION * 0.05)
+    expected = _filtered_weights(rebase(rig, neutral, noise=0.02), frames, kalman)
+
+    ready, calibrated, result = await _calibrated_then_published(
+        settings, ws_impl, "noisy", neutral, 0.02, frames
+    )
+
+    assert ready.smoothing == "kalman" and calibrated.smoothing == "kalman"
+    np.testing.assert_allclose(result.weights, expected.astype(np.float32), atol=1e-6)

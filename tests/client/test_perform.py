@@ -184,6 +184,9 @@ async def test_perform_publishes_the_tracked_points_and_viewers_see_them(
     assert stats["published"] == stats["found"]
     assert 1 <= len(results) <= stats["published"]
     assert all(np.isfinite(r.weights).all() for r in results)
+    # Its hello asks for the server's auto filter: on a rig fitted exactly and no
+    # calibrate, no noise is known, so the one-euro filter (PROTOCOL.md §5.1.1).
+    assert "viewers got the points one-euro-filtered" in finished.err
 
 
 @pytest.mark.ict
@@ -210,6 +213,8 @@ async def test_generic_ict_rig_calibrated_on_the_neutral_opens_the_jaw(
     weights = np.stack([m.weights for m in _performed(messages)])
     jaw = weights[:, rig.names.index("jawOpen")]
     assert stats["published"] == stats["found"] - 3  # 4 neutral frames, 1 frame
+    # The calibrate's noise turned the auto filter into the Kalman (PROTOCOL.md §5.2.5).
+    assert "viewers got the points kalman-filtered" in finished.err
     # Re-based noise-aware and bounded on the neutral (its calibrate carries the noise):
     # every weight a viewer gets is plausible.
     assert weights[:, 1:].min() >= -0.25 and weights[:, 1:].max() <= 1.25

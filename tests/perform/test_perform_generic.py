@@ -151,6 +151,8 @@ def test_on_the_cartoon_every_frame_viewers_get_is_plausible(performance):
     # Watched on the ICT import's channel where ICT-FaceKit is found: a 20-point character
     # on a 24-point performance, every result re-based on the performer's neutral.
     _assert_plausible(performance["received"][CHARACTER])
+    # Through the live filter the page asks for: the Kalman, from the calibrate on.
+    assert performance["stats"]["smoothing"] == "kalman"
 
 
 # -- the walk-through's closed eye, read as closed (issue 34, PROTOCOL.md §5.1.3 blinks) --

@@ -296,6 +296,8 @@ def test_on_the_performers_rig_the_open_mouth_weighs_clearly_more(
         weights.stop.set()
         points.stop.set()
 
+    # The page's auto smoothing on the performer's rig, fitted with noise: the Kalman.
+    assert after["smoothing"] == "kalman"
     tracker_rate = (after["tracked"] - before["tracked"]) / elapsed
     received = [r for t, r in points.results if t >= since]
     # Every tracked frame with a face is published and reaches the channel's watchers.
@@ -326,7 +328,8 @@ def test_a_rig_of_the_layouts_earlier_twenty_points_is_sent_the_first_twenty(
     camera.show([FacePose()] * 5)
     recorder, thread = watching(server, "first20", rig, "points")
     try:
-        page = open_page(browser, perform_url(server, "first20", rig))
+        # smoothing=off: the hello asks for no filter (the other pages ask for auto).
+        page = open_page(browser, perform_url(server, "first20", rig, smoothing="off"))
         pages.append(page)
         page.wait_for_function("window.facecastStats.published >= 12")
         stats = page.evaluate("window.facecastStats")
@@ -339,6 +342,7 @@ def test_a_rig_of_the_layouts_earlier_twenty_points_is_sent_the_first_twenty(
         thread.join(5)
 
     assert stats["rigK"] == 20 and len(stats["points"]) == 26 * 3
+    assert stats["smoothing"] is None  # the ready says no filter: none was asked for
     assert sent.shape[1:] == (20, 3)
     # A still image: once the eye crops settle, every frame is the page's last points' first 20.
     tracked = np.array(stats["points"], dtype=np.float32).reshape(26, 3)
@@ -492,3 +496,15 @@ def test_a_generic_rig_gets_no_frame_until_it_is_rebased_on_the_captured_neutral
     assert (before["rebased"], before["published"]) == (False, 0)
     assert page.evaluate("window.facecastStats.publish") == "live"
     assert "re-based on your neutral" in page.text_content("#publish-detail")
+    # The page's auto smoothing: no noise at the hello on this exact rig (the one-euro),
+    # the neutral's noise from its calibrate on (the Kalman, PROTOCOL.md §5.2.5).
+    print(
+        "DEBUG",
+        {
+            k: page.evaluate("window.facecastStats")[k]
+            for k in ("neutralNoise", "smoothing", "closedEyes", "publishDetail", "rigK")
+        },
+    )
+    assert before["smoothing"] == "one-euro"
+    assert page.evaluate("window.facecastStats.smoothing") == "kalman"
+    assert "Kalman-filtered" in page.text_content("#publish-detail")

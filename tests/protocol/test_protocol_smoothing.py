@@ -1,4 +1,5 @@
-"""``hello.smoothing`` (PROTOCOL.md §5.1.1): auto or a named filter, and ``ready.smoothing``."""
+"""``hello.smoothing`` (PROTOCOL.md §5.1.1): auto or a named filter, ``ready.smoothing`` and
+``calibrated.smoothing``."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import pytest
 from _protocol_samples import SAMPLES
 
 from facecast.protocol import (
+    Calibrated,
     ErrorCode,
     Hello,
     ProtocolError,
@@ -158,4 +160,19 @@ def test_kalman_without_noise_leaves_it_to_the_rig():
 def test_bad_kalman_settings_are_invalid_fields(fields, match):
     with pytest.raises(ProtocolError, match=match) as caught:
         Smoothing.parse(fields)
+    assert caught.value.code == ErrorCode.INVALID_FIELD
+
+
+def test_calibrated_saying_the_filter_encodes_to_the_spec_example_and_round_trips():
+    calibrated = Calibrated(active=True, seq=9, smoothing="kalman")
+    assert encode(calibrated) == _spec_example("calibrated.smoothing")
+    assert decode_server(encode(calibrated)) == calibrated
+    # Without smoothing the key is absent (§10.9's bytes stay, tested with the examples).
+    assert "smoothing" not in Calibrated(active=True, seq=9).serialize()
+
+
+def test_calibrated_smoothing_that_is_not_a_string_is_invalid():
+    obj = {**Calibrated(active=True).serialize(), "smoothing": 3}
+    with pytest.raises(ProtocolError) as caught:
+        decode_server(msgpack.packb(obj, use_bin_type=True))
     assert caught.value.code == ErrorCode.INVALID_FIELD

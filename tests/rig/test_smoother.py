@@ -102,6 +102,21 @@ def test_forward_pass_is_the_live_kalman_filters_output():
     np.testing.assert_allclose(forward, live, atol=1e-12)
 
 
+def test_the_live_kalman_at_an_acceleration_in_noise_units_does_not_depend_on_the_noise():
+    # The server's auto smoothing takes a re-base's σ for a generic rig (PROTOCOL.md
+    # §5.2.5): with the process noise acceleration × σ, every covariance scales with σ²
+    # and the gain not at all, so any σ > 0 filters alike.
+    rng = np.random.default_rng(3)
+    x = np.cumsum(rng.normal(0.0, 0.1, (40, 6)), axis=0)
+    t = np.cumsum(rng.uniform(0.02, 0.05, 40))
+    outputs = [KalmanFilter(noise=s, acceleration=480.0 * s).filter_series(x, t)
+               for s in (0.001, 0.05, 3.0)]  # fmt: skip
+    np.testing.assert_allclose(outputs[0], outputs[1], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(outputs[2], outputs[1], rtol=0, atol=1e-9)
+    unfiltered = np.abs(np.diff(x, 2, axis=0)).mean()
+    assert np.abs(np.diff(outputs[1], 2, axis=0)).mean() < 0.7 * unfiltered  # it filters
+
+
 def test_a_repeated_time_is_smoothed_as_the_frame_it_repeats():
     z, t = _irregular_take()
     t[50] = t[49]

@@ -424,6 +424,41 @@ async def test_auto_smoothing_on_a_rig_fitted_exactly(served, rig, smoothing, of
         np.testing.assert_allclose(got, want.astype(np.float32), atol=1e-6)
 
 
+async def test_auto_smoothing_on_a_rig_fitted_exactly_takes_a_calibrates_noise(served, rig):
+    # No noise at the hello (an exact rig, no smoothing.noise): the one-euro filter; a
+    # calibrate with a noise makes it the Kalman filter on the re-base's σ from the
+    # neutral's frame on (the calibrate without points takes the next frame, which is
+    # filtered too); a calibrate again on the same neutral and noise (as with the closed
+    # eyes) goes on with the same filter, and a reset keeps it (PROTOCOL.md §5.1.1, §5.2.5).
+    frames = [(frame_points(rig, i) + np.float32(0.5), 0.1 * i) for i in range(6)]
+    neutral = frames[0][0]
+    rebased = rebase(rig, neutral, noise=0.02)
+    sigma = rebased.fit_report["rebase"]["noise"]  # the re-base's σ: the Kalman's
+    kalman = KalmanFilter(noise=sigma, acceleration=KALMAN_ACCELERATION * sigma)
+    expected = _offline_point_filter(rebased, frames, kalman)
+    async with connect(served) as ws:
+        ready = await open_session(ws, "face", smoothing=Smoothing())
+        await ws.send(encode(Calibrate(noise=0.02)))
+        weights, acks = [], []
+        for seq, (p, ts) in enumerate(frames):
+            if seq == 3:
+                await ws.send(encode(Calibrate(points=neutral, noise=0.02)))
+                acks.append(await recv_message(ws))
+            await ws.send(frame(seq, p, ts=ts))
+            if seq == 0:
+                acks.append(await recv_message(ws))
+            weights.append((await next_result(ws)).weights)
+        await ws.send(encode(Calibrate(reset=True)))
+        reset = await recv_message(ws)
+
+    assert ready.smoothing == "one-euro"
+    assert acks == [Calibrated(active=True, seq=0, smoothing="kalman"),
+                    Calibrated(active=True, smoothing="kalman")]  # fmt: skip
+    assert reset == Calibrated(active=False, smoothing="kalman")
+    for got, want in zip(weights, expected, strict=True):
+        np.testing.assert_allclose(got, want.astype(np.float32), atol=1e-6)
+
+
 @pytest.mark.parametrize(
     "smoothing",
     [Smoothing(filter="one-euro", beta=0.5), Smoothing(beta=0.5, target="weights")],

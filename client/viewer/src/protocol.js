@@ -147,8 +147,14 @@ export function arrayToWire(values, shape) {
 
 // -- client -> server (§5.1) ------------------------------------------------------------
 
-export function encodeHello({ rig, output = "weights", dtype = "f32" }) {
-  return msgpackEncode({ v: PROTOCOL_VERSION, type: "hello", rig, output, dtype });
+/**
+ * A hello (§5.1.1) for `rig`; with `smoothing` (a map of §5.1.1's keys, `{}` or
+ * `{target: "points"}` for the server's auto choice) in `options`, absent otherwise.
+ */
+export function encodeHello({ rig, output = "weights", dtype = "f32", smoothing = null }) {
+  const message = { v: PROTOCOL_VERSION, type: "hello", rig, output, dtype };
+  if (smoothing) message.options = { smoothing };
+  return msgpackEncode(message);
 }
 
 /** `points` is a Float32Array of K*3 values; `seq` must be an integer (§12). */

@@ -63,6 +63,9 @@ test("the performer page publishes to its channel; a performer's own rig id is a
   assert.equal(p.backend, "wasm");
   assert.equal(readPerformParams("http://h/perform?channel=c&backend=webgl").backend, "webgl");
   assert.throws(() => readPerformParams("http://h/perform?channel=c&backend=webgpu"), /backend must be/);
+  assert.equal(p.smoothing, "auto");
+  assert.equal(readPerformParams("http://h/perform?channel=c&smoothing=off").smoothing, "off");
+  assert.throws(() => readPerformParams("http://h/perform?channel=c&smoothing=kalman"), /smoothing must be auto or off/);
   assert.throws(() => readParams("http://h/viewer?rig=cat@", "viewer"), ParamError);
 });
 

@@ -10,6 +10,7 @@ import {
   decodeServer,
   encodeCalibrate,
   encodeFrame,
+  encodeHello,
   encodePing,
   ErrorCode,
   halfToFloat,
@@ -29,6 +30,22 @@ test("frame encodes to the bytes of PROTOCOL.md §10.2", () => {
   const points = new Float32Array([0, 1, 2, -0.5, 0.25, 1.5]);
   // 12.5 is not an integer, so msgpack writes float 64 as the spec's example does.
   assert.deepEqual(encodeFrame(7, 12.5, points), expected);
+});
+
+test("hello carries options.smoothing only when given (PROTOCOL.md §5.1.1)", () => {
+  const plain = decode(encodeHello({ rig: "cat" }));
+  assert.deepEqual(plain, { v: 1, type: "hello", rig: "cat", output: "weights", dtype: "f32" });
+  const auto = decode(encodeHello({ rig: "cat", smoothing: { target: "points" } }));
+  assert.deepEqual(auto.options, { smoothing: { target: "points" } });
+});
+
+test("calibrated says the filter that runs from it on (PROTOCOL.md §10.9)", () => {
+  const bytes = hex(`85 a1 76 01 a4 74 79 70 65 aa 63 61 6c 69 62 72
+    61 74 65 64 a6 61 63 74 69 76 65 c3 a3 73 65 71
+    09 a9 73 6d 6f 6f 74 68 69 6e 67 a6 6b 61 6c 6d
+    61 6e`);
+  const message = decodeServer(bytes);
+  assert.deepEqual([message.type, message.active, message.seq, message.smoothing], ["calibrated", true, 9, "kalman"]);
 });
 
 test("calibrate carries its noise only when given (PROTOCOL.md §5.1.3)", () => {

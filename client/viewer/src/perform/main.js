@@ -70,6 +70,7 @@ const stats = {
   clockOffsetMs: 0, // the server's clock − this page's, as the link estimates it (§5.4)
   clockRttMs: null, // the round trip of the pong that estimate comes from
   rebased: false, // a generic rig re-based on the performer's captured neutral (calibrated)
+  smoothing: null, // the server's filter of the points ("kalman", "one-euro"; null: none)
   neutralNoise: null, // σ of the neutral capture's held frames, sent with the calibrate
   closedEyes: [], // the captured closed eyes sent with it (eyeBlinkLeft / eyeBlinkRight)
   calibrateSentAt: null, // frames published before the last calibrate was sent
@@ -269,6 +270,8 @@ async function main() {
     stats.calibrateSentAt = stats.published;
     l.send(encodeCalibrate(neutral.subarray(0, rigK * 3), neutralNoise, blinks));
   };
+  // The server's filter, as the status says it ("", or ", Kalman-filtered").
+  const filtered = () => (stats.smoothing ? `, ${stats.smoothing === "kalman" ? "Kalman" : stats.smoothing}-filtered` : "");
   let latencyEma = null;
   const link = new Link(socketTarget(params), {
     onPong() {
@@ -277,7 +280,11 @@ async function main() {
     },
     onOpen(l) {
       setPublish("connecting", "opening session", `channel ${params.channel}, rig ${params.rig}`);
-      l.send(encodeHello({ rig: params.rig, output: "weights", dtype: "f32" }));
+      // The server's auto filter (§5.1.1): on the performer's own rig (fitted with noise)
+      // the Kalman from the start; on a generic one from the calibrate, with the
+      // neutral's noise (§5.2.5). The viewers' jitter falls ~3x (README, option (a″)).
+      const smoothing = params.smoothing === "off" ? null : { target: "points" };
+      l.send(encodeHello({ rig: params.rig, output: "weights", dtype: "f32", smoothing }));
     },
     onState(kind, detail) {
       publishing = false;
@@ -307,6 +314,7 @@ async function main() {
         // layout only grows by appending); its eyes have fewer points: re-capture for more.
         rigK = msg.rig.k;
         stats.rigK = rigK;
+        stats.smoothing = typeof msg.smoothing === "string" ? msg.smoothing : null;
         l.healthy();
         rigNames = msg.rig.names;
         bindView();
@@ -316,14 +324,15 @@ async function main() {
           // Uncalibrated points far from the rig's neutral make its exact weights
           // extrapolate: every viewer would see a distorted character. Hold the frames.
           setPublish("waiting", "waiting for your neutral", NEUTRAL_FIRST);
-        } else setPublish("live", `live · ${params.channel}`, `rig ${msg.rig.id}, ${rigK} points a frame`);
+        } else setPublish("live", `live · ${params.channel}`, `rig ${msg.rig.id}, ${rigK} points a frame${filtered()}`);
         rebase(l);
       } else if (msg.type === "calibrated") {
         stats.rebased = msg.active === true;
+        if (typeof msg.smoothing === "string") stats.smoothing = msg.smoothing;
         if (stats.rebased) {
           // Which captured closed eyes went with it: those blinks read closed (§5.1.3 blinks).
           const eyes = stats.closedEyes.length ? ` and your closed eyes (${stats.closedEyes.join(", ")})` : "";
-          setPublish("live", `live · ${params.channel}`, `rig ${params.rig} re-based on your neutral${eyes}, ${rigK} points a frame`);
+          setPublish("live", `live · ${params.channel}`, `rig ${params.rig} re-based on your neutral${eyes}, ${rigK} points a frame${filtered()}`);
         }
       } else if (msg.type === "result") {
         stats.results += 1;

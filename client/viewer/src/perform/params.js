@@ -6,6 +6,8 @@ import { ParamError, readParams } from "../params.js";
 const PERFORMER = /^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$/;
 // TensorFlow.js backends the face model can run on (docs/perform.md compares them).
 const BACKENDS = new Set(["wasm", "webgl", "cpu"]);
+// The live filter of the published points (the server's, PROTOCOL.md §5.1.1).
+const SMOOTHING = new Set(["auto", "off"]);
 
 /**
  * channel (required): publish to /v1/channels/{channel}/publish
@@ -13,6 +15,8 @@ const BACKENDS = new Set(["wasm", "webgl", "cpu"]);
  *      publish; any rig's character can be calibrated for)
  * performer: name of the performer profile a calibration makes (default "performer")
  * backend: the face model's TensorFlow.js backend, wasm (default) | webgl | cpu
+ * smoothing: auto (default: the hello asks for the server's auto filter, the Kalman on
+ *      the neutral's noise, PROTOCOL.md §5.1.1) | off (viewers get the points unfiltered)
  */
 export function readPerformParams(href) {
   const q = new URL(href).searchParams;
@@ -24,8 +28,10 @@ export function readPerformParams(href) {
   }
   const backend = q.get("backend") || "wasm";
   if (!BACKENDS.has(backend)) throw new ParamError(`backend must be wasm, webgl or cpu, got ${backend}`);
+  const smoothing = q.get("smoothing") || "auto";
+  if (!SMOOTHING.has(smoothing)) throw new ParamError(`smoothing must be auto or off, got ${smoothing}`);
   // A performer's own rig is named {character}@{performer}: calibrating again starts from
   // the character, not from the rig made by the last calibration.
   const character = params.rig.split("@")[0];
-  return { ...params, mode: "publish", performer, character, backend };
+  return { ...params, mode: "publish", performer, character, backend, smoothing };
 }
