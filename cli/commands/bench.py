@@ -151,8 +151,8 @@ def register(subparsers: Subparsers) -> None:
             "real eye closures (each eye's peak as a share of the truth, and r). Then another "
             "identity performs its keys and an eyes clip (quick 5-frame blinks, a wink each "
             "side, gaze holds up, down, left and right, jaw open + smile), scored per event "
-            "on the personal and generic paths: live as /perform publishes, through the live "
-            "Kalman filter, and offline."
+            "on the personal and generic paths: live unfiltered, through the live Kalman "
+            "filter (as /perform and facecast perform publish: auto smoothing), and offline."
         ),
     )
     _add_ict(webcam)
