@@ -108,15 +108,25 @@ def lambert(
     return shade
 
 
+def _corner_extremes(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) least and greatest of each row of ``values`` (N, 3)."""
+    a, b, c = values[:, 0], values[:, 1], values[:, 2]
+    return np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
+
+
 def _boxes(
     x: np.ndarray, y: np.ndarray, width: int, height: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Each triangle's first pixel column and row and its box's width and height (pixels
     whose centres, at i + 0.5, lie within the triangle's bounding box and the image)."""
-    x0 = np.maximum(np.ceil(x.min(axis=1) - 0.5), 0)
-    x1 = np.minimum(np.floor(x.max(axis=1) - 0.5), width - 1)
-    y0 = np.maximum(np.ceil(y.min(axis=1) - 0.5), 0)
-    y1 = np.minimum(np.floor(y.max(axis=1) - 0.5), height - 1)
+    # The corners' least and greatest coordinates, pairwise: the same values as
+    # x.min(axis=1), which reduces each row of 3 on its own (~4x slower on ICT's 51k).
+    low_x, high_x = _corner_extremes(x)
+    low_y, high_y = _corner_extremes(y)
+    x0 = np.maximum(np.ceil(low_x - 0.5), 0)
+    x1 = np.minimum(np.floor(high_x - 0.5), width - 1)
+    y0 = np.maximum(np.ceil(low_y - 0.5), 0)
+    y1 = np.minimum(np.floor(high_y - 0.5), height - 1)
     box_w = np.maximum(x1 - x0 + 1, 0).astype(np.int64)
     box_h = np.maximum(y1 - y0 + 1, 0).astype(np.int64)
     return x0.astype(np.int64), y0.astype(np.int64), box_w, box_h
