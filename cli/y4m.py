@@ -257,8 +257,16 @@ class Y4MWriter:
         if shape != (self.height, self.width, 3):
             raise Y4MError(f"frame {self.frames}: expected shape {(self.height, self.width, 3)}, "
                            f"got {shape}")  # fmt: skip
+        self.write_i420(rgb_to_i420(rgb))
+
+    def write_i420(self, planes: bytes) -> None:
+        """Append one frame already converted (``rgb_to_i420``'s bytes): a caller writing
+        the same image again converts it once."""
+        size = self.width * self.height * 3 // 2
+        if len(planes) != size:
+            raise Y4MError(f"frame {self.frames}: expected {size} bytes of I420, got {len(planes)}")
         self._handle.write(b"FRAME\n")
-        self._handle.write(rgb_to_i420(rgb))
+        self._handle.write(planes)
         self.frames += 1
 
     def close(self) -> None:

@@ -28,7 +28,7 @@ from facecast.cli.raster import (
     rasterise,
     vertex_normals,
 )
-from facecast.cli.y4m import Y4MWriter
+from facecast.cli.y4m import Y4MWriter, rgb_to_i420
 from facecast.rig.evaluation.webcam import Performer
 
 __all__ = ["CAMERA", "GAZE_NAMES", "HeadScene", "head_scene", "render_frames", "write_video"]
@@ -307,8 +307,13 @@ def write_video(
         rotations=rotations,
         gaze_degrees=gaze_degrees,
     )
+    previous: np.ndarray | None = None
+    planes = b""
     with Y4MWriter(path, camera.width, camera.height, fps) as writer:
         for image in tqdm(frames, total=len(act), unit="frame", desc=f"rendering {Path(path).name}",
                           disable=not progress, leave=False):  # fmt: skip
-            writer.write(image)
+            # A repeated frame is the same image (render_frames): converted once (~9 ms).
+            if image is not previous:
+                previous, planes = image, rgb_to_i420(image)
+            writer.write_i420(planes)
     return Path(path)

@@ -11,6 +11,7 @@ points and the same pipeline on the exact landmarks. It must not tune itself to 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import tempfile
@@ -26,7 +27,7 @@ import numpy as np
 from facecast.cli.bench.facevideo import HeadScene, head_scene, write_video
 from facecast.cli.errors import CommandError
 from facecast.cli.report import write_json
-from facecast.cli.track import track_video
+from facecast.cli.track import Tracker, track_video
 from facecast.rig import fit
 from facecast.rig.errors import ExampleSetError
 from facecast.rig.evaluation.evaluate import cloning_error
@@ -366,11 +367,23 @@ def _tracked(args: argparse.Namespace, setup: _Setup, folder: Path) -> dict[str,
     if not args.no_eyes:
         plan["eyes"] = (setup.eyes_performer, eyes_activations(setup), KEY_FPS)
     out: dict[str, Any] = {"videos": {}, "render_seconds": {}, "track_seconds": {}}
-    for name, (performer, activations, fps) in plan.items():
-        scene = head_scene(performer, regions, landmarks68)
-        out[name] = _render_and_track(name, paths[name], scene, performer, activations, fps,
-                                      args, out)  # fmt: skip
+    # One browser for every video still to track (none when all were kept): its start and
+    # the model's load once, not once a video (~3 CPU-s each; the points are the same).
+    untracked = [name for name in plan if not _points_path(paths[name], args).is_file()]
+    with Tracker(backend=args.backend) if untracked else contextlib.nullcontext() as tracker:
+        for name, (performer, activations, fps) in plan.items():
+            scene = head_scene(performer, regions, landmarks68)
+            out[name] = _render_and_track(name, paths[name], scene, performer, activations,
+                                          fps, args, out, tracker)  # fmt: skip
     return out
+
+
+def _points_path(path: Path, args: argparse.Namespace) -> Path:
+    """Where the points tracked from the video at ``path`` are kept. They are the layout's:
+    its feature count in the name, so a layout that grew (20 -> 24 points) tracks the kept
+    videos again instead of reading the old points."""
+    k = load_layout().num_features
+    return path.with_name(f"{path.stem}-{args.backend}-k{k}.npz")
 
 
 def _render_and_track(
@@ -382,13 +395,12 @@ def _render_and_track(
     fps: float,
     args: argparse.Namespace,
     out: dict[str, Any],
+    tracker: Tracker | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """One video rendered (unless kept) and tracked (unless kept): its points and found
-    flags; the seconds each took go into ``out`` under ``name``."""
-    # Kept points are the layout's: its feature count in the name, so a layout that grew
-    # (20 -> 24 points) tracks the kept videos again instead of reading the old points.
-    k = load_layout().num_features
-    points_path = path.with_name(f"{path.stem}-{args.backend}-k{k}.npz")
+    """One video rendered (unless kept) and tracked (unless kept; in ``tracker`` when
+    given): its points and found flags; the seconds each took go into ``out`` under
+    ``name``."""
+    points_path = _points_path(path, args)
     if not path.is_file():
         started = time.perf_counter()
         partial = path.with_name(path.name + ".partial")  # a cut-short run leaves no video
@@ -401,7 +413,7 @@ def _render_and_track(
             points, found = kept["points"], kept["found"]
     else:
         started = time.perf_counter()
-        result = track_video(path, backend=args.backend)
+        result = tracker.track(path) if tracker else track_video(path, backend=args.backend)
         out["track_seconds"][name] = time.perf_counter() - started
         partial = points_path.with_name(points_path.name + ".partial")
         result.save(partial).replace(points_path)

@@ -163,7 +163,7 @@ def test_the_tracker_serves_its_files_and_frames_under_its_random_path_alone(tmp
         except urllib.error.HTTPError as error:
             return error.code, b""
 
-    with _serving(video, {"/track": (page, "text/html")}) as url:
+    with _serving(video.read, {"/track": (page, "text/html")}) as url:
         base = url.removesuffix("track")
         origin = base.split("/", 3)
         assert url.startswith("http://127.0.0.1:") and len(origin[3]) > 16  # a token path

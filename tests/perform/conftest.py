@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from facecast.cli.snapshot import CHROMIUM_ARGS, chromium_path, serving, write_demo_rig
+from facecast.cli.track import Tracker
 from facecast.protocol import SUBPROTOCOL, decode_server
 from facecast.rig import fit
 from facecast.rig.characters.generic import generic_sources
@@ -98,6 +99,16 @@ def browser(camera_file):
             yield browser
         finally:
             browser.close()
+
+
+@pytest.fixture(scope="package")
+def tracker() -> Iterator[Tracker]:
+    """``facecast track``'s browser, kept for every module that tracks a rendered video:
+    each video gets the points ``track_video`` gives it alone (a pipeline of its own,
+    tests/perform/test_track.py), without a browser started and a model loaded for each
+    (~3 CPU-s a module). The modules that ask for it carry ``ICT_TRACKING``'s skips."""
+    with Tracker() as kept:
+        yield kept
 
 
 #: The demo character in a rig that takes the layout's first 20 points (the demo rig takes

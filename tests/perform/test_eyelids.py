@@ -20,7 +20,6 @@ import numpy as np
 import pytest
 
 from facecast.cli.bench.facevideo import HeadScene, head_scene, write_video
-from facecast.cli.track import track_video
 from facecast.rig.evaluation.eyes import BLINK_PROFILE, EYES_IDENTITY
 from facecast.rig.evaluation.webcam import Performer, ict_performer
 from facecast.rig.sources.ict import ict_regions
@@ -130,9 +129,9 @@ def video(clip, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def gaps(clip, video):
+def gaps(clip, video, tracker):
     """Each pose's lid gap per eye, tracked offline and exact."""
-    result = track_video(video, progress=False)
+    result = tracker.track(video, progress=False)
     assert result.found.all()
     out = {
         "tracked": shares(per_pose(result.points)),

@@ -36,7 +36,6 @@ import numpy as np
 import pytest
 
 from facecast.cli.bench.facevideo import head_scene, write_video
-from facecast.cli.track import track_video
 from facecast.rig import fit
 from facecast.rig.evaluation.eyes import (
     EYES_IDENTITY,
@@ -104,7 +103,7 @@ class Tracked:
 
 
 @pytest.fixture(scope="module")
-def tracked(tmp_path_factory) -> Tracked:
+def tracked(tracker, tmp_path_factory) -> Tracked:
     """The keys and the clip rendered as one video on ICT's person12, tracked offline."""
     performer = ict_performer(ARCHIVE, identity=EYES_IDENTITY)
     regions, landmarks68 = ict_regions(ARCHIVE)
@@ -114,7 +113,7 @@ def tracked(tmp_path_factory) -> Tracked:
                        head_scene(performer, regions, landmarks68), performer,
                        np.concatenate([clips.activations, clip.activations]), fps=FPS,
                        sway_degrees=0.0, gaze_degrees=GAZE_DEGREES, progress=False)  # fmt: skip
-    result = track_video(path, progress=False)
+    result = tracker.track(path, progress=False)
     assert result.found.all()
     points = result.points.astype(np.float64)
     assert points.shape[1] == load_layout().num_features == len(DEFAULT_LANDMARKS) + 2

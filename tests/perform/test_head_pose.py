@@ -18,7 +18,6 @@ from scipy.spatial.transform import Rotation
 
 from facecast.cli.bench.facevideo import head_scene, write_video
 from facecast.cli.bridges.head_pose import unity_quaternion
-from facecast.cli.track import track_video
 from facecast.rig.evaluation.webcam import ict_performer
 from facecast.rig.sources.ict import ict_regions
 from facecast.rig.sources.source_rig import head_rotation
@@ -54,7 +53,7 @@ def test_angles_of_inverts_the_bridges_quaternion():
 
 
 @pytest.fixture(scope="module")
-def turned(tmp_path_factory):
+def turned(tracker, tmp_path_factory):
     """The rendered poses and what the page's tracker made of them."""
     performer = ict_performer(ARCHIVE)
     regions, landmarks68 = ict_regions(ARCHIVE)
@@ -63,7 +62,7 @@ def turned(tmp_path_factory):
     path = write_video(tmp_path_factory.mktemp("head") / "turned.y4m",
                        head_scene(performer, regions, landmarks68), performer, act,
                        fps=30.0, rotations=rotations, progress=False)  # fmt: skip
-    return track_video(path, progress=False)
+    return tracker.track(path, progress=False)
 
 
 def test_the_sent_head_pose_has_the_rendered_angles_signs_and_sizes(turned):

@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 
 from facecast.cli.bench.facevideo import HeadScene, head_scene, write_video
-from facecast.cli.track import track_video
 from facecast.rig.evaluation.eyes import EYES_IDENTITY, GAZE_WEIGHTS
 from facecast.rig.evaluation.webcam import Performer, ict_performer
 from facecast.rig.sources.ict import ict_regions
@@ -113,12 +112,12 @@ def moves(points: dict[str, np.ndarray], index: int) -> dict[str, np.ndarray]:
 
 
 @pytest.fixture(scope="module")
-def tracked(clip, tmp_path_factory) -> dict[str, np.ndarray]:
+def tracked(clip, tracker, tmp_path_factory) -> dict[str, np.ndarray]:
     """Each pose's points, tracked offline."""
     path = write_video(tmp_path_factory.mktemp("iris") / "gaze.y4m", clip.scene, clip.performer,
                        clip.activations, fps=30.0, sway_degrees=0.0, gaze_degrees=GAZE_DEGREES,
                        progress=False)  # fmt: skip
-    result = track_video(path, progress=False)
+    result = tracker.track(path, progress=False)
     assert result.found.all()
     points = per_pose(result.points)
     for side in SIDES:

@@ -124,6 +124,24 @@ def _runs(live: np.ndarray, distinct: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return nearest, run >= SETTLED - 1
 
 
+def test_a_kept_tracker_gives_a_video_after_another_the_points_it_has_alone(
+    clip_points, tracker, tmp_path
+):
+    """A ``Tracker`` (one browser for several videos, as the package's modules and ``bench
+    webcam`` share one) tracks each video on a pipeline of its own: after another face's
+    video, whose last frames fill the eyelid model's history, the clip's points are
+    ``track_video``'s, bit for bit."""
+    kept, alone = clip_points
+    before = write_y4m(tmp_path / "before.y4m", [OUT_OF_VIEW, POSES[2], POSES[2], POSES[1]])
+
+    assert tracker.track(before, progress=False).found.tolist() == [False, True, True, True]
+    again = tracker.track(kept, progress=False)
+
+    np.testing.assert_array_equal(again.points, alone.points)
+    np.testing.assert_array_equal(again.head, alone.head)
+    assert again.faces.tolist() == alone.faces.tolist()
+
+
 def test_frames_without_a_face_are_nan_and_not_found(tmp_path):
     video = write_y4m(tmp_path / "gone.y4m", [POSES[0], OUT_OF_VIEW, POSES[1], OUT_OF_VIEW])
 
