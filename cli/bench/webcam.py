@@ -218,8 +218,9 @@ def _score_landmarks(
     And the personal and the generic path on the take's points through the live Kalman
     filter at each ``kalman`` acceleration (noise units per s^2, the held frames' noise),
     as a channel filters a publisher's frames with ``smoothing`` (PROTOCOL.md §5.1.1):
-    rows ``"<path> live kalman <a>"``; /perform sends no ``smoothing``, so its viewers get
-    the unfiltered rows."""
+    rows ``"<path> live kalman <a>"``: at the default 480, what viewers of /perform and
+    ``facecast perform`` get (their auto ``smoothing``; the filter does not depend on the
+    noise, only on one being known)."""
 
     keys, held = captured_keys(key_points, setup.clips, key_found)
     noise, held_frames = held_noise(held)
@@ -261,8 +262,9 @@ def _score_landmarks(
 
 
 def _eyes_filters(args: argparse.Namespace) -> dict[str, tuple[str, float | None]]:
-    """The eyes clip's rows per path: as /perform publishes (no ``smoothing``), through the
-    live Kalman filter at each --kalman acceleration, and offline (``clone``'s RTS)."""
+    """The eyes clip's rows per path: live unfiltered (/perform's ``smoothing=off``),
+    through the live Kalman filter at each --kalman acceleration (at 480 what /perform and
+    ``facecast perform`` publish), and offline (``clone``'s RTS)."""
     filters: dict[str, tuple[str, float | None]] = {"live": ("none", None)}
     for acceleration in args.kalman or EYES_KALMAN:
         filters[f"live kalman {acceleration:g}"] = ("kalman", acceleration)

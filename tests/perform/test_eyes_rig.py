@@ -126,7 +126,8 @@ def tracked(tracker, tmp_path_factory) -> Tracked:
 
 @pytest.fixture(scope="module")
 def scores(tracked) -> dict[str, Any]:
-    """The clip's events scored on the personal rig's weights, live (no smoothing)."""
+    """The clip's events scored on the personal rig's weights, live unfiltered (the
+    filter /perform asks for keeps a quick blink: README, option (a′))."""
     examples = arkit_example_set(ARCHIVE, identity=ARKIT_TARGET_IDENTITY)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the exact ICT rig (and the bounded fits) advise
