@@ -109,12 +109,21 @@ def test_two_workers_share_the_rig_directory(tmp_path, rig):
 
 def _worker_pids(parent: int) -> list[int]:
     children = Path(f"/proc/{parent}/task/{parent}/children").read_text().split()
+    commands = {int(pid): _cmdline(int(pid)) for pid in children}
     return [
-        int(pid)
-        for pid in children
-        if b"spawn_main" in Path(f"/proc/{pid}/cmdline").read_bytes()
-        and b"resource_tracker" not in Path(f"/proc/{pid}/cmdline").read_bytes()
+        pid
+        for pid, command in commands.items()
+        if b"spawn_main" in command and b"resource_tracker" not in command
     ]
+
+
+def _cmdline(pid: int) -> bytes:
+    """The process's command line; empty once it has gone (a worker just killed can leave
+    between the parent's list of children and this read: CI saw FileNotFoundError)."""
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except (FileNotFoundError, ProcessLookupError):
+        return b""
 
 
 def _open_connections(base: str) -> float:
