@@ -170,18 +170,13 @@ def cloning_error(truth: npt.ArrayLike, pred: npt.ArrayLike) -> dict[str, Any]:
     return sums.result(denominator, diagonal)
 
 
-def jitter(frames: np.ndarray | Sequence[Any], *, out: np.ndarray | None = None) -> float:
+def jitter(frames: np.ndarray | Sequence[Any]) -> float:
     """RMS second difference between consecutive frames: how much a series shakes.
 
     Parameters
     ----------
     frames : (F, ...) float
         Any per-frame quantity (weights, vertices); F >= 3.
-    out : (F - 2, N) float64, optional
-        Where the second differences are worked out (N: the values a frame; C-contiguous),
-        for a caller measuring many series of one shape: the same figure without an array
-        of the series' size allocated (and, past glibc's mmap threshold, faulted in) each
-        time.
 
     Returns
     -------
@@ -190,15 +185,5 @@ def jitter(frames: np.ndarray | Sequence[Any], *, out: np.ndarray | None = None)
     x = np.asarray(frames, dtype=np.float64).reshape(len(frames), -1)
     if len(x) < 3:
         raise InputError(f"jitter needs at least 3 frames, got {len(x)}")
-    if out is None:
-        second = x[2:] - 2.0 * x[1:-1] + x[:-2]
-        return float(np.sqrt(np.mean(second * second)))
-    if out.shape != (len(x) - 2, x.shape[1]) or out.dtype != np.float64:
-        raise InputError(f"jitter: out must be ({len(x) - 2}, {x.shape[1]}) float64, got "
-                         f"{out.shape} {out.dtype}")  # fmt: skip
-    # The same operations in the same order as above, in place.
-    np.multiply(x[1:-1], 2.0, out=out)
-    np.subtract(x[2:], out, out=out)
-    np.add(out, x[:-2], out=out)
-    np.multiply(out, out, out=out)
-    return float(np.sqrt(np.mean(out)))
+    second = x[2:] - 2.0 * x[1:-1] + x[:-2]
+    return float(np.sqrt(np.mean(second * second)))

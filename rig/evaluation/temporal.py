@@ -172,10 +172,6 @@ def temporal_tradeoff(
             )
     # Eq. 4.1's denominators depend on the truth alone: once for every row.
     denominator, _ = truth_terms(truth)
-    # Two (F, V, 3) float64 scratch arrays for every row's figures: ICT's 180-frame take is
-    # 41 MB each, past glibc's mmap threshold, so arrays made per row were mapped and
-    # faulted in anew (~6 a row: 270k page faults, 2.7 s of system time in the tests).
-    scratch = (np.empty(truth.shape), np.empty(truth.shape))
     rows = []
     for family, label, settings, smoother in candidates:
         if smoother is None:
@@ -185,7 +181,7 @@ def temporal_tradeoff(
         else:
             filtered = smoother.filter_series(channels, times)
         vertices = rig.clone(filtered.reshape(points.shape))
-        rows.append(_row(family, label, settings, vertices, truth, denominator, scale, scratch))
+        rows.append(_row(family, label, settings, vertices, truth, denominator, scale))
     # What `facecast clone` does by default: RTS along the take's principal directions at
     # their most likely accelerations, cloned by the rig regularised for the noise left.
     take = smooth_take(rig, points, times, smoothing="rts", noise=noise)
@@ -197,7 +193,7 @@ def temporal_tradeoff(
         f"noise {take.noise / noise:.2f} x"
     )
     clone = take.rig.clone(take.points)
-    rows.append(_row("clone", label, settings, clone, truth, denominator, scale, scratch))
+    rows.append(_row("clone", label, settings, clone, truth, denominator, scale))
     return {"truth_jitter": jitter(truth) * scale, "fps": float(fps), "rows": rows}
 
 
@@ -209,27 +205,18 @@ def _row(
     truth: np.ndarray,
     denominator: np.ndarray,
     scale: float,
-    scratch: tuple[np.ndarray, np.ndarray],
 ) -> dict[str, Any]:
     """One row of ``temporal_tradeoff``: the clone's jitter, lag and errors (``denominator``:
-    eq. 4.1's per frame and axis, sum_j |v_j| of the truth, (F, 3); ``scratch``: two
-    float64 arrays of the truth's shape, overwritten)."""
-    diff, work = scratch
-    frames = len(vertices)
-    # jitter(vertices), its float64 copy in ``work`` and its differences in ``diff``.
-    values = work.reshape(frames, -1)
-    np.copyto(values, vertices.reshape(frames, -1))
-    shake = jitter(values, out=diff.reshape(frames, -1)[: frames - 2])
-    np.subtract(vertices, truth, out=diff, dtype=np.float64)
-    rms = float(np.sqrt(np.mean(np.sum(np.multiply(diff, diff, out=work), axis=-1))))
-    eq41 = eq41_means(eq41_frames(np.abs(diff, out=diff).sum(axis=1), denominator))
+    eq. 4.1's per frame and axis, sum_j |v_j| of the truth, (F, 3))."""
+    diff = vertices.astype(np.float64) - truth
+    eq41 = eq41_means(eq41_frames(np.abs(diff).sum(axis=1), denominator))
     return {
         "family": family,
         "label": label,
         "settings": settings,
-        "jitter": shake * scale,
+        "jitter": jitter(vertices) * scale,
         "lag_frames": lag_frames(truth[:, ::_LAG_STRIDE], vertices[:, ::_LAG_STRIDE]),
-        "rms_percent": rms * scale,
+        "rms_percent": float(np.sqrt(np.mean(np.sum(diff * diff, axis=-1))) * scale),
         "eq41_percent": eq41,
         "eq41_max": max(eq41.values()),
     }
