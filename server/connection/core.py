@@ -39,7 +39,7 @@ from facecast.rig import Rig
 from facecast.rig.errors import RigError
 from facecast.rig.filters import KalmanFilter, OneEuroFilter
 
-from ..compute.cloning import Smoother, calibrated_filter, smoothing_filter, smoothing_name
+from ..compute.cloning import Smoother, calibrated_filter, smoothing_filter
 from ..guards.calibrate_rate import CalibrateRateLimit
 from ..guards.frame_rate import FrameRateLimit
 from ..metrics import Metrics
@@ -224,9 +224,9 @@ class ConnectionCore:
         self.base_rig = self.rig = rig
         self.calibrate_next = hello.calibration
         self.calibrate_noise = None
-        sm = hello.smoothing
-        self.smoothing_running = None if sm is None else smoothing_name(sm, rig)
-        self.send(ready_message(session_id, hello, rig, self.protocol.limits, self.settings))
+        ready = ready_message(session_id, hello, rig, self.protocol.limits, self.settings)
+        self.smoothing_running = ready.smoothing
+        self.send(ready)
 
     def failed(self, now: float) -> None:
         """The work asked for ended without an answer (the driver reports why)."""
