@@ -114,10 +114,9 @@ def publishing(base_url: str, channel: str, rig: str, points: np.ndarray) -> Ite
 
 
 def shown(page, seq: int) -> None:
-    """Wait until the page has drawn a result of frame ``seq`` or later."""
-    page.wait_for_function("s => window.facecastStats.seq >= s", arg=seq)
-    drawn = page.evaluate("window.facecastStats.rendered")
-    page.wait_for_function("n => window.facecastStats.rendered > n", arg=drawn)
+    """Wait until the page shows a result of frame ``seq`` or later: the animation frame
+    that applies a result draws it, or finds its pose on screen already."""
+    page.wait_for_function("s => window.facecastStats.appliedSeq >= s", arg=seq)
 
 
 def canvas_png(page) -> bytes:
@@ -222,6 +221,26 @@ def test_viewer_renders_the_character_file_posed_by_weights_and_head(
     info = page.locator("#character").inner_text()
     if variant != "gltf":
         assert "Facecast Tests" in info and "VRM" in info
+    assert page.errors == []
+
+
+def test_a_pose_equal_to_the_one_on_screen_is_not_drawn_again(character_server, examples, page):
+    # A performer holding still sends the same pose frame after frame: the page applies
+    # each (appliedSeq) and draws none of them after the first; a change is drawn at once.
+    with publishing(character_server, "ch-still", "face", examples.source_points) as publisher:
+        page.goto(f"{character_server}/overlay?rig=face&channel=ch-still")
+        page.wait_for_function("window.facecastStats.state === 'live'")
+        shown(page, publisher.pose(0))
+        before = page.evaluate("window.facecastStats")
+        page.wait_for_function(
+            "n => window.facecastStats.appliedSeq >= n", arg=before["appliedSeq"] + 10
+        )
+        still = page.evaluate("window.facecastStats")
+        shown(page, publisher.pose(NAMES.index("jawOpen")))
+        moved = page.evaluate("window.facecastStats")
+
+    assert still["rendered"] == before["rendered"], (before, still)
+    assert moved["rendered"] > still["rendered"]
     assert page.errors == []
 
 

@@ -20,7 +20,8 @@ const stats = {
   state: "starting",
   detail: "",
   error: null,
-  frames: 0, // results applied to the view
+  frames: 0, // results received
+  appliedSeq: null, // the seq of the last result applied to the view (drawn, or already on screen)
   rendered: 0, // canvas redraws
   connects: 0,
   fps: 0,
@@ -305,11 +306,20 @@ async function main() {
       if (pendingVertices && moving) view.setMovingVertices(moving, pendingVertices);
       else if (pendingVertices) view.setVertices(pendingVertices);
       if (pendingWeights) hud.weights(pendingWeights);
-      if (pendingWeights || pendingVertices) applied = pendingResult;
+      if (pendingWeights || pendingVertices) {
+        applied = pendingResult;
+        stats.appliedSeq = applied.seq;
+      }
     } catch (err) {
       link.fail(err.message);
     }
+    const arrived = pendingResult !== null;
     pendingWeights = pendingVertices = pendingHead = pendingResult = null;
+    if (arrived && !view.dirty) {
+      // The result's pose is the one on screen (a still face): nothing to draw, and the
+      // viewer sees it from this frame on.
+      live.drawn(performance.now());
+    }
     if (view.dirty) {
       const started = performance.now();
       view.render();

@@ -47,7 +47,11 @@ export class FaceView {
     this.loaded = false;
     this.clock = new THREE.Clock();
     this.names = [];
+    // Whether the picture is out of date: set by a pose that changes what is drawn, not by
+    // one equal to the pose on screen (a still face, a repeated frame: an idle page draws
+    // nothing, docs/viewer.md).
     this.dirty = true;
+    this.lastVertices = null; // the last vertex output applied (setVertices, setMovingVertices)
     this.resize();
     window.addEventListener("resize", () => this.resize());
   }
@@ -218,8 +222,9 @@ export class FaceView {
     const q = headQuaternion(rotation);
     // A VRM 0.x model faces -z in its own frame (turned about y to face the camera).
     if (c.format === "vrm0") q.set(-q.x, q.y, -q.z, q.w);
-    if (c.vrm) c.head.quaternion.copy(q);
-    else c.head.quaternion.copy(c.headRest).multiply(q);
+    if (!c.vrm) q.premultiply(c.headRest);
+    if (q.equals(c.head.quaternion)) return;
+    c.head.quaternion.copy(q);
     this.dirty = true;
   }
 
@@ -248,7 +253,9 @@ export class FaceView {
       if (weights.length !== this.character.bound.perWeight.length) {
         throw new Error(`got ${weights.length} weights for a character bound to ${this.character.bound.perWeight.length}`);
       }
-      this.character.weights = weights;
+      const previous = this.character.weights;
+      if (previous && sameValues(previous, weights)) return;
+      this.character.weights = weights.slice(); // a copy: the caller's array may be reused
       applyWeights(this.character.bound, weights);
       this.dirty = true;
       return;
@@ -258,8 +265,12 @@ export class FaceView {
     if (!order || weights.length !== this.weightCount) {
       throw new Error(`got ${weights.length} weights for a rig of ${this.weightCount ?? "unknown"}`);
     }
-    for (let j = 0; j < order.length; j++) influences[j] = weights[order[j]];
-    this.dirty = true;
+    for (let j = 0; j < order.length; j++) {
+      const w = weights[order[j]];
+      if (influences[j] === w) continue;
+      influences[j] = w;
+      this.dirty = true;
+    }
   }
 
   /**
@@ -271,6 +282,7 @@ export class FaceView {
     if (moving.length && moving[moving.length - 1] >= position.count) {
       throw new Error(`moving vertex ${moving[moving.length - 1]} is beyond a mesh of ${position.count}`);
     }
+    if (this.unchanged(vertices)) return;
     this.mesh.morphTargetInfluences.fill(0);
     applyMoving(position.array, moving, vertices);
     position.needsUpdate = true;
@@ -284,11 +296,19 @@ export class FaceView {
     if (vertices.length !== position.array.length) {
       throw new Error(`got ${vertices.length / 3} vertices for a mesh of ${position.count}`);
     }
+    if (this.unchanged(vertices)) return;
     this.mesh.morphTargetInfluences.fill(0);
     position.array.set(vertices);
     position.needsUpdate = true;
     this.mesh.geometry.computeVertexNormals();
     this.dirty = true;
+  }
+
+  /** Whether a vertex output equals the last one applied (kept for the next call). */
+  unchanged(vertices) {
+    const same = this.lastVertices !== null && sameValues(this.lastVertices, vertices);
+    if (!same) this.lastVertices = vertices.slice(); // a copy: the caller's array may be reused
+    return same;
   }
 
   /**
@@ -433,4 +453,11 @@ function addMorphNormals(geometry) {
     return new THREE.BufferAttribute(delta, 3);
   });
   geometry.morphAttributes.normal = normals;
+}
+
+/** Whether two arrays of numbers hold the same values. */
+function sameValues(a, b) {
+  if (a.length !== b.length) return false;
+  for (let i = 0; i < a.length; i++) if (a[i] !== b[i]) return false;
+  return true;
 }
