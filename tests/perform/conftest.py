@@ -1,8 +1,12 @@
 """Fixtures of the performer-studio tests: a real Chromium with a fake camera, a real server.
 
-One browser for the whole package (the fake camera is a browser flag): each test writes
-the video it needs to the camera file, and a page opened afterwards plays it from the
-start (Chromium opens the file anew for each getUserMedia). Skips, with the reason, when
+One browser for the whole package (the fake camera is a browser flag), with one profile:
+each test writes the video it needs to the camera file, and a page opened afterwards plays
+it from the start (Chromium opens the file anew for each getUserMedia). The pages share
+the profile's HTTP cache, as a performer's own browser does from the second visit on: the
+studio's scripts and WebAssembly come with their compiled code, which saves a /perform
+page ~1.1 of its ~3 CPU-s to its first tracked frame (each test still gets fresh pages;
+the pages keep nothing else: no storage, no cookies). Skips, with the reason, when
 Chromium, the studio's build or scikit-image is missing (fails under CI=true:
 tests/_requires.py).
 """
@@ -84,7 +88,9 @@ def camera(camera_file) -> Camera:
 
 
 @pytest.fixture(scope="package")
-def browser(camera_file):
+def browser(camera_file, tmp_path_factory):
+    """The package's Chromium as one persistent context (its profile in a temporary
+    folder): ``open_page`` opens each page in it."""
     reason = _missing()
     if reason is not None:
         pytest.skip(reason)
@@ -94,11 +100,17 @@ def browser(camera_file):
         f"--use-file-for-fake-video-capture={camera_file}",
     ]
     with playwright_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=chromium_path(), headless=True, args=args)
+        context = pw.chromium.launch_persistent_context(
+            tmp_path_factory.mktemp("profile"),
+            executable_path=chromium_path(),
+            headless=True,
+            args=args,
+            permissions=["camera"],
+        )
         try:
-            yield browser
+            yield context
         finally:
-            browser.close()
+            context.close()
 
 
 @pytest.fixture(scope="package")
@@ -165,13 +177,16 @@ def server(rigs_dir) -> Iterator[str]:
 
 
 def open_page(browser, url: str, *, camera: bool = True, size: tuple[int, int] = (960, 540)):
-    """A page in its own context (camera allowed or not) recording its errors in ``errors``;
-    ``size``, its window's CSS pixels (what a page draws costs SwiftShader by the pixel)."""
-    context = browser.new_context(
-        viewport={"width": size[0], "height": size[1]},
-        permissions=["camera"] if camera else [],
-    )
-    page = context.new_page()
+    """A new page of the package's browser recording its errors in ``errors``; ``camera``
+    False: the camera denied (the profile's permission withdrawn until the next page that
+    allows it: no other page may be capturing then); ``size``, its window's CSS pixels
+    (what a page draws costs SwiftShader by the pixel)."""
+    if camera:
+        browser.grant_permissions(["camera"])
+    else:
+        browser.clear_permissions()
+    page = browser.new_page()
+    page.set_viewport_size({"width": size[0], "height": size[1]})
     page.errors = []
     page.on("pageerror", lambda exc: page.errors.append(f"pageerror: {exc}"))
     page.set_default_timeout(30_000)
@@ -183,16 +198,16 @@ def done(page) -> None:
     """Close a page a test has read all it needs from, before it opens the next: an open
     /perform page goes on tracking, a core's worth of the machine (``pages`` closes every
     page at the end of the test anyway; closing twice is harmless)."""
-    page.context.close()
+    page.close()
 
 
 @pytest.fixture
 def pages(browser) -> Iterator[list]:
-    """Pages a test opens through ``open_page``; their contexts close after the test."""
+    """Pages a test opens through ``open_page``; they close after the test."""
     opened: list = []
     yield opened
     for page in opened:
-        page.context.close()
+        page.close()
 
 
 @dataclass

@@ -67,7 +67,7 @@ def _perform_generic(browser, server: str, camera, rig: str, channel: str, other
     finally:
         for recorder, _ in recorders.values():
             recorder.stop.set()
-        page.context.close()
+        page.close()
         for _, thread in recorders.values():
             thread.join(5)
     points = recorders[rig, "points"][0]
@@ -269,7 +269,7 @@ def test_the_walkthroughs_closed_eye_is_read_as_closed_on_the_generic_rig(
         detail = page.text_content("#publish-detail")
     finally:
         weights.stop.set()
-        page.context.close()
+        page.close()
         weights_thread.join(5)
 
     assert stats["closedEyes"] == ["eyeBlinkLeft"]

@@ -1,5 +1,6 @@
 """Glass to glass through the real pages (PROTOCOL.md §5.4): /perform on a fake camera, a real
-server, /viewer pages in another browser context reading `window.liveLatency()`.
+server, /viewer pages in the same browser (each page its own renderer process) reading
+`window.liveLatency()`.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ def _viewer(browser, server: str, channel: str, rig: str):
     # A small window: these tests read the pages' clocks, not their pixels, and every
     # pixel a viewer draws is SwiftShader's CPU (a third of these tests' at 960x540).
     url = f"{server}/viewer?channel={channel}&rig={rig}"
-    return open_page(browser, url, camera=False, size=(320, 180))
+    return open_page(browser, url, size=(320, 180))
 
 
 def _drawn(page, frames: int) -> dict:

@@ -239,7 +239,7 @@ def performer_rig(browser, server, camera_file):
         link = page.get_attribute("#perform-link", "href") if calibration["fit"] else None
         verdict = page.inner_text("#verdict")
     finally:
-        page.context.close()
+        page.close()
     return {"calibration": calibration, "neutral": neutral, "aa": aa, "link": link,
             "verdict": verdict}  # fmt: skip
 
