@@ -7,6 +7,11 @@ the same run: the face model's time a frame, a bare WebSocket hop page to page t
 bare relay, and a viewer's draw (its render() call: "drawn" is stamped when the draw is
 submitted). It measures the pages as shipped; it must not
 change them.
+
+What the stamps cannot hold is the delay of the server's live filter (a filtered pose
+trails the face it follows, every frame still the newest): beside them, the filter the
+channel ran, run offline on the bench's own motion (its video's jaw, at the rate the page
+tracked), and how many frames, and ms, its output trails its input.
 """
 
 from __future__ import annotations
@@ -28,12 +33,15 @@ from facecast.cli.errors import CommandError
 from facecast.cli.report import write_json
 from facecast.cli.snapshot import CHROMIUM_ARGS, chromium_path
 from facecast.cli.y4m import open_y4m
-from facecast.rig import fit
+from facecast.protocol import Smoothing
+from facecast.rig import fit, load_rig
 from facecast.rig.demo import demo_example_set
+from facecast.rig.evaluation.temporal import MAX_LAG_FRAMES, lag_frames
 from facecast.rig.evaluation.webcam import ict_performer
 from facecast.rig.examples import ExampleSet
 from facecast.rig.sources.ict import ict_regions, locate_ict
 from facecast.rig.sources.layouts import load_layout
+from facecast.server.compute.cloning import Smoother, smoothing_filter
 
 __all__ = ["run"]
 
@@ -97,13 +105,46 @@ def _write_rig(rigs: Path) -> None:
     fit(examples).save(rigs / f"{RIG}.rig")
 
 
+def _jaw(t: np.ndarray) -> np.ndarray:
+    """The bench's motion: the jaw's opening (0-1) at ``t`` seconds, twice in VIDEO_SECONDS."""
+    return 0.5 - 0.5 * np.cos(2 * np.pi * 2 * t / VIDEO_SECONDS)
+
+
+def _filter_lag(rig_path: Path, running: str | None, fps: float) -> dict[str, Any] | None:
+    """The channel's live filter run offline on the bench's motion: the rig's neutral
+    opening to its open mouth ("aa") as ``_jaw`` does, sampled at the ``fps`` the page
+    tracked for 20 s, through the filter the server runs for the page's ``hello`` (auto, on
+    points: ``smoothing_filter``); how far its output trails its input (``lag_frames``:
+    frames, and ms at ``fps``). None where the page ran no filter, or another than that
+    (one a calibrate started), or tracked nothing."""
+    if running is None or not fps > 0:
+        return None
+    rig = load_rig(rig_path)
+    live_filter = smoothing_filter(Smoothing(target="points"), rig)
+    name = "kalman" if type(live_filter).__name__ == "KalmanFilter" else "one-euro"
+    if name != running:
+        return None
+    demo = demo_example_set()
+    k = rig.num_points
+    neutral = demo.source_points[0, :k]
+    mouth = demo.source_points[demo.names.index("aa"), :k]
+    ts = np.arange(round(20 * fps)) / fps
+    points = neutral + _jaw(ts)[:, None, None] * (mouth - neutral)
+    smoother = Smoother(live_filter, "points")
+    filtered = np.array([smoother(p, t) for p, t in zip(points, ts, strict=True)])
+    # Shifts searched up to under half the motion's period (2 * fps frames): a whole period
+    # later the motion repeats, which would read as a lag.
+    frames = lag_frames(points, filtered, max_lag=max(1, min(MAX_LAG_FRAMES, round(fps) - 1)))
+    return {"filter": name, "frames": frames, "ms": 1000.0 * frames / fps, "fps": fps}
+
+
 def _write_video(path: Path, archive: Path, seconds: float = VIDEO_SECONDS) -> Path:
     """An ICT face opening and closing its jaw twice, gently swaying: the fake camera's loop."""
     performer = ict_performer(archive)
     regions, landmarks68 = ict_regions(archive)
     scene = head_scene(performer, regions, landmarks68)
     frames = round(VIDEO_FPS * seconds)
-    jaw = 0.5 - 0.5 * np.cos(2 * np.pi * 2 * np.arange(frames) / frames)
+    jaw = _jaw(np.arange(frames) / VIDEO_FPS)
     activations = np.zeros((frames, len(performer.names)))
     activations[:, 0] = 1.0 - jaw
     activations[:, performer.names.index("jawOpen")] = jaw
@@ -424,6 +465,14 @@ def _report(figures: dict[str, Any]) -> list[tuple[str, bool]]:
     )
     rss = figures["server_rss_mb"]
     print(f"server RSS {_fmt(rss['first'])} → {_fmt(rss['last'])} MB (max {_fmt(rss['max'])})")
+    lag = figures.get("filter_lag")
+    if lag is not None:
+        total = None if g["p50"] is None else g["p50"] + lag["ms"]
+        print(
+            f"not in the stamps: the channel's {lag['filter']} filter trails the face "
+            f"{lag['frames']:.2f} frames = {lag['ms']:.0f} ms at {lag['fps']:.1f} fps tracked "
+            f"(offline, on the bench's jaw motion); capture → drawn p50 with it {_fmt(total)} ms"
+        )
     checks: list[tuple[str, bool]] = []
     if g["p50"] is None or floor is None:
         return [("figures measured", False)]
@@ -477,7 +526,13 @@ def run(args: argparse.Namespace) -> int:
             hops = _hop_floor(run_)
         finally:
             run_.close()
+        performer = measured["perform"][1]
+        tracked_fps = _delta(measured["perform"][0], performer, "tracked") / measured["seconds"]
+        filter_lag = _filter_lag(
+            folder / "rigs" / f"{RIG}.rig", performer.get("smoothing"), tracked_fps
+        )
     figures = _figures(measured, hops, args, camera_fps)
+    figures["filter_lag"] = filter_lag
     checks = _report(figures)
     figures["goals"] = [{"goal": text, "met": ok} for text, ok in checks]
     if args.json:

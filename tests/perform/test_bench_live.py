@@ -57,6 +57,11 @@ def test_bench_live_reports_each_stage_and_capture_to_drawn_beside_its_floor(tmp
     published = report["fps"]["published"] * report["seconds"]
     assert 0 <= report["lost"]["server_to_viewer"] <= published
     assert report["capture_source"] in ("frame timestamp", "video metadata")
+    # The delay the stamps cannot hold: the channel's filter (the page's auto smoothing on
+    # the bench's rig, fitted exactly: one-euro), run offline at the rate the page tracked.
+    lag = report["filter_lag"]
+    assert lag["filter"] == "one-euro" and lag["fps"] == pytest.approx(report["fps"]["tracked"])
+    assert 0 < lag["frames"] < 1
 
 
 def test_bench_live_refuses_no_viewers_with_a_clear_error(capsys):
