@@ -106,7 +106,8 @@ def _write_rig(rigs: Path) -> None:
 
 
 def _jaw(t: np.ndarray) -> np.ndarray:
-    """The bench's motion: the jaw's opening (0-1) at ``t`` seconds, twice in VIDEO_SECONDS."""
+    """The bench's motion: the jaw's opening (0-1) at ``t`` seconds, twice in VIDEO_SECONDS
+    (the camera's loop, ``_write_video``, of the default length)."""
     return 0.5 - 0.5 * np.cos(2 * np.pi * 2 * t / VIDEO_SECONDS)
 
 
@@ -144,7 +145,7 @@ def _write_video(path: Path, archive: Path, seconds: float = VIDEO_SECONDS) -> P
     regions, landmarks68 = ict_regions(archive)
     scene = head_scene(performer, regions, landmarks68)
     frames = round(VIDEO_FPS * seconds)
-    jaw = _jaw(np.arange(frames) / VIDEO_FPS)
+    jaw = 0.5 - 0.5 * np.cos(2 * np.pi * 2 * np.arange(frames) / frames)  # _jaw at 4 s
     activations = np.zeros((frames, len(performer.names)))
     activations[:, 0] = 1.0 - jaw
     activations[:, performer.names.index("jawOpen")] = jaw
