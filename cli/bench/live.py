@@ -41,7 +41,7 @@ from facecast.rig.evaluation.webcam import ict_performer
 from facecast.rig.examples import ExampleSet
 from facecast.rig.sources.ict import ict_regions, locate_ict
 from facecast.rig.sources.layouts import load_layout
-from facecast.server.compute.cloning import Smoother, smoothing_filter
+from facecast.server.compute.cloning import Smoother, smoothing_filter, smoothing_name
 
 __all__ = ["run"]
 
@@ -121,10 +121,11 @@ def _filter_lag(rig_path: Path, running: str | None, fps: float) -> dict[str, An
     if running is None or not fps > 0:
         return None
     rig = load_rig(rig_path)
-    live_filter = smoothing_filter(Smoothing(target="points"), rig)
-    name = "kalman" if type(live_filter).__name__ == "KalmanFilter" else "one-euro"
+    auto = Smoothing(target="points")  # what the page's hello asks for
+    name = smoothing_name(auto, rig)
     if name != running:
         return None
+    live_filter = smoothing_filter(auto, rig)
     demo = demo_example_set()
     k = rig.num_points
     neutral = demo.source_points[0, :k]
