@@ -220,7 +220,9 @@ def register(subparsers: Subparsers) -> None:
             "stage's p50/p95/p99 (captured, tracked, sent, server in, server out, received, "
             "drawn: PROTOCOL.md §5.4) and capture → drawn, frames lost per stage and the "
             "fps, beside a floor from the same run: the face model's time a frame + a bare "
-            "WebSocket hop page to page + a viewer's render() call."
+            "WebSocket hop page to page + a viewer's render() call; and the delay the stamps "
+            "cannot hold, the live filter the channel ran, run offline on the bench's motion "
+            "at the rate the page tracked (filter_lag)."
         ),
     )
     _add_ict(live)

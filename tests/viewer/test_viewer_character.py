@@ -224,11 +224,16 @@ def test_viewer_renders_the_character_file_posed_by_weights_and_head(
     assert page.errors == []
 
 
-def test_a_pose_equal_to_the_one_on_screen_is_not_drawn_again(character_server, examples, page):
+@pytest.mark.parametrize("output", ["weights", "vertices"])
+def test_a_pose_equal_to_the_one_on_screen_is_not_drawn_again(
+    character_server, examples, page, output
+):
     # A performer holding still sends the same pose frame after frame: the page applies
     # each (appliedSeq) and draws none of them after the first; a change is drawn at once.
-    with publishing(character_server, "ch-still", "face", examples.source_points) as publisher:
-        page.goto(f"{character_server}/overlay?rig=face&channel=ch-still")
+    # Weights pose the character file, vertices the rig's own mesh ("moving" is the demo's).
+    channel = f"ch-still-{output}"
+    with publishing(character_server, channel, "face", examples.source_points) as publisher:
+        page.goto(f"{character_server}/overlay?rig=face&channel={channel}&output={output}")
         page.wait_for_function("window.facecastStats.state === 'live'")
         shown(page, publisher.pose(0))
         before = page.evaluate("window.facecastStats")

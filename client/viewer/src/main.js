@@ -297,6 +297,7 @@ async function main() {
   let fpsFrames = 0;
   let fpsSince = performance.now();
   const tick = (now) => {
+    let appliedNow = false;
     try {
       if (pendingWeights) view.setWeights(pendingWeights);
       if (pendingHead) {
@@ -309,13 +310,13 @@ async function main() {
       if (pendingWeights || pendingVertices) {
         applied = pendingResult;
         stats.appliedSeq = applied.seq;
+        appliedNow = true;
       }
     } catch (err) {
       link.fail(err.message);
     }
-    const arrived = pendingResult !== null;
     pendingWeights = pendingVertices = pendingHead = pendingResult = null;
-    if (arrived && !view.dirty) {
+    if (appliedNow && !view.dirty) {
       // The result's pose is the one on screen (a still face): nothing to draw, and the
       // viewer sees it from this frame on.
       live.drawn(performance.now());

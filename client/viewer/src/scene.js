@@ -209,6 +209,7 @@ export class FaceView {
 
   show(root) {
     if (this.root) this.scene.remove(this.root);
+    this.lastVertices = null; // nothing of the last model's pose is on screen
     this.root = root;
     this.scene.add(root);
     this.character = null;
