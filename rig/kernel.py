@@ -15,7 +15,9 @@ from collections.abc import Callable
 import numpy as np
 
 try:
-    from . import _kernel
+    # The extension by its own name: ``from . import _kernel`` reads as an import of the
+    # package's ``__init__`` (which imports nearly every module) from the ground floor.
+    import facecast.rig._kernel as _kernel
 except ImportError:  # not built (no C compiler at install time): numpy does the work
     _kernel = None  # type: ignore[assignment]  # mypy types the name as the module only
 
