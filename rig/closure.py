@@ -6,8 +6,11 @@ a performer's own captured ``eyeBlinkLeft`` key reads about 0.74 on their own ri
 quick blink through a webcam less (README, issue 34's option (x)). The capture says what
 closed is: the rig's reading of the performer's closed eye maps to 1 and their neutral's
 to 0, linearly, clipped to [0, 1]. Applied to the blink weights only, after the rig's
-bounds. The map travels in the rig's fit report (``"closure"``), so a stored rig, a rig
-refitted for another noise and a rig re-based keep it. No I/O.
+bounds. Optionally the mapped weight then goes through a contrast curve (a smoothstep
+from ``low`` to ``high``: open below, closed above), which a re-based rig takes (its
+readings are another face's keys: a held gaze reads partly closed, README option (ag)).
+The map travels in the rig's fit report (``"closure"``, ``"closure_contrast"``), so a
+stored rig, a rig refitted for another noise and a rig re-based keep it. No I/O.
 """
 
 from __future__ import annotations
@@ -17,10 +20,19 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["CLOSURE_NAMES", "MIN_CLOSED", "ClosureMap", "closure_ranges"]
+__all__ = [
+    "CLOSURE_NAMES",
+    "CLOSURE_REPORT_KEYS",
+    "MIN_CLOSED",
+    "ClosureMap",
+    "closure_ranges",
+    "contrast_from_report",
+]
 
 #: The weights mapped: the two blinks (ARKit names).
 CLOSURE_NAMES = ("eyeBlinkLeft", "eyeBlinkRight")
+#: The fit report's entries that describe the map.
+CLOSURE_REPORT_KEYS = ("closure", "closure_contrast")
 #: A closed eye the rig reads below this (above the neutral's reading) is not mapped: the
 #: map would multiply that weight's noise by more than 1 / MIN_CLOSED.
 MIN_CLOSED = 0.2
@@ -50,16 +62,42 @@ def closure_ranges(
     return ranges
 
 
+def contrast_from_report(report: Mapping[str, Any] | None) -> tuple[float, float] | None:
+    """A fit report's ``"closure_contrast"`` [low, high] (0 <= low < high <= 1), or None
+    (no entry, or one that is not such a pair: the map is then linear)."""
+    entry = (report or {}).get("closure_contrast")
+    if not isinstance(entry, (list, tuple)) or len(entry) != 2:
+        return None
+    try:
+        low, high = float(entry[0]), float(entry[1])
+    except (TypeError, ValueError):
+        return None
+    return (low, high) if 0.0 <= low < high <= 1.0 else None
+
+
+def _smoothstep(t: float, low: float, high: float) -> float:
+    x = min(1.0, max(0.0, (t - low) / (high - low)))
+    return x * x * (3.0 - 2.0 * x)
+
+
 class ClosureMap:
-    """The map of a rig's blink weights: (w − open) / (closed − open), clipped to [0, 1].
+    """The map of a rig's blink weights: (w − open) / (closed − open), clipped to [0, 1],
+    then, with a ``contrast`` (low, high), a smoothstep from low (0) to high (1).
 
     Column 0 (the neutral) takes up the change, so the weights still sum to 1.
     """
 
-    def __init__(self, columns: np.ndarray, opened: np.ndarray, closed: np.ndarray) -> None:
+    def __init__(
+        self,
+        columns: np.ndarray,
+        opened: np.ndarray,
+        closed: np.ndarray,
+        contrast: tuple[float, float] | None = None,
+    ) -> None:
         self.columns = columns
         self.opened = opened
         self.scale = 1.0 / (closed - opened)
+        self.contrast = contrast
         # A single frame (the live path) maps its two weights as Python floats: numpy's
         # fancy indexing would cost more than the rest of the frame's map.
         self._single = [
@@ -71,8 +109,9 @@ class ClosureMap:
     def from_report(
         cls, report: Mapping[str, Any] | None, names: Sequence[str]
     ) -> ClosureMap | None:
-        """The map a fit report's ``"closure"`` entry describes, or None (no entry, or none
-        of its names among ``names``, or a range that is not one)."""
+        """The map a fit report's ``"closure"`` entry describes (with its
+        ``"closure_contrast"``, when a usable one is there), or None (no entry, or none of its
+        names among ``names``, or a range that is not one)."""
         ranges = (report or {}).get("closure")
         if not isinstance(ranges, Mapping):
             return None
@@ -91,20 +130,28 @@ class ClosureMap:
             closed.append(high)
         if not columns:
             return None
-        return cls(np.asarray(columns), np.asarray(opened), np.asarray(closed))
+        contrast = contrast_from_report(report)
+        return cls(np.asarray(columns), np.asarray(opened), np.asarray(closed), contrast)
 
     def apply(self, weights: np.ndarray) -> np.ndarray:
         """(M,) or (B, M) weights mapped in place (and returned); the neutral's weight takes
         up the change, so the weights still sum to what they did."""
+        contrast = self.contrast
         if weights.ndim == 1:
             for j, low, gain in self._single:
                 old = float(weights[j])
                 new = min(1.0, max(0.0, (old - low) * gain))
+                if contrast is not None:
+                    new = _smoothstep(new, *contrast)
                 weights[j] = new
                 weights[0] += old - new
             return weights
         before = weights[:, self.columns]
         after = np.clip((before - self.opened) * self.scale, 0.0, 1.0)
+        if contrast is not None:
+            low, high = contrast
+            after = np.clip((after - low) / (high - low), 0.0, 1.0)
+            after = after * after * (3.0 - 2.0 * after)
         weights[:, self.columns] = after
         weights[:, 0] += (before - after).sum(axis=1)
         return weights

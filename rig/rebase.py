@@ -24,6 +24,7 @@ __all__ = [
     "DEPTH_NOISE_FACTOR",
     "IDENTITY_NOISE_FACTOR",
     "MAX_NOISE_RELATIVE",
+    "REBASE_BLINK_CONTRAST",
     "REBASE_CLAMP",
     "calibrate",
     "identity_noise",
@@ -63,6 +64,19 @@ MAX_NOISE_RELATIVE = 10.0
 #: The bounds of a re-based rig's weights: each non-neutral weight in [0, 1], so a face
 #: that no example explains shows the nearest mix of them, never an extrapolated one.
 REBASE_CLAMP = "unit"
+#: The contrast curve of a re-based rig's closed-read blinks (``closure.ClosureMap``): a
+#: mapped blink below 0.4 reads open, above 0.8 closed, a smoothstep between. The re-based
+#: rig reads the performer through another face's keys, and reads a held gaze partly
+#: closed: on `bench webcam`'s eyes clip with the eyeballs turned at ARKit's 35°, up, down,
+#: left and right held read as closed by 0.43 / 0.59 / 0.44 / 0.34 (the Kalman filter's
+#: rows), 0.08 / 0.43 / 0.12 / 0.13 through the curve; its quick blinks 0.84 / 0.94 (min /
+#: mean) -> 1.00 / 1.00 and a wink's other eye 0.19 -> 0.00 on the default videos; the real
+#: take's error 2.413 -> 2.399, the calmer one's 1.547 -> 1.597 (its eyes never close; the
+#: curve opens their small closing). 0.3-0.7 leaves a held gaze at 0.28-0.69, 0.5-0.9 takes
+#: a quick blink's least peak to 0.94 (README, issue 34's option (ag)). The performer's own
+#: rig (``fit_performer``) keeps the linear map: there the curve took the take's error
+#: above NNLS's.
+REBASE_BLINK_CONTRAST = (0.4, 0.8)
 
 
 def identity_noise(rig: Rig, neutral: npt.ArrayLike) -> float:
@@ -220,7 +234,8 @@ def calibrate(
     and with ``blinks`` ({"eyeBlinkLeft" / "eyeBlinkRight": (K, 3)}, the performer's
     captured closed eyes, some or both) each blink weight is mapped so that the re-based
     rig reads the performer's own closed eye as 1 and their neutral as 0 (``closure``, as
-    ``fit_performer`` does with a personal capture). Names the rig lacks are ignored.
+    ``fit_performer`` does with a personal capture), then through
+    ``REBASE_BLINK_CONTRAST``'s curve. Names the rig lacks are ignored.
     """
     if noise is None:
         return rig.calibrated(neutral)
@@ -232,4 +247,4 @@ def calibrate(
         raise InputError(
             f"blinks: {unknown[0]!r} is not one of {', '.join(CLOSURE_NAMES)}", code="bad_input"
         )
-    return rebased.with_closed_eyes(neutral, blinks)
+    return rebased.with_closed_eyes(neutral, blinks, REBASE_BLINK_CONTRAST)

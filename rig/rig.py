@@ -16,7 +16,7 @@ import numpy.typing as npt
 
 from .basis import build_blend_basis
 from .blend import Placement, blend_into, moving_vertices
-from .closure import CLOSURE_NAMES, ClosureMap, closure_ranges
+from .closure import CLOSURE_NAMES, CLOSURE_REPORT_KEYS, ClosureMap, closure_ranges
 from .errors import InputError
 from .examples import check_stable_points
 from .io.rigformat import content_checksum, rig_to_bytes, save_rig, write_rig
@@ -533,22 +533,33 @@ class Rig:
         rig.fit_report = report
         return rig
 
-    def with_closed_eyes(self, neutral: npt.ArrayLike, closed: Mapping[str, npt.ArrayLike]) -> Rig:
+    def with_closed_eyes(
+        self,
+        neutral: npt.ArrayLike,
+        closed: Mapping[str, npt.ArrayLike],
+        contrast: tuple[float, float] | None = None,
+    ) -> Rig:
         """This rig reading the performer's closed eyes as closed (``closure``): its
-        ``"closure"`` entry set from its own readings of ``neutral`` and of each of ``closed``
-        ({name: (K, 3)}; names other than ``CLOSURE_NAMES`` are not read). This rig itself
-        when no blink reads closed enough (``closure_ranges``). What ``fit_performer`` and
-        ``rebase.calibrate`` both do.
+        ``"closure"`` entry set from its own readings (without any map it had) of ``neutral``
+        and of each of ``closed`` ({name: (K, 3)}; names other than ``CLOSURE_NAMES`` are not
+        read), and its ``"closure_contrast"`` to ``contrast`` (None: none, a linear map).
+        This rig itself when no blink reads closed enough (``closure_ranges``). What
+        ``fit_performer`` and ``rebase.calibrate`` both do.
         """
         k = self.num_points
-        readings = {"neutral": self.weights(np.asarray(neutral, dtype=np.float64)[:k])}
+        report = {n: v for n, v in self.fit_report.items() if n not in CLOSURE_REPORT_KEYS}
+        plain = self if self._closure is None else self.with_weight_models(self.models, report)
+        readings = {"neutral": plain.weights(np.asarray(neutral, dtype=np.float64)[:k])}
         for name, points in closed.items():
             if name in CLOSURE_NAMES:
-                readings[name] = self.weights(np.asarray(points, dtype=np.float64)[:k])
+                readings[name] = plain.weights(np.asarray(points, dtype=np.float64)[:k])
         ranges = closure_ranges(readings, self.names)
         if not ranges:
             return self
-        return self.with_weight_models(self.models, {**self.fit_report, "closure": ranges})
+        report["closure"] = ranges
+        if contrast is not None:
+            report["closure_contrast"] = [float(contrast[0]), float(contrast[1])]
+        return self.with_weight_models(self.models, report)
 
     def with_align_scale(self, align_scale: bool) -> Rig:
         """The same rig, removing (or not) uniform scale with the head pose (``align``).

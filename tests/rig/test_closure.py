@@ -11,6 +11,7 @@ from facecast.rig import fit, load_rig
 from facecast.rig.closure import MIN_CLOSED, ClosureMap, closure_ranges
 from facecast.rig.evaluation.webcam import ict_performer
 from facecast.rig.fit import refit_noise
+from facecast.rig.rebase import REBASE_BLINK_CONTRAST, calibrate
 from facecast.rig.retarget import fit_performer
 from facecast.rig.sources.ict import locate_ict
 from facecast.rig.sources.ict_arkit import arkit_example_set
@@ -41,6 +42,37 @@ def test_the_map_reads_the_closed_eye_as_1_clips_and_keeps_the_sum():
     np.testing.assert_allclose(mapped.sum(axis=1), 1.0)
     # A single frame (the live path's own branch) maps as the batch does.
     np.testing.assert_allclose([closure.apply(w.copy()) for w in weights], mapped, atol=1e-15)
+
+
+def test_the_contrast_curve_opens_a_partly_read_blink_and_closes_a_mostly_read_one():
+    ranges = {"closure": {"eyeBlinkLeft": [0.1, 0.6]}}
+    curved = ClosureMap.from_report({**ranges, "closure_contrast": [0.4, 0.8]}, NAMES)
+    linear = ClosureMap.from_report(ranges, NAMES)
+    assert curved is not None and linear is not None and curved.contrast == (0.4, 0.8)
+    raw = np.linspace(0.0, 0.8, 81)  # the rig's reading of the left blink
+    weights = np.stack([1.0 - raw - 0.1, raw, np.full_like(raw, 0.1), np.zeros_like(raw)], 1)
+    mapped = curved.apply(weights.copy())
+    lin = linear.apply(weights.copy())[:, 1]
+    got = mapped[:, 1]
+    # Mapped 0.3 (a held gaze's closing) opens, 0.6 stays, 0.9 (a quick blink's) closes.
+    np.testing.assert_allclose(
+        got[np.searchsorted(raw, [0.25, 0.40, 0.55])], [0.0, 0.5, 1.0], atol=1e-12
+    )
+    assert np.all(got[lin <= 0.4] == 0.0) and np.all(got[lin >= 0.8] == 1.0)
+    assert np.all(np.diff(got) >= 0.0)  # monotone: a closing eye never reads opening
+    np.testing.assert_allclose(mapped.sum(axis=1), 1.0)
+    np.testing.assert_allclose(mapped[:, 2:], weights[:, 2:])
+    np.testing.assert_allclose([curved.apply(w.copy()) for w in weights], mapped, atol=1e-15)
+
+
+@pytest.mark.parametrize(
+    "contrast", [None, "x", [0.4], [0.8, 0.4], [0.4, 0.4], [-0.1, 0.5], [0.5, 1.5], [0.4, "a"],
+                 [float("nan"), 0.8]],
+)  # fmt: skip
+def test_an_unusable_contrast_leaves_the_map_linear(contrast):
+    report = {"closure": {"eyeBlinkLeft": [0.1, 0.6]}, "closure_contrast": contrast}
+    closure = ClosureMap.from_report(report, NAMES)
+    assert closure is not None and closure.contrast is None
 
 
 @pytest.mark.parametrize(
@@ -108,3 +140,51 @@ def test_the_map_travels_with_the_rig_file_and_a_refit(performer_rig, tmp_path):
     refitted = refit_noise(rig, SIGMA / 2)
     assert refitted.fit_report["closure"] == rig.fit_report["closure"]
     assert rig.with_clamp("unit").fit_report["closure"] == rig.fit_report["closure"]
+
+
+@pytest.mark.ict
+@needs_ict
+def test_a_rebased_rig_opens_a_half_closed_eye_and_closes_a_closed_one(performer_rig):
+    """The generic path: the character's own rig re-based on the performer's neutral with
+    their captured closed eyes takes the contrast curve; their own rig keeps the linear map."""
+    rig, performer, exact = performer_rig
+    archive = locate_ict()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the exact ICT rig warns to fit with noise: known
+        character = fit(arkit_example_set(archive, identity="person01"))
+    k = character.num_points
+    blinks = {
+        name: exact[performer.names.index(name)][:k] for name in ("eyeBlinkLeft", "eyeBlinkRight")
+    }
+    rebased = calibrate(character, exact[0][:k], SIGMA, blinks)
+    assert rebased.fit_report["closure_contrast"] == list(REBASE_BLINK_CONTRAST)
+    assert "closure_contrast" not in rig.fit_report
+    linear = rebased.with_weight_models(
+        rebased.models, {n: v for n, v in rebased.fit_report.items() if n != "closure_contrast"}
+    )
+    left = rebased.names.index("eyeBlinkLeft")
+    shares = np.array([0.0, 0.3, 1.0])  # the left blink's weight in the performer's face
+    act = np.zeros((len(shares), len(performer.names)))
+    act[:, performer.names.index("eyeBlinkLeft")] = shares
+    frames = performer.landmark_points(act)[:, :k]
+    plain, curved = linear.weights(frames)[:, left], rebased.weights(frames)[:, left]
+    assert 0.15 < plain[1] < 0.45  # the linear map reads the third-closed eye about so
+    assert curved[1] < 0.05  # the curve opens it
+    assert curved[2] > 0.99 and curved[0] < 0.01  # and reads closed and open as they are
+
+
+@pytest.mark.ict
+@needs_ict
+def test_closed_eyes_are_read_on_the_rig_without_its_map(performer_rig):
+    """Reading the closed eyes again (a re-base of a rig that has a map) reads the rig
+    itself, not its map: the same ranges, however often."""
+    rig, performer, exact = performer_rig
+    blinks = {
+        name: exact[performer.names.index(name)] for name in ("eyeBlinkLeft", "eyeBlinkRight")
+    }
+    plain = rig.with_weight_models(
+        rig.models, {n: v for n, v in rig.fit_report.items() if n != "closure"}
+    )
+    again = rig.with_closed_eyes(exact[0], blinks).fit_report["closure"]
+    assert again == plain.with_closed_eyes(exact[0], blinks).fit_report["closure"]
+    assert all(closed < 0.9 for _, closed in again.values())  # the rig's, not its map's 1
