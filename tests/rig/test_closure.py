@@ -144,7 +144,7 @@ def test_the_map_travels_with_the_rig_file_and_a_refit(performer_rig, tmp_path):
 
 @pytest.mark.ict
 @needs_ict
-def test_a_rebased_rig_opens_a_half_closed_eye_and_closes_a_closed_one(performer_rig):
+def test_a_rebased_rig_opens_a_half_closed_eye_and_closes_a_closed_one(performer_rig, tmp_path):
     """The generic path: the character's own rig re-based on the performer's neutral with
     their captured closed eyes takes the contrast curve; their own rig keeps the linear map."""
     rig, performer, exact = performer_rig
@@ -171,6 +171,10 @@ def test_a_rebased_rig_opens_a_half_closed_eye_and_closes_a_closed_one(performer
     assert 0.15 < plain[1] < 0.45  # the linear map reads the third-closed eye about so
     assert curved[1] < 0.05  # the curve opens it
     assert curved[2] > 0.99 and curved[0] < 0.01  # and reads closed and open as they are
+    # The curve travels with the rig's file, as the map does.
+    path = tmp_path / "rebased.rig"
+    rebased.save(path)
+    np.testing.assert_allclose(load_rig(path).weights(frames)[:, left], curved, atol=1e-6)
 
 
 @pytest.mark.ict
