@@ -81,7 +81,7 @@ WINK_OTHER = 0.15  # the other eye: 0.01 each side (24 points: 0.02 / 0.07)
 # The generic path on the shipped source (option (z)), 2026-12-05 06:55 UTC: blinks 1.00 /
 # 0.83, the winks' other eye 0.02 / 0.04, gaze right in 3 holds (up read as down); on ICT's
 # exact landmarks, the source before: 0.85 / 0.83, 0.05 / 0.14, 1 hold (down). Through the
-# re-base's blink curve (rebase.REBASE_BLINK_CONTRAST, option (ag), 2026-12-05 16:15 UTC):
+# re-base's blink curve (rebase.REBASE_BLINK_CONTRAST, option (ag), 2026-12-05 15:52 UTC):
 # blinks 1.00 / 1.00, the other eye 0.00 / 0.00, the same gaze; the floors below fail
 # without it.
 GENERIC_BLINK_FLOOR = 0.95
