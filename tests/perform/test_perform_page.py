@@ -437,7 +437,12 @@ def test_a_wrong_token_names_the_missing_role(
     camera.show([FacePose()] * 5)
     page = open_page(browser, perform_url(auth_server, f"auth-{token}", CHARACTER, token=token))
     pages.append(page)
-    page.wait_for_function(f"(window.facecastStats || {{}})[{where!r}]")
+    # The publish detail says "channel …, rig …" while the session opens: wait for what
+    # the server answered (it once raced under load: the opening detail was read).
+    opening = f"channel auth-{token}, rig {CHARACTER}"
+    page.wait_for_function(
+        f"(d => d && d !== {opening!r})((window.facecastStats || {{}})[{where!r}])"
+    )
 
     assert says in page.evaluate(f"window.facecastStats[{where!r}]")
 
