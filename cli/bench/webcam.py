@@ -312,11 +312,12 @@ def _print_eyes(title: str, scored: dict[str, Any]) -> None:
         f"performed by ICT {scored['performer']} ({scored['clip_frames']} "
         f"frames at {KEY_FPS:g} fps, {scored['keys_captured']} keys captured); blink peaks "
         "per eye as a share of the truth (min, mean), winks' own eye (min) and other eye "
-        "(max; truth 1 and 0), gaze holds seen in the right direction, jaw + smile as % of "
-        "the truth, and the goals passed (b w g c)"
+        "(max; truth 1 and 0), gaze holds seen in the right direction and how shut the eyes "
+        "read on them (the blinks' mean over the four holds; truth 0), jaw + "
+        "smile as % of the truth, and the goals passed (b w g c)"
     )
     print(f"  {'path':<26}{'blink min':>10}{'mean':>7}{'wink':>7}{'other':>7}{'gaze':>6}"
-          f"{'jaw %':>7}{'smile %':>8}  goals")  # fmt: skip
+          f"{'shut':>6}{'jaw %':>7}{'smile %':>8}  goals")  # fmt: skip
     for label, row in scored["rows"].items():
         peaks = [v for blink in row["blinks"] for v in blink.values()]
         winks, gaze, combo = row["winks"], row["gaze"], row["combo"][0]
@@ -325,7 +326,8 @@ def _print_eyes(title: str, scored: dict[str, Any]) -> None:
         print(
             f"  {label:<26}{min(peaks):>10.2f}{np.mean(peaks):>7.2f}"
             f"{min(w['peak'] for w in winks):>7.2f}{max(w['other'] for w in winks):>7.2f}"
-            f"{right:>4}/{len(gaze)}{100 * combo['jawOpen']:>7.0f}{100 * combo['smile']:>8.0f}"
+            f"{right:>4}/{len(gaze)}{np.mean([g['shut'] for g in gaze]):>6.2f}"
+            f"{100 * combo['jawOpen']:>7.0f}{100 * combo['smile']:>8.0f}"
             f"  {goals}"
         )
 

@@ -192,8 +192,8 @@ def eyes_scores(weights: npt.ArrayLike, names: Sequence[str], clip: EyesClip) ->
         ``blinks``: per blink the peak (over its frames and ``PEAK_LAG`` after) of each eye
         as a share of the true peak; ``winks``: the winking eye's and the other eye's peak
         (truth 1 and 0); ``gaze``: per hold the direction whose weights are highest on
-        average, whether it is the true one, and the true direction's weights as a share
-        of the truth; ``combo``: ``jawOpen`` and the smile (mean of both sides) as shares of
+        average, whether it is the true one, the true direction's weights as a share of
+        the truth, and ``shut``, the blinks' mean over the hold (truth 0); ``combo``: ``jawOpen`` and the smile (mean of both sides) as shares of
         the truth, averaged over the hold. And ``goals`` (``eyes_goals``).
     """
     w = np.asarray(weights, dtype=np.float64)
@@ -231,6 +231,10 @@ def eyes_scores(weights: npt.ArrayLike, names: Sequence[str], clip: EyesClip) ->
                 "seen": seen,
                 "right": seen == event.detail,
                 "share": got[event.detail] / _gaze(truth, hold)[event.detail],
+                # How shut the eyes read over the hold (the truth: open): the mean of both
+                # blinks, a gaze read as a closing (README, issue 34's option (ag)).
+                "shut": float(np.mean([series[f"eyeBlink{side}"][hold].mean()
+                                       for side in ("Left", "Right")])),
             })  # fmt: skip
         else:
             jaw = series["jawOpen"][hold].mean() / truth["jawOpen"][hold].mean()

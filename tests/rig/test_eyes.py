@@ -52,8 +52,27 @@ def test_the_truth_scores_perfectly():
     ]  # fmt: skip
     assert [g["seen"] for g in scores["gaze"]] == ["up", "down", "left", "right"]
     assert all(g["right"] and g["share"] == pytest.approx(1.0) for g in scores["gaze"])
+    assert all(g["shut"] == 0.0 for g in scores["gaze"])
     assert scores["combo"] == [{"jawOpen": pytest.approx(1.0), "smile": pytest.approx(1.0)}]
     assert all(scores["goals"].values())
+
+
+def test_eyes_closing_on_a_gaze_hold_are_reported_as_shut():
+    clip = eyes_clip(NAMES)
+    left, right = NAMES.index("eyeBlinkLeft"), NAMES.index("eyeBlinkRight")
+    weights = clip.activations.copy()
+    up, down = (e for e in clip.events if e.kind == "gaze" and e.detail in ("up", "down"))
+    weights[up.start : up.stop, [left, right]] = [0.4, 0.2]  # half-closing on the look up
+    weights[down.start : down.stop - 2, left] = 0.6  # and the left eye on most of the look down
+
+    scores = eyes_scores(weights, NAMES, clip)
+
+    shut = {g["direction"]: g["shut"] for g in scores["gaze"]}
+    hold = down.stop - down.start
+    assert shut == pytest.approx(
+        {"up": 0.3, "down": 0.3 * (hold - 2) / hold, "left": 0.0, "right": 0.0}
+    )
+    assert scores["goals"]["gaze"]  # the direction is still read right
 
 
 def test_a_wink_that_closes_both_eyes_and_half_blinks_are_reported():
