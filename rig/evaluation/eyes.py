@@ -193,8 +193,9 @@ def eyes_scores(weights: npt.ArrayLike, names: Sequence[str], clip: EyesClip) ->
         as a share of the true peak; ``winks``: the winking eye's and the other eye's peak
         (truth 1 and 0); ``gaze``: per hold the direction whose weights are highest on
         average, whether it is the true one, the true direction's weights as a share of
-        the truth, and ``shut``, the blinks' mean over the hold (truth 0); ``combo``: ``jawOpen`` and the smile (mean of both sides) as shares of
-        the truth, averaged over the hold. And ``goals`` (``eyes_goals``).
+        the truth, and ``shut``, the blinks' mean over the hold (truth 0); ``combo``:
+        ``jawOpen`` and the smile (mean of both sides) as shares of the truth, averaged over
+        the hold. And ``goals`` (``eyes_goals``).
     """
     w = np.asarray(weights, dtype=np.float64)
     if w.ndim != 2 or w.shape != (len(clip.activations), len(names)):
