@@ -75,11 +75,6 @@ def contrast_from_report(report: Mapping[str, Any] | None) -> tuple[float, float
     return (low, high) if 0.0 <= low < high <= 1.0 else None
 
 
-def _smoothstep(t: float, low: float, high: float) -> float:
-    x = min(1.0, max(0.0, (t - low) / (high - low)))
-    return x * x * (3.0 - 2.0 * x)
-
-
 class ClosureMap:
     """The map of a rig's blink weights: (w − open) / (closed − open), clipped to [0, 1],
     then, with a ``contrast`` (low, high), a smoothstep from low (0) to high (1).
@@ -98,6 +93,8 @@ class ClosureMap:
         self.opened = opened
         self.scale = 1.0 / (closed - opened)
         self.contrast = contrast
+        # The curve as (low, 1 / (high - low)) for the single frame's inline arithmetic.
+        self._curve = None if contrast is None else (contrast[0], 1.0 / (contrast[1] - contrast[0]))
         # A single frame (the live path) maps its two weights as Python floats: numpy's
         # fancy indexing would cost more than the rest of the frame's map.
         self._single = [
@@ -136,21 +133,21 @@ class ClosureMap:
     def apply(self, weights: np.ndarray) -> np.ndarray:
         """(M,) or (B, M) weights mapped in place (and returned); the neutral's weight takes
         up the change, so the weights still sum to what they did."""
-        contrast = self.contrast
+        curve = self._curve
         if weights.ndim == 1:
             for j, low, gain in self._single:
                 old = float(weights[j])
                 new = min(1.0, max(0.0, (old - low) * gain))
-                if contrast is not None:
-                    new = _smoothstep(new, *contrast)
+                if curve is not None:  # the smoothstep, inline: this runs every frame
+                    x = min(1.0, max(0.0, (new - curve[0]) * curve[1]))
+                    new = x * x * (3.0 - 2.0 * x)
                 weights[j] = new
                 weights[0] += old - new
             return weights
         before = weights[:, self.columns]
         after = np.clip((before - self.opened) * self.scale, 0.0, 1.0)
-        if contrast is not None:
-            low, high = contrast
-            after = np.clip((after - low) / (high - low), 0.0, 1.0)
+        if curve is not None:
+            after = np.clip((after - curve[0]) * curve[1], 0.0, 1.0)
             after = after * after * (3.0 - 2.0 * after)
         weights[:, self.columns] = after
         weights[:, 0] += (before - after).sum(axis=1)
