@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facecast.cli.bench.facevideo import head_scene, write_video
+from facecast.cli.bench.facevideo import ARKIT_GAZE_DEGREES, head_scene, write_video
 from facecast.cli.track import track_video
 from facecast.rig.evaluation.webcam import captured_keys, ict_performer, key_clips
 from facecast.rig.sources.ict import (
@@ -42,8 +42,8 @@ from facecast.rig.sources.source_rig import arkit_from_ict
 OUT = Path(__file__).resolve().parents[1] / "rig" / "characters" / "generic_arkit" / "points.npz"
 
 
-#: The generic face's camera: the webcam benchmark's defaults, at ARKit's scale of gaze.
-FPS, SWAY_DEGREES, GAZE_DEGREES = 30.0, 1.5, 35.0
+#: The generic face's camera: the webcam benchmark's defaults (ARKit's scale of gaze).
+FPS, SWAY_DEGREES, GAZE_DEGREES = 30.0, 1.5, ARKIT_GAZE_DEGREES
 
 
 def tracked_keys(archive: Path, tracked: Path | None, keep: Path | None) -> dict[str, np.ndarray]:

@@ -76,6 +76,11 @@ GAZE_NAMES = {
         -1.0,
     ),
 }
+#: How far an eyeball turns at an ARKit eye-look weight of 1, as ARKit reads a real face: on
+#: a real iPhone take (MySlate_1_iPhone.csv of dwskillman/BlendFiles, 679 frames) its eye yaw
+#: is 0.59 / 0.61 rad x (eyeLookOut - eyeLookIn), r 0.994, and its pitch 0.611 rad x
+#: (eyeLookUp - eyeLookDown), r 0.9999996: 35 degrees a unit (README, issue 34's option (y)).
+ARKIT_GAZE_DEGREES = 35.0
 _IRIS = ((0.32, 0.21, 0.12), 0.95)  # colour, cosine of the angle from the eye's axis
 _PUPIL = ((0.04, 0.04, 0.04), 0.985)
 _BROW_HALF_WIDTH = 0.45  # cm either side of the brow landmarks' line

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from facecast.cli.bench.facevideo import HeadScene, head_scene, write_video
+from facecast.cli.bench.facevideo import ARKIT_GAZE_DEGREES, HeadScene, head_scene, write_video
 from facecast.cli.errors import CommandError
 from facecast.cli.report import write_json
 from facecast.cli.track import Tracker, track_video
@@ -430,7 +430,7 @@ def _row_text(label: str, row: dict[str, Any]) -> str:
     axes = row["eq41_percent"]
     worst = max(axes.values())
     return (
-        f"  {label:<24}{axes['x']:>8.3f}{axes['y']:>8.3f}{axes['z']:>8.3f}{worst:>10.3f}"
+        f"  {label:<25}{axes['x']:>7.3f}{axes['y']:>8.3f}{axes['z']:>8.3f}{worst:>10.3f}"
         f"{row['jitter_percent']:>10.4f}{max(row['weight_rms'].values()):>12.3f}"
     )
 
@@ -441,7 +441,7 @@ def _print_table(title: str, scored: dict[str, Any]) -> None:
         f"noise sigma = {scored['noise'] * 10:.3f} mm from {scored['held_frames']} held frames"
     )
     print(
-        f"  {'path':<24}{'x':>8}{'y':>8}{'z':>8}{'max axis':>10}{'jitter':>10}{'worst w RMS':>12}"
+        f"  {'path':<25}{'x':>7}{'y':>8}{'z':>8}{'max axis':>10}{'jitter':>10}{'worst w RMS':>12}"
     )
     for label, row in scored["rows"].items():
         print(_row_text(label, row))
@@ -471,7 +471,7 @@ def _print_closures(rows: dict[str, Any]) -> None:
             r = "-" if c["correlation"] is None else f"{c['correlation']:.2f}"
             span = f"{min(shares):.2f}-{max(shares):.2f}" if shares else "none"
             cells.append(f"{name.removeprefix('eyeBlink').lower()} {span} r {r}")
-        print(f"  {label:<24}" + "   ".join(cells))
+        print(f"  {label:<25}" + "   ".join(cells))
 
 
 def _print_by_name(title: str, scored: dict[str, Any]) -> None:
@@ -497,6 +497,8 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--frames must be at least 3, got {args.frames}")
     if not (0.0 <= args.sway <= 10.0):
         raise CommandError(f"--sway must lie in [0, 10] degrees, got {args.sway}")
+    if args.gaze_degrees is None:
+        args.gaze_degrees = ARKIT_GAZE_DEGREES
     if not (0.0 <= args.gaze_degrees <= 45.0):
         raise CommandError(f"--gaze-degrees must lie in [0, 45], got {args.gaze_degrees}")
     if any(not (np.isfinite(a) and a > 0) for a in args.kalman or ()):

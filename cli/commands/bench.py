@@ -171,9 +171,11 @@ def register(subparsers: Subparsers) -> None:
                         "the others are skipped, as in the page's walk-through")  # fmt: skip
     webcam.add_argument("--sway", type=float, default=1.5, metavar="DEG",
                         help="head sway amplitude in degrees (default 1.5; 0: a still head)")  # fmt: skip
-    webcam.add_argument("--gaze-degrees", type=float, default=0.0, metavar="DEG",
+    webcam.add_argument("--gaze-degrees", type=float, default=None, metavar="DEG",
                         help="turn the rendered eyeballs by DEG at an eye-look weight of 1 "
-                        "(default 0: ICT's shapes move the lids only, the iris stays)")  # fmt: skip
+                        "(default 35, ARKit's scale on a real face: facevideo's "
+                        "ARKIT_GAZE_DEGREES; 0: ICT's shapes alone, which move the lids and "
+                        "leave the iris where it is)")  # fmt: skip
     webcam.add_argument("--generic-neutral", choices=("shipped", "ict", "tracked"),
                         default="shipped",
                         help="the generic rows' source: facecast's shipped generic set on "
