@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from facecast.cli.bench.facevideo import ARKIT_GAZE_DEGREES
 from facecast.cli.main import main
 from facecast.rig.evaluation.webcam import ict_performer, key_clips
 
@@ -117,6 +118,8 @@ def test_bench_on_tracked_videos_scores_every_path_near_the_truth_and_reuses_wha
         for path, bound in bounds.items()
     ), errors
     assert set(first["render_seconds"]) == set(first["track_seconds"]) == {"take", "keys", "eyes"}
+    # The eyeballs turn as ARKit's weights say on a real face, unless asked otherwise.
+    assert reports[0]["gaze_degrees"] == ARKIT_GAZE_DEGREES == 35.0
     # The eyes clip, its own video (another face's keys, then the clip), tracked once too.
     eyes = reports[0]["eyes_tracked"]
     assert eyes["performer"] == "person12" and eyes["keys_captured"] == 1 + len(KEYS)
