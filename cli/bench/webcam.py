@@ -35,6 +35,8 @@ from facecast.rig.evaluation.eyes import EYES_IDENTITY, EyesClip, eyes_clip, eye
 from facecast.rig.evaluation.takes import take_experiment
 from facecast.rig.evaluation.webcam import (
     CLOSURE_LEVEL,
+    GOAL_GENERIC_PERCENT,
+    GOAL_PERSONAL_PERCENT,
     KEY_HOLD_FRAMES,
     KEY_RAMP_FRAMES,
     PERFORMER_IDENTITY,
@@ -485,6 +487,17 @@ def _print_by_name(title: str, scored: dict[str, Any]) -> None:
         print(f"  {name:<20}" + "".join(f"{c:>{w}.3f}" for c, w in zip(cells, widths, strict=True)))
 
 
+def _take_goals(rows: dict[str, Any], kalman: tuple[float, ...]) -> dict[str, dict[str, Any]]:
+    """Issue 34's take goals on the rows viewers get (the live filter at the first of
+    ``kalman``): per path the row, its worst axis, the goal and whether it is met."""
+    goals = {}
+    for path, goal in ((PERSONAL, GOAL_PERSONAL_PERCENT), ("generic", GOAL_GENERIC_PERCENT)):
+        row = f"{path} live kalman {kalman[0]:g}"
+        figure = _max_axis(rows[row])
+        goals[path] = {"row": row, "figure": figure, "goal": goal, "pass": figure <= goal}
+    return goals
+
+
 def _max_axis(row: dict[str, Any]) -> float:
     return float(max(row["eq41_percent"].values()))
 
@@ -607,6 +620,12 @@ def run(args: argparse.Namespace) -> int:
             f"\ngoal: personal below NNLS on the same tracked points (max axis): "
             f"{_max_axis(personal):.3f} against {_max_axis(nnls):.3f}: {verdict}"
         )
+        report["take_goals"] = _take_goals(tracked["rows"], tuple(args.kalman or EYES_KALMAN))
+        for path, goal in report["take_goals"].items():
+            print(
+                f"goal: {path} at most {goal['goal']:g} % as viewers get it ({goal['row']}, max "
+                f"axis): {goal['figure']:.3f}: {'PASS' if goal['pass'] else 'FAIL'}"
+            )
         print(
             f"the tracker's share of the personal path's error (max axis): {100 * share:.0f} % "
             f"(exact landmarks {_max_axis(exact['rows'][PERSONAL]):.3f}, tracked "

@@ -31,6 +31,8 @@ from ..sources.source_rig import arkit_from_ict
 from .evaluate import cloning_error, nnls_weights
 
 __all__ = [
+    "GOAL_GENERIC_PERCENT",
+    "GOAL_PERSONAL_PERCENT",
     "KEY_HOLD_FRAMES",
     "KEY_RAMP_FRAMES",
     "PERFORMER_IDENTITY",
@@ -62,6 +64,9 @@ CLOSURE_LEVEL = 0.5
 #: Frames either side of a closure its peaks are looked for in: a causal filter lags, a
 #: tracker may close early.
 CLOSURE_MARGIN = 3
+#: Issue 34's take goals: eq. 4.1's worst axis, %, on tracked points as viewers get them
+#: (the live filter's rows), the personal path's and the generic path's.
+GOAL_PERSONAL_PERCENT, GOAL_GENERIC_PERCENT = 2.0, 2.5
 
 
 @dataclass(frozen=True, eq=False)

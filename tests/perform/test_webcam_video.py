@@ -118,6 +118,13 @@ def test_bench_on_tracked_videos_scores_every_path_near_the_truth_and_reuses_wha
         for path, bound in bounds.items()
     ), errors
     assert set(first["render_seconds"]) == set(first["track_seconds"]) == {"take", "keys", "eyes"}
+    # Issue 34's take goals, judged on the rows viewers get (the live filter's).
+    goals = reports[0]["take_goals"]
+    assert {path: goal["goal"] for path, goal in goals.items()} == {"personal": 2.0, "generic": 2.5}
+    for path, goal in goals.items():
+        assert goal["row"] == f"{path} live kalman 480"
+        assert goal["figure"] == max_axis(first["rows"][goal["row"]])
+        assert goal["pass"] == (goal["figure"] <= goal["goal"])
     # The eyeballs turn as ARKit's weights say on a real face, unless asked otherwise.
     assert reports[0]["gaze_degrees"] == ARKIT_GAZE_DEGREES == 35.0
     # The eyes clip, its own video (another face's keys, then the clip), tracked once too.
