@@ -20,11 +20,14 @@ from typing import Any
 
 import numpy as np
 
+from .errors import InputError
+
 __all__ = [
     "CLOSURE_NAMES",
     "CLOSURE_REPORT_KEYS",
     "MIN_CLOSED",
     "ClosureMap",
+    "check_contrast",
     "closure_ranges",
     "contrast_from_report",
 ]
@@ -60,6 +63,28 @@ def closure_ranges(
         if np.isfinite(opened) and np.isfinite(closed) and closed - opened >= MIN_CLOSED:
             ranges[name] = [opened, closed]
     return ranges
+
+
+def check_contrast(contrast: Any) -> tuple[float, float]:
+    """``contrast`` as a curve's (low, high): two finite numbers, 0 <= low < high <= 1.
+
+    Raises
+    ------
+    InputError
+        ``bad_input`` for anything else (the curve would be a step, reversed or off [0, 1]).
+    """
+    try:
+        low, high = (float(v) for v in contrast)
+    except (TypeError, ValueError):
+        raise InputError(
+            "blink contrast: expected two numbers [low, high]", code="bad_input"
+        ) from None
+    if not (0.0 <= low < high <= 1.0):  # NaN fails every comparison
+        raise InputError(
+            f"blink contrast: expected 0 <= low < high <= 1, got [{low:g}, {high:g}]",
+            code="bad_input",
+        )
+    return low, high
 
 
 def contrast_from_report(report: Mapping[str, Any] | None) -> tuple[float, float] | None:

@@ -13,7 +13,7 @@ from collections.abc import Mapping
 import numpy as np
 import numpy.typing as npt
 
-from .closure import CLOSURE_NAMES
+from .closure import CLOSURE_NAMES, check_contrast
 from .errors import InputError
 from .fit import fit_weight_model
 from .pose import similarity_transform
@@ -226,6 +226,7 @@ def calibrate(
     neutral: npt.ArrayLike,
     noise: float | None = None,
     blinks: Mapping[str, npt.ArrayLike] | None = None,
+    contrast: tuple[float, float] | None = None,
 ) -> Rig:
     """A session's re-base on a performer's neutral: exact without ``noise``, else ``rebase``.
 
@@ -234,9 +235,12 @@ def calibrate(
     and with ``blinks`` ({"eyeBlinkLeft" / "eyeBlinkRight": (K, 3)}, the performer's
     captured closed eyes, some or both) each blink weight is mapped so that the re-based
     rig reads the performer's own closed eye as 1 and their neutral as 0 (``closure``, as
-    ``fit_performer`` does with a personal capture), then through
-    ``REBASE_BLINK_CONTRAST``'s curve. Names the rig lacks are ignored.
+    ``fit_performer`` does with a personal capture), then through the contrast curve
+    ``contrast`` (low, high) (None: ``REBASE_BLINK_CONTRAST``; the performer's own, as
+    calibrate ``blink_contrast`` carries it: ``closure.check_contrast``). Names the rig
+    lacks are ignored.
     """
+    curve = REBASE_BLINK_CONTRAST if contrast is None else check_contrast(contrast)
     if noise is None:
         return rig.calibrated(neutral)
     rebased = rebase(rig, neutral, noise=noise)
@@ -247,4 +251,4 @@ def calibrate(
         raise InputError(
             f"blinks: {unknown[0]!r} is not one of {', '.join(CLOSURE_NAMES)}", code="bad_input"
         )
-    return rebased.with_closed_eyes(neutral, blinks, REBASE_BLINK_CONTRAST)
+    return rebased.with_closed_eyes(neutral, blinks, curve)

@@ -7,8 +7,9 @@ import warnings
 import numpy as np
 import pytest
 
-from facecast.rig import fit, load_rig
+from facecast.rig import InputError, fit, load_rig
 from facecast.rig.closure import MIN_CLOSED, ClosureMap, closure_ranges
+from facecast.rig.demo import demo_example_set
 from facecast.rig.evaluation.webcam import ict_performer
 from facecast.rig.fit import refit_noise
 from facecast.rig.rebase import REBASE_BLINK_CONTRAST, calibrate
@@ -192,3 +193,42 @@ def test_closed_eyes_are_read_on_the_rig_without_its_map(performer_rig):
     again = rig.with_closed_eyes(exact[0], blinks).fit_report["closure"]
     assert again == plain.with_closed_eyes(exact[0], blinks).fit_report["closure"]
     assert all(closed < 0.9 for _, closed in again.values())  # the rig's, not its map's 1
+
+
+@pytest.mark.ict
+@needs_ict
+def test_a_performers_own_contrast_replaces_the_default_curve(performer_rig):
+    """calibrate's ``contrast`` (a calibrate's ``blink_contrast``, §5.1.3): a performer whose
+    looks down read as half-closed raises the curve's low end, and a blink still reads
+    closed."""
+    _, performer, exact = performer_rig
+    archive = locate_ict()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the exact ICT rig warns to fit with noise: known
+        character = fit(arkit_example_set(archive, identity="person01"))
+    k = character.num_points
+    blinks = {
+        name: exact[performer.names.index(name)][:k] for name in ("eyeBlinkLeft", "eyeBlinkRight")
+    }
+    own = calibrate(character, exact[0][:k], SIGMA, blinks, contrast=(0.6, 0.9))
+    default = calibrate(character, exact[0][:k], SIGMA, blinks)
+    assert own.fit_report["closure_contrast"] == [0.6, 0.9]
+    left = own.names.index("eyeBlinkLeft")
+    shares = np.array([0.6, 1.0])  # the left blink 60 % and fully closed
+    act = np.zeros((len(shares), len(performer.names)))
+    act[:, performer.names.index("eyeBlinkLeft")] = shares
+    frames = performer.landmark_points(act)[:, :k]
+    part_own, closed_own = own.weights(frames)[:, left]
+    part_default, _ = default.weights(frames)[:, left]
+    assert part_default > 0.4 and part_own < 0.05  # measured 0.50 and 0.00: it reads open
+    assert closed_own > 0.99  # and the closed eye still closed
+
+
+@pytest.mark.parametrize(
+    "contrast", [(0.8, 0.4), (0.5, 0.5), (-0.1, 0.5), (0.2, 1.5), (np.nan, 0.9), (0.5,), "lo"]
+)
+def test_an_unusable_own_contrast_is_refused(contrast):
+    rig = fit(demo_example_set())
+    with pytest.raises(InputError) as caught:
+        calibrate(rig, rig.source_neutral, 0.01, None, contrast=contrast)
+    assert caught.value.code == "bad_input"
