@@ -54,6 +54,10 @@ class Calibrate(_ArrayMessage):
         The performer's captured closed eyes, under ``BLINK_NAMES`` (one or both), each with
         as many points as ``points``; needs ``points`` and ``noise``. The server maps each
         blink weight so that the re-based rig reads the performer's closed eye as 1.
+    blink_contrast : (low, high) floats or None
+        The performer's own curve for those blinks, 0 <= low < high <= 1: a mapped blink
+        below low reads open, above high closed (the server's own 0.4, 0.8 when None);
+        needs ``blinks``.
     """
 
     TYPE: ClassVar[str] = "calibrate"
@@ -61,6 +65,7 @@ class Calibrate(_ArrayMessage):
     reset: bool = False
     noise: float | None = None
     blinks: Mapping[str, np.ndarray] | None = None
+    blink_contrast: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         check_bool(self.reset, "calibrate.reset")
@@ -85,6 +90,22 @@ class Calibrate(_ArrayMessage):
             object.__setattr__(self, "noise", noise)
         if self.blinks is not None:
             self._check_blinks(self.blinks)
+        if self.blink_contrast is not None:
+            object.__setattr__(self, "blink_contrast", self._checked_contrast(self.blink_contrast))
+
+    def _checked_contrast(self, value: Any) -> tuple[float, float]:
+        where = "calibrate.blink_contrast"
+        if self.blinks is None:
+            raise ProtocolError(ErrorCode.INVALID_FIELD, f"{where} needs calibrate.blinks")
+        if not isinstance(value, (list, tuple)) or len(value) != 2:
+            raise ProtocolError(ErrorCode.INVALID_FIELD, f"{where} must be [low, high]")
+        low, high = check_float(value[0], f"{where}[0]"), check_float(value[1], f"{where}[1]")
+        if not 0.0 <= low < high <= 1.0:
+            raise ProtocolError(
+                ErrorCode.INVALID_FIELD,
+                f"{where} must be 0 <= low < high <= 1, got [{low!r}, {high!r}]",
+            )
+        return low, high
 
     def _check_blinks(self, blinks: Any) -> None:
         if not isinstance(blinks, Mapping) or not blinks:
@@ -118,6 +139,8 @@ class Calibrate(_ArrayMessage):
             out["noise"] = self.noise
         if self.blinks is not None:  # absent unless given, as noise
             out["blinks"] = {name: array_to_wire(a) for name, a in self.blinks.items()}
+        if self.blink_contrast is not None:  # absent unless given, as blinks
+            out["blink_contrast"] = list(self.blink_contrast)
         return out
 
     @classmethod
@@ -132,6 +155,7 @@ class Calibrate(_ArrayMessage):
             reset=read_bool(obj, "reset", "calibrate.reset", False),
             noise=read_float(obj, "noise", "calibrate.noise", None),
             blinks=_read_blinks(obj.get("blinks"), limits),
+            blink_contrast=obj.get("blink_contrast"),  # checked as the message is built
         )
 
 

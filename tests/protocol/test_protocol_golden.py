@@ -42,7 +42,9 @@ GOLDEN = {
 }
 
 #: Further examples in PROTOCOL.md, of message variants (test_protocol_moving checks them).
-VARIANTS = ("ready_moving", "result_moving", "calibrate_noise", "calibrate_blinks")
+VARIANTS = (
+    "ready_moving", "result_moving", "calibrate_noise", "calibrate_blinks", "calibrate_contrast"
+)
 
 # Examples in PROTOCOL.md look like: <!-- example: frame --> then a fenced block of hex.
 _EXAMPLE = re.compile(r"<!-- example: (\w+) -->\s*```[a-z]*\n(.*?)```", re.DOTALL)
@@ -104,6 +106,21 @@ def test_calibrate_with_blinks_is_the_spec_example_and_round_trips() -> None:
     assert b"blinks" not in encode(Calibrate(noise=0.015625))  # absent unless given
 
 
+def test_calibrate_with_a_blink_contrast_is_the_spec_example_and_round_trips() -> None:
+    message = Calibrate(
+        points=np.zeros((1, 3), np.float32),
+        noise=0.015625,
+        blinks={"eyeBlinkLeft": np.array([[0.0, -0.25, 0.0]], np.float32)},
+        blink_contrast=(0.5, 0.875),
+    )
+    data = encode(message)
+
+    assert _spec_examples()["calibrate_contrast"] == data
+    assert decode_client(data) == message
+    assert decode_client(data).blink_contrast == (0.5, 0.875)
+    assert b"blink_contrast" not in encode(Calibrate(noise=0.015625))  # absent unless given
+
+
 def _calibrate_body(**fields):
     point = {"dtype": "f32", "shape": [1, 3], "data": bytes(12)}
     return {"v": 1, "type": "calibrate", "points": point, "reset": False, "noise": 0.01,
@@ -127,6 +144,28 @@ def test_a_bad_calibrate_blinks_is_refused_with_invalid_field(fields, message) -
         decode_client(msgpack.packb(_calibrate_body(**fields)))
 
     assert raised.value.code == ErrorCode.INVALID_FIELD
+    assert message in str(raised.value)
+
+
+@pytest.mark.parametrize(
+    ("fields", "code", "message"),
+    [
+        ({"blinks": None, "blink_contrast": [0.5, 0.9]}, ErrorCode.INVALID_FIELD, "needs calibrate.blinks"),
+        ({"blink_contrast": [0.5]}, ErrorCode.INVALID_FIELD, "must be [low, high]"),
+        ({"blink_contrast": 0.5}, ErrorCode.INVALID_FIELD, "must be [low, high]"),
+        ({"blink_contrast": [0.9, 0.5]}, ErrorCode.INVALID_FIELD, "0 <= low < high <= 1"),
+        ({"blink_contrast": [0.5, 0.5]}, ErrorCode.INVALID_FIELD, "0 <= low < high <= 1"),
+        ({"blink_contrast": [-0.1, 0.5]}, ErrorCode.INVALID_FIELD, "0 <= low < high <= 1"),
+        ({"blink_contrast": [0.5, 1.5]}, ErrorCode.INVALID_FIELD, "0 <= low < high <= 1"),
+        ({"blink_contrast": [0.5, "0.9"]}, ErrorCode.INVALID_FIELD, "blink_contrast[1]"),
+        ({"blink_contrast": [float("nan"), 0.9]}, ErrorCode.NON_FINITE, "blink_contrast[0]"),
+    ],
+)  # fmt: skip
+def test_a_bad_calibrate_blink_contrast_is_refused(fields, code, message) -> None:
+    with pytest.raises(ProtocolError) as raised:
+        decode_client(msgpack.packb(_calibrate_body(**fields)))
+
+    assert raised.value.code == code
     assert message in str(raised.value)
 
 
