@@ -43,7 +43,11 @@ GOLDEN = {
 
 #: Further examples in PROTOCOL.md, of message variants (test_protocol_moving checks them).
 VARIANTS = (
-    "ready_moving", "result_moving", "calibrate_noise", "calibrate_blinks", "calibrate_contrast"
+    "ready_moving",
+    "result_moving",
+    "calibrate_noise",
+    "calibrate_blinks",
+    "calibrate_contrast",
 )
 
 # Examples in PROTOCOL.md look like: <!-- example: frame --> then a fenced block of hex.
