@@ -387,13 +387,15 @@ class FramePublisher:
         points: np.ndarray,
         noise: float | None = None,
         blinks: Mapping[str, np.ndarray] | None = None,
+        blink_contrast: tuple[float, float] | None = None,
     ) -> None:
         """Re-base the channel's rigs on the performer's neutral ``points`` (K, 3).
 
         ``noise``: the landmark noise measured while the neutral was held; given, every
         watched rig is re-based noise-aware and bounded (PROTOCOL.md §5.1.3), as the
         /perform page asks, and ``blinks`` ({"eyeBlinkLeft" / "eyeBlinkRight": (K, 3)},
-        the performer's captured closed eyes) are read as closed on each. Frames sent after
+        the performer's captured closed eyes) are read as closed on each, through their own
+        ``blink_contrast`` curve (low, high) when given. Frames sent after
         this use the neutral (the server handles a publisher's messages in order); it is
         sent again after every reconnection. The server's ``calibrated`` is not awaited; a
         refusal is logged as any error is.
@@ -401,7 +403,10 @@ class FramePublisher:
         closed = None if not blinks else {
             name: np.asarray(p, dtype=np.float32) for name, p in blinks.items()
         }  # fmt: skip
-        message = Calibrate(points=np.asarray(points, dtype=np.float32), noise=noise, blinks=closed)
+        message = Calibrate(
+            points=np.asarray(points, dtype=np.float32), noise=noise, blinks=closed,
+            blink_contrast=blink_contrast if closed else None,
+        )  # fmt: skip
         self._calibration = message
         ws, protocol = self._ws, self._protocol
         if ws is None or protocol is None:

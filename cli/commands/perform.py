@@ -27,6 +27,18 @@ WINK_FRAMES = 8
 DRAIN_SECONDS = 2.0
 
 
+def _contrast(text: str) -> tuple[float, float]:
+    """``--blink-contrast LOW,HIGH``: two numbers, 0 <= LOW < HIGH <= 1 (as the server's
+    ``closure.check_contrast`` takes them; checked here so a typo stops before the camera)."""
+    try:
+        low, high = (float(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LOW,HIGH, got {text!r}") from None
+    if not 0.0 <= low < high <= 1.0:  # NaN fails every comparison
+        raise argparse.ArgumentTypeError(f"expected 0 <= LOW < HIGH <= 1, got {text!r}")
+    return low, high
+
+
 def register(subparsers: Subparsers) -> None:
     parser = subparsers.add_parser(
         "perform",
@@ -85,6 +97,16 @@ def register(subparsers: Subparsers) -> None:
         default=WINK_FRAMES,
         metavar="N",
         help=f"calibration: frames of each wink to average (default {WINK_FRAMES})",
+    )
+    parser.add_argument(
+        "--blink-contrast",
+        type=_contrast,
+        default=None,
+        metavar="LOW,HIGH",
+        help="with --winks: your own blink curve, 0 <= LOW < HIGH <= 1 (a blink read at LOW "
+        "or less shows open, at HIGH or more closed; default the server's, 0.4,0.8): raise "
+        "LOW if the character half-closes its eyes when you look down, lower HIGH if your "
+        "blinks do not close them (PROTOCOL.md §5.1.3 blink_contrast)",
     )
     parser.add_argument(
         "--smoothing",
@@ -240,7 +262,9 @@ async def perform(args: argparse.Namespace) -> PerformStats:
                         say(f"{captured} captured; now close your right eye and hold it")
                     elif captured is not None:
                         # The neutral again, with the closed eyes it goes with.
-                        await publisher.calibrate(*rest, blinks=winks.closed)
+                        await publisher.calibrate(
+                            *rest, blinks=winks.closed, blink_contrast=args.blink_contrast
+                        )
                         say("both winks captured: your closed eyes now read as closed")
                 seq = await publisher.send(points.astype(np.float32), time.time())
                 if seq is None:
@@ -269,6 +293,8 @@ def run(args: argparse.Namespace) -> int:
             "--winks are captured after the neutral: not without calibrating (--no-calibrate, "
             "or a performer's own rig, ID@PERFORMER)"
         )
+    if args.blink_contrast is not None and not args.winks:
+        raise CommandError("--blink-contrast shapes the winks' closed eyes: it needs --winks")
     if args.frames is not None and args.frames < 1:
         raise CommandError("--frames must be at least 1")
     if args.seconds is not None and not args.seconds > 0:

@@ -27,6 +27,7 @@ from facecast.protocol import (
 )
 from facecast.protocol.arrays import check_result_finite
 from facecast.protocol.fields import read_float
+from facecast.rig.closure import check_contrast
 from facecast.rig.errors import InputError, RigError
 from facecast.rig.filters import OneEuroFilter
 from facecast.rig.rebase import calibrate as calibrate_rig
@@ -82,6 +83,8 @@ class ChannelFrame:
         every key re-bases its rig noise-aware with it (``rig.rebase``); None: exactly
     neutral_blinks : {name: (K, 3)} or None, the performer's closed eyes the neutral came
         with (calibrate ``blinks``, §5.1.3): every key reads them as closed on its rig
+    neutral_contrast : (low, high) or None, the performer's own curve for those blinks
+        (calibrate ``blink_contrast``); None: the server's
     neutral_id : changes whenever ``neutral`` does (keys cache their calibrated rig by it)
     head : the frame's head pose (PROTOCOL.md §5.3), relayed unchanged in every key's result
     stamps : the frame's stage stamps as the server relays them (PROTOCOL.md §5.4: the
@@ -100,6 +103,7 @@ class ChannelFrame:
     neutral: np.ndarray | None = None
     neutral_noise: float | None = None
     neutral_blinks: dict[str, np.ndarray] | None = None
+    neutral_contrast: tuple[float, float] | None = None
     neutral_id: str = ""
     head: Head | None = None
     stamps: Stamps | None = None
@@ -120,6 +124,9 @@ class ChannelFrame:
                 "neutral_blinks": None
                 if self.neutral_blinks is None
                 else {name: array_to_wire(a) for name, a in self.neutral_blinks.items()},
+                "neutral_contrast": None
+                if self.neutral_contrast is None
+                else list(self.neutral_contrast),
                 "neutral_id": self.neutral_id,
                 "head": None if self.head is None else self.head.serialize(),
                 "stamps": None if self.stamps is None else self.stamps.serialize(),
@@ -138,6 +145,9 @@ class ChannelFrame:
         blinks = obj.get("neutral_blinks")
         if blinks is not None and (not isinstance(blinks, dict) or len(blinks) > 2):
             raise ValueError("channel frame: neutral_blinks is not a map of at most 2 arrays")
+        contrast = obj.get("neutral_contrast")
+        if contrast is not None:
+            contrast = check_contrast(contrast)  # InputError, a ValueError, if not a curve
         raw = obj.get("raw_points")
         smoothing = obj.get("smoothing")
         head = obj.get("head")
@@ -163,6 +173,7 @@ class ChannelFrame:
                 str(name): array_from_wire(a, "neutral_blinks", trailing=(3,), max_rows=max_points)
                 for name, a in blinks.items()
             },
+            neutral_contrast=contrast,
             neutral_id=str(obj.get("neutral_id", "")),
             head=None if head is None else Head.parse(head, "head"),
             stamps=None if stamps is None else Stamps.parse(stamps, "stamps"),
@@ -235,8 +246,9 @@ class KeyState(_Key):
                     blinks = {name: layout_first(b, k) for name, b in blinks.items()}
                 try:
                     rig = calibrate_rig(
-                        rig, layout_first(frame.neutral, k), frame.neutral_noise, blinks
-                    )
+                        rig, layout_first(frame.neutral, k), frame.neutral_noise, blinks,
+                        frame.neutral_contrast,
+                    )  # fmt: skip
                 except RigError as exc:
                     # The publisher's rig accepted this neutral; this one cannot: serve it
                     # uncalibrated rather than not at all.

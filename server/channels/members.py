@@ -207,7 +207,7 @@ class PublisherMember(Member):
                 seq=frame.seq, ts=frame.ts, points=points, dropped=core.dropped_total(),
                 align=hello.align, scale=hello.align_scale, smoothing=smoothing,
                 neutral=core.neutral, neutral_noise=core.neutral_noise,
-                neutral_blinks=core.neutral_blinks,
+                neutral_blinks=core.neutral_blinks, neutral_contrast=core.neutral_contrast,
                 neutral_id=core.neutral_id,
                 raw_points=frame.points if self._point_filter is not None else None,
                 head=frame.head,

@@ -304,12 +304,14 @@ class ConnectionCore:
         points: np.ndarray | None = None,
         noise: float | None = None,
         blinks: Mapping[str, np.ndarray] | None = None,
+        contrast: tuple[float, float] | None = None,
     ) -> None:
         """The calibration asked for gave ``rig``; ``seq``: the frame taken as neutral.
 
         Only a calibration `handle` asked for (``seq`` None) ends a wait: a frame's
         neutral (`take_neutral`) is fitted while the reader goes on reading. ``points``,
-        ``noise`` and ``blinks`` (what it was fitted on) matter to a channel's publisher only.
+        ``noise``, ``blinks`` and ``contrast`` (what it was fitted on) matter to a channel's
+        publisher only.
         """
         if seq is None:
             self._done_waiting(now)
@@ -456,6 +458,8 @@ class PublisherCore(ConnectionCore):
         self.neutral_noise: float | None = None
         #: The performer's closed eyes the neutral came with (calibrate ``blinks``, §5.1.3).
         self.neutral_blinks: dict[str, np.ndarray] | None = None
+        #: Their own blink curve (calibrate ``blink_contrast``), or None: the server's.
+        self.neutral_contrast: tuple[float, float] | None = None
         #: Names the neutral, so keys see a new one even if its points are equal.
         self.neutral_id = ""
         #: Frames of this publisher the channel discarded (superseded): ``channel.dropped``.
@@ -498,22 +502,24 @@ class PublisherCore(ConnectionCore):
         points: np.ndarray | None = None,
         noise: float | None = None,
         blinks: Mapping[str, np.ndarray] | None = None,
+        contrast: tuple[float, float] | None = None,
     ) -> None:
-        """As `ConnectionCore.calibrated`; ``points`` (the neutral), the ``noise`` and the
-        closed eyes (``blinks``) it was re-based with go to the channel, whose every key
-        re-bases its own rig the same way."""
+        """As `ConnectionCore.calibrated`; ``points`` (the neutral), the ``noise``, the
+        closed eyes (``blinks``) and their curve (``contrast``) it was re-based with go to
+        the channel, whose every key re-bases its own rig the same way."""
         assert points is not None
         self.neutral, self.neutral_noise = np.array(points, copy=True), noise
         self.neutral_blinks = (
             None if not blinks else {name: np.array(a, copy=True) for name, a in blinks.items()}
         )
+        self.neutral_contrast = contrast if blinks else None
         self.neutral_id = secrets.token_hex(6)
         super().calibrated(rig, now, seq)
 
     def reset_calibration(self) -> None:
         super().reset_calibration()
         self.neutral, self.neutral_noise, self.neutral_id = None, None, ""
-        self.neutral_blinks = None
+        self.neutral_blinks, self.neutral_contrast = None, None
 
 
 class WatcherCore(ConnectionCore):

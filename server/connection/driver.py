@@ -262,7 +262,7 @@ class Driver:
             await self._open(work)
         elif work is not None:
             assert work.points is not None  # the core hands over only calibrates with points
-            await self._calibrate(work.points, None, work.noise, work.blinks)
+            await self._calibrate(work.points, None, work.noise, work.blinks, work.blink_contrast)
         self._deliver()
         self.arm()  # a wait for the rig or a neutral suspended the idle deadline
 
@@ -272,12 +272,14 @@ class Driver:
         seq: int | None,
         noise: float | None,
         blinks: Mapping[str, np.ndarray] | None = None,
+        contrast: tuple[float, float] | None = None,
     ) -> bool:
         """Fit the neutral ``points`` (a ``calibrate`` message's, or frame ``seq``'s).
 
         ``noise``: the calibrate's landmark noise, for a noise-aware, bounded re-base
         (``rig.rebase``); None re-bases exactly. ``blinks``: the calibrate's closed eyes,
-        read as closed (``rig.rebase.calibrate``). The core queues its ``calibrated`` or its
+        read as closed (``rig.rebase.calibrate``), through the performer's own ``contrast``
+        curve when given (calibrate ``blink_contrast``). The core queues its ``calibrated`` or its
         CALIBRATION_FAILED error; False if failed.
         """
         core = self.core
@@ -287,7 +289,7 @@ class Driver:
             # Re-fitting the projection (or, with noise, the weight model) is milliseconds:
             # in the clone pool.
             rig = await self._loop.run_in_executor(
-                self.executor, calibrate_rig, base, points, noise, blinks
+                self.executor, calibrate_rig, base, points, noise, blinks, contrast
             )
         except RigError as exc:
             core.calibration_failed(exc, time.monotonic(), seq)
@@ -295,7 +297,10 @@ class Driver:
         kalman = core.calibrated_filter(rig)
         if kalman is not None:
             self._filter_points(kalman)
-        core.calibrated(rig, time.monotonic(), seq, points=points, noise=noise, blinks=blinks)
+        core.calibrated(
+            rig, time.monotonic(), seq, points=points, noise=noise, blinks=blinks,
+            contrast=contrast,
+        )  # fmt: skip
         return True
 
     def _filter_points(self, kalman: KalmanFilter) -> None:

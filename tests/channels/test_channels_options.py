@@ -166,6 +166,45 @@ async def test_a_frame_publishers_calibrate_carries_the_closed_eyes(tmp_path, ri
     assert results[-1].weights[1] == pytest.approx(1.0, abs=1e-6)
 
 
+async def test_a_frame_publishers_own_blink_contrast_reaches_every_watched_rig(
+    tmp_path, rigs, ws_impl
+):
+    # FramePublisher.calibrate(..., blink_contrast=...) ('facecast perform --blink-contrast'):
+    # the channel's keys re-base through the performer's own curve (§5.1.3 blink_contrast).
+    examples = tiny_examples(7, names=("neutral", "eyeBlinkLeft", "frown", "jaw"))
+    blinky = fit(examples)
+    write_rigs(tmp_path / "rigs", {"blinky": blinky})
+    source = examples.source_points.astype(np.float32)
+    neutral = source[0] + np.float32(0.5)
+    closed = neutral + np.float32(0.7) * (source[1] - source[0])
+    part = neutral + np.float32(0.6) * (closed - neutral)  # read apart by the two curves
+    blinks = {"eyeBlinkLeft": closed}
+    settings = Settings(rigs_dir=tmp_path / "rigs", face_lost_after=30.0)
+    async with run_server(settings, ws=ws_impl) as server:
+        watcher = await Watcher.open(server.ws_url, "stage", "blinky")
+        url = channel_url(server.base_url, "stage", "publish")
+        async with FramePublisher(url, Hello(rig="blinky")) as pub:
+            await pub.calibrate(neutral, 0.01, blinks=blinks, blink_contrast=(0.6, 0.9))
+            await pub.send(part, 0.0)
+            result = await watcher.result_with_seq(0)
+
+    own = calibrate_rig(blinky, neutral, 0.01, blinks, (0.6, 0.9)).weights(part)
+    default = calibrate_rig(blinky, neutral, 0.01, blinks).weights(part)
+    assert abs(own[1] - default[1]) > 0.2
+    np.testing.assert_array_equal(result.weights, own.astype(np.float32))
+
+
+def test_a_channel_frame_carries_the_blink_contrast_and_refuses_a_bad_one():
+    pts = np.zeros((2, 3), np.float32)
+    frame = ChannelFrame(seq=1, ts=0.5, points=pts, neutral=pts, neutral_noise=0.01,
+                         neutral_blinks={"eyeBlinkLeft": pts}, neutral_contrast=(0.6, 0.9),
+                         neutral_id="n1")  # fmt: skip
+    assert ChannelFrame.from_bytes(frame.to_bytes(), max_points=8).neutral_contrast == (0.6, 0.9)
+    bad = dataclasses.replace(frame, neutral_contrast=(0.9, 0.6)).to_bytes()
+    with pytest.raises(ValueError, match="blink contrast"):
+        ChannelFrame.from_bytes(bad, max_points=8)
+
+
 async def test_a_frame_publisher_closed_leaves_its_channel_at_once(settings, rigs, ws_impl):
     # close() closes the socket itself: the server sees the publisher leave then, not when
     # its connection times out (facecast publish/record waited ~10 s for it).

@@ -238,11 +238,25 @@ async def test_an_absent_camera_is_a_clear_error(perform_python):
         (["--wink-frames", "2"], "--wink-frames must be at least 3"),
         (["--winks", "--no-calibrate"], "--winks are captured after the neutral"),
         (["--winks", "--rig", "hero@ann"], "--winks are captured after the neutral"),
+        (["--blink-contrast", "0.5,0.9"], "--blink-contrast shapes the winks' closed eyes"),
     ],
 )
 def test_winks_without_a_neutral_or_frames_enough_are_refused(extra, said, capsys):
     code = main(["perform", "http://127.0.0.1:9", "--channel", "x", "--rig", "hero", *extra])
     assert code == 2 and said in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("value", "said"),
+    [("0.9,0.5", "expected 0 <= LOW < HIGH <= 1"), ("0.5", "expected LOW,HIGH"),
+     ("nan,0.9", "expected 0 <= LOW < HIGH <= 1"), ("0.5,1.2", "expected 0 <= LOW < HIGH <= 1")],
+)  # fmt: skip
+def test_an_unusable_blink_contrast_stops_before_the_camera(value, said, capsys):
+    argv = ["perform", "http://127.0.0.1:9", "--channel", "x", "--rig", "hero", "--winks",
+            "--blink-contrast", value]  # fmt: skip
+    with pytest.raises(SystemExit) as stopped:
+        main(argv)
+    assert stopped.value.code == 2 and said in capsys.readouterr().err
 
 
 @pytest.mark.skipif(

@@ -42,7 +42,7 @@ from facecast.protocol import (
 )
 from facecast.rig import fit
 from facecast.rig.filters import KALMAN_ACCELERATION, KalmanFilter, OneEuroFilter
-from facecast.rig.rebase import rebase
+from facecast.rig.rebase import calibrate, rebase
 from facecast.server.compute.cloning import blend_seconds
 from facecast.server.settings import Settings
 from facecast.server.stream.session import INLINE_MAX_SECONDS
@@ -218,6 +218,29 @@ async def test_calibrate_with_the_performers_closed_eye_reads_it_as_closed(serve
     assert rebase(blinky, neutral, noise=0.01).weights(closed)[1] < 0.9  # part-way, plain
     assert result.weights[1] == pytest.approx(1.0, abs=1e-6)  # read as closed
     assert result.weights.sum() == pytest.approx(1.0, abs=1e-5)
+
+
+async def test_calibrate_with_the_performers_own_blink_contrast_reads_through_it(served):
+    served.app.state.store.put_rig("blinky", blinky := _blink_rig())
+    source = tiny_example_set().source_points.astype(np.float32)
+    neutral = source[0] + np.float32(0.5)
+    closed = neutral + np.float32(0.7) * (source[1] - source[0])
+    blinks = {"eyeBlinkLeft": closed}
+    # An eye a little more than halfway closed, which the two curves read differently.
+    part = neutral + np.float32(0.6) * (closed - neutral)
+    async with connect(served) as ws:
+        await open_session(ws, "blinky")
+        await ws.send(encode(Calibrate(points=neutral, noise=0.01, blinks=blinks,
+                                       blink_contrast=(0.6, 0.9))))  # fmt: skip
+        ack = await recv_message(ws)
+        await ws.send(frame(0, part))
+        result = await next_result(ws)
+
+    assert ack == Calibrated(active=True, seq=None)
+    own = calibrate(blinky, neutral, 0.01, blinks, contrast=(0.6, 0.9)).weights(part)
+    default = calibrate(blinky, neutral, 0.01, blinks).weights(part)
+    assert abs(own[1] - default[1]) > 0.2  # the curves differ here
+    np.testing.assert_allclose(result.weights, own.astype(np.float32), atol=1e-6)
 
 
 # -- results that would not be finite (issue 13, item 3) ----------------------------------
