@@ -176,11 +176,19 @@ def server(rigs_dir) -> Iterator[str]:
         yield base_url
 
 
-def open_page(browser, url: str, *, camera: bool = True, size: tuple[int, int] = (960, 540)):
+def open_page(
+    browser,
+    url: str,
+    *,
+    camera: bool = True,
+    size: tuple[int, int] = (960, 540),
+    sent: list | None = None,
+):
     """A new page of the package's browser recording its errors in ``errors``; ``camera``
     False: the camera denied (the profile's permission withdrawn until the next page that
     allows it: no other page may be capturing then); ``size``, its window's CSS pixels
-    (what a page draws costs SwiftShader by the pixel)."""
+    (what a page draws costs SwiftShader by the pixel); ``sent``, a list the page's
+    WebSocket messages are appended to as it sends them (bytes, the wire's)."""
     if camera:
         browser.grant_permissions(["camera"])
     else:
@@ -190,6 +198,8 @@ def open_page(browser, url: str, *, camera: bool = True, size: tuple[int, int] =
     page.errors = []
     page.on("pageerror", lambda exc: page.errors.append(f"pageerror: {exc}"))
     page.set_default_timeout(30_000)
+    if sent is not None:
+        page.on("websocket", lambda ws: ws.on("framesent", lambda payload: sent.append(payload)))
     page.goto(url)
     return page
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import warnings
 from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -199,6 +200,12 @@ AWAIT_PHASE = """async ({ level, other, tolerance }) => {
 }"""
 
 
+def _message(payload) -> dict:
+    """One of the page's sent WebSocket messages, decoded (msgpack; {} if not a map)."""
+    message = msgpack.unpackb(payload) if isinstance(payload, bytes) else None
+    return message if isinstance(message, dict) else {}
+
+
 def _capture_eyes(page, name: str, level: float, other: float) -> None:
     """Capture ``name`` inside the phase whose eye openness is ``level`` (the capture's own
     median openness must be that phase's, else it is captured again)."""
@@ -227,6 +234,7 @@ def test_the_walkthroughs_closed_eye_is_read_as_closed_on_the_generic_rig(
     # shut, looped on the fake camera. Calibrated on the neutral alone, the re-based rig
     # reads the shut eye part-way; once the walk-through's eyeBlinkLeft is captured the
     # page sends it with the neutral and the same rig reads it closed, the other eye open.
+    # The page asks for its own blink curve (?blink=, §5.1.3 blink_contrast) and sends it.
     performer = ict_performer(ARCHIVE, identity=EYES_IDENTITY)
     regions, landmarks68 = ict_regions(ARCHIVE)
     opened = np.zeros((EYES_HOLD, len(performer.names)))
@@ -237,7 +245,9 @@ def test_the_walkthroughs_closed_eye_is_read_as_closed_on_the_generic_rig(
     names = _names(server, ict_rig)
     left, right = names.index("eyeBlinkLeft"), names.index("eyeBlinkRight")
     weights, weights_thread = watching(server, "generic-wink", ict_rig, "weights")
-    page = open_page(browser, perform_url(server, "generic-wink", ict_rig))
+    sent: list = []
+    page = open_page(browser, perform_url(server, "generic-wink", ict_rig, blink="0.45,0.85"),
+                     sent=sent)  # fmt: skip
     pages.append(page)
     try:
         page.wait_for_function("window.facecastStats.publish === 'waiting'")
@@ -273,7 +283,12 @@ def test_the_walkthroughs_closed_eye_is_read_as_closed_on_the_generic_rig(
         weights_thread.join(5)
 
     assert stats["closedEyes"] == ["eyeBlinkLeft"]
-    assert "re-based on your neutral and your closed eyes (eyeBlinkLeft)" in detail
+    assert stats["blinkContrast"] == [0.45, 0.85]
+    assert "your closed eyes (eyeBlinkLeft, read through 0.45–0.85)" in detail
+    calibrates = [m for m in map(_message, sent) if m.get("type") == "calibrate"]
+    assert "blink_contrast" not in calibrates[0]  # the neutral alone: no curve to send
+    assert calibrates[-1]["blink_contrast"] == [0.45, 0.85]
+    assert list(calibrates[-1]["blinks"]) == ["eyeBlinkLeft"]
     received = [(r.seq, np.asarray(r.weights, dtype=float)) for _, r in weights.results]
     # Both windows hold shut-eye frames: the capture itself was made on one.
     before = np.stack([w for seq, w in received if rebased_at <= seq < read_closed_at])

@@ -174,14 +174,17 @@ export function encodeFrame(seq, ts, points) {
 /**
  * A calibrate with the neutral `points` (Float32Array, K×3 flat), the held frames' `noise`
  * and, with the noise, the performer's captured closed eyes: `blinks` {eyeBlinkLeft?,
- * eyeBlinkRight?: Float32Array K×3} (PROTOCOL.md §5.1.3; absent on the wire unless given).
+ * eyeBlinkRight?: Float32Array K×3} (PROTOCOL.md §5.1.3; absent on the wire unless given),
+ * with the performer's own curve for them, `contrast` [low, high] (blink_contrast; absent
+ * unless given with closed eyes).
  */
-export function encodeCalibrate(points, noise = null, blinks = null) {
+export function encodeCalibrate(points, noise = null, blinks = null, contrast = null) {
   const message = { v: PROTOCOL_VERSION, type: "calibrate", points: arrayToWire(points, [points.length / 3, 3]), reset: false };
   if (typeof noise === "number" && Number.isFinite(noise) && noise >= 0) {
     message.noise = noise;
     const closed = Object.entries(blinks || {}).filter(([, p]) => p && p.length === points.length);
     if (closed.length) message.blinks = Object.fromEntries(closed.map(([name, p]) => [name, arrayToWire(p, [p.length / 3, 3])]));
+    if (closed.length && contrast) message.blink_contrast = [contrast[0], contrast[1]];
   }
   return msgpackEncode(message);
 }

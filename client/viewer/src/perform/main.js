@@ -73,6 +73,7 @@ const stats = {
   smoothing: null, // the server's filter of the points ("kalman", "one-euro"; null: none)
   neutralNoise: null, // σ of the neutral capture's held frames, sent with the calibrate
   closedEyes: [], // the captured closed eyes sent with it (eyeBlinkLeft / eyeBlinkRight)
+  blinkContrast: null, // the performer's own blink curve sent with them (?blink=), or null
   calibrateSentAt: null, // frames published before the last calibrate was sent
   rig: null,
   channel: null,
@@ -267,8 +268,9 @@ async function main() {
     if (!(neutral && publishing && generic)) return;
     const blinks = Object.fromEntries(Object.entries(closedEyes).map(([name, p]) => [name, p.subarray(0, rigK * 3)]));
     stats.closedEyes = neutralNoise === null ? [] : Object.keys(blinks);
+    stats.blinkContrast = stats.closedEyes.length ? params.blinkContrast : null;
     stats.calibrateSentAt = stats.published;
-    l.send(encodeCalibrate(neutral.subarray(0, rigK * 3), neutralNoise, blinks));
+    l.send(encodeCalibrate(neutral.subarray(0, rigK * 3), neutralNoise, blinks, params.blinkContrast));
   };
   // The server's filter, as the status says it ("", or ", Kalman-filtered").
   const filtered = () => (stats.smoothing ? `, ${stats.smoothing === "kalman" ? "Kalman" : stats.smoothing}-filtered` : "");
@@ -331,7 +333,8 @@ async function main() {
         if (typeof msg.smoothing === "string") stats.smoothing = msg.smoothing;
         if (stats.rebased) {
           // Which captured closed eyes went with it: those blinks read closed (§5.1.3 blinks).
-          const eyes = stats.closedEyes.length ? ` and your closed eyes (${stats.closedEyes.join(", ")})` : "";
+          const curve = stats.blinkContrast ? `, read through ${stats.blinkContrast.join("–")}` : "";
+          const eyes = stats.closedEyes.length ? ` and your closed eyes (${stats.closedEyes.join(", ")}${curve})` : "";
           setPublish("live", `live · ${params.channel}`, `rig ${params.rig} re-based on your neutral${eyes}, ${rigK} points a frame${filtered()}`);
         }
       } else if (msg.type === "result") {

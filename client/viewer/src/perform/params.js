@@ -17,6 +17,10 @@ const SMOOTHING = new Set(["auto", "off"]);
  * backend: the face model's TensorFlow.js backend, wasm (default) | webgl | cpu
  * smoothing: auto (default: the hello asks for the server's auto filter, the Kalman on
  *      the neutral's noise, PROTOCOL.md §5.1.1) | off (viewers get the points unfiltered)
+ * blink: LOW,HIGH, the performer's own blink curve for a character's rig, sent with the
+ *      walk-through's closed eyes (PROTOCOL.md §5.1.3 blink_contrast; 0 <= LOW < HIGH <= 1):
+ *      raise LOW if the character half-closes its eyes when you look down, lower HIGH if
+ *      your blinks do not close them (default: the server's, 0.4,0.8)
  */
 export function readPerformParams(href) {
   const q = new URL(href).searchParams;
@@ -30,8 +34,20 @@ export function readPerformParams(href) {
   if (!BACKENDS.has(backend)) throw new ParamError(`backend must be wasm, webgl or cpu, got ${backend}`);
   const smoothing = q.get("smoothing") || "auto";
   if (!SMOOTHING.has(smoothing)) throw new ParamError(`smoothing must be auto or off, got ${smoothing}`);
+  const blinkContrast = readBlinkContrast(q.get("blink"));
   // A performer's own rig is named {character}@{performer}: calibrating again starts from
   // the character, not from the rig made by the last calibration.
   const character = params.rig.split("@")[0];
-  return { ...params, mode: "publish", performer, character, backend, smoothing };
+  return { ...params, mode: "publish", performer, character, backend, smoothing, blinkContrast };
+}
+
+/** `blink=LOW,HIGH` as [low, high] (0 <= low < high <= 1), or null when absent. */
+function readBlinkContrast(text) {
+  if (text === null || text === "") return null;
+  const parts = text.split(",");
+  const [low, high] = parts.map((part) => (part.trim() === "" ? Number.NaN : Number(part)));
+  if (parts.length !== 2 || !(low >= 0 && low < high && high <= 1)) {
+    throw new ParamError(`blink must be LOW,HIGH with 0 <= LOW < HIGH <= 1, e.g. 0.5,0.9; got ${text}`);
+  }
+  return [low, high];
 }
