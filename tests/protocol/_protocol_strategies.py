@@ -280,6 +280,9 @@ _smoothing = shaped({
     "filter": Field(st.sampled_from(["one-euro", "kalman"]), optional=True,
                     broken=st.just("box")),
 })  # fmt: skip
+_blinks = st.dictionaries(st.sampled_from(["eyeBlinkLeft", "eyeBlinkRight"]), valid_arrays(3),
+                          min_size=1, max_size=2)  # fmt: skip
+_contrasts = st.tuples(st.floats(0.0, 0.5), st.floats(0.5, 1.0, exclude_min=True)).map(list)
 _outputs = st.sampled_from(["weights", "vertices", "moving"])
 _dtypes = st.sampled_from(["f32", "f16"])
 _seq = Field(uints, broken=st.integers(-3, -1) | floats)
@@ -299,7 +302,10 @@ _FIELDS: dict[str, dict[str, Field]] = {
               "head": Field(_head, optional=True)},
     "calibrate": {"points": Field(valid_arrays(3), optional=True),
                   "reset": Field(st.booleans(), optional=True),
-                  "noise": Field(positive | st.just(0.0), optional=True, broken=st.just(-1.0))},
+                  "noise": Field(positive | st.just(0.0), optional=True, broken=st.just(-1.0)),
+                  "blinks": Field(_blinks, optional=True, broken=st.just({"jawOpen": None})),
+                  "blink_contrast": Field(_contrasts, optional=True,
+                                          broken=st.just([0.9, 0.1]) | st.lists(floats))},
     "ping": {"id": _seq, "ts": _ts},
     "pong": {"id": _seq, "ts": _ts},
     "ready": {
