@@ -90,19 +90,35 @@ SIGMA = 0.033  # cm: the tracker's landmark noise on the webcam benchmark's held
 
 
 @pytest.fixture(scope="module")
-def performer_rig():
-    """ICT person12's exact keys (a held capture's leftover noise on each) fitted onto
-    person01 at the tracker's measured noise, and person12's exact key points."""
-    archive = locate_ict()
+def character():
+    """person01's ARKit shapes fitted exactly, as ``facecast import ict-facekit`` stores them."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the exact ICT rig warns to fit with noise: known
-        character = fit(arkit_example_set(archive, identity="person01"))
-    performer = ict_performer(archive, identity="person12")
+        return fit(arkit_example_set(locate_ict(), identity="person01"))
+
+
+@pytest.fixture(scope="module")
+def performer_rig(character):
+    """ICT person12's exact keys (a held capture's leftover noise on each) fitted onto
+    person01 at the tracker's measured noise, and person12's exact key points."""
+    performer = ict_performer(locate_ict(), identity="person12")
     exact = performer.landmark_points(np.eye(len(performer.names)))  # row i: key i alone
     rng = np.random.default_rng(0)
     keys = {("neutral" if i == 0 else name): exact[i] + rng.normal(0.0, 0.4 * SIGMA, exact[i].shape)
             for i, name in enumerate(performer.names)}  # fmt: skip
     return fit_performer(character, keys, noise=SIGMA), performer, exact
+
+
+@pytest.fixture(scope="module")
+def generic_calibrate(character, performer_rig):
+    """What /perform's calibrate carries for the character's rig: person12's exact neutral
+    and closed eyes, on the character's points."""
+    _, performer, exact = performer_rig
+    k = character.num_points
+    blinks = {
+        name: exact[performer.names.index(name)][:k] for name in ("eyeBlinkLeft", "eyeBlinkRight")
+    }
+    return exact[0][:k], blinks
 
 
 @pytest.mark.ict
@@ -145,19 +161,15 @@ def test_the_map_travels_with_the_rig_file_and_a_refit(performer_rig, tmp_path):
 
 @pytest.mark.ict
 @needs_ict
-def test_a_rebased_rig_opens_a_half_closed_eye_and_closes_a_closed_one(performer_rig, tmp_path):
+def test_a_rebased_rig_opens_a_half_closed_eye_and_closes_a_closed_one(
+    character, performer_rig, generic_calibrate, tmp_path
+):
     """The generic path: the character's own rig re-based on the performer's neutral with
     their captured closed eyes takes the contrast curve; their own rig keeps the linear map."""
-    rig, performer, exact = performer_rig
-    archive = locate_ict()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the exact ICT rig warns to fit with noise: known
-        character = fit(arkit_example_set(archive, identity="person01"))
+    rig, performer, _ = performer_rig
+    neutral, blinks = generic_calibrate
     k = character.num_points
-    blinks = {
-        name: exact[performer.names.index(name)][:k] for name in ("eyeBlinkLeft", "eyeBlinkRight")
-    }
-    rebased = calibrate(character, exact[0][:k], SIGMA, blinks)
+    rebased = calibrate(character, neutral, SIGMA, blinks)
     assert rebased.fit_report["closure_contrast"] == list(REBASE_BLINK_CONTRAST)
     assert "closure_contrast" not in rig.fit_report
     linear = rebased.with_weight_models(
@@ -197,21 +209,17 @@ def test_closed_eyes_are_read_on_the_rig_without_its_map(performer_rig):
 
 @pytest.mark.ict
 @needs_ict
-def test_a_performers_own_contrast_replaces_the_default_curve(performer_rig):
+def test_a_performers_own_contrast_replaces_the_default_curve(
+    character, performer_rig, generic_calibrate
+):
     """calibrate's ``contrast`` (a calibrate's ``blink_contrast``, §5.1.3): a performer whose
     looks down read as half-closed raises the curve's low end, and a blink still reads
     closed."""
-    _, performer, exact = performer_rig
-    archive = locate_ict()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the exact ICT rig warns to fit with noise: known
-        character = fit(arkit_example_set(archive, identity="person01"))
+    _, performer, _ = performer_rig
+    neutral, blinks = generic_calibrate
     k = character.num_points
-    blinks = {
-        name: exact[performer.names.index(name)][:k] for name in ("eyeBlinkLeft", "eyeBlinkRight")
-    }
-    own = calibrate(character, exact[0][:k], SIGMA, blinks, contrast=(0.6, 0.9))
-    default = calibrate(character, exact[0][:k], SIGMA, blinks)
+    own = calibrate(character, neutral, SIGMA, blinks, contrast=(0.6, 0.9))
+    default = calibrate(character, neutral, SIGMA, blinks)
     assert own.fit_report["closure_contrast"] == [0.6, 0.9]
     left = own.names.index("eyeBlinkLeft")
     shares = np.array([0.6, 1.0])  # the left blink 60 % and fully closed
