@@ -91,13 +91,12 @@ def contrast_from_report(report: Mapping[str, Any] | None) -> tuple[float, float
     """A fit report's ``"closure_contrast"`` [low, high] (0 <= low < high <= 1), or None
     (no entry, or one that is not such a pair: the map is then linear)."""
     entry = (report or {}).get("closure_contrast")
-    if not isinstance(entry, (list, tuple)) or len(entry) != 2:
+    if not isinstance(entry, (list, tuple)):
         return None
     try:
-        low, high = float(entry[0]), float(entry[1])
-    except (TypeError, ValueError):
+        return check_contrast(entry)
+    except InputError:
         return None
-    return (low, high) if 0.0 <= low < high <= 1.0 else None
 
 
 class ClosureMap:
