@@ -39,6 +39,7 @@ from facecast.rig.evaluation.webcam import (
     GOAL_PERSONAL_PERCENT,
     KEY_HOLD_FRAMES,
     KEY_RAMP_FRAMES,
+    PAGE_BLINK_CONTRAST,
     PERFORMER_IDENTITY,
     Performer,
     captured_keys,
@@ -51,6 +52,7 @@ from facecast.rig.evaluation.webcam import (
     webcam_rows,
 )
 from facecast.rig.filters import KalmanFilter
+from facecast.rig.rebase import REBASE_BLINK_CONTRAST
 from facecast.rig.sources.capture import robust_example
 from facecast.rig.sources.ict import DEFAULT_LANDMARKS, ict_regions, locate_ict
 from facecast.rig.sources.ict_arkit import ARKIT_TARGET_IDENTITY, arkit_example_set
@@ -75,6 +77,9 @@ EYES_KALMAN = (480.0,)
 #: ``--generic-neutral tracked``: frames of ICT's generic face at rest rendered and tracked,
 #: and the first of them left out (the page's eye crops settle over 9 frames, eyelids.js).
 GENERIC_NEUTRAL_FRAMES, GENERIC_NEUTRAL_SETTLE = 30, 10
+#: ``--backend``'s name for ``facecast perform``'s tracks (kept in --videos by
+#: scripts/perform_tracks.py); every other name is a TensorFlow.js backend of the page's.
+PERFORM_BACKEND = "mediapipe"
 
 
 @dataclass(frozen=True, eq=False)
@@ -214,8 +219,10 @@ def _score_landmarks(
     *,
     shipped: bool = False,
     kalman: tuple[float, ...] = EYES_KALMAN,
+    contrast: tuple[float, float] | None = None,
 ) -> dict[str, Any]:
-    """Every path on one kind of landmarks (exact or tracked): the rows and the capture.
+    """Every path on one kind of landmarks (exact or tracked): the rows and the capture,
+    the generic rows' blinks read through ``contrast`` (``_blink_contrast``).
 
     And the personal and the generic path on the take's points through the live Kalman
     filter at each ``kalman`` acceleration (noise units per s^2, the held frames' noise),
@@ -241,6 +248,7 @@ def _score_landmarks(
             noise=noise,
             generic=(generic_rigs := _generic_rigs(setup, noise, shipped)),
             personal_also={"keys' mix": mix},
+            contrast=contrast,
         )
         generic = generic_rigs["generic"]
         times = np.arange(len(take_points)) / experiment.fps
@@ -249,7 +257,8 @@ def _score_landmarks(
             live = KalmanFilter(noise=noise, acceleration=acceleration * noise)
             filtered = live.filter_series(flat, times).reshape(np.shape(take_points))
             through = webcam_rows(setup.character, experiment.truth, experiment.activations,
-                                  filtered, keys, noise=noise, generic={"generic": generic})  # fmt: skip
+                                  filtered, keys, noise=noise, generic={"generic": generic},
+                                  contrast=contrast)  # fmt: skip
             for path in (PERSONAL, "generic"):
                 rows[f"{path} live kalman {acceleration:g}"] = through[path]
     return {
@@ -261,6 +270,34 @@ def _score_landmarks(
         "keys": len(setup.clips.names),
         "rows": rows,
     }
+
+
+def _blink_contrast(args: argparse.Namespace) -> tuple[float, float] | None:
+    """The generic path's blink curve on tracked points: --blink-contrast, else the one the
+    tracker's client sends with the captured closed eyes (calibrate ``blink_contrast``):
+    /perform's ``PAGE_BLINK_CONTRAST`` on the page's tracks, none on ``facecast perform``'s
+    (the server's ``rebase.REBASE_BLINK_CONTRAST``). Exact landmarks are no client's: the
+    server's curve, unless --blink-contrast."""
+    if args.blink_contrast is not None:
+        low, high = args.blink_contrast
+        return float(low), float(high)
+    return None if args.backend == PERFORM_BACKEND else PAGE_BLINK_CONTRAST
+
+
+def _curve_text(args: argparse.Namespace, contrast: tuple[float, float] | None) -> str:
+    """Which blink curve the generic rows read the closed eyes through, for the header."""
+
+    def named(curve: tuple[float, float] | None) -> str:
+        if curve is None:
+            return "–".join(f"{v:g}" for v in REBASE_BLINK_CONTRAST) + " (the server's)"
+        text = "–".join(f"{v:g}" for v in curve)
+        page = args.blink_contrast is None and tuple(curve) == PAGE_BLINK_CONTRAST
+        return text + (" (/perform's, which the page sends)" if page else "")
+
+    exact, tracked = named(args.blink_contrast), named(contrast)
+    if exact == tracked:
+        return exact
+    return f"{exact} on exact landmarks, {tracked} on tracked ones"
 
 
 def _eyes_filters(args: argparse.Namespace) -> dict[str, tuple[str, float | None]]:
@@ -281,8 +318,10 @@ def _score_eyes(
     found: np.ndarray | None,
     *,
     shipped: bool = False,
+    contrast: tuple[float, float] | None = None,
 ) -> dict[str, Any]:
-    """The eyes video's points (its keys, then the clip) scored per event on every path."""
+    """The eyes video's points (its keys, then the clip) scored per event on every path
+    (the generic path's blinks through ``contrast``)."""
     split = len(setup.clips.activations)
     keys, held = captured_keys(
         points[:split], setup.clips, None if found is None else found[:split]
@@ -296,7 +335,8 @@ def _score_eyes(
         warnings.simplefilter("ignore")  # fit's advice on the bounded rigs: chosen settings
         rows = eyes_rows(setup.character, setup.eyes, clip_points, keys, noise=noise,
                          fps=KEY_FPS, filters=_eyes_filters(args),
-                         generic=setup.generic if shipped else None)  # fmt: skip
+                         generic=setup.generic if shipped else None,
+                         contrast=contrast)  # fmt: skip
     return {
         "performer": setup.eyes_id,
         "short": args.eyes_short,
@@ -532,6 +572,7 @@ def run(args: argparse.Namespace) -> int:
                 setup = _on_tracked_generic_neutral(setup, args, Path(scratch))
     experiment = setup.experiment
     truth_jitter = cloning_error(experiment.truth, experiment.truth)["jitter_percent"]
+    contrast = _blink_contrast(args)
     print(
         f"webcam benchmark: take {setup.take_name} ({len(experiment.activations)} frames at "
         f"{experiment.fps:g} fps) performed by ICT {setup.performer_id}, cloned onto "
@@ -541,6 +582,8 @@ def run(args: argparse.Namespace) -> int:
         f"{truth_jitter:.4f}); worst weight RMS over the ARKit names",
         file=sys.stderr,
     )
+    print(f"the generic path's captured closed eyes read through {_curve_text(args, contrast)}",
+          file=sys.stderr)  # fmt: skip
     performer = setup.performer
     report: dict[str, Any] = {
         "take": setup.take_name,
@@ -551,6 +594,7 @@ def run(args: argparse.Namespace) -> int:
         "sway_degrees": args.sway,
         "gaze_degrees": args.gaze_degrees,
         "generic_neutral": args.generic_neutral,
+        "blink_contrast": {"exact": args.blink_contrast, "tracked": contrast},
     }
     if not args.eyes_only:
         exact = _score_landmarks(
@@ -559,6 +603,7 @@ def run(args: argparse.Namespace) -> int:
             performer.landmark_points(setup.clips.activations),
             None,
             kalman=tuple(args.kalman or EYES_KALMAN),
+            contrast=args.blink_contrast,
         )
         report["exact"] = exact
         _print_table("exact landmarks (the ICT landmark vertices, head frame)", exact)
@@ -566,7 +611,11 @@ def run(args: argparse.Namespace) -> int:
             _print_by_name("exact landmarks", exact)
     if not args.no_eyes:
         eyes = _score_eyes(
-            setup, args, setup.eyes_performer.landmark_points(eyes_activations(setup)), None
+            setup,
+            args,
+            setup.eyes_performer.landmark_points(eyes_activations(setup)),
+            None,
+            contrast=args.blink_contrast,
         )
         report["eyes_exact"] = eyes
         _print_eyes("exact landmarks", eyes)
@@ -579,7 +628,7 @@ def run(args: argparse.Namespace) -> int:
             with tempfile.TemporaryDirectory(prefix="facecast-webcam-") as scratch:
                 tracked_raw = _tracked(args, setup, Path(scratch))
         if not args.no_eyes:
-            eyes = _score_eyes(setup, args, *tracked_raw["eyes"], shipped=True)
+            eyes = _score_eyes(setup, args, *tracked_raw["eyes"], shipped=True, contrast=contrast)
             eyes["render_seconds"] = tracked_raw["render_seconds"].get("eyes")
             eyes["track_seconds"] = tracked_raw["track_seconds"].get("eyes")
             report["eyes_tracked"] = eyes
@@ -596,6 +645,7 @@ def run(args: argparse.Namespace) -> int:
             key_found,
             shipped=True,
             kalman=tuple(args.kalman or EYES_KALMAN),
+            contrast=contrast,
         )
         tracked["take_found"] = int(take_found.sum())
         tracked["key_found"] = int(key_found.sum())

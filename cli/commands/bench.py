@@ -12,6 +12,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from facecast.cli.commands.expressions import add_solve_arguments
+from facecast.cli.commands.perform import blink_contrast_arg
 from facecast.cli.errors import CommandError
 
 if TYPE_CHECKING:
@@ -206,7 +207,15 @@ def register(subparsers: Subparsers) -> None:
                         help="the live Kalman rows (the eyes clip's, the take's personal and "
                         "generic paths): accelerations in landmark-noise units per s^2 "
                         "(default 480, the live default)")  # fmt: skip
-    webcam.add_argument("--backend", default="wasm", help="the tracker's TensorFlow.js backend")
+    webcam.add_argument("--backend", default="wasm",
+                        help="the page's tracker's TensorFlow.js backend (wasm, webgl, cpu), or "
+                        "mediapipe: `facecast perform`'s tracks kept in --videos by "
+                        "scripts/perform_tracks.py")  # fmt: skip
+    webcam.add_argument("--blink-contrast", type=blink_contrast_arg, metavar="LOW,HIGH",
+                        help="the generic path's blink curve on tracked points (calibrate "
+                        "blink_contrast; default the one the tracker's client sends: /perform's "
+                        "0.5,0.85 for the page's tracks, none for mediapipe's, which the "
+                        "server reads through its 0.4,0.8)")  # fmt: skip
     webcam.add_argument("--by-name", action="store_true",
                         help="also print each path's RMS weight error per ARKit name")  # fmt: skip
     webcam.add_argument("--json", metavar="FILE", help="write every figure as JSON")

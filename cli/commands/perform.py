@@ -27,9 +27,10 @@ WINK_FRAMES = 8
 DRAIN_SECONDS = 2.0
 
 
-def _contrast(text: str) -> tuple[float, float]:
+def blink_contrast_arg(text: str) -> tuple[float, float]:
     """``--blink-contrast LOW,HIGH``: two numbers, 0 <= LOW < HIGH <= 1 (as the server's
-    ``closure.check_contrast`` takes them; checked here so a typo stops before the camera)."""
+    ``closure.check_contrast`` takes them; checked here so a typo stops before the camera,
+    or before a benchmark renders anything)."""
     try:
         low, high = (float(part) for part in text.split(","))
     except ValueError:
@@ -100,7 +101,7 @@ def register(subparsers: Subparsers) -> None:
     )
     parser.add_argument(
         "--blink-contrast",
-        type=_contrast,
+        type=blink_contrast_arg,
         default=None,
         metavar="LOW,HIGH",
         help="with --winks: your own blink curve, 0 <= LOW < HIGH <= 1 (a blink read at LOW "

@@ -272,6 +272,7 @@ def eyes_rows(
     fps: float,
     filters: Mapping[str, tuple[str, float | None]],
     generic: Rig | None = None,
+    contrast: tuple[float, float] | None = None,
 ) -> dict[str, dict[str, Any]]:
     """The eyes clip cloned by the personal and the generic path, each through ``filters``.
 
@@ -293,6 +294,9 @@ def eyes_rows(
     generic : Rig, optional
         The generic path's rig before its re-base (default ``character``): the same
         targets on another source (``bench webcam``'s shipped generic set).
+    contrast : (low, high), optional
+        The generic path's blink curve, as the client's calibrate sends it
+        (``webcam.generic_rig``; None: the server's).
 
     Returns
     -------
@@ -307,7 +311,7 @@ def eyes_rows(
     k = source.num_points
     rigs = {
         "personal": fit_performer(character, keys, noise=noise),
-        "generic": generic_rig(source, keys["neutral"][:k], noise, keys),
+        "generic": generic_rig(source, keys["neutral"][:k], noise, keys, contrast),
     }
     rows: dict[str, dict[str, Any]] = {}
     for path, rig in rigs.items():

@@ -35,6 +35,7 @@ __all__ = [
     "GOAL_PERSONAL_PERCENT",
     "KEY_HOLD_FRAMES",
     "KEY_RAMP_FRAMES",
+    "PAGE_BLINK_CONTRAST",
     "PERFORMER_IDENTITY",
     "KeyClips",
     "Performer",
@@ -67,6 +68,12 @@ CLOSURE_MARGIN = 3
 #: Issue 34's take goals: eq. 4.1's worst axis, %, on tracked points as viewers get them
 #: (the live filter's rows), the personal path's and the generic path's.
 GOAL_PERSONAL_PERCENT, GOAL_GENERIC_PERCENT = 2.0, 2.5
+#: The blink curve /perform sends with the walk-through's closed eyes unless its URL says
+#: ``?blink=`` (``client/viewer/src/perform/params.js`` ``PAGE_BLINK_CONTRAST``; the page's
+#: test reads it off the wire against this): the page's tracker reads a held look down
+#: partly closed where ``facecast perform``'s does not, so the page's curve starts higher
+#: than the server's ``rebase.REBASE_BLINK_CONTRAST`` (README, issue 34's option (aj)).
+PAGE_BLINK_CONTRAST = (0.5, 0.85)
 
 
 @dataclass(frozen=True, eq=False)
@@ -304,18 +311,21 @@ def generic_rig(
     neutral: npt.ArrayLike,
     noise: float | None,
     keys: Mapping[str, np.ndarray] | None = None,
+    contrast: tuple[float, float] | None = None,
 ) -> Rig:
     """The generic path: the character's own rig re-based on the performer's captured
     neutral, as a ``calibrate`` carrying the held frames' ``noise`` asks the server to
     (/perform sends one for a rig that is not the performer's): ``rebase.calibrate``. With
     ``keys`` (a capture), its closed eyes go with it (``blinks``), as /perform sends the
-    walk-through's captured ``eyeBlinkLeft`` / ``eyeBlinkRight`` with the neutral.
+    walk-through's captured ``eyeBlinkLeft`` / ``eyeBlinkRight`` with the neutral, read
+    through the blink curve ``contrast`` (calibrate ``blink_contrast``; None: the
+    server's, as a client that sends none gets; /perform sends ``PAGE_BLINK_CONTRAST``).
     """
     if noise is None or keys is None:
         return calibrate(character, neutral, noise)
     k = np.asarray(neutral).shape[0]
     blinks = {name: keys[name][:k] for name in CLOSURE_NAMES if name in keys}
-    return calibrate(character, neutral, noise, blinks or None)
+    return calibrate(character, neutral, noise, blinks or None, contrast if blinks else None)
 
 
 def score(
@@ -468,6 +478,7 @@ def webcam_rows(
     noise: float,
     generic: Mapping[str, tuple[Rig, float | None]] | None = None,
     personal_also: Mapping[str, npt.ArrayLike] | None = None,
+    contrast: tuple[float, float] | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Clone one take's points by each path and score it against the truth.
 
@@ -496,6 +507,9 @@ def webcam_rows(
     personal_also : {label: (F, K, 3)}, optional
         Other points for the same take, each cloned by the personal rig as a row
         ``"personal on <label>"`` (e.g. ``superposition``'s mix of the keys).
+    contrast : (low, high), optional
+        The generic rows' blink curve, as the client's calibrate sends it
+        (``generic_rig``; None: the server's).
 
     Returns
     -------
@@ -522,6 +536,6 @@ def webcam_rows(
         rows[f"personal on {label}"] = score(truth, personal, weights, activations, names)
     for label, (rig, rebase_noise) in (generic or {}).items():
         k = rig.num_points  # a take of a later layout (the iris after 24): the first k
-        rebased = generic_rig(rig, keys["neutral"][:k], rebase_noise, keys)
+        rebased = generic_rig(rig, keys["neutral"][:k], rebase_noise, keys, contrast)
         rows[label] = score(truth, rebased, rebased.weights(points[:, :k]), activations, names)
     return rows

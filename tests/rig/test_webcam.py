@@ -11,6 +11,7 @@ import pytest
 from facecast.cli.main import main
 from facecast.rig.errors import InputError
 from facecast.rig.evaluation.webcam import (
+    PAGE_BLINK_CONTRAST,
     captured_keys,
     eye_closures,
     hold_last_found,
@@ -227,6 +228,47 @@ def test_bench_eyes_clip_on_exact_landmarks_scores_each_event_on_both_paths(tmp_
 @pytest.mark.ict
 @needs_ict
 @pytest.mark.parametrize(
+    ("argv", "tracked"),
+    [
+        ([], list(PAGE_BLINK_CONTRAST)),  # the page's tracks: the curve /perform sends
+        (["--backend", "webgl"], list(PAGE_BLINK_CONTRAST)),
+        (["--backend", "mediapipe"], None),  # `facecast perform` sends none: the server's
+    ],
+)
+def test_bench_reads_the_generic_blinks_through_the_curve_the_trackers_client_sends(
+    argv, tracked, tmp_path
+):
+    out = tmp_path / "webcam.json"
+
+    status = main(["bench", "webcam", "--exact-only", "--eyes-only", "--eyes-short", "--ramp",
+                   "1", "--hold", "3", *argv, "--json", str(out)])  # fmt: skip
+
+    assert status == 0
+    # Exact landmarks are no client's: the server's curve, unless --blink-contrast.
+    assert json.loads(out.read_text())["blink_contrast"] == {"exact": None, "tracked": tracked}
+
+
+@pytest.mark.ict
+@needs_ict
+def test_bench_blink_contrast_reaches_the_generic_rows(tmp_path):
+    # A curve that closes any reading above 0.01: the held look down, which ICT's shape
+    # makes with the lids, now reads shut on the generic path (exact landmarks).
+    shut = {}
+    for curve in (None, "0,0.01"):
+        out = tmp_path / f"{curve}.json"
+        given = [] if curve is None else ["--blink-contrast", curve]
+        assert main(["bench", "webcam", "--exact-only", "--eyes-only", "--eyes-short", "--ramp",
+                     "1", "--hold", "3", *given, "--json", str(out)]) == 0  # fmt: skip
+        report = json.loads(out.read_text())
+        gaze = report["eyes_exact"]["rows"]["generic live"]["gaze"]
+        shut[curve] = {g["direction"]: g["shut"] for g in gaze}
+    assert report["blink_contrast"] == {"exact": [0.0, 0.01], "tracked": [0.0, 0.01]}
+    assert shut[None]["down"] < 0.1 and shut["0,0.01"]["down"] > 0.9, shut
+
+
+@pytest.mark.ict
+@needs_ict
+@pytest.mark.parametrize(
     ("argv", "message"),
     [
         (["--take", "/nonexistent.csv"], "no such file"),
@@ -247,6 +289,13 @@ def test_bench_refuses_bad_arguments_with_a_message(argv, message, capsys):
 
     assert status == 2
     assert message in capsys.readouterr().err
+
+
+def test_bench_refuses_an_unusable_blink_contrast_before_rendering(capsys):
+    with pytest.raises(SystemExit) as stopped:
+        main(["bench", "webcam", "--exact-only", "--blink-contrast", "0.9,0.5"])
+    assert stopped.value.code == 2
+    assert "expected 0 <= LOW < HIGH <= 1" in capsys.readouterr().err
 
 
 @pytest.mark.ict
