@@ -39,7 +39,6 @@ from facecast.rig.evaluation.webcam import (
     GOAL_PERSONAL_PERCENT,
     KEY_HOLD_FRAMES,
     KEY_RAMP_FRAMES,
-    PAGE_BLINK_CONTRAST,
     PERFORMER_IDENTITY,
     Performer,
     captured_keys,
@@ -77,9 +76,6 @@ EYES_KALMAN = (480.0,)
 #: ``--generic-neutral tracked``: frames of ICT's generic face at rest rendered and tracked,
 #: and the first of them left out (the page's eye crops settle over 9 frames, eyelids.js).
 GENERIC_NEUTRAL_FRAMES, GENERIC_NEUTRAL_SETTLE = 30, 10
-#: ``--backend``'s name for ``facecast perform``'s tracks (kept in --videos by
-#: scripts/perform_tracks.py); every other name is a TensorFlow.js backend of the page's.
-PERFORM_BACKEND = "mediapipe"
 
 
 @dataclass(frozen=True, eq=False)
@@ -142,7 +138,11 @@ def _setup(args: argparse.Namespace) -> _Setup:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the exact ICT rig warns to fit with noise: known
         character = fit(examples)
-        generic = character if args.generic_neutral != "shipped" else fit(on_generic_set(examples))
+        generic = (
+            character
+            if args.generic_neutral != "shipped"
+            else fit(on_generic_set(examples, uploaded=args.as_uploaded))
+        )
     return _Setup(
         performer=performer,
         examples=examples,
@@ -222,7 +222,7 @@ def _score_landmarks(
     contrast: tuple[float, float] | None = None,
 ) -> dict[str, Any]:
     """Every path on one kind of landmarks (exact or tracked): the rows and the capture,
-    the generic rows' blinks read through ``contrast`` (``_blink_contrast``).
+    the generic rows' blinks read through ``contrast`` (--blink-contrast; None: the server's).
 
     And the personal and the generic path on the take's points through the live Kalman
     filter at each ``kalman`` acceleration (noise units per s^2, the held frames' noise),
@@ -272,32 +272,13 @@ def _score_landmarks(
     }
 
 
-def _blink_contrast(args: argparse.Namespace) -> tuple[float, float] | None:
-    """The generic path's blink curve on tracked points: --blink-contrast, else the one the
-    tracker's client sends with the captured closed eyes (calibrate ``blink_contrast``):
-    /perform's ``PAGE_BLINK_CONTRAST`` on the page's tracks, none on ``facecast perform``'s
-    (the server's ``rebase.REBASE_BLINK_CONTRAST``). Exact landmarks are no client's: the
-    server's curve, unless --blink-contrast."""
-    if args.blink_contrast is not None:
-        low, high = args.blink_contrast
-        return float(low), float(high)
-    return None if args.backend == PERFORM_BACKEND else PAGE_BLINK_CONTRAST
-
-
-def _curve_text(args: argparse.Namespace, contrast: tuple[float, float] | None) -> str:
-    """Which blink curve the generic rows read the closed eyes through, for the header."""
-
-    def named(curve: tuple[float, float] | None) -> str:
-        if curve is None:
-            return "–".join(f"{v:g}" for v in REBASE_BLINK_CONTRAST) + " (the server's)"
-        text = "–".join(f"{v:g}" for v in curve)
-        page = args.blink_contrast is None and tuple(curve) == PAGE_BLINK_CONTRAST
-        return text + (" (/perform's, which the page sends)" if page else "")
-
-    exact, tracked = named(args.blink_contrast), named(contrast)
-    if exact == tracked:
-        return exact
-    return f"{exact} on exact landmarks, {tracked} on tracked ones"
+def _curve_text(contrast: tuple[float, float] | None) -> str:
+    """The blink curve the generic rows read the captured closed eyes through, for the
+    header: --blink-contrast (as a client's calibrate ``blink_contrast`` asks), else the
+    server's, which /perform and ``facecast perform`` get unless their performer sets one."""
+    if contrast is None:
+        return "–".join(f"{v:g}" for v in REBASE_BLINK_CONTRAST) + " (the server's)"
+    return "–".join(f"{v:g}" for v in contrast) + " (--blink-contrast)"
 
 
 def _eyes_filters(args: argparse.Namespace) -> dict[str, tuple[str, float | None]]:
@@ -558,6 +539,9 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--kalman accelerations must be finite and > 0, got {args.kalman}")
     if args.eyes_only and args.no_eyes:
         raise CommandError("--eyes-only and --no-eyes leave nothing to measure")
+    if args.as_uploaded and args.generic_neutral != "shipped":
+        raise CommandError("--as-uploaded pairs the character on the shipped generic set: "
+                           "only with --generic-neutral shipped")  # fmt: skip
     if args.generic_neutral == "tracked" and args.exact_only:
         raise CommandError("--generic-neutral tracked renders and tracks ICT's generic face: "
                            "not with --exact-only")  # fmt: skip
@@ -572,7 +556,7 @@ def run(args: argparse.Namespace) -> int:
                 setup = _on_tracked_generic_neutral(setup, args, Path(scratch))
     experiment = setup.experiment
     truth_jitter = cloning_error(experiment.truth, experiment.truth)["jitter_percent"]
-    contrast = _blink_contrast(args)
+    contrast = args.blink_contrast
     print(
         f"webcam benchmark: take {setup.take_name} ({len(experiment.activations)} frames at "
         f"{experiment.fps:g} fps) performed by ICT {setup.performer_id}, cloned onto "
@@ -582,7 +566,7 @@ def run(args: argparse.Namespace) -> int:
         f"{truth_jitter:.4f}); worst weight RMS over the ARKit names",
         file=sys.stderr,
     )
-    print(f"the generic path's captured closed eyes read through {_curve_text(args, contrast)}",
+    print(f"the generic path's captured closed eyes read through {_curve_text(contrast)}",
           file=sys.stderr)  # fmt: skip
     performer = setup.performer
     report: dict[str, Any] = {
@@ -594,7 +578,8 @@ def run(args: argparse.Namespace) -> int:
         "sway_degrees": args.sway,
         "gaze_degrees": args.gaze_degrees,
         "generic_neutral": args.generic_neutral,
-        "blink_contrast": {"exact": args.blink_contrast, "tracked": contrast},
+        "blink_contrast": contrast,
+        "as_uploaded": args.as_uploaded,
     }
     if not args.eyes_only:
         exact = _score_landmarks(
@@ -603,7 +588,7 @@ def run(args: argparse.Namespace) -> int:
             performer.landmark_points(setup.clips.activations),
             None,
             kalman=tuple(args.kalman or EYES_KALMAN),
-            contrast=args.blink_contrast,
+            contrast=contrast,
         )
         report["exact"] = exact
         _print_table("exact landmarks (the ICT landmark vertices, head frame)", exact)
@@ -615,7 +600,7 @@ def run(args: argparse.Namespace) -> int:
             args,
             setup.eyes_performer.landmark_points(eyes_activations(setup)),
             None,
-            contrast=args.blink_contrast,
+            contrast=contrast,
         )
         report["eyes_exact"] = eyes
         _print_eyes("exact landmarks", eyes)

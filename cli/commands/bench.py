@@ -184,6 +184,10 @@ def register(subparsers: Subparsers) -> None:
                         "iris centres as the tracker sees ICT's generic face; exact rows use "
                         "ICT's), ICT's landmark vertices, or ICT's generic face rendered at "
                         "rest and tracked, each shape keeping ICT's own displacements")  # fmt: skip
+    webcam.add_argument("--as-uploaded", action="store_true",
+                        help="pair the generic rows' character on the shipped set as an "
+                        "uploaded file's is (gaze left out: its look-at turns its eyes); by "
+                        "default every ARKit shape is paired, gaze too")  # fmt: skip
     webcam.add_argument("--exact-only", action="store_true",
                         help="skip rendering and tracking: the exact-landmark rows only")  # fmt: skip
     webcam.add_argument("--videos", metavar="DIR",
@@ -212,10 +216,10 @@ def register(subparsers: Subparsers) -> None:
                         "mediapipe: `facecast perform`'s tracks kept in --videos by "
                         "scripts/perform_tracks.py")  # fmt: skip
     webcam.add_argument("--blink-contrast", type=blink_contrast_arg, metavar="LOW,HIGH",
-                        help="the generic path's blink curve on tracked points (calibrate "
-                        "blink_contrast; default the one the tracker's client sends: /perform's "
-                        "0.5,0.85 for the page's tracks, none for mediapipe's, which the "
-                        "server reads through its 0.4,0.8)")  # fmt: skip
+                        help="read the generic path's captured closed eyes through this blink "
+                        "curve, as a calibrate's blink_contrast asks (/perform's ?blink=, "
+                        "facecast perform --blink-contrast; default the server's 0.4,0.8, "
+                        "which both get unless the performer sets one)")  # fmt: skip
     webcam.add_argument("--by-name", action="store_true",
                         help="also print each path's RMS weight error per ARKit name")  # fmt: skip
     webcam.add_argument("--json", metavar="FILE", help="write every figure as JSON")

@@ -226,7 +226,9 @@ def eyes_scores(weights: npt.ArrayLike, names: Sequence[str], clip: EyesClip) ->
             })  # fmt: skip
         elif event.kind == "gaze":
             got = _gaze(series, hold)
-            seen = max(got, key=lambda d: got[d])
+            # No direction at all (a rig without eye-look shapes, or one reading none): no
+            # direction is seen, rather than the first of four zeros.
+            seen = max(got, key=lambda d: got[d]) if max(got.values()) > 0 else None
             out["gaze"].append({
                 "direction": event.detail,
                 "seen": seen,

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from ..characters.character_examples import generic_pairing
 from ..characters.generic import generic_sources
 from ..closure import CLOSURE_NAMES
 from ..errors import InputError
@@ -35,7 +36,6 @@ __all__ = [
     "GOAL_PERSONAL_PERCENT",
     "KEY_HOLD_FRAMES",
     "KEY_RAMP_FRAMES",
-    "PAGE_BLINK_CONTRAST",
     "PERFORMER_IDENTITY",
     "KeyClips",
     "Performer",
@@ -68,12 +68,6 @@ CLOSURE_MARGIN = 3
 #: Issue 34's take goals: eq. 4.1's worst axis, %, on tracked points as viewers get them
 #: (the live filter's rows), the personal path's and the generic path's.
 GOAL_PERSONAL_PERCENT, GOAL_GENERIC_PERCENT = 2.0, 2.5
-#: The blink curve /perform sends with the walk-through's closed eyes unless its URL says
-#: ``?blink=`` (``client/viewer/src/perform/params.js`` ``PAGE_BLINK_CONTRAST``; the page's
-#: test reads it off the wire against this): the page's tracker reads a held look down
-#: partly closed where ``facecast perform``'s does not, so the page's curve starts higher
-#: than the server's ``rebase.REBASE_BLINK_CONTRAST`` (README, issue 34's option (aj)).
-PAGE_BLINK_CONTRAST = (0.5, 0.85)
 
 
 @dataclass(frozen=True, eq=False)
@@ -272,10 +266,15 @@ def hold_last_found(points: npt.ArrayLike, found: npt.ArrayLike) -> np.ndarray:
     return out
 
 
-def on_generic_set(examples: ExampleSet) -> ExampleSet:
+def on_generic_set(examples: ExampleSet, *, uploaded: bool = False) -> ExampleSet:
     """``examples`` (ICT's shapes under ARKit names) on facecast's shipped generic set:
     ICT's landmarks with the lids and the iris centres as the tracker sees ICT's generic
-    face (README, option (z)), what a character uploaded as a file is paired with."""
+    face (README, option (z)), the set a character uploaded as a file is paired with. Every
+    shape is kept, gaze too; with ``uploaded`` only those an upload pairs
+    (``characters.generic_pairing``: gaze is left out, ``generic.GAZE_SHAPES``)."""
+    if uploaded:
+        paired, _ = generic_pairing(examples.names[1:])
+        examples = examples.subset([name for name in examples.names[1:] if name in paired])
     shipped = generic_sources()
     found = {name: shipped.source_points(name) for name in examples.names}
     points = [p for p in found.values() if p is not None]
@@ -318,8 +317,9 @@ def generic_rig(
     (/perform sends one for a rig that is not the performer's): ``rebase.calibrate``. With
     ``keys`` (a capture), its closed eyes go with it (``blinks``), as /perform sends the
     walk-through's captured ``eyeBlinkLeft`` / ``eyeBlinkRight`` with the neutral, read
-    through the blink curve ``contrast`` (calibrate ``blink_contrast``; None: the
-    server's, as a client that sends none gets; /perform sends ``PAGE_BLINK_CONTRAST``).
+    through the blink curve ``contrast`` (calibrate ``blink_contrast``: ``?blink=`` on
+    /perform, ``--blink-contrast`` on ``facecast perform``; None: the server's, as a client
+    that sends none gets).
     """
     if noise is None or keys is None:
         return calibrate(character, neutral, noise)

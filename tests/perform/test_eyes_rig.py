@@ -45,13 +45,7 @@ from facecast.rig.evaluation.eyes import (
     eyes_clip,
     eyes_rows,
 )
-from facecast.rig.evaluation.webcam import (
-    PAGE_BLINK_CONTRAST,
-    captured_keys,
-    ict_performer,
-    key_clips,
-    on_generic_set,
-)
+from facecast.rig.evaluation.webcam import captured_keys, ict_performer, key_clips, on_generic_set
 from facecast.rig.sources.ict import DEFAULT_LANDMARKS, ict_regions
 from facecast.rig.sources.ict_arkit import ARKIT_TARGET_IDENTITY, arkit_example_set
 from facecast.rig.sources.layouts import load_layout
@@ -89,8 +83,7 @@ WINK_OTHER = 0.15  # the other eye: 0.01 each side (24 points: 0.02 / 0.07)
 # exact landmarks, the source before: 0.85 / 0.83, 0.05 / 0.14, 1 hold (down). Through the
 # re-base's blink curve (rebase.REBASE_BLINK_CONTRAST, option (ag), 2026-12-05 15:52 UTC):
 # blinks 1.00 / 1.00, the other eye 0.00 / 0.00, the same gaze; the floors below fail
-# without it. Through the page's curve (PAGE_BLINK_CONTRAST 0.5-0.85, which /perform sends,
-# option (aj), 2026-12-05 18:50 UTC): blinks 1.00 / 0.99, the rest the same.
+# without it.
 GENERIC_BLINK_FLOOR = 0.95
 GENERIC_WINK_OTHER = 0.01
 #: The holds the generic path reads right: the tracker hardly sees an eye turn up from the
@@ -156,16 +149,14 @@ def scores(tracked) -> dict[str, Any]:
 def generic_scores(tracked) -> dict[str, Any]:
     """The clip on the generic path, live: the character on facecast's shipped generic
     source (ICT's landmarks with the lids and irises as tracked, option (z)), re-based on
-    the captured neutral with its noise and the captured blinks through the page's blink
-    curve, as /perform's calibrate."""
+    the captured neutral with its noise and the captured blinks, as /perform's calibrate."""
     examples = arkit_example_set(ARCHIVE, identity=ARKIT_TARGET_IDENTITY)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         character = fit(examples)
         generic = fit(on_generic_set(examples))
         rows = eyes_rows(character, tracked.clip, tracked.points, tracked.keys, noise=tracked.noise,
-                         fps=FPS, filters={"live": ("none", None)}, generic=generic,
-                         contrast=PAGE_BLINK_CONTRAST)  # fmt: skip
+                         fps=FPS, filters={"live": ("none", None)}, generic=generic)  # fmt: skip
     out: dict[str, Any] = rows["generic live"]
     print(f"\ngeneric rig (shipped source), live: blinks {out['blinks']}; winks {out['winks']}; "
           f"gaze {[(g['direction'], g['seen']) for g in out['gaze']]}")  # fmt: skip

@@ -21,7 +21,7 @@ from facecast.cli.bench.facevideo import head_scene, write_video
 from facecast.cli.main import main as facecast
 from facecast.rig import fit, load_example_set
 from facecast.rig.evaluation.eyes import EYES_IDENTITY
-from facecast.rig.evaluation.webcam import PAGE_BLINK_CONTRAST, ict_performer
+from facecast.rig.evaluation.webcam import ict_performer
 from facecast.rig.sources.ict import ict_regions, locate_ict
 
 from .conftest import CHARACTER, FPS, Camera, FacePose, open_page, watching
@@ -234,8 +234,7 @@ def test_the_walkthroughs_closed_eye_is_read_as_closed_on_the_generic_rig(
     # shut, looped on the fake camera. Calibrated on the neutral alone, the re-based rig
     # reads the shut eye part-way; once the walk-through's eyeBlinkLeft is captured the
     # page sends it with the neutral and the same rig reads it closed, the other eye open.
-    # The page sends its blink curve with them (§5.1.3 blink_contrast): its own, the one
-    # `bench webcam` scores the page's tracks with, unless its URL names one (?blink=).
+    # The page asks for its own blink curve (?blink=, §5.1.3 blink_contrast) and sends it.
     performer = ict_performer(ARCHIVE, identity=EYES_IDENTITY)
     regions, landmarks68 = ict_regions(ARCHIVE)
     opened = np.zeros((EYES_HOLD, len(performer.names)))
@@ -247,7 +246,8 @@ def test_the_walkthroughs_closed_eye_is_read_as_closed_on_the_generic_rig(
     left, right = names.index("eyeBlinkLeft"), names.index("eyeBlinkRight")
     weights, weights_thread = watching(server, "generic-wink", ict_rig, "weights")
     sent: list = []
-    page = open_page(browser, perform_url(server, "generic-wink", ict_rig), sent=sent)
+    page = open_page(browser, perform_url(server, "generic-wink", ict_rig, blink="0.45,0.85"),
+                     sent=sent)  # fmt: skip
     pages.append(page)
     try:
         page.wait_for_function("window.facecastStats.publish === 'waiting'")
@@ -283,12 +283,11 @@ def test_the_walkthroughs_closed_eye_is_read_as_closed_on_the_generic_rig(
         weights_thread.join(5)
 
     assert stats["closedEyes"] == ["eyeBlinkLeft"]
-    assert stats["blinkContrast"] == list(PAGE_BLINK_CONTRAST)
-    low, high = PAGE_BLINK_CONTRAST
-    assert f"your closed eyes (eyeBlinkLeft, read through {low:g}–{high:g})" in detail
+    assert stats["blinkContrast"] == [0.45, 0.85]
+    assert "your closed eyes (eyeBlinkLeft, read through 0.45–0.85)" in detail
     calibrates = [m for m in map(_message, sent) if m.get("type") == "calibrate"]
     assert "blink_contrast" not in calibrates[0]  # the neutral alone: no curve to send
-    assert calibrates[-1]["blink_contrast"] == list(PAGE_BLINK_CONTRAST)
+    assert calibrates[-1]["blink_contrast"] == [0.45, 0.85]
     assert list(calibrates[-1]["blinks"]) == ["eyeBlinkLeft"]
     received = [(r.seq, np.asarray(r.weights, dtype=float)) for _, r in weights.results]
     # Both windows hold shut-eye frames: the capture itself was made on one.

@@ -10,7 +10,7 @@ import pytest
 from facecast.rig import InputError, fit, load_rig
 from facecast.rig.closure import MIN_CLOSED, ClosureMap, closure_ranges
 from facecast.rig.demo import demo_example_set
-from facecast.rig.evaluation.webcam import PAGE_BLINK_CONTRAST, generic_rig, ict_performer
+from facecast.rig.evaluation.webcam import generic_rig, ict_performer
 from facecast.rig.fit import refit_noise
 from facecast.rig.rebase import REBASE_BLINK_CONTRAST, calibrate
 from facecast.rig.retarget import fit_performer
@@ -238,15 +238,15 @@ def test_the_benchmarks_generic_path_reads_the_blinks_through_the_clients_curve(
     character, generic_calibrate
 ):
     """``bench webcam``'s generic rows (``webcam.generic_rig``) re-base as the client's
-    calibrate asks: through the curve /perform sends, the server's when none is sent, and
-    no curve without captured closed eyes (the calibrate then carries none)."""
+    calibrate asks: through the performer's own curve when one is sent (``?blink=``), the
+    server's when none is, and no curve without captured closed eyes (the calibrate then
+    carries none)."""
     neutral, blinks = generic_calibrate
     keys = {"neutral": neutral, **blinks}
-    page = generic_rig(character, neutral, SIGMA, keys, PAGE_BLINK_CONTRAST)
+    own = generic_rig(character, neutral, SIGMA, keys, (0.5, 0.85))
     server = generic_rig(character, neutral, SIGMA, keys)
-    alone = generic_rig(character, neutral, SIGMA, {"neutral": neutral}, PAGE_BLINK_CONTRAST)
-    assert PAGE_BLINK_CONTRAST != REBASE_BLINK_CONTRAST
-    assert page.fit_report["closure_contrast"] == list(PAGE_BLINK_CONTRAST)
+    alone = generic_rig(character, neutral, SIGMA, {"neutral": neutral}, (0.5, 0.85))
+    assert own.fit_report["closure_contrast"] == [0.5, 0.85]
     assert server.fit_report["closure_contrast"] == list(REBASE_BLINK_CONTRAST)
     assert "closure" not in alone.fit_report and "closure_contrast" not in alone.fit_report
 

@@ -107,6 +107,18 @@ def test_gaze_the_wrong_way_and_a_weak_smile_fail_their_goals():
     assert scores["goals"] == {"blinks": True, "winks": True, "gaze": False, "combo": False}
 
 
+def test_a_rig_without_eye_look_shapes_sees_no_direction():
+    # An uploaded character's rig leaves gaze unpaired (its look-at turns its eyes): no
+    # hold is credited with the first of four zero directions.
+    clip = eyes_clip(NAMES)
+    gazeless = [i for i, name in enumerate(NAMES) if not name.startswith("eyeLook")]
+
+    scores = eyes_scores(clip.activations[:, gazeless], [NAMES[i] for i in gazeless], clip)
+
+    assert [(g["seen"], g["right"], g["share"]) for g in scores["gaze"]] == [(None, False, 0.0)] * 4
+    assert scores["goals"]["gaze"] is False and scores["goals"]["blinks"] is True
+
+
 def test_weights_of_the_wrong_shape_are_refused():
     clip = eyes_clip(NAMES)
 

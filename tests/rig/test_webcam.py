@@ -9,19 +9,22 @@ import numpy as np
 import pytest
 
 from facecast.cli.main import main
+from facecast.rig.characters.character_examples import generic_pairing
+from facecast.rig.characters.generic import GAZE_SHAPES
 from facecast.rig.errors import InputError
 from facecast.rig.evaluation.webcam import (
-    PAGE_BLINK_CONTRAST,
     captured_keys,
     eye_closures,
     hold_last_found,
     ict_performer,
     key_clips,
+    on_generic_set,
     source_on_neutral,
     superposition,
 )
 from facecast.rig.examples import ExampleSet
 from facecast.rig.sources.ict import DEFAULT_LANDMARKS, ict_regions, locate_ict
+from facecast.rig.sources.ict_arkit import arkit_example_set
 
 ARCHIVE = locate_ict()
 needs_ict = pytest.mark.skipif(
@@ -227,32 +230,11 @@ def test_bench_eyes_clip_on_exact_landmarks_scores_each_event_on_both_paths(tmp_
 
 @pytest.mark.ict
 @needs_ict
-@pytest.mark.parametrize(
-    ("argv", "tracked"),
-    [
-        ([], list(PAGE_BLINK_CONTRAST)),  # the page's tracks: the curve /perform sends
-        (["--backend", "webgl"], list(PAGE_BLINK_CONTRAST)),
-        (["--backend", "mediapipe"], None),  # `facecast perform` sends none: the server's
-    ],
-)
-def test_bench_reads_the_generic_blinks_through_the_curve_the_trackers_client_sends(
-    argv, tracked, tmp_path
-):
-    out = tmp_path / "webcam.json"
-
-    status = main(["bench", "webcam", "--exact-only", "--eyes-only", "--eyes-short", "--ramp",
-                   "1", "--hold", "3", *argv, "--json", str(out)])  # fmt: skip
-
-    assert status == 0
-    # Exact landmarks are no client's: the server's curve, unless --blink-contrast.
-    assert json.loads(out.read_text())["blink_contrast"] == {"exact": None, "tracked": tracked}
-
-
-@pytest.mark.ict
-@needs_ict
 def test_bench_blink_contrast_reaches_the_generic_rows(tmp_path):
-    # A curve that closes any reading above 0.01: the held look down, which ICT's shape
-    # makes with the lids, now reads shut on the generic path (exact landmarks).
+    # --blink-contrast reads the generic path's closed eyes as a calibrate's blink_contrast
+    # asks (without it, the server's curve). One that closes any reading above 0.01: the
+    # held look down, which ICT's shape makes with the lids, then reads shut (exact
+    # landmarks).
     shut = {}
     for curve in (None, "0,0.01"):
         out = tmp_path / f"{curve}.json"
@@ -262,7 +244,7 @@ def test_bench_blink_contrast_reaches_the_generic_rows(tmp_path):
         report = json.loads(out.read_text())
         gaze = report["eyes_exact"]["rows"]["generic live"]["gaze"]
         shut[curve] = {g["direction"]: g["shut"] for g in gaze}
-    assert report["blink_contrast"] == {"exact": [0.0, 0.01], "tracked": [0.0, 0.01]}
+    assert report["blink_contrast"] == [0.0, 0.01]
     assert shut[None]["down"] < 0.1 and shut["0,0.01"]["down"] > 0.9, shut
 
 
@@ -282,6 +264,7 @@ def test_bench_blink_contrast_reaches_the_generic_rows(tmp_path):
         (["--eyes-only", "--no-eyes"], "nothing to measure"),
         (["--kalman", "0"], "finite and > 0"),
         (["--landmarks", "17,70"], "positions must lie in [0, 68)"),
+        (["--as-uploaded", "--generic-neutral", "ict"], "only with --generic-neutral shipped"),
     ],
 )
 def test_bench_refuses_bad_arguments_with_a_message(argv, message, capsys):
@@ -289,6 +272,22 @@ def test_bench_refuses_bad_arguments_with_a_message(argv, message, capsys):
 
     assert status == 2
     assert message in capsys.readouterr().err
+
+
+@pytest.mark.ict
+@needs_ict
+def test_as_uploaded_the_character_is_paired_as_an_upload_pairs_it():
+    examples = arkit_example_set(ARCHIVE)
+
+    every = on_generic_set(examples)
+    uploaded = on_generic_set(examples, uploaded=True)
+
+    paired, unpaired = generic_pairing(examples.names[1:])
+    assert uploaded.names == ("neutral", *paired)
+    assert set(every.names) - set(uploaded.names) == set(GAZE_SHAPES) <= set(unpaired)
+    # The same source points for the shapes both keep: only the pairing differs.
+    kept = [every.names.index(name) for name in uploaded.names]
+    np.testing.assert_array_equal(uploaded.source_points, every.source_points[kept])
 
 
 def test_bench_refuses_an_unusable_blink_contrast_before_rendering(capsys):

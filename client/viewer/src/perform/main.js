@@ -73,7 +73,7 @@ const stats = {
   smoothing: null, // the server's filter of the points ("kalman", "one-euro"; null: none)
   neutralNoise: null, // σ of the neutral capture's held frames, sent with the calibrate
   closedEyes: [], // the captured closed eyes sent with it (eyeBlinkLeft / eyeBlinkRight)
-  blinkContrast: null, // the blink curve sent with them (?blink=, else the page's), or null
+  blinkContrast: null, // the performer's own blink curve sent with them (?blink=), or null
   calibrateSentAt: null, // frames published before the last calibrate was sent
   rig: null,
   channel: null,

@@ -8,13 +8,6 @@ const PERFORMER = /^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$/;
 const BACKENDS = new Set(["wasm", "webgl", "cpu"]);
 // The live filter of the published points (the server's, PROTOCOL.md §5.1.1).
 const SMOOTHING = new Set(["auto", "off"]);
-// The blink curve this page sends with the walk-through's closed eyes when its URL names
-// none (PROTOCOL.md §5.1.3 blink_contrast): this page's tracker reads a held look down
-// partly closed, so its curve starts higher than the server's 0.4,0.8 (a look down at the
-// chat read 0.27 closed instead of 0.43, quick blinks still whole: README, issue 34's
-// option (aj)). bench webcam scores the page's tracks with the same pair
-// (rig/evaluation/webcam.py PAGE_BLINK_CONTRAST; the page's test checks the wire against it).
-export const PAGE_BLINK_CONTRAST = Object.freeze([0.5, 0.85]);
 
 /**
  * channel (required): publish to /v1/channels/{channel}/publish
@@ -27,7 +20,7 @@ export const PAGE_BLINK_CONTRAST = Object.freeze([0.5, 0.85]);
  * blink: LOW,HIGH, the performer's own blink curve for a character's rig, sent with the
  *      walk-through's closed eyes (PROTOCOL.md §5.1.3 blink_contrast; 0 <= LOW < HIGH <= 1):
  *      raise LOW if the character half-closes its eyes when you look down, lower HIGH if
- *      your blinks do not close them (default PAGE_BLINK_CONTRAST, 0.5,0.85)
+ *      your blinks do not close them (default: the server's, 0.4,0.8)
  */
 export function readPerformParams(href) {
   const q = new URL(href).searchParams;
@@ -48,9 +41,9 @@ export function readPerformParams(href) {
   return { ...params, mode: "publish", performer, character, backend, smoothing, blinkContrast };
 }
 
-/** `blink=LOW,HIGH` as [low, high] (0 <= low < high <= 1); PAGE_BLINK_CONTRAST when absent. */
+/** `blink=LOW,HIGH` as [low, high] (0 <= low < high <= 1), or null when absent. */
 function readBlinkContrast(text) {
-  if (text === null || text === "") return [...PAGE_BLINK_CONTRAST];
+  if (text === null || text === "") return null;
   const parts = text.split(",");
   const [low, high] = parts.map((part) => (part.trim() === "" ? Number.NaN : Number(part)));
   if (parts.length !== 2 || !(low >= 0 && low < high && high <= 1)) {
