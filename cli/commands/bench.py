@@ -185,9 +185,10 @@ def register(subparsers: Subparsers) -> None:
                         "ICT's), ICT's landmark vertices, or ICT's generic face rendered at "
                         "rest and tracked, each shape keeping ICT's own displacements")  # fmt: skip
     webcam.add_argument("--as-uploaded", action="store_true",
-                        help="pair the generic rows' character on the shipped set as an "
-                        "uploaded file's is (gaze left out: its look-at turns its eyes); by "
-                        "default every ARKit shape is paired, gaze too")  # fmt: skip
+                        help="pair the tracked generic rows' character on the shipped set as "
+                        "an uploaded file's is (gaze left out: its look-at turns its eyes); by "
+                        "default every ARKit shape is paired, gaze too (the exact rows keep "
+                        "ICT's landmarks and every shape)")  # fmt: skip
     webcam.add_argument("--exact-only", action="store_true",
                         help="skip rendering and tracking: the exact-landmark rows only")  # fmt: skip
     webcam.add_argument("--videos", metavar="DIR",
