@@ -56,7 +56,8 @@ class Calibrate(_ArrayMessage):
         blink weight so that the re-based rig reads the performer's closed eye as 1.
     blink_contrast : (low, high) floats or None
         The performer's own curve for those blinks, 0 <= low < high <= 1: a mapped blink
-        below low reads open, above high closed (the server's own 0.4, 0.8 when None);
+        below low reads open, above high closed (the server's own when None: 0.4, 0.8 for a
+        rig with eye-look examples, 0.4, 0.7 for one without);
         needs ``blinks``.
     """
 

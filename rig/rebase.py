@@ -8,7 +8,7 @@ I/O; it must not change the rig it is given.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -22,11 +22,14 @@ from .weight_model import Floats, WeightModel
 
 __all__ = [
     "DEPTH_NOISE_FACTOR",
+    "GAZE_PREFIXES",
     "IDENTITY_NOISE_FACTOR",
     "MAX_NOISE_RELATIVE",
     "REBASE_BLINK_CONTRAST",
+    "REBASE_BLINK_CONTRAST_GAZELESS",
     "REBASE_CLAMP",
     "calibrate",
+    "default_contrast",
     "identity_noise",
     "rebase",
 ]
@@ -75,8 +78,29 @@ REBASE_CLAMP = "unit"
 #: curve opens their small closing). 0.3-0.7 leaves a held gaze at 0.28-0.69, 0.5-0.9 takes
 #: a quick blink's least peak to 0.94 (README, issue 34's option (ag)). The performer's own
 #: rig (``fit_performer``) keeps the linear map: there the curve took the take's error
-#: above NNLS's.
+#: above NNLS's. This is the curve of a rig that reads gaze (it has eye-look examples).
 REBASE_BLINK_CONTRAST = (0.4, 0.8)
+#: The curve of a rig with no eye-look examples, as a character uploaded as a file is
+#: paired (its look-at turns its eyes): nothing but the blinks explains the lids' motion, so
+#: a blink reads less whole and a look less closed. Its high end lower: on `bench webcam
+#: --as-uploaded` (live Kalman rows, 2026-12-05 19:35 UTC) the page's quick blinks 0.87 /
+#: 0.97 -> 1.00 / 1.00, `facecast perform`'s 0.79 / 0.94 -> 0.99 / 1.00, and the real
+#: take's slower right-eye closure on `facecast perform`'s tracks 0.65 -> 0.93 of the truth
+#: (0.41 -> 0.64 with the eyes still); a held look down reads 0.20 -> 0.31 shut (page),
+#: 0.34 -> 0.49 (`facecast perform`), the takes within 0.02 (README, issue 34's option
+#: (ak)). On a rig with eye-look examples the same curve reads that look down 0.43 -> 0.55
+#: shut with every blink already whole, so it keeps ``REBASE_BLINK_CONTRAST``.
+REBASE_BLINK_CONTRAST_GAZELESS = (0.4, 0.7)
+#: A rig reads gaze when it has an example named with one of these: ARKit's eye-look shapes
+#: and VRM's look presets.
+GAZE_PREFIXES = ("eyeLook", "look")
+
+
+def default_contrast(names: Sequence[str]) -> tuple[float, float]:
+    """The server's blink curve for a rig with these example ``names``: whether it reads
+    gaze decides (``REBASE_BLINK_CONTRAST`` / ``REBASE_BLINK_CONTRAST_GAZELESS``)."""
+    reads_gaze = any(name.startswith(GAZE_PREFIXES) for name in names)
+    return REBASE_BLINK_CONTRAST if reads_gaze else REBASE_BLINK_CONTRAST_GAZELESS
 
 
 def identity_noise(rig: Rig, neutral: npt.ArrayLike) -> float:
@@ -236,11 +260,11 @@ def calibrate(
     captured closed eyes, some or both) each blink weight is mapped so that the re-based
     rig reads the performer's own closed eye as 1 and their neutral as 0 (``closure``, as
     ``fit_performer`` does with a personal capture), then through the contrast curve
-    ``contrast`` (low, high) (None: ``REBASE_BLINK_CONTRAST``; the performer's own, as
-    calibrate ``blink_contrast`` carries it: ``closure.check_contrast``). Names the rig
-    lacks are ignored.
+    ``contrast`` (low, high) (None: the server's for this rig, ``default_contrast``; the
+    performer's own, as calibrate ``blink_contrast`` carries it: ``closure.check_contrast``).
+    Names the rig lacks are ignored.
     """
-    curve = REBASE_BLINK_CONTRAST if contrast is None else check_contrast(contrast)
+    curve = default_contrast(rig.names) if contrast is None else check_contrast(contrast)
     if noise is None:
         return rig.calibrated(neutral)
     rebased = rebase(rig, neutral, noise=noise)

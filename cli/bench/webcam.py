@@ -51,7 +51,11 @@ from facecast.rig.evaluation.webcam import (
     webcam_rows,
 )
 from facecast.rig.filters import KalmanFilter
-from facecast.rig.rebase import REBASE_BLINK_CONTRAST
+from facecast.rig.rebase import (
+    REBASE_BLINK_CONTRAST,
+    REBASE_BLINK_CONTRAST_GAZELESS,
+    default_contrast,
+)
 from facecast.rig.sources.capture import robust_example
 from facecast.rig.sources.ict import DEFAULT_LANDMARKS, ict_regions, locate_ict
 from facecast.rig.sources.ict_arkit import ARKIT_TARGET_IDENTITY, arkit_example_set
@@ -272,13 +276,22 @@ def _score_landmarks(
     }
 
 
-def _curve_text(contrast: tuple[float, float] | None) -> str:
+def _curve_text(contrast: tuple[float, float] | None, generic: Rig) -> str:
     """The blink curve the generic rows read the captured closed eyes through, for the
     header: --blink-contrast (as a client's calibrate ``blink_contrast`` asks), else the
-    server's, which /perform and ``facecast perform`` get unless their performer sets one."""
-    if contrast is None:
-        return "–".join(f"{v:g}" for v in REBASE_BLINK_CONTRAST) + " (the server's)"
-    return "–".join(f"{v:g}" for v in contrast) + " (--blink-contrast)"
+    server's for each rig (``rebase.default_contrast``), which /perform and ``facecast
+    perform`` get unless their performer sets one."""
+
+    def text(curve: tuple[float, float]) -> str:
+        return "–".join(f"{v:g}" for v in curve)
+
+    if contrast is not None:
+        return f"{text(contrast)} (--blink-contrast)"
+    return (
+        f"the server's for each rig ({text(REBASE_BLINK_CONTRAST)} with eye-look shapes, "
+        f"{text(REBASE_BLINK_CONTRAST_GAZELESS)} without; the tracked generic rows' "
+        f"{text(default_contrast(generic.names))})"
+    )
 
 
 def _eyes_filters(args: argparse.Namespace) -> dict[str, tuple[str, float | None]]:
@@ -566,8 +579,11 @@ def run(args: argparse.Namespace) -> int:
         f"{truth_jitter:.4f}); worst weight RMS over the ARKit names",
         file=sys.stderr,
     )
-    print(f"the generic path's captured closed eyes read through {_curve_text(contrast)}",
-          file=sys.stderr)  # fmt: skip
+    print(
+        "the generic path's captured closed eyes read through "
+        + _curve_text(contrast, setup.generic),
+        file=sys.stderr,
+    )
     performer = setup.performer
     report: dict[str, Any] = {
         "take": setup.take_name,

@@ -219,8 +219,9 @@ def register(subparsers: Subparsers) -> None:
     webcam.add_argument("--blink-contrast", type=blink_contrast_arg, metavar="LOW,HIGH",
                         help="read the generic path's captured closed eyes through this blink "
                         "curve, as a calibrate's blink_contrast asks (/perform's ?blink=, "
-                        "facecast perform --blink-contrast; default the server's 0.4,0.8, "
-                        "which both get unless the performer sets one)")  # fmt: skip
+                        "facecast perform --blink-contrast; default the server's for each rig, "
+                        "0.4,0.8 with eye-look shapes and 0.4,0.7 without, which both get "
+                        "unless the performer sets one)")  # fmt: skip
     webcam.add_argument("--by-name", action="store_true",
                         help="also print each path's RMS weight error per ARKit name")  # fmt: skip
     webcam.add_argument("--json", metavar="FILE", help="write every figure as JSON")

@@ -105,7 +105,8 @@ def register(subparsers: Subparsers) -> None:
         default=None,
         metavar="LOW,HIGH",
         help="with --winks: your own blink curve, 0 <= LOW < HIGH <= 1 (a blink read at LOW "
-        "or less shows open, at HIGH or more closed; default the server's, 0.4,0.8): raise "
+        "or less shows open, at HIGH or more closed; default the server's: 0.4,0.8 for a "
+        "character whose eyes follow the gaze shapes, 0.4,0.7 for one without them): raise "
         "LOW if the character half-closes its eyes when you look down, lower HIGH if your "
         "blinks do not close them (PROTOCOL.md §5.1.3 blink_contrast)",
     )

@@ -46,6 +46,7 @@ from facecast.rig.evaluation.eyes import (
     eyes_rows,
 )
 from facecast.rig.evaluation.webcam import captured_keys, ict_performer, key_clips, on_generic_set
+from facecast.rig.rebase import REBASE_BLINK_CONTRAST
 from facecast.rig.sources.ict import DEFAULT_LANDMARKS, ict_regions
 from facecast.rig.sources.ict_arkit import ARKIT_TARGET_IDENTITY, arkit_example_set
 from facecast.rig.sources.layouts import load_layout
@@ -85,6 +86,10 @@ WINK_OTHER = 0.15  # the other eye: 0.01 each side (24 points: 0.02 / 0.07)
 # blinks 1.00 / 1.00, the other eye 0.00 / 0.00, the same gaze; the floors below fail
 # without it.
 GENERIC_BLINK_FLOOR = 0.95
+#: A character uploaded as a file (gaze left out), through the server's curve for a rig
+#: without gaze (rebase.REBASE_BLINK_CONTRAST_GAZELESS, option (ak), 2026-12-05 19:50 UTC):
+#: 1.00 / 1.00; through the curve of a rig that reads gaze 0.95 / 1.00.
+UPLOADED_BLINK_FLOOR = 0.97
 GENERIC_WINK_OTHER = 0.01
 #: The holds the generic path reads right: the tracker hardly sees an eye turn up from the
 #: lids' own rise (the iris moves down with the lids in the face frame, test_iris.py).
@@ -163,6 +168,28 @@ def generic_scores(tracked) -> dict[str, Any]:
     return out
 
 
+@pytest.fixture(scope="module")
+def uploaded_scores(tracked) -> dict[str, Any]:
+    """The clip on the generic path of a character uploaded as a file: the same shipped
+    source, gaze left out as an upload pairs it (its look-at turns its eyes), re-based as
+    /perform's calibrate asks, through the server's curve for a rig without gaze."""
+    examples = arkit_example_set(ARCHIVE, identity=ARKIT_TARGET_IDENTITY)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        character = fit(examples)
+        uploaded = fit(on_generic_set(examples, uploaded=True))
+        rows = {
+            curve: eyes_rows(character, tracked.clip, tracked.points, tracked.keys,
+                             noise=tracked.noise, fps=FPS, filters={"live": ("none", None)},
+                             generic=uploaded, contrast=curve)["generic live"]
+            for curve in (None, REBASE_BLINK_CONTRAST)
+        }  # fmt: skip
+    out: dict[str, Any] = rows[None]
+    print(f"\nuploaded character, live: blinks {out['blinks']} ({rows[REBASE_BLINK_CONTRAST]['blinks']} "
+          f"through a gaze rig's curve); winks {out['winks']}")  # fmt: skip
+    return out
+
+
 def test_a_quick_blink_peaks_on_both_eyes(scores):
     (blink,) = scores["blinks"]
     assert min(blink.values()) >= BLINK_FLOOR, blink
@@ -193,3 +220,13 @@ def test_on_the_generic_path_a_quick_blink_peaks_on_both_eyes_and_a_wink_stays_o
 def test_on_the_generic_path_the_iris_gives_the_gaze_but_up(generic_scores):
     seen = {g["direction"]: g["seen"] for g in generic_scores["gaze"]}
     assert {d: seen[d] for d in GENERIC_GAZE} == {d: d for d in GENERIC_GAZE}, seen
+
+
+def test_an_uploaded_characters_quick_blink_peaks_and_its_gaze_is_left_to_its_look_at(
+    uploaded_scores,
+):
+    (blink,) = uploaded_scores["blinks"]
+    assert min(blink.values()) >= UPLOADED_BLINK_FLOOR, blink
+    for wink in uploaded_scores["winks"]:
+        assert wink["peak"] >= WINK_EYE and wink["other"] <= GENERIC_WINK_OTHER, wink
+    assert [g["seen"] for g in uploaded_scores["gaze"]] == [None] * 4  # no eye-look shapes

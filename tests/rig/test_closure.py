@@ -12,7 +12,12 @@ from facecast.rig.closure import MIN_CLOSED, ClosureMap, closure_ranges
 from facecast.rig.demo import demo_example_set
 from facecast.rig.evaluation.webcam import generic_rig, ict_performer
 from facecast.rig.fit import refit_noise
-from facecast.rig.rebase import REBASE_BLINK_CONTRAST, calibrate
+from facecast.rig.rebase import (
+    REBASE_BLINK_CONTRAST,
+    REBASE_BLINK_CONTRAST_GAZELESS,
+    calibrate,
+    default_contrast,
+)
 from facecast.rig.retarget import fit_performer
 from facecast.rig.sources.ict import locate_ict
 from facecast.rig.sources.ict_arkit import arkit_example_set
@@ -249,6 +254,35 @@ def test_the_benchmarks_generic_path_reads_the_blinks_through_the_clients_curve(
     assert own.fit_report["closure_contrast"] == [0.5, 0.85]
     assert server.fit_report["closure_contrast"] == list(REBASE_BLINK_CONTRAST)
     assert "closure" not in alone.fit_report and "closure_contrast" not in alone.fit_report
+
+
+def test_the_servers_curve_depends_on_whether_the_rig_reads_gaze():
+    # README, issue 34's option (ak): a rig without eye-look examples (an uploaded
+    # character's: its look-at turns its eyes) reads a blink less whole, so its high end is
+    # lower; ARKit's eye-look shapes and VRM's look presets both count as gaze.
+    assert default_contrast(("neutral", "eyeBlinkLeft", "eyeLookDownLeft")) == REBASE_BLINK_CONTRAST
+    assert default_contrast(("neutral", "blink", "lookUp")) == REBASE_BLINK_CONTRAST
+    assert default_contrast(("neutral", "eyeBlinkLeft", "jawOpen")) == (
+        REBASE_BLINK_CONTRAST_GAZELESS
+    )
+    low, high = REBASE_BLINK_CONTRAST_GAZELESS
+    assert low == REBASE_BLINK_CONTRAST[0] and high < REBASE_BLINK_CONTRAST[1]
+
+
+@pytest.mark.ict
+@needs_ict
+def test_a_rig_without_gaze_is_rebased_through_the_gazeless_curve(generic_calibrate):
+    """A character paired as an upload pairs it (no eye-look examples), re-based with the
+    performer's closed eyes and no curve of their own, reads them through the server's
+    curve for a rig without gaze."""
+    neutral, blinks = generic_calibrate
+    examples = arkit_example_set(locate_ict(), identity="person01")
+    gazeless = [n for n in examples.names[1:] if not n.startswith("eyeLook")]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rig = fit(examples.subset(gazeless))
+    rebased = calibrate(rig, neutral[: rig.num_points], SIGMA, blinks)
+    assert rebased.fit_report["closure_contrast"] == list(REBASE_BLINK_CONTRAST_GAZELESS)
 
 
 @pytest.mark.parametrize(

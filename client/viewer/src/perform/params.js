@@ -20,7 +20,8 @@ const SMOOTHING = new Set(["auto", "off"]);
  * blink: LOW,HIGH, the performer's own blink curve for a character's rig, sent with the
  *      walk-through's closed eyes (PROTOCOL.md §5.1.3 blink_contrast; 0 <= LOW < HIGH <= 1):
  *      raise LOW if the character half-closes its eyes when you look down, lower HIGH if
- *      your blinks do not close them (default: the server's, 0.4,0.8)
+ *      your blinks do not close them (default: the server's, 0.4,0.8 for a character
+ *      with eye-look shapes, 0.4,0.7 for one without)
  */
 export function readPerformParams(href) {
   const q = new URL(href).searchParams;
