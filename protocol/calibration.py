@@ -57,8 +57,7 @@ class Calibrate(_ArrayMessage):
     blink_contrast : (low, high) floats or None
         The performer's own curve for those blinks, 0 <= low < high <= 1: a mapped blink
         below low reads open, above high closed (the server's own when None: 0.4, 0.8 for a
-        rig with eye-look examples, 0.4, 0.7 for one without);
-        needs ``blinks``.
+        rig with eye-look examples, 0.4, 0.7 for one without); needs ``blinks``.
     """
 
     TYPE: ClassVar[str] = "calibrate"

@@ -13,6 +13,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import numpy.typing as npt
 
+from .characters.generic import is_gaze
 from .closure import CLOSURE_NAMES, check_contrast
 from .errors import InputError
 from .fit import fit_weight_model
@@ -22,7 +23,6 @@ from .weight_model import Floats, WeightModel
 
 __all__ = [
     "DEPTH_NOISE_FACTOR",
-    "GAZE_PREFIXES",
     "IDENTITY_NOISE_FACTOR",
     "MAX_NOISE_RELATIVE",
     "REBASE_BLINK_CONTRAST",
@@ -91,15 +91,13 @@ REBASE_BLINK_CONTRAST = (0.4, 0.8)
 #: (ak)). On a rig with eye-look examples the same curve reads that look down 0.43 -> 0.55
 #: shut with every blink already whole, so it keeps ``REBASE_BLINK_CONTRAST``.
 REBASE_BLINK_CONTRAST_GAZELESS = (0.4, 0.7)
-#: A rig reads gaze when it has an example named with one of these: ARKit's eye-look shapes
-#: and VRM's look presets.
-GAZE_PREFIXES = ("eyeLook", "look")
 
 
 def default_contrast(names: Sequence[str]) -> tuple[float, float]:
     """The server's blink curve for a rig with these example ``names``: whether it reads
-    gaze decides (``REBASE_BLINK_CONTRAST`` / ``REBASE_BLINK_CONTRAST_GAZELESS``)."""
-    reads_gaze = any(name.startswith(GAZE_PREFIXES) for name in names)
+    gaze (an example ``characters.generic.is_gaze``: ARKit's eye-look shapes, VRM's look
+    presets) decides (``REBASE_BLINK_CONTRAST`` / ``REBASE_BLINK_CONTRAST_GAZELESS``)."""
+    reads_gaze = any(is_gaze(name) for name in names)
     return REBASE_BLINK_CONTRAST if reads_gaze else REBASE_BLINK_CONTRAST_GAZELESS
 
 

@@ -24,11 +24,11 @@ from .generic import (
     CHARACTER_FIT_DEFAULTS,
     DEPENDENT_RELATIVE,
     DRIVEN_SHARE,
-    GAZE_SHAPES,
     GENERIC_ATTRIBUTION,
     PART_COMPOSITIONS,
     PRESET_CHECK_ORDER,
     generic_sources,
+    is_gaze,
 )
 
 __all__ = [
@@ -176,11 +176,9 @@ def _pair_generic(
     ``generic.DRIVEN_SHARE``)."""
     generic = generic_sources()
     names = list(expressions)
-    gaze = set(GAZE_SHAPES)
     left_out: dict[str, str] = {}
     for name in names:
-        shapes = generic.composition(name) or {}
-        if name in gaze or gaze & set(shapes):
+        if is_gaze(name):
             left_out[name] = (
                 "gaze: the generic set's landmarks see the eyelids, not the eyes (a look down "
                 "lowers the upper lid almost as a blink does, and fitted together a closed "

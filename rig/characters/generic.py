@@ -39,6 +39,7 @@ __all__ = [
     "GenericSources",
     "composed_captures",
     "generic_sources",
+    "is_gaze",
     "is_generic_layout",
 ]
 
@@ -133,6 +134,15 @@ _COMPOSED: Final = MappingProxyType({**VRM_COMPOSITIONS, **PART_COMPOSITIONS})
 GAZE_SHAPES: Final = tuple(
     f"eyeLook{way}{side}" for side in (_L, _R) for way in ("Down", "In", "Out", "Up")
 )
+_GAZE: Final = frozenset(GAZE_SHAPES)
+
+
+def is_gaze(name: str) -> bool:
+    """Whether the expression ``name`` is gaze: one of ``GAZE_SHAPES`` or a preset composed
+    of them (VRM's ``lookUp``...). An upload leaves it unpaired; a re-based rig with none
+    reads its blinks through a curve of its own (``rebase.default_contrast``)."""
+    return name in _GAZE or not _GAZE.isdisjoint(_COMPOSED.get(name, ()))
+
 
 #: A composed VRM preset whose motion the character's own ARKit shapes carry at least this
 #: share of (``GenericSources.driven_share``) is left unpaired: paired too, it would drive

@@ -17,6 +17,7 @@ from facecast.rig.characters.generic import (
     VRM_COMPOSITIONS,
     composed_captures,
     generic_sources,
+    is_gaze,
 )
 from facecast.rig.examples import ExampleSet
 
@@ -104,6 +105,9 @@ def test_every_composed_preset_is_checked_and_gaze_is_the_eight_look_shapes():
     generic = generic_sources()
     assert set(GAZE_SHAPES) == {n for n in generic.names if n.startswith("eyeLook")}
     assert len(GAZE_SHAPES) == 8
+    # Gaze: the eight shapes and the presets composed of them, nothing else.
+    gaze = {n for n in (*generic.names, *PRESET_CHECK_ORDER) if is_gaze(n)}
+    assert gaze == {*GAZE_SHAPES, "lookUp", "lookDown", "lookLeft", "lookRight"}
 
 
 def test_the_default_noise_keeps_the_generic_sets_own_poses_at_full_strength():
